@@ -1,0 +1,251 @@
+"""The ``pvs`` command line: the one place that knows every package (the composition root).
+
+Subcommands: ``serve`` (the edge server), ``walk`` (headless client over a walkthrough),
+``query`` (a cell's PVS over HTTP), ``scenes`` (list or describe scenes), ``demo`` (server +
+client end to end on a built-in scene). Packages stay independent of each other; only this
+module imports both the server and the client, each lazily inside its subcommand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+#: Where the real third-party scenes live when the repository sits beside ``shared/``.
+DEFAULT_SCENES_DIR = Path(__file__).resolve().parent.parent / "shared" / "scenes"
+
+
+def _parse_params(items: list[str] | None) -> dict:
+    """``["resolution=128", "runs=2"]`` -> {"resolution": 128, "runs": 2} (JSON values)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise SystemExit(f"--param takes NAME=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from server.app import serve
+    from server.settings import Settings
+
+    settings = Settings.from_env()
+    updates = {"host": args.host, "port": args.port}
+    if args.scenes:
+        updates["scenes_dir"] = Path(args.scenes)
+    elif DEFAULT_SCENES_DIR.is_dir():
+        updates["scenes_dir"] = DEFAULT_SCENES_DIR
+    if args.core:
+        updates["default_core"] = args.core
+    if args.cell_size:
+        updates["cell_size"] = args.cell_size
+    if args.workers:
+        updates["workers"] = args.workers
+    settings = settings.model_copy(update=updates)
+    serve(settings)
+    return 0
+
+
+def cmd_walk(args: argparse.Namespace) -> int:
+    from client.replay import ReplayOptions, replay_cores
+
+    opts = ReplayOptions(
+        server=args.server,
+        scene=args.scene,
+        cores=[c for c in args.core.split(",") if c],
+        params=_parse_params(args.param),
+        walkthrough=Path(args.walkthrough) if args.walkthrough else None,
+        out_dir=Path(args.out),
+        scenes_dir=Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR,
+        duration=args.duration,
+        width=args.width,
+        height=args.height,
+        realtime=args.realtime,
+        seed=args.seed,
+        quiet=args.quiet,
+    )
+    summaries = replay_cores(opts)
+    bad = [s for s in summaries if s.get("frames_rendered", 0) == 0]
+    return 1 if bad else 0
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    import httpx
+
+    params = {"core": args.core, **_parse_params(args.param)}
+    url = f"{args.server.rstrip('/')}/scenes/{args.scene}/cells/{args.cell}/pvs"
+    r = httpx.get(url, params=params, timeout=args.timeout)
+    body = r.json()
+    if r.status_code != 200:
+        print(json.dumps(body, indent=2), file=sys.stderr)
+        return 1
+    if args.ids:
+        print(json.dumps(body))
+    else:
+        ids = body.pop("triangle_ids", [])
+        body["triangle_ids"] = f"[{len(ids)} ids]" if len(ids) > 10 else ids
+        print(json.dumps(body, indent=2))
+    return 0
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    if args.server:
+        import httpx
+
+        base = args.server.rstrip("/")
+        path = f"/scenes/{args.name}" if args.name else "/scenes"
+        r = httpx.get(base + path, timeout=600)
+        print(json.dumps(r.json(), indent=2))
+        return 0 if r.status_code == 200 else 1
+    from visibility.generators import DEFAULT_TRIANGLES, available_generators, make_scene
+    from visibility.loaders import SCENE_EXTENSIONS, load_scene
+    from visibility.viewcells import ViewcellGrid
+
+    scenes_dir = Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR
+    files = {}
+    if scenes_dir.is_dir():
+        files = {p.stem: p for p in sorted(scenes_dir.iterdir()) if p.suffix in SCENE_EXTENSIONS}
+    if not args.name:
+        for g in available_generators():
+            print(f"{g:16s} generated  {DEFAULT_TRIANGLES.get(g, 0):>10,d} triangles (default)")
+        for stem, p in files.items():
+            print(f"{stem:16s} file       {p}")
+        return 0
+    if args.name in files:
+        scene = load_scene(files[args.name])
+    else:
+        scene = make_scene(args.name)
+    info = scene.summary()
+    info["grid"] = ViewcellGrid.for_scene(scene).to_dict()
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Start the real server in a child process, replay a walkthrough against it, stop it."""
+    import httpx
+
+    port = args.port or _free_port()
+    url = f"http://127.0.0.1:{port}"
+    cmd = [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
+    if args.scenes:
+        cmd += ["--scenes", args.scenes]
+    env = dict(os.environ)
+    log_path = Path(args.out) / "server.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    print(f"[demo] starting server: {' '.join(cmd)} (log: {log_path})", flush=True)
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            deadline = time.time() + 120
+            while True:
+                try:
+                    if httpx.get(url + "/health", timeout=2).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                if proc.poll() is not None or time.time() > deadline:
+                    print(log_path.read_text()[-3000:], file=sys.stderr)
+                    raise SystemExit("[demo] the server did not start")
+                time.sleep(0.3)
+            print(f"[demo] server up at {url}", flush=True)
+            walk = argparse.Namespace(
+                server=url, scene=args.scene, core=args.core, param=args.param,
+                walkthrough=args.walkthrough, out=args.out, scenes=args.scenes,
+                duration=args.duration, width=args.width, height=args.height,
+                realtime=args.realtime, seed=args.seed, quiet=False,
+            )
+            return cmd_walk(walk)
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
+    p.add_argument("--scene", default="rooms", help="scene name (generated or a file stem)")
+    p.add_argument("--core", default="sampling", help="core name, or several separated by commas")
+    p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")
+    p.add_argument("--walkthrough", help="walkthrough JSON file (default: generate one)")
+    p.add_argument("--out", default=default_out, help="output folder for the report")
+    p.add_argument("--scenes", help="folder of scene files (for file scenes' ground truth)")
+    p.add_argument("--duration", type=float, default=12.0, help="generated walk length, seconds")
+    p.add_argument("--width", type=int, default=256)
+    p.add_argument("--height", type=int, default=256)
+    p.add_argument("--realtime", action="store_true", help="pace frames at their timestamps")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="pvs", description=__doc__.splitlines()[0])
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("serve", help="run the edge server (uvicorn)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--scenes", help="folder of GLB/glTF/OBJ/PLY scenes to serve")
+    p.add_argument("--core", help="default core")
+    p.add_argument("--cell-size", type=float, help="viewcell size in metres")
+    p.add_argument("--workers", type=int, help="PVS worker threads")
+    p.set_defaults(fn=cmd_serve)
+
+    p = sub.add_parser("walk", help="replay a walkthrough with the headless client")
+    p.add_argument("--server", default="http://127.0.0.1:8000")
+    p.add_argument("--quiet", action="store_true")
+    _add_walk_options(p, "runs/walk")
+    p.set_defaults(fn=cmd_walk)
+
+    p = sub.add_parser("query", help="a cell's PVS over HTTP")
+    p.add_argument("--server", default="http://127.0.0.1:8000")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--cell", type=int, required=True)
+    p.add_argument("--core", default="sampling")
+    p.add_argument("--param", action="append")
+    p.add_argument("--ids", action="store_true", help="print every id")
+    p.add_argument("--timeout", type=float, default=600)
+    p.set_defaults(fn=cmd_query)
+
+    p = sub.add_parser("scenes", help="list scenes, or describe one")
+    p.add_argument("name", nargs="?")
+    p.add_argument("--server", help="ask a running server instead of loading locally")
+    p.add_argument("--scenes", help="folder of scene files")
+    p.set_defaults(fn=cmd_scenes)
+
+    p = sub.add_parser("demo", help="server + headless client over a walkthrough, end to end")
+    p.add_argument("--port", type=int, default=0)
+    _add_walk_options(p, "runs/demo")
+    p.set_defaults(fn=cmd_demo)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return int(args.fn(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

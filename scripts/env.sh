@@ -1,0 +1,6 @@
+# Environment shared by the scripts: headless OpenGL through Mesa's OSMesa, a project-local numba
+# cache (compiled kernels survive between runs), unbuffered output.
+export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-osmesa}
+export NUMBA_CACHE_DIR=${NUMBA_CACHE_DIR:-$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)/.numba_cache}
+export PYTHONUNBUFFERED=1
+export MPLBACKEND=Agg

@@ -1,0 +1,85 @@
+"""Loading real third-party scenes and files written by trimesh."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from visibility.loaders import SceneLoadError, load_scene
+from visibility.viewcells import ViewcellGrid
+
+SHARED_SCENES = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
+REAL = ["lavaducts", "denhaag", "lyon_vilo3d", "kitchen"]
+
+
+def test_shared_scenes_are_present():
+    assert SHARED_SCENES.is_dir(), f"the real scenes are expected at {SHARED_SCENES}"
+
+
+@pytest.mark.parametrize("name", REAL)
+def test_real_scene_loads_in_metres_with_ids_as_trimesh_orders_them(name):
+    path = SHARED_SCENES / f"{name}.glb"
+    side = json.loads(path.with_suffix(".json").read_text())
+    scene = load_scene(path)
+    assert scene.n_triangles == side["triangles"]
+    assert scene.n_objects == side["objects"]
+    ref = trimesh.load(str(path), force="scene", process=False).to_geometry()
+    np.testing.assert_array_equal(scene.faces, ref.faces)
+    np.testing.assert_allclose(scene.vertices, ref.vertices * side["scale"])
+    obj = np.asarray(ref.vertex_attributes["_OBJECT_ID"]).reshape(len(ref.vertices), -1)[:, 0]
+    np.testing.assert_array_equal(scene.object_ids, obj[ref.faces[:, 0]])
+    np.testing.assert_allclose(scene.bounds()[0], np.array(side["bbox_min"]) * side["scale"],
+                               atol=1e-3 * side["scale"] + 1e-3)
+    assert scene.valid_faces.sum() > 0.9 * scene.n_triangles
+    grid = ViewcellGrid.for_scene(scene)
+    assert len(grid) > 0, f"{name}: no walkable cells found"
+    # Cells lie inside the scene's horizontal extent.
+    b = scene.bounds()
+    centres = grid.boxes.mean(axis=1)
+    assert np.all(centres[:, 0] >= b[0, 0] - grid.cell_size)
+    assert np.all(centres[:, 0] <= b[1, 0] + grid.cell_size)
+
+
+def test_obj_and_ply_round_trip(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    for ext in (".obj", ".ply"):
+        p = tmp_path / f"ball{ext}"
+        mesh.export(p)
+        s = load_scene(p, scale=2.0)
+        assert s.n_triangles == len(mesh.faces)
+        np.testing.assert_allclose(np.abs(s.vertices).max(), 2.0, rtol=1e-5)
+
+
+def test_z_up_sidecar_rotates_to_y_up(tmp_path):
+    mesh = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 0, 5]], [[0, 1, 2]], process=False)
+    p = tmp_path / "tall.ply"
+    mesh.export(p)
+    (tmp_path / "tall.json").write_text(json.dumps({"up": "z"}))
+    s = load_scene(p)
+    assert s.bounds()[1, 1] == pytest.approx(5.0)
+
+
+def test_bad_files_give_clear_errors(tmp_path):
+    with pytest.raises(SceneLoadError):
+        load_scene(tmp_path / "missing.glb")
+    bad = tmp_path / "bad.glb"
+    bad.write_bytes(b"not a glb at all")
+    with pytest.raises(SceneLoadError):
+        load_scene(bad)
+    txt = tmp_path / "scene.txt"
+    txt.write_text("x")
+    with pytest.raises(SceneLoadError):
+        load_scene(txt)
+
+
+def test_degenerate_faces_in_a_file_are_reported_not_fatal(tmp_path):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]], float)
+    f = np.array([[0, 1, 2], [0, 1, 3], [1, 1, 2]])
+    p = tmp_path / "deg.ply"
+    trimesh.Trimesh(v, f, process=False).export(p)
+    s = load_scene(p)
+    assert s.n_triangles == 3
+    assert s.valid_faces.tolist() == [True, False, False]
+    assert s.degenerate_report.zero_area == 1

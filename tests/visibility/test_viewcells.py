@@ -1,0 +1,59 @@
+import numpy as np
+import pytest
+
+from visibility.scene import WalkArea
+from visibility.viewcells import Viewcell, ViewcellGrid
+
+
+def test_grid_tiles_walk_rects_with_levels():
+    g = ViewcellGrid(WalkArea([[0, 0, 8, 8, 0.0], [0, 0, 8, 8, 3.5]]), 4.0)
+    assert len(g) == 8  # 2 x 2 columns, two levels
+    assert g.to_dict()["levels"] == 2
+    for cid in range(len(g)):
+        c = g.cell(cid)
+        assert c.id == cid
+        np.testing.assert_allclose(c.size[[0, 2]], [4, 4])
+        # cell_of of the cell's centre is the cell itself (id <-> index round trip)
+        assert g.cell_of(c.center) == cid
+
+
+def test_cell_of_outside_and_nan():
+    g = ViewcellGrid(WalkArea([[0, 0, 8, 8, 0.0]]), 4.0)
+    assert g.cell_of([100, 1.7, 100]) is None
+    assert g.cell_of([-0.1, 1.7, 1]) is None
+    assert g.cell_of([np.nan, 1.7, 1]) is None
+
+
+def test_neighbourhood_is_eight_connected_within_a_level():
+    g = ViewcellGrid(WalkArea([[0, 0, 12, 12, 0.0], [0, 0, 12, 12, 5.0]]), 4.0)
+    centre = g.cell_of([6, 1.7, 6])
+    ns = g.neighbours(centre)
+    assert len(ns) == 8
+    assert all(abs(g.floor[n] - g.floor[centre]) < 1e-9 for n in ns)
+    corner = g.cell_of([1, 1.7, 1])
+    assert len(g.neighbours(corner)) == 3
+    with pytest.raises(IndexError):
+        g.neighbours(len(g))
+
+
+def test_low_ceiling_lowers_the_eye_range():
+    g = ViewcellGrid(WalkArea([[0, 0, 4, 4, 0.0, 1.6]], eye_range=(1.5, 1.9)), 4.0)
+    box = g.cell(0).box
+    assert box[1, 1] <= 1.5 + 1e-9 and box[0, 1] <= box[1, 1]
+
+
+def test_configurable_cell_size_and_validation():
+    w = WalkArea([[0, 0, 10, 10, 0.0]])
+    assert len(ViewcellGrid(w, 2.0)) == 25
+    assert len(ViewcellGrid(w, 5.0)) == 4
+    with pytest.raises(ValueError):
+        ViewcellGrid(w, 0.0)
+    with pytest.raises(ValueError):
+        Viewcell(np.array([[1, 1, 1], [0, 0, 0]]))
+    with pytest.raises(ValueError):
+        Viewcell(np.array([[np.nan, 1, 1], [2, 2, 2]]))
+
+
+def test_empty_walk_area():
+    g = ViewcellGrid(WalkArea(np.zeros((0, 5))), 4.0)
+    assert len(g) == 0 and g.cell_of([0, 0, 0]) is None

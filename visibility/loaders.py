@@ -1,0 +1,167 @@
+"""Scene files (GLB, glTF, OBJ, PLY) to ``Scene``, through trimesh.
+
+Triangle ids are the rows of the face array in the order trimesh loads the file with
+``process=False`` (a scene's meshes concatenated in scene-graph order), so anyone holding the file
+can check them. Coordinates are normalised to Y-up metres: file units times the sidecar's
+``scale``. A sidecar ``<stem>.json`` beside the file may give:
+
+- ``"scale"``: metres per file unit (default 1);
+- ``"up"``: ``"y"`` (default) or ``"z"`` for Z-up files (rotated to Y-up, right-handed);
+- ``"walk"``: ``{"rects": [[x0, z0, x1, z1, floor_y], ...], "eye_height": ..., "eye_range":
+  [lo, hi]}`` in metres, overriding the walk area detected from the geometry;
+- ``"cell_size"``: the default viewcell size in metres for this scene.
+
+Degenerate faces (zero area, NaN/inf vertices, repeated indices) are kept in the face array (ids
+stay stable) and reported; ``Scene.valid_faces`` keeps them out of computation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from visibility.scene import Scene, WalkArea
+
+log = logging.getLogger(__name__)
+
+#: File extensions the loader accepts (lower case).
+SCENE_EXTENSIONS = (".glb", ".gltf", ".obj", ".ply")
+
+#: Colour for faces whose file has none (light grey).
+DEFAULT_COLOR = (200, 200, 200)
+
+
+class SceneLoadError(ValueError):
+    """A scene file that cannot be turned into a Scene (missing, unsupported, no triangles)."""
+
+
+def read_sidecar(path: str | Path) -> dict:
+    """The ``<stem>.json`` sidecar beside a scene file as a dict ({} when there is none)."""
+    side = Path(path).with_suffix(".json")
+    if not side.is_file():
+        return {}
+    try:
+        data = json.loads(side.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise SceneLoadError(f"unreadable sidecar {side}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise SceneLoadError(f"sidecar {side} must hold a JSON object")
+    return data
+
+
+def _face_colors(mesh) -> np.ndarray:
+    """(m, 3) uint8 per-face colour: the first corner's vertex colour, else the material's."""
+    m = len(mesh.faces)
+    visual = mesh.visual
+    try:
+        if visual.kind == "vertex":
+            vc = np.asarray(visual.vertex_colors)
+            return vc[mesh.faces[:, 0], :3].astype(np.uint8)
+        if visual.kind == "face":
+            return np.asarray(visual.face_colors)[:, :3].astype(np.uint8)
+        if visual.kind == "texture":
+            mat = getattr(visual, "material", None)
+            color = getattr(mat, "baseColorFactor", None)
+            if color is None:
+                color = getattr(mat, "main_color", None)
+            if color is not None:
+                c = np.asarray(color, dtype=np.float64)[:3]
+                if c.max() <= 1.0:
+                    c = c * 255.0
+                return np.tile(np.clip(c, 0, 255).astype(np.uint8), (m, 1))
+    except (AttributeError, IndexError, ValueError) as exc:
+        log.debug("no usable colours (%s); using the default", exc)
+    return np.tile(np.array(DEFAULT_COLOR, dtype=np.uint8), (m, 1))
+
+
+def load_scene(path: str | Path, scale: float | None = None, name: str | None = None) -> Scene:
+    """Load a GLB/glTF/OBJ/PLY file as a Scene in Y-up metres.
+
+    Parameters
+    ----------
+    path : the scene file.
+    scale : metres per file unit; overrides the sidecar's ``"scale"`` (default 1).
+    name : the scene's name (default: the file stem).
+
+    Object ids: a custom ``_OBJECT_ID`` vertex attribute when the file has one (per face, the
+    first corner's), otherwise one id per mesh instance in scene-graph order.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneLoadError(f"no scene file at {path}")
+    if path.suffix.lower() not in SCENE_EXTENSIONS:
+        raise SceneLoadError(f"unsupported scene format {path.suffix!r}; use {SCENE_EXTENSIONS}")
+    side = read_sidecar(path)
+    if scale is None:
+        scale = float(side.get("scale", 1.0))
+    if not (np.isfinite(scale) and scale > 0):
+        raise SceneLoadError(f"scale must be a positive number, got {scale}")
+    try:
+        tscene = trimesh.load(str(path), force="scene", process=False)
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise SceneLoadError(f"cannot read {path.name}: {exc}") from exc
+    parts = [g for g in tscene.dump(concatenate=False) if hasattr(g, "faces") and len(g.faces)]
+    verts, faces, objs, cols, names = [], [], [], [], []
+    offset = 0
+    next_obj = 0
+    for k, g in enumerate(parts):
+        v = np.asarray(g.vertices, dtype=np.float64)
+        f = np.asarray(g.faces, dtype=np.int64)
+        verts.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+        cols.append(_face_colors(g))
+        attr = getattr(g, "vertex_attributes", {}).get("_OBJECT_ID")
+        if attr is not None and len(attr) == len(v):
+            local = np.asarray(attr).reshape(len(v), -1)[:, 0].astype(np.int64)[f[:, 0]]
+            objs.append(local + next_obj)
+            obj_names = g.metadata.get("object_names") if hasattr(g, "metadata") else None
+            n_local = int(local.max()) + 1 if len(local) else 0
+            if isinstance(obj_names, (list, tuple)) and len(obj_names) >= n_local:
+                names.extend(str(s) for s in obj_names[:n_local])
+            else:
+                names.extend(f"{path.stem}#{k}.{i}" for i in range(n_local))
+            next_obj += n_local
+        else:
+            objs.append(np.full(len(f), next_obj, dtype=np.int64))
+            names.append(str(g.metadata.get("name", f"{path.stem}#{k}")))
+            next_obj += 1
+    if not faces:
+        raise SceneLoadError(f"{path.name} holds no triangles")
+    vertices = np.concatenate(verts) * scale
+    if str(side.get("up", "y")).lower() == "z":
+        # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y).
+        vertices = np.stack([vertices[:, 0], vertices[:, 2], -vertices[:, 1]], axis=1)
+    walk = None
+    if "walk" in side:
+        w = side["walk"]
+        walk = WalkArea(
+            rects=np.asarray(w["rects"], dtype=np.float64),
+            eye_height=float(w.get("eye_height", 1.7)),
+            eye_range=tuple(w.get("eye_range", (1.5, 1.9))),
+        )
+    scene = Scene(
+        vertices=vertices,
+        faces=np.concatenate(faces),
+        object_ids=np.concatenate(objs),
+        colors=np.concatenate(cols),
+        name=name or path.stem,
+        walk=walk,
+        object_names=names,
+        meta={
+            "source": str(path),
+            "scale": scale,
+            "cell_size": side.get("cell_size"),
+            "is_2_5d": side.get("is_2_5d"),
+        },
+    )
+    rep = scene.degenerate_report
+    if rep.total_reasons:
+        log.warning("%s: %d faces kept out of computation: %s", path.name,
+                    scene.n_triangles - int(scene.valid_faces.sum()), rep.as_dict())
+    return scene

@@ -1,0 +1,265 @@
+"""The scene model: triangles with stable ids, per-face object ids and colours, optional motion.
+
+Conventions: Y-up, right-handed, metres. A triangle id is the row index of ``Scene.faces`` and
+never changes for a scene. Geometry is kept in float64; the wire uses float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Smallest triangle area (m^2) that still counts as a surface; below it a face is degenerate.
+MIN_FACE_AREA = 1e-12
+
+
+@dataclass(frozen=True)
+class WalkArea:
+    """Where people walk: axis-aligned XZ rectangles, each with its floor height.
+
+    ``rects`` is (w, 6) float64 rows ``[x0, z0, x1, z1, floor_y, ceiling_y]`` in metres; rows
+    of 5 are accepted and get an open sky (``ceiling_y = inf``). A viewcell's eye range is cut
+    0.1 m under the ceiling.
+    """
+
+    rects: np.ndarray
+    eye_height: float = 1.7
+    #: Vertical range of the eye above the floor that a viewcell covers, (low, high) metres.
+    eye_range: tuple[float, float] = (1.5, 1.9)
+
+    def __post_init__(self) -> None:
+        rects = np.asarray(self.rects, dtype=np.float64)
+        if rects.size == 0:
+            rects = np.zeros((0, 6))
+        if rects.ndim != 2 or rects.shape[1] not in (5, 6):
+            raise ValueError(f"walk rects must be (w, 5) or (w, 6), got {rects.shape}")
+        if rects.shape[1] == 5:
+            rects = np.concatenate([rects, np.full((len(rects), 1), np.inf)], axis=1)
+        if not np.all(np.isfinite(rects[:, :5])):
+            raise ValueError("walk rects must be finite (the ceiling may be inf)")
+        object.__setattr__(self, "rects", rects)
+
+
+@dataclass(frozen=True)
+class DegenerateReport:
+    """Counts of faces kept out of computation, by reason (a face may have several reasons)."""
+
+    zero_area: int = 0
+    non_finite: int = 0
+    repeated_index: int = 0
+    out_of_range: int = 0
+
+    @property
+    def total_reasons(self) -> int:
+        return self.zero_area + self.non_finite + self.repeated_index + self.out_of_range
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "zero_area": self.zero_area,
+            "non_finite": self.non_finite,
+            "repeated_index": self.repeated_index,
+            "out_of_range": self.out_of_range,
+        }
+
+
+@dataclass(eq=False)
+class Scene:
+    """A triangle scene.
+
+    Attributes
+    ----------
+    vertices : (n, 3) float64, metres, the rest state.
+    faces : (m, 3) int32, indices into ``vertices``. Triangle id = row index.
+    object_ids : (m,) int32, object (mesh/node) each face belongs to.
+    colors : (m, 3) uint8, RGB per face.
+    states : optional (k, n, 3) float64 keyframes of vertex positions; position is piecewise
+        linear in time between ``state_times``. ``vertices`` equals ``states[0]`` when present.
+    state_times : optional (k,) float64 seconds, increasing.
+    sphere_centers : optional (k, s, 3) float64 (k = 1 for static spheres), metres.
+    sphere_radii : optional (s,) float64, metres.
+    sphere_colors : optional (s, 3) uint8.
+    walk : optional WalkArea where people walk (generators fill it; loaders leave it to detection).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    object_ids: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    name: str = "scene"
+    states: np.ndarray | None = None
+    state_times: np.ndarray | None = None
+    sphere_centers: np.ndarray | None = None
+    sphere_radii: np.ndarray | None = None
+    sphere_colors: np.ndarray | None = None
+    walk: WalkArea | None = None
+    object_names: list[str] | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3).astype(np.int32)
+        m = len(self.faces)
+        if self.object_ids is None:
+            self.object_ids = np.zeros(m, dtype=np.int32)
+        self.object_ids = np.ascontiguousarray(self.object_ids, dtype=np.int32).reshape(m)
+        if self.colors is None:
+            self.colors = np.full((m, 3), 200, dtype=np.uint8)
+        self.colors = np.ascontiguousarray(self.colors, dtype=np.uint8).reshape(m, 3)
+        if self.states is not None:
+            self.states = np.ascontiguousarray(self.states, dtype=np.float64)
+            if self.states.ndim != 3 or self.states.shape[1:] != self.vertices.shape:
+                raise ValueError(
+                    f"states must be (k, {len(self.vertices)}, 3), got {self.states.shape}"
+                )
+            k = self.states.shape[0]
+            if self.state_times is None:
+                self.state_times = np.arange(k, dtype=np.float64)
+            self.state_times = np.asarray(self.state_times, dtype=np.float64).reshape(k)
+            if k > 1 and not np.all(np.diff(self.state_times) > 0):
+                raise ValueError("state_times must be strictly increasing")
+        if self.sphere_radii is not None:
+            self.sphere_radii = np.asarray(self.sphere_radii, dtype=np.float64).reshape(-1)
+            s = len(self.sphere_radii)
+            c = np.asarray(self.sphere_centers, dtype=np.float64)
+            self.sphere_centers = c.reshape(-1, s, 3)
+            if self.sphere_colors is None:
+                self.sphere_colors = np.full((s, 3), 180, dtype=np.uint8)
+            self.sphere_colors = np.asarray(self.sphere_colors, dtype=np.uint8).reshape(s, 3)
+        self._valid: np.ndarray | None = None
+        self._report: DegenerateReport | None = None
+
+    # ----------------------------------------------------------------------------- sizes
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.faces))
+
+    @property
+    def n_vertices(self) -> int:
+        return int(len(self.vertices))
+
+    @property
+    def n_spheres(self) -> int:
+        return 0 if self.sphere_radii is None else int(len(self.sphere_radii))
+
+    @property
+    def is_dynamic(self) -> bool:
+        """True when vertices or spheres move over time."""
+        moving_tris = self.states is not None and self.states.shape[0] > 1
+        moving_spheres = self.sphere_centers is not None and self.sphere_centers.shape[0] > 1
+        return bool(moving_tris or moving_spheres)
+
+    @property
+    def n_objects(self) -> int:
+        return int(self.object_ids.max()) + 1 if len(self.object_ids) else 0
+
+    # ----------------------------------------------------------------------------- validity
+    def _classify(self) -> None:
+        n = len(self.vertices)
+        f = self.faces
+        out_of_range = np.any((f < 0) | (f >= n), axis=1)
+        fi = np.where(out_of_range[:, None], 0, f)
+        if n == 0:
+            fi = np.zeros_like(f)
+        repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+        verts = self.vertices if self.states is None else self.states.reshape(-1, n, 3)
+        if verts.ndim == 2:
+            verts = verts[None]
+        non_finite = np.zeros(len(f), dtype=bool)
+        zero_area = np.ones(len(f), dtype=bool) if n == 0 else np.zeros(len(f), dtype=bool)
+        if n:
+            finite_v = np.all(np.isfinite(verts), axis=(0, 2))  # (n,)
+            non_finite = ~np.all(finite_v[fi], axis=1)
+            # A moving face counts as a surface if it has area in any state.
+            has_area = np.zeros(len(f), dtype=bool)
+            for v in verts:
+                a, b, c = v[fi[:, 0]], v[fi[:, 1]], v[fi[:, 2]]
+                # Relative to the first vertex keeps the cross product exact-ish at 1e5 m offsets.
+                with np.errstate(invalid="ignore", over="ignore"):
+                    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+                has_area |= np.isfinite(area2) & (area2 > 2 * MIN_FACE_AREA)
+            zero_area = ~has_area & ~non_finite
+        bad = out_of_range | repeated | non_finite | zero_area
+        self._valid = ~bad
+        self._report = DegenerateReport(
+            zero_area=int(np.count_nonzero(zero_area & ~repeated & ~out_of_range)),
+            non_finite=int(np.count_nonzero(non_finite & ~out_of_range)),
+            repeated_index=int(np.count_nonzero(repeated)),
+            out_of_range=int(np.count_nonzero(out_of_range)),
+        )
+
+    @property
+    def valid_faces(self) -> np.ndarray:
+        """(m,) bool: faces that take part in computation (finite, in range, non-zero area)."""
+        if self._valid is None:
+            self._classify()
+        return self._valid
+
+    @property
+    def degenerate_report(self) -> DegenerateReport:
+        """How many faces are kept out of computation and why."""
+        if self._report is None:
+            self._classify()
+        return self._report
+
+    # ----------------------------------------------------------------------------- geometry
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 [min, max] over finite vertices of valid faces (all states), metres."""
+        idx = np.unique(self.faces[self.valid_faces])
+        pts = []
+        if len(idx):
+            v = self.vertices[idx] if self.states is None else self.states[:, idx].reshape(-1, 3)
+            pts.append(v)
+        if self.n_spheres:
+            c = self.sphere_centers.reshape(-1, 3)
+            r = np.tile(self.sphere_radii, self.sphere_centers.shape[0])[:, None]
+            pts.extend([c - r, c + r])
+        if not pts:
+            return np.zeros((2, 3))
+        allp = np.concatenate(pts)
+        return np.stack([allp.min(axis=0), allp.max(axis=0)])
+
+    def vertices_at(self, t: float) -> np.ndarray:
+        """(n, 3) float64 vertex positions at time t (seconds), clamped to the keyframe range."""
+        if self.states is None or self.states.shape[0] == 1:
+            return self.vertices
+        times = self.state_times
+        t = float(np.clip(t, times[0], times[-1]))
+        i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+        w = (t - times[i]) / (times[i + 1] - times[i])
+        return (1.0 - w) * self.states[i] + w * self.states[i + 1]
+
+    def triangles(self, ids: np.ndarray | None = None, t: float | None = None) -> np.ndarray:
+        """(len(ids), 3, 3) float64 corner positions of the given triangle ids (all by default)."""
+        v = self.vertices if t is None else self.vertices_at(t)
+        f = self.faces if ids is None else self.faces[np.asarray(ids, dtype=np.int64)]
+        return v[f]
+
+    def subset(self, ids: np.ndarray) -> Scene:
+        """A new static scene holding only the given triangle ids (renumbered 0..len-1)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        f = self.faces[ids]
+        used, inv = np.unique(f.reshape(-1), return_inverse=True)
+        return Scene(
+            vertices=self.vertices[used],
+            faces=inv.reshape(-1, 3),
+            object_ids=self.object_ids[ids],
+            colors=self.colors[ids],
+            name=f"{self.name}[subset]",
+        )
+
+    def summary(self) -> dict:
+        """A JSON-friendly description: counts, bounds, motion, degenerate faces."""
+        b = self.bounds()
+        return {
+            "name": self.name,
+            "triangles": self.n_triangles,
+            "vertices": self.n_vertices,
+            "objects": self.n_objects,
+            "spheres": self.n_spheres,
+            "dynamic": self.is_dynamic,
+            "states": 1 if self.states is None else int(self.states.shape[0]),
+            "bounds": b.tolist(),
+            "degenerate": self.degenerate_report.as_dict(),
+            "valid_triangles": int(np.count_nonzero(self.valid_faces)),
+        }

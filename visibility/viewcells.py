@@ -1,0 +1,217 @@
+"""Viewcells: axis-aligned boxes of eye positions tiling where people walk.
+
+The grid is regular in X and Z (cell size ``s``, origin at the walk area's min corner); each grid
+column may hold several cells, one per floor level (a multi-storey level has cells on each).
+A cell's Y range is the eye-height range above its floor, lowered under a low ceiling.
+Cell ids are indices 0..n-1 into the grid's arrays, stable for a given scene and cell size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visibility.scene import Scene, WalkArea
+
+#: Default horizontal cell size in metres (a walker at 1.4 m/s crosses one in about 3 s).
+DEFAULT_CELL_SIZE = 4.0
+#: Floors closer than this (metres) in one column are the same level.
+LEVEL_MERGE = 0.5
+#: Largest floor step (metres) between neighbouring cells that still connects them.
+MAX_STEP = 1.0
+
+
+@dataclass(frozen=True)
+class Viewcell:
+    """An axis-aligned box of eye positions. ``box`` is (2, 3) [min, max] metres; ``id`` is the
+    cell's index in its grid, or -1 for an ad-hoc box."""
+
+    box: np.ndarray
+    id: int = -1
+
+    def __post_init__(self) -> None:
+        b = np.asarray(self.box, dtype=np.float64).reshape(2, 3)
+        if not np.all(np.isfinite(b)):
+            raise ValueError("viewcell box must be finite")
+        if np.any(b[1] < b[0]):
+            raise ValueError(f"viewcell box max < min: {b.tolist()}")
+        object.__setattr__(self, "box", b)
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.box.mean(axis=0)
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.box[1] - self.box[0]
+
+
+class ViewcellGrid:
+    """Viewcells over a scene's walk area.
+
+    Attributes
+    ----------
+    cell_size : float, metres (X and Z).
+    origin : (2,) float64, the XZ corner of grid column (0, 0).
+    ij : (c, 2) int64 grid column of each cell.
+    floor : (c,) float64 floor height of each cell, metres.
+    boxes : (c, 2, 3) float64 [min, max] of each cell, metres.
+    """
+
+    def __init__(
+        self,
+        walk: WalkArea,
+        cell_size: float = DEFAULT_CELL_SIZE,
+    ) -> None:
+        if not (np.isfinite(cell_size) and cell_size > 0):
+            raise ValueError(f"cell_size must be a positive number of metres, got {cell_size}")
+        self.cell_size = float(cell_size)
+        self.walk = walk
+        rects = walk.rects
+        s = self.cell_size
+        if len(rects) == 0:
+            self.origin = np.zeros(2)
+            self._nz = 1
+            self._set_cells(np.zeros((0, 2), dtype=np.int64), np.zeros(0), np.zeros(0))
+            return
+        lo = rects[:, :2].min(axis=0)
+        hi = rects[:, 2:4].max(axis=0)
+        self.origin = lo.copy()
+        nx = max(1, int(np.ceil((hi[0] - lo[0]) / s - 1e-9)))
+        nz = max(1, int(np.ceil((hi[1] - lo[1]) / s - 1e-9)))
+        self._nz = nz
+        # Columns whose centre lies inside each rectangle, expanded without a Python loop.
+        i0 = np.maximum(np.ceil((rects[:, 0] - lo[0]) / s - 0.5 - 1e-9), 0).astype(np.int64)
+        i1 = np.minimum(np.floor((rects[:, 2] - lo[0]) / s - 0.5 + 1e-9), nx - 1).astype(np.int64)
+        k0 = np.maximum(np.ceil((rects[:, 1] - lo[1]) / s - 0.5 - 1e-9), 0).astype(np.int64)
+        k1 = np.minimum(np.floor((rects[:, 3] - lo[1]) / s - 0.5 + 1e-9), nz - 1).astype(np.int64)
+        ni = np.maximum(i1 - i0 + 1, 0)
+        nk = np.maximum(k1 - k0 + 1, 0)
+        per = ni * nk
+        r = np.repeat(np.arange(len(rects)), per)
+        o = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
+        ii = i0[r] + o // np.maximum(nk[r], 1)
+        kk = k0[r] + o % np.maximum(nk[r], 1)
+        floor, ceil = rects[r, 4], rects[r, 5]
+        order = np.lexsort((floor, kk, ii))
+        ii, kk, floor, ceil = ii[order], kk[order], floor[order], ceil[order]
+        # One cell per (column, level): floors closer than LEVEL_MERGE are one level, whose
+        # lowest ceiling bounds the eye.
+        new = np.ones(len(ii), dtype=bool)
+        new[1:] = (ii[1:] != ii[:-1]) | (kk[1:] != kk[:-1]) | (np.diff(floor) >= LEVEL_MERGE)
+        starts = np.nonzero(new)[0]
+        ij = np.stack([ii[starts], kk[starts]], axis=1)
+        ceilings = np.minimum.reduceat(ceil, starts) if len(starts) else np.zeros(0)
+        self._set_cells(ij, floor[starts], ceilings)
+
+    def _set_cells(self, ij: np.ndarray, floor: np.ndarray, ceiling: np.ndarray) -> None:
+        s, lo, walk = self.cell_size, self.origin, self.walk
+        self.ij = ij.astype(np.int64).reshape(-1, 2)
+        self.floor = floor.astype(np.float64)
+        self.ceiling = ceiling.astype(np.float64)
+        n = len(self.ij)
+        boxes = np.empty((n, 2, 3))
+        boxes[:, 0, 0] = lo[0] + self.ij[:, 0] * s
+        boxes[:, 1, 0] = boxes[:, 0, 0] + s
+        boxes[:, 0, 2] = lo[1] + self.ij[:, 1] * s
+        boxes[:, 1, 2] = boxes[:, 0, 2] + s
+        boxes[:, 0, 1] = self.floor + walk.eye_range[0]
+        # Under a low ceiling the eye range shrinks and, if need be, moves down under it.
+        top = np.minimum(self.floor + walk.eye_range[1], self.ceiling - 0.1)
+        boxes[:, 1, 1] = top
+        boxes[:, 0, 1] = np.minimum(boxes[:, 0, 1], top)
+        self.boxes = boxes
+        # Cells are sorted by column key (i * nz + k), so a column's levels are contiguous.
+        self._keys = self.ij[:, 0] * self._nz + self.ij[:, 1]
+
+    def _column(self, i: int, k: int) -> range:
+        if k < 0 or k >= self._nz or i < 0:
+            return range(0)
+        key = i * self._nz + k
+        lo = int(np.searchsorted(self._keys, key, side="left"))
+        hi = int(np.searchsorted(self._keys, key, side="right"))
+        return range(lo, hi)
+
+    # ----------------------------------------------------------------------------- access
+    def __len__(self) -> int:
+        return int(len(self.ij))
+
+    def cell(self, cell_id: int) -> Viewcell:
+        """The Viewcell with this id; IndexError when out of range."""
+        cid = int(cell_id)
+        if not 0 <= cid < len(self):
+            raise IndexError(f"cell {cell_id} out of range [0, {len(self)})")
+        return Viewcell(self.boxes[cid], cid)
+
+    def cell_of(self, point: np.ndarray) -> int | None:
+        """Id of the cell containing the eye position ``point`` (metres), or None.
+
+        X and Z pick the column; among its levels the one whose floor is the highest at or
+        below the eye (with 0.5 m slack) wins, so a walker whose head bobs stays in their cell.
+        """
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(p)):
+            return None
+        i = int(np.floor((p[0] - self.origin[0]) / self.cell_size))
+        k = int(np.floor((p[2] - self.origin[1]) / self.cell_size))
+        ids = self._column(i, k)
+        best, best_floor = None, -np.inf
+        for cid in ids:
+            f = self.floor[cid]
+            if f <= p[1] + 0.5 and f > best_floor and p[1] <= self.boxes[cid, 1, 1] + 3.0:
+                best, best_floor = cid, f
+        return best
+
+    def neighbours(self, cell_id: int) -> list[int]:
+        """Ids of the cells in the 8-neighbourhood of ``cell_id`` reachable by a step of at most
+        MAX_STEP metres, sorted."""
+        cid = int(cell_id)
+        self.cell(cid)
+        i, k = self.ij[cid]
+        out = []
+        for di in (-1, 0, 1):
+            for dk in (-1, 0, 1):
+                if di == 0 and dk == 0:
+                    continue
+                for n in self._column(int(i + di), int(k + dk)):
+                    if abs(self.floor[n] - self.floor[cid]) <= MAX_STEP:
+                        out.append(n)
+        return sorted(out)
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) box around every cell."""
+        if len(self) == 0:
+            return np.zeros((2, 3))
+        return np.stack([self.boxes[:, 0].min(axis=0), self.boxes[:, 1].max(axis=0)])
+
+    def to_dict(self, include_cells: bool = False) -> dict:
+        """JSON-friendly description; with ``include_cells`` every cell's id and box."""
+        d = {
+            "cell_size": self.cell_size,
+            "origin_xz": self.origin.tolist(),
+            "cells": len(self),
+            "levels": int(len(np.unique(np.round(self.floor, 1)))) if len(self) else 0,
+            "eye_range": list(self.walk.eye_range),
+            "bounds": self.bounds().tolist(),
+        }
+        if include_cells:
+            d["cell_list"] = [
+                {"id": i, "ij": self.ij[i].tolist(), "box": self.boxes[i].tolist()}
+                for i in range(len(self))
+            ]
+        return d
+
+    # ----------------------------------------------------------------------------- builders
+    @classmethod
+    def for_scene(cls, scene: Scene, cell_size: float | None = None) -> ViewcellGrid:
+        """The grid for a scene: its own walk area (generators, sidecars) or one detected from
+        the geometry (see ``visibility.walkable``)."""
+        from visibility.walkable import detect_walk_area
+
+        if cell_size is None:
+            cell_size = scene.meta.get("cell_size") or DEFAULT_CELL_SIZE
+        size = float(cell_size)
+        if scene.walk is not None:
+            return cls(scene.walk, size)
+        return cls(detect_walk_area(scene, size), size)
