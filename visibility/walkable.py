@@ -1,7 +1,8 @@
 """Where people walk in a scene that does not say: floors and open ground found from geometry.
 
 Vertical rays are cast through a lattice of sample points (3 x 3 per viewcell column). Along each
-ray the hits are sorted by height; a hit is a floor when its surface faces up, there is head room
+ray the hits are sorted by height (with the winding checked: when most columns' lowest surface
+faces down the file's faces wind the other way and every normal is flipped); a hit is a floor when its surface faces up, there is head room
 above it, the first surface above it does not face up (that would put the floor inside a closed
 solid), and it is not a rooftop (open to the sky yet well above the local ground). In outdoor
 scenes without terrain (the city scenes: streets are where buildings are not) columns that no
@@ -75,6 +76,7 @@ def _column_floors(px, pz, ground, tris, ny, starts, items, origin, bin_size, nb
     ceils = np.full((n, max_floors), np.nan)
     count = np.zeros(n, dtype=np.int64)
     top_ny = np.zeros(n)
+    bottom_ny = np.zeros(n)
     nchunks = 64
     for ch in prange(nchunks):
         hy = np.empty(max_hits)
@@ -121,6 +123,7 @@ def _column_floors(px, pz, ground, tris, ny, starts, items, origin, bin_size, nb
             if c == 0:
                 continue
             top_ny[s] = hn[c - 1]
+            bottom_ny[s] = hn[0]
             f = 0
             for h in range(c):
                 if hn[h] <= up_ny:
@@ -136,7 +139,7 @@ def _column_floors(px, pz, ground, tris, ny, starts, items, origin, bin_size, nb
                     floors[s, f] = hy[h]
                     ceils[s, f] = above
                     f += 1
-    return floors, ceils, count, top_ny
+    return floors, ceils, count, top_ny, bottom_ny
 
 
 def _local_ground(tris: np.ndarray, origin: np.ndarray, size: float, nx: int, nz: int) -> np.ndarray:
@@ -189,10 +192,18 @@ def detect_walk_area(scene: Scene, cell_size: float, eye_height: float = 1.7) ->
     pz = (origin[1] + ck * s + sub[sk]).ravel()
     ground = _local_ground(tris, origin, s, nx, nz)
     col_ground = np.repeat(ground.ravel(), k * k)
-    floors_y, ceil_y, count, top_ny = _column_floors(
-        px, pz, col_ground, tris_f, ny_f, starts, items, origin, s, nx, nz,
-        MAX_HITS, MAX_FLOORS, MIN_HEADROOM, UP_NY, ROOF_ABOVE_GROUND,
-    )
+    def cast(normal_y):
+        return _column_floors(
+            px, pz, col_ground, tris_f, normal_y, starts, items, origin, s, nx, nz,
+            MAX_HITS, MAX_FLOORS, MIN_HEADROOM, UP_NY, ROOF_ABOVE_GROUND,
+        )
+
+    floors_y, ceil_y, count, top_ny, bottom_ny = cast(ny_f)
+    crossed = count > 0
+    if crossed.any() and np.mean(bottom_ny[crossed] < -UP_NY) > 0.5:
+        # The lowest surface of most columns faces down: the file winds its faces the other
+        # way (Quake levels wind clockwise), so every normal is flipped.
+        floors_y, ceil_y, count, top_ny, bottom_ny = cast(-ny_f)
     # Outdoor scenes: most crossed columns end at an up-facing top surface (roof, terrain).
     has = count > 0
     outdoor = bool(has.any() and np.mean(top_ny[has] > UP_NY) > 0.5)
