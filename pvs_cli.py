@@ -167,10 +167,19 @@ def cmd_demo(args: argparse.Namespace) -> int:
                 time.sleep(0.3)
             print(f"[demo] server up at {url}", flush=True)
             walk = argparse.Namespace(
-                server=url, scene=args.scene, core=args.core, param=args.param,
-                walkthrough=args.walkthrough, out=args.out, scenes=args.scenes,
-                duration=args.duration, width=args.width, height=args.height,
-                realtime=args.realtime, seed=args.seed, quiet=False,
+                server=url,
+                scene=args.scene,
+                core=args.core,
+                param=args.param,
+                walkthrough=args.walkthrough,
+                out=args.out,
+                scenes=args.scenes,
+                duration=args.duration,
+                width=args.width,
+                height=args.height,
+                realtime=args.realtime,
+                seed=args.seed,
+                quiet=False,
             )
             return cmd_walk(walk)
         finally:

@@ -9,7 +9,13 @@ can check them. Coordinates are normalised to Y-up metres: file units times the 
 - ``"up"``: ``"y"`` (default) or ``"z"`` for Z-up files (rotated to Y-up, right-handed);
 - ``"walk"``: ``{"rects": [[x0, z0, x1, z1, floor_y], ...], "eye_height": ..., "eye_range":
   [lo, hi]}`` in metres, overriding the walk area detected from the geometry;
-- ``"cell_size"``: the default viewcell size in metres for this scene.
+- ``"cell_size"``: the default viewcell size in metres for this scene;
+- ``"winding"``: ``"ccw"`` (default, glTF's rule) or ``"cw"`` when front faces wind clockwise
+  (walk detection reads floors from normals);
+- ``"eye_height"``, ``"eye_range"``: metres above the floor for detected walk areas.
+
+Public scenes whose sidecar we cannot edit get the same keys from ``visibility/scene_hints/``
+(a hint applies only to a file of that stem whose triangle count matches the hint's).
 
 Degenerate faces (zero area, NaN/inf vertices, repeated indices) are kept in the face array (ids
 stay stable) and reported; ``Scene.valid_faces`` keeps them out of computation.
@@ -36,6 +42,20 @@ DEFAULT_COLOR = (200, 200, 200)
 
 class SceneLoadError(ValueError):
     """A scene file that cannot be turned into a Scene (missing, unsupported, no triangles)."""
+
+
+HINTS_DIR = Path(__file__).resolve().parent / "scene_hints"
+
+
+def read_hints(path: str | Path, triangles: int) -> dict:
+    """Bundled hints for a known public scene file ({} when none match its stem and size)."""
+    hint = HINTS_DIR / f"{Path(path).stem}.json"
+    if not hint.is_file():
+        return {}
+    data = json.loads(hint.read_text())
+    if int(data.get("triangles", -1)) != int(triangles):
+        return {}
+    return data
 
 
 def read_sidecar(path: str | Path) -> dict:
@@ -137,6 +157,7 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
     if str(side.get("up", "y")).lower() == "z":
         # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y).
         vertices = np.stack([vertices[:, 0], vertices[:, 2], -vertices[:, 1]], axis=1)
+    side = {**read_hints(path, sum(len(f) for f in faces)), **side}
     walk = None
     if "walk" in side:
         w = side["walk"]
@@ -158,10 +179,17 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
             "scale": scale,
             "cell_size": side.get("cell_size"),
             "is_2_5d": side.get("is_2_5d"),
+            "winding": side.get("winding", "ccw"),
+            "eye_height": side.get("eye_height"),
+            "eye_range": side.get("eye_range"),
         },
     )
     rep = scene.degenerate_report
     if rep.total_reasons:
-        log.warning("%s: %d faces kept out of computation: %s", path.name,
-                    scene.n_triangles - int(scene.valid_faces.sum()), rep.as_dict())
+        log.warning(
+            "%s: %d faces kept out of computation: %s",
+            path.name,
+            scene.n_triangles - int(scene.valid_faces.sum()),
+            rep.as_dict(),
+        )
     return scene

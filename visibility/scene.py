@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from visibility.ids import unique_ids, unique_inverse
+
 #: Smallest triangle area (m^2) that still counts as a surface; below it a face is degenerate.
 MIN_FACE_AREA = 1e-12
 
@@ -98,7 +100,9 @@ class Scene:
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
-        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3).astype(np.int32)
+        self.faces = (
+            np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3).astype(np.int32)
+        )
         m = len(self.faces)
         if self.object_ids is None:
             self.object_ids = np.zeros(m, dtype=np.int32)
@@ -205,7 +209,7 @@ class Scene:
     # ----------------------------------------------------------------------------- geometry
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 [min, max] over finite vertices of valid faces (all states), metres."""
-        idx = np.unique(self.faces[self.valid_faces])
+        idx = unique_ids(self.faces[self.valid_faces])
         pts = []
         if len(idx):
             v = self.vertices[idx] if self.states is None else self.states[:, idx].reshape(-1, 3)
@@ -239,7 +243,7 @@ class Scene:
         """A new static scene holding only the given triangle ids (renumbered 0..len-1)."""
         ids = np.asarray(ids, dtype=np.int64)
         f = self.faces[ids]
-        used, inv = np.unique(f.reshape(-1), return_inverse=True)
+        used, inv = unique_inverse(f.reshape(-1))
         return Scene(
             vertices=self.vertices[used],
             faces=inv.reshape(-1, 3),

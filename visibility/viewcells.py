@@ -214,4 +214,6 @@ class ViewcellGrid:
         size = float(cell_size)
         if scene.walk is not None:
             return cls(scene.walk, size)
-        return cls(detect_walk_area(scene, size), size)
+        eye = scene.meta.get("eye_height") or 1.7
+        eye_range = tuple(scene.meta.get("eye_range") or (1.5, 1.9))
+        return cls(detect_walk_area(scene, size, eye, eye_range), size)

@@ -1,13 +1,14 @@
 """Where people walk in a scene that does not say: floors and open ground found from geometry.
 
-Vertical rays are cast through a lattice of sample points (3 x 3 per viewcell column). Along each
-ray the hits are sorted by height (with the winding checked: when most columns' lowest surface
-faces down the file's faces wind the other way and every normal is flipped); a hit is a floor when its surface faces up, there is head room
-above it, the first surface above it does not face up (that would put the floor inside a closed
-solid), and it is not a rooftop (open to the sky yet well above the local ground). In outdoor
-scenes without terrain (the city scenes: streets are where buildings are not) columns that no
-surface crosses are ground at the local ground height. A cell is walkable at a level when most of
-its samples agree on a floor there; isolated specks (table tops) are dropped.
+Vertical rays are cast through a lattice of sample points (3 x 3 per viewcell column) and their
+hits sorted by height (normals follow the counter-clockwise rule unless the scene's
+``meta["winding"]`` is ``"cw"``). A hit is a floor when
+its surface faces up, there is head room above it, the first surface above it does not face up
+(that would put the floor inside a closed solid), and it is not a rooftop (open to the sky yet
+well above the local ground). In outdoor scenes without terrain (the city scenes: streets are
+where buildings are not) columns that no surface crosses are ground at the local ground height.
+A cell is walkable at a level when most of its samples agree on a floor there; isolated specks
+(table tops) are dropped.
 """
 
 from __future__ import annotations
@@ -67,8 +68,24 @@ def _bin_triangles(tri_min, tri_max, origin, bin_size, nbx, nbz):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _column_floors(px, pz, ground, tris, ny, starts, items, origin, bin_size, nbx, nbz,
-                   max_hits, max_floors, min_headroom, up_ny, roof_above):
+def _column_floors(
+    px,
+    pz,
+    ground,
+    tris,
+    ny,
+    starts,
+    items,
+    origin,
+    bin_size,
+    nbx,
+    nbz,
+    max_hits,
+    max_floors,
+    min_headroom,
+    up_ny,
+    roof_above,
+):
     """Floors along vertical lines at (px, pz): (floor y, ceiling y) pairs, the hit count and
     the normal-Y of the topmost surface, per line."""
     n = px.shape[0]
@@ -142,7 +159,9 @@ def _column_floors(px, pz, ground, tris, ny, starts, items, origin, bin_size, nb
     return floors, ceils, count, top_ny, bottom_ny
 
 
-def _local_ground(tris: np.ndarray, origin: np.ndarray, size: float, nx: int, nz: int) -> np.ndarray:
+def _local_ground(
+    tris: np.ndarray, origin: np.ndarray, size: float, nx: int, nz: int
+) -> np.ndarray:
     """(nx, nz) lowest geometry height within GROUND_RADIUS of each column (inf where none)."""
     v = tris.reshape(-1, 3)
     i = np.clip(((v[:, 0] - origin[0]) // size).astype(np.int64), 0, nx - 1)
@@ -159,7 +178,12 @@ def _local_ground(tris: np.ndarray, origin: np.ndarray, size: float, nx: int, nz
     return g
 
 
-def detect_walk_area(scene: Scene, cell_size: float, eye_height: float = 1.7) -> WalkArea:
+def detect_walk_area(
+    scene: Scene,
+    cell_size: float,
+    eye_height: float = 1.7,
+    eye_range: tuple[float, float] = (1.5, 1.9),
+) -> WalkArea:
     """A WalkArea of cell-sized squares (with floor and ceiling heights) found from geometry.
 
     The squares lie on the lattice of ``cell_size`` anchored at the scene's XZ minimum, so a
@@ -168,7 +192,7 @@ def detect_walk_area(scene: Scene, cell_size: float, eye_height: float = 1.7) ->
     valid = scene.valid_faces
     tris = scene.triangles()[valid]
     if len(tris) == 0:
-        return WalkArea(np.zeros((0, 6)), eye_height=eye_height)
+        return WalkArea(np.zeros((0, 6)), eye_height=eye_height, eye_range=eye_range)
     b0 = tris.reshape(-1, 3).min(axis=0)
     b1 = tris.reshape(-1, 3).max(axis=0)
     origin = np.array([b0[0], b0[2]])
@@ -186,24 +210,38 @@ def detect_walk_area(scene: Scene, cell_size: float, eye_height: float = 1.7) ->
 
     k = SUBSAMPLES
     sub = (np.arange(k) + 0.5) / k * s
-    ci, ck, si, sk = np.meshgrid(np.arange(nx), np.arange(nz), np.arange(k), np.arange(k),
-                                 indexing="ij")
+    ci, ck, si, sk = np.meshgrid(
+        np.arange(nx), np.arange(nz), np.arange(k), np.arange(k), indexing="ij"
+    )
     px = (origin[0] + ci * s + sub[si]).ravel()
     pz = (origin[1] + ck * s + sub[sk]).ravel()
     ground = _local_ground(tris, origin, s, nx, nz)
     col_ground = np.repeat(ground.ravel(), k * k)
+
     def cast(normal_y):
         return _column_floors(
-            px, pz, col_ground, tris_f, normal_y, starts, items, origin, s, nx, nz,
-            MAX_HITS, MAX_FLOORS, MIN_HEADROOM, UP_NY, ROOF_ABOVE_GROUND,
+            px,
+            pz,
+            col_ground,
+            tris_f,
+            normal_y,
+            starts,
+            items,
+            origin,
+            s,
+            nx,
+            nz,
+            MAX_HITS,
+            MAX_FLOORS,
+            MIN_HEADROOM,
+            UP_NY,
+            ROOF_ABOVE_GROUND,
         )
 
-    floors_y, ceil_y, count, top_ny, bottom_ny = cast(ny_f)
-    crossed = count > 0
-    if crossed.any() and np.mean(bottom_ny[crossed] < -UP_NY) > 0.5:
-        # The lowest surface of most columns faces down: the file winds its faces the other
-        # way (Quake levels wind clockwise), so every normal is flipped.
-        floors_y, ceil_y, count, top_ny, bottom_ny = cast(-ny_f)
+    # Quake levels wind their faces clockwise: their normals point away from the playable
+    # space. Geometry alone cannot tell such a level from closed solids, so a hint says it.
+    sign = -1.0 if str(scene.meta.get("winding", "ccw")).lower() == "cw" else 1.0
+    floors_y, ceil_y, count, top_ny, bottom_ny = cast(sign * ny_f)
     # Outdoor scenes: most crossed columns end at an up-facing top surface (roof, terrain).
     has = count > 0
     outdoor = bool(has.any() and np.mean(top_ny[has] > UP_NY) > 0.5)
@@ -214,7 +252,7 @@ def detect_walk_area(scene: Scene, cell_size: float, eye_height: float = 1.7) ->
         ceil_y = np.concatenate([ceil_y, np.where(empty, np.inf, np.nan)[:, None]], axis=1)
 
     rects = _cells_from_samples(floors_y, ceil_y, nx, nz, k, origin, s)
-    return WalkArea(rects, eye_height=eye_height)
+    return WalkArea(rects, eye_height=eye_height, eye_range=eye_range)
 
 
 def _cells_from_samples(floors_y, ceil_y, nx, nz, k, origin, s) -> np.ndarray:
@@ -261,7 +299,7 @@ def _large_regions(cells: np.ndarray, floors: np.ndarray, nz: int, s: float) -> 
     w = len(cells)
     ci, ck = cells // nz, cells % nz
     rows, cols = [], []
-    max_levels = int(np.max(np.unique(cells, return_counts=True)[1]))
+    max_levels = int(np.max(np.diff(np.flatnonzero(np.diff(np.r_[-1, cells, -2])))))
     for di, dk in ((1, -1), (1, 0), (1, 1), (0, 1)):
         ni, nk = ci + di, ck + dk
         inside = (nk >= 0) & (nk < nz)

@@ -60,3 +60,15 @@ def test_sidecar_walk_overrides_detection(tmp_path):
     grid = ViewcellGrid.for_scene(load_scene(path), 4.0)
     assert len(grid) == 2
     np.testing.assert_allclose(grid.floor, 0.5)
+
+
+def test_clockwise_winding_hint_flips_the_floors():
+    b = Builder()
+    # A room wound clockwise (as Quake levels are): the floor's computed normal points down.
+    b.quad((0, 0, 0), (16, 0, 0), (16, 0, 16), (0, 0, 16), 0)
+    b.quad((0, 5, 0), (0, 5, 16), (16, 5, 16), (16, 5, 0), 1)
+    scene = b.scene("cw_room")
+    assert len(ViewcellGrid.for_scene(scene, 4.0)) == 0
+    scene.meta["winding"] = "cw"
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    assert len(grid) == 16 and np.allclose(grid.floor, 0.0)

@@ -16,6 +16,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from visibility.ids import unique_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
@@ -36,9 +37,13 @@ class CoreParams:
     def validate(self) -> None:
         """Raise ValueError when a parameter is out of its allowed range."""
         if not (8 <= int(self.resolution) <= self.MAX_RESOLUTION):
-            raise ValueError(f"resolution must be in [8, {self.MAX_RESOLUTION}], got {self.resolution}")
+            raise ValueError(
+                f"resolution must be in [8, {self.MAX_RESOLUTION}], got {self.resolution}"
+            )
         if self.granularity not in ("triangle", "object"):
-            raise ValueError(f"granularity must be 'triangle' or 'object', got {self.granularity!r}")
+            raise ValueError(
+                f"granularity must be 'triangle' or 'object', got {self.granularity!r}"
+            )
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -63,9 +68,9 @@ class PVS:
     stats: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.triangle_ids = np.unique(np.asarray(self.triangle_ids, dtype=np.int64)).astype(np.int32)
+        self.triangle_ids = unique_ids(self.triangle_ids, np.int32)
         if self.sphere_ids is not None:
-            self.sphere_ids = np.unique(np.asarray(self.sphere_ids, dtype=np.int64)).astype(np.int32)
+            self.sphere_ids = unique_ids(self.sphere_ids, np.int32)
 
     def __len__(self) -> int:
         return int(len(self.triangle_ids))
@@ -77,7 +82,7 @@ class PVS:
 
 def expand_to_objects(scene: Scene, triangle_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(triangle ids, object ids): every valid triangle of each object that has a visible one."""
-    objs = np.unique(scene.object_ids[np.asarray(triangle_ids, dtype=np.int64)])
+    objs = unique_ids(scene.object_ids[np.asarray(triangle_ids, dtype=np.int64)])
     mask = np.isin(scene.object_ids, objs) & scene.valid_faces
     return np.nonzero(mask)[0].astype(np.int32), objs.astype(np.int32)
 
@@ -139,6 +144,11 @@ class Core(ABC):
 
 
 _REGISTRY: dict[str, type[Core]] = {}
+
+
+def unregister(name: str) -> None:
+    """Remove a core from the registry (tests that register throwaway cores use it)."""
+    _REGISTRY.pop(name, None)
 
 #: Modules that hold the built-in cores; importing one registers its core.
 BUILTIN_CORE_MODULES = ("visibility.cores.sampling", "visibility.cores.from_segment")

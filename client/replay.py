@@ -1,0 +1,234 @@
+"""Walkthrough replay: the headless client measuring itself against the full scene.
+
+For each pose of a walkthrough the client sends the pose, renders a frame from the triangles it
+holds (pyrender, offscreen), renders ground truth from the full scene at the same pose, and
+records epsilon, PSNR and SSIM. A frame is *stalled* when, at the moment it is due, the client
+has not yet received the whole PVS of the cell the eye is in; the client then waits for it (so
+the metrics measure the PVS, and the stall count measures the streaming).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from client.metrics import epsilon_mask, frame_metrics
+from client.render import OffscreenRenderer
+from client.report import format_summary, save_frame_images, write_report
+from client.session import SessionError, SyncSession
+from client.walkthrough import Walkthrough, generate_walkthrough, load_walkthrough, save_walkthrough
+from visibility.scene import Scene
+from visibility.viewcells import ViewcellGrid
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReplayOptions:
+    """What to replay, against which server, and how to measure it."""
+
+    server: str
+    scene: str
+    cores: list[str] = field(default_factory=lambda: ["sampling"])
+    params: dict[str, Any] = field(default_factory=dict)
+    walkthrough: Path | None = None
+    out_dir: Path = Path("runs/walk")
+    scenes_dir: Path | None = None
+    duration: float = 12.0
+    fps: float = 10.0
+    width: int = 256
+    height: int = 256
+    realtime: bool = False
+    seed: int = 0
+    quiet: bool = False
+    #: Longest wait (seconds) for a cell's PVS before the frame is rendered with what is held.
+    wait_timeout: float = 600.0
+    #: How many of the worst frames (by epsilon) get side-by-side images.
+    worst_frames: int = 3
+
+
+def local_scene(info: Any, scenes_dir: Path | None) -> Scene:
+    """The full scene for ground truth, rebuilt locally from what the server's welcome says.
+
+    Generated scenes are regenerated (deterministic for name, size and seed); file scenes are
+    loaded from ``scenes_dir``. The triangle count must match the server's.
+    """
+    from visibility.generators import DEFAULT_TRIANGLES, make_scene
+    from visibility.loaders import SCENE_EXTENSIONS, load_scene
+
+    source = getattr(info, "source", None) or {}
+    if info.kind == "generated":
+        scene = make_scene(
+            source.get("generator", info.name),
+            triangles=source.get("triangles", DEFAULT_TRIANGLES.get(info.name)),
+            seed=source.get("seed", 0),
+        )
+    else:
+        if scenes_dir is None:
+            raise FileNotFoundError(f"scene {info.name!r} is a file scene: give --scenes DIR")
+        files = [scenes_dir / f"{info.name}{ext}" for ext in SCENE_EXTENSIONS]
+        found = [p for p in files if p.is_file()]
+        if not found:
+            raise FileNotFoundError(f"no file for scene {info.name!r} in {scenes_dir}")
+        scene = load_scene(found[0])
+    if scene.n_triangles != info.triangles:
+        raise ValueError(
+            f"local scene {info.name!r} has {scene.n_triangles} triangles, the server's "
+            f"{info.triangles}: ground truth would not match"
+        )
+    return scene
+
+
+def _walkthrough(opts: ReplayOptions, grid: ViewcellGrid, out: Path) -> Walkthrough:
+    if opts.walkthrough is not None:
+        return load_walkthrough(opts.walkthrough)
+    w = generate_walkthrough(grid, duration=opts.duration, fps=opts.fps, seed=opts.seed)
+    save_walkthrough(w, out / "walkthrough.json")
+    return w
+
+
+def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
+    """Replay the walkthrough against ``core``; write the report into ``out``; its summary."""
+    out.mkdir(parents=True, exist_ok=True)
+    session = SyncSession.connect(opts.server, opts.scene, core, opts.params)
+    try:
+        welcome = session.welcome
+        scene = local_scene(welcome.scene, opts.scenes_dir)
+        grid = ViewcellGrid.for_scene(scene, welcome.grid.cell_size)
+        if len(grid) != welcome.grid.cells:
+            raise ValueError(f"local grid has {len(grid)} cells, the server's {welcome.grid.cells}")
+        walk = _walkthrough(opts, grid, out)
+        renderer = OffscreenRenderer(opts.width, opts.height)
+        frames: list[dict] = []
+        worst: list[tuple[float, int, Any]] = []
+        t_start = time.perf_counter()
+        bar = tqdm(
+            total=len(walk),
+            desc=f"{opts.scene}/{core}",
+            unit="frame",
+            disable=opts.quiet,
+            leave=False,
+        )
+        for i in range(len(walk)):
+            t = float(walk.t[i])
+            pos, fwd = walk.positions[i], walk.forwards[i]
+            if opts.realtime:
+                delay = t - walk.t[0] - (time.perf_counter() - t_start)
+                if delay > 0:
+                    time.sleep(delay)
+            vel = None
+            if i + 1 < len(walk):
+                dt = walk.t[i + 1] - t
+                vel = (walk.positions[i + 1] - pos) / dt if dt > 0 else None
+            session.send_pose(i, t, pos, fwd, vel)
+            cell = grid.cell_of(pos)
+            stalled = False
+            waited = 0.0
+            if cell is not None and not session.is_complete(cell):
+                # Give the stream one frame interval to arrive before calling it a stall.
+                w0 = time.perf_counter()
+                try:
+                    session.wait_cell(cell, timeout=1.0 / opts.fps)
+                except TimeoutError:
+                    stalled = True
+                    try:
+                        session.wait_cell(cell, timeout=opts.wait_timeout)
+                    except TimeoutError:
+                        log.warning("cell %d did not arrive in %.0f s", cell, opts.wait_timeout)
+                waited = time.perf_counter() - w0
+            ids, tris, cols = session.store.arrays()
+            r0 = time.perf_counter()
+            frame = renderer.render(
+                tris, cols, pos, fwd, key="store", version=session.store.version
+            )
+            render_s = time.perf_counter() - r0
+            gt = renderer.render_scene(scene, pos, fwd, t=t if scene.is_dynamic else None)
+            m = frame_metrics(frame, gt)
+            rec = {
+                "frame": i,
+                "t": t,
+                "cell": -1 if cell is None else int(cell),
+                "epsilon": m["epsilon"],
+                "psnr": m["psnr"],
+                "ssim": m["ssim"],
+                "stalled": stalled,
+                "wait_seconds": waited,
+                "triangles_held": int(len(ids)),
+                "bytes_received": int(session.bytes_received),
+                "render_seconds": render_s,
+            }
+            frames.append(rec)
+            worst.append((m["epsilon"], i, (frame, gt)))
+            worst.sort(key=lambda w: -w[0])
+            del worst[opts.worst_frames :]
+            if not opts.quiet:
+                bar.write(
+                    f"frame {i:4d} t={t:6.2f}s cell={rec['cell']:5d} eps={m['epsilon']:7.3f}% "
+                    f"psnr={m['psnr']:6.2f}dB ssim={m['ssim']:.4f} tris={len(ids):7d}"
+                    + (" STALL" if stalled else "")
+                )
+            bar.update(1)
+        bar.close()
+        for _eps, i, (frame, gt) in worst:
+            save_frame_images(out, f"worst_{i:04d}", frame.color, gt.color, frame.depth, gt.depth)
+        renderer.close()
+        meta = {
+            "server": opts.server,
+            "scene": opts.scene,
+            "core": core,
+            "params": welcome.params,
+            "scene_triangles": scene.n_triangles,
+            "cells": len(grid),
+            "walkthrough": str(opts.walkthrough or out / "walkthrough.json"),
+            "frames": len(frames),
+            "image": [opts.width, opts.height],
+            "server_errors": [e.message for e in session.errors],
+            "epsilon_definition": epsilon_mask.__doc__.strip().splitlines()[0]
+            if epsilon_mask.__doc__
+            else "",
+        }
+        summary = write_report(out, frames, meta)
+        summary["frames_rendered"] = len(frames)
+        return summary
+    finally:
+        try:
+            session.close()
+        except SessionError:
+            pass
+
+
+def replay_cores(opts: ReplayOptions) -> list[dict]:
+    """Replay the same walkthrough against each core in ``opts.cores``; print each summary and,
+    for several cores, a side-by-side table."""
+    summaries = []
+    several = len(opts.cores) > 1
+    shared_walk = opts.walkthrough
+    for core in opts.cores:
+        out = opts.out_dir / core if several else opts.out_dir
+        run_opts = ReplayOptions(**{**opts.__dict__, "walkthrough": shared_walk})
+        s = replay(run_opts, core, out)
+        if shared_walk is None:
+            shared_walk = out / "walkthrough.json"  # the next cores replay the same walk
+        print(f"\n== {opts.scene} / {core}  (report: {out})")
+        print(format_summary(s, per_frame=False))
+        summaries.append(s)
+    if several:
+        print(side_by_side(summaries))
+    return summaries
+
+
+def side_by_side(summaries: list[dict]) -> str:
+    """A table with one row per core: mean epsilon, PSNR, SSIM, stalls, triangles held."""
+    lines = [f"{'core':16s} {'eps %':>8s} {'PSNR dB':>8s} {'SSIM':>8s} {'stalls':>7s} {'tris':>9s}"]
+    for s in summaries:
+        held = max((f.get("triangles_held", 0) for f in s.get("frames", [])), default=0)
+        lines.append(
+            f"{s['meta']['core']:16s} {s['epsilon']:8.3f} {s['psnr']:8.2f} {s['ssim']:8.4f} "
+            f"{s['stalls']:7d} {held:9d}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,228 @@
+"""Per-run outputs of a client walkthrough: frames.csv, summary.json, metrics.png, frame images.
+
+``summary.json`` top-level keys are a stable interface::
+
+    {"meta": {...}, "frames": [per-frame records], "epsilon": mean %, "psnr": mean dB,
+     "ssim": mean, "stalls": number of frames with "stalled" true,
+     "psnr_cap_db": 100.0, "summary": {metric: {"mean", "min", "max", "count"}}}
+
+PSNR means, minima and maxima use PSNR capped at ``client.metrics.PSNR_CAP_DB`` (an identical
+frame has PSNR +inf). The file is strict JSON: a non-finite number in a frame record (such as the
++inf PSNR of an identical frame) is written as null. A mean over no frames is null.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from numbers import Real
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from client.metrics import PSNR_CAP_DB, capped_psnr, epsilon_mask
+
+#: Metrics plotted and always present in ``summary["summary"]`` (when any frame has them).
+MAIN_METRICS = ("epsilon", "psnr", "ssim")
+#: Record fields that are indices or times, not metrics.
+NON_METRICS = ("t", "frame", "index", "cell", "stalled")
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, Real | np.number) and not isinstance(v, bool | np.bool_)
+
+
+def _json_safe(v: Any) -> Any:
+    """Strict-JSON form of a record value: numpy scalars and arrays to Python, non-finite to
+    None."""
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _json_safe(v.tolist())
+    if isinstance(v, bool | np.bool_):
+        return bool(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if _is_number(v):
+        f = float(v)
+        return f if math.isfinite(f) else None
+    if isinstance(v, Path):
+        return str(v)
+    return v
+
+
+def metric_stats(frames: list[dict]) -> dict[str, dict[str, float]]:
+    """``{metric: {"mean", "min", "max", "count"}}`` over the numeric fields of frame records.
+
+    PSNR is capped at ``PSNR_CAP_DB`` first; other non-finite values are left out.
+    """
+    keys: list[str] = []
+    for f in frames:
+        for k, v in f.items():
+            if k not in keys and k not in NON_METRICS and _is_number(v):
+                keys.append(k)
+    out = {}
+    for k in keys:
+        vals = np.array([float(f[k]) for f in frames if _is_number(f.get(k))])
+        if k == "psnr":
+            vals = capped_psnr(vals)
+        vals = vals[np.isfinite(vals)]
+        if len(vals):
+            out[k] = {
+                "mean": float(vals.mean()),
+                "min": float(vals.min()),
+                "max": float(vals.max()),
+                "count": int(len(vals)),
+            }
+    return out
+
+
+def _write_csv(path: Path, frames: list[dict]) -> None:
+    cols: list[str] = []
+    for f in frames:
+        cols.extend(k for k in f if k not in cols)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for f in frames:
+            row = []
+            for c in cols:
+                v = f.get(c, "")
+                if isinstance(v, dict | list | tuple | np.ndarray):
+                    v = json.dumps(_json_safe(v))
+                elif isinstance(v, np.generic):
+                    v = v.item()
+                row.append(v)
+            w.writerow(row)
+
+
+def _plot(path: Path, frames: list[dict], meta: dict) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    x = np.array(
+        [float(f["t"]) if _is_number(f.get("t")) else float(i) for i, f in enumerate(frames)]
+    )
+    xlabel = "t (s)" if frames and all(_is_number(f.get("t")) for f in frames) else "frame"
+    stalled = np.array([bool(f.get("stalled", False)) for f in frames], dtype=bool)
+    labels = {
+        "epsilon": "ε (% pixels)",
+        "psnr": f"PSNR (dB, cap {PSNR_CAP_DB:g})",
+        "ssim": "SSIM",
+    }
+    fig = Figure(figsize=(8, 6), dpi=80)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(3, 1, sharex=True)
+    for ax, m in zip(axes, MAIN_METRICS, strict=True):
+        y = np.array([float(f[m]) if _is_number(f.get(m)) else np.nan for f in frames])
+        if m == "psnr":
+            y = capped_psnr(y)  # NaN (missing) stays NaN
+        ax.plot(x, y, lw=1.2, marker="." if len(x) < 60 else None)
+        for xs in x[stalled]:
+            ax.axvline(xs, color="tab:red", alpha=0.25, lw=1)
+        ax.set_ylabel(labels[m])
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel(xlabel)
+    title = str(meta.get("title") or meta.get("name") or meta.get("scene") or "walkthrough")
+    n_stall = int(stalled.sum())
+    fig.suptitle(f"{title}: {len(frames)} frames, {n_stall} stalled (red)")
+    # Fixed margins: tight_layout costs more than the rest of the plot.
+    fig.subplots_adjust(left=0.1, right=0.97, top=0.93, bottom=0.08, hspace=0.12)
+    fig.savefig(path)
+
+
+def write_report(out_dir: str | Path, frames: list[dict], meta: dict) -> dict:
+    """Write ``frames.csv``, ``summary.json`` and ``metrics.png`` into ``out_dir``.
+
+    ``frames`` are per-frame records (dicts of scalars, usually ``t``, ``epsilon``, ``psnr``,
+    ``ssim``, ``stalled`` and whatever else the client measured); ``meta`` describes the run.
+    Returns the summary dict as written to ``summary.json`` (see the module docstring).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = [dict(f) for f in frames]
+    stats = metric_stats(frames)
+    summary = {
+        "meta": _json_safe(dict(meta)),
+        "frames": _json_safe(frames),
+        **{m: (stats[m]["mean"] if m in stats else None) for m in MAIN_METRICS},
+        "stalls": int(sum(bool(f.get("stalled", False)) for f in frames)),
+        "psnr_cap_db": PSNR_CAP_DB,
+        "summary": stats,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
+    _write_csv(out / "frames.csv", frames)
+    _plot(out / "metrics.png", frames, meta)
+    return summary
+
+
+def format_summary(summary: dict, per_frame: bool = False) -> str:
+    """A printable table of a summary (as returned by ``write_report``): optionally one line per
+    frame, then mean/min/max per metric and the stall count."""
+    lines = []
+    frames = summary.get("frames") or []
+    if per_frame and frames:
+        cols = [c for c in ("t", *MAIN_METRICS, "stalled") if any(c in f for f in frames)]
+        lines.append("  ".join(f"{c:>9}" for c in ["frame", *cols]))
+        for i, f in enumerate(frames):
+            cells = [f"{i:>9d}"]
+            for c in cols:
+                v = f.get(c)
+                if v is None and c == "psnr" and "psnr" in f:
+                    cells.append(f"{'inf':>9}")
+                elif isinstance(v, bool):
+                    cells.append(f"{'yes' if v else '':>9}")
+                elif _is_number(v):
+                    cells.append(f"{float(v):>9.4g}")
+                else:
+                    cells.append(f"{'-' if v is None else str(v):>9}")
+            lines.append("  ".join(cells))
+        lines.append("")
+    stats = summary.get("summary") or {}
+    lines.append(f"{'metric':<16}{'mean':>12}{'min':>12}{'max':>12}{'n':>7}")
+    order = [m for m in MAIN_METRICS if m in stats] + [m for m in stats if m not in MAIN_METRICS]
+    for m in order:
+        s = stats[m]
+        name = f"{m} (cap {PSNR_CAP_DB:g})" if m == "psnr" else m
+        lines.append(
+            f"{name:<16}{s['mean']:>12.4g}{s['min']:>12.4g}{s['max']:>12.4g}{s['count']:>7d}"
+        )
+    lines.append(f"frames: {len(frames)}   stalls: {summary.get('stalls', 0)}")
+    return "\n".join(lines)
+
+
+def save_frame_images(
+    out_dir: str | Path,
+    name: str,
+    color: np.ndarray,
+    color_gt: np.ndarray,
+    depth: np.ndarray,
+    depth_gt: np.ndarray,
+) -> Path:
+    """Write ``<out_dir>/<name>.png``: frame | ground truth | error overlay, side by side.
+
+    The overlay is the ground truth dimmed with ε pixels (``client.metrics.epsilon_mask``,
+    default tolerances) in red. Colours are (H, W, 3) uint8, depths (H, W) metres with +inf
+    for empty pixels. Returns the path written.
+    """
+    color = np.asarray(color, dtype=np.uint8)
+    color_gt = np.asarray(color_gt, dtype=np.uint8)
+    if color.shape != color_gt.shape or color.ndim != 3 or color.shape[2] != 3:
+        raise ValueError(f"colours must be equal (H, W, 3), got {color.shape}, {color_gt.shape}")
+    mask = epsilon_mask(depth, depth_gt)
+    if mask.shape != color.shape[:2]:
+        raise ValueError(f"depth shape {mask.shape} does not match colour {color.shape[:2]}")
+    overlay = (color_gt.astype(np.float32) * 0.4).astype(np.uint8)
+    overlay[mask] = (255, 0, 0)
+    sep = np.full((color.shape[0], 2, 3), 255, dtype=np.uint8)
+    img = np.concatenate([color, sep, color_gt, sep, overlay], axis=1)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.png"
+    Image.fromarray(img).save(path)
+    return path

@@ -1,0 +1,368 @@
+"""The client's network session: one WebSocket to the server's ``/ws``, poses out, geometry in.
+
+``Session.connect`` sends ``hello`` and waits for ``welcome``; a receive task then decodes every
+binary frame into the ``GeometryStore`` and tracks each cell's stream (``cell_begin``, chunks,
+``cell_end``); ``wait_cell`` waits for a cell to be complete. Errors from the server are kept in
+``errors``; a fatal one (or a close) ends the session and wakes every waiter.
+
+``SyncSession`` runs a ``Session`` on a background event-loop thread for synchronous code (the
+replay loop): same methods, blocking.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+import websockets
+from websockets.asyncio.client import ClientConnection, connect
+
+from client.store import GeometryStore
+from protocol.frames import FrameError, decode_geometry
+from protocol.messages import (
+    Bye,
+    CellBegin,
+    CellEnd,
+    Error,
+    Hello,
+    Pose,
+    ProtocolError,
+    Welcome,
+    dump_message,
+    parse_server_message,
+)
+
+log = logging.getLogger(__name__)
+
+
+class SessionError(RuntimeError):
+    """The server refused or ended the session. ``code`` is the error code (or ``"closed"``),
+    ``close_code`` the WebSocket close code when known."""
+
+    def __init__(self, code: str, message: str, close_code: int | None = None) -> None:
+        super().__init__(f"{code}: {message}" + (f" (close {close_code})" if close_code else ""))
+        self.code = code
+        self.message = message
+        self.close_code = close_code
+
+
+@dataclass
+class CellStream:
+    """What the client knows of one cell's stream (the latest one for that cell).
+
+    ``begin``/``end`` are the messages, ``chunks`` and ``triangles`` what arrived in between,
+    ``received_at`` the client clock (perf_counter seconds) at ``cell_end``.
+    """
+
+    cell: int
+    begin: CellBegin | None = None
+    end: CellEnd | None = None
+    chunks: int = 0
+    triangles: int = 0
+    received_at: float | None = None
+    ids: list[np.ndarray] = field(default_factory=list, repr=False)
+
+    @property
+    def complete(self) -> bool:
+        return self.end is not None
+
+
+def ws_url(url: str) -> str:
+    """The ``/ws`` WebSocket URL for a server URL (``http://host:port`` or a ``ws://`` URL)."""
+    parts = urlsplit(url)
+    scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
+    if scheme not in ("ws", "wss"):
+        raise ValueError(f"not a server URL: {url!r}")
+    path = parts.path if parts.path.rstrip("/").endswith("/ws") else parts.path.rstrip("/") + "/ws"
+    return urlunsplit((scheme, parts.netloc, path, parts.query, ""))
+
+
+def _vec3(v: Sequence[float] | np.ndarray, name: str) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,):
+        raise ValueError(f"{name} must have 3 components, got {a.shape}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+class Session:
+    """An open streaming session. Use ``await Session.connect(...)``, not the constructor."""
+
+    def __init__(self, ws: ClientConnection, welcome: Welcome, store: GeometryStore) -> None:
+        self.ws = ws
+        self.welcome = welcome
+        self.store = store
+        self.errors: list[Error] = []
+        #: Problems found on the client side (undecodable frames, inconsistent streams).
+        self.local_errors: list[str] = []
+        self.cells: dict[int, CellStream] = {}
+        self.complete: set[int] = set()
+        self.current: CellStream | None = None
+        self.bytes_received = 0
+        self.frames_received = 0
+        self.close_code: int | None = None
+        self.close_reason: str | None = None
+        self._changed = asyncio.Condition()
+        self._closed = asyncio.Event()
+        self._task = asyncio.create_task(self._receive_loop(), name="pvs-session-recv")
+
+    # ----------------------------------------------------------------------------- opening
+    @classmethod
+    async def connect(
+        cls,
+        url: str,
+        scene: str,
+        core: str = "sampling",
+        params: dict[str, Any] | None = None,
+        budget: int | None = None,
+        *,
+        store: GeometryStore | None = None,
+        timeout: float = 30.0,
+        max_size: int | None = 64 * 1024 * 1024,
+    ) -> Session:
+        """Open a session on the server at ``url`` (http(s):// or ws(s)://) for ``scene``.
+
+        Waits (at most ``timeout`` seconds) for the ``welcome``; raises SessionError when the
+        server answers with an error or closes, TimeoutError when it does not answer.
+        """
+        ws = await connect(ws_url(url), max_size=max_size, open_timeout=timeout, compression=None)
+        try:
+            hello = Hello(scene=scene, core=core, params=params or {}, budget=budget)
+            await ws.send(dump_message(hello))
+            raw = await asyncio.wait_for(ws.recv(), timeout)
+            if isinstance(raw, bytes):
+                raise SessionError("protocol", "binary frame before welcome")
+            msg = parse_server_message(raw)
+            if isinstance(msg, Error):
+                try:
+                    await asyncio.wait_for(ws.wait_closed(), 2.0)
+                except TimeoutError:
+                    pass
+                raise SessionError(msg.code, msg.message, ws.close_code)
+            if not isinstance(msg, Welcome):
+                raise SessionError("protocol", f"expected welcome, got {msg.type}")
+        except websockets.ConnectionClosed as exc:
+            raise SessionError("closed", "server closed the connection before welcome",
+                               exc.rcvd.code if exc.rcvd else None) from None
+        except BaseException:
+            await ws.close()
+            raise
+        return cls(ws, msg, store if store is not None else GeometryStore(budget))
+
+    # ----------------------------------------------------------------------------- sending
+    async def send_pose(
+        self,
+        seq: int,
+        t: float,
+        position: Sequence[float] | np.ndarray,
+        forward: Sequence[float] | np.ndarray,
+        velocity: Sequence[float] | np.ndarray | None = None,
+    ) -> None:
+        """Send a pose (metres, seconds). ValueError for NaN/inf or malformed vectors (checked
+        here, before sending); SessionError once the session has ended."""
+        if self.closed:
+            raise SessionError("closed", "the session has ended", self.close_code)
+        try:
+            pose = Pose(seq=int(seq), t=float(t), position=_vec3(position, "position"),
+                        forward=_vec3(forward, "forward"),
+                        velocity=None if velocity is None else _vec3(velocity, "velocity"))
+        except ValueError as exc:
+            raise ValueError(f"invalid pose: {exc}") from None
+        await self.send_raw(dump_message(pose))
+
+    async def send_raw(self, data: str | bytes) -> None:
+        """Send a frame as is (tests use it to send what a correct client never would)."""
+        try:
+            await self.ws.send(data)
+        except websockets.ConnectionClosed:
+            raise SessionError("closed", "the session has ended", self.close_code) from None
+
+    # ----------------------------------------------------------------------------- waiting
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
+    def is_complete(self, cell: int) -> bool:
+        """Whether ``cell_end`` for ``cell`` has arrived in this session."""
+        return int(cell) in self.complete
+
+    async def wait_cell(self, cell: int, timeout: float | None = None) -> CellStream:
+        """Wait until ``cell`` is complete; its ``CellStream``. TimeoutError after ``timeout``
+        seconds, SessionError when the session ends first."""
+        cell = int(cell)
+
+        async def _wait() -> CellStream:
+            async with self._changed:
+                while cell not in self.complete:
+                    if self.closed:
+                        raise SessionError(self._end_code(), f"session ended before cell {cell}",
+                                           self.close_code)
+                    await self._changed.wait()
+                return self.cells[cell]
+
+        return await asyncio.wait_for(_wait(), timeout)
+
+    async def wait_closed(self, timeout: float | None = None) -> None:
+        """Wait until the connection is closed (by either side)."""
+        await asyncio.wait_for(self._closed.wait(), timeout)
+
+    async def close(self) -> None:
+        """Say bye and close; waits for the receive task to finish."""
+        if not self.closed:
+            try:
+                await self.ws.send(dump_message(Bye()))
+            except websockets.ConnectionClosed:
+                pass
+        await self.ws.close()
+        await asyncio.gather(self._task, return_exceptions=True)
+
+    def _end_code(self) -> str:
+        fatal = [e for e in self.errors if e.fatal]
+        return fatal[-1].code if fatal else "closed"
+
+    # ----------------------------------------------------------------------------- receiving
+    async def _receive_loop(self) -> None:
+        try:
+            async for raw in self.ws:
+                if isinstance(raw, bytes):
+                    self._on_frame(raw)
+                else:
+                    self._on_text(raw)
+                async with self._changed:
+                    self._changed.notify_all()
+        except websockets.ConnectionClosed:
+            pass
+        except Exception as exc:  # a bug here must not hang waiters
+            log.exception("session receive loop failed")
+            self.local_errors.append(f"receive loop failed: {exc!r}")
+        finally:
+            self.close_code = self.ws.close_code
+            self.close_reason = self.ws.close_reason
+            self._closed.set()
+            async with self._changed:
+                self._changed.notify_all()
+
+    def _on_frame(self, raw: bytes) -> None:
+        self.bytes_received += len(raw)
+        self.frames_received += 1
+        try:
+            chunk = decode_geometry(raw)
+        except FrameError as exc:
+            self.local_errors.append(f"undecodable frame: {exc}")
+            return
+        self.store.add_chunk(chunk)
+        cs = self.current
+        if cs is None or cs.cell != chunk.cell:
+            self.local_errors.append(f"chunk of cell {chunk.cell} outside its cell stream")
+            return
+        cs.chunks += 1
+        cs.triangles += len(chunk)
+        cs.ids.append(chunk.ids)
+
+    def _on_text(self, raw: str) -> None:
+        self.bytes_received += len(raw)
+        try:
+            msg = parse_server_message(raw)
+        except ProtocolError as exc:
+            self.local_errors.append(f"unreadable server message: {exc}")
+            return
+        if isinstance(msg, CellBegin):
+            self.current = CellStream(msg.cell, begin=msg)
+            self.cells[msg.cell] = self.current
+        elif isinstance(msg, CellEnd):
+            cs = self.current
+            if cs is None or cs.cell != msg.cell:
+                self.local_errors.append(f"cell_end for {msg.cell} without its cell_begin")
+                cs = self.cells.setdefault(msg.cell, CellStream(msg.cell))
+            elif cs.begin is not None and (cs.chunks != cs.begin.chunks
+                                           or cs.triangles != cs.begin.new):
+                self.local_errors.append(
+                    f"cell {msg.cell}: got {cs.chunks} chunks / {cs.triangles} triangles, "
+                    f"announced {cs.begin.chunks} / {cs.begin.new}"
+                )
+            cs.end = msg
+            cs.received_at = time.perf_counter()
+            self.complete.add(msg.cell)
+            self.current = None
+        elif isinstance(msg, Error):
+            self.errors.append(msg)
+        elif isinstance(msg, Welcome):
+            self.local_errors.append("second welcome")
+
+
+class SyncSession:
+    """A ``Session`` driven from synchronous code through a private event-loop thread.
+
+    ``SyncSession.connect(url, scene, ...)`` takes ``Session.connect``'s arguments; every method
+    blocks until done. Attributes of the session (``store``, ``welcome``, ``errors``, ``cells``)
+    are reachable directly; the store is thread-safe, the rest is read-mostly.
+    """
+
+    def __init__(self) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="pvs-session-loop",
+                                        daemon=True)
+        self._thread.start()
+        self.session: Session | None = None
+
+    def _run(self, coro: Any, timeout: float | None = None) -> Any:
+        fut: Future = asyncio.run_coroutine_threadsafe(coro, self._loop)
+        return fut.result(timeout)
+
+    @classmethod
+    def connect(cls, url: str, scene: str, core: str = "sampling", params: dict | None = None,
+                budget: int | None = None, **kw: Any) -> SyncSession:
+        """Open a session (see ``Session.connect``)."""
+        self = cls()
+        try:
+            self.session = self._run(Session.connect(url, scene, core, params, budget, **kw))
+        except BaseException:
+            self._stop()
+            raise
+        return self
+
+    def __getattr__(self, name: str) -> Any:
+        # Only reached for names SyncSession lacks: expose the session's attributes.
+        if name in ("session", "_loop", "_thread"):
+            raise AttributeError(name)
+        return getattr(self.session, name)
+
+    def send_pose(self, seq: int, t: float, position: Any, forward: Any,
+                  velocity: Any = None) -> None:
+        """Send a pose (blocks until written)."""
+        self._run(self.session.send_pose(seq, t, position, forward, velocity))
+
+    def wait_cell(self, cell: int, timeout: float | None = None) -> CellStream:
+        """Block until ``cell`` is complete (TimeoutError / SessionError as the async one)."""
+        return self._run(self.session.wait_cell(cell, timeout))
+
+    def is_complete(self, cell: int) -> bool:
+        return self.session.is_complete(cell)
+
+    def close(self) -> None:
+        """Close the session and stop the loop thread."""
+        try:
+            if self.session is not None:
+                self._run(self.session.close(), timeout=10)
+        finally:
+            self._stop()
+
+    def _stop(self) -> None:
+        if self._loop.is_running():
+            self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=5)
+        if not self._loop.is_running():
+            self._loop.close()
+
+    def __enter__(self) -> SyncSession:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

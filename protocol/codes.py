@@ -1,0 +1,106 @@
+"""Named error codes (the ``code`` of an ``error`` message) and WebSocket close codes.
+
+Every error the server reports has an ``ErrorCode``. Whether it ends the session is fixed per code
+(``FATAL``); a fatal error is followed by a WebSocket close whose code is ``close_code_for(code)``:
+standard codes where one fits (1003 unsupported data, 1008 policy violation, 1009 message too big,
+1011 internal error) and application codes in 4000-4999 otherwise (4000 + the HTTP status a REST
+call would get for the same problem, so 4004 means "not found").
+
+| code                 | fatal | close | meaning                                               |
+|----------------------|-------|-------|-------------------------------------------------------|
+| bad_json             | yes   | 1008  | a text frame that is not a JSON object                |
+| binary_unsupported   | yes   | 1003  | the client sent a binary frame (clients send text)    |
+| too_big              | yes   | 1009  | a message over the server's ``max_message_bytes``     |
+| expected_hello       | yes   | 1008  | the first message was not ``hello``                   |
+| invalid_hello        | yes   | 1008  | ``hello`` failed validation                           |
+| duplicate_hello      | yes   | 1008  | a second ``hello`` in one session                     |
+| version_mismatch     | yes   | 4001  | ``hello.version`` is not one the server speaks        |
+| unknown_scene        | yes   | 4004  | no such scene in the catalogue                        |
+| unknown_core         | yes   | 4005  | no such visibility core                               |
+| bad_params           | yes   | 4022  | core parameters rejected                              |
+| unsupported_scene    | yes   | 4023  | the core does not fit this scene (e.g. 2.5D only)     |
+| scene_load_failed    | yes   | 1011  | the scene file could not be loaded                    |
+| internal             | yes   | 1011  | a server bug; the session cannot go on                |
+| unknown_type         | no    | -     | a message type this server does not know (skipped)    |
+| invalid_message      | no    | -     | a known message type that failed validation (skipped) |
+| invalid_pose         | no    | -     | a pose with NaN/inf or a malformed vector (skipped)   |
+| outside_grid         | no    | -     | a pose in no viewcell (the session keeps its cell)    |
+| compute_failed       | no    | -     | the PVS of a cell could not be computed               |
+| over_budget          | no    | -     | a cell's PVS alone exceeds the client's budget        |
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, StrEnum
+
+
+class ErrorCode(StrEnum):
+    """The ``code`` field of an ``error`` message (and of HTTP error bodies)."""
+
+    BAD_JSON = "bad_json"
+    BINARY_UNSUPPORTED = "binary_unsupported"
+    TOO_BIG = "too_big"
+    EXPECTED_HELLO = "expected_hello"
+    INVALID_HELLO = "invalid_hello"
+    DUPLICATE_HELLO = "duplicate_hello"
+    VERSION_MISMATCH = "version_mismatch"
+    UNKNOWN_SCENE = "unknown_scene"
+    UNKNOWN_CORE = "unknown_core"
+    UNKNOWN_CELL = "unknown_cell"
+    BAD_PARAMS = "bad_params"
+    UNSUPPORTED_SCENE = "unsupported_scene"
+    SCENE_LOAD_FAILED = "scene_load_failed"
+    INTERNAL = "internal"
+    UNKNOWN_TYPE = "unknown_type"
+    INVALID_MESSAGE = "invalid_message"
+    INVALID_POSE = "invalid_pose"
+    OUTSIDE_GRID = "outside_grid"
+    COMPUTE_FAILED = "compute_failed"
+    OVER_BUDGET = "over_budget"
+    # HTTP only.
+    NOT_FOUND = "not_found"
+    VALIDATION = "validation"
+
+
+class CloseCode(IntEnum):
+    """WebSocket close codes the server uses (RFC 6455 section 7.4 plus application codes)."""
+
+    NORMAL = 1000
+    GOING_AWAY = 1001
+    UNSUPPORTED_DATA = 1003
+    POLICY_VIOLATION = 1008
+    MESSAGE_TOO_BIG = 1009
+    INTERNAL_ERROR = 1011
+    VERSION_MISMATCH = 4001
+    UNKNOWN_SCENE = 4004
+    UNKNOWN_CORE = 4005
+    BAD_PARAMS = 4022
+    UNSUPPORTED_SCENE = 4023
+
+
+#: Codes that end the session, with the close code that follows the error message.
+FATAL: dict[ErrorCode, CloseCode] = {
+    ErrorCode.BAD_JSON: CloseCode.POLICY_VIOLATION,
+    ErrorCode.BINARY_UNSUPPORTED: CloseCode.UNSUPPORTED_DATA,
+    ErrorCode.TOO_BIG: CloseCode.MESSAGE_TOO_BIG,
+    ErrorCode.EXPECTED_HELLO: CloseCode.POLICY_VIOLATION,
+    ErrorCode.INVALID_HELLO: CloseCode.POLICY_VIOLATION,
+    ErrorCode.DUPLICATE_HELLO: CloseCode.POLICY_VIOLATION,
+    ErrorCode.VERSION_MISMATCH: CloseCode.VERSION_MISMATCH,
+    ErrorCode.UNKNOWN_SCENE: CloseCode.UNKNOWN_SCENE,
+    ErrorCode.UNKNOWN_CORE: CloseCode.UNKNOWN_CORE,
+    ErrorCode.BAD_PARAMS: CloseCode.BAD_PARAMS,
+    ErrorCode.UNSUPPORTED_SCENE: CloseCode.UNSUPPORTED_SCENE,
+    ErrorCode.SCENE_LOAD_FAILED: CloseCode.INTERNAL_ERROR,
+    ErrorCode.INTERNAL: CloseCode.INTERNAL_ERROR,
+}
+
+
+def is_fatal(code: ErrorCode | str) -> bool:
+    """Whether an error with this code ends the WebSocket session."""
+    return ErrorCode(code) in FATAL
+
+
+def close_code_for(code: ErrorCode | str) -> CloseCode:
+    """The WebSocket close code sent after a fatal error; NORMAL for non-fatal codes."""
+    return FATAL.get(ErrorCode(code), CloseCode.NORMAL)

@@ -1,0 +1,289 @@
+"""JSON message schemas of the streaming protocol (WebSocket text frames) and the HTTP PVS API.
+
+Every message is a JSON object with a ``type`` field that picks its schema. Schemas are strict:
+unknown fields, unknown types, NaN/inf numbers, strings where numbers belong and vice versa are
+validation errors. Vectors are ``[x, y, z]`` in metres (Y-up, right-handed, see
+``visibility/camera.py``).
+
+Client to server: ``hello`` (once, first), then any number of ``pose``, optionally ``bye``.
+Server to client: ``welcome`` (answer to hello), per cell change ``cell_begin``, binary geometry
+frames (``protocol.frames``), ``cell_end``; ``error`` at any time (``fatal`` ones are followed by a
+close, see ``protocol.codes``).
+
+``parse_client_message`` / ``parse_server_message`` turn a frame into a model or raise
+``ProtocolError`` carrying the ``ErrorCode`` the server reports for it; ``dump_message`` is the
+inverse.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    StrictStr,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
+
+from protocol.codes import ErrorCode
+from protocol.version import PROTOCOL_VERSION
+
+#: A finite float (ints accepted, strings, NaN and inf rejected).
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+#: A 3-vector of finite floats, metres (or a unit direction).
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+Vec2 = tuple[FiniteFloat, FiniteFloat]
+NonNegInt = Annotated[int, Field(strict=True, ge=0)]
+#: A core parameter value (JSON scalar or list of scalars).
+ParamScalar = StrictBool | StrictInt | FiniteFloat | StrictStr | None
+ParamValue = ParamScalar | list[ParamScalar]
+Params = dict[StrictStr, ParamValue]
+#: Bound on names (scene, core, session) so a hostile hello cannot carry megabytes of name.
+Name = Annotated[str, Field(strict=True, min_length=1, max_length=256)]
+
+
+class ProtocolError(ValueError):
+    """A frame that is not a valid message; ``code`` is what the server reports for it."""
+
+    def __init__(self, code: ErrorCode, message: str, seq: int | None = None) -> None:
+        super().__init__(message)
+        self.code = ErrorCode(code)
+        self.message = message
+        self.seq = seq
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --------------------------------------------------------------------------- client -> server
+class Hello(_Message):
+    """Opens a session: which scene, which core with which parameters, how much the client holds.
+
+    ``budget`` is the most triangles the client can hold (None: no limit).
+    """
+
+    type: Literal["hello"] = "hello"
+    version: StrictInt = PROTOCOL_VERSION
+    scene: Name
+    core: Name = "sampling"
+    params: Params = Field(default_factory=dict)
+    budget: Annotated[int, Field(strict=True, gt=0)] | None = None
+
+
+class Pose(_Message):
+    """Where the client's eye is at time ``t`` (seconds, client clock), metres; ``seq`` increases
+    per pose and is echoed in the answers it triggers."""
+
+    type: Literal["pose"] = "pose"
+    seq: NonNegInt
+    t: FiniteFloat
+    position: Vec3
+    forward: Vec3
+    velocity: Vec3 | None = None
+
+
+class Bye(_Message):
+    """Ends the session cleanly (the server closes with 1000)."""
+
+    type: Literal["bye"] = "bye"
+    reason: Annotated[str, Field(strict=True, max_length=1024)] | None = None
+
+
+# --------------------------------------------------------------------------- server -> client
+class SceneInfo(_Message):
+    """What a client needs to know about the scene (``Scene.summary()`` plus its kind)."""
+
+    name: str
+    kind: Literal["file", "generated", "memory"]
+    triangles: NonNegInt
+    valid_triangles: NonNegInt
+    vertices: NonNegInt
+    objects: NonNegInt
+    spheres: NonNegInt = 0
+    dynamic: bool = False
+    states: NonNegInt = 1
+    bounds: tuple[Vec3, Vec3]
+    degenerate: dict[str, NonNegInt] = Field(default_factory=dict)
+    #: How to rebuild the scene locally (ground truth): ``{"generator", "triangles", "seed"}``
+    #: for a generated scene, ``{"file"}`` (the file's name) for a file scene.
+    source: dict[str, str | int | float] = Field(default_factory=dict)
+
+
+class GridInfo(_Message):
+    """The viewcell grid (``ViewcellGrid.to_dict()``): metres; ``cells`` is the cell count."""
+
+    cell_size: FiniteFloat
+    origin_xz: Vec2
+    cells: NonNegInt
+    levels: NonNegInt
+    eye_range: Vec2
+    bounds: tuple[Vec3, Vec3]
+
+
+class Limits(_Message):
+    """Sizes the server enforces: binary frames it sends, text messages it accepts (bytes)."""
+
+    max_frame_bytes: NonNegInt
+    max_message_bytes: NonNegInt
+
+
+class Welcome(_Message):
+    """Answer to ``hello``: the session id, the scene and grid, the core's full parameters."""
+
+    type: Literal["welcome"] = "welcome"
+    version: StrictInt = PROTOCOL_VERSION
+    session: str
+    scene: SceneInfo
+    grid: GridInfo
+    core: str
+    params: Params
+    budget: NonNegInt | None = None
+    limits: Limits
+
+
+class CellBegin(_Message):
+    """Start of a cell's stream: the PVS holds ``triangles`` ids, ``new`` of them not sent to this
+    session before; they follow in ``chunks`` binary geometry frames, then ``cell_end``."""
+
+    type: Literal["cell_begin"] = "cell_begin"
+    cell: NonNegInt
+    seq: NonNegInt
+    triangles: NonNegInt
+    new: NonNegInt
+    chunks: NonNegInt
+
+
+class CellEnd(_Message):
+    """End of a cell's stream. ``seconds``: server wall time from the pose to this message;
+    ``compute_seconds``: the PVS computation time (of the original computation when ``cached``)."""
+
+    type: Literal["cell_end"] = "cell_end"
+    cell: NonNegInt
+    seq: NonNegInt
+    seconds: FiniteFloat
+    compute_seconds: FiniteFloat = 0.0
+    cached: bool = False
+
+
+class Error(_Message):
+    """A problem. ``code`` is an ``ErrorCode`` value (kept as a string so a client tolerates codes
+    newer than itself); ``seq`` names the pose it concerns, if any."""
+
+    type: Literal["error"] = "error"
+    code: StrictStr
+    message: str
+    fatal: bool = False
+    seq: NonNegInt | None = None
+
+
+ClientMessage = Annotated[Hello | Pose | Bye, Field(discriminator="type")]
+ServerMessage = Annotated[
+    Welcome | CellBegin | CellEnd | Error, Field(discriminator="type")
+]
+
+CLIENT_TYPES = {"hello": Hello, "pose": Pose, "bye": Bye}
+SERVER_TYPES = {"welcome": Welcome, "cell_begin": CellBegin, "cell_end": CellEnd, "error": Error}
+
+_CLIENT_ADAPTER: TypeAdapter = TypeAdapter(ClientMessage)
+_SERVER_ADAPTER: TypeAdapter = TypeAdapter(ServerMessage)
+
+
+# --------------------------------------------------------------------------- HTTP API
+class BoxPvsRequest(_Message):
+    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc viewcell box [min, max] (metres)."""
+
+    box: tuple[Vec3, Vec3]
+    core: Name | None = None
+    params: Params = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _box_ordered(self) -> BoxPvsRequest:
+        lo, hi = self.box
+        if any(h < lo_ for lo_, h in zip(lo, hi, strict=True)):
+            raise ValueError(f"box max < min: {list(lo)} > {list(hi)}")
+        return self
+
+
+class PvsResponse(BaseModel):
+    """Answer of the PVS routes: sorted triangle ids (and object ids with object granularity)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scene: str
+    core: str
+    cell: int | None
+    box: tuple[Vec3, Vec3]
+    granularity: str
+    count: int
+    triangle_ids: list[int]
+    object_ids: list[int] | None = None
+    seconds: float
+    cached: bool
+    params: dict[str, Any]
+    stats: dict[str, Any]
+
+
+# --------------------------------------------------------------------------- parse / dump
+def _summarize(exc: ValidationError, limit: int = 5) -> str:
+    parts = []
+    for err in exc.errors(include_url=False)[:limit]:
+        # The first loc element is the union tag; the rest is the field path.
+        loc = ".".join(str(x) for x in err["loc"][1:]) or "message"
+        parts.append(f"{loc}: {err['msg']}")
+    more = exc.error_count() - limit
+    if more > 0:
+        parts.append(f"... and {more} more")
+    return "; ".join(parts)
+
+
+def _parse(data: str | bytes, adapter: TypeAdapter, types: dict, what: str) -> Any:
+    try:
+        obj = json.loads(data)
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, over-long integers
+        raise ProtocolError(ErrorCode.BAD_JSON, f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ProtocolError(ErrorCode.BAD_JSON, "JSON nested too deeply") from None
+    if not isinstance(obj, dict):
+        raise ProtocolError(
+            ErrorCode.BAD_JSON, f"a message is a JSON object, got {type(obj).__name__}"
+        )
+    kind = obj.get("type")
+    if not isinstance(kind, str):
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "a message needs a string 'type' field")
+    if kind not in types:
+        raise ProtocolError(
+            ErrorCode.UNKNOWN_TYPE,
+            f"unknown {what} message type {kind[:64]!r}; known: {sorted(types)}",
+        )
+    seq = obj.get("seq")
+    seq = seq if isinstance(seq, int) and not isinstance(seq, bool) and seq >= 0 else None
+    try:
+        return adapter.validate_python(obj)
+    except ValidationError as exc:
+        code = {"pose": ErrorCode.INVALID_POSE, "hello": ErrorCode.INVALID_HELLO}.get(
+            kind, ErrorCode.INVALID_MESSAGE
+        )
+        raise ProtocolError(code, f"invalid {kind}: {_summarize(exc)}", seq) from None
+
+
+def parse_client_message(data: str | bytes) -> Hello | Pose | Bye:
+    """The client message in a text frame; ``ProtocolError`` (with its ``ErrorCode``) otherwise."""
+    return _parse(data, _CLIENT_ADAPTER, CLIENT_TYPES, "client")
+
+
+def parse_server_message(data: str | bytes) -> Welcome | CellBegin | CellEnd | Error:
+    """The server message in a text frame; ``ProtocolError`` otherwise."""
+    return _parse(data, _SERVER_ADAPTER, SERVER_TYPES, "server")
+
+
+def dump_message(msg: BaseModel) -> str:
+    """The JSON text of a message (compact; floats round-trip exactly)."""
+    return msg.model_dump_json()

@@ -1,0 +1,15 @@
+"""The wire protocol's version.
+
+Bump ``PROTOCOL_VERSION`` on any change a peer of the previous version could misread: a new
+required field, a changed meaning, a changed binary layout. Additive optional fields in JSON
+messages do not need a bump only when both ends already accept them (they are strict: unknown
+fields are rejected), so in practice every schema change bumps it.
+"""
+
+from __future__ import annotations
+
+#: The version this code speaks, in ``hello``/``welcome`` and every binary frame header.
+PROTOCOL_VERSION = 1
+
+#: Versions a server built from this code accepts in ``hello``.
+SUPPORTED_VERSIONS: tuple[int, ...] = (PROTOCOL_VERSION,)

@@ -1,0 +1,94 @@
+"""The FastAPI application and how to run it under uvicorn.
+
+``create_app(settings)`` wires the catalogue, the compute service, the HTTP routes and the ``/ws``
+endpoint; ``uvicorn_config`` is the one place uvicorn options are derived from settings (the test
+fixture and ``serve`` share it); ``serve(settings)`` runs the server until interrupted.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import uvicorn
+from fastapi import FastAPI
+
+from protocol.version import PROTOCOL_VERSION
+from server import routes, ws
+from server.catalog import SceneCatalog
+from server.compute import ComputeService
+from server.settings import Settings
+
+#: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
+#: that oversized messages reach the session, which answers them with a named ``too_big`` error;
+#: only beyond this does the WebSocket library close with 1009 by itself.
+WS_LIBRARY_MAX_FACTOR = 4
+WS_LIBRARY_MAX_MIN = 1 << 20
+
+
+@dataclass
+class ServerState:
+    """What the routes and sessions share: settings, catalogue, compute service, open sessions
+    (by id) and stream counters."""
+
+    settings: Settings
+    catalog: SceneCatalog
+    compute: ComputeService
+    sessions: dict[str, Any] = field(default_factory=dict)
+    counters: Counter = field(default_factory=Counter)
+    started: float = field(default_factory=time.monotonic)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The server application for ``settings`` (default ``Settings()``); its ``ServerState`` is
+    ``app.state.server``. The worker pool stops when the application shuts down."""
+    settings = settings or Settings()
+    catalog = SceneCatalog(settings)
+    state = ServerState(settings, catalog, ComputeService(catalog, settings))
+    for key in ("sessions_total", "messages_received", "messages_sent", "errors_sent",
+                "frames_sent", "frame_bytes_sent", "triangles_sent", "cells_streamed"):
+        state.counters[key] = 0
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        state.compute.shutdown()
+
+    app = FastAPI(
+        title="PVS stream server",
+        version=f"protocol {PROTOCOL_VERSION}",
+        description="Potentially visible sets of viewcells, computed online and streamed to thin "
+        "clients over WebSocket (/ws).",
+        lifespan=lifespan,
+    )
+    app.state.server = state
+    app.include_router(routes.router)
+    app.add_api_websocket_route("/ws", ws.websocket_endpoint)
+    routes.install_error_handlers(app)
+    return app
+
+
+def uvicorn_config(app: FastAPI, settings: Settings, **overrides: Any) -> uvicorn.Config:
+    """uvicorn options for ``app`` from ``settings`` (``overrides`` win)."""
+    options: dict[str, Any] = dict(
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        ws_max_size=max(WS_LIBRARY_MAX_MIN, WS_LIBRARY_MAX_FACTOR * settings.max_message_bytes),
+        ws_per_message_deflate=settings.ws_deflate,
+        ws_ping_interval=settings.ws_ping_interval,
+        ws_ping_timeout=settings.ws_ping_interval,
+        lifespan="on",
+    )
+    options.update(overrides)
+    return uvicorn.Config(app, **options)
+
+
+def serve(settings: Settings | None = None) -> None:
+    """Run the server on ``settings.host:settings.port`` until interrupted (Ctrl-C)."""
+    settings = settings or Settings()
+    uvicorn.Server(uvicorn_config(create_app(settings), settings)).run()

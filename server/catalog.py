@@ -1,0 +1,240 @@
+"""The scene catalogue: which scenes the server serves, loaded lazily and once each.
+
+Scenes come from three places: files in ``settings.scenes_dir`` (named by file stem), generators
+(``settings.generated``, named by generator) and in-memory scenes registered by code (tests,
+embedding). Listing never loads anything; ``get`` loads a scene and builds its viewcell grid the
+first time it is asked for, under a per-scene lock so concurrent requests load it once while other
+scenes stay available. A name is looked up only in the catalogue, never turned into a path, so no
+request can reach a file outside the scenes folder.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from server.settings import Settings
+from visibility.scene import Scene
+from visibility.viewcells import ViewcellGrid
+
+log = logging.getLogger(__name__)
+
+SceneKind = Literal["file", "generated", "memory"]
+_FALLBACK_EXTENSIONS = (".glb", ".gltf", ".obj", ".ply")
+
+
+class UnknownSceneError(LookupError):
+    """No scene of this name in the catalogue (or a name that could never be one)."""
+
+
+class SceneLoadFailed(RuntimeError):
+    """A catalogued scene that could not be loaded (corrupt file, generator error)."""
+
+
+def scene_extensions() -> tuple[str, ...]:
+    """File extensions served from the scenes folder (the loader's, lower case)."""
+    try:
+        from visibility.loaders import SCENE_EXTENSIONS
+    except ImportError:
+        return _FALLBACK_EXTENSIONS
+    return tuple(SCENE_EXTENSIONS)
+
+
+@dataclass(frozen=True)
+class LoadedScene:
+    """A loaded scene with its grid and a JSON-friendly description (``info``)."""
+
+    name: str
+    kind: SceneKind
+    scene: Scene
+    grid: ViewcellGrid
+    info: dict
+
+
+@dataclass
+class _Entry:
+    name: str
+    kind: SceneKind
+    path: Path | None = None
+    triangles: int | None = None
+    loaded: LoadedScene | None = None
+    pending: Scene | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def check_scene_name(name: str) -> str:
+    """``name`` when it could name a catalogue entry; UnknownSceneError for names holding path
+    separators, "..", control characters, or nothing."""
+    if (
+        not isinstance(name, str)
+        or not name
+        or len(name) > 256
+        or name in (".", "..")
+        or ".." in name
+        or any(c in name for c in "/\\:")
+        or any(ord(c) < 32 for c in name)
+    ):
+        raise UnknownSceneError(f"unknown scene {str(name)[:80]!r}")
+    return name
+
+
+class SceneCatalog:
+    """Scenes by name, loaded on first use. Thread-safe."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._entries: dict[str, _Entry] = {}
+        for name, n in settings.generated.items():
+            self._entries[name] = _Entry(name, "generated", triangles=int(n))
+        self.refresh()
+
+    # ----------------------------------------------------------------------------- listing
+    def refresh(self) -> None:
+        """Pick up scene files added to the scenes folder since the last scan."""
+        folder = self.settings.scenes_dir
+        if folder is None:
+            return
+        folder = Path(folder)
+        if not folder.is_dir():
+            log.warning("scenes folder %s does not exist", folder)
+            return
+        root = folder.resolve()
+        exts = scene_extensions()
+        found: dict[str, Path] = {}
+        for p in sorted(folder.iterdir()):
+            ext = p.suffix.lower()
+            if ext not in exts or not p.is_file():
+                continue
+            if not p.resolve().is_relative_to(root):
+                log.warning("skipping %s: it points outside %s", p, root)
+                continue
+            prev = found.get(p.stem)
+            # Same stem in two formats: the loader's preferred order decides.
+            if prev is None or exts.index(ext) < exts.index(prev.suffix.lower()):
+                found[p.stem] = p
+        with self._lock:
+            for stem, path in found.items():
+                if check_name_ok(stem):
+                    e = self._entries.get(stem)
+                    if e is None or (e.kind == "generated" and e.loaded is None):
+                        if e is not None:
+                            log.warning("scene file %s hides the generator %r", path, stem)
+                        self._entries[stem] = _Entry(stem, "file", path=path)
+
+    def names(self) -> list[str]:
+        """Every scene name, sorted (nothing is loaded)."""
+        with self._lock:
+            return sorted(self._entries)
+
+    def listing(self) -> list[dict]:
+        """[{name, kind, loaded, triangles}] for every scene; triangles is the loaded count, the
+        requested count for an unloaded generated scene, else None."""
+        self.refresh()
+        with self._lock:
+            entries = sorted(self._entries.values(), key=lambda e: e.name)
+        out = []
+        for e in entries:
+            tris = e.loaded.scene.n_triangles if e.loaded else e.triangles
+            out.append({"name": e.name, "kind": e.kind, "loaded": e.loaded is not None,
+                        "triangles": tris})
+        return out
+
+    def is_loaded(self, name: str) -> bool:
+        with self._lock:
+            e = self._entries.get(name)
+        return e is not None and e.loaded is not None
+
+    def __contains__(self, name: object) -> bool:
+        with self._lock:
+            return name in self._entries
+
+    # ----------------------------------------------------------------------------- loading
+    def register(self, name: str, scene: Scene, grid: ViewcellGrid | None = None) -> None:
+        """Serve an in-memory scene under ``name`` (replacing any entry of that name). The grid
+        defaults to ``ViewcellGrid.for_scene(scene, cell_size)``, built on first use."""
+        check_scene_name(name)
+        entry = _Entry(name, "memory", pending=scene)
+        if grid is not None:
+            entry.loaded = self._describe(name, "memory", scene, grid)
+        with self._lock:
+            self._entries[name] = entry
+
+    def _entry(self, name: str) -> _Entry:
+        check_scene_name(name)
+        with self._lock:
+            e = self._entries.get(name)
+        if e is None and self.settings.scenes_dir is not None:
+            self.refresh()
+            with self._lock:
+                e = self._entries.get(name)
+        if e is None:
+            raise UnknownSceneError(f"unknown scene {name!r}")
+        return e
+
+    def require(self, name: str) -> None:
+        """Return quietly when ``name`` is in the catalogue (loaded or not); UnknownSceneError
+        otherwise. Never loads."""
+        self._entry(name)
+
+    def get(self, name: str) -> LoadedScene:
+        """The loaded scene ``name``: loads it (and builds its grid) on first use.
+
+        Raises UnknownSceneError for names not in the catalogue, SceneLoadFailed when loading
+        fails (a later call tries again).
+        """
+        e = self._entry(name)
+        if e.loaded is not None:
+            return e.loaded
+        with e.lock:
+            if e.loaded is None:
+                e.loaded = self._load(e)
+                e.pending = None
+            return e.loaded
+
+    def _load(self, e: _Entry) -> LoadedScene:
+        try:
+            if e.kind == "file":
+                from visibility.loaders import load_scene
+
+                scene = load_scene(e.path)
+            elif e.kind == "generated":
+                from visibility.generators import make_scene
+
+                scene = make_scene(e.name, triangles=e.triangles, seed=0)
+            else:
+                scene = e.pending
+            size = scene.meta.get("cell_size") or self.settings.cell_size
+            grid = ViewcellGrid.for_scene(scene, float(size))
+        except Exception as exc:  # loaders and generators raise many types
+            log.exception("loading scene %r failed", e.name)
+            raise SceneLoadFailed(f"scene {e.name!r} could not be loaded: {exc}") from exc
+        scene.name = e.name
+        loaded = self._describe(e.name, e.kind, scene, grid)
+        if e.kind == "generated":
+            loaded.info["source"] = {"generator": e.name, "triangles": int(e.triangles),
+                                     "seed": 0}
+        elif e.kind == "file":
+            loaded.info["source"] = {"file": e.path.name}
+        log.info("loaded scene %r (%s): %d triangles, %d cells", e.name, e.kind,
+                 scene.n_triangles, len(grid))
+        return loaded
+
+    @staticmethod
+    def _describe(name: str, kind: SceneKind, scene: Scene, grid: ViewcellGrid) -> LoadedScene:
+        info = scene.summary()
+        info["name"] = name
+        info["kind"] = kind
+        return LoadedScene(name, kind, scene, grid, info)
+
+
+def check_name_ok(name: str) -> bool:
+    """Whether ``check_scene_name`` accepts ``name``."""
+    try:
+        check_scene_name(name)
+    except UnknownSceneError:
+        return False
+    return True

@@ -1,0 +1,228 @@
+"""HTTP routes: health, the scene catalogue, viewcells and PVS queries; JSON error bodies.
+
+Every error answers ``{"error": {"code": <ErrorCode>, "message": str}}`` (validation errors add
+``"details"``) with its status: 404 unknown scene/cell/core/route, 422 bad parameters, NaN or an
+inverted box, 500 a scene that fails to load or a computation that fails.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from protocol.codes import ErrorCode
+from protocol.messages import BoxPvsRequest, PvsResponse
+from protocol.version import PROTOCOL_VERSION
+from server.catalog import LoadedScene, SceneLoadFailed, UnknownSceneError
+from server.compute import (
+    PVSResult,
+    UnknownCellError,
+    UnknownCoreError,
+    UnsupportedSceneError,
+)
+
+if TYPE_CHECKING:
+    from server.app import ServerState
+
+router = APIRouter()
+
+
+class ApiError(Exception):
+    """An error answered as ``{"error": {"code", "message"}}`` with HTTP ``status``."""
+
+    def __init__(self, status: int, code: ErrorCode, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+
+
+def error_response(status: int, code: str, message: str, **extra: Any) -> JSONResponse:
+    """The JSON error body every route uses."""
+    return JSONResponse({"error": {"code": str(code), "message": message, **extra}}, status)
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` with numpy scalars/arrays turned into Python values and NaN/inf into None."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return jsonable(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
+
+
+def _state(request: Request) -> ServerState:
+    return request.app.state.server
+
+
+def map_exception(exc: BaseException) -> ApiError | None:
+    """The ApiError for a known failure of a scene/core/cell lookup or computation."""
+    if isinstance(exc, ApiError):
+        return exc
+    if isinstance(exc, UnknownSceneError):
+        return ApiError(404, ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
+    if isinstance(exc, UnknownCellError):
+        return ApiError(404, ErrorCode.UNKNOWN_CELL, str(exc))
+    if isinstance(exc, UnknownCoreError):
+        return ApiError(404, ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
+    if isinstance(exc, UnsupportedSceneError):
+        return ApiError(422, ErrorCode.UNSUPPORTED_SCENE, str(exc))
+    if isinstance(exc, SceneLoadFailed):
+        return ApiError(500, ErrorCode.SCENE_LOAD_FAILED, str(exc))
+    return None
+
+
+async def _loaded(request: Request, scene: str) -> LoadedScene:
+    catalog = _state(request).catalog
+    try:
+        catalog.require(scene)
+        # Loading can take seconds (file parse, walk-area detection): keep it off the loop.
+        return await asyncio.to_thread(catalog.get, scene)
+    except Exception as exc:
+        api = map_exception(exc)
+        if api is None:
+            raise
+        raise api from None
+
+
+async def _pvs(
+    request: Request,
+    scene: str,
+    core_name: str | None,
+    params: dict[str, Any],
+    cell: int | None = None,
+    box: np.ndarray | None = None,
+) -> JSONResponse:
+    compute = _state(request).compute
+    try:
+        compute.catalog.require(scene)
+        core, core_params = compute.resolve(core_name, params)
+    except (UnknownSceneError, UnknownCoreError) as exc:
+        raise map_exception(exc) from None
+    except ValueError as exc:
+        raise ApiError(422, ErrorCode.BAD_PARAMS, str(exc)) from None
+    try:
+        result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box)
+    except Exception as exc:
+        api = map_exception(exc)
+        if api is None:
+            raise ApiError(500, ErrorCode.COMPUTE_FAILED,
+                           f"PVS computation failed: {type(exc).__name__}: {exc}") from None
+        raise api from None
+    pvs = result.pvs
+    body = {
+        "scene": scene,
+        "core": result.core,
+        "cell": result.cell,
+        "box": result.box.tolist(),
+        "granularity": pvs.granularity,
+        "count": len(pvs),
+        "triangle_ids": pvs.triangle_ids.tolist(),
+        "object_ids": None if pvs.object_ids is None else pvs.object_ids.tolist(),
+        "seconds": result.seconds,
+        "cached": result.cached,
+        "params": jsonable(core_params.as_dict()),
+        "stats": jsonable(pvs.stats),
+    }
+    return JSONResponse(body)
+
+
+# --------------------------------------------------------------------------- routes
+@router.get("/health", summary="Liveness and load")
+async def health(request: Request) -> dict:
+    """Server status: protocol version, uptime, open sessions, cache and worker statistics."""
+    st = _state(request)
+    listing = st.catalog.names()
+    return {
+        "status": "ok",
+        "version": PROTOCOL_VERSION,
+        "uptime_s": time.monotonic() - st.started,
+        "sessions": len(st.sessions),
+        "sessions_total": st.counters["sessions_total"],
+        "scenes": len(listing),
+        "compute": st.compute.stats(),
+        "stream": {k: v for k, v in st.counters.items() if k != "sessions_total"},
+    }
+
+
+@router.get("/scenes", summary="The scene catalogue")
+async def list_scenes(request: Request) -> dict:
+    """Every scene: name, kind (file, generated, memory), whether it is loaded, triangles."""
+    return {"scenes": _state(request).catalog.listing()}
+
+
+@router.get("/scenes/{scene}", summary="One scene: summary and viewcell grid")
+async def scene_info(request: Request, scene: str) -> dict:
+    """Counts, bounds, motion, degenerate-face report and the viewcell grid summary (loads the
+    scene on first use)."""
+    loaded = await _loaded(request, scene)
+    return jsonable({**loaded.info, "grid": loaded.grid.to_dict()})
+
+
+@router.get("/scenes/{scene}/cells", summary="The viewcells of a scene")
+async def scene_cells(request: Request, scene: str) -> dict:
+    """Every viewcell: id, grid column ``ij`` and box [[x0, y0, z0], [x1, y1, z1]] metres."""
+    loaded = await _loaded(request, scene)
+    grid = loaded.grid.to_dict(include_cells=True)
+    cells = grid.pop("cell_list")
+    return jsonable({"scene": scene, "grid": grid, "cells": cells})
+
+
+@router.get(
+    "/scenes/{scene}/cells/{cell}/pvs",
+    summary="PVS of a viewcell",
+    response_model=PvsResponse,
+)
+async def cell_pvs(request: Request, scene: str, cell: int, core: str | None = None) -> Any:
+    """The PVS of grid cell ``cell``. Query parameters other than ``core`` are core parameters
+    (e.g. ``resolution=64&samples=8&granularity=object``), converted to the core's types."""
+    params = {k: v for k, v in request.query_params.items() if k != "core"}
+    return await _pvs(request, scene, core, params, cell=cell)
+
+
+@router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box", response_model=PvsResponse)
+async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
+    """The PVS of an arbitrary viewcell box (``cell`` is null in the answer)."""
+    box = np.asarray(body.box, dtype=np.float64)
+    return await _pvs(request, scene, body.core, dict(body.params), box=box)
+
+
+# --------------------------------------------------------------------------- error handlers
+def install_error_handlers(app: FastAPI) -> None:
+    """Make every HTTP error answer the JSON error body."""
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return error_response(exc.status, exc.code, exc.message)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        details = [
+            {"loc": [str(x) for x in e.get("loc", ())], "msg": str(e.get("msg", "")),
+             "type": str(e.get("type", ""))}
+            for e in exc.errors()
+        ]
+        summary = "; ".join(f"{'.'.join(d['loc'])}: {d['msg']}" for d in details[:5])
+        return error_response(422, ErrorCode.VALIDATION, summary or "invalid request",
+                              details=details)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = ErrorCode.NOT_FOUND if exc.status_code == 404 else f"http_{exc.status_code}"
+        return error_response(exc.status_code, code, str(exc.detail))

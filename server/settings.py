@@ -1,0 +1,142 @@
+"""Server settings: one validated pydantic model, built in code or from ``PVS_*`` environment
+variables (``Settings.from_env``)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from protocol.frames import DEFAULT_MAX_FRAME_BYTES, frame_bytes
+
+
+def default_generated() -> dict[str, int]:
+    """Every available generator at its default size ({} while the generators are absent)."""
+    try:
+        from visibility.generators import DEFAULT_TRIANGLES, available_generators
+    except ImportError:
+        return {}
+    return {name: int(DEFAULT_TRIANGLES[name]) for name in available_generators()}
+
+
+class Settings(BaseModel):
+    """What the server serves and how.
+
+    Attributes
+    ----------
+    host, port : where uvicorn listens (port 0: any free port).
+    scenes_dir : folder of scene files (``visibility.loaders.SCENE_EXTENSIONS``); None: none.
+    generated : generated scenes to serve, {generator name: triangles}; default every available
+        generator at its ``DEFAULT_TRIANGLES``.
+    cell_size : viewcell size in metres (a scene file's sidecar ``cell_size`` overrides it).
+    core, core_params : the core and parameters used when a request names none.
+    workers : PVS computations running at once (threads; numba kernels release the GIL).
+    cache_bytes : bound of the in-memory PVS cache, bytes.
+    max_frame_bytes : largest binary geometry frame the server sends, bytes.
+    max_message_bytes : largest text message the server accepts from a client, bytes.
+    hello_timeout : seconds a new WebSocket may wait before sending hello.
+    ws_deflate : negotiate permessage-deflate (costs CPU; float geometry compresses poorly).
+    ws_ping_interval : seconds between keep-alive pings (None: no pings).
+    log_level : uvicorn's log level.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    scenes_dir: Path | None = None
+    generated: dict[str, int] = Field(default_factory=default_generated)
+    cell_size: float = Field(4.0, gt=0, allow_inf_nan=False)
+    core: str = "sampling"
+    core_params: dict[str, Any] = Field(default_factory=dict)
+    workers: int = Field(2, ge=1, le=256)
+    cache_bytes: int = Field(256 * 1024 * 1024, ge=0)
+    max_frame_bytes: int = Field(DEFAULT_MAX_FRAME_BYTES, ge=frame_bytes(1), le=64 * 1024 * 1024)
+    max_message_bytes: int = Field(64 * 1024, ge=1024, le=16 * 1024 * 1024)
+    hello_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
+    ws_deflate: bool = False
+    ws_ping_interval: float | None = Field(20.0, gt=0)
+    log_level: str = "info"
+
+    @field_validator("generated")
+    @classmethod
+    def _positive_sizes(cls, v: dict[str, int]) -> dict[str, int]:
+        for name, n in v.items():
+            if n <= 0:
+                raise ValueError(f"generated scene {name!r} needs a positive triangle count")
+        return v
+
+    @classmethod
+    def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
+        """Settings from ``PVS_*`` variables (``os.environ`` by default), then ``overrides``.
+
+        PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
+        object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
+        PVS_HELLO_TIMEOUT, PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
+        disables), PVS_LOG_LEVEL,
+        PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
+        (a bare name takes the generator's default size; an empty value serves none).
+        Raises ValueError (pydantic's ValidationError) on malformed values.
+        """
+        env = os.environ if env is None else env
+        values: dict[str, Any] = {}
+        simple = {
+            "host": "PVS_HOST", "port": "PVS_PORT", "scenes_dir": "PVS_SCENES_DIR",
+            "cell_size": "PVS_CELL_SIZE", "core": "PVS_CORE", "workers": "PVS_WORKERS",
+            "cache_bytes": "PVS_CACHE_BYTES", "max_frame_bytes": "PVS_MAX_FRAME_BYTES",
+            "max_message_bytes": "PVS_MAX_MESSAGE_BYTES", "ws_deflate": "PVS_WS_DEFLATE",
+            "hello_timeout": "PVS_HELLO_TIMEOUT",
+            "log_level": "PVS_LOG_LEVEL",
+        }
+        for field, var in simple.items():
+            if env.get(var, "") != "":
+                values[field] = env[var]
+        if "PVS_WS_PING_INTERVAL" in env:
+            raw = env["PVS_WS_PING_INTERVAL"].strip().lower()
+            values["ws_ping_interval"] = None if raw in ("", "none", "0") else raw
+        if env.get("PVS_CORE_PARAMS", "").strip():
+            try:
+                params = json.loads(env["PVS_CORE_PARAMS"])
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"PVS_CORE_PARAMS is not JSON: {exc}") from None
+            if not isinstance(params, dict):
+                raise ValueError("PVS_CORE_PARAMS must be a JSON object")
+            values["core_params"] = params
+        if "PVS_GENERATED" in env:
+            values["generated"] = _parse_generated(env["PVS_GENERATED"])
+        values.update(overrides)
+        return cls.model_validate(values)
+
+
+def _parse_generated(raw: str) -> dict[str, int]:
+    raw = raw.strip()
+    if not raw:
+        return {}
+    if raw.startswith("{"):
+        try:
+            data = json.loads(raw)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"PVS_GENERATED is not JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise ValueError("PVS_GENERATED must be a JSON object")
+        return data
+    defaults = default_generated()
+    out: dict[str, int] = {}
+    for item in filter(None, (s.strip() for s in raw.split(","))):
+        name, _, size = item.partition("=")
+        name = name.strip()
+        if size.strip():
+            n = float(size)
+            if not math.isfinite(n) or n != int(n):
+                raise ValueError(f"PVS_GENERATED: bad triangle count {size!r} for {name!r}")
+            out[name] = int(n)
+        elif name in defaults:
+            out[name] = defaults[name]
+        else:
+            raise ValueError(f"PVS_GENERATED: no default size for {name!r}; give name=triangles")
+    return out

@@ -1,0 +1,296 @@
+"""The client's GeometryStore and network Session (against the real server on loopback)."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from client.session import Session, SessionError, SyncSession, ws_url
+from client.store import GeometryStore
+from protocol.frames import decode_geometry, encode_geometry
+from tests.conftest import make_tiny_scene, near_ids
+
+TINY = make_tiny_scene()
+NEAR = {"radius": 4.5}
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 120))
+
+
+def _tris(ids, seed=0):
+    rng = np.random.default_rng(seed)
+    n = len(ids)
+    return rng.normal(size=(n, 3, 3)), rng.integers(0, 256, (n, 3), dtype=np.uint8)
+
+
+# --------------------------------------------------------------------------- store
+def test_store_add_arrays_and_version():
+    s = GeometryStore()
+    assert len(s) == 0 and s.version == 0
+    ids0, tris0, cols0 = s.arrays()
+    assert ids0.shape == (0,) and tris0.shape == (0, 3, 3) and cols0.shape == (0, 3)
+    t, c = _tris([5, 1, 3])
+    s.add(np.array([5, 1, 3]), t, c)
+    assert s.version == 1
+    ids, tris, cols = s.arrays()
+    assert ids.tolist() == [1, 3, 5] and ids.dtype == np.int32
+    assert tris.dtype == np.float64 and cols.dtype == np.uint8
+    np.testing.assert_array_equal(tris, t[[1, 2, 0]])
+    np.testing.assert_array_equal(cols, c[[1, 2, 0]])
+    # Cached until changed: the very same (read-only) arrays, same version.
+    again = s.arrays()
+    assert all(a is b for a, b in zip(again, (ids, tris, cols), strict=True))
+    assert s.version == 1 and len(s) == 3
+    with pytest.raises(ValueError):
+        ids[0] = 7
+    t2, c2 = _tris([2], 1)
+    s.add(np.array([2]), t2, c2)
+    assert s.version == 2 and s.arrays()[0] is not ids and s.ids.tolist() == [1, 2, 3, 5]
+    version, *arrays = s.snapshot()
+    assert version == 2 and all(a is b for a, b in zip(arrays, s.arrays(), strict=True))
+
+
+def test_store_latest_copy_wins_and_empty_add_is_no_change():
+    s = GeometryStore()
+    t, c = _tris([1, 2], 0)
+    s.add(np.array([1, 2]), t, c)
+    t2, c2 = _tris([2], 9)
+    s.add(np.array([2]), t2, c2)
+    s.add(np.array([2]), t2 + 1.0, c2)
+    ids, tris, cols = s.arrays()
+    assert ids.tolist() == [1, 2]
+    np.testing.assert_array_equal(tris[1], t2[0] + 1.0)
+    v = s.version
+    s.add(np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3), np.uint8))
+    assert s.version == v
+
+
+def test_store_drop_retain_contains_clear():
+    s = GeometryStore()
+    ids = np.arange(0, 20, 2)
+    t, c = _tris(ids)
+    s.add(ids, t, c)
+    assert s.contains([0, 1, 2, 18, 19, 100]).tolist() == [True, False, True, True, False, False]
+    assert 4 in s and 5 not in s
+    v = s.version
+    assert s.drop([2, 4, 5]) == 2 and s.version == v + 1
+    assert s.drop([5]) == 0 and s.version == v + 1  # nothing removed: no change
+    assert s.ids.tolist() == [0, 6, 8, 10, 12, 14, 16, 18]
+    np.testing.assert_array_equal(s.arrays()[1], t[[0, 3, 4, 5, 6, 7, 8, 9]])
+    assert s.retain([6, 8, 99]) == 6
+    assert s.ids.tolist() == [6, 8]
+    s.clear()
+    assert len(s) == 0 and s.contains([6]).tolist() == [False]
+
+
+def test_store_budget():
+    with pytest.raises(ValueError):
+        GeometryStore(budget=0)
+    s = GeometryStore(budget=3)
+    t, c = _tris(range(4))
+    s.add(np.arange(3), t[:3], c[:3])
+    assert not s.over_budget
+    s.add(np.array([3]), t[3:], c[3:])
+    assert s.over_budget  # the store reports; the holder decides what to drop
+    s.retain([0, 1])
+    assert not s.over_budget
+
+
+@pytest.mark.parametrize(
+    "ids, tris, cols",
+    [
+        ([1.5], np.zeros((1, 3, 3)), np.zeros((1, 3), np.uint8)),
+        ([-1], np.zeros((1, 3, 3)), np.zeros((1, 3), np.uint8)),
+        ([1, 2], np.zeros((1, 3, 3)), np.zeros((2, 3), np.uint8)),
+        ([1], np.zeros((1, 3, 3)), np.zeros((1, 4), np.uint8)),
+        ([1], np.full((1, 3, 3), np.nan), np.zeros((1, 3), np.uint8)),
+    ],
+)
+def test_store_rejects_bad_input(ids, tris, cols):
+    with pytest.raises(ValueError):
+        GeometryStore().add(np.asarray(ids), tris, cols)
+
+
+def test_store_add_chunk_makes_positions_absolute():
+    ids = np.array([7, 3])
+    t = np.random.default_rng(1).uniform(-1, 1, (2, 3, 3)) + 1e5
+    c = np.array([[1, 2, 3], [4, 5, 6]], np.uint8)
+    s = GeometryStore()
+    s.add_chunk(decode_geometry(encode_geometry(ids, t, c)))
+    out_ids, out_t, out_c = s.arrays()
+    assert out_ids.tolist() == [3, 7]
+    np.testing.assert_allclose(out_t, t[[1, 0]], atol=1e-6)
+    np.testing.assert_array_equal(out_c, c[[1, 0]])
+
+
+def test_store_many_chunks_merge_fast():
+    s = GeometryStore()
+    rng = np.random.default_rng(2)
+    n, k = 200_000, 100
+    ids = rng.permutation(n)
+    t0 = time.perf_counter()
+    for part in np.array_split(ids, k):
+        s.add(part, np.zeros((len(part), 3, 3)), np.zeros((len(part), 3), np.uint8))
+    out = s.arrays()[0]
+    elapsed = time.perf_counter() - t0
+    assert out.tolist() == list(range(n))
+    assert elapsed < 5.0, elapsed  # one merge, not 100 (about 0.1 s unloaded)
+
+
+def test_store_is_thread_safe():
+    s = GeometryStore()
+    errors = []
+
+    def writer(base):
+        for i in range(50):
+            ids = np.arange(base + i * 10, base + i * 10 + 10)
+            s.add(ids, np.zeros((10, 3, 3)), np.zeros((10, 3), np.uint8))
+
+    def reader():
+        try:
+            for _ in range(200):
+                ids, tris, cols = s.arrays()
+                assert len(ids) == len(tris) == len(cols)
+                assert np.all(np.diff(ids) > 0)
+        except AssertionError as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(b,)) for b in (0, 100_000)]
+    threads += [threading.Thread(target=reader) for _ in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors and len(s) == 1000
+
+
+# --------------------------------------------------------------------------- session
+def test_ws_url():
+    assert ws_url("http://127.0.0.1:8000") == "ws://127.0.0.1:8000/ws"
+    assert ws_url("https://h/") == "wss://h/ws"
+    assert ws_url("ws://h:1/ws") == "ws://h:1/ws"
+    assert ws_url("http://h/prefix") == "ws://h/prefix/ws"
+    with pytest.raises(ValueError):
+        ws_url("ftp://h")
+
+
+@pytest.fixture(scope="module")
+def cell_boxes(live_server):
+    cells = httpx.get(live_server + "/scenes/tiny/cells", timeout=60).json()["cells"]
+    return [np.array(c["box"]) for c in cells]
+
+
+def test_session_streams_into_its_store(live_server, cell_boxes):
+    async def main():
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, budget=10_000)
+        assert s.welcome.budget == 10_000 and s.store.budget == 10_000
+        assert not s.is_complete(2)
+        await s.send_pose(0, 0.0, cell_boxes[2].mean(axis=0), [0, 0, -1],
+                          velocity=np.array([1.0, 0, 0]))
+        cs = await s.wait_cell(2, timeout=60)
+        assert s.is_complete(2) and cs.complete and cs.begin.cell == 2
+        version = s.store.version
+        # Waiting for a cell nobody walks to times out.
+        with pytest.raises(TimeoutError):
+            await s.wait_cell(3, timeout=0.2)
+        await s.close()
+        assert s.closed and s.close_code == 1000
+        with pytest.raises(SessionError):
+            await s.send_pose(1, 0.1, cell_boxes[3].mean(axis=0), [0, 0, -1])
+        with pytest.raises(SessionError):
+            await s.wait_cell(3, timeout=1)  # ended sessions wake waiters at once
+        return s, version
+
+    s, version = run(main())
+    assert version > 0 and not s.errors and not s.local_errors
+    expected = near_ids(TINY, cell_boxes[2], 4.5)
+    np.testing.assert_array_equal(s.store.ids, expected)
+    np.testing.assert_allclose(s.store.arrays()[1], TINY.triangles(expected), atol=1e-5)
+
+
+def test_session_keeps_server_errors(live_server, cell_boxes):
+    async def main():
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        await s.send_pose(0, 0.0, [900.0, 1.7, 900.0], [0, 0, -1])
+        await s.send_raw('{"type": "pose", "seq": 1, "t": 0, "position": [1, NaN, 1], '
+                         '"forward": [0, 0, 1]}')
+        await s.send_pose(2, 0.0, cell_boxes[1].mean(axis=0), [0, 0, -1])
+        await s.wait_cell(1, 60)
+        await s.close()
+        return s
+
+    s = run(main())
+    assert [(e.code, e.seq, e.fatal) for e in s.errors] == [("outside_grid", 0, False),
+                                                            ("invalid_pose", 1, False)]
+
+
+def test_session_end_by_fatal_error_wakes_waiters(live_server):
+    async def main():
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        waiter = asyncio.create_task(s.wait_cell(0, 60))
+        await asyncio.sleep(0.05)
+        await s.send_raw(b"\x00binary")  # fatal for the server
+        with pytest.raises(SessionError) as exc:
+            await waiter
+        await s.wait_closed(5)
+        await s.close()
+        return s, exc.value
+
+    s, err = run(main())
+    assert err.code == "binary_unsupported" and s.close_code == 1003
+    assert s.errors[-1].fatal
+
+
+def test_send_pose_validates_locally(live_server):
+    async def main():
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        with pytest.raises(ValueError, match="invalid pose"):
+            await s.send_pose(0, 0.0, [np.nan, 0, 0], [0, 0, 1])
+        with pytest.raises(ValueError):
+            await s.send_pose(0, 0.0, [0, 0], [0, 0, 1])
+        with pytest.raises(ValueError):
+            await s.send_pose(-1, 0.0, [0, 0, 0], [0, 0, 1])
+        await s.close()
+        return s
+
+    assert not run(main()).errors  # nothing bad reached the server
+
+
+@pytest.mark.parametrize(
+    "kwargs, code, close",
+    [
+        ({"scene": "nope"}, "unknown_scene", 4004),
+        ({"core": "nope"}, "unknown_core", 4005),
+        ({"params": {"radius": "far"}}, "bad_params", 4022),
+    ],
+)
+def test_connect_refused(live_server, kwargs, code, close):
+    args = {"scene": "tiny", "core": "test_near", "params": NEAR, **kwargs}
+
+    async def main():
+        with pytest.raises(SessionError) as exc:
+            await Session.connect(live_server, **args)
+        return exc.value
+
+    err = run(main())
+    assert err.code == code and err.close_code == close
+
+
+def test_sync_session(live_server, cell_boxes):
+    with SyncSession.connect(live_server, "tiny", "test_near", NEAR) as s:
+        assert s.welcome.scene.name == "tiny"
+        s.send_pose(0, 0.0, cell_boxes[5].mean(axis=0), [0, 0, -1])
+        cs = s.wait_cell(5, timeout=60)
+        assert cs.end.cell == 5 and s.is_complete(5)
+        assert s.store.ids.tolist() == near_ids(TINY, cell_boxes[5], 4.5).tolist()
+        with pytest.raises(TimeoutError):
+            s.wait_cell(6, timeout=0.2)
+    assert s.closed
+    with pytest.raises(SessionError):
+        SyncSession.connect(live_server, "nope", "test_near")

@@ -1,0 +1,18 @@
+import numpy as np
+
+from visibility.ids import unique_ids, unique_inverse
+
+
+def test_unique_ids_matches_numpy():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 7, 10_000):
+        a = rng.integers(-50, 500, n)
+        np.testing.assert_array_equal(unique_ids(a), np.unique(a))
+    assert unique_ids(np.array([3, 1, 3]), np.int32).dtype == np.int32
+
+
+def test_unique_inverse_round_trips():
+    a = np.random.default_rng(1).integers(0, 100, 1000)
+    u, inv = unique_inverse(a)
+    np.testing.assert_array_equal(u[inv], a)
+    np.testing.assert_array_equal(u, np.unique(a))
