@@ -47,7 +47,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     elif DEFAULT_SCENES_DIR.is_dir():
         updates["scenes_dir"] = DEFAULT_SCENES_DIR
     if args.core:
-        updates["default_core"] = args.core
+        updates["core"] = args.core
     if args.cell_size:
         updates["cell_size"] = args.cell_size
     if args.workers:
@@ -204,6 +204,16 @@ def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    # benchmarks/ lives in the repository, not in the installed packages: import it from there.
+    repo = str(Path(__file__).resolve().parent)
+    if repo not in sys.path:
+        sys.path.insert(0, repo)
+    from benchmarks.bench_matrix import main as bench_main
+
+    return bench_main(list(args.rest))
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="pvs", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -244,6 +254,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=0)
     _add_walk_options(p, "runs/demo")
     p.set_defaults(fn=cmd_demo)
+
+    # Every argument after "bench" goes to benchmarks.bench_matrix (its own parser and --help).
+    p = sub.add_parser("bench", help="error against run time for every core (pvs bench --help)",
+                       add_help=False, prefix_chars="\x00")
+    p.add_argument("rest", nargs="*")
+    p.set_defaults(fn=cmd_bench)
     return ap
 
 

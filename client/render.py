@@ -39,12 +39,10 @@ import trimesh  # noqa: E402
 from visibility.camera import DEFAULT_NEAR, camera_pose_matrix, look_rotation  # noqa: E402
 from visibility.scene import Scene  # noqa: E402
 
-#: Background (sky blue), RGB uint8.
-BACKGROUND = (135, 206, 235)
-#: Fixed light direction (world, towards the light) of the baked lambert term.
-LIGHT_DIR = np.array([0.35, 0.85, 0.4]) / np.linalg.norm([0.35, 0.85, 0.4])
-#: Share of the face colour a face gets when lit edge-on; the rest scales with |n . l|.
-AMBIENT = 0.45
+# Shading lives in visibility so server-baked cubemaps and client frames shade identically;
+# the names stay importable from here.
+from visibility.shading import AMBIENT, BACKGROUND, LIGHT_DIR, shade_colors  # noqa: E402, F401
+
 #: Icosphere subdivisions used for a scene's spheres (320 faces each).
 SPHERE_SUBDIVISIONS = 2
 
@@ -84,23 +82,6 @@ def _locked(method):
             return method(self, *args, **kwargs)
 
     return wrapper
-
-
-def shade_colors(tris: np.ndarray, colors: np.ndarray) -> np.ndarray:
-    """(k, 3) uint8 face colours with the fixed two-sided lambert term baked in.
-
-    ``tris`` is (k, 3, 3) float64 metres, ``colors`` (k, 3) uint8. Degenerate faces (no normal)
-    get the ambient share only.
-    """
-    tris = np.asarray(tris, dtype=np.float64)
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    length = np.linalg.norm(n, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(n @ LIGHT_DIR) / length
-    cos = np.where(np.isfinite(cos), cos, 0.0)
-    shade = AMBIENT + (1.0 - AMBIENT) * cos
-    out = np.asarray(colors, dtype=np.float64) * shade[:, None]
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def scene_sphere_centers(scene: Scene, t: float | None) -> np.ndarray:

@@ -226,9 +226,9 @@ def side_by_side(summaries: list[dict]) -> str:
     """A table with one row per core: mean epsilon, PSNR, SSIM, stalls, triangles held."""
     lines = [f"{'core':16s} {'eps %':>8s} {'PSNR dB':>8s} {'SSIM':>8s} {'stalls':>7s} {'tris':>9s}"]
     for s in summaries:
-        held = max((f.get("triangles_held", 0) for f in s.get("frames", [])), default=0)
+        held = int(max((f.get("triangles_held", 0) for f in s.get("frames", [])), default=0))
         lines.append(
             f"{s['meta']['core']:16s} {s['epsilon']:8.3f} {s['psnr']:8.2f} {s['ssim']:8.4f} "
-            f"{s['stalls']:7d} {held:9d}"
+            f"{int(s['stalls']):7d} {held:9d}"
         )
     return "\n".join(lines)

@@ -31,6 +31,7 @@ from protocol.messages import (
     Bye,
     CellBegin,
     CellEnd,
+    Drop,
     Error,
     Hello,
     Pose,
@@ -41,6 +42,9 @@ from protocol.messages import (
 )
 
 log = logging.getLogger(__name__)
+
+#: Kind byte (offset 6) of a cubemap frame (``protocol.frames.FrameKind.CUBEMAP``).
+CUBEMAP_KIND = 2
 
 
 class SessionError(RuntimeError):
@@ -109,6 +113,16 @@ class Session:
         self.frames_received = 0
         self.close_code: int | None = None
         self.close_reason: str | None = None
+        n = welcome.scene.triangles
+        #: Delta accounting: which ids the client holds, ids received while already held (a
+        #: server bug), drops obeyed.
+        self._held = np.zeros(n, dtype=bool)
+        self.duplicates = 0
+        self.dropped = 0
+        self.drops: list[Drop] = []
+        self.triangles_received = 0
+        #: Far-field cubemaps by cell (``protocol.cubemap.CubemapFrame``), near-far streams.
+        self.cubemaps: dict[int, Any] = {}
         self._changed = asyncio.Condition()
         self._closed = asyncio.Event()
         self._task = asyncio.create_task(self._receive_loop(), name="pvs-session-recv")
@@ -123,6 +137,7 @@ class Session:
         params: dict[str, Any] | None = None,
         budget: int | None = None,
         *,
+        prefetch: bool | None = None,
         store: GeometryStore | None = None,
         timeout: float = 30.0,
         max_size: int | None = 64 * 1024 * 1024,
@@ -131,10 +146,13 @@ class Session:
 
         Waits (at most ``timeout`` seconds) for the ``welcome``; raises SessionError when the
         server answers with an error or closes, TimeoutError when it does not answer.
+        ``prefetch``: ask for (True) or against (False) cells streamed ahead; None: the
+        server's default.
         """
         ws = await connect(ws_url(url), max_size=max_size, open_timeout=timeout, compression=None)
         try:
-            hello = Hello(scene=scene, core=core, params=params or {}, budget=budget)
+            hello = Hello(scene=scene, core=core, params=params or {}, budget=budget,
+                          prefetch=prefetch)
             await ws.send(dump_message(hello))
             raw = await asyncio.wait_for(ws.recv(), timeout)
             if isinstance(raw, bytes):
@@ -252,12 +270,26 @@ class Session:
     def _on_frame(self, raw: bytes) -> None:
         self.bytes_received += len(raw)
         self.frames_received += 1
+        if len(raw) > 6 and raw[6] == CUBEMAP_KIND:
+            try:
+                from protocol.cubemap import decode_cubemap
+
+                cube = decode_cubemap(raw)
+            except (FrameError, ImportError) as exc:
+                self.local_errors.append(f"undecodable cubemap frame: {exc}")
+                return
+            self.cubemaps[cube.cell] = cube
+            return
         try:
             chunk = decode_geometry(raw)
         except FrameError as exc:
             self.local_errors.append(f"undecodable frame: {exc}")
             return
         self.store.add_chunk(chunk)
+        ids = chunk.ids[chunk.ids < len(self._held)]
+        self.duplicates += int(np.count_nonzero(self._held[ids]))
+        self._held[ids] = True
+        self.triangles_received += len(chunk)
         cs = self.current
         if cs is None or cs.cell != chunk.cell:
             self.local_errors.append(f"chunk of cell {chunk.cell} outside its cell stream")
@@ -276,12 +308,14 @@ class Session:
         if isinstance(msg, CellBegin):
             self.current = CellStream(msg.cell, begin=msg)
             self.cells[msg.cell] = self.current
+        elif isinstance(msg, Drop):
+            self._on_drop(msg)
         elif isinstance(msg, CellEnd):
             cs = self.current
             if cs is None or cs.cell != msg.cell:
                 self.local_errors.append(f"cell_end for {msg.cell} without its cell_begin")
                 cs = self.cells.setdefault(msg.cell, CellStream(msg.cell))
-            elif cs.begin is not None and (cs.chunks != cs.begin.chunks
+            elif cs.begin is not None and not msg.partial and (cs.chunks != cs.begin.chunks
                                            or cs.triangles != cs.begin.new):
                 self.local_errors.append(
                     f"cell {msg.cell}: got {cs.chunks} chunks / {cs.triangles} triangles, "
@@ -289,12 +323,27 @@ class Session:
                 )
             cs.end = msg
             cs.received_at = time.perf_counter()
-            self.complete.add(msg.cell)
+            if not msg.partial:
+                self.complete.add(msg.cell)
             self.current = None
         elif isinstance(msg, Error):
             self.errors.append(msg)
         elif isinstance(msg, Welcome):
             self.local_errors.append("second welcome")
+
+
+    def _on_drop(self, msg: Drop) -> None:
+        """Obey a ``drop``: remove the ids from the store; the named cells are incomplete."""
+        ids = np.asarray(msg.ids, dtype=np.int64)
+        self.dropped += self.store.drop(ids)
+        self._held[ids[ids < len(self._held)]] = False
+        self.complete.difference_update(msg.cells)
+        self.drops.append(Drop(ids=[], cells=msg.cells, reason=msg.reason))
+
+    @property
+    def held(self) -> int:
+        """Triangles the client holds by the protocol's accounting (received minus dropped)."""
+        return int(np.count_nonzero(self._held))
 
 
 class SyncSession:

@@ -21,6 +21,7 @@ call would get for the same problem, so 4004 means "not found").
 | unsupported_scene    | yes   | 4023  | the core does not fit this scene (e.g. 2.5D only)     |
 | scene_load_failed    | yes   | 1011  | the scene file could not be loaded                    |
 | internal             | yes   | 1011  | a server bug; the session cannot go on                |
+| slow_client          | yes   | 4008  | the client fell behind the stream past the time limit |
 | unknown_type         | no    | -     | a message type this server does not know (skipped)    |
 | invalid_message      | no    | -     | a known message type that failed validation (skipped) |
 | invalid_pose         | no    | -     | a pose with NaN/inf or a malformed vector (skipped)   |
@@ -57,6 +58,7 @@ class ErrorCode(StrEnum):
     OUTSIDE_GRID = "outside_grid"
     COMPUTE_FAILED = "compute_failed"
     OVER_BUDGET = "over_budget"
+    SLOW_CLIENT = "slow_client"
     # HTTP only.
     NOT_FOUND = "not_found"
     VALIDATION = "validation"
@@ -72,6 +74,7 @@ class CloseCode(IntEnum):
     MESSAGE_TOO_BIG = 1009
     INTERNAL_ERROR = 1011
     VERSION_MISMATCH = 4001
+    SLOW_CLIENT = 4008
     UNKNOWN_SCENE = 4004
     UNKNOWN_CORE = 4005
     BAD_PARAMS = 4022
@@ -93,6 +96,7 @@ FATAL: dict[ErrorCode, CloseCode] = {
     ErrorCode.UNSUPPORTED_SCENE: CloseCode.UNSUPPORTED_SCENE,
     ErrorCode.SCENE_LOAD_FAILED: CloseCode.INTERNAL_ERROR,
     ErrorCode.INTERNAL: CloseCode.INTERNAL_ERROR,
+    ErrorCode.SLOW_CLIENT: CloseCode.SLOW_CLIENT,
 }
 
 

@@ -54,6 +54,8 @@ class FrameKind(IntEnum):
     drops for delta streams) get new values."""
 
     GEOMETRY = 1
+    #: A near-far cubemap (colour + range) of a cell's far region; see ``protocol.cubemap``.
+    CUBEMAP = 2
 
 
 class FrameError(ValueError):

@@ -76,6 +76,9 @@ class Hello(_Message):
     core: Name = "sampling"
     params: Params = Field(default_factory=dict)
     budget: Annotated[int, Field(strict=True, gt=0)] | None = None
+    #: Whether the server should send the cells ahead before the client reaches them (None:
+    #: the server's setting).
+    prefetch: StrictBool | None = None
 
 
 class Pose(_Message):
@@ -147,6 +150,11 @@ class Welcome(_Message):
     params: Params
     budget: NonNegInt | None = None
     limits: Limits
+    #: Whether cells ahead are streamed before the client reaches them (``cell_begin.prefetch``).
+    prefetch: bool = False
+    #: What the server leaves out for this scene and why, e.g. ``{"pvs": {"on": false, "why":
+    #: ...}, "cubemap": {...}, "dynamic_updates": {...}, "cores": [...], "core_choice": {...}}``.
+    features: dict[str, Any] = Field(default_factory=dict)
 
 
 class CellBegin(_Message):
@@ -159,6 +167,10 @@ class CellBegin(_Message):
     triangles: NonNegInt
     new: NonNegInt
     chunks: NonNegInt
+    #: True for a cell ahead of the walker, sent before it gets there (lower priority).
+    prefetch: bool = False
+    #: Near-far partition of this cell's stream: ``{"r1", "r2", "center", "cubemap"}`` (metres).
+    near_far: dict[str, Any] | None = None
 
 
 class CellEnd(_Message):
@@ -171,6 +183,21 @@ class CellEnd(_Message):
     seconds: FiniteFloat
     compute_seconds: FiniteFloat = 0.0
     cached: bool = False
+    prefetch: bool = False
+    #: True when the stream was cut short (a prefetch stream yielding to the current cell's):
+    #: the chunks that arrived are valid, but the cell is not complete.
+    partial: bool = False
+
+
+class Drop(_Message):
+    """The client may (and, to stay within its budget, must) drop these triangle ids. ``cells``
+    are the cells whose streams are no longer complete on the client because of it; the server
+    will send their triangles again when needed."""
+
+    type: Literal["drop"] = "drop"
+    ids: list[NonNegInt]
+    cells: list[NonNegInt] = Field(default_factory=list)
+    reason: str = "budget"
 
 
 class Error(_Message):
@@ -186,11 +213,12 @@ class Error(_Message):
 
 ClientMessage = Annotated[Hello | Pose | Bye, Field(discriminator="type")]
 ServerMessage = Annotated[
-    Welcome | CellBegin | CellEnd | Error, Field(discriminator="type")
+    Welcome | CellBegin | CellEnd | Drop | Error, Field(discriminator="type")
 ]
 
 CLIENT_TYPES = {"hello": Hello, "pose": Pose, "bye": Bye}
-SERVER_TYPES = {"welcome": Welcome, "cell_begin": CellBegin, "cell_end": CellEnd, "error": Error}
+SERVER_TYPES = {"welcome": Welcome, "cell_begin": CellBegin, "cell_end": CellEnd, "drop": Drop,
+                "error": Error}
 
 _CLIENT_ADAPTER: TypeAdapter = TypeAdapter(ClientMessage)
 _SERVER_ADAPTER: TypeAdapter = TypeAdapter(ServerMessage)
@@ -198,18 +226,32 @@ _SERVER_ADAPTER: TypeAdapter = TypeAdapter(ServerMessage)
 
 # --------------------------------------------------------------------------- HTTP API
 class BoxPvsRequest(_Message):
-    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc viewcell box [min, max] (metres)."""
+    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc viewcell, either a ``box`` [min, max] or
+    a ``segment`` [p, q] (metres; the PVS of the segment's bounding box, which is the segment
+    itself when it runs along an axis; the ``from_segment`` core treats such a degenerate box
+    as one segment)."""
 
-    box: tuple[Vec3, Vec3]
+    box: tuple[Vec3, Vec3] | None = None
+    segment: tuple[Vec3, Vec3] | None = None
     core: Name | None = None
     params: Params = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _box_ordered(self) -> BoxPvsRequest:
-        lo, hi = self.box
-        if any(h < lo_ for lo_, h in zip(lo, hi, strict=True)):
-            raise ValueError(f"box max < min: {list(lo)} > {list(hi)}")
+        if (self.box is None) == (self.segment is None):
+            raise ValueError("give exactly one of 'box' and 'segment'")
+        if self.box is not None:
+            lo, hi = self.box
+            if any(h < lo_ for lo_, h in zip(lo, hi, strict=True)):
+                raise ValueError(f"box max < min: {list(lo)} > {list(hi)}")
         return self
+
+    def region(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """The viewcell box [min, max] (metres) this request asks about."""
+        if self.box is not None:
+            return self.box
+        p, q = self.segment
+        return (tuple(map(min, p, q)), tuple(map(max, p, q)))
 
 
 class PvsResponse(BaseModel):
@@ -279,7 +321,7 @@ def parse_client_message(data: str | bytes) -> Hello | Pose | Bye:
     return _parse(data, _CLIENT_ADAPTER, CLIENT_TYPES, "client")
 
 
-def parse_server_message(data: str | bytes) -> Welcome | CellBegin | CellEnd | Error:
+def parse_server_message(data: str | bytes) -> Welcome | CellBegin | CellEnd | Drop | Error:
     """The server message in a text frame; ``ProtocolError`` otherwise."""
     return _parse(data, _SERVER_ADAPTER, SERVER_TYPES, "server")
 

@@ -4,3 +4,4 @@ export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-osmesa}
 export NUMBA_CACHE_DIR=${NUMBA_CACHE_DIR:-$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)/.numba_cache}
 export PYTHONUNBUFFERED=1
 export MPLBACKEND=Agg
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-passive}  # spinning OpenMP threads starve a shared 2-core machine

@@ -24,7 +24,7 @@ stamp=.venv/.pvs-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[setup] installing the project into .venv"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  .venv/bin/python -m pip install -q -e ".[dev,bench]"
   # pyrender pins PyOpenGL 3.1.0 whose OSMesa binding is broken; install the working one as a
   # separate step (asking for both at once makes pip fall back to an ancient pyrender).
   .venv/bin/python -m pip install -q "PyOpenGL==3.1.10"

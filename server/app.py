@@ -14,11 +14,12 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import uvicorn
 from fastapi import FastAPI
 
 from protocol.version import PROTOCOL_VERSION
-from server import routes, ws
+from server import metrics, routes, ws
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.settings import Settings
@@ -28,6 +29,13 @@ from server.settings import Settings
 #: only beyond this does the WebSocket library close with 1009 by itself.
 WS_LIBRARY_MAX_FACTOR = 4
 WS_LIBRARY_MAX_MIN = 1 << 20
+
+
+#: Stream counters of ``ServerState.counters`` (all start at 0; /health and /metrics show them).
+COUNTERS = ("sessions_total", "messages_received", "messages_sent", "text_bytes_sent",
+            "errors_sent", "frames_sent", "frame_bytes_sent", "triangles_sent",
+            "triangles_dropped", "cells_streamed", "cells_prefetched", "prefetch_yields",
+            "stalls", "slow_clients", "cubemaps_sent")
 
 
 @dataclass
@@ -41,6 +49,30 @@ class ServerState:
     sessions: dict[str, Any] = field(default_factory=dict)
     counters: Counter = field(default_factory=Counter)
     started: float = field(default_factory=time.monotonic)
+    registry: Any = None
+    #: Near-far partitions ((scene, cell, r1, r2) -> NearFarSplit, or False: nothing beyond
+    #: r2) and encoded cubemap frames ((scene, cell, r1, r2, resolution) -> bytes).
+    near_far_splits: dict = field(default_factory=dict)
+    cubemaps: dict = field(default_factory=dict)
+    _centroids: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def wanted(self, key: tuple) -> bool:
+        """Whether any open session still needs the PVS of cache key ``key`` (asked by worker
+        threads before they start prefetch work)."""
+        try:
+            sessions = list(self.sessions.values())
+        except RuntimeError:  # the dict changed under us: assume wanted
+            return True
+        return any(s.wants(key) for s in sessions)
+
+    def centroids(self, loaded: Any) -> np.ndarray:
+        """(m, 3) triangle centroids of a loaded scene, metres (computed once per scene)."""
+        c = self._centroids.get(loaded.name)
+        if c is None or len(c) != loaded.scene.n_triangles:
+            with np.errstate(invalid="ignore"):
+                c = loaded.scene.triangles().mean(axis=1)
+            self._centroids[loaded.name] = c
+        return c
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -49,9 +81,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     catalog = SceneCatalog(settings)
     state = ServerState(settings, catalog, ComputeService(catalog, settings))
-    for key in ("sessions_total", "messages_received", "messages_sent", "errors_sent",
-                "frames_sent", "frame_bytes_sent", "triangles_sent", "cells_streamed"):
+    for key in COUNTERS:
         state.counters[key] = 0
+    metrics.install(app_state=state)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -67,6 +99,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.server = state
     app.include_router(routes.router)
+    app.include_router(metrics.router)
     app.add_api_websocket_route("/ws", ws.websocket_endpoint)
     routes.install_error_handlers(app)
     return app

@@ -1,5 +1,17 @@
 """HTTP routes: health, the scene catalogue, viewcells and PVS queries; JSON error bodies.
 
+PVS answers come in three forms, chosen by the request's ``Accept`` header:
+
+- ``application/json`` (default): ``PvsResponse``;
+- ``application/octet-stream``: the sorted triangle ids as packed little-endian int32
+  (4 bytes per id, nothing else; the count is the body length / 4);
+- ``application/vnd.pvs.geometry``: the PVS triangles as binary geometry frames
+  (``protocol.frames``) back to back, each at most ``max_frame_bytes``; a frame's length is
+  ``56 + 43 n`` with ``n`` at byte offset 24 of its header (none when the PVS is empty).
+
+Binary answers carry ``X-PVS-Count``, ``X-PVS-Core``, ``X-PVS-Seconds`` and ``X-PVS-Cached``
+headers.
+
 Every error answers ``{"error": {"code": <ErrorCode>, "message": str}}`` (validation errors add
 ``"details"``) with its status: 404 unknown scene/cell/core/route, 422 bad parameters, NaN or an
 inverted box, 500 a scene that fails to load or a computation that fails.
@@ -10,15 +22,16 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from protocol.codes import ErrorCode
+from protocol.frames import chunk_geometry
 from protocol.messages import BoxPvsRequest, PvsResponse
 from protocol.version import PROTOCOL_VERSION
 from server.catalog import LoadedScene, SceneLoadFailed, UnknownSceneError
@@ -33,6 +46,17 @@ if TYPE_CHECKING:
     from server.app import ServerState
 
 router = APIRouter()
+
+#: ``Accept`` values of the binary PVS answers (see the module docstring).
+IDS_MEDIA_TYPE = "application/octet-stream"
+GEOMETRY_MEDIA_TYPE = "application/vnd.pvs.geometry"
+_PVS_RESPONSES: dict = {200: {"content": {
+    "application/json": {},
+    IDS_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
+                     "description": "sorted triangle ids, packed little-endian int32"},
+    GEOMETRY_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
+                          "description": "geometry frames (protocol.frames) back to back"},
+}}}
 
 
 class ApiError(Exception):
@@ -126,6 +150,19 @@ async def _pvs(
                            f"PVS computation failed: {type(exc).__name__}: {exc}") from None
         raise api from None
     pvs = result.pvs
+    accept = request.headers.get("accept", "")
+    if GEOMETRY_MEDIA_TYPE in accept or IDS_MEDIA_TYPE in accept:
+        headers = {"X-PVS-Count": str(len(pvs)), "X-PVS-Core": result.core,
+                   "X-PVS-Seconds": repr(result.seconds), "X-PVS-Cached": str(result.cached)}
+        ids = pvs.triangle_ids
+        if GEOMETRY_MEDIA_TYPE in accept:
+            scene_obj = compute.catalog.get(scene).scene
+            limit = _state(request).settings.max_frame_bytes
+            body_bytes = b"".join(chunk_geometry(
+                ids, scene_obj.triangles(ids), scene_obj.colors[ids],
+                cell=-1 if cell is None else int(cell), max_frame_bytes=limit))
+            return Response(body_bytes, media_type=GEOMETRY_MEDIA_TYPE, headers=headers)
+        return Response(ids.astype("<i4").tobytes(), media_type=IDS_MEDIA_TYPE, headers=headers)
     body = {
         "scene": scene,
         "core": result.core,
@@ -188,18 +225,32 @@ async def scene_cells(request: Request, scene: str) -> dict:
     "/scenes/{scene}/cells/{cell}/pvs",
     summary="PVS of a viewcell",
     response_model=PvsResponse,
+    responses=_PVS_RESPONSES,
 )
-async def cell_pvs(request: Request, scene: str, cell: int, core: str | None = None) -> Any:
-    """The PVS of grid cell ``cell``. Query parameters other than ``core`` are core parameters
-    (e.g. ``resolution=64&samples=8&granularity=object``), converted to the core's types."""
+async def cell_pvs(
+    request: Request,
+    scene: str,
+    cell: int,
+    core: str | None = None,
+    granularity: Annotated[str | None, Query(description="triangle or object")] = None,
+) -> Any:
+    """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``granularity``:
+    ``triangle`` or ``object`` (every triangle of each visible object; 422 ``bad_params``
+    otherwise, like every core parameter). Other query parameters are core parameters (e.g.
+    ``resolution=64&samples=8``), converted to the core's types. ``Accept:
+    application/octet-stream`` answers packed int32 ids, ``application/vnd.pvs.geometry``
+    geometry frames."""
     params = {k: v for k, v in request.query_params.items() if k != "core"}
     return await _pvs(request, scene, core, params, cell=cell)
 
 
-@router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box", response_model=PvsResponse)
+@router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box or segment",
+             response_model=PvsResponse, responses=_PVS_RESPONSES)
 async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
-    """The PVS of an arbitrary viewcell box (``cell`` is null in the answer)."""
-    box = np.asarray(body.box, dtype=np.float64)
+    """The PVS of an arbitrary viewcell: ``{"box": [min, max]}`` or ``{"segment": [p, q]}``
+    (the segment's bounding box; ``cell`` is null in the answer). Binary answers as for the
+    cell route."""
+    box = np.asarray(body.region(), dtype=np.float64)
     return await _pvs(request, scene, body.core, dict(body.params), box=box)
 
 

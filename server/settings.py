@@ -37,6 +37,17 @@ class Settings(BaseModel):
     core, core_params : the core and parameters used when a request names none.
     workers : PVS computations running at once (threads; numba kernels release the GIL).
     cache_bytes : bound of the in-memory PVS cache, bytes.
+    cache_dir : folder of the on-disk PVS cache (npz files, survives restarts); None: no disk
+        cache.
+    prefetch : compute and send the PVS of the cells ahead of each walker (clients may opt out
+        in their hello).
+    prefetch_ahead : cosine threshold: a neighbour is ahead of a walker when the cosine between
+        its predicted motion and the direction to the neighbour's centre exceeds this.
+    send_queue_frames : frames (binary and text) queued per session before the streamer waits.
+    send_timeout : seconds one send may wait for a slow client before the session is closed
+        (``slow_client``).
+    near_far, near_far_r1, near_far_r2, near_far_resolution : near-far partition of each cell's
+        stream (``visibility.nearfar``; used only when that module is present).
     max_frame_bytes : largest binary geometry frame the server sends, bytes.
     max_message_bytes : largest text message the server accepts from a client, bytes.
     hello_timeout : seconds a new WebSocket may wait before sending hello.
@@ -56,6 +67,15 @@ class Settings(BaseModel):
     core_params: dict[str, Any] = Field(default_factory=dict)
     workers: int = Field(2, ge=1, le=256)
     cache_bytes: int = Field(256 * 1024 * 1024, ge=0)
+    cache_dir: Path | None = None
+    prefetch: bool = True
+    prefetch_ahead: float = Field(-0.2, ge=-1.0, le=1.0, allow_inf_nan=False)
+    send_queue_frames: int = Field(16, ge=1, le=4096)
+    send_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
+    near_far: bool = False
+    near_far_r1: float = Field(40.0, gt=0, allow_inf_nan=False)
+    near_far_r2: float = Field(80.0, gt=0, allow_inf_nan=False)
+    near_far_resolution: int = Field(256, ge=8, le=4096)
     max_frame_bytes: int = Field(DEFAULT_MAX_FRAME_BYTES, ge=frame_bytes(1), le=64 * 1024 * 1024)
     max_message_bytes: int = Field(64 * 1024, ge=1024, le=16 * 1024 * 1024)
     hello_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
@@ -71,13 +91,23 @@ class Settings(BaseModel):
                 raise ValueError(f"generated scene {name!r} needs a positive triangle count")
         return v
 
+    @field_validator("near_far_r2")
+    @classmethod
+    def _r2_beyond_r1(cls, v: float, info: Any) -> float:
+        r1 = info.data.get("near_far_r1")
+        if r1 is not None and v <= r1:
+            raise ValueError(f"near_far_r2 ({v}) must exceed near_far_r1 ({r1})")
+        return v
+
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
         """Settings from ``PVS_*`` variables (``os.environ`` by default), then ``overrides``.
 
         PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
-        PVS_HELLO_TIMEOUT, PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
+        PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
+        PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
+        PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
         disables), PVS_LOG_LEVEL,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
@@ -90,7 +120,11 @@ class Settings(BaseModel):
             "cell_size": "PVS_CELL_SIZE", "core": "PVS_CORE", "workers": "PVS_WORKERS",
             "cache_bytes": "PVS_CACHE_BYTES", "max_frame_bytes": "PVS_MAX_FRAME_BYTES",
             "max_message_bytes": "PVS_MAX_MESSAGE_BYTES", "ws_deflate": "PVS_WS_DEFLATE",
-            "hello_timeout": "PVS_HELLO_TIMEOUT",
+            "hello_timeout": "PVS_HELLO_TIMEOUT", "cache_dir": "PVS_CACHE_DIR",
+            "prefetch": "PVS_PREFETCH", "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
+            "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
+            "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
+            "near_far_resolution": "PVS_NEAR_FAR_RESOLUTION",
             "log_level": "PVS_LOG_LEVEL",
         }
         for field, var in simple.items():

@@ -1,11 +1,26 @@
 """The ``/ws`` streaming endpoint: hello, then poses in, PVS geometry out.
 
-One ``StreamSession`` per connection. A reader loop validates every client message; when a pose
-enters a new cell, the cell goes on a queue that a streamer task drains in order: compute the PVS
-off the event loop, send ``cell_begin``, the PVS triangles this session has not received yet as
-binary geometry frames, then ``cell_end``. Every problem is an ``error`` message with an
-``ErrorCode``; fatal ones are followed by a close with the code from ``protocol.codes``. Nothing a
-client sends can take the server down: unexpected exceptions end that session only (1011).
+One ``StreamSession`` per connection, three tasks:
+
+- the reader validates every client message; a pose updates the walker's cell, its predicted
+  motion and the prefetch list (``server.prefetch``), and counts a *stall* when the walker stands
+  in a cell whose stream the server has not finished;
+- the streamer picks the next job (the current cell first, then the neighbours ahead in order),
+  gets its PVS from the shared compute service (cache, in-flight sharing, priority pool; prefetch
+  work no walker wants any more is skipped), and streams ``cell_begin``, the triangles the client
+  lacks as geometry frames, ``cell_end``. A prefetch stream yields to the current cell's between
+  chunks (``cell_end.partial``). When a client's triangle ``budget`` would be exceeded, a ``drop``
+  message first names the held triangles it must drop (outside the current and prefetched
+  cells' PVS first, farthest first);
+- the sender drains a bounded queue of outgoing messages; a send that waits longer than
+  ``settings.send_timeout`` (the client stopped reading) closes the session with ``slow_client``
+  (4008).
+
+Every problem is an ``error`` message with an ``ErrorCode``; fatal ones are followed by a close
+with the code from ``protocol.codes``. Nothing a client sends can take the server down:
+unexpected exceptions end that session only (1011). Memory per session is bounded: a bit per
+scene triangle (held), the PVS of at most ``MAX_KNOWN_PVS`` cells, and the send queue
+(``send_queue_frames`` messages of at most ``max_frame_bytes``).
 
 Outside-grid poses report ``outside_grid`` once per stay outside the grid (not once per pose).
 """
@@ -27,6 +42,7 @@ from protocol.messages import (
     Bye,
     CellBegin,
     CellEnd,
+    Drop,
     Error,
     GridInfo,
     Hello,
@@ -40,13 +56,44 @@ from protocol.messages import (
 )
 from protocol.version import SUPPORTED_VERSIONS
 from server.catalog import LoadedScene, SceneLoadFailed, UnknownSceneError
-from server.compute import UnknownCoreError, UnsupportedSceneError
-from visibility.cores.base import Core, CoreParams
+from server.compute import (
+    AUTO_CORE,
+    PVSResult,
+    UnknownCoreError,
+    UnsupportedSceneError,
+    core_fits,
+    offered_cores,
+)
+from server.prefetch import choose_drops, motion_direction, prefetch_order
+from visibility.cores.base import PVS, Core, CoreParams
 
 if TYPE_CHECKING:
     from server.app import ServerState
 
 log = logging.getLogger(__name__)
+
+#: Cells whose PVS a session remembers (current, prefetch, complete ones); beyond it, the oldest
+#: complete cells are forgotten (and count as incomplete: a revisit re-sends what is missing).
+MAX_KNOWN_PVS = 32
+
+
+def encode_cubemap(*args: Any) -> bytes:
+    """``protocol.cubemap.encode_cubemap`` (the near-far helper's encoder)."""
+    from protocol.cubemap import encode_cubemap as enc
+
+    return enc(*args)
+
+
+def _near_far_module() -> Any:
+    """``visibility.nearfar`` when it is installed (the near-far helper's module), else None.
+
+    INTEGRATION POINT (near-far): with the module present and ``settings.near_far`` on, each
+    cell stream carries PVS ∩ near ids ∪ far dynamic ids as geometry and a cubemap frame."""
+    try:
+        from visibility import nearfar
+    except ImportError:
+        return None
+    return nearfar
 
 
 class _SessionOver(Exception):
@@ -78,8 +125,15 @@ def _jsonable_params(params: CoreParams) -> dict[str, Any]:
     return out
 
 
+class _SlowClient(Exception):
+    """A send waited past ``send_timeout``."""
+
+
+_CLOSE = object()
+
+
 class StreamSession:
-    """One WebSocket client: handshake, pose handling and the PVS stream."""
+    """One WebSocket client: handshake, pose handling, prefetch, the delta stream."""
 
     def __init__(self, websocket: WebSocket, state: ServerState) -> None:
         self.ws = websocket
@@ -87,40 +141,89 @@ class StreamSession:
         self.settings = state.settings
         self.id = uuid.uuid4().hex[:16]
         self._send_lock = asyncio.Lock()
-        self._queue: asyncio.Queue[tuple[int, int, float]] = asyncio.Queue()
+        self._out: asyncio.Queue = asyncio.Queue(maxsize=self.settings.send_queue_frames)
+        self._wake = asyncio.Event()
         self.loaded: LoadedScene | None = None
         self.core: Core | None = None
         self.params: CoreParams | None = None
         self.budget: int | None = None
-        self.sent: np.ndarray | None = None
+        self.prefetch = False
+        self.send_all = False
+        #: held[i]: triangle i was sent and not dropped since.
+        self.held: np.ndarray | None = None
+        self.n_held = 0
         self.cell: int | None = None
+        self.cell_seq = 0
+        self.cell_t0 = 0.0
+        self.want: list[int] = []
+        self.want_set: frozenset[int] = frozenset()
+        self.done: set[int] = set()
+        self.skip: set[int] = set()
+        self.pvs_of: dict[int, np.ndarray] = {}
+        #: The last cell that got a current-cell stream (an empty one confirms a cell the
+        #: client already holds, e.g. prefetched or revisited).
+        self.announced: int | None = None
+        self.cubemaps_sent: set[int] = set()
+        self.stalls = 0
+        self._stall_cell: int | None = None
+        self._last_pos: np.ndarray | None = None
+        self._pinned: tuple | None = None
         self._outside = False
         self._closed = False
 
     # ----------------------------------------------------------------------------- sending
-    async def _send_text(self, msg: Any) -> None:
+    async def _send_now(self, data: str | bytes) -> None:
+        """Send one message, waiting at most ``send_timeout`` for the client to take it."""
         if self._closed:
             raise _SessionOver
-        text = dump_message(msg)
         try:
             async with self._send_lock:
-                await self.ws.send_text(text)
+                coro = (self.ws.send_bytes(data) if isinstance(data, bytes)
+                        else self.ws.send_text(data))
+                await asyncio.wait_for(coro, self.settings.send_timeout)
+        except TimeoutError:
+            raise _SlowClient from None
         except (WebSocketDisconnect, RuntimeError, OSError) as exc:
             self._closed = True
             raise _SessionOver from exc
-        self.state.counters["messages_sent"] += 1
+        c = self.state.counters
+        if isinstance(data, bytes):
+            c["frames_sent"] += 1
+            c["frame_bytes_sent"] += len(data)
+        else:
+            c["messages_sent"] += 1
+            c["text_bytes_sent"] += len(data)
 
-    async def _send_frame(self, frame: bytes) -> None:
+    async def _send_text(self, msg: Any) -> None:
+        """Send a message now (handshake, the reader's answers)."""
+        try:
+            await self._send_now(dump_message(msg))
+        except _SlowClient:
+            await self._slow()
+
+    async def _enqueue(self, item: Any) -> None:
+        """Queue a stream message (model) or frame (bytes) for the sender; waits while the
+        queue is full (backpressure on the streamer)."""
         if self._closed:
             raise _SessionOver
+        await self._out.put(dump_message(item) if not isinstance(item, bytes) else item)
+
+    async def _sender(self) -> None:
         try:
-            async with self._send_lock:
-                await self.ws.send_bytes(frame)
-        except (WebSocketDisconnect, RuntimeError, OSError) as exc:
-            self._closed = True
-            raise _SessionOver from exc
-        self.state.counters["frames_sent"] += 1
-        self.state.counters["frame_bytes_sent"] += len(frame)
+            while True:
+                item = await self._out.get()
+                await self._send_now(item)
+        except _SlowClient:
+            await self._slow()
+        except _SessionOver:
+            pass
+
+    async def _slow(self) -> None:
+        self.state.counters["slow_clients"] += 1
+        log.warning("session %s: client fell behind for %.1f s; closing", self.id,
+                    self.settings.send_timeout)
+        await self.close(int(close_code_for(ErrorCode.SLOW_CLIENT)), str(ErrorCode.SLOW_CLIENT))
+        raise _SessionOver
 
     async def error(self, code: ErrorCode, message: str, seq: int | None = None) -> None:
         """Send an ``error``; when the code is fatal also close the connection and end the
@@ -139,10 +242,14 @@ class StreamSession:
             return
         self._closed = True
         try:
+            if self._send_lock.locked() and code != 1000:
+                # A send is stuck on a client that does not read: do not queue behind it.
+                await asyncio.wait_for(self.ws.close(code, reason[:120]), 2.0)
+                return
             async with self._send_lock:
                 if self.ws.application_state != WebSocketState.DISCONNECTED:
-                    await self.ws.close(code, reason[:120])
-        except (WebSocketDisconnect, RuntimeError, OSError):
+                    await asyncio.wait_for(self.ws.close(code, reason[:120]), 5.0)
+        except (WebSocketDisconnect, RuntimeError, OSError, TimeoutError):
             pass
 
     # ----------------------------------------------------------------------------- receiving
@@ -171,13 +278,14 @@ class StreamSession:
     # ----------------------------------------------------------------------------- lifecycle
     async def run(self) -> None:
         """Handshake, then read until the client leaves or a fatal error; never raises."""
-        streamer: asyncio.Task | None = None
+        tasks: list[asyncio.Task] = []
         try:
             await self._handshake()
             self.state.sessions[self.id] = self
             self.state.counters["sessions_total"] += 1
-            streamer = asyncio.create_task(self._stream(), name=f"pvs-stream-{self.id}")
-            await self._read_loop(streamer)
+            tasks.append(asyncio.create_task(self._sender(), name=f"pvs-send-{self.id}"))
+            tasks.append(asyncio.create_task(self._stream(), name=f"pvs-stream-{self.id}"))
+            await self._read_loop(tasks)
         except _SessionOver:
             pass
         except Exception:
@@ -190,9 +298,10 @@ class StreamSession:
             await self.close(int(close_code_for(ErrorCode.INTERNAL)), "internal")
         finally:
             self.state.sessions.pop(self.id, None)
-            if streamer is not None:
-                streamer.cancel()
-                await asyncio.gather(streamer, return_exceptions=True)
+            self._unpin()
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
             await self.close(1000, "")
 
     async def _handshake(self) -> None:
@@ -216,24 +325,37 @@ class StreamSession:
             catalog.require(msg.scene)
         except UnknownSceneError as exc:
             await self.error(ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
-        try:
-            self.core, self.params = compute.resolve(msg.core, msg.params)
-        except UnknownCoreError as exc:
-            await self.error(ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
-        except ValueError as exc:
-            await self.error(ErrorCode.BAD_PARAMS, str(exc))
+        if msg.core != AUTO_CORE:
+            # Check the core and its parameters before paying for loading the scene.
+            try:
+                compute.resolve(msg.core, msg.params)
+            except UnknownCoreError as exc:
+                await self.error(ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
+            except ValueError as exc:
+                await self.error(ErrorCode.BAD_PARAMS, str(exc))
         try:
             self.loaded = await asyncio.to_thread(catalog.get, msg.scene)
         except UnknownSceneError as exc:
             await self.error(ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
         except SceneLoadFailed as exc:
             await self.error(ErrorCode.SCENE_LOAD_FAILED, str(exc))
-        ok, why = self.core.supports(self.loaded.scene)
+        scene = self.loaded.scene
+        try:
+            self.core, self.params, why = compute.resolve_for(scene, msg.core, msg.params)
+        except UnknownCoreError as exc:
+            await self.error(ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
+        except ValueError as exc:
+            await self.error(ErrorCode.BAD_PARAMS, str(exc))
+        ok, reason = core_fits(self.core, scene)
         if not ok:
             await self.error(ErrorCode.UNSUPPORTED_SCENE,
-                             f"core {self.core.name!r} does not fit {msg.scene!r}: {why}")
+                             f"core {self.core.name!r} does not fit {msg.scene!r}: {reason}")
         self.budget = msg.budget
-        self.sent = np.zeros(self.loaded.scene.n_triangles, dtype=bool)
+        self.prefetch = self.settings.prefetch if msg.prefetch is None else bool(msg.prefetch)
+        self.held = np.zeros(scene.n_triangles, dtype=bool)
+        valid = int(np.count_nonzero(scene.valid_faces))
+        self.send_all = self.budget is not None and valid <= self.budget
+        features = await asyncio.to_thread(self._features, why, valid)
         await self._send_text(Welcome(
             session=self.id,
             scene=_scene_info(self.loaded),
@@ -243,11 +365,53 @@ class StreamSession:
             budget=self.budget,
             limits=Limits(max_frame_bytes=self.settings.max_frame_bytes,
                           max_message_bytes=self.settings.max_message_bytes),
+            prefetch=self.prefetch,
+            features=features,
         ))
 
-    async def _read_loop(self, streamer: asyncio.Task) -> None:
+    def _features(self, why: str, valid: int) -> dict[str, Any]:
+        """What this session's streams include and leave out, and why (the welcome's
+        ``features``)."""
+        scene = self.loaded.scene
+        if self.send_all:
+            pvs = {"on": False, "why": f"the whole scene ({valid} valid triangles) fits the "
+                   f"client's budget of {self.budget}: it is sent whole, no PVS is computed"}
+        else:
+            pvs = {"on": True, "why": "no budget declared" if self.budget is None else
+                   f"the scene ({valid} triangles) exceeds the budget of {self.budget}"}
+        dynamic = scene.states is not None and scene.states.shape[0] > 1
+        nf = _near_far_module()
+        if nf is None:
+            cubemap = {"on": False, "why": "near-far module (visibility.nearfar) not installed"}
+        elif not self.settings.near_far:
+            cubemap = {"on": False, "why": "the server's near_far setting is off"}
+        else:
+            cfg = self._near_far_cfg(nf)
+            boxes = self.loaded.grid.boxes
+            need = [bool(nf.needs_cubemap(scene, b.mean(axis=0), cfg)) for b in boxes]
+            n = sum(need)
+            cubemap = {"on": n > 0, "cells": n, "r1": cfg.r1, "r2": cfg.r2,
+                       "why": f"{n} of {len(need)} cells have static geometry beyond r2"
+                       if n else "nothing static lies beyond r2 of any cell"}
+        return {
+            "pvs": pvs,
+            "prefetch": {"on": self.prefetch},
+            "delta": {"on": True, "why": "each triangle is sent once unless dropped"},
+            "dynamic_updates": {"on": dynamic, "why": "the scene has moving triangles" if dynamic
+                                else "static scene: no dynamic updates"},
+            "cubemap": cubemap,
+            "cores": offered_cores(scene),
+            "core_choice": {"core": self.core.name, "why": why},
+        }
+
+    def _near_far_cfg(self, nf: Any) -> Any:
+        s = self.settings
+        return nf.NearFarConfig(r1=s.near_far_r1, r2=s.near_far_r2,
+                                resolution=s.near_far_resolution)
+
+    async def _read_loop(self, tasks: list[asyncio.Task]) -> None:
         while True:
-            if streamer.done():
+            if any(t.done() for t in tasks):
                 return
             text = await self._receive()
             try:
@@ -267,7 +431,9 @@ class StreamSession:
                 await self.error(ErrorCode.DUPLICATE_HELLO, "hello sent twice")
 
     async def _on_pose(self, pose: Pose) -> None:
-        cell = self.loaded.grid.cell_of(np.asarray(pose.position, dtype=np.float64))
+        pos = np.asarray(pose.position, dtype=np.float64)
+        grid = self.loaded.grid
+        cell = grid.cell_of(pos)
         if cell is None:
             if not self._outside:
                 self._outside = True
@@ -277,14 +443,72 @@ class StreamSession:
         self._outside = False
         if cell != self.cell:
             self.cell = cell
-            self._queue.put_nowait((cell, pose.seq, time.perf_counter()))
+            self.cell_seq = pose.seq
+            self.cell_t0 = time.perf_counter()
+            self.skip.clear()
+            self._pin(cell)
+        if self.prefetch:
+            vel = None if pose.velocity is None else np.asarray(pose.velocity)
+            direction = motion_direction(vel, pos, self._last_pos)
+            self.want = prefetch_order(grid, cell, pos, direction, self.settings.prefetch_ahead)
+            self.want_set = frozenset(self.want)
+        self._last_pos = pos
+        if cell not in self.done:
+            self.stalls += 1
+            self.state.counters["stalls"] += 1
+            if self._stall_cell != cell:
+                self._stall_cell = cell
+                log.info("session %s: stall: pose %d in cell %d before its stream finished",
+                         self.id, pose.seq, cell)
+        self._wake.set()
+
+    # ----------------------------------------------------------------------------- cache pins
+    def _pin(self, cell: int) -> None:
+        # The walker's current cell stays cached while it stands there (another walker
+        # entering, or this one losing it to drops, then costs no recomputation).
+        self._unpin()
+        self._pinned = self.state.compute.key(self.loaded.name, self.core, self.params, cell)
+        self.state.compute.cache.pin(self._pinned)
+
+    def _unpin(self) -> None:
+        if self._pinned is not None:
+            self.state.compute.cache.unpin(self._pinned)
+            self._pinned = None
+
+    def wants(self, key: tuple) -> bool:
+        """Whether this session still needs the PVS of cache key ``key`` (called from worker
+        threads: reads only attributes replaced atomically)."""
+        return (self.loaded is not None and key[0] == self.loaded.name
+                and key[2] == self.core.name and key[3] == self.params.cache_key()
+                and (key[1] == self.cell or key[1] in self.want_set))
 
     # ----------------------------------------------------------------------------- streaming
+    def _next_job(self) -> tuple[int, bool, int] | None:
+        """(cell, prefetch?, rank) of the next stream: the current cell, then prefetch order."""
+        c = self.cell
+        if c is not None and (c not in self.done or c != self.announced) and c not in self.skip:
+            return c, False, 0
+        for rank, n in enumerate(self.want):
+            if n not in self.done and n not in self.skip and n != c:
+                return n, True, rank
+        return None
+
+    def _current_pending(self, streaming: int) -> bool:
+        c = self.cell
+        return c is not None and c != streaming and c not in self.done and c not in self.skip
+
     async def _stream(self) -> None:
         try:
             while True:
-                cell, seq, t0 = await self._queue.get()
-                await self._stream_cell(cell, seq, t0)
+                job = self._next_job()
+                if job is None:
+                    self._wake.clear()
+                    await self._wake.wait()
+                    continue
+                cell, prefetch, rank = job
+                result = await self._get_pvs(cell, prefetch, rank)
+                if result is not None:
+                    await self._stream_cell(cell, result, prefetch)
         except _SessionOver:
             pass
         except Exception:
@@ -294,32 +518,185 @@ class StreamSession:
             except _SessionOver:
                 pass
 
-    async def _stream_cell(self, cell: int, seq: int, t0: float) -> None:
-        scene_name = self.loaded.name
+    async def _get_pvs(self, cell: int, prefetch: bool, rank: int) -> PVSResult | None:
+        """The PVS of ``cell``, or None when the job was superseded (the walker moved on: the
+        computation goes on in the pool and lands in the cache) or failed (error sent)."""
+        name = self.loaded.name
+        known = self.pvs_of.get(cell)
+        if known is not None and cell in self.done:
+            box = self.loaded.grid.boxes[cell].copy()
+            return PVSResult(name, cell, box, self.core.name, self.params, PVS(known), True)
+        if self.send_all:
+            scene = self.loaded.scene
+            ids = np.flatnonzero(scene.valid_faces).astype(np.int32)
+            box = self.loaded.grid.boxes[cell].copy()
+            return PVSResult(name, cell, box, self.core.name, self.params, PVS(ids), True)
+        compute = self.state.compute
+        key = compute.key(name, self.core, self.params, cell)
+        seq = self.cell_seq if not prefetch else None
         try:
-            result = await self.state.compute.compute(scene_name, self.core, self.params, cell=cell)
-        except (UnsupportedSceneError, LookupError, SceneLoadFailed) as exc:
-            await self.error(ErrorCode.COMPUTE_FAILED, str(exc), seq)
+            cf = compute.submit(name, self.core, self.params, cell=cell,
+                                priority=(1.0 + rank) if prefetch else 0.0,
+                                wanted=(lambda: self.state.wanted(key)) if prefetch else None)
+        except LookupError as exc:
+            await self._job_failed(cell, prefetch, str(exc), seq)
+            return None
+        fut = asyncio.wrap_future(cf)
+        fut.add_done_callback(lambda f: f.cancelled() or f.exception())
+        job = (cell, prefetch)
+        while not fut.done():
+            self._wake.clear()
+            waker = asyncio.ensure_future(self._wake.wait())
+            await asyncio.wait({fut, waker}, return_when=asyncio.FIRST_COMPLETED)
+            waker.cancel()
+            nxt = self._next_job()
+            if not fut.done() and (nxt is None or nxt[:2] != job):
+                return None
+        if fut.cancelled():
+            return None
+        exc = fut.exception()
+        if exc is None:
+            return fut.result()
+        if isinstance(exc, (UnsupportedSceneError, LookupError, SceneLoadFailed)):
+            msg = str(exc)
+        else:
+            log.error("session %s: PVS of %s cell %d failed: %r", self.id, name, cell, exc)
+            msg = f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}"
+        await self._job_failed(cell, prefetch, msg, seq)
+        return None
+
+    async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None) -> None:
+        self.skip.add(cell)
+        if not prefetch:
+            await self.error(ErrorCode.COMPUTE_FAILED, msg, seq)
+
+    def _remember(self, cell: int, ids: np.ndarray) -> None:
+        self.pvs_of[cell] = ids
+        if len(self.pvs_of) <= MAX_KNOWN_PVS:
             return
-        except Exception as exc:
-            log.exception("session %s: PVS of %s cell %d failed", self.id, scene_name, cell)
-            await self.error(ErrorCode.COMPUTE_FAILED,
-                             f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}", seq)
-            return
+        keep = {self.cell, cell, *self.want}
+        for c in list(self.pvs_of):
+            if len(self.pvs_of) <= MAX_KNOWN_PVS:
+                break
+            if c not in keep:
+                del self.pvs_of[c]
+                self.done.discard(c)
+
+    async def _make_room(self, cell: int, ids: np.ndarray, new: np.ndarray,
+                         prefetch: bool, seq: int) -> bool:
+        """Drop held triangles so ``new`` fits the budget; False when a prefetch cannot fit
+        without touching the current cell's PVS (the prefetch is then skipped)."""
+        need = self.n_held + len(new) - (self.budget or 0)
+        if self.budget is None or need <= 0:
+            return True
+        n = len(self.held)
+        protect = np.zeros(n, dtype=bool)
+        protect[ids] = True
+        cur = self.pvs_of.get(self.cell)
+        if cur is not None:
+            protect[cur] = True
+        spare = np.zeros(n, dtype=bool)
+        for c in self.want:
+            p = self.pvs_of.get(c)
+            if p is not None:
+                spare[p] = True
+        if prefetch:
+            # A prefetch may only push out what no nearby cell needs.
+            protect |= spare
+            spare[:] = False
+        box = self.loaded.grid.boxes[self.cell if self.cell is not None else cell]
+        drops = choose_drops(self.held, need, protect, spare, self.state.centroids(self.loaded),
+                             box.mean(axis=0))
+        if len(drops) < need:
+            if prefetch:
+                self.skip.add(cell)
+                return False
+            await self._enqueue(Error(
+                code=ErrorCode.OVER_BUDGET, seq=seq,
+                message=f"PVS of cell {cell} holds {len(ids)} triangles; with the current "
+                f"cell's it exceeds the budget of {self.budget}"))
+            self.state.counters["errors_sent"] += 1
+        if len(drops):
+            dmask = np.zeros(n, dtype=bool)
+            dmask[drops] = True
+            self.held[drops] = False
+            self.n_held -= len(drops)
+            gone = sorted(c for c in self.done if dmask[self.pvs_of[c]].any())
+            self.done.difference_update(gone)
+            self.state.counters["triangles_dropped"] += len(drops)
+            await self._enqueue(Drop(ids=np.sort(drops).tolist(), cells=gone))
+        return True
+
+    async def _near_far(self, nf: Any, cell: int, ids: np.ndarray
+                        ) -> tuple[np.ndarray, dict | None, bytes | None]:
+        """INTEGRATION POINT (near-far): the cell's geometry ids, its ``cell_begin.near_far``
+        and the cubemap frame to send (None when already sent or not needed).
+
+        With static geometry beyond r2 of the cell centre O: geometry = PVS ∩ near ids ∪ far
+        dynamic ids; the far static part goes as a cubemap baked from O (cached per scene, cell
+        and configuration)."""
+        scene = self.loaded.scene
+        cfg = self._near_far_cfg(nf)
+        centre = self.loaded.grid.boxes[cell].mean(axis=0)
+        split_key = (self.loaded.name, cell, cfg.r1, cfg.r2)
+        split = self.state.near_far_splits.get(split_key)
+        if split is None:
+            if not await asyncio.to_thread(nf.needs_cubemap, scene, centre, cfg):
+                self.state.near_far_splits[split_key] = False
+                return ids, {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
+                             "cubemap": False}, None
+            split = await asyncio.to_thread(nf.split_ids, scene, centre, cfg)
+            self.state.near_far_splits[split_key] = split
+        info = {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
+                "cubemap": split is not False}
+        if split is False:
+            return ids, info, None
+        near = np.union1d(np.intersect1d(ids, split.near_ids),
+                          split.far_dynamic_ids).astype(np.int32)
+        if cell in self.cubemaps_sent:
+            return near, info, None
+        key = (*split_key, cfg.resolution)
+        frame = self.state.cubemaps.get(key)
+        if frame is None:
+            def bake() -> bytes:
+                cube = nf.bake_cubemap(scene, centre, cfg)
+                return encode_cubemap(cell, cube.center, cube.colors, cube.ranges, cfg.r1, cfg.r2)
+
+            frame = await asyncio.to_thread(bake)
+            self.state.cubemaps[key] = frame
+        return near, info, frame
+
+    async def _stream_cell(self, cell: int, result: PVSResult, prefetch: bool) -> None:
+        seq = self.cell_seq
+        t0 = self.cell_t0 if not prefetch else time.perf_counter()
+        if not prefetch:
+            self.announced = cell
         ids = result.pvs.triangle_ids
-        new = ids[~self.sent[ids]]
-        if self.budget is not None and len(ids) > self.budget:
-            await self.error(ErrorCode.OVER_BUDGET,
-                             f"PVS of cell {cell} holds {len(ids)} triangles, over the budget "
-                             f"of {self.budget}", seq)
-        self.sent[new] = True
+        near_far, cube = None, None
+        nf = _near_far_module() if self.settings.near_far else None
+        if nf is not None:
+            ids, near_far, cube = await self._near_far(nf, cell, ids)
+        self._remember(cell, ids)
+        new = ids[~self.held[ids]]
+        if not prefetch and self.budget is not None and len(ids) > self.budget:
+            await self._enqueue(Error(
+                code=ErrorCode.OVER_BUDGET, seq=seq,
+                message=f"PVS of cell {cell} holds {len(ids)} triangles, over the budget "
+                f"of {self.budget}"))
+            self.state.counters["errors_sent"] += 1
+        if not await self._make_room(cell, ids, new, prefetch, seq):
+            return
         max_bytes = self.settings.max_frame_bytes
         count = chunk_count(len(new), max_bytes)
-        await self._send_text(CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new),
-                                        chunks=count))
+        await self._enqueue(CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new),
+                                      chunks=count, prefetch=prefetch, near_far=near_far))
         per = triangles_per_frame(max_bytes)
         scene = self.loaded.scene
+        partial = False
         for i in range(count):
+            if prefetch and self._current_pending(cell):
+                partial = True  # the walker needs another cell now: yield to it
+                break
             part = new[i * per:(i + 1) * per]
             # Encoding a full frame takes milliseconds: do it off the loop.
             frame = await asyncio.to_thread(
@@ -328,11 +705,24 @@ class StreamSession:
                     count=count,
                 )
             )
-            await self._send_frame(frame)
-        self.state.counters["triangles_sent"] += len(new)
-        self.state.counters["cells_streamed"] += 1
-        await self._send_text(CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
-                                      compute_seconds=result.seconds, cached=result.cached))
+            self.held[part] = True
+            self.n_held += len(part)
+            self.state.counters["triangles_sent"] += len(part)
+            await self._enqueue(frame)
+        if cube is not None and not partial:
+            await self._enqueue(cube)
+            self.cubemaps_sent.add(cell)
+            self.state.counters["cubemaps_sent"] += 1
+        if not partial:
+            self.done.add(cell)
+            self.state.counters["cells_streamed"] += 1
+            if prefetch:
+                self.state.counters["cells_prefetched"] += 1
+        else:
+            self.state.counters["prefetch_yields"] += 1
+        await self._enqueue(CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
+                                    compute_seconds=result.seconds, cached=result.cached,
+                                    prefetch=prefetch, partial=partial))
 
 
 async def websocket_endpoint(websocket: WebSocket) -> None:

@@ -188,8 +188,9 @@ def cell_boxes(live_server):
 
 def test_session_streams_into_its_store(live_server, cell_boxes):
     async def main():
-        s = await Session.connect(live_server, "tiny", "test_near", NEAR, budget=10_000)
-        assert s.welcome.budget == 10_000 and s.store.budget == 10_000
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, budget=150,
+                                  prefetch=False)
+        assert s.welcome.budget == 150 and s.store.budget == 150
         assert not s.is_complete(2)
         await s.send_pose(0, 0.0, cell_boxes[2].mean(axis=0), [0, 0, -1],
                           velocity=np.array([1.0, 0, 0]))
@@ -216,7 +217,7 @@ def test_session_streams_into_its_store(live_server, cell_boxes):
 
 def test_session_keeps_server_errors(live_server, cell_boxes):
     async def main():
-        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         await s.send_pose(0, 0.0, [900.0, 1.7, 900.0], [0, 0, -1])
         await s.send_raw('{"type": "pose", "seq": 1, "t": 0, "position": [1, NaN, 1], '
                          '"forward": [0, 0, 1]}')
@@ -232,7 +233,7 @@ def test_session_keeps_server_errors(live_server, cell_boxes):
 
 def test_session_end_by_fatal_error_wakes_waiters(live_server):
     async def main():
-        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         waiter = asyncio.create_task(s.wait_cell(0, 60))
         await asyncio.sleep(0.05)
         await s.send_raw(b"\x00binary")  # fatal for the server
@@ -249,7 +250,7 @@ def test_session_end_by_fatal_error_wakes_waiters(live_server):
 
 def test_send_pose_validates_locally(live_server):
     async def main():
-        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         with pytest.raises(ValueError, match="invalid pose"):
             await s.send_pose(0, 0.0, [np.nan, 0, 0], [0, 0, 1])
         with pytest.raises(ValueError):
@@ -283,7 +284,7 @@ def test_connect_refused(live_server, kwargs, code, close):
 
 
 def test_sync_session(live_server, cell_boxes):
-    with SyncSession.connect(live_server, "tiny", "test_near", NEAR) as s:
+    with SyncSession.connect(live_server, "tiny", "test_near", NEAR, prefetch=False) as s:
         assert s.welcome.scene.name == "tiny"
         s.send_pose(0, 0.0, cell_boxes[5].mean(axis=0), [0, 0, -1])
         cs = s.wait_cell(5, timeout=60)

@@ -44,7 +44,7 @@ def centre(cells, cid: int) -> list[float]:
 
 
 def hello(**kw) -> str:
-    args = {"scene": "tiny", "core": "test_near", "params": NEAR}
+    args = {"scene": "tiny", "core": "test_near", "params": NEAR, "prefetch": False}
     args.update(kw)
     return dump_message(Hello(**args))
 
@@ -89,7 +89,7 @@ def test_stream_matches_http_pvs_and_sends_each_triangle_once(live_server, cells
     walk = [0, 1, 3, 2, 0, 4, 5]  # includes a return to cell 0
 
     async def main():
-        s = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         assert s.welcome.scene.triangles == TINY.n_triangles
         assert s.welcome.grid.cells == 8 and s.welcome.core == "test_near"
         assert s.welcome.params["radius"] == 4.5
@@ -147,7 +147,7 @@ def test_far_scene_streams_with_precision(live_server, cells):
     far = make_tiny_scene(offset=1e5)
 
     async def main():
-        s = await Session.connect(live_server, "tiny_far", "test_near", NEAR)
+        s = await Session.connect(live_server, "tiny_far", "test_near", NEAR, prefetch=False)
         c = (np.asarray(centre(cells, 2)) + [1e5, 0, 1e5]).tolist()
         await s.send_pose(0, 0.0, c, (1, 0, 0))
         await s.wait_cell(2, TIMEOUT)
@@ -308,7 +308,7 @@ def test_huge_message_is_refused_without_harm(ws_endpoint):
 
 def test_other_sessions_are_unaffected(live_server, cells, ws_endpoint):
     async def main():
-        good = await Session.connect(live_server, "tiny", "test_near", NEAR)
+        good = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         await good.send_pose(0, 0.0, centre(cells, 4), (0, 0, 1))
         await good.wait_cell(4, TIMEOUT)
         # Misbehaving clients come and go...
@@ -328,7 +328,7 @@ def test_other_sessions_are_unaffected(live_server, cells, ws_endpoint):
 
 def test_session_count_returns_to_zero(live_server, cells):
     async def main():
-        sessions = [await Session.connect(live_server, "tiny", "test_near", NEAR)
+        sessions = [await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
                     for _ in range(3)]
         h = httpx.get(live_server + "/health", timeout=60).json()
         for s in sessions:
@@ -371,7 +371,7 @@ def test_generated_scene_stream_equals_http_pvs(live_server, server_app):
                     for c in pick}
 
     async def main():
-        s = await Session.connect(live_server, name, "sampling", params)
+        s = await Session.connect(live_server, name, "sampling", params, prefetch=False)
         for seq, c in enumerate(pick):
             await s.send_pose(seq, float(seq), centre(cells, c), (1, 0, 0))
             await s.wait_cell(c, 120)

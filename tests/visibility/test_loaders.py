@@ -1,17 +1,13 @@
 """Loading real third-party scenes and files written by trimesh."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
+from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_grid, real_scene
 from visibility.loaders import SceneLoadError, load_scene
-from visibility.viewcells import ViewcellGrid
-
-SHARED_SCENES = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
-REAL = ["lavaducts", "denhaag", "lyon_vilo3d", "kitchen"]
 
 
 def test_shared_scenes_are_present():
@@ -22,7 +18,7 @@ def test_shared_scenes_are_present():
 def test_real_scene_loads_in_metres_with_ids_as_trimesh_orders_them(name):
     path = SHARED_SCENES / f"{name}.glb"
     side = json.loads(path.with_suffix(".json").read_text())
-    scene = load_scene(path)
+    scene = real_scene(name)
     assert scene.n_triangles == side["triangles"]
     assert scene.n_objects == side["objects"]
     ref = trimesh.load(str(path), force="scene", process=False).to_geometry()
@@ -30,10 +26,13 @@ def test_real_scene_loads_in_metres_with_ids_as_trimesh_orders_them(name):
     np.testing.assert_allclose(scene.vertices, ref.vertices * side["scale"])
     obj = np.asarray(ref.vertex_attributes["_OBJECT_ID"]).reshape(len(ref.vertices), -1)[:, 0]
     np.testing.assert_array_equal(scene.object_ids, obj[ref.faces[:, 0]])
-    np.testing.assert_allclose(scene.bounds()[0], np.array(side["bbox_min"]) * side["scale"],
-                               atol=1e-3 * side["scale"] + 1e-3)
+    np.testing.assert_allclose(
+        scene.bounds()[0],
+        np.array(side["bbox_min"]) * side["scale"],
+        atol=1e-3 * side["scale"] + 1e-3,
+    )
     assert scene.valid_faces.sum() > 0.9 * scene.n_triangles
-    grid = ViewcellGrid.for_scene(scene)
+    grid = real_grid(name)
     assert len(grid) > 0, f"{name}: no walkable cells found"
     # Cells lie inside the scene's horizontal extent.
     b = scene.bounds()

@@ -49,8 +49,12 @@ def test_moving_face_with_area_in_one_state_is_valid():
 
 
 def test_spheres_and_bounds():
-    s = Scene(np.zeros((0, 3)), np.zeros((0, 3), int), sphere_centers=[[[0, 0, 0], [10, 0, 0]]],
-              sphere_radii=[1.0, 2.0])
+    s = Scene(
+        np.zeros((0, 3)),
+        np.zeros((0, 3), int),
+        sphere_centers=[[[0, 0, 0], [10, 0, 0]]],
+        sphere_radii=[1.0, 2.0],
+    )
     assert s.n_spheres == 2
     np.testing.assert_allclose(s.bounds(), [[-1, -2, -2], [12, 2, 2]])
 

@@ -1,0 +1,589 @@
+"""``pvs bench``: error against run time for every registered core, side by side, on the same cells.
+
+The matrix is every core of ``visibility.cores.base.available_cores()`` (plus the Embree ray-caster
+peer of ``benchmarks.peers``) x its accuracy knob x cell sizes x scenes. Per point: seconds (median
+of repeats, min, max), peak memory, PVS size (% of the scene's valid triangles), FN and FP rates
+against a dense sampled ground truth (cached on disk, ``benchmarks.gt_cache``), and frame metrics
+(mean and worst ε, mean PSNR and SSIM) over a fixed set of views inside the cell, rendered with
+``client.render.OffscreenRenderer`` (PVS subset against the full scene).
+
+Peak memory is the rise of the process's peak resident set (``VmHWM`` in /proc/self/status) over
+its resident set at the start of the run, with ``VmHWM`` reset before each run by writing 5 to
+/proc/self/clear_refs. Unlike tracemalloc it sees numba and GL allocations.
+
+A core's knob is the first of its Params fields found in ``KNOB_PRIORITY``; a new core with a
+``resolution`` field joins with no change here.
+
+Usage: ``pvs bench --quick`` (minutes), ``pvs bench --preset medium``, ``pvs bench --preset full``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_SCENES = REPO.parent / "shared" / "scenes"
+RESULTS_DIR = REPO / "benchmarks" / "results"
+
+#: Accuracy knob levels by Params field name (ascending cost).
+KNOB_LEVELS: dict[str, list[Any]] = {
+    "samples": [8, 32, 128],
+    "delta": [0.5, 0.25, 0.1],
+    "resolution": [64, 128, 256],
+    "runs": [1, 2, 4],
+}
+#: Which field is a core's knob: the first one its Params declares.
+KNOB_PRIORITY = ("samples", "delta", "resolution", "runs")
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "quick": {
+        "scenes": ["rooms:5000"], "cell_sizes": [None], "cells": 1, "repeats": 1,
+        "levels": 2, "gt_points": 32, "gt_resolution": 64, "views": 2, "view_size": 64,
+        "resolution": 64,
+        "knob_levels": {"samples": [4, 16], "resolution": [32, 64], "runs": [1, 2],
+                        "delta": [0.5, 0.25]},
+    },
+    "medium": {
+        "scenes": ["city:20000", "city:100000", "rooms:20000", "village:20000",
+                   str(SHARED_SCENES / "lavaducts.glb"), str(SHARED_SCENES / "denhaag.glb")],
+        "cell_sizes": [None], "cells": 1, "repeats": 2, "levels": 2, "gt_points": 64,
+        "gt_resolution": 128, "views": 3, "view_size": 96, "resolution": 64,
+        "knob_levels": {"samples": [8, 32], "resolution": [32, 64], "runs": [1, 2]},
+    },
+    "full": {
+        "scenes": ["city:100000", "village:100000", "rooms:100000", "city:1000000",
+                   "village:1000000", "rooms:1000000", "real"],
+        "cell_sizes": [None, "x2"], "cells": 4, "repeats": 3, "levels": 3, "gt_points": 1024,
+        "gt_resolution": 256, "views": 8, "view_size": 256, "resolution": 256,
+        "knob_levels": {},
+    },
+}
+
+
+# --------------------------------------------------------------------------- measurements
+def _status_kib(field: str) -> int | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def measure_peak(fn):
+    """Run ``fn()``; return (its result, peak resident-memory rise in MiB or None).
+
+    Resets the peak (``VmHWM``) with /proc/self/clear_refs first; None where that is impossible.
+    """
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        base = _status_kib("VmRSS")
+    except OSError:
+        base = None
+    out = fn()
+    peak = _status_kib("VmHWM")
+    if base is None or peak is None:
+        return out, None
+    return out, max(0.0, (peak - base) / 1024.0)
+
+
+def _load() -> str:
+    try:
+        return f"{os.getloadavg()[0]:.1f}"
+    except OSError:
+        return "?"
+
+
+def machine_description() -> str:
+    """One paragraph naming the CPU, cores, memory, OS and library versions."""
+    import numba
+
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = _meminfo_gib()
+    return (f"{cpu}, {os.cpu_count()} logical cores, {mem} GiB RAM, no GPU (Mesa OSMesa for "
+            f"frames); {platform.system()} {platform.release()}; Python "
+            f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}")
+
+
+def _meminfo_gib() -> str:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                return f"{int(line.split()[1]) / 2**20:.0f}"
+    except OSError:
+        pass
+    return "?"
+
+
+# --------------------------------------------------------------------------- matrix pieces
+def knob_of(core) -> str | None:
+    """The accuracy knob of a core: the first field of ``KNOB_PRIORITY`` its Params declares."""
+    names = {f.name for f in dataclasses.fields(core.Params)}
+    for k in KNOB_PRIORITY:
+        if k in names:
+            return k
+    return None
+
+
+def load_scenes(specs: list[str]) -> list[tuple[str, Any]]:
+    """(label, loader) pairs for ``name:triangles`` generator specs, ``real`` (every scene in
+    ../shared/scenes/) and paths to scene files. Loaders are called lazily, one scene at a time."""
+    out: list[tuple[str, Any]] = []
+    for spec in specs:
+        if spec == "real":
+            for p in sorted(SHARED_SCENES.glob("*.glb")):
+                out.append((p.stem, _file_loader(p)))
+        elif Path(spec).suffix and Path(spec).exists():
+            out.append((Path(spec).stem, _file_loader(Path(spec))))
+        else:
+            name, _, tri = spec.partition(":")
+            triangles = int(float(tri)) if tri else None
+            label = f"{name}_{_short(triangles)}" if triangles else name
+            out.append((label, _gen_loader(name, triangles)))
+    return out
+
+
+def _short(n: int) -> str:
+    return f"{n // 1_000_000}M" if n % 1_000_000 == 0 else f"{n // 1000}k"
+
+
+def _file_loader(path: Path):
+    def load():
+        from visibility.loaders import load_scene
+
+        return load_scene(path)
+
+    return load
+
+
+def _gen_loader(name: str, triangles: int | None):
+    def load():
+        from visibility.generators import make_scene
+
+        return make_scene(name, triangles=triangles)
+
+    return load
+
+
+def pick_cells(grid, k: int) -> list[int]:
+    """``k`` cell ids spread evenly over the grid's id order (deterministic)."""
+    n = len(grid)
+    if n == 0:
+        return []
+    return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n) + 2)[1:-1].round()}) or [0]
+
+
+def view_set(cell, n: int, seed: int = 777) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` fixed (eye, forward) views inside a cell: stratified eyes, evenly spread yaw,
+    slight random pitch."""
+    from visibility.ground_truth import sample_points
+
+    rng = np.random.default_rng(seed)
+    eyes = sample_points(cell.box, n, rng)
+    yaw = 2 * np.pi * (np.arange(n) / max(n, 1) + rng.random())
+    pitch = rng.uniform(-0.25, 0.15, size=n)
+    fwd = np.stack([np.cos(pitch) * np.cos(yaw), np.sin(pitch), np.cos(pitch) * np.sin(yaw)], 1)
+    return list(zip(eyes, fwd, strict=True))
+
+
+def frame_summary(renderer, scene, ids, views, gt_frames, key) -> dict[str, float]:
+    """Mean and worst ε, mean PSNR (capped) and mean SSIM of the PVS frames over the views."""
+    from client.metrics import capped_psnr, frame_metrics
+
+    ids = np.asarray(ids, dtype=np.int64)
+    tris, cols = scene.triangles(ids), scene.colors[ids]
+    eps, ps, ss = [], [], []
+    for k, ((eye, fwd), gt) in enumerate(zip(views, gt_frames, strict=True)):
+        fr = renderer.render(tris, cols, eye, fwd, key="bench_pvs", version=(key, k))
+        m = frame_metrics(fr, gt)
+        eps.append(m["epsilon"])
+        ps.append(m["psnr"])
+        ss.append(m["ssim"])
+    renderer.drop("bench_pvs")
+    return {"eps_mean": float(np.mean(eps)), "eps_worst": float(np.max(eps)),
+            "psnr_mean": float(np.mean(capped_psnr(np.array(ps)))), "ssim_mean": float(np.mean(ss))}
+
+
+# --------------------------------------------------------------------------- running
+def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
+    """Run the whole matrix described by ``cfg``; return one row per (scene, cell, core, level)."""
+    from benchmarks import peers
+    from benchmarks.gt_cache import cached_ground_truth, scene_fingerprint
+    from client.render import OffscreenRenderer
+    from visibility.cores.base import available_cores
+    from visibility.ground_truth import fn_fp_rates
+    from visibility.viewcells import ViewcellGrid
+
+    cores = cfg["cores"] or available_cores()
+    levels_by_knob = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
+    use_peer = cfg["peer"] and peers.available()
+    if cfg["peer"] and not use_peer:
+        log("embreex is not installed: the ray-caster peer is skipped")
+    rows: list[dict[str, Any]] = []
+    renderer = OffscreenRenderer(cfg["view_size"], cfg["view_size"], yfov_deg=90.0)
+    try:
+        for label, load in load_scenes(cfg["scenes"]):
+            t0 = time.perf_counter()
+            scene = load()
+            fp = scene_fingerprint(scene)
+            n_valid = max(1, int(scene.valid_faces.sum()))
+            log(f"[{label}] {scene.n_triangles} triangles, loaded in "
+                f"{time.perf_counter() - t0:.1f} s")
+            for cs in cfg["cell_sizes"]:
+                grid = ViewcellGrid.for_scene(scene, None)
+                if cs == "x2":
+                    grid = ViewcellGrid.for_scene(scene, 2 * grid.cell_size)
+                elif cs is not None:
+                    grid = ViewcellGrid.for_scene(scene, float(cs))
+                for cid in pick_cells(grid, cfg["cells"]):
+                    cell = grid.cell(cid)
+                    base = {"scene": label, "triangles": scene.n_triangles,
+                            "cell_size": float(grid.cell_size), "cell": cid}
+                    gt_ids, gt_rec = cached_ground_truth(
+                        scene, cell, cfg["gt_points"], cfg["gt_resolution"],
+                        cache_dir=cfg["cache_dir"], fingerprint=fp)
+                    log(f"  cell {cid} ({grid.cell_size:g} m): ground truth {len(gt_ids)} "
+                        f"triangles ({'cached' if gt_rec['cached'] else 'computed'} "
+                        f"{gt_rec['seconds']:.1f} s)")
+                    views = view_set(cell, cfg["views"])
+                    gt_frames = [renderer.render_scene(scene, e, f) for e, f in views]
+                    jobs = _jobs(cores, levels_by_knob, cfg, use_peer)
+                    for job in jobs:
+                        row = dict(base, gt_triangles=int(len(gt_ids)),
+                                   gt_seconds=gt_rec["seconds"], **job["row"])
+                        try:
+                            res = _run_point(job, scene, cell, cfg["repeats"], rows, label, cid)
+                        except Exception as exc:  # a failing core is a finding, not a stop
+                            row["error"] = f"{type(exc).__name__}: {exc}"
+                            log(f"    {row['core']} {row['knob']}={row['level']}: {row['error']}")
+                            rows.append(row)
+                            continue
+                        if res is None:
+                            continue
+                        ids, secs, peak, extra = res
+                        fn, fp_rate = fn_fp_rates(ids, gt_ids)
+                        row.update(seconds_median=float(np.median(secs)),
+                                   seconds_min=float(np.min(secs)),
+                                   seconds_max=float(np.max(secs)), peak_mib=peak,
+                                   pvs=int(len(ids)), pvs_pct=100.0 * len(ids) / n_valid,
+                                   fn=fn, fp=fp_rate, **extra)
+                        row.update(frame_summary(renderer, scene, ids, views, gt_frames,
+                                                 (row["core"], row["level"], cid)))
+                        rows.append(row)
+                        log(f"    {row['core']:>14} {row['knob']}={row['level']!s:<6} "
+                            f"{row['seconds_median']:8.3f} s  FN {100 * fn:6.2f}%  "
+                            f"FP {100 * fp_rate:6.2f}%  eps {row['eps_mean']:.3f}%")
+            renderer.drop("__scene_static__")
+            renderer.drop("__scene_dynamic__")
+            del scene
+    finally:
+        renderer.close()
+    return rows
+
+
+def _jobs(cores, levels_by_knob, cfg, use_peer) -> list[dict[str, Any]]:
+    from visibility.cores.base import get_core
+
+    jobs = []
+    for name in cores:
+        core = get_core(name)
+        knob = knob_of(core)
+        levels = levels_by_knob.get(knob, [None])[: cfg["levels"]] if knob else [None]
+        for lv in levels:
+            jobs.append({"kind": "core", "core": core, "knob": knob, "level": lv,
+                         "row": {"core": name, "knob": knob or "-", "level": lv}})
+    if use_peer:
+        from benchmarks import peers
+
+        for lv in levels_by_knob["samples"][: cfg["levels"]]:
+            jobs.append({"kind": "peer", "level": lv,
+                         "row": {"core": peers.NAME, "knob": "samples", "level": lv}})
+        # Equal time: the peer gets the sampling core's median time at its middle level.
+        jobs.append({"kind": "peer_equal_time",
+                     "row": {"core": peers.NAME, "knob": "budget", "level": "sampling"}})
+    return jobs
+
+
+def _run_point(job, scene, cell, repeats, rows, label, cid):
+    """(ids, seconds per repeat, peak MiB, extra row fields) of one matrix point, or None."""
+    from benchmarks import peers
+
+    cfg_res = _run_point.resolution
+    if job["kind"] == "core":
+        core = job["core"]
+        ok, why = core.supports(scene)
+        if not ok:
+            raise RuntimeError(f"unsupported: {why}")
+        over = {}
+        names = {f.name for f in dataclasses.fields(core.Params)}
+        if "resolution" in names and job["knob"] != "resolution":
+            over["resolution"] = cfg_res
+        if job["level"] is not None:
+            over[job["knob"]] = job["level"]
+        params = core.make_params(**over)
+
+        def once():
+            return core.compute(scene, cell, params)
+    else:
+        samples, budget = job.get("level"), None
+        if job["kind"] == "peer_equal_time":
+            ref = [r for r in rows if r["scene"] == label and r["cell"] == cid
+                   and r["core"] == "sampling" and "seconds_median" in r]
+            if not ref:
+                return None
+            ref = ref[len(ref) // 2]
+            budget, samples = ref["seconds_median"], 100_000
+
+        def once():
+            return peers.embree_pvs(scene, cell, samples=samples, resolution=cfg_res,
+                                    time_budget=budget)
+    secs, ids, peak, extra = [], None, None, {}
+    for r in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        if r == 0:
+            out, peak = measure_peak(once)
+        else:
+            out = once()
+        secs.append(time.perf_counter() - t0)
+        ids = out.triangle_ids
+        if job["kind"] != "core":
+            extra = {"peer_samples": out.stats.get("samples")}
+    return ids, secs, peak, extra
+
+
+_run_point.resolution = 128
+
+
+# --------------------------------------------------------------------------- output
+def _fmt(v, spec=".3f", none="–"):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return none
+    return format(v, spec)
+
+
+def scene_table(rows: list[dict[str, Any]]) -> str:
+    """Markdown table of one scene's rows."""
+    head = ("| cell (size m) | core | knob | seconds median (min–max) | peak MiB | PVS % | FN % | "
+            "FP % | ε mean % | ε worst % | PSNR dB | SSIM |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for r in rows:
+        cell = f"{r['cell']} ({r['cell_size']:g})"
+        knob = f"{r['knob']}={r['level']}"
+        if "error" in r:
+            lines.append(f"| {cell} | {r['core']} | {knob} | error: {r['error']} |"
+                         + " |" * 8)
+            continue
+        if r.get("peer_samples") is not None:
+            knob += f" ({r['peer_samples']} pts)"
+        lines.append(
+            f"| {cell} | {r['core']} | {knob} | {_fmt(r['seconds_median'])} "
+            f"({_fmt(r['seconds_min'])}–{_fmt(r['seconds_max'])}) | {_fmt(r['peak_mib'], '.0f')} "
+            f"| {_fmt(r['pvs_pct'], '.2f')} | {_fmt(100 * r['fn'], '.2f')} "
+            f"| {_fmt(100 * r['fp'], '.2f')} | {_fmt(r['eps_mean'], '.3f')} "
+            f"| {_fmt(r['eps_worst'], '.3f')} | {_fmt(r['psnr_mean'], '.1f')} "
+            f"| {_fmt(r['ssim_mean'], '.4f')} |")
+    return head + "\n".join(lines) + "\n"
+
+
+def plot_scene(rows: list[dict[str, Any]], title: str, path: Path) -> None:
+    """Error-against-time PNG: FN rate and mean ε against median seconds, one curve per core."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    good = [r for r in rows if "error" not in r and r["knob"] != "budget"]
+    for core in sorted({r["core"] for r in good}):
+        rs = [r for r in good if r["core"] == core]
+        levels = sorted({str(r["level"]) for r in rs}, key=lambda s: (len(s), s))
+        # One point per level: the mean over cells, so the curve is the cost/error trade-off.
+        xs, fns, eps = [], [], []
+        for lv in levels:
+            sel = [r for r in rs if str(r["level"]) == lv]
+            xs.append(np.mean([r["seconds_median"] for r in sel]))
+            fns.append(100 * np.mean([r["fn"] for r in sel]))
+            eps.append(np.mean([r["eps_mean"] for r in sel]))
+        order = np.argsort(xs)
+        for ax, ys in ((axes[0], fns), (axes[1], eps)):
+            ax.plot(np.array(xs)[order], np.array(ys)[order], "o-", label=core)
+    for r in (r for r in rows if r.get("knob") == "budget" and "error" not in r):
+        axes[0].plot([r["seconds_median"]], [100 * r["fn"]], "k*", ms=9)
+        axes[1].plot([r["seconds_median"]], [r["eps_mean"]], "k*", ms=9)
+    for ax, lab in ((axes[0], "FN rate (% of ground truth)"), (axes[1], "mean ε (% of pixels)")):
+        ax.set_xscale("log")
+        ax.set_xlabel("seconds per cell (median)")
+        ax.set_ylabel(lab)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{title}: error against run time (mean over cells; ★ = peer at equal time)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_dir: Path) -> None:
+    """Per-scene markdown tables and plots in ``results_dir``; the combined report at ``out_md``."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    tag = cfg["preset"]
+    (results_dir / f"bench_{tag}.json").write_text(json.dumps(
+        {"command": command, "config": {k: v for k, v in cfg.items() if k != "cache_dir"},
+         "rows": rows}, indent=1, default=str))
+    parts = [
+        "# Benchmarks: error against run time, every core on the same cells\n",
+        f"Command: `{command}`  \nPreset `{tag}`, total wall time {wall / 60:.1f} min.  \n"
+        f"Machine: {machine_description()}. Load average (1 min) at start {cfg['load_start']}, "
+        f"at end {_load()} (other jobs shared the cores: times are wall times under that load).\n",
+        "Method: for each scene, cells picked evenly over its viewcell grid "
+        f"(`ViewcellGrid.for_scene`, {cfg['cells']} per scene). Ground truth: "
+        f"`sample_pvs` with {cfg['gt_points']} points at {cfg['gt_resolution']} px, cached in "
+        "`benchmarks/results/cache/`. FN = share of the ground truth missing from the PVS; FP = "
+        "share of the PVS not in the ground truth (sampled ground truth can miss slivers, so a "
+        "conservative core's FP is partly truly visible triangles). Seconds: median (min–max) of "
+        f"{cfg['repeats']} repeats in one process after a warm-up compile. Peak MiB: rise of "
+        "VmHWM over VmRSS with VmHWM reset via /proc/self/clear_refs before the first repeat "
+        "(sees numba allocations, unlike tracemalloc). Frames: "
+        f"{cfg['views']} fixed views in the cell at {cfg['view_size']}² px, 90° fov, PVS subset "
+        "against the full scene (`client.metrics.frame_metrics`; PSNR capped at 100 dB). "
+        f"Non-knob `resolution` = {cfg['resolution']}. Peer `embree_rays`: Embree (embreex via "
+        "trimesh) rays through cube pixel centres from the same stratified points as `sampling`; "
+        "`budget=sampling` gives it the `sampling` core's median time at its middle level "
+        "(equal time); equal completeness is read off the curves.\n",
+    ]
+    for label in dict.fromkeys(r["scene"] for r in rows):
+        srows = [r for r in rows if r["scene"] == label]
+        table = scene_table(srows)
+        png = results_dir / f"{tag}_{label}.png"
+        plot_scene(srows, label, png)
+        (results_dir / f"{tag}_{label}.md").write_text(f"## {label}\n\n{table}")
+        rel = os.path.relpath(png, out_md.parent)
+        parts.append(f"## {label} ({srows[0]['triangles']} triangles)\n\n{table}\n"
+                     f"![{label}]({rel})\n")
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    out_md.write_text("\n".join(parts))
+
+
+# --------------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pvs bench", description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", choices=sorted(PRESETS), default="medium")
+    p.add_argument("--quick", action="store_true", help="the 'quick' preset (a few minutes)")
+    p.add_argument("--scenes", nargs="+", help="name:triangles, 'real', or scene file paths")
+    p.add_argument("--cores", nargs="+", help="cores to run (default: every registered core)")
+    p.add_argument("--cell-sizes", nargs="+", help="metres, 'default' or 'x2'")
+    p.add_argument("--cells", type=int, help="cells per scene and cell size")
+    p.add_argument("--repeats", type=int)
+    p.add_argument("--levels", type=int, help="knob levels per core")
+    p.add_argument("--gt-points", type=int)
+    p.add_argument("--gt-resolution", type=int)
+    p.add_argument("--views", type=int)
+    p.add_argument("--view-size", type=int)
+    p.add_argument("--resolution", type=int, help="resolution of cores whose knob is not it")
+    p.add_argument("--no-peer", action="store_true", help="skip the Embree ray-caster peer")
+    p.add_argument("--out", type=Path, default=None, help="report (default BENCHMARKS.md)")
+    p.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
+    p.add_argument("--cache-dir", type=Path, default=None)
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    preset = "quick" if args.quick else args.preset
+    cfg = dict(PRESETS[preset])
+    cfg["knob_levels"] = dict(cfg.get("knob_levels", {}))
+    cfg["preset"] = preset
+    for k in ("scenes", "cells", "repeats", "levels", "gt_points", "gt_resolution", "views",
+              "view_size", "resolution"):
+        v = getattr(args, k)
+        if v is not None:
+            cfg[k] = v
+    if args.cell_sizes:
+        cfg["cell_sizes"] = [None if c == "default" else (c if c == "x2" else float(c))
+                             for c in args.cell_sizes]
+    cfg["cores"] = args.cores
+    cfg["peer"] = not args.no_peer
+    cfg["cache_dir"] = str(args.cache_dir) if args.cache_dir else None
+    for k in ("cells", "repeats", "levels", "gt_points", "gt_resolution", "views", "view_size",
+              "resolution"):
+        if int(cfg[k]) < 1:
+            raise ValueError(f"--{k.replace('_', '-')} must be >= 1, got {cfg[k]}")
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark matrix; write the report and results. Returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        print(f"pvs bench: {exc}", file=sys.stderr)
+        return 2
+    from visibility.cores.base import available_cores
+
+    unknown = set(cfg["cores"] or []) - set(available_cores())
+    if unknown:
+        print(f"pvs bench: unknown cores {sorted(unknown)}; available: {available_cores()}",
+              file=sys.stderr)
+        return 2
+    out_md = args.out or (REPO / "BENCHMARKS.md")
+    command = "pvs bench " + shlex.join(argv)
+    _run_point.resolution = int(cfg["resolution"])
+    cfg["load_start"] = _load()
+    t0 = time.perf_counter()
+    _warm_up(cfg)
+    rows = run_matrix(cfg, log=lambda s: print(s, flush=True))
+    write_outputs(rows, cfg, command, time.perf_counter() - t0, out_md, args.results_dir)
+    print(f"wrote {out_md} and {args.results_dir}")
+    return 0
+
+
+def _warm_up(cfg) -> None:
+    """Compile every core's numba kernels on a tiny scene, so the first timed point is fair."""
+    from benchmarks import peers
+    from visibility.cores.base import available_cores, get_core
+
+    scene, cell = _tiny_scene_and_cell()
+    for name in cfg["cores"] or available_cores():
+        core = get_core(name)
+        names = {f.name for f in dataclasses.fields(core.Params)}
+        core.compute(scene, cell, core.make_params(**({"resolution": 16} if "resolution" in names
+                                                       else {})))
+    if cfg["peer"] and peers.available():
+        peers.embree_pvs(scene, cell, samples=1, resolution=8)
+
+
+def _tiny_scene_and_cell():
+    from visibility.scene import Scene
+    from visibility.viewcells import Viewcell
+
+    tris = np.array([[(-1, 0, -5), (1, 0, -5), (0, 2, -5)], [(-4, 0, -8), (4, 0, -8), (0, 4, -8)]],
+                    dtype=np.float64)
+    scene = Scene(tris.reshape(-1, 3), np.arange(6).reshape(-1, 3), name="warmup")
+    return scene, Viewcell(np.array([[-0.5, 1.5, -0.5], [0.5, 1.9, 0.5]]))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,122 @@
+"""``GET /metrics``: server metrics in the Prometheus text format (prometheus-client).
+
+Each application gets its own ``CollectorRegistry`` (several apps in one process, as in tests,
+never collide). Counters are read from ``ServerState`` at scrape time; computation times are a
+histogram observed by the compute service.
+
+| metric                              | type      | meaning                                   |
+|-------------------------------------|-----------|-------------------------------------------|
+| pvs_computations_total              | counter   | PVS computed (not from a cache)           |
+| pvs_computation_failures_total      | counter   | computations that raised                  |
+| pvs_computation_seconds             | histogram | seconds per computation                   |
+| pvs_cache_hits_total / _misses_total| counter   | in-memory cache lookups                   |
+| pvs_cache_bytes / pvs_cache_entries | gauge     | in-memory cache size                      |
+| pvs_disk_cache_hits_total           | counter   | on-disk cache hits                        |
+| pvs_bytes_sent_total                | counter   | WebSocket bytes sent (frames + messages)  |
+| pvs_triangles_sent_total            | counter   | triangles streamed                        |
+| pvs_triangles_dropped_total         | counter   | triangles clients were told to drop       |
+| pvs_sessions / pvs_sessions_total   | gauge / counter | open sessions / sessions ever       |
+| pvs_stalls_total                    | counter   | poses in a cell whose stream was not done |
+| pvs_cells_streamed_total            | counter   | complete cell streams (incl. prefetch)    |
+| pvs_cells_prefetched_total          | counter   | complete prefetch streams                 |
+| pvs_slow_clients_total              | counter   | sessions closed for falling behind        |
+| pvs_worker_retries_total / pvs_worker_replacements_total | counter | pool fault handling  |
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+if TYPE_CHECKING:
+    from server.app import ServerState
+
+router = APIRouter()
+
+#: Histogram buckets for computation seconds.
+BUCKETS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+
+
+class _StateCollector:
+    def __init__(self, state: ServerState) -> None:
+        self.state = state
+
+    def collect(self) -> Any:
+        st = self.state
+        c = st.counters
+        stats = st.compute.stats()
+        cache = stats["cache"]
+
+        def counter(name: str, doc: str, value: float) -> CounterMetricFamily:
+            return CounterMetricFamily(name, doc, value=float(value))
+
+        def gauge(name: str, doc: str, value: float) -> GaugeMetricFamily:
+            return GaugeMetricFamily(name, doc, value=float(value))
+
+        yield counter("pvs_computations", "PVS computations run (cache misses)",
+                      stats["computed"])
+        yield counter("pvs_computation_failures", "PVS computations that failed",
+                      stats["failed"])
+        yield counter("pvs_computations_shared", "requests that joined an in-flight computation",
+                      stats["shared"])
+        yield counter("pvs_cache_hits", "in-memory PVS cache hits", cache["hits"])
+        yield counter("pvs_cache_misses", "in-memory PVS cache misses", cache["misses"])
+        yield counter("pvs_cache_evictions", "in-memory PVS cache evictions", cache["evictions"])
+        yield gauge("pvs_cache_bytes", "bytes held by the in-memory PVS cache", cache["bytes"])
+        yield gauge("pvs_cache_entries", "entries of the in-memory PVS cache", cache["entries"])
+        yield gauge("pvs_cache_pinned", "cache keys pinned by walkers", cache.get("pinned", 0))
+        disk = stats.get("disk")
+        yield counter("pvs_disk_cache_hits", "on-disk PVS cache hits",
+                      disk["hits"] if disk else 0)
+        yield gauge("pvs_computations_inflight", "PVS computations queued or running",
+                    stats["inflight"])
+        pool = stats.get("pool", {})
+        yield counter("pvs_worker_retries", "jobs retried after a failure",
+                      pool.get("retried", 0))
+        yield counter("pvs_worker_replacements", "dead workers replaced",
+                      pool.get("replaced", 0))
+        yield counter("pvs_prefetch_skipped", "prefetch jobs dropped as no longer wanted",
+                      pool.get("skipped", 0))
+        yield counter("pvs_bytes_sent", "WebSocket payload bytes sent (frames and messages)",
+                      c["frame_bytes_sent"] + c["text_bytes_sent"])
+        yield counter("pvs_frames_sent", "binary geometry frames sent", c["frames_sent"])
+        yield counter("pvs_triangles_sent", "triangles streamed", c["triangles_sent"])
+        yield counter("pvs_triangles_dropped", "triangles clients were told to drop",
+                      c["triangles_dropped"])
+        yield gauge("pvs_sessions", "open WebSocket sessions", len(st.sessions))
+        yield counter("pvs_sessions_opened", "WebSocket sessions opened", c["sessions_total"])
+        yield counter("pvs_stalls", "poses in a cell whose stream the server had not finished",
+                      c["stalls"])
+        yield counter("pvs_cells_streamed", "complete cell streams", c["cells_streamed"])
+        yield counter("pvs_cells_prefetched", "complete prefetch cell streams",
+                      c["cells_prefetched"])
+        yield counter("pvs_prefetch_yields", "prefetch streams cut short for a current cell",
+                      c["prefetch_yields"])
+        yield counter("pvs_slow_clients", "sessions closed for falling behind",
+                      c["slow_clients"])
+        yield counter("pvs_errors_sent", "error messages sent", c["errors_sent"])
+
+
+def install(app_state: ServerState) -> CollectorRegistry:
+    """Give ``app_state`` its registry (``app_state.registry``) and hook the computation-time
+    histogram into its compute service."""
+    registry = CollectorRegistry(auto_describe=True)
+    registry.register(_StateCollector(app_state))
+    hist = Histogram("pvs_computation_seconds", "seconds per PVS computation",
+                     buckets=BUCKETS, registry=registry)
+    app_state.compute.on_computed = hist.observe
+    app_state.registry = registry
+    return registry
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+async def metrics(request: Request) -> Response:
+    """Counters and gauges of computations, caches, streams, sessions and stalls in the
+    Prometheus text exposition format."""
+    registry = request.app.state.server.registry
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,96 @@
+"""Smoke test of ``pvs bench`` in a tiny mode, plus the ground-truth cache and the ray peer."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, fields
+
+import numpy as np
+import pytest
+
+from benchmarks import bench_matrix, gt_cache, peers
+from tests.visibility.cores import designed_scenes as ds
+from visibility.cores.base import CoreParams, available_cores, get_core
+from visibility.ground_truth import sample_pvs
+
+TINY = ["--quick", "--scenes", "rooms:1500", "--levels", "1", "--gt-points", "8",
+        "--gt-resolution", "32", "--views", "1", "--view-size", "32", "--resolution", "32"]
+
+
+def test_tiny_matrix_runs_every_core_and_writes_tables_and_plots(tmp_path):
+    out = tmp_path / "BENCH.md"
+    argv = TINY + ["--out", str(out), "--results-dir", str(tmp_path),
+                   "--cache-dir", str(tmp_path / "cache")]
+    assert bench_matrix.main(argv) == 0
+    text = out.read_text()
+    assert "pvs bench --quick" in text and "Machine:" in text
+    rows = json.loads((tmp_path / "bench_quick.json").read_text())["rows"]
+    cores = {r["core"] for r in rows}
+    assert set(available_cores()) <= cores
+    if peers.available():
+        assert peers.NAME in cores
+    for r in rows:
+        assert "error" not in r, r
+        assert 0.0 <= r["fn"] <= 1.0 and 0.0 <= r["fp"] <= 1.0
+        assert r["seconds_min"] <= r["seconds_median"] <= r["seconds_max"]
+        assert 0.0 <= r["eps_mean"] <= r["eps_worst"] <= 100.0
+        assert r["peak_mib"] is None or r["peak_mib"] >= 0
+        assert f"| {r['core']} |" in text
+    png = tmp_path / "quick_rooms_1k.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "quick_rooms_1k.md").is_file()
+
+
+def test_bad_arguments_are_clear_errors(capsys):
+    assert bench_matrix.main(["--cells", "0"]) == 2
+    assert bench_matrix.main(["--cores", "no_such_core"]) == 2
+    assert "no_such_core" in capsys.readouterr().err
+
+
+def test_knob_comes_from_the_params_fields():
+    assert bench_matrix.knob_of(get_core("sampling")) == "samples"
+
+    @dataclass
+    class P(CoreParams):
+        other: int = 1
+
+    class Fake:
+        Params = P
+
+    # A new core with only the base fields sweeps resolution, with nothing registered here.
+    assert bench_matrix.knob_of(Fake()) == "resolution"
+    assert "resolution" in {f.name for f in fields(P)}
+
+
+def test_ground_truth_is_computed_once_then_read_from_disk(tmp_path):
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    ids, rec = gt_cache.cached_ground_truth(scene, cell, 8, 32, seed=1, cache_dir=tmp_path)
+    assert rec["cached"] is False
+    again, rec2 = gt_cache.cached_ground_truth(scene, cell, 8, 32, seed=1, cache_dir=tmp_path)
+    assert rec2["cached"] is True
+    np.testing.assert_array_equal(ids, again)
+    np.testing.assert_array_equal(ids, sample_pvs(scene, cell, 8, 32, seed=1).triangle_ids)
+    # Other parameters, another cell or changed geometry: another entry.
+    _, rec3 = gt_cache.cached_ground_truth(scene, cell, 8, 64, seed=1, cache_dir=tmp_path)
+    assert rec3["cached"] is False
+    moved, mcell, _ = ds.two_rooms_and_a_door(offset=(0.0, 0.0, 1e-3))
+    assert gt_cache.scene_fingerprint(moved) != gt_cache.scene_fingerprint(scene)
+    assert gt_cache.cache_key(moved, cell, 8, 32, 1) != gt_cache.cache_key(scene, cell, 8, 32, 1)
+    assert gt_cache.cache_key(scene, mcell, 8, 32, 1) != gt_cache.cache_key(scene, cell, 8, 32, 1)
+
+
+@pytest.mark.skipif(not peers.available(), reason="embreex is not installed")
+def test_ray_peer_agrees_with_the_rasterizer_and_respects_occlusion():
+    scene, cell, known = ds.two_rooms_and_a_door(offset=(1e5, 0.0, -1e5))
+    res = peers.embree_pvs(scene, cell, samples=16, resolution=64, seed=3)
+    found = set(res.triangle_ids.tolist())
+    assert known["visible"][0] in found
+    assert not set(known["hidden"]) & found
+    assert np.all(np.diff(res.triangle_ids) > 0)
+    # Same points, same cube orientations, same pixel centres as the sampling core.
+    ras = get_core("sampling").compute(scene, cell, get_core("sampling").make_params(
+        samples=16, resolution=64, seed=3))
+    a, b = found, set(ras.triangle_ids.tolist())
+    assert len(a ^ b) <= 0.1 * len(a | b)
+    budget = peers.embree_pvs(scene, cell, samples=10_000, resolution=16, time_budget=0.0)
+    assert budget.stats["samples"] == 1

@@ -1,0 +1,78 @@
+"""Near-far streams (server side of the integration with ``visibility.nearfar``): a scene with
+nothing beyond r2 gets no cubemap; a city cell gets one, and its geometry is the near part."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from client.session import Session
+from tests.conftest import LiveServer, make_tiny_scene
+
+nearfar = pytest.importorskip("visibility.nearfar")
+
+
+@pytest.fixture(scope="module")
+def nf_server(settings, registered_test_cores):
+    from server.app import create_app
+
+    s = settings.model_copy(update={"near_far": True, "near_far_r1": 40.0, "near_far_r2": 80.0,
+                                    "near_far_resolution": 32})
+    app = create_app(s)
+    app.state.server.catalog.register("tiny", make_tiny_scene())
+    srv = LiveServer(app, s)
+    srv.start()
+    yield srv.url, app
+    srv.stop()
+
+
+def _stream(url, scene, cell_pos):
+    async def main():
+        s = await Session.connect(url, scene, "test_near", {"radius": 30.0}, prefetch=False)
+        await s.send_pose(0, 0.0, cell_pos, (0, 0, -1))
+        cell = None
+        for _ in range(600):
+            if s.complete:
+                cell = next(iter(s.complete))
+                break
+            await asyncio.sleep(0.1)
+        await s.close()
+        return s, cell
+
+    return asyncio.run(asyncio.wait_for(main(), 120))
+
+
+def test_tiny_scene_gets_no_cubemap(nf_server):
+    url, _ = nf_server
+    s, cell = _stream(url, "tiny", (2.0, 1.7, 2.0))
+    assert cell is not None
+    assert s.welcome.features["cubemap"]["on"] is False
+    assert s.cells[cell].begin.near_far["cubemap"] is False
+    assert not s.cubemaps and not s.local_errors
+
+
+def test_city_cell_gets_a_cubemap_and_near_geometry(nf_server):
+    url, app = nf_server
+    if "city" not in app.state.server.catalog:
+        pytest.skip("city generator not available")
+    loaded = app.state.server.catalog.get("city")
+    grid, scene = loaded.grid, loaded.scene
+    cfg = nearfar.NearFarConfig(r1=40.0, r2=80.0, resolution=32)
+    cid = next(c for c in range(len(grid))
+               if nearfar.needs_cubemap(scene, grid.boxes[c].mean(axis=0), cfg))
+    centre = grid.boxes[cid].mean(axis=0)
+    s, cell = _stream(url, "city", centre)
+    assert cell == cid and not s.local_errors
+    assert s.welcome.features["cubemap"]["on"] is True
+    nfinfo = s.cells[cid].begin.near_far
+    assert nfinfo["cubemap"] is True and nfinfo["r2"] == 80.0
+    np.testing.assert_allclose(nfinfo["center"], centre)
+    cube = s.cubemaps[cid]
+    assert cube.colors.shape == (6, 32, 32, 3)
+    split = nearfar.split_ids(scene, centre, cfg)
+    allowed = np.union1d(split.near_ids, split.far_dynamic_ids)
+    assert np.all(np.isin(s.store.ids, allowed))  # nothing far and static as geometry
+    finite = np.isfinite(cube.ranges)
+    assert finite.any()

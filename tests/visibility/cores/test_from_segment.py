@@ -1,0 +1,227 @@
+"""The ``from_segment`` core: cell PVS, designed scenes with known answers, stiff inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.visibility.cores import designed_scenes as ds
+from tests.visibility.segment_reference import sampled_visible, unwitnessed
+from visibility.cores.base import available_cores, get_core
+from visibility.cores.from_segment import FromSegmentParams, cell_segments, cube_rotations
+from visibility.generators import make_scene
+from visibility.scene import Scene
+from visibility.segment_kernels import scene_geometries, segment_visible
+from visibility.viewcells import Viewcell, ViewcellGrid
+
+CORE = get_core("from_segment")
+
+
+def test_registered_with_its_parameters():
+    assert "from_segment" in available_cores()
+    p = CORE.make_params()
+    assert isinstance(p, FromSegmentParams)
+    assert (p.resolution, p.runs, p.eye_levels) == (256, 1, 3)
+    for bad in ({"runs": 0}, {"runs": 1.5}, {"near": 0.0}, {"near": np.nan}, {"eye_levels": 4},
+                {"depth_knots": 0}, {"batch_triangles": 10}, {"resolution": 4}):
+        with pytest.raises(ValueError):
+            CORE.make_params(**bad)
+
+
+def test_cell_segments_walk_the_rectangle_at_each_eye_level():
+    box = np.array([[0.0, 1.5, 0.0], [4.0, 1.9, 2.0]])
+    segs = cell_segments(box, 3)
+    assert segs.shape == (12, 2, 3)
+    np.testing.assert_allclose(np.unique(segs[:, :, 1]), [1.5, 1.7, 1.9])
+    # Each level is a closed loop around the rectangle.
+    loop = segs[:4]
+    np.testing.assert_array_equal(loop[:, 1], np.roll(loop[:, 0], -1, axis=0))
+    assert cell_segments(box, 1).shape == (4, 2, 3)
+    assert cell_segments(box, 2).shape == (8, 2, 3)
+    flat = np.array([[0.0, 1.7, 0.0], [4.0, 1.7, 2.0]])
+    assert cell_segments(flat, 3).shape == (4, 2, 3)
+    line = np.array([[0.0, 1.7, 0.0], [4.0, 1.7, 0.0]])
+    assert cell_segments(line, 1).shape == (1, 2, 3)
+    point = np.array([[1.0, 1.7, 1.0], [1.0, 1.7, 1.0]])
+    segs = cell_segments(point, 3)
+    assert segs.shape == (1, 2, 3) and np.all(segs[0, 0] == segs[0, 1])
+    with pytest.raises(ValueError):
+        cell_segments(np.array([[1.0, 0, 0], [0.0, 0, 0]]))
+
+
+def test_cube_rotations_are_deterministic_rotations():
+    a = cube_rotations(4, seed=9)
+    np.testing.assert_array_equal(a, cube_rotations(4, seed=9))
+    np.testing.assert_array_equal(a[0], np.eye(3))
+    for r in a:
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+    assert not np.allclose(a[1], cube_rotations(4, seed=10)[1])
+
+
+# ----------------------------------------------------------------------------- designed scenes
+def _slit_scene():
+    """A wall at z = -2 with a 4 cm vertical slit at x in [0.30, 0.34]; behind it at z = -6:
+    ``part`` (seen through the slit from x ~ -0.5 only), ``between`` (seen only for x in about
+    [-0.15, -0.05], between the samples of an 11-point sweep of x in [-1, 1]) and ``hidden``
+    (never in line with the slit)."""
+    tris = []
+
+    def quad(x0, x1, y0, y1, z):
+        tris.append([[x0, y0, z], [x1, y0, z], [x1, y1, z]])
+        tris.append([[x0, y0, z], [x1, y1, z], [x0, y1, z]])
+
+    quad(-30.0, 0.30, -30.0, 30.0, -2.0)
+    quad(0.34, 30.0, -30.0, 30.0, -2.0)
+    wall = [0, 1, 2, 3]
+
+    def target(xc, z=-6.0, s=0.1, y=1.7):
+        tris.append([[xc - s / 2, y - s / 2, z], [xc + s / 2, y - s / 2, z], [xc, y + s / 2, z]])
+        return [len(tris) - 1]
+
+    part = target(2.0)
+    between = target(1.16)
+    hidden = target(-5.0)
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    scene = Scene(v, np.arange(len(v)).reshape(-1, 3), name="slit")
+    return scene, {"wall": wall, "part": part, "between": between, "hidden": hidden}
+
+
+def test_wall_with_a_slit():
+    scene, ids = _slit_scene()
+    cell = Viewcell(np.array([[-1.0, 1.7, 0.0], [1.0, 1.7, 0.0]]))  # one segment, x -1 -> 1
+    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=128))
+    found = set(pvs.triangle_ids.tolist())
+    assert set(ids["wall"]) <= found
+    assert set(ids["part"]) <= found and set(ids["between"]) <= found
+    assert not set(ids["hidden"]) & found
+    # "part" is visible for part of the segment only: not from either end.
+    v, f = scene.vertices, scene.faces
+    a, b = cell.box[0], cell.box[1]
+    for end in (a, b):
+        seen, _ = sampled_visible(v, v, f, end, end, 128, 1)
+        assert not seen[ids["part"][0]]
+
+
+def test_a_triangle_seen_only_between_two_sample_points():
+    scene, ids = _slit_scene()
+    a, b = np.array([-1.0, 1.7, 0.0]), np.array([1.0, 1.7, 0.0])
+    v, f = scene.vertices, scene.faces
+    geom = scene_geometries(scene)[0]
+    wit = np.zeros((geom.n_ids, 5))
+    vis = segment_visible(geom, a, b, resolution=128, witness=wit)
+    k = ids["between"][0]
+    assert vis[k]
+    # Eleven evenly spaced id buffers miss it; the witness proves it is seen in between.
+    coarse, _ = sampled_visible(v, v, f, a, b, 128, 11)
+    assert not coarse[k]
+    assert 0.4 < wit[k, 1] < 0.5  # x = -1 + 2 t in (-0.2, 0.0)
+    assert unwitnessed(wit, vis, v, v, f, a, b, 128) == []
+
+
+def test_two_rooms_and_a_door():
+    scene, cell, known = ds.two_rooms_and_a_door()
+    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=128))
+    found = set(pvs.triangle_ids.tolist())
+    assert known["visible"][0] in found  # the far wall of room B, through the door
+    assert not set(known["hidden"]) & found
+
+
+def test_open_scene_everything_visible_and_runs_only_add():
+    scene, cell, known = ds.open_ring()
+    one = CORE.compute(scene, cell, CORE.make_params(resolution=64))
+    assert set(known["visible"]) <= set(one.triangle_ids.tolist())
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    p1 = CORE.make_params(resolution=64, runs=1, seed=4)
+    p3 = CORE.make_params(resolution=64, runs=3, seed=4)
+    r1 = CORE.compute(scene, cell, p1)
+    r3 = CORE.compute(scene, cell, p3)
+    assert set(r1.triangle_ids.tolist()) <= set(r3.triangle_ids.tolist())
+    np.testing.assert_array_equal(r3.triangle_ids, CORE.compute(scene, cell, p3).triangle_ids)
+
+
+# ----------------------------------------------------------------------------- stiff inputs
+@pytest.fixture(scope="module")
+def stress():
+    return make_scene("stress", triangles=10_000, seed=0)
+
+
+def _check_pvs(pvs, scene):
+    ids = pvs.triangle_ids
+    assert ids.dtype == np.int32 and np.all(np.diff(ids) > 0)
+    assert len(ids) == 0 or (ids[0] >= 0 and ids[-1] < scene.n_triangles)
+    assert scene.valid_faces[ids].all()
+    for val in pvs.stats.values():
+        if isinstance(val, float):
+            assert np.isfinite(val)
+
+
+def test_stress_scene_cases(stress):
+    grid = ViewcellGrid.for_scene(stress)
+    cases = stress.meta["cases"]
+    found = set()
+    for cid in range(len(grid)):
+        pvs = CORE.compute(stress, grid.cell(cid), CORE.make_params(resolution=128))
+        _check_pvs(pvs, stress)
+        found |= set(pvs.triangle_ids.tolist())
+        assert not set(cases["hidden"]) & set(pvs.triangle_ids.tolist())
+        assert set(cases["visible"]) <= set(pvs.triangle_ids.tolist())
+    for name in ("zero_area", "repeated_index", "non_finite"):
+        assert not set(cases[name]) & found
+    # Slivers, eye-plane, coplanar, intersecting and huge triangles in view are found.
+    for name in ("slivers", "coplanar", "intersecting", "huge"):
+        assert set(cases[name]) & found, name
+
+
+def test_large_offsets_do_not_change_the_answer(stress):
+    near = make_scene("stress", triangles=10_000, seed=0, offset=0.0)
+    far_grid = ViewcellGrid.for_scene(stress)
+    near_grid = ViewcellGrid.for_scene(near)
+    p = CORE.make_params(resolution=96, eye_levels=1)
+    a = set(CORE.compute(near, near_grid.cell(0), p).triangle_ids.tolist())
+    b = set(CORE.compute(stress, far_grid.cell(0), p).triangle_ids.tolist())
+    assert len(a ^ b) <= 0.005 * len(a | b)
+
+
+def test_edge_on_and_eye_plane_triangles():
+    """A triangle containing the segment (eye in its plane all along), one in the plane of the
+    segment but beside it (segment parallel to its plane), and one the eye crosses."""
+    tris = np.array([
+        [[-5.0, 1.7, -1.0], [5.0, 1.7, -1.0], [0.0, 1.7, 1.0]],   # contains the segment
+        [[-5.0, 1.7, 3.0], [5.0, 1.7, 3.0], [0.0, 1.7, 6.0]],    # same plane, beside it
+        [[-0.5, 0.0, -3.0], [0.5, 0.0, -3.0], [0.0, 4.0, -3.0]],  # in plain view
+        [[0.3, 1.0, -1.0], [0.3, 1.0, 1.0], [0.3, 3.0, 0.0]],    # the eye passes through it
+    ])
+    scene = Scene(tris.reshape(-1, 3), np.arange(12).reshape(-1, 3))
+    cell = Viewcell(np.array([[-1.0, 1.7, 0.0], [1.0, 1.7, 0.0]]))
+    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=64))
+    _check_pvs(pvs, scene)
+    got = set(pvs.triangle_ids.tolist())
+    assert 2 in got and 3 in got
+    assert 0 not in got and 1 not in got  # always edge-on: never covers a pixel centre
+
+
+# ----------------------------------------------------------------------------- other scenes
+def test_spheres_come_back_as_sphere_ids():
+    scene = make_scene("spheres", spheres=150, states=3, seed=1)
+    grid = ViewcellGrid.for_scene(scene)
+    pvs = CORE.compute(scene, grid.cell(len(grid) // 2), CORE.make_params(resolution=48,
+                                                                            eye_levels=1))
+    _check_pvs(pvs, scene)
+    assert pvs.sphere_ids is not None and len(pvs.sphere_ids) > 0
+    assert pvs.sphere_ids.min() >= 0 and pvs.sphere_ids.max() < scene.n_spheres
+    assert pvs.stats["state_intervals"] == 2
+
+
+def test_dynamic_scene_against_sampled_ground_truth():
+    from visibility.ground_truth import fn_fp_rates, sample_pvs
+
+    scene = make_scene("swaying_grass", triangles=3000, seed=2, states=3)
+    grid = ViewcellGrid.for_scene(scene)
+    cell = grid.cell(0)
+    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=96, runs=2))
+    _check_pvs(pvs, scene)
+    assert pvs.stats["state_intervals"] == 2
+    gt = sample_pvs(scene, cell, n_points=24, resolution=96, seed=3)
+    fn, _ = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
+    assert fn <= 0.1

@@ -1,0 +1,64 @@
+"""The ``sampling`` core: registration, parameters, and its PVS against a denser ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.visibility.test_ground_truth import CELL, walled_scene
+from visibility.cores.base import available_cores, get_core
+from visibility.cores.sampling import MAX_SAMPLES, SamplingCore, SamplingParams
+from visibility.ground_truth import fn_fp_rates, sample_pvs
+
+
+def test_registered_under_its_name():
+    assert "sampling" in available_cores()
+    core = get_core("sampling")
+    assert isinstance(core, SamplingCore) and core.Params is SamplingParams
+    assert core.description and 0.0 < core.fn_bound < 1.0
+
+
+def test_parameters_are_validated():
+    core = SamplingCore()
+    p = core.make_params()
+    assert (p.samples, p.batch, p.resolution) == (32, 8, 256)
+    assert core.make_params(samples=1, batch=1).samples == 1
+    assert core.make_params(samples=MAX_SAMPLES).samples == MAX_SAMPLES
+    for bad in ({"samples": 0}, {"samples": MAX_SAMPLES + 1}, {"samples": 2.5}, {"batch": 0},
+                {"resolution": 4}, {"nope": 1}):
+        with pytest.raises(ValueError):
+            core.make_params(**bad)
+    assert "samples=32" in p.cache_key()
+
+
+def test_compute_matches_sample_pvs_and_reports_stats():
+    scene, known = walled_scene()
+    core = SamplingCore()
+    params = core.make_params(samples=12, batch=4, resolution=48, seed=2)
+    pvs = core.compute(scene, CELL, params)
+    gt = sample_pvs(scene, CELL, n_points=12, resolution=48, seed=2, batch=4)
+    np.testing.assert_array_equal(pvs.triangle_ids, gt.triangle_ids)
+    assert pvs.stats["samples"] == 12 and pvs.stats["resolution"] == 48
+    assert pvs.stats["pixels_rendered"] == 12 * 6 * 48 * 48
+    assert [c[0] for c in pvs.stats["convergence"]] == [4, 8, 12]
+    assert pvs.seconds > 0
+    assert not set(pvs.triangle_ids.tolist()) & set(known["hidden_box"] + known["degenerate"])
+
+
+def test_object_granularity():
+    scene, known = walled_scene()
+    core = SamplingCore()
+    pvs = core.compute(scene, CELL, core.make_params(samples=4, resolution=32,
+                                                     granularity="object"))
+    assert pvs.granularity == "object" and pvs.object_ids is not None
+
+
+def test_false_negatives_within_bound_against_denser_ground_truth():
+    scene, _ = walled_scene()
+    core = SamplingCore()
+    pvs = core.compute(scene, CELL, core.make_params(samples=16, resolution=64))
+    gt = sample_pvs(scene, CELL, n_points=64, resolution=128, seed=7)
+    fn, fp = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
+    assert fn <= core.fn_bound
+    # It reports only what it saw: anything beyond the reference is a sliver the reference missed.
+    assert fp <= 0.1

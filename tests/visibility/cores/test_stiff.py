@@ -1,0 +1,207 @@
+"""The stiff and extreme suite (issue 6), run for every registered core.
+
+Complements ``test_conformance.py`` (which already covers the empty scene, all-degenerate
+scenes, ``designed_scenes.stiff_cases`` at 0 / 1e5 / 1e7 m and a tiny and a huge cell without
+known answers). Here: the ``stress`` generator's cases at 1e5 and 1e7 m with their known answers,
+a lone 1e6 aspect-ratio sliver, NaN/inf vertices rejected at load with a report, known answers
+from a 1 mm and a 1 km cell, an eye exactly on a triangle's plane, a triangle crossing the near
+plane, scenes of one triangle (small, and larger than the whole view), translation invariance at
+1e7 m, and a scene where float32 coordinates lose the answer that the float64 path keeps.
+
+Every check runs at resolution 64 so the whole file stays fast for every core.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.visibility.cores import designed_scenes as ds
+from visibility.cores.base import PVS, available_cores, get_core
+from visibility.generators import make_scene
+from visibility.loaders import load_scene
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+CORES = available_cores()
+
+#: Small budgets for every core; only the fields a core declares are applied.
+FAST = {"resolution": 64, "samples": 16, "runs": 1}
+
+
+def params_for(core, **extra):
+    names = {f.name for f in fields(core.Params)}
+    return core.make_params(**{k: v for k, v in {**FAST, **extra}.items() if k in names})
+
+
+def check_valid(pvs: PVS, scene: Scene) -> set[int]:
+    """Assert the PVS is well formed; return its ids as a set."""
+    ids = pvs.triangle_ids
+    assert ids.dtype == np.int32
+    assert np.all(np.diff(ids.astype(np.int64)) > 0), "ids must be sorted and unique"
+    if len(ids):
+        assert ids[0] >= 0 and ids[-1] < scene.n_triangles
+        assert scene.valid_faces[ids].all(), "degenerate faces must never be in a PVS"
+    assert np.isfinite(pvs.seconds)
+    for k, v in pvs.stats.items():
+        if isinstance(v, float):
+            assert not np.isnan(v), f"stat {k} is NaN"
+    return set(ids.tolist())
+
+
+@pytest.fixture(params=CORES)
+def core(request):
+    return get_core(request.param)
+
+
+def _tri_scene(tris, name="tris") -> Scene:
+    t = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    return Scene(t.reshape(-1, 3), np.arange(len(t) * 3).reshape(-1, 3), name=name)
+
+
+# --------------------------------------------------------------------------- the stress scene
+@pytest.fixture(scope="module", params=[1e5, 1e7], ids=["offset1e5", "offset1e7"])
+def stress(request):
+    return make_scene("stress", triangles=1500, offset=request.param)
+
+
+@pytest.mark.parametrize("cell_index", [0, 1])
+def test_stress_scene_known_answers(core, stress, cell_index):
+    cell = Viewcell(np.array(stress.meta["cells"][cell_index]))
+    cases = stress.meta["cases"]
+    found = check_valid(core.compute(stress, cell, params_for(core)), stress)
+    assert set(cases["visible"]) <= found, "the triangle in plain view is missing"
+    assert set(cases["huge"]) <= found, "the 12 km triangle above the walk area is missing"
+    assert not set(cases["hidden"]) & found, "the box behind the closed wall leaked"
+    for bad in ("zero_area", "repeated_index", "non_finite"):
+        assert not set(cases[bad]) & found
+    # Both triangles of each intersecting pair show a part in front of the other.
+    assert set(cases["intersecting"]) <= found
+    # Of overlapping coplanar triangles (one an exact duplicate) at least one is seen.
+    assert set(cases["coplanar"]) & found
+
+
+# --------------------------------------------------------------------------- slivers
+def test_lone_sliver_of_aspect_ratio_1e6(core, request):
+    if core.name == "from_segment":
+        # Finding (issue 6): at resolution 64 from_segment returns an empty PVS for this lone
+        # sliver at y = 1.7 (the cell's mid eye level); it finds it at 128 and 256, and at
+        # y = 1.0 at every resolution. Reported to the core's owner.
+        request.applymarker(pytest.mark.xfail(strict=True, reason=(
+            "from_segment misses a 1e6-aspect sliver lying at its mid eye level at res 64")))
+    # 4 m long, 4 micrometres high, 8 m in front of the cell, facing it: in plain view.
+    scene = _tri_scene([[(-2, 1.7, -8), (2, 1.7, -8), (0, 1.7 + 4e-6, -8)]], "sliver")
+    edges = np.linalg.norm(scene.triangles()[0] - np.roll(scene.triangles()[0], 1, axis=0), axis=1)
+    assert edges.max() / (2 * 8e-6 / edges.max()) == pytest.approx(1e6)  # longest edge / height
+    assert scene.valid_faces.all()
+    cell = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    if core.name == "sampling":
+        # Point sampling hits a sub-pixel sliver only by luck (the core is aggressive by
+        # design): the result is valid, possibly empty.
+        return
+    assert found == {0}
+
+
+# --------------------------------------------------------------------------- NaN / inf at load
+def test_nan_and_inf_vertices_are_rejected_at_load_with_a_report(core, tmp_path):
+    v = np.array([[-1, 0, -5], [1, 0, -5], [0, 3, -5],           # a good triangle in view
+                  [np.nan, 0, -5], [np.inf, 1, -5], [0, -np.inf, -5]], float)
+    f = np.array([[0, 1, 2], [0, 1, 3], [4, 1, 2], [0, 5, 2], [3, 4, 5]])
+    path = tmp_path / "nonfinite.ply"
+    trimesh.Trimesh(v, f, process=False, validate=False).export(path)
+    scene = load_scene(path)
+    assert scene.n_triangles == 5
+    assert scene.valid_faces.tolist() == [True, False, False, False, False]
+    assert scene.degenerate_report.non_finite == 4
+    cell = Viewcell(np.array([[-0.5, 0.5, -0.5], [0.5, 1.5, 0.5]]))
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    assert found == {0}
+
+
+# --------------------------------------------------------------------------- cell sizes
+def test_millimetre_cell_keeps_the_known_answers(core):
+    scene, _, known = ds.two_rooms_and_a_door()
+    tiny = Viewcell(np.array([[2.5, 1.7, 3.0], [2.501, 1.701, 3.001]]))
+    found = check_valid(core.compute(scene, tiny, params_for(core)), scene)
+    far_wall = known["visible"][0]  # seen straight through the door
+    assert far_wall in found
+    assert not set(known["hidden"]) & found
+
+
+def test_kilometre_cell_sees_a_ring_of_walls_around_it(core):
+    b = ds.Builder()
+    ids = []
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        c, s = np.cos(a), np.sin(a)
+        t = np.array([-s, 0.0, c])
+        p = np.array([c, 0.0, s]) * 1500.0
+        w = 500.0
+        ids += b.quad(p - w * t, p - w * t + [0, 400, 0], p + w * t + [0, 400, 0], p + w * t, k)
+    scene = b.scene("km_ring")
+    cell = Viewcell(np.array([[-500.0, 0.0, -500.0], [500.0, 1000.0, 500.0]]))
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    assert set(ids) <= found
+
+
+# --------------------------------------------------------------------------- degenerate views
+def test_eye_exactly_on_a_triangles_plane(core):
+    # A flat cell (zero height) at y = 1.7: every eye lies in the plane of the horizontal
+    # triangles; one of them passes through the cell. Only the upright one is seen with area.
+    scene = _tri_scene([
+        [(-5, 1.7, -5), (5, 1.7, -5), (0, 1.7, 5)],      # through the cell, in the eyes' plane
+        [(10, 1.7, -2), (14, 1.7, -2), (12, 1.7, 2)],    # off to the side, in the same plane
+        [(-2, 0.0, -10), (2, 0.0, -10), (0, 3.0, -10)],  # upright, in plain view
+    ], "eye_plane")
+    cell = Viewcell(np.array([[-1.0, 1.7, -1.0], [1.0, 1.7, 1.0]]))
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    assert 2 in found
+
+
+def test_triangle_crossing_the_near_plane(core):
+    # Starts 1 cm from the eye (inside every near plane) and reaches 10 m away.
+    scene = _tri_scene([[(-0.5, 1.0, -0.01), (0.5, 1.0, -0.01), (0.0, 2.5, -10.0)]], "near")
+    cell = Viewcell(np.array([[0.0, 1.7, 0.0], [0.0, 1.7, 0.0]]))  # a single point
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    assert found == {0}
+
+
+@pytest.mark.parametrize("kind", ["small_in_view", "larger_than_the_view"])
+def test_scene_of_one_triangle(core, kind):
+    if kind == "small_in_view":
+        tri = [(-1, 0, -6), (1, 0, -6), (0, 2, -6)]
+    else:  # 20 km across, 1.7 m under the eyes: fills every downward view to the horizon
+        tri = [(-1e4, 0, -1e4), (1e4, 0, -1e4), (0, 0, 1e4)]
+    scene = _tri_scene([tri], kind)
+    cell = Viewcell(np.array([[-0.5, 1.5, -0.5], [0.5, 1.9, 0.5]]))
+    found = check_valid(core.compute(scene, cell, params_for(core)), scene)
+    assert found == {0}
+
+
+# --------------------------------------------------------------------------- precision
+def test_translation_by_1e7_metres_changes_nothing(core):
+    base, cell0, known = ds.two_rooms_and_a_door()
+    far, cell1, _ = ds.two_rooms_and_a_door(offset=(1e7, 0.0, -1e7))
+    a = check_valid(core.compute(base, cell0, params_for(core)), base)
+    b = check_valid(core.compute(far, cell1, params_for(core)), far)
+    assert not set(known["hidden"]) & b
+    # Pixel-edge rounding may flip a triangle or two; the answer must stay the same otherwise.
+    assert len(a ^ b) <= max(2, 0.05 * len(a | b)), sorted(a ^ b)
+
+
+def test_float32_loses_what_float64_keeps_at_1e7(core):
+    # A 30 cm triangle in plain view, 1e7 m from the origin (float32 spacing there is 1 m).
+    off = np.array([1e7, 0.0, -1e7])
+    tris = np.array([[(0.1, 1.0, -3.0), (0.4, 1.0, -3.0), (0.25, 1.3, -3.2)],
+                     [(-0.3, 1.2, -4.0), (-0.1, 1.2, -4.1), (-0.2, 1.5, -4.05)]]) + off
+    scene64 = _tri_scene(tris, "f64")
+    scene32 = _tri_scene(tris.astype(np.float32).astype(np.float64), "f32")
+    cell = Viewcell(np.array([[-0.5, 1.5, -0.5], [0.5, 1.9, 0.5]]) + off)
+    # In float32 the triangles collapse onto the 1 m lattice: no area left, the answer is lost.
+    assert not scene32.valid_faces.any()
+    assert check_valid(core.compute(scene32, cell, params_for(core)), scene32) == set()
+    assert check_valid(core.compute(scene64, cell, params_for(core)), scene64) == {0, 1}

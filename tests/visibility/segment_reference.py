@@ -1,0 +1,145 @@
+"""Brute-force references for the from-segment tests: id buffers at many points of a segment.
+
+Triangles are drawn with ``visibility.raster.render_cubemap`` (the project's exact pixel-centre
+rasterizer); spheres are ray-cast analytically at the same pixel centres (``camera.pixel_rays``)
+and composited by depth, so "what a sampling camera sees" is defined the same way the core is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visibility.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
+from visibility.raster import render_cubemap
+
+
+def sphere_depths(centers: np.ndarray, radii: np.ndarray, eye: np.ndarray, resolution: int,
+                  base_rotation: np.ndarray | None = None,
+                  near: float = DEFAULT_NEAR) -> tuple[np.ndarray, np.ndarray]:
+    """(6, R, R) depth (inf where none) and sphere index (-1) of the nearest sphere per pixel
+    centre: the near hit when it is beyond ``near``, else the far hit (a near-clipped sphere)."""
+    rays = pixel_rays(resolution, resolution).reshape(-1, 3)  # camera space, z = -1
+    rots = cube_face_rotations(base_rotation)
+    depth = np.full((6, resolution * resolution), np.inf)
+    ids = np.full((6, resolution * resolution), -1, dtype=np.int64)
+    ww = np.einsum("ij,ij->i", rays, rays)
+    for f in range(6):
+        o = (np.asarray(centers) - eye) @ rots[f].T  # (s, 3) camera space
+        ow = rays @ o.T  # (p, s)
+        oo = np.einsum("ij,ij->i", o, o)
+        disc = ow * ow - ww[:, None] * (oo[None] - radii[None] ** 2)
+        with np.errstate(invalid="ignore"):
+            sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        s_near = (ow - sq) / ww[:, None]
+        s_far = (ow + sq) / ww[:, None]
+        s = np.where(s_near >= near, s_near, np.where(s_far >= near, s_far, np.inf))
+        s = np.where(np.isfinite(s), s, np.inf)
+        k = np.argmin(s, axis=1)
+        best = s[np.arange(len(s)), k]
+        depth[f] = best
+        ids[f] = np.where(np.isfinite(best), k, -1)
+    return depth.reshape(6, resolution, resolution), ids.reshape(6, resolution, resolution)
+
+
+def sampled_visible(vertices0: np.ndarray, vertices1: np.ndarray, faces: np.ndarray,
+                    v0: np.ndarray, v1: np.ndarray, resolution: int, samples: int,
+                    base_rotation: np.ndarray | None = None, centers0=None, centers1=None,
+                    radii=None, near: float = DEFAULT_NEAR,
+                    face_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Union over ``samples`` evenly spaced t in [0, 1] of the ids seen from v0 + t (v1 - v0),
+    with vertices (and sphere centres) at (1 - t) x0 + t x1.
+
+    Returns (visible triangle mask (m,), visible sphere mask (s,))."""
+    m = len(faces)
+    s = 0 if radii is None else len(radii)
+    tri = np.zeros(m, dtype=bool)
+    sph = np.zeros(s, dtype=bool)
+    v0 = np.asarray(v0, dtype=np.float64)
+    v1 = np.asarray(v1, dtype=np.float64)
+    for t in np.linspace(0.0, 1.0, samples):
+        eye = v0 + t * (v1 - v0)
+        verts = vertices0 if vertices1 is vertices0 else (1 - t) * vertices0 + t * vertices1
+        if m:
+            depth, ids = render_cubemap(verts, faces, eye, resolution, base_rotation, near,
+                                        face_mask=face_mask)
+            depth = depth.astype(np.float64)
+        else:
+            depth = np.full((6, resolution, resolution), np.inf)
+            ids = np.full((6, resolution, resolution), -1)
+        if s:
+            c = (1 - t) * centers0 + t * centers1
+            sd, si = sphere_depths(c, radii, eye, resolution, base_rotation, near)
+            front = sd < depth
+            sph[np.unique(si[front & (si >= 0)])] = True
+            ids = np.where(front, -1, ids)
+        u = np.unique(ids)
+        tri[u[u >= 0]] = True
+    return tri, sph
+
+
+def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
+                     rotation: np.ndarray, resolution: int, row: int, col: int,
+                     centers: np.ndarray | None = None, radii: np.ndarray | None = None,
+                     near: float = DEFAULT_NEAR) -> tuple[int, float]:
+    """Brute-force ray cast of one pixel centre of a 90-degree face: (id of the nearest
+    primitive (triangles first, spheres after them; -1 for none), its depth)."""
+    x = (col + 0.5) * (2.0 / resolution) - 1.0
+    y = 1.0 - (row + 0.5) * (2.0 / resolution)
+    w = np.asarray(rotation).T @ np.array([x, y, -1.0])  # world direction, depth 1 per unit
+    tri = np.asarray(vertices)[np.asarray(faces)] - eye  # (m, 3, 3)
+    best, best_id = np.inf, -1
+    if len(tri):
+        e1 = tri[:, 1] - tri[:, 0]
+        e2 = tri[:, 2] - tri[:, 0]
+        n = np.cross(e1, e2)
+        wn = n @ w
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.einsum("ij,ij->i", tri[:, 0], n) / wn
+            q = s[:, None] * w[None] - tri[:, 0]
+            # Barycentrics of the hit point q (relative to corner 0).
+            d00 = np.einsum("ij,ij->i", e1, e1)
+            d01 = np.einsum("ij,ij->i", e1, e2)
+            d11 = np.einsum("ij,ij->i", e2, e2)
+            d20 = np.einsum("ij,ij->i", q, e1)
+            d21 = np.einsum("ij,ij->i", q, e2)
+            den = d00 * d11 - d01 * d01
+            bv = (d11 * d20 - d01 * d21) / den
+            bw = (d00 * d21 - d01 * d20) / den
+        ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
+        if ok.any():
+            k = int(np.argmin(np.where(ok, s, np.inf)))
+            best, best_id = float(s[k]), k
+    if radii is not None and len(radii):
+        o = np.asarray(centers) - eye
+        ww = w @ w
+        ow = o @ w
+        disc = ow * ow - ww * (np.einsum("ij,ij->i", o, o) - radii ** 2)
+        with np.errstate(invalid="ignore"):
+            sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        sn, sf = (ow - sq) / ww, (ow + sq) / ww
+        s = np.where(sn >= near, sn, np.where(sf >= near, sf, np.inf))
+        s = np.where(np.isfinite(s), s, np.inf)
+        k = int(np.argmin(s))
+        if s[k] < best:
+            best, best_id = float(s[k]), len(faces) + k
+    return best_id, best
+
+
+def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
+                vertices1: np.ndarray, faces: np.ndarray, v0: np.ndarray, v1: np.ndarray,
+                resolution: int, base_rotation: np.ndarray | None = None, centers0=None,
+                centers1=None, radii=None, near: float = DEFAULT_NEAR) -> list[int]:
+    """Ids reported visible whose witness (t, face, pixel) a brute-force ray cast does not
+    confirm as the nearest primitive there: should be empty for an exact algorithm."""
+    rots = cube_face_rotations(base_rotation)
+    bad = []
+    for pid in np.flatnonzero(visible):
+        _, t, f, row, col = witness[pid]
+        eye = v0 + t * (v1 - v0)
+        verts = (1 - t) * vertices0 + t * vertices1
+        c = None if radii is None else (1 - t) * centers0 + t * centers1
+        got, _ = nearest_at_pixel(verts, faces, eye, rots[int(f)], resolution, int(row),
+                                  int(col), c, radii, near)
+        if got != pid:
+            bad.append(int(pid))
+    return bad

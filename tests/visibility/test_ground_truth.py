@@ -1,0 +1,171 @@
+"""Sampled ground truth: stratified points, the PVS of known scenes, motion, and FN/FP rates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from visibility.ground_truth import GroundTruth, fn_fp_rates, sample_points, sample_pvs
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+
+class Tris:
+    """Collects quads and boxes as separate triangles, remembering their ids."""
+
+    def __init__(self) -> None:
+        self.tris: list[list] = []
+
+    def quad(self, a, b, c, d) -> list[int]:
+        first = len(self.tris)
+        self.tris += [[a, b, c], [a, c, d]]
+        return [first, first + 1]
+
+    def box(self, lo, hi) -> list[int]:
+        (x0, y0, z0), (x1, y1, z1) = lo, hi
+        ids = []
+        ids += self.quad((x0, y0, z0), (x0, y1, z0), (x1, y1, z0), (x1, y0, z0))
+        ids += self.quad((x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1))
+        ids += self.quad((x0, y0, z0), (x0, y0, z1), (x0, y1, z1), (x0, y1, z0))
+        ids += self.quad((x1, y0, z0), (x1, y1, z0), (x1, y1, z1), (x1, y0, z1))
+        ids += self.quad((x0, y0, z0), (x1, y0, z0), (x1, y0, z1), (x0, y0, z1))
+        ids += self.quad((x0, y1, z0), (x0, y1, z1), (x1, y1, z1), (x1, y1, z0))
+        return ids
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        v = np.array(self.tris, dtype=np.float64).reshape(-1, 3)
+        return v, np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+
+
+CELL = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+
+
+def walled_scene():
+    """A wall at z = 5 (x in [-20, 20], y in [0, 6]); a box in front of it, one behind it,
+    and a floor quad; plus degenerate faces in plain view."""
+    t = Tris()
+    known = {
+        "floor": t.quad((-20, 0, -20), (-20, 0, 4), (20, 0, 4), (20, 0, -20)),
+        "wall": t.quad((-20, 0, 5), (20, 0, 5), (20, 6, 5), (-20, 6, 5)),
+        "front_box": t.box((-0.5, 0.0, 2.5), (0.5, 1.0, 3.5)),
+        "hidden_box": t.box((-0.5, 0.0, 7.0), (0.5, 1.0, 8.0)),
+    }
+    v, f = t.arrays()
+    n, m = len(v), len(f)
+    extra = np.array([[0, 1, 3.0], [1, 1, 3.0], [2, 1, 3.0], [np.nan, 1, 3.0], [0, 2, 3.0]])
+    v = np.vstack([v, extra])
+    f = np.vstack([f, [[n, n + 1, n + 2], [n, n + 3, n + 4], [n, n, n + 4]]])
+    known["degenerate"] = [m, m + 1, m + 2]
+    return Scene(v, f, name="walled"), known
+
+
+# ----------------------------------------------------------------------------- sample_points
+def test_sample_points_are_stratified_inside_the_box():
+    box = np.array([[1.0, 1.5, -2.0], [5.0, 1.9, 2.0]])
+    rng = np.random.default_rng(0)
+    pts = sample_points(box, 64, rng)
+    assert pts.shape == (64, 3) and pts.dtype == np.float64
+    assert np.all(pts >= box[0]) and np.all(pts <= box[1])
+    # 64 points on a 4 x 4 m square, 0.4 m tall: an 8 x 1 x 8 grid, one point per cell.
+    cells = np.floor((pts - box[0]) / (box[1] - box[0]) * [8, 1, 8]).astype(int)
+    assert len({tuple(c) for c in cells}) == 64
+    # Any prefix is spread out too: the first 16 fall in at least 12 of the 16 quadrants-of-2m.
+    q = np.floor((pts[:16] - box[0]) / 1.0)[:, [0, 2]]
+    assert len({tuple(c) for c in q}) >= 10
+
+
+def test_sample_points_deterministic_and_flat_boxes():
+    box = np.array([[0.0, 1.7, 0.0], [3.0, 1.7, 2.0]])  # zero height
+    a = sample_points(box, 10, np.random.default_rng(5))
+    b = sample_points(box, 10, np.random.default_rng(5))
+    np.testing.assert_array_equal(a, b)
+    assert np.all(a[:, 1] == 1.7)
+    point = np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    np.testing.assert_array_equal(sample_points(point, 3, np.random.default_rng(0)),
+                                  np.tile([1.0, 2.0, 3.0], (3, 1)))
+    assert sample_points(box, 0, np.random.default_rng(0)).shape == (0, 3)
+    with pytest.raises(ValueError):
+        sample_points(np.array([[1.0, 0, 0], [0.0, 1, 1]]), 4, np.random.default_rng(0))
+    with pytest.raises(ValueError):
+        sample_points(box, -1, np.random.default_rng(0))
+
+
+# ----------------------------------------------------------------------------- sample_pvs
+def test_sample_pvs_finds_the_visible_and_never_the_hidden():
+    scene, known = walled_scene()
+    gt = sample_pvs(scene, CELL, n_points=24, resolution=64, seed=1, batch=8)
+    assert isinstance(gt, GroundTruth)
+    found = set(gt.triangle_ids.tolist())
+    for name in ("floor", "wall"):
+        assert set(known[name]) <= found, name
+    # The side of the front box facing the cell (z = 2.5 quad) and its top are seen.
+    assert set(known["front_box"][:2]) <= found
+    assert set(known["front_box"][10:]) <= found
+    assert not found & set(known["hidden_box"])
+    assert not found & set(known["degenerate"])
+    # Its far side (z = 3.5, facing away, behind the box itself) is hidden.
+    assert not found & set(known["front_box"][2:4])
+    assert gt.triangle_ids.dtype == np.int32
+    assert np.all(np.diff(gt.triangle_ids) > 0)
+
+
+def test_convergence_record_and_determinism():
+    scene, _ = walled_scene()
+    gt = sample_pvs(scene, CELL, n_points=20, resolution=48, seed=3, batch=8)
+    assert [c[0] for c in gt.convergence] == [8, 16, 20]
+    totals = [c[1] for c in gt.convergence]
+    assert totals == sorted(totals)
+    assert sum(c[2] for c in gt.convergence) == totals[-1] == len(gt.triangle_ids)
+    assert gt.samples == 20 and gt.pixels == 20 * 6 * 48 * 48 and gt.seconds > 0
+    again = sample_pvs(scene, CELL, n_points=20, resolution=48, seed=3, batch=8)
+    np.testing.assert_array_equal(gt.triangle_ids, again.triangle_ids)
+    assert gt.convergence == again.convergence
+
+
+def test_dynamic_scene_unites_all_states():
+    # A panel that slides from behind the wall (hidden) to in front of it (visible).
+    scene, known = walled_scene()
+    t = Tris()
+    t.quad((-1, 0.5, 7.0), (1, 0.5, 7.0), (1, 2.5, 7.0), (-1, 2.5, 7.0))
+    pv, pf = t.arrays()
+    v = np.vstack([scene.vertices, pv])
+    f = np.vstack([scene.faces, pf + len(scene.vertices)])
+    moved = v.copy()
+    moved[len(scene.vertices):, 2] = 4.0
+    panel = [scene.n_triangles, scene.n_triangles + 1]
+    static = Scene(v, f, states=np.stack([v, v]), state_times=[0.0, 1.0])
+    gt = sample_pvs(static, CELL, n_points=8, resolution=48, seed=0)
+    assert not set(panel) & set(gt.triangle_ids.tolist())
+    dynamic = Scene(v, f, states=np.stack([v, moved]), state_times=[0.0, 2.0])
+    gt = sample_pvs(dynamic, CELL, n_points=16, resolution=48, seed=0)
+    assert set(panel) <= set(gt.triangle_ids.tolist())
+
+
+def test_empty_scene_and_bad_arguments():
+    empty = Scene(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32))
+    gt = sample_pvs(empty, CELL, n_points=4, resolution=16, batch=3)
+    assert len(gt.triangle_ids) == 0
+    assert [c[0] for c in gt.convergence] == [3, 4]
+    scene, _ = walled_scene()
+    for kw in ({"n_points": 0}, {"batch": 0}, {"resolution": 0}):
+        with pytest.raises(ValueError):
+            sample_pvs(scene, CELL, **kw)
+
+
+def test_progress_bar_runs(capsys):
+    scene, _ = walled_scene()
+    gt = sample_pvs(scene, CELL, n_points=2, resolution=16, progress=True)
+    assert gt.samples == 2
+    assert "ground truth" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- rates
+def test_fn_fp_rates():
+    assert fn_fp_rates([1, 2, 3, 4], [1, 2, 3, 4]) == (0.0, 0.0)
+    fn, fp = fn_fp_rates([1, 2, 9], [1, 2, 3, 4])
+    assert fn == pytest.approx(0.5) and fp == pytest.approx(1 / 3)
+    assert fn_fp_rates([], []) == (0.0, 0.0)
+    assert fn_fp_rates([], [1, 2]) == (1.0, 0.0)
+    assert fn_fp_rates([5], []) == (0.0, 1.0)
+    fn, fp = fn_fp_rates(np.array([3, 3, 1], dtype=np.int32), np.array([1, 3]))
+    assert (fn, fp) == (0.0, 0.0)

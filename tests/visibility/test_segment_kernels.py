@@ -1,0 +1,229 @@
+"""Kernel-level tests of continuous from-segment visibility: numerics, envelopes, exactness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.visibility.segment_reference import sampled_visible, unwitnessed
+from visibility.camera import random_rotation
+from visibility.raster import render_cubemap
+from visibility.scene import Scene
+from visibility.segment_dynamic import cubic_roots01, quadratic_roots
+from visibility.segment_kernels import (
+    envelope_insert,
+    pixel_bound,
+    scene_geometries,
+    segment_visible,
+)
+
+
+# ----------------------------------------------------------------------------- root solvers
+def test_quadratic_roots_without_cancellation():
+    # x^2 + 1e8 x + 1 = 0: the small root is -1e-8 to full precision (naive formula: 0 or junk).
+    n, r0, r1 = quadratic_roots(1.0, 1e8, 1.0)
+    assert n == 2
+    assert r1 == pytest.approx(-1e-8, rel=1e-12)
+    assert r0 == pytest.approx(-1e8, rel=1e-12)
+
+
+def test_quadratic_roots_degenerate_leading_coefficient():
+    assert quadratic_roots(0.0, 2.0, -1.0)[:2] == (1, 0.5)
+    # Vanishing a: the finite root is the linear one; the other escapes far from [0, 1].
+    n, r0, r1 = quadratic_roots(1e-300, 2.0, -1.0)
+    assert n == 2 and 0.5 in (r0, r1)
+    assert quadratic_roots(0.0, 0.0, 1.0)[0] == 0
+    assert quadratic_roots(1.0, 0.0, 1.0)[0] == 0
+    assert quadratic_roots(np.nan, 1.0, 1.0)[0] == 0
+    assert quadratic_roots(np.inf, 1.0, 1.0)[0] == 0
+    # Huge coefficients do not overflow b^2.
+    n, r0, r1 = quadratic_roots(1e200, -3e200, 2e200)
+    assert n == 2 and (r0, r1) == (pytest.approx(1.0), pytest.approx(2.0))
+
+
+def test_cubic_roots_in_unit_interval():
+    out = np.zeros(3)
+    # (t - 0.2)(t - 0.5)(t - 0.9)
+    c = np.polynomial.polynomial.polyfromroots([0.2, 0.5, 0.9])
+    n = cubic_roots01(c[0], c[1], c[2], c[3], out)
+    assert n == 3
+    np.testing.assert_allclose(out[:3], [0.2, 0.5, 0.9], atol=1e-14)
+    c = np.polynomial.polynomial.polyfromroots([-1.0, 0.3, 2.0])
+    assert cubic_roots01(c[0], c[1], c[2], c[3], out) == 1
+    assert out[0] == pytest.approx(0.3, abs=1e-14)
+    assert cubic_roots01(1.0, 0.0, 0.0, 0.0, out) == 0
+
+
+# ----------------------------------------------------------------------------- envelopes
+def _env(cap=8):
+    return (np.zeros((1, cap, 4)), np.zeros((1, cap), dtype=np.int32),
+            np.zeros((2 * cap + 8, 4)), np.zeros(2 * cap + 8, dtype=np.int32))
+
+
+def _pieces(env, eid, n):
+    return [(round(env[0, k, 0], 9), round(env[0, k, 1], 9), int(eid[0, k])) for k in range(n)]
+
+
+def test_envelope_keeps_the_nearer_surface_and_splits_at_the_hinge():
+    env, eid, T, tid = _env()
+    n, changed = envelope_insert(env, eid, 0, 0, 0.0, 1.0, 5.0, 5.0, 1, T, tid)
+    assert (n, changed) == (1, True)
+    # A surface crossing the first at t = 0.5 (depth 4 -> 6): nearer on [0, 0.5].
+    n, changed = envelope_insert(env, eid, 0, n, 0.0, 1.0, 4.0, 6.0, 2, T, tid)
+    assert changed and _pieces(env, eid, n) == [(0.0, 0.5, 2), (0.5, 1.0, 1)]
+    # Entirely behind: nothing changes.
+    n2, changed = envelope_insert(env, eid, 0, n, 0.2, 0.9, 7.0, 8.0, 3, T, tid)
+    assert not changed and n2 == n
+    # An exact tie keeps the existing piece.
+    n2, changed = envelope_insert(env, eid, 0, n, 0.6, 0.8, 5.0, 5.0, 4, T, tid)
+    assert not changed
+    # A short nearer piece in the middle splits the far one in three.
+    n, changed = envelope_insert(env, eid, 0, n, 0.6, 0.7, 1.0, 1.0, 5, T, tid)
+    assert _pieces(env, eid, n) == [(0.0, 0.5, 2), (0.5, 0.6, 1), (0.6, 0.7, 5), (0.7, 1.0, 1)]
+    assert pixel_bound(env, 0, n) == pytest.approx(5.0)
+
+
+def test_envelope_fills_gaps_and_reports_overflow():
+    env, eid, T, tid = _env(cap=3)
+    n, _ = envelope_insert(env, eid, 0, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
+    n, _ = envelope_insert(env, eid, 0, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
+    assert pixel_bound(env, 0, n) == np.inf  # gaps: not covered
+    n, _ = envelope_insert(env, eid, 0, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
+    assert n == -1  # five pieces do not fit three
+    env, eid, T, tid = _env(cap=8)
+    n, _ = envelope_insert(env, eid, 0, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
+    n, _ = envelope_insert(env, eid, 0, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
+    n, _ = envelope_insert(env, eid, 0, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
+    assert _pieces(env, eid, n) == [(0.0, 0.2, 1), (0.2, 0.5, 3), (0.5, 0.7, 2), (0.7, 1.0, 3)]
+    assert pixel_bound(env, 0, n) == pytest.approx(9.0)
+    # Zero-length chords change nothing.
+    assert envelope_insert(env, eid, 0, n, 0.3, 0.3, 0.1, 0.1, 7, T, tid) == (n, False)
+
+
+# ----------------------------------------------------------------------------- exactness
+def _soup(n, seed, spread=0.6, lo=2.0, hi=9.0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    c = d * rng.uniform(lo, hi, (n, 1))
+    v = (c[:, None, :] + rng.normal(0, spread, (n, 3, 3))).reshape(-1, 3)
+    return v, np.arange(3 * n).reshape(-1, 3)
+
+
+def test_segment_equals_union_of_id_buffers_along_it():
+    """Exactness at pixel centres, both ways: nothing the id buffers see along the segment is
+    missed, and every triangle reported has a witness (a time and pixel centre where a
+    brute-force ray cast confirms it is the nearest surface)."""
+    v, f = _soup(700, seed=5)
+    scene = Scene(v, f)
+    a, b = np.array([-0.8, 0.3, 0.2]), np.array([1.0, -0.2, 0.6])
+    res = 32
+    geom = scene_geometries(scene)[0]
+    wit = np.zeros((geom.n_ids, 5))
+    vis = segment_visible(geom, a, b, resolution=res, witness=wit)
+    ref, _ = sampled_visible(v, v, f, a, b, res, 100)
+    assert not np.any(ref & ~vis), np.flatnonzero(ref & ~vis)
+    assert unwitnessed(wit, vis, v, v, f, a, b, res) == []
+    # Sampling only catches up slowly: a fair share is seen only between 100 sample points.
+    assert np.count_nonzero(vis & ~ref) > 0
+
+
+def test_rotated_cube_is_exact_too():
+    v, f = _soup(300, seed=6)
+    scene = Scene(v, f)
+    rot = random_rotation(np.random.default_rng(2))
+    a, b = np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.4, -0.3])
+    vis = segment_visible(scene_geometries(scene)[0], a, b, rot, resolution=24)
+    ref, _ = sampled_visible(v, v, f, a, b, 24, 200, base_rotation=rot)
+    assert not np.any(ref & ~vis)
+
+
+def test_zero_length_segment_is_from_point_visibility():
+    v, f = _soup(500, seed=7)
+    eye = np.array([0.1, -0.2, 0.3])
+    vis = segment_visible(scene_geometries(Scene(v, f))[0], eye, eye, resolution=40)
+    _, ids = render_cubemap(v, f, eye, 40)
+    u = np.unique(ids)
+    ref = np.zeros(len(f), dtype=bool)
+    ref[u[u >= 0]] = True
+    np.testing.assert_array_equal(vis, ref)
+
+
+def test_triangle_crossing_the_moving_near_plane():
+    """The eye passes through a triangle (and has others behind it for part of the segment):
+    handled per pixel like a near-clipping rasterizer, nothing visible is dropped."""
+    tris = np.array([
+        [[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]],   # the eye flies through it
+        [[-0.3, -0.3, -1.5], [0.3, -0.3, -1.5], [0.0, 0.3, -1.5]],  # ahead, then behind
+        [[-0.5, -0.5, 3.0], [0.5, -0.5, 3.0], [0.0, 0.5, 3.0]],    # behind, then ahead
+        [[-4.0, -4.0, -6.0], [4.0, -4.0, -6.0], [0.0, 4.0, -6.0]],  # far wall
+    ])
+    v = tris.reshape(-1, 3)
+    f = np.arange(12).reshape(-1, 3)
+    a, b = np.array([0.05, 0.02, 1.0]), np.array([-0.04, 0.03, -2.0])
+    vis = segment_visible(scene_geometries(Scene(v, f))[0], a, b, resolution=32)
+    ref, _ = sampled_visible(v, v, f, a, b, 32, 300)
+    assert not np.any(ref & ~vis)
+    assert vis.all()
+
+
+def test_static_spheres_and_triangles_occlude_each_other():
+    rng = np.random.default_rng(11)
+    v, f = _soup(400, seed=12)
+    c = rng.normal(size=(60, 3))
+    c = c / np.linalg.norm(c, axis=1)[:, None] * rng.uniform(1.5, 8.0, (60, 1))
+    r = rng.uniform(0.1, 0.7, 60)
+    scene = Scene(v, f, sphere_centers=c, sphere_radii=r)
+    a, b = np.array([-0.5, 0.1, 0.0]), np.array([0.7, 0.0, 0.4])
+    geom = scene_geometries(scene)[0]
+    wit = np.zeros((geom.n_ids, 5))
+    vis = segment_visible(geom, a, b, resolution=24, witness=wit)
+    rt, rs = sampled_visible(v, v, f, a, b, 24, 60, centers0=c, centers1=c, radii=r)
+    assert not np.any(rt & ~vis[:400])
+    assert not np.any(rs & ~vis[400:])
+    # Sphere depth is interpolated between knots: the witnesses hold up to that approximation.
+    bad = unwitnessed(wit, vis, v, v, f, a, b, 24, centers0=c, centers1=c, radii=r)
+    assert len(bad) <= 0.01 * np.count_nonzero(vis), bad
+    assert not vis[400:].all()  # some spheres are hidden: occlusion works both ways
+
+
+def test_moving_triangles_and_spheres():
+    rng = np.random.default_rng(13)
+    v0, f = _soup(300, seed=14, lo=2.5)
+    v1 = v0 + np.repeat(rng.normal(0, 0.5, (300, 1, 3)), 3, axis=1).reshape(-1, 3)
+    c0 = rng.normal(size=(30, 3))
+    c0 = c0 / np.linalg.norm(c0, axis=1)[:, None] * rng.uniform(2.0, 8.0, (30, 1))
+    c1 = c0 + rng.normal(0, 0.8, (30, 3))
+    r = rng.uniform(0.1, 0.6, 30)
+    scene = Scene(v0, f, states=np.stack([v0, v1]), sphere_centers=np.stack([c0, c1]),
+                  sphere_radii=r)
+    (geom,) = scene_geometries(scene)
+    assert geom.moving.all()
+    a, b = np.array([-0.4, 0.2, 0.1]), np.array([0.8, -0.1, 0.3])
+    wit = np.zeros((geom.n_ids, 5))
+    vis = segment_visible(geom, a, b, resolution=24, witness=wit)
+    rt, rs = sampled_visible(v0, v1, f, a, b, 24, 60, centers0=c0, centers1=c1, radii=r)
+    assert not np.any(rt & ~vis[:300])
+    assert not np.any(rs & ~vis[300:])
+    bad = unwitnessed(wit, vis, v0, v1, f, a, b, 24, centers0=c0, centers1=c1, radii=r)
+    assert len(bad) <= 0.01 * np.count_nonzero(vis), bad
+
+
+def test_sphere_around_the_eye_is_seen_from_inside():
+    c = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -10.0]])
+    r = np.array([2.0, 1.0])
+    scene = Scene(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), sphere_centers=c,
+                  sphere_radii=r)
+    vis = segment_visible(scene_geometries(scene)[0], np.array([0.0, 0.0, 0.5]),
+                          np.array([0.0, 0.5, 0.0]), resolution=16)
+    np.testing.assert_array_equal(vis, [True, False])  # the enclosing sphere hides the other
+
+
+def test_bad_segment_inputs_raise():
+    (geom,) = scene_geometries(Scene(*_soup(10, seed=1)))
+    with pytest.raises(ValueError):
+        segment_visible(geom, np.array([np.nan, 0, 0]), np.zeros(3))
+    with pytest.raises(ValueError):
+        segment_visible(geom, np.zeros(3), np.zeros(3), resolution=0)
+    with pytest.raises(ValueError):
+        segment_visible(geom, np.zeros(3), np.zeros(3), near=-1.0)

@@ -1,0 +1,76 @@
+"""The ``sampling`` core: the PVS as the union of cubemap id buffers from points of the cell.
+
+Aggressive (it can miss triangles seen only between its samples, never reports hidden ones) and
+exact in what it reports; its cost grows linearly with ``samples``. Same method as the sampled
+ground truth (``visibility.ground_truth``), at a lighter default budget.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from visibility.cores.base import Core, CoreParams, register
+from visibility.ground_truth import sample_pvs
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+#: Upper bound on ``SamplingParams.samples`` (keeps one request from hogging the machine).
+MAX_SAMPLES = 100_000
+
+
+@dataclass
+class SamplingParams(CoreParams):
+    """``samples`` viewpoints in the cell, convergence recorded every ``batch`` of them."""
+
+    samples: int = 32
+    batch: int = 8
+
+    def validate(self) -> None:
+        super().validate()
+        if not (1 <= int(self.samples) <= MAX_SAMPLES) or int(self.samples) != self.samples:
+            raise ValueError(
+                f"samples must be an integer in [1, {MAX_SAMPLES}], got {self.samples}"
+            )
+        if not (1 <= int(self.batch) <= MAX_SAMPLES) or int(self.batch) != self.batch:
+            raise ValueError(f"batch must be an integer in [1, {MAX_SAMPLES}], got {self.batch}")
+
+
+@register
+class SamplingCore(Core):
+    """Union of the triangle ids seen in cubemaps from stratified points of the cell."""
+
+    name: ClassVar[str] = "sampling"
+    description: ClassVar[str] = (
+        "Cubemap id buffers from stratified random viewpoints in the cell, united "
+        "(aggressive: may miss thin slivers seen between samples)."
+    )
+    Params: ClassVar[type[CoreParams]] = SamplingParams
+    #: Holds on the conformance scenes: FN measured 0.000 there (two rooms and a door, 16 and 32
+    #: samples at 128 and 256 px, 3 seeds each, against 128-point ground truths of 3 seeds).
+    #: Open scenes with many sub-pixel triangles are another matter: on the 100k-triangle city,
+    #: 5 cells, defaults against a 512-point ground truth at 256 px gave FN 0.09-0.32 (0.02-0.14
+    #: with 128 samples or with 32 samples at 512 px): what is missed is resolution-bound.
+    fn_bound: ClassVar[float] = 0.05
+
+    def _compute(
+        self, scene: Scene, cell: Viewcell, params: CoreParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        assert isinstance(params, SamplingParams)
+        gt = sample_pvs(
+            scene,
+            cell,
+            n_points=int(params.samples),
+            resolution=int(params.resolution),
+            seed=int(params.seed),
+            batch=int(params.batch),
+        )
+        stats = {
+            "samples": gt.samples,
+            "resolution": int(params.resolution),
+            "convergence": [list(c) for c in gt.convergence],
+            "pixels_rendered": gt.pixels,
+        }
+        return gt.triangle_ids, stats

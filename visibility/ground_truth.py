@@ -1,0 +1,170 @@
+"""Sampled ground truth: the triangles seen from many points of a viewcell, in every direction.
+
+The PVS every core is measured against. From ``n_points`` stratified eye positions in the cell,
+each with a fresh uniformly random cube orientation (and, for a moving scene, a random time),
+six cubemap id buffers are rendered and their ids united. Sampling can only miss triangles (a
+visible sliver between samples), never add invisible ones, so the result is a subset of the true
+PVS that grows with the samples; the convergence record shows how close to saturation it is.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visibility.camera import DEFAULT_NEAR, random_rotation
+from visibility.raster import render_cubemap_ids
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+
+@dataclass
+class GroundTruth:
+    """Result of ``sample_pvs``.
+
+    Attributes
+    ----------
+    triangle_ids : sorted unique int32 ids of the triangles seen.
+    convergence : (samples so far, total found, new in this batch) after each batch.
+    seconds : wall time of the sampling.
+    samples : number of viewpoints rendered.
+    pixels : number of pixels rendered (samples x 6 x R x R).
+    """
+
+    triangle_ids: np.ndarray
+    convergence: list[tuple[int, int, int]] = field(default_factory=list)
+    seconds: float = 0.0
+    samples: int = 0
+    pixels: int = 0
+
+
+def _grid_counts(size: np.ndarray, n: int) -> np.ndarray:
+    """Cells per axis of a grid over a box of ``size`` with at least ``n`` near-cubic cells."""
+    counts = np.ones(3, dtype=np.int64)
+    pos = size > 0
+    if not pos.any() or n <= 1:
+        return counts
+    side = (np.prod(size[pos]) / n) ** (1.0 / pos.sum())
+    counts[pos] = np.maximum(1, np.floor(size[pos] / side)).astype(np.int64)
+    while counts.prod() < n:
+        # Split the axis whose cells are longest.
+        k = int(np.argmax(np.where(pos, size / counts, -1.0)))
+        counts[k] += 1
+    return counts
+
+
+def sample_points(box: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) float64 stratified points in an axis-aligned box (metres).
+
+    The box ``(2, 3)`` [min, max] is cut into a grid of at least ``n`` near-cubic cells (flat
+    axes get one cell); ``n`` distinct cells are drawn at random and one point is jittered
+    uniformly inside each, so any prefix of the points is also spread over the box.
+    """
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    if not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
+        raise ValueError(f"box must be finite with max >= min, got {b.tolist()}")
+    n = int(n)
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    if n == 0:
+        return np.zeros((0, 3))
+    size = b[1] - b[0]
+    if not np.any(size > 0):
+        return np.tile(b[0], (n, 1))
+    counts = _grid_counts(size, n)
+    cells = rng.choice(int(counts.prod()), size=n, replace=False)
+    ijk = np.stack(np.unravel_index(cells, tuple(counts)), axis=1)
+    u = rng.random((n, 3))
+    pts = b[0] + (ijk + u) * (size / counts)
+    # Keep every point inside the closed box despite rounding.
+    return np.clip(pts, b[0], b[1])
+
+
+def sample_pvs(
+    scene: Scene,
+    cell: Viewcell,
+    n_points: int = 64,
+    resolution: int = 256,
+    seed: int = 0,
+    batch: int = 8,
+    progress: bool = False,
+    near: float = DEFAULT_NEAR,
+) -> GroundTruth:
+    """Sampled PVS of ``cell``: union of cubemap id buffers from stratified viewpoints.
+
+    Parameters
+    ----------
+    scene : the scene; only ``scene.valid_faces`` are drawn. With ``states`` of k > 1
+        keyframes each viewpoint also draws a time uniform in the keyframe range and renders
+        ``scene.vertices_at(t)`` (the PVS over all states).
+    cell : the viewcell whose box the eye positions are drawn from.
+    n_points : number of viewpoints.
+    resolution : cubemap face size R in pixels.
+    seed : seeds the positions, cube orientations and times (deterministic for a fixed seed).
+    batch : viewpoints per convergence record.
+    progress : show a tqdm bar.
+    near : near-plane distance in metres.
+    """
+    n_points = int(n_points)
+    batch = int(batch)
+    if n_points < 1:
+        raise ValueError(f"n_points must be >= 1, got {n_points}")
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1, got {batch}")
+    if not 1 <= int(resolution) <= 1 << 14:
+        raise ValueError(f"resolution must be in [1, 16384], got {resolution}")
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    points = sample_points(cell.box, n_points, rng)
+    rotations = [random_rotation(rng) for _ in range(n_points)]
+    dynamic = scene.states is not None and scene.states.shape[0] > 1
+    if dynamic:
+        times = rng.uniform(scene.state_times[0], scene.state_times[-1], size=n_points)
+    mask = scene.valid_faces
+    seen = np.zeros(scene.n_triangles, dtype=bool)
+    found = 0
+    convergence: list[tuple[int, int, int]] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_points, desc="ground truth", unit="view")
+    batch_start = found
+    for k in range(n_points):
+        verts = scene.vertices_at(times[k]) if dynamic else scene.vertices
+        ids = render_cubemap_ids(verts, scene.faces, points[k], int(resolution), rotations[k],
+                                 near=near, face_mask=mask)
+        hit = ids[ids >= 0]
+        seen[hit] = True
+        if bar is not None:
+            bar.update(1)
+        if (k + 1) % batch == 0 or k + 1 == n_points:
+            found = int(np.count_nonzero(seen))
+            convergence.append((k + 1, found, found - batch_start))
+            batch_start = found
+    if bar is not None:
+        bar.close()
+    ids = np.flatnonzero(seen).astype(np.int32)
+    return GroundTruth(
+        triangle_ids=ids,
+        convergence=convergence,
+        seconds=time.perf_counter() - t0,
+        samples=n_points,
+        pixels=n_points * 6 * int(resolution) ** 2,
+    )
+
+
+def fn_fp_rates(pvs_ids: np.ndarray, reference_ids: np.ndarray) -> tuple[float, float]:
+    """(false-negative rate, false-positive rate) of a PVS against a reference set of ids.
+
+    FN = share of the reference missing from the PVS; FP = share of the PVS not in the
+    reference; each is 0 when its denominator set is empty.
+    """
+    p = np.unique(np.asarray(pvs_ids, dtype=np.int64))
+    r = np.unique(np.asarray(reference_ids, dtype=np.int64))
+    common = len(np.intersect1d(p, r, assume_unique=True))
+    fn = (len(r) - common) / len(r) if len(r) else 0.0
+    fp = (len(p) - common) / len(p) if len(p) else 0.0
+    return float(fn), float(fp)

@@ -1,0 +1,1036 @@
+"""Continuous from-segment visibility (Popescu et al. 2024, Alg. 1) on the six faces of a cubemap.
+
+For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel centre of every face
+gets a lower envelope over t of the depths of the primitives that cover it; the primitives owning a
+piece of some envelope form the segment's visible set. Conventions are ``visibility.camera``'s:
+a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and depth is ``-z_cam``.
+
+Static triangles (Eqs. 1-2). Relative to the moving eye a static triangle translates by ``-t d``.
+With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t, and equals
+the barycentric weight of the opposite corner times ``w . N`` (N the triangle normal), so the
+coverage interval is the intersection of three half-lines; the hit depth
+``(A . N - t d . N) / (w . N)`` is linear too, and ``depth >= near`` is one more half-line, which is
+how triangles crossing the near plane or behind the camera for part of the segment are handled
+per pixel, exactly as a near-clipping rasterizer decides. Edges are evaluated from their corners in
+a canonical order so triangles sharing an edge get bit-identical event times (no cracks).
+Moving triangles (Sec. 3.2) and spheres (Sec. 3.3) are in ``segment_dynamic`` / ``segment_spheres``.
+
+Pixels a primitive can touch: the swept volume (the convex hull of its corners at both ends,
+relative to the eye) clipped at the near plane and projected (the paper's hull of six points,
+made safe when points are behind the camera).
+
+Pipeline per segment (memory O(primitive-face pairs), triangles streamed in batches):
+(1) prange over triangles: cube-face boxes and smallest depth; (2) an approximate front-to-back
+counting sort per face and binning into 16x16-pixel tiles (CSR, sorted order kept);
+(3) prange over tiles: per pixel, the envelope of depth pieces (a sorted list of (t0, t1, z0, z1, id)
+chords); a pixel whose envelope covers [0, 1] has a finite bound (its greatest depth) and a tile whose
+pixels are all bounded skips every primitive that cannot come nearer (hierarchical occlusion
+culling, exact since the envelope only decreases). Tiles never share pixels, so results do not
+depend on scheduling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from visibility.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.scene import Scene
+from visibility.segment_dynamic import moving_cover, moving_setup
+from visibility.segment_spheres import sphere_box, sphere_cover, sphere_setup
+
+#: Side of a square screen tile in pixels (unit of parallel work and of occlusion culling).
+TILE = 16
+#: Envelope pieces shorter than this (in t) do not make a primitive visible: they are float
+#: residue at seams, never seen by a sampling camera.
+EPS_LEN = 1e-9
+#: Depth buckets of the front-to-back counting sort.
+N_BUCKETS = 2048
+#: Default triangles per batch in the box pass (bounds its scratch to ~25 MB).
+DEFAULT_BATCH = 1 << 17
+#: Starting envelope capacity (pieces per pixel); tiles that overflow are redone with more.
+START_CAP = 16
+MAX_CAP = 1 << 16
+
+FLAG_PRESENT = 1
+FLAG_MOVING = 2
+FLAG_SLOW = 4  # may cross the near plane: the per-pixel near constraint is needed
+FLAG_SPHERE = 8
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+_PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
+
+
+def _face_permutation() -> tuple[np.ndarray, np.ndarray]:
+    """(6, 3) axis index and sign such that face camera coords = sign * cube coords[axis]."""
+    rots = cube_face_rotations(None)
+    perm = np.abs(rots).argmax(axis=2).astype(np.int64)
+    sgn = np.take_along_axis(rots, perm[..., None], axis=2)[..., 0].copy()
+    return perm, sgn
+
+
+_PERM, _SGN = _face_permutation()
+
+
+# ------------------------------------------------------------------------------ boxes and culling
+@njit(**_JIT)
+def _hull_box(cam, npts, near, res, box):
+    """Pixel-centre box [row0, row1, col0, col1] of the convex hull of ``cam[:npts]`` (camera
+    space) clipped to depth >= near, for a 90-degree square face of ``res`` pixels.
+    Returns (non-empty, smallest depth of the clipped hull, hull reaches the near plane)."""
+    out_r = True
+    out_l = True
+    out_t = True
+    out_b = True
+    out_n = True
+    for q in range(npts):
+        x = cam[q, 0]
+        y = cam[q, 1]
+        d = -cam[q, 2]
+        if x <= d:
+            out_r = False
+        if -x <= d:
+            out_l = False
+        if y <= d:
+            out_t = False
+        if -y <= d:
+            out_b = False
+        if d >= near:
+            out_n = False
+    if out_r or out_l or out_t or out_b or out_n:
+        return False, 0.0, False
+    umin = np.inf
+    umax = -np.inf
+    vmin = np.inf
+    vmax = -np.inf
+    zm = np.inf
+    slow = False
+    for q in range(npts):
+        d = -cam[q, 2]
+        if d >= near:
+            u = cam[q, 0] / d
+            v = cam[q, 1] / d
+            umin = min(umin, u)
+            umax = max(umax, u)
+            vmin = min(vmin, v)
+            vmax = max(vmax, v)
+            zm = min(zm, d)
+        else:
+            slow = True
+    if slow:
+        # The clipped hull's vertices on the near plane lie on segments between the points.
+        zm = near
+        for q1 in range(npts):
+            d1 = -cam[q1, 2]
+            for q2 in range(q1 + 1, npts):
+                d2 = -cam[q2, 2]
+                if (d1 >= near) != (d2 >= near):
+                    s = (near - d1) / (d2 - d1)
+                    u = (cam[q1, 0] + s * (cam[q2, 0] - cam[q1, 0])) / near
+                    v = (cam[q1, 1] + s * (cam[q2, 1] - cam[q1, 1])) / near
+                    umin = min(umin, u)
+                    umax = max(umax, u)
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+    if not (umin <= umax and vmin <= vmax):
+        return False, 0.0, False
+    if not _pixel_range(umin, umax, vmin, vmax, res, box):
+        return False, 0.0, False
+    return True, zm, slow
+
+
+@njit(**_JIT)
+def _pixel_range(umin, umax, vmin, vmax, res, box):
+    """Pixel-centre box [row0, row1, col0, col1] of the NDC rectangle; False when empty."""
+    h = 0.5 * res
+    eps = 1e-6
+    col0 = max(-1.0, (umin + 1.0) * h - 0.5)
+    col1 = min(res + 1.0, (umax + 1.0) * h - 0.5)
+    row0 = max(-1.0, (1.0 - vmax) * h - 0.5)
+    row1 = min(res + 1.0, (1.0 - vmin) * h - 0.5)
+    j0 = max(int(np.ceil(col0 - eps)), 0)
+    j1 = min(int(np.floor(col1 + eps)), res - 1)
+    i0 = max(int(np.ceil(row0 - eps)), 0)
+    i1 = min(int(np.floor(row1 + eps)), res - 1)
+    if j0 > j1 or i0 > i1:
+        return False
+    box[0] = i0
+    box[1] = i1
+    box[2] = j0
+    box[3] = j1
+    return True
+
+
+@njit(**_JIT)
+def _inside_box(cube, f, perm, sgn, res, box):
+    """Pixel box and smallest depth on face f of six cube-space points known to lie strictly
+    inside that face's frustum and beyond the near plane (no clipping needed)."""
+    ax = perm[f, 2]
+    ix = perm[f, 0]
+    iy = perm[f, 1]
+    sd = -sgn[f, 2]
+    sx = sgn[f, 0]
+    sy = sgn[f, 1]
+    umin = np.inf
+    umax = -np.inf
+    vmin = np.inf
+    vmax = -np.inf
+    zm = np.inf
+    for q in range(6):
+        d = sd * cube[q, ax]
+        inv = 1.0 / d
+        u = sx * cube[q, ix] * inv
+        v = sy * cube[q, iy] * inv
+        umin = min(umin, u)
+        umax = max(umax, u)
+        vmin = min(vmin, v)
+        vmax = max(vmax, v)
+        zm = min(zm, d)
+    return _pixel_range(umin, umax, vmin, vmax, res, box), zm
+
+
+@njit(**_PJIT)
+def _tri_boxes(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
+               out_box, out_z, out_flag):  # pragma: no cover - numba
+    """Per selected triangle and cube face: pixel box, smallest depth and flags (0 = absent)."""
+    nb = sel.shape[0]
+    nch = min(nb, 256)
+    for ch in prange(nch):
+        _tri_boxes_range(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
+                         out_box, out_z, out_flag, ch * nb // nch, (ch + 1) * nb // nch)
+
+
+@njit(**_JIT)
+def _tri_boxes_range(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
+                     out_box, out_z, out_flag, lo, hi):  # pragma: no cover - numba
+    cube = np.empty((6, 3))
+    cam = np.empty((6, 3))
+    bx = np.empty(4, dtype=np.int64)
+    for k in range(lo, hi):
+        t = sel[k]
+        for c in range(3):
+            vi = faces[t, c]
+            a0 = verts0[vi, 0] - v0[0]
+            a1 = verts0[vi, 1] - v0[1]
+            a2 = verts0[vi, 2] - v0[2]
+            b0 = verts1[vi, 0] - v0[0] - dvec[0]
+            b1 = verts1[vi, 1] - v0[1] - dvec[1]
+            b2 = verts1[vi, 2] - v0[2] - dvec[2]
+            for r in range(3):
+                cube[c, r] = rb[r, 0] * a0 + rb[r, 1] * a1 + rb[r, 2] * a2
+                cube[c + 3, r] = rb[r, 0] * b0 + rb[r, 1] * b1 + rb[r, 2] * b2
+        base = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0)
+        for f in range(6):
+            out_flag[k, f] = 0
+        # Fast path: all six points strictly inside the frustum of the first point's face, so
+        # the hull touches that face only (most triangles: small and away from cube edges).
+        ax = 0
+        big = abs(cube[0, 0])
+        if abs(cube[0, 1]) > big:
+            ax = 1
+            big = abs(cube[0, 1])
+        if abs(cube[0, 2]) > big:
+            ax = 2
+        sg = 1.0 if cube[0, ax] >= 0.0 else -1.0
+        i1 = (ax + 1) % 3
+        i2 = (ax + 2) % 3
+        inside = True
+        for q in range(6):
+            d = sg * cube[q, ax]
+            if not (d >= near and abs(cube[q, i1]) < d and abs(cube[q, i2]) < d):
+                inside = False
+                break
+        if inside:
+            f = 2 * ax + (0 if sg > 0.0 else 1)
+            ok, zm = _inside_box(cube, f, perm, sgn, res, bx)
+            if ok:
+                for r in range(4):
+                    out_box[k, f, r] = bx[r]
+                out_z[k, f] = zm
+                out_flag[k, f] = base
+            continue
+        for f in range(6):
+            for q in range(6):
+                for r in range(3):
+                    cam[q, r] = sgn[f, r] * cube[q, perm[f, r]]
+            ok, zm, slow = _hull_box(cam, 6, near, res, bx)
+            if ok:
+                for r in range(4):
+                    out_box[k, f, r] = bx[r]
+                out_z[k, f] = zm
+                out_flag[k, f] = base | (FLAG_SLOW if slow else 0)
+
+
+@njit(**_JIT)
+def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, out_box, out_z,
+                  out_flag):  # pragma: no cover - numba
+    """Per selected sphere and cube face: pixel box, smallest depth and flags (0 = absent)."""
+    p0 = np.empty(3)
+    p1 = np.empty(3)
+    bx = np.empty(4, dtype=np.int64)
+    for k in range(sel.shape[0]):
+        s = sel[k]
+        for f in range(6):
+            out_flag[k, f] = 0
+            for r in range(3):
+                p0[r] = 0.0
+                p1[r] = 0.0
+                for c in range(3):
+                    p0[r] += rots[f, r, c] * (c0[s, c] - v0[c])
+                    p1[r] += rots[f, r, c] * (c1[s, c] - v0[c] - dvec[c])
+            ok, zm, slow = sphere_box(p0, p1, radii[s], near, res, bx)
+            if ok:
+                for r in range(4):
+                    out_box[k, f, r] = bx[r]
+                out_z[k, f] = zm
+                out_flag[k, f] = FLAG_PRESENT | FLAG_SPHERE | FLAG_MOVING | (
+                    FLAG_SLOW if slow else 0)
+
+
+@njit(**_JIT)
+def _compact(ids, out_box, out_z, out_flag, prim_src, prim_face, prim_box, prim_z, prim_flag,
+             n):  # pragma: no cover - numba
+    """Append the present (primitive, face) slots to the prim arrays from index n."""
+    for k in range(out_flag.shape[0]):
+        for f in range(6):
+            if out_flag[k, f] != 0:
+                prim_src[n] = ids[k]
+                prim_face[n] = f
+                for r in range(4):
+                    prim_box[n, r] = out_box[k, f, r]
+                prim_z[n] = out_z[k, f]
+                prim_flag[n] = out_flag[k, f]
+                n += 1
+    return n
+
+
+@njit(**_JIT)
+def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover - numba
+    """Approximate front-to-back order (log-depth buckets) and per-tile CSR lists in that order.
+
+    Returns (zkey, tile_start, tile_items): zkey[p] <= prim_z[p] is non-decreasing along each
+    tile's list, so a tile can stop at the first primitive whose key is behind its bound."""
+    n = prim_z.shape[0]
+    zmax = near
+    for p in range(n):
+        zmax = max(zmax, prim_z[p])
+    span = np.log(zmax / near) + 1e-9
+    scale = (N_BUCKETS - 1) / span
+    bucket = np.empty(n, dtype=np.int64)
+    counts = np.zeros(N_BUCKETS + 1, dtype=np.int64)
+    zkey = np.empty(n)
+    for p in range(n):
+        z = max(prim_z[p], near)
+        b = min(int(np.log(z / near) * scale), N_BUCKETS - 1)
+        bucket[p] = b
+        counts[b + 1] += 1
+        # Lower edge of the bucket, nudged down against rounding.
+        zkey[p] = min(prim_z[p], near * np.exp(b / scale) * (1.0 - 1e-12))
+    for b in range(N_BUCKETS):
+        counts[b + 1] += counts[b]
+    order = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        b = bucket[p]
+        order[counts[b]] = p
+        counts[b] += 1
+    ntx = (res + TILE - 1) // TILE
+    per_face = ntx * ntx
+    ntiles = 6 * per_face
+    tile_start = np.zeros(ntiles + 1, dtype=np.int64)
+    for p in range(n):
+        base = prim_face[p] * per_face
+        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
+            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+                tile_start[base + ty * ntx + tx + 1] += 1
+    for i in range(ntiles):
+        tile_start[i + 1] += tile_start[i]
+    fill = tile_start[:-1].copy()
+    items = np.empty(tile_start[ntiles], dtype=np.int32)
+    for q in range(n):
+        p = order[q]
+        base = prim_face[p] * per_face
+        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
+            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+                tl = base + ty * ntx + tx
+                items[fill[tl]] = p
+                fill[tl] += 1
+    return zkey, tile_start, items
+
+
+# ------------------------------------------------------------------------------ static triangles
+@njit(**_JIT)
+def _less(ax, ay, az, bx, by, bz):
+    if ax != bx:
+        return ax < bx
+    if ay != by:
+        return ay < by
+    return az < bz
+
+
+@njit(**_JIT)
+def static_setup(P: np.ndarray, W: np.ndarray, d: np.ndarray, coef: np.ndarray) -> None:
+    """Coefficients of a static triangle for ``static_cover``.
+
+    P : (3, 3) camera-space corners relative to the eye at t = 0; W : (3, 3) world corners (edge
+    order only); d : (3,) camera-space eye motion over the segment. ``coef`` (>= 25) receives per
+    edge the vectors whose dot with the ray (x, y, -1) gives the edge value at t = 0 and its rate
+    (canonically oriented), then N, A . N, d . N and |N|^2.
+    """
+    for e in range(3):
+        i = e
+        j = (e + 1) % 3
+        sg = 1.0
+        if _less(W[j, 0], W[j, 1], W[j, 2], W[i, 0], W[i, 1], W[i, 2]):
+            i, j = j, i
+            sg = -1.0
+        px, py, pz = P[i, 0], P[i, 1], P[i, 2]
+        qx, qy, qz = P[j, 0], P[j, 1], P[j, 2]
+        ex, ey, ez = qx - px, qy - py, qz - pz
+        o = 6 * e
+        coef[o] = sg * (py * qz - pz * qy)
+        coef[o + 1] = sg * (pz * qx - px * qz)
+        coef[o + 2] = sg * (px * qy - py * qx)
+        # d/dt of (P - t d) x (Q - t d) = (Q - P) x d.
+        coef[o + 3] = sg * (ey * d[2] - ez * d[1])
+        coef[o + 4] = sg * (ez * d[0] - ex * d[2])
+        coef[o + 5] = sg * (ex * d[1] - ey * d[0])
+    ux, uy, uz = P[1, 0] - P[0, 0], P[1, 1] - P[0, 1], P[1, 2] - P[0, 2]
+    vx, vy, vz = P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2]
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    coef[18] = nx
+    coef[19] = ny
+    coef[20] = nz
+    coef[21] = P[0, 0] * nx + P[0, 1] * ny + P[0, 2] * nz
+    coef[22] = d[0] * nx + d[1] * ny + d[2] * nz
+    coef[23] = nx * nx + ny * ny + nz * nz
+
+
+@njit(**_JIT)
+def static_cover(coef: np.ndarray, x: float, y: float, near: float,
+                 slow: bool) -> tuple[bool, float, float, float, float]:
+    """Coverage interval and end depths of a static triangle at the pixel ray (x, y, -1).
+
+    Returns (covered, ts, tf, depth at ts, depth at tf); the depth is linear in t in between.
+    A ray (nearly) in the triangle's plane sees nothing, as in a rasterizer.
+    """
+    wn = coef[18] * x + coef[19] * y - coef[20]
+    if not (wn * wn > 1e-24 * coef[23] * (x * x + y * y + 1.0)):
+        return False, 0.0, 0.0, 0.0, 0.0
+    lo = 0.0
+    hi = 1.0
+    for e in range(3):
+        o = 6 * e
+        c = coef[o] * x + coef[o + 1] * y - coef[o + 2]
+        s = coef[o + 3] * x + coef[o + 4] * y - coef[o + 5]
+        if wn < 0.0:
+            c = -c
+            s = -s
+        # Inside this edge while c + s t >= 0; a root only when the sign changes on [0, 1].
+        c1 = c + s
+        if c >= 0.0 and c1 >= 0.0:
+            continue
+        if c < 0.0 and c1 < 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0
+        r = -c / s
+        if c < 0.0:
+            lo = max(lo, r)
+        else:
+            hi = min(hi, r)
+    va = coef[21]
+    dn = coef[22]
+    if slow:
+        # (va - t dn) / wn >= near
+        c = va - near * wn
+        s = -dn
+        if wn < 0.0:
+            c = -c
+            s = -s
+        c1 = c + s
+        if c < 0.0 and c1 < 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0
+        if not (c >= 0.0 and c1 >= 0.0):
+            r = -c / s
+            if c < 0.0:
+                lo = max(lo, r)
+            else:
+                hi = min(hi, r)
+    if not (hi > lo):
+        return False, 0.0, 0.0, 0.0, 0.0
+    zs = (va - lo * dn) / wn
+    zf = (va - hi * dn) / wn
+    return True, lo, hi, max(zs, 0.0), max(zf, 0.0)
+
+
+# ------------------------------------------------------------------------------ envelopes
+# A pixel's envelope is rows (t0, t1, z0, m) of ``env[px, :cnt]``: sorted, disjoint pieces with
+# depth z0 + m (t - t0) on [t0, t1], and the owning primitive in ``eid[px, :cnt]``.
+
+
+@njit(**_JIT)
+def _emit(T, tid, n, a, b, za, m, pid):
+    """Append piece [a, b] (depth za at a, slope m) to the scratch list, extending the previous
+    piece instead when it is the same primitive's contiguous continuation on the same line."""
+    if not (b > a):
+        return n
+    if n > 0 and tid[n - 1] == pid and T[n - 1, 1] == a and T[n - 1, 3] == m:
+        T[n - 1, 1] = b
+        return n
+    T[n, 0] = a
+    T[n, 1] = b
+    T[n, 2] = za
+    T[n, 3] = m
+    tid[n] = pid
+    return n + 1
+
+
+@njit(**_JIT)
+def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
+    """Depth-composite the chord [a, b] (depth za -> zb, primitive pid) into pixel ``px``'s
+    envelope.
+
+    The nearer surface wins; exact ties keep the existing piece; crossing chords are split at
+    their intersection (the hinge of intersecting triangles). Only the pieces overlapping [a, b]
+    are rewritten, and nothing is when the chord is hidden. ``T`` (>= 2 cap + 4, 4) and ``tid``
+    are scratch. Returns (new count, or -1 when it would exceed the capacity; changed)."""
+    if not (b > a):
+        return cnt, False
+    mn = (zb - za) / (b - a)
+    lo = 0
+    while lo < cnt and env[px, lo, 1] <= a:
+        lo += 1
+    hi = lo
+    while hi < cnt and env[px, hi, 0] < b:
+        hi += 1
+    cap = env.shape[1]
+    if lo == hi:
+        # Falls in a gap: insert as is.
+        if cnt + 1 > cap:
+            return -1, False
+        for k in range(cnt - 1, hi - 1, -1):
+            for r in range(4):
+                env[px, k + 1, r] = env[px, k, r]
+            eid[px, k + 1] = eid[px, k]
+        env[px, lo, 0] = a
+        env[px, lo, 1] = b
+        env[px, lo, 2] = za
+        env[px, lo, 3] = mn
+        eid[px, lo] = pid
+        return cnt + 1, True
+    # Hidden everywhere (no gap, behind at both ends of every overlap): nothing to do.
+    cur = a
+    hidden = True
+    for k in range(lo, hi):
+        p0 = env[px, k, 0]
+        if p0 > cur:
+            hidden = False
+            break
+        o1 = min(env[px, k, 1], b)
+        q0 = env[px, k, 2]
+        mp = env[px, k, 3]
+        if za + mn * (cur - a) < q0 + mp * (cur - p0) or za + mn * (o1 - a) < q0 + mp * (o1 - p0):
+            hidden = False
+            break
+        cur = o1
+    if hidden and cur >= b:
+        return cnt, False
+    n = 0
+    cur = a
+    won = False
+    for k in range(lo, hi):
+        p0 = env[px, k, 0]
+        p1 = env[px, k, 1]
+        q0 = env[px, k, 2]
+        mp = env[px, k, 3]
+        qi = eid[px, k]
+        if p0 > cur:
+            n = _emit(T, tid, n, cur, p0, za + mn * (cur - a), mn, pid)
+            won = True
+            cur = p0
+        elif p0 < cur:
+            n = _emit(T, tid, n, p0, cur, q0, mp, qi)
+        o0 = cur
+        o1 = min(p1, b)
+        n0 = za + mn * (o0 - a)
+        e0 = q0 + mp * (o0 - p0)
+        d0 = n0 - e0
+        d1 = (za + mn * (o1 - a)) - (q0 + mp * (o1 - p0))
+        if d0 >= 0.0 and d1 >= 0.0:
+            n = _emit(T, tid, n, o0, o1, e0, mp, qi)
+        elif d0 <= 0.0 and d1 <= 0.0:
+            n = _emit(T, tid, n, o0, o1, n0, mn, pid)
+            won = True
+        else:
+            tc = o0 + (o1 - o0) * (d0 / (d0 - d1))
+            tc = min(max(tc, o0), o1)
+            if d0 < 0.0:
+                won = won or tc > o0
+                n = _emit(T, tid, n, o0, tc, n0, mn, pid)
+                n = _emit(T, tid, n, tc, o1, q0 + mp * (tc - p0), mp, qi)
+            else:
+                won = won or o1 > tc
+                n = _emit(T, tid, n, o0, tc, e0, mp, qi)
+                n = _emit(T, tid, n, tc, o1, za + mn * (tc - a), mn, pid)
+        cur = o1
+        if p1 > b:
+            n = _emit(T, tid, n, b, p1, q0 + mp * (b - p0), mp, qi)
+    if cur < b:
+        n = _emit(T, tid, n, cur, b, za + mn * (cur - a), mn, pid)
+        won = True
+    if not won:
+        return cnt, False
+    new_cnt = cnt - (hi - lo) + n
+    if new_cnt > cap:
+        return -1, False
+    shift = n - (hi - lo)
+    if shift > 0:
+        for k in range(cnt - 1, hi - 1, -1):
+            for r in range(4):
+                env[px, k + shift, r] = env[px, k, r]
+            eid[px, k + shift] = eid[px, k]
+    elif shift < 0:
+        for k in range(hi, cnt):
+            for r in range(4):
+                env[px, k + shift, r] = env[px, k, r]
+            eid[px, k + shift] = eid[px, k]
+    for k in range(n):
+        for r in range(4):
+            env[px, lo + k, r] = T[k, r]
+        eid[px, lo + k] = tid[k]
+    return new_cnt, True
+
+
+@njit(**_JIT)
+def pixel_bound(env, px, cnt):
+    """Greatest depth of a pixel's envelope when it covers all of [0, 1] (gaps up to EPS_LEN),
+    else +inf: no chord at or beyond it can change the envelope."""
+    if cnt == 0 or env[px, 0, 0] > EPS_LEN:
+        return np.inf
+    prev = 0.0
+    zmax = 0.0
+    for k in range(cnt):
+        t0 = env[px, k, 0]
+        if t0 - prev > EPS_LEN:
+            return np.inf
+        prev = env[px, k, 1]
+        z0 = env[px, k, 2]
+        zmax = max(zmax, max(z0, z0 + env[px, k, 3] * (prev - t0)))
+    if prev < 1.0 - EPS_LEN:
+        return np.inf
+    return zmax
+
+
+# ------------------------------------------------------------------------------ tile resolution
+@njit(**_PJIT)
+def _resolve(tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z, prim_zkey,
+             prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii, n_tri, v0, dvec, rots,
+             res, near, knots, cap, visible, overflow, counters,
+             witness):  # pragma: no cover - numba
+    """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
+    n_tri + sphere). A tile whose envelopes outgrow ``cap`` sets ``overflow`` and marks nothing.
+    Tiles are strided over chunks so that busy screen regions spread over the threads."""
+    for ch in prange(n_chunks):
+        _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
+                       prim_zkey, prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii,
+                       n_tri, v0, dvec, rots, res, near, knots, cap, visible, overflow, counters,
+                       witness)
+
+
+@njit(**_JIT)
+def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
+                   prim_zkey, prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii, n_tri,
+                   v0, dvec, rots, res, near, knots, cap, visible, overflow,
+                   counters, witness):  # pragma: no cover - numba
+    ntx = (res + TILE - 1) // TILE
+    per_face = ntx * ntx
+    npx_max = TILE * TILE
+    step = 2.0 / res
+    maxp = 8 * (knots + 2) + 8
+    want_witness = witness.shape[1] == visible.shape[0]
+    env = np.empty((npx_max, cap, 4))
+    eid = np.empty((npx_max, cap), dtype=np.int32)
+    cnt = np.zeros(npx_max, dtype=np.int64)
+    bound = np.empty(npx_max)
+    T = np.empty((2 * cap + 8, 4))  # insertion scratch
+    tid = np.empty(2 * cap + 8, dtype=np.int32)
+    pt0 = np.empty(maxp)
+    pt1 = np.empty(maxp)
+    pz0 = np.empty(maxp)
+    pz1 = np.empty(maxp)
+    brk = np.empty(32)
+    stk = np.empty((64, 4))
+    coef = np.empty(40)
+    P = np.empty((3, 3))
+    U = np.empty((3, 3))
+    W = np.empty((3, 3))
+    dc = np.empty(3)
+    cen = np.empty(3)
+    vel = np.empty(3)
+    n_pairs = 0
+    n_pieces = 0
+    n_prims = 0
+    n_culled = 0
+    n_final = 0
+    for qi in range(ch, tiles.shape[0], n_chunks):
+        tile = tiles[qi]
+        f = tile // per_face
+        rt = tile % per_face
+        r0 = (rt // ntx) * TILE
+        cl0 = (rt % ntx) * TILE
+        r1 = min(r0 + TILE, res)
+        cl1 = min(cl0 + TILE, res)
+        tw = cl1 - cl0
+        npx = (r1 - r0) * tw
+        for p in range(npx):
+            cnt[p] = 0
+            bound[p] = np.inf
+        open_px = npx
+        tbound = np.inf
+        since = 0
+        R = rots[f]
+        for r in range(3):
+            dc[r] = R[r, 0] * dvec[0] + R[r, 1] * dvec[1] + R[r, 2] * dvec[2]
+        ovf = False
+        end = tile_start[tile + 1]
+        for it in range(tile_start[tile], end):
+            pr = tile_items[it]
+            if prim_zkey[pr] >= tbound:
+                n_culled += end - it
+                break
+            if prim_z[pr] >= tbound:
+                n_culled += 1
+                continue
+            n_prims += 1
+            src = prim_src[pr]
+            flag = prim_flag[pr]
+            slow = (flag & FLAG_SLOW) != 0
+            kind = 0
+            if flag & FLAG_SPHERE:
+                kind = 2
+                s = src - n_tri
+                for r in range(3):
+                    cen[r] = R[r, 0] * (c0[s, 0] - v0[0]) + R[r, 1] * (c0[s, 1] - v0[1]) \
+                        + R[r, 2] * (c0[s, 2] - v0[2])
+                    vel[r] = R[r, 0] * (c1[s, 0] - c0[s, 0]) + R[r, 1] * (
+                        c1[s, 1] - c0[s, 1]) + R[r, 2] * (c1[s, 2] - c0[s, 2]) - dc[r]
+                sphere_setup(cen, vel, radii[s], coef)
+            else:
+                for c in range(3):
+                    vi = faces[src, c]
+                    for r in range(3):
+                        W[c, r] = verts0[vi, r]
+                    for r in range(3):
+                        P[c, r] = R[r, 0] * (verts0[vi, 0] - v0[0]) + R[r, 1] * (
+                            verts0[vi, 1] - v0[1]) + R[r, 2] * (verts0[vi, 2] - v0[2])
+                if flag & FLAG_MOVING:
+                    kind = 1
+                    for c in range(3):
+                        vi = faces[src, c]
+                        for r in range(3):
+                            U[c, r] = R[r, 0] * (verts1[vi, 0] - verts0[vi, 0]) + R[r, 1] * (
+                                verts1[vi, 1] - verts0[vi, 1]) + R[r, 2] * (
+                                verts1[vi, 2] - verts0[vi, 2]) - dc[r]
+                    moving_setup(P, U, W, coef)
+                else:
+                    static_setup(P, W, dc, coef)
+            zpr = prim_z[pr]
+            ia = max(prim_box[pr, 0], r0)
+            ib = min(prim_box[pr, 1], r1 - 1)
+            ja = max(prim_box[pr, 2], cl0)
+            jb = min(prim_box[pr, 3], cl1 - 1)
+            for i in range(ia, ib + 1):
+                y = 1.0 - (i + 0.5) * step
+                for j in range(ja, jb + 1):
+                    px = (i - r0) * tw + (j - cl0)
+                    if zpr >= bound[px]:
+                        continue
+                    x = (j + 0.5) * step - 1.0
+                    n_pairs += 1
+                    if kind == 0:
+                        ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
+                        if not ok:
+                            continue
+                        pt0[0] = ts
+                        pt1[0] = tf
+                        pz0[0] = zs
+                        pz1[0] = zf
+                        npc = 1
+                    elif kind == 1:
+                        npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1,
+                                           brk, stk)
+                    else:
+                        npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1,
+                                           brk, stk)
+                    for q in range(npc):
+                        if min(pz0[q], pz1[q]) >= bound[px]:
+                            continue
+                        n_pieces += 1
+                        nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
+                                                      pz0[q], pz1[q], src, T, tid)
+                        if nn < 0:
+                            ovf = True
+                            break
+                        if changed:
+                            cnt[px] = nn
+                            zb = pixel_bound(env, px, nn)
+                            if zb < np.inf:
+                                if bound[px] == np.inf:
+                                    open_px -= 1
+                                bound[px] = zb
+                    if ovf:
+                        break
+                if ovf:
+                    break
+            if ovf:
+                break
+            since += 1
+            if open_px == 0 and (tbound == np.inf or since >= 8):
+                tb = 0.0
+                for p in range(npx):
+                    tb = max(tb, bound[p])
+                tbound = tb
+                since = 0
+        if ovf:
+            overflow[qi] = True
+            continue
+        for p in range(npx):
+            n_final += cnt[p]
+            for k in range(cnt[p]):
+                length = env[p, k, 1] - env[p, k, 0]
+                if length > EPS_LEN:
+                    pid = eid[p, k]
+                    visible[pid] = True
+                    if want_witness and length > witness[ch, pid, 0]:
+                        witness[ch, pid, 0] = length
+                        witness[ch, pid, 1] = 0.5 * (env[p, k, 0] + env[p, k, 1])
+                        witness[ch, pid, 2] = f
+                        witness[ch, pid, 3] = r0 + p // tw
+                        witness[ch, pid, 4] = cl0 + p % tw
+    counters[ch, 0] += n_pairs
+    counters[ch, 1] += n_pieces
+    counters[ch, 2] += n_prims
+    counters[ch, 3] += n_culled
+    counters[ch, 4] += n_final
+
+
+# ------------------------------------------------------------------------------ Python driver
+@dataclass
+class SegmentGeometry:
+    """The geometry of one state interval, as the kernels read it.
+
+    Attributes
+    ----------
+    verts0, verts1 : (n, 3) float64 vertex positions at the interval's start and end (the same
+        array for a static scene), metres.
+    faces : (m, 3) int32.
+    tri_sel : (k,) int64 ids of the triangles that take part (valid faces).
+    moving : (m,) bool, triangles whose corners move in this interval.
+    centers0, centers1 : (s, 3) float64 sphere centres at start and end; radii : (s,) float64.
+    sphere_sel : (q,) int64 ids of the spheres that take part.
+    """
+
+    verts0: np.ndarray
+    verts1: np.ndarray
+    faces: np.ndarray
+    tri_sel: np.ndarray
+    moving: np.ndarray
+    centers0: np.ndarray
+    centers1: np.ndarray
+    radii: np.ndarray
+    sphere_sel: np.ndarray
+
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.faces))
+
+    @property
+    def n_ids(self) -> int:
+        """Length of the visibility mask: triangles, then spheres."""
+        return int(len(self.faces) + len(self.radii))
+
+
+def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
+    """One ``SegmentGeometry`` per consecutive pair of the scene's states (one for a static
+    scene). Triangles use ``scene.valid_faces``; spheres need finite centres and radius > 0."""
+    faces = np.ascontiguousarray(scene.faces, dtype=np.int32)
+    tri_sel = np.flatnonzero(scene.valid_faces).astype(np.int64)
+    m = len(faces)
+    if scene.states is not None and scene.states.shape[0] > 1:
+        tri_states = [np.ascontiguousarray(s) for s in scene.states]
+    else:
+        base = scene.vertices if scene.states is None else scene.states[0]
+        tri_states = [np.ascontiguousarray(base, dtype=np.float64)]
+    if scene.n_spheres:
+        radii = np.ascontiguousarray(scene.sphere_radii, dtype=np.float64)
+        cs = [np.ascontiguousarray(c) for c in scene.sphere_centers]
+        finite = np.all(np.isfinite(scene.sphere_centers), axis=(0, 2))
+        ok = finite & np.isfinite(radii) & (radii > 0)
+        sphere_sel = np.flatnonzero(ok).astype(np.int64)
+    else:
+        radii = np.zeros(0)
+        cs = [np.zeros((0, 3))]
+        sphere_sel = np.zeros(0, dtype=np.int64)
+    pairs = max(len(tri_states), len(cs)) - 1
+    out = []
+    for p in range(max(pairs, 1)):
+        a = tri_states[min(p, len(tri_states) - 1)]
+        b = tri_states[min(p + 1, len(tri_states) - 1)]
+        if a is b:
+            moving = np.zeros(m, dtype=bool)
+        else:
+            vm = np.any(a != b, axis=1)
+            moving = vm[faces].any(axis=1) if m else np.zeros(0, dtype=bool)
+        out.append(SegmentGeometry(
+            verts0=a, verts1=b, faces=faces, tri_sel=tri_sel, moving=moving,
+            centers0=cs[min(p, len(cs) - 1)], centers1=cs[min(p + 1, len(cs) - 1)], radii=radii,
+            sphere_sel=sphere_sel))
+    return out
+
+
+def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
+    """All (primitive, face) pairs that can touch a pixel centre of the segment's cubemap."""
+    n_tri = geom.n_triangles
+    chunks = []
+    total = 0
+    sel = geom.tri_sel
+    for s in range(0, len(sel), batch):
+        part = sel[s:s + batch]
+        k = len(part)
+        box = np.empty((k, 6, 4), dtype=np.int32)
+        z = np.empty((k, 6))
+        flag = np.empty((k, 6), dtype=np.uint8)
+        _tri_boxes(geom.verts0, geom.verts1, geom.faces, part, geom.moving, v0, dvec, rb, _PERM,
+                   _SGN, res, near, box, z, flag)
+        chunks.append((part.astype(np.int32), box, z, flag))
+        total += int(np.count_nonzero(flag))
+    if len(geom.sphere_sel):
+        k = len(geom.sphere_sel)
+        box = np.empty((k, 6, 4), dtype=np.int32)
+        z = np.empty((k, 6))
+        flag = np.empty((k, 6), dtype=np.uint8)
+        _sphere_boxes(geom.centers0, geom.centers1, geom.radii, geom.sphere_sel, v0, dvec, rots,
+                      res, near, box, z, flag)
+        chunks.append(((geom.sphere_sel + n_tri).astype(np.int32), box, z, flag))
+        total += int(np.count_nonzero(flag))
+    prim_src = np.empty(total, dtype=np.int32)
+    prim_face = np.empty(total, dtype=np.int32)
+    prim_box = np.empty((total, 4), dtype=np.int32)
+    prim_z = np.empty(total)
+    prim_flag = np.empty(total, dtype=np.uint8)
+    n = 0
+    for ids, box, z, flag in chunks:
+        n = _compact(ids, box, z, flag, prim_src, prim_face, prim_box, prim_z, prim_flag, n)
+    stats["prims"] = stats.get("prims", 0) + n
+    return prim_src, prim_face, prim_box, prim_z, prim_flag
+
+
+def segment_visible(
+    geom: SegmentGeometry,
+    v0: np.ndarray,
+    v1: np.ndarray,
+    base_rotation: np.ndarray | None = None,
+    resolution: int = 256,
+    near: float = DEFAULT_NEAR,
+    knots: int = 16,
+    batch: int = DEFAULT_BATCH,
+    visible: np.ndarray | None = None,
+    stats: dict | None = None,
+    witness: np.ndarray | None = None,
+) -> np.ndarray:
+    """Primitives visible at some pixel centre of a cubemap moving along v0 -> v1.
+
+    Parameters
+    ----------
+    geom : the scene's geometry for one state interval (``scene_geometries``); vertices and
+        sphere centres move linearly over it while the eye moves from v0 to v1.
+    v0, v1 : (3,) segment end points, metres (equal points give from-point visibility).
+    base_rotation : (3, 3) world-to-cube rotation (``camera.cube_face_rotations``), None = axes.
+    resolution : face resolution in pixels (90-degree square faces).
+    near : near-plane distance, metres.
+    knots : depth of moving primitives is interpolated between multiples of 1 / knots in t.
+    batch : triangles per batch of the box pass.
+    visible : optional (geom.n_ids,) bool mask to OR into (triangles first, then spheres).
+    stats : optional dict; counters and per-phase seconds are added to it.
+    witness : optional (geom.n_ids, 5) float64 array (zeros to start): for each visible primitive,
+        its longest envelope piece seen so far as (length in t, mid t, face, row, col), i.e. a
+        time and pixel centre at which it is the nearest surface (for tests and debugging).
+
+    Returns
+    -------
+    (geom.n_ids,) bool mask of primitives visible from the segment.
+    """
+    import time
+
+    v0 = np.asarray(v0, dtype=np.float64).reshape(3)
+    v1 = np.asarray(v1, dtype=np.float64).reshape(3)
+    if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
+        raise ValueError("segment end points must be finite")
+    res = int(resolution)
+    if not 1 <= res <= 1 << 14:
+        raise ValueError(f"resolution must be in [1, 16384], got {resolution}")
+    if not (np.isfinite(near) and near > 0):
+        raise ValueError(f"near must be a positive number of metres, got {near}")
+    if int(knots) < 1:
+        raise ValueError(f"knots must be >= 1, got {knots}")
+    if visible is None:
+        visible = np.zeros(geom.n_ids, dtype=bool)
+    if stats is None:
+        stats = {}
+    rb = np.eye(3) if base_rotation is None else np.ascontiguousarray(base_rotation, np.float64)
+    rots = np.ascontiguousarray(cube_face_rotations(rb))
+    dvec = v1 - v0
+    t0 = time.perf_counter()
+    prim_src, prim_face, prim_box, prim_z, prim_flag = _collect_prims(
+        geom, v0, dvec, rb, rots, res, float(near), max(1, int(batch)), stats)
+    t1 = time.perf_counter()
+    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, res, float(near))
+    t2 = time.perf_counter()
+    ntiles = len(tile_start) - 1
+    tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
+    cap = START_CAP
+    n_chunks = max(1, min(len(tiles), 8 * numba.get_num_threads()))
+    counters = np.zeros((n_chunks, 5), dtype=np.int64)
+    if witness is not None:
+        if witness.shape != (geom.n_ids, 5):
+            raise ValueError(f"witness must be ({geom.n_ids}, 5), got {witness.shape}")
+        wit = np.zeros((n_chunks, geom.n_ids, 5))
+    else:
+        wit = np.zeros((1, 0, 5))
+    redo = 0
+    while len(tiles):
+        overflow = np.zeros(len(tiles), dtype=bool)
+        nch = max(1, min(len(tiles), n_chunks))
+        _resolve(tiles, nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
+                 prim_face, geom.verts0, geom.verts1, geom.faces, geom.centers0, geom.centers1,
+                 geom.radii, geom.n_triangles, v0, dvec, rots, res, float(near), int(knots), cap,
+                 visible, overflow, counters[:nch], wit)
+        tiles = tiles[overflow]
+        if len(tiles):
+            if cap >= MAX_CAP:
+                raise RuntimeError(f"envelope capacity {MAX_CAP} exceeded in {len(tiles)} tiles")
+            cap *= 4
+            redo += len(tiles)
+    t3 = time.perf_counter()
+    if witness is not None:
+        best = np.argmax(wit[:, :, 0], axis=0)
+        cand = wit[best, np.arange(geom.n_ids)]
+        better = cand[:, 0] > witness[:, 0]
+        witness[better] = cand[better]
+    stats["box_seconds"] = stats.get("box_seconds", 0.0) + (t1 - t0)
+    stats["bin_seconds"] = stats.get("bin_seconds", 0.0) + (t2 - t1)
+    stats["envelope_seconds"] = stats.get("envelope_seconds", 0.0) + (t3 - t2)
+    stats["tile_items"] = stats.get("tile_items", 0) + int(len(items))
+    stats["pairs"] = stats.get("pairs", 0) + int(counters[:, 0].sum())
+    stats["pieces"] = stats.get("pieces", 0) + int(counters[:, 1].sum())
+    stats["prim_tiles"] = stats.get("prim_tiles", 0) + int(counters[:, 2].sum())
+    stats["culled_prim_tiles"] = stats.get("culled_prim_tiles", 0) + int(counters[:, 3].sum())
+    stats["final_pieces"] = stats.get("final_pieces", 0) + int(counters[:, 4].sum())
+    stats["redone_tiles"] = stats.get("redone_tiles", 0) + redo
+    stats["max_cap"] = max(stats.get("max_cap", 0), cap)
+    stats["face_runs"] = stats.get("face_runs", 0) + 6
+    del ntiles
+    return visible
