@@ -80,12 +80,32 @@ def cmd_walk(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
+def _six_floats(text: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 6:
+        raise argparse.ArgumentTypeError(f"expected six comma-separated numbers, got {text!r}")
+    return vals
+
+
 def cmd_query(args: argparse.Namespace) -> int:
     import httpx
 
-    params = {"core": args.core, **_parse_params(args.param)}
-    url = f"{args.server.rstrip('/')}/scenes/{args.scene}/cells/{args.cell}/pvs"
-    r = httpx.get(url, params=params, timeout=args.timeout)
+    params = _parse_params(args.param)
+    base = f"{args.server.rstrip('/')}/scenes/{args.scene}"
+    region = args.segment or args.box
+    if region is not None:
+        p, q = region[:3], region[3:]
+        req: dict = {"segment" if args.segment else "box": [p, q], "params": params}
+        if args.core:
+            req["core"] = args.core
+        r = httpx.post(f"{base}/pvs", json=req, timeout=args.timeout)
+    else:
+        if args.core:
+            params["core"] = args.core
+        r = httpx.get(f"{base}/cells/{args.cell}/pvs", params=params, timeout=args.timeout)
     body = r.json()
     if r.status_code != 200:
         print(json.dumps(body, indent=2), file=sys.stderr)
@@ -234,11 +254,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_walk_options(p, "runs/walk")
     p.set_defaults(fn=cmd_walk)
 
-    p = sub.add_parser("query", help="a cell's PVS over HTTP")
+    p = sub.add_parser("query", help="a cell's (or a segment's, a box's) PVS over HTTP")
     p.add_argument("--server", default="http://127.0.0.1:8000")
     p.add_argument("--scene", required=True)
-    p.add_argument("--cell", type=int, required=True)
-    p.add_argument("--core", default="sampling")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--cell", type=int, help="grid cell id")
+    where.add_argument("--segment", type=_six_floats, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                       help="the PVS of the segment between two points (metres)")
+    where.add_argument("--box", type=_six_floats, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                       help="the PVS of an axis-aligned box [min, max] (metres)")
+    p.add_argument("--core", default=None, help="core name (default: the server's)")
     p.add_argument("--param", action="append")
     p.add_argument("--ids", action="store_true", help="print every id")
     p.add_argument("--timeout", type=float, default=600)

@@ -274,7 +274,8 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         row = dict(base, gt_triangles=int(len(gt_ids)),
                                    gt_seconds=gt_rec["seconds"], **job["row"])
                         try:
-                            res = _run_point(job, scene, cell, cfg["repeats"], rows, label, cid)
+                            res = _run_point(job, scene, cell, cfg["repeats"], rows, label, cid,
+                                             gt_ids)
                         except Exception as exc:  # a failing core is a finding, not a stop
                             row["error"] = f"{type(exc).__name__}: {exc}"
                             log(f"    {row['core']} {row['knob']}={row['level']}: {row['error']}")
@@ -320,13 +321,35 @@ def _jobs(cores, levels_by_knob, cfg, use_peer) -> list[dict[str, Any]]:
         for lv in levels_by_knob["samples"][: cfg["levels"]]:
             jobs.append({"kind": "peer", "level": lv,
                          "row": {"core": peers.NAME, "knob": "samples", "level": lv}})
-        # Equal time: the peer gets the sampling core's median time at its middle level.
-        jobs.append({"kind": "peer_equal_time",
-                     "row": {"core": peers.NAME, "knob": "budget", "level": "sampling"}})
+    ref = cfg.get("reference")
+    if ref and ref in cores:
+        # Both from-point peers against the reference core's most accurate level: equal time
+        # (its median seconds as a budget) and equal completeness (until they have found as
+        # much of the ground truth as it did).
+        engines = [("raster", "sampling")] + ([("embree", peers_name())] if use_peer else [])
+        for engine, label in engines:
+            jobs.append({"kind": "equal_time", "engine": engine, "ref": ref,
+                         "row": {"core": label, "knob": "budget", "level": ref}})
+            jobs.append({"kind": "equal_completeness", "engine": engine, "ref": ref,
+                         "row": {"core": label, "knob": "completeness", "level": ref}})
     return jobs
 
 
-def _run_point(job, scene, cell, repeats, rows, label, cid):
+def peers_name() -> str:
+    from benchmarks import peers
+
+    return peers.NAME
+
+
+#: Most viewpoints a from-point peer may use for an equal-time or equal-completeness point.
+MAX_PEER_SAMPLES = 100_000
+#: An equal-completeness peer stops after max(PEER_CAP_SECONDS, PEER_CAP_FACTOR x the reference
+#: core's time) and is reported as not having reached the target.
+PEER_CAP_SECONDS = 60.0
+PEER_CAP_FACTOR = 50.0
+
+
+def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None):
     """(ids, seconds per repeat, peak MiB, extra row fields) of one matrix point, or None."""
     from benchmarks import peers
 
@@ -346,19 +369,25 @@ def _run_point(job, scene, cell, repeats, rows, label, cid):
 
         def once():
             return core.compute(scene, cell, params)
+    elif job["kind"] == "peer":
+        def once():
+            return peers.from_point_pvs(scene, cell, "embree", job["level"], cfg_res)
     else:
-        samples, budget = job.get("level"), None
-        if job["kind"] == "peer_equal_time":
-            ref = [r for r in rows if r["scene"] == label and r["cell"] == cid
-                   and r["core"] == "sampling" and "seconds_median" in r]
-            if not ref:
-                return None
-            ref = ref[len(ref) // 2]
-            budget, samples = ref["seconds_median"], 100_000
+        ref = [r for r in rows if r["scene"] == label and r["cell"] == cid
+               and r["core"] == job["ref"] and "seconds_median" in r]
+        if not ref:
+            return None
+        ref = ref[-1]  # the most accurate level
+        kw: dict[str, Any] = {"samples": MAX_PEER_SAMPLES}
+        if job["kind"] == "equal_time":
+            kw["time_budget"] = ref["seconds_median"]
+        else:
+            kw.update(target_ids=gt_ids, target_share=1.0 - ref["fn"],
+                      time_budget=max(PEER_CAP_SECONDS, PEER_CAP_FACTOR * ref["seconds_median"]))
+            job["row"]["target_pct"] = 100.0 * (1.0 - ref["fn"])
 
         def once():
-            return peers.embree_pvs(scene, cell, samples=samples, resolution=cfg_res,
-                                    time_budget=budget)
+            return peers.from_point_pvs(scene, cell, job["engine"], resolution=cfg_res, **kw)
     secs, ids, peak, extra = [], None, None, {}
     for r in range(max(1, repeats)):
         t0 = time.perf_counter()
@@ -370,6 +399,9 @@ def _run_point(job, scene, cell, repeats, rows, label, cid):
         ids = out.triangle_ids
         if job["kind"] != "core":
             extra = {"peer_samples": out.stats.get("samples")}
+            if "target_pct" in job["row"]:
+                extra["reached"] = bool(out.stats.get("reached"))
+                extra["target_pct"] = job["row"]["target_pct"]
     return ids, secs, peak, extra
 
 
@@ -396,6 +428,12 @@ def scene_table(rows: list[dict[str, Any]]) -> str:
             lines.append(f"| {cell} | {r['core']} | {knob} | error: {r['error']} |"
                          + " |" * 8)
             continue
+        if r["knob"] == "budget":
+            knob = f"equal time to {r['level']}"
+        elif r["knob"] == "completeness":
+            knob = f"equal completeness to {r['level']} ({_fmt(r.get('target_pct'), '.1f')} %)"
+            if not r.get("reached", True):
+                knob += ", NOT reached"
         if r.get("peer_samples") is not None:
             knob += f" ({r['peer_samples']} pts)"
         lines.append(
@@ -416,7 +454,7 @@ def plot_scene(rows: list[dict[str, Any]], title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    good = [r for r in rows if "error" not in r and r["knob"] != "budget"]
+    good = [r for r in rows if "error" not in r and r["knob"] not in ("budget", "completeness")]
     for core in sorted({r["core"] for r in good}):
         rs = [r for r in good if r["core"] == core]
         levels = sorted({str(r["level"]) for r in rs}, key=lambda s: (len(s), s))
@@ -430,16 +468,18 @@ def plot_scene(rows: list[dict[str, Any]], title: str, path: Path) -> None:
         order = np.argsort(xs)
         for ax, ys in ((axes[0], fns), (axes[1], eps)):
             ax.plot(np.array(xs)[order], np.array(ys)[order], "o-", label=core)
-    for r in (r for r in rows if r.get("knob") == "budget" and "error" not in r):
-        axes[0].plot([r["seconds_median"]], [100 * r["fn"]], "k*", ms=9)
-        axes[1].plot([r["seconds_median"]], [r["eps_mean"]], "k*", ms=9)
+    for knob, mark in (("budget", "k*"), ("completeness", "kD")):
+        for r in (r for r in rows if r.get("knob") == knob and "error" not in r):
+            axes[0].plot([r["seconds_median"]], [100 * r["fn"]], mark, ms=8)
+            axes[1].plot([r["seconds_median"]], [r["eps_mean"]], mark, ms=8)
     for ax, lab in ((axes[0], "FN rate (% of ground truth)"), (axes[1], "mean ε (% of pixels)")):
         ax.set_xscale("log")
         ax.set_xlabel("seconds per cell (median)")
         ax.set_ylabel(lab)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{title}: error against run time (mean over cells; ★ = peer at equal time)")
+    fig.suptitle(f"{title}: error against run time (mean over cells; ★ peer at equal time, "
+                 "◆ at equal completeness)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -469,9 +509,13 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         f"{cfg['views']} fixed views in the cell at {cfg['view_size']}² px, 90° fov, PVS subset "
         "against the full scene (`client.metrics.frame_metrics`; PSNR capped at 100 dB). "
         f"Non-knob `resolution` = {cfg['resolution']}. Peer `embree_rays`: Embree (embreex via "
-        "trimesh) rays through cube pixel centres from the same stratified points as `sampling`; "
-        "`budget=sampling` gives it the `sampling` core's median time at its middle level "
-        "(equal time); equal completeness is read off the curves.\n",
+        "trimesh) rays through cube pixel centres from the same stratified points as `sampling`. "
+        f"Peers against `{cfg.get('reference')}` at its most accurate level: both from-point "
+        "methods (`sampling`, our rasterizer, and `embree_rays`) add viewpoints one at a time "
+        "until they have used its median time (equal time) or found as large a share of the "
+        "ground truth as it did (equal completeness; capped at "
+        f"max({PEER_CAP_SECONDS:g} s, {PEER_CAP_FACTOR:g}x its time), marked NOT reached "
+        "otherwise).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         srows = [r for r in rows if r["scene"] == label]
@@ -503,6 +547,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view-size", type=int)
     p.add_argument("--resolution", type=int, help="resolution of cores whose knob is not it")
     p.add_argument("--no-peer", action="store_true", help="skip the Embree ray-caster peer")
+    p.add_argument("--reference", default="from_segment",
+                   help="core the from-point peers get equal time and equal completeness "
+                        "against ('none' to skip)")
     p.add_argument("--out", type=Path, default=None, help="report (default BENCHMARKS.md)")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
     p.add_argument("--cache-dir", type=Path, default=None)
@@ -524,6 +571,7 @@ def config_from_args(args: argparse.Namespace) -> dict[str, Any]:
                              for c in args.cell_sizes]
     cfg["cores"] = args.cores
     cfg["peer"] = not args.no_peer
+    cfg["reference"] = None if args.reference == "none" else args.reference
     cfg["cache_dir"] = str(args.cache_dir) if args.cache_dir else None
     for k in ("cells", "repeats", "levels", "gt_points", "gt_resolution", "views", "view_size",
               "resolution"):

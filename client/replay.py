@@ -111,7 +111,7 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             total=len(walk),
             desc=f"{opts.scene}/{core}",
             unit="frame",
-            disable=opts.quiet,
+            disable=True if opts.quiet else None,
             leave=False,
         )
         for i in range(len(walk)):
@@ -162,6 +162,13 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
                 "bytes_received": int(session.bytes_received),
                 "render_seconds": render_s,
             }
+            cube = session.cubemaps.get(cell) if cell is not None else None
+            if cube is not None:
+                # Near-far stream: the geometry-only frame above lacks the far field; the
+                # composed frame (morph + cubemap) is what the device shows.
+                frame, extra = composed_metrics(renderer, tris, cols, cube, pos, fwd, gt)
+                rec.update(extra)
+                m = {k: extra[f"{k}_composed"] for k in ("epsilon", "psnr", "ssim")}
             frames.append(rec)
             worst.append((m["epsilon"], i, (frame, gt)))
             worst.sort(key=lambda w: -w[0])
@@ -200,6 +207,29 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             session.close()
         except SessionError:
             pass
+
+
+def composed_metrics(renderer, tris, cols, cube, eye, forward, gt) -> tuple[Any, dict]:
+    """Compose the near-far frame (morph + cubemap) and the conventional one (no morph); their
+    metrics against ground truth and their discontinuity delta. Returns (composed frame as a
+    ``Frame``, per-frame fields)."""
+    from client.compose import compose_frame
+    from client.discontinuity import discontinuity
+    from client.render import Frame
+
+    out: dict[str, float] = {}
+    composed = None
+    for morph, suffix in ((True, "composed"), (False, "conventional")):
+        c = compose_frame(renderer, tris, cols, cube, eye, forward, cube.r1, cube.r2, morph=morph)
+        f = Frame(c.color, c.depth)
+        mm = frame_metrics(f, gt)
+        for k in ("epsilon", "psnr", "ssim"):
+            out[f"{k}_{suffix}"] = mm[k]
+        d = discontinuity(c.points, eye, forward, renderer.tan_x, renderer.tan_y)
+        out[f"delta_{suffix}"] = d.mean_abs
+        if morph:
+            composed = f
+    return composed, out
 
 
 def replay_cores(opts: ReplayOptions) -> list[dict]:

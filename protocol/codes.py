@@ -50,6 +50,7 @@ class ErrorCode(StrEnum):
     UNKNOWN_CELL = "unknown_cell"
     BAD_PARAMS = "bad_params"
     UNSUPPORTED_SCENE = "unsupported_scene"
+    UNSUPPORTED_REGION = "unsupported_region"
     SCENE_LOAD_FAILED = "scene_load_failed"
     INTERNAL = "internal"
     UNKNOWN_TYPE = "unknown_type"

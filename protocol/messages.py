@@ -226,10 +226,8 @@ _SERVER_ADAPTER: TypeAdapter = TypeAdapter(ServerMessage)
 
 # --------------------------------------------------------------------------- HTTP API
 class BoxPvsRequest(_Message):
-    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc viewcell, either a ``box`` [min, max] or
-    a ``segment`` [p, q] (metres; the PVS of the segment's bounding box, which is the segment
-    itself when it runs along an axis; the ``from_segment`` core treats such a degenerate box
-    as one segment)."""
+    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc region, either a ``box`` [min, max] or
+    a ``segment`` [p, q] (metres; the triangles visible from some point of the segment)."""
 
     box: tuple[Vec3, Vec3] | None = None
     segment: tuple[Vec3, Vec3] | None = None
@@ -263,6 +261,7 @@ class PvsResponse(BaseModel):
     core: str
     cell: int | None
     box: tuple[Vec3, Vec3]
+    segment: tuple[Vec3, Vec3] | None = None
     granularity: str
     count: int
     triangle_ids: list[int]

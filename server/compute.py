@@ -558,10 +558,13 @@ class ComputeService:
         cell: int | None = None,
         box: np.ndarray | None = None,
         *,
+        segment: np.ndarray | None = None,
         priority: float = 0.0,
         wanted: Callable[[], bool] | None = None,
     ) -> Future:
-        """A future of the ``PVSResult`` for a grid cell (``cell``) or an ad-hoc ``box`` (2, 3).
+        """A future of the ``PVSResult`` for a grid cell (``cell``), an ad-hoc ``box`` (2, 3) or
+        a ``segment`` (2, 3) [p, q] (metres; ``Core.compute_segment``, exact for cores that
+        solve segments natively).
 
         ``priority``: lower runs first (0: a walker needs it now; prefetch uses larger values).
         ``wanted``: for prefetch, asked when a worker is about to start the job; False cancels
@@ -571,11 +574,17 @@ class ComputeService:
         errors.
         """
         self.catalog.require(scene)
-        if (cell is None) == (box is None):
-            raise ValueError("give exactly one of cell and box")
-        if box is not None:
+        if sum(x is not None for x in (cell, box, segment)) != 1:
+            raise ValueError("give exactly one of cell, box and segment")
+        if segment is not None:
+            segment = np.asarray(segment, dtype=np.float64).reshape(2, 3)
+            if not np.all(np.isfinite(segment)):
+                raise ValueError("segment end points must be finite")
+            box = np.stack([segment.min(axis=0), segment.max(axis=0)])
+            where: Hashable = ("segment", *segment.ravel().tolist())
+        elif box is not None:
             box = Viewcell(box).box
-            where: Hashable = ("box", *box.ravel().tolist())
+            where = ("box", *box.ravel().tolist())
         else:
             where = int(cell)
         key = (scene, where, core.name, params.cache_key())
@@ -588,9 +597,10 @@ class ComputeService:
             if pvs is None and fut is None:
                 if isinstance(self.pool, PriorityWorkerPool):
                     fut = self.pool.submit(self._run, key, scene, core, params, cell, box,
-                                           priority=priority, wanted=wanted)
+                                           segment, priority=priority, wanted=wanted)
                 else:
-                    fut = self.pool.submit(self._run, key, scene, core, params, cell, box)
+                    fut = self.pool.submit(self._run, key, scene, core, params, cell, box,
+                                           segment)
                 if not fut.done():
                     self._inflight[key] = fut
                     fut.add_done_callback(lambda f, k=key: f.cancelled() and self._forget(k, f))
@@ -612,10 +622,11 @@ class ComputeService:
         params: CoreParams,
         cell: int | None = None,
         box: np.ndarray | None = None,
+        segment: np.ndarray | None = None,
     ) -> PVSResult:
         """``submit`` awaited from the event loop. Cancelling the caller does not cancel the
         computation (another request may share it; its result lands in the cache)."""
-        fut = self.submit(scene, core, params, cell, box)
+        fut = self.submit(scene, core, params, cell, box, segment=segment)
         inner = asyncio.wrap_future(fut)
         # When the caller is gone, retrieve the outcome anyway so asyncio does not log it.
         inner.add_done_callback(lambda f: f.cancelled() or f.exception())
@@ -637,6 +648,7 @@ class ComputeService:
         params: CoreParams,
         cell: int | None,
         box: np.ndarray | None,
+        segment: np.ndarray | None = None,
     ) -> PVSResult:
         try:
             loaded = self.catalog.get(scene)
@@ -657,7 +669,10 @@ class ComputeService:
                 self.cache.put(key, pvs)
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
             t0 = time.perf_counter()
-            pvs = core.compute(loaded.scene, viewcell, params)
+            if segment is not None:
+                pvs = core.compute_segment(loaded.scene, segment[0], segment[1], params)
+            else:
+                pvs = core.compute(loaded.scene, viewcell, params)
             seconds = time.perf_counter() - t0
             log.debug("PVS %s cell=%s core=%s: %d triangles in %.3f s", scene, cell, core.name,
                       len(pvs), seconds)

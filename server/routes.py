@@ -41,6 +41,7 @@ from server.compute import (
     UnknownCoreError,
     UnsupportedSceneError,
 )
+from visibility.cores.base import SegmentNotSupported
 
 if TYPE_CHECKING:
     from server.app import ServerState
@@ -107,6 +108,8 @@ def map_exception(exc: BaseException) -> ApiError | None:
         return ApiError(404, ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
     if isinstance(exc, UnsupportedSceneError):
         return ApiError(422, ErrorCode.UNSUPPORTED_SCENE, str(exc))
+    if isinstance(exc, SegmentNotSupported):
+        return ApiError(422, ErrorCode.UNSUPPORTED_REGION, str(exc))
     if isinstance(exc, SceneLoadFailed):
         return ApiError(500, ErrorCode.SCENE_LOAD_FAILED, str(exc))
     return None
@@ -132,6 +135,7 @@ async def _pvs(
     params: dict[str, Any],
     cell: int | None = None,
     box: np.ndarray | None = None,
+    segment: np.ndarray | None = None,
 ) -> JSONResponse:
     compute = _state(request).compute
     try:
@@ -142,7 +146,8 @@ async def _pvs(
     except ValueError as exc:
         raise ApiError(422, ErrorCode.BAD_PARAMS, str(exc)) from None
     try:
-        result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box)
+        result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box,
+                                                  segment=segment)
     except Exception as exc:
         api = map_exception(exc)
         if api is None:
@@ -168,6 +173,7 @@ async def _pvs(
         "core": result.core,
         "cell": result.cell,
         "box": result.box.tolist(),
+        "segment": None if segment is None else segment.tolist(),
         "granularity": pvs.granularity,
         "count": len(pvs),
         "triangle_ids": pvs.triangle_ids.tolist(),
@@ -247,10 +253,15 @@ async def cell_pvs(
 @router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box or segment",
              response_model=PvsResponse, responses=_PVS_RESPONSES)
 async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
-    """The PVS of an arbitrary viewcell: ``{"box": [min, max]}`` or ``{"segment": [p, q]}``
-    (the segment's bounding box; ``cell`` is null in the answer). Binary answers as for the
-    cell route."""
-    box = np.asarray(body.region(), dtype=np.float64)
+    """The PVS of an arbitrary region: ``{"box": [min, max]}`` or ``{"segment": [p, q]}``
+    (metres; ``cell`` is null in the answer, ``box`` is the region's bounding box). Cores that
+    solve segments natively (``from_segment``, ``sampling``) answer the segment itself; others
+    answer an axis-aligned segment as its degenerate box and refuse a diagonal one (422
+    ``unsupported_region``). Binary answers as for the cell route."""
+    if body.segment is not None:
+        seg = np.asarray(body.segment, dtype=np.float64)
+        return await _pvs(request, scene, body.core, dict(body.params), segment=seg)
+    box = np.asarray(body.box, dtype=np.float64)
     return await _pvs(request, scene, body.core, dict(body.params), box=box)
 
 

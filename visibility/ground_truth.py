@@ -109,15 +109,61 @@ def sample_pvs(
     """
     n_points = int(n_points)
     batch = int(batch)
+    _check_sampling(n_points, batch, resolution)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    points = sample_points(cell.box, n_points, rng)
+    return _union_of_views(scene, points, rng, int(resolution), batch, progress, near, t0)
+
+
+def segment_points(p: np.ndarray, q: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) float64 stratified points on the segment p -> q (metres): one point jittered
+    uniformly in each of ``n`` equal pieces, in a random order (any prefix spreads out too)."""
+    a = np.asarray(p, dtype=np.float64).reshape(3)
+    b = np.asarray(q, dtype=np.float64).reshape(3)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("segment end points must be finite")
+    n = int(n)
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    t = (rng.permutation(n) + rng.random(n)) / max(n, 1)
+    return a + np.clip(t, 0.0, 1.0)[:, None] * (b - a)
+
+
+def sample_segment_pvs(
+    scene: Scene,
+    p: np.ndarray,
+    q: np.ndarray,
+    n_points: int = 64,
+    resolution: int = 256,
+    seed: int = 0,
+    batch: int = 8,
+    progress: bool = False,
+    near: float = DEFAULT_NEAR,
+) -> GroundTruth:
+    """Sampled PVS of the segment p -> q: ``sample_pvs`` with the eye positions stratified
+    along the segment (``segment_points``) instead of over a box. Same parameters."""
+    n_points = int(n_points)
+    _check_sampling(n_points, int(batch), resolution)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    points = segment_points(p, q, n_points, rng)
+    return _union_of_views(scene, points, rng, int(resolution), int(batch), progress, near, t0)
+
+
+def _check_sampling(n_points: int, batch: int, resolution: int) -> None:
     if n_points < 1:
         raise ValueError(f"n_points must be >= 1, got {n_points}")
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
     if not 1 <= int(resolution) <= 1 << 14:
         raise ValueError(f"resolution must be in [1, 16384], got {resolution}")
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    points = sample_points(cell.box, n_points, rng)
+
+
+def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, resolution: int,
+                    batch: int, progress: bool, near: float, t0: float) -> GroundTruth:
+    """Cubemap id buffers from ``points`` with random orientations (and times), united."""
+    n_points = len(points)
     rotations = [random_rotation(rng) for _ in range(n_points)]
     dynamic = scene.states is not None and scene.states.shape[0] > 1
     if dynamic:
@@ -134,7 +180,7 @@ def sample_pvs(
     batch_start = found
     for k in range(n_points):
         verts = scene.vertices_at(times[k]) if dynamic else scene.vertices
-        ids = render_cubemap_ids(verts, scene.faces, points[k], int(resolution), rotations[k],
+        ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
                                  near=near, face_mask=mask)
         hit = ids[ids >= 0]
         seen[hit] = True
@@ -152,7 +198,7 @@ def sample_pvs(
         convergence=convergence,
         seconds=time.perf_counter() - t0,
         samples=n_points,
-        pixels=n_points * 6 * int(resolution) ** 2,
+        pixels=n_points * 6 * resolution ** 2,
     )
 
 

@@ -136,19 +136,19 @@ def sort_small(buf: np.ndarray, n: int) -> None:
 
 
 @njit(**_JIT)
-def emit_chords(ta: float, tb: float, knots: int, kind: int, coef: np.ndarray, x: float,
-                y: float, t0: np.ndarray, t1: np.ndarray, z0: np.ndarray, z1: np.ndarray,
-                n: int, stack: np.ndarray) -> int:
+def emit_chords(ta: float, tb: float, knots: int, kind: int, pc: np.ndarray, t0: np.ndarray,
+                t1: np.ndarray, z0: np.ndarray, z1: np.ndarray, n: int,
+                stack: np.ndarray) -> int:
     """Append chords approximating the depth over [ta, tb] to the piece buffers from index n;
-    ``kind`` selects the depth function (``depth_at``). A chord is halved while its midpoint
-    depth is off by more than CHORD_TOL (relative) and it is longer than 1 / knots; chord ends
-    carry exact depths. ``stack`` is (>= 64, 4) scratch. Returns the new n (the buffers need
-    room for 2 knots + 2 more)."""
+    ``kind`` and the per-pixel coefficients ``pc`` select the depth function (``depth_at``).
+    A chord is halved while its midpoint depth is off by more than CHORD_TOL (relative) and it
+    is longer than 1 / knots; chord ends carry exact depths. ``stack`` is (>= 64, 4) scratch.
+    Returns the new n (the buffers need room for 2 knots + 2 more)."""
     # Pending intervals (a, b, za, zb), left-most on top, so chords come out in t order.
     stack[0, 0] = ta
     stack[0, 1] = tb
-    stack[0, 2] = depth_at(kind, coef, x, y, ta)
-    stack[0, 3] = depth_at(kind, coef, x, y, tb)
+    stack[0, 2] = depth_at(kind, pc, ta)
+    stack[0, 3] = depth_at(kind, pc, tb)
     top = 1
     min_len = 1.0 / knots
     limit = stack.shape[0] - 2
@@ -160,7 +160,7 @@ def emit_chords(ta: float, tb: float, knots: int, kind: int, coef: np.ndarray, x
         zb = stack[top, 3]
         if b - a > min_len and top < limit:
             m = 0.5 * (a + b)
-            zm = depth_at(kind, coef, x, y, m)
+            zm = depth_at(kind, pc, m)
             if abs(zm - 0.5 * (za + zb)) > CHORD_TOL * (abs(zm) + 1e-9):
                 stack[top, 0] = m
                 stack[top, 2] = zm
@@ -180,39 +180,42 @@ def emit_chords(ta: float, tb: float, knots: int, kind: int, coef: np.ndarray, x
 
 
 @njit(**_JIT)
-def depth_at(kind: int, coef: np.ndarray, x: float, y: float, t: float) -> float:
-    """Depth (metres along the view axis) at time t of a moving triangle (kind 0) or of a sphere's
-    near (kind 1) or far (kind 2) hit, for the pixel ray (x, y, -1); clamped to [0, FAR_DEPTH]."""
+def depth_at(kind: int, pc: np.ndarray, t: float) -> float:
+    """Depth (metres along the view axis) at time t, clamped to [0, FAR_DEPTH], from per-pixel
+    coefficients ``pc``: kind 0, a moving triangle: det(t) / (w . N(t)) with ``pc[0:3]`` the
+    quadratic w . N and ``pc[3:7]`` the cubic det; kind 1 / 2, a sphere's near / far hit:
+    (o(t) . w -+ sqrt(-G(t))) / |w|^2 with o . w = pc[0] + pc[1] t, -G = pc[2] + pc[3] t + pc[4] t^2
+    and |w|^2 = pc[5]."""
     if kind == 0:
-        wn = 0.0
-        for e in range(3):
-            o = 9 * e
-            wn += (coef[o] * x + coef[o + 1] * y - coef[o + 2]) + t * (
-                coef[o + 3] * x + coef[o + 4] * y - coef[o + 5]) + t * t * (
-                coef[o + 6] * x + coef[o + 7] * y - coef[o + 8])
-        v = _cubic(coef[27], coef[28], coef[29], coef[30], t)
+        wn = (pc[2] * t + pc[1]) * t + pc[0]
         if wn == 0.0:
             return FAR_DEPTH
-        s = v / wn
+        s = (((pc[6] * t + pc[5]) * t + pc[4]) * t + pc[3]) / wn
     else:
-        ox = coef[0] + t * coef[3]
-        oy = coef[1] + t * coef[4]
-        oz = coef[2] + t * coef[5]
-        r = coef[6]
-        ww = x * x + y * y + 1.0
-        ow = ox * x + oy * y - oz
-        # |o x w|^2 (Lagrange identity without cancellation).
-        cx = oy * -1.0 - oz * y
-        cy = oz * x - ox * -1.0
-        cz = ox * y - oy * x
-        disc = ww * r * r - (cx * cx + cy * cy + cz * cz)
+        disc = (pc[4] * t + pc[3]) * t + pc[2]
         sq = np.sqrt(disc) if disc > 0.0 else 0.0
-        s = (ow - sq) / ww if kind == 1 else (ow + sq) / ww
+        ow = pc[0] + pc[1] * t
+        s = (ow - sq) / pc[5] if kind == 1 else (ow + sq) / pc[5]
     if not (s >= 0.0):
         return 0.0
     if s > FAR_DEPTH:
         return FAR_DEPTH
     return s
+
+
+@njit(**_JIT)
+def quad_range01(c0: float, c1: float, c2: float) -> tuple[float, float]:
+    """(min, max) of c0 + c1 t + c2 t^2 over t in [0, 1] (no square roots)."""
+    f1 = c0 + c1 + c2
+    lo = min(c0, f1)
+    hi = max(c0, f1)
+    if c2 != 0.0:
+        tv = -c1 / (2.0 * c2)
+        if 0.0 < tv < 1.0:
+            fv = c0 + tv * (c1 + c2 * tv)
+            lo = min(lo, fv)
+            hi = max(hi, fv)
+    return lo, hi
 
 
 @njit(**_JIT)
@@ -287,26 +290,24 @@ def moving_setup(P: np.ndarray, U: np.ndarray, W: np.ndarray, coef: np.ndarray) 
 
 
 @njit(**_JIT)
-def _moving_state(coef, x, y, t, near, slow):
-    """Whether the pixel ray (x, y, -1) sees the moving triangle at time t."""
+def _moving_state(e, t, near, slow, pc):
+    """Whether the pixel ray sees the moving triangle at time t (edge quadratics ``e`` (3, 3),
+    depth coefficients ``pc``)."""
     pos = True
     neg = True
-    wn = 0.0
-    for e in range(3):
-        o = 9 * e
-        v = (coef[o] * x + coef[o + 1] * y - coef[o + 2]) + t * (
-            (coef[o + 3] * x + coef[o + 4] * y - coef[o + 5])
-            + t * (coef[o + 6] * x + coef[o + 7] * y - coef[o + 8]))
-        wn += v
+    for k in range(3):
+        v = (e[k, 2] * t + e[k, 1]) * t + e[k, 0]
         if v < 0.0:
             pos = False
         if v > 0.0:
             neg = False
-    if not (pos or neg) or wn == 0.0:
+    if not (pos or neg):
+        return False
+    wn = (pc[2] * t + pc[1]) * t + pc[0]
+    if wn == 0.0:
         return False
     if slow:
-        s = _cubic(coef[27], coef[28], coef[29], coef[30], t) / wn
-        return s >= near
+        return (((pc[6] * t + pc[5]) * t + pc[4]) * t + pc[3]) / wn >= near
     return True
 
 
@@ -318,30 +319,56 @@ def moving_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
 
     Coverage intervals are exact (bounded by roots of the edge quadratics and, when the triangle
     may cross the near plane (``slow``), of the near-plane cubic); each is emitted as chords
-    split adaptively (``emit_chords``). ``brk`` (>= 16) and ``stack`` (>= 64, 4) are scratch.
+    split adaptively (``emit_chords``). ``brk`` (>= 48) and ``stack`` (>= 64, 4) are scratch.
     Returns the number of pieces.
     """
-    k = 0
-    brk[k] = 0.0
-    k += 1
-    for e in range(3):
-        o = 9 * e
+    e = brk[16:25].reshape((3, 3))
+    pc = brk[32:40]
+    # Edge quadratics and their ranges: a cheap rejection (or full acceptance) before roots.
+    pos_ok = True
+    neg_ok = True
+    all_pos = True
+    all_neg = True
+    for k in range(3):
+        o = 9 * k
         c0 = coef[o] * x + coef[o + 1] * y - coef[o + 2]
         c1 = coef[o + 3] * x + coef[o + 4] * y - coef[o + 5]
         c2 = coef[o + 6] * x + coef[o + 7] * y - coef[o + 8]
-        k = add_roots01(c2, c1, c0, brk, k)
+        e[k, 0] = c0
+        e[k, 1] = c1
+        e[k, 2] = c2
+        lo, hi = quad_range01(c0, c1, c2)
+        if hi < 0.0:
+            pos_ok = False
+        if lo > 0.0:
+            neg_ok = False
+        if lo < 0.0:
+            all_pos = False
+        if hi > 0.0:
+            all_neg = False
+    if not (pos_ok or neg_ok):
+        return 0
+    pc[0] = e[0, 0] + e[1, 0] + e[2, 0]
+    pc[1] = e[0, 1] + e[1, 1] + e[2, 1]
+    pc[2] = e[0, 2] + e[1, 2] + e[2, 2]
+    pc[3] = coef[27]
+    pc[4] = coef[28]
+    pc[5] = coef[29]
+    pc[6] = coef[30]
+    if (all_pos or all_neg) and not slow:
+        # Inside all three edges for the whole segment (w . N cannot vanish then).
+        if all_pos and all_neg:
+            return 0
+        return emit_chords(0.0, 1.0, knots, 0, pc, t0, t1, z0, z1, 0, stack)
+    k = 0
+    brk[k] = 0.0
+    k += 1
+    for q in range(3):
+        k = add_roots01(e[q, 2], e[q, 1], e[q, 0], brk, k)
     if slow:
-        # det - near * (w . N): cubic, with w . N the sum of the edge quadratics.
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for e in range(3):
-            o = 9 * e
-            s0 += coef[o] * x + coef[o + 1] * y - coef[o + 2]
-            s1 += coef[o + 3] * x + coef[o + 4] * y - coef[o + 5]
-            s2 += coef[o + 6] * x + coef[o + 7] * y - coef[o + 8]
-        k += cubic_roots01(coef[27] - near * s0, coef[28] - near * s1, coef[29] - near * s2,
-                           coef[30], brk[k:])
+        # det - near * (w . N): cubic.
+        k += cubic_roots01(pc[3] - near * pc[0], pc[4] - near * pc[1], pc[5] - near * pc[2],
+                           pc[6], brk[k:])
     brk[k] = 1.0
     k += 1
     sort_small(brk, k)
@@ -352,12 +379,12 @@ def moving_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
         b = brk[q + 1]
         if not (b > a):
             continue
-        inside = _moving_state(coef, x, y, 0.5 * (a + b), near, slow)
+        inside = _moving_state(e, 0.5 * (a + b), near, slow, pc)
         if inside and start < 0.0:
             start = a
         elif not inside and start >= 0.0:
-            n = emit_chords(start, a, knots, 0, coef, x, y, t0, t1, z0, z1, n, stack)
+            n = emit_chords(start, a, knots, 0, pc, t0, t1, z0, z1, n, stack)
             start = -1.0
     if start >= 0.0:
-        n = emit_chords(start, 1.0, knots, 0, coef, x, y, t0, t1, z0, z1, n, stack)
+        n = emit_chords(start, 1.0, knots, 0, pc, t0, t1, z0, z1, n, stack)
     return n

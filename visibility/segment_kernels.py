@@ -6,32 +6,37 @@ piece of some envelope form the segment's visible set. Conventions are ``visibil
 a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and depth is ``-z_cam``.
 
 Static triangles (Eqs. 1-2). Relative to the moving eye a static triangle translates by ``-t d``.
-With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t, and equals
+With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t and equals
 the barycentric weight of the opposite corner times ``w . N`` (N the triangle normal), so the
 coverage interval is the intersection of three half-lines; the hit depth
-``(A . N - t d . N) / (w . N)`` is linear too, and ``depth >= near`` is one more half-line, which is
-how triangles crossing the near plane or behind the camera for part of the segment are handled
-per pixel, exactly as a near-clipping rasterizer decides. Edges are evaluated from their corners in
-a canonical order so triangles sharing an edge get bit-identical event times (no cracks).
+``(A . N - t d . N) / (w . N)`` is linear too, and ``depth >= near`` is one more half-line: this is
+how triangles crossing the near plane, or behind the eye for part of the segment, are handled per
+pixel, exactly as a near-clipping rasterizer decides. Edges are evaluated from their corners in a
+canonical order so triangles sharing an edge get bit-identical event times (no cracks).
 Moving triangles (Sec. 3.2) and spheres (Sec. 3.3) are in ``segment_dynamic`` / ``segment_spheres``.
 
-Pixels a primitive can touch: the swept volume (the convex hull of its corners at both ends,
-relative to the eye) clipped at the near plane and projected (the paper's hull of six points,
-made safe when points are behind the camera).
+Pixels a primitive can touch: its swept volume (the convex hull of its corners at both ends,
+relative to the eye) clipped at the near plane and projected: the paper's hull of six points,
+made safe for points behind the eye.
 
-Pipeline per segment (memory O(primitive-face pairs), triangles streamed in batches):
-(1) prange over triangles: cube-face boxes and smallest depth; (2) an approximate front-to-back
-counting sort per face and binning into 16x16-pixel tiles (CSR, sorted order kept);
-(3) prange over tiles: per pixel, the envelope of depth pieces (a sorted list of (t0, t1, z0, z1, id)
-chords); a pixel whose envelope covers [0, 1] has a finite bound (its greatest depth) and a tile whose
-pixels are all bounded skips every primitive that cannot come nearer (hierarchical occlusion
-culling, exact since the envelope only decreases). Tiles never share pixels, so results do not
-depend on scheduling.
+Pipeline per segment, memory O(primitive-face pairs):
+(1) box pass: triangles are grouped once per scene into spatial clusters of CLUSTER triangles
+(Morton order); prange over clusters gives each cube face's pixel box of the cluster's swept
+bounding box and its smallest depth. Clusters that are large on screen or reach the near plane are
+expanded into their triangles (a box per triangle and face). (2) an approximate front-to-back
+counting sort (log-depth buckets) and binning into TILE x TILE pixel tiles (CSR, order kept).
+(3) prange over tiles: per pixel, the envelope of depth pieces. A pixel whose envelope covers
+all of [0, 1] has a bound (its greatest depth); once every pixel of a tile has one, primitives
+that cannot come nearer than the tile's bound are skipped, whole clusters at a time (hierarchical
+occlusion culling; exact because an envelope only ever decreases). Tiles never share pixels, so
+the result does not depend on thread scheduling.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+import weakref
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -44,21 +49,27 @@ from visibility.segment_spheres import sphere_box, sphere_cover, sphere_setup
 
 #: Side of a square screen tile in pixels (unit of parallel work and of occlusion culling).
 TILE = 16
+#: Triangles per spatial cluster (unit of the box pass and of tile-level culling).
+CLUSTER = 32
+#: A cluster whose box covers more tiles than this (or reaches the near plane) is expanded.
+EXPAND_TILES = 4
 #: Envelope pieces shorter than this (in t) do not make a primitive visible: they are float
 #: residue at seams, never seen by a sampling camera.
 EPS_LEN = 1e-9
 #: Depth buckets of the front-to-back counting sort.
 N_BUCKETS = 2048
-#: Default triangles per batch in the box pass (bounds its scratch to ~25 MB).
-DEFAULT_BATCH = 1 << 17
-#: Starting envelope capacity (pieces per pixel); tiles that overflow are redone with more.
+#: Default clusters per batch of the box pass (bounds its scratch memory, ~100 bytes each).
+DEFAULT_BATCH = 1 << 15
+#: Envelope capacity (pieces per pixel): starting value, grown x4 in place when a tile needs
+#: more, up to MAX_CAP (a memory guard: 256 pixels x MAX_CAP x 36 bytes per thread).
 START_CAP = 16
-MAX_CAP = 1 << 16
+MAX_CAP = 1 << 14
 
 FLAG_PRESENT = 1
 FLAG_MOVING = 2
-FLAG_SLOW = 4  # may cross the near plane: the per-pixel near constraint is needed
+FLAG_SLOW = 4  # may reach the near plane: per-pixel near constraint (and clipping) needed
 FLAG_SPHERE = 8
+FLAG_CLUSTER = 16
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -75,76 +86,11 @@ def _face_permutation() -> tuple[np.ndarray, np.ndarray]:
 _PERM, _SGN = _face_permutation()
 
 
-# ------------------------------------------------------------------------------ boxes and culling
-@njit(**_JIT)
-def _hull_box(cam, npts, near, res, box):
-    """Pixel-centre box [row0, row1, col0, col1] of the convex hull of ``cam[:npts]`` (camera
-    space) clipped to depth >= near, for a 90-degree square face of ``res`` pixels.
-    Returns (non-empty, smallest depth of the clipped hull, hull reaches the near plane)."""
-    out_r = True
-    out_l = True
-    out_t = True
-    out_b = True
-    out_n = True
-    for q in range(npts):
-        x = cam[q, 0]
-        y = cam[q, 1]
-        d = -cam[q, 2]
-        if x <= d:
-            out_r = False
-        if -x <= d:
-            out_l = False
-        if y <= d:
-            out_t = False
-        if -y <= d:
-            out_b = False
-        if d >= near:
-            out_n = False
-    if out_r or out_l or out_t or out_b or out_n:
-        return False, 0.0, False
-    umin = np.inf
-    umax = -np.inf
-    vmin = np.inf
-    vmax = -np.inf
-    zm = np.inf
-    slow = False
-    for q in range(npts):
-        d = -cam[q, 2]
-        if d >= near:
-            u = cam[q, 0] / d
-            v = cam[q, 1] / d
-            umin = min(umin, u)
-            umax = max(umax, u)
-            vmin = min(vmin, v)
-            vmax = max(vmax, v)
-            zm = min(zm, d)
-        else:
-            slow = True
-    if slow:
-        # The clipped hull's vertices on the near plane lie on segments between the points.
-        zm = near
-        for q1 in range(npts):
-            d1 = -cam[q1, 2]
-            for q2 in range(q1 + 1, npts):
-                d2 = -cam[q2, 2]
-                if (d1 >= near) != (d2 >= near):
-                    s = (near - d1) / (d2 - d1)
-                    u = (cam[q1, 0] + s * (cam[q2, 0] - cam[q1, 0])) / near
-                    v = (cam[q1, 1] + s * (cam[q2, 1] - cam[q1, 1])) / near
-                    umin = min(umin, u)
-                    umax = max(umax, u)
-                    vmin = min(vmin, v)
-                    vmax = max(vmax, v)
-    if not (umin <= umax and vmin <= vmax):
-        return False, 0.0, False
-    if not _pixel_range(umin, umax, vmin, vmax, res, box):
-        return False, 0.0, False
-    return True, zm, slow
-
-
+# ------------------------------------------------------------------------------ boxes
 @njit(**_JIT)
 def _pixel_range(umin, umax, vmin, vmax, res, box):
-    """Pixel-centre box [row0, row1, col0, col1] of the NDC rectangle; False when empty."""
+    """Pixel-centre box [row0, row1, col0, col1] (inclusive) of an NDC rectangle (widened a
+    hair against rounding); False when it holds no pixel centre."""
     h = 0.5 * res
     eps = 1e-6
     col0 = max(-1.0, (umin + 1.0) * h - 0.5)
@@ -165,103 +111,234 @@ def _pixel_range(umin, umax, vmin, vmax, res, box):
 
 
 @njit(**_JIT)
-def _inside_box(cube, f, perm, sgn, res, box):
-    """Pixel box and smallest depth on face f of six cube-space points known to lie strictly
-    inside that face's frustum and beyond the near plane (no clipping needed)."""
+def _hull_box(cube, npts, f, perm, sgn, near, res, box):
+    """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
+    the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
+    hull reaches the near plane)."""
     ax = perm[f, 2]
     ix = perm[f, 0]
     iy = perm[f, 1]
     sd = -sgn[f, 2]
     sx = sgn[f, 0]
     sy = sgn[f, 1]
+    out_r = True
+    out_l = True
+    out_t = True
+    out_b = True
+    out_n = True
+    for q in range(npts):
+        x = sx * cube[q, ix]
+        y = sy * cube[q, iy]
+        d = sd * cube[q, ax]
+        if x <= d:
+            out_r = False
+        if -x <= d:
+            out_l = False
+        if y <= d:
+            out_t = False
+        if -y <= d:
+            out_b = False
+        if d >= near:
+            out_n = False
+    if out_r or out_l or out_t or out_b or out_n:
+        return False, 0.0, False
     umin = np.inf
     umax = -np.inf
     vmin = np.inf
     vmax = -np.inf
     zm = np.inf
-    for q in range(6):
+    slow = False
+    for q in range(npts):
         d = sd * cube[q, ax]
-        inv = 1.0 / d
-        u = sx * cube[q, ix] * inv
-        v = sy * cube[q, iy] * inv
-        umin = min(umin, u)
-        umax = max(umax, u)
-        vmin = min(vmin, v)
-        vmax = max(vmax, v)
-        zm = min(zm, d)
-    return _pixel_range(umin, umax, vmin, vmax, res, box), zm
-
-
-@njit(**_PJIT)
-def _tri_boxes(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
-               out_box, out_z, out_flag):  # pragma: no cover - numba
-    """Per selected triangle and cube face: pixel box, smallest depth and flags (0 = absent)."""
-    nb = sel.shape[0]
-    nch = min(nb, 256)
-    for ch in prange(nch):
-        _tri_boxes_range(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
-                         out_box, out_z, out_flag, ch * nb // nch, (ch + 1) * nb // nch)
+        if d >= near:
+            u = sx * cube[q, ix] / d
+            v = sy * cube[q, iy] / d
+            umin = min(umin, u)
+            umax = max(umax, u)
+            vmin = min(vmin, v)
+            vmax = max(vmax, v)
+            zm = min(zm, d)
+        else:
+            slow = True
+    if slow:
+        # The clipped hull's vertices on the near plane lie on segments between the points.
+        zm = near
+        for q1 in range(npts):
+            d1 = sd * cube[q1, ax]
+            for q2 in range(q1 + 1, npts):
+                d2 = sd * cube[q2, ax]
+                if (d1 >= near) != (d2 >= near):
+                    s = (near - d1) / (d2 - d1)
+                    u = sx * (cube[q1, ix] + s * (cube[q2, ix] - cube[q1, ix])) / near
+                    v = sy * (cube[q1, iy] + s * (cube[q2, iy] - cube[q1, iy])) / near
+                    umin = min(umin, u)
+                    umax = max(umax, u)
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+    if not (umin <= umax and vmin <= vmax):
+        return False, 0.0, False
+    if not _pixel_range(umin, umax, vmin, vmax, res, box):
+        return False, 0.0, False
+    return True, zm, slow
 
 
 @njit(**_JIT)
-def _tri_boxes_range(verts0, verts1, faces, sel, moving, v0, dvec, rb, perm, sgn, res, near,
-                     out_box, out_z, out_flag, lo, hi):  # pragma: no cover - numba
-    cube = np.empty((6, 3))
-    cam = np.empty((6, 3))
+def _sole_face(cube, npts, near):
+    """The one cube face whose frustum strictly holds all points beyond the near plane (then the
+    hull touches no other face), or -1."""
+    ax = 0
+    big = abs(cube[0, 0])
+    if abs(cube[0, 1]) > big:
+        ax = 1
+        big = abs(cube[0, 1])
+    if abs(cube[0, 2]) > big:
+        ax = 2
+    sg = 1.0 if cube[0, ax] >= 0.0 else -1.0
+    i1 = (ax + 1) % 3
+    i2 = (ax + 2) % 3
+    for q in range(npts):
+        d = sg * cube[q, ax]
+        if not (d >= near and abs(cube[q, i1]) < d and abs(cube[q, i2]) < d):
+            return -1
+    return 2 * ax + (0 if sg > 0.0 else 1)
+
+
+@njit(**_JIT)
+def _to_cube(rb, x, y, z, cube, q):
+    for r in range(3):
+        cube[q, r] = rb[r, 0] * x + rb[r, 1] * y + rb[r, 2] * z
+
+
+@njit(**_JIT)
+def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+                         out_flag, first, last):  # pragma: no cover - numba
+    """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
+    corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
+    cube = np.empty((16, 3))
     bx = np.empty(4, dtype=np.int64)
-    for k in range(lo, hi):
-        t = sel[k]
-        for c in range(3):
-            vi = faces[t, c]
-            a0 = verts0[vi, 0] - v0[0]
-            a1 = verts0[vi, 1] - v0[1]
-            a2 = verts0[vi, 2] - v0[2]
-            b0 = verts1[vi, 0] - v0[0] - dvec[0]
-            b1 = verts1[vi, 1] - v0[1] - dvec[1]
-            b2 = verts1[vi, 2] - v0[2] - dvec[2]
-            for r in range(3):
-                cube[c, r] = rb[r, 0] * a0 + rb[r, 1] * a1 + rb[r, 2] * a2
-                cube[c + 3, r] = rb[r, 0] * b0 + rb[r, 1] * b1 + rb[r, 2] * b2
-        base = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0)
+    for c in range(first, last):
+        for k in range(8):
+            x = (lo_c[c, 0] if k & 1 else hi_c[c, 0]) - v0[0]
+            y = (lo_c[c, 1] if k & 2 else hi_c[c, 1]) - v0[1]
+            z = (lo_c[c, 2] if k & 4 else hi_c[c, 2]) - v0[2]
+            _to_cube(rb, x, y, z, cube, k)
+            _to_cube(rb, x - dvec[0], y - dvec[1], z - dvec[2], cube, k + 8)
         for f in range(6):
-            out_flag[k, f] = 0
-        # Fast path: all six points strictly inside the frustum of the first point's face, so
-        # the hull touches that face only (most triangles: small and away from cube edges).
-        ax = 0
-        big = abs(cube[0, 0])
-        if abs(cube[0, 1]) > big:
-            ax = 1
-            big = abs(cube[0, 1])
-        if abs(cube[0, 2]) > big:
-            ax = 2
-        sg = 1.0 if cube[0, ax] >= 0.0 else -1.0
-        i1 = (ax + 1) % 3
-        i2 = (ax + 2) % 3
-        inside = True
-        for q in range(6):
-            d = sg * cube[q, ax]
-            if not (d >= near and abs(cube[q, i1]) < d and abs(cube[q, i2]) < d):
-                inside = False
-                break
-        if inside:
-            f = 2 * ax + (0 if sg > 0.0 else 1)
-            ok, zm = _inside_box(cube, f, perm, sgn, res, bx)
+            out_flag[c, f] = 0
+        sole = _sole_face(cube, 16, near)
+        f_lo = 0 if sole < 0 else sole
+        f_hi = 6 if sole < 0 else sole + 1
+        for f in range(f_lo, f_hi):
+            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx)
             if ok:
                 for r in range(4):
-                    out_box[k, f, r] = bx[r]
-                out_z[k, f] = zm
-                out_flag[k, f] = base
-            continue
+                    out_box[c, f, r] = bx[r]
+                out_z[c, f] = zm
+                out_flag[c, f] = FLAG_PRESENT | (FLAG_SLOW if slow else 0)
+
+
+@njit(**_PJIT)
+def _cluster_boxes(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+                   out_flag):  # pragma: no cover - numba
+    n = lo_c.shape[0]
+    nch = min(n, 256)
+    for ch in prange(nch):
+        _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+                             out_flag, ch * n // nch, (ch + 1) * n // nch)
+
+
+@njit(**_JIT)
+def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
+    """The six cube-space points of triangle t: corners at t = 0 and t = 1 relative to the eye."""
+    for c in range(3):
+        vi = faces[t, c]
+        _to_cube(rb, verts0[vi, 0] - v0[0], verts0[vi, 1] - v0[1], verts0[vi, 2] - v0[2], cube, c)
+        _to_cube(rb, verts1[vi, 0] - v0[0] - dvec[0], verts1[vi, 1] - v0[1] - dvec[1],
+                 verts1[vi, 2] - v0[2] - dvec[2], cube, c + 3)
+
+
+@njit(**_JIT)
+def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
+                          sgn, res, near, out_box, out_z, out_flag, first,
+                          last):  # pragma: no cover - numba
+    cube = np.empty((6, 3))
+    bx = np.empty(4, dtype=np.int64)
+    for k in range(first, last):
+        t = exp_tri[k]
+        f = exp_face[k]
+        out_flag[k] = 0
+        _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
+        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx)
+        if ok:
+            for r in range(4):
+                out_box[k, r] = bx[r]
+            out_z[k] = zm
+            out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
+                FLAG_SLOW if slow else 0)
+
+
+@njit(**_PJIT)
+def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
+                    res, near, out_box, out_z, out_flag):  # pragma: no cover - numba
+    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters."""
+    n = exp_tri.shape[0]
+    nch = min(n, 256)
+    for ch in prange(nch):
+        _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
+                              perm, sgn, res, near, out_box, out_z, out_flag, ch * n // nch,
+                              (ch + 1) * n // nch)
+
+
+@njit(**_JIT)
+def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: no cover
+    """Cluster prims (kept whole) and the (triangle, face) list of the expanded ones.
+
+    Returns (keep_cluster, keep_face, keep_box, keep_z, keep_flag, exp_tri, exp_face); cluster
+    indices are offset by ``first`` (the batch start)."""
+    nc = cflag.shape[0]
+    n_keep = 0
+    n_exp = 0
+    for c in range(nc):
         for f in range(6):
-            for q in range(6):
-                for r in range(3):
-                    cam[q, r] = sgn[f, r] * cube[q, perm[f, r]]
-            ok, zm, slow = _hull_box(cam, 6, near, res, bx)
-            if ok:
+            fl = cflag[c, f]
+            if fl == 0:
+                continue
+            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
+                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
+            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+                n_exp += cl_start[first + c + 1] - cl_start[first + c]
+            else:
+                n_keep += 1
+    keep_cluster = np.empty(n_keep, dtype=np.int32)
+    keep_face = np.empty(n_keep, dtype=np.int32)
+    keep_box = np.empty((n_keep, 4), dtype=np.int32)
+    keep_z = np.empty(n_keep)
+    keep_flag = np.empty(n_keep, dtype=np.uint8)
+    exp_tri = np.empty(n_exp, dtype=np.int64)
+    exp_face = np.empty(n_exp, dtype=np.int64)
+    a = 0
+    b = 0
+    for c in range(nc):
+        for f in range(6):
+            fl = cflag[c, f]
+            if fl == 0:
+                continue
+            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
+                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
+            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+                for k in range(cl_start[first + c], cl_start[first + c + 1]):
+                    exp_tri[b] = cl_tris[k]
+                    exp_face[b] = f
+                    b += 1
+            else:
+                keep_cluster[a] = first + c
+                keep_face[a] = f
                 for r in range(4):
-                    out_box[k, f, r] = bx[r]
-                out_z[k, f] = zm
-                out_flag[k, f] = base | (FLAG_SLOW if slow else 0)
+                    keep_box[a, r] = cbox[c, f, r]
+                keep_z[a] = cz[c, f]
+                keep_flag[a] = FLAG_PRESENT | FLAG_CLUSTER
+                a += 1
+    return keep_cluster, keep_face, keep_box, keep_z, keep_flag, exp_tri, exp_face
 
 
 @njit(**_JIT)
@@ -288,23 +365,6 @@ def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, out_box, out_z,
                 out_z[k, f] = zm
                 out_flag[k, f] = FLAG_PRESENT | FLAG_SPHERE | FLAG_MOVING | (
                     FLAG_SLOW if slow else 0)
-
-
-@njit(**_JIT)
-def _compact(ids, out_box, out_z, out_flag, prim_src, prim_face, prim_box, prim_z, prim_flag,
-             n):  # pragma: no cover - numba
-    """Append the present (primitive, face) slots to the prim arrays from index n."""
-    for k in range(out_flag.shape[0]):
-        for f in range(6):
-            if out_flag[k, f] != 0:
-                prim_src[n] = ids[k]
-                prim_face[n] = f
-                for r in range(4):
-                    prim_box[n, r] = out_box[k, f, r]
-                prim_z[n] = out_z[k, f]
-                prim_flag[n] = out_flag[k, f]
-                n += 1
-    return n
 
 
 @njit(**_JIT)
@@ -605,6 +665,20 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
 
 
 @njit(**_JIT)
+def _grow(env, eid, cnt, npx, cap):
+    """Envelope storage with room for ``cap`` pieces per pixel, holding the current pieces of the
+    first ``npx`` pixels; fresh insertion scratch to match."""
+    env2 = np.empty((env.shape[0], cap, 4))
+    eid2 = np.empty((env.shape[0], cap), dtype=np.int32)
+    for p in range(npx):
+        for k in range(cnt[p]):
+            for r in range(4):
+                env2[p, k, r] = env[p, k, r]
+            eid2[p, k] = eid[p, k]
+    return env2, eid2, np.empty((2 * cap + 8, 4)), np.empty(2 * cap + 8, dtype=np.int32)
+
+
+@njit(**_JIT)
 def pixel_bound(env, px, cnt):
     """Greatest depth of a pixel's envelope when it covers all of [0, 1] (gaps up to EPS_LEN),
     else +inf: no chord at or beyond it can change the envelope."""
@@ -625,32 +699,133 @@ def pixel_bound(env, px, cnt):
 
 
 # ------------------------------------------------------------------------------ tile resolution
+@njit(**_JIT)
+def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
+    """Camera-space corners P of triangle t at t = 0 (relative to the eye), their velocities U
+    relative to the moving eye, and the world corners W (for canonical edge order). One formula
+    for every caller, so shared edges stay bit-identical."""
+    for c in range(3):
+        vi = faces[t, c]
+        for r in range(3):
+            W[c, r] = verts0[vi, r]
+        x = verts0[vi, 0] - v0[0]
+        y = verts0[vi, 1] - v0[1]
+        z = verts0[vi, 2] - v0[2]
+        mx = verts1[vi, 0] - verts0[vi, 0]
+        my = verts1[vi, 1] - verts0[vi, 1]
+        mz = verts1[vi, 2] - verts0[vi, 2]
+        for r in range(3):
+            P[c, r] = R[r, 0] * x + R[r, 1] * y + R[r, 2] * z
+            U[c, r] = R[r, 0] * mx + R[r, 1] * my + R[r, 2] * mz - dc[r]
+
+
+@njit(**_JIT)
+def _front_box(P, U, res, box):
+    """Pixel box and smallest depth of a triangle's six swept points, all known to be in front
+    of the near plane (a cluster that is not near the eye)."""
+    umin = np.inf
+    umax = -np.inf
+    vmin = np.inf
+    vmax = -np.inf
+    zm = np.inf
+    for c in range(3):
+        for e in range(2):
+            x = P[c, 0] + e * U[c, 0]
+            y = P[c, 1] + e * U[c, 1]
+            d = -(P[c, 2] + e * U[c, 2])
+            inv = 1.0 / d
+            umin = min(umin, x * inv)
+            umax = max(umax, x * inv)
+            vmin = min(vmin, y * inv)
+            vmax = max(vmax, y * inv)
+            zm = min(zm, d)
+    return _pixel_range(umin, umax, vmin, vmax, res, box), zm
+
+
+@njit(**_JIT)
+def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, knots, coef,
+            env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk):
+    """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere) into
+    the envelopes of the pixels [ia, ib] x [ja, jb] of the current tile. Returns (env, eid, T,
+    tid, pixels newly bounded, overflow, pairs, pieces, grows); the storage is reallocated
+    when it grows."""
+    closed = 0
+    pairs = 0
+    pieces = 0
+    grows = 0
+    for i in range(ia, ib + 1):
+        y = 1.0 - (i + 0.5) * step
+        for j in range(ja, jb + 1):
+            px = (i - r0) * tw + (j - cl0)
+            bpx = bound[px]
+            if zpr >= bpx:
+                continue
+            x = (j + 0.5) * step - 1.0
+            pairs += 1
+            if kind == 0:
+                ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
+                if not ok or min(zs, zf) >= bpx:
+                    continue
+                pt0[0] = ts
+                pt1[0] = tf
+                pz0[0] = zs
+                pz1[0] = zf
+                npc = 1
+            elif kind == 1:
+                npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            else:
+                npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            for q in range(npc):
+                if min(pz0[q], pz1[q]) >= bound[px]:
+                    continue
+                pieces += 1
+                nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q], pz0[q],
+                                              pz1[q], pid, T, tid)
+                if nn < 0:
+                    # Deep envelope: grow this chunk's storage in place and retry.
+                    if 4 * env.shape[1] > MAX_CAP:
+                        return env, eid, T, tid, closed, True, pairs, pieces, grows
+                    env, eid, T, tid = _grow(env, eid, cnt, npx, 4 * env.shape[1])
+                    grows += 1
+                    nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
+                                                  pz0[q], pz1[q], pid, T, tid)
+                if changed:
+                    cnt[px] = nn
+                    zb = pixel_bound(env, px, nn)
+                    if zb < np.inf:
+                        if bound[px] == np.inf:
+                            closed += 1
+                        bound[px] = zb
+    return env, eid, T, tid, closed, False, pairs, pieces, grows
+
+
 @njit(**_PJIT)
 def _resolve(tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z, prim_zkey,
-             prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii, n_tri, v0, dvec, rots,
-             res, near, knots, cap, visible, overflow, counters,
+             prim_flag, prim_face, verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1,
+             radii, n_tri, v0, dvec, rots, res, near, knots, visible, overflow, counters,
              witness):  # pragma: no cover - numba
     """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
-    n_tri + sphere). A tile whose envelopes outgrow ``cap`` sets ``overflow`` and marks nothing.
+    n_tri + sphere). A tile whose envelopes outgrow MAX_CAP sets ``overflow``, marks nothing.
     Tiles are strided over chunks so that busy screen regions spread over the threads."""
     for ch in prange(n_chunks):
         _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                       prim_zkey, prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii,
-                       n_tri, v0, dvec, rots, res, near, knots, cap, visible, overflow, counters,
-                       witness)
+                       prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
+                       cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, visible,
+                       overflow, counters, witness)
 
 
 @njit(**_JIT)
 def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                   prim_zkey, prim_flag, prim_face, verts0, verts1, faces, c0, c1, radii, n_tri,
-                   v0, dvec, rots, res, near, knots, cap, visible, overflow,
-                   counters, witness):  # pragma: no cover - numba
+                   prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
+                   cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, visible,
+                   overflow, counters, witness):  # pragma: no cover - numba
     ntx = (res + TILE - 1) // TILE
     per_face = ntx * ntx
     npx_max = TILE * TILE
     step = 2.0 / res
     maxp = 8 * (knots + 2) + 8
     want_witness = witness.shape[1] == visible.shape[0]
+    cap = START_CAP
     env = np.empty((npx_max, cap, 4))
     eid = np.empty((npx_max, cap), dtype=np.int32)
     cnt = np.zeros(npx_max, dtype=np.int64)
@@ -661,7 +836,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
     pt1 = np.empty(maxp)
     pz0 = np.empty(maxp)
     pz1 = np.empty(maxp)
-    brk = np.empty(32)
+    brk = np.empty(48)
     stk = np.empty((64, 4))
     coef = np.empty(40)
     P = np.empty((3, 3))
@@ -670,9 +845,11 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
     dc = np.empty(3)
     cen = np.empty(3)
     vel = np.empty(3)
+    bx = np.empty(4, dtype=np.int64)
     n_pairs = 0
     n_pieces = 0
-    n_prims = 0
+    n_grows = 0
+    n_items = 0
     n_culled = 0
     n_final = 0
     for qi in range(ch, tiles.shape[0], n_chunks):
@@ -704,89 +881,68 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
             if prim_z[pr] >= tbound:
                 n_culled += 1
                 continue
-            n_prims += 1
+            n_items += 1
             src = prim_src[pr]
             flag = prim_flag[pr]
             slow = (flag & FLAG_SLOW) != 0
-            kind = 0
-            if flag & FLAG_SPHERE:
-                kind = 2
-                s = src - n_tri
-                for r in range(3):
-                    cen[r] = R[r, 0] * (c0[s, 0] - v0[0]) + R[r, 1] * (c0[s, 1] - v0[1]) \
-                        + R[r, 2] * (c0[s, 2] - v0[2])
-                    vel[r] = R[r, 0] * (c1[s, 0] - c0[s, 0]) + R[r, 1] * (
-                        c1[s, 1] - c0[s, 1]) + R[r, 2] * (c1[s, 2] - c0[s, 2]) - dc[r]
-                sphere_setup(cen, vel, radii[s], coef)
-            else:
-                for c in range(3):
-                    vi = faces[src, c]
-                    for r in range(3):
-                        W[c, r] = verts0[vi, r]
-                    for r in range(3):
-                        P[c, r] = R[r, 0] * (verts0[vi, 0] - v0[0]) + R[r, 1] * (
-                            verts0[vi, 1] - v0[1]) + R[r, 2] * (verts0[vi, 2] - v0[2])
-                if flag & FLAG_MOVING:
-                    kind = 1
-                    for c in range(3):
-                        vi = faces[src, c]
-                        for r in range(3):
-                            U[c, r] = R[r, 0] * (verts1[vi, 0] - verts0[vi, 0]) + R[r, 1] * (
-                                verts1[vi, 1] - verts0[vi, 1]) + R[r, 2] * (
-                                verts1[vi, 2] - verts0[vi, 2]) - dc[r]
-                    moving_setup(P, U, W, coef)
-                else:
-                    static_setup(P, W, dc, coef)
-            zpr = prim_z[pr]
-            ia = max(prim_box[pr, 0], r0)
-            ib = min(prim_box[pr, 1], r1 - 1)
-            ja = max(prim_box[pr, 2], cl0)
-            jb = min(prim_box[pr, 3], cl1 - 1)
-            for i in range(ia, ib + 1):
-                y = 1.0 - (i + 0.5) * step
-                for j in range(ja, jb + 1):
-                    px = (i - r0) * tw + (j - cl0)
-                    if zpr >= bound[px]:
+            closed = 0
+            if flag & FLAG_CLUSTER:
+                for k in range(cl_start[src], cl_start[src + 1]):
+                    t = cl_tris[k]
+                    _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
+                    ok, zt = _front_box(P, U, res, bx)
+                    if not ok or zt >= tbound:
                         continue
-                    x = (j + 0.5) * step - 1.0
-                    n_pairs += 1
-                    if kind == 0:
-                        ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
-                        if not ok:
-                            continue
-                        pt0[0] = ts
-                        pt1[0] = tf
-                        pz0[0] = zs
-                        pz1[0] = zf
-                        npc = 1
-                    elif kind == 1:
-                        npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1,
-                                           brk, stk)
+                    ia = max(bx[0], r0)
+                    ib = min(bx[1], r1 - 1)
+                    ja = max(bx[2], cl0)
+                    jb = min(bx[3], cl1 - 1)
+                    if ia > ib or ja > jb:
+                        continue
+                    if moving[t]:
+                        moving_setup(P, U, W, coef)
+                        kind = 1
                     else:
-                        npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1,
-                                           brk, stk)
-                    for q in range(npc):
-                        if min(pz0[q], pz1[q]) >= bound[px]:
-                            continue
-                        n_pieces += 1
-                        nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
-                                                      pz0[q], pz1[q], src, T, tid)
-                        if nn < 0:
-                            ovf = True
-                            break
-                        if changed:
-                            cnt[px] = nn
-                            zb = pixel_bound(env, px, nn)
-                            if zb < np.inf:
-                                if bound[px] == np.inf:
-                                    open_px -= 1
-                                bound[px] = zb
+                        static_setup(P, W, dc, coef)
+                        kind = 0
+                    env, eid, T, tid, nc, ovf, a0, a1, a2 = _raster(
+                        kind, t, False, zt, ia, ib, ja, jb, r0, cl0, tw, npx, step, near,
+                        knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk)
+                    closed += nc
+                    n_pairs += a0
+                    n_pieces += a1
+                    n_grows += a2
                     if ovf:
                         break
-                if ovf:
-                    break
+            else:
+                if flag & FLAG_SPHERE:
+                    kind = 2
+                    s = src - n_tri
+                    for r in range(3):
+                        cen[r] = R[r, 0] * (c0[s, 0] - v0[0]) + R[r, 1] * (c0[s, 1] - v0[1]) \
+                            + R[r, 2] * (c0[s, 2] - v0[2])
+                        vel[r] = R[r, 0] * (c1[s, 0] - c0[s, 0]) + R[r, 1] * (
+                            c1[s, 1] - c0[s, 1]) + R[r, 2] * (c1[s, 2] - c0[s, 2]) - dc[r]
+                    sphere_setup(cen, vel, radii[s], coef)
+                else:
+                    _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
+                    if flag & FLAG_MOVING:
+                        kind = 1
+                        moving_setup(P, U, W, coef)
+                    else:
+                        kind = 0
+                        static_setup(P, W, dc, coef)
+                env, eid, T, tid, closed, ovf, a0, a1, a2 = _raster(
+                    kind, src, slow, prim_z[pr], max(prim_box[pr, 0], r0),
+                    min(prim_box[pr, 1], r1 - 1), max(prim_box[pr, 2], cl0),
+                    min(prim_box[pr, 3], cl1 - 1), r0, cl0, tw, npx, step, near, knots, coef,
+                    env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk)
+                n_pairs += a0
+                n_pieces += a1
+                n_grows += a2
             if ovf:
                 break
+            open_px -= closed
             since += 1
             if open_px == 0 and (tbound == np.inf or since >= 8):
                 tb = 0.0
@@ -812,13 +968,15 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                         witness[ch, pid, 4] = cl0 + p % tw
     counters[ch, 0] += n_pairs
     counters[ch, 1] += n_pieces
-    counters[ch, 2] += n_prims
+    counters[ch, 2] += n_items
     counters[ch, 3] += n_culled
     counters[ch, 4] += n_final
+    counters[ch, 5] += n_grows
+    counters[ch, 6] = max(counters[ch, 6], env.shape[1])
 
 
-# ------------------------------------------------------------------------------ Python driver
-@dataclass
+# ------------------------------------------------------------------------------ geometry
+@dataclass(eq=False)
 class SegmentGeometry:
     """The geometry of one state interval, as the kernels read it.
 
@@ -831,6 +989,9 @@ class SegmentGeometry:
     moving : (m,) bool, triangles whose corners move in this interval.
     centers0, centers1 : (s, 3) float64 sphere centres at start and end; radii : (s,) float64.
     sphere_sel : (q,) int64 ids of the spheres that take part.
+    cl_start, cl_tris : spatial clusters of the selected triangles: cluster c holds
+        ``cl_tris[cl_start[c]:cl_start[c + 1]]`` (CLUSTER triangles, Morton order of centroids).
+    cl_lo, cl_hi : (c, 3) float64 bounding box of each cluster over both positions.
     """
 
     verts0: np.ndarray
@@ -842,6 +1003,10 @@ class SegmentGeometry:
     centers1: np.ndarray
     radii: np.ndarray
     sphere_sel: np.ndarray
+    cl_start: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    cl_tris: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    cl_lo: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    cl_hi: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def n_triangles(self) -> int:
@@ -853,9 +1018,75 @@ class SegmentGeometry:
         return int(len(self.faces) + len(self.radii))
 
 
+def _part1by2(x: np.ndarray) -> np.ndarray:
+    x = x & np.uint64(0x3FF)
+    x = (x | (x << np.uint64(16))) & np.uint64(0x30000FF)
+    x = (x | (x << np.uint64(8))) & np.uint64(0x300F00F)
+    x = (x | (x << np.uint64(4))) & np.uint64(0x30C30C3)
+    x = (x | (x << np.uint64(2))) & np.uint64(0x9249249)
+    return x
+
+
+def build_clusters(vertices: np.ndarray, faces: np.ndarray,
+                   tri_sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cl_start (c + 1,), cl_tris (k,)): the selected triangles in Morton order of their
+    centroids, cut into clusters of CLUSTER consecutive triangles."""
+    k = len(tri_sel)
+    if k == 0:
+        return np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    f = faces[tri_sel]
+    cent = vertices[f[:, 0]] + vertices[f[:, 1]] + vertices[f[:, 2]]
+    lo = cent.min(axis=0)
+    span = np.maximum(cent.max(axis=0) - lo, 1e-300)
+    q = np.clip((cent - lo) / span * 1023.0, 0, 1023).astype(np.uint64)
+    code = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (
+        _part1by2(q[:, 2]) << np.uint64(2))
+    cl_tris = tri_sel[np.argsort(code, kind="stable")].astype(np.int64)
+    cl_start = np.append(np.arange(0, k, CLUSTER, dtype=np.int64), k)
+    return cl_start, cl_tris
+
+
+@njit(**_JIT)
+def _cluster_bounds(verts0, verts1, faces, cl_start, cl_tris):  # pragma: no cover - numba
+    """(c, 3) min and max corner of each cluster over both vertex positions."""
+    nc = cl_start.shape[0] - 1
+    lo = np.empty((nc, 3))
+    hi = np.empty((nc, 3))
+    for c in range(nc):
+        for r in range(3):
+            lo[c, r] = np.inf
+            hi[c, r] = -np.inf
+        for k in range(cl_start[c], cl_start[c + 1]):
+            t = cl_tris[k]
+            for j in range(3):
+                vi = faces[t, j]
+                for r in range(3):
+                    a = verts0[vi, r]
+                    b = verts1[vi, r]
+                    lo[c, r] = min(lo[c, r], min(a, b))
+                    hi[c, r] = max(hi[c, r], max(a, b))
+    return lo, hi
+
+
+_GEOMETRY_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _signature(scene: Scene) -> tuple:
+    arrays = (scene.vertices, scene.faces, scene.states, scene.sphere_centers, scene.sphere_radii)
+    return tuple((id(a), None if a is None else a.shape) for a in arrays)
+
+
 def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
     """One ``SegmentGeometry`` per consecutive pair of the scene's states (one for a static
-    scene). Triangles use ``scene.valid_faces``; spheres need finite centres and radius > 0."""
+    scene). Triangles use ``scene.valid_faces``; spheres need finite centres and radius > 0.
+
+    Cached per scene (weakly; rebuilt if its arrays are replaced): clusters are built once.
+    Scenes are treated as immutable: arrays changed in place are not noticed.
+    """
+    sig = _signature(scene)
+    hit = _GEOMETRY_CACHE.get(scene)
+    if hit is not None and hit[0] == sig:
+        return hit[1]
     faces = np.ascontiguousarray(scene.faces, dtype=np.int32)
     tri_sel = np.flatnonzero(scene.valid_faces).astype(np.int64)
     m = len(faces)
@@ -874,6 +1105,7 @@ def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
         radii = np.zeros(0)
         cs = [np.zeros((0, 3))]
         sphere_sel = np.zeros(0, dtype=np.int64)
+    cl_start, cl_tris = build_clusters(tri_states[0], faces, tri_sel)
     pairs = max(len(tri_states), len(cs)) - 1
     out = []
     for p in range(max(pairs, 1)):
@@ -884,29 +1116,45 @@ def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
         else:
             vm = np.any(a != b, axis=1)
             moving = vm[faces].any(axis=1) if m else np.zeros(0, dtype=bool)
+        lo, hi = _cluster_bounds(a, b, faces, cl_start, cl_tris)
         out.append(SegmentGeometry(
             verts0=a, verts1=b, faces=faces, tri_sel=tri_sel, moving=moving,
             centers0=cs[min(p, len(cs) - 1)], centers1=cs[min(p + 1, len(cs) - 1)], radii=radii,
-            sphere_sel=sphere_sel))
+            sphere_sel=sphere_sel, cl_start=cl_start, cl_tris=cl_tris, cl_lo=lo, cl_hi=hi))
+    _GEOMETRY_CACHE[scene] = (sig, out)
     return out
 
 
+# ------------------------------------------------------------------------------ Python driver
 def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
-    """All (primitive, face) pairs that can touch a pixel centre of the segment's cubemap."""
-    n_tri = geom.n_triangles
-    chunks = []
-    total = 0
-    sel = geom.tri_sel
-    for s in range(0, len(sel), batch):
-        part = sel[s:s + batch]
-        k = len(part)
-        box = np.empty((k, 6, 4), dtype=np.int32)
-        z = np.empty((k, 6))
-        flag = np.empty((k, 6), dtype=np.uint8)
-        _tri_boxes(geom.verts0, geom.verts1, geom.faces, part, geom.moving, v0, dvec, rb, _PERM,
-                   _SGN, res, near, box, z, flag)
-        chunks.append((part.astype(np.int32), box, z, flag))
-        total += int(np.count_nonzero(flag))
+    """All (primitive, face) pairs that can touch a pixel centre of the segment's cubemap:
+    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s)."""
+    parts = []
+    nc = len(geom.cl_start) - 1
+    kept = 0
+    expanded = 0
+    for first in range(0, nc, batch):
+        last = min(nc, first + batch)
+        k = last - first
+        cbox = np.empty((k, 6, 4), dtype=np.int32)
+        cz = np.empty((k, 6))
+        cflag = np.empty((k, 6), dtype=np.uint8)
+        _cluster_boxes(geom.cl_lo[first:last], geom.cl_hi[first:last], v0, dvec, rb, _PERM, _SGN,
+                       res, near, cbox, cz, cflag)
+        kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
+                                                      cflag, first, res)
+        parts.append((kc, kf, kb, kz, kfl))
+        kept += len(kc)
+        if len(et):
+            ebox = np.empty((len(et), 4), dtype=np.int32)
+            ez = np.empty(len(et))
+            efl = np.empty(len(et), dtype=np.uint8)
+            _expanded_boxes(geom.verts0, geom.verts1, geom.faces, geom.moving, et, ef, v0, dvec,
+                            rb, _PERM, _SGN, res, near, ebox, ez, efl)
+            keep = efl != 0
+            parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
+                          ez[keep], efl[keep]))
+            expanded += int(keep.sum())
     if len(geom.sphere_sel):
         k = len(geom.sphere_sel)
         box = np.empty((k, 6, 4), dtype=np.int32)
@@ -914,17 +1162,17 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
         flag = np.empty((k, 6), dtype=np.uint8)
         _sphere_boxes(geom.centers0, geom.centers1, geom.radii, geom.sphere_sel, v0, dvec, rots,
                       res, near, box, z, flag)
-        chunks.append(((geom.sphere_sel + n_tri).astype(np.int32), box, z, flag))
-        total += int(np.count_nonzero(flag))
-    prim_src = np.empty(total, dtype=np.int32)
-    prim_face = np.empty(total, dtype=np.int32)
-    prim_box = np.empty((total, 4), dtype=np.int32)
-    prim_z = np.empty(total)
-    prim_flag = np.empty(total, dtype=np.uint8)
-    n = 0
-    for ids, box, z, flag in chunks:
-        n = _compact(ids, box, z, flag, prim_src, prim_face, prim_box, prim_z, prim_flag, n)
-    stats["prims"] = stats.get("prims", 0) + n
+        si, sf = np.nonzero(flag)
+        parts.append(((geom.sphere_sel[si] + geom.n_triangles).astype(np.int32),
+                      sf.astype(np.int32), box[si, sf], z[si, sf], flag[si, sf]))
+    if not parts:
+        parts.append((np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 4), np.int32),
+                      np.zeros(0), np.zeros(0, np.uint8)))
+    prim_src, prim_face, prim_box, prim_z, prim_flag = (
+        np.ascontiguousarray(np.concatenate([p[i] for p in parts])) for i in range(5))
+    stats["prims"] = stats.get("prims", 0) + len(prim_src)
+    stats["cluster_prims"] = stats.get("cluster_prims", 0) + kept
+    stats["triangle_prims"] = stats.get("triangle_prims", 0) + expanded
     return prim_src, prim_face, prim_box, prim_z, prim_flag
 
 
@@ -951,8 +1199,8 @@ def segment_visible(
     base_rotation : (3, 3) world-to-cube rotation (``camera.cube_face_rotations``), None = axes.
     resolution : face resolution in pixels (90-degree square faces).
     near : near-plane distance, metres.
-    knots : depth of moving primitives is interpolated between multiples of 1 / knots in t.
-    batch : triangles per batch of the box pass.
+    knots : moving triangles' and spheres' depth chords are at most 1 / knots long (in t).
+    batch : clusters per batch of the box pass.
     visible : optional (geom.n_ids,) bool mask to OR into (triangles first, then spheres).
     stats : optional dict; counters and per-phase seconds are added to it.
     witness : optional (geom.n_ids, 5) float64 array (zeros to start): for each visible primitive,
@@ -961,10 +1209,8 @@ def segment_visible(
 
     Returns
     -------
-    (geom.n_ids,) bool mask of primitives visible from the segment.
+    (geom.n_ids,) bool mask of primitives visible from the segment (``visible`` if given).
     """
-    import time
-
     v0 = np.asarray(v0, dtype=np.float64).reshape(3)
     v1 = np.asarray(v1, dtype=np.float64).reshape(3)
     if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
@@ -978,6 +1224,10 @@ def segment_visible(
         raise ValueError(f"knots must be >= 1, got {knots}")
     if visible is None:
         visible = np.zeros(geom.n_ids, dtype=bool)
+    elif visible.shape != (geom.n_ids,) or visible.dtype != np.bool_:
+        raise ValueError(f"visible must be a ({geom.n_ids},) bool array")
+    if witness is not None and witness.shape != (geom.n_ids, 5):
+        raise ValueError(f"witness must be ({geom.n_ids}, 5), got {witness.shape}")
     if stats is None:
         stats = {}
     rb = np.eye(3) if base_rotation is None else np.ascontiguousarray(base_rotation, np.float64)
@@ -989,31 +1239,21 @@ def segment_visible(
     t1 = time.perf_counter()
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, res, float(near))
     t2 = time.perf_counter()
-    ntiles = len(tile_start) - 1
     tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
-    cap = START_CAP
-    n_chunks = max(1, min(len(tiles), 8 * numba.get_num_threads()))
-    counters = np.zeros((n_chunks, 5), dtype=np.int64)
-    if witness is not None:
-        if witness.shape != (geom.n_ids, 5):
-            raise ValueError(f"witness must be ({geom.n_ids}, 5), got {witness.shape}")
-        wit = np.zeros((n_chunks, geom.n_ids, 5))
-    else:
-        wit = np.zeros((1, 0, 5))
-    redo = 0
-    while len(tiles):
-        overflow = np.zeros(len(tiles), dtype=bool)
-        nch = max(1, min(len(tiles), n_chunks))
+    # Tiles are strided over several chunks per thread so busy screen regions spread out.
+    nch = max(1, min(len(tiles), 8 * numba.get_num_threads()))
+    counters = np.zeros((nch, 7), dtype=np.int64)
+    counters[:, 6] = START_CAP
+    wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
+    overflow = np.zeros(len(tiles), dtype=bool)
+    if len(tiles):
         _resolve(tiles, nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
-                 prim_face, geom.verts0, geom.verts1, geom.faces, geom.centers0, geom.centers1,
-                 geom.radii, geom.n_triangles, v0, dvec, rots, res, float(near), int(knots), cap,
-                 visible, overflow, counters[:nch], wit)
-        tiles = tiles[overflow]
-        if len(tiles):
-            if cap >= MAX_CAP:
-                raise RuntimeError(f"envelope capacity {MAX_CAP} exceeded in {len(tiles)} tiles")
-            cap *= 4
-            redo += len(tiles)
+                 prim_face, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
+                 geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
+                 dvec, rots, res, float(near), int(knots), visible, overflow, counters, wit)
+    if overflow.any():
+        raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "
+                           f"{int(overflow.sum())} tiles; lower the resolution")
     t3 = time.perf_counter()
     if witness is not None:
         best = np.argmax(wit[:, :, 0], axis=0)
@@ -1024,13 +1264,9 @@ def segment_visible(
     stats["bin_seconds"] = stats.get("bin_seconds", 0.0) + (t2 - t1)
     stats["envelope_seconds"] = stats.get("envelope_seconds", 0.0) + (t3 - t2)
     stats["tile_items"] = stats.get("tile_items", 0) + int(len(items))
-    stats["pairs"] = stats.get("pairs", 0) + int(counters[:, 0].sum())
-    stats["pieces"] = stats.get("pieces", 0) + int(counters[:, 1].sum())
-    stats["prim_tiles"] = stats.get("prim_tiles", 0) + int(counters[:, 2].sum())
-    stats["culled_prim_tiles"] = stats.get("culled_prim_tiles", 0) + int(counters[:, 3].sum())
-    stats["final_pieces"] = stats.get("final_pieces", 0) + int(counters[:, 4].sum())
-    stats["redone_tiles"] = stats.get("redone_tiles", 0) + redo
-    stats["max_cap"] = max(stats.get("max_cap", 0), cap)
+    for k, name in enumerate(("pairs", "pieces", "items_processed", "items_culled",
+                              "final_pieces", "envelope_grows")):
+        stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
+    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, 6].max()))
     stats["face_runs"] = stats.get("face_runs", 0) + 6
-    del ntiles
     return visible

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from visibility.segment_dynamic import add_roots01, emit_chords, sort_small
+from visibility.segment_dynamic import add_roots01, emit_chords, quad_range01, sort_small
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -50,7 +50,7 @@ def sphere_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
     """Depth pieces of a (moving) sphere at the pixel ray (x, y, -1) over t in [0, 1].
 
     Returns the number of chords written to t0, t1, z0, z1 (split adaptively, exact depth at
-    their ends: ``emit_chords``); ``brk`` (>= 8) and ``stack`` (>= 64, 4) are scratch.
+    their ends: ``emit_chords``); ``brk`` (>= 48) and ``stack`` (>= 64, 4) are scratch.
     """
     ox, oy, oz = coef[0], coef[1], coef[2]
     ux, uy, uz = coef[3], coef[4], coef[5]
@@ -69,6 +69,17 @@ def sphere_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
     q0 = px * px + py * py + pz * pz - r * r
     q1 = 2.0 * (px * ux + py * uy + pz * uz)
     q2 = ux * ux + uy * uy + uz * uz
+    if not slow:
+        lo, hi = quad_range01(g0, g1, g2)
+        if lo > 0.0:
+            return 0  # the ray's line misses the sphere all along
+    pc = brk[32:40]
+    pc[0] = ow
+    pc[1] = uw
+    pc[2] = -g0
+    pc[3] = -g1
+    pc[4] = -g2
+    pc[5] = ww
     k = 0
     brk[k] = 0.0
     k += 1
@@ -95,11 +106,11 @@ def sphere_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
         kind = _kind((g2 * m + g1) * m + g0, l0 + m * uw, (q2 * m + q1) * m + q0, slow)
         if kind != cur:
             if cur != 0:
-                n = emit_chords(start, a, knots, cur, coef, x, y, t0, t1, z0, z1, n, stack)
+                n = emit_chords(start, a, knots, cur, pc, t0, t1, z0, z1, n, stack)
             start = a
             cur = kind
     if cur != 0:
-        n = emit_chords(start, 1.0, knots, cur, coef, x, y, t0, t1, z0, z1, n, stack)
+        n = emit_chords(start, 1.0, knots, cur, pc, t0, t1, z0, z1, n, stack)
     return n
 
 

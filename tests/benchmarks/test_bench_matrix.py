@@ -94,3 +94,43 @@ def test_ray_peer_agrees_with_the_rasterizer_and_respects_occlusion():
     assert len(a ^ b) <= 0.1 * len(a | b)
     budget = peers.embree_pvs(scene, cell, samples=10_000, resolution=16, time_budget=0.0)
     assert budget.stats["samples"] == 1
+
+
+def test_raster_peer_is_the_sampling_core_and_stops_at_a_target():
+    """The ``raster`` engine draws the same points and cubes as the ``sampling`` core, so with
+    the same seed it finds exactly the same triangles; with a target it stops as soon as it has
+    found that share of the reference, and says whether it got there."""
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    core = get_core("sampling")
+    ras = peers.from_point_pvs(scene, cell, "raster", samples=12, resolution=48, seed=5)
+    ref = core.compute(scene, cell, core.make_params(samples=12, resolution=48, seed=5))
+    np.testing.assert_array_equal(ras.triangle_ids, ref.triangle_ids)
+    target = ref.triangle_ids
+    half = peers.from_point_pvs(scene, cell, "raster", samples=1000, resolution=48, seed=5,
+                                target_ids=target, target_share=0.5)
+    assert half.stats["reached"] and half.stats["samples"] < 12
+    assert np.isin(target, half.triangle_ids).mean() >= 0.5
+    impossible = peers.from_point_pvs(scene, cell, "raster", samples=3, resolution=8, seed=5,
+                                      target_ids=target, target_share=1.0)
+    assert not impossible.stats["reached"] and impossible.stats["samples"] == 3
+    with pytest.raises(ValueError):
+        peers.from_point_pvs(scene, cell, "optix")
+
+
+def test_tiny_matrix_has_equal_time_and_equal_completeness_rows(tmp_path):
+    argv = TINY + ["--out", str(tmp_path / "B.md"), "--results-dir", str(tmp_path),
+                   "--cache-dir", str(tmp_path / "cache"), "--cores", "from_segment", "sampling",
+                   "--no-peer"]
+    assert bench_matrix.main(argv) == 0
+    rows = json.loads((tmp_path / "bench_quick.json").read_text())["rows"]
+    ref = [r for r in rows if r["core"] == "from_segment"][-1]
+    et = [r for r in rows if r["knob"] == "budget"]
+    ec = [r for r in rows if r["knob"] == "completeness"]
+    assert [r["core"] for r in et] == ["sampling"] and [r["core"] for r in ec] == ["sampling"]
+    # Equal time: stops at the first viewpoint past the budget.
+    assert et[0]["peer_samples"] >= 1
+    assert ec[0]["target_pct"] == pytest.approx(100 * (1 - ref["fn"]))
+    if ec[0]["reached"]:
+        assert 1 - ec[0]["fn"] >= 1 - ref["fn"] - 1e-9
+    text = (tmp_path / "B.md").read_text()
+    assert "equal time to from_segment" in text and "equal completeness to from_segment" in text

@@ -162,3 +162,26 @@ def test_segment_pvs_and_validation(live_server):
         r = http.get("/scenes/tiny/cells/1/pvs", params={"core": "test_near",
                                                           "resolution": "1000000"})
         assert r.status_code == 422 and r.json()["error"]["code"] == "bad_params"
+
+
+def test_diagonal_segment_is_answered_exactly_or_refused(live_server):
+    """A diagonal segment goes to the core's own segment solver (the answer equals the core's
+    ``compute_segment``), and a box-only core refuses it with ``unsupported_region``."""
+    from visibility.cores.base import get_core
+
+    seg = [[1.0, 1.7, 1.0], [3.0, 1.9, 2.5]]
+    core = get_core("from_segment")
+    want = core.compute_segment(TINY, *np.array(seg), core.make_params(resolution=32))
+    with httpx.Client(base_url=live_server, timeout=120) as http:
+        r = http.post("/scenes/tiny/pvs", json={"segment": seg, "core": "from_segment",
+                                                "params": {"resolution": 32}})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["segment"] == seg and body["cell"] is None
+        assert body["box"] == [[1.0, 1.7, 1.0], [3.0, 1.9, 2.5]]
+        assert body["triangle_ids"] == want.triangle_ids.tolist()
+        r = http.post("/scenes/tiny/pvs", json={"segment": seg, "core": "test_near",
+                                                "params": {"radius": 2.5}})
+        assert r.status_code == 422 and r.json()["error"]["code"] == "unsupported_region"
+        # The server is still fine.
+        assert http.get("/health").status_code == 200

@@ -87,6 +87,11 @@ def expand_to_objects(scene: Scene, triangle_ids: np.ndarray) -> tuple[np.ndarra
     return np.nonzero(mask)[0].astype(np.int32), objs.astype(np.int32)
 
 
+class SegmentNotSupported(ValueError):
+    """A core was asked for the PVS of a segment it cannot describe (a diagonal segment for a
+    core that only solves boxes)."""
+
+
 class Core(ABC):
     """A from-region visibility algorithm.
 
@@ -123,7 +128,40 @@ class Core(ABC):
         params.validate()
         t0 = time.perf_counter()
         ids, stats = self._compute(scene, cell, params)
-        seconds = time.perf_counter() - t0
+        return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
+
+    def compute_segment(
+        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams | None = None
+    ) -> PVS:
+        """The PVS of the segment p -> q (metres): triangles visible from some point of it.
+
+        Cores that solve segments natively override ``_compute_segment``; the default answers
+        a segment along a coordinate axis as the (degenerate) box it is, and raises
+        ``SegmentNotSupported`` for a diagonal one, which no box describes.
+        """
+        a = np.asarray(p, dtype=np.float64).reshape(3)
+        b = np.asarray(q, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            raise ValueError("segment end points must be finite")
+        params = params or self.make_params()
+        params.validate()
+        t0 = time.perf_counter()
+        ids, stats = self._compute_segment(scene, a, b, params)
+        return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
+
+    def _compute_segment(
+        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Return (visible triangle ids, stats) for the segment p -> q; see ``compute_segment``."""
+        if np.count_nonzero(p != q) > 1:
+            raise SegmentNotSupported(
+                f"core {self.name!r} computes boxes only; a diagonal segment has no box "
+                f"(ask a core with native segments: {segment_cores()})")
+        return self._compute(scene, Viewcell(np.stack([np.minimum(p, q), np.maximum(p, q)])),
+                             params)
+
+    def _finish(self, scene: Scene, params: CoreParams, ids: np.ndarray, stats: dict[str, Any],
+                seconds: float) -> PVS:
         ids = np.asarray(ids, dtype=np.int64)
         ids = ids[(ids >= 0) & (ids < scene.n_triangles)]
         ids = ids[scene.valid_faces[ids]]
@@ -131,7 +169,6 @@ class Core(ABC):
         if params.granularity == "object":
             ids, object_ids = expand_to_objects(scene, ids)
         stats = dict(stats)
-        stats.setdefault("seconds", seconds)
         stats["seconds"] = seconds
         sphere_ids = stats.pop("sphere_ids", None)
         return PVS(ids, params.granularity, object_ids, sphere_ids, stats)
@@ -170,6 +207,13 @@ def _load_builtins() -> None:
             # A built-in core still under construction is simply absent.
             if exc.name != mod:
                 raise
+
+
+def segment_cores() -> list[str]:
+    """Names of the registered cores that solve arbitrary segments natively, sorted."""
+    _load_builtins()
+    return sorted(n for n, c in _REGISTRY.items()
+                  if c._compute_segment is not Core._compute_segment)
 
 
 def available_cores() -> list[str]:

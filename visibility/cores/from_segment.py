@@ -19,7 +19,7 @@ import numpy as np
 from visibility.camera import DEFAULT_NEAR, random_rotation
 from visibility.cores.base import Core, CoreParams, register
 from visibility.scene import Scene
-from visibility.segment_kernels import DEFAULT_BATCH, scene_geometries, segment_visible
+from visibility.segment_kernels import CLUSTER, DEFAULT_BATCH, scene_geometries, segment_visible
 from visibility.viewcells import Viewcell
 
 
@@ -33,14 +33,15 @@ class FromSegmentParams(CoreParams):
         the box, 3 = all three (a box without height always uses one).
     depth_knots : depth of moving triangles and spheres is interpolated between multiples of
         1 / depth_knots of the segment (coverage events stay exact).
-    batch_triangles : triangles per batch of the box pass (bounds its scratch memory).
+    batch_triangles : triangles per batch of the box pass (bounds its scratch memory; the pass
+        works on clusters of CLUSTER triangles).
     """
 
     runs: int = 1
     near: float = DEFAULT_NEAR
     eye_levels: int = 3
     depth_knots: int = 16
-    batch_triangles: int = DEFAULT_BATCH
+    batch_triangles: int = DEFAULT_BATCH * CLUSTER
 
     MAX_RUNS: ClassVar[int] = 256
 
@@ -55,8 +56,8 @@ class FromSegmentParams(CoreParams):
         if not (1 <= int(self.depth_knots) <= 1024) or int(self.depth_knots) != self.depth_knots:
             raise ValueError(f"depth_knots must be an integer in [1, 1024], got "
                              f"{self.depth_knots}")
-        if not (1024 <= int(self.batch_triangles) <= 1 << 24):
-            raise ValueError(f"batch_triangles must be in [1024, 2^24], got "
+        if not (1024 <= int(self.batch_triangles) <= 1 << 26):
+            raise ValueError(f"batch_triangles must be in [1024, 2^26], got "
                              f"{self.batch_triangles}")
 
 
@@ -123,20 +124,31 @@ class FromSegmentCore(Core):
         self, scene: Scene, cell: Viewcell, params: CoreParams
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, FromSegmentParams)
-        segments = cell_segments(cell.box, params.eye_levels)
+        return self._run(scene, cell_segments(cell.box, params.eye_levels), params)
+
+    def _compute_segment(
+        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        assert isinstance(params, FromSegmentParams)
+        return self._run(scene, np.stack([p, q])[None], params)
+
+    def _run(
+        self, scene: Scene, segments: np.ndarray, params: FromSegmentParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Union over ``segments`` (k, 2, 3), cube orientations and state intervals."""
         rotations = cube_rotations(params.runs, params.seed)
         t0 = time.perf_counter()
         geoms = scene_geometries(scene)
         n_ids = geoms[0].n_ids
         visible = np.zeros(n_ids, dtype=bool)
         stats: dict[str, Any] = {}
+        batch = max(1, int(params.batch_triangles) // CLUSTER)
         if len(geoms[0].tri_sel) or len(geoms[0].sphere_sel):
             for rot in rotations:
                 for v0, v1 in segments:
                     for g in geoms:
                         segment_visible(g, v0, v1, rot, params.resolution, params.near,
-                                        params.depth_knots, params.batch_triangles, visible,
-                                        stats)
+                                        params.depth_knots, batch, visible, stats)
         m = scene.n_triangles
         stats["segments"] = int(len(segments))
         stats["runs"] = int(params.runs)

@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from visibility.cores.base import Core, CoreParams, register
-from visibility.ground_truth import sample_pvs
+from visibility.ground_truth import GroundTruth, sample_pvs, sample_segment_pvs
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
@@ -67,10 +67,22 @@ class SamplingCore(Core):
             seed=int(params.seed),
             batch=int(params.batch),
         )
-        stats = {
-            "samples": gt.samples,
-            "resolution": int(params.resolution),
-            "convergence": [list(c) for c in gt.convergence],
-            "pixels_rendered": gt.pixels,
-        }
-        return gt.triangle_ids, stats
+        return gt.triangle_ids, _stats(gt, params)
+
+    def _compute_segment(
+        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        assert isinstance(params, SamplingParams)
+        gt = sample_segment_pvs(scene, p, q, n_points=int(params.samples),
+                                resolution=int(params.resolution), seed=int(params.seed),
+                                batch=int(params.batch))
+        return gt.triangle_ids, _stats(gt, params)
+
+
+def _stats(gt: GroundTruth, params: SamplingParams) -> dict[str, Any]:
+    return {
+        "samples": gt.samples,
+        "resolution": int(params.resolution),
+        "convergence": [list(c) for c in gt.convergence],
+        "pixels_rendered": gt.pixels,
+    }

@@ -136,3 +136,33 @@ def test_tiny_and_huge_cells(core):
     huge = type(cell)(np.array([[-500.0, -500.0, -500.0], [500.0, 500.0, 500.0]]))
     pvs = core.compute(scene, huge, params_for(core))
     check_valid(pvs, scene)
+
+
+def test_segment_queries(core):
+    """Every core answers a segment: an axis-aligned one always (it is a degenerate box), a
+    diagonal one when it solves segments natively, else SegmentNotSupported (a ValueError)."""
+    from visibility.cores.base import SegmentNotSupported, segment_cores
+
+    scene, _, known = ds.two_rooms_and_a_door()
+    p, q = np.array([2.0, 1.7, 2.6]), np.array([3.0, 1.7, 2.6])
+    pvs = core.compute_segment(scene, p, q, params_for(core))
+    check_valid(pvs, scene)
+    found = set(pvs.triangle_ids.tolist())
+    assert set(known["visible"]) <= found
+    assert not (set(known["hidden"]) & found)
+    diagonal = np.array([3.0, 1.9, 3.4])
+    if core.name in segment_cores():
+        pvs = core.compute_segment(scene, p, diagonal, params_for(core))
+        check_valid(pvs, scene)
+        assert not (set(known["hidden"]) & set(pvs.triangle_ids.tolist()))
+    else:
+        with pytest.raises(SegmentNotSupported):
+            core.compute_segment(scene, p, diagonal, params_for(core))
+    with pytest.raises(ValueError):
+        core.compute_segment(scene, p, np.array([np.inf, 0.0, 0.0]), params_for(core))
+
+
+def test_native_segment_cores_are_known():
+    from visibility.cores.base import segment_cores
+
+    assert {"from_segment", "sampling"} <= set(segment_cores())

@@ -225,3 +225,27 @@ def test_dynamic_scene_against_sampled_ground_truth():
     gt = sample_pvs(scene, cell, n_points=24, resolution=96, seed=3)
     fn, _ = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
     assert fn <= 0.1
+
+
+def test_compute_segment_is_exact_on_a_diagonal_segment():
+    """The PVS of a diagonal segment (no box describes it) holds everything id buffers see from
+    points on it with the same cube and resolution, and is not the PVS of its bounding box."""
+    scene = make_scene("village", triangles=4000, seed=3)
+    grid = ViewcellGrid.for_scene(scene)
+    box = grid.cell(len(grid) // 2).box
+    p, q = box[0].copy(), box[1].copy()
+    p[1] = q[1] = 0.5 * (box[0, 1] + box[1, 1])
+    res = 48
+    pvs = CORE.compute_segment(scene, p, q, CORE.make_params(resolution=res, runs=1))
+    assert pvs.stats["segments"] == 1
+    tri, _ = sampled_visible(scene.vertices, scene.vertices, scene.faces, p, q, res, 64,
+                             face_mask=scene.valid_faces)
+    seen = np.flatnonzero(tri)
+    missing = np.setdiff1d(seen, pvs.triangle_ids)
+    assert len(missing) <= max(1, len(seen) // 200), missing
+    # The bounding box's perimeter sees more than the diagonal does.
+    boxed = CORE.compute(scene, Viewcell(np.stack([np.minimum(p, q), np.maximum(p, q)])),
+                         CORE.make_params(resolution=res, eye_levels=1))
+    assert len(boxed) > len(pvs)
+    with pytest.raises(ValueError):
+        CORE.compute_segment(scene, p, np.array([np.nan, 0, 0]))
