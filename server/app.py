@@ -35,7 +35,7 @@ WS_LIBRARY_MAX_MIN = 1 << 20
 COUNTERS = ("sessions_total", "messages_received", "messages_sent", "text_bytes_sent",
             "errors_sent", "frames_sent", "frame_bytes_sent", "triangles_sent",
             "triangles_dropped", "cells_streamed", "cells_prefetched", "prefetch_yields",
-            "stalls", "slow_clients", "cubemaps_sent")
+            "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole")
 
 
 @dataclass

@@ -92,6 +92,8 @@ class _StateCollector:
         yield counter("pvs_stalls", "poses in a cell whose stream the server had not finished",
                       c["stalls"])
         yield counter("pvs_cells_streamed", "complete cell streams", c["cells_streamed"])
+        yield counter("pvs_cells_sent_whole", "cells whose near region fit the client's budget "
+                      "(sent without a PVS computation)", c["cells_sent_whole"])
         yield counter("pvs_cells_prefetched", "complete prefetch cell streams",
                       c["cells_prefetched"])
         yield counter("pvs_prefetch_yields", "prefetch streams cut short for a current cell",

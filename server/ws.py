@@ -378,7 +378,9 @@ class StreamSession:
                    f"client's budget of {self.budget}: it is sent whole, no PVS is computed"}
         else:
             pvs = {"on": True, "why": "no budget declared" if self.budget is None else
-                   f"the scene ({valid} triangles) exceeds the budget of {self.budget}"}
+                   f"the scene ({valid} triangles) exceeds the budget of {self.budget}"
+                   + ("; a cell whose near region (within r2) fits it is sent whole, "
+                      "without a PVS" if self.settings.near_far else "")}
         dynamic = scene.states is not None and scene.states.shape[0] > 1
         nf = _near_far_module()
         if nf is None:
@@ -531,6 +533,13 @@ class StreamSession:
             ids = np.flatnonzero(scene.valid_faces).astype(np.int32)
             box = self.loaded.grid.boxes[cell].copy()
             return PVSResult(name, cell, box, self.core.name, self.params, PVS(ids), True)
+        near = await self._near_region_if_it_fits(cell)
+        if near is not None:
+            self.state.counters["cells_sent_whole"] += 1
+            box = self.loaded.grid.boxes[cell].copy()
+            stats = {"skipped": "the near region fits the client's budget: sent whole"}
+            return PVSResult(name, cell, box, self.core.name, self.params,
+                             PVS(near, stats=stats), True)
         compute = self.state.compute
         key = compute.key(name, self.core, self.params, cell)
         seq = self.cell_seq if not prefetch else None
@@ -627,6 +636,35 @@ class StreamSession:
             await self._enqueue(Drop(ids=np.sort(drops).tolist(), cells=gone))
         return True
 
+    async def _split(self, nf: Any, cell: int) -> Any:
+        """The near-far split of ``cell`` (``visibility.nearfar.NearFarSplit``), or False when
+        nothing static lies beyond r2 of its centre; shared by every session of the server."""
+        scene = self.loaded.scene
+        cfg = self._near_far_cfg(nf)
+        centre = self.loaded.grid.boxes[cell].mean(axis=0)
+        split_key = (self.loaded.name, cell, cfg.r1, cfg.r2)
+        split = self.state.near_far_splits.get(split_key)
+        if split is None:
+            if not await asyncio.to_thread(nf.needs_cubemap, scene, centre, cfg):
+                split = False
+            else:
+                split = await asyncio.to_thread(nf.split_ids, scene, centre, cfg)
+            self.state.near_far_splits[split_key] = split
+        return split
+
+    async def _near_region_if_it_fits(self, cell: int) -> np.ndarray | None:
+        """The ids of the cell's near region (near + intermediate + far dynamic: everything the
+        cell sends as geometry before culling) when they fit the client's budget, else None:
+        such a cell needs no PVS computation, it is sent whole."""
+        nf = _near_far_module() if self.settings.near_far else None
+        if self.budget is None or nf is None:
+            return None
+        split = await self._split(nf, cell)
+        if split is False:
+            return None  # no far part: the near region is the whole scene (send_all decides)
+        near = np.union1d(split.near_ids, split.far_dynamic_ids).astype(np.int32)
+        return near if len(near) <= self.budget else None
+
     async def _near_far(self, nf: Any, cell: int, ids: np.ndarray
                         ) -> tuple[np.ndarray, dict | None, bytes | None]:
         """INTEGRATION POINT (near-far): the cell's geometry ids, its ``cell_begin.near_far``
@@ -639,14 +677,7 @@ class StreamSession:
         cfg = self._near_far_cfg(nf)
         centre = self.loaded.grid.boxes[cell].mean(axis=0)
         split_key = (self.loaded.name, cell, cfg.r1, cfg.r2)
-        split = self.state.near_far_splits.get(split_key)
-        if split is None:
-            if not await asyncio.to_thread(nf.needs_cubemap, scene, centre, cfg):
-                self.state.near_far_splits[split_key] = False
-                return ids, {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
-                             "cubemap": False}, None
-            split = await asyncio.to_thread(nf.split_ids, scene, centre, cfg)
-            self.state.near_far_splits[split_key] = split
+        split = await self._split(nf, cell)
         info = {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
                 "cubemap": split is not False}
         if split is False:

@@ -76,3 +76,54 @@ def test_city_cell_gets_a_cubemap_and_near_geometry(nf_server):
     assert np.all(np.isin(s.store.ids, allowed))  # nothing far and static as geometry
     finite = np.isfinite(cube.ranges)
     assert finite.any()
+
+
+def test_cell_whose_near_region_fits_the_budget_is_sent_whole(nf_server):
+    """With a budget that holds a city cell's near region (but not the scene), the server sends
+    that region without computing a PVS: the client holds every near triangle, not a subset."""
+    url, app = nf_server
+    if "city" not in app.state.server.catalog:
+        pytest.skip("city generator not available")
+    state = app.state.server
+    loaded = state.catalog.get("city")
+    grid, scene = loaded.grid, loaded.scene
+    cfg = nearfar.NearFarConfig(r1=40.0, r2=80.0, resolution=32)
+    cid = next(c for c in range(len(grid))
+               if nearfar.needs_cubemap(scene, grid.boxes[c].mean(axis=0), cfg))
+    centre = grid.boxes[cid].mean(axis=0)
+    split = nearfar.split_ids(scene, centre, cfg)
+    near = np.union1d(split.near_ids, split.far_dynamic_ids)
+    assert len(near) < int(scene.valid_faces.sum())
+    computed, whole = state.compute.computed, state.counters["cells_sent_whole"]
+
+    async def main():
+        s = await Session.connect(url, "city", "test_near", {"radius": 1.0}, budget=len(near),
+                                  prefetch=False)
+        await s.send_pose(0, 0.0, centre, (0, 0, -1))
+        for _ in range(600):
+            if cid in s.complete:
+                break
+            await asyncio.sleep(0.1)
+        await s.close()
+        return s
+
+    s = asyncio.run(asyncio.wait_for(main(), 120))
+    assert cid in s.complete and not s.local_errors
+    np.testing.assert_array_equal(np.sort(s.store.ids), near)  # all of it, though radius 1 m
+    assert state.compute.computed == computed  # no PVS was computed for it
+    assert state.counters["cells_sent_whole"] == whole + 1
+    # One triangle less of budget and the cell is culled as usual.
+
+    async def culled():
+        s = await Session.connect(url, "city", "test_near", {"radius": 1.0},
+                                  budget=len(near) - 1, prefetch=False)
+        await s.send_pose(0, 0.0, centre, (0, 0, -1))
+        for _ in range(600):
+            if cid in s.complete:
+                break
+            await asyncio.sleep(0.1)
+        await s.close()
+        return s
+
+    s = asyncio.run(asyncio.wait_for(culled(), 120))
+    assert cid in s.complete and len(s.store.ids) < len(near)
