@@ -220,7 +220,9 @@ def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--duration", type=float, default=12.0, help="generated walk length, seconds")
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=256)
-    p.add_argument("--realtime", action="store_true", help="pace frames at their timestamps")
+    p.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=True,
+                   help="pace frames at their timestamps, so stalls measure prefetch at the "
+                        "walk's speed (default); --no-realtime replays as fast as possible")
     p.add_argument("--seed", type=int, default=0)
 
 

@@ -106,6 +106,7 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
         renderer = OffscreenRenderer(opts.width, opts.height)
         frames: list[dict] = []
         worst: list[tuple[float, int, Any]] = []
+        startup = _start_up(session, grid, walk, opts)
         t_start = time.perf_counter()
         bar = tqdm(
             total=len(walk),
@@ -125,7 +126,8 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             if i + 1 < len(walk):
                 dt = walk.t[i + 1] - t
                 vel = (walk.positions[i + 1] - pos) / dt if dt > 0 else None
-            session.send_pose(i, t, pos, fwd, vel)
+            if i > 0:  # pose 0 went out during start-up
+                session.send_pose(i, t, pos, fwd, vel)
             cell = grid.cell_of(pos)
             stalled = False
             waited = 0.0
@@ -193,6 +195,8 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             "cells": len(grid),
             "walkthrough": str(opts.walkthrough or out / "walkthrough.json"),
             "frames": len(frames),
+            "startup_seconds": startup,
+            "realtime": bool(opts.realtime),
             "image": [opts.width, opts.height],
             "server_errors": [e.message for e in session.errors],
             "epsilon_definition": epsilon_mask.__doc__.strip().splitlines()[0]
@@ -207,6 +211,27 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             session.close()
         except SessionError:
             pass
+
+
+def _start_up(session: SyncSession, grid: ViewcellGrid, walk: Walkthrough,
+              opts: ReplayOptions) -> float:
+    """Send the first pose and wait for its cell, as a device waits behind a loading screen
+    before the user starts walking; seconds waited. Stalls count from the first frame on."""
+    if not len(walk):
+        return 0.0
+    pos, fwd = walk.positions[0], walk.forwards[0]
+    vel = None
+    if len(walk) > 1 and walk.t[1] > walk.t[0]:
+        vel = (walk.positions[1] - pos) / (walk.t[1] - walk.t[0])
+    t0 = time.perf_counter()
+    session.send_pose(0, float(walk.t[0]), pos, fwd, vel)
+    cell = grid.cell_of(pos)
+    if cell is not None:
+        try:
+            session.wait_cell(cell, timeout=opts.wait_timeout)
+        except TimeoutError:
+            log.warning("first cell %d did not arrive in %.0f s", cell, opts.wait_timeout)
+    return time.perf_counter() - t0
 
 
 def composed_metrics(renderer, tris, cols, cube, eye, forward, gt) -> tuple[Any, dict]:

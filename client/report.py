@@ -192,7 +192,11 @@ def format_summary(summary: dict, per_frame: bool = False) -> str:
         lines.append(
             f"{name:<16}{s['mean']:>12.4g}{s['min']:>12.4g}{s['max']:>12.4g}{s['count']:>7d}"
         )
-    lines.append(f"frames: {len(frames)}   stalls: {summary.get('stalls', 0)}")
+    tail = f"frames: {len(frames)}   stalls: {summary.get('stalls', 0)}"
+    startup = (summary.get("meta") or {}).get("startup_seconds")
+    if _is_number(startup):
+        tail += f"   start-up (first cell before walking): {float(startup):.2f} s"
+    lines.append(tail)
     return "\n".join(lines)
 
 

@@ -64,6 +64,9 @@ def test_sampling_pvs_frames_match_ground_truth(live_server, tmp_path, scene):
     assert (tmp_path / "frames.csv").is_file() and (tmp_path / "metrics.png").is_file()
     assert list(tmp_path.glob("worst_*.png"))
     assert all(f["triangles_held"] > 0 for f in summary["frames"])
+    # The first cell arrives during start-up, so frame 0 already has geometry and no stall.
+    assert summary["meta"]["startup_seconds"] > 0
+    assert not summary["frames"][0]["stalled"]
 
 
 def test_a_broken_pvs_is_caught(live_server, tmp_path, broken_core):
