@@ -85,14 +85,9 @@ def test_stress_scene_known_answers(core, stress, cell_index):
 
 
 # --------------------------------------------------------------------------- slivers
-def test_lone_sliver_of_aspect_ratio_1e6(core, request):
-    if core.name == "from_segment":
-        # Finding (issue 6): at resolution 64 from_segment returns an empty PVS for this lone
-        # sliver at y = 1.7 (the cell's mid eye level); it finds it at 128 and 256, and at
-        # y = 1.0 at every resolution. Reported to the core's owner.
-        request.applymarker(pytest.mark.xfail(strict=True, reason=(
-            "from_segment misses a 1e6-aspect sliver lying at its mid eye level at res 64")))
-    # 4 m long, 4 micrometres high, 8 m in front of the cell, facing it: in plain view.
+def test_lone_sliver_of_aspect_ratio_1e6(core):
+    # 4 m long, 4 micrometres high, 8 m in front of the cell, facing it: in plain view, but far
+    # thinner than a pixel, so only a pixel centre (or ray) that happens to cross it sees it.
     scene = _tri_scene([[(-2, 1.7, -8), (2, 1.7, -8), (0, 1.7 + 4e-6, -8)]], "sliver")
     edges = np.linalg.norm(scene.triangles()[0] - np.roll(scene.triangles()[0], 1, axis=0), axis=1)
     assert edges.max() / (2 * 8e-6 / edges.max()) == pytest.approx(1e6)  # longest edge / height
@@ -102,6 +97,24 @@ def test_lone_sliver_of_aspect_ratio_1e6(core, request):
     if core.name == "sampling":
         # Point sampling hits a sub-pixel sliver only by luck (the core is aggressive by
         # design): the result is valid, possibly empty.
+        return
+    if core.name == "from_segment":
+        # Exact at pixel centres: it reports the sliver exactly when a pixel centre of its -Z
+        # cube face crosses it somewhere on the perimeter (a crossing lasts a tiny stretch of a
+        # side, so point samples along the sides miss it: the reason for a continuous method).
+        # The perimeter's eyes are at y in {1.5, 1.7, 1.9}, 7 to 9 m from the sliver's plane, so
+        # the sliver spans the vertical tangents [(1.7 - y) / d, (1.7 + 4e-6 - y) / d] for d in
+        # [7, 9]; face rows have their centres at tangents (2k + 1) / R - 1.
+        for res in (64, 128):
+            rows = (2 * np.arange(res) + 1) / res - 1
+            seen = False
+            for y in (1.5, 1.7, 1.9):
+                ends = np.array([(1.7 - y) / d for d in (7.0, 9.0)]
+                                + [(1.7 + 4e-6 - y) / d for d in (7.0, 9.0)])
+                seen |= bool(np.any((rows >= ends.min()) & (rows <= ends.max())))
+            got = check_valid(core.compute(scene, cell, params_for(core, resolution=res)), scene)
+            assert got == ({0} if seen else set()), (res, seen)
+            assert seen == (res == 128)  # the case is built so both branches are exercised
         return
     assert found == {0}
 
