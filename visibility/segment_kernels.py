@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.face_pixels import pixel_range
 from visibility.scene import Scene
 from visibility.segment_dynamic import moving_cover, moving_setup
 from visibility.segment_spheres import sphere_box, sphere_cover, sphere_setup
@@ -87,29 +88,6 @@ _PERM, _SGN = _face_permutation()
 
 
 # ------------------------------------------------------------------------------ boxes
-@njit(**_JIT)
-def _pixel_range(umin, umax, vmin, vmax, res, box):
-    """Pixel-centre box [row0, row1, col0, col1] (inclusive) of an NDC rectangle (widened a
-    hair against rounding); False when it holds no pixel centre."""
-    h = 0.5 * res
-    eps = 1e-6
-    col0 = max(-1.0, (umin + 1.0) * h - 0.5)
-    col1 = min(res + 1.0, (umax + 1.0) * h - 0.5)
-    row0 = max(-1.0, (1.0 - vmax) * h - 0.5)
-    row1 = min(res + 1.0, (1.0 - vmin) * h - 0.5)
-    j0 = max(int(np.ceil(col0 - eps)), 0)
-    j1 = min(int(np.floor(col1 + eps)), res - 1)
-    i0 = max(int(np.ceil(row0 - eps)), 0)
-    i1 = min(int(np.floor(row1 + eps)), res - 1)
-    if j0 > j1 or i0 > i1:
-        return False
-    box[0] = i0
-    box[1] = i1
-    box[2] = j0
-    box[3] = j1
-    return True
-
-
 @njit(**_JIT)
 def _hull_box(cube, npts, f, perm, sgn, near, res, box):
     """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
@@ -177,7 +155,7 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box):
                     vmax = max(vmax, v)
     if not (umin <= umax and vmin <= vmax):
         return False, 0.0, False
-    if not _pixel_range(umin, umax, vmin, vmax, res, box):
+    if not pixel_range(umin, umax, vmin, vmax, res, box):
         return False, 0.0, False
     return True, zm, slow
 
@@ -739,7 +717,7 @@ def _front_box(P, U, res, box):
             vmin = min(vmin, y * inv)
             vmax = max(vmax, y * inv)
             zm = min(zm, d)
-    return _pixel_range(umin, umax, vmin, vmax, res, box), zm
+    return pixel_range(umin, umax, vmin, vmax, res, box), zm
 
 
 @njit(**_JIT)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.face_pixels import pixel_range
 from visibility.segment_dynamic import add_roots01, emit_chords, quad_range01, sort_small
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -144,7 +145,6 @@ def sphere_box(c0: np.ndarray, c1: np.ndarray, r: float, near: float, res: int,
     if max(d0, d1) + r < near:
         return False, 0.0, False
     zmin = min(d0, d1) - r
-    eps = 1e-6
     if zmin < near * (1.0 + 1e-9):
         box[0] = 0
         box[1] = res - 1
@@ -159,19 +159,6 @@ def sphere_box(c0: np.ndarray, c1: np.ndarray, r: float, near: float, res: int,
     u1 = max(xb0, xb1)
     v0 = min(ya0, ya1)
     v1 = max(yb0, yb1)
-    h = 0.5 * res
-    col0 = max(-1.0, (u0 + 1.0) * h - 0.5)
-    col1 = min(res + 1.0, (u1 + 1.0) * h - 0.5)
-    row0 = max(-1.0, (1.0 - v1) * h - 0.5)
-    row1 = min(res + 1.0, (1.0 - v0) * h - 0.5)
-    j0 = max(int(np.ceil(col0 - eps)), 0)
-    j1 = min(int(np.floor(col1 + eps)), res - 1)
-    i0 = max(int(np.ceil(row0 - eps)), 0)
-    i1 = min(int(np.floor(row1 + eps)), res - 1)
-    if j0 > j1 or i0 > i1:
+    if not pixel_range(u0, u1, v0, v1, res, box):
         return False, 0.0, False
-    box[0] = i0
-    box[1] = i1
-    box[2] = j0
-    box[3] = j1
     return True, zmin, False

@@ -95,29 +95,23 @@ def test_cell_whose_near_region_fits_the_budget_is_sent_whole(nf_server):
     near = np.union1d(split.near_ids, split.far_dynamic_ids)
     assert len(near) < int(scene.valid_faces.sum())
     computed, whole = state.compute.computed, state.counters["cells_sent_whole"]
-
-    async def main():
-        s = await Session.connect(url, "city", "test_near", {"radius": 1.0}, budget=len(near),
-                                  prefetch=False)
-        await s.send_pose(0, 0.0, centre, (0, 0, -1))
-        for _ in range(600):
-            if cid in s.complete:
-                break
-            await asyncio.sleep(0.1)
-        await s.close()
-        return s
-
-    s = asyncio.run(asyncio.wait_for(main(), 120))
+    s = _walk_in(url, "city", cid, centre, budget=len(near))
     assert cid in s.complete and not s.local_errors
     np.testing.assert_array_equal(np.sort(s.store.ids), near)  # all of it, though radius 1 m
     assert state.compute.computed == computed  # no PVS was computed for it
     assert state.counters["cells_sent_whole"] == whole + 1
     # One triangle less of budget and the cell is culled as usual.
+    s = _walk_in(url, "city", cid, centre, budget=len(near) - 1)
+    assert cid in s.complete and len(s.store.ids) < len(near)
 
-    async def culled():
-        s = await Session.connect(url, "city", "test_near", {"radius": 1.0},
-                                  budget=len(near) - 1, prefetch=False)
-        await s.send_pose(0, 0.0, centre, (0, 0, -1))
+
+def _walk_in(url, scene, cid, position, budget):
+    """A session with a 1 m ``test_near`` PVS and ``budget`` that stands at ``position`` until
+    cell ``cid`` is complete."""
+    async def main():
+        s = await Session.connect(url, scene, "test_near", {"radius": 1.0}, budget=budget,
+                                  prefetch=False)
+        await s.send_pose(0, 0.0, position, (0, 0, -1))
         for _ in range(600):
             if cid in s.complete:
                 break
@@ -125,5 +119,4 @@ def test_cell_whose_near_region_fits_the_budget_is_sent_whole(nf_server):
         await s.close()
         return s
 
-    s = asyncio.run(asyncio.wait_for(culled(), 120))
-    assert cid in s.complete and len(s.store.ids) < len(near)
+    return asyncio.run(asyncio.wait_for(main(), 120))
