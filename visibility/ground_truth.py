@@ -2,9 +2,11 @@
 
 The PVS every core is measured against. From ``n_points`` stratified eye positions in the cell,
 each with a fresh uniformly random cube orientation (and, for a moving scene, a random time),
-six cubemap id buffers are rendered and their ids united. Sampling can only miss triangles (a
-visible sliver between samples), never add invisible ones, so the result is a subset of the true
-PVS that grows with the samples; the convergence record shows how close to saturation it is.
+six cubemap id buffers are rendered and their ids united; spheres (``Scene.sphere_centers``) are
+drawn analytically at the pixel centres and occlude and are occluded like triangles. Sampling can
+only miss primitives (a visible sliver between samples), never add invisible ones, so the result
+is a subset of the true PVS that grows with the samples; the convergence record shows how close
+to saturation it is.
 """
 
 from __future__ import annotations
@@ -15,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from visibility.camera import DEFAULT_NEAR, random_rotation
-from visibility.raster import render_cubemap_ids
+from visibility.raster import render_cubemap, render_cubemap_ids
 from visibility.scene import Scene
+from visibility.sphere_raster import draw_spheres_cubemap
 from visibility.viewcells import Viewcell
 
 
@@ -27,6 +30,7 @@ class GroundTruth:
     Attributes
     ----------
     triangle_ids : sorted unique int32 ids of the triangles seen.
+    sphere_ids : sorted unique int32 ids (indices into the scene's spheres) of the spheres seen.
     convergence : (samples so far, total found, new in this batch) after each batch.
     seconds : wall time of the sampling.
     samples : number of viewpoints rendered.
@@ -34,6 +38,7 @@ class GroundTruth:
     """
 
     triangle_ids: np.ndarray
+    sphere_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
     convergence: list[tuple[int, int, int]] = field(default_factory=list)
     seconds: float = 0.0
     samples: int = 0
@@ -96,9 +101,9 @@ def sample_pvs(
 
     Parameters
     ----------
-    scene : the scene; only ``scene.valid_faces`` are drawn. With ``states`` of k > 1
-        keyframes each viewpoint also draws a time uniform in the keyframe range and renders
-        ``scene.vertices_at(t)`` (the PVS over all states).
+    scene : the scene; only ``scene.valid_faces`` are drawn, and its spheres. When it moves
+        (``scene.is_dynamic``) each viewpoint also draws a time uniform in the keyframe range
+        (``scene.time_range()``) and renders the scene at that time (the PVS over all states).
     cell : the viewcell whose box the eye positions are drawn from.
     n_points : number of viewpoints.
     resolution : cubemap face size R in pixels.
@@ -165,11 +170,12 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
     """Cubemap id buffers from ``points`` with random orientations (and times), united."""
     n_points = len(points)
     rotations = [random_rotation(rng) for _ in range(n_points)]
-    dynamic = scene.states is not None and scene.states.shape[0] > 1
+    dynamic = scene.is_dynamic
     if dynamic:
-        times = rng.uniform(scene.state_times[0], scene.state_times[-1], size=n_points)
+        times = rng.uniform(*scene.time_range(), size=n_points)
     mask = scene.valid_faces
-    seen = np.zeros(scene.n_triangles, dtype=bool)
+    m = scene.n_triangles
+    seen = np.zeros(m + scene.n_spheres, dtype=bool)
     found = 0
     convergence: list[tuple[int, int, int]] = []
     bar = None
@@ -179,9 +185,16 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
         bar = tqdm(total=n_points, desc="ground truth", unit="view")
     batch_start = found
     for k in range(n_points):
-        verts = scene.vertices_at(times[k]) if dynamic else scene.vertices
-        ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
-                                 near=near, face_mask=mask)
+        t = times[k] if dynamic else 0.0
+        verts = scene.vertices_at(t)
+        if scene.n_spheres:
+            depth, ids = render_cubemap(verts, scene.faces, points[k], resolution, rotations[k],
+                                        near=near, face_mask=mask)
+            draw_spheres_cubemap(scene.sphere_centers_at(t), scene.sphere_radii, points[k],
+                                 depth, ids, rotations[k], near, base_id=m)
+        else:
+            ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
+                                     near=near, face_mask=mask)
         hit = ids[ids >= 0]
         seen[hit] = True
         if bar is not None:
@@ -192,9 +205,10 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
             batch_start = found
     if bar is not None:
         bar.close()
-    ids = np.flatnonzero(seen).astype(np.int32)
+    ids = np.flatnonzero(seen[:m]).astype(np.int32)
     return GroundTruth(
         triangle_ids=ids,
+        sphere_ids=np.flatnonzero(seen[m:]).astype(np.int32),
         convergence=convergence,
         seconds=time.perf_counter() - t0,
         samples=n_points,

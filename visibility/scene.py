@@ -65,6 +65,14 @@ class DegenerateReport:
         }
 
 
+def _lerp_keyframes(frames: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
+    """Piecewise-linear interpolation of keyframes (k, ...) at ``times`` (k,), clamped."""
+    t = float(np.clip(t, times[0], times[-1]))
+    i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+    w = (t - times[i]) / (times[i + 1] - times[i])
+    return (1.0 - w) * frames[i] + w * frames[i + 1]
+
+
 @dataclass(eq=False)
 class Scene:
     """A triangle scene.
@@ -227,11 +235,41 @@ class Scene:
         """(n, 3) float64 vertex positions at time t (seconds), clamped to the keyframe range."""
         if self.states is None or self.states.shape[0] == 1:
             return self.vertices
-        times = self.state_times
-        t = float(np.clip(t, times[0], times[-1]))
-        i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
-        w = (t - times[i]) / (times[i + 1] - times[i])
-        return (1.0 - w) * self.states[i] + w * self.states[i + 1]
+        return _lerp_keyframes(self.states, self.state_times, t)
+
+    @property
+    def sphere_times(self) -> np.ndarray | None:
+        """(k,) float64 seconds of the sphere keyframes: the generator's ``meta["sphere_times"]``,
+        else ``state_times`` when they have as many keyframes, else 0, 1, 2, ...; None without
+        spheres."""
+        if not self.n_spheres:
+            return None
+        k = self.sphere_centers.shape[0]
+        times = self.meta.get("sphere_times")
+        if times is not None and len(times) == k:
+            return np.asarray(times, dtype=np.float64)
+        if self.state_times is not None and len(self.state_times) == k:
+            return self.state_times
+        return np.arange(k, dtype=np.float64)
+
+    def time_range(self) -> tuple[float, float]:
+        """(first, last) keyframe time in seconds over vertex and sphere keyframes; (0, 0) for a
+        static scene."""
+        ends = [t[[0, -1]] for t in (self.state_times if self.states is not None else None,
+                                      self.sphere_times) if t is not None and len(t) > 1]
+        if not ends:
+            return 0.0, 0.0
+        return float(min(e[0] for e in ends)), float(max(e[1] for e in ends))
+
+    def sphere_centers_at(self, t: float) -> np.ndarray:
+        """(s, 3) float64 sphere centres at time t (seconds), piecewise linear between the sphere
+        keyframes and clamped to their range; (0, 3) without spheres."""
+        if not self.n_spheres:
+            return np.zeros((0, 3))
+        c = self.sphere_centers
+        if c.shape[0] == 1:
+            return c[0]
+        return _lerp_keyframes(c, self.sphere_times, t)
 
     def triangles(self, ids: np.ndarray | None = None, t: float | None = None) -> np.ndarray:
         """(len(ids), 3, 3) float64 corner positions of the given triangle ids (all by default)."""
