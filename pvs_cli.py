@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 #: Where the real third-party scenes live when the repository sits beside ``shared/``.
@@ -36,23 +37,30 @@ def _parse_params(items: list[str] | None) -> dict:
     return out
 
 
-def cmd_serve(args: argparse.Namespace) -> int:
-    from server.app import serve
+def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = None):
+    """The server's ``Settings`` for ``pvs serve``: flags the user gave override ``PVS_*``
+    environment variables (``env``, default ``os.environ``), which override the defaults; the
+    scenes folder falls back to ``../shared/scenes`` only when neither names one."""
     from server.settings import Settings
 
-    settings = Settings.from_env()
-    updates = {"host": args.host, "port": args.port}
-    if args.scenes:
-        updates["scenes_dir"] = Path(args.scenes)
-    elif DEFAULT_SCENES_DIR.is_dir():
+    env = os.environ if env is None else env
+    flags = {"host": args.host, "port": args.port, "core": args.core,
+             "cell_size": args.cell_size, "workers": args.workers,
+             "scenes_dir": Path(args.scenes) if args.scenes else None}
+    updates = {k: v for k, v in flags.items() if v is not None}
+    if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
+            and DEFAULT_SCENES_DIR.is_dir():
         updates["scenes_dir"] = DEFAULT_SCENES_DIR
-    if args.core:
-        updates["core"] = args.core
-    if args.cell_size:
-        updates["cell_size"] = args.cell_size
-    if args.workers:
-        updates["workers"] = args.workers
-    settings = settings.model_copy(update=updates)
+    return Settings.from_env(env, **updates)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from server.app import serve
+
+    try:
+        settings = serve_settings(args)
+    except ValueError as exc:  # pydantic's ValidationError: a bad flag or PVS_* value
+        raise SystemExit(f"pvs serve: {exc}") from None
     serve(settings)
     return 0
 
@@ -242,12 +250,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("serve", help="run the edge server (uvicorn)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--scenes", help="folder of GLB/glTF/OBJ/PLY scenes to serve")
-    p.add_argument("--core", help="default core")
-    p.add_argument("--cell-size", type=float, help="viewcell size in metres")
-    p.add_argument("--workers", type=int, help="PVS worker threads")
+    # No argparse defaults: a flag the user did not give leaves PVS_* or the Settings default.
+    p.add_argument("--host", help="address to listen on (PVS_HOST; default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="port (PVS_PORT; default 8000)")
+    p.add_argument("--scenes", help="folder of GLB/glTF/OBJ/PLY scenes to serve "
+                                    "(PVS_SCENES_DIR; default ../shared/scenes when present)")
+    p.add_argument("--core", help="default core (PVS_CORE)")
+    p.add_argument("--cell-size", type=float, help="viewcell size in metres (PVS_CELL_SIZE)")
+    p.add_argument("--workers", type=int, help="PVS worker threads (PVS_WORKERS)")
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client")

@@ -43,3 +43,38 @@ def test_query_errors_are_reported_not_raised(live_server, capsys):
         pvs_cli.main(["query", "--server", live_server, "--scene", "tiny", "--segment", "1,2"])
     with pytest.raises(SystemExit):  # exactly one of --cell, --segment, --box
         pvs_cli.main(["query", "--server", live_server, "--scene", "tiny"])
+
+
+def _serve_settings(argv, env):
+    return pvs_cli.serve_settings(pvs_cli.build_parser().parse_args(["serve", *argv]), env)
+
+
+def test_serve_settings_defaults_without_flags_or_env():
+    s = _serve_settings([], {})
+    assert (s.host, s.port) == ("127.0.0.1", 8000)
+    expected = pvs_cli.DEFAULT_SCENES_DIR if pvs_cli.DEFAULT_SCENES_DIR.is_dir() else None
+    assert s.scenes_dir == expected
+
+
+def test_serve_settings_env_overrides_defaults(tmp_path):
+    env = {"PVS_HOST": "0.0.0.0", "PVS_PORT": "9123", "PVS_SCENES_DIR": str(tmp_path),
+           "PVS_WORKERS": "3", "PVS_CORE": "from_segment"}
+    s = _serve_settings([], env)
+    assert (s.host, s.port, s.scenes_dir) == ("0.0.0.0", 9123, tmp_path)
+    assert (s.workers, s.core) == (3, "from_segment")
+
+
+def test_serve_settings_flags_override_env(tmp_path):
+    env = {"PVS_HOST": "0.0.0.0", "PVS_PORT": "9123", "PVS_SCENES_DIR": "/nowhere",
+           "PVS_CELL_SIZE": "8", "PVS_WORKERS": "3"}
+    s = _serve_settings(["--host", "127.0.0.2", "--port", "9200", "--scenes", str(tmp_path),
+                         "--workers", "1"], env)
+    assert (s.host, s.port, s.scenes_dir, s.workers) == ("127.0.0.2", 9200, tmp_path, 1)
+    assert s.cell_size == 8.0  # not given as a flag: the environment's value stays
+
+
+def test_serve_rejects_bad_values_with_a_message():
+    with pytest.raises(SystemExit, match="pvs serve"):
+        pvs_cli.main(["serve", "--workers", "0"])
+    with pytest.raises(ValueError):
+        _serve_settings([], {"PVS_PORT": "not-a-port"})
