@@ -1,22 +1,47 @@
-"""The real third-party scenes beside the repository (../shared/scenes), loaded once per run."""
+"""The real third-party scenes beside the repository (../shared/scenes), loaded once per run.
+
+Every scene file there (``visibility.loaders.SCENE_EXTENSIONS``; its sidecar ``<stem>.json``
+beside it) is found by listing the folder, so a scene dropped in is tested without editing this
+module. Tests parametrize over ``REAL`` (the stems), which keeps their ids readable.
+"""
 
 from __future__ import annotations
 
 from functools import cache
 from pathlib import Path
 
-from visibility.loaders import load_scene
+from visibility.loaders import SCENE_EXTENSIONS, load_scene
 from visibility.scene import Scene
 from visibility.viewcells import ViewcellGrid
 
 SHARED_SCENES = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
-REAL = ["lavaducts", "denhaag", "lyon_vilo3d", "kitchen"]
+
+
+def discover(folder: Path = SHARED_SCENES) -> dict[str, Path]:
+    """{stem: path} of every scene file in ``folder``, sorted by stem ({} when it is absent).
+    Two files with one stem: the first in sorted order wins, as the server names scenes by stem."""
+    if not folder.is_dir():
+        return {}
+    found: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_file() and p.suffix.lower() in SCENE_EXTENSIONS:
+            found.setdefault(p.stem, p)
+    return found
+
+
+REAL_PATHS = discover()
+REAL = list(REAL_PATHS)
+
+
+def real_path(name: str) -> Path:
+    """The file of the real scene ``name``."""
+    return REAL_PATHS[name]
 
 
 @cache
 def real_scene(name: str) -> Scene:
-    """The scene ``name`` from ../shared/scenes, in metres."""
-    return load_scene(SHARED_SCENES / f"{name}.glb")
+    """The scene ``name`` from ../shared/scenes, in metres (its sidecar applied)."""
+    return load_scene(real_path(name))
 
 
 @cache

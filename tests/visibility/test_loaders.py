@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_grid, real_scene
+from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_grid, real_path, real_scene
 from visibility.loaders import SceneLoadError, load_scene
 
 
@@ -16,7 +16,7 @@ def test_shared_scenes_are_present():
 
 @pytest.mark.parametrize("name", REAL)
 def test_real_scene_loads_in_metres_with_ids_as_trimesh_orders_them(name):
-    path = SHARED_SCENES / f"{name}.glb"
+    path = real_path(name)
     side = json.loads(path.with_suffix(".json").read_text())
     scene = real_scene(name)
     assert scene.n_triangles == side["triangles"]

@@ -2,9 +2,30 @@
 
 import numpy as np
 import pytest
+import trimesh
 
-from tests.visibility.real_scenes import REAL, real_grid, real_scene
+from tests.visibility.real_scenes import REAL, SHARED_SCENES, discover, real_grid, real_scene
 from visibility.cores.base import get_core
+
+
+def test_real_scenes_are_listed_from_the_folder():
+    # The four documented in ../shared/scenes/README.md; any other file there joins them.
+    assert {"denhaag", "kitchen", "lavaducts", "lyon_vilo3d"} <= set(REAL)
+    assert REAL == sorted(REAL)
+    for name in REAL:
+        assert (SHARED_SCENES / f"{name}.json").is_file(), f"{name}: no sidecar beside it"
+
+
+def test_a_new_scene_file_is_discovered(tmp_path):
+    box = trimesh.creation.box()
+    box.export(tmp_path / "crate.obj")
+    box.export(tmp_path / "ball.PLY")
+    (tmp_path / "crate.json").write_text('{"scale": 1.0}')
+    (tmp_path / "notes.txt").write_text("not a scene")
+    found = discover(tmp_path)
+    assert list(found) == ["ball", "crate"]
+    assert found["crate"].suffix == ".obj"
+    assert discover(tmp_path / "missing") == {}
 
 
 @pytest.mark.parametrize("name", REAL)
