@@ -50,12 +50,16 @@ _U32_MAX = 0xFFFFFFFF
 
 
 class FrameKind(IntEnum):
-    """The kind byte of a binary frame. Only geometry exists in version 1; later kinds (e.g. id
-    drops for delta streams) get new values."""
+    """The kind byte (offset 6) of a binary frame; every kind shares bytes 0-7 (magic, version,
+    kind, flags), so a receiver routes a frame by its kind before decoding it."""
 
     GEOMETRY = 1
     #: A near-far cubemap (colour + range) of a cell's far region; see ``protocol.cubemap``.
     CUBEMAP = 2
+    #: Keyframe corner positions of moving triangles; see ``protocol.keyframes``.
+    KEYFRAMES = 3
+    #: Spheres (radius, colour, centre per keyframe); see ``protocol.keyframes``.
+    SPHERES = 4
 
 
 class FrameError(ValueError):
