@@ -107,6 +107,14 @@ class Core(ABC):
     #: Upper bound on the false-negative rate against the sampled ground truth that the
     #: conformance suite holds this core to, at its default parameters.
     fn_bound: ClassVar[float] = 0.05
+    #: Upper bound on the false-positive rate (share of the PVS that the sampled ground truth
+    #: did not see) that the conformance suite holds this core to, at its default parameters.
+    #: The sampled ground truth is itself aggressive (it misses what falls between its samples
+    #: and pixels), so an FP there is either a hidden triangle reported (over-conservative or
+    #: wrong) or a visible one the reference missed (slivers, grazing views from the cell's
+    #: boundary): a bound that catches gross over-inclusion, not a proof of exactness. The
+    #: default is loose for conservative cores; each core states its own measured one.
+    fp_bound: ClassVar[float] = 0.25
 
     def make_params(self, **overrides: Any) -> CoreParams:
         """This core's parameter object with the given fields changed; unknown names raise."""

@@ -119,6 +119,11 @@ class FromSegmentCore(Core):
                    "at cubemap pixel centres along the cell's sides; static, dynamic, spheres")
     Params = FromSegmentParams
     fn_bound = 0.05
+    #: FP measured 0.000 on two rooms and the open ring; 0.05-0.10 on the stiff cases (the
+    #: 1e6-aspect sliver pair: truly visible, found exactly, but thinner than a pixel so the
+    #: sampled reference misses it; 20 triangles, so each is 0.05); up to 0.11 on 10k-triangle
+    #: rooms cells at 128 px (grazing views from the cell's sides that interior samples miss).
+    fp_bound = 0.15
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

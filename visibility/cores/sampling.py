@@ -54,6 +54,10 @@ class SamplingCore(Core):
     #: 5 cells, defaults against a 512-point ground truth at 256 px gave FN 0.09-0.32 (0.02-0.14
     #: with 128 samples or with 32 samples at 512 px): what is missed is resolution-bound.
     fn_bound: ClassVar[float] = 0.05
+    #: It samples like the reference, so it reports little the reference does not see: FP
+    #: measured 0.000 on every conformance scene (two rooms, open ring, stiff cases at offsets
+    #: 0 and 1e5; 3 reference seeds) and at most 0.008 on 10k-triangle rooms/village/city cells.
+    fp_bound: ClassVar[float] = 0.05
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

@@ -51,6 +51,7 @@ def core(request):
 def test_core_declares_itself(core):
     assert core.name and core.description
     assert 0.0 <= core.fn_bound <= 1.0
+    assert 0.0 <= core.fp_bound <= 1.0
     with pytest.raises(ValueError):
         core.make_params(no_such_parameter=1)
     with pytest.raises(ValueError):
@@ -116,15 +117,36 @@ def test_stiff_and_extreme_inputs(core, offset):
     assert not (set(known["degenerate"]) & found)
 
 
-def test_fn_fp_against_sampled_ground_truth(core):
+#: Scenes of the FN/FP check, and whether the FN bound applies there. The stiff cases' sliver
+#: (1e6 aspect, thinner than a pixel) is in plain view but no sampler can be held to it.
+FN_FP_SCENES = {"two_rooms_and_a_door": True, "open_ring": True, "stiff_cases": False}
+
+
+@pytest.mark.parametrize("scene_name", list(FN_FP_SCENES))
+def test_fn_fp_against_sampled_ground_truth(core, scene_name):
+    """FN and FP rates against a dense sampled reference (128 points, 128 px). FP counts what
+    the core reports that the reference did not see: hidden triangles reported, or visible ones
+    the (aggressive) reference missed; ``fp_bound`` is the core's measured, stated limit."""
+    from visibility.ground_truth import fn_fp_rates, sample_pvs
+
+    scene, cell, _ = getattr(ds, scene_name)()
+    gt = sample_pvs(scene, cell, n_points=128, resolution=128, seed=11)
+    pvs = core.compute(scene, cell, params_for(core))
+    fn, fp = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
+    if FN_FP_SCENES[scene_name]:
+        assert fn <= core.fn_bound, f"{core.name}: FN rate {fn:.3f} > its bound {core.fn_bound}"
+    assert fp <= core.fp_bound, f"{core.name}: FP rate {fp:.3f} > its bound {core.fp_bound}"
+
+
+def test_fp_bound_catches_over_inclusion():
+    """The FP check can fail: a PVS of every valid triangle in the two rooms (the box hidden
+    behind the wall included) exceeds the built-in cores' bounds."""
     from visibility.ground_truth import fn_fp_rates, sample_pvs
 
     scene, cell, _ = ds.two_rooms_and_a_door()
     gt = sample_pvs(scene, cell, n_points=128, resolution=128, seed=11)
-    pvs = core.compute(scene, cell, params_for(core))
-    fn, fp = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
-    assert fn <= core.fn_bound, f"{core.name}: FN rate {fn:.3f} > its bound {core.fn_bound}"
-    assert 0.0 <= fp <= 1.0
+    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], gt.triangle_ids)
+    assert fp > max(get_core(n).fp_bound for n in ("sampling", "from_segment"))
 
 
 def test_tiny_and_huge_cells(core):
