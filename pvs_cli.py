@@ -176,6 +176,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.scenes:
         cmd += ["--scenes", args.scenes]
     env = dict(os.environ)
+    if args.triangles is not None:
+        from visibility.generators import available_generators
+
+        if args.scene not in available_generators():
+            raise SystemExit(f"--triangles sizes a generated scene; {args.scene!r} is not one")
+        # The child server reads PVS_GENERATED; the client regenerates the same scene from the
+        # welcome's source (name, size, seed) for its ground truth.
+        env["PVS_GENERATED"] = f"{args.scene}={int(args.triangles)}"
     log_path = Path(args.out) / "server.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
     print(f"[demo] starting server: {' '.join(cmd)} (log: {log_path})", flush=True)
@@ -194,21 +202,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     raise SystemExit("[demo] the server did not start")
                 time.sleep(0.3)
             print(f"[demo] server up at {url}", flush=True)
-            walk = argparse.Namespace(
-                server=url,
-                scene=args.scene,
-                core=args.core,
-                param=args.param,
-                walkthrough=args.walkthrough,
-                out=args.out,
-                scenes=args.scenes,
-                duration=args.duration,
-                width=args.width,
-                height=args.height,
-                realtime=args.realtime,
-                seed=args.seed,
-                quiet=False,
-            )
+            # Every walk option the demo parsed, pointed at the child server.
+            walk = argparse.Namespace(**{**vars(args), "server": url, "quiet": False})
             return cmd_walk(walk)
         finally:
             proc.terminate()
@@ -289,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="server + headless client over a walkthrough, end to end")
     p.add_argument("--port", type=int, default=0)
+    p.add_argument("--triangles", type=int,
+                   help="size of the generated scene the server builds (default: its default "
+                        "size); serves only that scene")
     _add_walk_options(p, "runs/demo")
     p.set_defaults(fn=cmd_demo)
 

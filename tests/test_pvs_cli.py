@@ -4,6 +4,12 @@ the real server on loopback."""
 from __future__ import annotations
 
 import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -78,3 +84,38 @@ def test_serve_rejects_bad_values_with_a_message():
         pvs_cli.main(["serve", "--workers", "0"])
     with pytest.raises(ValueError):
         _serve_settings([], {"PVS_PORT": "not-a-port"})
+
+
+def test_demo_end_to_end_through_the_pvs_entry_point(tmp_path):
+    """The README's first command's job, through the installed ``pvs`` script: the real server
+    in a child process, the headless client over a short walk of a small ``rooms``; it prints
+    per-frame and mean epsilon/PSNR/SSIM and writes summary.json with the documented fields."""
+    exe = shutil.which("pvs", path=str(Path(sys.executable).parent))
+    assert exe, "the `pvs` entry point is not installed beside this Python (run scripts/setup.sh)"
+    out = tmp_path / "demo"
+    env = {**os.environ, "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "osmesa")}
+    run = subprocess.run(
+        [exe, "demo", "--scene", "rooms", "--triangles", "5000", "--duration", "2",
+         "--width", "64", "--height", "64", "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, timeout=300,
+    )
+    assert run.returncode == 0, run.stdout[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    frames = summary["frames"]
+    assert len(frames) >= 10  # 2 s at the client's 10 frames per second
+    for rec in frames:
+        assert {"t", "epsilon", "psnr", "ssim", "stalled"} <= set(rec)
+        assert 0.0 <= rec["epsilon"] <= 100.0 and -1.0 <= rec["ssim"] <= 1.0
+    for key in ("epsilon", "psnr", "ssim"):
+        assert isinstance(summary[key], float)
+    assert isinstance(summary["stalls"], int) and summary["stalls"] >= 0
+    # The sampling stream of a small indoor scene matches the full scene on nearly every pixel.
+    assert summary["epsilon"] < 5.0 and summary["ssim"] > 0.8
+    printed = re.findall(r"frame +\d+ .*eps= *([\d.]+)% psnr= *\S+dB ssim=([\d.]+)", run.stdout)
+    assert len(printed) == len(frames)
+    assert float(printed[0][0]) == pytest.approx(frames[0]["epsilon"], abs=1e-3)
+    means = dict(re.findall(r"^(epsilon|psnr|ssim)\b\S*(?: \(cap [^)]*\))? +(\S+)", run.stdout,
+                            re.M))
+    assert set(means) == {"epsilon", "psnr", "ssim"}, run.stdout[-2000:]
+    assert float(means["ssim"]) == pytest.approx(summary["ssim"], rel=1e-3)
+    assert f"stalls: {summary['stalls']}" in run.stdout
