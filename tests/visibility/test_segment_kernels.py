@@ -167,6 +167,29 @@ def test_triangle_crossing_the_moving_near_plane():
     assert vis.all()
 
 
+def test_pixel_centres_exactly_on_a_shared_edge_leave_no_crack():
+    """A quad split along its diagonal whose projection passes exactly through pixel centres (at
+    t = 0 and again as the eye moves), in front of a wall: shared edges are evaluated from their
+    corners in one canonical order, so at every t a centre on the diagonal belongs to one of the
+    two halves and the wall behind never shows through."""
+    quad = np.array([[-10.0, -10.0, -2.0], [10.0, -10.0, -2.0], [10.0, 10.0, -2.0],
+                     [-10.0, 10.0, -2.0]])
+    wall = np.array([[-3.0, -3.0, -5.0], [3.0, -3.0, -5.0], [0.0, 3.0, -5.0]])
+    v = np.concatenate([quad, wall])
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6]])
+    res = 32
+    step = 2.0 / res
+    # Moving by whole pixels (at depth 2) keeps the diagonal on pixel centres at many t.
+    for a, b in [(np.zeros(3), np.array([8 * step * 2, 0.0, 0.0])),
+                 (np.array([0.0, 0.0, 0.0]), np.array([0.0, -4 * step * 2, 0.0]))]:
+        vis = segment_visible(scene_geometries(Scene(v, f))[0], a, b, resolution=res)
+        assert vis[:2].all()
+        assert not vis[2]
+    # The reference rasterizer agrees at the end points (its fill rule has no crack either).
+    _, ids = render_cubemap(v, f, np.zeros(3), res)
+    assert 2 not in np.unique(ids)
+
+
 def test_static_spheres_and_triangles_occlude_each_other():
     rng = np.random.default_rng(11)
     v, f = _soup(400, seed=12)
