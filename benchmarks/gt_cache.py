@@ -15,21 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from visibility.ground_truth import sample_pvs
-from visibility.scene import Scene
+from visibility.scene import Scene, scene_fingerprint
 from visibility.viewcells import Viewcell
 
 #: Default cache folder (git-ignored).
 CACHE_DIR = Path(__file__).resolve().parent / "results" / "cache"
-
-
-def scene_fingerprint(scene: Scene) -> str:
-    """A 16-hex-digit hash of the scene's vertices, faces and dynamic states."""
-    h = hashlib.sha1()
-    h.update(np.ascontiguousarray(scene.vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(scene.faces, dtype=np.int64).tobytes())
-    if scene.states is not None:
-        h.update(np.ascontiguousarray(scene.states, dtype=np.float64).tobytes())
-    return h.hexdigest()[:16]
 
 
 def cache_key(scene: Scene, cell: Viewcell, n_points: int, resolution: int, seed: int,

@@ -1,33 +1,49 @@
 """Named error codes (the ``code`` of an ``error`` message) and WebSocket close codes.
 
 Every error the server reports has an ``ErrorCode``. Whether it ends the session is fixed per code
-(``FATAL``); a fatal error is followed by a WebSocket close whose code is ``close_code_for(code)``:
-standard codes where one fits (1003 unsupported data, 1008 policy violation, 1009 message too big,
-1011 internal error) and application codes in 4000-4999 otherwise (4000 + the HTTP status a REST
-call would get for the same problem, so 4004 means "not found").
+and phase (``is_fatal``); a fatal error is followed by a WebSocket close whose code is
+``close_code_for(code)``: standard codes where one fits (1003 unsupported data, 1008 policy
+violation, 1009 message too big, 1011 internal error) and application codes in 4000-4999
+otherwise (4000 + the HTTP status a REST call would get for the same problem, so 4004 means "not
+found").
 
-| code                 | fatal | close | meaning                                               |
-|----------------------|-------|-------|-------------------------------------------------------|
-| bad_json             | yes   | 1008  | a text frame that is not a JSON object                |
-| binary_unsupported   | yes   | 1003  | the client sent a binary frame (clients send text)    |
-| too_big              | yes   | 1009  | a message over the server's ``max_message_bytes``     |
-| expected_hello       | yes   | 1008  | the first message was not ``hello``                   |
-| invalid_hello        | yes   | 1008  | ``hello`` failed validation                           |
-| duplicate_hello      | yes   | 1008  | a second ``hello`` in one session                     |
-| version_mismatch     | yes   | 4001  | ``hello.version`` is not one the server speaks        |
-| unknown_scene        | yes   | 4004  | no such scene in the catalogue                        |
-| unknown_core         | yes   | 4005  | no such visibility core                               |
-| bad_params           | yes   | 4022  | core parameters rejected                              |
-| unsupported_scene    | yes   | 4023  | the core does not fit this scene (e.g. 2.5D only)     |
-| scene_load_failed    | yes   | 1011  | the scene file could not be loaded                    |
-| internal             | yes   | 1011  | a server bug; the session cannot go on                |
-| slow_client          | yes   | 4008  | the client fell behind the stream past the time limit |
-| unknown_type         | no    | -     | a message type this server does not know (skipped)    |
-| invalid_message      | no    | -     | a known message type that failed validation (skipped) |
-| invalid_pose         | no    | -     | a pose with NaN/inf or a malformed vector (skipped)   |
-| outside_grid         | no    | -     | a pose in no viewcell (the session keeps its cell)    |
-| compute_failed       | no    | -     | the PVS of a cell could not be computed               |
-| over_budget          | no    | -     | a cell's PVS alone exceeds the client's budget        |
+The rule: the session survives where it can. Before ``welcome`` nothing is agreed yet, so every
+error ends the session. After ``welcome`` a bad message (malformed JSON, an unknown type, a binary
+frame, a message over ``max_message_bytes``, an invalid pose) is answered with a non-fatal
+``error`` and skipped; the session goes on with its current cell. The session closes only where
+going on is unsafe or pointless: a second ``hello`` (the client believes in another session
+than the server streams), the server's own failures, a client that stopped reading
+(``slow_client``), a client past ``BAD_MESSAGE_LIMIT`` bad messages within
+``BAD_MESSAGE_WINDOW_S`` seconds (``too_many_errors``: abuse), and a message above the WebSocket
+library's hard cap (the library itself closes with 1009, before the session sees it).
+
+| code               | fatal     | close | meaning                                          |
+|--------------------|-----------|-------|--------------------------------------------------|
+| bad_json           | handshake | 1008  | a text frame that is not a JSON object           |
+| binary_unsupported | handshake | 1003  | a binary frame from the client (clients send text) |
+| too_big            | handshake | 1009  | a message over ``max_message_bytes`` (HTTP: 413) |
+| expected_hello     | yes       | 1008  | the first message was not ``hello``              |
+| invalid_hello      | yes       | 1008  | ``hello`` failed validation                      |
+| duplicate_hello    | yes       | 1008  | a second ``hello`` in one session                |
+| version_mismatch   | yes       | 4001  | ``hello.version`` is not one the server speaks   |
+| unknown_scene      | yes       | 4004  | no such scene in the catalogue                   |
+| unknown_core       | yes       | 4005  | no such visibility core                          |
+| bad_params         | yes       | 4022  | core parameters rejected                         |
+| unsupported_scene  | yes       | 4023  | the core does not fit this scene (e.g. 2.5D only) |
+| scene_load_failed  | yes       | 1011  | the scene file could not be loaded               |
+| internal           | yes       | 1011  | a server bug; the session cannot go on           |
+| slow_client        | yes       | 4008  | the client fell behind the stream past the limit |
+| too_many_errors    | yes       | 1008  | bad messages past ``BAD_MESSAGE_LIMIT`` a window |
+| unknown_type       | no        | -     | a message type this server does not know (skipped) |
+| invalid_message    | no        | -     | a known type that failed validation (skipped)    |
+| invalid_pose       | no        | -     | a pose with NaN/inf or a malformed vector (skipped) |
+| outside_grid       | no        | -     | a pose in no viewcell (the session keeps its cell) |
+| compute_failed     | no        | -     | the PVS of a cell could not be computed          |
+| over_budget        | no        | -     | a cell's PVS alone exceeds the client's budget   |
+
+"handshake": fatal while the server waits for ``hello``, answered and skipped afterwards. Bad
+messages after ``welcome`` (the non-fatal protocol errors above) count towards the abuse limit.
+HTTP-only codes: ``not_found`` (404), ``not_acceptable`` (406), ``validation`` (422).
 """
 
 from __future__ import annotations
@@ -60,8 +76,10 @@ class ErrorCode(StrEnum):
     COMPUTE_FAILED = "compute_failed"
     OVER_BUDGET = "over_budget"
     SLOW_CLIENT = "slow_client"
+    TOO_MANY_ERRORS = "too_many_errors"
     # HTTP only.
     NOT_FOUND = "not_found"
+    NOT_ACCEPTABLE = "not_acceptable"
     VALIDATION = "validation"
 
 
@@ -82,11 +100,13 @@ class CloseCode(IntEnum):
     UNSUPPORTED_SCENE = 4023
 
 
-#: Codes that end the session, with the close code that follows the error message.
+#: Bad messages a session answers and skips within ``BAD_MESSAGE_WINDOW_S`` seconds; one more
+#: closes it with ``too_many_errors`` (a client that sends nothing but garbage is abusing it).
+BAD_MESSAGE_LIMIT = 100
+BAD_MESSAGE_WINDOW_S = 10.0
+
+#: Codes that end the session in any phase, with the close code that follows the error message.
 FATAL: dict[ErrorCode, CloseCode] = {
-    ErrorCode.BAD_JSON: CloseCode.POLICY_VIOLATION,
-    ErrorCode.BINARY_UNSUPPORTED: CloseCode.UNSUPPORTED_DATA,
-    ErrorCode.TOO_BIG: CloseCode.MESSAGE_TOO_BIG,
     ErrorCode.EXPECTED_HELLO: CloseCode.POLICY_VIOLATION,
     ErrorCode.INVALID_HELLO: CloseCode.POLICY_VIOLATION,
     ErrorCode.DUPLICATE_HELLO: CloseCode.POLICY_VIOLATION,
@@ -98,14 +118,27 @@ FATAL: dict[ErrorCode, CloseCode] = {
     ErrorCode.SCENE_LOAD_FAILED: CloseCode.INTERNAL_ERROR,
     ErrorCode.INTERNAL: CloseCode.INTERNAL_ERROR,
     ErrorCode.SLOW_CLIENT: CloseCode.SLOW_CLIENT,
+    ErrorCode.TOO_MANY_ERRORS: CloseCode.POLICY_VIOLATION,
+}
+
+#: Codes that end the session only during the handshake (before ``welcome``); afterwards the
+#: server answers them with a non-fatal error and skips the message.
+HANDSHAKE_FATAL: dict[ErrorCode, CloseCode] = {
+    ErrorCode.BAD_JSON: CloseCode.POLICY_VIOLATION,
+    ErrorCode.BINARY_UNSUPPORTED: CloseCode.UNSUPPORTED_DATA,
+    ErrorCode.TOO_BIG: CloseCode.MESSAGE_TOO_BIG,
 }
 
 
-def is_fatal(code: ErrorCode | str) -> bool:
-    """Whether an error with this code ends the WebSocket session."""
-    return ErrorCode(code) in FATAL
+def is_fatal(code: ErrorCode | str, *, handshake: bool = False) -> bool:
+    """Whether an error with this code ends the WebSocket session; ``handshake``: the session
+    is still waiting for ``hello`` (where every bad message is fatal)."""
+    c = ErrorCode(code)
+    return c in FATAL or (handshake and c in HANDSHAKE_FATAL)
 
 
 def close_code_for(code: ErrorCode | str) -> CloseCode:
-    """The WebSocket close code sent after a fatal error; NORMAL for non-fatal codes."""
-    return FATAL.get(ErrorCode(code), CloseCode.NORMAL)
+    """The WebSocket close code sent after a fatal error with this code; NORMAL for codes that
+    are never fatal."""
+    c = ErrorCode(code)
+    return FATAL.get(c) or HANDSHAKE_FATAL.get(c, CloseCode.NORMAL)

@@ -22,6 +22,8 @@ from protocol.version import PROTOCOL_VERSION
 from server import metrics, routes, ws
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
+from server.middleware import HttpGuard
+from server.nearfar_store import NearFarStore
 from server.settings import Settings
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
@@ -35,13 +37,14 @@ WS_LIBRARY_MAX_MIN = 1 << 20
 COUNTERS = ("sessions_total", "messages_received", "messages_sent", "text_bytes_sent",
             "errors_sent", "frames_sent", "frame_bytes_sent", "triangles_sent",
             "triangles_dropped", "cells_streamed", "cells_prefetched", "prefetch_yields",
-            "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole")
+            "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole", "http_bytes_sent")
 
 
 @dataclass
 class ServerState:
     """What the routes and sessions share: settings, catalogue, compute service, open sessions
-    (by id) and stream counters."""
+    (by id), stream counters and the near-far store (``near_far``: per-cell splits and cubemaps
+    in one LRU bounded by ``settings.near_far_cache_bytes``)."""
 
     settings: Settings
     catalog: SceneCatalog
@@ -50,11 +53,22 @@ class ServerState:
     counters: Counter = field(default_factory=Counter)
     started: float = field(default_factory=time.monotonic)
     registry: Any = None
-    #: Near-far partitions ((scene, cell, r1, r2) -> NearFarSplit, or False: nothing beyond
-    #: r2) and encoded cubemap frames ((scene, cell, r1, r2, resolution) -> bytes).
-    near_far_splits: dict = field(default_factory=dict)
-    cubemaps: dict = field(default_factory=dict)
+    near_far: NearFarStore | None = None
     _centroids: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.near_far is None:
+            self.near_far = NearFarStore(self.settings.near_far_cache_bytes, self.walker_in)
+
+    def walker_in(self, scene: str, cell: int) -> bool:
+        """Whether a connected walker stands in ``cell`` of ``scene`` now (asked by caches
+        before they evict that cell's data, from any thread)."""
+        try:
+            sessions = list(self.sessions.values())
+        except RuntimeError:  # the dict changed under us: assume someone is there
+            return True
+        return any(s.loaded is not None and s.loaded.name == scene and s.cell == cell
+                   for s in sessions)
 
     def wanted(self, key: tuple) -> bool:
         """Whether any open session still needs the PVS of cache key ``key`` (asked by worker
@@ -98,6 +112,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.server = state
+    app.add_middleware(HttpGuard, max_body_bytes=settings.max_body_bytes,
+                       counters=state.counters)
     app.include_router(routes.router)
     app.include_router(metrics.router)
     app.add_api_websocket_route("/ws", ws.websocket_endpoint)

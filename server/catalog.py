@@ -13,11 +13,12 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
 from server.settings import Settings
-from visibility.scene import Scene
+from visibility.scene import Scene, scene_fingerprint
 from visibility.viewcells import ViewcellGrid
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,11 @@ class LoadedScene:
     scene: Scene
     grid: ViewcellGrid
     info: dict
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """``visibility.scene.scene_fingerprint`` of the scene (hashed once, on first use)."""
+        return scene_fingerprint(self.scene)
 
 
 @dataclass

@@ -1,40 +1,41 @@
-"""PVS computation off the event loop: a worker pool, a byte-bounded LRU cache, shared in-flight
-requests.
+"""PVS computation off the event loop: cache, shared in-flight requests, a worker pool.
 
 ``ComputeService.submit`` answers from the cache when it can, joins an identical computation that
-is already running, or starts one on the pool. The pool sits behind ``WorkerPool`` (anything with
-``submit``/``shutdown`` like ``concurrent.futures`` executors) so a process pool can replace the
-thread pool later; threads suffice now because the numba kernels release the GIL.
+is already running, or starts one on the pool (``server.pool``; caches in ``server.cache``). The
+in-flight entry of a request lives until its future is done, so a request that arrives while a
+job is being retried after its worker died joins the retry instead of starting a second run.
 """
 
 from __future__ import annotations
 
 import asyncio
 import dataclasses
-import hashlib
-import heapq
-import io
 import logging
-import os
 import threading
 import time
 import typing
-from collections import OrderedDict
 from collections.abc import Callable, Hashable, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from pydantic import ConfigDict, TypeAdapter, ValidationError
 
-from server.catalog import SceneCatalog, UnknownSceneError
+from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
+from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
+from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
 from visibility.cores.base import PVS, Core, CoreParams, available_cores, get_core
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
+
+#: Re-exported: the pool and cache classes lived here before ``server.pool``/``server.cache``.
+__all__ = ["AUTO_CORE", "ByteLRU", "ComputeService", "DiskPVSCache", "PVSCache", "PVSResult",
+           "PriorityWorkerPool", "ThreadWorkerPool", "UnknownCellError", "UnknownCoreError",
+           "UnsupportedSceneError", "WorkerDied", "WorkerPool", "choose_core", "coerce_params",
+           "core_fits", "offered_cores", "pvs_nbytes", "resolve_core"]
 
 log = logging.getLogger(__name__)
 
@@ -49,387 +50,6 @@ class UnknownCellError(LookupError):
 
 class UnsupportedSceneError(ValueError):
     """The core does not fit the scene (``Core.supports`` said no)."""
-
-
-# --------------------------------------------------------------------------- pool
-class WorkerPool(Protocol):
-    """What ``ComputeService`` needs from an executor."""
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any) -> Future: ...
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None: ...
-
-
-class ThreadWorkerPool:
-    """A ``ThreadPoolExecutor`` of ``workers`` threads named ``pvs-worker-*``."""
-
-    def __init__(self, workers: int) -> None:
-        self.workers = int(workers)
-        self._executor = ThreadPoolExecutor(self.workers, thread_name_prefix="pvs-worker")
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any) -> Future:
-        return self._executor.submit(fn, *args)
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        self._executor.shutdown(wait=wait, cancel_futures=cancel_futures)
-
-
-class WorkerDied(BaseException):
-    """Raised inside a job to simulate (or signal) the death of the worker thread running it."""
-
-
-@dataclass(eq=False)
-class _Job:
-    fn: Callable[..., Any]
-    args: tuple
-    future: Future
-    priority: float
-    wanted: Callable[[], bool] | None = None
-    attempts: int = 0
-    started: bool = False
-
-
-class PriorityWorkerPool:
-    """``workers`` threads taking jobs lowest ``priority`` first (FIFO among equals).
-
-    A job whose ``wanted()`` says False when a worker picks it is cancelled unrun (prefetch work
-    no walker is heading for any more); ``promote`` moves a queued job forward. A job that raises
-    an unexpected ``Exception`` is retried once; a worker killed by a ``BaseException``
-    (``WorkerDied``, ``SystemExit``...) is replaced by a fresh thread and its job retried once.
-    ``retry_exempt`` names exception types that are answers, not faults (never retried).
-    """
-
-    def __init__(self, workers: int, retry_exempt: tuple[type[BaseException], ...] = ()) -> None:
-        self.workers = int(workers)
-        self.retry_exempt = retry_exempt
-        self._cv = threading.Condition()
-        self._heap: list[tuple[float, int, _Job]] = []
-        self._count = 0
-        self._stop = False
-        self.retried = 0
-        self.replaced = 0
-        self.skipped = 0
-        self._threads: list[threading.Thread] = []
-        for _ in range(self.workers):
-            self._spawn()
-
-    def _spawn(self) -> None:
-        t = threading.Thread(target=self._worker, name=f"pvs-worker-{len(self._threads)}",
-                             daemon=True)
-        self._threads.append(t)
-        t.start()
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any, priority: float = 0.0,
-               wanted: Callable[[], bool] | None = None) -> Future:
-        """Queue ``fn(*args)``; its future (``job`` attribute: the handle for ``promote``)."""
-        fut: Future = Future()
-        job = _Job(fn, args, fut, float(priority), wanted)
-        fut.job = job  # type: ignore[attr-defined]
-        self._push(job)
-        return fut
-
-    def _push(self, job: _Job) -> None:
-        with self._cv:
-            if self._stop:
-                job.future.cancel()
-                return
-            heapq.heappush(self._heap, (job.priority, self._count, job))
-            self._count += 1
-            self._cv.notify()
-
-    def promote(self, future: Future, priority: float = 0.0) -> None:
-        """Run the (still queued) job of ``future`` at ``priority`` and run it even if unwanted."""
-        job = getattr(future, "job", None)
-        if job is None:
-            return
-        with self._cv:
-            job.wanted = None
-            if job.started or priority >= job.priority:
-                return
-            job.priority = priority
-            # The old heap entry stays; whichever entry comes first runs the job, the other is
-            # skipped because the job has started.
-            heapq.heappush(self._heap, (priority, self._count, job))
-            self._count += 1
-            self._cv.notify()
-
-    def queued(self) -> int:
-        with self._cv:
-            return sum(1 for _, _, j in self._heap if not j.started)
-
-    def _next(self) -> _Job | None:
-        with self._cv:
-            while True:
-                while not self._heap and not self._stop:
-                    self._cv.wait()
-                if self._stop:
-                    return None
-                _, _, job = heapq.heappop(self._heap)
-                if job.started or job.future.done():
-                    continue
-                if job.wanted is not None and not job.wanted():
-                    self.skipped += 1
-                    job.future.cancel()
-                    continue
-                job.started = True
-                return job
-
-    def _worker(self) -> None:
-        while True:
-            job = self._next()
-            if job is None:
-                return
-            if not job.future.set_running_or_notify_cancel():
-                continue
-            try:
-                result = job.fn(*job.args)
-            except self.retry_exempt as exc:
-                job.future.set_exception(exc)
-            except Exception as exc:
-                if not self._retry(job, exc):
-                    job.future.set_exception(exc)
-            except BaseException as exc:
-                # The worker is dead: a fresh one takes its place, the job gets one more go.
-                log.error("worker %s died (%r); replacing it", threading.current_thread().name,
-                          exc)
-                with self._cv:
-                    self.replaced += 1
-                    if not self._stop:
-                        self._spawn()
-                if not self._retry(job, exc):
-                    job.future.set_exception(RuntimeError(f"worker died: {exc!r}"))
-                return
-            else:
-                job.future.set_result(result)
-
-    def _retry(self, job: _Job, exc: BaseException) -> bool:
-        if job.attempts >= 1 or self._stop:
-            return False
-        log.warning("job %s failed (%r); retrying once", getattr(job.fn, "__name__", job.fn),
-                    exc)
-        with self._cv:
-            self.retried += 1
-        # A fresh future keeps the caller's: chain the retry's outcome into it.
-        fut = job.future
-        retry = _Job(job.fn, job.args, Future(), job.priority, None, job.attempts + 1)
-        retry.future = _ChainedFuture(fut)
-        self._push(retry)
-        return True
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        with self._cv:
-            self._stop = True
-            if cancel_futures:
-                for _, _, job in self._heap:
-                    if not job.started:
-                        job.future.cancel()
-                self._heap.clear()
-            self._cv.notify_all()
-        if wait:
-            for t in list(self._threads):
-                t.join(timeout=30)
-
-
-class _ChainedFuture:
-    """Stands for a running future in a retry: forwards the outcome to it."""
-
-    def __init__(self, target: Future) -> None:
-        self._target = target
-
-    def done(self) -> bool:
-        return self._target.done()
-
-    def cancel(self) -> bool:
-        return False
-
-    def set_running_or_notify_cancel(self) -> bool:
-        return not self._target.done()
-
-    def set_result(self, result: Any) -> None:
-        if not self._target.done():
-            self._target.set_result(result)
-
-    def set_exception(self, exc: BaseException) -> None:
-        if not self._target.done():
-            self._target.set_exception(exc)
-
-
-# --------------------------------------------------------------------------- cache
-def pvs_nbytes(pvs: PVS) -> int:
-    """Approximate memory held by a PVS (its arrays plus a fixed overhead), bytes."""
-    n = 512 + pvs.triangle_ids.nbytes
-    for arr in (pvs.object_ids, pvs.sphere_ids):
-        if arr is not None:
-            n += arr.nbytes
-    for v in pvs.stats.values():
-        n += v.nbytes if isinstance(v, np.ndarray) else 64
-    return int(n)
-
-
-class PVSCache:
-    """A thread-safe LRU map from keys to PVS, bounded by the PVS' total ``pvs_nbytes``.
-
-    An entry larger than the whole bound is not stored. Pinned keys (``pin``; a count per key,
-    e.g. one per walker standing in the cell) are never evicted, so the bound may be exceeded
-    while pins hold entries; eviction catches up on ``unpin``.
-    """
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = int(max_bytes)
-        self._data: OrderedDict[Hashable, tuple[PVS, int]] = OrderedDict()
-        self._lock = threading.Lock()
-        self._pins: dict[Hashable, int] = {}
-        self.nbytes = 0
-        self.hits = 0
-        self.misses = 0
-        self.evictions = 0
-
-    def get(self, key: Hashable) -> PVS | None:
-        """The cached PVS (now the most recently used) or None."""
-        with self._lock:
-            item = self._data.get(key)
-            if item is None:
-                self.misses += 1
-                return None
-            self._data.move_to_end(key)
-            self.hits += 1
-            return item[0]
-
-    def put(self, key: Hashable, pvs: PVS) -> None:
-        """Store ``pvs``, evicting least recently used unpinned entries to stay within
-        ``max_bytes``."""
-        size = pvs_nbytes(pvs)
-        with self._lock:
-            old = self._data.pop(key, None)
-            if old is not None:
-                self.nbytes -= old[1]
-            if size > self.max_bytes and key not in self._pins:
-                return
-            self._data[key] = (pvs, size)
-            self.nbytes += size
-            self._evict()
-
-    def _evict(self) -> None:
-        if self.nbytes <= self.max_bytes:
-            return
-        for k in [k for k in self._data if k not in self._pins]:
-            if self.nbytes <= self.max_bytes:
-                break
-            _, s = self._data.pop(k)
-            self.nbytes -= s
-            self.evictions += 1
-
-    def pin(self, key: Hashable) -> None:
-        """Keep ``key`` (now or once stored) from eviction until as many ``unpin`` calls."""
-        with self._lock:
-            self._pins[key] = self._pins.get(key, 0) + 1
-
-    def unpin(self, key: Hashable) -> None:
-        """Undo one ``pin``; unknown keys are ignored."""
-        with self._lock:
-            n = self._pins.get(key, 0) - 1
-            if n > 0:
-                self._pins[key] = n
-            else:
-                self._pins.pop(key, None)
-                self._evict()
-
-    def pinned(self) -> int:
-        with self._lock:
-            return len(self._pins)
-
-    def __contains__(self, key: Hashable) -> bool:
-        with self._lock:
-            return key in self._data
-
-    def clear(self) -> None:
-        with self._lock:
-            self._data.clear()
-            self.nbytes = 0
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def stats(self) -> dict[str, int]:
-        """Entries, bytes, bound, hits, misses, evictions, pinned keys."""
-        with self._lock:
-            return {"entries": len(self._data), "bytes": self.nbytes, "max_bytes": self.max_bytes,
-                    "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
-                    "pinned": len(self._pins)}
-
-
-class DiskPVSCache:
-    """PVS as ``.npz`` files under ``folder`` (one per key), surviving restarts.
-
-    File name: ``<scene>/<sha256 of repr(key)>.npz`` holding the ids, granularity, seconds and the
-    key's ``repr`` (checked on load, so a hash collision or a foreign file is a miss). Files that
-    cannot be read (truncated, corrupt, wrong content) are ignored (and removed). Writes go to a
-    temporary file renamed into place, so a crash never leaves a half file under a real name.
-    """
-
-    def __init__(self, folder: str | os.PathLike) -> None:
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.hits = 0
-        self.misses = 0
-        self.corrupt = 0
-        self.writes = 0
-
-    def path(self, key: tuple) -> Path:
-        digest = hashlib.sha256(repr(key).encode()).hexdigest()[:40]
-        scene = hashlib.sha256(str(key[0]).encode()).hexdigest()[:16]
-        return self.folder / scene / f"{digest}.npz"
-
-    def get(self, key: tuple) -> PVS | None:
-        """The stored PVS of ``key`` or None (missing or unreadable file)."""
-        p = self.path(key)
-        if not p.is_file():
-            self.misses += 1
-            return None
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                if str(z["key"]) != repr(key):
-                    raise ValueError("key mismatch")
-                ids = z["triangle_ids"].astype(np.int32)
-                obj = z["object_ids"].astype(np.int32) if int(z["has_objects"]) else None
-                sph = z["sphere_ids"].astype(np.int32) if int(z["has_spheres"]) else None
-                pvs = PVS(ids, granularity=str(z["granularity"]), object_ids=obj,
-                          sphere_ids=sph, stats={"seconds": float(z["seconds"]), "disk": True})
-        except Exception as exc:  # any unreadable file is a miss, never an error
-            log.warning("ignoring unreadable PVS cache file %s: %s", p, exc)
-            self.corrupt += 1
-            self.misses += 1
-            try:
-                p.unlink()
-            except OSError:
-                pass
-            return None
-        self.hits += 1
-        return pvs
-
-    def put(self, key: tuple, pvs: PVS) -> None:
-        """Store ``pvs`` under ``key`` (errors are logged, never raised)."""
-        p = self.path(key)
-        try:
-            p.parent.mkdir(parents=True, exist_ok=True)
-            buf = io.BytesIO()
-            empty = np.zeros(0, np.int32)
-            np.savez(buf, key=np.array(repr(key)), triangle_ids=pvs.triangle_ids,
-                     granularity=np.array(pvs.granularity), seconds=np.array(pvs.seconds),
-                     has_objects=np.array(pvs.object_ids is not None),
-                     object_ids=pvs.object_ids if pvs.object_ids is not None else empty,
-                     has_spheres=np.array(pvs.sphere_ids is not None),
-                     sphere_ids=pvs.sphere_ids if pvs.sphere_ids is not None else empty)
-            tmp = p.with_name(f".{p.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-            tmp.write_bytes(buf.getvalue())
-            os.replace(tmp, p)
-            self.writes += 1
-        except OSError as exc:
-            log.warning("could not write PVS cache file %s: %s", p, exc)
-
-    def stats(self) -> dict[str, Any]:
-        return {"folder": str(self.folder), "hits": self.hits, "misses": self.misses,
-                "corrupt": self.corrupt, "writes": self.writes}
 
 
 # --------------------------------------------------------------------------- parameters
@@ -502,9 +122,7 @@ class ComputeService:
     ) -> None:
         self.catalog = catalog
         self.settings = settings
-        self.pool = pool or PriorityWorkerPool(
-            settings.workers, retry_exempt=(UnknownSceneError, UnknownCellError,
-                                            UnsupportedSceneError))
+        self.pool = pool or PriorityWorkerPool(settings.workers)
         self.cache = PVSCache(settings.cache_bytes)
         self.disk = DiskPVSCache(settings.cache_dir) if settings.cache_dir is not None else None
         #: Called with the seconds of every finished computation (metrics hook).
@@ -547,8 +165,18 @@ class ComputeService:
 
     @staticmethod
     def key(scene: str, core: Core, params: CoreParams, cell: int) -> tuple:
-        """The cache key of a grid cell's PVS (for ``cache.pin``)."""
+        """The in-memory cache key of a grid cell's PVS (for ``cache.pin``): (scene name, cell,
+        core name, parameters). Names suffice in memory: a process serves one grid per scene."""
         return (scene, int(cell), core.name, params.cache_key())
+
+    @staticmethod
+    def disk_key(loaded: LoadedScene, core: Core, params: CoreParams, box: np.ndarray) -> tuple:
+        """The on-disk cache key of a region's PVS: (scene fingerprint, the region's box corners
+        in metres, core name, parameters). Keys survive restarts, so they name the geometry and
+        the box itself, never a scene name or cell id whose meaning a restart may change
+        (another cell size, an edited scene file, another generated size)."""
+        corners = tuple(float(x) for x in np.asarray(box, dtype=np.float64).ravel())
+        return (loaded.fingerprint, corners, core.name, params.cache_key())
 
     def submit(
         self,
@@ -602,8 +230,10 @@ class ComputeService:
                     fut = self.pool.submit(self._run, key, scene, core, params, cell, box,
                                            segment)
                 if not fut.done():
+                    # Forgotten only when the caller's future is done: a job retried after its
+                    # worker died keeps this future, so identical requests keep joining it.
                     self._inflight[key] = fut
-                    fut.add_done_callback(lambda f, k=key: f.cancelled() and self._forget(k, f))
+                    fut.add_done_callback(lambda f, k=key: self._forget(k, f))
                 return fut
             if fut is not None:
                 self.shared += 1
@@ -664,7 +294,10 @@ class ComputeService:
             ok, why = core_fits(core, loaded.scene)
             if not ok:
                 raise UnsupportedSceneError(f"core {core.name!r} does not fit {scene!r}: {why}")
-            pvs = self.disk.get(key) if self.disk is not None and cell is not None else None
+            dkey = None
+            if self.disk is not None and cell is not None:
+                dkey = self.disk_key(loaded, core, params, viewcell.box)
+            pvs = self.disk.get(dkey) if dkey is not None else None
             if pvs is not None:
                 self.cache.put(key, pvs)
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
@@ -677,8 +310,8 @@ class ComputeService:
             log.debug("PVS %s cell=%s core=%s: %d triangles in %.3f s", scene, cell, core.name,
                       len(pvs), seconds)
             self.cache.put(key, pvs)
-            if self.disk is not None and cell is not None:
-                self.disk.put(key, pvs)
+            if dkey is not None:
+                self.disk.put(dkey, pvs)
             with self._lock:
                 self.computed += 1
             if self.on_computed is not None:
@@ -690,9 +323,6 @@ class ComputeService:
             with self._lock:
                 self.failed += 1
             raise
-        finally:
-            with self._lock:
-                self._inflight.pop(key, None)
 
     def stats(self) -> dict[str, Any]:
         """Cache statistics plus computations done, failed, shared and in flight."""

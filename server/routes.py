@@ -1,6 +1,8 @@
 """HTTP routes: health, the scene catalogue, viewcells and PVS queries; JSON error bodies.
 
-PVS answers come in three forms, chosen by the request's ``Accept`` header:
+PVS answers come in three forms, chosen by the request's ``Accept`` header (media ranges with
+q-values, ``server.negotiation``; no header: JSON; only other types acceptable: 406
+``not_acceptable``):
 
 - ``application/json`` (default): ``PvsResponse``;
 - ``application/octet-stream``: the sorted triangle ids as packed little-endian int32
@@ -13,8 +15,12 @@ Binary answers carry ``X-PVS-Count``, ``X-PVS-Core``, ``X-PVS-Seconds`` and ``X-
 headers.
 
 Every error answers ``{"error": {"code": <ErrorCode>, "message": str}}`` (validation errors add
-``"details"``) with its status: 404 unknown scene/cell/core/route, 422 bad parameters, NaN or an
+``"details"``) with its status: 404 unknown scene/cell/core/route, 406 no acceptable answer form,
+413 a request body over ``settings.max_body_bytes`` (``too_big``), 422 bad parameters, NaN or an
 inverted box, 500 a scene that fails to load or a computation that fails.
+
+Answers are encoded off the event loop (a PVS of 10^5 ids takes milliseconds to render), so a
+big answer never delays other sessions' frames.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ from server.compute import (
     UnknownCoreError,
     UnsupportedSceneError,
 )
+from server.negotiation import choose_media_type
 from visibility.cores.base import SegmentNotSupported
 
 if TYPE_CHECKING:
@@ -51,6 +58,9 @@ router = APIRouter()
 #: ``Accept`` values of the binary PVS answers (see the module docstring).
 IDS_MEDIA_TYPE = "application/octet-stream"
 GEOMETRY_MEDIA_TYPE = "application/vnd.pvs.geometry"
+JSON_MEDIA_TYPE = "application/json"
+#: The answer forms of the PVS routes, in the server's order of preference (ties of q).
+PVS_MEDIA_TYPES = (JSON_MEDIA_TYPE, IDS_MEDIA_TYPE, GEOMETRY_MEDIA_TYPE)
 _PVS_RESPONSES: dict = {200: {"content": {
     "application/json": {},
     IDS_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
@@ -136,8 +146,13 @@ async def _pvs(
     cell: int | None = None,
     box: np.ndarray | None = None,
     segment: np.ndarray | None = None,
-) -> JSONResponse:
+) -> Response:
     compute = _state(request).compute
+    # Negotiated first: a request no answer form satisfies costs no computation.
+    media = choose_media_type(request.headers.get("accept"), PVS_MEDIA_TYPES)
+    if media is None:
+        raise ApiError(406, ErrorCode.NOT_ACCEPTABLE,
+                       f"no acceptable answer form; this route answers {list(PVS_MEDIA_TYPES)}")
     try:
         compute.catalog.require(scene)
         core, core_params = compute.resolve(core_name, params)
@@ -155,35 +170,41 @@ async def _pvs(
                            f"PVS computation failed: {type(exc).__name__}: {exc}") from None
         raise api from None
     pvs = result.pvs
-    accept = request.headers.get("accept", "")
-    if GEOMETRY_MEDIA_TYPE in accept or IDS_MEDIA_TYPE in accept:
+    if media != JSON_MEDIA_TYPE:
         headers = {"X-PVS-Count": str(len(pvs)), "X-PVS-Core": result.core,
                    "X-PVS-Seconds": repr(result.seconds), "X-PVS-Cached": str(result.cached)}
         ids = pvs.triangle_ids
-        if GEOMETRY_MEDIA_TYPE in accept:
-            scene_obj = compute.catalog.get(scene).scene
+        if media == GEOMETRY_MEDIA_TYPE:
+            scene_obj = (await _loaded(request, scene)).scene
             limit = _state(request).settings.max_frame_bytes
-            body_bytes = b"".join(chunk_geometry(
-                ids, scene_obj.triangles(ids), scene_obj.colors[ids],
-                cell=-1 if cell is None else int(cell), max_frame_bytes=limit))
+
+            def encode() -> bytes:
+                return b"".join(chunk_geometry(
+                    ids, scene_obj.triangles(ids), scene_obj.colors[ids],
+                    cell=-1 if cell is None else int(cell), max_frame_bytes=limit))
+
+            body_bytes = await asyncio.to_thread(encode)
             return Response(body_bytes, media_type=GEOMETRY_MEDIA_TYPE, headers=headers)
         return Response(ids.astype("<i4").tobytes(), media_type=IDS_MEDIA_TYPE, headers=headers)
-    body = {
-        "scene": scene,
-        "core": result.core,
-        "cell": result.cell,
-        "box": result.box.tolist(),
-        "segment": None if segment is None else segment.tolist(),
-        "granularity": pvs.granularity,
-        "count": len(pvs),
-        "triangle_ids": pvs.triangle_ids.tolist(),
-        "object_ids": None if pvs.object_ids is None else pvs.object_ids.tolist(),
-        "seconds": result.seconds,
-        "cached": result.cached,
-        "params": jsonable(core_params.as_dict()),
-        "stats": jsonable(pvs.stats),
-    }
-    return JSONResponse(body)
+
+    def render() -> JSONResponse:
+        return JSONResponse({
+            "scene": scene,
+            "core": result.core,
+            "cell": result.cell,
+            "box": result.box.tolist(),
+            "segment": None if segment is None else segment.tolist(),
+            "granularity": pvs.granularity,
+            "count": len(pvs),
+            "triangle_ids": pvs.triangle_ids.tolist(),
+            "object_ids": None if pvs.object_ids is None else pvs.object_ids.tolist(),
+            "seconds": result.seconds,
+            "cached": result.cached,
+            "params": jsonable(core_params.as_dict()),
+            "stats": jsonable(pvs.stats),
+        })
+
+    return await asyncio.to_thread(render)
 
 
 # --------------------------------------------------------------------------- routes
@@ -286,5 +307,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        code = ErrorCode.NOT_FOUND if exc.status_code == 404 else f"http_{exc.status_code}"
+        named = {404: ErrorCode.NOT_FOUND, 406: ErrorCode.NOT_ACCEPTABLE,
+                 413: ErrorCode.TOO_BIG}
+        code = named.get(exc.status_code, f"http_{exc.status_code}")
         return error_response(exc.status_code, code, str(exc.detail))

@@ -10,9 +10,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol.frames import DEFAULT_MAX_FRAME_BYTES, frame_bytes
+from visibility.nearfar import MAX_RESOLUTION as NEAR_FAR_MAX_RESOLUTION
+from visibility.nearfar import MIN_RESOLUTION as NEAR_FAR_MIN_RESOLUTION
+from visibility.nearfar import NearFarConfig
+
+#: Near-far defaults come from ``visibility.nearfar.NearFarConfig`` (one source of truth; its
+#: module docstring says why they suit 4 m cells).
+_NEAR_FAR_DEFAULT = NearFarConfig()
 
 
 def default_generated() -> dict[str, int]:
@@ -47,9 +54,13 @@ class Settings(BaseModel):
     send_timeout : seconds one send may wait for a slow client before the session is closed
         (``slow_client``).
     near_far, near_far_r1, near_far_r2, near_far_resolution : near-far partition of each cell's
-        stream (``visibility.nearfar``; used only when that module is present).
+        stream (``visibility.nearfar``): radii in metres, cubemap face size in pixels; defaults
+        and bounds are ``NearFarConfig``'s, checked when the settings are made.
+    near_far_cache_bytes : bound of the near-far caches (splits and encoded cubemaps shared by
+        every session), bytes; a connected walker's current cell is never evicted.
     max_frame_bytes : largest binary geometry frame the server sends, bytes.
     max_message_bytes : largest text message the server accepts from a client, bytes.
+    max_body_bytes : largest HTTP request body the server reads, bytes (larger: 413).
     hello_timeout : seconds a new WebSocket may wait before sending hello.
     ws_deflate : negotiate permessage-deflate (costs CPU; float geometry compresses poorly).
     ws_ping_interval : seconds between keep-alive pings (None: no pings).
@@ -73,11 +84,14 @@ class Settings(BaseModel):
     send_queue_frames: int = Field(16, ge=1, le=4096)
     send_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
     near_far: bool = False
-    near_far_r1: float = Field(40.0, gt=0, allow_inf_nan=False)
-    near_far_r2: float = Field(80.0, gt=0, allow_inf_nan=False)
-    near_far_resolution: int = Field(256, ge=8, le=4096)
+    near_far_r1: float = Field(_NEAR_FAR_DEFAULT.r1, gt=0, allow_inf_nan=False)
+    near_far_r2: float = Field(_NEAR_FAR_DEFAULT.r2, gt=0, allow_inf_nan=False)
+    near_far_resolution: int = Field(_NEAR_FAR_DEFAULT.resolution, ge=NEAR_FAR_MIN_RESOLUTION,
+                                     le=NEAR_FAR_MAX_RESOLUTION)
+    near_far_cache_bytes: int = Field(256 * 1024 * 1024, ge=0)
     max_frame_bytes: int = Field(DEFAULT_MAX_FRAME_BYTES, ge=frame_bytes(1), le=64 * 1024 * 1024)
     max_message_bytes: int = Field(64 * 1024, ge=1024, le=16 * 1024 * 1024)
+    max_body_bytes: int = Field(1024 * 1024, ge=1024, le=256 * 1024 * 1024)
     hello_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
     ws_deflate: bool = False
     ws_ping_interval: float | None = Field(20.0, gt=0)
@@ -91,13 +105,17 @@ class Settings(BaseModel):
                 raise ValueError(f"generated scene {name!r} needs a positive triangle count")
         return v
 
-    @field_validator("near_far_r2")
-    @classmethod
-    def _r2_beyond_r1(cls, v: float, info: Any) -> float:
-        r1 = info.data.get("near_far_r1")
-        if r1 is not None and v <= r1:
-            raise ValueError(f"near_far_r2 ({v}) must exceed near_far_r1 ({r1})")
-        return v
+    @model_validator(mode="after")
+    def _near_far_config(self) -> Settings:
+        # NearFarConfig is the one judge of radii and resolution: settings it would refuse
+        # fail at start-up, not at every hello.
+        self.near_far_config()
+        return self
+
+    def near_far_config(self) -> NearFarConfig:
+        """The ``NearFarConfig`` of these settings (ValueError when it is not a valid one)."""
+        return NearFarConfig(r1=self.near_far_r1, r2=self.near_far_r2,
+                             resolution=self.near_far_resolution)
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
@@ -107,6 +125,7 @@ class Settings(BaseModel):
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
+        PVS_NEAR_FAR_CACHE_BYTES, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
         disables), PVS_LOG_LEVEL,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
@@ -125,6 +144,8 @@ class Settings(BaseModel):
             "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
             "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
             "near_far_resolution": "PVS_NEAR_FAR_RESOLUTION",
+            "near_far_cache_bytes": "PVS_NEAR_FAR_CACHE_BYTES",
+            "max_body_bytes": "PVS_MAX_BODY_BYTES",
             "log_level": "PVS_LOG_LEVEL",
         }
         for field, var in simple.items():

@@ -9,10 +9,12 @@ One ``StreamSession`` per connection, three tasks:
   gets its PVS from the shared compute service (cache, in-flight sharing, priority pool; prefetch
   work no walker wants any more is skipped), and streams ``cell_begin``, the triangles the client
   lacks as geometry frames, ``cell_end``. A prefetch stream yields to the current cell's between
-  chunks (``cell_end.partial``). When a client's triangle ``budget`` would be exceeded, a ``drop``
-  message first names the held triangles it must drop (outside the current and prefetched
-  cells' PVS first, farthest first);
-- the sender drains a bounded queue of outgoing messages; a send that waits longer than
+  chunks, and when the walker needs another cell its queued frames are cut
+  (``server.sendqueue``: ``cell_end.partial``). When a client's triangle ``budget`` would be
+  exceeded, a ``drop`` message first names the held triangles it must drop (outside the current
+  and prefetched cells' PVS first, farthest first);
+- the sender drains a bounded two-lane queue of outgoing messages (``server.sendqueue``: the
+  current cell's stream before prefetch streams); a send that waits longer than
   ``settings.send_timeout`` (the client stopped reading) closes the session with ``slow_client``
   (4008).
 
@@ -31,12 +33,19 @@ import asyncio
 import logging
 import time
 import uuid
+from collections import deque
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
-from protocol.codes import ErrorCode, close_code_for, is_fatal
+from protocol.codes import (
+    BAD_MESSAGE_LIMIT,
+    BAD_MESSAGE_WINDOW_S,
+    ErrorCode,
+    close_code_for,
+    is_fatal,
+)
 from protocol.frames import chunk_count, encode_geometry, triangles_per_frame
 from protocol.messages import (
     Bye,
@@ -64,7 +73,9 @@ from server.compute import (
     core_fits,
     offered_cores,
 )
+from server.dynamic import DynamicStream
 from server.prefetch import choose_drops, motion_direction, prefetch_order
+from server.sendqueue import Outgoing, SendQueue, StreamTag
 from visibility.cores.base import PVS, Core, CoreParams
 
 if TYPE_CHECKING:
@@ -141,7 +152,8 @@ class StreamSession:
         self.settings = state.settings
         self.id = uuid.uuid4().hex[:16]
         self._send_lock = asyncio.Lock()
-        self._out: asyncio.Queue = asyncio.Queue(maxsize=self.settings.send_queue_frames)
+        self._out = SendQueue(self.settings.send_queue_frames,
+                              self.settings.send_queue_frames * self.settings.max_frame_bytes)
         self._wake = asyncio.Event()
         self.loaded: LoadedScene | None = None
         self.core: Core | None = None
@@ -164,12 +176,18 @@ class StreamSession:
         #: client already holds, e.g. prefetched or revisited).
         self.announced: int | None = None
         self.cubemaps_sent: set[int] = set()
+        #: Keyframes and spheres of a dynamic scene (``server.dynamic``), made on first stream.
+        self.dynamic: DynamicStream | None = None
         self.stalls = 0
         self._stall_cell: int | None = None
         self._last_pos: np.ndarray | None = None
         self._pinned: tuple | None = None
         self._outside = False
         self._closed = False
+        #: True once ``welcome`` is sent: bad messages are then answered, not fatal.
+        self._welcomed = False
+        #: Monotonic times of the recent bad messages (``protocol.codes.BAD_MESSAGE_LIMIT``).
+        self._bad: deque[float] = deque()
 
     # ----------------------------------------------------------------------------- sending
     async def _send_now(self, data: str | bytes) -> None:
@@ -201,22 +219,96 @@ class StreamSession:
         except _SlowClient:
             await self._slow()
 
-    async def _enqueue(self, item: Any) -> None:
-        """Queue a stream message (model) or frame (bytes) for the sender; waits while the
-        queue is full (backpressure on the streamer)."""
+    async def _enqueue(self, item: Any, stream: StreamTag | None = None,
+                       ids: np.ndarray | None = None, cubemap: bool = False) -> bool:
+        """Queue a message (model) or frame (bytes) for the sender, in ``stream``'s lane (the
+        prefetch lane for prefetch streams); waits while the queue is full (backpressure on
+        the streamer).
+
+        ``cell_begin``, ``cell_end`` and frames belong to ``stream``; ``ids`` are the triangle
+        ids a geometry frame carries. Returns False, queuing nothing, when a prefetch stream's
+        message waited for room while the walker's current cell became pending (the caller
+        yields: ``_yield_prefetch``); ``drop``/``error`` messages are always queued.
+        """
         if self._closed:
             raise _SessionOver
-        await self._out.put(dump_message(item) if not isinstance(item, bytes) else item)
+        if isinstance(item, bytes):
+            out = Outgoing(item, "cubemap" if cubemap else "frame", stream, ids)
+        elif isinstance(item, (CellBegin, CellEnd)):
+            out = Outgoing(dump_message(item), "begin" if isinstance(item, CellBegin) else "end",
+                           stream, partial=isinstance(item, CellEnd) and item.partial)
+        else:
+            out = Outgoing(dump_message(item))
+        ahead = stream is not None and stream.prefetch
+        if ahead and out.stream is not None:
+            while not self._out.has_room(out.nbytes):
+                self._wake.clear()
+                if stream.cut or self._current_pending(stream.cell):
+                    return False
+                await self._first_of(self._out.wait_room(out.nbytes), self._wake.wait())
+        await self._out.put(out, ahead)
+        return True
+
+    @staticmethod
+    async def _first_of(*aws: Any) -> None:
+        """Wait until the first of ``aws`` finishes; cancel the others."""
+        tasks = [asyncio.ensure_future(a) for a in aws]
+        try:
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in tasks:
+                t.cancel()
 
     async def _sender(self) -> None:
         try:
             while True:
                 item = await self._out.get()
-                await self._send_now(item)
+                await self._send_now(item.data)
+                self._sent(item)
         except _SlowClient:
             await self._slow()
         except _SessionOver:
             pass
+
+    def _sent(self, item: Outgoing) -> None:
+        """Count what reached the socket (cut prefetch frames never count)."""
+        c = self.state.counters
+        if item.ids is not None:
+            c["triangles_sent"] += len(item.ids)
+        elif item.kind == "cubemap":
+            c["cubemaps_sent"] += 1
+        elif item.kind == "end" and not item.partial:
+            c["cells_streamed"] += 1
+            if item.stream is not None and item.stream.prefetch:
+                c["cells_prefetched"] += 1
+
+    def _partial_end(self, tag: StreamTag) -> Outgoing:
+        """The ``cell_end(partial)`` closing a prefetch stream cut after its ``cell_begin``."""
+        end = CellEnd(cell=tag.cell, seq=tag.seq, seconds=time.perf_counter() - tag.t0,
+                      compute_seconds=tag.compute_seconds, cached=tag.cached, prefetch=True,
+                      partial=True)
+        return Outgoing(dump_message(end), "end", tag, partial=True)
+
+    def _yield_prefetch(self) -> None:
+        """Cut the queued prefetch streams (but the current cell's) so the current cell's
+        messages go next: their unsent triangles count as not held, their cells as not done
+        (a later stream sends what is missing)."""
+        removed, cut = self._out.cut_ahead(self.cell, self._partial_end)
+        unsent = [item.ids for item in removed if item.ids is not None]
+        if unsent:
+            # A triangle a queued frame still carries stays held (it was dropped and re-sent).
+            ids = np.setdiff1d(np.concatenate(unsent), self._out.queued_ids())
+            ids = ids[self.held[ids]]
+            self.held[ids] = False
+            self.n_held -= len(ids)
+        for item in removed:
+            if item.kind == "cubemap":
+                self.cubemaps_sent.discard(item.stream.cell)
+        for tag in cut:
+            self.done.discard(tag.cell)
+        c = self.state.counters
+        c["prefetch_yields"] += len(cut)
+        c["prefetch_frames_cut"] += len(unsent)
 
     async def _slow(self) -> None:
         self.state.counters["slow_clients"] += 1
@@ -226,9 +318,9 @@ class StreamSession:
         raise _SessionOver
 
     async def error(self, code: ErrorCode, message: str, seq: int | None = None) -> None:
-        """Send an ``error``; when the code is fatal also close the connection and end the
-        session (raises _SessionOver)."""
-        fatal = is_fatal(code)
+        """Send an ``error``; when the code is fatal (in this phase: before ``welcome`` every
+        bad message is) also close the connection and end the session (raises _SessionOver)."""
+        fatal = is_fatal(code, handshake=not self._welcomed)
         self.state.counters["errors_sent"] += 1
         log.info("session %s: %s%s: %s", self.id, code, " (fatal)" if fatal else "", message)
         await self._send_text(Error(code=code, message=message[:2000], fatal=fatal, seq=seq))
@@ -254,7 +346,9 @@ class StreamSession:
 
     # ----------------------------------------------------------------------------- receiving
     async def _receive(self, timeout: float | None = None) -> str:
-        """The next text message; ends the session on disconnect, binary or oversized frames."""
+        """The next text message. Ends the session on disconnect (and on ``timeout`` seconds of
+        silence); raises ProtocolError (``binary_unsupported``, ``too_big``) for a binary or
+        oversized message, which the caller answers."""
         try:
             msg = await asyncio.wait_for(self.ws.receive(), timeout)
         except TimeoutError:
@@ -268,11 +362,11 @@ class StreamSession:
         self.state.counters["messages_received"] += 1
         text = msg.get("text")
         if text is None:
-            await self.error(ErrorCode.BINARY_UNSUPPORTED,
-                             "clients send JSON text messages, not binary frames")
+            raise ProtocolError(ErrorCode.BINARY_UNSUPPORTED,
+                                "clients send JSON text messages, not binary frames")
         limit = self.settings.max_message_bytes
         if len(text) > limit or (4 * len(text) > limit and len(text.encode()) > limit):
-            await self.error(ErrorCode.TOO_BIG, f"message over {limit} bytes")
+            raise ProtocolError(ErrorCode.TOO_BIG, f"message over {limit} bytes")
         return text
 
     # ----------------------------------------------------------------------------- lifecycle
@@ -306,11 +400,11 @@ class StreamSession:
 
     async def _handshake(self) -> None:
         # Every error below is fatal: ``self.error`` closes and raises _SessionOver.
-        text = await self._receive(timeout=self.settings.hello_timeout)
         try:
-            msg = parse_client_message(text)
+            msg = parse_client_message(await self._receive(timeout=self.settings.hello_timeout))
         except ProtocolError as exc:
-            if exc.code in (ErrorCode.BAD_JSON, ErrorCode.INVALID_HELLO):
+            if exc.code in (ErrorCode.BAD_JSON, ErrorCode.INVALID_HELLO, ErrorCode.TOO_BIG,
+                            ErrorCode.BINARY_UNSUPPORTED):
                 await self.error(exc.code, exc.message)
             await self.error(ErrorCode.EXPECTED_HELLO, f"the first message must be hello ({exc})")
         if not isinstance(msg, Hello):
@@ -368,6 +462,7 @@ class StreamSession:
             prefetch=self.prefetch,
             features=features,
         ))
+        self._welcomed = True
 
     def _features(self, why: str, valid: int) -> dict[str, Any]:
         """What this session's streams include and leave out, and why (the welcome's
@@ -381,7 +476,7 @@ class StreamSession:
                    f"the scene ({valid} triangles) exceeds the budget of {self.budget}"
                    + ("; a cell whose near region (within r2) fits it is sent whole, "
                       "without a PVS" if self.settings.near_far else "")}
-        dynamic = scene.states is not None and scene.states.shape[0] > 1
+        dynamic = scene.is_dynamic
         nf = _near_far_module()
         if nf is None:
             cubemap = {"on": False, "why": "near-far module (visibility.nearfar) not installed"}
@@ -389,9 +484,9 @@ class StreamSession:
             cubemap = {"on": False, "why": "the server's near_far setting is off"}
         else:
             cfg = self._near_far_cfg(nf)
-            boxes = self.loaded.grid.boxes
-            need = [bool(nf.needs_cubemap(scene, b.mean(axis=0), cfg)) for b in boxes]
-            n = sum(need)
+            # Every cell at once, computed once per scene and r2 (shared by all sessions).
+            need = self.state.near_far.cubemap_cells(self.loaded, cfg)
+            n = int(np.count_nonzero(need))
             cubemap = {"on": n > 0, "cells": n, "r1": cfg.r1, "r2": cfg.r2,
                        "why": f"{n} of {len(need)} cells have static geometry beyond r2"
                        if n else "nothing static lies beyond r2 of any cell"}
@@ -399,7 +494,8 @@ class StreamSession:
             "pvs": pvs,
             "prefetch": {"on": self.prefetch},
             "delta": {"on": True, "why": "each triangle is sent once unless dropped"},
-            "dynamic_updates": {"on": dynamic, "why": "the scene has moving triangles" if dynamic
+            "dynamic_updates": {"on": dynamic, "why": "the scene has moving triangles or "
+                                "spheres: their keyframes follow their geometry" if dynamic
                                 else "static scene: no dynamic updates"},
             "cubemap": cubemap,
             "cores": offered_cores(scene),
@@ -415,14 +511,13 @@ class StreamSession:
         while True:
             if any(t.done() for t in tasks):
                 return
-            text = await self._receive()
             try:
-                msg = parse_client_message(text)
+                msg = parse_client_message(await self._receive())
             except ProtocolError as exc:
                 code = exc.code
                 if code == ErrorCode.INVALID_HELLO:
                     code = ErrorCode.DUPLICATE_HELLO
-                await self.error(code, exc.message, exc.seq)
+                await self._bad_message(code, exc.message, exc.seq)
                 continue
             if isinstance(msg, Pose):
                 await self._on_pose(msg)
@@ -431,6 +526,20 @@ class StreamSession:
                 return
             elif isinstance(msg, Hello):
                 await self.error(ErrorCode.DUPLICATE_HELLO, "hello sent twice")
+
+    async def _bad_message(self, code: ErrorCode, message: str, seq: int | None) -> None:
+        """Answer a bad message after ``welcome`` (skipped, the session goes on) and close the
+        session once a client passes ``BAD_MESSAGE_LIMIT`` of them in ``BAD_MESSAGE_WINDOW_S``
+        seconds (``too_many_errors``)."""
+        now = time.monotonic()
+        self._bad.append(now)
+        while self._bad and self._bad[0] < now - BAD_MESSAGE_WINDOW_S:
+            self._bad.popleft()
+        if len(self._bad) > BAD_MESSAGE_LIMIT:
+            await self.error(ErrorCode.TOO_MANY_ERRORS,
+                             f"more than {BAD_MESSAGE_LIMIT} bad messages in "
+                             f"{BAD_MESSAGE_WINDOW_S:g} s", seq)
+        await self.error(code, message, seq)
 
     async def _on_pose(self, pose: Pose) -> None:
         pos = np.asarray(pose.position, dtype=np.float64)
@@ -592,7 +701,7 @@ class StreamSession:
                 self.done.discard(c)
 
     async def _make_room(self, cell: int, ids: np.ndarray, new: np.ndarray,
-                         prefetch: bool, seq: int) -> bool:
+                         prefetch: bool, seq: int, stream: StreamTag | None = None) -> bool:
         """Drop held triangles so ``new`` fits the budget; False when a prefetch cannot fit
         without touching the current cell's PVS (the prefetch is then skipped)."""
         need = self.n_held + len(new) - (self.budget or 0)
@@ -623,7 +732,7 @@ class StreamSession:
             await self._enqueue(Error(
                 code=ErrorCode.OVER_BUDGET, seq=seq,
                 message=f"PVS of cell {cell} holds {len(ids)} triangles; with the current "
-                f"cell's it exceeds the budget of {self.budget}"))
+                f"cell's it exceeds the budget of {self.budget}"), stream)
             self.state.counters["errors_sent"] += 1
         if len(drops):
             dmask = np.zeros(n, dtype=bool)
@@ -633,23 +742,17 @@ class StreamSession:
             gone = sorted(c for c in self.done if dmask[self.pvs_of[c]].any())
             self.done.difference_update(gone)
             self.state.counters["triangles_dropped"] += len(drops)
-            await self._enqueue(Drop(ids=np.sort(drops).tolist(), cells=gone))
+            await self._enqueue(Drop(ids=np.sort(drops).tolist(), cells=gone), stream)
         return True
 
     async def _split(self, nf: Any, cell: int) -> Any:
         """The near-far split of ``cell`` (``visibility.nearfar.NearFarSplit``), or False when
-        nothing static lies beyond r2 of its centre; shared by every session of the server."""
-        scene = self.loaded.scene
-        cfg = self._near_far_cfg(nf)
-        centre = self.loaded.grid.boxes[cell].mean(axis=0)
-        split_key = (self.loaded.name, cell, cfg.r1, cfg.r2)
-        split = self.state.near_far_splits.get(split_key)
+        nothing static lies beyond r2 of its centre; shared by every session of the server
+        (``ServerState.near_far``, bounded)."""
+        store, cfg = self.state.near_far, self._near_far_cfg(nf)
+        split = store.cached_split(self.loaded, cell, cfg)
         if split is None:
-            if not await asyncio.to_thread(nf.needs_cubemap, scene, centre, cfg):
-                split = False
-            else:
-                split = await asyncio.to_thread(nf.split_ids, scene, centre, cfg)
-            self.state.near_far_splits[split_key] = split
+            split = await asyncio.to_thread(store.split, self.loaded, cell, cfg)
         return split
 
     async def _near_region_if_it_fits(self, cell: int) -> np.ndarray | None:
@@ -676,7 +779,6 @@ class StreamSession:
         scene = self.loaded.scene
         cfg = self._near_far_cfg(nf)
         centre = self.loaded.grid.boxes[cell].mean(axis=0)
-        split_key = (self.loaded.name, cell, cfg.r1, cfg.r2)
         split = await self._split(nf, cell)
         info = {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
                 "cubemap": split is not False}
@@ -686,22 +788,43 @@ class StreamSession:
                           split.far_dynamic_ids).astype(np.int32)
         if cell in self.cubemaps_sent:
             return near, info, None
-        key = (*split_key, cfg.resolution)
-        frame = self.state.cubemaps.get(key)
-        if frame is None:
-            def bake() -> bytes:
-                cube = nf.bake_cubemap(scene, centre, cfg)
-                return encode_cubemap(cell, cube.center, cube.colors, cube.ranges, cfg.r1, cfg.r2)
+        def bake() -> bytes:
+            cube = nf.bake_cubemap(scene, centre, cfg)
+            return encode_cubemap(cell, cube.center, cube.colors, cube.ranges, cfg.r1, cfg.r2)
 
-            frame = await asyncio.to_thread(bake)
-            self.state.cubemaps[key] = frame
+        frame = await asyncio.to_thread(self.state.near_far.cubemap, self.loaded, cell, cfg, bake)
         return near, info, frame
 
+    async def _queue_dynamic(self, make: Any, tag: StreamTag) -> bool:
+        """Queue the keyframe or sphere frames ``make(self.dynamic)`` encodes (off the event
+        loop) in stream ``tag``; nothing for a static scene. False when a prefetch stream had to
+        yield meanwhile (it is cut: the caller stops)."""
+        if self.dynamic is None:
+            self.dynamic = await asyncio.to_thread(DynamicStream, self.loaded.scene,
+                                                   self.settings.max_frame_bytes)
+            if self.dynamic.why_not:
+                log.warning("session %s: no keyframe frames: %s", self.id, self.dynamic.why_not)
+        if not self.dynamic.active:
+            return True
+        frames = await asyncio.to_thread(make, self.dynamic)
+        for frame in frames:
+            if not await self._enqueue(frame, tag):
+                self._yield_prefetch()
+                return False
+            self.state.counters["dynamic_frames_sent"] += 1
+        return True
+
     async def _stream_cell(self, cell: int, result: PVSResult, prefetch: bool) -> None:
+        """Queue ``cell``'s stream: ``cell_begin``, the triangles the client lacks as geometry
+        frames, the cubemap (near-far), ``cell_end``. A current cell's stream first cuts the
+        queued prefetch streams; a prefetch stream stops (cut) when the walker needs another
+        cell."""
         seq = self.cell_seq
         t0 = self.cell_t0 if not prefetch else time.perf_counter()
         if not prefetch:
             self.announced = cell
+            self._yield_prefetch()
+        tag = StreamTag(cell, prefetch, seq, t0, result.seconds, result.cached)
         ids = result.pvs.triangle_ids
         near_far, cube = None, None
         nf = _near_far_module() if self.settings.near_far else None
@@ -713,22 +836,31 @@ class StreamSession:
             await self._enqueue(Error(
                 code=ErrorCode.OVER_BUDGET, seq=seq,
                 message=f"PVS of cell {cell} holds {len(ids)} triangles, over the budget "
-                f"of {self.budget}"))
+                f"of {self.budget}"), tag)
             self.state.counters["errors_sent"] += 1
-        if not await self._make_room(cell, ids, new, prefetch, seq):
+        if not await self._make_room(cell, ids, new, prefetch, seq, tag):
             return
         max_bytes = self.settings.max_frame_bytes
         count = chunk_count(len(new), max_bytes)
-        await self._enqueue(CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new),
-                                      chunks=count, prefetch=prefetch, near_far=near_far))
+        begin = CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new), chunks=count,
+                          prefetch=prefetch, near_far=near_far)
+        if not await self._enqueue(begin, tag):
+            self._yield_prefetch()  # a prefetch stream waited for room: the walker moved on
+            return
+        spheres = result.pvs.sphere_ids
+        if not await self._queue_dynamic(lambda d: d.spheres_for(spheres, cell, seq, tag), tag):
+            return
         per = triangles_per_frame(max_bytes)
         scene = self.loaded.scene
-        partial = False
         for i in range(count):
             if prefetch and self._current_pending(cell):
-                partial = True  # the walker needs another cell now: yield to it
-                break
+                self._yield_prefetch()  # the walker needs another cell now
+                return
             part = new[i * per:(i + 1) * per]
+            # A moving triangle's keyframes go just before its geometry (``server.dynamic``).
+            if not await self._queue_dynamic(lambda d, p=part: d.keyframes_for(p, cell, seq),
+                                             tag):
+                return
             # Encoding a full frame takes milliseconds: do it off the loop.
             frame = await asyncio.to_thread(
                 lambda p=part, k=i: encode_geometry(
@@ -736,24 +868,23 @@ class StreamSession:
                     count=count,
                 )
             )
+            if not await self._enqueue(frame, tag, ids=part):
+                self._yield_prefetch()
+                return
             self.held[part] = True
             self.n_held += len(part)
-            self.state.counters["triangles_sent"] += len(part)
-            await self._enqueue(frame)
-        if cube is not None and not partial:
-            await self._enqueue(cube)
+        if cube is not None:
+            if not await self._enqueue(cube, tag, cubemap=True):
+                self._yield_prefetch()
+                return
             self.cubemaps_sent.add(cell)
-            self.state.counters["cubemaps_sent"] += 1
-        if not partial:
-            self.done.add(cell)
-            self.state.counters["cells_streamed"] += 1
-            if prefetch:
-                self.state.counters["cells_prefetched"] += 1
-        else:
-            self.state.counters["prefetch_yields"] += 1
-        await self._enqueue(CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
-                                    compute_seconds=result.seconds, cached=result.cached,
-                                    prefetch=prefetch, partial=partial))
+        end = CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
+                      compute_seconds=result.seconds, cached=result.cached, prefetch=prefetch,
+                      partial=False)
+        if not await self._enqueue(end, tag):
+            self._yield_prefetch()
+            return
+        self.done.add(cell)
 
 
 async def websocket_endpoint(websocket: WebSocket) -> None:

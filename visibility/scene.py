@@ -6,6 +6,7 @@ never changes for a scene. Geometry is kept in float64; the wire uses float32.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -305,3 +306,24 @@ class Scene:
             "degenerate": self.degenerate_report.as_dict(),
             "valid_triangles": int(np.count_nonzero(self.valid_faces)),
         }
+
+
+def scene_fingerprint(scene: Scene) -> str:
+    """A 16-hex-digit hash of what a PVS of ``scene`` depends on: vertices, faces, per-face
+    object ids, vertex keyframes and spheres (not colours, names or metadata).
+
+    Two scenes with equal fingerprints have the same triangle ids at the same places, so caches
+    that outlive a process (on-disk PVS, ground truth) key on it instead of the scene's name.
+    """
+    h = hashlib.blake2b(digest_size=8)
+    for arr, dtype in ((scene.vertices, np.float64), (scene.faces, np.int64),
+                       (scene.object_ids, np.int32), (scene.states, np.float64),
+                       (scene.sphere_centers, np.float64), (scene.sphere_radii, np.float64)):
+        if arr is None:
+            h.update(b"-")
+            continue
+        a = np.ascontiguousarray(arr, dtype=dtype)
+        # The shape separates arrays, so (n, 3) + (0,) never hashes like (n - 1, 3) + (3,).
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()

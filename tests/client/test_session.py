@@ -236,7 +236,8 @@ def test_session_end_by_fatal_error_wakes_waiters(live_server):
         s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
         waiter = asyncio.create_task(s.wait_cell(0, 60))
         await asyncio.sleep(0.05)
-        await s.send_raw(b"\x00binary")  # fatal for the server
+        # A second hello is fatal in any phase (binary frames are fatal only before welcome).
+        await s.send_raw('{"type": "hello", "version": 1, "scene": "tiny", "core": "test_near"}')
         with pytest.raises(SessionError) as exc:
             await waiter
         await s.wait_closed(5)
@@ -244,7 +245,7 @@ def test_session_end_by_fatal_error_wakes_waiters(live_server):
         return s, exc.value
 
     s, err = run(main())
-    assert err.code == "binary_unsupported" and s.close_code == 1003
+    assert err.code == "duplicate_hello" and s.close_code == 1008
     assert s.errors[-1].fatal
 
 

@@ -20,7 +20,7 @@ from server.compute import (
     core_fits,
 )
 from server.settings import Settings
-from tests.conftest import NearCore, make_tiny_scene
+from tests.conftest import NearCore, make_tiny_scene, near_ids
 from visibility.cores.base import PVS
 
 
@@ -51,24 +51,26 @@ def test_pool_runs_by_priority_and_skips_unwanted():
         pool.shutdown()
 
 
-def test_pool_retries_a_failed_job_once():
+def test_ordinary_exceptions_are_answers_never_retried():
+    """A job's Exception (a core's ValueError, an unknown cell) is deterministic: it reaches the
+    caller after one run, without a second attempt."""
     pool = PriorityWorkerPool(2)
     calls = []
 
-    def flaky():
+    def bad_params():
         calls.append(1)
-        if len(calls) == 1:
-            raise RuntimeError("transient")
-        return "ok"
+        raise ValueError("resolution out of range")
 
-    def broken():
-        raise RuntimeError("always")
+    def missing():
+        calls.append(1)
+        raise KeyError("no such cell")
 
     try:
-        assert pool.submit(flaky).result(10) == "ok" and len(calls) == 2
-        with pytest.raises(RuntimeError, match="always"):
-            pool.submit(broken).result(10)
-        assert pool.retried == 2
+        with pytest.raises(ValueError, match="resolution"):
+            pool.submit(bad_params).result(10)
+        with pytest.raises(KeyError):
+            pool.submit(missing).result(10)
+        assert len(calls) == 2 and pool.retried == 0 and pool.replaced == 0
     finally:
         pool.shutdown()
 
@@ -99,22 +101,6 @@ def test_dead_worker_is_replaced_and_job_retried():
 
 def _always_dies():
     raise WorkerDied("again")
-
-
-def test_exempt_errors_are_not_retried():
-    pool = PriorityWorkerPool(1, retry_exempt=(LookupError,))
-    calls = []
-
-    def missing():
-        calls.append(1)
-        raise KeyError("no such cell")
-
-    try:
-        with pytest.raises(KeyError):
-            pool.submit(missing).result(10)
-        assert len(calls) == 1 and pool.retried == 0
-    finally:
-        pool.shutdown()
 
 
 # --------------------------------------------------------------------------- cache
@@ -174,7 +160,9 @@ def test_disk_cache_survives_restart_and_ignores_corrupt_files(tmp_path, registe
     assert c.stats()["disk"]["corrupt"] == 1
     c.shutdown()
     disk = DiskPVSCache(tmp_path / "pvs")
-    assert disk.get(("tiny", 2, "test_near", params.cache_key())) is not None  # rewritten
+    loaded = c.catalog.get("tiny")
+    key = ComputeService.disk_key(loaded, core, params, loaded.grid.boxes[2])
+    assert disk.get(key) is not None  # rewritten
 
 
 def test_core_fits_and_auto_choice():
@@ -191,3 +179,80 @@ def test_core_fits_and_auto_choice():
     del scene.meta["is_2_5d"]
     name, why = choose_core(scene)
     assert name in ("from_segment", "sampling") and why
+
+
+# --------------------------------------------------------------------------- disk cache keys
+def test_disk_cache_never_shares_entries_across_grids_or_geometry(tmp_path, registered_test_cores):
+    """The on-disk key names the scene's geometry and the cell's box: a restart with another
+    cell size or another scene under the same name computes afresh; the same set-up reuses."""
+    folder = tmp_path / "pvs"
+
+    def answer(scene, cell_size: float):
+        settings = Settings(generated={}, cache_dir=folder, workers=1, cell_size=cell_size)
+        cat = SceneCatalog(settings)
+        cat.register("tiny", scene)
+        svc = ComputeService(cat, settings)
+        core, params = svc.resolve("test_near", {"radius": 2.0})
+        try:
+            r = svc.submit("tiny", core, params, cell=1).result(30)
+        finally:
+            svc.shutdown()
+        box = cat.get("tiny").grid.boxes[1]
+        np.testing.assert_array_equal(r.pvs.triangle_ids, near_ids(scene, box, 2.0))
+        return r
+
+    tiny = make_tiny_scene()
+    assert not answer(tiny, 4.0).cached
+    assert not answer(tiny, 3.0).cached  # cell 1 is another box now
+    moved = make_tiny_scene()
+    moved.vertices[:, 0] += 1.5  # same name, other geometry
+    assert not answer(moved, 4.0).cached
+    assert answer(tiny, 4.0).cached and answer(tiny, 3.0).cached and answer(moved, 4.0).cached
+    assert len(list(folder.rglob("*.npz"))) == 3
+
+
+# --------------------------------------------------------------------------- worker death
+class DyingCore(NearCore):
+    """Kills its worker on the first call; the retry waits for ``release``."""
+
+    name = "test_dying"
+    runs = 0
+    retry_started = threading.Event()
+    release = threading.Event()
+
+    def _compute(self, scene, cell, params):
+        type(self).runs += 1
+        if type(self).runs == 1:
+            raise WorkerDied("killed mid-computation")
+        type(self).retry_started.set()
+        type(self).release.wait(30)
+        return super()._compute(scene, cell, params)
+
+
+def test_worker_death_is_retried_once_and_joined_not_duplicated(registered_test_cores):
+    settings = Settings(generated={}, workers=1)
+    cat = SceneCatalog(settings)
+    cat.register("tiny", make_tiny_scene())
+    svc = ComputeService(cat, settings)
+    core = DyingCore()
+    params = core.make_params(radius=3.0)
+    try:
+        first = svc.submit("tiny", core, params, cell=5)
+        assert DyingCore.retry_started.wait(30)  # the worker died; its replacement retries
+        # An identical request during the retry joins it instead of computing again.
+        second = svc.submit("tiny", core, params, cell=5)
+        assert second is first and svc.stats()["inflight"] == 1
+        DyingCore.release.set()
+        result = first.result(30)
+        box = cat.get("tiny").grid.boxes[5]
+        np.testing.assert_array_equal(result.pvs.triangle_ids,
+                                      near_ids(make_tiny_scene(), box, 3.0))
+        assert DyingCore.runs == 2
+        stats = svc.stats()
+        assert stats["pool"]["replaced"] == 1 and stats["pool"]["retried"] == 1
+        assert stats["inflight"] == 0 and stats["computed"] == 1
+        # The replacement worker serves later requests.
+        assert svc.submit("tiny", core, params, cell=5).result(30).cached
+    finally:
+        DyingCore.release.set()
+        svc.shutdown()

@@ -61,6 +61,30 @@ def test_settings_from_env(tmp_path):
             Settings.from_env(bad)
 
 
+def test_near_far_settings_share_nearfar_defaults_and_bounds():
+    """One source of truth: the defaults are ``NearFarConfig``'s, and settings it would refuse
+    fail at start-up instead of failing every hello (internal/1011)."""
+    from visibility.nearfar import MAX_RESOLUTION, MIN_RESOLUTION, NearFarConfig
+
+    s = Settings(generated={})
+    default = NearFarConfig()
+    assert (s.near_far_r1, s.near_far_r2, s.near_far_resolution) == (
+        default.r1, default.r2, default.resolution)
+    assert s.near_far_config() == default
+    for ok in (MIN_RESOLUTION, MAX_RESOLUTION):
+        assert Settings(generated={}, near_far_resolution=ok).near_far_config().resolution == ok
+    for bad in ({"near_far_resolution": MAX_RESOLUTION + 1},
+                {"near_far_resolution": MIN_RESOLUTION - 1},
+                {"near_far_r1": 2 * default.r2}, {"near_far_r1": 10.0, "near_far_r2": 10.0},
+                {"near_far_r2": float("inf")}):
+        with pytest.raises(ValidationError):
+            Settings(generated={}, **bad)
+    with pytest.raises(ValueError):
+        Settings.from_env({"PVS_NEAR_FAR": "1", "PVS_NEAR_FAR_RESOLUTION": "4096"})
+    env = Settings.from_env({"PVS_NEAR_FAR_CACHE_BYTES": "1000", "PVS_MAX_BODY_BYTES": "2048"})
+    assert env.near_far_cache_bytes == 1000 and env.max_body_bytes == 2048
+
+
 # --------------------------------------------------------------------------- catalogue
 @pytest.mark.parametrize("name", ["", ".", "..", "../x", "a/b", "a\\b", "a..b", "c:x", "a\x00",
                                   "x" * 300])

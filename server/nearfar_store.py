@@ -1,0 +1,97 @@
+"""Near-far data shared by every session of a server, computed once and bounded in memory.
+
+- per (scene, r2): which cells have static geometry beyond r2 (``cubemap_cells``, all cells in
+  one vectorised pass, ``visibility.nearfar_cells``), small (a bool per cell) and kept;
+- per (scene, cell, r2): the cell's ``NearFarSplit`` (``split``), None-free: ``False`` when the
+  cell needs no cubemap, which the per-scene mask answers without touching the scene;
+- per (scene, cell, r1, r2, resolution): the encoded cubemap frame (``cubemap``).
+
+Splits and cubemaps share one ``ByteLRU`` bounded by ``settings.near_far_cache_bytes``; an entry
+of a cell where a connected walker stands (``in_use(scene, cell)``) is never evicted. Keys carry
+the scene's geometry fingerprint, so a scene replaced under the same name never meets old data.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Hashable
+from typing import Any
+
+import numpy as np
+
+from server.cache import ByteLRU
+from server.catalog import LoadedScene
+from visibility import nearfar
+from visibility.nearfar_cells import cells_needing_cubemap
+
+
+class NearFarStore:
+    """Cubemap masks, splits and encoded cubemaps of loaded scenes. Thread-safe."""
+
+    def __init__(self, max_bytes: int, in_use: Callable[[str, int], bool] | None = None) -> None:
+        self._in_use = in_use
+        self.cache = ByteLRU(max_bytes, keep=self._keep)
+        self._masks: dict[tuple, np.ndarray] = {}
+        self._lock = threading.Lock()
+
+    def _keep(self, key: Hashable) -> bool:
+        # key: (kind, scene name, fingerprint, cell, ...)
+        return self._in_use is not None and self._in_use(key[1], key[3])
+
+    # ----------------------------------------------------------------------------- per scene
+    def cubemap_cells(self, loaded: LoadedScene, cfg: nearfar.NearFarConfig) -> np.ndarray:
+        """(cells,) bool: the cells of ``loaded``'s grid with static geometry beyond ``cfg.r2``
+        of their centre (computed once per scene and r2)."""
+        key = (loaded.name, loaded.fingerprint, len(loaded.grid), cfg.r2)
+        mask = self._masks.get(key)
+        if mask is None:
+            centers = loaded.grid.boxes.mean(axis=1)
+            mask = cells_needing_cubemap(loaded.scene, centers, cfg.r2)
+            mask.setflags(write=False)
+            with self._lock:
+                self._masks[key] = mask
+        return mask
+
+    # ----------------------------------------------------------------------------- per cell
+    def _split_key(self, loaded: LoadedScene, cell: int, cfg: nearfar.NearFarConfig) -> tuple:
+        return ("split", loaded.name, loaded.fingerprint, int(cell), cfg.r2)
+
+    def cached_split(self, loaded: LoadedScene, cell: int,
+                     cfg: nearfar.NearFarConfig) -> nearfar.NearFarSplit | bool | None:
+        """What ``split`` would answer when that costs no scene pass (False: no cubemap for this
+        cell; a cached split), else None."""
+        mask = self._masks.get((loaded.name, loaded.fingerprint, len(loaded.grid), cfg.r2))
+        if mask is not None and not mask[cell]:
+            return False
+        return self.cache.get(self._split_key(loaded, cell, cfg))
+
+    def split(self, loaded: LoadedScene, cell: int,
+              cfg: nearfar.NearFarConfig) -> nearfar.NearFarSplit | bool:
+        """The near-far split of ``cell`` around its centre, or False when nothing static lies
+        beyond r2 (no cubemap; the cell streams its PVS as usual). Blocking: call it off the
+        event loop."""
+        if not self.cubemap_cells(loaded, cfg)[cell]:
+            return False
+        key = self._split_key(loaded, cell, cfg)
+        split = self.cache.get(key)
+        if split is None:
+            centre = loaded.grid.boxes[cell].mean(axis=0)
+            split = nearfar.split_ids(loaded.scene, centre, cfg)
+            self.cache.put(key, split)
+        return split
+
+    def cubemap(self, loaded: LoadedScene, cell: int, cfg: nearfar.NearFarConfig,
+                bake: Callable[[], bytes]) -> bytes:
+        """The encoded cubemap frame of ``cell``: cached, else ``bake()`` (blocking: call it off
+        the event loop)."""
+        key = ("cubemap", loaded.name, loaded.fingerprint, int(cell), cfg.r1, cfg.r2,
+               cfg.resolution)
+        frame = self.cache.get(key)
+        if frame is None:
+            frame = bake()
+            self.cache.put(key, frame)
+        return frame
+
+    def stats(self) -> dict[str, Any]:
+        """The LRU's statistics plus the number of per-scene masks."""
+        return {**self.cache.stats(), "masks": len(self._masks)}
