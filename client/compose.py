@@ -152,6 +152,39 @@ def subdivide_for_morph(
     return np.concatenate(done_t), np.concatenate(done_c)
 
 
+def split_far_dynamic(
+    store: Any, t: float | None, center: np.ndarray, r2: float
+) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """What a ``client.store.GeometryStore`` holds at scene time ``t`` (seconds; None: at rest),
+    split for ``compose_frame``: ((near_tris, near_colors), (far_dynamic_tris,
+    far_dynamic_colors)), (k, 3, 3) float64 metres and (k, 3) uint8.
+
+    Far dynamic: moving triangles (those with keyframes) whose every corner lies at ρ >= r2 from
+    the vertical axis through ``center`` (the cubemap centre O) at time t, and spheres (as
+    icospheres) wholly beyond r2; the server sends these as geometry rather than baking them.
+    Everything else, straddling moving triangles included, goes with the near geometry (whose
+    corners beyond r2 the morph displaces just the same).
+    """
+    from client.render import sphere_triangles
+
+    O = np.asarray(center, dtype=np.float64).reshape(3)
+    (_, st, sc), (_, mt, mc) = store.layers_at(t)
+    rho = np.hypot(mt[..., 0] - O[0], mt[..., 2] - O[2])  # (m, 3)
+    far = np.all(rho >= r2, axis=1)
+    near_t, near_c = [st, mt[~far]], [sc, mc[~far]]
+    far_t, far_c = [mt[far]], [mc[far]]
+    _, centers, radii, colors = store.spheres_at(t)
+    if len(centers):
+        sfar = np.hypot(centers[:, 0] - O[0], centers[:, 2] - O[2]) - radii >= r2
+        for mask, tl, cl in ((~sfar, near_t, near_c), (sfar, far_t, far_c)):
+            if np.any(mask):
+                tt, cc = sphere_triangles(centers[mask], radii[mask], colors[mask])
+                tl.append(tt)
+                cl.append(cc)
+    return ((np.concatenate(near_t), np.concatenate(near_c)),
+            (np.concatenate(far_t), np.concatenate(far_c)))
+
+
 def compose_frame(
     renderer: Any,
     near_tris: np.ndarray,

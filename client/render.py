@@ -49,6 +49,7 @@ SPHERE_SUBDIVISIONS = 2
 _FLAGS = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.SKIP_CULL_FACES
 _SCENE_STATIC = "__scene_static__"
 _SCENE_DYNAMIC = "__scene_dynamic__"
+_STORE_STATIC, _STORE_MOVING, _STORE_SPHERES = "static", "moving", "spheres"
 _ADHOC = "__adhoc__"
 
 
@@ -87,22 +88,15 @@ def _locked(method):
 def scene_sphere_centers(scene: Scene, t: float | None) -> np.ndarray:
     """(s, 3) float64 sphere centres of ``scene`` at time ``t`` (seconds; None = first key).
 
-    Sphere keyframes share the scene's ``state_times`` (or 0, 1, 2, ... when it has none) and
-    are interpolated linearly, clamped to the keyframe range.
+    Piecewise linear between the sphere keyframes at ``Scene.sphere_times`` (the times the
+    server streams with the spheres), clamped to their range: ``Scene.sphere_centers_at``.
     """
     c = scene.sphere_centers
     if c is None:
         return np.zeros((0, 3))
-    k = c.shape[0]
-    if k == 1 or t is None:
+    if c.shape[0] == 1 or t is None:
         return c[0]
-    times = scene.state_times
-    if times is None or len(times) != k:
-        times = np.arange(k, dtype=np.float64)
-    tc = float(np.clip(t, times[0], times[-1]))
-    i = int(np.clip(np.searchsorted(times, tc, side="right") - 1, 0, k - 2))
-    w = (tc - times[i]) / (times[i + 1] - times[i])
-    return (1.0 - w) * c[i] + w * c[i + 1]
+    return scene.sphere_centers_at(float(t))
 
 
 def sphere_triangles(
@@ -289,6 +283,34 @@ class OffscreenRenderer:
         if np.any(moving) or spheres_move:
             self._ensure(_SCENE_DYNAMIC, (sid, None if t is None else float(t)), dynamic_geometry)
             keys.append(_SCENE_DYNAMIC)
+        return self._draw(keys, eye, rot)
+
+    @_locked
+    def render_store(
+        self, store: Any, eye: np.ndarray, forward: np.ndarray, t: float | None = None,
+        key: Any = "store",
+    ) -> Frame:
+        """Render what a ``client.store.GeometryStore`` holds at scene time ``t`` (seconds;
+        None: moving triangles and spheres at their first keyframe, i.e. at rest):
+        the triangles without keyframes (uploaded once per store version), the moving ones at t
+        and the spheres at t (uploaded per t). ``key`` names this store's geometry sets."""
+        self._check_open()
+        eye = self._check_eye(eye)
+        rot = look_rotation(forward)
+        self._update_origin(eye)
+        # Read before the data: data newer than its version only costs one extra upload later.
+        version = store.version
+        t = None if t is None else float(t)
+        static, moving = store.layers_at(t)
+        keys = [(key, _STORE_STATIC), (key, _STORE_MOVING), (key, _STORE_SPHERES)]
+        self._ensure(keys[0], (version, len(static[1])), lambda: (static[1], static[2]))
+        self._ensure(keys[1], (version, t, len(moving[1])), lambda: (moving[1], moving[2]))
+
+        def spheres() -> tuple[np.ndarray, np.ndarray]:
+            _, centers, radii, colors = store.spheres_at(t)
+            return sphere_triangles(centers, radii, colors)
+
+        self._ensure(keys[2], (version, t, store.n_spheres), spheres)
         return self._draw(keys, eye, rot)
 
     # ----------------------------------------------------------------------------- internals

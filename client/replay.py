@@ -143,13 +143,14 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
                     except TimeoutError:
                         log.warning("cell %d did not arrive in %.0f s", cell, opts.wait_timeout)
                 waited = time.perf_counter() - w0
-            ids, tris, cols = session.store.arrays()
+            ids = session.store.ids
+            # A dynamic scene is seen at the pose's time, by the client (its keyframes) and by
+            # the ground truth alike; a static one at rest.
+            scene_t = scene_time(scene, t)
             r0 = time.perf_counter()
-            frame = renderer.render(
-                tris, cols, pos, fwd, key="store", version=session.store.version
-            )
+            frame = renderer.render_store(session.store, pos, fwd, t=scene_t)
             render_s = time.perf_counter() - r0
-            gt = renderer.render_scene(scene, pos, fwd, t=t if scene.is_dynamic else None)
+            gt = renderer.render_scene(scene, pos, fwd, t=scene_t)
             m = frame_metrics(frame, gt)
             rec = {
                 "frame": i,
@@ -168,7 +169,8 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             if cube is not None:
                 # Near-far stream: the geometry-only frame above lacks the far field; the
                 # composed frame (morph + cubemap) is what the device shows.
-                frame, extra = composed_metrics(renderer, tris, cols, cube, pos, fwd, gt)
+                frame, extra = composed_metrics_at(renderer, session.store, scene_t, cube, pos,
+                                                   fwd, gt)
                 rec.update(extra)
                 m = {k: extra[f"{k}_composed"] for k in ("epsilon", "psnr", "ssim")}
             frames.append(rec)
@@ -234,10 +236,30 @@ def _start_up(session: SyncSession, grid: ViewcellGrid, walk: Walkthrough,
     return time.perf_counter() - t0
 
 
-def composed_metrics(renderer, tris, cols, cube, eye, forward, gt) -> tuple[Any, dict]:
+def scene_time(scene: Scene, t: float) -> float | None:
+    """The scene time (seconds) a frame posed at walkthrough time ``t`` shows: ``t`` itself for a
+    dynamic scene (keyframes clamp it to their range), None (at rest) for a static one. Client
+    frames and ground truth both use it."""
+    return float(t) if scene.is_dynamic else None
+
+
+def composed_metrics_at(renderer, store, t, cube, eye, forward, gt) -> tuple[Any, dict]:
+    """``composed_metrics`` of what ``store`` holds at scene time ``t`` (seconds; None: at
+    rest): moving triangles and spheres wholly beyond r2 are passed as far dynamic objects
+    (displaced by Q = U + (P - O) and depth-composited against the cubemap range), the rest as
+    near geometry (``client.compose.split_far_dynamic``)."""
+    from client.compose import split_far_dynamic
+
+    (nt, nc), (ft, fc) = split_far_dynamic(store, t, cube.center, cube.r2)
+    return composed_metrics(renderer, nt, nc, cube, eye, forward, gt, far_tris=ft, far_cols=fc)
+
+
+def composed_metrics(renderer, tris, cols, cube, eye, forward, gt, far_tris=None,
+                     far_cols=None) -> tuple[Any, dict]:
     """Compose the near-far frame (morph + cubemap) and the conventional one (no morph); their
-    metrics against ground truth and their discontinuity delta. Returns (composed frame as a
-    ``Frame``, per-frame fields)."""
+    metrics against ground truth and their discontinuity delta. ``far_tris``/``far_cols``: far
+    dynamic objects at the frame's time (``compose_frame``'s ``far_dynamic_tris``). Returns
+    (composed frame as a ``Frame``, per-frame fields)."""
     from client.compose import compose_frame
     from client.discontinuity import discontinuity
     from client.render import Frame
@@ -245,7 +267,8 @@ def composed_metrics(renderer, tris, cols, cube, eye, forward, gt) -> tuple[Any,
     out: dict[str, float] = {}
     composed = None
     for morph, suffix in ((True, "composed"), (False, "conventional")):
-        c = compose_frame(renderer, tris, cols, cube, eye, forward, cube.r1, cube.r2, morph=morph)
+        c = compose_frame(renderer, tris, cols, cube, eye, forward, cube.r1, cube.r2,
+                          far_dynamic_tris=far_tris, far_dynamic_colors=far_cols, morph=morph)
         f = Frame(c.color, c.depth)
         mm = frame_metrics(f, gt)
         for k in ("epsilon", "psnr", "ssim"):

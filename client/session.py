@@ -1,9 +1,11 @@
 """The client's network session: one WebSocket to the server's ``/ws``, poses out, geometry in.
 
 ``Session.connect`` sends ``hello`` and waits for ``welcome``; a receive task then decodes every
-binary frame into the ``GeometryStore`` and tracks each cell's stream (``cell_begin``, chunks,
-``cell_end``); ``wait_cell`` waits for a cell to be complete. Errors from the server are kept in
-``errors``; a fatal one (or a close) ends the session and wakes every waiter.
+binary frame into the ``GeometryStore`` (geometry, and for dynamic scenes the keyframes of moving
+triangles and the spheres, ``protocol.keyframes``; cubemaps are kept by cell) and tracks each
+cell's stream (``cell_begin``, geometry chunks, ``cell_end``); ``wait_cell`` waits for a cell to
+be complete. Errors from the server are kept in ``errors``; a fatal one (or a close) ends the
+session and wakes every waiter.
 
 ``SyncSession`` runs a ``Session`` on a background event-loop thread for synchronous code (the
 replay loop): same methods, blocking.
@@ -26,7 +28,8 @@ import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
 from client.store import GeometryStore
-from protocol.frames import FrameError, decode_geometry
+from protocol.frames import FrameError, FrameKind, decode_geometry
+from protocol.keyframes import KeyframeAssembler, decode_keyframes, decode_spheres
 from protocol.messages import (
     Bye,
     CellBegin,
@@ -123,6 +126,16 @@ class Session:
         self.triangles_received = 0
         #: Far-field cubemaps by cell (``protocol.cubemap.CubemapFrame``), near-far streams.
         self.cubemaps: dict[int, Any] = {}
+        #: Dynamic scenes: keyframe and sphere frames received, triangle ids whose keyframes
+        #: arrived (and those that arrived while already held: a server bug), spheres received.
+        self.keyframe_frames = 0
+        self.keyframes_received = 0
+        self.keyframe_duplicates = 0
+        self.sphere_frames = 0
+        self.spheres_received = 0
+        self._kf_held = np.zeros(n, dtype=bool)
+        self._assemble = {FrameKind.KEYFRAMES: KeyframeAssembler(),
+                          FrameKind.SPHERES: KeyframeAssembler()}
         self._changed = asyncio.Condition()
         self._closed = asyncio.Event()
         self._task = asyncio.create_task(self._receive_loop(), name="pvs-session-recv")
@@ -270,7 +283,8 @@ class Session:
     def _on_frame(self, raw: bytes) -> None:
         self.bytes_received += len(raw)
         self.frames_received += 1
-        if len(raw) > 6 and raw[6] == CUBEMAP_KIND:
+        kind = raw[6] if len(raw) > 6 else None
+        if kind == CUBEMAP_KIND:
             try:
                 from protocol.cubemap import decode_cubemap
 
@@ -279,6 +293,9 @@ class Session:
                 self.local_errors.append(f"undecodable cubemap frame: {exc}")
                 return
             self.cubemaps[cube.cell] = cube
+            return
+        if kind in (FrameKind.KEYFRAMES, FrameKind.SPHERES):
+            self._on_keyframes(raw, FrameKind(kind))
             return
         try:
             chunk = decode_geometry(raw)
@@ -297,6 +314,33 @@ class Session:
         cs.chunks += 1
         cs.triangles += len(chunk)
         cs.ids.append(chunk.ids)
+
+    def _on_keyframes(self, raw: bytes, kind: FrameKind) -> None:
+        """A keyframe or sphere frame: joined with its windows, then into the store."""
+        try:
+            if kind == FrameKind.KEYFRAMES:
+                self.keyframe_frames += 1
+                chunk = self._assemble[kind].add(decode_keyframes(raw))
+            else:
+                self.sphere_frames += 1
+                chunk = self._assemble[kind].add(decode_spheres(raw))
+        except FrameError as exc:
+            self.local_errors.append(f"undecodable {kind.name.lower()} frame: {exc}")
+            return
+        if chunk is None:
+            return
+        try:
+            if kind == FrameKind.KEYFRAMES:
+                self.store.add_keyframe_chunk(chunk)
+                ids = chunk.ids[chunk.ids < len(self._kf_held)]
+                self.keyframe_duplicates += int(np.count_nonzero(self._kf_held[ids]))
+                self._kf_held[ids] = True
+                self.keyframes_received += len(chunk)
+            else:
+                self.store.add_sphere_chunk(chunk)
+                self.spheres_received += len(chunk)
+        except ValueError as exc:  # e.g. keyframe times that contradict the held ones
+            self.local_errors.append(f"{kind.name.lower()} frame refused by the store: {exc}")
 
     def _on_text(self, raw: str) -> None:
         self.bytes_received += len(raw)
@@ -337,6 +381,7 @@ class Session:
         ids = np.asarray(msg.ids, dtype=np.int64)
         self.dropped += self.store.drop(ids)
         self._held[ids[ids < len(self._held)]] = False
+        self._kf_held[ids[ids < len(self._kf_held)]] = False
         self.complete.difference_update(msg.cells)
         self.drops.append(Drop(ids=[], cells=msg.cells, reason=msg.reason))
 

@@ -5,6 +5,13 @@ someone reads (``arrays``, ``len``, ``ids``...), so receiving N chunks costs O(t
 O(N * total). A triangle received twice keeps its latest data. ``version`` bumps on every change so
 a renderer re-uploads only when the content changed. Thread-safe: the network session writes
 from its event loop while a renderer reads from another thread.
+
+Dynamic scenes. A moving triangle also has keyframes (its corners at the scene's keyframe times,
+``protocol.keyframes``), kept by id and dropped with the triangle; ``triangles_at(t)`` and
+``layers_at(t)`` give the held triangles at scene time t, interpolated piecewise linearly between
+keyframes and clamped to their range, exactly as ``visibility.scene.Scene.vertices_at``. Spheres
+(id, radius, colour, centre per keyframe) are kept apart (``spheres_at(t)``): the server's drops
+name triangles only, so spheres stay until ``clear``.
 """
 
 from __future__ import annotations
@@ -14,11 +21,96 @@ import threading
 import numpy as np
 
 from protocol.frames import GeometryChunk
+from protocol.keyframes import KeyframeChunk, SphereChunk
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a
+
+
+def keyframe_weights(times: np.ndarray, t: float) -> tuple[int, int, float]:
+    """(i, j, w): position at scene time ``t`` (seconds) is ``(1 - w) * key[i] + w * key[j]``
+    for keyframes at ``times`` (k,) increasing; ``t`` is clamped to [times[0], times[-1]], as
+    ``visibility.scene.Scene.vertices_at`` does."""
+    k = len(times)
+    if k == 1:
+        return 0, 0, 0.0
+    tc = float(np.clip(t, times[0], times[-1]))
+    i = int(np.clip(np.searchsorted(times, tc, side="right") - 1, 0, k - 2))
+    return i, i + 1, (tc - float(times[i])) / float(times[i + 1] - times[i])
+
+
+class _Tracks:
+    """Items by id (sorted) with positions at shared keyframe times: ``pos`` (n, k, *shape)
+    float64 and per-item ``extra`` arrays. Not locked: the owning store locks."""
+
+    def __init__(self, shape: tuple[int, ...], extra: dict[str, tuple[tuple, type]]) -> None:
+        self.shape = shape
+        self.extra_spec = extra
+        self.times: np.ndarray | None = None
+        self.ids = np.zeros(0, dtype=np.int32)
+        self.pos = np.zeros((0, 1, *shape))
+        self.extra = {k: np.zeros((0, *s), dtype=d) for k, (s, d) in extra.items()}
+        self._pending: list[tuple[np.ndarray, np.ndarray, dict]] = []
+
+    def add(self, ids: np.ndarray, times: np.ndarray, pos: np.ndarray, extra: dict) -> None:
+        """``pos`` (k, n, *shape) as on the wire; ValueError when ``times`` differ from the
+        keyframe times already held (one scene has one set of keyframe times)."""
+        times = np.asarray(times, dtype=np.float64).reshape(-1)
+        if len(times) < 1 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+            raise ValueError("keyframe times must be finite and strictly increasing")
+        if self.times is None or not np.array_equal(self.times, times):
+            if len(self.ids) or self._pending:
+                raise ValueError(f"keyframe times {times.tolist()[:4]}... differ from the held "
+                                 f"ones {self.times.tolist()[:4]}...")
+            self.times = times
+            self.pos = np.zeros((0, len(times), *self.shape))
+        self._pending.append((ids.astype(np.int32), np.moveaxis(pos, 0, 1).copy(), extra))
+
+    def merge(self) -> None:
+        if not self._pending:
+            return
+        ids = np.concatenate([self.ids] + [p[0] for p in self._pending])
+        pos = np.concatenate([self.pos] + [p[1] for p in self._pending])
+        extra = {k: np.concatenate([self.extra[k]] + [p[2][k] for p in self._pending])
+                 for k in self.extra}
+        self._pending.clear()
+        # Latest data wins for repeated ids (as for geometry).
+        order = np.argsort(ids, kind="stable")
+        s = ids[order]
+        last = np.ones(len(s), dtype=bool)
+        last[:-1] = s[1:] != s[:-1]
+        src = order[last]
+        self.ids, self.pos = s[last].astype(np.int32), pos[src]
+        self.extra = {k: v[src] for k, v in extra.items()}
+
+    def keep(self, mask: np.ndarray) -> int:
+        removed = int(len(mask) - np.count_nonzero(mask))
+        if removed:
+            self.ids, self.pos = self.ids[mask], self.pos[mask]
+            self.extra = {k: v[mask] for k, v in self.extra.items()}
+        return removed
+
+    def clear(self) -> None:
+        self._pending.clear()
+        self.keep(np.zeros(len(self.ids), dtype=bool))
+
+    def at(self, t: float | None) -> np.ndarray:
+        """(n, *shape) float64 positions at scene time t (seconds; None: the first keyframe)."""
+        if not len(self.ids):
+            return np.zeros((0, *self.shape))
+        if t is None:
+            return self.pos[:, 0].copy()
+        i, j, w = keyframe_weights(self.times, t)
+        if w == 0.0:
+            return self.pos[:, i].copy()
+        return (1.0 - w) * self.pos[:, i] + w * self.pos[:, j]
+
+    @property
+    def nbytes(self) -> int:
+        n = self.ids.nbytes + self.pos.nbytes + sum(v.nbytes for v in self.extra.values())
+        return n + sum(a.nbytes + b.nbytes for a, b, _ in self._pending)
 
 
 class GeometryStore:
@@ -42,6 +134,9 @@ class GeometryStore:
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.version = 0
         self._out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._keys = _Tracks((3, 3), {})
+        self._spheres = _Tracks((3,), {"radii": ((), np.float64), "colors": ((3,), np.uint8)})
+        self._static_out: tuple[int, tuple, np.ndarray] | None = None
 
     # ----------------------------------------------------------------------------- writing
     def add(self, ids: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> None:
@@ -71,8 +166,70 @@ class GeometryStore:
         """Add a decoded geometry frame (positions made absolute in float64)."""
         self.add(chunk.ids, chunk.triangles, chunk.colors)
 
+    def add_keyframes(self, ids: np.ndarray, times: np.ndarray, positions: np.ndarray) -> None:
+        """Add (or replace) the keyframes of moving triangles: ``ids`` (n,), ``times`` (k,)
+        seconds increasing, ``positions`` (k, n, 3, 3) corner positions in metres. Kept whether
+        or not the triangle itself is held yet (frames may arrive in either order). ValueError on
+        bad shapes, non-finite positions, or times that differ from the keyframe times held."""
+        ids = np.asarray(ids)
+        n = len(ids)
+        if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)):
+            raise ValueError(f"ids must be a 1-D integer array, got {ids.dtype} {ids.shape}")
+        if n and (ids.min() < 0 or ids.max() > np.iinfo(np.int32).max):
+            raise ValueError("ids must be in [0, 2**31)")
+        pos = np.asarray(positions, dtype=np.float64)
+        k = len(np.asarray(times).reshape(-1))
+        if pos.shape != (k, n, 3, 3):
+            raise ValueError(f"positions must be ({k}, {n}, 3, 3), got {pos.shape}")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("keyframe positions must be finite")
+        if n == 0:
+            return
+        with self._lock:
+            self._keys.add(ids, times, pos, {})
+            self._changed()
+
+    def add_keyframe_chunk(self, chunk: KeyframeChunk) -> None:
+        """Add a decoded keyframe frame holding all its items' keyframes (``chunk.complete``;
+        windows are joined first by ``protocol.keyframes.KeyframeAssembler``)."""
+        if not chunk.complete:
+            raise ValueError("a keyframe window: join the windows first (KeyframeAssembler)")
+        self.add_keyframes(chunk.ids, chunk.times, chunk.triangles)
+
+    def add_spheres(self, ids: np.ndarray, times: np.ndarray, centers: np.ndarray,
+                    radii: np.ndarray, colors: np.ndarray) -> None:
+        """Add (or replace) spheres: ``ids`` (s,) sphere indices, ``times`` (k,) seconds,
+        ``centers`` (k, s, 3) metres, ``radii`` (s,) metres > 0, ``colors`` (s, 3) uint8."""
+        ids = np.asarray(ids)
+        n = len(ids)
+        if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)) or (
+                n and ids.min() < 0):
+            raise ValueError(f"ids must be a 1-D array of ints >= 0, got {ids.dtype} {ids.shape}")
+        c = np.asarray(centers, dtype=np.float64)
+        k = len(np.asarray(times).reshape(-1))
+        r = np.asarray(radii, dtype=np.float64).reshape(-1)
+        cols = np.asarray(colors)
+        if c.shape != (k, n, 3) or r.shape != (n,) or cols.shape != (n, 3):
+            raise ValueError(f"need centers ({k}, {n}, 3), radii ({n},), colors ({n}, 3); got "
+                             f"{c.shape}, {r.shape}, {cols.shape}")
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r)) and np.all(r > 0)):
+            raise ValueError("sphere centres must be finite and radii finite and positive")
+        if n == 0:
+            return
+        with self._lock:
+            self._spheres.add(ids, times, c, {"radii": r, "colors": cols.astype(np.uint8)})
+            self._changed()
+
+    def add_sphere_chunk(self, chunk: SphereChunk) -> None:
+        """Add a decoded sphere frame holding all its spheres' keyframes."""
+        if not chunk.complete:
+            raise ValueError("a sphere keyframe window: join the windows first")
+        self.add_spheres(chunk.ids, chunk.times, chunk.absolute_centers, chunk.radii,
+                         chunk.colors)
+
     def drop(self, ids: np.ndarray) -> int:
-        """Remove these ids (absent ones are ignored); returns how many were removed."""
+        """Remove these triangle ids and their keyframes (absent ones are ignored); returns how
+        many triangles were removed."""
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         with self._lock:
             self._merge()
@@ -80,6 +237,8 @@ class GeometryStore:
             removed = int(len(keep) - np.count_nonzero(keep))
             if removed:
                 self._set(self._ids[keep], self._tris[keep], self._colors[keep])
+            if self._keys.keep(~np.isin(self._keys.ids, ids)):
+                self._changed()
             return removed
 
     def retain(self, ids: np.ndarray) -> int:
@@ -91,12 +250,16 @@ class GeometryStore:
             removed = int(len(keep) - np.count_nonzero(keep))
             if removed:
                 self._set(self._ids[keep], self._tris[keep], self._colors[keep])
+            if self._keys.keep(np.isin(self._keys.ids, ids)):
+                self._changed()
             return removed
 
     def clear(self) -> None:
-        """Remove everything."""
+        """Remove everything (triangles, keyframes, spheres)."""
         with self._lock:
             self._pending.clear()
+            self._keys.clear()
+            self._spheres.clear()
             self._set(self._ids[:0], self._tris[:0], self._colors[:0])
 
     # ----------------------------------------------------------------------------- reading
@@ -123,6 +286,63 @@ class GeometryStore:
     def ids(self) -> np.ndarray:
         """(k,) int32 sorted ids held."""
         return self.arrays()[0]
+
+    def keyframes(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """(ids (m,) int32 sorted, times (k,) seconds or None, positions (m, k, 3, 3) float64):
+        the keyframes held (copies)."""
+        with self._lock:
+            self._keys.merge()
+            return self._keys.ids.copy(), (None if self._keys.times is None
+                                           else self._keys.times.copy()), self._keys.pos.copy()
+
+    def layers_at(self, t: float | None) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray],
+                                                  tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The held triangles at scene time ``t`` (seconds; None: the first keyframe, i.e. at
+        rest) in two parts: ((ids, triangles, colors) of those without keyframes, the same for
+        those with keyframes, their corners interpolated at t). The first part's arrays are the
+        same objects until ``version`` changes, so a renderer uploads the static part once and
+        only the moving part per t."""
+        with self._lock:
+            ids, tris, cols = self.arrays()
+            self._keys.merge()
+            if self._static_out is None or self._static_out[0] != self.version:
+                pos = np.searchsorted(self._keys.ids, ids)
+                pos = np.clip(pos, 0, max(len(self._keys.ids) - 1, 0))
+                moving = ((self._keys.ids[pos] == ids) if len(self._keys.ids)
+                          else np.zeros(len(ids), dtype=bool))
+                still = ~moving
+                static = tuple(_readonly(a[still].copy()) for a in (ids, tris, cols))
+                self._static_out = (self.version, static, moving)
+            _, static, moving = self._static_out
+            mids = ids[moving]
+            rows = np.searchsorted(self._keys.ids, mids)
+            mtris = self._keys.at(t)[rows] if len(mids) else np.zeros((0, 3, 3))
+            return static, (mids, mtris, cols[moving])
+
+    def triangles_at(self, t: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, triangles (k, 3, 3) float64 metres, colors) of every held triangle at scene
+        time ``t`` (seconds): keyframed ones interpolated, the others as received."""
+        (si, st, sc), (mi, mt, mc) = self.layers_at(t)
+        order = np.argsort(np.concatenate([si, mi]), kind="stable")
+        return (np.concatenate([si, mi])[order], np.concatenate([st, mt])[order],
+                np.concatenate([sc, mc])[order])
+
+    def spheres_at(self, t: float | None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ids (s,) int32, centres (s, 3) float64 metres at scene time ``t`` seconds (None: the
+        first keyframe), radii (s,) metres, colors (s, 3) uint8) of the spheres held."""
+        with self._lock:
+            self._spheres.merge()
+            sp = self._spheres
+            return (sp.ids.copy(), sp.at(t), sp.extra["radii"].copy(),
+                    sp.extra["colors"].copy())
+
+    @property
+    def n_spheres(self) -> int:
+        """Spheres held."""
+        with self._lock:
+            self._spheres.merge()
+            return int(len(self._spheres.ids))
 
     def __len__(self) -> int:
         with self._lock:
@@ -151,6 +371,7 @@ class GeometryStore:
         """Memory held by the merged arrays and pending chunks, bytes."""
         with self._lock:
             n = self._ids.nbytes + self._tris.nbytes + self._colors.nbytes
+            n += self._keys.nbytes + self._spheres.nbytes
             return n + sum(a.nbytes + b.nbytes + c.nbytes for a, b, c in self._pending)
 
     # ----------------------------------------------------------------------------- internals
