@@ -468,24 +468,45 @@ def _f(x: Any, spec: str = ".3f") -> str:
 
 
 def write_report(results: dict[str, Any], cfg: dict[str, Any], command: str, wall: float,
-                 out_dir: Path) -> Path:
-    """Markdown tables, PNG plots and the raw JSON under ``out_dir``; returns the .md path."""
+                 out_dir: Path, merge: bool = False) -> Path:
+    """Markdown tables, PNG plots and the raw JSON under ``out_dir``; returns the .md path.
+
+    Each part keeps its own provenance (command, wall time, load average at its start and end),
+    so with ``merge`` the parts of this run replace the same parts of the report already there
+    (same preset) and the others stay: a timing part can be rerun alone on a quiet machine.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     tag = "" if cfg["preset"] == "standard" else f"_{cfg['preset']}"
-    (out_dir / f"from_segment{tag}.json").write_text(json.dumps(
-        {"command": command, "config": cfg, "results": results}, indent=1, default=_jsonable))
+    raw_path = out_dir / f"from_segment{tag}.json"
+    parts: dict[str, Any] = {}
+    if merge and raw_path.is_file():
+        try:
+            parts = json.loads(raw_path.read_text()).get("parts", {})
+        except (OSError, ValueError):
+            parts = {}
+    meta = {"command": command, "wall_seconds": wall, "load_start": cfg["load_start"],
+            "load_end": _load(), "machine": machine_description(), "config": cfg}
+    for name, rows in results.items():
+        parts[name] = {"meta": meta, "rows": rows}
+    raw_path.write_text(json.dumps({"preset": cfg["preset"], "parts": parts}, indent=1,
+                                   default=_jsonable))
     md = ["# `from_segment` benchmarks (Popescu et al. 2024, Sec. 4.4-4.5)\n",
-          f"Command: `{command}`  \nPreset `{cfg['preset']}`, wall time {wall / 60:.1f} min.  \n"
-          f"Machine: {machine_description()}. Load average (1 min) at start {cfg['load_start']}, "
-          f"at end {_load()}.\n"]
-    if "city1m" in results:
-        md.append(_md_city1m(results["city1m"], cfg))
-    if "segment" in results:
-        md.append(_md_segment(results["segment"], out_dir, tag))
-    if "cell" in results:
-        md.append(_md_cell(results["cell"], cfg, out_dir, tag))
-    if "scenes" in results:
-        md.append(_md_scenes(results["scenes"], cfg, out_dir, tag))
+          f"Preset `{cfg['preset']}`. Each part says the command that measured it, its wall "
+          "time and the load average (1 min) at its start and end; times are wall seconds "
+          "on that machine under that load.\n"]
+    writers = {"city1m": lambda rows, c: _md_city1m(rows, c),
+               "segment": lambda rows, c: _md_segment(rows, out_dir, tag),
+               "cell": lambda rows, c: _md_cell(rows, c, out_dir, tag),
+               "scenes": lambda rows, c: _md_scenes(rows, c, out_dir, tag)}
+    for name in PARTS:
+        if name not in parts:
+            continue
+        m = parts[name]["meta"]
+        body = writers[name](parts[name]["rows"], m["config"])
+        head, _, rest = body.partition("\n")
+        md.append(f"{head}\n\nCommand: `{m['command']}` (part wall time "
+                  f"{m['wall_seconds'] / 60:.1f} min).  \nMachine: {m['machine']}. Load average "
+                  f"at start {m['load_start']}, at end {m['load_end']}.\n{rest}")
     path = out_dir / f"from_segment{tag}.md"
     path.write_text("\n".join(md))
     return path
@@ -701,15 +722,19 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     _warm_up()
     log = lambda s: print(s, flush=True)  # noqa: E731
-    results: dict[str, Any] = {}
     runners = {"city1m": part_city1m, "segment": part_segment, "cell": part_cell,
                "scenes": part_scenes}
+    path = None
     for part in PARTS:
         if part in args.parts:
             print(f"== {part}", flush=True)
-            results[part] = runners[part](cfg, log)
-    path = write_report(results, cfg, command, time.perf_counter() - t0, args.out)
-    print(f"wrote {path}")
+            cfg["load_start"] = _load()
+            p0 = time.perf_counter()
+            rows = runners[part](cfg, log)
+            # Written after every part: a long run stopped half-way keeps what it measured.
+            path = write_report({part: rows}, cfg, command, time.perf_counter() - p0, args.out,
+                                merge=True)
+    print(f"wrote {path} in {(time.perf_counter() - t0) / 60:.1f} min")
     return 0
 
 

@@ -67,4 +67,18 @@ def test_every_part_runs_and_reports(tmp_path):
     for png in ("segment", "cell", "scenes"):
         assert (tmp_path / f"from_segment_{png}_smoke.png").stat().st_size > 1000
     raw = json.loads((tmp_path / "from_segment_smoke.json").read_text())
-    assert raw["results"]["segment"][0]["points"] == 64
+    assert raw["parts"]["segment"]["rows"][0]["points"] == 64
+    assert raw["parts"]["segment"]["meta"]["command"] == "smoke"
+
+    # A part rerun alone (e.g. the timing part on a quiet machine) replaces only itself.
+    bs.write_report({"city1m": results["city1m"]}, cfg, "rerun", 2.0, tmp_path, merge=True)
+    raw = json.loads((tmp_path / "from_segment_smoke.json").read_text())
+    assert set(raw["parts"]) == {"scenes", "segment", "cell", "city1m"}
+    assert raw["parts"]["city1m"]["meta"]["command"] == "rerun"
+    assert raw["parts"]["segment"]["meta"]["command"] == "smoke"
+    text = md.read_text()
+    assert "Command: `rerun`" in text and "Command: `smoke`" in text
+    # Without merge, the report holds just what it was given.
+    bs.write_report({"city1m": results["city1m"]}, cfg, "alone", 2.0, tmp_path)
+    assert set(json.loads((tmp_path / "from_segment_smoke.json").read_text())["parts"]) == {
+        "city1m"}
