@@ -65,13 +65,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def walk_cores(args: argparse.Namespace) -> list[str]:
+    """The cores a walk replays: ``--cores a,b,c`` when given, else ``--core`` (which also takes
+    a comma list); SystemExit when the list is empty."""
+    text = args.cores if getattr(args, "cores", None) else args.core
+    cores = [c.strip() for c in text.split(",") if c.strip()]
+    if not cores:
+        raise SystemExit(f"no core named in {text!r}")
+    return cores
+
+
 def cmd_walk(args: argparse.Namespace) -> int:
     from client.replay import ReplayOptions, replay_cores
 
     opts = ReplayOptions(
         server=args.server,
         scene=args.scene,
-        cores=[c for c in args.core.split(",") if c],
+        cores=walk_cores(args),
         params=_parse_params(args.param),
         walkthrough=Path(args.walkthrough) if args.walkthrough else None,
         out_dir=Path(args.out),
@@ -82,6 +92,7 @@ def cmd_walk(args: argparse.Namespace) -> int:
         realtime=args.realtime,
         seed=args.seed,
         quiet=args.quiet,
+        budget=args.budget,
     )
     summaries = replay_cores(opts)
     bad = [s for s in summaries if s.get("frames_rendered", 0) == 0]
@@ -176,6 +187,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.scenes:
         cmd += ["--scenes", args.scenes]
     env = dict(os.environ)
+    if args.near_far:
+        # The child server reads PVS_*: near-far streams (near PVS geometry + far cubemap).
+        env["PVS_NEAR_FAR"] = "1"
+        for flag, var in (("r1", "PVS_NEAR_FAR_R1"), ("r2", "PVS_NEAR_FAR_R2"),
+                          ("cubemap_resolution", "PVS_NEAR_FAR_RESOLUTION")):
+            if getattr(args, flag) is not None:
+                env[var] = str(getattr(args, flag))
     if args.triangles is not None:
         from visibility.generators import available_generators
 
@@ -216,6 +234,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--scene", default="rooms", help="scene name (generated or a file stem)")
     p.add_argument("--core", default="sampling", help="core name, or several separated by commas")
+    p.add_argument("--cores", metavar="A,B,C",
+                   help="replay the same walkthrough against each of these cores and print their "
+                        "means side by side (overrides --core)")
+    p.add_argument("--budget", type=int,
+                   help="most triangles the client holds (declared to the server, which drops "
+                        "held ones to make room; the client evicts itself as a last resort)")
     p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")
     p.add_argument("--walkthrough", help="walkthrough JSON file (default: generate one)")
     p.add_argument("--out", default=default_out, help="output folder for the report")
@@ -287,6 +311,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--triangles", type=int,
                    help="size of the generated scene the server builds (default: its default "
                         "size); serves only that scene")
+    p.add_argument("--near-far", action="store_true",
+                   help="the server streams near-far (near PVS geometry + a far cubemap per "
+                        "cell); the report adds the composed frame's metrics and δ")
+    p.add_argument("--r1", type=float, help="near-far inner radius, metres (PVS_NEAR_FAR_R1)")
+    p.add_argument("--r2", type=float, help="near-far outer radius, metres (PVS_NEAR_FAR_R2)")
+    p.add_argument("--cubemap-resolution", type=int,
+                   help="near-far cubemap face size, pixels (PVS_NEAR_FAR_RESOLUTION)")
     _add_walk_options(p, "runs/demo")
     p.set_defaults(fn=cmd_demo)
 

@@ -5,6 +5,11 @@ holds (pyrender, offscreen), renders ground truth from the full scene at the sam
 records epsilon, PSNR and SSIM. A frame is *stalled* when, at the moment it is due, the client
 has not yet received the whole PVS of the cell the eye is in; the client then waits for it (so
 the metrics measure the PVS, and the stall count measures the streaming).
+
+With a triangle ``budget`` the client declares it in its hello (the server then drops held
+triangles to make room before it sends new ones) and, as a last resort, evicts by itself before
+each frame when the store still holds more (``client.budget``; counted per frame in
+``evicted``).
 """
 
 from __future__ import annotations
@@ -15,8 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
+from client.budget import enforce_budget
 from client.metrics import epsilon_mask, frame_metrics
 from client.render import OffscreenRenderer
 from client.report import format_summary, save_frame_images, write_report
@@ -43,13 +50,17 @@ class ReplayOptions:
     fps: float = 10.0
     width: int = 256
     height: int = 256
-    realtime: bool = False
+    #: Pace frames at their timestamps (as ``pvs walk`` does by default); False: as fast as
+    #: possible.
+    realtime: bool = True
     seed: int = 0
     quiet: bool = False
     #: Longest wait (seconds) for a cell's PVS before the frame is rendered with what is held.
     wait_timeout: float = 600.0
     #: How many of the worst frames (by epsilon) get side-by-side images.
     worst_frames: int = 3
+    #: Most triangles the client holds (None: no limit); declared to the server in the hello.
+    budget: int | None = None
 
 
 def local_scene(info: Any, scenes_dir: Path | None) -> Scene:
@@ -95,7 +106,8 @@ def _walkthrough(opts: ReplayOptions, grid: ViewcellGrid, out: Path) -> Walkthro
 def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
     """Replay the walkthrough against ``core``; write the report into ``out``; its summary."""
     out.mkdir(parents=True, exist_ok=True)
-    session = SyncSession.connect(opts.server, opts.scene, core, opts.params)
+    session = SyncSession.connect(opts.server, opts.scene, core, opts.params,
+                                  budget=opts.budget)
     try:
         welcome = session.welcome
         scene = local_scene(welcome.scene, opts.scenes_dir)
@@ -143,6 +155,11 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
                     except TimeoutError:
                         log.warning("cell %d did not arrive in %.0f s", cell, opts.wait_timeout)
                 waited = time.perf_counter() - w0
+            evicted = 0
+            if cell is not None and cell in session.cells:
+                evicted = enforce_budget(session.store, _stream_ids(session.cells[cell]), pos)
+            elif session.store.over_budget:
+                evicted = enforce_budget(session.store, np.zeros(0, np.int64), pos)
             ids = session.store.ids
             # A dynamic scene is seen at the pose's time, by the client (its keyframes) and by
             # the ground truth alike; a static one at rest.
@@ -164,7 +181,11 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
                 "triangles_held": int(len(ids)),
                 "bytes_received": int(session.bytes_received),
                 "render_seconds": render_s,
+                "evicted": int(evicted),
             }
+            stream = session.cells.get(cell) if cell is not None else None
+            if stream is not None and stream.begin is not None:
+                rec["pvs_triangles"] = int(stream.begin.triangles)  # the cell's, per the server
             cube = session.cubemaps.get(cell) if cell is not None else None
             if cube is not None:
                 # Near-far stream: the geometry-only frame above lacks the far field; the
@@ -199,6 +220,9 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             "frames": len(frames),
             "startup_seconds": startup,
             "realtime": bool(opts.realtime),
+            "budget": opts.budget,
+            "server_drops": int(session.dropped),
+            "client_evictions": int(sum(f["evicted"] for f in frames)),
             "image": [opts.width, opts.height],
             "server_errors": [e.message for e in session.errors],
             "epsilon_definition": epsilon_mask.__doc__.strip().splitlines()[0]
@@ -213,6 +237,11 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             session.close()
         except SessionError:
             pass
+
+
+def _stream_ids(stream: Any) -> np.ndarray:
+    """The ids a cell's latest stream brought (its PVS as far as the client knows it)."""
+    return np.concatenate(stream.ids) if stream.ids else np.zeros(0, np.int64)
 
 
 def _start_up(session: SyncSession, grid: ViewcellGrid, walk: Walkthrough,
@@ -259,7 +288,8 @@ def composed_metrics(renderer, tris, cols, cube, eye, forward, gt, far_tris=None
     """Compose the near-far frame (morph + cubemap) and the conventional one (no morph); their
     metrics against ground truth and their discontinuity delta. ``far_tris``/``far_cols``: far
     dynamic objects at the frame's time (``compose_frame``'s ``far_dynamic_tris``). Returns
-    (composed frame as a ``Frame``, per-frame fields)."""
+    (composed frame as a ``Frame``, per-frame fields: ``{epsilon,psnr,ssim,delta}_composed``,
+    their ``_conventional`` twins, and ``compose_seconds``, the morphed composition's time)."""
     from client.compose import compose_frame
     from client.discontinuity import discontinuity
     from client.render import Frame
@@ -267,8 +297,12 @@ def composed_metrics(renderer, tris, cols, cube, eye, forward, gt, far_tris=None
     out: dict[str, float] = {}
     composed = None
     for morph, suffix in ((True, "composed"), (False, "conventional")):
+        c0 = time.perf_counter()
         c = compose_frame(renderer, tris, cols, cube, eye, forward, cube.r1, cube.r2,
                           far_dynamic_tris=far_tris, far_dynamic_colors=far_cols, morph=morph)
+        if morph:
+            # What the device spends on its frame: morph, render, cubemap lookup, compositing.
+            out["compose_seconds"] = time.perf_counter() - c0
         f = Frame(c.color, c.depth)
         mm = frame_metrics(f, gt)
         for k in ("epsilon", "psnr", "ssim"):
@@ -300,13 +334,32 @@ def replay_cores(opts: ReplayOptions) -> list[dict]:
     return summaries
 
 
+#: Side-by-side columns: (header, summary key, format); near-far ones only when present.
+_COLUMNS = (
+    ("eps %", "epsilon", "8.3f"),
+    ("PSNR dB", "psnr", "8.2f"),
+    ("SSIM", "ssim", "8.4f"),
+    ("eps_c %", "epsilon_composed", "8.3f"),
+    ("PSNR_c", "psnr_composed", "8.2f"),
+    ("SSIM_c", "ssim_composed", "8.4f"),
+    ("δ morph", "delta_composed", "8.4f"),
+    ("δ conv", "delta_conventional", "8.4f"),
+)
+
+
 def side_by_side(summaries: list[dict]) -> str:
-    """A table with one row per core: mean epsilon, PSNR, SSIM, stalls, triangles held."""
-    lines = [f"{'core':16s} {'eps %':>8s} {'PSNR dB':>8s} {'SSIM':>8s} {'stalls':>7s} {'tris':>9s}"]
+    """A table with one row per core and its means in columns: ε, PSNR, SSIM of the
+    geometry-only frame; for near-far runs also of the composed frame (``_c``) and δ with and
+    without the morph; then stalls and the most triangles held."""
+    cols = [c for c in _COLUMNS if any(s.get(c[1]) is not None for s in summaries)]
+    head = f"{'core':16s} " + " ".join(f"{h:>8s}" for h, _k, _f in cols)
+    lines = [head + f" {'stalls':>7s} {'tris':>9s}"]
     for s in summaries:
         held = int(max((f.get("triangles_held", 0) for f in s.get("frames", [])), default=0))
-        lines.append(
-            f"{s['meta']['core']:16s} {s['epsilon']:8.3f} {s['psnr']:8.2f} {s['ssim']:8.4f} "
-            f"{int(s['stalls']):7d} {held:9d}"
-        )
+        vals = []
+        for _h, key, fmt in cols:
+            v = s.get(key)
+            vals.append(f"{'-':>8s}" if v is None else format(float(v), fmt))
+        lines.append(f"{s['meta']['core']:16s} " + " ".join(vals)
+                     + f" {int(s['stalls']):7d} {held:9d}")
     return "\n".join(lines)

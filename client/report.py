@@ -6,6 +6,12 @@
      "ssim": mean, "stalls": number of frames with "stalled" true,
      "psnr_cap_db": 100.0, "summary": {metric: {"mean", "min", "max", "count"}}}
 
+A near-far run's frames also carry the composed frame's metrics (``epsilon_composed``,
+``psnr_composed``, ``ssim_composed``, with ``_conventional`` twins for compositing without the
+morph) and the discontinuity δ of both (``delta_composed``, ``delta_conventional``); their means
+are then top-level keys too (``NEAR_FAR_METRICS``), the plot gets panels for them and the
+printed table lists them right after the main metrics.
+
 PSNR means, minima and maxima use PSNR capped at ``client.metrics.PSNR_CAP_DB`` (an identical
 frame has PSNR +inf). The file is strict JSON: a non-finite number in a frame record (such as the
 +inf PSNR of an identical frame) is written as null. A mean over no frames is null.
@@ -27,6 +33,9 @@ from client.metrics import PSNR_CAP_DB, capped_psnr, epsilon_mask
 
 #: Metrics plotted and always present in ``summary["summary"]`` (when any frame has them).
 MAIN_METRICS = ("epsilon", "psnr", "ssim")
+#: Near-far metrics: top-level means in ``summary.json`` when any frame has them.
+NEAR_FAR_METRICS = ("epsilon_composed", "psnr_composed", "ssim_composed", "delta_composed",
+                    "delta_conventional")
 #: Record fields that are indices or times, not metrics.
 NON_METRICS = ("t", "frame", "index", "cell", "stalled")
 
@@ -36,8 +45,8 @@ def _is_number(v: Any) -> bool:
 
 
 def _json_safe(v: Any) -> Any:
-    """Strict-JSON form of a record value: numpy scalars and arrays to Python, non-finite to
-    None."""
+    """Strict-JSON form of a record value: numpy scalars and arrays to Python (integers stay
+    integers), non-finite to None."""
     if isinstance(v, dict):
         return {str(k): _json_safe(x) for k, x in v.items()}
     if isinstance(v, list | tuple):
@@ -46,7 +55,7 @@ def _json_safe(v: Any) -> Any:
         return _json_safe(v.tolist())
     if isinstance(v, bool | np.bool_):
         return bool(v)
-    if isinstance(v, np.integer):
+    if isinstance(v, int | np.integer):
         return int(v)
     if _is_number(v):
         f = float(v)
@@ -69,7 +78,7 @@ def metric_stats(frames: list[dict]) -> dict[str, dict[str, float]]:
     out = {}
     for k in keys:
         vals = np.array([float(f[k]) for f in frames if _is_number(f.get(k))])
-        if k == "psnr":
+        if k.startswith("psnr"):
             vals = capped_psnr(vals)
         vals = vals[np.isfinite(vals)]
         if len(vals):
@@ -101,6 +110,38 @@ def _write_csv(path: Path, frames: list[dict]) -> None:
             w.writerow(row)
 
 
+#: Plot label of each metric a panel can show.
+_LABELS = {
+    "epsilon": "ε (% pixels)",
+    "psnr": f"PSNR (dB, cap {PSNR_CAP_DB:g})",
+    "ssim": "SSIM",
+    "delta": "δ (mean |δ|)",
+}
+
+
+def plot_panels(frames: list[dict]) -> list[tuple[str, tuple[str, ...]]]:
+    """The panels ``metrics.png`` draws for these frame records: (title, metric keys) each.
+
+    Always ε, PSNR and SSIM of the geometry-only frame; when any frame carries near-far fields,
+    also ε, PSNR and SSIM of the composed frame (the device's picture) and a δ panel comparing
+    the morph (``delta_composed``) with conventional compositing (``delta_conventional``).
+    """
+    panels: list[tuple[str, tuple[str, ...]]] = [
+        (f"{m}: geometry only" if _has(frames, f"{m}_composed") else m, (m,))
+        for m in MAIN_METRICS
+    ]
+    panels += [(f"{m}: composed", (f"{m}_composed",)) for m in MAIN_METRICS
+               if _has(frames, f"{m}_composed")]
+    deltas = tuple(k for k in ("delta_composed", "delta_conventional") if _has(frames, k))
+    if deltas:
+        panels.append(("delta: morph vs conventional", deltas))
+    return panels
+
+
+def _has(frames: list[dict], key: str) -> bool:
+    return any(_is_number(f.get(key)) for f in frames)
+
+
 def _plot(path: Path, frames: list[dict], meta: dict) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -110,29 +151,44 @@ def _plot(path: Path, frames: list[dict], meta: dict) -> None:
     )
     xlabel = "t (s)" if frames and all(_is_number(f.get("t")) for f in frames) else "frame"
     stalled = np.array([bool(f.get("stalled", False)) for f in frames], dtype=bool)
-    labels = {
-        "epsilon": "ε (% pixels)",
-        "psnr": f"PSNR (dB, cap {PSNR_CAP_DB:g})",
-        "ssim": "SSIM",
-    }
-    fig = Figure(figsize=(8, 6), dpi=80)
+    panels = plot_panels(frames)
+    # Near-far runs: geometry-only metrics on the left, the composed frame's on the right, δ
+    # across the bottom.
+    two = len(panels) > len(MAIN_METRICS)
+    rows = len(MAIN_METRICS) + (1 if two and len(panels) > 2 * len(MAIN_METRICS) else 0)
+    fig = Figure(figsize=(12 if two else 8, 6 + 1.5 * (rows - 3)), dpi=80)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(3, 1, sharex=True)
-    for ax, m in zip(axes, MAIN_METRICS, strict=True):
-        y = np.array([float(f[m]) if _is_number(f.get(m)) else np.nan for f in frames])
-        if m == "psnr":
-            y = capped_psnr(y)  # NaN (missing) stays NaN
-        ax.plot(x, y, lw=1.2, marker="." if len(x) < 60 else None)
+    grid = fig.add_gridspec(rows, 2 if two else 1)
+    axes = []
+    for k, (title, keys) in enumerate(panels):
+        if k < len(MAIN_METRICS):
+            spec = grid[k, 0]
+        elif k < 2 * len(MAIN_METRICS):
+            spec = grid[k - len(MAIN_METRICS), 1]
+        else:
+            spec = grid[rows - 1, :]
+        ax = fig.add_subplot(spec, sharex=axes[0] if axes else None)
+        axes.append(ax)
+        for key in keys:
+            y = np.array([float(f[key]) if _is_number(f.get(key)) else np.nan for f in frames])
+            if key.startswith("psnr"):
+                y = capped_psnr(y)  # NaN (missing) stays NaN
+            ax.plot(x, y, lw=1.2, marker="." if len(x) < 60 else None, label=key)
         for xs in x[stalled]:
             ax.axvline(xs, color="tab:red", alpha=0.25, lw=1)
-        ax.set_ylabel(labels[m])
+        ax.set_ylabel(_LABELS[keys[0].split("_")[0]])
+        if two:
+            ax.set_title(title, fontsize=9)
+        if len(keys) > 1:
+            ax.legend(fontsize=8, loc="best")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel(xlabel)
     title = str(meta.get("title") or meta.get("name") or meta.get("scene") or "walkthrough")
     n_stall = int(stalled.sum())
     fig.suptitle(f"{title}: {len(frames)} frames, {n_stall} stalled (red)")
     # Fixed margins: tight_layout costs more than the rest of the plot.
-    fig.subplots_adjust(left=0.1, right=0.97, top=0.93, bottom=0.08, hspace=0.12)
+    fig.subplots_adjust(left=0.08 if two else 0.1, right=0.97, top=0.93, bottom=0.08,
+                        hspace=0.35 if two else 0.12, wspace=0.2)
     fig.savefig(path)
 
 
@@ -151,6 +207,7 @@ def write_report(out_dir: str | Path, frames: list[dict], meta: dict) -> dict:
         "meta": _json_safe(dict(meta)),
         "frames": _json_safe(frames),
         **{m: (stats[m]["mean"] if m in stats else None) for m in MAIN_METRICS},
+        **{m: stats[m]["mean"] for m in NEAR_FAR_METRICS if m in stats},
         "stalls": int(sum(bool(f.get("stalled", False)) for f in frames)),
         "psnr_cap_db": PSNR_CAP_DB,
         "summary": stats,
@@ -184,13 +241,15 @@ def format_summary(summary: dict, per_frame: bool = False) -> str:
             lines.append("  ".join(cells))
         lines.append("")
     stats = summary.get("summary") or {}
-    lines.append(f"{'metric':<16}{'mean':>12}{'min':>12}{'max':>12}{'n':>7}")
-    order = [m for m in MAIN_METRICS if m in stats] + [m for m in stats if m not in MAIN_METRICS]
+    first = (*MAIN_METRICS, *NEAR_FAR_METRICS)
+    order = [m for m in first if m in stats] + [m for m in stats if m not in first]
+    width = max([16, *(len(m) + 2 for m in order)])
+    lines.append(f"{'metric':<{width}}{'mean':>12}{'min':>12}{'max':>12}{'n':>7}")
     for m in order:
         s = stats[m]
         name = f"{m} (cap {PSNR_CAP_DB:g})" if m == "psnr" else m
         lines.append(
-            f"{name:<16}{s['mean']:>12.4g}{s['min']:>12.4g}{s['max']:>12.4g}{s['count']:>7d}"
+            f"{name:<{width}}{s['mean']:>12.4g}{s['min']:>12.4g}{s['max']:>12.4g}{s['count']:>7d}"
         )
     tail = f"frames: {len(frames)}   stalls: {summary.get('stalls', 0)}"
     startup = (summary.get("meta") or {}).get("startup_seconds")

@@ -47,8 +47,52 @@ def broken_core():
 
 
 def options(live_server, tmp_path, scene, **kw):
+    kw.setdefault("realtime", False)  # as fast as possible: the metrics do not depend on pace
     return ReplayOptions(server=live_server, scene=scene, params=dict(GOOD), out_dir=tmp_path,
                          duration=4.0, fps=5.0, width=128, height=128, quiet=True, **kw)
+
+
+def test_replay_paces_in_real_time_by_default_as_the_cli_does():
+    from pvs_cli import build_parser
+
+    args = build_parser().parse_args(["walk"])
+    assert ReplayOptions(server="http://x", scene="rooms").realtime is True
+    assert args.realtime is True
+
+
+def test_cli_takes_cores_and_budget():
+    from pvs_cli import build_parser, walk_cores
+
+    p = build_parser()
+    args = p.parse_args(["walk", "--cores", "sampling, from_segment,cos", "--budget", "5000"])
+    assert walk_cores(args) == ["sampling", "from_segment", "cos"] and args.budget == 5000
+    # --core keeps working, comma list included; --cores wins over it.
+    assert walk_cores(p.parse_args(["walk", "--core", "a,b"])) == ["a", "b"]
+    assert walk_cores(p.parse_args(["walk", "--core", "a", "--cores", "b,c"])) == ["b", "c"]
+    assert p.parse_args(["walk"]).budget is None
+    with pytest.raises(SystemExit):
+        walk_cores(p.parse_args(["walk", "--cores", ","]))
+    demo = p.parse_args(["demo", "--scene", "city", "--near-far", "--r1", "10", "--cores", "x,y"])
+    assert demo.near_far and demo.r1 == 10.0 and walk_cores(demo) == ["x", "y"]
+
+
+def test_a_budget_bounds_what_the_client_holds_and_frames_stay_good(live_server, tmp_path):
+    """With a budget a little over the largest cell PVS of the walk (but under what the client
+    holds without one), the server's drops keep the store within it on every frame, and the
+    frames still meet the bar."""
+    free = replay(options(live_server, tmp_path / "free", "rooms"), "sampling", tmp_path / "free")
+    largest = max(f["pvs_triangles"] for f in free["frames"] if "pvs_triangles" in f)
+    held = max(f["triangles_held"] for f in free["frames"])
+    budget = int(largest * 1.1) + 1
+    assert budget < held, "the walk must need drops for this test to mean anything"
+    s = replay(options(live_server, tmp_path / "b", "rooms", budget=budget), "sampling",
+               tmp_path / "b")
+    assert s["meta"]["budget"] == budget
+    assert all(f["triangles_held"] <= budget for f in s["frames"]), [
+        f["triangles_held"] for f in s["frames"]]
+    assert s["meta"]["server_drops"] > 0
+    assert s["epsilon"] <= 0.5, s["summary"]
+    assert s["ssim"] >= 0.99, s["summary"]
 
 
 @pytest.mark.parametrize("scene", ["rooms", "city"])
@@ -89,6 +133,13 @@ def test_several_cores_replay_the_same_walk_side_by_side(live_server, tmp_path, 
     assert t0 == [f["t"] for f in summaries[1]["frames"]]
     out = capsys.readouterr().out
     assert "test_broken" in out and "sampling" in out
+    # The side-by-side table: one row per core, each core's mean epsilon in its column.
+    table = out[out.rindex("core "):].splitlines()
+    assert table[0].split()[:4] == ["core", "eps", "%", "PSNR"]
+    rows = {line.split()[0]: line.split() for line in table[1:3]}
+    for s in summaries:
+        assert float(rows[s["meta"]["core"]][1]) == pytest.approx(s["epsilon"], abs=1e-3)
+    assert "eps_c" not in table[0]  # no near-far columns without near-far
 
 
 def test_file_scene_needs_its_folder(live_server, tmp_path, scenes_dir):

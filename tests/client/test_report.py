@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from client.metrics import PSNR_CAP_DB
-from client.report import format_summary, save_frame_images, write_report
+from client.report import format_summary, plot_panels, save_frame_images, write_report
 
 
 def _frames():
@@ -102,3 +102,51 @@ def test_save_frame_images_marks_epsilon_pixels(tmp_path):
     assert red.sum() == 25 and red[5:10, 5:10].all()
     with pytest.raises(ValueError):
         save_frame_images(tmp_path, "bad", color, gt[:-1], depth, depth_gt)
+
+
+def _near_far_frames():
+    return [
+        {"frame": i, "t": 0.2 * i, "cell": 3, "epsilon": 20.0 + i, "psnr": 15.0, "ssim": 0.7,
+         "epsilon_composed": 0.5 * i, "psnr_composed": 30.0 + i, "ssim_composed": 0.98,
+         "delta_composed": 0.01 * i, "delta_conventional": 0.1 + 0.01 * i,
+         "triangles_held": 1000 + i, "stalled": False}
+        for i in range(4)
+    ]
+
+
+def test_integers_stay_integers(tmp_path):
+    summary = write_report(tmp_path, _near_far_frames(), {"image": [256, 256], "frames": 4})
+    on_disk = _strict((tmp_path / "summary.json").read_text())
+    f = on_disk["frames"][1]
+    assert f["frame"] == 1 and isinstance(f["frame"], int)
+    assert isinstance(f["cell"], int) and isinstance(f["triangles_held"], int)
+    assert isinstance(f["t"], float) and isinstance(f["epsilon_composed"], float)
+    assert on_disk["meta"]["image"] == [256, 256] and isinstance(on_disk["meta"]["frames"], int)
+    assert summary["frames"][1]["frame"] == 1
+    assert '"frame": 1,' in (tmp_path / "summary.json").read_text()
+
+
+def test_near_far_report_has_composed_metrics_and_delta(tmp_path):
+    frames = _near_far_frames()
+    summary = write_report(tmp_path, frames, {"scene": "city"})
+    # Top-level means of the composed frame and of delta, next to the geometry-only ones.
+    assert summary["epsilon_composed"] == pytest.approx(0.75)
+    assert summary["delta_composed"] == pytest.approx(0.015)
+    assert summary["delta_conventional"] == pytest.approx(0.115)
+    assert summary["epsilon"] == pytest.approx(21.5)
+    # The table lists them right after the main metrics.
+    names = [line.split()[0] for line in format_summary(summary).splitlines()[1:]]
+    assert names[:8] == ["epsilon", "psnr", "ssim", "epsilon_composed", "psnr_composed",
+                         "ssim_composed", "delta_composed", "delta_conventional"]
+    # Plot: geometry-only panels, composed panels, and delta morph vs conventional.
+    panels = plot_panels(frames)
+    keys = [k for _title, k in panels]
+    assert keys == [("epsilon",), ("psnr",), ("ssim",), ("epsilon_composed",),
+                    ("psnr_composed",), ("ssim_composed",),
+                    ("delta_composed", "delta_conventional")]
+    assert [k for _t, k in plot_panels(_frames())] == [("epsilon",), ("psnr",), ("ssim",)]
+    with Image.open(tmp_path / "metrics.png") as im:
+        wide, tall = im.size
+    write_report(tmp_path / "plain", _frames(), {})
+    with Image.open(tmp_path / "plain" / "metrics.png") as im:
+        assert wide > im.size[0] and tall > im.size[1]  # the extra panels take room
