@@ -17,7 +17,8 @@ headers.
 Every error answers ``{"error": {"code": <ErrorCode>, "message": str}}`` (validation errors add
 ``"details"``) with its status: 404 unknown scene/cell/core/route, 406 no acceptable answer form,
 413 a request body over ``settings.max_body_bytes`` (``too_big``), 422 bad parameters, NaN or an
-inverted box, 500 a scene that fails to load or a computation that fails.
+inverted box, a region far outside the scene (``unsupported_region``), 500 a scene that fails
+to load or a computation that fails.
 
 Answers are encoded off the event loop (a PVS of 10^5 ids takes milliseconds to render), so a
 big answer never delays other sessions' frames.
@@ -138,6 +139,24 @@ async def _loaded(request: Request, scene: str) -> LoadedScene:
         raise api from None
 
 
+#: Smallest margin (metres) around a scene's bounds within which ad-hoc regions are answered.
+REGION_MARGIN_MIN = 1000.0
+
+
+def _check_region(loaded: LoadedScene, region: np.ndarray) -> None:
+    """Refuse (422 ``unsupported_region``) a box or segment (2, 3) with a corner farther from
+    the scene's bounds than the larger of its diagonal and ``REGION_MARGIN_MIN`` metres: such a
+    region sees the scene as a speck at best, and coordinates near the float limits overflow the
+    cores' arithmetic into wrong answers."""
+    bounds = np.asarray(loaded.info.get("bounds", loaded.scene.bounds()), dtype=np.float64)
+    margin = max(float(np.linalg.norm(bounds[1] - bounds[0])), REGION_MARGIN_MIN)
+    lo, hi = bounds[0] - margin, bounds[1] + margin
+    if np.any(region < lo) or np.any(region > hi):
+        raise ApiError(422, ErrorCode.UNSUPPORTED_REGION,
+                       f"region {np.asarray(region).tolist()} lies too far from the scene "
+                       f"(answered within {lo.tolist()} .. {hi.tolist()} metres)")
+
+
 async def _pvs(
     request: Request,
     scene: str,
@@ -160,6 +179,8 @@ async def _pvs(
         raise map_exception(exc) from None
     except ValueError as exc:
         raise ApiError(422, ErrorCode.BAD_PARAMS, str(exc)) from None
+    if box is not None or segment is not None:
+        _check_region(await _loaded(request, scene), box if segment is None else segment)
     try:
         result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box,
                                                   segment=segment)
