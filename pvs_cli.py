@@ -149,6 +149,7 @@ def cmd_scenes(args: argparse.Namespace) -> int:
         return 0 if r.status_code == 200 else 1
     from visibility.generators import DEFAULT_TRIANGLES, available_generators, make_scene
     from visibility.loaders import SCENE_EXTENSIONS, load_scene
+    from visibility.scene_analysis import is_2_5d
     from visibility.viewcells import ViewcellGrid
 
     scenes_dir = Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR
@@ -166,6 +167,8 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     else:
         scene = make_scene(args.name)
     info = scene.summary()
+    flat, how = is_2_5d(scene)
+    info["is_2_5d"] = {"value": flat, "source": how["source"], "why": how["reason"]}
     info["grid"] = ViewcellGrid.for_scene(scene).to_dict()
     print(json.dumps(info, indent=2))
     return 0

@@ -19,6 +19,7 @@ from typing import Literal
 
 from server.settings import Settings
 from visibility.scene import Scene, scene_fingerprint
+from visibility.scene_analysis import scene_is_2_5d
 from visibility.viewcells import ViewcellGrid
 
 log = logging.getLogger(__name__)
@@ -234,6 +235,9 @@ class SceneCatalog:
         info = scene.summary()
         info["name"] = name
         info["kind"] = kind
+        # Decided here, off the event loop, once per loaded scene (scene_is_2_5d caches it).
+        flat, how = scene_is_2_5d(scene)
+        info["is_2_5d"] = {"value": flat, "source": how["source"], "why": how["reason"]}
         return LoadedScene(name, kind, scene, grid, info)
 
 

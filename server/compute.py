@@ -29,6 +29,7 @@ from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, Worker
 from server.settings import Settings
 from visibility.cores.base import PVS, Core, CoreParams, available_cores, get_core
 from visibility.scene import Scene
+from visibility.scene_analysis import scene_is_2_5d
 from visibility.viewcells import Viewcell
 
 #: Re-exported: the pool and cache classes lived here before ``server.pool``/``server.cache``.
@@ -350,9 +351,12 @@ AUTO_CORE = "auto"
 
 def core_fits(core: Core, scene: Scene) -> tuple[bool, str]:
     """Whether ``core`` may be used on ``scene`` and why not: ``core.supports`` plus the rule
-    that 2.5D-only cores (``requires_2_5d``) fit only scenes with ``meta["is_2_5d"]``."""
-    if core.requires_2_5d and not scene.meta.get("is_2_5d"):
-        return False, "this core needs a 2.5D scene (scene.meta['is_2_5d'])"
+    that 2.5D-only cores (``requires_2_5d``) fit only 2.5D scenes (``scene_is_2_5d``: the meta's
+    ``is_2_5d`` when stated, else the geometry's, analysed once per loaded scene)."""
+    if core.requires_2_5d:
+        flat, how = scene_is_2_5d(scene)
+        if not flat:
+            return False, f"this core needs a 2.5D scene; this one is not: {how['reason']}"
     try:
         return core.supports(scene)
     except Exception as exc:  # a core's own check must not take a request down
@@ -360,8 +364,8 @@ def core_fits(core: Core, scene: Scene) -> tuple[bool, str]:
 
 
 def offered_cores(scene: Scene) -> list[str]:
-    """Registered cores that fit ``scene`` (``supports``; 2.5D-only cores only for scenes with
-    ``meta["is_2_5d"]``)."""
+    """Registered cores that fit ``scene`` (``supports``; 2.5D-only cores only for 2.5D
+    scenes, see ``core_fits``)."""
     out = []
     for name in available_cores():
         try:
@@ -378,10 +382,11 @@ def choose_core(scene: Scene) -> tuple[str, str]:
     (exact, continuous) for static scenes, else ``sampling``; else the first core that fits.
     Raises UnknownCoreError when no registered core fits."""
     offered = offered_cores(scene)
-    if scene.meta.get("is_2_5d"):
-        for name in offered:
-            if get_core(name).requires_2_5d:
-                return name, "2.5D scene: a core made for heightfield-like occluders"
+    for name in offered:
+        if get_core(name).requires_2_5d:  # offered, so core_fits found the scene 2.5D
+            how = scene_is_2_5d(scene)[1]
+            return name, ("2.5D scene: a core made for heightfield-like occluders "
+                          f"({how['source']}: {how['reason']})")
     static = scene.states is None
     if static and "from_segment" in offered:
         return "from_segment", "static triangle scene: exact continuous from-segment visibility"

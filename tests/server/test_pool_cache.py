@@ -172,11 +172,13 @@ def test_core_fits_and_auto_choice():
         name = "flat_only"
         requires_2_5d = True
 
+    scene.meta["is_2_5d"] = False  # the meta overrides the geometry (boxes on a ground: 2.5D)
     ok, why = core_fits(Flat(), scene)
     assert not ok and "2.5D" in why
     scene.meta["is_2_5d"] = True
     assert core_fits(Flat(), scene)[0]
     del scene.meta["is_2_5d"]
+    assert core_fits(Flat(), scene)[0]  # decided from the geometry now
     name, why = choose_core(scene)
     assert name in ("from_segment", "sampling") and why
 
