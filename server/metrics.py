@@ -13,6 +13,7 @@ histogram observed by the compute service.
 | pvs_cache_bytes / pvs_cache_entries | gauge     | in-memory cache size                      |
 | pvs_disk_cache_hits_total           | counter   | on-disk cache hits                        |
 | pvs_bytes_sent_total                | counter   | WebSocket bytes sent (frames + messages)  |
+| pvs_http_bytes_sent_total           | counter   | HTTP response body bytes sent (all routes) |
 | pvs_triangles_sent_total            | counter   | triangles streamed                        |
 | pvs_triangles_dropped_total         | counter   | triangles clients were told to drop       |
 | pvs_sessions / pvs_sessions_total   | gauge / counter | open sessions / sessions ever       |
@@ -83,6 +84,8 @@ class _StateCollector:
                       pool.get("skipped", 0))
         yield counter("pvs_bytes_sent", "WebSocket payload bytes sent (frames and messages)",
                       c["frame_bytes_sent"] + c["text_bytes_sent"])
+        yield counter("pvs_http_bytes_sent", "HTTP response body bytes sent (PVS answers and "
+                      "every other route)", c["http_bytes_sent"])
         yield counter("pvs_frames_sent", "binary geometry frames sent", c["frames_sent"])
         yield counter("pvs_triangles_sent", "triangles streamed", c["triangles_sent"])
         yield counter("pvs_triangles_dropped", "triangles clients were told to drop",
