@@ -10,6 +10,7 @@ from client.compose import (
     SOURCE_CUBEMAP,
     SOURCE_GEOMETRY,
     compose_frame,
+    split_far_dynamic,
     subdivide_for_morph,
 )
 from client.discontinuity import discontinuity, points_from_depth
@@ -98,6 +99,35 @@ def test_dynamic_far_objects_are_displaced_and_depth_composited(renderer):
                       morph=False)
     gb = (g.color[..., 2] > 100) & (g.color[..., 0] < 40)
     assert abs(0.5 * (np.nonzero(gb.any(axis=0))[0][[0, -1]].sum()) - centre) > 2.5
+
+
+def test_split_far_dynamic_sorts_what_a_store_holds_at_time_t():
+    """Moving triangles wholly beyond r2 at t and spheres wholly beyond r2 are far dynamic; static
+    triangles, straddling movers and near spheres stay with the near geometry."""
+    from client.render import sphere_triangles
+    from client.store import GeometryStore
+
+    store = GeometryStore()
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    static_far = tri + [150.0, 0.0, 0.0]  # beyond r2, static: baked, but held as near here
+    mover = tri + [90.0, 0.0, 0.0]  # near at t = 0, beyond r2 from t = 1 (x + 30)
+    straddler = np.array([[95.0, 0.0, 0.0], [105.0, 0.0, 0.0], [100.0, 1.0, 0.0]])
+    store.add(np.arange(3), np.stack([static_far, mover, straddler]),
+              np.array([[1, 1, 1], [2, 2, 2], [3, 3, 3]], np.uint8))
+    keys = np.stack([np.stack([mover, straddler]), np.stack([mover + [30.0, 0, 0], straddler])])
+    store.add_keyframes(np.array([1, 2]), np.array([0.0, 1.0]), keys)
+    centers = np.array([[[0.0, 0.0, 10.0], [0.0, 0.0, 99.5]],
+                        [[0.0, 0.0, 10.0], [0.0, 0.0, 130.0]]])
+    store.add_spheres(np.array([0, 1]), np.array([0.0, 1.0]), centers, np.array([1.0, 1.0]),
+                      np.array([[9, 9, 9], [8, 8, 8]], np.uint8))
+    n_ico = len(sphere_triangles(centers[0, :1], np.array([1.0]), np.zeros((1, 3), np.uint8))[0])
+    (nt, nc), (ft, fc) = split_far_dynamic(store, 0.0, O, CFG.r2)
+    assert len(ft) == 0 and len(nt) == 3 + 2 * n_ico  # at rest everything overlaps r2 or less
+    (nt, nc), (ft, fc) = split_far_dynamic(store, 1.0, O, CFG.r2)
+    assert len(ft) == 1 + n_ico and len(nt) == 2 + n_ico
+    np.testing.assert_allclose(ft[0], mover + [30.0, 0, 0])
+    assert fc[0].tolist() == [2, 2, 2] and set(map(tuple, fc[1:].tolist())) == {(8, 8, 8)}
+    assert {(1, 1, 1), (3, 3, 3), (9, 9, 9)} == set(map(tuple, nc.tolist()))
 
 
 def test_subdivision_tiles_the_band_triangles():

@@ -186,6 +186,46 @@ def test_render_scene_dynamic_and_valid_faces(renderer):
         r.close()
 
 
+def test_render_store_at_scene_time_matches_the_scene(renderer):
+    """What a store holds (rest geometry + keyframes + spheres) drawn at time t is the scene at t;
+    the static layer is uploaded once, the moving one per t."""
+    from client.store import GeometryStore
+
+    static = [[-4, -4, -10], [4, -4, -10], [0, 4, -10]]
+    moving = [[-3, -1, -5], [-1, -1, -5], [-2, 1, -5]]
+    v0 = np.array(static + moving, dtype=np.float64)
+    v1 = v0.copy()
+    v1[3:6, 0] += 4.0
+    centers = np.array([[[2.0, 2.0, -6.0]], [[-2.0, 2.0, -6.0]]])
+    scene = Scene(vertices=v0, faces=np.arange(6).reshape(2, 3),
+                  colors=np.array([[200, 200, 200], [200, 0, 0]], np.uint8),
+                  states=np.stack([v0, v1]), state_times=np.array([0.0, 1.0]),
+                  sphere_centers=centers, sphere_radii=np.array([0.5]),
+                  sphere_colors=np.array([[0, 0, 250]], np.uint8))
+    store = GeometryStore()
+    store.add(np.arange(2), scene.triangles(), scene.colors)
+    store.add_keyframes(np.array([1]), scene.state_times, scene.states[:, scene.faces[1:]])
+    store.add_spheres(np.array([0]), scene.sphere_times, centers, scene.sphere_radii,
+                      scene.sphere_colors)
+    r = OffscreenRenderer(32, 32)
+    try:
+        frames = {}
+        for t in (0.0, 0.3, 1.0):
+            got = r.render_store(store, [0, 0, 0], [0, 0, -1], t=t)
+            want = r.render_scene(scene, [0, 0, 0], [0, 0, -1], t=t)
+            np.testing.assert_array_equal(got.color, want.color)
+            np.testing.assert_allclose(got.depth, want.depth, rtol=1e-5)
+            frames[t] = got
+        assert not np.array_equal(frames[0.0].color, frames[1.0].color)  # it does move
+        before = r.uploads
+        r.render_store(store, [0, 0, 0], [0, 0, -1], t=0.6)
+        assert r.uploads == before + 2  # moving layer and spheres, not the static layer
+        rest = r.render_store(store, [0, 0, 0], [0, 0, -1])
+        np.testing.assert_array_equal(rest.color, frames[0.0].color)
+    finally:
+        r.close()
+
+
 def test_render_scene_spheres(renderer):
     scene = Scene(
         vertices=np.array([[-50, -50, -40], [50, -50, -40], [0, 50, -40]], float),

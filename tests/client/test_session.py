@@ -170,6 +170,80 @@ def test_store_is_thread_safe():
     assert not errors and len(s) == 1000
 
 
+# --------------------------------------------------------------------------- keyframes
+def _moving_scene():
+    """Three triangles; the 2nd and 3rd move over keyframes at 0, 0.5, 2 s (the 1st does not)."""
+    rng = np.random.default_rng(3)
+    v0 = rng.normal(size=(9, 3))
+    states = np.stack([v0, v0 + [0.0, 0.0, 0.0], v0.copy()])
+    states[1, 3:] += rng.normal(size=(6, 3))
+    states[2, 3:] += rng.normal(size=(6, 3))
+    from visibility.scene import Scene
+
+    return Scene(vertices=v0, faces=np.arange(9).reshape(3, 3), states=states,
+                 state_times=np.array([0.0, 0.5, 2.0]))
+
+
+def test_store_interpolates_keyframes_as_the_scene_does():
+    sc = _moving_scene()
+    s = GeometryStore()
+    s.add(np.arange(3), sc.triangles(), sc.colors)
+    s.add_keyframes(np.array([1, 2]), sc.state_times, sc.states[:, sc.faces[1:]])
+    assert s.keyframes()[0].tolist() == [1, 2]
+    for t in (-1.0, 0.0, 0.2, 0.5, 1.3, 2.0, 7.0):  # clamped outside [0, 2]
+        ids, tris, _ = s.triangles_at(t)
+        assert ids.tolist() == [0, 1, 2]
+        np.testing.assert_allclose(tris, sc.vertices_at(t)[sc.faces], atol=1e-12)
+    # None is at rest; the static layer is the same object until the store changes.
+    (si, st, _), (mi, mt, _) = s.layers_at(None)
+    assert si.tolist() == [0] and mi.tolist() == [1, 2]
+    np.testing.assert_allclose(mt, sc.triangles()[1:])
+    assert s.layers_at(1.0)[0][1] is st
+
+
+def test_store_keyframes_arrive_before_geometry_and_drop_with_it():
+    sc = _moving_scene()
+    s = GeometryStore()
+    s.add_keyframes(np.array([1, 2]), sc.state_times, sc.states[:, sc.faces[1:]])
+    assert len(s.triangles_at(1.0)[0]) == 0  # nothing drawn without its triangle
+    s.add(np.arange(3), sc.triangles(), sc.colors)
+    np.testing.assert_allclose(s.triangles_at(1.0)[1], sc.vertices_at(1.0)[sc.faces])
+    s.drop([2])
+    assert s.keyframes()[0].tolist() == [1]
+    s.add([2], sc.triangles()[2:], sc.colors[2:])  # sent again without keyframes: at rest
+    np.testing.assert_allclose(s.triangles_at(1.0)[1][2], sc.triangles()[2])
+    s.retain([0])
+    assert s.keyframes()[0].size == 0
+    s.clear()
+    assert len(s) == 0 and s.n_spheres == 0
+
+
+def test_store_spheres_and_bad_keyframes():
+    s = GeometryStore()
+    times = np.array([0.0, 1.0])
+    centers = np.array([[[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]], [[0.0, 2.0, 0.0], [5.0, 0.0, 4.0]]])
+    s.add_spheres(np.array([3, 7]), times, centers, np.array([1.0, 0.5]),
+                  np.array([[255, 0, 0], [0, 255, 0]], np.uint8))
+    ids, c, r, cols = s.spheres_at(0.25)
+    assert ids.tolist() == [3, 7] and s.n_spheres == 2
+    np.testing.assert_allclose(c, [[0.0, 0.5, 0.0], [5.0, 0.0, 1.0]])
+    np.testing.assert_allclose(r, [1.0, 0.5])
+    s.drop([3, 7])  # drops name triangles: spheres stay
+    assert s.n_spheres == 2
+    with pytest.raises(ValueError):
+        s.add_spheres(np.array([1]), times, centers[:, :1], np.array([-1.0]),
+                      np.zeros((1, 3), np.uint8))
+    with pytest.raises(ValueError):  # wrong shape
+        s.add_keyframes(np.array([0]), times, np.zeros((3, 1, 3, 3)))
+    with pytest.raises(ValueError):  # non-finite
+        s.add_keyframes(np.array([0]), times, np.full((2, 1, 3, 3), np.nan))
+    with pytest.raises(ValueError):  # times not increasing
+        s.add_keyframes(np.array([0]), np.array([1.0, 0.0]), np.zeros((2, 1, 3, 3)))
+    s.add_keyframes(np.array([0]), times, np.zeros((2, 1, 3, 3)))
+    with pytest.raises(ValueError):  # one scene has one set of keyframe times
+        s.add_keyframes(np.array([1]), np.array([0.0, 3.0]), np.zeros((2, 1, 3, 3)))
+
+
 # --------------------------------------------------------------------------- session
 def test_ws_url():
     assert ws_url("http://127.0.0.1:8000") == "ws://127.0.0.1:8000/ws"
