@@ -289,6 +289,34 @@ def test_session_streams_into_its_store(live_server, cell_boxes):
     np.testing.assert_allclose(s.store.arrays()[1], TINY.triangles(expected), atol=1e-5)
 
 
+def test_session_routes_keyframe_and_sphere_frames(live_server):
+    """Keyframe and sphere frames go into the store by kind; a corrupt one is a local error and
+    the session goes on."""
+    from protocol.keyframes import encode_keyframes, encode_spheres
+
+    sc = _moving_scene()
+
+    async def main():
+        s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
+        try:
+            kf = encode_keyframes(np.array([1, 2]), sc.state_times, sc.states[:, sc.faces[1:]])
+            sp = encode_spheres(np.array([4]), np.array([0.0]), np.zeros((1, 1, 3)),
+                                np.array([0.5]), np.zeros((1, 3), np.uint8))
+            s._on_frame(kf)
+            s._on_frame(sp)
+            assert s.keyframes_received == 2 and s.spheres_received == 1
+            assert s.store.keyframes()[0].tolist() == [1, 2] and s.store.n_spheres == 1
+            s._on_frame(kf[: len(kf) // 2])
+            assert s.keyframe_frames == 2 and len(s.local_errors) == 1
+            assert "keyframes" in s.local_errors[0]
+            await s.send_pose(0, 0.0, (2.0, 1.7, 2.0), (0, 0, -1))
+            await s.wait_cell(0, timeout=60)  # still streaming
+        finally:
+            await s.close()
+
+    run(main())
+
+
 def test_session_keeps_server_errors(live_server, cell_boxes):
     async def main():
         s = await Session.connect(live_server, "tiny", "test_near", NEAR, prefetch=False)
