@@ -58,9 +58,9 @@ def test_swaying_grass_walk_is_rendered_at_the_pose_time(live_server, tmp_path):
 
 
 def test_grass_keyframes_matter_and_go_once(live_server):
-    """Every moving triangle held got its keyframes exactly once and no static one got any;
-    frames at several scene times match ground truth, and a client that renders rest positions
-    (ignoring the keyframes) is clearly worse at the same poses."""
+    """Walking every cell, each moving triangle held got its keyframes exactly once and no static
+    one got any; frames at several scene times match ground truth, and a client that renders rest
+    positions (ignoring the keyframes) is clearly worse at the same poses."""
     s = SyncSession.connect(live_server, "swaying_grass", "sampling", dict(GOOD), prefetch=False)
     r = OffscreenRenderer(128, 128)
     try:
@@ -70,9 +70,11 @@ def test_grass_keyframes_matter_and_go_once(live_server):
         assert s.welcome.features["dynamic_updates"]["on"] is True
         scene = local_scene(s.welcome.scene, None)
         grid = ViewcellGrid.for_scene(scene, s.welcome.grid.cell_size)
+        # Walk through every cell (they share triangles), ending in cell 0.
+        for i, cell in enumerate(list(range(1, len(grid))) + [0]):
+            s.send_pose(i, 0.0, grid.boxes[cell].mean(axis=0), (1.0, -0.3, 1.0))
+            s.wait_cell(cell, timeout=240)
         centre = grid.boxes[0].mean(axis=0)
-        s.send_pose(0, 0.0, centre, (1.0, -0.3, 1.0))
-        s.wait_cell(0, timeout=240)
         held = s.store.ids
         kf_ids, times, _ = s.store.keyframes()
         moving = moving_faces(scene)
