@@ -7,14 +7,20 @@ against a dense sampled ground truth (cached on disk, ``benchmarks.gt_cache``), 
 (mean and worst ε, mean PSNR and SSIM) over a fixed set of views inside the cell, rendered with
 ``client.render.OffscreenRenderer`` (PVS subset against the full scene).
 
-Peak memory is the rise of the process's peak resident set (``VmHWM`` in /proc/self/status) over
-its resident set at the start of the run, with ``VmHWM`` reset before each run by writing 5 to
-/proc/self/clear_refs. Unlike tracemalloc it sees numba and GL allocations.
+Peak memory is measured twice in one untimed run before the timed repeats: the peak of the
+allocations tracemalloc sees (Python objects and numpy arrays, including memory the allocator
+reuses) and the rise of the process's peak resident set (``VmHWM``, reset by writing 5 to
+/proc/self/clear_refs) over its resident set at the start (sees numba and GL allocations too, but
+not pages the process already held).
+
+Scenes with spheres get sphere FN/FP too (``PVS.sphere_ids`` against ``GroundTruth.sphere_ids``);
+a core or peer that reports no sphere ids reads "n/a".
 
 A core's knob is the first of its Params fields found in ``KNOB_PRIORITY``; a new core with a
 ``resolution`` field joins with no change here.
 
-Usage: ``pvs bench --quick`` (minutes), ``pvs bench --preset medium``, ``pvs bench --preset full``.
+Usage: ``pvs bench --quick`` (minutes), ``pvs bench --preset medium`` (the published
+BENCHMARKS.md, about half an hour on 2 cores), ``pvs bench --preset full``.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ import math
 import os
 import platform
 import shlex
+import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -49,27 +57,41 @@ KNOB_LEVELS: dict[str, list[Any]] = {
 #: Which field is a core's knob: the first one its Params declares.
 KNOB_PRIORITY = ("samples", "delta", "resolution", "runs")
 
+#: Every generator except ``stress`` (a test scene: a few hundred stiff-case triangles plus random
+#: clutter, whose known answers ``tests/visibility/cores/test_stiff.py`` checks), at two sizes.
+#: For ``spheres`` the size is the sphere count.
+GENERATOR_SCENES_MEDIUM = [
+    "city:20000", "city:100000", "village:20000", "village:100000", "rooms:20000",
+    "rooms:100000", "grass:20000", "grass:100000", "swaying_grass:20000",
+    "swaying_grass:100000", "spheres:500", "spheres:2000",
+]
+
+# Presets: ``peer_repeats`` is the repeats of the equal-time / equal-completeness peer points
+# (their time is the reference's by construction, or set by a deterministic sample count);
+# ``peer_cap`` is (seconds, factor) of the equal-completeness cap.
 PRESETS: dict[str, dict[str, Any]] = {
     "quick": {
         "scenes": ["rooms:5000"], "cell_sizes": [None], "cells": 1, "repeats": 1,
-        "levels": 2, "gt_points": 32, "gt_resolution": 64, "views": 2, "view_size": 64,
-        "resolution": 64,
+        "peer_repeats": 1, "levels": 2, "gt_points": 32, "gt_resolution": 64, "views": 2,
+        "view_size": 64, "resolution": 64, "peer_cap": [10.0, 10.0],
         "knob_levels": {"samples": [4, 16], "resolution": [32, 64], "runs": [1, 2],
                         "delta": [0.5, 0.25]},
     },
     "medium": {
-        "scenes": ["city:20000", "city:100000", "rooms:20000", "village:20000",
-                   str(SHARED_SCENES / "lavaducts.glb"), str(SHARED_SCENES / "denhaag.glb")],
-        "cell_sizes": [None], "cells": 1, "repeats": 2, "levels": 2, "gt_points": 64,
-        "gt_resolution": 128, "views": 3, "view_size": 96, "resolution": 64,
+        "scenes": GENERATOR_SCENES_MEDIUM + ["real"],
+        "cell_sizes": [None, "x2"], "cells": 1, "repeats": 3, "peer_repeats": 1, "levels": 2,
+        "gt_points": 256, "gt_resolution": 128, "views": 4, "view_size": 96, "resolution": 64,
+        "peer_cap": [30.0, 10.0],
         "knob_levels": {"samples": [8, 32], "resolution": [32, 64], "runs": [1, 2]},
     },
     "full": {
         "scenes": ["city:100000", "village:100000", "rooms:100000", "city:1000000",
-                   "village:1000000", "rooms:1000000", "real"],
-        "cell_sizes": [None, "x2"], "cells": 4, "repeats": 3, "levels": 3, "gt_points": 1024,
-        "gt_resolution": 256, "views": 8, "view_size": 256, "resolution": 256,
-        "knob_levels": {},
+                   "village:1000000", "rooms:1000000", "grass:200000", "grass:1000000",
+                   "swaying_grass:100000", "swaying_grass:500000", "spheres:2000",
+                   "spheres:20000", "real"],
+        "cell_sizes": [None, "x2"], "cells": 4, "repeats": 3, "peer_repeats": 3, "levels": 3,
+        "gt_points": 1024, "gt_resolution": 512, "views": 8, "view_size": 256,
+        "resolution": 256, "peer_cap": [60.0, 50.0], "knob_levels": {},
     },
 }
 
@@ -85,21 +107,35 @@ def _status_kib(field: str) -> int | None:
     return None
 
 
-def measure_peak(fn):
-    """Run ``fn()``; return (its result, peak resident-memory rise in MiB or None).
+def measure_peak(fn, traced: bool = True):
+    """Run ``fn()``; return (its result, RSS peak rise MiB or None, traced peak MiB or None).
 
-    Resets the peak (``VmHWM``) with /proc/self/clear_refs first; None where that is impossible.
+    RSS: ``VmHWM`` after the run minus ``VmRSS`` before it, with ``VmHWM`` reset through
+    /proc/self/clear_refs (None where that is impossible); it sees every allocation (numba, GL)
+    but only as far as it needs pages the process did not hold already. Traced: the peak of
+    tracemalloc's count during the run (numpy arrays and Python objects, reused memory
+    included; not numba's own allocations), None when ``traced`` is false or tracing was
+    already on. tracemalloc slows allocation, so callers do not time this run.
     """
+    import tracemalloc
+
     try:
         Path("/proc/self/clear_refs").write_text("5")
         base = _status_kib("VmRSS")
     except OSError:
         base = None
-    out = fn()
+    started = traced and not tracemalloc.is_tracing()
+    if started:
+        tracemalloc.start()
+    try:
+        out = fn()
+        traced_mib = tracemalloc.get_traced_memory()[1] / 2**20 if started else None
+    finally:
+        if started:
+            tracemalloc.stop()
     peak = _status_kib("VmHWM")
-    if base is None or peak is None:
-        return out, None
-    return out, max(0.0, (peak - base) / 1024.0)
+    rss = None if base is None or peak is None else max(0.0, (peak - base) / 1024.0)
+    return out, rss, traced_mib
 
 
 def _load() -> str:
@@ -122,9 +158,34 @@ def machine_description() -> str:
     except OSError:
         pass
     mem = _meminfo_gib()
-    return (f"{cpu}, {os.cpu_count()} logical cores, {mem} GiB RAM, no GPU (Mesa OSMesa for "
-            f"frames); {platform.system()} {platform.release()}; Python "
-            f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}")
+    return (f"{cpu}, {os.cpu_count()} logical cores, {mem} GiB RAM, {gpu_description()} (cores "
+            f"run on the CPU; frames with Mesa OSMesa); {platform.system()} {platform.release()}; "
+            f"Python {platform.python_version()}, numpy {np.__version__}, "
+            f"numba {numba.__version__}")
+
+
+def gpu_description() -> str:
+    """The GPUs ``nvidia-smi`` lists ("GPU: name, memory; ..."), or "no GPU" when it is absent
+    or lists none."""
+    exe = shutil.which("nvidia-smi")
+    if exe is None:
+        return "no GPU"
+    try:
+        out = subprocess.run([exe, "--query-gpu=name,memory.total", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=10, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return "no GPU (nvidia-smi present but failed)"
+    gpus = [ln.strip() for ln in out.splitlines() if ln.strip()]
+    return "GPU: " + "; ".join(gpus) if gpus else "no GPU"
+
+
+def last_batch_share(rec: dict) -> float | None:
+    """Share of a ground truth's triangles that its last batch of viewpoints added (0 =
+    saturated at that density), from the ``convergence`` record of ``sample_pvs``."""
+    conv = rec.get("convergence") or []
+    if not conv or conv[-1][1] <= 0:
+        return None
+    return conv[-1][2] / conv[-1][1]
 
 
 def _meminfo_gib() -> str:
@@ -195,25 +256,79 @@ def pick_cells(grid, k: int) -> list[int]:
     return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n) + 2)[1:-1].round()}) or [0]
 
 
-def view_set(cell, n: int, seed: int = 777) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` fixed (eye, forward) views inside a cell: stratified eyes, evenly spread yaw,
-    slight random pitch."""
+#: Candidate eyes per kept view, and the id-buffer size used to score their directions.
+VIEW_CANDIDATES = 3
+VIEW_SCORE_RESOLUTION = 32
+#: Pitch of every view (radians, down): horizon a little above the centre.
+VIEW_PITCH = -0.15
+
+
+def view_set(scene, cell, n: int, seed: int = 777) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` fixed (eye, forward) views inside a cell, each looking where geometry is.
+
+    ``VIEW_CANDIDATES * n`` stratified eyes in the cell each get four horizontal directions (a
+    cube turned by a random yaw, ``render_cubemap_ids`` at ``VIEW_SCORE_RESOLUTION`` px, rest
+    state); a direction scores the number of distinct triangles its face shows (ties: more
+    pixels covered). Each eye keeps
+    its best direction and the ``n`` best eyes are kept, so no view stares into the void (an
+    eye outside a room looks at its outside wall rather than away from it). Deterministic.
+    """
     from visibility.ground_truth import sample_points
+    from visibility.raster import render_cubemap_ids
 
     rng = np.random.default_rng(seed)
-    eyes = sample_points(cell.box, n, rng)
-    yaw = 2 * np.pi * (np.arange(n) / max(n, 1) + rng.random())
-    pitch = rng.uniform(-0.25, 0.15, size=n)
-    fwd = np.stack([np.cos(pitch) * np.cos(yaw), np.sin(pitch), np.cos(pitch) * np.sin(yaw)], 1)
-    return list(zip(eyes, fwd, strict=True))
+    eyes = sample_points(cell.box, VIEW_CANDIDATES * n, rng)
+    # The four cube faces whose forward is horizontal (+X, -X, +Z, -Z in cube coordinates).
+    horizontal = [k for k in range(6) if abs(_CUBE_FORWARD[k][1]) < 0.5]
+    picks = []
+    for eye in eyes:
+        yaw = rng.uniform(0.0, 2 * np.pi)
+        c, sn = np.cos(yaw), np.sin(yaw)
+        base = np.array([[c, 0.0, -sn], [0.0, 1.0, 0.0], [sn, 0.0, c]])  # world-to-cube
+        ids = render_cubemap_ids(scene.vertices, scene.faces, eye, VIEW_SCORE_RESOLUTION, base,
+                                 face_mask=scene.valid_faces)
+        # Distinct triangles, ties broken by the share of pixels covered.
+        scores = [len(np.unique(ids[k][ids[k] >= 0])) + float(np.mean(ids[k] >= 0)) / 2
+                  for k in horizontal]
+        best = horizontal[int(np.argmax(scores))]
+        fwd = base.T @ _CUBE_FORWARD[best]  # the face's forward in world coordinates
+        fwd = np.array([fwd[0] * np.cos(VIEW_PITCH), np.sin(VIEW_PITCH),
+                        fwd[2] * np.cos(VIEW_PITCH)])
+        picks.append((max(scores), eye, fwd))
+    order = sorted(range(len(picks)), key=lambda i: -picks[i][0])[:n]
+    return [(picks[i][1], picks[i][2]) for i in sorted(order)]
 
 
-def frame_summary(renderer, scene, ids, views, gt_frames, key) -> dict[str, float]:
-    """Mean and worst ε, mean PSNR (capped) and mean SSIM of the PVS frames over the views."""
-    from client.metrics import capped_psnr, frame_metrics
+def _cube_forward() -> np.ndarray:
+    from visibility.camera import cube_face_rotations
+
+    return -cube_face_rotations()[:, 2, :]  # rows are right, up, back
+
+
+_CUBE_FORWARD = _cube_forward()
+
+
+def pvs_geometry(scene, ids, sphere_ids) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles and colours of a PVS for the renderer (rest state), its spheres as icospheres
+    (none when ``sphere_ids`` is None: the core reports no spheres)."""
+    from client.render import scene_sphere_centers, sphere_triangles
 
     ids = np.asarray(ids, dtype=np.int64)
     tris, cols = scene.triangles(ids), scene.colors[ids]
+    if scene.n_spheres and sphere_ids is not None and len(sphere_ids):
+        s = np.asarray(sphere_ids, dtype=np.int64)
+        st, sc = sphere_triangles(scene_sphere_centers(scene, None)[s], scene.sphere_radii[s],
+                                  scene.sphere_colors[s])
+        tris, cols = np.concatenate([tris, st]), np.concatenate([cols, sc])
+    return tris, cols
+
+
+def frame_summary(renderer, scene, ids, views, gt_frames, key,
+                  sphere_ids=None) -> dict[str, float]:
+    """Mean and worst ε, mean PSNR (capped) and mean SSIM of the PVS frames over the views."""
+    from client.metrics import capped_psnr, frame_metrics
+
+    tris, cols = pvs_geometry(scene, ids, sphere_ids)
     eps, ps, ss = [], [], []
     for k, ((eye, fwd), gt) in enumerate(zip(views, gt_frames, strict=True)):
         fr = renderer.render(tris, cols, eye, fwd, key="bench_pvs", version=(key, k))
@@ -260,22 +375,30 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 for cid in pick_cells(grid, cfg["cells"]):
                     cell = grid.cell(cid)
                     base = {"scene": label, "triangles": scene.n_triangles,
+                            "spheres": scene.n_spheres,
                             "cell_size": float(grid.cell_size), "cell": cid}
                     gt_ids, gt_rec = cached_ground_truth(
                         scene, cell, cfg["gt_points"], cfg["gt_resolution"],
                         cache_dir=cfg["cache_dir"], fingerprint=fp)
+                    gt_spheres = gt_rec["sphere_ids"]
+                    share = last_batch_share(gt_rec)
                     log(f"  cell {cid} ({grid.cell_size:g} m): ground truth {len(gt_ids)} "
-                        f"triangles ({'cached' if gt_rec['cached'] else 'computed'} "
+                        f"triangles, {len(gt_spheres)} spheres, last batch added "
+                        f"{_fmt(None if share is None else 100 * share, '.2f')} % "
+                        f"({'cached' if gt_rec['cached'] else 'computed'} "
                         f"{gt_rec['seconds']:.1f} s)")
-                    views = view_set(cell, cfg["views"])
+                    views = view_set(scene, cell, cfg["views"])
                     gt_frames = [renderer.render_scene(scene, e, f) for e, f in views]
                     jobs = _jobs(cores, levels_by_knob, cfg, use_peer)
                     for job in jobs:
                         row = dict(base, gt_triangles=int(len(gt_ids)),
+                                   gt_spheres=int(len(gt_spheres)), gt_last_batch=share,
                                    gt_seconds=gt_rec["seconds"], **job["row"])
+                        reps = cfg["repeats"] if job["kind"] in ("core", "peer") else cfg.get(
+                            "peer_repeats", cfg["repeats"])
                         try:
-                            res = _run_point(job, scene, cell, cfg["repeats"], rows, label, cid,
-                                             gt_ids)
+                            res = _run_point(job, scene, cell, reps, rows, label, cid, gt_ids,
+                                             cfg.get("peer_cap"), float(grid.cell_size))
                         except Exception as exc:  # a failing core is a finding, not a stop
                             row["error"] = f"{type(exc).__name__}: {exc}"
                             log(f"    {row['core']} {row['knob']}={row['level']}: {row['error']}")
@@ -283,15 +406,22 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                             continue
                         if res is None:
                             continue
-                        ids, secs, peak, extra = res
+                        ids, sids, secs, peak, traced, extra = res
                         fn, fp_rate = fn_fp_rates(ids, gt_ids)
                         row.update(seconds_median=float(np.median(secs)),
                                    seconds_min=float(np.min(secs)),
-                                   seconds_max=float(np.max(secs)), peak_mib=peak,
+                                   seconds_max=float(np.max(secs)), repeats=len(secs),
+                                   peak_mib=peak, peak_traced_mib=traced,
                                    pvs=int(len(ids)), pvs_pct=100.0 * len(ids) / n_valid,
                                    fn=fn, fp=fp_rate, **extra)
+                        if scene.n_spheres:
+                            # None: the core or peer reports no spheres ("n/a", not 100 % FN).
+                            sfn, sfp = (None, None) if sids is None else fn_fp_rates(
+                                sids, gt_spheres)
+                            row.update(sphere_fn=sfn, sphere_fp=sfp,
+                                       pvs_spheres=None if sids is None else int(len(sids)))
                         row.update(frame_summary(renderer, scene, ids, views, gt_frames,
-                                                 (row["core"], row["level"], cid)))
+                                                 (row["core"], row["level"], cid), sids))
                         rows.append(row)
                         log(f"    {row['core']:>14} {row['knob']}={row['level']!s:<6} "
                             f"{row['seconds_median']:8.3f} s  FN {100 * fn:6.2f}%  "
@@ -349,9 +479,19 @@ PEER_CAP_SECONDS = 60.0
 PEER_CAP_FACTOR = 50.0
 
 
-def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None):
-    """(ids, seconds per repeat, peak MiB, extra row fields) of one matrix point, or None."""
+def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None, peer_cap=None,
+               size=None):
+    """(triangle ids, sphere ids or None, seconds per repeat, RSS peak MiB, traced peak MiB,
+    extra row fields) of one matrix point, or None when its reference row is missing.
+
+    Core and fixed-sample peer points: one untimed run measures memory (``measure_peak``; it
+    also warms per-scene caches), then ``repeats`` timed runs. Equal-time and
+    equal-completeness peer points: ``repeats`` timed runs, the first also measuring the RSS
+    peak (tracemalloc would slow the peer and change how many viewpoints fit the budget).
+    """
     from benchmarks import peers
+
+    cap_s, cap_f = peer_cap or (PEER_CAP_SECONDS, PEER_CAP_FACTOR)
 
     cfg_res = _run_point.resolution
     if job["kind"] == "core":
@@ -374,6 +514,7 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None):
             return peers.from_point_pvs(scene, cell, "embree", job["level"], cfg_res)
     else:
         ref = [r for r in rows if r["scene"] == label and r["cell"] == cid
+               and r["cell_size"] == size
                and r["core"] == job["ref"] and "seconds_median" in r]
         if not ref:
             return None
@@ -383,26 +524,29 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None):
             kw["time_budget"] = ref["seconds_median"]
         else:
             kw.update(target_ids=gt_ids, target_share=1.0 - ref["fn"],
-                      time_budget=max(PEER_CAP_SECONDS, PEER_CAP_FACTOR * ref["seconds_median"]))
+                      time_budget=max(cap_s, cap_f * ref["seconds_median"]))
+            job["row"]["cap_seconds"] = max(cap_s, cap_f * ref["seconds_median"])
             job["row"]["target_pct"] = 100.0 * (1.0 - ref["fn"])
 
         def once():
             return peers.from_point_pvs(scene, cell, job["engine"], resolution=cfg_res, **kw)
-    secs, ids, peak, extra = [], None, None, {}
+    secs, out, peak, traced, extra = [], None, None, None, {}
+    if job["kind"] in ("core", "peer"):
+        _, peak, traced = measure_peak(once, traced=True)
     for r in range(max(1, repeats)):
         t0 = time.perf_counter()
-        if r == 0:
-            out, peak = measure_peak(once)
+        if r == 0 and peak is None:
+            out, peak, _ = measure_peak(once, traced=False)
         else:
             out = once()
         secs.append(time.perf_counter() - t0)
-        ids = out.triangle_ids
         if job["kind"] != "core":
             extra = {"peer_samples": out.stats.get("samples")}
             if "target_pct" in job["row"]:
                 extra["reached"] = bool(out.stats.get("reached"))
                 extra["target_pct"] = job["row"]["target_pct"]
-    return ids, secs, peak, extra
+    sphere_ids = getattr(out, "sphere_ids", None)  # peers and sphere-blind cores: None
+    return out.triangle_ids, sphere_ids, secs, peak, traced, extra
 
 
 _run_point.resolution = 128
@@ -416,34 +560,61 @@ def _fmt(v, spec=".3f", none="–"):
 
 
 def scene_table(rows: list[dict[str, Any]]) -> str:
-    """Markdown table of one scene's rows."""
-    head = ("| cell (size m) | core | knob | seconds median (min–max) | peak MiB | PVS % | FN % | "
-            "FP % | ε mean % | ε worst % | PSNR dB | SSIM |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    """Markdown table of one scene's rows; scenes with spheres get sphere FN/FP columns."""
+    spheres = any(r.get("spheres") for r in rows)
+    cols = ["cell (size m)", "core", "knob", "seconds median (min–max)",
+            "peak MiB traced / RSS", "PVS %", "FN %", "FP %"]
+    if spheres:
+        cols += ["sphere FN %", "sphere FP %"]
+    cols += ["ε mean %", "ε worst %", "PSNR dB", "SSIM"]
+    head = "| " + " | ".join(cols) + " |\n" + "|---" * len(cols) + "|\n"
     lines = []
     for r in rows:
         cell = f"{r['cell']} ({r['cell_size']:g})"
         knob = f"{r['knob']}={r['level']}"
         if "error" in r:
             lines.append(f"| {cell} | {r['core']} | {knob} | error: {r['error']} |"
-                         + " |" * 8)
+                         + " |" * (len(cols) - 4))
             continue
         if r["knob"] == "budget":
             knob = f"equal time to {r['level']}"
         elif r["knob"] == "completeness":
             knob = f"equal completeness to {r['level']} ({_fmt(r.get('target_pct'), '.1f')} %)"
             if not r.get("reached", True):
-                knob += ", NOT reached"
+                knob += f", NOT reached in {_fmt(r.get('cap_seconds'), '.0f')} s"
         if r.get("peer_samples") is not None:
             knob += f" ({r['peer_samples']} pts)"
-        lines.append(
-            f"| {cell} | {r['core']} | {knob} | {_fmt(r['seconds_median'])} "
-            f"({_fmt(r['seconds_min'])}–{_fmt(r['seconds_max'])}) | {_fmt(r['peak_mib'], '.0f')} "
-            f"| {_fmt(r['pvs_pct'], '.2f')} | {_fmt(100 * r['fn'], '.2f')} "
-            f"| {_fmt(100 * r['fp'], '.2f')} | {_fmt(r['eps_mean'], '.3f')} "
-            f"| {_fmt(r['eps_worst'], '.3f')} | {_fmt(r['psnr_mean'], '.1f')} "
-            f"| {_fmt(r['ssim_mean'], '.4f')} |")
+        secs = f"{_fmt(r['seconds_median'])} ({_fmt(r['seconds_min'])}–{_fmt(r['seconds_max'])})"
+        if r.get("repeats", 0) == 1:
+            secs = f"{_fmt(r['seconds_median'])} (1 run)"
+        cells = [cell, r["core"], knob, secs,
+                 f"{_fmt(r.get('peak_traced_mib'), '.0f')} / {_fmt(r['peak_mib'], '.0f')}",
+                 _fmt(r["pvs_pct"], ".2f"), _fmt(100 * r["fn"], ".2f"), _fmt(100 * r["fp"], ".2f")]
+        if spheres:
+            for k in ("sphere_fn", "sphere_fp"):
+                v = r.get(k)
+                cells.append("n/a" if v is None else _fmt(100 * v, ".2f"))
+        cells += [_fmt(r["eps_mean"], ".3f"), _fmt(r["eps_worst"], ".3f"),
+                  _fmt(r["psnr_mean"], ".1f"), _fmt(r["ssim_mean"], ".4f")]
+        lines.append("| " + " | ".join(cells) + " |")
     return head + "\n".join(lines) + "\n"
+
+
+def ground_truth_lines(rows: list[dict[str, Any]], cfg: dict[str, Any]) -> str:
+    """One line per cell of a scene: its ground truth's size, cost and saturation."""
+    out, seen = [], set()
+    for r in rows:
+        key = (r["cell"], r["cell_size"])
+        if key in seen or "gt_triangles" not in r:
+            continue
+        seen.add(key)
+        sph = f", {r['gt_spheres']} of {r['spheres']} spheres" if r.get("spheres") else ""
+        share = r.get("gt_last_batch")
+        out.append(f"- cell {r['cell']} ({r['cell_size']:g} m): ground truth {r['gt_triangles']} "
+                   f"triangles{sph} from {cfg['gt_points']} points at {cfg['gt_resolution']} px "
+                   f"in {_fmt(r.get('gt_seconds'), '.1f')} s; its last batch of 8 points added "
+                   f"{_fmt(None if share is None else 100 * share, '.2f')} % of them")
+    return "\n".join(out) + "\n"
 
 
 def plot_scene(rows: list[dict[str, Any]], title: str, path: Path) -> None:
@@ -497,25 +668,7 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         f"Command: `{command}`  \nPreset `{tag}`, total wall time {wall / 60:.1f} min.  \n"
         f"Machine: {machine_description()}. Load average (1 min) at start {cfg['load_start']}, "
         f"at end {_load()} (other jobs shared the cores: times are wall times under that load).\n",
-        "Method: for each scene, cells picked evenly over its viewcell grid "
-        f"(`ViewcellGrid.for_scene`, {cfg['cells']} per scene). Ground truth: "
-        f"`sample_pvs` with {cfg['gt_points']} points at {cfg['gt_resolution']} px, cached in "
-        "`benchmarks/results/cache/`. FN = share of the ground truth missing from the PVS; FP = "
-        "share of the PVS not in the ground truth (sampled ground truth can miss slivers, so a "
-        "conservative core's FP is partly truly visible triangles). Seconds: median (min–max) of "
-        f"{cfg['repeats']} repeats in one process after a warm-up compile. Peak MiB: rise of "
-        "VmHWM over VmRSS with VmHWM reset via /proc/self/clear_refs before the first repeat "
-        "(sees numba allocations, unlike tracemalloc). Frames: "
-        f"{cfg['views']} fixed views in the cell at {cfg['view_size']}² px, 90° fov, PVS subset "
-        "against the full scene (`client.metrics.frame_metrics`; PSNR capped at 100 dB). "
-        f"Non-knob `resolution` = {cfg['resolution']}. Peer `embree_rays`: Embree (embreex via "
-        "trimesh) rays through cube pixel centres from the same stratified points as `sampling`. "
-        f"Peers against `{cfg.get('reference')}` at its most accurate level: both from-point "
-        "methods (`sampling`, our rasterizer, and `embree_rays`) add viewpoints one at a time "
-        "until they have used its median time (equal time) or found as large a share of the "
-        "ground truth as it did (equal completeness; capped at "
-        f"max({PEER_CAP_SECONDS:g} s, {PEER_CAP_FACTOR:g}x its time), marked NOT reached "
-        "otherwise).\n",
+        method_paragraph(cfg),
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         srows = [r for r in rows if r["scene"] == label]
@@ -524,10 +677,67 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         plot_scene(srows, label, png)
         (results_dir / f"{tag}_{label}.md").write_text(f"## {label}\n\n{table}")
         rel = os.path.relpath(png, out_md.parent)
-        parts.append(f"## {label} ({srows[0]['triangles']} triangles)\n\n{table}\n"
-                     f"![{label}]({rel})\n")
+        sph = f", {srows[0]['spheres']} spheres" if srows[0].get("spheres") else ""
+        parts.append(f"## {label} ({srows[0]['triangles']} triangles{sph})\n\n"
+                     f"{ground_truth_lines(srows, cfg)}\n{table}\n![{label}]({rel})\n")
     out_md.parent.mkdir(parents=True, exist_ok=True)
     out_md.write_text("\n".join(parts))
+
+
+def method_paragraph(cfg: dict[str, Any]) -> str:
+    """The report's method paragraph: what was run, with which knob levels, and why."""
+    levels = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
+    knobs = ", ".join(f"`{k}` {levels[k][: cfg['levels']]}" for k in KNOB_PRIORITY if k in levels)
+    cap_s, cap_f = cfg.get("peer_cap") or (PEER_CAP_SECONDS, PEER_CAP_FACTOR)
+    top = top_core_resolution(cfg)
+    return (
+        "Method: scenes are every generator but `stress` (a test scene of stiff cases, checked "
+        "with known answers by the stiff suite) at two sizes (for `spheres` the size is the "
+        "sphere count), and every scene in `../shared/scenes/`. Per scene and cell size "
+        f"({', '.join('default' if c is None else str(c) for c in cfg['cell_sizes'])}; `x2` = "
+        f"twice the default side), {cfg['cells']} cell(s) picked evenly over the viewcell grid "
+        "(`ViewcellGrid.for_scene`). Knob levels per core (first Params field found among "
+        f"{', '.join(KNOB_PRIORITY)}): {knobs}; cores whose knob is not `resolution` run at "
+        f"{cfg['resolution']} px. Ground truth: `sample_pvs` with {cfg['gt_points']} points at "
+        f"{cfg['gt_resolution']} px ({cfg['gt_resolution'] / top:g}x the finest core resolution, "
+        f"{top} px, and {cfg['gt_points'] / max(1, max(levels.get('samples', [1]))):g}x the "
+        "most samples), triangles and spheres (spheres render and occlude), cached in "
+        "`benchmarks/results/cache/`; each scene lists per cell the share of its triangles the "
+        "last batch of 8 points added, so a reader sees how far from saturation it is (a "
+        "sampled ground truth only misses, so FN is a lower bound and part of a conservative "
+        "core's FP is truly visible). FN = share of the ground truth missing from the PVS; FP = "
+        "share of the PVS not in the ground truth; for spheres the same over sphere ids "
+        "(`PVS.sphere_ids`), n/a for a core or peer that reports none. Seconds: median "
+        f"(min–max) of {cfg['repeats']} timed repeats in one process after a warm-up compile "
+        "and an untimed memory run; the equal-time and equal-completeness peer points run "
+        f"{cfg.get('peer_repeats', cfg['repeats'])} time(s) (equal time is the reference's "
+        "time by construction; equal completeness stops at a deterministic viewpoint count). "
+        "Peak MiB traced / RSS, from the untimed run: the peak of tracemalloc's count (numpy "
+        "arrays and Python objects, reused memory included; not numba's internal allocations) "
+        "and the rise of VmHWM (reset via /proc/self/clear_refs) over VmRSS (everything, but "
+        "only pages the process did not already hold); the equal-time/completeness points give "
+        "RSS only. Frames: "
+        f"{cfg['views']} fixed views at {cfg['view_size']}² px, 90° fov, from eyes inside the "
+        f"cell, each looking the horizontal way (pitched {VIEW_PITCH:g} rad) that shows the most "
+        f"distinct triangles, the best {cfg['views']} of {VIEW_CANDIDATES * cfg['views']} "
+        "candidate eyes; PVS subset (its spheres included) against the full scene at rest "
+        "(`client.metrics.frame_metrics`; PSNR capped at 100 dB). Peer `embree_rays`: Embree "
+        "(embreex via trimesh) rays through cube pixel centres from the same stratified points "
+        "as `sampling` (neither peer draws spheres). "
+        f"Peers against `{cfg.get('reference')}` at its most accurate level: both from-point "
+        "methods (`sampling`, our rasterizer, and `embree_rays`) add viewpoints one at a time "
+        "until they have used its median time (equal time) or found as large a share of the "
+        f"ground truth as it did (equal completeness; capped at max({cap_s:g} s, {cap_f:g}x its "
+        "time), marked NOT reached otherwise). Levels and sizes are chosen so the medium preset "
+        "takes about half an hour on 2 cores: two levels per knob show the slope of each "
+        "error-against-time curve, the ground truth is the dominant fixed cost per cell.\n")
+
+
+def top_core_resolution(cfg: dict[str, Any]) -> int:
+    """The finest cubemap resolution any core runs at in ``cfg`` (px)."""
+    levels = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
+    return int(max([int(cfg["resolution"])] + [int(v) for v in
+                                                levels["resolution"][: int(cfg["levels"])]]))
 
 
 # --------------------------------------------------------------------------- CLI
@@ -577,6 +787,13 @@ def config_from_args(args: argparse.Namespace) -> dict[str, Any]:
               "resolution"):
         if int(cfg[k]) < 1:
             raise ValueError(f"--{k.replace('_', '-')} must be >= 1, got {cfg[k]}")
+    if args.repeats is not None:
+        cfg["peer_repeats"] = min(int(cfg.get("peer_repeats", cfg["repeats"])), cfg["repeats"])
+    # A ground truth coarser than a core would count the core's extra detail as FP.
+    top = top_core_resolution(cfg)
+    if int(cfg["gt_resolution"]) < top:
+        raise ValueError(f"--gt-resolution must be at least the finest core resolution ({top} "
+                         f"px), got {cfg['gt_resolution']}")
     return cfg
 
 

@@ -12,6 +12,7 @@ from benchmarks import bench_matrix, gt_cache, peers
 from tests.visibility.cores import designed_scenes as ds
 from visibility.cores.base import CoreParams, available_cores, get_core
 from visibility.ground_truth import sample_pvs
+from visibility.viewcells import Viewcell
 
 TINY = ["--quick", "--scenes", "rooms:1500", "--levels", "1", "--gt-points", "8",
         "--gt-resolution", "32", "--views", "1", "--view-size", "32", "--resolution", "32"]
@@ -134,3 +135,84 @@ def test_tiny_matrix_has_equal_time_and_equal_completeness_rows(tmp_path):
         assert 1 - ec[0]["fn"] >= 1 - ref["fn"] - 1e-9
     text = (tmp_path / "B.md").read_text()
     assert "equal time to from_segment" in text and "equal completeness to from_segment" in text
+
+
+def test_medium_preset_is_the_published_run():
+    """``pvs bench --preset medium`` alone covers every generator but ``stress`` at two sizes and
+    every real scene, with a ground truth at least as fine as the finest core level."""
+    from visibility.generators import GENERATORS
+
+    cfg = bench_matrix.config_from_args(bench_matrix.build_parser().parse_args(
+        ["--preset", "medium"]))
+    names = [s.partition(":")[0] for s in cfg["scenes"] if s != "real"]
+    for gen in set(GENERATORS) - {"stress"}:
+        assert names.count(gen) == 2, gen
+    assert "stress" not in names and "real" in cfg["scenes"]
+    assert cfg["repeats"] == 3
+    assert cfg["gt_resolution"] >= 2 * bench_matrix.top_core_resolution(cfg)
+    assert cfg["gt_points"] >= 4 * max(cfg["knob_levels"]["samples"])
+    real = [label for label, _ in bench_matrix.load_scenes(["real"])]
+    assert real == sorted(p.stem for p in bench_matrix.SHARED_SCENES.glob("*.glb"))
+    with pytest.raises(ValueError, match="gt-resolution"):
+        bench_matrix.config_from_args(bench_matrix.build_parser().parse_args(
+            ["--preset", "medium", "--gt-resolution", "32"]))
+
+
+def test_views_look_where_the_geometry_is():
+    # A wall on the -Z side only, and the cell's eyes in front of it: every view faces it.
+    b = ds.Builder()
+    b.quad((-10, 0, -6), (-10, 5, -6), (10, 5, -6), (10, 0, -6), 0)
+    scene = b.scene("one_wall")
+    cell = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+    views = bench_matrix.view_set(scene, cell, 3)
+    assert len(views) == 3
+    for eye, fwd in views:
+        assert np.all(eye >= cell.box[0]) and np.all(eye <= cell.box[1])
+        # Within 45 degrees of -Z (the scoring cube has a random yaw), pitched slightly down.
+        assert fwd[2] < -0.69 * np.linalg.norm(fwd)
+    again = bench_matrix.view_set(scene, cell, 3)  # deterministic: the same views every run
+    for (e0, f0), (e1, f1) in zip(views, again, strict=True):
+        np.testing.assert_array_equal(e0, e1)
+        np.testing.assert_array_equal(f0, f1)
+
+
+def test_memory_peak_sees_reused_numpy_memory():
+    def work():
+        a = np.ones(8 * 2**20 // 8)  # 8 MiB, freed, then the same size again
+        del a
+        return np.ones(8 * 2**20 // 8).sum()
+
+    out, rss, traced = bench_matrix.measure_peak(work)
+    assert out == 2**20
+    assert traced is not None and traced >= 8.0
+    assert rss is None or rss >= 0.0
+    _, _, off = bench_matrix.measure_peak(work, traced=False)
+    assert off is None
+
+
+def test_gpu_is_detected_through_nvidia_smi(tmp_path, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert bench_matrix.gpu_description() == "no GPU"
+    smi = tmp_path / "nvidia-smi"
+    smi.write_text("#!/bin/sh\necho 'NVIDIA H100 80GB HBM3, 81559 MiB'\n")
+    smi.chmod(0o755)
+    assert bench_matrix.gpu_description() == "GPU: NVIDIA H100 80GB HBM3, 81559 MiB"
+    assert "GPU: NVIDIA H100" in bench_matrix.machine_description()
+
+
+def test_spheres_are_counted_and_sphere_blind_cores_read_n_a(tmp_path):
+    argv = TINY[:2] + ["spheres:12"] + TINY[3:] + [
+        "--out", str(tmp_path / "B.md"), "--results-dir", str(tmp_path),
+        "--cache-dir", str(tmp_path / "cache"), "--cores", "from_segment", "sampling",
+        "--no-peer", "--reference", "none"]
+    assert bench_matrix.main(argv) == 0
+    rows = json.loads((tmp_path / "bench_quick.json").read_text())["rows"]
+    by_core = {r["core"]: r for r in rows}
+    assert all(r["spheres"] == 12 and r["gt_spheres"] >= 1 for r in rows)
+    seg = by_core["from_segment"]
+    assert seg["sphere_fn"] is not None and 0.0 <= seg["sphere_fn"] <= 1.0
+    if by_core["sampling"]["pvs_spheres"] is None:
+        assert by_core["sampling"]["sphere_fn"] is None
+    text = (tmp_path / "B.md").read_text()
+    assert "| sphere FN % | sphere FP % |" in text
+    assert "of 12 spheres" in text and "last batch of 8 points added" in text
