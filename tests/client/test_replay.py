@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from client.replay import ReplayOptions, replay, replay_cores
+from client.replay import ReplayOptions, replay, replay_cores, side_by_side
 from visibility.cores import base as core_base
 from visibility.cores.base import Core
 from visibility.cores.sampling import SamplingCore
@@ -183,3 +183,12 @@ def test_near_far_stream_is_composed_and_measured(settings, server_app, tmp_path
     assert np.mean([f["ssim_composed"] for f in composed]) >= 0.95
     for f in composed:
         assert np.isfinite(f["delta_composed"]) and np.isfinite(f["delta_conventional"])
+        assert f["compose_seconds"] > 0 and isinstance(f["frame"], int)
+    # The report carries the composed means and delta; side by side shows them in columns.
+    assert summary["delta_composed"] == pytest.approx(
+        np.mean([f["delta_composed"] for f in composed]))
+    head, row = side_by_side([summary]).splitlines()
+    assert "eps_c" in head and "δ morph" in head and "δ conv" in head
+    cells = row.split()
+    assert float(cells[4]) == pytest.approx(summary["epsilon_composed"], abs=1e-3)
+    assert float(cells[7]) == pytest.approx(summary["delta_composed"], abs=1e-4)
