@@ -193,6 +193,9 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
                 frame, extra = composed_metrics_at(renderer, session.store, scene_t, cube, pos,
                                                    fwd, gt)
                 rec.update(extra)
+                # |U - O| horizontally (metres): the seam and the morph's bend both grow with it.
+                off = np.asarray(pos, float) - np.asarray(cube.center, float)
+                rec["eye_offset"] = float(np.hypot(off[0], off[2]))
                 m = {k: extra[f"{k}_composed"] for k in ("epsilon", "psnr", "ssim")}
             frames.append(rec)
             worst.append((m["epsilon"], i, (frame, gt)))

@@ -184,6 +184,8 @@ def test_near_far_stream_is_composed_and_measured(settings, server_app, tmp_path
     for f in composed:
         assert np.isfinite(f["delta_composed"]) and np.isfinite(f["delta_conventional"])
         assert f["compose_seconds"] > 0 and isinstance(f["frame"], int)
+        # Per-cell cubemaps: the eye stays within half a cell's diagonal of the centre O.
+        assert 0.0 <= f["eye_offset"] <= settings.cell_size * 0.5 ** 0.5 + 1e-6
     # The report carries the composed means and delta; side by side shows them in columns.
     assert summary["delta_composed"] == pytest.approx(
         np.mean([f["delta_composed"] for f in composed]))
