@@ -76,6 +76,9 @@ class SendQueue:
         self._bytes = 0
         #: The stream whose ``cell_begin`` went out and whose ``cell_end`` has not.
         self._open: StreamTag | None = None
+        #: Whether the open stream's messages are in the ahead lane. Not ``_open.prefetch``: a
+        #: prefetch stream of the walker's new cell moves to the now lane (``cut_ahead``).
+        self._open_ahead = False
         self._signal = asyncio.Event()
 
     # ----------------------------------------------------------------------------- state
@@ -140,7 +143,7 @@ class SendQueue:
         moved: list[Outgoing] = []
         removed: list[Outgoing] = []
         cut: list[StreamTag] = []
-        opened = self._open if self._open is not None and self._open.prefetch else None
+        opened = self._open if self._open is not None and self._open_ahead else None
         for item in self._ahead:
             s = item.stream
             if s is None:
@@ -167,7 +170,7 @@ class SendQueue:
     # ----------------------------------------------------------------------------- consumer
     def _lane(self) -> deque[Outgoing] | None:
         if self._open is not None:
-            lane = self._ahead if self._open.prefetch else self._now
+            lane = self._ahead if self._open_ahead else self._now
             return lane or None
         return self._now or self._ahead or None
 
@@ -175,10 +178,12 @@ class SendQueue:
         """The next message to send (waits for one): the open stream's, else the now lane's,
         else the ahead lane's."""
         await self._until(lambda: self._lane() is not None)
-        item = self._lane().popleft()
+        lane = self._lane()
+        item = lane.popleft()
         self._bytes -= item.nbytes
         if item.kind == "begin":
             self._open = item.stream
+            self._open_ahead = lane is self._ahead
         elif item.kind == "end" and item.stream is self._open:
             self._open = None
         self._changed()
