@@ -14,6 +14,14 @@ command line on top:
 - server memory: the RSS of the server process (``/proc/PID/status``), peak over the run;
 - duplicates (triangles received twice without a drop between: must be 0) and client errors.
 
+The core runs at its default settings (``--params '{}'``) unless told otherwise. Where the time
+goes is printed too: the server's CPU seconds (``/proc/PID/stat``), the computation seconds it
+reports (``pvs_computation_seconds_sum``) and the clients' CPU seconds, against the wall time.
+
+Writes the printed table (command and machine on top) to ``OUT/load.md``, a PNG with the
+frame-latency distribution and the stalls per client to ``OUT/load.png`` and every number to
+``OUT/load.json`` (``--out``, default ``benchmarks/results``).
+
 Usage::
 
     python -m benchmarks.bench_load              # 50 clients, 20 s walks
@@ -26,6 +34,7 @@ import argparse
 import asyncio
 import json
 import os
+import platform
 import socket
 import subprocess
 import sys
@@ -60,6 +69,31 @@ def rss_bytes(pid: int) -> int:
     except OSError:
         pass
     return 0
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` (``/proc/PID/stat``; NaN when unreadable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def machine() -> str:
+    """CPU model, logical cores, memory and OS of this machine, one line."""
+    model = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+        mem = next(int(x.split()[1]) for x in Path("/proc/meminfo").read_text().splitlines()
+                   if x.startswith("MemTotal:"))
+        mem_s = f", {mem / 2**20:.1f} GiB RAM"
+    except (OSError, StopIteration, ValueError):
+        mem_s = ""
+    return f"{model}, {os.cpu_count()} logical cores{mem_s}, {platform.platform()}"
 
 
 def metric(text: str, name: str) -> float:
@@ -158,6 +192,114 @@ async def run_clients(url: str, args: argparse.Namespace, grid: ViewcellGrid, pi
     return stats, peak[0], wall
 
 
+def summarise(args: argparse.Namespace, scene_triangles: int, cells: int,
+              stats: list[ClientStats], peak_rss: int, wall: float, metrics_text: str,
+              server_cpu: float, client_cpu: float) -> dict:
+    """Every number of the run (the JSON output; the table is made from it)."""
+    lat = np.array([x for s in stats for x in s.latencies])
+    finite = lat[np.isfinite(lat)]
+    frames = sum(s.frames for s in stats)
+    stalls = sum(s.stalls for s in stats)
+    m = {k: metric(metrics_text, k) for k in (
+        "pvs_bytes_sent_total", "pvs_computations_total", "pvs_stalls_total",
+        "pvs_computation_seconds_sum", "pvs_cache_hits_total", "pvs_computations_shared_total",
+        "pvs_prefetch_skipped_total", "pvs_prefetch_yields_total", "pvs_slow_clients_total")}
+    return {
+        "clients": args.clients, "scene": args.scene, "triangles": scene_triangles,
+        "cells": cells, "core": args.core, "params": args.params, "workers": args.workers,
+        "walk_seconds": args.duration, "speed": args.speed, "fps": args.fps,
+        "frames": frames, "stalls": stalls, "stall_fraction": stalls / max(1, frames),
+        "clients_with_stalls": sum(1 for s in stats if s.stalls),
+        "stalls_per_client": [s.stalls for s in stats],
+        "latency_p50_s": float(np.percentile(finite, 50)) if len(finite) else None,
+        "latency_p95_s": float(np.percentile(finite, 95)) if len(finite) else None,
+        "latency_max_s": float(finite.max()) if len(finite) else None,
+        "latencies_s": [round(float(x), 5) for x in finite],
+        "frames_never_delivered": int(np.sum(~np.isfinite(lat))),
+        "bytes_received": sum(s.bytes for s in stats),
+        "bytes_sent": m["pvs_bytes_sent_total"],
+        "computations": m["pvs_computations_total"],
+        "computation_seconds": m["pvs_computation_seconds_sum"],
+        "cache_hits": m["pvs_cache_hits_total"],
+        "computations_shared": m["pvs_computations_shared_total"],
+        "prefetch_skipped": m["pvs_prefetch_skipped_total"],
+        "prefetch_yields": m["pvs_prefetch_yields_total"],
+        "slow_clients": m["pvs_slow_clients_total"],
+        "server_stalls": m["pvs_stalls_total"],
+        "server_rss_peak_bytes": peak_rss,
+        "server_cpu_seconds": server_cpu, "client_cpu_seconds": client_cpu,
+        "duplicates": sum(s.duplicates for s in stats),
+        "dropped": sum(s.dropped for s in stats),
+        "client_errors": sum(len(s.errors) for s in stats),
+        "errors_sample": [e for s in stats for e in s.errors][:5],
+        "wall_seconds": wall,
+    }
+
+
+def table(r: dict) -> list[tuple[str, str]]:
+    """The printed rows of summary ``r``."""
+    def ms(x: float | None) -> str:
+        return "n/a" if x is None else f"{1e3 * x:.1f} ms"
+
+    return [
+        ("clients", f"{r['clients']}"),
+        ("scene / triangles / cells", f"{r['scene']} / {r['triangles']} / {r['cells']}"),
+        ("core / params / workers", f"{r['core']} / {json.dumps(r['params'])} / {r['workers']}"),
+        ("walk", f"{r['walk_seconds']:g} s at {r['speed']:g} m/s, {r['fps']:g} fps"),
+        ("frames", f"{r['frames']}"),
+        ("stalls", f"{r['stalls']} ({100.0 * r['stall_fraction']:.2f} %)"),
+        ("clients with stalls", f"{r['clients_with_stalls']}"),
+        ("frame latency p50", ms(r["latency_p50_s"])),
+        ("frame latency p95", ms(r["latency_p95_s"])),
+        ("frame latency max", ms(r["latency_max_s"])),
+        ("frames never delivered", f"{r['frames_never_delivered']}"),
+        ("bytes received (clients)", f"{r['bytes_received'] / 1e6:.2f} MB"),
+        ("bytes sent (server metrics)", f"{r['bytes_sent'] / 1e6:.2f} MB"),
+        ("PVS computations / cache hits", f"{r['computations']:.0f} / {r['cache_hits']:.0f}"),
+        ("joined in-flight / prefetch skipped",
+         f"{r['computations_shared']:.0f} / {r['prefetch_skipped']:.0f}"),
+        ("prefetch yields / slow clients",
+         f"{r['prefetch_yields']:.0f} / {r['slow_clients']:.0f}"),
+        ("server stalls (metrics)", f"{r['server_stalls']:.0f}"),
+        ("server RSS peak", f"{r['server_rss_peak_bytes'] / 2**20:.1f} MiB"),
+        ("computation seconds (server)", f"{r['computation_seconds']:.1f} s"),
+        ("server CPU", f"{r['server_cpu_seconds']:.1f} s"),
+        ("clients CPU (this process)", f"{r['client_cpu_seconds']:.1f} s"),
+        ("duplicate triangles", f"{r['duplicates']}"),
+        ("triangles dropped", f"{r['dropped']}"),
+        ("client errors", f"{r['client_errors']}"),
+        ("wall time", f"{r['wall_seconds']:.1f} s"),
+    ]
+
+
+def plot(r: dict, path: Path) -> None:
+    """Frame-latency distribution (CDF) and stalls per client, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    lat = np.sort(np.asarray(r["latencies_s"], dtype=float)) * 1e3
+    if len(lat):
+        a.plot(lat, np.arange(1, len(lat) + 1) / len(lat), drawstyle="steps-post")
+        a.axvline(1e3 / r["fps"], color="grey", ls="--", label="one frame interval")
+        a.set_xscale("symlog", linthresh=1.0)
+        a.legend(loc="lower right")
+    a.set_xlabel("frame delivery latency (ms)")
+    a.set_ylabel("fraction of frames")
+    a.set_title(f"{r['clients']} clients, p50 {1e3 * (r['latency_p50_s'] or 0):.1f} ms, "
+                f"p95 {1e3 * (r['latency_p95_s'] or 0):.1f} ms")
+    per = r["stalls_per_client"]
+    b.bar(np.arange(len(per)), per)
+    b.set_xlabel("client")
+    b.set_ylabel("stalled frames")
+    b.set_title(f"stalls: {r['stalls']} of {r['frames']} frames")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clients", type=int, default=50)
@@ -168,19 +310,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--triangles", type=int, default=20_000)
     ap.add_argument("--cell-size", type=float, default=4.0)
     ap.add_argument("--core", default="sampling")
-    ap.add_argument("--params", default='{"resolution": 32, "samples": 4}',
-                    help="core parameters, JSON")
+    ap.add_argument("--params", default="{}",
+                    help="core parameters, JSON (default: the core's defaults)")
     ap.add_argument("--budget", type=int, default=None, help="client triangle budget")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results",
+                    help="folder for load.md, load.png and load.json")
+    ap.add_argument("--no-files", action="store_true", help="print only")
     ap.add_argument("--quick", action="store_true", help="5 clients, 6 s walks (smoke)")
     args = ap.parse_args(argv)
     if args.quick:
         args.clients, args.duration = min(args.clients, 5), min(args.duration, 6.0)
     args.params = json.loads(args.params)
 
-    print("command: " + " ".join([sys.executable, "-m", "benchmarks.bench_load",
-                                  *(argv if argv is not None else sys.argv[1:])]))
+    command = "python -m benchmarks.bench_load " + " ".join(
+        argv if argv is not None else sys.argv[1:])
+    where = machine()
+    print("command: " + command)
+    print("machine: " + where)
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PVS_GENERATED=f"{args.scene}={args.triangles}",
@@ -206,7 +354,9 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.2)
         scene = make_scene(args.scene, triangles=args.triangles, seed=0)
         grid = ViewcellGrid.for_scene(scene, scene.meta.get("cell_size") or args.cell_size)
+        cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
         stats, peak_rss, wall = asyncio.run(run_clients(url, args, grid, proc.pid))
+        server_cpu, client_cpu = cpu_seconds(proc.pid) - cpu0, time.process_time() - own0
         text = httpx.get(url + "/metrics", timeout=30).text
     finally:
         proc.terminate()
@@ -215,41 +365,23 @@ def main(argv: list[str] | None = None) -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
 
-    lat = np.array([x for s in stats for x in s.latencies])
-    finite = lat[np.isfinite(lat)]
-    frames = sum(s.frames for s in stats)
-    stalls = sum(s.stalls for s in stats)
-    rows = [
-        ("clients", f"{args.clients}"),
-        ("scene / triangles / cells", f"{args.scene} / {scene.n_triangles} / {len(grid)}"),
-        ("core / params", f"{args.core} / {json.dumps(args.params)}"),
-        ("walk", f"{args.duration:g} s at {args.speed:g} m/s, {args.fps:g} fps"),
-        ("frames", f"{frames}"),
-        ("stalls", f"{stalls} ({100.0 * stalls / max(1, frames):.2f} %)"),
-        ("clients with stalls", f"{sum(1 for s in stats if s.stalls)}"),
-        ("frame latency p50", f"{1e3 * np.percentile(finite, 50):.1f} ms" if len(finite)
-         else "n/a"),
-        ("frame latency p95", f"{1e3 * np.percentile(finite, 95):.1f} ms" if len(finite)
-         else "n/a"),
-        ("frames never delivered", f"{int(np.sum(~np.isfinite(lat)))}"),
-        ("bytes received (clients)", f"{sum(s.bytes for s in stats) / 1e6:.2f} MB"),
-        ("bytes sent (server metrics)", f"{metric(text, 'pvs_bytes_sent_total') / 1e6:.2f} MB"),
-        ("PVS computations", f"{metric(text, 'pvs_computations_total'):.0f}"),
-        ("server stalls (metrics)", f"{metric(text, 'pvs_stalls_total'):.0f}"),
-        ("server RSS peak", f"{peak_rss / 2**20:.1f} MiB"),
-        ("duplicate triangles", f"{sum(s.duplicates for s in stats)}"),
-        ("triangles dropped", f"{sum(s.dropped for s in stats)}"),
-        ("client errors", f"{sum(len(s.errors) for s in stats)}"),
-        ("wall time", f"{wall:.1f} s"),
-    ]
+    r = summarise(args, scene.n_triangles, len(grid), stats, peak_rss, wall, text,
+                  server_cpu, client_cpu)
+    rows = table(r)
     w = max(len(k) for k, _ in rows)
-    print("-" * (w + 24))
-    for k, v in rows:
-        print(f"{k:<{w}}  {v}")
-    print("-" * (w + 24))
-    errs = [e for s in stats for e in s.errors][:5]
-    for e in errs:
-        print("error:", e)
+    lines = ["-" * (w + 30), *(f"{k:<{w}}  {v}" for k, v in rows), "-" * (w + 30)]
+    lines += [f"error: {e}" for e in r["errors_sample"]]
+    print("\n".join(lines))
+    print("json: " + json.dumps({k: v for k, v in r.items() if k != "latencies_s"}))
+    if not args.no_files:
+        args.out.mkdir(parents=True, exist_ok=True)
+        md = ["# Load benchmark", "", f"command: `{command}`", "", f"machine: {where}", "",
+              "```", *lines, "```", "", "![latency and stalls](load.png)", ""]
+        (args.out / "load.md").write_text("\n".join(md))
+        (args.out / "load.json").write_text(json.dumps(
+            {"command": command, "machine": where, **r}, indent=1))
+        plot(r, args.out / "load.png")
+        print(f"wrote {args.out / 'load.md'}, load.png, load.json")
     return 0
 
 

@@ -37,13 +37,13 @@ def village(live_server):
     return scene, ViewcellGrid.for_scene(scene, 4.0)
 
 
-async def replay(url, grid, walk, params, prefetch, budget=None):
+async def replay(url, grid, walk, params, prefetch, budget=None, core="test_slow"):
     """Replay ``walk`` at real-time pacing; returns (session, stalls, frames, cell sizes).
 
     A frame stalls when its cell's stream is not complete one frame interval after its pose was
     sent (the client's definition, as in ``client.replay``). The first cell is waited for before
     the clock starts (a start-up stall is not a prefetch failure)."""
-    s = await Session.connect(url, SCENE, "test_slow", params, budget=budget, prefetch=prefetch)
+    s = await Session.connect(url, SCENE, core, params, budget=budget, prefetch=prefetch)
     pos = walk.positions
     vel = np.gradient(pos, walk.t, axis=0)
     first = grid.cell_of(pos[0])
@@ -102,6 +102,29 @@ def test_prefetch_gives_no_stalls_and_no_prefetch_stalls(live_server, village):
     value = float(next(line.split()[-1] for line in text.splitlines()
                        if line.startswith("pvs_stalls_total")))
     assert value >= stalls2
+
+
+def test_real_core_at_walking_speed_gives_no_stalls(live_server, village):
+    """A real core (``sampling``) at the default 4 m cell size, a 10 s walk at 1.4 m/s with
+    prefetch on: 0 stalls, and the cells walked through came ahead of the walker."""
+    scene, grid = village
+    assert grid.cell_size == 4.0
+    walk = _walk(grid, seed=7, duration=10.0)
+    cells = {grid.cell_of(p) for p in walk.positions}
+    assert len(cells) >= 3
+    params = {"resolution": 64, "samples": 8, "seed": 7}
+    s, stalls, frames, _ = run(replay(live_server, grid, walk, params, prefetch=True,
+                                      core="sampling"))
+    assert s.welcome.core == "sampling" and s.welcome.prefetch
+    assert stalls == 0, f"{stalls} stalls in {frames} frames with prefetch on"
+    assert not s.errors and not s.local_errors and s.duplicates == 0
+    assert cells <= set(s.complete)
+    # Cells came ahead of the walker (a prefetch stream's record is replaced by the empty
+    # current-cell stream that confirms it on entry, so count at the server).
+    text = httpx.get(live_server + "/metrics", timeout=30).text
+    prefetched = float(next(line.split()[-1] for line in text.splitlines()
+                            if line.startswith("pvs_cells_prefetched_total")))
+    assert prefetched >= len(cells) - 1
 
 
 def test_budget_drops_keep_the_client_within_budget(live_server, village):

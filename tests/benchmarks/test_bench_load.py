@@ -1,0 +1,36 @@
+"""Smoke test of the load benchmark: 3 real protocol clients against a real ``pvs serve`` for a
+few seconds; the printed table, the JSON line and the written files carry every field (the
+real numbers live in benchmarks/results/load.md)."""
+
+from __future__ import annotations
+
+import json
+
+from benchmarks import bench_load
+
+FIELDS = ("clients", "frames", "stalls", "latency_p50_s", "latency_p95_s", "bytes_received",
+          "bytes_sent", "server_rss_peak_bytes", "computations", "server_cpu_seconds",
+          "duplicates", "client_errors", "stalls_per_client")
+
+
+def test_three_clients_report_every_field(tmp_path, capsys):
+    rc = bench_load.main(["--clients", "3", "--duration", "3", "--triangles", "5000",
+                          "--params", '{"resolution": 64, "samples": 8}',
+                          "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert out.startswith("command: python -m benchmarks.bench_load")
+    for row in ("stalls", "frame latency p50", "frame latency p95", "bytes sent",
+                "server RSS peak", "server CPU"):
+        assert row in out
+    r = json.loads(next(line for line in out.splitlines() if line.startswith("json: "))[6:])
+    assert set(FIELDS) <= set(r)
+    assert r["clients"] == 3 and len(r["stalls_per_client"]) == 3
+    assert r["frames"] > 0 and r["bytes_received"] > 0 and r["bytes_sent"] > 0
+    assert r["server_rss_peak_bytes"] > 0 and r["computations"] >= 1
+    # Each triangle once per session, and nothing went wrong on the protocol.
+    assert r["duplicates"] == 0 and r["client_errors"] == 0
+    md = (tmp_path / "load.md").read_text()
+    assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
+    assert (tmp_path / "load.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((tmp_path / "load.json").read_text())["frames"] == r["frames"]
