@@ -281,6 +281,12 @@ async def cell_pvs(
     cell: int,
     core: str | None = None,
     granularity: Annotated[str | None, Query(description="triangle or object")] = None,
+    # Declared (integers, strings accepted) so the spec documents them and fuzzers try them; the
+    # core converts and checks them (422 ``bad_params``), from ``request.query_params``.
+    resolution: Annotated[int | str | None, Query(description="resolution, pixels")] = None,
+    samples: Annotated[int | str | None, Query(description="sampling: viewpoints")] = None,
+    runs: Annotated[int | str | None, Query(description="from_segment: runs")] = None,
+    seed: Annotated[int | str | None, Query(description="random seed")] = None,
 ) -> Any:
     """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``granularity``:
     ``triangle`` or ``object`` (every triangle of each visible object; 422 ``bad_params``
