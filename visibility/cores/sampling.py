@@ -84,9 +84,14 @@ class SamplingCore(Core):
 
 
 def _stats(gt: GroundTruth, params: SamplingParams) -> dict[str, Any]:
-    return {
+    stats: dict[str, Any] = {
         "samples": gt.samples,
         "resolution": int(params.resolution),
         "convergence": [list(c) for c in gt.convergence],
         "pixels_rendered": gt.pixels,
     }
+    if gt.sphere_ids is not None and len(gt.sphere_ids):
+        # The base class moves these onto ``PVS.sphere_ids``; without them a client of the
+        # sampling core would never receive the spheres it sees.
+        stats["sphere_ids"] = gt.sphere_ids
+    return stats

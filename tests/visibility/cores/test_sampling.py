@@ -8,7 +8,9 @@ import pytest
 from tests.visibility.test_ground_truth import CELL, walled_scene
 from visibility.cores.base import available_cores, get_core
 from visibility.cores.sampling import MAX_SAMPLES, SamplingCore, SamplingParams
+from visibility.generators import make_scene
 from visibility.ground_truth import fn_fp_rates, sample_pvs
+from visibility.viewcells import ViewcellGrid
 
 
 def test_registered_under_its_name():
@@ -95,3 +97,15 @@ def test_sampling_segment_pvs_is_within_from_segment_pvs():
     assert a.stats["samples"] == 16 and len(a) > 0
     extra = np.setdiff1d(a.triangle_ids, b.triangle_ids)
     assert len(extra) <= 0.01 * len(a), len(extra)
+
+
+def test_spheres_seen_by_the_sampler_come_back_as_sphere_ids():
+    scene = make_scene("spheres", spheres=150, states=3, seed=1)
+    cell = ViewcellGrid.for_scene(scene).cell(0)
+    core = get_core("sampling")
+    params = core.make_params(samples=8, resolution=48, seed=3)
+    pvs = core.compute(scene, cell, params)
+    gt = sample_pvs(scene, cell, n_points=8, resolution=48, seed=3, batch=8)
+    assert len(gt.sphere_ids) > 0
+    assert pvs.sphere_ids is not None
+    np.testing.assert_array_equal(pvs.sphere_ids, gt.sphere_ids)
