@@ -688,6 +688,11 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         f"Machine: {machine_description()}. Load average (1 min) at start {cfg['load_start']}, "
         f"at end {_load()} (other jobs shared the cores: times are wall times under that load).\n",
         method_paragraph(cfg),
+        "Other measurements, each with its own command and machine: the from-segment paper's "
+        "experiments ([benchmarks/results/from_segment.md](benchmarks/results/from_segment.md), "
+        "`python -m benchmarks.bench_segment`) and the server under concurrent clients "
+        "([benchmarks/results/load.md](benchmarks/results/load.md), "
+        "`python -m benchmarks.bench_load`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         srows = [r for r in rows if r["scene"] == label]

@@ -375,7 +375,6 @@ class StreamSession:
         tasks: list[asyncio.Task] = []
         try:
             await self._handshake()
-            self.state.sessions[self.id] = self
             self.state.counters["sessions_total"] += 1
             tasks.append(asyncio.create_task(self._sender(), name=f"pvs-send-{self.id}"))
             tasks.append(asyncio.create_task(self._stream(), name=f"pvs-stream-{self.id}"))
@@ -450,6 +449,9 @@ class StreamSession:
         valid = int(np.count_nonzero(scene.valid_faces))
         self.send_all = self.budget is not None and valid <= self.budget
         features = await asyncio.to_thread(self._features, why, valid)
+        # Registered before the welcome leaves: a client that has its welcome finds its session
+        # (pins, /sessions, metrics) already there. ``run`` removes it on every way out.
+        self.state.sessions[self.id] = self
         await self._send_text(Welcome(
             session=self.id,
             scene=_scene_info(self.loaded),
