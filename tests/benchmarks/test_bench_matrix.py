@@ -42,6 +42,29 @@ def test_tiny_matrix_runs_every_core_and_writes_tables_and_plots(tmp_path):
     assert (tmp_path / "quick_rooms_1k.md").is_file()
 
 
+def test_medium_preset_scenes_all_load_under_distinct_labels():
+    """The published run must not die half an hour in on a size a generator refuses."""
+    specs = bench_matrix.GENERATOR_SCENES_MEDIUM
+    loaded = bench_matrix.load_scenes(specs)
+    labels = [label for label, _ in loaded]
+    assert len(set(labels)) == len(labels) == len(specs)
+    for label, load in loaded:
+        scene = load()
+        assert scene.n_triangles > 0, label
+
+
+def test_a_scene_that_fails_to_load_is_skipped_and_reported(tmp_path):
+    out = tmp_path / "BENCH.md"
+    i = TINY.index("rooms:1500")
+    argv = TINY[:i] + ["rooms:999"] + TINY[i:]
+    argv += ["--out", str(out), "--results-dir", str(tmp_path),
+             "--cache-dir", str(tmp_path / "cache")]
+    assert "rooms:999" in argv
+    assert bench_matrix.main(argv) == 0
+    text = out.read_text()
+    assert "NOT measured" in text and "rooms_999" in text and "## rooms_1k" in text
+
+
 def test_bad_arguments_are_clear_errors(capsys):
     assert bench_matrix.main(["--cells", "0"]) == 2
     assert bench_matrix.main(["--cores", "no_such_core"]) == 2
