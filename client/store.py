@@ -29,6 +29,18 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def latest_copies(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For ``ids`` (n,) in arrival order, possibly repeated: the sorted unique ids (int32) and,
+    per unique id, the index of its latest copy. A stable sort keeps arrival order within equal
+    ids, so the last of each run is the latest (np.unique is hash-based and many times slower
+    in numpy 2.x)."""
+    order = np.argsort(ids, kind="stable")
+    s = ids[order]
+    last = np.ones(len(s), dtype=bool)
+    last[:-1] = s[1:] != s[:-1]
+    return s[last].astype(np.int32), order[last]
+
+
 def keyframe_weights(times: np.ndarray, t: float) -> tuple[int, int, float]:
     """(i, j, w): position at scene time ``t`` (seconds) is ``(1 - w) * key[i] + w * key[j]``
     for keyframes at ``times`` (k,) increasing; ``t`` is clamped to [times[0], times[-1]], as
@@ -77,12 +89,8 @@ class _Tracks:
                  for k in self.extra}
         self._pending.clear()
         # Latest data wins for repeated ids (as for geometry).
-        order = np.argsort(ids, kind="stable")
-        s = ids[order]
-        last = np.ones(len(s), dtype=bool)
-        last[:-1] = s[1:] != s[:-1]
-        src = order[last]
-        self.ids, self.pos = s[last].astype(np.int32), pos[src]
+        self.ids, src = latest_copies(ids)
+        self.pos = pos[src]
         self.extra = {k: v[src] for k, v in extra.items()}
 
     def keep(self, mask: np.ndarray) -> int:
@@ -390,14 +398,8 @@ class GeometryStore:
         tris = np.concatenate([self._tris] + [p[1] for p in self._pending])
         cols = np.concatenate([self._colors] + [p[2] for p in self._pending])
         self._pending.clear()
-        # Latest data wins for repeated ids: a stable sort keeps arrival order within equal ids,
-        # so the last of each run is the latest copy. (np.unique is hash-based and many times
-        # slower in numpy 2.x.)
-        order = np.argsort(ids, kind="stable")
-        s = ids[order]
-        last = np.ones(len(s), dtype=bool)
-        last[:-1] = s[1:] != s[:-1]
-        src = order[last]
-        self._ids, self._tris, self._colors = s[last].astype(np.int32), tris[src], cols[src]
+        # Latest data wins for repeated ids.
+        self._ids, src = latest_copies(ids)
+        self._tris, self._colors = tris[src], cols[src]
         # Merging does not change the content, so version stays; cached outputs are stale.
         self._out = None

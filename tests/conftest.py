@@ -13,8 +13,10 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -228,6 +230,24 @@ class LiveServer:
         self.server.should_exit = True
         self.thread.join(timeout=15)
         self.sock.close()
+
+
+@contextmanager
+def serving(settings, scenes: dict | None = None, **update) -> Iterator[tuple[str, Any]]:
+    """The REAL server for ``settings`` with ``update`` applied and ``scenes`` ({name: Scene})
+    registered, on a loopback port for the ``with`` block; yields (base URL, app)."""
+    from server.app import create_app
+
+    s = settings.model_copy(update=update) if update else settings
+    app = create_app(s)
+    for name, scene in (scenes or {}).items():
+        app.state.server.catalog.register(name, scene)
+    srv = LiveServer(app, s)
+    srv.start()
+    try:
+        yield srv.url, app
+    finally:
+        srv.stop()
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from websockets.asyncio.client import connect
 
 from protocol.frames import decode_geometry, frame_bytes
 from protocol.messages import Hello, Pose, dump_message, parse_server_message
-from tests.conftest import TINY_WALK, LiveServer, make_tiny_scene, near_ids
+from tests.conftest import TINY_WALK, make_tiny_scene, near_ids, serving
 from visibility.scene import Scene, WalkArea
 
 TINY = make_tiny_scene()
@@ -34,16 +34,9 @@ def _big_scene(n: int = 200_000) -> Scene:
 def slow_server(settings, registered_test_cores):
     """A server that closes clients whose sends wait over 1 s. The big scene streams ~9 MB,
     more than loopback socket buffers (up to ~4 MB) hold."""
-    from server.app import create_app
-
-    s = settings.model_copy(update={"send_timeout": 1.0, "send_queue_frames": 4,
-                                    "max_frame_bytes": 64 * 1024})
-    app = create_app(s)
-    app.state.server.catalog.register("big", _big_scene())
-    srv = LiveServer(app, s)
-    srv.start()
-    yield srv.url, app
-    srv.stop()
+    with serving(settings, {"big": _big_scene()}, send_timeout=1.0, send_queue_frames=4,
+                 max_frame_bytes=64 * 1024) as served:
+        yield served
 
 
 def test_client_that_stops_reading_is_closed_with_slow_client(slow_server):

@@ -16,7 +16,7 @@ from client.render import OffscreenRenderer, shade_colors
 from client.replay import ReplayOptions, composed_metrics_at, replay, scene_time
 from client.session import Session, SyncSession
 from server.dynamic import moving_faces
-from tests.conftest import LiveServer, _box, make_tiny_scene
+from tests.conftest import _box, make_tiny_scene, serving
 from visibility.scene import Scene
 
 #: Sampling settings that stay fast on 2 cores (as in tests/client/test_replay.py).
@@ -108,16 +108,11 @@ def test_static_scene_gets_no_keyframe_frames(live_server):
 @pytest.fixture(scope="module")
 def sphere_server(settings, registered_test_cores):
     """A server with a small scene of bouncing spheres (few, so the test stays light)."""
-    from server.app import create_app
     from visibility.generators import make_scene
 
-    app = create_app(settings)
     scene = make_scene("spheres", spheres=12, states=5)
-    app.state.server.catalog.register("few_spheres", scene)
-    srv = LiveServer(app, settings)
-    srv.start()
-    yield srv.url, scene
-    srv.stop()
+    with serving(settings, {"few_spheres": scene}) as (url, _):
+        yield url, scene
 
 
 def test_spheres_arrive_once_with_their_keyframes(sphere_server):
@@ -179,20 +174,12 @@ def test_far_moving_box_is_displaced_and_depth_composited(settings, registered_t
     the replay's composition shows it at Q = U + (P(t) - O), i.e. where the box at time t is seen
     from the cubemap centre O, and hidden behind the far pillar of the cubemap when the range
     says it is behind."""
-    from server.app import create_app
     from visibility.nearfar import NearFarConfig, split_ids
 
-    nf = settings.model_copy(update={"near_far": True, "near_far_r1": 8.0, "near_far_r2": 16.0,
-                                     "near_far_resolution": 256})
     scene = _far_box_scene()
-    app = create_app(nf)
-    app.state.server.catalog.register("far_box", scene)
-    srv = LiveServer(app, nf)
-    srv.start()
-    try:
-        s = _stream_all(srv.url, "far_box", "test_near", {"radius": 12.0}, [(2.0, 1.7, 2.0)])
-    finally:
-        srv.stop()
+    with serving(settings, {"far_box": scene}, near_far=True, near_far_r1=8.0,
+                 near_far_r2=16.0, near_far_resolution=256) as (url, _):
+        s = _stream_all(url, "far_box", "test_near", {"radius": 12.0}, [(2.0, 1.7, 2.0)])
     assert s.complete and not s.local_errors, s.errors
     cell = next(iter(s.complete))
     cube = s.cubemaps[cell]

@@ -11,19 +11,8 @@ import pytest
 
 from tests.conftest import SlowCore, make_tiny_scene, near_ids
 
-
-@pytest.fixture(scope="module")
-def http(live_server):
-    with httpx.Client(base_url=live_server, timeout=60) as client:
-        yield client
-
-
-@pytest.fixture(autouse=True)
-def still_healthy(http):
-    """After every test the server still answers /health."""
-    yield
-    r = http.get("/health")
-    assert r.status_code == 200 and r.json()["status"] == "ok"
+# After every test the server still answers /health.
+pytestmark = pytest.mark.usefixtures("still_healthy")
 
 
 def _error(r: httpx.Response, status: int, code: str) -> str:

@@ -12,18 +12,8 @@ import pytest
 REAL_CORES = ("sampling", "from_segment")
 
 
-@pytest.fixture(scope="module")
-def http(live_server):
-    with httpx.Client(base_url=live_server, timeout=120) as client:
-        yield client
-
-
-@pytest.fixture(autouse=True)
-def still_healthy(http):
-    """After every request the server is up and has no computation left running."""
-    yield
-    r = http.get("/health")
-    assert r.status_code == 200 and r.json()["status"] == "ok"
+# After every request the server is up and answering.
+pytestmark = pytest.mark.usefixtures("still_healthy")
 
 
 def _client_error(r: httpx.Response, status: int, code: str) -> None:

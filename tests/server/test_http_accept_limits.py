@@ -51,18 +51,7 @@ def test_choose_media_type(accept, want):
 
 
 # --------------------------------------------------------------------------- live server
-@pytest.fixture(scope="module")
-def http(live_server):
-    with httpx.Client(base_url=live_server, timeout=60) as client:
-        yield client
-
-
-@pytest.fixture(autouse=True)
-def still_healthy(http):
-    yield
-    assert http.get("/health").json()["status"] == "ok"
-
-
+# (``http`` and ``still_healthy`` come from tests/server/conftest.py.)
 def _pvs(http: httpx.Client, accept: str | None) -> httpx.Response:
     headers = {} if accept is None else {"accept": accept}
     return http.get("/scenes/tiny/cells/3/pvs", params={"core": "test_near", "radius": 4.5},
@@ -92,7 +81,7 @@ def _want() -> np.ndarray:
     (f"{IDS};q=0, */*", JSON),
     ("application/json-patch+json, */*;q=0.1", JSON),
 ])
-def test_route_answers_the_preferred_form(http, accept, kind):
+def test_route_answers_the_preferred_form(http, still_healthy, accept, kind):
     r = _pvs(http, accept)
     assert r.status_code == 200, r.text
     assert r.headers["content-type"].split(";")[0] == kind
@@ -112,13 +101,13 @@ def test_route_answers_the_preferred_form(http, accept, kind):
 
 @pytest.mark.parametrize("accept", ["text/html", f"{JSON};q=0, {IDS};q=0, {GEO};q=0",
                                     "application/octet-stream-like"])
-def test_route_406_when_no_form_is_acceptable(http, accept):
+def test_route_406_when_no_form_is_acceptable(http, still_healthy, accept):
     r = _pvs(http, accept)
     assert r.status_code == 406, r.text
     assert r.json()["error"]["code"] == "not_acceptable"
 
 
-def test_oversized_bodies_are_413_json(http, settings):
+def test_oversized_bodies_are_413_json(http, still_healthy, settings):
     """A body over ``max_body_bytes`` is refused whether its length is declared or streamed
     (chunked), with the JSON error body; the server then answers a normal body."""
     limit = settings.max_body_bytes
@@ -149,7 +138,7 @@ def _metric(http: httpx.Client, name: str) -> float:
     raise AssertionError(f"{name} not in /metrics")
 
 
-def test_http_bytes_are_counted(http):
+def test_http_bytes_are_counted(http, still_healthy):
     before = _metric(http, "pvs_http_bytes_sent_total")
     r = _pvs(http, IDS)
     r2 = _pvs(http, JSON)

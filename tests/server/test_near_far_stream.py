@@ -9,23 +9,16 @@ import numpy as np
 import pytest
 
 from client.session import Session
-from tests.conftest import LiveServer, make_tiny_scene
+from tests.conftest import make_tiny_scene, serving
 
 nearfar = pytest.importorskip("visibility.nearfar")
 
 
 @pytest.fixture(scope="module")
 def nf_server(settings, registered_test_cores):
-    from server.app import create_app
-
-    s = settings.model_copy(update={"near_far": True, "near_far_r1": 40.0, "near_far_r2": 80.0,
-                                    "near_far_resolution": 32})
-    app = create_app(s)
-    app.state.server.catalog.register("tiny", make_tiny_scene())
-    srv = LiveServer(app, s)
-    srv.start()
-    yield srv.url, app
-    srv.stop()
+    with serving(settings, {"tiny": make_tiny_scene()}, near_far=True, near_far_r1=40.0,
+                 near_far_r2=80.0, near_far_resolution=32) as served:
+        yield served
 
 
 def _stream(url, scene, cell_pos):

@@ -14,7 +14,7 @@ from server.cache import ByteLRU, nbytes_of
 from server.catalog import SceneCatalog
 from server.nearfar_store import NearFarStore
 from server.settings import Settings
-from tests.conftest import LiveServer, make_tiny_scene
+from tests.conftest import make_tiny_scene, serving
 from visibility import nearfar
 from visibility.generators import available_generators, make_scene
 from visibility.nearfar_cells import cells_needing_cubemap, farthest_static_distance
@@ -126,15 +126,9 @@ def test_near_far_store_is_bounded_and_keeps_walkers_cells():
 def city_server(settings, registered_test_cores):
     if "city" not in available_generators():
         pytest.skip("city generator not available")
-    from server.app import create_app
-
-    s = settings.model_copy(update={"near_far": True, "generated": {"city": 100_000}})
-    app = create_app(s)
-    app.state.server.catalog.register("tiny", make_tiny_scene())
-    srv = LiveServer(app, s)
-    srv.start()
-    yield srv.url, app
-    srv.stop()
+    with serving(settings, {"tiny": make_tiny_scene()}, near_far=True,
+                 generated={"city": 100_000}) as served:
+        yield served
 
 
 def test_welcome_reports_cubemap_cells_of_a_100k_city(city_server):

@@ -14,7 +14,7 @@ from websockets.asyncio.client import connect
 from protocol.frames import decode_geometry
 from protocol.messages import Hello, Pose, dump_message, parse_server_message
 from server.pool import WorkerDied
-from tests.conftest import LiveServer, NearCore, make_tiny_scene, near_ids
+from tests.conftest import NearCore, make_tiny_scene, near_ids, serving
 from visibility.cores import base as core_base
 
 TINY = make_tiny_scene()
@@ -40,17 +40,12 @@ class DiesOncePerCell(NearCore):
 
 @pytest.fixture(scope="module")
 def server(settings, registered_test_cores):
-    from server.app import create_app
-
     core_base.register(DiesOncePerCell)
-    s = settings.model_copy(update={"workers": 1})
-    app = create_app(s)
-    app.state.server.catalog.register("tiny", make_tiny_scene())
-    srv = LiveServer(app, s)
-    srv.start()
-    yield srv.url, app
-    srv.stop()
-    core_base.unregister(DiesOncePerCell.name)
+    try:
+        with serving(settings, {"tiny": make_tiny_scene()}, workers=1) as served:
+            yield served
+    finally:
+        core_base.unregister(DiesOncePerCell.name)
 
 
 def _pool(app) -> dict:
