@@ -34,6 +34,7 @@ def test_every_part_runs_and_reports(tmp_path):
                gt_points=8, gt_resolution=32, segment_scenes=["city:5000"],
                segment_resolution=32, segment_points=64, cell_scenes=["city:5000"],
                cell_resolution=32, cell_runs=[1, 2], cell_points=16, rect_scenes=["city:5000"],
+               orient_scenes=["city:5000"],
                city1m_triangles=5000,
                city1m_cells=1, repeats=1, max_seconds=5)
     logs: list[str] = []
@@ -41,6 +42,7 @@ def test_every_part_runs_and_reports(tmp_path):
                "segment": bs.part_segment(cfg, logs.append),
                "cell": bs.part_cell(cfg, logs.append),
                "rect": bs.part_rect(cfg, logs.append),
+               "orient": bs.part_orient(cfg, logs.append),
                "city1m": bs.part_city1m(cfg, logs.append)}
     scenes = [r for r in results["scenes"] if "skipped" not in r]
     assert {r["scene"] for r in scenes} >= {"city_5k"}
@@ -66,11 +68,16 @@ def test_every_part_runs_and_reports(tmp_path):
     assert not cell["flat"] and cell["box"][0][1] < cell["box"][1][1]
     assert all(0 < r["completeness"] <= 1 for r in rect["fs"])
 
+    assert {(r["runs"], r["first"]) for r in results["orient"]} == {
+        (1, "axis"), (1, "oblique"), (2, "axis"), (2, "oblique")}
+    assert all(0 <= r["fn"] <= 1 for r in results["orient"])
+
     assert {r["eye_levels"] for r in results["city1m"]} == {1, 3}
 
     md = bs.write_report(results, cfg, "smoke", 1.0, tmp_path)
     text = md.read_text()
-    for heading in ("One segment", "A cell", "view rectangle", "Per scene", "One 4 x 4 m cell"):
+    for heading in ("One segment", "A cell", "view rectangle", "First orientation", "Per scene",
+                    "One 4 x 4 m cell"):
         assert heading in text
     for png in ("segment", "cell", "rect", "scenes"):
         assert (tmp_path / f"from_segment_{png}_smoke.png").stat().st_size > 1000
@@ -81,7 +88,7 @@ def test_every_part_runs_and_reports(tmp_path):
     # A part rerun alone (e.g. the timing part on a quiet machine) replaces only itself.
     bs.write_report({"city1m": results["city1m"]}, cfg, "rerun", 2.0, tmp_path, merge=True)
     raw = json.loads((tmp_path / "from_segment_smoke.json").read_text())
-    assert set(raw["parts"]) == {"scenes", "segment", "cell", "rect", "city1m"}
+    assert set(raw["parts"]) == {"scenes", "segment", "cell", "rect", "orient", "city1m"}
     assert raw["parts"]["city1m"]["meta"]["command"] == "rerun"
     assert raw["parts"]["segment"]["meta"]["command"] == "smoke"
     text = md.read_text()
