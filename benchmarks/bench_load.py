@@ -3,11 +3,15 @@
 Starts ``python -m pvs_cli serve`` on a free loopback port (configured through ``PVS_*``
 environment variables), then runs N asyncio clients (``client.session.Session``: receiving and
 accounting, not rendering), each replaying its own generated walkthrough
-(``client.walkthrough.generate_walkthrough``) at real-time pacing. Prints one table with the
-command line on top:
+(``client.walkthrough.generate_walkthrough``) at real-time pacing. One run per client count
+(``--clients 5,10,20,50``) and cache state: cold (a fresh server, every PVS computed while the
+walkers walk: the computing capacity) and warm (every cell's PVS computed through the HTTP route
+before the clients come, as an edge server started from its disk cache: the streaming
+capacity). Prints a table per run and a capacity table of all runs, the command line on top:
 
 - stalls: frames whose cell was not complete one frame interval after the pose was sent (the
-  first cell of each client, waited for before its clock starts, is not counted);
+  first cell of each client, waited for before its clock starts, is not counted); frames whose
+  cell is still missing ``--grace`` seconds after the walk count as never delivered;
 - frame delivery latency p50/p95: per frame, the time from sending its pose until the client
   holds the pose's cell complete (0 when it already did);
 - bytes received by the clients and bytes sent according to the server's /metrics;
@@ -18,20 +22,22 @@ The core runs at its default settings (``--params '{}'``) unless told otherwise.
 goes is printed too: the server's CPU seconds (``/proc/PID/stat``), the computation seconds it
 reports (``pvs_computation_seconds_sum``) and the clients' CPU seconds, against the wall time.
 
-Writes the printed table (command and machine on top) to ``OUT/load.md``, a PNG with the
-frame-latency distribution and the stalls per client to ``OUT/load.png`` and every number to
-``OUT/load.json`` (``--out``, default ``benchmarks/results``).
+Writes the tables (command and machine on top) to ``OUT/load.md``, a PNG with the
+frame-latency distributions and the stalled share against the client count to ``OUT/load.png``
+and every number to ``OUT/load.json`` (``--out``, default ``benchmarks/results``).
 
 Usage::
 
-    python -m benchmarks.bench_load              # 50 clients, 20 s walks
-    python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks (smoke)
+    python -m benchmarks.bench_load              # 5, 10, 20, 50 clients, cold and warm, 20 s walks
+    python -m benchmarks.bench_load --clients 50 --cache cold
+    python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks, cold (smoke)
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import platform
@@ -39,6 +45,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -136,9 +143,9 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
 
         async def late(cell: int, sent: float) -> None:
             try:
-                await s.wait_cell(cell, 120)
+                await s.wait_cell(cell, None)
                 stats.latencies.append(time.perf_counter() - sent)
-            except (TimeoutError, SessionError):
+            except SessionError:
                 stats.latencies.append(float("inf"))
 
         for i in range(1, len(walk)):
@@ -157,7 +164,12 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
                 stats.stalls += 1
                 pending.append(asyncio.create_task(late(cell, sent)))
         if pending:
-            await asyncio.gather(*pending)
+            # A cell the walker has left may never come (the server drops prefetch work no
+            # walker is heading for): after a grace period it counts as never delivered.
+            done, late_ones = await asyncio.wait(pending, timeout=args.grace)
+            for task in late_ones:
+                task.cancel()
+            stats.latencies += [float("inf")] * len(late_ones)
     except SessionError as exc:
         stats.errors.append(str(exc))
     finally:
@@ -169,9 +181,9 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
         await s.close()
 
 
-async def run_clients(url: str, args: argparse.Namespace, grid: ViewcellGrid, pid: int
-                      ) -> tuple[list[ClientStats], int, float]:
-    stats = [ClientStats() for _ in range(args.clients)]
+async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: ViewcellGrid,
+                      pid: int) -> tuple[list[ClientStats], int, float]:
+    stats = [ClientStats() for _ in range(clients)]
     peak = [rss_bytes(pid)]
 
     async def sample_rss() -> None:
@@ -183,29 +195,40 @@ async def run_clients(url: str, args: argparse.Namespace, grid: ViewcellGrid, pi
     t0 = time.perf_counter()
     # Stagger the starts over a second, as real clients arrive.
     async def delayed(i: int) -> None:
-        await asyncio.sleep(i / max(1, args.clients))
+        await asyncio.sleep(i / max(1, clients))
         await one_client(url, args, grid, args.seed + i, stats[i])
 
-    await asyncio.gather(*(delayed(i) for i in range(args.clients)))
+    await asyncio.gather(*(delayed(i) for i in range(clients)))
     wall = time.perf_counter() - t0
     sampler.cancel()
     return stats, peak[0], wall
 
 
-def summarise(args: argparse.Namespace, scene_triangles: int, cells: int,
-              stats: list[ClientStats], peak_rss: int, wall: float, metrics_text: str,
-              server_cpu: float, client_cpu: float) -> dict:
-    """Every number of the run (the JSON output; the table is made from it)."""
+#: Server counters the summary reports (``/metrics``), as differences over one run.
+COUNTERS = ("pvs_bytes_sent_total", "pvs_computations_total", "pvs_stalls_total",
+            "pvs_computation_seconds_sum", "pvs_cache_hits_total",
+            "pvs_computations_shared_total", "pvs_prefetch_skipped_total",
+            "pvs_prefetch_yields_total", "pvs_slow_clients_total")
+
+
+def counters(url: str) -> dict[str, float]:
+    """The server's ``COUNTERS`` now."""
+    text = httpx.get(url + "/metrics", timeout=30).text
+    return {k: metric(text, k) for k in COUNTERS}
+
+
+def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangles: int,
+              cells: int, stats: list[ClientStats], peak_rss: int, wall: float,
+              m: dict[str, float], server_cpu: float, client_cpu: float) -> dict:
+    """Every number of one run (the JSON output; the table is made from it). ``cache`` is
+    "cold" (a fresh server) or "warm" (every cell's PVS computed before the clients came);
+    ``m`` the server's counters over the run."""
     lat = np.array([x for s in stats for x in s.latencies])
     finite = lat[np.isfinite(lat)]
     frames = sum(s.frames for s in stats)
     stalls = sum(s.stalls for s in stats)
-    m = {k: metric(metrics_text, k) for k in (
-        "pvs_bytes_sent_total", "pvs_computations_total", "pvs_stalls_total",
-        "pvs_computation_seconds_sum", "pvs_cache_hits_total", "pvs_computations_shared_total",
-        "pvs_prefetch_skipped_total", "pvs_prefetch_yields_total", "pvs_slow_clients_total")}
     return {
-        "clients": args.clients, "scene": args.scene, "triangles": scene_triangles,
+        "clients": clients, "cache": cache, "scene": args.scene, "triangles": scene_triangles,
         "cells": cells, "core": args.core, "params": args.params, "workers": args.workers,
         "walk_seconds": args.duration, "speed": args.speed, "fps": args.fps,
         "frames": frames, "stalls": stalls, "stall_fraction": stalls / max(1, frames),
@@ -242,7 +265,7 @@ def table(r: dict) -> list[tuple[str, str]]:
         return "n/a" if x is None else f"{1e3 * x:.1f} ms"
 
     return [
-        ("clients", f"{r['clients']}"),
+        ("clients / cache", f"{r['clients']} / {r['cache']}"),
         ("scene / triangles / cells", f"{r['scene']} / {r['triangles']} / {r['cells']}"),
         ("core / params / workers", f"{r['core']} / {json.dumps(r['params'])} / {r['workers']}"),
         ("walk", f"{r['walk_seconds']:g} s at {r['speed']:g} m/s, {r['fps']:g} fps"),
@@ -272,63 +295,68 @@ def table(r: dict) -> list[tuple[str, str]]:
     ]
 
 
-def plot(r: dict, path: Path) -> None:
-    """Frame-latency distribution (CDF) and stalls per client, as a PNG."""
+def plot(runs: list[dict], path: Path) -> None:
+    """Frame-latency distribution (CDF) per run and stalled share of frames against the number
+    of clients, cold and warm cache, as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
-    lat = np.sort(np.asarray(r["latencies_s"], dtype=float)) * 1e3
-    if len(lat):
-        a.plot(lat, np.arange(1, len(lat) + 1) / len(lat), drawstyle="steps-post")
-        a.axvline(1e3 / r["fps"], color="grey", ls="--", label="one frame interval")
-        a.set_xscale("symlog", linthresh=1.0)
-        a.legend(loc="lower right")
-    a.set_xlabel("frame delivery latency (ms)")
+    for r in runs:
+        lat = np.sort(np.asarray(r["latencies_s"], dtype=float)) * 1e3
+        if len(lat):
+            # Never-delivered frames stay off the curve, so it ends below 1.
+            n = len(lat) + r["frames_never_delivered"]
+            a.plot(lat, np.arange(1, len(lat) + 1) / n, drawstyle="steps-post",
+                   ls="-" if r["cache"] == "cold" else "--",
+                   label=f"{r['clients']} clients, {r['cache']}")
+    if runs:
+        a.axvline(1e3 / runs[0]["fps"], color="grey", ls=":", label="one frame interval")
+    a.set_xscale("symlog", linthresh=1.0)
+    a.set_xlim(left=0.0)
+    a.set_xlabel("frame delivery latency (ms, 0 when the cell was already there)")
     a.set_ylabel("fraction of frames")
-    a.set_title(f"{r['clients']} clients, p50 {1e3 * (r['latency_p50_s'] or 0):.1f} ms, "
-                f"p95 {1e3 * (r['latency_p95_s'] or 0):.1f} ms")
-    per = r["stalls_per_client"]
-    b.bar(np.arange(len(per)), per)
-    b.set_xlabel("client")
-    b.set_ylabel("stalled frames")
-    b.set_title(f"stalls: {r['stalls']} of {r['frames']} frames")
+    a.set_title("frame delivery latency")
+    a.legend(loc="lower right", fontsize=7)
+    for cache, marker in (("cold", "o-"), ("warm", "s--")):
+        rs = sorted((r for r in runs if r["cache"] == cache), key=lambda r: r["clients"])
+        if rs:
+            b.plot([r["clients"] for r in rs], [100.0 * r["stall_fraction"] for r in rs], marker,
+                   label=f"{cache} cache")
+    b.set_xlabel("concurrent clients")
+    b.set_ylabel("stalled frames (%)")
+    b.set_title("stalls against load")
+    b.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clients", type=int, default=50)
-    ap.add_argument("--duration", type=float, default=20.0, help="walk length, seconds")
-    ap.add_argument("--speed", type=float, default=1.4, help="walking speed, m/s")
-    ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--scene", default="village")
-    ap.add_argument("--triangles", type=int, default=20_000)
-    ap.add_argument("--cell-size", type=float, default=4.0)
-    ap.add_argument("--core", default="sampling")
-    ap.add_argument("--params", default="{}",
-                    help="core parameters, JSON (default: the core's defaults)")
-    ap.add_argument("--budget", type=int, default=None, help="client triangle budget")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results",
-                    help="folder for load.md, load.png and load.json")
-    ap.add_argument("--no-files", action="store_true", help="print only")
-    ap.add_argument("--quick", action="store_true", help="5 clients, 6 s walks (smoke)")
-    args = ap.parse_args(argv)
-    if args.quick:
-        args.clients, args.duration = min(args.clients, 5), min(args.duration, 6.0)
-    args.params = json.loads(args.params)
+def capacity_table(runs: list[dict]) -> list[str]:
+    """One markdown row per run: the load each run put on the server and how it held."""
+    def ms(x: float | None) -> str:
+        return "n/a" if x is None else f"{1e3 * x:.0f}"
 
-    command = "python -m benchmarks.bench_load " + " ".join(
-        argv if argv is not None else sys.argv[1:])
-    where = machine()
-    print("command: " + command)
-    print("machine: " + where)
+    rows = ["| cache | clients | frames | stalls % | clients with stalls | p50 ms | p95 ms | "
+            "never delivered | computations | computation s | MB sent | server RSS peak MiB | "
+            "wall s |", "|" + "---|" * 13]
+    for r in runs:
+        rows.append(
+            f"| {r['cache']} | {r['clients']} | {r['frames']} | {100 * r['stall_fraction']:.2f} "
+            f"| {r['clients_with_stalls']} | {ms(r['latency_p50_s'])} | "
+            f"{ms(r['latency_p95_s'])} | {r['frames_never_delivered']} | "
+            f"{r['computations']:.0f} | {r['computation_seconds']:.1f} | "
+            f"{r['bytes_sent'] / 1e6:.2f} | {r['server_rss_peak_bytes'] / 2**20:.0f} | "
+            f"{r['wall_seconds']:.1f} |")
+    return rows
+
+
+@contextlib.contextmanager
+def serving(args: argparse.Namespace) -> Iterator[tuple[str, subprocess.Popen]]:
+    """A fresh ``pvs serve`` on a free loopback port, with the run's scene, core and workers:
+    (base URL, process). Its caches start empty."""
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PVS_GENERATED=f"{args.scene}={args.triangles}",
@@ -337,7 +365,6 @@ def main(argv: list[str] | None = None) -> int:
     env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
     cmd = [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1", "--port", str(port),
            "--scenes", str(ROOT / "nonexistent-scenes-dir")]
-    print("server:  " + " ".join(cmd))
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     try:
@@ -352,12 +379,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(proc.stderr.read().decode()[-3000:] if proc.stderr else "")
                 raise SystemExit("server did not start")
             time.sleep(0.2)
-        scene = make_scene(args.scene, triangles=args.triangles, seed=0)
-        grid = ViewcellGrid.for_scene(scene, scene.meta.get("cell_size") or args.cell_size)
-        cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
-        stats, peak_rss, wall = asyncio.run(run_clients(url, args, grid, proc.pid))
-        server_cpu, client_cpu = cpu_seconds(proc.pid) - cpu0, time.process_time() - own0
-        text = httpx.get(url + "/metrics", timeout=30).text
+        yield url, proc
     finally:
         proc.terminate()
         try:
@@ -365,22 +387,126 @@ def main(argv: list[str] | None = None) -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
 
-    r = summarise(args, scene.n_triangles, len(grid), stats, peak_rss, wall, text,
-                  server_cpu, client_cpu)
-    rows = table(r)
-    w = max(len(k) for k, _ in rows)
-    lines = ["-" * (w + 30), *(f"{k:<{w}}  {v}" for k, v in rows), "-" * (w + 30)]
-    lines += [f"error: {e}" for e in r["errors_sample"]]
-    print("\n".join(lines))
-    print("json: " + json.dumps({k: v for k, v in r.items() if k != "latencies_s"}))
+
+async def warm_up(url: str, args: argparse.Namespace, cells: int) -> float:
+    """Compute every cell's PVS through the HTTP route (the walkers' cache keys: same scene,
+    core and parameters), ``args.workers`` at a time; seconds taken."""
+    t0 = time.perf_counter()
+    gate = asyncio.Semaphore(args.workers)
+    query = {"core": args.core, **{k: json.dumps(v) if not isinstance(v, str) else v
+                                   for k, v in args.params.items()}}
+    async with httpx.AsyncClient(base_url=url, timeout=600) as http:
+        async def one(cell: int) -> None:
+            async with gate:
+                r = await http.get(f"/scenes/{args.scene}/cells/{cell}/pvs", params=query)
+                r.raise_for_status()
+
+        await asyncio.gather(*(one(c) for c in range(cells)))
+    return time.perf_counter() - t0
+
+
+def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients: int,
+            cache: str, scene_triangles: int, grid: ViewcellGrid) -> dict:
+    """One run of ``clients`` walkers against the server at ``url``; its summary."""
+    before = counters(url)
+    cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
+    stats, peak_rss, wall = asyncio.run(run_clients(url, args, clients, grid, proc.pid))
+    server_cpu, client_cpu = cpu_seconds(proc.pid) - cpu0, time.process_time() - own0
+    after = counters(url)
+    m = {k: after[k] - before[k] for k in COUNTERS}
+    return summarise(args, clients, cache, scene_triangles, len(grid), stats, peak_rss, wall, m,
+                     server_cpu, client_cpu)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--clients", default="5,10,20,50",
+                    help="concurrent clients, a comma-separated list: one run per count")
+    ap.add_argument("--duration", type=float, default=20.0, help="walk length, seconds")
+    ap.add_argument("--speed", type=float, default=1.4, help="walking speed, m/s")
+    ap.add_argument("--fps", type=float, default=10.0)
+    ap.add_argument("--scene", default="village")
+    ap.add_argument("--triangles", type=int, default=20_000)
+    ap.add_argument("--cell-size", type=float, default=4.0)
+    ap.add_argument("--core", default="sampling")
+    ap.add_argument("--params", default="{}",
+                    help="core parameters, JSON (default: the core's defaults)")
+    ap.add_argument("--budget", type=int, default=None, help="client triangle budget")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--grace", type=float, default=10.0,
+                    help="seconds after its walk a client still waits for stalled frames' cells")
+    ap.add_argument("--cache", default="cold,warm",
+                    help="cold (a fresh server per run), warm (one server with every cell "
+                         "computed before the clients come), or both")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results",
+                    help="folder for load.md, load.png and load.json")
+    ap.add_argument("--no-files", action="store_true", help="print only")
+    ap.add_argument("--quick", action="store_true", help="5 clients, 6 s walks, cold (smoke)")
+    args = ap.parse_args(argv)
+    counts = [int(x) for x in str(args.clients).split(",") if x.strip()]
+    caches = [x.strip() for x in args.cache.split(",") if x.strip()]
+    if not counts or min(counts) < 1 or set(caches) - {"cold", "warm"} or not caches:
+        ap.error("--clients takes positive counts, --cache cold and/or warm")
+    if args.quick:
+        counts, args.duration, caches = [min(counts[0], 5)], min(args.duration, 6.0), ["cold"]
+    args.params = json.loads(args.params)
+
+    command = "python -m benchmarks.bench_load " + " ".join(
+        argv if argv is not None else sys.argv[1:])
+    where = machine()
+    print("command: " + command)
+    print("machine: " + where)
+    scene = make_scene(args.scene, triangles=args.triangles, seed=0)
+    grid = ViewcellGrid.for_scene(scene, scene.meta.get("cell_size") or args.cell_size)
+    runs: list[dict] = []
+    details: list[str] = []
+
+    def report(r: dict) -> None:
+        rows = table(r)
+        w = max(len(k) for k, _ in rows)
+        lines = ["-" * (w + 30), *(f"{k:<{w}}  {v}" for k, v in rows), "-" * (w + 30)]
+        lines += [f"error: {e}" for e in r["errors_sample"]]
+        print("\n".join(lines))
+        print("json: " + json.dumps({k: v for k, v in r.items() if k != "latencies_s"}))
+        details.extend([f"### {r['clients']} clients, {r['cache']} cache", "", "```", *lines,
+                        "```", ""])
+        runs.append(r)
+
+    if "cold" in caches:
+        for n in counts:
+            with serving(args) as (url, proc):
+                report(measure(url, proc, args, n, "cold", scene.n_triangles, grid))
+    warm_seconds = None
+    if "warm" in caches:
+        with serving(args) as (url, proc):
+            warm_seconds = asyncio.run(warm_up(url, args, len(grid)))
+            print(f"warm-up: {len(grid)} cells computed in {warm_seconds:.1f} s")
+            for n in counts:
+                r = measure(url, proc, args, n, "warm", scene.n_triangles, grid)
+                r["warm_up_seconds"] = warm_seconds
+                report(r)
+    capacity = capacity_table(runs)
+    print("\n".join(capacity))
     if not args.no_files:
         args.out.mkdir(parents=True, exist_ok=True)
         md = ["# Load benchmark", "", f"command: `{command}`", "", f"machine: {where}", "",
-              "```", *lines, "```", "", "![latency and stalls](load.png)", ""]
+              f"Scene `{args.scene}` ({scene.n_triangles} triangles, {len(grid)} cells of "
+              f"{args.cell_size:g} m), core `{args.core}` with parameters "
+              f"`{json.dumps(args.params)}`, {args.workers} workers; every client walks "
+              f"{args.duration:g} s at {args.speed:g} m/s sending {args.fps:g} poses/s. Cold: a "
+              "fresh server per row, every PVS computed while the walkers walk. Warm: one server "
+              "whose cache holds every cell's PVS before the clients come"
+              + (f" (computed in {warm_seconds:.1f} s)" if warm_seconds is not None else "")
+              + "; its rows run one after another on it. A stall is a frame whose cell was "
+              "not complete one frame interval after its pose was sent; never delivered: still "
+              f"missing {args.grace:g} s after the walk ended (the walker had left the cell).", "",
+              *capacity, "", "![latency and stalls](load.png)", "", "## Each run", "",
+              *details]
         (args.out / "load.md").write_text("\n".join(md))
         (args.out / "load.json").write_text(json.dumps(
-            {"command": command, "machine": where, **r}, indent=1))
-        plot(r, args.out / "load.png")
+            {"command": command, "machine": where, "runs": runs}, indent=1))
+        plot(runs, args.out / "load.png")
         print(f"wrote {args.out / 'load.md'}, load.png, load.json")
     return 0
 

@@ -15,7 +15,7 @@ FIELDS = ("clients", "frames", "stalls", "latency_p50_s", "latency_p95_s", "byte
 
 def test_three_clients_report_every_field(tmp_path, capsys):
     rc = bench_load.main(["--clients", "3", "--duration", "3", "--triangles", "5000",
-                          "--params", '{"resolution": 64, "samples": 8}',
+                          "--params", '{"resolution": 64, "samples": 8}', "--cache", "cold",
                           "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 0
@@ -33,4 +33,21 @@ def test_three_clients_report_every_field(tmp_path, capsys):
     md = (tmp_path / "load.md").read_text()
     assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
     assert (tmp_path / "load.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert json.loads((tmp_path / "load.json").read_text())["frames"] == r["frames"]
+    assert json.loads((tmp_path / "load.json").read_text())["runs"][0]["frames"] == r["frames"]
+
+
+def test_warm_cache_serves_every_cell_without_computing(tmp_path, capsys):
+    """The warm rows run after every cell's PVS was computed over HTTP with the walkers' core
+    and parameters, so the walkers' sessions find them all in the cache: the HTTP and WebSocket
+    paths share cache keys (a mismatch would show as computations here)."""
+    rc = bench_load.main(["--clients", "1,2", "--duration", "2", "--triangles", "5000",
+                          "--params", '{"resolution": 64, "samples": 8}', "--cache", "warm",
+                          "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    runs = [json.loads(line[6:]) for line in out.splitlines() if line.startswith("json: ")]
+    assert [(r["clients"], r["cache"]) for r in runs] == [(1, "warm"), (2, "warm")]
+    for r in runs:
+        assert r["computations"] == 0 and r["cache_hits"] >= 1
+        assert r["client_errors"] == 0 and r["duplicates"] == 0
+    assert "| warm | 2 |" in (tmp_path / "load.md").read_text()
