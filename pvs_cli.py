@@ -1,8 +1,9 @@
 """The ``pvs`` command line: the one place that knows every package (the composition root).
 
 Subcommands: ``serve`` (the edge server), ``walk`` (headless client over a walkthrough),
-``query`` (a cell's PVS over HTTP), ``scenes`` (list or describe scenes), ``demo`` (server +
-client end to end on a built-in scene). Packages stay independent of each other; only this
+``query`` (a cell's PVS over HTTP), ``scenes`` (list or describe scenes), ``precompute`` (a
+scene's cell PVS into the on-disk cache a server starts with), ``demo`` (server + client end to
+end on a built-in scene). Packages stay independent of each other; only this
 module imports both the server and the client, each lazily inside its subcommand.
 """
 
@@ -46,7 +47,8 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
     env = os.environ if env is None else env
     flags = {"host": args.host, "port": args.port, "core": args.core,
              "cell_size": args.cell_size, "workers": args.workers,
-             "scenes_dir": Path(args.scenes) if args.scenes else None}
+             "scenes_dir": Path(args.scenes) if args.scenes else None,
+             "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -256,6 +258,37 @@ def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+def cmd_precompute(args: argparse.Namespace) -> int:
+    from server.catalog import SceneCatalog, SceneLoadFailed, UnknownSceneError
+    from server.compute import ComputeService, UnknownCellError, UnknownCoreError
+    from server.precompute import parse_cells, precompute
+
+    try:
+        settings = serve_settings(args)
+    except ValueError as exc:
+        raise SystemExit(f"pvs precompute: {exc}") from None
+    if settings.cache_dir is None:
+        raise SystemExit("pvs precompute: name the on-disk cache the server will read "
+                         "(--cache-dir or PVS_CACHE_DIR); without it the work is lost on exit")
+    catalog = SceneCatalog(settings)
+    service = ComputeService(catalog, settings)
+    try:
+        cells = None
+        if args.cells:
+            cells = parse_cells(args.cells, len(catalog.get(args.scene).grid))
+        report = precompute(service, args.scene, args.core, _parse_params(args.param), cells,
+                            progress=not args.quiet)
+    except (UnknownSceneError, UnknownCoreError, UnknownCellError, SceneLoadFailed,
+            ValueError) as exc:
+        raise SystemExit(f"pvs precompute: {exc.args[0] if exc.args else exc}") from None
+    finally:
+        service.shutdown()
+    print(report.summary())
+    for cell, why in sorted(report.failed.items())[:10]:
+        print(f"  cell {cell} failed: {why}", file=sys.stderr)
+    return 1 if report.failed else 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     # benchmarks/ lives in the repository, not in the installed packages: import it from there.
     repo = str(Path(__file__).resolve().parent)
@@ -280,6 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--core", help="default core (PVS_CORE)")
     p.add_argument("--cell-size", type=float, help="viewcell size in metres (PVS_CELL_SIZE)")
     p.add_argument("--workers", type=int, help="PVS worker threads (PVS_WORKERS)")
+    p.add_argument("--cache-dir", help="on-disk PVS cache folder, kept across restarts "
+                                       "(PVS_CACHE_DIR; `pvs precompute` fills it)")
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client")
@@ -323,6 +358,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="near-far cubemap face size, pixels (PVS_NEAR_FAR_RESOLUTION)")
     _add_walk_options(p, "runs/demo")
     p.set_defaults(fn=cmd_demo)
+
+    p = sub.add_parser("precompute", help="compute a scene's cell PVS into the on-disk cache "
+                                          "a server then starts with")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--cache-dir", help="on-disk PVS cache folder (PVS_CACHE_DIR); start the "
+                                       "server with the same one")
+    p.add_argument("--cells", help="cell ids and ranges, e.g. 0-99,120 (default: every cell)")
+    p.add_argument("--core", help="core name (PVS_CORE; 'auto' as the server picks)")
+    p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")
+    p.add_argument("--scenes", help="folder of scene files (PVS_SCENES_DIR)")
+    p.add_argument("--cell-size", type=float, help="viewcell size in metres (PVS_CELL_SIZE)")
+    p.add_argument("--workers", type=int, help="computations at once (PVS_WORKERS)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(fn=cmd_precompute, host=None, port=None)
 
     # Every argument after "bench" goes to benchmarks.bench_matrix (its own parser and --help).
     p = sub.add_parser("bench", help="error against run time for every core (pvs bench --help)",

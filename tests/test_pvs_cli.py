@@ -119,3 +119,40 @@ def test_demo_end_to_end_through_the_pvs_entry_point(tmp_path):
     assert set(means) == {"epsilon", "psnr", "ssim"}, run.stdout[-2000:]
     assert float(means["ssim"]) == pytest.approx(summary["ssim"], rel=1e-3)
     assert f"stalls: {summary['stalls']}" in run.stdout
+
+
+def test_precompute_fills_a_cache_folder_and_resumes(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PVS_GENERATED", "rooms=3000")
+    monkeypatch.setenv("PVS_CORE_PARAMS", '{"samples": 4, "resolution": 32}')
+    empty = tmp_path / "no-scenes"
+    empty.mkdir()
+    argv = ["precompute", "--scene", "rooms", "--scenes", str(empty), "--cache-dir",
+            str(tmp_path / "cache"), "--cells", "0-2", "--quiet"]
+    assert pvs_cli.main(argv) == 0
+    assert "3 computed" in capsys.readouterr().out
+    assert pvs_cli.main(argv) == 0  # a second run reads the folder instead of computing
+    assert "0 computed" in (out := capsys.readouterr().out) and "3 already cached" in out
+    assert len(list((tmp_path / "cache").rglob("*.npz"))) == 3
+
+
+def test_precompute_errors_are_messages(tmp_path, monkeypatch):
+    monkeypatch.setenv("PVS_GENERATED", "rooms=3000")
+    monkeypatch.delenv("PVS_CACHE_DIR", raising=False)
+    base = ["precompute", "--scenes", str(tmp_path)]
+    for argv, said in (
+        ([*base, "--scene", "rooms"], "cache-dir"),
+        ([*base, "--scene", "nope", "--cache-dir", str(tmp_path / "c")], "nope"),
+        ([*base, "--scene", "rooms", "--cache-dir", str(tmp_path / "c"), "--cells", "0-99999"],
+         "outside"),
+        ([*base, "--scene", "rooms", "--cache-dir", str(tmp_path / "c"), "--core", "nope"],
+         "nope"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            pvs_cli.main(argv)
+        assert said in str(exc.value.code)
+
+
+def test_serve_cache_dir_flag_overrides_env(tmp_path):
+    s = _serve_settings(["--cache-dir", str(tmp_path / "a")], {"PVS_CACHE_DIR": str(tmp_path)})
+    assert s.cache_dir == tmp_path / "a"
+    assert _serve_settings([], {"PVS_CACHE_DIR": str(tmp_path)}).cache_dir == tmp_path

@@ -1,0 +1,77 @@
+"""``server.precompute``: a scene's cells computed ahead into the on-disk cache, read back by a
+fresh service and by a real server started on the same folder."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+from server.catalog import SceneCatalog, UnknownSceneError
+from server.compute import ComputeService, UnknownCellError, UnknownCoreError
+from server.precompute import parse_cells, precompute
+from tests.conftest import serving
+
+FAST = {"samples": 4, "resolution": 32}
+
+
+@pytest.fixture
+def disk_settings(settings, tmp_path):
+    return settings.model_copy(update={"cache_dir": tmp_path / "pvs-cache",
+                                       "generated": {"rooms": 3000}, "core": "sampling",
+                                       "core_params": FAST})
+
+
+def _service(s) -> ComputeService:
+    return ComputeService(SceneCatalog(s), s)
+
+
+def test_precompute_fills_the_disk_cache_a_restart_reads(disk_settings):
+    first = _service(disk_settings)
+    try:
+        report = precompute(first, "rooms", cells=[0, 1, 2, 3], progress=False)
+        ids = {c: first.submit("rooms", *first.resolve(), cell=c).result().pvs.triangle_ids
+               for c in range(4)}
+    finally:
+        first.shutdown()
+    assert (report.computed, report.cached, report.failed) == (4, 0, {})
+    assert report.core == "sampling" and report.params["samples"] == 4
+    assert report.compute_seconds > 0 and "4 computed" in report.summary()
+    # A fresh service (a restarted server) finds every cell on disk, computing nothing.
+    second = _service(disk_settings)
+    try:
+        again = precompute(second, "rooms", cells=range(4), progress=False)
+    finally:
+        second.shutdown()
+    assert (again.computed, again.cached) == (0, 4) and second.computed == 0
+    # And so does the real server on that folder, over HTTP, with the same ids.
+    with serving(disk_settings) as (url, app):
+        for c in range(4):
+            r = httpx.get(f"{url}/scenes/rooms/cells/{c}/pvs", timeout=60)
+            assert r.status_code == 200 and r.json()["cached"] is True
+            assert np.array_equal(r.json()["triangle_ids"], ids[c])
+        assert app.state.server.compute.computed == 0
+
+
+def test_precompute_refuses_bad_requests_before_computing(disk_settings):
+    service = _service(disk_settings)
+    try:
+        n = len(service.catalog.get("rooms").grid)
+        with pytest.raises(UnknownCellError):
+            precompute(service, "rooms", cells=[0, n], progress=False)
+        with pytest.raises(UnknownSceneError):
+            precompute(service, "../etc", progress=False)
+        with pytest.raises(UnknownCoreError):
+            precompute(service, "rooms", core="nope", progress=False)
+        with pytest.raises(ValueError):
+            precompute(service, "rooms", params={"samples": -1}, progress=False)
+        assert service.computed == 0
+    finally:
+        service.shutdown()
+
+
+def test_parse_cells_ranges_and_errors():
+    assert parse_cells("3,0-2, 2,7-7", 10) == [0, 1, 2, 3, 7]
+    for bad in ("", "a", "5-2", "0-10", "-1", "1-x"):
+        with pytest.raises(ValueError):
+            parse_cells(bad, 10)
