@@ -24,7 +24,7 @@ from server.compute import ComputeService, UnknownCellError
 class PrecomputeReport:
     """What a ``precompute`` run did: cells computed now, found cached (memory or disk), and
     failed ({cell: message}); ``compute_seconds`` sums the computations' own times, ``wall``
-    is the run's wall time (seconds)."""
+    is the run's wall time (seconds); ``why`` how the core was chosen (``resolve_for``)."""
 
     scene: str
     core: str
@@ -35,10 +35,14 @@ class PrecomputeReport:
     failed: dict[int, str] = field(default_factory=dict)
     compute_seconds: float = 0.0
     wall: float = 0.0
+    why: str = ""
 
     def summary(self) -> str:
         """One line for people."""
-        return (f"{self.scene}: {self.cells} cells with {self.core} {self.params}: "
+        # Only the auto choice has a reason worth printing; a named core was simply asked for.
+        chosen = f" (auto: {self.why})" if self.why not in ("", "requested",
+                                                            "server default") else ""
+        return (f"{self.scene}: {self.cells} cells with {self.core}{chosen} {self.params}: "
                 f"{self.computed} computed ({self.compute_seconds:.1f} s of computation), "
                 f"{self.cached} already cached, {len(self.failed)} failed, "
                 f"{self.wall:.1f} s wall")
@@ -79,8 +83,8 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
     bad = [c for c in ids if not 0 <= c < n]
     if bad:
         raise UnknownCellError(f"scene {scene!r} has no cell {bad[0]} (cells 0..{n - 1})")
-    core_obj, p, _why = service.resolve_for(loaded.scene, core, params)
-    report = PrecomputeReport(scene, core_obj.name, dataclasses.asdict(p), len(ids))
+    core_obj, p, why = service.resolve_for(loaded.scene, core, params)
+    report = PrecomputeReport(scene, core_obj.name, dataclasses.asdict(p), len(ids), why=why)
     t0 = time.perf_counter()
     futures = {service.submit(scene, core_obj, p, cell=c): c for c in ids}
     done = as_completed(futures)

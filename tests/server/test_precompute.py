@@ -37,6 +37,7 @@ def test_precompute_fills_the_disk_cache_a_restart_reads(disk_settings):
     assert (report.computed, report.cached, report.failed) == (4, 0, {})
     assert report.core == "sampling" and report.params["samples"] == 4
     assert report.compute_seconds > 0 and "4 computed" in report.summary()
+    assert "auto" not in report.summary()
     # A fresh service (a restarted server) finds every cell on disk, computing nothing.
     second = _service(disk_settings)
     try:
@@ -51,6 +52,17 @@ def test_precompute_fills_the_disk_cache_a_restart_reads(disk_settings):
             assert r.status_code == 200 and r.json()["cached"] is True
             assert np.array_equal(r.json()["triangle_ids"], ids[c])
         assert app.state.server.compute.computed == 0
+
+
+def test_precompute_auto_says_which_core_and_why(disk_settings):
+    service = _service(disk_settings.model_copy(update={"core_params": {}}))
+    try:
+        report = precompute(service, "rooms", core="auto", params={"resolution": 32},
+                            cells=[0], progress=False)
+    finally:
+        service.shutdown()
+    assert report.core == "from_segment" and report.computed == 1
+    assert "(auto: static triangle scene" in report.summary()
 
 
 def test_precompute_refuses_bad_requests_before_computing(disk_settings):
