@@ -196,7 +196,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         # The child server reads PVS_*: near-far streams (near PVS geometry + far cubemap).
         env["PVS_NEAR_FAR"] = "1"
         for flag, var in (("r1", "PVS_NEAR_FAR_R1"), ("r2", "PVS_NEAR_FAR_R2"),
-                          ("cubemap_resolution", "PVS_NEAR_FAR_RESOLUTION")):
+                          ("cubemap_resolution", "PVS_NEAR_FAR_RESOLUTION"),
+                          ("near_far_block", "PVS_NEAR_FAR_BLOCK")):
             if getattr(args, flag) is not None:
                 env[var] = str(getattr(args, flag))
     if args.triangles is not None:
@@ -356,6 +357,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--r2", type=float, help="near-far outer radius, metres (PVS_NEAR_FAR_R2)")
     p.add_argument("--cubemap-resolution", type=int,
                    help="near-far cubemap face size, pixels (PVS_NEAR_FAR_RESOLUTION)")
+    p.add_argument("--near-far-block", type=int,
+                   help="cells per side of a block sharing one cubemap (PVS_NEAR_FAR_BLOCK; "
+                        "default 1: a cubemap per cell)")
     _add_walk_options(p, "runs/demo")
     p.set_defaults(fn=cmd_demo)
 

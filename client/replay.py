@@ -186,7 +186,7 @@ def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
             stream = session.cells.get(cell) if cell is not None else None
             if stream is not None and stream.begin is not None:
                 rec["pvs_triangles"] = int(stream.begin.triangles)  # the cell's, per the server
-            cube = session.cubemaps.get(cell) if cell is not None else None
+            cube = session.cubemap_for(cell) if cell is not None else None
             if cube is not None:
                 # Near-far stream: the geometry-only frame above lacks the far field; the
                 # composed frame (morph + cubemap) is what the device shows.

@@ -124,7 +124,8 @@ class Session:
         self.dropped = 0
         self.drops: list[Drop] = []
         self.triangles_received = 0
-        #: Far-field cubemaps by cell (``protocol.cubemap.CubemapFrame``), near-far streams.
+        #: Far-field cubemaps by the cell they were baked for (``protocol.cubemap.CubemapFrame``;
+        #: the anchor cell of a block that shares one), near-far streams.
         self.cubemaps: dict[int, Any] = {}
         #: Dynamic scenes: keyframe and sphere frames received, triangle ids whose keyframes
         #: arrived (and those that arrived while already held: a server bug), spheres received.
@@ -223,6 +224,15 @@ class Session:
     def is_complete(self, cell: int) -> bool:
         """Whether ``cell_end`` for ``cell`` has arrived in this session."""
         return int(cell) in self.complete
+
+    def cubemap_for(self, cell: int) -> Any:
+        """The far cubemap ``cell`` composes with (``protocol.cubemap.CubemapFrame``), or None:
+        the one its ``cell_begin.near_far`` names (``cubemap_cell``: cells of a block share
+        their anchor cell's), else the cell's own."""
+        stream = self.cells.get(int(cell))
+        nf = stream.begin.near_far if stream is not None and stream.begin is not None else None
+        key = nf.get("cubemap_cell", cell) if isinstance(nf, dict) else cell
+        return self.cubemaps.get(int(key)) if key is not None else None
 
     async def wait_cell(self, cell: int, timeout: float | None = None) -> CellStream:
         """Wait until ``cell`` is complete; its ``CellStream``. TimeoutError after ``timeout``

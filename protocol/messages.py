@@ -169,7 +169,9 @@ class CellBegin(_Message):
     chunks: NonNegInt
     #: True for a cell ahead of the walker, sent before it gets there (lower priority).
     prefetch: bool = False
-    #: Near-far partition of this cell's stream: ``{"r1", "r2", "center", "cubemap"}`` (metres).
+    #: Near-far partition of this cell's stream: ``{"r1", "r2", "center", "cubemap",
+    #: "cubemap_cell"}`` (metres; ``center`` is the cubemap centre O, ``cubemap_cell`` the cell
+    #: whose cubemap frame this cell composes with: cells of a block share one).
     near_far: dict[str, Any] | None = None
 
 

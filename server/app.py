@@ -61,14 +61,16 @@ class ServerState:
             self.near_far = NearFarStore(self.settings.near_far_cache_bytes, self.walker_in)
 
     def walker_in(self, scene: str, cell: int) -> bool:
-        """Whether a connected walker stands in ``cell`` of ``scene`` now (asked by caches
-        before they evict that cell's data, from any thread)."""
+        """Whether a connected walker stands in ``cell`` of ``scene`` now, or in a cell whose
+        cubemap ``cell`` anchors (asked by caches before they evict that cell's data, from any
+        thread)."""
         try:
             sessions = list(self.sessions.values())
         except RuntimeError:  # the dict changed under us: assume someone is there
             return True
-        return any(s.loaded is not None and s.loaded.name == scene and s.cell == cell
-                   for s in sessions)
+        # A walker also holds the cubemap its block shares (near-far anchors).
+        return any(s.loaded is not None and s.loaded.name == scene
+                   and cell in (s.cell, s.cubemap_cell(s.cell)) for s in sessions)
 
     def wanted(self, key: tuple) -> bool:
         """Whether any open session still needs the PVS of cache key ``key`` (asked by worker

@@ -4,7 +4,10 @@
   one vectorised pass, ``visibility.nearfar_cells``), small (a bool per cell) and kept;
 - per (scene, cell, r2): the cell's ``NearFarSplit`` (``split``), None-free: ``False`` when the
   cell needs no cubemap, which the per-scene mask answers without touching the scene;
-- per (scene, cell, r1, r2, resolution): the encoded cubemap frame (``cubemap``).
+- per (scene, cell, r1, r2, resolution): the encoded cubemap frame (``cubemap``);
+- per (scene, block): the cell whose centre each cell's cubemap is baked from (``anchors``,
+  ``visibility.nearfar_cells.cubemap_anchors``): splits and cubemaps are asked for that anchor
+  cell, so cells of one block share them.
 
 Splits and cubemaps share one ``ByteLRU`` bounded by ``settings.near_far_cache_bytes``; an entry
 of a cell where a connected walker stands (``in_use(scene, cell)``) is never evicted. Keys carry
@@ -22,7 +25,7 @@ import numpy as np
 from server.cache import ByteLRU
 from server.catalog import LoadedScene
 from visibility import nearfar
-from visibility.nearfar_cells import cells_needing_cubemap
+from visibility.nearfar_cells import cells_needing_cubemap, cubemap_anchors
 
 
 class NearFarStore:
@@ -32,6 +35,7 @@ class NearFarStore:
         self._in_use = in_use
         self.cache = ByteLRU(max_bytes, keep=self._keep)
         self._masks: dict[tuple, np.ndarray] = {}
+        self._anchors: dict[tuple, np.ndarray] = {}
         self._lock = threading.Lock()
 
     def _keep(self, key: Hashable) -> bool:
@@ -51,6 +55,18 @@ class NearFarStore:
             with self._lock:
                 self._masks[key] = mask
         return mask
+
+    def anchors(self, loaded: LoadedScene, block: int) -> np.ndarray:
+        """(cells,) int64: the cell whose centre is each cell's cubemap centre O, for blocks of
+        ``block`` x ``block`` grid columns (computed once per scene and block)."""
+        key = (loaded.name, loaded.fingerprint, len(loaded.grid), int(block))
+        a = self._anchors.get(key)
+        if a is None:
+            a = cubemap_anchors(loaded.grid, block)
+            a.setflags(write=False)
+            with self._lock:
+                self._anchors[key] = a
+        return a
 
     # ----------------------------------------------------------------------------- per cell
     def _split_key(self, loaded: LoadedScene, cell: int, cfg: nearfar.NearFarConfig) -> tuple:
@@ -94,4 +110,4 @@ class NearFarStore:
 
     def stats(self) -> dict[str, Any]:
         """The LRU's statistics plus the number of per-scene masks."""
-        return {**self.cache.stats(), "masks": len(self._masks)}
+        return {**self.cache.stats(), "masks": len(self._masks), "anchors": len(self._anchors)}

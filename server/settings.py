@@ -56,6 +56,11 @@ class Settings(BaseModel):
     near_far, near_far_r1, near_far_r2, near_far_resolution : near-far partition of each cell's
         stream (``visibility.nearfar``): radii in metres, cubemap face size in pixels; defaults
         and bounds are ``NearFarConfig``'s, checked when the settings are made.
+    near_far_block : cubemap sharing: cells are grouped by blocks of this many grid columns on a
+        side (per level), and a block shares one cubemap centre O, the centre of its most
+        central cell (``visibility.nearfar_cells.cubemap_anchors``); 1: a cubemap per cell.
+        Larger blocks bake and send fewer cubemaps and let the eye walk farther from O, where
+        the morph hides the near/far seam that conventional compositing shows.
     near_far_cache_bytes : bound of the near-far caches (splits and encoded cubemaps shared by
         every session), bytes; a connected walker's current cell is never evicted.
     max_frame_bytes : largest binary geometry frame the server sends, bytes.
@@ -88,6 +93,7 @@ class Settings(BaseModel):
     near_far_r2: float = Field(_NEAR_FAR_DEFAULT.r2, gt=0, allow_inf_nan=False)
     near_far_resolution: int = Field(_NEAR_FAR_DEFAULT.resolution, ge=NEAR_FAR_MIN_RESOLUTION,
                                      le=NEAR_FAR_MAX_RESOLUTION)
+    near_far_block: int = Field(1, ge=1, le=64)
     near_far_cache_bytes: int = Field(256 * 1024 * 1024, ge=0)
     max_frame_bytes: int = Field(DEFAULT_MAX_FRAME_BYTES, ge=frame_bytes(1), le=64 * 1024 * 1024)
     max_message_bytes: int = Field(64 * 1024, ge=1024, le=16 * 1024 * 1024)
@@ -125,7 +131,7 @@ class Settings(BaseModel):
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
-        PVS_NEAR_FAR_CACHE_BYTES, PVS_MAX_BODY_BYTES,
+        PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
         disables), PVS_LOG_LEVEL,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
@@ -145,6 +151,7 @@ class Settings(BaseModel):
             "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
             "near_far_resolution": "PVS_NEAR_FAR_RESOLUTION",
             "near_far_cache_bytes": "PVS_NEAR_FAR_CACHE_BYTES",
+            "near_far_block": "PVS_NEAR_FAR_BLOCK",
             "max_body_bytes": "PVS_MAX_BODY_BYTES",
             "log_level": "PVS_LOG_LEVEL",
         }

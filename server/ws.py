@@ -175,6 +175,7 @@ class StreamSession:
         #: The last cell that got a current-cell stream (an empty one confirms a cell the
         #: client already holds, e.g. prefetched or revisited).
         self.announced: int | None = None
+        #: Anchor cells whose cubemap this session was sent (a block shares its anchor's).
         self.cubemaps_sent: set[int] = set()
         #: Keyframes and spheres of a dynamic scene (``server.dynamic``), made on first stream.
         self.dynamic: DynamicStream | None = None
@@ -303,7 +304,7 @@ class StreamSession:
             self.n_held -= len(ids)
         for item in removed:
             if item.kind == "cubemap":
-                self.cubemaps_sent.discard(item.stream.cell)
+                self.cubemaps_sent.discard(self.cubemap_cell(item.stream.cell))
         for tag in cut:
             self.done.discard(tag.cell)
         c = self.state.counters
@@ -486,11 +487,18 @@ class StreamSession:
             cubemap = {"on": False, "why": "the server's near_far setting is off"}
         else:
             cfg = self._near_far_cfg(nf)
-            # Every cell at once, computed once per scene and r2 (shared by all sessions).
-            need = self.state.near_far.cubemap_cells(self.loaded, cfg)
+            # Every cell at once, computed once per scene and r2 (shared by all sessions); a
+            # cell needs a cubemap when its anchor (its block's centre cell) does.
+            anchors = self._anchors()
+            need = self.state.near_far.cubemap_cells(self.loaded, cfg)[anchors]
             n = int(np.count_nonzero(need))
-            cubemap = {"on": n > 0, "cells": n, "r1": cfg.r1, "r2": cfg.r2,
+            maps = int(len(np.unique(anchors[need])))
+            block = self.settings.near_far_block
+            cubemap = {"on": n > 0, "cells": n, "cubemaps": maps, "block": block,
+                       "r1": cfg.r1, "r2": cfg.r2,
                        "why": f"{n} of {len(need)} cells have static geometry beyond r2"
+                       + (f", sharing {maps} cubemaps (blocks of {block} x {block} cells)"
+                          if block > 1 else "")
                        if n else "nothing static lies beyond r2 of any cell"}
         return {
             "pvs": pvs,
@@ -503,6 +511,17 @@ class StreamSession:
             "cores": offered_cores(scene),
             "core_choice": {"core": self.core.name, "why": why},
         }
+
+    def _anchors(self) -> np.ndarray:
+        """(cells,) the cell whose centre is each cell's cubemap centre (``near_far_block``)."""
+        return self.state.near_far.anchors(self.loaded, self.settings.near_far_block)
+
+    def cubemap_cell(self, cell: int | None) -> int | None:
+        """The anchor cell whose cubemap ``cell`` shares (itself without blocks); None for
+        None or without near-far."""
+        if cell is None or self.loaded is None or not self.settings.near_far:
+            return cell
+        return int(self._anchors()[int(cell)])
 
     def _near_far_cfg(self, nf: Any) -> Any:
         s = self.settings
@@ -764,7 +783,7 @@ class StreamSession:
         nf = _near_far_module() if self.settings.near_far else None
         if self.budget is None or nf is None:
             return None
-        split = await self._split(nf, cell)
+        split = await self._split(nf, self.cubemap_cell(cell))
         if split is False:
             return None  # no far part: the near region is the whole scene (send_all decides)
         near = np.union1d(split.near_ids, split.far_dynamic_ids).astype(np.int32)
@@ -780,21 +799,25 @@ class StreamSession:
         and configuration)."""
         scene = self.loaded.scene
         cfg = self._near_far_cfg(nf)
-        centre = self.loaded.grid.boxes[cell].mean(axis=0)
-        split = await self._split(nf, cell)
+        # The block's anchor cell: its centre is O, its split and cubemap are the block's.
+        anchor = self.cubemap_cell(cell)
+        centre = self.loaded.grid.boxes[anchor].mean(axis=0)
+        split = await self._split(nf, anchor)
         info = {"r1": cfg.r1, "r2": cfg.r2, "center": centre.tolist(),
-                "cubemap": split is not False}
+                "cubemap": split is not False, "cubemap_cell": anchor}
         if split is False:
             return ids, info, None
         near = np.union1d(np.intersect1d(ids, split.near_ids),
                           split.far_dynamic_ids).astype(np.int32)
-        if cell in self.cubemaps_sent:
+        if anchor in self.cubemaps_sent:
             return near, info, None
         def bake() -> bytes:
             cube = nf.bake_cubemap(scene, centre, cfg)
-            return encode_cubemap(cell, cube.center, cube.colors, cube.ranges, cfg.r1, cfg.r2)
+            return encode_cubemap(anchor, cube.center, cube.colors, cube.ranges, cfg.r1,
+                                  cfg.r2)
 
-        frame = await asyncio.to_thread(self.state.near_far.cubemap, self.loaded, cell, cfg, bake)
+        frame = await asyncio.to_thread(self.state.near_far.cubemap, self.loaded, anchor, cfg,
+                                        bake)
         return near, info, frame
 
     async def _queue_dynamic(self, make: Any, tag: StreamTag) -> bool:
@@ -879,7 +902,7 @@ class StreamSession:
             if not await self._enqueue(cube, tag, cubemap=True):
                 self._yield_prefetch()
                 return
-            self.cubemaps_sent.add(cell)
+            self.cubemaps_sent.add(self.cubemap_cell(cell))
         end = CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
                       compute_seconds=result.seconds, cached=result.cached, prefetch=prefetch,
                       partial=False)

@@ -113,3 +113,45 @@ def _walk_in(url, scene, cid, position, budget):
         return s
 
     return asyncio.run(asyncio.wait_for(main(), 120))
+
+
+def test_cells_of_a_block_share_one_cubemap(settings, registered_test_cores):
+    """With ``near_far_block`` 3, two cells of one block compose with the cubemap baked at
+    their block's anchor cell: it is sent once, named by both cells' ``cell_begin``."""
+    with serving(settings, near_far=True, near_far_r1=40.0, near_far_r2=80.0,
+                 near_far_resolution=32, near_far_block=3) as (url, app):
+        if "city" not in app.state.server.catalog:
+            pytest.skip("city generator not available")
+        state = app.state.server
+        loaded = state.catalog.get("city")
+        grid = loaded.grid
+        cfg = nearfar.NearFarConfig(r1=40.0, r2=80.0, resolution=32)
+        anchors = state.near_far.anchors(loaded, 3)
+        need = state.near_far.cubemap_cells(loaded, cfg)
+        anchor = next(a for a in np.unique(anchors)
+                      if need[a] and np.count_nonzero(anchors == a) >= 3)
+        others = [int(c) for c in np.flatnonzero(anchors == anchor) if c != anchor][:2]
+        sent = state.counters["cubemaps_sent"]
+
+        async def main():
+            s = await Session.connect(url, "city", "test_near", {"radius": 5.0},
+                                      prefetch=False)
+            for k, cid in enumerate(others):
+                await s.send_pose(k, float(k), grid.boxes[cid].mean(axis=0), (0, 0, -1))
+                await s.wait_cell(cid, 60)
+            await s.close()
+            return s
+
+        s = asyncio.run(asyncio.wait_for(main(), 120))
+        assert not s.local_errors and not s.errors
+        features = s.welcome.features["cubemap"]
+        assert features["block"] == 3 and features["cubemaps"] < features["cells"]
+        centre = grid.boxes[anchor].mean(axis=0)
+        for cid in others:
+            info = s.cells[cid].begin.near_far
+            assert info["cubemap"] is True and info["cubemap_cell"] == anchor
+            np.testing.assert_allclose(info["center"], centre)
+        assert list(s.cubemaps) == [anchor]
+        assert s.cubemap_for(others[0]) is s.cubemap_for(others[1]) is s.cubemaps[anchor]
+        np.testing.assert_allclose(s.cubemaps[anchor].center, centre)
+        assert state.counters["cubemaps_sent"] == sent + 1

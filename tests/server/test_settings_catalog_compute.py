@@ -61,6 +61,14 @@ def test_settings_from_env(tmp_path):
             Settings.from_env(bad)
 
 
+def test_near_far_block_from_env_and_bounds():
+    assert Settings(generated={}).near_far_block == 1
+    assert Settings.from_env({"PVS_NEAR_FAR_BLOCK": "4", "PVS_GENERATED": ""}).near_far_block == 4
+    for bad in ("0", "65", "2.5", "x"):
+        with pytest.raises(ValueError):
+            Settings.from_env({"PVS_NEAR_FAR_BLOCK": bad, "PVS_GENERATED": ""})
+
+
 def test_near_far_settings_share_nearfar_defaults_and_bounds():
     """One source of truth: the defaults are ``NearFarConfig``'s, and settings it would refuse
     fail at start-up instead of failing every hello (internal/1011)."""
