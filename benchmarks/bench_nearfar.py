@@ -5,9 +5,10 @@ Command (from the repository root):
     NUMBA_CACHE_DIR=.numba_cache PYOPENGL_PLATFORM=osmesa \
         .venv/bin/python benchmarks/bench_nearfar.py [--triangles 20000] [--frames 6] [--size 256]
 
-Two regimes: "cell" (O = the centre of the 4 m cell holding U, default radii: what the server
-sends) and "region" (O fixed at the walk's start while U walks up to r1 away, r1 = 30 m,
-r2 = 60 m: the paper's user region).
+Three regimes: "cell" (O = the centre of the 4 m cell holding U, default radii: what the server
+sends by default), "block4" (O = the centre of the anchor cell of U's 4 x 4-cell block, default
+radii: the server with ``near_far_block`` 4) and "region" (O fixed at the walk's start while U
+walks up to r1 away, r1 = 30 m, r2 = 60 m: the paper's user region).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from client.walkthrough import generate_walkthrough
 from protocol.cubemap import encode_cubemap
 from visibility.generators import make_scene
 from visibility.nearfar import NearFarConfig, bake_cubemap, split_ids
+from visibility.nearfar_cells import cubemap_anchors
 from visibility.viewcells import ViewcellGrid
 
 
@@ -44,9 +46,11 @@ def main() -> None:
     r = OffscreenRenderer(a.size, a.size)
     o0 = walk.positions[0]
     dist = np.linalg.norm((walk.positions - o0)[:, [0, 2]], axis=1)
+    every = np.linspace(1, len(walk) - 1, a.frames).round().astype(int)
+    anchors = cubemap_anchors(grid, 4)
     regimes = {
-        "cell": (NearFarConfig(resolution=a.resolution),
-                 np.linspace(1, len(walk) - 1, a.frames).round().astype(int)),
+        "cell": (NearFarConfig(resolution=a.resolution), every),
+        "block4": (NearFarConfig(resolution=a.resolution), every),
         "region": (NearFarConfig(r1=30.0, r2=60.0, resolution=a.resolution),
                    np.flatnonzero((dist > 5.0) & (dist < 28.0))),
     }
@@ -59,7 +63,11 @@ def main() -> None:
         bake_s, nbytes, offs = [], [], []
         for i in idx:
             U, fwd = walk.positions[i], walk.forwards[i]
-            o = grid.boxes[grid.cell_of(U)].mean(axis=0) if name == "cell" else o0
+            if name == "region":
+                o = o0
+            else:
+                c = grid.cell_of(U)
+                o = grid.boxes[c if name == "cell" else anchors[c]].mean(axis=0)
             key = tuple(np.round(o, 6))
             if key not in cubes:
                 t = time.perf_counter()
