@@ -22,14 +22,16 @@ The core runs at its default settings (``--params '{}'``) unless told otherwise.
 goes is printed too: the server's CPU seconds (``/proc/PID/stat``), the computation seconds it
 reports (``pvs_computation_seconds_sum``) and the clients' CPU seconds, against the wall time.
 
-Writes the tables (command and machine on top) to ``OUT/load.md``, a PNG with the
-frame-latency distributions and the stalled share against the client count to ``OUT/load.png``
-and every number to ``OUT/load.json`` (``--out``, default ``benchmarks/results``).
+Writes the tables (command and machine on top) to ``OUT/NAME.md``, a PNG with the
+frame-latency distributions and the stalled share against the client count to ``OUT/NAME.png``
+and every number to ``OUT/NAME.json`` (``--out``, default ``benchmarks/results``; ``--name``,
+default ``load``).
 
 Usage::
 
     python -m benchmarks.bench_load              # 5, 10, 20, 50 clients, cold and warm, 20 s walks
     python -m benchmarks.bench_load --clients 50 --cache cold
+    python -m benchmarks.bench_load --core from_segment --name load_from_segment
     python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks, cold (smoke)
 """
 
@@ -234,9 +236,7 @@ def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangle
         "frames": frames, "stalls": stalls, "stall_fraction": stalls / max(1, frames),
         "clients_with_stalls": sum(1 for s in stats if s.stalls),
         "stalls_per_client": [s.stalls for s in stats],
-        "latency_p50_s": float(np.percentile(finite, 50)) if len(finite) else None,
-        "latency_p95_s": float(np.percentile(finite, 95)) if len(finite) else None,
-        "latency_max_s": float(finite.max()) if len(finite) else None,
+        **latency_summary(finite, int(np.sum(~np.isfinite(lat)))),
         "latencies_s": [round(float(x), 5) for x in finite],
         "frames_never_delivered": int(np.sum(~np.isfinite(lat))),
         "bytes_received": sum(s.bytes for s in stats),
@@ -255,14 +255,27 @@ def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangle
         "dropped": sum(s.dropped for s in stats),
         "client_errors": sum(len(s.errors) for s in stats),
         "errors_sample": [e for s in stats for e in s.errors][:5],
-        "wall_seconds": wall,
+        "wall_seconds": wall, "cell_size": args.cell_size, "grace_seconds": args.grace,
     }
+
+
+def latency_summary(delivered: np.ndarray, never: int) -> dict:
+    """p50/p95 (nearest rank) over every frame, a frame never delivered counting as later than
+    any delivered one: None when the percentile falls on such a frame (printed "never"), or
+    when there are no frames. ``latency_max_s`` is the largest delivered latency."""
+    d = np.sort(np.asarray(delivered, dtype=float))
+    n = len(d) + int(never)
+    out: dict = {"latency_max_s": float(d[-1]) if len(d) else None}
+    for q in (50, 95):
+        rank = int(np.ceil(q / 100.0 * n)) - 1  # nearest rank, 0-based
+        out[f"latency_p{q}_s"] = float(d[rank]) if 0 <= rank < len(d) else None
+    return out
 
 
 def table(r: dict) -> list[tuple[str, str]]:
     """The printed rows of summary ``r``."""
     def ms(x: float | None) -> str:
-        return "n/a" if x is None else f"{1e3 * x:.1f} ms"
+        return ("n/a" if not r["frames"] else "never") if x is None else f"{1e3 * x:.1f} ms"
 
     return [
         ("clients / cache", f"{r['clients']} / {r['cache']}"),
@@ -274,7 +287,7 @@ def table(r: dict) -> list[tuple[str, str]]:
         ("clients with stalls", f"{r['clients_with_stalls']}"),
         ("frame latency p50", ms(r["latency_p50_s"])),
         ("frame latency p95", ms(r["latency_p95_s"])),
-        ("frame latency max", ms(r["latency_max_s"])),
+        ("frame latency max (delivered)", ms(r["latency_max_s"])),
         ("frames never delivered", f"{r['frames_never_delivered']}"),
         ("bytes received (clients)", f"{r['bytes_received'] / 1e6:.2f} MB"),
         ("bytes sent (server metrics)", f"{r['bytes_sent'] / 1e6:.2f} MB"),
@@ -336,13 +349,13 @@ def plot(runs: list[dict], path: Path) -> None:
 
 def capacity_table(runs: list[dict]) -> list[str]:
     """One markdown row per run: the load each run put on the server and how it held."""
-    def ms(x: float | None) -> str:
-        return "n/a" if x is None else f"{1e3 * x:.0f}"
-
     rows = ["| cache | clients | frames | stalls % | clients with stalls | p50 ms | p95 ms | "
             "never delivered | computations | computation s | MB sent | server RSS peak MiB | "
             "wall s |", "|" + "---|" * 13]
     for r in runs:
+        def ms(x: float | None, r: dict = r) -> str:
+            return ("n/a" if not r["frames"] else "never") if x is None else f"{1e3 * x:.0f}"
+
         rows.append(
             f"| {r['cache']} | {r['clients']} | {r['frames']} | {100 * r['stall_fraction']:.2f} "
             f"| {r['clients_with_stalls']} | {ms(r['latency_p50_s'])} | "
@@ -418,6 +431,54 @@ def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients:
                      server_cpu, client_cpu)
 
 
+def run_lines(r: dict) -> list[str]:
+    """The printed table of one run."""
+    rows = table(r)
+    w = max(len(k) for k, _ in rows)
+    lines = ["-" * (w + 30), *(f"{k:<{w}}  {v}" for k, v in rows), "-" * (w + 30)]
+    return lines + [f"error: {e}" for e in r["errors_sample"]]
+
+
+def write_outputs(out: Path, name: str, command: str, where: str, runs: list[dict]) -> None:
+    """``OUT/NAME.md`` (capacity table, plot, each run's table), ``NAME.png``, ``NAME.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    r0 = runs[0]
+    warm = next((r["warm_up_seconds"] for r in runs if "warm_up_seconds" in r), None)
+    details = [line for r in runs for line in (
+        f"### {r['clients']} clients, {r['cache']} cache", "", "```", *run_lines(r), "```", "")]
+    md = ["# Load benchmark", "", f"command: `{command}`", "", f"machine: {where}", "",
+          f"Scene `{r0['scene']}` ({r0['triangles']} triangles, {r0['cells']} cells of "
+          f"{r0.get('cell_size', 4.0):g} m), core `{r0['core']}` with parameters "
+          f"`{json.dumps(r0['params'])}`, {r0['workers']} workers; every client walks "
+          f"{r0['walk_seconds']:g} s at {r0['speed']:g} m/s sending {r0['fps']:g} poses/s. "
+          "Cold: a fresh server per row, every PVS computed while the walkers walk. Warm: one "
+          "server whose cache holds every cell's PVS before the clients come"
+          + (f" (computed in {warm:.1f} s)" if warm is not None else "")
+          + "; its rows run one after another on it. A stall is a frame whose cell was not "
+          "complete one frame interval after its pose was sent; never delivered: still missing "
+          f"{r0.get('grace_seconds', 10.0):g} s after the walk ended (the walker had left the "
+          "cell). Latency percentiles are over every frame (nearest rank), a never-delivered "
+          "frame counting as the latest: 'never' when the percentile falls on one.", "",
+          *capacity_table(runs), "", f"![latency and stalls]({name}.png)", "", "## Each run",
+          "", *details]
+    (out / f"{name}.md").write_text("\n".join(md))
+    (out / f"{name}.json").write_text(json.dumps(
+        {"command": command, "machine": where, "runs": runs}, indent=1))
+    plot(runs, out / f"{name}.png")
+    print(f"wrote {out / name}.md, .png, .json")
+
+
+def rerender(path: Path) -> None:
+    """Rewrite ``path`` (a NAME.json of a measured run) and its .md/.png with the current
+    summary and layout: the latency summary is recomputed from the stored latencies and
+    never-delivered counts; nothing is measured again, command and machine stay the run's."""
+    data = json.loads(path.read_text())
+    for r in data["runs"]:
+        r.update(latency_summary(np.asarray(r["latencies_s"], dtype=float),
+                                 r["frames_never_delivered"]))
+    write_outputs(path.parent, path.stem, data["command"], data["machine"], data["runs"])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clients", default="5,10,20,50",
@@ -440,10 +501,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="cold (a fresh server per run), warm (one server with every cell "
                          "computed before the clients come), or both")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results",
-                    help="folder for load.md, load.png and load.json")
+                    help="folder for NAME.md, NAME.png and NAME.json")
+    ap.add_argument("--name", default="load",
+                    help="file stem of the outputs (e.g. load_from_segment for another core)")
     ap.add_argument("--no-files", action="store_true", help="print only")
     ap.add_argument("--quick", action="store_true", help="5 clients, 6 s walks, cold (smoke)")
+    ap.add_argument("--rerender", type=Path, metavar="JSON",
+                    help="rewrite the tables and plot of a measured run from its JSON, "
+                         "measuring nothing")
     args = ap.parse_args(argv)
+    if args.rerender:
+        rerender(args.rerender)
+        return 0
     counts = [int(x) for x in str(args.clients).split(",") if x.strip()]
     caches = [x.strip() for x in args.cache.split(",") if x.strip()]
     if not counts or min(counts) < 1 or set(caches) - {"cold", "warm"} or not caches:
@@ -460,17 +529,10 @@ def main(argv: list[str] | None = None) -> int:
     scene = make_scene(args.scene, triangles=args.triangles, seed=0)
     grid = ViewcellGrid.for_scene(scene, scene.meta.get("cell_size") or args.cell_size)
     runs: list[dict] = []
-    details: list[str] = []
 
     def report(r: dict) -> None:
-        rows = table(r)
-        w = max(len(k) for k, _ in rows)
-        lines = ["-" * (w + 30), *(f"{k:<{w}}  {v}" for k, v in rows), "-" * (w + 30)]
-        lines += [f"error: {e}" for e in r["errors_sample"]]
-        print("\n".join(lines))
+        print("\n".join(run_lines(r)))
         print("json: " + json.dumps({k: v for k, v in r.items() if k != "latencies_s"}))
-        details.extend([f"### {r['clients']} clients, {r['cache']} cache", "", "```", *lines,
-                        "```", ""])
         runs.append(r)
 
     if "cold" in caches:
@@ -486,28 +548,9 @@ def main(argv: list[str] | None = None) -> int:
                 r = measure(url, proc, args, n, "warm", scene.n_triangles, grid)
                 r["warm_up_seconds"] = warm_seconds
                 report(r)
-    capacity = capacity_table(runs)
-    print("\n".join(capacity))
+    print("\n".join(capacity_table(runs)))
     if not args.no_files:
-        args.out.mkdir(parents=True, exist_ok=True)
-        md = ["# Load benchmark", "", f"command: `{command}`", "", f"machine: {where}", "",
-              f"Scene `{args.scene}` ({scene.n_triangles} triangles, {len(grid)} cells of "
-              f"{args.cell_size:g} m), core `{args.core}` with parameters "
-              f"`{json.dumps(args.params)}`, {args.workers} workers; every client walks "
-              f"{args.duration:g} s at {args.speed:g} m/s sending {args.fps:g} poses/s. Cold: a "
-              "fresh server per row, every PVS computed while the walkers walk. Warm: one server "
-              "whose cache holds every cell's PVS before the clients come"
-              + (f" (computed in {warm_seconds:.1f} s)" if warm_seconds is not None else "")
-              + "; its rows run one after another on it. A stall is a frame whose cell was "
-              "not complete one frame interval after its pose was sent; never delivered: still "
-              f"missing {args.grace:g} s after the walk ended (the walker had left the cell).", "",
-              *capacity, "", "![latency and stalls](load.png)", "", "## Each run", "",
-              *details]
-        (args.out / "load.md").write_text("\n".join(md))
-        (args.out / "load.json").write_text(json.dumps(
-            {"command": command, "machine": where, "runs": runs}, indent=1))
-        plot(runs, args.out / "load.png")
-        print(f"wrote {args.out / 'load.md'}, load.png, load.json")
+        write_outputs(args.out, args.name, command, where, runs)
     return 0
 
 

@@ -34,6 +34,22 @@ def test_three_clients_report_every_field(tmp_path, capsys):
     assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
     assert (tmp_path / "load.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((tmp_path / "load.json").read_text())["runs"][0]["frames"] == r["frames"]
+    # Re-rendering from the JSON measures nothing and keeps every number.
+    (tmp_path / "load.md").unlink()
+    assert bench_load.main(["--rerender", str(tmp_path / "load.json")]) == 0
+    assert (tmp_path / "load.md").read_text() == md
+
+
+def test_latency_percentiles_count_frames_never_delivered():
+    s = bench_load.latency_summary([0.0, 0.0, 0.0, 0.5], never=0)
+    assert (s["latency_p50_s"], s["latency_p95_s"], s["latency_max_s"]) == (0.0, 0.5, 0.5)
+    # 4 delivered, 6 never: the median frame was never delivered.
+    s = bench_load.latency_summary([0.0, 0.0, 0.0, 0.5], never=6)
+    assert s["latency_p50_s"] is None and s["latency_p95_s"] is None
+    assert s["latency_max_s"] == 0.5
+    s = bench_load.latency_summary([0.1] * 19, never=1)
+    assert s["latency_p50_s"] == 0.1 and s["latency_p95_s"] == 0.1  # rank 19 of 20
+    assert bench_load.latency_summary([], never=0)["latency_p50_s"] is None
 
 
 def test_warm_cache_serves_every_cell_without_computing(tmp_path, capsys):
