@@ -129,7 +129,8 @@ class Settings(BaseModel):
 
         PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
-        PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
+        PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_PREFETCH_AHEAD,
+        PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
@@ -146,7 +147,8 @@ class Settings(BaseModel):
             "cache_bytes": "PVS_CACHE_BYTES", "max_frame_bytes": "PVS_MAX_FRAME_BYTES",
             "max_message_bytes": "PVS_MAX_MESSAGE_BYTES", "ws_deflate": "PVS_WS_DEFLATE",
             "hello_timeout": "PVS_HELLO_TIMEOUT", "cache_dir": "PVS_CACHE_DIR",
-            "prefetch": "PVS_PREFETCH", "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
+            "prefetch": "PVS_PREFETCH", "prefetch_ahead": "PVS_PREFETCH_AHEAD",
+            "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
             "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
             "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
             "near_far_resolution": "PVS_NEAR_FAR_RESOLUTION",

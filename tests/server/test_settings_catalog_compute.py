@@ -61,6 +61,14 @@ def test_settings_from_env(tmp_path):
             Settings.from_env(bad)
 
 
+def test_prefetch_ahead_from_env_and_bounds():
+    assert Settings.from_env({"PVS_PREFETCH_AHEAD": "0.5", "PVS_GENERATED": ""}
+                             ).prefetch_ahead == 0.5
+    for bad in ("1.5", "nan", "x"):
+        with pytest.raises(ValueError):
+            Settings.from_env({"PVS_PREFETCH_AHEAD": bad, "PVS_GENERATED": ""})
+
+
 def test_near_far_block_from_env_and_bounds():
     assert Settings(generated={}).near_far_block == 1
     assert Settings.from_env({"PVS_NEAR_FAR_BLOCK": "4", "PVS_GENERATED": ""}).near_far_block == 4
