@@ -700,9 +700,11 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
           if cfg.get("load_errors") else []),
         "Other measurements, each with its own command and machine: the from-segment paper's "
         "experiments ([benchmarks/results/from_segment.md](benchmarks/results/from_segment.md), "
-        "`python -m benchmarks.bench_segment`) and the server under concurrent clients "
-        "([benchmarks/results/load.md](benchmarks/results/load.md), "
-        "`python -m benchmarks.bench_load`).\n",
+        "`python -m benchmarks.bench_segment`) and the server under 5 to 50 concurrent "
+        "clients, cold and warm cache ([benchmarks/results/load.md](benchmarks/results/load.md)"
+        ", `python -m benchmarks.bench_load`; `from_segment`: "
+        "[benchmarks/results/load_from_segment.md](benchmarks/results/load_from_segment.md), "
+        "`python -m benchmarks.bench_load --core from_segment --name load_from_segment`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         srows = [r for r in rows if r["scene"] == label]
