@@ -168,7 +168,7 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
         if pending:
             # A cell the walker has left may never come (the server drops prefetch work no
             # walker is heading for): after a grace period it counts as never delivered.
-            done, late_ones = await asyncio.wait(pending, timeout=args.grace)
+            _, late_ones = await asyncio.wait(pending, timeout=args.grace)
             for task in late_ones:
                 task.cancel()
             stats.latencies += [float("inf")] * len(late_ones)
@@ -403,7 +403,9 @@ def serving(args: argparse.Namespace) -> Iterator[tuple[str, subprocess.Popen]]:
 
 async def warm_up(url: str, args: argparse.Namespace, cells: int) -> float:
     """Compute every cell's PVS through the HTTP route (the walkers' cache keys: same scene,
-    core and parameters), ``args.workers`` at a time; seconds taken."""
+    core and parameters), ``args.workers`` at a time; seconds taken. Not ``pvs precompute``:
+    that fills an on-disk cache for a server yet to start, while this fills the memory cache
+    of the server under test, so the warm rows measure streaming alone."""
     t0 = time.perf_counter()
     gate = asyncio.Semaphore(args.workers)
     query = {"core": args.core, **{k: json.dumps(v) if not isinstance(v, str) else v
