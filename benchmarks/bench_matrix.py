@@ -321,7 +321,7 @@ def view_set(scene, cell, n: int, seed: int = 777) -> list[tuple[np.ndarray, np.
 
 
 def _cube_forward() -> np.ndarray:
-    from visibility.camera import cube_face_rotations
+    from visibility.raster.camera import cube_face_rotations
 
     return -cube_face_rotations()[:, 2, :]  # rows are right, up, back
 

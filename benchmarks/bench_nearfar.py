@@ -27,7 +27,7 @@ from client.walkthrough import generate_walkthrough
 from protocol.cubemap import encode_cubemap
 from visibility.generators import make_scene
 from visibility.nearfar import NearFarConfig, bake_cubemap, split_ids
-from visibility.nearfar_cells import cubemap_anchors
+from visibility.nearfar.cells import cubemap_anchors
 from visibility.viewcells import ViewcellGrid
 
 

@@ -105,8 +105,8 @@ def _core():
 def _warm_up() -> None:
     """Compile the kernels (from-segment, rasterizer, sphere buffers) on a tiny scene."""
     from visibility.raster import render_cubemap
+    from visibility.raster.spheres import draw_spheres_cubemap
     from visibility.scene import Scene
-    from visibility.sphere_raster import draw_spheres_cubemap
     from visibility.viewcells import Viewcell
 
     tris = np.array([[(-1, 0, -5), (1, 0, -5), (0, 2, -5)]], dtype=np.float64)
@@ -370,8 +370,8 @@ def part_cell(cfg: dict[str, Any], log=print, flat: bool = False) -> list[dict[s
     known visible set ("known"), and completeness is measured against it (as the paper's Figs.
     8-9 count visible triangles found) as well as against the sampled ground truth alone.
     """
-    from visibility.camera import random_rotation
     from visibility.ground_truth import sample_points
+    from visibility.raster.camera import random_rotation
     from visibility.viewcells import Viewcell, ViewcellGrid
 
     core = _core()

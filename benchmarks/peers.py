@@ -2,7 +2,7 @@
 
 Same method as the ``sampling`` core, with a different visibility engine: from stratified points
 of the cell (``visibility.ground_truth.sample_points``), rays through the pixel centres of the
-six faces of a randomly rotated cube (``visibility.camera`` conventions), united first-hit
+six faces of a randomly rotated cube (``visibility.raster.camera`` conventions), united first-hit
 triangle ids. It is not a registered core (the server never serves it); the benchmark runs it as
 a peer, either with a fixed number of points, with a time budget ("equal time") or until it has
 found a share of a reference set ("equal completeness"). ``from_point_pvs`` runs the same loop
@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visibility.camera import cube_face_rotations, pixel_rays, random_rotation
 from visibility.ground_truth import sample_points
 from visibility.raster import render_cubemap_ids
+from visibility.raster.camera import cube_face_rotations, pixel_rays, random_rotation
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 

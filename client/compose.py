@@ -35,10 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from visibility.camera import look_rotation, pixel_rays
 from visibility.nearfar import cube_texels
 from visibility.nearfar import morph as morph_vertices
 from visibility.raster import render_ids
+from visibility.raster.camera import look_rotation, pixel_rays
 
 #: ``ComposedFrame.source`` values.
 SOURCE_EMPTY, SOURCE_GEOMETRY, SOURCE_CUBEMAP = 0, 1, 2

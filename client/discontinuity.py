@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from visibility.camera import look_rotation, pixel_rays
+from visibility.raster.camera import look_rotation, pixel_rays
 
 #: Default neighbourhood radius ε, pixels (see the module docstring; the paper uses 17).
 DEFAULT_EPS = 8.0

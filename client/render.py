@@ -1,7 +1,7 @@
 """Offscreen frames of triangle sets with pyrender: flat per-face colours, linear depth.
 
-Conventions are those of ``visibility.camera`` (Y-up world, camera looking down -Z, depth is the
-view depth ``-z_cam`` in metres). Every triangle is drawn two-sided with its own three vertices,
+Conventions are those of ``visibility.raster.camera`` (Y-up world, camera looking down -Z,
+depth is the view depth ``-z_cam`` in metres). Every triangle is drawn two-sided with its own three vertices,
 coloured by its face colour times a fixed CPU-side lambert term, so colours do not depend on GPU
 lighting and the same triangle always gets the same colour in every frame.
 
@@ -36,12 +36,12 @@ import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 import trimesh  # noqa: E402
 
-from visibility.camera import DEFAULT_NEAR, camera_pose_matrix, look_rotation  # noqa: E402
-from visibility.scene import Scene  # noqa: E402
+from visibility.raster.camera import DEFAULT_NEAR, camera_pose_matrix, look_rotation  # noqa: E402
 
 # Shading lives in visibility so server-baked cubemaps and client frames shade identically;
 # the names stay importable from here.
-from visibility.shading import AMBIENT, BACKGROUND, LIGHT_DIR, shade_colors  # noqa: E402, F401
+from visibility.raster.shading import AMBIENT, BACKGROUND, LIGHT_DIR, shade_colors  # noqa: E402, F401
+from visibility.scene import Scene  # noqa: E402
 
 #: Icosphere subdivisions used for a scene's spheres (320 faces each).
 SPHERE_SUBDIVISIONS = 2
@@ -119,7 +119,7 @@ class OffscreenRenderer:
     ----------
     width, height : image size in pixels.
     yfov_deg : vertical field of view in degrees; the horizontal one follows the aspect ratio
-        (``tan_x = tan_y * width / height``, as ``visibility.camera.pixel_rays`` expects).
+        (``tan_x = tan_y * width / height``, as ``visibility.raster.camera.pixel_rays`` expects).
     znear, zfar : clip planes in metres.
     recenter_distance : how far (metres, per axis) the eye may get from the upload origin before
         the origin moves to the eye and every set is re-uploaded.

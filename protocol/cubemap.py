@@ -20,8 +20,8 @@ Byte layout of a cubemap frame, all little-endian, no padding between fields::
                       6 R R 3 uint8  colours[face, row, col, rgb]
                       6 R R   uint16 range codes[face, row, col]
 
-Faces and texels follow ``visibility.camera`` (face order +X, -X, +Y, -Y, +Z, -Z; row 0 at the
-top). Range is the Euclidean distance from O (not z).
+Faces and texels follow ``visibility.raster.camera`` (face order +X, -X, +Y, -Y, +Z, -Z; row 0
+at the top). Range is the Euclidean distance from O (not z).
 
 Range encoding and its precision. Code 0 means empty (+inf, nothing far in that direction).
 Code k in 1..65535 means ``range_lo * (range_hi / range_lo) ** ((k - 1) / 65534)``: uniform in

@@ -1,12 +1,12 @@
 """Near-far data shared by every session of a server, computed once and bounded in memory.
 
 - per (scene, r2): which cells have static geometry beyond r2 (``cubemap_cells``, all cells in
-  one vectorised pass, ``visibility.nearfar_cells``), small (a bool per cell) and kept;
+  one vectorised pass, ``visibility.nearfar.cells``), small (a bool per cell) and kept;
 - per (scene, cell, r2): the cell's ``NearFarSplit`` (``split``), None-free: ``False`` when the
   cell needs no cubemap, which the per-scene mask answers without touching the scene;
 - per (scene, cell, r1, r2, resolution): the encoded cubemap frame (``cubemap``);
 - per (scene, block): the cell whose centre each cell's cubemap is baked from (``anchors``,
-  ``visibility.nearfar_cells.cubemap_anchors``): splits and cubemaps are asked for that anchor
+  ``visibility.nearfar.cells.cubemap_anchors``): splits and cubemaps are asked for that anchor
   cell, so cells of one block share them.
 
 Splits and cubemaps share one ``ByteLRU`` bounded by ``settings.near_far_cache_bytes``; an entry
@@ -25,7 +25,7 @@ import numpy as np
 from server.cache import ByteLRU
 from server.catalog import LoadedScene
 from visibility import nearfar
-from visibility.nearfar_cells import cells_needing_cubemap, cubemap_anchors
+from visibility.nearfar.cells import cells_needing_cubemap, cubemap_anchors
 
 
 class NearFarStore:

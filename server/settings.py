@@ -58,7 +58,7 @@ class Settings(BaseModel):
         and bounds are ``NearFarConfig``'s, checked when the settings are made.
     near_far_block : cubemap sharing: cells are grouped by blocks of this many grid columns on a
         side (per level), and a block shares one cubemap centre O, the centre of its most
-        central cell (``visibility.nearfar_cells.cubemap_anchors``); 1: a cubemap per cell.
+        central cell (``visibility.nearfar.cells.cubemap_anchors``); 1: a cubemap per cell.
         Larger blocks bake and send fewer cubemaps and let the eye walk farther from O, where
         the morph hides the near/far seam that conventional compositing shows.
     near_far_cache_bytes : bound of the near-far caches (splits and encoded cubemaps shared by

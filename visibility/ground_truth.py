@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visibility.camera import DEFAULT_NEAR, random_rotation
 from visibility.raster import render_cubemap, render_cubemap_ids
+from visibility.raster.camera import DEFAULT_NEAR, random_rotation
+from visibility.raster.spheres import draw_spheres_cubemap
 from visibility.scene import Scene
-from visibility.sphere_raster import draw_spheres_cubemap
 from visibility.viewcells import Viewcell
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from client.render import BACKGROUND, OffscreenRenderer, shade_colors
-from visibility.camera import look_rotation, pixel_rays
+from visibility.raster.camera import look_rotation, pixel_rays
 from visibility.scene import Scene
 
 W = H = 64

@@ -17,7 +17,7 @@ from server.settings import Settings
 from tests.conftest import make_tiny_scene, serving
 from visibility import nearfar
 from visibility.generators import available_generators, make_scene
-from visibility.nearfar_cells import cells_needing_cubemap, farthest_static_distance
+from visibility.nearfar.cells import cells_needing_cubemap, farthest_static_distance
 from visibility.scene import Scene, WalkArea
 from visibility.viewcells import ViewcellGrid
 

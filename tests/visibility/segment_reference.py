@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from visibility.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
 from visibility.raster import render_cubemap
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
 
 
 def sphere_depths(centers: np.ndarray, radii: np.ndarray, eye: np.ndarray, resolution: int,

@@ -18,8 +18,8 @@ from visibility.nearfar import (
     split_ids,
     texel_directions,
 )
+from visibility.raster.shading import BACKGROUND, shade_colors
 from visibility.scene import Scene
-from visibility.shading import BACKGROUND, shade_colors
 from visibility.viewcells import ViewcellGrid
 
 O = np.array([0.0, 1.7, 0.0])

@@ -24,10 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visibility.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
 from visibility.raster import render_cubemap
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
+from visibility.raster.shading import BACKGROUND, shade_colors
 from visibility.scene import Scene
-from visibility.shading import BACKGROUND, shade_colors
 
 _FACE_ROTS = cube_face_rotations()
 
@@ -92,7 +92,7 @@ class FarCubemap:
     center : (3,) float64 O, metres.
     colors : (6, R, R, 3) uint8 shaded colour per texel (``BACKGROUND`` where empty).
     ranges : (6, R, R) float32 Euclidean distance from O in metres, +inf where empty.
-    resolution : R, pixels per face side. Faces and texels follow ``visibility.camera``
+    resolution : R, pixels per face side. Faces and texels follow ``visibility.raster.camera``
         (face order +X, -X, +Y, -Y, +Z, -Z, row 0 at the top).
     """
 
@@ -214,7 +214,7 @@ def morph(P: np.ndarray, U: np.ndarray, O: np.ndarray, r1: float, r2: float) -> 
 # --------------------------------------------------------------------------------- cubemap
 def texel_directions(resolution: int) -> np.ndarray:
     """(6, R, R, 3) float64 world directions (not unit: camera-space z = -1) through the texel
-    centres of a cubemap with identity base rotation (``visibility.camera`` conventions)."""
+    centres of a cubemap with identity base rotation (``visibility.raster.camera`` conventions)."""
     rays = pixel_rays(resolution, resolution)  # (R, R, 3)
     rots = _FACE_ROTS
     # World direction = R^T @ ray_cam (rows of R are the camera axes in world coordinates).

@@ -9,10 +9,10 @@ from tests.visibility.cores import designed_scenes as ds
 from tests.visibility.segment_reference import sampled_visible, unwitnessed
 from visibility.cores.base import available_cores, get_core
 from visibility.cores.from_segment import FromSegmentParams, cell_segments, cube_rotations
+from visibility.cores.from_segment.kernels import scene_geometries, segment_visible
 from visibility.generators import make_scene
 from visibility.ground_truth import fn_fp_rates, sample_pvs
 from visibility.scene import Scene
-from visibility.segment_kernels import scene_geometries, segment_visible
 from visibility.viewcells import Viewcell, ViewcellGrid
 
 CORE = get_core("from_segment")

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from visibility import raster
-from visibility.camera import (
+from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
+from visibility.raster.camera import (
     DEFAULT_NEAR,
     cube_face_rotations,
     look_rotation,
     pixel_rays,
     random_rotation,
 )
-from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
 
 I3 = np.eye(3)
 O3 = np.zeros(3)

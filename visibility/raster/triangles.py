@@ -1,7 +1,7 @@
 """Depth and triangle-id buffers on the CPU: a parallel numba rasterizer.
 
-Follows ``visibility.camera`` exactly: vertices go to camera space in float64 relative to the eye
-(so 1e7 m coordinate offsets keep their precision), pixel centres are sampled, depth is
+Follows ``visibility.raster.camera`` exactly: vertices go to camera space in float64 relative to
+the eye (so 1e7 m coordinate offsets keep their precision), pixel centres are sampled, depth is
 ``-z_cam`` in metres, there is no back-face culling and no far plane.
 
 How a pixel is decided. With the eye at the origin of camera space, each triangle edge (p, q)
@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from visibility.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 
 #: log2 of the height in pixel rows of the screen bands dealt out to the raster workers.
 BAND_SHIFT = 3
@@ -639,7 +639,7 @@ def render_ids(
     vertices : (n, 3) float64 world positions, metres.
     faces : (m, 3) int32 vertex indices.
     eye : (3,) camera position, metres.
-    rotation : (3, 3) world-to-camera rotation (rows right, up, back; ``visibility.camera``).
+    rotation : (3, 3) world-to-camera rotation (rows right, up, back; ``visibility.raster.camera``).
     width, height : image size in pixels.
     tan_x, tan_y : tangents of the half field of view.
     near : near-plane distance, metres (no far plane).

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from tests.visibility.segment_reference import sampled_visible, unwitnessed
-from visibility.camera import random_rotation
-from visibility.raster import render_cubemap
-from visibility.scene import Scene
-from visibility.segment_dynamic import cubic_roots01, quadratic_roots
-from visibility.segment_kernels import (
+from visibility.cores.from_segment.dynamic import cubic_roots01, quadratic_roots
+from visibility.cores.from_segment.kernels import (
     envelope_insert,
     pixel_bound,
     scene_geometries,
     segment_visible,
 )
+from visibility.raster import render_cubemap
+from visibility.raster.camera import random_rotation
+from visibility.scene import Scene
 
 
 # ----------------------------------------------------------------------------- root solvers

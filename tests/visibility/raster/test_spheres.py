@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from tests.visibility.segment_reference import sphere_depths
-from visibility.camera import random_rotation
 from visibility.ground_truth import sample_pvs
+from visibility.raster.camera import random_rotation
+from visibility.raster.spheres import draw_spheres_cubemap
 from visibility.scene import Scene
-from visibility.sphere_raster import draw_spheres_cubemap
 from visibility.viewcells import Viewcell
 
 

@@ -1,4 +1,4 @@
-"""``visibility.nearfar_cells.cubemap_anchors``: which cells share a cubemap centre."""
+"""``visibility.nearfar.cells.cubemap_anchors``: which cells share a cubemap centre."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from visibility.generators import make_scene
-from visibility.nearfar_cells import cubemap_anchors
+from visibility.nearfar.cells import cubemap_anchors
 from visibility.scene import WalkArea
 from visibility.viewcells import ViewcellGrid
 

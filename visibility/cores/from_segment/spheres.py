@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from visibility.face_pixels import pixel_range
-from visibility.segment_dynamic import add_roots01, emit_chords, quad_range01, sort_small
+from visibility.cores.from_segment.dynamic import add_roots01, emit_chords, quad_range01, sort_small
+from visibility.raster.face_pixels import pixel_range
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -2,8 +2,8 @@
 
 For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel centre of every face
 gets a lower envelope over t of the depths of the primitives that cover it; the primitives owning a
-piece of some envelope form the segment's visible set. Conventions are ``visibility.camera``'s:
-a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and depth is ``-z_cam``.
+piece of some envelope form the segment's visible set. Conventions are
+``visibility.raster.camera``'s: a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and depth is ``-z_cam``.
 
 Static triangles (Eqs. 1-2). Relative to the moving eye a static triangle translates by ``-t d``.
 With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t and equals
@@ -42,11 +42,11 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from visibility.camera import DEFAULT_NEAR, cube_face_rotations
-from visibility.face_pixels import pixel_range
+from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
+from visibility.cores.from_segment.spheres import sphere_box, sphere_cover, sphere_setup
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.raster.face_pixels import pixel_range
 from visibility.scene import Scene
-from visibility.segment_dynamic import moving_cover, moving_setup
-from visibility.segment_spheres import sphere_box, sphere_cover, sphere_setup
 
 #: Side of a square screen tile in pixels (unit of parallel work and of occlusion culling).
 TILE = 16

@@ -1,7 +1,7 @@
 """Pixel-centre boxes on a square cube face (shared by the from-segment kernels).
 
 A face of ``res`` x ``res`` pixels spans NDC [-1, 1]^2; pixel (row i, column j) has its centre at
-x = (j + 0.5) 2 / res - 1, y = 1 - (i + 0.5) 2 / res (``visibility.camera`` conventions).
+x = (j + 0.5) 2 / res - 1, y = 1 - (i + 0.5) 2 / res (``visibility.raster.camera`` conventions).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """From-point depth and id buffers of spheres: analytic ray-sphere hits at pixel centres.
 
 The sampled ground truth and the from-point peers draw spheres with this kernel on top of the
-triangle buffers of ``visibility.raster`` (same conventions: ``visibility.camera``; depth is
+triangle buffers of ``visibility.raster`` (same conventions: ``visibility.raster.camera``; depth is
 ``-z_cam``; a pixel centre's ray is ``(ndc_x, ndc_y, -1)`` in camera space). A sphere is what a
 near-clipped sphere rasterizer without back-face culling shows: the near hit where it lies beyond
 the near plane, else the far hit. Spheres win depth ties against triangles only when strictly
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.camera import DEFAULT_NEAR, cube_face_rotations
-from visibility.face_pixels import pixel_range
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.raster.face_pixels import pixel_range
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

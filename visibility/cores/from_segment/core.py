@@ -1,6 +1,6 @@
 """The ``from_segment`` core: continuous from-segment visibility (Popescu et al. 2024).
 
-A cell's PVS is the union of the segment visible sets (``visibility.segment_kernels``) of the four
+A cell's PVS is the union of the segment visible sets (``kernels``) of the four
 sides of the cell's rectangle, at the box's mid height and, when the box has height, at its bottom
 and top (the eye-height range), each seen by a full cubemap (by default turned obliquely to the
 world axes; see ``FromSegmentParams``); ``runs - 1`` extra runs use randomly rotated cubemaps
@@ -17,10 +17,15 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.camera import DEFAULT_NEAR, random_rotation
 from visibility.cores.base import Core, CoreParams, register
+from visibility.cores.from_segment.kernels import (
+    CLUSTER,
+    DEFAULT_BATCH,
+    scene_geometries,
+    segment_visible,
+)
+from visibility.raster.camera import DEFAULT_NEAR, random_rotation
 from visibility.scene import Scene
-from visibility.segment_kernels import CLUSTER, DEFAULT_BATCH, scene_geometries, segment_visible
 from visibility.viewcells import Viewcell
 
 #: Values of ``FromSegmentParams.first_orientation``.

@@ -1,0 +1,15 @@
+"""The ``from_segment`` core (Popescu et al. 2024): ``core`` holds the core and its parameters,
+``kernels`` the static per-pixel coverage kernels, ``dynamic`` the moving-triangle kernels,
+``spheres`` the sphere kernels."""
+
+from visibility.cores.from_segment.core import (
+    ORIENTATIONS,
+    FromSegmentCore,
+    FromSegmentParams,
+    cell_segments,
+    cube_rotations,
+    oblique_rotation,
+)
+
+__all__ = ["ORIENTATIONS", "FromSegmentCore", "FromSegmentParams", "cell_segments",
+           "cube_rotations", "oblique_rotation"]
