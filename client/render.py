@@ -1,8 +1,8 @@
 """Offscreen frames of triangle sets with pyrender: flat per-face colours, linear depth.
 
 Conventions are those of ``visibility.raster.camera`` (Y-up world, camera looking down -Z,
-depth is the view depth ``-z_cam`` in metres). Every triangle is drawn two-sided with its own three vertices,
-coloured by its face colour times a fixed CPU-side lambert term, so colours do not depend on GPU
+depth is the view depth ``-z_cam`` in metres). Every triangle is drawn two-sided with its own
+three vertices, coloured by its face colour times a fixed CPU-side lambert term, so colours do not depend on GPU
 lighting and the same triangle always gets the same colour in every frame.
 
 Geometry is uploaded to the GPU per *geometry set* (a ``key``): a set is rebuilt only when its

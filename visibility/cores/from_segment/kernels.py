@@ -3,7 +3,8 @@
 For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel centre of every face
 gets a lower envelope over t of the depths of the primitives that cover it; the primitives owning a
 piece of some envelope form the segment's visible set. Conventions are
-``visibility.raster.camera``'s: a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and depth is ``-z_cam``.
+``visibility.raster.camera``'s: a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and
+depth is ``-z_cam``.
 
 Static triangles (Eqs. 1-2). Relative to the moving eye a static triangle translates by ``-t d``.
 With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t and equals
