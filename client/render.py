@@ -2,8 +2,8 @@
 
 Conventions are those of ``visibility.raster.camera`` (Y-up world, camera looking down -Z,
 depth is the view depth ``-z_cam`` in metres). Every triangle is drawn two-sided with its own
-three vertices, coloured by its face colour times a fixed CPU-side lambert term, so colours do not depend on GPU
-lighting and the same triangle always gets the same colour in every frame.
+three vertices, coloured by its face colour times a fixed CPU-side lambert term, so colours do
+not depend on GPU lighting and the same triangle always gets the same colour in every frame.
 
 Geometry is uploaded to the GPU per *geometry set* (a ``key``): a set is rebuilt only when its
 ``(key, version, triangle count)`` changes, or when the renderer's origin moves (see below).
