@@ -27,9 +27,10 @@ from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
-from visibility.cores.base import PVS, Core, CoreParams, available_cores, get_core
+from visibility.cores.base import AUTO_CORE, PVS, Core, CoreParams, get_core
+from visibility.cores.base import choose_core as registry_choose_core
+from visibility.cores.base import core_fits as registry_fits
 from visibility.scene import Scene
-from visibility.scene_analysis import scene_is_2_5d
 from visibility.viewcells import Viewcell
 
 #: Re-exported: the pool and cache classes lived here before ``server.pool``/``server.cache``.
@@ -149,18 +150,23 @@ class ComputeService:
         return core, coerce_params(core, raw)
 
     def resolve_for(
-        self, scene: Scene, core_name: str | None = None, params: Mapping[str, Any] | None = None
+        self, scene: Scene, core_name: str | None = None, params: Mapping[str, Any] | None = None,
+        cell_size: float | None = None,
     ) -> tuple[Core, CoreParams, str]:
         """``resolve`` for a loaded scene, also accepting ``"auto"``: (core, params, why).
 
-        ``why`` says why the core was chosen ("requested" when named). The auto choice's
-        parameters start from ``settings.core_params`` only when it lands on ``settings.core``.
+        ``why`` says why the core was chosen ("requested" when named). ``auto`` weighs the
+        scene at ``cell_size`` metres (default: the catalogue grid's cell size for the scene,
+        else ``settings.cell_size``). The auto choice's parameters start from
+        ``settings.core_params`` only when it lands on ``settings.core``.
         """
         name = core_name or self.settings.core
         if name != AUTO_CORE:
             core, p = self.resolve(name, params)
             return core, p, "requested" if core_name else "server default"
-        chosen, why = choose_core(scene)
+        if cell_size is None:
+            cell_size = self._cell_size(scene)
+        chosen, why = choose_core(scene, cell_size)
         core, p = self.resolve(chosen, params)
         return core, p, why
 
@@ -268,6 +274,16 @@ class ComputeService:
             if self._inflight.get(key) is fut:
                 del self._inflight[key]
 
+    def _cell_size(self, scene: Scene) -> float:
+        """The viewcell size (metres) the catalogue uses for ``scene``."""
+        try:
+            loaded = self.catalog.get(scene.name)
+            if loaded.scene is scene:
+                return float(loaded.grid.cell_size)
+        except Exception:  # not a catalogue scene: the sidecar's size or the server's
+            pass
+        return float(scene.meta.get("cell_size") or self.settings.cell_size)
+
     def _cell_box(self, scene: str, cell: int) -> np.ndarray:
         return self.catalog.get(scene).grid.boxes[cell].copy()
 
@@ -292,7 +308,7 @@ class ComputeService:
                     ) from None
             else:
                 viewcell = Viewcell(box)
-            ok, why = core_fits(core, loaded.scene)
+            ok, why = core_fits(core, loaded.scene, float(loaded.grid.cell_size))
             if not ok:
                 raise UnsupportedSceneError(f"core {core.name!r} does not fit {scene!r}: {why}")
             dkey = None
@@ -345,54 +361,25 @@ class ComputeService:
 
 
 # --------------------------------------------------------------------------- auto core
-#: The core name that asks the server to pick a core per scene.
-AUTO_CORE = "auto"
+# What fits and what ``auto`` picks is the cores' own declaration (``Core.fit``,
+# ``visibility.cores.base.choose_core``); these wrappers give the server's error types.
 
 
-def core_fits(core: Core, scene: Scene) -> tuple[bool, str]:
-    """Whether ``core`` may be used on ``scene`` and why not: ``core.supports`` plus the rule
-    that 2.5D-only cores (``requires_2_5d``) fit only 2.5D scenes (``scene_is_2_5d``: the meta's
-    ``is_2_5d`` when stated, else the geometry's, analysed once per loaded scene)."""
-    if core.requires_2_5d:
-        flat, how = scene_is_2_5d(scene)
-        if not flat:
-            return False, f"this core needs a 2.5D scene; this one is not: {how['reason']}"
+def core_fits(core: Core, scene: Scene, cell_size: float | None = None) -> tuple[bool, str]:
+    """Whether ``core`` may be used on ``scene`` and why not (``Core.fit``)."""
+    fit = core.fit(scene, cell_size)
+    return fit.ok, fit.why
+
+
+def offered_cores(scene: Scene, cell_size: float | None = None) -> list[str]:
+    """Registered cores that fit ``scene`` (``Core.fit``), sorted."""
+    return sorted(n for n, f in registry_fits(scene, cell_size).items() if f.ok)
+
+
+def choose_core(scene: Scene, cell_size: float | None = None) -> tuple[str, str]:
+    """The ``auto`` core for ``scene`` at ``cell_size`` metres and why: the best-scoring core
+    that fits (``visibility.cores.base.choose_core``). UnknownCoreError when none fits."""
     try:
-        return core.supports(scene)
-    except Exception as exc:  # a core's own check must not take a request down
-        return False, f"supports() failed: {type(exc).__name__}: {exc}"
-
-
-def offered_cores(scene: Scene) -> list[str]:
-    """Registered cores that fit ``scene`` (``supports``; 2.5D-only cores only for 2.5D
-    scenes, see ``core_fits``)."""
-    out = []
-    for name in available_cores():
-        try:
-            core = get_core(name)
-        except KeyError:
-            continue
-        if core_fits(core, scene)[0]:
-            out.append(name)
-    return out
-
-
-def choose_core(scene: Scene) -> tuple[str, str]:
-    """The ``auto`` core for ``scene`` and why: a 2.5D core for 2.5D scenes, ``from_segment``
-    (exact, continuous) for static scenes, else ``sampling``; else the first core that fits.
-    Raises UnknownCoreError when no registered core fits."""
-    offered = offered_cores(scene)
-    for name in offered:
-        if get_core(name).requires_2_5d:  # offered, so core_fits found the scene 2.5D
-            how = scene_is_2_5d(scene)[1]
-            return name, ("2.5D scene: a core made for heightfield-like occluders "
-                          f"({how['source']}: {how['reason']})")
-    static = scene.states is None
-    if static and "from_segment" in offered:
-        return "from_segment", "static triangle scene: exact continuous from-segment visibility"
-    if "sampling" in offered:
-        why = "dynamic scene" if not static else "from_segment not available for this scene"
-        return "sampling", f"{why}: sampling is the general fallback"
-    if offered:
-        return offered[0], "the only kind of registered core that fits this scene"
-    raise UnknownCoreError(f"no registered core fits scene {scene.name!r}")
+        return registry_choose_core(scene, cell_size)
+    except LookupError as exc:
+        raise UnknownCoreError(str(exc)) from None

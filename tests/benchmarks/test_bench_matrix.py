@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from benchmarks import bench_matrix, gt_cache, peers
-from tests.visibility.cores import designed_scenes as ds
+from visibility.cores import designed_scenes as ds
 from visibility.cores.base import CoreParams, available_cores, get_core
 from visibility.ground_truth import sample_pvs
 from visibility.viewcells import Viewcell

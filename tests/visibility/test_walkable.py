@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from tests.visibility.cores.designed_scenes import Builder
+from visibility.cores.designed_scenes import Builder
 from visibility.viewcells import ViewcellGrid
 
 

@@ -1,15 +1,25 @@
 """The core interface: every visibility algorithm is a ``Core`` that turns (scene, cell) into a PVS.
 
-A core is one module that subclasses ``Core``, declares a ``Params`` dataclass, and registers
-itself with ``@register``. The server, the CLI, the benchmarks and the conformance suite find
-cores only through the registry, so a new core needs nothing beyond its own module.
+A core is one package in ``visibility/cores/`` (or a module another installed package names in
+the ``pvs.cores`` entry-point group) holding a ``Core`` subclass decorated with ``@register``.
+Everything the server, the CLI, the benchmarks and the conformance suite need to know about a
+core, the core declares here: its parameters with units, ranges and help (``param``), its
+promise (``PROMISES``), the knob that trades error for time, whether it solves segments natively,
+and how well it fits a scene and cell size (``Core.fit``, which ``choose_core`` weighs for
+``auto``). Cores are discovered (``discover``), never listed by hand.
+
+Conventions: Y-up, right-handed, metres; triangle ids are row indices of the scene's face array.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import importlib.metadata
+import logging
+import pkgutil
 import time
+import typing
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
@@ -20,30 +30,132 @@ from visibility.ids import unique_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
+log = logging.getLogger(__name__)
+
 Granularity = Literal["triangle", "object"]
+
+#: What a core can promise about its PVS, from weakest to strongest guarantee against misses.
+#: The conformance suite (``visibility.cores.checks``) holds each core to its promise.
+PROMISES: dict[str, str] = {
+    "aggressive": "reports only what it saw from sampled points; may miss what falls between "
+                  "its samples and pixels (false negatives), rarely reports hidden triangles",
+    "exact_at_pixel_centres": "exact visibility at pixel centres along the cell's sides; misses "
+                              "only what falls between pixel centres",
+    "conservative": "no false negatives for any eye position in the cell and any view "
+                    "direction; over-reports by a measured share",
+}
+Promise = Literal["aggressive", "exact_at_pixel_centres", "conservative"]
+
+#: The entry-point group through which another installed package registers cores.
+ENTRY_POINT_GROUP = "pvs.cores"
+#: Largest seed accepted (seeds travel as uint32).
+MAX_SEED = 2**32 - 1
+
+
+# --------------------------------------------------------------------------- parameters
+def param(default: Any, *, help: str, unit: str = "", ge: float | None = None,
+          le: float | None = None, choices: tuple[Any, ...] | None = None) -> Any:
+    """A core parameter: a dataclass field whose metadata says its unit, range and help.
+
+    ``CoreParams.validate`` checks every declared range and choice, so a core's parameters are
+    described once, here, for the server's ``/cores`` and ``/docs``, the CLI's help and errors.
+    """
+    return field(default=default, metadata={"help": help, "unit": unit, "ge": ge, "le": le,
+                                             "choices": choices})
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """What a parameter is: name, JSON type name, default, unit, one-line help, range, choices."""
+
+    name: str
+    type: str
+    default: Any
+    unit: str
+    help: str
+    minimum: float | None
+    maximum: float | None
+    choices: tuple[Any, ...] | None
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["choices"] = None if self.choices is None else list(self.choices)
+        return d
+
+    def describe(self) -> str:
+        """One line: help, unit, range or choices and default (CLI help, error messages)."""
+        bits = [self.help]
+        if self.choices is not None:
+            bits.append("one of " + ", ".join(map(str, self.choices)))
+        elif self.minimum is not None or self.maximum is not None:
+            lo = "-inf" if self.minimum is None else _num(self.minimum)
+            hi = "inf" if self.maximum is None else _num(self.maximum)
+            bits.append(f"{lo}..{hi}" + (f" {self.unit}" if self.unit else ""))
+        elif self.unit:
+            bits.append(self.unit)
+        bits.append(f"default {self.default}")
+        return "; ".join(bits)
+
+
+def _num(x: float) -> str:
+    """A bound as people write it: 4294967295, not 4.29497e+09."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
+def _type_name(hint: Any) -> str:
+    if typing.get_origin(hint) is Literal:
+        return "string"
+    return {bool: "boolean", int: "integer", float: "number", str: "string"}.get(hint, "string")
+
+
+def param_specs(params_cls: type[CoreParams]) -> list[ParamSpec]:
+    """The ``ParamSpec`` of every field of a ``CoreParams`` class, in declaration order."""
+    hints = typing.get_type_hints(params_cls)
+    out = []
+    for f in dataclasses.fields(params_cls):
+        md = f.metadata
+        hint = hints.get(f.name, str)
+        choices = md.get("choices")
+        if choices is None and typing.get_origin(hint) is Literal:
+            choices = typing.get_args(hint)
+        out.append(ParamSpec(f.name, _type_name(hint), f.default, md.get("unit", ""),
+                             md.get("help", ""), md.get("ge"), md.get("le"),
+                             None if choices is None else tuple(choices)))
+    return out
 
 
 @dataclass
 class CoreParams:
-    """Parameters every core understands. Cores extend this with their own fields."""
+    """Parameters every core understands. Cores extend this with their own ``param`` fields."""
 
-    resolution: int = 256
-    granularity: Granularity = "triangle"
-    seed: int = 0
-
-    #: Bounds that keep a request from exhausting the machine (checked by ``validate``).
-    MAX_RESOLUTION: ClassVar[int] = 4096
+    resolution: int = param(256, unit="px", ge=8, le=4096,
+                            help="side of each cube face the core renders or rasterizes")
+    granularity: Granularity = param(
+        "triangle", choices=("triangle", "object"),
+        help="triangle: the visible triangles; object: every triangle of each visible object")
+    seed: int = param(0, ge=0, le=MAX_SEED, help="random seed: equal seeds give equal answers")
 
     def validate(self) -> None:
-        """Raise ValueError when a parameter is out of its allowed range."""
-        if not (8 <= int(self.resolution) <= self.MAX_RESOLUTION):
-            raise ValueError(
-                f"resolution must be in [8, {self.MAX_RESOLUTION}], got {self.resolution}"
-            )
-        if self.granularity not in ("triangle", "object"):
-            raise ValueError(
-                f"granularity must be 'triangle' or 'object', got {self.granularity!r}"
-            )
+        """Raise ValueError naming the parameter when a value is outside its declared range,
+        not one of its choices, not finite, or not an integer where one is declared."""
+        for spec in param_specs(type(self)):
+            value = getattr(self, spec.name)
+            if spec.choices is not None:
+                if value not in spec.choices:
+                    raise ValueError(f"{spec.name} must be one of {list(spec.choices)}, "
+                                     f"got {value!r}")
+                continue
+            if spec.type in ("integer", "number"):
+                if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                    raise ValueError(f"{spec.name} must be a number, got {value!r}")
+                if not np.isfinite(value):
+                    raise ValueError(f"{spec.name} must be finite, got {value!r}")
+                if spec.type == "integer" and int(value) != value:
+                    raise ValueError(f"{spec.name} must be an integer, got {value!r}")
+                lo, hi = spec.minimum, spec.maximum
+                if (lo is not None and value < lo) or (hi is not None and value > hi):
+                    raise ValueError(f"{spec.name} must be in [{_num(lo)}, {_num(hi)}]"
+                                     f"{' ' + spec.unit if spec.unit else ''}, got {value!r}")
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -53,6 +165,7 @@ class CoreParams:
         return ",".join(f"{k}={v}" for k, v in sorted(self.as_dict().items()))
 
 
+# --------------------------------------------------------------------------- results
 @dataclass
 class PVS:
     """A potentially visible set.
@@ -92,28 +205,49 @@ class SegmentNotSupported(ValueError):
     core that only solves boxes)."""
 
 
+@dataclass(frozen=True)
+class Fit:
+    """How well a core fits a scene and cell size: ``ok`` (may it be used at all), ``score``
+    (higher is a better choice for ``auto``; meaningful when ok) and ``why`` (one sentence)."""
+
+    ok: bool
+    score: float
+    why: str
+
+
+# --------------------------------------------------------------------------- the core
 class Core(ABC):
     """A from-region visibility algorithm.
 
-    Subclasses set ``name``, ``Params`` (a ``CoreParams`` subclass), ``description`` and
-    implement ``_compute``; ``compute`` adds timing, memory, validation and granularity.
+    Subclasses set ``name``, ``Params`` (a ``CoreParams`` subclass of ``param`` fields),
+    ``description`` and the declarations below, and implement ``_compute``; ``compute`` adds
+    timing, validation and granularity.
     """
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     Params: ClassVar[type[CoreParams]] = CoreParams
+    #: What the core guarantees about misses: a key of ``PROMISES``.
+    promise: ClassVar[Promise] = "aggressive"
+    #: The scenes and cell sizes the core is made for, one line (``/cores``, the README).
+    fits: ClassVar[str] = "any triangle scene, any cell size"
+    #: The parameter that trades error for time, and its levels in ascending cost (``pvs bench``).
+    knob: ClassVar[str | None] = None
+    knob_levels: ClassVar[tuple[Any, ...]] = ()
+    #: True when ``_compute_segment`` solves arbitrary segments, not only boxes.
+    native_segments: ClassVar[bool] = False
     #: True when the core only fits 2.5D scenes (heightfield-like occluders).
     requires_2_5d: ClassVar[bool] = False
+    #: Parameters that keep the conformance checks quick (``visibility.cores.checks``).
+    check_params: ClassVar[dict[str, Any]] = {}
     #: Upper bound on the false-negative rate against the sampled ground truth that the
-    #: conformance suite holds this core to, at its default parameters.
+    #: conformance suite holds this core to, at ``check_params`` (conservative cores: 0).
     fn_bound: ClassVar[float] = 0.05
     #: Upper bound on the false-positive rate (share of the PVS that the sampled ground truth
-    #: did not see) that the conformance suite holds this core to, at its default parameters.
-    #: The sampled ground truth is itself aggressive (it misses what falls between its samples
-    #: and pixels), so an FP there is either a hidden triangle reported (over-conservative or
-    #: wrong) or a visible one the reference missed (slivers, grazing views from the cell's
-    #: boundary): a bound that catches gross over-inclusion, not a proof of exactness. The
-    #: default is loose for conservative cores; each core states its own measured one.
+    #: did not see) that the conformance suite holds this core to, at ``check_params``. The
+    #: sampled ground truth is itself aggressive (it misses what falls between its samples and
+    #: pixels), so an FP there is either a hidden triangle reported or a visible one the
+    #: reference missed: a bound that catches gross over-inclusion, not a proof of exactness.
     fp_bound: ClassVar[float] = 0.25
 
     def make_params(self, **overrides: Any) -> CoreParams:
@@ -121,14 +255,61 @@ class Core(ABC):
         known = {f.name for f in dataclasses.fields(self.Params)}
         unknown = set(overrides) - known
         if unknown:
-            raise ValueError(f"unknown parameters for core {self.name!r}: {sorted(unknown)}")
+            raise ValueError(f"unknown parameters for core {self.name!r}: {sorted(unknown)}; "
+                             f"known: {sorted(known)}")
         params = self.Params(**overrides)
         params.validate()
         return params
 
+    @classmethod
+    def param_specs(cls) -> list[ParamSpec]:
+        """What each parameter is (``ParamSpec``), in declaration order."""
+        return param_specs(cls.Params)
+
     def supports(self, scene: Scene) -> tuple[bool, str]:
-        """Whether this core fits the scene, and why not when it does not."""
+        """Whether this core can compute on the scene at all, and why not when it cannot."""
         return True, ""
+
+    def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
+        """(score, why) of choosing this core for ``scene`` at viewcells of ``cell_size``
+        metres (None: unknown), given it fits. ``auto`` takes the highest score. By default a
+        core made for 2.5D scenes (``requires_2_5d``) outranks general ones on the scenes it
+        fits; cores that know their costs override this."""
+        if self.requires_2_5d:
+            return 4.0, f"2.5D scene: a core made for heightfield-like occluders ({self.fits})"
+        return 1.0, self.fits
+
+    def fit(self, scene: Scene, cell_size: float | None = None) -> Fit:
+        """Whether the core may be used on ``scene`` (``supports``; 2.5D-only cores only on
+        2.5D scenes) and how well it suits it (``suitability``). Never raises: a failing
+        check is a no with its reason."""
+        try:
+            if self.requires_2_5d:
+                from visibility.scene_analysis import scene_is_2_5d
+
+                flat, how = scene_is_2_5d(scene)
+                if not flat:
+                    return Fit(False, 0.0, f"needs a 2.5D scene; this one is not: "
+                                           f"{how['reason']}")
+            ok, why = self.supports(scene)
+            if not ok:
+                return Fit(False, 0.0, why)
+            score, why = self.suitability(scene, cell_size)
+            return Fit(True, float(score), why)
+        except Exception as exc:  # a core's own check must not take a request down
+            return Fit(False, 0.0, f"fit check failed: {type(exc).__name__}: {exc}")
+
+    @classmethod
+    def describe(cls) -> dict[str, Any]:
+        """Everything the core declares, as JSON-ready values (``GET /cores``)."""
+        return {
+            "name": cls.name, "description": cls.description, "promise": cls.promise,
+            "promise_means": PROMISES[cls.promise], "fits": cls.fits,
+            "params": [s.as_dict() for s in cls.param_specs()], "knob": cls.knob,
+            "knob_levels": list(cls.knob_levels), "native_segments": cls.native_segments,
+            "requires_2_5d": cls.requires_2_5d, "fn_bound": cls.fn_bound,
+            "fp_bound": cls.fp_bound,
+        }
 
     def compute(self, scene: Scene, cell: Viewcell, params: CoreParams | None = None) -> PVS:
         """The PVS of ``cell``: triangles visible from some point of the box (and stats)."""
@@ -143,9 +324,9 @@ class Core(ABC):
     ) -> PVS:
         """The PVS of the segment p -> q (metres): triangles visible from some point of it.
 
-        Cores that solve segments natively override ``_compute_segment``; the default answers
-        a segment along a coordinate axis as the (degenerate) box it is, and raises
-        ``SegmentNotSupported`` for a diagonal one, which no box describes.
+        Cores with ``native_segments`` solve it; the others answer a segment along a coordinate
+        axis as the (degenerate) box it is, and raise ``SegmentNotSupported`` for a diagonal
+        one, which no box describes.
         """
         a = np.asarray(p, dtype=np.float64).reshape(3)
         b = np.asarray(q, dtype=np.float64).reshape(3)
@@ -188,52 +369,124 @@ class Core(ABC):
         """Return (visible triangle ids in any order, stats dict)."""
 
 
+# --------------------------------------------------------------------------- registry
 _REGISTRY: dict[str, type[Core]] = {}
+_discovered = False
+
+
+class CoreImportError(ImportError):
+    """A core package or entry point failed to import: never silently absent."""
+
+
+def register(cls: type[Core]) -> type[Core]:
+    """Class decorator: make a core available by its ``name``; checks its declarations."""
+    if not cls.name:
+        raise ValueError("a core needs a name")
+    if cls.promise not in PROMISES:
+        raise ValueError(f"core {cls.name!r}: promise must be one of {list(PROMISES)}, "
+                         f"got {cls.promise!r}")
+    names = {f.name for f in dataclasses.fields(cls.Params)}
+    if cls.knob is not None and cls.knob not in names:
+        raise ValueError(f"core {cls.name!r}: knob {cls.knob!r} is not one of its parameters")
+    _REGISTRY[cls.name] = cls
+    return cls
 
 
 def unregister(name: str) -> None:
     """Remove a core from the registry (tests that register throwaway cores use it)."""
     _REGISTRY.pop(name, None)
 
-#: Modules that hold the built-in cores; importing one registers its core.
-BUILTIN_CORE_MODULES = ("visibility.cores.sampling", "visibility.cores.from_segment")
 
+def discover(refresh: bool = False) -> None:
+    """Import every core: each subpackage of ``visibility.cores`` and each ``pvs.cores`` entry
+    point (a module, or a ``Core`` subclass, which is then registered). Runs once unless
+    ``refresh``. Raises ``CoreImportError`` naming the core and the cause when one fails."""
+    global _discovered
+    if _discovered and not refresh:
+        return
+    import visibility.cores as pkg
 
-def register(cls: type[Core]) -> type[Core]:
-    """Class decorator: make a core available by its ``name``."""
-    if not cls.name:
-        raise ValueError("a core needs a name")
-    _REGISTRY[cls.name] = cls
-    return cls
-
-
-def _load_builtins() -> None:
-    for mod in BUILTIN_CORE_MODULES:
+    for info in pkgutil.iter_modules(pkg.__path__):
+        if not info.ispkg:
+            continue
+        modname = f"{pkg.__name__}.{info.name}"
         try:
-            importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            # A built-in core still under construction is simply absent.
-            if exc.name != mod:
-                raise
-
-
-def segment_cores() -> list[str]:
-    """Names of the registered cores that solve arbitrary segments natively, sorted."""
-    _load_builtins()
-    return sorted(n for n, c in _REGISTRY.items()
-                  if c._compute_segment is not Core._compute_segment)
+            importlib.import_module(modname)
+        except Exception as exc:
+            raise CoreImportError(f"core package {info.name!r} ({modname}) failed to import: "
+                                  f"{type(exc).__name__}: {exc}") from exc
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            obj = ep.load()
+        except Exception as exc:
+            raise CoreImportError(f"core entry point {ep.name!r} ({ep.value}) failed to "
+                                  f"import: {type(exc).__name__}: {exc}") from exc
+        if isinstance(obj, type) and issubclass(obj, Core) and obj.name not in _REGISTRY:
+            register(obj)
+    _discovered = True
 
 
 def available_cores() -> list[str]:
     """Names of every registered core, sorted."""
-    _load_builtins()
+    discover()
     return sorted(_REGISTRY)
+
+
+def segment_cores() -> list[str]:
+    """Names of the registered cores that solve arbitrary segments natively, sorted."""
+    discover()
+    return sorted(n for n, c in _REGISTRY.items() if c.native_segments)
 
 
 def get_core(name: str) -> Core:
     """An instance of the core registered under ``name``; KeyError with the choices otherwise."""
-    _load_builtins()
+    discover()
     try:
         return _REGISTRY[name]()
     except KeyError:
         raise KeyError(f"unknown core {name!r}; available: {sorted(_REGISTRY)}") from None
+
+
+def describe_cores() -> list[dict[str, Any]]:
+    """``Core.describe()`` of every registered core, sorted by name."""
+    return [get_core(n).describe() for n in available_cores()]
+
+
+# --------------------------------------------------------------------------- auto
+#: The core name that asks for a core chosen per scene and cell size.
+AUTO_CORE = "auto"
+
+
+def core_fits(scene: Scene, cell_size: float | None = None) -> dict[str, Fit]:
+    """``Core.fit`` of every registered core for ``scene`` at ``cell_size`` metres."""
+    return {n: get_core(n).fit(scene, cell_size) for n in available_cores()}
+
+
+def choose_core(scene: Scene, cell_size: float | None = None) -> tuple[str, str]:
+    """The ``auto`` core for ``scene`` at viewcells of ``cell_size`` metres, and why: every
+    core is asked (``Core.fit``) and the best-scoring one that fits wins (ties: by name).
+    Raises LookupError when no registered core fits."""
+    fits = core_fits(scene, cell_size)
+    ok = sorted(((f.score, n) for n, f in fits.items() if f.ok), key=lambda t: (-t[0], t[1]))
+    if not ok:
+        raise LookupError(f"no registered core fits scene {scene.name!r}: " + "; ".join(
+            f"{n}: {f.why}" for n, f in fits.items()))
+    best = ok[0][1]
+    others = ", ".join(f"{n} {s:g}" for s, n in ok[1:])
+    why = f"{fits[best].why} (score {fits[best].score:g}" + (
+        f"; others: {others})" if others else ")")
+    return best, why
+
+
+def core_fit_report(scene: Scene, cell_size: float | None = None) -> dict[str, Any]:
+    """Every core's fit for ``scene`` and the ``auto`` choice, JSON-ready (``GET /cores``)."""
+    fits = core_fits(scene, cell_size)
+    try:
+        name, why = choose_core(scene, cell_size)
+        auto: dict[str, Any] | None = {"core": name, "why": why}
+    except LookupError:
+        auto = None
+    return {"cell_size": cell_size,
+            "cores": [{"core": n, "ok": f.ok, "score": f.score, "why": f.why}
+                      for n, f in fits.items()],
+            "auto": auto}

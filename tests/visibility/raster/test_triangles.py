@@ -6,8 +6,7 @@ import numba
 import numpy as np
 import pytest
 
-from visibility import raster
-from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
+from visibility.raster import triangles as raster
 from visibility.raster.camera import (
     DEFAULT_NEAR,
     cube_face_rotations,
@@ -15,6 +14,7 @@ from visibility.raster.camera import (
     pixel_rays,
     random_rotation,
 )
+from visibility.raster.triangles import render_cubemap, render_cubemap_ids, render_ids
 
 I3 = np.eye(3)
 O3 = np.zeros(3)

@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, register
+from visibility.cores.base import Core, CoreParams, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
     DEFAULT_BATCH,
@@ -69,32 +69,18 @@ class FromSegmentParams(CoreParams):
         works on clusters of CLUSTER triangles).
     """
 
-    runs: int = 1
-    first_orientation: str = "oblique"
-    near: float = DEFAULT_NEAR
-    eye_levels: int = 3
-    depth_knots: int = 16
-    batch_triangles: int = DEFAULT_BATCH * CLUSTER
-
-    MAX_RUNS: ClassVar[int] = 256
-
-    def validate(self) -> None:
-        super().validate()
-        if not (1 <= int(self.runs) <= self.MAX_RUNS) or int(self.runs) != self.runs:
-            raise ValueError(f"runs must be an integer in [1, {self.MAX_RUNS}], got {self.runs}")
-        if self.first_orientation not in ORIENTATIONS:
-            raise ValueError(f"first_orientation must be one of {ORIENTATIONS}, got "
-                             f"{self.first_orientation!r}")
-        if not (np.isfinite(self.near) and 1e-6 <= float(self.near) <= 10.0):
-            raise ValueError(f"near must be in [1e-6, 10] metres, got {self.near}")
-        if self.eye_levels not in (1, 2, 3):
-            raise ValueError(f"eye_levels must be 1, 2 or 3, got {self.eye_levels}")
-        if not (1 <= int(self.depth_knots) <= 1024) or int(self.depth_knots) != self.depth_knots:
-            raise ValueError(f"depth_knots must be an integer in [1, 1024], got "
-                             f"{self.depth_knots}")
-        if not (1024 <= int(self.batch_triangles) <= 1 << 26):
-            raise ValueError(f"batch_triangles must be in [1024, 2^26], got "
-                             f"{self.batch_triangles}")
+    runs: int = param(1, ge=1, le=256, help="cubemap orientations per segment (the first, "
+                      "then runs - 1 random rotations: the paper's jitter)")
+    first_orientation: str = param(
+        "oblique", choices=ORIENTATIONS,
+        help="the first cube: oblique (aligned with no world axis) or axis (the paper's)")
+    near: float = param(DEFAULT_NEAR, ge=1e-6, le=10.0, unit="m",
+                        help="near-plane distance of the visibility cameras")
+    eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
+    depth_knots: int = param(16, ge=1, le=1024,
+                             help="depth of moving primitives interpolated between these knots")
+    batch_triangles: int = param(DEFAULT_BATCH * CLUSTER, ge=1024, le=1 << 26, unit="triangles",
+                                 help="triangles per batch of the box pass (bounds its memory)")
 
 
 def cell_segments(box: np.ndarray, eye_levels: int = 3) -> np.ndarray:
@@ -157,12 +143,26 @@ class FromSegmentCore(Core):
     description = ("Continuous from-segment visibility (Popescu et al. 2024): exact visibility "
                    "at cubemap pixel centres along the cell's sides; static, dynamic, spheres")
     Params = FromSegmentParams
+    promise = "exact_at_pixel_centres"
+    fits = ("static triangle scenes, any cell size (dynamic scenes too, at a cost linear in "
+            "their keyframes)")
+    knob = "resolution"
+    knob_levels = (64, 128, 256)
+    native_segments = True
+    check_params: ClassVar[dict[str, Any]] = {"runs": 1}
     fn_bound = 0.05
     #: FP measured 0.000 on two rooms and the open ring; 0.05-0.10 on the stiff cases (the
     #: 1e6-aspect sliver pair: truly visible, found exactly, but thinner than a pixel so the
     #: sampled reference misses it; 20 triangles, so each is 0.05); up to 0.11 on 10k-triangle
     #: rooms cells at 128 px (grazing views from the cell's sides that interior samples miss).
     fp_bound = 0.15
+
+    def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
+        if scene.states is not None:
+            # 869 s for a 100k-triangle swaying-grass cell (benchmarks/results/from_segment.md):
+            # below the sampling fallback for animated scenes.
+            return 0.5, ("dynamic scene: from-segment's cost grows linearly with the keyframes")
+        return 3.0, "static triangle scene: exact continuous from-segment visibility"
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, register
+from visibility.cores.base import Core, CoreParams, param, register
 from visibility.ground_truth import GroundTruth, sample_pvs, sample_segment_pvs
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -25,17 +25,10 @@ MAX_SAMPLES = 100_000
 class SamplingParams(CoreParams):
     """``samples`` viewpoints in the cell, convergence recorded every ``batch`` of them."""
 
-    samples: int = 32
-    batch: int = 8
-
-    def validate(self) -> None:
-        super().validate()
-        if not (1 <= int(self.samples) <= MAX_SAMPLES) or int(self.samples) != self.samples:
-            raise ValueError(
-                f"samples must be an integer in [1, {MAX_SAMPLES}], got {self.samples}"
-            )
-        if not (1 <= int(self.batch) <= MAX_SAMPLES) or int(self.batch) != self.batch:
-            raise ValueError(f"batch must be an integer in [1, {MAX_SAMPLES}], got {self.batch}")
+    samples: int = param(32, ge=1, le=MAX_SAMPLES, unit="viewpoints",
+                         help="stratified viewpoints in the cell, each rendering a cubemap")
+    batch: int = param(8, ge=1, le=MAX_SAMPLES, unit="viewpoints",
+                       help="the convergence curve records the PVS size every batch samples")
 
 
 @register
@@ -48,6 +41,12 @@ class SamplingCore(Core):
         "(aggressive: may miss thin slivers seen between samples)."
     )
     Params: ClassVar[type[CoreParams]] = SamplingParams
+    promise = "aggressive"
+    fits = "any scene (static, dynamic, spheres), any cell size: the general fallback"
+    knob = "samples"
+    knob_levels = (8, 32, 128)
+    native_segments = True
+    check_params: ClassVar[dict[str, Any]] = {"samples": 16}
     #: Holds on the conformance scenes: FN measured 0.000 there (two rooms and a door, 16 and 32
     #: samples at 128 and 256 px, 3 seeds each, against 128-point ground truths of 3 seeds).
     #: Open scenes with many sub-pixel triangles are another matter: on the 100k-triangle city,
@@ -58,6 +57,12 @@ class SamplingCore(Core):
     #: measured 0.000 on every conformance scene (two rooms, open ring, stiff cases at offsets
     #: 0 and 1e5; 3 reference seeds) and at most 0.008 on 10k-triangle rooms/village/city cells.
     fp_bound: ClassVar[float] = 0.05
+
+    def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
+        # The fallback: it fits everything, so any core made for the scene outranks it.
+        kind = "dynamic scene" if scene.states is not None else "scene"
+        return 1.0, (f"{kind}: from-point sampling is the general fallback (aggressive: may "
+                     "miss what falls between its samples)")
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

@@ -5,10 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.visibility.cores import designed_scenes as ds
 from tests.visibility.segment_reference import sampled_visible, unwitnessed
+from visibility.cores import designed_scenes as ds
 from visibility.cores.base import available_cores, get_core
-from visibility.cores.from_segment import FromSegmentParams, cell_segments, cube_rotations
+from visibility.cores.from_segment import (
+    FromSegmentCore,
+    FromSegmentParams,
+    cell_segments,
+    cube_rotations,
+)
 from visibility.cores.from_segment.kernels import scene_geometries, segment_visible
 from visibility.generators import make_scene
 from visibility.ground_truth import fn_fp_rates, sample_pvs
@@ -285,3 +290,29 @@ def test_compute_segment_is_exact_on_a_diagonal_segment():
     assert len(boxed) > len(pvs)
     with pytest.raises(ValueError):
         CORE.compute_segment(scene, p, np.array([np.nan, 0, 0]))
+
+
+def test_lone_sliver_is_reported_exactly_when_a_pixel_centre_crosses_it():
+    """Exact at pixel centres: the 1e6-aspect sliver of ``checks.check_lone_sliver`` is reported
+    exactly when a row centre of the axis-aligned -Z face crosses it for some eye of the
+    perimeter (a crossing lasts a tiny stretch of a side, so point samples along the sides miss
+    it: the reason for a continuous method). The eyes are at y in {1.5, 1.7, 1.9}, 7 to 9 m from
+    the sliver's plane, so it spans the vertical tangents [(1.7 - y) / d, (1.7 + 4e-6 - y) / d]
+    for d in [7, 9]; row centres are at tangents (2k + 1) / R - 1."""
+    from visibility.cores.checks import check_valid
+
+    core = FromSegmentCore()
+    tri = np.array([[(-2, 1.7, -8), (2, 1.7, -8), (0, 1.7 + 4e-6, -8)]], dtype=np.float64)
+    scene = Scene(tri.reshape(-1, 3), np.arange(3).reshape(1, 3), name="sliver")
+    cell = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+    for res in (64, 128):
+        rows = (2 * np.arange(res) + 1) / res - 1
+        seen = False
+        for y in (1.5, 1.7, 1.9):
+            ends = np.array([(1.7 - y) / d for d in (7.0, 9.0)]
+                            + [(1.7 + 4e-6 - y) / d for d in (7.0, 9.0)])
+            seen |= bool(np.any((rows >= ends.min()) & (rows <= ends.max())))
+        got = check_valid(core.compute(scene, cell, core.make_params(
+            resolution=res, runs=1, first_orientation="axis")), scene)
+        assert got == ({0} if seen else set()), (res, seen)
+        assert seen == (res == 128)  # the case is built so both branches are exercised

@@ -1,0 +1,441 @@
+"""``check_core(core)``: the one conformance suite every core passes (like scikit-learn's
+``check_estimator``), importable so anyone can run it on their own core.
+
+Each ``check_*`` function takes a core and asserts one property on scenes with known answers
+(``visibility.cores.designed_scenes``, the ``stress`` generator, small hand-built cases).
+Nothing branches on a core's name: what differs between cores is what they declare, above all
+their ``promise`` (``visibility.cores.base.PROMISES``):
+
+- every core: valid, sorted, unique ids of valid faces; no NaN in its stats; determinism for a
+  seed; the known answers of the designed scenes; its stated FN and FP bounds against a dense
+  sampled ground truth;
+- cores not ``aggressive`` (exact at pixel centres along the cell, or conservative) also find the
+  slivers in plain view that move across many pixel centres as the eye crosses the cell;
+- ``conservative`` cores have no false negative at all on the designed scenes, find a lone
+  1e6-aspect sliver, and report every triangle of a cell that contains the whole scene; a
+  triangle seen only edge-on (zero area from every eye) may be reported by them, by no one else.
+
+The checks run at small resolutions (``CONFORMANCE_RESOLUTION``, ``STIFF_RESOLUTION``) on top of
+the core's ``check_params`` so the whole suite stays quick for every core.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from visibility.cores import designed_scenes as ds
+from visibility.cores.base import (
+    PROMISES,
+    PVS,
+    Core,
+    CoreParams,
+    SegmentNotSupported,
+    get_core,
+)
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+#: Resolution of the conformance checks on the designed scenes (the FN / FP bounds are stated
+#: at it), and of the stiff and extreme checks.
+CONFORMANCE_RESOLUTION = 128
+STIFF_RESOLUTION = 64
+#: The dense sampled ground truth of the FN / FP checks: points in the cell, pixels, seed.
+REFERENCE = {"n_points": 128, "resolution": 128, "seed": 11}
+
+
+# --------------------------------------------------------------------------- helpers
+def check_params(core: Core, resolution: int = CONFORMANCE_RESOLUTION, **extra: Any) -> CoreParams:
+    """The core's ``check_params`` at ``resolution`` pixels, with ``extra`` fields changed."""
+    return core.make_params(**{**core.check_params, "resolution": resolution, **extra})
+
+
+def check_valid(pvs: PVS, scene: Scene) -> set[int]:
+    """Assert the PVS is well formed (int32, sorted, unique, valid faces, finite stats) and
+    return its ids as a set."""
+    ids = pvs.triangle_ids
+    assert ids.dtype == np.int32, f"triangle ids must be int32, got {ids.dtype}"
+    assert np.all(np.diff(ids.astype(np.int64)) > 0), "ids must be sorted and unique"
+    if len(ids):
+        assert ids[0] >= 0 and ids[-1] < scene.n_triangles, "ids outside the face array"
+        assert scene.valid_faces[ids].all(), "degenerate faces must never be in a PVS"
+    assert np.isfinite(pvs.seconds)
+    for k, v in pvs.stats.items():
+        if isinstance(v, float):
+            assert not np.isnan(v), f"stat {k} is NaN"
+    return set(ids.tolist())
+
+
+def _solve(core: Core, scene: Scene, cell: Viewcell, resolution: int, **extra: Any) -> set[int]:
+    return check_valid(core.compute(scene, cell, check_params(core, resolution, **extra)), scene)
+
+
+def _tri_scene(tris: Any, name: str = "tris") -> Scene:
+    t = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    return Scene(t.reshape(-1, 3), np.arange(len(t) * 3).reshape(-1, 3), name=name)
+
+
+def _assert_known(found: set[int], known: dict[str, list[int]], what: str) -> None:
+    missing = set(known["visible"]) - found
+    assert not missing, f"{what}: visible triangles missing: {sorted(missing)}"
+    leaked = set(known["hidden"]) & found
+    assert not leaked, f"{what}: hidden triangles reported: {sorted(leaked)}"
+
+
+# --------------------------------------------------------------------------- declarations
+def check_declarations(core: Core) -> None:
+    """Name, description, promise, bounds, parameter specs, knob and its levels are coherent,
+    and bad parameters are refused."""
+    assert core.name and core.description, "a core needs a name and a description"
+    assert core.promise in PROMISES, f"promise {core.promise!r} is not one of {list(PROMISES)}"
+    assert 0.0 <= core.fn_bound <= 1.0 and 0.0 <= core.fp_bound <= 1.0
+    if core.promise == "conservative":
+        assert core.fn_bound == 0.0, "a conservative core claims no false negatives: fn_bound 0"
+    specs = core.param_specs()
+    names = [s.name for s in specs]
+    assert {"resolution", "granularity", "seed"} <= set(names)
+    for s in specs:
+        assert s.help, f"parameter {s.name} has no help"
+    if core.knob is not None:
+        assert core.knob in names, f"knob {core.knob!r} is not a parameter"
+        assert len(core.knob_levels) >= 2, "a knob needs at least two levels"
+        for level in core.knob_levels:
+            core.make_params(**{core.knob: level})
+    core.make_params(**core.check_params)
+    for bad in ({"no_such_parameter": 1}, {"resolution": 10**6}, {"seed": -1},
+                {"granularity": "pixel"}):
+        try:
+            core.make_params(**bad)
+        except ValueError:
+            continue
+        raise AssertionError(f"make_params accepted {bad}")
+    fit = core.fit(ds.empty()[0], 4.0)
+    assert isinstance(fit.ok, bool) and np.isfinite(fit.score) and isinstance(fit.why, str)
+    d = core.describe()
+    assert d["name"] == core.name and [p["name"] for p in d["params"]] == names
+
+
+# --------------------------------------------------------------------------- designed scenes
+def check_empty_scene(core: Core) -> None:
+    """A scene with no triangles: an empty PVS."""
+    scene, cell, _ = ds.empty()
+    assert _solve(core, scene, cell, CONFORMANCE_RESOLUTION) == set()
+
+
+def check_all_degenerate(core: Core) -> None:
+    """A scene whose faces are all degenerate: an empty PVS."""
+    scene, cell, _ = ds.only_degenerate()
+    assert _solve(core, scene, cell, CONFORMANCE_RESOLUTION) == set()
+
+
+def check_everything_visible(core: Core) -> None:
+    """A ring of quads in plain view around the cell: every one is found."""
+    scene, cell, known = ds.open_ring()
+    assert set(known["visible"]) <= _solve(core, scene, cell, CONFORMANCE_RESOLUTION)
+
+
+def check_deterministic(core: Core) -> None:
+    """Two runs with the same seed give the same ids."""
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    a = core.compute(scene, cell, check_params(core, seed=3))
+    b = core.compute(scene, cell, check_params(core, seed=3))
+    np.testing.assert_array_equal(a.triangle_ids, b.triangle_ids)
+
+
+def check_two_rooms_and_a_door(core: Core) -> None:
+    """The far wall through the door and a box in the room are found; a box behind the wall
+    is not."""
+    scene, cell, known = ds.two_rooms_and_a_door()
+    _assert_known(_solve(core, scene, cell, CONFORMANCE_RESOLUTION), known, "two rooms")
+
+
+def check_object_granularity(core: Core) -> None:
+    """Object granularity reports every valid triangle of each visible object."""
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    pvs = core.compute(scene, cell, check_params(core, granularity="object"))
+    check_valid(pvs, scene)
+    assert pvs.granularity == "object"
+    objs = np.unique(scene.object_ids[pvs.triangle_ids])
+    np.testing.assert_array_equal(objs, pvs.object_ids)
+    whole = np.isin(scene.object_ids, objs) & scene.valid_faces
+    np.testing.assert_array_equal(np.nonzero(whole)[0], pvs.triangle_ids)
+
+
+def check_stiff_cases(core: Core) -> None:
+    """Coplanar, intersecting, huge, through-the-cell and degenerate triangles and a closed room,
+    at offsets 0, 1e5 and 1e7 m: the known answers hold."""
+    for offset in (0.0, 1e5, 1e7):
+        scene, cell, known = ds.stiff_cases(offset=(offset, 0.0, -offset))
+        found = _solve(core, scene, cell, CONFORMANCE_RESOLUTION)
+        _assert_known(found, known, f"stiff cases at {offset:g} m")
+        assert not set(known["degenerate"]) & found
+        if core.promise == "conservative":
+            assert set(known["sliver"]) <= found, f"the 1e6 sliver is missing at {offset:g} m"
+
+
+def check_fn_fp_against_sampled_ground_truth(core: Core) -> None:
+    """FN and FP rates against a dense sampled reference (``REFERENCE``) within the core's
+    stated bounds on two rooms, the open ring and the stiff cases. FP counts what the core
+    reports that the reference did not see. The stiff cases' sub-pixel sliver is held only
+    against conservative cores' FN (which must be 0 everywhere)."""
+    from visibility.ground_truth import fn_fp_rates, sample_pvs
+
+    for name, fn_applies in (("two_rooms_and_a_door", True), ("open_ring", True),
+                             ("stiff_cases", core.promise == "conservative")):
+        scene, cell, _ = getattr(ds, name)()
+        gt = sample_pvs(scene, cell, **REFERENCE)
+        pvs = core.compute(scene, cell, check_params(core))
+        fn, fp = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
+        if fn_applies:
+            assert fn <= core.fn_bound, f"{name}: FN rate {fn:.3f} > its bound {core.fn_bound}"
+        assert fp <= core.fp_bound, f"{name}: FP rate {fp:.3f} > its bound {core.fp_bound}"
+
+
+def check_fp_bound_can_fail(core: Core) -> None:
+    """The FP bound is not vacuous: reporting every valid triangle of the two rooms (the box
+    hidden behind the wall included) exceeds it."""
+    from visibility.ground_truth import fn_fp_rates, sample_pvs
+
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    gt = sample_pvs(scene, cell, **REFERENCE)
+    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], gt.triangle_ids)
+    assert fp > core.fp_bound, f"fp_bound {core.fp_bound} lets every triangle through ({fp:.3f})"
+
+
+def check_tiny_and_huge_cells(core: Core) -> None:
+    """A 1 mm cell keeps the two rooms' known answers; a 1 km cell around the whole scene is
+    valid and, for a conservative core, reports every valid triangle (an eye can stand next to
+    each)."""
+    scene, _, known = ds.two_rooms_and_a_door()
+    tiny = Viewcell(np.array([[2.5, 1.7, 3.0], [2.501, 1.701, 3.001]]))
+    _assert_known(_solve(core, scene, tiny, CONFORMANCE_RESOLUTION), known, "1 mm cell")
+    huge = Viewcell(np.array([[-500.0, -500.0, -500.0], [500.0, 500.0, 500.0]]))
+    found = _solve(core, scene, huge, CONFORMANCE_RESOLUTION)
+    if core.promise == "conservative":
+        assert found == set(np.flatnonzero(scene.valid_faces).tolist())
+
+
+def check_segment_queries(core: Core) -> None:
+    """Every core answers an axis-aligned segment (a degenerate box); a diagonal one when it
+    declares ``native_segments``, else ``SegmentNotSupported``; infinite end points raise."""
+    scene, _, known = ds.two_rooms_and_a_door()
+    p, q = np.array([2.0, 1.7, 2.6]), np.array([3.0, 1.7, 2.6])
+    params = check_params(core)
+    found = check_valid(core.compute_segment(scene, p, q, params), scene)
+    _assert_known(found, known, "axis-aligned segment")
+    diagonal = np.array([3.0, 1.9, 3.4])
+    if core.native_segments:
+        found = check_valid(core.compute_segment(scene, p, diagonal, params), scene)
+        assert not set(known["hidden"]) & found
+    else:
+        try:
+            core.compute_segment(scene, p, diagonal, params)
+        except SegmentNotSupported:
+            pass
+        else:
+            raise AssertionError("a box-only core answered a diagonal segment")
+    try:
+        core.compute_segment(scene, p, np.array([np.inf, 0.0, 0.0]), params)
+    except ValueError:
+        return
+    raise AssertionError("an infinite segment end point was accepted")
+
+
+# --------------------------------------------------------------------------- stiff and extreme
+def check_stress_scene(core: Core) -> None:
+    """The ``stress`` generator's cases at 1e5 and 1e7 m: plain view, a 12 km triangle, a box
+    behind a closed wall, degenerate faces, intersecting and coplanar pairs, edge-on and
+    eye-plane triangles; slivers for cores that are not aggressive."""
+    from visibility.generators import make_scene
+
+    for offset in (1e5, 1e7):
+        stress = make_scene("stress", triangles=1500, offset=offset)
+        cases = stress.meta["cases"]
+        for cell_index in (0, 1):
+            cell = Viewcell(np.array(stress.meta["cells"][cell_index]))
+            found = _solve(core, stress, cell, STIFF_RESOLUTION)
+            where = f"stress at {offset:g} m, cell {cell_index}"
+            assert set(cases["visible"]) <= found, f"{where}: the triangle in plain view"
+            assert set(cases["huge"]) <= found, f"{where}: the 12 km triangle"
+            assert not set(cases["hidden"]) & found, f"{where}: the box behind the wall leaked"
+            for bad in ("zero_area", "repeated_index", "non_finite"):
+                assert not set(cases[bad]) & found
+            assert set(cases["intersecting"]) <= found, f"{where}: an intersecting triangle"
+            assert set(cases["coplanar"]) & found, f"{where}: no coplanar triangle"
+            # Edge-on for the eyes on their planes, seen from one side by every other eye.
+            assert set(cases["edge_on"]) <= found, f"{where}: an edge-on triangle"
+            assert set(cases["eye_plane"]) <= found, f"{where}: an eye-plane triangle"
+            if core.promise != "aggressive":
+                # Seven slivers in plain view cross many pixel centres as the eye travels the
+                # cell (the eighth, horizontal at eye height, registers only by rounding).
+                assert set(cases["slivers"][:-1]) <= found, f"{where}: a sliver in plain view"
+
+
+def check_lone_sliver(core: Core) -> None:
+    """A 4 m by 4 micrometre sliver (aspect 1e6) 8 m in front of the cell, in plain view: a
+    conservative core reports it; the others answer validly (point samples and pixel centres
+    see it only where one happens to cross it)."""
+    scene = _tri_scene([[(-2, 1.7, -8), (2, 1.7, -8), (0, 1.7 + 4e-6, -8)]], "sliver")
+    cell = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+    found = _solve(core, scene, cell, STIFF_RESOLUTION)
+    assert found <= {0}
+    if core.promise == "conservative":
+        assert found == {0}, "a conservative core missed a sliver in plain view"
+
+
+def check_non_finite_vertices_at_load(core: Core) -> None:
+    """NaN and inf vertices are rejected at load with a report; the good triangle is found."""
+    import trimesh
+
+    from visibility.loaders import load_scene
+
+    v = np.array([[-1, 0, -5], [1, 0, -5], [0, 3, -5],
+                  [np.nan, 0, -5], [np.inf, 1, -5], [0, -np.inf, -5]], float)
+    f = np.array([[0, 1, 2], [0, 1, 3], [4, 1, 2], [0, 5, 2], [3, 4, 5]])
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "nonfinite.ply"
+        trimesh.Trimesh(v, f, process=False, validate=False).export(path)
+        scene = load_scene(path)
+    assert scene.valid_faces.tolist() == [True, False, False, False, False]
+    assert scene.degenerate_report.non_finite == 4
+    cell = Viewcell(np.array([[-0.5, 0.5, -0.5], [0.5, 1.5, 0.5]]))
+    assert _solve(core, scene, cell, STIFF_RESOLUTION) == {0}
+
+
+def check_kilometre_cell(core: Core) -> None:
+    """A 1 km cell inside a ring of eight 1 km walls 1.5 km away sees every wall."""
+    b = ds.Builder()
+    ids: list[int] = []
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        c, s = np.cos(a), np.sin(a)
+        t = np.array([-s, 0.0, c])
+        p = np.array([c, 0.0, s]) * 1500.0
+        w = 500.0
+        ids += b.quad(p - w * t, p - w * t + [0, 400, 0], p + w * t + [0, 400, 0], p + w * t, k)
+    scene = b.scene("km_ring")
+    cell = Viewcell(np.array([[-500.0, 0.0, -500.0], [500.0, 1000.0, 500.0]]))
+    assert set(ids) <= _solve(core, scene, cell, STIFF_RESOLUTION)
+
+
+def check_eye_on_a_triangles_plane(core: Core) -> None:
+    """A flat cell in the plane of two horizontal triangles (one through the cell): they have
+    zero area from every eye, so only the upright triangle is seen; a conservative core may
+    also report the zero-area ones."""
+    scene = _tri_scene([
+        [(-5, 1.7, -5), (5, 1.7, -5), (0, 1.7, 5)],
+        [(10, 1.7, -2), (14, 1.7, -2), (12, 1.7, 2)],
+        [(-2, 0.0, -10), (2, 0.0, -10), (0, 3.0, -10)],
+    ], "eye_plane")
+    cell = Viewcell(np.array([[-1.0, 1.7, -1.0], [1.0, 1.7, 1.0]]))
+    found = _solve(core, scene, cell, STIFF_RESOLUTION)
+    assert 2 in found
+    if core.promise != "conservative":
+        assert found == {2}, found
+    else:
+        assert found <= {0, 1, 2}
+
+
+def check_triangle_crossing_the_near_plane(core: Core) -> None:
+    """A triangle from 1 cm to 10 m in front of a point cell is found."""
+    scene = _tri_scene([[(-0.5, 1.0, -0.01), (0.5, 1.0, -0.01), (0.0, 2.5, -10.0)]], "near")
+    cell = Viewcell(np.array([[0.0, 1.7, 0.0], [0.0, 1.7, 0.0]]))
+    assert _solve(core, scene, cell, STIFF_RESOLUTION) == {0}
+
+
+def check_scene_of_one_triangle(core: Core) -> None:
+    """One small triangle in view, and one 20 km triangle under the eyes: each is found."""
+    cell = Viewcell(np.array([[-0.5, 1.5, -0.5], [0.5, 1.9, 0.5]]))
+    for tri in ([(-1, 0, -6), (1, 0, -6), (0, 2, -6)],
+                [(-1e4, 0, -1e4), (1e4, 0, -1e4), (0, 0, 1e4)]):
+        scene = _tri_scene([tri], "one")
+        assert _solve(core, scene, cell, STIFF_RESOLUTION) == {0}
+
+
+def check_translation_invariance(core: Core) -> None:
+    """Moving the two rooms and the cell by 1e7 m changes at most a pixel-edge triangle or two
+    and never lets the hidden box in."""
+    base, cell0, known = ds.two_rooms_and_a_door()
+    far, cell1, _ = ds.two_rooms_and_a_door(offset=(1e7, 0.0, -1e7))
+    a = _solve(core, base, cell0, STIFF_RESOLUTION)
+    b = _solve(core, far, cell1, STIFF_RESOLUTION)
+    assert not set(known["hidden"]) & b
+    assert len(a ^ b) <= max(2, 0.05 * len(a | b)), sorted(a ^ b)
+
+
+def check_float64_depth_order_at_1e7(core: Core) -> None:
+    """A wall 3 m ahead with a triangle 0.4 m behind it (hidden) and one 0.4 m in front (seen),
+    1e7 m from the origin, where float32 coordinates have a 1 m spacing: the right answer, and
+    the same as at the origin."""
+    def depth_scene(off: np.ndarray) -> tuple[Scene, Viewcell]:
+        tris = np.array([
+            [(-10, -2, -3), (10, 8, -3), (-10, 8, -3)],
+            [(-10, -2, -3), (10, -2, -3), (10, 8, -3)],
+            [(-1, 1, -3.4), (1, 1, -3.4), (0, 2.5, -3.4)],
+            [(2.3, 1, -2.6), (4, 1, -2.6), (3, 2.5, -2.6)],
+        ], dtype=np.float64) + off
+        cell = Viewcell(np.array([[-0.5, 1.5, -0.5], [0.5, 1.9, 0.5]]) + off)
+        return _tri_scene(tris, "depth"), cell
+
+    scene, cell = depth_scene(np.array([1e7, 0.0, -1e7]))
+    found = _solve(core, scene, cell, STIFF_RESOLUTION)
+    assert {0, 1, 3} <= found and 2 not in found, found
+    base, cell0 = depth_scene(np.zeros(3))
+    assert _solve(core, base, cell0, STIFF_RESOLUTION) == found
+
+
+# --------------------------------------------------------------------------- the suite
+#: Every check, in the order ``check_core`` runs them.
+CHECKS: tuple[Callable[[Core], None], ...] = (
+    check_declarations, check_empty_scene, check_all_degenerate, check_everything_visible,
+    check_deterministic, check_two_rooms_and_a_door, check_object_granularity,
+    check_stiff_cases, check_fn_fp_against_sampled_ground_truth, check_fp_bound_can_fail,
+    check_tiny_and_huge_cells, check_segment_queries, check_stress_scene, check_lone_sliver,
+    check_non_finite_vertices_at_load, check_kilometre_cell, check_eye_on_a_triangles_plane,
+    check_triangle_crossing_the_near_plane, check_scene_of_one_triangle,
+    check_translation_invariance, check_float64_depth_order_at_1e7,
+)
+
+
+def core_checks(core: Core | str) -> Iterator[tuple[str, Callable[[], None]]]:
+    """(check name, zero-argument callable) for every check of ``core`` (an instance or a
+    registered name): what a test suite parametrizes over."""
+    obj = get_core(core) if isinstance(core, str) else core
+    for check in CHECKS:
+        yield check.__name__, (lambda c=check: c(obj))
+
+
+@dataclasses.dataclass
+class CheckFailure:
+    """One failed check: its name and the error it raised."""
+
+    check: str
+    error: BaseException
+
+
+def check_core(core: Core | str, stop_at_first: bool = False) -> None:
+    """Run every conformance check on ``core``; raise AssertionError listing the failures.
+
+    Parameters
+    ----------
+    core : a ``Core`` instance (registered or not) or a registered core's name.
+    stop_at_first : re-raise the first failure as it is instead of collecting them all.
+    """
+    failures: list[CheckFailure] = []
+    for name, run in core_checks(core):
+        try:
+            run()
+        except Exception as exc:
+            if stop_at_first:
+                raise
+            failures.append(CheckFailure(name, exc))
+    if failures:
+        label = core if isinstance(core, str) else core.name
+        lines = "\n".join(f"  {f.check}: {type(f.error).__name__}: {f.error}" for f in failures)
+        raise AssertionError(f"core {label!r} failed {len(failures)} of {len(CHECKS)} "
+                             f"checks:\n{lines}")
