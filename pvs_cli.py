@@ -67,10 +67,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def walk_cores(args: argparse.Namespace) -> list[str]:
+def walk_cores(args: argparse.Namespace) -> list[str | None]:
     """The cores a walk replays: ``--cores a,b,c`` when given, else ``--core`` (which also takes
-    a comma list); SystemExit when the list is empty."""
+    a comma list), else ``[None]`` (the server's default core); SystemExit when a given list is
+    empty."""
     text = args.cores if getattr(args, "cores", None) else args.core
+    if text is None:
+        return [None]
     cores = [c.strip() for c in text.split(",") if c.strip()]
     if not cores:
         raise SystemExit(f"no core named in {text!r}")
@@ -137,6 +140,44 @@ def cmd_query(args: argparse.Namespace) -> int:
         ids = body.pop("triangle_ids", [])
         body["triangle_ids"] = f"[{len(ids)} ids]" if len(ids) > 10 else ids
         print(json.dumps(body, indent=2))
+    return 0
+
+
+def cores_help() -> str:
+    """Every registered core with its promise and parameters (units, ranges, defaults), as the
+    cores declare them: the help text of the commands that take ``--core`` and ``--param``."""
+    from visibility.cores.base import AUTO_CORE, available_cores, get_core
+
+    lines = [f"cores (--core NAME, or {AUTO_CORE!r}: chosen per scene; --param NAME=VALUE):"]
+    for name in available_cores():
+        core = get_core(name)
+        lines.append(f"  {name}: {core.promise}; fits {core.fits}")
+        lines += [f"    {s.name:<18} {s.describe()}" for s in core.param_specs()]
+    return "\n".join(lines)
+
+
+def cmd_cores(args: argparse.Namespace) -> int:
+    """List the cores (the local registry, or a running server's ``GET /cores``)."""
+    if args.server:
+        import httpx
+
+        query = {"scene": args.scene} if args.scene else {}
+        r = httpx.get(args.server.rstrip("/") + "/cores", params=query, timeout=600)
+        print(json.dumps(r.json(), indent=2))
+        return 0 if r.status_code == 200 else 1
+    if args.scene:
+        from visibility.cores.base import core_fit_report
+        from visibility.generators import make_scene
+        from visibility.loaders import SCENE_EXTENSIONS, load_scene
+        from visibility.viewcells import ViewcellGrid
+
+        scenes_dir = Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR
+        files = {p.stem: p for p in sorted(scenes_dir.glob("*")) if p.suffix in SCENE_EXTENSIONS}
+        scene = load_scene(files[args.scene]) if args.scene in files else make_scene(args.scene)
+        size = args.cell_size or ViewcellGrid.for_scene(scene).cell_size
+        print(json.dumps(core_fit_report(scene, size), indent=2))
+        return 0
+    print(cores_help())
     return 0
 
 
@@ -239,7 +280,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--scene", default="rooms", help="scene name (generated or a file stem)")
-    p.add_argument("--core", default="sampling", help="core name, or several separated by commas")
+    p.add_argument("--core", default=None,
+                   help="core name, or several separated by commas (default: the server's; "
+                        "'pvs cores' lists them)")
     p.add_argument("--cores", metavar="A,B,C",
                    help="replay the same walkthrough against each of these cores and print their "
                         "means side by side (overrides --core)")
@@ -318,13 +361,15 @@ def build_parser() -> argparse.ArgumentParser:
                                        "(PVS_CACHE_DIR; `pvs precompute` fills it)")
     p.set_defaults(fn=cmd_serve)
 
-    p = sub.add_parser("walk", help="replay a walkthrough with the headless client")
+    p = sub.add_parser("walk", help="replay a walkthrough with the headless client",
+                       epilog=cores_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--server", default="http://127.0.0.1:8000")
     p.add_argument("--quiet", action="store_true")
     _add_walk_options(p, "runs/walk")
     p.set_defaults(fn=cmd_walk)
 
-    p = sub.add_parser("query", help="a cell's (or a segment's, a box's) PVS over HTTP")
+    p = sub.add_parser("query", help="a cell's (or a segment's, a box's) PVS over HTTP",
+                       epilog=cores_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--server", default="http://127.0.0.1:8000")
     p.add_argument("--scene", required=True)
     where = p.add_mutually_exclusive_group(required=True)
@@ -334,10 +379,18 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--box", type=_six_floats, metavar="X0,Y0,Z0,X1,Y1,Z1",
                        help="the PVS of an axis-aligned box [min, max] (metres)")
     p.add_argument("--core", default=None, help="core name (default: the server's)")
-    p.add_argument("--param", action="append")
+    p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")
     p.add_argument("--ids", action="store_true", help="print every id")
     p.add_argument("--timeout", type=float, default=600)
     p.set_defaults(fn=cmd_query)
+
+    p = sub.add_parser("cores", help="list the cores, their promises and parameters; with "
+                                     "--scene, how well each fits it and what auto picks")
+    p.add_argument("--server", help="ask a running server (GET /cores) instead of this install")
+    p.add_argument("--scene", help="a scene name: every core's fit and the auto choice")
+    p.add_argument("--scenes", help="folder of scene files")
+    p.add_argument("--cell-size", type=float, help="viewcell size in metres for the fit")
+    p.set_defaults(fn=cmd_cores)
 
     p = sub.add_parser("scenes", help="list scenes, or describe one")
     p.add_argument("name", nargs="?")
@@ -364,7 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_demo)
 
     p = sub.add_parser("precompute", help="compute a scene's cell PVS into the on-disk cache "
-                                          "a server then starts with")
+                                          "a server then starts with", epilog=cores_help(),
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", required=True)
     p.add_argument("--cache-dir", help="on-disk PVS cache folder (PVS_CACHE_DIR); start the "
                                        "server with the same one")

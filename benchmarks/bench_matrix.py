@@ -16,8 +16,8 @@ not pages the process already held).
 Scenes with spheres get sphere FN/FP too (``PVS.sphere_ids`` against ``GroundTruth.sphere_ids``);
 a core or peer that reports no sphere ids reads "n/a".
 
-A core's knob is the first of its Params fields found in ``KNOB_PRIORITY``; a new core with a
-``resolution`` field joins with no change here.
+A core's knob and its levels are its own declaration (``Core.knob``, ``Core.knob_levels``): a new
+core joins with no change here.
 
 Usage: ``pvs bench --quick`` (minutes), ``pvs bench --preset medium`` (the published
 BENCHMARKS.md, about half an hour on 2 cores), ``pvs bench --preset full``.
@@ -26,7 +26,6 @@ BENCHMARKS.md, about half an hour on 2 cores), ``pvs bench --preset full``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -47,15 +46,10 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_SCENES = REPO.parent / "shared" / "scenes"
 RESULTS_DIR = REPO / "benchmarks" / "results"
 
-#: Accuracy knob levels by Params field name (ascending cost).
-KNOB_LEVELS: dict[str, list[Any]] = {
-    "samples": [8, 32, 128],
-    "delta": [0.5, 0.25, 0.1],
-    "resolution": [64, 128, 256],
-    "runs": [1, 2, 4],
-}
-#: Which field is a core's knob: the first one its Params declares.
-KNOB_PRIORITY = ("samples", "delta", "resolution", "runs")
+#: Viewpoint counts of the ray-caster peer (ascending cost). A core's knob and its levels are
+#: its own declaration (``Core.knob``, ``Core.knob_levels``); a preset's ``knob_levels`` may
+#: replace the levels of a knob by name for a cheaper run.
+PEER_LEVELS: list[int] = [8, 32, 128]
 
 #: Every generator except ``stress`` (a test scene: a few hundred stiff-case triangles plus random
 #: clutter, whose known answers ``tests/visibility/cores/test_stiff.py`` checks), at two sizes.
@@ -201,13 +195,12 @@ def _meminfo_gib() -> str:
 
 
 # --------------------------------------------------------------------------- matrix pieces
-def knob_of(core) -> str | None:
-    """The accuracy knob of a core: the first field of ``KNOB_PRIORITY`` its Params declares."""
-    names = {f.name for f in dataclasses.fields(core.Params)}
-    for k in KNOB_PRIORITY:
-        if k in names:
-            return k
-    return None
+def knob_levels(core, preset_levels: dict[str, list[Any]], count: int) -> list[Any]:
+    """The first ``count`` levels of a core's declared knob (``[None]`` without a knob): the
+    preset's levels for that knob name when it names them, else the core's own."""
+    if core.knob is None:
+        return [None]
+    return list(preset_levels.get(core.knob) or core.knob_levels)[:count]
 
 
 def load_scenes(specs: list[str]) -> list[tuple[str, Any]]:
@@ -373,7 +366,7 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     from visibility.viewcells import ViewcellGrid
 
     cores = cfg["cores"] or available_cores()
-    levels_by_knob = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
+    levels_by_knob = {"samples": PEER_LEVELS, **cfg.get("knob_levels", {})}
     use_peer = cfg["peer"] and peers.available()
     if cfg["peer"] and not use_peer:
         log("embreex is not installed: the ray-caster peer is skipped")
@@ -467,9 +460,8 @@ def _jobs(cores, levels_by_knob, cfg, use_peer) -> list[dict[str, Any]]:
     jobs = []
     for name in cores:
         core = get_core(name)
-        knob = knob_of(core)
-        levels = levels_by_knob.get(knob, [None])[: cfg["levels"]] if knob else [None]
-        for lv in levels:
+        knob = core.knob
+        for lv in knob_levels(core, levels_by_knob, cfg["levels"]):
             jobs.append({"kind": "core", "core": core, "knob": knob, "level": lv,
                          "row": {"core": name, "knob": knob or "-", "level": lv}})
     if use_peer:
@@ -527,8 +519,7 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None, peer_ca
         if not ok:
             raise RuntimeError(f"unsupported: {why}")
         over = {}
-        names = {f.name for f in dataclasses.fields(core.Params)}
-        if "resolution" in names and job["knob"] != "resolution":
+        if job["knob"] != "resolution":
             over["resolution"] = cfg_res
         if job["level"] is not None:
             over[job["knob"]] = job["level"]
@@ -722,8 +713,8 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
 
 def method_paragraph(cfg: dict[str, Any]) -> str:
     """The report's method paragraph: what was run, with which knob levels, and why."""
-    levels = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
-    knobs = ", ".join(f"`{k}` {levels[k][: cfg['levels']]}" for k in KNOB_PRIORITY if k in levels)
+    levels = _levels_by_knob(cfg)
+    knobs = ", ".join(f"`{c}` {c_knob} {lv}" for c, c_knob, lv in _core_levels(cfg))
     cap_s, cap_f = cfg.get("peer_cap") or (PEER_CAP_SECONDS, PEER_CAP_FACTOR)
     top = top_core_resolution(cfg)
     return (
@@ -732,8 +723,8 @@ def method_paragraph(cfg: dict[str, Any]) -> str:
         "sphere count), and every scene in `../shared/scenes/`. Per scene and cell size "
         f"({', '.join('default' if c is None else str(c) for c in cfg['cell_sizes'])}; `x2` = "
         f"twice the default side), {cfg['cells']} cell(s) picked evenly over the viewcell grid "
-        "(`ViewcellGrid.for_scene`). Knob levels per core (first Params field found among "
-        f"{', '.join(KNOB_PRIORITY)}): {knobs}; cores whose knob is not `resolution` run at "
+        "(`ViewcellGrid.for_scene`). Knob levels per core (each core declares its knob): "
+        f"{knobs}; cores whose knob is not `resolution` run at "
         f"{cfg['resolution']} px. Ground truth: `sample_pvs` with {cfg['gt_points']} points at "
         f"{cfg['gt_resolution']} px ({cfg['gt_resolution'] / top:g}x the finest core resolution, "
         f"{top} px, and {cfg['gt_points'] / max(1, max(levels.get('samples', [1]))):g}x the "
@@ -769,11 +760,32 @@ def method_paragraph(cfg: dict[str, Any]) -> str:
         "error-against-time curve, the ground truth is the dominant fixed cost per cell.\n")
 
 
+def _levels_by_knob(cfg: dict[str, Any]) -> dict[str, list[Any]]:
+    return {"samples": PEER_LEVELS, **cfg.get("knob_levels", {})}
+
+
+def _core_levels(cfg: dict[str, Any]) -> list[tuple[str, str, list[Any]]]:
+    """(core, knob, levels) of every core the run measures."""
+    from visibility.cores.base import available_cores, get_core
+
+    out = []
+    known = available_cores()
+    for name in cfg["cores"] or known:
+        if name not in known:  # reported by ``main`` as an unknown core
+            continue
+        core = get_core(name)
+        out.append((name, core.knob or "-",
+                    knob_levels(core, _levels_by_knob(cfg), int(cfg["levels"]))))
+    return out
+
+
 def top_core_resolution(cfg: dict[str, Any]) -> int:
     """The finest cubemap resolution any core runs at in ``cfg`` (px)."""
-    levels = {**KNOB_LEVELS, **cfg.get("knob_levels", {})}
-    return int(max([int(cfg["resolution"])] + [int(v) for v in
-                                                levels["resolution"][: int(cfg["levels"])]]))
+    res = [int(cfg["resolution"])]
+    for _, knob, levels in _core_levels(cfg):
+        if knob == "resolution":
+            res += [int(v) for v in levels]
+    return max(res)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -869,9 +881,7 @@ def _warm_up(cfg) -> None:
     scene, cell = _tiny_scene_and_cell()
     for name in cfg["cores"] or available_cores():
         core = get_core(name)
-        names = {f.name for f in dataclasses.fields(core.Params)}
-        core.compute(scene, cell, core.make_params(**({"resolution": 16} if "resolution" in names
-                                                       else {})))
+        core.compute(scene, cell, core.make_params(resolution=16))
     if cfg["peer"] and peers.available():
         peers.embree_pvs(scene, cell, samples=1, resolution=8)
 

@@ -41,7 +41,8 @@ class ReplayOptions:
 
     server: str
     scene: str
-    cores: list[str] = field(default_factory=lambda: ["sampling"])
+    #: Cores to replay against, one after the other; None: the server's default core.
+    cores: list[str | None] = field(default_factory=lambda: [None])
     params: dict[str, Any] = field(default_factory=dict)
     walkthrough: Path | None = None
     out_dir: Path = Path("runs/walk")
@@ -103,13 +104,15 @@ def _walkthrough(opts: ReplayOptions, grid: ViewcellGrid, out: Path) -> Walkthro
     return w
 
 
-def replay(opts: ReplayOptions, core: str, out: Path) -> dict:
-    """Replay the walkthrough against ``core``; write the report into ``out``; its summary."""
+def replay(opts: ReplayOptions, core: str | None, out: Path) -> dict:
+    """Replay the walkthrough against ``core`` (None: the server's default); write the report
+    into ``out``; its summary (``meta.core`` names the core the server used)."""
     out.mkdir(parents=True, exist_ok=True)
     session = SyncSession.connect(opts.server, opts.scene, core, opts.params,
                                   budget=opts.budget)
     try:
         welcome = session.welcome
+        core = welcome.core
         scene = local_scene(welcome.scene, opts.scenes_dir)
         grid = ViewcellGrid.for_scene(scene, welcome.grid.cell_size)
         if len(grid) != welcome.grid.cells:
@@ -324,9 +327,10 @@ def replay_cores(opts: ReplayOptions) -> list[dict]:
     several = len(opts.cores) > 1
     shared_walk = opts.walkthrough
     for core in opts.cores:
-        out = opts.out_dir / core if several else opts.out_dir
+        out = opts.out_dir / (core or "default") if several else opts.out_dir
         run_opts = ReplayOptions(**{**opts.__dict__, "walkthrough": shared_walk})
         s = replay(run_opts, core, out)
+        core = s["meta"]["core"]
         if shared_walk is None:
             shared_walk = out / "walkthrough.json"  # the next cores replay the same walk
         print(f"\n== {opts.scene} / {core}  (report: {out})")

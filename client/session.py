@@ -147,7 +147,7 @@ class Session:
         cls,
         url: str,
         scene: str,
-        core: str = "sampling",
+        core: str | None = None,
         params: dict[str, Any] | None = None,
         budget: int | None = None,
         *,
@@ -421,7 +421,7 @@ class SyncSession:
         return fut.result(timeout)
 
     @classmethod
-    def connect(cls, url: str, scene: str, core: str = "sampling", params: dict | None = None,
+    def connect(cls, url: str, scene: str, core: str | None = None, params: dict | None = None,
                 budget: int | None = None, **kw: Any) -> SyncSession:
         """Open a session (see ``Session.connect``)."""
         self = cls()

@@ -73,7 +73,8 @@ class Hello(_Message):
     type: Literal["hello"] = "hello"
     version: StrictInt = PROTOCOL_VERSION
     scene: Name
-    core: Name = "sampling"
+    #: None: the server's default core (the welcome names it); "auto": chosen per scene.
+    core: Name | None = None
     params: Params = Field(default_factory=dict)
     budget: Annotated[int, Field(strict=True, gt=0)] | None = None
     #: Whether the server should send the cells ahead before the client reaches them (None:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
 
 import numpy as np
 import pytest
 
 from benchmarks import bench_matrix, gt_cache, peers
 from visibility.cores import designed_scenes as ds
-from visibility.cores.base import CoreParams, available_cores, get_core
+from visibility.cores.base import available_cores, get_core
 from visibility.ground_truth import sample_pvs
 from visibility.viewcells import Viewcell
 
@@ -71,19 +70,16 @@ def test_bad_arguments_are_clear_errors(capsys):
     assert "no_such_core" in capsys.readouterr().err
 
 
-def test_knob_comes_from_the_params_fields():
-    assert bench_matrix.knob_of(get_core("sampling")) == "samples"
+def test_knob_and_levels_are_the_cores_declaration():
+    core = get_core("sampling")
+    assert bench_matrix.knob_levels(core, {}, 3) == list(core.knob_levels)
+    # A preset may replace a knob's levels by name for a cheaper run.
+    assert bench_matrix.knob_levels(core, {core.knob: [4, 16]}, 3) == [4, 16]
 
-    @dataclass
-    class P(CoreParams):
-        other: int = 1
+    class NoKnob:
+        knob = None
 
-    class Fake:
-        Params = P
-
-    # A new core with only the base fields sweeps resolution, with nothing registered here.
-    assert bench_matrix.knob_of(Fake()) == "resolution"
-    assert "resolution" in {f.name for f in fields(P)}
+    assert bench_matrix.knob_levels(NoKnob(), {}, 3) == [None]
 
 
 def test_ground_truth_is_computed_once_then_read_from_disk(tmp_path):

@@ -60,7 +60,7 @@ class SamplingCore(Core):
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # The fallback: it fits everything, so any core made for the scene outranks it.
-        kind = "dynamic scene" if scene.states is not None else "scene"
+        kind = "dynamic scene" if scene.states is not None else "static scene"
         return 1.0, (f"{kind}: from-point sampling is the general fallback (aggressive: may "
                      "miss what falls between its samples)")
 
