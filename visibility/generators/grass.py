@@ -107,7 +107,10 @@ def _build(triangles: int, seed: int):
     vfrac = np.concatenate([np.zeros(len(tv)), np.tile(frac, nb)])
     vblade = np.concatenate([np.full(len(tv), -1), np.repeat(np.arange(nb), 5)])
     meta = {"blades": int(nb), "field_side_m": float(side), "terrain_cells": int(g),
-            "terrain_triangles": int(len(tf)), "blade_triangles": int(len(bf) + len(sf))}
+            "terrain_triangles": int(len(tf)), "blade_triangles": int(len(bf) + len(sf)),
+            # The walker wades through the meadow: triangles from this id on (the blades) stand
+            # in the walk area by design; the terrain before them leaves it open.
+            "walk_through_from": int(len(tf))}
     return (verts, faces, obj, to_rgb(rgb), np.array(rects), np.stack([px, py, pz], axis=1),
             vfrac, vblade, h, meta)
 
