@@ -13,11 +13,13 @@ Conventions: Y-up, right-handed, metres; triangle ids are row indices of the sce
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import importlib
 import importlib.metadata
 import logging
 import pkgutil
+import threading
 import time
 import typing
 from abc import ABC, abstractmethod
@@ -205,6 +207,63 @@ class SegmentNotSupported(ValueError):
     core that only solves boxes)."""
 
 
+class ComputationCancelled(RuntimeError):
+    """A computation stopped at a checkpoint: it was cancelled or its deadline passed."""
+
+
+class CancelToken:
+    """Cancellation and deadline of one computation, polled by ``checkpoint()``.
+
+    Kernels cannot be interrupted, so cores call ``checkpoint()`` between chunks of bounded
+    work (a batch of samples, a segment, a group of pixel tiles); a cancelled or late
+    computation stops at the next one. ``deadline`` is a ``time.monotonic()`` instant.
+    """
+
+    def __init__(self, deadline: float | None = None, budget: float | None = None) -> None:
+        self.deadline = deadline
+        self.budget = budget
+        self._cancelled = threading.Event()
+        self.reason = ""
+
+    @classmethod
+    def after(cls, seconds: float | None) -> CancelToken:
+        """A token whose deadline is ``seconds`` from now (None: no deadline)."""
+        if seconds is None:
+            return cls()
+        return cls(time.monotonic() + float(seconds), float(seconds))
+
+    def cancel(self, reason: str = "cancelled") -> None:
+        """Stop the computation at its next checkpoint."""
+        if not self._cancelled.is_set():
+            self.reason = reason
+            self._cancelled.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled.is_set()
+
+    def check(self) -> None:
+        """Raise ``ComputationCancelled`` when cancelled or past the deadline."""
+        if self._cancelled.is_set():
+            raise ComputationCancelled(self.reason)
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            self.cancel(f"deadline of {self.budget:g} s passed")
+            raise ComputationCancelled(self.reason)
+
+
+_TOKEN: contextvars.ContextVar[CancelToken | None] = contextvars.ContextVar("pvs_cancel_token",
+                                                                            default=None)
+
+
+def checkpoint() -> None:
+    """Raise ``ComputationCancelled`` if the computation running in this context was cancelled
+    or passed its deadline; a no-op outside ``Core.compute`` with a token. Cores call it
+    between chunks of work."""
+    token = _TOKEN.get()
+    if token is not None:
+        token.check()
+
+
 @dataclass(frozen=True)
 class Fit:
     """How well a core fits a scene and cell size: ``ok`` (may it be used at all), ``score``
@@ -311,16 +370,25 @@ class Core(ABC):
             "fp_bound": cls.fp_bound,
         }
 
-    def compute(self, scene: Scene, cell: Viewcell, params: CoreParams | None = None) -> PVS:
-        """The PVS of ``cell``: triangles visible from some point of the box (and stats)."""
+    def compute(self, scene: Scene, cell: Viewcell, params: CoreParams | None = None, *,
+                token: CancelToken | None = None) -> PVS:
+        """The PVS of ``cell``: triangles visible from some point of the box (and stats).
+        With ``token`` the computation stops at the core's next ``checkpoint()`` once it is
+        cancelled or past its deadline (``ComputationCancelled``)."""
         params = params or self.make_params()
         params.validate()
         t0 = time.perf_counter()
-        ids, stats = self._compute(scene, cell, params)
+        reset = _TOKEN.set(token)
+        try:
+            checkpoint()
+            ids, stats = self._compute(scene, cell, params)
+        finally:
+            _TOKEN.reset(reset)
         return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
 
     def compute_segment(
-        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams | None = None
+        self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams | None = None, *,
+        token: CancelToken | None = None,
     ) -> PVS:
         """The PVS of the segment p -> q (metres): triangles visible from some point of it.
 
@@ -335,7 +403,12 @@ class Core(ABC):
         params = params or self.make_params()
         params.validate()
         t0 = time.perf_counter()
-        ids, stats = self._compute_segment(scene, a, b, params)
+        reset = _TOKEN.set(token)
+        try:
+            checkpoint()
+            ids, stats = self._compute_segment(scene, a, b, params)
+        finally:
+            _TOKEN.reset(reset)
         return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
 
     def _compute_segment(

@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, param, register
+from visibility.cores.base import Core, CoreParams, checkpoint, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
     DEFAULT_BATCH,
@@ -191,6 +191,7 @@ class FromSegmentCore(Core):
             for rot in rotations:
                 for v0, v1 in segments:
                     for g in geoms:
+                        checkpoint()
                         segment_visible(g, v0, v1, rot, params.resolution, params.near,
                                         params.depth_knots, batch, visible, stats)
         m = scene.n_triangles

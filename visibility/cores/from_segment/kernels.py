@@ -43,6 +43,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from visibility.cores.base import checkpoint
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.spheres import sphere_box, sphere_cover, sphere_setup
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
@@ -64,6 +65,9 @@ N_BUCKETS = 2048
 DEFAULT_BATCH = 1 << 15
 #: Envelope capacity (pieces per pixel): starting value, grown x4 in place when a tile needs
 #: more, up to MAX_CAP (a memory guard: 256 pixels x MAX_CAP x 36 bytes per thread).
+#: Most groups of tiles the envelope pass of one segment is split into, with a cancellation
+#: checkpoint between groups (``visibility.cores.base.checkpoint``).
+TILE_GROUPS = 16
 START_CAP = 16
 MAX_CAP = 1 << 14
 
@@ -1225,11 +1229,19 @@ def segment_visible(
     counters[:, 6] = START_CAP
     wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
     overflow = np.zeros(len(tiles), dtype=bool)
-    if len(tiles):
-        _resolve(tiles, nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
+    # The envelope pass runs in groups of tiles with a checkpoint between them, so a cancelled
+    # or late computation stops within a fraction of one segment's time.
+    groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
+    for sel in np.array_split(np.arange(len(tiles)), groups):
+        if not len(sel):
+            continue
+        checkpoint()
+        group_overflow = np.zeros(len(sel), dtype=bool)
+        _resolve(tiles[sel], nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
                  prim_face, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
                  geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
-                 dvec, rots, res, float(near), int(knots), visible, overflow, counters, wit)
+                 dvec, rots, res, float(near), int(knots), visible, group_overflow, counters, wit)
+        overflow[sel] = group_overflow
     if overflow.any():
         raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "
                            f"{int(overflow.sum())} tiles; lower the resolution")
