@@ -171,16 +171,65 @@ class PVSCache(ByteLRU):
         super().__init__(max_bytes, pvs_nbytes, keep)
 
 
+#: Format tag of on-disk PVS entries. Entries without it (or with another) are from an older
+#: server: a miss, recomputed and overwritten, never read.
+DISK_FORMAT = "pvs-disk-2"
+
+
+class BadEntry(ValueError):
+    """An on-disk PVS entry that fails a check (the reason is safe to log: no paths)."""
+
+
+def _checksum(key_repr: str, n_triangles: int, granularity: str, ids: np.ndarray,
+              objects: np.ndarray | None, spheres: np.ndarray | None) -> str:
+    """blake2b (16 bytes, hex) of an entry's key, triangle count, granularity and id arrays
+    (little-endian int32, each prefixed by its length, absent arrays marked)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(key_repr.encode())
+    h.update(b"\0%d\0%s\0" % (int(n_triangles), granularity.encode()))
+    for arr in (ids, objects, spheres):
+        if arr is None:
+            h.update(b"-")
+            continue
+        a = np.ascontiguousarray(arr, dtype="<i4")
+        h.update(b"%d:" % len(a))
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _check_ids(name: str, arr: np.ndarray, upper: int | None) -> np.ndarray:
+    """``arr`` as int32 when it is a 1-D array of sorted unique ids in [0, upper); BadEntry."""
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise BadEntry(f"{name} are not a 1-D integer array ({arr.dtype}, {arr.shape})")
+    if len(arr):
+        a = arr.astype(np.int64)
+        if a[0] < 0:
+            raise BadEntry(f"{name} hold a negative id")
+        if upper is not None and a[-1] >= upper:
+            raise BadEntry(f"{name} hold id {int(a[-1])}, outside [0, {upper})")
+        if a[-1] > np.iinfo(np.int32).max:
+            raise BadEntry(f"{name} hold ids beyond int32")
+        if len(a) > 1 and not np.all(a[1:] > a[:-1]):
+            raise BadEntry(f"{name} are not sorted and unique")
+    return arr.astype(np.int32)
+
+
 class DiskPVSCache:
-    """PVS as ``.npz`` files under ``folder`` (one per key), surviving restarts.
+    """PVS as ``.npz`` files under ``folder`` (one per key), surviving restarts. Caches are
+    checked, not trusted.
 
     A key is a tuple whose first item names the scene's geometry (``ComputeService.disk_key``:
     the scene fingerprint, so a changed scene file or generator size never meets old files).
-    File name: ``<sha256 of key[0]>/<sha256 of repr(key)>.npz`` holding the ids, granularity,
-    seconds and the key's ``repr`` (checked on load, so a hash collision or a foreign file is a
-    miss). Files that cannot be read (truncated, corrupt, wrong content) are ignored (and
-    removed). Writes go to a temporary file renamed into place, so a crash never leaves a half
-    file under a real name.
+    File name: ``<sha256 of key[0]>/<sha256 of repr(key)>.npz``. An entry carries its format
+    (``DISK_FORMAT``), the key's ``repr``, the scene fingerprint, the parameters (the rest of
+    the key), the scene's triangle count when the writer knew it, the ids, granularity,
+    seconds and a blake2b checksum of key, count and ids. On read the key, fingerprint and
+    parameters must match, the checksum must match, and the ids must be sorted unique int32 in
+    [0, n_triangles) (the caller's ``n_triangles``, which must also equal the stored one, or
+    else the stored one). An entry failing any check (or unreadable: truncated, not a zip) is
+    logged without its path, deleted, counted in ``rejected`` and is a miss, so it is
+    recomputed and never served; an entry of an older format is a plain miss. Writes go to a
+    temporary file renamed into place, so a crash never leaves a half file under a real name.
     """
 
     def __init__(self, folder: str | os.PathLike) -> None:
@@ -188,8 +237,12 @@ class DiskPVSCache:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.hits = 0
         self.misses = 0
+        self.rejected = 0
         self.corrupt = 0
+        self.outdated = 0
         self.writes = 0
+        self.write_errors = 0
+        self._lock = threading.Lock()
 
     def path(self, key: tuple) -> Path:
         """Where the PVS of ``key`` lives."""
@@ -197,54 +250,143 @@ class DiskPVSCache:
         scene = hashlib.sha256(str(key[0]).encode()).hexdigest()[:16]
         return self.folder / scene / f"{digest}.npz"
 
-    def get(self, key: tuple) -> PVS | None:
-        """The stored PVS of ``key`` or None (missing or unreadable file)."""
+    def _count(self, name: str) -> None:
+        with self._lock:
+            setattr(self, name, getattr(self, name) + 1)
+
+    def _read(self, p: Path, key: tuple, n_triangles: int | None) -> PVS | None:
+        """The checked PVS in ``p``; None for an older format; BadEntry for a bad entry."""
+        try:
+            z = np.load(p, allow_pickle=False)
+        except Exception as exc:  # truncated, not a zip, unreadable: np.load raises many types
+            raise BadEntry(f"unreadable ({type(exc).__name__})") from None
+        with z:
+            try:
+                if "format" not in z.files or str(z["format"]) != DISK_FORMAT:
+                    return None
+                key_repr = repr(key)
+                if str(z["key"]) != key_repr:
+                    raise BadEntry("it holds another key")
+                if str(z["fingerprint"]) != str(key[0]):
+                    raise BadEntry("it is from another scene fingerprint")
+                if str(z["params"]) != repr(key[1:]):
+                    raise BadEntry("it holds other parameters")
+                stored_n = int(z["n_triangles"])
+                if n_triangles is not None and stored_n >= 0 and stored_n != int(n_triangles):
+                    raise BadEntry(f"it is for {stored_n} triangles, the scene has "
+                                   f"{n_triangles}")
+                upper = int(n_triangles) if n_triangles is not None else \
+                    (stored_n if stored_n >= 0 else None)
+                granularity = str(z["granularity"])
+                raw_ids = z["triangle_ids"]
+                raw_obj = z["object_ids"] if bool(z["has_objects"]) else None
+                raw_sph = z["sphere_ids"] if bool(z["has_spheres"]) else None
+                if str(z["checksum"]) != _checksum(key_repr, stored_n, granularity, raw_ids,
+                                                   raw_obj, raw_sph):
+                    raise BadEntry("checksum mismatch")
+                ids = _check_ids("triangle ids", raw_ids, upper)
+                obj = None if raw_obj is None else _check_ids("object ids", raw_obj, None)
+                sph = None if raw_sph is None else _check_ids("sphere ids", raw_sph, None)
+                seconds = float(z["seconds"])
+            except BadEntry:
+                raise
+            except Exception as exc:  # missing fields, wrong types, a truncated member
+                raise BadEntry(f"malformed ({type(exc).__name__})") from None
+        return PVS(ids, granularity=granularity, object_ids=obj, sphere_ids=sph,
+                   stats={"seconds": seconds, "disk": True})
+
+    def get(self, key: tuple, n_triangles: int | None = None) -> PVS | None:
+        """The stored, checked PVS of ``key`` or None (missing, older format or rejected).
+
+        ``n_triangles``: the scene's triangle count; ids must lie below it (without it, below
+        the count stored with the entry, when its writer gave one).
+        """
         p = self.path(key)
         if not p.is_file():
-            self.misses += 1
+            self._count("misses")
             return None
         try:
-            with np.load(p, allow_pickle=False) as z:
-                if str(z["key"]) != repr(key):
-                    raise ValueError("key mismatch")
-                ids = z["triangle_ids"].astype(np.int32)
-                obj = z["object_ids"].astype(np.int32) if int(z["has_objects"]) else None
-                sph = z["sphere_ids"].astype(np.int32) if int(z["has_spheres"]) else None
-                pvs = PVS(ids, granularity=str(z["granularity"]), object_ids=obj,
-                          sphere_ids=sph, stats={"seconds": float(z["seconds"]), "disk": True})
-        except Exception as exc:  # any unreadable file is a miss, never an error
-            log.warning("ignoring unreadable PVS cache file %s: %s", p, exc)
-            self.corrupt += 1
-            self.misses += 1
-            try:
-                p.unlink()
-            except OSError:
-                pass
+            pvs = self._read(p, key, n_triangles)
+        except BadEntry as exc:
+            self._reject(p, key, str(exc))
             return None
-        self.hits += 1
+        if pvs is None:
+            self._count("outdated")
+            self._count("misses")
+            return None
+        self._count("hits")
         return pvs
 
-    def put(self, key: tuple, pvs: PVS) -> None:
-        """Store ``pvs`` under ``key`` (errors are logged, never raised)."""
+    def check(self, key: tuple, n_triangles: int | None = None) -> bool:
+        """Whether a valid entry for ``key`` is on disk (a bad one is rejected and deleted);
+        counts no hit or miss."""
         p = self.path(key)
+        if not p.is_file():
+            return False
         try:
-            p.parent.mkdir(parents=True, exist_ok=True)
-            buf = io.BytesIO()
+            return self._read(p, key, n_triangles) is not None
+        except BadEntry as exc:
+            self._reject(p, key, str(exc))
+            return False
+
+    def _reject(self, p: Path, key: tuple, why: str) -> None:
+        # The scene fingerprint identifies the entry well enough; the path stays out of logs.
+        log.warning("rejected an on-disk PVS cache entry of scene %s (%s): %s; recomputing",
+                    str(key[0])[:16], str(key[2]) if len(key) > 2 else "?", why)
+        self._count("rejected")
+        if why.startswith(("unreadable", "malformed")):
+            self._count("corrupt")
+        self._count("misses")
+        try:
+            p.unlink()
+        except OSError:
+            pass
+
+    def put(self, key: tuple, pvs: PVS, n_triangles: int | None = None) -> bool:
+        """Store ``pvs`` under ``key``; True when written. Errors are logged (without the
+        path) and counted in ``write_errors``, never raised. ``n_triangles``: the scene's
+        triangle count, stored so readers that do not know it can still bound the ids."""
+        p = self.path(key)
+        tmp = p.with_name(f".{p.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            n = -1 if n_triangles is None else int(n_triangles)
+            ids = np.ascontiguousarray(pvs.triangle_ids, dtype=np.int32)
+            obj = None if pvs.object_ids is None else np.asarray(pvs.object_ids, np.int32)
+            sph = None if pvs.sphere_ids is None else np.asarray(pvs.sphere_ids, np.int32)
+            key_repr = repr(key)
+            # Never write what a reader would reject.
+            _check_ids("triangle ids", ids, n if n >= 0 else None)
             empty = np.zeros(0, np.int32)
-            np.savez(buf, key=np.array(repr(key)), triangle_ids=pvs.triangle_ids,
+            buf = io.BytesIO()
+            np.savez(buf, format=np.array(DISK_FORMAT), key=np.array(key_repr),
+                     fingerprint=np.array(str(key[0])), params=np.array(repr(key[1:])),
+                     n_triangles=np.array(n), triangle_ids=ids,
                      granularity=np.array(pvs.granularity), seconds=np.array(pvs.seconds),
-                     has_objects=np.array(pvs.object_ids is not None),
-                     object_ids=pvs.object_ids if pvs.object_ids is not None else empty,
-                     has_spheres=np.array(pvs.sphere_ids is not None),
-                     sphere_ids=pvs.sphere_ids if pvs.sphere_ids is not None else empty)
-            tmp = p.with_name(f".{p.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+                     has_objects=np.array(obj is not None),
+                     object_ids=obj if obj is not None else empty,
+                     has_spheres=np.array(sph is not None),
+                     sphere_ids=sph if sph is not None else empty,
+                     checksum=np.array(_checksum(key_repr, n, pvs.granularity, ids, obj, sph)))
+            p.parent.mkdir(parents=True, exist_ok=True)
             tmp.write_bytes(buf.getvalue())
             os.replace(tmp, p)
-            self.writes += 1
-        except OSError as exc:
-            log.warning("could not write PVS cache file %s: %s", p, exc)
+        except Exception as exc:  # a full disk or a bad PVS must not fail the request
+            log.warning("could not write an on-disk PVS cache entry of scene %s: %s",
+                        str(key[0])[:16], exc if isinstance(exc, BadEntry) else
+                        type(exc).__name__)
+            self._count("write_errors")
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+            return False
+        self._count("writes")
+        return True
 
     def stats(self) -> dict[str, Any]:
-        """Folder, hits, misses, corrupt files, writes."""
-        return {"folder": str(self.folder), "hits": self.hits, "misses": self.misses,
-                "corrupt": self.corrupt, "writes": self.writes}
+        """Hits, misses, rejected entries (of which corrupt: unreadable), outdated (older
+        format) entries, writes and write errors. No paths: stats are shown to clients."""
+        with self._lock:
+            return {"hits": self.hits, "misses": self.misses, "rejected": self.rejected,
+                    "corrupt": self.corrupt, "outdated": self.outdated, "writes": self.writes,
+                    "write_errors": self.write_errors}

@@ -74,7 +74,9 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
     """Compute the PVS of ``cells`` (default: every cell of the scene's grid) of catalogue
     scene ``scene`` with ``core`` (default and ``"auto"`` as the server resolves them) and
     ``params``, on the service's worker pool; results go to its caches (memory, and disk when
-    configured). A cell that fails is reported, not raised. Raises UnknownSceneError,
+    configured). A cell that fails is reported, not raised: its computation failed or, with an
+    on-disk cache, its entry is not on disk and valid afterwards (``DiskPVSCache.check``).
+    Raises UnknownSceneError,
     UnknownCoreError, ValueError (bad parameters) and UnknownCellError (ids outside the grid)
     before computing anything."""
     loaded = service.catalog.get(scene)
@@ -92,6 +94,7 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
         from tqdm import tqdm
 
         done = tqdm(done, total=len(futures), desc=f"precompute {scene}", unit="cell")
+    disk = service.disk
     for fut in done:
         cell = futures[fut]
         try:
@@ -99,6 +102,13 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
         except Exception as exc:  # one cell's failure must not lose the others
             report.failed[cell] = f"{type(exc).__name__}: {exc}"
             continue
+        if disk is not None:
+            # The point of the run is the entry a server will read: one that is not there, or
+            # would be rejected, is a failure however the computation went.
+            key = service.disk_key(loaded, core_obj, p, loaded.grid.boxes[cell])
+            if not disk.check(key, loaded.scene.n_triangles):
+                report.failed[cell] = "its on-disk cache entry could not be written"
+                continue
         if result.cached:
             report.cached += 1
         else:

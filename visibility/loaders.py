@@ -40,8 +40,84 @@ SCENE_EXTENSIONS = (".glb", ".gltf", ".obj", ".ply")
 DEFAULT_COLOR = (200, 200, 200)
 
 
+#: Most triangles a scene file may hold (``load_scene``'s default ``max_triangles``). A loaded
+#: triangle costs ~150 bytes in the Scene and as much again in trimesh while loading, so 2^23
+#: (8 times the largest real scene, kitchen's 1M) needs ~2.5 GB; past it a file is refused
+#: before it is parsed (counts read from the PLY header, the glTF JSON, OBJ face lines).
+MAX_TRIANGLES = 1 << 23
+#: Largest scene file read (``load_scene``'s default ``max_bytes``): 1 GiB, 45 times kitchen.glb
+#: (22 MB); trimesh reads a file whole, so its size is memory.
+MAX_FILE_BYTES = 1 << 30
+#: Largest glTF JSON (and PLY header) parsed to count triangles before loading, bytes.
+_MAX_HEADER_BYTES = 64 << 20
+
+
 class SceneLoadError(ValueError):
-    """A scene file that cannot be turned into a Scene (missing, unsupported, no triangles)."""
+    """A scene file that cannot be turned into a Scene (missing, unsupported, no triangles,
+    over a size limit)."""
+
+
+def _gltf_triangles(doc: dict) -> int:
+    """Triangles a glTF document draws: per node with a mesh, its primitives' index (or vertex)
+    counts / 3 (triangle modes 4, 5, 6: count - 2 for strips and fans)."""
+    acc = doc.get("accessors") or []
+    meshes = doc.get("meshes") or []
+
+    def count(i) -> int:
+        return int(acc[i].get("count", 0)) if isinstance(i, int) and 0 <= i < len(acc) else 0
+
+    per_mesh = []
+    for mesh in meshes:
+        total = 0
+        for prim in (mesh or {}).get("primitives") or []:
+            mode = prim.get("mode", 4)
+            n = count(prim["indices"]) if "indices" in prim else \
+                count((prim.get("attributes") or {}).get("POSITION"))
+            total += n // 3 if mode == 4 else max(n - 2, 0) if mode in (5, 6) else 0
+        per_mesh.append(total)
+    nodes = [nd.get("mesh") for nd in doc.get("nodes") or [] if isinstance(nd, dict)]
+    used = [m for m in nodes if isinstance(m, int) and 0 <= m < len(per_mesh)]
+    return sum(per_mesh[m] for m in used) if used else sum(per_mesh)
+
+
+def count_triangles(path: str | Path) -> int | None:
+    """Triangles a scene file declares, read without loading it (PLY header faces, glTF/GLB
+    JSON accessors, OBJ face lines streamed), or None when the file does not say. A file
+    built to lie only gets as far as the count after loading (``load_scene`` checks both)."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    try:
+        with path.open("rb") as fh:
+            if ext == ".ply":
+                head = fh.read(_MAX_HEADER_BYTES // 64).split(b"end_header", 1)[0]
+                for line in head.decode("ascii", "replace").splitlines():
+                    parts = line.split()
+                    if len(parts) == 3 and parts[:2] == ["element", "face"]:
+                        return int(parts[2])
+                return None
+            if ext == ".glb":
+                header = fh.read(20)
+                if len(header) < 20 or header[:4] != b"glTF" or header[16:20] != b"JSON":
+                    return None
+                size = int.from_bytes(header[12:16], "little")
+                if size > _MAX_HEADER_BYTES:
+                    raise SceneLoadError(f"{path.name}: glTF JSON of {size} bytes is too large")
+                return _gltf_triangles(json.loads(fh.read(size)))
+            if ext == ".gltf":
+                if path.stat().st_size > _MAX_HEADER_BYTES:
+                    raise SceneLoadError(f"{path.name}: glTF JSON too large")
+                return _gltf_triangles(json.loads(fh.read()))
+            if ext == ".obj":
+                total = 0
+                for line in fh:
+                    if line.startswith(b"f ") or line.startswith(b"f\t"):
+                        total += max(len(line.split()) - 3, 0)
+                return total
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        if isinstance(exc, SceneLoadError):
+            raise
+        log.debug("could not count the triangles of %s: %s", path.name, exc)
+    return None
 
 
 HINTS_DIR = Path(__file__).resolve().parent / "scene_hints"
@@ -97,7 +173,8 @@ def _face_colors(mesh) -> np.ndarray:
     return np.tile(np.array(DEFAULT_COLOR, dtype=np.uint8), (m, 1))
 
 
-def load_scene(path: str | Path, scale: float | None = None, name: str | None = None) -> Scene:
+def load_scene(path: str | Path, scale: float | None = None, name: str | None = None,
+               max_triangles: int = MAX_TRIANGLES, max_bytes: int = MAX_FILE_BYTES) -> Scene:
     """Load a GLB/glTF/OBJ/PLY file as a Scene in Y-up metres.
 
     Parameters
@@ -105,6 +182,9 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
     path : the scene file.
     scale : metres per file unit; overrides the sidecar's ``"scale"`` (default 1).
     name : the scene's name (default: the file stem).
+    max_triangles : refuse (SceneLoadError naming the limit) a file declaring or holding more
+        triangles; checked before parsing where the format says (``count_triangles``).
+    max_bytes : refuse a larger file without reading it.
 
     Object ids: a custom ``_OBJECT_ID`` vertex attribute when the file has one (per face, the
     first corner's), otherwise one id per mesh instance in scene-graph order.
@@ -116,6 +196,14 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
         raise SceneLoadError(f"no scene file at {path}")
     if path.suffix.lower() not in SCENE_EXTENSIONS:
         raise SceneLoadError(f"unsupported scene format {path.suffix!r}; use {SCENE_EXTENSIONS}")
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise SceneLoadError(f"{path.name} is {size} bytes, over the limit of {max_bytes} "
+                             f"(max_bytes)")
+    declared = count_triangles(path)
+    if declared is not None and declared > max_triangles:
+        raise SceneLoadError(f"{path.name} declares {declared} triangles, over the limit of "
+                             f"{max_triangles} (max_triangles)")
     side = read_sidecar(path)
     if scale is None:
         scale = float(side.get("scale", 1.0))
@@ -153,6 +241,10 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
             next_obj += 1
     if not faces:
         raise SceneLoadError(f"{path.name} holds no triangles")
+    held = sum(len(f) for f in faces)
+    if held > max_triangles:
+        raise SceneLoadError(f"{path.name} holds {held} triangles, over the limit of "
+                             f"{max_triangles} (max_triangles)")
     vertices = np.concatenate(verts) * scale
     if str(side.get("up", "y")).lower() == "z":
         # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y).

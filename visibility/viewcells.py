@@ -20,6 +20,11 @@ DEFAULT_CELL_SIZE = 4.0
 LEVEL_MERGE = 0.5
 #: Largest floor step (metres) between neighbouring cells that still connects them.
 MAX_STEP = 1.0
+#: Most viewcells a grid builds (counted before levels merge). A cell costs ~170 bytes here
+#: and more in every server table keyed by cell, so 2^20 cells (~200 MB) is the ceiling; the
+#: largest real scene (Lyon at 4 m) has 278 000. A walk area of kilometres at a small cell size
+#: is refused with a ValueError naming this limit instead of filling memory.
+MAX_VIEWCELLS = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -78,14 +83,26 @@ class ViewcellGrid:
         lo = rects[:, :2].min(axis=0)
         hi = rects[:, 2:4].max(axis=0)
         self.origin = lo.copy()
-        nx = max(1, int(np.ceil((hi[0] - lo[0]) / s - 1e-9)))
-        nz = max(1, int(np.ceil((hi[1] - lo[1]) / s - 1e-9)))
+        with np.errstate(over="ignore"):
+            span = (hi - lo) / s
+        if not np.all(np.isfinite(span)):
+            raise ValueError(f"walk area {lo.tolist()} to {hi.tolist()} m is too wide for float64")
+        nx = max(1, int(np.ceil(span[0] - 1e-9)))
+        nz = max(1, int(np.ceil(span[1] - 1e-9)))
         self._nz = nz
         # Columns whose centre lies inside each rectangle, expanded without a Python loop.
-        i0 = np.maximum(np.ceil((rects[:, 0] - lo[0]) / s - 0.5 - 1e-9), 0).astype(np.int64)
-        i1 = np.minimum(np.floor((rects[:, 2] - lo[0]) / s - 0.5 + 1e-9), nx - 1).astype(np.int64)
-        k0 = np.maximum(np.ceil((rects[:, 1] - lo[1]) / s - 0.5 - 1e-9), 0).astype(np.int64)
-        k1 = np.minimum(np.floor((rects[:, 3] - lo[1]) / s - 0.5 + 1e-9), nz - 1).astype(np.int64)
+        # Counted in floats first, so a huge walk area is refused before anything is allocated.
+        i0 = np.maximum(np.ceil((rects[:, 0] - lo[0]) / s - 0.5 - 1e-9), 0)
+        i1 = np.minimum(np.floor((rects[:, 2] - lo[0]) / s - 0.5 + 1e-9), nx - 1)
+        k0 = np.maximum(np.ceil((rects[:, 1] - lo[1]) / s - 0.5 - 1e-9), 0)
+        k1 = np.minimum(np.floor((rects[:, 3] - lo[1]) / s - 0.5 + 1e-9), nz - 1)
+        total = float(np.sum(np.maximum(i1 - i0 + 1, 0) * np.maximum(k1 - k0 + 1, 0)))
+        if total > MAX_VIEWCELLS:
+            raise ValueError(
+                f"the walk area ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m) holds {total:.3g} "
+                f"cells of {s:g} m, more than MAX_VIEWCELLS = {MAX_VIEWCELLS}; use a larger "
+                f"cell size")
+        i0, i1, k0, k1 = (a.astype(np.int64) for a in (i0, i1, k0, k1))
         ni = np.maximum(i1 - i0 + 1, 0)
         nk = np.maximum(k1 - k0 + 1, 0)
         per = ni * nk

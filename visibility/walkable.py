@@ -13,11 +13,15 @@ A cell is walkable at a level when most of its samples agree on a floor there; i
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from numba import njit, prange
 from scipy import ndimage
 
 from visibility.scene import Scene, WalkArea
+
+log = logging.getLogger(__name__)
 
 #: Samples per cell side.
 SUBSAMPLES = 3
@@ -37,6 +41,21 @@ GROUND_RADIUS = 40.0
 MIN_COVERAGE = 0.5
 #: Connected walkable regions smaller than this are dropped (square metres).
 MIN_REGION_AREA = 8.0
+#: Most grid columns (squares) the detection examines. Memory grows by about 1 kB a column
+#: (local ground, per-cell levels, the connectivity graph), so 2^19 columns stay under ~500 MB;
+#: the largest real scene (Lyon, 2.3 x 2.4 km at 4 m) needs 332 000. A wider scene gets coarser
+#: squares (an integer multiple of the cell size, logged), never GBs.
+MAX_WALK_COLUMNS = 1 << 19
+#: Most coarsening of the squares (a multiple of the cell size) before detection refuses: past
+#: it the squares (32 m at 4 m cells) no longer resolve streets or rooms.
+MAX_COARSENING = 8
+#: Most (triangle, bin) pairs in the triangle bins (8 bytes each, 64 MB): a triangle spanning
+#: the whole scene sits in every bin, so a few huge triangles would fill memory; past this the
+#: bins grow (the bins only speed up the ray casts, results do not depend on them).
+MAX_BIN_ITEMS = 1 << 23
+#: Vertical rays cast per pass (their hits, floors and ceilings are ~200 bytes a ray), so the
+#: rays of a big scene never sit in memory all at once: 2^18 rays are ~50 MB.
+RAYS_PER_PASS = 1 << 18
 
 
 @njit(cache=True, nogil=True)
@@ -178,6 +197,46 @@ def _local_ground(
     return g
 
 
+def _grid_shape(span: np.ndarray, cell_size: float, name: str) -> tuple[float, int, int]:
+    """(square size, nx, nz) of the detection grid over an XZ ``span`` (metres): squares of
+    ``cell_size``, or of the smallest integer multiple of it (up to MAX_COARSENING) that keeps
+    the columns within MAX_WALK_COLUMNS. ValueError past that."""
+    s = float(cell_size)
+    if not (np.isfinite(s) and s > 0):
+        raise ValueError(f"cell_size must be a positive number of metres, got {cell_size}")
+    if not np.all(np.isfinite(span)):
+        raise ValueError(f"scene {name!r}: its extent {span.tolist()} m is not finite")
+    for f in range(1, MAX_COARSENING + 1):
+        nx, nz = (max(1.0, float(np.ceil(w / (f * s)))) for w in span)
+        if nx * nz <= MAX_WALK_COLUMNS:
+            if f > 1:
+                log.warning("scene %r spans %.0f x %.0f m: walk-area detection uses %.3g m "
+                            "squares (%d x the cell size) to stay within MAX_WALK_COLUMNS = %d",
+                            name, span[0], span[1], f * s, f, MAX_WALK_COLUMNS)
+            return f * s, int(nx), int(nz)
+    raise ValueError(
+        f"scene {name!r} spans {span[0]:.0f} x {span[1]:.0f} m: walk-area detection at "
+        f"{s:g} m squares would need more than MAX_WALK_COLUMNS = {MAX_WALK_COLUMNS} columns "
+        f"even {MAX_COARSENING} times coarser; give a larger cell size or a sidecar walk area")
+
+
+def _bins(xz_min: np.ndarray, xz_max: np.ndarray, origin: np.ndarray, s: float, nx: int,
+          nz: int) -> tuple[float, int, int]:
+    """(bin size, nbx, nbz): the squares themselves, or bins doubled in size until the
+    (triangle, bin) pairs fit MAX_BIN_ITEMS (at most 64 doublings: then one bin holds all)."""
+    size, nbx, nbz = s, nx, nz
+    for _ in range(64):
+        i0 = np.clip(np.floor((xz_min[:, 0] - origin[0]) / size), 0, nbx - 1)
+        i1 = np.clip(np.floor((xz_max[:, 0] - origin[0]) / size), 0, nbx - 1)
+        k0 = np.clip(np.floor((xz_min[:, 1] - origin[1]) / size), 0, nbz - 1)
+        k1 = np.clip(np.floor((xz_max[:, 1] - origin[1]) / size), 0, nbz - 1)
+        if float(np.sum((i1 - i0 + 1) * (k1 - k0 + 1))) <= MAX_BIN_ITEMS or nbx * nbz == 1:
+            break
+        size *= 2.0
+        nbx, nbz = max(1, -(-nbx // 2)), max(1, -(-nbz // 2))
+    return size, nbx, nbz
+
+
 def detect_walk_area(
     scene: Scene,
     cell_size: float,
@@ -187,7 +246,10 @@ def detect_walk_area(
     """A WalkArea of cell-sized squares (with floor and ceiling heights) found from geometry.
 
     The squares lie on the lattice of ``cell_size`` anchored at the scene's XZ minimum, so a
-    ``ViewcellGrid`` of the same size has one cell per square and level.
+    ``ViewcellGrid`` of the same size has one cell per square and level. A scene too wide for
+    MAX_WALK_COLUMNS squares gets squares of a multiple of ``cell_size`` (still on the lattice;
+    logged), or a ValueError naming the limit. Memory stays bounded: rays are cast
+    RAYS_PER_PASS at a time and only each pass's per-square levels are kept.
     """
     valid = scene.valid_faces
     tris = scene.triangles()[valid]
@@ -196,9 +258,9 @@ def detect_walk_area(
     b0 = tris.reshape(-1, 3).min(axis=0)
     b1 = tris.reshape(-1, 3).max(axis=0)
     origin = np.array([b0[0], b0[2]])
-    s = float(cell_size)
-    nx = max(1, int(np.ceil((b1[0] - b0[0]) / s)))
-    nz = max(1, int(np.ceil((b1[2] - b0[2]) / s)))
+    with np.errstate(over="ignore"):
+        span = np.array([b1[0] - b0[0], b1[2] - b0[2]])
+    s, nx, nz = _grid_shape(span, cell_size, scene.name)
     n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     ny = n[:, 1] / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
     xz_min = np.stack([tris[:, :, 0].min(axis=1), tris[:, :, 2].min(axis=1)], axis=1)
@@ -206,67 +268,63 @@ def detect_walk_area(
     # Triangles facing sideways cannot hold a vertical line's hit worth keeping.
     flat = np.abs(ny) > 1e-6
     tris_f, ny_f = np.ascontiguousarray(tris[flat]), np.ascontiguousarray(ny[flat])
-    starts, items = _bin_triangles(xz_min[flat], xz_max[flat], origin, s, nx, nz)
-
-    k = SUBSAMPLES
-    sub = (np.arange(k) + 0.5) / k * s
-    ci, ck, si, sk = np.meshgrid(
-        np.arange(nx), np.arange(nz), np.arange(k), np.arange(k), indexing="ij"
-    )
-    px = (origin[0] + ci * s + sub[si]).ravel()
-    pz = (origin[1] + ck * s + sub[sk]).ravel()
-    ground = _local_ground(tris, origin, s, nx, nz)
-    col_ground = np.repeat(ground.ravel(), k * k)
-
-    def cast(normal_y):
-        return _column_floors(
-            px,
-            pz,
-            col_ground,
-            tris_f,
-            normal_y,
-            starts,
-            items,
-            origin,
-            s,
-            nx,
-            nz,
-            MAX_HITS,
-            MAX_FLOORS,
-            MIN_HEADROOM,
-            UP_NY,
-            ROOF_ABOVE_GROUND,
-        )
+    bin_size, nbx, nbz = _bins(xz_min[flat], xz_max[flat], origin, s, nx, nz)
+    starts, items = _bin_triangles(xz_min[flat], xz_max[flat], origin, bin_size, nbx, nbz)
+    ground = _local_ground(tris, origin, s, nx, nz).ravel()
+    del n, xz_min, xz_max, flat
 
     # Quake levels wind their faces clockwise: their normals point away from the playable
     # space. Geometry alone cannot tell such a level from closed solids, so a hint says it.
     sign = -1.0 if str(scene.meta.get("winding", "ccw")).lower() == "cw" else 1.0
-    floors_y, ceil_y, count, top_ny, bottom_ny = cast(sign * ny_f)
-    # Outdoor scenes: most crossed columns end at an up-facing top surface (roof, terrain).
-    has = count > 0
-    outdoor = bool(has.any() and np.mean(top_ny[has] > UP_NY) > 0.5)
-    if outdoor:
-        # Columns no surface crosses, inside the scene's footprint, are open ground.
+    ny_f = sign * ny_f
+    k = SUBSAMPLES
+    per = k * k
+    sub = (np.arange(k) + 0.5) / k * s
+    # Levels of each pass for both readings of the scene; which one holds is known only once
+    # every ray is cast (most crossed columns ending at an up-facing surface: outdoors).
+    indoor: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    outdoor_levels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    crossed = up_top = 0
+    step = max(1, RAYS_PER_PASS // per)
+    for c0 in range(0, nx * nz, step):
+        col = np.arange(c0, min(c0 + step, nx * nz))
+        ci, ck = col // nz, col % nz
+        shape = (len(col), k, k)
+        px = np.broadcast_to(origin[0] + ci[:, None, None] * s + sub[None, :, None], shape)
+        pz = np.broadcast_to(origin[1] + ck[:, None, None] * s + sub[None, None, :], shape)
+        col_ground = np.repeat(ground[col], per)
+        floors_y, ceil_y, count, top_ny, _ = _column_floors(
+            px.ravel(), pz.ravel(), col_ground, tris_f, ny_f, starts, items, origin, bin_size,
+            nbx, nbz, MAX_HITS, MAX_FLOORS, MIN_HEADROOM, UP_NY, ROOF_ABOVE_GROUND,
+        )
+        has = count > 0
+        crossed += int(np.count_nonzero(has))
+        up_top += int(np.count_nonzero(top_ny[has] > UP_NY))
+        cell = np.repeat(col, per)
+        ok = np.isfinite(floors_y)
+        cells_f = np.broadcast_to(cell[:, None], ok.shape)[ok]
+        yv, cv = floors_y[ok], ceil_y[ok]
+        indoor.append(_levels(cells_f, yv, cv, per))
+        # Outdoors, columns no surface crosses, inside the scene's footprint, are open ground.
         empty = (count == 0) & np.isfinite(col_ground)
-        floors_y = np.concatenate([floors_y, np.where(empty, col_ground, np.nan)[:, None]], axis=1)
-        ceil_y = np.concatenate([ceil_y, np.where(empty, np.inf, np.nan)[:, None]], axis=1)
-
-    rects = _cells_from_samples(floors_y, ceil_y, nx, nz, k, origin, s)
+        outdoor_levels.append(_levels(np.concatenate([cells_f, cell[empty]]),
+                                      np.concatenate([yv, col_ground[empty]]),
+                                      np.concatenate([cv, np.full(int(empty.sum()), np.inf)]),
+                                      per))
+    outdoor = crossed > 0 and up_top / crossed > 0.5
+    chosen = outdoor_levels if outdoor else indoor
+    cells_a, floors_a, ceils_a = (np.concatenate([c[j] for c in chosen]) for j in range(3))
+    rects = _rects(cells_a, floors_a, ceils_a, nz, origin, s)
     return WalkArea(rects, eye_height=eye_height, eye_range=eye_range)
 
 
-def _cells_from_samples(floors_y, ceil_y, nx, nz, k, origin, s) -> np.ndarray:
-    """Group sample floors into per-cell levels; keep levels most samples agree on and drop
-    small disconnected regions. Returns (w, 6) rects."""
-    per = k * k
-    width = floors_y.shape[1]
-    fy = floors_y.reshape(nx * nz, per * width)
-    cy = ceil_y.reshape(nx * nz, per * width)
-    ok = np.isfinite(fy)
-    if not ok.any():
-        return np.zeros((0, 6))
-    cell_idx = np.broadcast_to(np.arange(nx * nz)[:, None], fy.shape)[ok]
-    yv, cv = fy[ok], cy[ok]
+def _levels(cell_idx: np.ndarray, yv: np.ndarray, cv: np.ndarray,
+            per: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group sample floors (square index, floor y, ceiling y per floor found) into per-square
+    levels and keep those most of the square's ``per`` samples agree on. Returns the kept
+    (square, mean floor, lowest ceiling), sorted by square then floor."""
+    if len(yv) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
     order = np.lexsort((yv, cell_idx))
     cell_idx, yv, cv = cell_idx[order], yv[order], cv[order]
     # A new level starts at a new cell or a jump of more than 0.5 m within the cell.
@@ -278,7 +336,12 @@ def _cells_from_samples(floors_y, ceil_y, nx, nz, k, origin, s) -> np.ndarray:
     floors_a = np.add.reduceat(yv, starts) / support
     ceils_a = np.minimum.reduceat(cv, starts)
     keep = support >= MIN_COVERAGE * per
-    cells_a, floors_a, ceils_a = cells_a[keep], floors_a[keep], ceils_a[keep]
+    return cells_a[keep].astype(np.int64), floors_a[keep], ceils_a[keep]
+
+
+def _rects(cells_a: np.ndarray, floors_a: np.ndarray, ceils_a: np.ndarray, nz: int,
+           origin: np.ndarray, s: float) -> np.ndarray:
+    """(w, 6) rects of the levels in connected regions large enough (``_large_regions``)."""
     if len(cells_a) == 0:
         return np.zeros((0, 6))
     keep = _large_regions(cells_a, floors_a, nz, s)

@@ -258,3 +258,113 @@ def test_worker_death_is_retried_once_and_joined_not_duplicated(registered_test_
     finally:
         DyingCore.release.set()
         svc.shutdown()
+
+
+# --------------------------------------------------------------------------- disk entries checked
+def _disk_service(folder):
+    settings = Settings(generated={}, cache_dir=folder, workers=1)
+    cat = SceneCatalog(settings)
+    cat.register("tiny", make_tiny_scene())
+    return ComputeService(cat, settings)
+
+
+def _rewrite(path, **changes) -> None:
+    """Rewrite the entry at ``path`` with ``changes``; ``resign=True`` recomputes the checksum
+    (a forged entry), otherwise it is left stale (a corrupted one)."""
+    from server.cache import _checksum
+
+    resign = changes.pop("resign", False)
+    with np.load(path, allow_pickle=False) as z:
+        d = {k: z[k] for k in z.files}
+    d.update({k: np.asarray(v) for k, v in changes.items()})
+    if resign:
+        d["checksum"] = np.array(_checksum(str(d["key"]), int(d["n_triangles"]),
+                                           str(d["granularity"]), d["triangle_ids"],
+                                           d["object_ids"] if d["has_objects"] else None,
+                                           d["sphere_ids"] if d["has_spheres"] else None))
+    with open(path, "wb") as fh:
+        np.savez(fh, **d)
+
+
+def _tamper_other_fingerprint(path):
+    with np.load(path, allow_pickle=False) as z:
+        key = str(z["key"])
+    fp = key.split("'")[1]
+    _rewrite(path, key=key.replace(fp, "0" * len(fp)), fingerprint="0" * len(fp), resign=True)
+
+
+TAMPERINGS = {
+    "bad checksum": lambda p: _rewrite(p, triangle_ids=np.array([0, 1], np.int32)),
+    "out-of-range ids, stale checksum": lambda p: _rewrite(
+        p, triangle_ids=np.array([0, 10**6], np.int32)),
+    "out-of-range ids, forged checksum": lambda p: _rewrite(
+        p, triangle_ids=np.array([0, 10**6], np.int32), n_triangles=12, resign=True),
+    "unsorted ids, forged checksum": lambda p: _rewrite(
+        p, triangle_ids=np.array([3, 1], np.int32), resign=True),
+    "wrong key": lambda p: _rewrite(p, key="('another', 'key')", resign=True),
+    "other fingerprint": _tamper_other_fingerprint,
+    "truncated": lambda p: p.write_bytes(p.read_bytes()[: p.stat().st_size // 2]),
+    "not a zip": lambda p: p.write_bytes(b"PK\x03\x04 garbage"),
+}
+
+
+@pytest.mark.parametrize("how", list(TAMPERINGS))
+def test_bad_disk_entries_are_rejected_deleted_and_recomputed(tmp_path, registered_test_cores,
+                                                                how, caplog):
+    folder = tmp_path / "pvs"
+    a = _disk_service(folder)
+    core, params = a.resolve("test_near", {"radius": 4.0})
+    first = a.submit("tiny", core, params, cell=2).result(30)
+    a.shutdown()
+    [entry] = list(folder.rglob("*.npz"))
+    TAMPERINGS[how](entry)
+
+    b = _disk_service(folder)
+    before = NearCore.calls
+    again = b.submit("tiny", core, params, cell=2).result(30)
+    b.shutdown()
+    assert not again.cached and NearCore.calls == before + 1  # recomputed, never served
+    np.testing.assert_array_equal(again.pvs.triangle_ids, first.pvs.triangle_ids)
+    disk = b.stats()["disk"]
+    assert disk["rejected"] == 1 and disk["hits"] == 0 and disk["writes"] == 1
+    assert "rejected an on-disk PVS cache entry" in caplog.text
+    assert str(tmp_path) not in caplog.text and str(tmp_path) not in repr(disk)
+    # The bad file was replaced by a good entry that the next start reads.
+    loaded = b.catalog.get("tiny")
+    key = ComputeService.disk_key(loaded, core, params, loaded.grid.boxes[2])
+    assert DiskPVSCache(folder).check(key, loaded.scene.n_triangles)
+    c = _disk_service(folder)
+    assert c.submit("tiny", core, params, cell=2).result(30).cached
+    c.shutdown()
+
+
+def test_reader_bounds_ids_by_the_scene_it_knows(tmp_path):
+    disk = DiskPVSCache(tmp_path)
+    key = ("f" * 16, (0.0,) * 6, "core", ("p", 1))
+    assert disk.put(key, _pvs(5, start=3))  # writer did not know the triangle count
+    assert disk.get(key) is not None
+    assert disk.get(key, n_triangles=8) is not None
+    assert disk.get(key, n_triangles=7) is None  # id 7 is out of a 7-triangle scene
+    assert disk.stats()["rejected"] == 1 and not disk.path(key).exists()
+    # A stored count must match the reader's.
+    assert disk.put(key, _pvs(5), n_triangles=100)
+    assert disk.get(key, n_triangles=101) is None and disk.stats()["rejected"] == 2
+    # A PVS that would be rejected is never written.
+    assert not disk.put(key, _pvs(5, start=98), n_triangles=100)
+    assert disk.stats()["write_errors"] == 1 and not disk.path(key).exists()
+
+
+def test_old_format_entries_are_misses_not_errors(tmp_path):
+    disk = DiskPVSCache(tmp_path)
+    key = ("f" * 16, (0.0,) * 6, "core", ("p", 1))
+    p = disk.path(key)
+    p.parent.mkdir(parents=True)
+    with open(p, "wb") as fh:  # what the previous server wrote
+        np.savez(fh, key=np.array(repr(key)), triangle_ids=np.arange(3, dtype=np.int32),
+                 granularity=np.array("triangle"), seconds=np.array(0.1),
+                 has_objects=np.array(False), object_ids=np.zeros(0, np.int32),
+                 has_spheres=np.array(False), sphere_ids=np.zeros(0, np.int32))
+    assert disk.get(key) is None
+    s = disk.stats()
+    assert (s["misses"], s["outdated"], s["rejected"], s["hits"]) == (1, 1, 0, 0)
+    assert disk.put(key, _pvs(3)) and disk.get(key, 3) is not None

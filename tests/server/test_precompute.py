@@ -3,6 +3,8 @@ fresh service and by a real server started on the same folder."""
 
 from __future__ import annotations
 
+import hashlib
+
 import httpx
 import numpy as np
 import pytest
@@ -87,3 +89,57 @@ def test_parse_cells_ranges_and_errors():
     for bad in ("", "a", "5-2", "0-10", "-1", "1-x"):
         with pytest.raises(ValueError):
             parse_cells(bad, 10)
+
+
+def test_precompute_counts_unwritable_entries_and_failed_cells_as_failures(disk_settings,
+                                                                           monkeypatch):
+    from server.cache import DiskPVSCache
+
+    service = _service(disk_settings)
+    real_put = DiskPVSCache.put
+
+    def unlucky(key) -> bool:
+        return hashlib.sha256(repr(key).encode()).digest()[0] % 2 == 1
+
+    def flaky_put(self, key, pvs, n_triangles=None):
+        # Some keys fail to write (a full disk, say); which is fixed by the key.
+        if unlucky(key):
+            return False
+        return real_put(self, key, pvs, n_triangles)
+
+    monkeypatch.setattr(DiskPVSCache, "put", flaky_put)
+    try:
+        report = precompute(service, "rooms", cells=range(6), progress=False)
+        boxes = service.catalog.get("rooms").grid.boxes
+        core, params = service.resolve()
+        loaded = service.catalog.get("rooms")
+        unwritten = {c for c in range(6)
+                     if unlucky(service.disk_key(loaded, core, params, boxes[c]))}
+    finally:
+        service.shutdown()
+    assert unwritten and len(unwritten) < 6
+    assert set(report.failed) == unwritten
+    assert all("could not be written" in why for why in report.failed.values())
+    assert report.computed == 6 - len(unwritten)
+    assert f"{len(unwritten)} failed" in report.summary()
+
+
+def test_precompute_reports_a_cell_whose_computation_fails(disk_settings, monkeypatch):
+    service = _service(disk_settings)
+    core, _ = service.resolve()
+
+    def boom(scene, cell, params):
+        if cell.id == 1:
+            raise RuntimeError("kernel blew up")
+        return real(scene, cell, params)
+
+    real = type(core).compute.__get__(core)
+    monkeypatch.setattr(core, "compute", boom)
+    monkeypatch.setattr(service, "resolve_for", lambda *a, **k: (core, service.resolve()[1],
+                                                                 "requested"))
+    try:
+        report = precompute(service, "rooms", cells=[0, 1, 2], progress=False)
+    finally:
+        service.shutdown()
+    assert set(report.failed) == {1} and "kernel blew up" in report.failed[1]
+    assert report.computed == 2 and "1 failed" in report.summary()

@@ -1,11 +1,29 @@
-"""Sampled ground truth: stratified points, the PVS of known scenes, motion, and FN/FP rates."""
+"""Sampled ground truth: stratified points (extreme boxes too), the PVS of known scenes, motion,
+FN/FP rates, and the bounded buffers and cost estimate of sampling."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import tracemalloc
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from visibility.ground_truth import GroundTruth, fn_fp_rates, sample_points, sample_pvs
+import visibility.ground_truth as gt_module
+from visibility.ground_truth import (
+    MAX_POINTS,
+    MIN_EXTENT,
+    GroundTruth,
+    _grid_counts,
+    estimate_sampling_cost,
+    fn_fp_rates,
+    sample_points,
+    sample_pvs,
+    segment_points,
+)
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
@@ -169,3 +187,147 @@ def test_fn_fp_rates():
     assert fn_fp_rates([5], []) == (0.0, 1.0)
     fn, fp = fn_fp_rates(np.array([3, 3, 1], dtype=np.int32), np.array([1, 3]))
     assert (fn, fp) == (0.0, 0.0)
+
+
+# ----------------------------------------------------------------------------- extreme boxes
+@contextlib.contextmanager
+def _deadline(seconds: float):
+    """TimeoutError when the block runs longer than ``seconds`` (a loop that never ends fails
+    the test instead of hanging it)."""
+
+    def _fire(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, _fire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_subnormal_box_of_the_report_is_a_point():
+    """Issue 19: the box [[0,0,0],[1e-300]*3] spun ``_grid_counts`` forever."""
+    for top in (1e-300, 5e-324, 1e-7):
+        box = np.array([[0.0, 0.0, 0.0], [top, top, top]])
+        with _deadline(5):
+            pts = sample_points(box, 64, np.random.default_rng(0))
+        assert pts.shape == (64, 3) and np.all(pts >= box[0]) and np.all(pts <= box[1])
+    assert np.array_equal(_grid_counts(np.full(3, 1e-300), 1000), [1, 1, 1])
+
+
+def test_thin_axes_are_flat_and_huge_boxes_stay_finite():
+    # A segment 10 m long and 1e-9 m thick: every point is on the segment, spread along it.
+    seg = np.array([[0.0, 0.0, 0.0], [10.0, 1e-9, 1e-9]])
+    pts = sample_points(seg, 10, np.random.default_rng(1))
+    assert np.array_equal(np.sort(np.floor(pts[:, 0])), np.arange(10))
+    assert np.array_equal(_grid_counts(seg[1] - seg[0], 10), [10, 1, 1])
+    # Corners near the float64 limit: the extent overflows, the points must not.
+    wide = np.array([[-1.7e308] * 3, [1.7e308] * 3])
+    pts = sample_points(wide, 27, np.random.default_rng(2))
+    assert np.all(np.isfinite(pts)) and np.all(pts >= wide[0]) and np.all(pts <= wide[1])
+    assert len(np.unique(np.sign(pts), axis=0)) == 8  # spread over all octants
+    for bad in (np.inf, np.nan, -np.inf):
+        with pytest.raises(ValueError):
+            sample_points(np.array([[0.0, 0, 0], [1.0, 1, bad]]), 4, np.random.default_rng(0))
+        with pytest.raises(ValueError):
+            _grid_counts(np.array([1.0, bad, 1.0]), 4)
+    with pytest.raises(ValueError):
+        sample_points(seg, MAX_POINTS + 1, np.random.default_rng(0))
+
+
+_coord = st.floats(min_value=-1.7e308, max_value=1.7e308, allow_nan=False,
+                   allow_infinity=False, allow_subnormal=True)
+_extent = st.one_of(st.just(0.0), st.sampled_from([5e-324, 1e-300, 1e-9, 1e-6, 1.0, 1e6, 1e300]),
+                    st.floats(min_value=0.0, max_value=1e308, allow_subnormal=True))
+
+
+@settings(max_examples=300, deadline=None)
+@given(lo=st.tuples(_coord, _coord, _coord), ext=st.tuples(_extent, _extent, _extent),
+       n=st.integers(min_value=0, max_value=3000), seed=st.integers(0, 2**32 - 1))
+def test_sampling_grid_terminates_and_stays_inside_any_box(lo, ext, n, seed):
+    lo = np.array(lo)
+    with np.errstate(over="ignore"):
+        hi = np.minimum(lo + np.array(ext), 1.7e308)
+    box = np.stack([lo, np.maximum(lo, hi)])
+    with _deadline(10):
+        pts = sample_points(box, n, np.random.default_rng(seed))
+    assert pts.shape == (n, 3) and np.all(np.isfinite(pts))
+    assert np.all(pts >= box[0]) and np.all(pts <= box[1])
+    with np.errstate(over="ignore"):
+        size = box[1] - box[0]
+    size = np.where(np.isfinite(size), size, box[1] * 0.5 - box[0] * 0.5)
+    counts = _grid_counts(size, n)
+    assert counts.dtype == np.int64 and np.all(counts >= 1) and np.all(counts <= MAX_POINTS)
+    thick = size >= MIN_EXTENT
+    assert np.all(counts[~thick] == 1)
+    if thick.any() and n > 1:
+        assert counts.prod() >= n  # room for n distinct strata
+
+
+def test_segment_points_cap():
+    with pytest.raises(ValueError):
+        segment_points(np.zeros(3), np.ones(3), MAX_POINTS + 1, np.random.default_rng(0))
+
+
+# ----------------------------------------------------------------------------- bounded memory
+def _rooms(triangles: int):
+    from visibility.generators import make_scene
+    from visibility.viewcells import ViewcellGrid
+
+    scene = make_scene("rooms", triangles=triangles, seed=0)
+    grid = ViewcellGrid.for_scene(scene)
+    return scene, grid.cell(len(grid) // 2)
+
+
+def test_face_by_face_pass_gives_the_same_views(monkeypatch):
+    scene, cell = _rooms(20000)
+    whole = sample_pvs(scene, cell, n_points=12, resolution=96, seed=5, batch=4)
+    monkeypatch.setattr(gt_module, "CUBEMAP_PIXELS_AT_ONCE", 0)
+    faces = sample_pvs(scene, cell, n_points=12, resolution=96, seed=5, batch=4)
+    np.testing.assert_array_equal(whole.triangle_ids, faces.triangle_ids)
+    assert whole.convergence == faces.convergence and len(whole.triangle_ids) > 100
+
+
+def test_large_resolution_buffers_stay_within_the_estimate():
+    """At R = 2048 a view renders one face at a time: the traced peak stays under the estimate
+    and well under the six-face buffers (6 R^2 x 12 bytes) one pass used to hold."""
+    scene, cell = _rooms(2000)
+    r = 2048
+    assert not gt_module._whole_cubemap(r, False)
+    sample_pvs(scene, cell, n_points=1, resolution=64, seed=0)  # compile outside the trace
+    tracemalloc.start()
+    try:
+        sample_pvs(scene, cell, n_points=2, resolution=r, seed=0)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    _, estimate = estimate_sampling_cost(scene.n_triangles, r, 2)
+    assert r * r * 12 <= peak <= estimate
+    assert peak < 6 * r * r * 12 / 2
+
+
+def test_estimate_sampling_cost_scales_with_its_inputs():
+    s1, b1 = estimate_sampling_cost(10_000, 256, 100)
+    s2, b2 = estimate_sampling_cost(10_000, 256, 200)
+    assert s2 == pytest.approx(2 * s1) and b2 > b1
+    _, small = estimate_sampling_cost(10_000, 1024, 1)
+    _, big = estimate_sampling_cost(10_000, 4096, 1)
+    # R = 4096 renders one face at a time: 16 Mi pixels of buffers, not 96 Mi.
+    assert 4096 ** 2 * 16 <= big < 6 * 4096 ** 2 * 12
+    assert small >= 6 * 1024 ** 2 * 16
+    seconds, peak = estimate_sampling_cost(1_000_000, 4096, 100_000)
+    assert seconds > 3600 and peak < 1 << 30
+    assert estimate_sampling_cost(1000, 256, 10, dynamic=True)[1] > \
+        estimate_sampling_cost(1000, 256, 10)[1]
+    with pytest.raises(ValueError):
+        estimate_sampling_cost(-1, 256, 1)
+
+
+def test_estimate_is_within_a_factor_of_the_measured_time():
+    scene, cell = _rooms(20000)
+    sample_pvs(scene, cell, n_points=1, resolution=64, seed=0)
+    gt = sample_pvs(scene, cell, n_points=16, resolution=256, seed=0)
+    seconds, _ = estimate_sampling_cost(scene.n_triangles, 256, 16)
+    assert gt.seconds / 10 < seconds < gt.seconds * 10

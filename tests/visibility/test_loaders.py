@@ -82,3 +82,56 @@ def test_degenerate_faces_in_a_file_are_reported_not_fatal(tmp_path):
     assert s.n_triangles == 3
     assert s.valid_faces.tolist() == [True, False, False]
     assert s.degenerate_report.zero_area == 1
+
+
+# ----------------------------------------------------------------------------- size limits
+def _grid_mesh(n_quads: int) -> trimesh.Trimesh:
+    """A flat strip of ``n_quads`` quads (2 n_quads triangles)."""
+    x = np.arange(n_quads + 1, dtype=np.float64)
+    v = np.concatenate([np.stack([x, 0 * x, 0 * x], 1), np.stack([x, 0 * x, 0 * x + 1], 1)])
+    i = np.arange(n_quads)
+    j = i + n_quads + 1
+    f = np.concatenate([np.stack([i, j, i + 1], 1), np.stack([i + 1, j, j + 1], 1)])
+    return trimesh.Trimesh(v, f, process=False)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".glb", ".obj"])
+def test_files_over_the_triangle_limit_are_refused_before_loading(tmp_path, ext, monkeypatch):
+    from visibility import loaders
+
+    path = tmp_path / f"strip{ext}"
+    _grid_mesh(50).export(path)
+    assert loaders.count_triangles(path) == 100
+    assert load_scene(path, max_triangles=100).n_triangles == 100
+    # The declared count refuses the file before trimesh parses it.
+    monkeypatch.setattr(trimesh, "load", lambda *a, **k: pytest.fail("parsed an absurd file"))
+    with pytest.raises(SceneLoadError, match="max_triangles") as err:
+        load_scene(path, max_triangles=99)
+    assert "100 triangles" in str(err.value)
+
+
+def test_a_file_that_understates_its_triangles_is_refused_after_loading(tmp_path, monkeypatch):
+    from visibility import loaders
+
+    path = tmp_path / "strip.ply"
+    _grid_mesh(50).export(path)
+    monkeypatch.setattr(loaders, "count_triangles", lambda p: 1)
+    with pytest.raises(SceneLoadError, match="holds 100 triangles"):
+        load_scene(path, max_triangles=99)
+
+
+def test_files_over_the_byte_limit_are_refused(tmp_path):
+    path = tmp_path / "strip.ply"
+    _grid_mesh(50).export(path)
+    with pytest.raises(SceneLoadError, match="max_bytes"):
+        load_scene(path, max_bytes=path.stat().st_size - 1)
+    assert load_scene(path, max_bytes=path.stat().st_size).n_triangles == 100
+
+
+def test_real_scenes_are_within_the_default_limits():
+    from visibility.loaders import MAX_FILE_BYTES, MAX_TRIANGLES, count_triangles
+
+    for name in REAL:
+        side = json.loads(real_path(name).with_suffix(".json").read_text())
+        assert count_triangles(real_path(name)) == side["triangles"] < MAX_TRIANGLES
+        assert real_path(name).stat().st_size < MAX_FILE_BYTES

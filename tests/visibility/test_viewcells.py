@@ -57,3 +57,19 @@ def test_configurable_cell_size_and_validation():
 def test_empty_walk_area():
     g = ViewcellGrid(WalkArea(np.zeros((0, 5))), 4.0)
     assert len(g) == 0 and g.cell_of([0, 0, 0]) is None
+
+
+def test_walk_area_of_too_many_cells_is_refused_before_allocating():
+    from visibility.viewcells import MAX_VIEWCELLS
+
+    per_side = int(np.sqrt(MAX_VIEWCELLS) * 0.55)  # 8 m cells; twice as many 4 m ones
+    side = 8.0 * per_side
+    assert (2 * per_side) ** 2 > MAX_VIEWCELLS >= per_side ** 2
+    walk = WalkArea(np.array([[0.0, 0.0, side, side, 0.0]]))
+    with pytest.raises(ValueError, match="MAX_VIEWCELLS"):
+        ViewcellGrid(walk, 4.0)
+    # The same walk area in cells twice as wide is fine.
+    assert len(ViewcellGrid(walk, 8.0)) == per_side ** 2
+    # Rectangles wider than float64 spans are refused, not overflowed.
+    with pytest.raises(ValueError):
+        ViewcellGrid(WalkArea(np.array([[-1.7e308, 0.0, 1.7e308, 4.0, 0.0]])), 4.0)

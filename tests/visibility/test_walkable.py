@@ -1,6 +1,7 @@
 """Walk-area detection from geometry alone (what loaded scenes get)."""
 
 import numpy as np
+import pytest
 
 from visibility.cores.designed_scenes import Builder
 from visibility.viewcells import ViewcellGrid
@@ -72,3 +73,114 @@ def test_clockwise_winding_hint_flips_the_floors():
     scene.meta["winding"] = "cw"
     grid = ViewcellGrid.for_scene(scene, 4.0)
     assert len(grid) == 16 and np.allclose(grid.floor, 0.0)
+
+
+# ----------------------------------------------------------------------------- bounded memory
+_WIDE_PLY_CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+import pytest
+from visibility.loaders import load_scene
+from visibility.walkable import detect_walk_area
+from visibility.viewcells import ViewcellGrid
+
+small = load_scene(sys.argv[2])
+detect_walk_area(small, 4.0)  # load the compiled kernels before measuring
+scene = load_scene(sys.argv[1])
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t0 = time.perf_counter()
+walk = detect_walk_area(scene, 4.0)
+seconds = time.perf_counter() - t0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    ViewcellGrid(walk, 4.0)
+    grid = "built"
+except ValueError as exc:
+    grid = str(exc)
+print(json.dumps({"triangles": scene.n_triangles, "extra_kb": peak - before, "seconds": seconds,
+                  "rects": len(walk.rects), "square": float(walk.rects[0, 2] - walk.rects[0, 0]),
+                  "grid": grid}))
+"""
+
+
+def _write_ply(path, tris: np.ndarray) -> None:
+    v = tris.reshape(-1, 3)
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(v)}", "property float x",
+             "property float y", "property float z", f"element face {len(tris)}",
+             "property list uchar int vertex_indices", "end_header"]
+    lines += [f"{x:.3f} {y:.3f} {z:.3f}" for x, y, z in v]
+    lines += [f"3 {3 * i} {3 * i + 1} {3 * i + 2}" for i in range(len(tris))]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _wide_scene(span: float) -> np.ndarray:
+    """202 triangles: a ground square of ``span`` metres (2) and 50 pyramids' faces (200)."""
+    rng = np.random.default_rng(0)
+    g = [[0, 0, 0], [0, 0, span], [span, 0, span], [span, 0, 0]]
+    tris = [[g[0], g[1], g[2]], [g[0], g[2], g[3]]]
+    for cx, cz in rng.uniform(100, span - 100, size=(50, 2)):
+        apex = [cx, 20.0, cz]
+        base = [[cx - 10, 0, cz - 10], [cx + 10, 0, cz - 10], [cx + 10, 0, cz + 10],
+                [cx - 10, 0, cz + 10]]
+        tris += [[base[i], base[(i + 1) % 4], apex] for i in range(4)]
+    return np.array(tris, dtype=np.float64)
+
+
+def test_a_20_km_scene_is_detected_in_bounded_memory_and_time(tmp_path):
+    """Issue 19: 202 triangles spanning 20 km drove the detection past 6 GB in 8 s."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from visibility.walkable import MAX_WALK_COLUMNS
+
+    wide, small = tmp_path / "wide.ply", tmp_path / "small.ply"
+    _write_ply(wide, _wide_scene(20_000.0))
+    _write_ply(small, _wide_scene(300.0))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = {**os.environ, "PYTHONPATH": root}
+    run = subprocess.run([sys.executable, "-c", _WIDE_PLY_CHILD, str(wide), str(small)],
+                         capture_output=True, text=True, timeout=300, env=env, cwd=root)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    assert out["triangles"] == 202
+    assert out["extra_kb"] < 500 * 1024, out  # peak RSS growth during detection
+    assert out["seconds"] < 60, out
+    # Coarser squares, on the 4 m lattice, within the cap; the ground is found walkable.
+    assert out["square"] > 4.0 and out["square"] % 4.0 == 0
+    assert MAX_WALK_COLUMNS / 2 < out["rects"] <= MAX_WALK_COLUMNS
+    assert "MAX_VIEWCELLS" in out["grid"]  # 20 km of 4 m viewcells: refused, clearly
+
+
+def test_grid_shape_coarsens_on_the_lattice_then_refuses():
+    from visibility.walkable import MAX_COARSENING, MAX_WALK_COLUMNS, _grid_shape
+
+    assert _grid_shape(np.array([100.0, 50.0]), 4.0, "x") == (4.0, 25, 13)
+    s, nx, nz = _grid_shape(np.array([20_000.0, 20_000.0]), 4.0, "x")
+    assert s == 28.0 and nx * nz <= MAX_WALK_COLUMNS
+    too_wide = 4.0 * MAX_COARSENING * np.sqrt(MAX_WALK_COLUMNS) * 1.5
+    with pytest.raises(ValueError, match="MAX_WALK_COLUMNS"):
+        _grid_shape(np.array([too_wide, too_wide]), 4.0, "x")
+    for bad in (0.0, -1.0, np.nan, np.inf):
+        with pytest.raises(ValueError):
+            _grid_shape(np.array([10.0, 10.0]), bad, "x")
+    with pytest.raises(ValueError):
+        _grid_shape(np.array([np.inf, 10.0]), 4.0, "x")
+
+
+def test_scene_wide_triangles_grow_the_bins_within_their_cap(monkeypatch):
+    """Bins only speed up the casts: forced to grow, they give the same walk area."""
+    from visibility import walkable
+    from visibility.scene import Scene
+
+    tris = _wide_scene(600.0)
+    scene = Scene(tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3))
+    fine = walkable.detect_walk_area(scene, 4.0)
+    monkeypatch.setattr(walkable, "MAX_BIN_ITEMS", 1000)
+    xz_min, xz_max = tris[:, :, [0, 2]].min(1), tris[:, :, [0, 2]].max(1)
+    size, nbx, nbz = walkable._bins(xz_min, xz_max, np.zeros(2), 4.0, 150, 150)
+    assert size > 4.0 and nbx < 150
+    coarse = walkable.detect_walk_area(scene, 4.0)
+    np.testing.assert_array_equal(fine.rects, coarse.rects)
+    assert len(fine.rects) > 1000
