@@ -314,7 +314,8 @@ class ComputeService:
             dkey = None
             if self.disk is not None and cell is not None:
                 dkey = self.disk_key(loaded, core, params, viewcell.box)
-            pvs = self.disk.get(dkey) if dkey is not None else None
+            n = loaded.scene.n_triangles
+            pvs = self.disk.get(dkey, n_triangles=n) if dkey is not None else None
             if pvs is not None:
                 self.cache.put(key, pvs)
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
@@ -328,7 +329,7 @@ class ComputeService:
                       len(pvs), seconds)
             self.cache.put(key, pvs)
             if dkey is not None:
-                self.disk.put(dkey, pvs)
+                self.disk.put(dkey, pvs, n_triangles=n)
             with self._lock:
                 self.computed += 1
             if self.on_computed is not None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from visibility.cores.base import checkpoint
 from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotation
 from visibility.raster.spheres import draw_spheres_cubemap
@@ -259,6 +260,7 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
         bar = tqdm(total=n_points, desc="ground truth", unit="view")
     batch_start = found
     for k in range(n_points):
+        checkpoint()  # a cancelled or late sampling core stops between views
         t = times[k] if dynamic else 0.0
         verts = scene.vertices_at(t)
         if scene.n_spheres:
@@ -275,6 +277,7 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
             # The same six views as render_cubemap, one at a time: a sixth of the buffers.
             # Each face's buffers are dropped before the next face renders.
             for rot in cube_face_rotations(rotations[k]):
+                checkpoint()
                 ids = render_ids(verts, scene.faces, points[k], rot, resolution, resolution,
                                  near=near, face_mask=mask)[1]
                 _mark_seen(ids.reshape(-1), seen)
