@@ -27,7 +27,15 @@ from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
-from visibility.cores.base import AUTO_CORE, PVS, Core, CoreParams, get_core
+from visibility.cores.base import (
+    AUTO_CORE,
+    PVS,
+    CancelToken,
+    ComputationCancelled,
+    Core,
+    CoreParams,
+    get_core,
+)
 from visibility.cores.base import choose_core as registry_choose_core
 from visibility.cores.base import core_fits as registry_fits
 from visibility.scene import Scene
@@ -132,6 +140,9 @@ class ComputeService:
         # Re-entrant: a pool that runs work inline would re-enter from _run.
         self._lock = threading.RLock()
         self._inflight: dict[Hashable, Future] = {}
+        #: The cancellation token of every queued or running computation, by future.
+        self._tokens: dict[Future, CancelToken] = {}
+        self.cancelled = 0
         self.computed = 0
         self.failed = 0
         self.shared = 0
@@ -196,6 +207,7 @@ class ComputeService:
         segment: np.ndarray | None = None,
         priority: float = 0.0,
         wanted: Callable[[], bool] | None = None,
+        deadline: float | None = None,
     ) -> Future:
         """A future of the ``PVSResult`` for a grid cell (``cell``), an ad-hoc ``box`` (2, 3) or
         a ``segment`` (2, 3) [p, q] (metres; ``Core.compute_segment``, exact for cores that
@@ -204,9 +216,10 @@ class ComputeService:
         ``priority``: lower runs first (0: a walker needs it now; prefetch uses larger values).
         ``wanted``: for prefetch, asked when a worker is about to start the job; False cancels
         it (the future is then cancelled). Joining an in-flight job with a lower priority
-        promotes it. Raises UnknownSceneError at once for names outside the catalogue; the
-        future raises UnknownCellError, UnsupportedSceneError, SceneLoadFailed or the core's
-        errors.
+        promotes it. ``deadline``: seconds this computation may take from now, capped by
+        ``settings.compute_deadline``; past it the future raises ``ComputationCancelled``.
+        Raises UnknownSceneError at once for names outside the catalogue; the future raises
+        UnknownCellError, UnsupportedSceneError, SceneLoadFailed or the core's errors.
         """
         self.catalog.require(scene)
         if sum(x is not None for x in (cell, box, segment)) != 1:
@@ -230,13 +243,15 @@ class ComputeService:
                 self._inflight.pop(key, None)
                 fut = None
             if pvs is None and fut is None:
+                limit = self.settings.compute_deadline
+                token = CancelToken.after(limit if deadline is None else min(limit, deadline))
+                args = (self._run, key, scene, core, params, cell, box, segment, token)
                 if isinstance(self.pool, PriorityWorkerPool):
-                    fut = self.pool.submit(self._run, key, scene, core, params, cell, box,
-                                           segment, priority=priority, wanted=wanted)
+                    fut = self.pool.submit(*args, priority=priority, wanted=wanted)
                 else:
-                    fut = self.pool.submit(self._run, key, scene, core, params, cell, box,
-                                           segment)
+                    fut = self.pool.submit(*args)
                 if not fut.done():
+                    self._tokens[fut] = token
                     # Forgotten only when the caller's future is done: a job retried after its
                     # worker died keeps this future, so identical requests keep joining it.
                     self._inflight[key] = fut
@@ -273,6 +288,16 @@ class ComputeService:
         with self._lock:
             if self._inflight.get(key) is fut:
                 del self._inflight[key]
+            self._tokens.pop(fut, None)
+
+    def cancel_all(self, reason: str = "server shutting down") -> int:
+        """Cancel every queued and running computation (each stops at its core's next
+        checkpoint); the number cancelled."""
+        with self._lock:
+            tokens = list(self._tokens.values())
+        for t in tokens:
+            t.cancel(reason)
+        return len(tokens)
 
     def _cell_size(self, scene: Scene) -> float:
         """The viewcell size (metres) the catalogue uses for ``scene``."""
@@ -296,6 +321,7 @@ class ComputeService:
         cell: int | None,
         box: np.ndarray | None,
         segment: np.ndarray | None = None,
+        token: CancelToken | None = None,
     ) -> PVSResult:
         try:
             loaded = self.catalog.get(scene)
@@ -321,9 +347,10 @@ class ComputeService:
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
             t0 = time.perf_counter()
             if segment is not None:
-                pvs = core.compute_segment(loaded.scene, segment[0], segment[1], params)
+                pvs = core.compute_segment(loaded.scene, segment[0], segment[1], params,
+                                           token=token)
             else:
-                pvs = core.compute(loaded.scene, viewcell, params)
+                pvs = core.compute(loaded.scene, viewcell, params, token=token)
             seconds = time.perf_counter() - t0
             log.debug("PVS %s cell=%s core=%s: %d triangles in %.3f s", scene, cell, core.name,
                       len(pvs), seconds)
@@ -337,6 +364,11 @@ class ComputeService:
             return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, False)
         except (UnknownSceneError, UnknownCellError, UnsupportedSceneError):
             raise
+        except ComputationCancelled as exc:
+            with self._lock:
+                self.cancelled += 1
+            log.warning("PVS %s cell=%s core=%s stopped: %s", scene, cell, core.name, exc)
+            raise
         except Exception:
             with self._lock:
                 self.failed += 1
@@ -347,6 +379,7 @@ class ComputeService:
         with self._lock:
             inflight = len(self._inflight)
         out = {"cache": self.cache.stats(), "computed": self.computed, "failed": self.failed,
+               "cancelled": self.cancelled,
                "shared": self.shared, "inflight": inflight,
                "workers": getattr(self.pool, "workers", None)}
         if isinstance(self.pool, PriorityWorkerPool):
@@ -357,7 +390,9 @@ class ComputeService:
         return out
 
     def shutdown(self) -> None:
-        """Stop the pool, dropping queued work (running computations finish)."""
+        """Stop the pool, dropping queued work; running computations stop at their cores'
+        next checkpoint."""
+        self.cancel_all()
         self.pool.shutdown(wait=False, cancel_futures=True)
 
 

@@ -69,6 +69,9 @@ class Settings(BaseModel):
     hello_timeout : seconds a new WebSocket may wait before sending hello.
     ws_deflate : negotiate permessage-deflate (costs CPU; float geometry compresses poorly).
     ws_ping_interval : seconds between keep-alive pings (None: no pings).
+    compute_deadline : seconds any one PVS computation may take, queueing included; a request
+        may ask for less, never more. Past it the computation stops at the core's next
+        checkpoint and its requests fail with ``deadline_exceeded``.
     log_level : uvicorn's log level.
     """
 
@@ -101,6 +104,7 @@ class Settings(BaseModel):
     hello_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
     ws_deflate: bool = False
     ws_ping_interval: float | None = Field(20.0, gt=0)
+    compute_deadline: float = Field(300.0, gt=0, le=86400, allow_inf_nan=False)
     log_level: str = "info"
 
     @field_validator("generated")
@@ -134,7 +138,7 @@ class Settings(BaseModel):
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
-        disables), PVS_LOG_LEVEL,
+        disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -155,7 +159,7 @@ class Settings(BaseModel):
             "near_far_cache_bytes": "PVS_NEAR_FAR_CACHE_BYTES",
             "near_far_block": "PVS_NEAR_FAR_BLOCK",
             "max_body_bytes": "PVS_MAX_BODY_BYTES",
-            "log_level": "PVS_LOG_LEVEL",
+            "log_level": "PVS_LOG_LEVEL", "compute_deadline": "PVS_COMPUTE_DEADLINE",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
