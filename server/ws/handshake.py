@@ -23,8 +23,9 @@ from protocol.messages import (
     parse_client_message,
 )
 from protocol.version import SUPPORTED_VERSIONS
-from server.catalog import LoadedScene, SceneLoadFailed, UnknownSceneError
-from server.compute import AUTO_CORE, UnknownCoreError, core_fits, offered_cores
+from server.catalog import LoadedScene
+from server.compute import AUTO_CORE, core_fits, offered_cores
+from server.errors import error_code, error_message
 from server.ws.dynamic import DynamicFrames
 from server.ws.inventory import Inventory
 from server.ws.nearfar import NearFarStreams
@@ -91,29 +92,17 @@ async def handshake(session: StreamSession) -> None:
     catalog, compute = s.state.catalog, s.state.compute
     try:
         catalog.require(msg.scene)
-    except UnknownSceneError as exc:
-        await s.error(ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
-    if msg.core != AUTO_CORE:
-        # Check the core and its parameters before paying for loading the scene.
-        try:
+        if msg.core != AUTO_CORE:
+            # Check the core and its parameters before paying for loading the scene.
             compute.resolve(msg.core, msg.params)
-        except UnknownCoreError as exc:
-            await s.error(ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
-        except ValueError as exc:
-            await s.error(ErrorCode.BAD_PARAMS, str(exc))
-    try:
-        s.loaded = await asyncio.to_thread(catalog.get, msg.scene)
-    except UnknownSceneError as exc:
-        await s.error(ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
-    except SceneLoadFailed as exc:
-        await s.error(ErrorCode.SCENE_LOAD_FAILED, str(exc))
+        s.loaded = await catalog.load(msg.scene)
+        s.core, s.params, why = compute.resolve_for(s.loaded.scene, msg.core, msg.params)
+    except Exception as exc:
+        code = error_code(exc, params=True)
+        if code is None:
+            raise
+        await s.error(code, error_message(exc))
     scene = s.loaded.scene
-    try:
-        s.core, s.params, why = compute.resolve_for(scene, msg.core, msg.params)
-    except UnknownCoreError as exc:
-        await s.error(ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
-    except ValueError as exc:
-        await s.error(ErrorCode.BAD_PARAMS, str(exc))
     ok, reason = core_fits(s.core, scene)
     if not ok:
         await s.error(ErrorCode.UNSUPPORTED_SCENE,
