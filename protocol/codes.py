@@ -43,7 +43,9 @@ library's hard cap (the library itself closes with 1009, before the session sees
 
 "handshake": fatal while the server waits for ``hello``, answered and skipped afterwards. Bad
 messages after ``welcome`` (the non-fatal protocol errors above) count towards the abuse limit.
-HTTP-only codes: ``not_found`` (404), ``not_acceptable`` (406), ``validation`` (422).
+HTTP-only codes: ``bad_request`` (400, a body that cannot be parsed), ``not_found`` (404),
+``method_not_allowed`` (405), ``not_acceptable`` (406), ``validation`` (422). ``HTTP_STATUS``
+gives the HTTP status of every code an HTTP answer carries.
 """
 
 from __future__ import annotations
@@ -78,7 +80,9 @@ class ErrorCode(StrEnum):
     SLOW_CLIENT = "slow_client"
     TOO_MANY_ERRORS = "too_many_errors"
     # HTTP only.
+    BAD_REQUEST = "bad_request"
     NOT_FOUND = "not_found"
+    METHOD_NOT_ALLOWED = "method_not_allowed"
     NOT_ACCEPTABLE = "not_acceptable"
     VALIDATION = "validation"
 
@@ -127,6 +131,26 @@ HANDSHAKE_FATAL: dict[ErrorCode, CloseCode] = {
     ErrorCode.BAD_JSON: CloseCode.POLICY_VIOLATION,
     ErrorCode.BINARY_UNSUPPORTED: CloseCode.UNSUPPORTED_DATA,
     ErrorCode.TOO_BIG: CloseCode.MESSAGE_TOO_BIG,
+}
+
+
+#: The HTTP status of an answer carrying each code (the codes HTTP routes answer).
+HTTP_STATUS: dict[ErrorCode, int] = {
+    ErrorCode.BAD_REQUEST: 400,
+    ErrorCode.UNKNOWN_SCENE: 404,
+    ErrorCode.UNKNOWN_CELL: 404,
+    ErrorCode.UNKNOWN_CORE: 404,
+    ErrorCode.NOT_FOUND: 404,
+    ErrorCode.METHOD_NOT_ALLOWED: 405,
+    ErrorCode.NOT_ACCEPTABLE: 406,
+    ErrorCode.TOO_BIG: 413,
+    ErrorCode.VALIDATION: 422,
+    ErrorCode.BAD_PARAMS: 422,
+    ErrorCode.UNSUPPORTED_SCENE: 422,
+    ErrorCode.UNSUPPORTED_REGION: 422,
+    ErrorCode.SCENE_LOAD_FAILED: 500,
+    ErrorCode.COMPUTE_FAILED: 500,
+    ErrorCode.INTERNAL: 500,
 }
 
 

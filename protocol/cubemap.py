@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.frames import MAGIC, FrameError, FrameKind
+from protocol.frames import MAGIC, FrameError, FrameKind, unpack_header
 from protocol.version import PROTOCOL_VERSION
 
 _HEADER = struct.Struct("<4sHBBiI3d4dII")
@@ -213,17 +213,8 @@ def encode_cubemap(
 def decode_cubemap(data: bytes | bytearray | memoryview) -> CubemapFrame:
     """The ``CubemapFrame`` in a cubemap frame; ``FrameError`` when the bytes are not one."""
     buf = memoryview(data).cast("B")
-    if len(buf) < HEADER_BYTES:
-        raise FrameError(f"frame too short: {len(buf)} bytes < {HEADER_BYTES}-byte header")
-    (magic, version, kind, flags, cell, res, cx, cy, cz, r1, r2, lo, hi, plen, reserved) = (
-        _HEADER.unpack_from(buf)
-    )
-    if magic != MAGIC:
-        raise FrameError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
-    if version != PROTOCOL_VERSION:
-        raise FrameError(f"frame version {version}, this code speaks {PROTOCOL_VERSION}")
-    if kind != FrameKind.CUBEMAP:
-        raise FrameError(f"frame kind {kind} is not a cubemap ({int(FrameKind.CUBEMAP)})")
+    (_, _, _, flags, cell, res, cx, cy, cz, r1, r2, lo, hi, plen, reserved) = unpack_header(
+        buf, _HEADER, FrameKind.CUBEMAP)
     if flags & ~FLAG_ZLIB or reserved != 0:
         raise FrameError(f"unknown flags {flags} or non-zero reserved field {reserved}")
     if not 1 <= res <= MAX_RESOLUTION:

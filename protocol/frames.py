@@ -67,6 +67,28 @@ class FrameError(ValueError):
     non-finite numbers)."""
 
 
+def unpack_header(buf: memoryview, header: struct.Struct, kind: FrameKind) -> tuple:
+    """The fields of ``header`` at the start of frame ``buf``, after the checks every frame kind
+    shares: at least a header long, magic, protocol version, and ``kind`` at byte 6.
+
+    Raises
+    ------
+    FrameError
+        When the bytes cannot be a frame of ``kind``.
+    """
+    if len(buf) < header.size:
+        raise FrameError(f"frame too short: {len(buf)} bytes < {header.size}-byte header")
+    fields = header.unpack_from(buf)
+    magic, version, got = fields[0], fields[1], fields[2]
+    if magic != MAGIC:
+        raise FrameError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != PROTOCOL_VERSION:
+        raise FrameError(f"frame version {version}, this code speaks {PROTOCOL_VERSION}")
+    if got != kind:
+        raise FrameError(f"frame kind {got} is not {kind.name.lower()} ({int(kind)})")
+    return fields
+
+
 @dataclass(frozen=True)
 class GeometryChunk:
     """One decoded geometry frame.
@@ -195,17 +217,8 @@ def encode_geometry(
 def decode_geometry(data: bytes | bytearray | memoryview) -> GeometryChunk:
     """The ``GeometryChunk`` in a geometry frame; ``FrameError`` when the bytes are not one."""
     buf = memoryview(data).cast("B")
-    if len(buf) < HEADER_BYTES:
-        raise FrameError(f"frame too short: {len(buf)} bytes < {HEADER_BYTES}-byte header")
-    (magic, version, kind, flags, cell, seq, index, count, n, reserved, ox, oy, oz) = (
-        _HEADER.unpack_from(buf)
-    )
-    if magic != MAGIC:
-        raise FrameError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
-    if version != PROTOCOL_VERSION:
-        raise FrameError(f"frame version {version}, this code speaks {PROTOCOL_VERSION}")
-    if kind != FrameKind.GEOMETRY:
-        raise FrameError(f"unknown frame kind {kind}")
+    (_, _, _, flags, cell, seq, index, count, n, reserved, ox, oy, oz) = unpack_header(
+        buf, _HEADER, FrameKind.GEOMETRY)
     if flags != 0 or reserved != 0:
         raise FrameError(f"reserved header fields must be 0 (flags={flags}, reserved={reserved})")
     if count < 1 or index >= count:

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.frames import MAGIC, FrameError, FrameKind
+from protocol.frames import MAGIC, FrameError, FrameKind, unpack_header
 from protocol.version import PROTOCOL_VERSION
 
 _HEADER = struct.Struct("<4sHBBiIIIIIII3d")
@@ -380,17 +380,8 @@ def chunk_spheres(
 
 # --------------------------------------------------------------------------------- decoding
 def _decode_header(buf: memoryview, want: FrameKind) -> tuple:
-    if len(buf) < HEADER_BYTES:
-        raise FrameError(f"frame too short: {len(buf)} bytes < {HEADER_BYTES}-byte header")
-    (magic, version, kind, flags, cell, seq, index, count, n, k, j0, m, ox, oy, oz) = (
-        _HEADER.unpack_from(buf)
-    )
-    if magic != MAGIC:
-        raise FrameError(f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
-    if version != PROTOCOL_VERSION:
-        raise FrameError(f"frame version {version}, this code speaks {PROTOCOL_VERSION}")
-    if kind != want:
-        raise FrameError(f"frame kind {kind} is not {want.name.lower()} ({int(want)})")
+    (_, _, _, flags, cell, seq, index, count, n, k, j0, m, ox, oy, oz) = unpack_header(
+        buf, _HEADER, want)
     if flags != 0:
         raise FrameError(f"reserved flags must be 0, got {flags}")
     if count < 1 or index >= count:

@@ -228,9 +228,23 @@ _SERVER_ADAPTER: TypeAdapter = TypeAdapter(ServerMessage)
 
 
 # --------------------------------------------------------------------------- HTTP API
+def _exactly_one(*names: str) -> dict[str, Any]:
+    """JSON schema: exactly one of the nullable properties ``names`` is given, not null."""
+    return {"oneOf": [
+        {"required": [name], "properties": {
+            other: ({"not": {"type": "null"}} if other == name else {"type": "null"})
+            for other in names}}
+        for name in names
+    ]}
+
+
 class BoxPvsRequest(_Message):
-    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc region, either a ``box`` [min, max] or
-    a ``segment`` [p, q] (metres; the triangles visible from some point of the segment)."""
+    """Body of ``POST /scenes/{scene}/pvs``: an ad-hoc region, exactly one of a ``box``
+    [min, max] and a ``segment`` [p, q] (metres; the triangles visible from some point of the
+    segment)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True,
+                              json_schema_extra=_exactly_one("box", "segment"))
 
     box: tuple[Vec3, Vec3] | None = None
     segment: tuple[Vec3, Vec3] | None = None
@@ -273,6 +287,93 @@ class PvsResponse(BaseModel):
     cached: bool
     params: dict[str, Any]
     stats: dict[str, Any]
+    #: Why this core answered: "requested", "server default", or the ``auto`` choice's reason.
+    chosen_because: str | None = None
+
+
+class ErrorInfo(BaseModel):
+    """An HTTP error: its ``ErrorCode`` (a string, so clients tolerate newer codes) and a
+    message; request validation errors add ``details`` (one per problem)."""
+
+    code: str
+    message: str
+    details: list[dict[str, Any]] | None = None
+
+
+class ErrorResponse(BaseModel):
+    """The body of every HTTP error answer."""
+
+    error: ErrorInfo
+
+
+class CoreParamInfo(BaseModel):
+    """One parameter of a core: its name, type, default and, where known, unit, help, bounds
+    and choices."""
+
+    model_config = ConfigDict(extra="allow")
+
+    name: str
+    type: str | None = None
+    default: Any = None
+    unit: str | None = None
+    help: str | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: list[Any] | None = None
+
+
+class CoreInfo(BaseModel):
+    """A visibility core: what it is, what it promises, its parameters, its quality knob and
+    what it fits."""
+
+    model_config = ConfigDict(extra="allow")
+
+    name: str
+    description: str = ""
+    promise: str | None = None
+    params: list[CoreParamInfo] = Field(default_factory=list)
+    knob: str | None = None
+    knob_levels: list[Any] | None = None
+    native_segments: bool | None = None
+    fits: Any = None
+
+
+class CoreFit(BaseModel):
+    """Whether a core fits a scene (``ok``), how well (``score``, higher is better) and why."""
+
+    model_config = ConfigDict(extra="allow")
+
+    core: str
+    ok: bool
+    score: float | None = None
+    why: str = ""
+
+
+class AutoChoice(BaseModel):
+    """The core ``auto`` picks for a scene (None when no core fits) and why."""
+
+    model_config = ConfigDict(extra="allow")
+
+    core: str | None = None
+    why: str = ""
+
+
+class CoreFitReport(BaseModel):
+    """Every core's fit for one scene, and the ``auto`` choice."""
+
+    model_config = ConfigDict(extra="allow")
+
+    cores: list[CoreFit]
+    auto: AutoChoice
+
+
+class CoresResponse(BaseModel):
+    """Answer of ``GET /cores``: the server's default core, every core, and with ``?scene=``
+    how each fits that scene."""
+
+    default: str
+    cores: list[CoreInfo]
+    fit: CoreFitReport | None = None
 
 
 # --------------------------------------------------------------------------- parse / dump

@@ -24,6 +24,7 @@ from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.middleware import HttpGuard
 from server.nearfar_store import NearFarStore
+from server.openapi import install_openapi
 from server.settings import Settings
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
@@ -120,6 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(metrics.router)
     app.add_api_websocket_route("/ws", ws.websocket_endpoint)
     routes.install_error_handlers(app)
+    install_openapi(app)
     return app
 
 

@@ -10,6 +10,7 @@ request can reach a file outside the scenes folder.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 from dataclasses import dataclass, field
@@ -201,6 +202,13 @@ class SceneCatalog:
                 e.loaded = self._load(e)
                 e.pending = None
             return e.loaded
+
+    async def load(self, name: str) -> LoadedScene:
+        """``get`` from the event loop: the one way the routes and sessions look a scene up by
+        name. An unknown name fails at once (UnknownSceneError); loading, which can take
+        seconds (file parse, grid, walk-area detection), runs in a thread (SceneLoadFailed)."""
+        self.require(name)
+        return await asyncio.to_thread(self.get, name)
 
     def _load(self, e: _Entry) -> LoadedScene:
         try:

@@ -26,24 +26,20 @@ import numpy as np
 from protocol.frames import FrameKind
 from protocol.keyframes import chunk_keyframes, chunk_spheres, frame_plan
 from visibility.scene import Scene
+from visibility.scene import moving_faces as scene_moving_faces
 
 _moving_cache: weakref.WeakKeyDictionary[Scene, np.ndarray] = weakref.WeakKeyDictionary()
 _moving_lock = threading.Lock()
 
 
 def moving_faces(scene: Scene) -> np.ndarray:
-    """(n,) bool, read-only: the valid faces with a corner whose position differs between the
-    scene's keyframes (all False for a static scene). Cached per scene object."""
+    """(n,) bool, read-only: ``visibility.scene.moving_faces`` of ``scene``, cached per scene
+    object (every stream of a dynamic scene asks for it)."""
     with _moving_lock:
         hit = _moving_cache.get(scene)
     if hit is not None:
         return hit
-    if scene.states is None or scene.states.shape[0] < 2:
-        mask = np.zeros(scene.n_triangles, dtype=bool)
-    else:
-        moves = np.any(scene.states != scene.states[:1], axis=(0, 2))
-        f = np.clip(scene.faces, 0, max(scene.n_vertices - 1, 0))
-        mask = np.any(moves[f], axis=1) & scene.valid_faces
+    mask = scene_moving_faces(scene)
     mask.setflags(write=False)
     with _moving_lock:
         _moving_cache[scene] = mask

@@ -16,6 +16,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from protocol.codes import ErrorCode
+from server.errors import error_body
 
 
 class BodyTooLarge(HTTPException):
@@ -27,8 +28,7 @@ class BodyTooLarge(HTTPException):
 
 def too_large_body(limit: int) -> bytes:
     """The JSON error body of a 413 answer."""
-    return json.dumps({"error": {"code": str(ErrorCode.TOO_BIG),
-                                 "message": f"request body over {limit} bytes"}}).encode()
+    return json.dumps(error_body(ErrorCode.TOO_BIG, f"request body over {limit} bytes")).encode()
 
 
 class HttpGuard:

@@ -1,4 +1,5 @@
-"""HTTP routes: health, the scene catalogue, viewcells and PVS queries; JSON error bodies.
+"""HTTP routes: health, the scene catalogue, the cores, viewcells and PVS queries; JSON error
+bodies.
 
 PVS answers come in three forms, chosen by the request's ``Accept`` header (media ranges with
 q-values, ``server.negotiation``; no header: JSON; only other types acceptable: 406
@@ -11,14 +12,17 @@ q-values, ``server.negotiation``; no header: JSON; only other types acceptable: 
   (``protocol.frames``) back to back, each at most ``max_frame_bytes``; a frame's length is
   ``56 + 43 n`` with ``n`` at byte offset 24 of its header (none when the PVS is empty).
 
-Binary answers carry ``X-PVS-Count``, ``X-PVS-Core``, ``X-PVS-Seconds`` and ``X-PVS-Cached``
-headers.
+Binary answers carry ``X-PVS-Count``, ``X-PVS-Core``, ``X-PVS-Core-Reason``, ``X-PVS-Seconds``
+and ``X-PVS-Cached`` headers. ``core=auto`` picks a core per scene, as on the WebSocket; the
+answer says why (``chosen_because``, ``X-PVS-Core-Reason``).
 
 Every error answers ``{"error": {"code": <ErrorCode>, "message": str}}`` (validation errors add
-``"details"``) with its status: 404 unknown scene/cell/core/route, 406 no acceptable answer form,
-413 a request body over ``settings.max_body_bytes`` (``too_big``), 422 bad parameters, NaN or an
-inverted box, a region far outside the scene (``unsupported_region``), 500 a scene that fails
-to load or a computation that fails.
+``"details"``; codes and statuses from ``server.errors``) with its status: 400 a body that
+cannot be parsed, 404 unknown scene/cell/core/route, 405 a method the route lacks (with
+``Allow``), 406 no acceptable answer form, 413 a request body over ``settings.max_body_bytes``
+(``too_big``), 422 bad parameters, NaN or an inverted box, a region far outside the scene
+(``unsupported_region``), 500 a scene that fails to load or a computation that fails. The
+OpenAPI schema documents each route's (``server.openapi``).
 
 Answers are encoded off the event loop (a PVS of 10^5 ids takes milliseconds to render), so a
 big answer never delays other sessions' frames.
@@ -27,6 +31,7 @@ big answer never delays other sessions' frames.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import time
 from typing import TYPE_CHECKING, Annotated, Any
@@ -39,20 +44,18 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from protocol.codes import ErrorCode
 from protocol.frames import chunk_geometry
-from protocol.messages import BoxPvsRequest, PvsResponse
+from protocol.messages import BoxPvsRequest, CoresResponse, ErrorResponse, PvsResponse
 from protocol.version import PROTOCOL_VERSION
-from server.catalog import LoadedScene, SceneLoadFailed, UnknownSceneError
-from server.compute import (
-    PVSResult,
-    UnknownCellError,
-    UnknownCoreError,
-    UnsupportedSceneError,
-)
+from server.catalog import LoadedScene
+from server.compute import AUTO_CORE, PVSResult, choose_core, core_fits
+from server.errors import ApiError, code_for_status, error_body, error_message
 from server.negotiation import choose_media_type
-from visibility.cores.base import SegmentNotSupported
+from visibility.cores.base import available_cores, get_core
 
 if TYPE_CHECKING:
     from server.app import ServerState
+
+__all__ = ["ApiError", "error_response", "install_error_handlers", "jsonable", "router"]
 
 router = APIRouter()
 
@@ -62,28 +65,38 @@ GEOMETRY_MEDIA_TYPE = "application/vnd.pvs.geometry"
 JSON_MEDIA_TYPE = "application/json"
 #: The answer forms of the PVS routes, in the server's order of preference (ties of q).
 PVS_MEDIA_TYPES = (JSON_MEDIA_TYPE, IDS_MEDIA_TYPE, GEOMETRY_MEDIA_TYPE)
-_PVS_RESPONSES: dict = {200: {"content": {
-    "application/json": {},
-    IDS_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
-                     "description": "sorted triangle ids, packed little-endian int32"},
-    GEOMETRY_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
-                          "description": "geometry frames (protocol.frames) back to back"},
-}}}
+#: Headers of the binary PVS answers (JSON answers carry the same facts in the body).
+_PVS_HEADERS: dict[str, str] = {
+    "X-PVS-Count": "the number of triangle ids",
+    "X-PVS-Core": "the core that answered",
+    "X-PVS-Core-Reason": "why that core answered (\"requested\", \"server default\" or the "
+                         "auto choice's reason)",
+    "X-PVS-Seconds": "the computation's time in seconds (the original one when cached)",
+    "X-PVS-Cached": "True when the answer came from the cache",
+}
+_PVS_OK: dict[int, dict] = {200: {
+    "description": "The PVS, in the form the Accept header asks for.",
+    "headers": {name: {"description": f"binary answers only: {doc}",
+                       "schema": {"type": "string"}} for name, doc in _PVS_HEADERS.items()},
+    "content": {
+        JSON_MEDIA_TYPE: {},
+        IDS_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
+                         "description": "sorted triangle ids, packed little-endian int32"},
+        GEOMETRY_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"},
+                              "description": "geometry frames (protocol.frames) back to back"},
+    },
+}}
 
 
-class ApiError(Exception):
-    """An error answered as ``{"error": {"code", "message"}}`` with HTTP ``status``."""
-
-    def __init__(self, status: int, code: ErrorCode, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-        self.code = code
-        self.message = message
+def _errors(**why: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` of the errors a route answers: ``e404="unknown scene"`` documents a
+    404 with the JSON error body (``ErrorResponse``) and that description."""
+    return {int(k[1:]): {"model": ErrorResponse, "description": v} for k, v in why.items()}
 
 
 def error_response(status: int, code: str, message: str, **extra: Any) -> JSONResponse:
-    """The JSON error body every route uses."""
-    return JSONResponse({"error": {"code": str(code), "message": message, **extra}}, status)
+    """The JSON error body every route uses, with ``status``."""
+    return JSONResponse(error_body(code, message, **extra), status)
 
 
 def jsonable(obj: Any) -> Any:
@@ -107,33 +120,11 @@ def _state(request: Request) -> ServerState:
     return request.app.state.server
 
 
-def map_exception(exc: BaseException) -> ApiError | None:
-    """The ApiError for a known failure of a scene/core/cell lookup or computation."""
-    if isinstance(exc, ApiError):
-        return exc
-    if isinstance(exc, UnknownSceneError):
-        return ApiError(404, ErrorCode.UNKNOWN_SCENE, str(exc.args[0] if exc.args else exc))
-    if isinstance(exc, UnknownCellError):
-        return ApiError(404, ErrorCode.UNKNOWN_CELL, str(exc))
-    if isinstance(exc, UnknownCoreError):
-        return ApiError(404, ErrorCode.UNKNOWN_CORE, str(exc.args[0] if exc.args else exc))
-    if isinstance(exc, UnsupportedSceneError):
-        return ApiError(422, ErrorCode.UNSUPPORTED_SCENE, str(exc))
-    if isinstance(exc, SegmentNotSupported):
-        return ApiError(422, ErrorCode.UNSUPPORTED_REGION, str(exc))
-    if isinstance(exc, SceneLoadFailed):
-        return ApiError(500, ErrorCode.SCENE_LOAD_FAILED, str(exc))
-    return None
-
-
 async def _loaded(request: Request, scene: str) -> LoadedScene:
-    catalog = _state(request).catalog
     try:
-        catalog.require(scene)
-        # Loading can take seconds (file parse, walk-area detection): keep it off the loop.
-        return await asyncio.to_thread(catalog.get, scene)
+        return await _state(request).catalog.load(scene)
     except Exception as exc:
-        api = map_exception(exc)
+        api = ApiError.of(exc)
         if api is None:
             raise
         raise api from None
@@ -157,6 +148,30 @@ def _check_region(loaded: LoadedScene, region: np.ndarray) -> None:
                        f"(answered within {lo.tolist()} .. {hi.tolist()} metres)")
 
 
+async def _resolve(request: Request, scene: str, core_name: str | None,
+                   params: dict[str, Any]) -> tuple[LoadedScene, Any, Any, str]:
+    """The loaded scene, the core (``auto`` chosen per scene), its parameters and why it was
+    chosen. Cheap checks first: an unknown scene, core or parameter never loads a scene."""
+    compute = _state(request).compute
+    try:
+        compute.catalog.require(scene)
+        if (core_name or compute.settings.core) != AUTO_CORE:
+            compute.resolve(core_name, params)
+        loaded = await _loaded(request, scene)
+        core, core_params, why = compute.resolve_for(loaded.scene, core_name, params)
+    except Exception as exc:
+        api = ApiError.of(exc, params=True)
+        if api is None:
+            raise
+        raise api from None
+    return loaded, core, core_params, why
+
+
+def _header_text(text: str) -> str:
+    """``text`` as a header value (latin-1 only, one line)."""
+    return " ".join(text.encode("ascii", "replace").decode().split())
+
+
 async def _pvs(
     request: Request,
     scene: str,
@@ -170,33 +185,28 @@ async def _pvs(
     # Negotiated first: a request no answer form satisfies costs no computation.
     media = choose_media_type(request.headers.get("accept"), PVS_MEDIA_TYPES)
     if media is None:
-        raise ApiError(406, ErrorCode.NOT_ACCEPTABLE,
-                       f"no acceptable answer form; this route answers {list(PVS_MEDIA_TYPES)}")
-    try:
-        compute.catalog.require(scene)
-        core, core_params = compute.resolve(core_name, params)
-    except (UnknownSceneError, UnknownCoreError) as exc:
-        raise map_exception(exc) from None
-    except ValueError as exc:
-        raise ApiError(422, ErrorCode.BAD_PARAMS, str(exc)) from None
+        raise ApiError.coded(ErrorCode.NOT_ACCEPTABLE, "no acceptable answer form; this route "
+                             f"answers {list(PVS_MEDIA_TYPES)}")
+    loaded, core, core_params, why = await _resolve(request, scene, core_name, params)
     if box is not None or segment is not None:
-        _check_region(await _loaded(request, scene), box if segment is None else segment)
+        _check_region(loaded, box if segment is None else segment)
     try:
         result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box,
                                                   segment=segment)
     except Exception as exc:
-        api = map_exception(exc)
+        api = ApiError.of(exc)
         if api is None:
-            raise ApiError(500, ErrorCode.COMPUTE_FAILED,
-                           f"PVS computation failed: {type(exc).__name__}: {exc}") from None
+            raise ApiError.coded(ErrorCode.COMPUTE_FAILED, "PVS computation failed: "
+                                 f"{type(exc).__name__}: {exc}") from None
         raise api from None
     pvs = result.pvs
     if media != JSON_MEDIA_TYPE:
         headers = {"X-PVS-Count": str(len(pvs)), "X-PVS-Core": result.core,
+                   "X-PVS-Core-Reason": _header_text(why),
                    "X-PVS-Seconds": repr(result.seconds), "X-PVS-Cached": str(result.cached)}
         ids = pvs.triangle_ids
         if media == GEOMETRY_MEDIA_TYPE:
-            scene_obj = (await _loaded(request, scene)).scene
+            scene_obj = loaded.scene
             limit = _state(request).settings.max_frame_bytes
 
             def encode() -> bytes:
@@ -208,24 +218,83 @@ async def _pvs(
             return Response(body_bytes, media_type=GEOMETRY_MEDIA_TYPE, headers=headers)
         return Response(ids.astype("<i4").tobytes(), media_type=IDS_MEDIA_TYPE, headers=headers)
 
-    def render() -> JSONResponse:
-        return JSONResponse({
-            "scene": scene,
-            "core": result.core,
-            "cell": result.cell,
-            "box": result.box.tolist(),
-            "segment": None if segment is None else segment.tolist(),
-            "granularity": pvs.granularity,
-            "count": len(pvs),
-            "triangle_ids": pvs.triangle_ids.tolist(),
-            "object_ids": None if pvs.object_ids is None else pvs.object_ids.tolist(),
-            "seconds": result.seconds,
-            "cached": result.cached,
-            "params": jsonable(core_params.as_dict()),
-            "stats": jsonable(pvs.stats),
-        })
+    def render() -> Response:
+        answer = PvsResponse(
+            scene=scene,
+            core=result.core,
+            cell=result.cell,
+            box=result.box.tolist(),
+            segment=None if segment is None else segment.tolist(),
+            granularity=pvs.granularity,
+            count=len(pvs),
+            triangle_ids=pvs.triangle_ids.tolist(),
+            object_ids=None if pvs.object_ids is None else pvs.object_ids.tolist(),
+            seconds=result.seconds,
+            cached=result.cached,
+            params=jsonable(core_params.as_dict()),
+            stats=jsonable(pvs.stats),
+            chosen_because=why,
+        )
+        return Response(answer.model_dump_json(), media_type=JSON_MEDIA_TYPE)
 
     return await asyncio.to_thread(render)
+
+
+# --------------------------------------------------------------------------- cores
+def _param_info(field: dataclasses.Field) -> dict[str, Any]:
+    if field.default is not dataclasses.MISSING:
+        default = field.default
+    elif field.default_factory is not dataclasses.MISSING:
+        default = field.default_factory()
+    else:
+        default = None
+    kind = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", None)
+    return {"name": field.name, "type": kind, "default": default}
+
+
+def describe_cores() -> list[dict[str, Any]]:
+    """Every registered core with its parameters (``visibility.cores.base.describe_cores``;
+    until that exists, names, descriptions and the parameters' names, types and defaults)."""
+    try:
+        from visibility.cores.base import describe_cores as describe
+    except (ImportError, AttributeError):
+        pass
+    else:
+        return describe()
+    out = []
+    for name in available_cores():
+        try:
+            core = get_core(name)
+        except KeyError:  # unregistered meanwhile
+            continue
+        out.append({"name": name, "description": core.description,
+                    "params": [_param_info(f) for f in dataclasses.fields(core.Params)]})
+    return out
+
+
+def core_fit_report(loaded: LoadedScene) -> dict[str, Any]:
+    """How every core fits ``loaded`` and what ``auto`` picks
+    (``visibility.cores.base.core_fit_report``; until that exists, ``core_fits`` and
+    ``choose_core``). Blocking: scene analysis can take a while."""
+    try:
+        from visibility.cores.base import core_fit_report as report
+    except (ImportError, AttributeError):
+        pass
+    else:
+        return report(loaded.scene, loaded.grid.cell_size)
+    scene = loaded.scene
+    cores = []
+    for name in available_cores():
+        try:
+            ok, why = core_fits(get_core(name), scene)
+        except KeyError:
+            continue
+        cores.append({"core": name, "ok": ok, "score": None, "why": why or "fits"})
+    try:
+        auto, auto_why = choose_core(scene)
+    except LookupError as exc:
+        auto, auto_why = None, error_message(exc)
+    return {"cores": cores, "auto": {"core": auto, "why": auto_why}}
 
 
 # --------------------------------------------------------------------------- routes
@@ -252,7 +321,12 @@ async def list_scenes(request: Request) -> dict:
     return {"scenes": _state(request).catalog.listing()}
 
 
-@router.get("/scenes/{scene}", summary="One scene: summary and viewcell grid")
+_SCENE_ERRORS = _errors(e404="unknown scene (unknown_scene)",
+                        e500="the scene failed to load (scene_load_failed)")
+
+
+@router.get("/scenes/{scene}", summary="One scene: summary and viewcell grid",
+            responses=_SCENE_ERRORS)
 async def scene_info(request: Request, scene: str) -> dict:
     """Counts, bounds, motion, degenerate-face report and the viewcell grid summary (loads the
     scene on first use)."""
@@ -260,7 +334,8 @@ async def scene_info(request: Request, scene: str) -> dict:
     return jsonable({**loaded.info, "grid": loaded.grid.to_dict()})
 
 
-@router.get("/scenes/{scene}/cells", summary="The viewcells of a scene")
+@router.get("/scenes/{scene}/cells", summary="The viewcells of a scene",
+            responses=_SCENE_ERRORS)
 async def scene_cells(request: Request, scene: str) -> dict:
     """Every viewcell: id, grid column ``ij`` and box [[x0, y0, z0], [x1, y1, z1]] metres."""
     loaded = await _loaded(request, scene)
@@ -269,17 +344,47 @@ async def scene_cells(request: Request, scene: str) -> dict:
     return jsonable({"scene": scene, "grid": grid, "cells": cells})
 
 
+@router.get("/cores", summary="The visibility cores", response_model=CoresResponse,
+            responses=_SCENE_ERRORS)
+async def list_cores(
+    request: Request,
+    scene: Annotated[str | None,
+                     Query(description="also report how each core fits this scene")] = None,
+) -> Any:
+    """Every core with its parameters (name, type, default, unit, bounds) and what it fits;
+    ``default`` is the core a request without one gets. With ``scene``, ``fit`` says how each
+    core fits that scene and what ``auto`` picks there (404 ``unknown_scene``)."""
+    answer: dict[str, Any] = {"default": _state(request).settings.core,
+                              "cores": await asyncio.to_thread(describe_cores)}
+    if scene is not None:
+        loaded = await _loaded(request, scene)
+        answer["fit"] = await asyncio.to_thread(core_fit_report, loaded)
+    return Response(CoresResponse.model_validate(jsonable(answer)).model_dump_json(),
+                    media_type=JSON_MEDIA_TYPE)
+
+
+_PVS_ERRORS = dict(
+    e404="unknown scene, cell or core (unknown_scene, unknown_cell, unknown_core)",
+    e406="no answer form the Accept header allows (not_acceptable)",
+    e422="bad parameters (validation, bad_params), a core that does not fit the scene "
+         "(unsupported_scene)",
+    e500="the scene failed to load or the computation failed (scene_load_failed, "
+         "compute_failed)",
+)
+
+
 @router.get(
     "/scenes/{scene}/cells/{cell}/pvs",
     summary="PVS of a viewcell",
     response_model=PvsResponse,
-    responses=_PVS_RESPONSES,
+    responses={**_PVS_OK, **_errors(**_PVS_ERRORS)},
 )
 async def cell_pvs(
     request: Request,
     scene: str,
     cell: int,
-    core: str | None = None,
+    core: Annotated[str | None, Query(description=f"a core of GET /cores, or {AUTO_CORE!r}: "
+                                      "chosen for the scene")] = None,
     granularity: Annotated[str | None, Query(description="triangle or object")] = None,
     # Declared (integers, strings accepted) so the spec documents them and fuzzers try them; the
     # core converts and checks them (422 ``bad_params``), from ``request.query_params``.
@@ -288,9 +393,10 @@ async def cell_pvs(
     runs: Annotated[int | str | None, Query(description="from_segment: runs")] = None,
     seed: Annotated[int | str | None, Query(description="random seed")] = None,
 ) -> Any:
-    """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``granularity``:
-    ``triangle`` or ``object`` (every triangle of each visible object; 422 ``bad_params``
-    otherwise, like every core parameter). Other query parameters are core parameters (e.g.
+    """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``core=auto``
+    picks a core for the scene (``chosen_because`` says why). ``granularity``: ``triangle`` or
+    ``object`` (every triangle of each visible object; 422 ``bad_params`` otherwise, like every
+    core parameter). Other query parameters are core parameters (e.g.
     ``resolution=64&samples=8``), converted to the core's types. ``Accept:
     application/octet-stream`` answers packed int32 ids, ``application/vnd.pvs.geometry``
     geometry frames."""
@@ -299,13 +405,22 @@ async def cell_pvs(
 
 
 @router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box or segment",
-             response_model=PvsResponse, responses=_PVS_RESPONSES)
+             response_model=PvsResponse,
+             responses={**_PVS_OK, **_errors(
+                 e400="the body cannot be parsed (bad_request)",
+                 e413="the body is over the server's limit (too_big)",
+                 **{**_PVS_ERRORS, "e422": "an invalid body (validation: not exactly one of "
+                    "box and segment, an inverted box, NaN), bad parameters (bad_params), a "
+                    "core that does not fit the scene (unsupported_scene), a region far "
+                    "outside the scene or a diagonal segment for a box-only core "
+                    "(unsupported_region)"})})
 async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
-    """The PVS of an arbitrary region: ``{"box": [min, max]}`` or ``{"segment": [p, q]}``
-    (metres; ``cell`` is null in the answer, ``box`` is the region's bounding box). Cores that
-    solve segments natively (``from_segment``, ``sampling``) answer the segment itself; others
-    answer an axis-aligned segment as its degenerate box and refuse a diagonal one (422
-    ``unsupported_region``). Binary answers as for the cell route."""
+    """The PVS of an arbitrary region: exactly one of ``{"box": [min, max]}`` and
+    ``{"segment": [p, q]}`` (metres; ``cell`` is null in the answer, ``box`` is the region's
+    bounding box). Cores that solve segments natively (``from_segment``, ``sampling``) answer
+    the segment itself; others answer an axis-aligned segment as its degenerate box and refuse
+    a diagonal one (422 ``unsupported_region``). ``core`` as for the cell route (``auto``
+    included). Binary answers as for the cell route."""
     if body.segment is not None:
         seg = np.asarray(body.segment, dtype=np.float64)
         return await _pvs(request, scene, body.core, dict(body.params), segment=seg)
@@ -334,7 +449,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        named = {404: ErrorCode.NOT_FOUND, 406: ErrorCode.NOT_ACCEPTABLE,
-                 413: ErrorCode.TOO_BIG}
-        code = named.get(exc.status_code, f"http_{exc.status_code}")
-        return error_response(exc.status_code, code, str(exc.detail))
+        # The framework's own errors (no route, a method the route lacks, an unparsable body,
+        # a body over the limit); their headers (405's Allow) go along.
+        response = error_response(exc.status_code, code_for_status(exc.status_code),
+                                  str(exc.detail))
+        response.headers.update(exc.headers or {})
+        return response

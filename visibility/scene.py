@@ -327,3 +327,18 @@ def scene_fingerprint(scene: Scene) -> str:
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())
     return h.hexdigest()
+
+
+def moving_faces(scene: Scene) -> np.ndarray:
+    """(m,) bool: the valid faces with a corner whose position differs between the scene's
+    keyframes (all False for a static scene).
+
+    The one definition of a moving (dynamic) face: the server streams their keyframes, near-far
+    never bakes them into a cubemap, the client draws them per frame.
+    """
+    if scene.states is None or scene.states.shape[0] < 2:
+        return np.zeros(scene.n_triangles, dtype=bool)
+    moves = np.any(scene.states != scene.states[:1], axis=(0, 2))
+    # Out-of-range corners are clipped, not trusted: such faces are invalid and masked below.
+    f = np.clip(scene.faces, 0, max(scene.n_vertices - 1, 0))
+    return np.any(moves[f], axis=1) & scene.valid_faces

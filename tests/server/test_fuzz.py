@@ -111,27 +111,38 @@ def test_frame_decoder_fuzz(data, flip, value):
 
 
 # --------------------------------------------------------------------------- schemathesis
-def test_openapi_fuzz_finds_no_500(live_server):
+#: Generated requests per operation: enough to reach every documented error, a few seconds each.
+OPENAPI_EXAMPLES = 25
+
+
+def test_openapi_fuzz(live_server):
     """Every operation of the OpenAPI spec, generated requests (the cell route's core
-    parameters included): never a 5xx, and every answer conforms to the schema."""
+    parameters included): never a 5xx, and every answer is one the schema documents (status,
+    content type, headers, body), and schema-invalid requests are refused with a 4xx.
+    Operations one by one (``schemathesis.pytest.from_fixture``
+    does not run under this pytest)."""
     schema = schemathesis.openapi.from_url(live_server + "/openapi.json")
-    seen = []
     for result in schema.get_all_operations():
         op = result.ok()
-        seen.append(op.label)
 
-        @settings(max_examples=300, deadline=None, database=None,
+        @settings(max_examples=OPENAPI_EXAMPLES, deadline=None, database=None,
                   suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy())
         def check(case):
+            # Every default check but "schema-valid data is accepted": the schema cannot say
+            # that a box's max must not be below its min, nor which core parameters a core
+            # takes (the core checks them: 422, documented).
             case.call_and_validate(
-                timeout=60,
-                checks=[schemathesis.checks.not_a_server_error,
-                        schemathesis.checks.response_schema_conformance])
+                timeout=60, excluded_checks=[schemathesis.checks.positive_data_acceptance])
 
         check()
-    assert any("/pvs" in label for label in seen) and any("metrics" in x for x in seen)
+
+
+def test_openapi_covers_every_route(live_server):
     spec = httpx.get(live_server + "/openapi.json", timeout=30).json()
+    labels = {(m.upper(), p) for p, ops in spec["paths"].items() for m in ops}
+    assert ("GET", "/metrics") in labels and ("GET", "/cores") in labels
+    assert ("POST", "/scenes/{scene}/pvs") in labels
     cell_route = spec["paths"]["/scenes/{scene}/cells/{cell}/pvs"]["get"]
     declared = {p["name"] for p in cell_route.get("parameters", [])}
     assert {"core", "granularity", "resolution", "samples", "runs", "seed"} <= declared

@@ -273,15 +273,98 @@ def test_broken_scene_file_500_and_retry(http):
 
 def test_unknown_route_and_method(http):
     _error(http.get("/nothing/here"), 404, "not_found")
-    assert http.delete("/scenes").status_code == 405
+    r = http.delete("/scenes")
+    _error(r, 405, "method_not_allowed")
+    assert r.headers["allow"] == "GET"
+    assert http.put("/scenes/tiny/pvs").headers["allow"] == "POST"
+
+
+def test_unparsable_body_400(http):
+    r = http.post("/scenes/tiny/pvs", content=b"\xff\xfe{", headers={
+        "content-type": "application/json"})
+    _error(r, 400, "bad_request")
 
 
 def test_openapi_docs(http):
     assert http.get("/docs").status_code == 200
     spec = http.get("/openapi.json").json()
     for path in ("/health", "/scenes", "/scenes/{scene}", "/scenes/{scene}/cells",
-                 "/scenes/{scene}/cells/{cell}/pvs", "/scenes/{scene}/pvs"):
+                 "/scenes/{scene}/cells/{cell}/pvs", "/scenes/{scene}/pvs", "/cores"):
         assert path in spec["paths"]
+
+
+def test_openapi_documents_every_status(http):
+    """The statuses each route answers, and no FastAPI default 422 shape we never send."""
+    paths = http.get("/openapi.json").json()["paths"]
+
+    def statuses(path, method="get"):
+        return set(paths[path][method]["responses"])
+
+    assert statuses("/scenes/{scene}") == statuses("/scenes/{scene}/cells") == {
+        "200", "404", "500"}
+    assert statuses("/cores") == {"200", "404", "500"}
+    assert statuses("/scenes/{scene}/cells/{cell}/pvs") == {"200", "404", "406", "422", "500"}
+    assert statuses("/scenes/{scene}/pvs", "post") == {
+        "200", "400", "404", "406", "413", "422", "500"}
+    error = paths["/scenes/{scene}"]["get"]["responses"]["404"]["content"]["application/json"]
+    assert error["schema"]["$ref"].endswith("/ErrorResponse")
+    assert "HTTPValidationError" not in json.dumps(paths)
+
+
+def test_openapi_box_or_segment_is_one_of(http):
+    schemas = http.get("/openapi.json").json()["components"]["schemas"]
+    body = next(v for k, v in schemas.items() if k.startswith("BoxPvsRequest"))
+    assert [b["required"] for b in body["oneOf"]] == [["box"], ["segment"]]
+
+
+# --------------------------------------------------------------------------- cores
+def test_cores_lists_every_core_with_its_parameters(http, server_app):
+    from visibility.cores.base import available_cores
+
+    body = http.get("/cores").json()
+    assert body["default"] == server_app.state.server.settings.core
+    assert "fit" not in body or body["fit"] is None
+    cores = {c["name"]: c for c in body["cores"]}
+    assert set(cores) == set(available_cores())
+    radius = next(p for p in cores["test_near"]["params"] if p["name"] == "radius")
+    assert radius["default"] == 5.0
+
+
+def test_cores_fit_a_scene(http):
+    fit = http.get("/cores", params={"scene": "tiny"}).json()["fit"]
+    by_core = {f["core"]: f for f in fit["cores"]}
+    assert by_core["test_near"]["ok"] is True
+    assert by_core["test_picky"]["ok"] is False and by_core["test_picky"]["why"]
+    assert fit["auto"]["core"] in by_core and fit["auto"]["why"]
+    _error(http.get("/cores", params={"scene": "nope"}), 404, "unknown_scene")
+
+
+# --------------------------------------------------------------------------- auto core
+def test_auto_core_on_the_http_routes(http, server_app):
+    """``core=auto`` picks a real core for the scene, as the WebSocket does, and says why."""
+    from visibility.cores.base import available_cores
+
+    name = _generated_with_sampling(server_app)
+    quick = {"resolution": 32}
+    r = http.get(f"/scenes/{name}/cells/0/pvs", params={"core": "auto", **quick})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["core"] in available_cores() and body["chosen_because"]
+    assert body["chosen_because"] not in ("requested", "server default")
+    box = http.get(f"/scenes/{name}/cells").json()["cells"][0]["box"]
+    r = http.post(f"/scenes/{name}/pvs", json={"box": box, "core": "auto", "params": quick})
+    assert r.status_code == 200, r.text
+    assert r.json()["core"] == body["core"]
+    assert r.json()["chosen_because"] == body["chosen_because"]
+    r = http.get(f"/scenes/{name}/cells/0/pvs", params={"core": "auto", **quick},
+                 headers={"accept": "application/octet-stream"})
+    assert r.status_code == 200
+    assert r.headers["x-pvs-core"] == body["core"] and r.headers["x-pvs-core-reason"]
+
+
+def test_named_core_says_it_was_requested(http):
+    body = http.get("/scenes/tiny/cells/0/pvs", params={"core": "test_near"}).json()
+    assert body["chosen_because"] == "requested"
 
 
 # --------------------------------------------------------------------------- generated scenes

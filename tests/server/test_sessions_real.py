@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-import server.ws as ws_module
+import server.ws.inventory as inventory_module
 from client.session import Session
 from protocol.frames import frame_bytes
 from tests.conftest import LiveServer
@@ -239,7 +239,7 @@ def test_current_cell_survives_a_tiny_cache(served_tiny_cache, grid):
 
 
 def test_remembered_pvs_per_session_is_bounded(served, grid, monkeypatch):
-    monkeypatch.setattr(ws_module, "MAX_KNOWN_PVS", 3)
+    monkeypatch.setattr(inventory_module, "MAX_KNOWN_PVS", 3)
     app, url = served
     p = params(seed=16)
     first = line_of_cells(grid)[1]
@@ -258,12 +258,12 @@ def test_remembered_pvs_per_session_is_bounded(served, grid, monkeypatch):
         for i, c in enumerate(cells, start=1):
             await enter(s, i, grid, c)
             await s.wait_cell(c, 120)
-            sizes.append(len(server_side.pvs_of))
+            sizes.append(len(server_side.inventory.pvs_of))
         # Back to the first cell, long forgotten: its stream comes again, whole.
         s.complete.discard(first)
         await enter(s, len(cells) + 1, grid, first)
         back = await s.wait_cell(first, 120)
-        sizes.append(len(server_side.pvs_of))
+        sizes.append(len(server_side.inventory.pvs_of))
         await s.close()
         return s, sizes, back
 

@@ -1,0 +1,160 @@
+"""The opening of a session: ``hello`` in, checks, the scene loaded, ``welcome`` out.
+
+Every error before ``welcome`` is fatal: ``StreamSession.error`` closes and ends the session.
+Cheap checks go first (version, scene name, core and parameters) so a bad hello never pays for
+loading a scene.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from protocol.codes import ErrorCode
+from protocol.messages import (
+    GridInfo,
+    Hello,
+    Limits,
+    ProtocolError,
+    SceneInfo,
+    Welcome,
+    parse_client_message,
+)
+from protocol.version import SUPPORTED_VERSIONS
+from server.catalog import LoadedScene
+from server.compute import AUTO_CORE, core_fits, offered_cores
+from server.errors import error_code, error_message
+from server.ws.dynamic import DynamicFrames
+from server.ws.inventory import Inventory
+from server.ws.nearfar import NearFarStreams
+from visibility.cores.base import CoreParams
+
+if TYPE_CHECKING:
+    from server.ws.session import StreamSession
+
+#: Handshake errors answered with their own code; any other bad first message is
+#: ``expected_hello``.
+_OWN_CODE = (ErrorCode.BAD_JSON, ErrorCode.INVALID_HELLO, ErrorCode.TOO_BIG,
+             ErrorCode.BINARY_UNSUPPORTED, ErrorCode.EXPECTED_HELLO)
+
+
+def grid_info(loaded: LoadedScene) -> GridInfo:
+    """The welcome's ``grid``."""
+    d = loaded.grid.to_dict()
+    return GridInfo(cell_size=d["cell_size"], origin_xz=tuple(d["origin_xz"]), cells=d["cells"],
+                    levels=d["levels"], eye_range=tuple(d["eye_range"]),
+                    bounds=tuple(map(tuple, d["bounds"])))
+
+
+def scene_info(loaded: LoadedScene) -> SceneInfo:
+    """The welcome's ``scene``."""
+    i = loaded.info
+    return SceneInfo(
+        name=loaded.name, kind=loaded.kind, triangles=i["triangles"],
+        valid_triangles=i["valid_triangles"], vertices=i["vertices"], objects=i["objects"],
+        spheres=i["spheres"], dynamic=i["dynamic"], states=i["states"],
+        bounds=tuple(map(tuple, i["bounds"])), degenerate=i["degenerate"],
+        source=i.get("source", {}),
+    )
+
+
+def jsonable_params(params: CoreParams) -> dict[str, Any]:
+    """Core parameters as JSON values (tuples as lists)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in params.as_dict().items()}
+
+
+async def read_hello(session: StreamSession) -> Hello:
+    """The client's ``hello``, within ``settings.hello_timeout``; anything else is fatal."""
+    try:
+        text = await session.transport.receive(timeout=session.settings.hello_timeout)
+        msg = parse_client_message(text)
+    except ProtocolError as exc:
+        if exc.code in _OWN_CODE:
+            await session.error(exc.code, exc.message)
+        await session.error(ErrorCode.EXPECTED_HELLO, f"the first message must be hello ({exc})")
+    if not isinstance(msg, Hello):
+        await session.error(ErrorCode.EXPECTED_HELLO,
+                            f"the first message must be hello, got {msg.type}")
+    return msg
+
+
+async def handshake(session: StreamSession) -> None:
+    """Read and check ``hello``, load the scene, set up the session's parts, send ``welcome``.
+    Registers the session in ``ServerState.sessions`` just before the welcome leaves."""
+    s = session
+    msg = await read_hello(s)
+    if msg.version not in SUPPORTED_VERSIONS:
+        await s.error(ErrorCode.VERSION_MISMATCH,
+                      f"protocol version {msg.version} not supported; server speaks "
+                      f"{list(SUPPORTED_VERSIONS)}")
+    catalog, compute = s.state.catalog, s.state.compute
+    try:
+        catalog.require(msg.scene)
+        if msg.core != AUTO_CORE:
+            # Check the core and its parameters before paying for loading the scene.
+            compute.resolve(msg.core, msg.params)
+        s.loaded = await catalog.load(msg.scene)
+        s.core, s.params, why = compute.resolve_for(s.loaded.scene, msg.core, msg.params)
+    except Exception as exc:
+        code = error_code(exc, params=True)
+        if code is None:
+            raise
+        await s.error(code, error_message(exc))
+    scene = s.loaded.scene
+    ok, reason = core_fits(s.core, scene)
+    if not ok:
+        await s.error(ErrorCode.UNSUPPORTED_SCENE,
+                      f"core {s.core.name!r} does not fit {msg.scene!r}: {reason}")
+    settings = s.settings
+    s.prefetch = settings.prefetch if msg.prefetch is None else bool(msg.prefetch)
+    s.inventory = Inventory(scene.n_triangles, msg.budget)
+    s.nearfar = NearFarStreams(s.state, s.loaded)
+    s.dynamic = DynamicFrames(scene, settings.max_frame_bytes, s.outbox, s.state.counters, s.id)
+    valid = int(np.count_nonzero(scene.valid_faces))
+    s.send_all = msg.budget is not None and valid <= msg.budget
+    features = await asyncio.to_thread(session_features, s, why, valid)
+    # Registered before the welcome leaves: a client that has its welcome finds its session
+    # (pins, /sessions, metrics) already there. ``run`` removes it on every way out.
+    s.state.sessions[s.id] = s
+    await s.transport.send_message(Welcome(
+        session=s.id,
+        scene=scene_info(s.loaded),
+        grid=grid_info(s.loaded),
+        core=s.core.name,
+        params=jsonable_params(s.params),
+        budget=msg.budget,
+        limits=Limits(max_frame_bytes=settings.max_frame_bytes,
+                      max_message_bytes=settings.max_message_bytes),
+        prefetch=s.prefetch,
+        features=features,
+    ))
+    s.welcomed = True
+
+
+def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
+    """What the session's streams include and leave out, and why (the welcome's
+    ``features``); ``why``: why its core was chosen, ``valid``: the scene's valid triangles."""
+    budget = s.inventory.budget
+    if s.send_all:
+        pvs = {"on": False, "why": f"the whole scene ({valid} valid triangles) fits the "
+               f"client's budget of {budget}: it is sent whole, no PVS is computed"}
+    else:
+        pvs = {"on": True, "why": "no budget declared" if budget is None else
+               f"the scene ({valid} triangles) exceeds the budget of {budget}"
+               + ("; a cell whose near region (within r2) fits it is sent whole, "
+                  "without a PVS" if s.settings.near_far else "")}
+    scene = s.loaded.scene
+    dynamic = scene.is_dynamic
+    return {
+        "pvs": pvs,
+        "prefetch": {"on": s.prefetch},
+        "delta": {"on": True, "why": "each triangle is sent once unless dropped"},
+        "dynamic_updates": {"on": dynamic, "why": "the scene has moving triangles or "
+                            "spheres: their keyframes follow their geometry" if dynamic
+                            else "static scene: no dynamic updates"},
+        "cubemap": s.nearfar.feature(),
+        "cores": offered_cores(scene),
+        "core_choice": {"core": s.core.name, "why": why},
+    }

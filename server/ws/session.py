@@ -1,0 +1,229 @@
+"""One WebSocket client: the walker's state, the reader, and the session's lifecycle.
+
+Three tasks per session: the reader (here) validates every client message; a pose updates the
+walker's cell, its predicted motion and the prefetch list (``server.prefetch``), and counts a
+*stall* when the walker stands in a cell whose stream the server has not finished. The streamer
+(``server.ws.streams``) and the sender (``server.ws.outbox``) do the rest.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from collections import deque
+from typing import TYPE_CHECKING
+
+import numpy as np
+from starlette.websockets import WebSocket
+
+from protocol.codes import (
+    BAD_MESSAGE_LIMIT,
+    BAD_MESSAGE_WINDOW_S,
+    CloseCode,
+    ErrorCode,
+    close_code_for,
+    is_fatal,
+)
+from protocol.messages import Bye, Error, Hello, Pose, ProtocolError, parse_client_message
+from server.catalog import LoadedScene
+from server.prefetch import motion_direction, prefetch_order
+from server.ws.dynamic import DynamicFrames
+from server.ws.handshake import handshake
+from server.ws.inventory import Inventory
+from server.ws.nearfar import NearFarStreams
+from server.ws.outbox import Outbox
+from server.ws.streams import Streamer
+from server.ws.transport import SessionOver, Transport
+from visibility.cores.base import Core, CoreParams
+
+if TYPE_CHECKING:
+    from server.app import ServerState
+
+log = logging.getLogger(__name__)
+
+#: Longest ``error.message`` sent (a core's message may quote a whole parameter).
+MAX_ERROR_MESSAGE = 2000
+
+
+class StreamSession:
+    """One WebSocket client: handshake, pose handling, the streamer and the sender.
+
+    The parts set up by the handshake (``loaded``, ``core``, ``params``, ``inventory``,
+    ``nearfar``, ``dynamic``) are None before it.
+    """
+
+    def __init__(self, websocket: WebSocket, state: ServerState) -> None:
+        self.state = state
+        self.settings = state.settings
+        self.id = uuid.uuid4().hex[:16]
+        self.transport = Transport(websocket, self.settings, state.counters, self.id)
+        #: Set when the walker's state changes: the streamer and waiting producers recheck.
+        self.wake = asyncio.Event()
+        self.streamer = Streamer(self)
+        self.outbox = Outbox(self.transport, self.settings, state.counters, self.wake,
+                             self.streamer.current_pending)
+        self.loaded: LoadedScene | None = None
+        self.core: Core | None = None
+        self.params: CoreParams | None = None
+        self.inventory: Inventory | None = None
+        self.nearfar: NearFarStreams | None = None
+        self.dynamic: DynamicFrames | None = None
+        self.prefetch = False
+        self.send_all = False
+        self.cell: int | None = None
+        self.cell_seq = 0
+        self.cell_t0 = 0.0
+        self.want: list[int] = []
+        self.want_set: frozenset[int] = frozenset()
+        self.skip: set[int] = set()
+        #: The last cell that got a current-cell stream (an empty one confirms a cell the
+        #: client already holds, e.g. prefetched or revisited).
+        self.announced: int | None = None
+        self.stalls = 0
+        self._stall_cell: int | None = None
+        self._last_pos: np.ndarray | None = None
+        self._pinned: tuple | None = None
+        self._outside = False
+        #: True once ``welcome`` is sent: bad messages are then answered, not fatal.
+        self.welcomed = False
+        #: Monotonic times of the recent bad messages (``protocol.codes.BAD_MESSAGE_LIMIT``).
+        self._bad: deque[float] = deque()
+
+    # ----------------------------------------------------------------------------- errors
+    async def error(self, code: ErrorCode, message: str, seq: int | None = None) -> None:
+        """Send an ``error``; when the code is fatal (in this phase: before ``welcome`` every
+        bad message is) also close the connection and end the session (raises SessionOver)."""
+        fatal = is_fatal(code, handshake=not self.welcomed)
+        self.state.counters["errors_sent"] += 1
+        log.info("session %s: %s%s: %s", self.id, code, " (fatal)" if fatal else "", message)
+        await self.transport.send_message(Error(code=code, message=message[:MAX_ERROR_MESSAGE],
+                                                fatal=fatal, seq=seq))
+        if fatal:
+            await self.transport.close(int(close_code_for(code)), str(code))
+            raise SessionOver
+
+    async def close(self, code: int = CloseCode.NORMAL, reason: str = "") -> None:
+        """Close the WebSocket once (no-op when already closed)."""
+        await self.transport.close(code, reason)
+
+    # ----------------------------------------------------------------------------- lifecycle
+    async def run(self) -> None:
+        """Handshake, then read until the client leaves or a fatal error; never raises."""
+        tasks: list[asyncio.Task] = []
+        try:
+            await handshake(self)
+            self.state.counters["sessions_total"] += 1
+            tasks.append(asyncio.create_task(self.outbox.run(), name=f"pvs-send-{self.id}"))
+            tasks.append(asyncio.create_task(self.streamer.run(), name=f"pvs-stream-{self.id}"))
+            await self._read_loop(tasks)
+        except SessionOver:
+            pass
+        except Exception:
+            log.exception("session %s failed", self.id)
+            try:
+                await self.transport.send_message(Error(code=ErrorCode.INTERNAL, fatal=True,
+                                                        message="internal server error"))
+            except SessionOver:
+                pass
+            await self.close(int(close_code_for(ErrorCode.INTERNAL)), "internal")
+        finally:
+            self.state.sessions.pop(self.id, None)
+            self._unpin()
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            await self.close(CloseCode.NORMAL, "")
+
+    async def _read_loop(self, tasks: list[asyncio.Task]) -> None:
+        while True:
+            if any(t.done() for t in tasks):
+                return
+            try:
+                msg = parse_client_message(await self.transport.receive())
+            except ProtocolError as exc:
+                code = exc.code
+                if code == ErrorCode.INVALID_HELLO:
+                    code = ErrorCode.DUPLICATE_HELLO
+                await self._bad_message(code, exc.message, exc.seq)
+                continue
+            if isinstance(msg, Pose):
+                await self._on_pose(msg)
+            elif isinstance(msg, Bye):
+                await self.close(CloseCode.NORMAL, "bye")
+                return
+            elif isinstance(msg, Hello):
+                await self.error(ErrorCode.DUPLICATE_HELLO, "hello sent twice")
+
+    async def _bad_message(self, code: ErrorCode, message: str, seq: int | None) -> None:
+        """Answer a bad message after ``welcome`` (skipped, the session goes on) and close the
+        session once a client passes ``BAD_MESSAGE_LIMIT`` of them in ``BAD_MESSAGE_WINDOW_S``
+        seconds (``too_many_errors``)."""
+        now = time.monotonic()
+        self._bad.append(now)
+        while self._bad and self._bad[0] < now - BAD_MESSAGE_WINDOW_S:
+            self._bad.popleft()
+        if len(self._bad) > BAD_MESSAGE_LIMIT:
+            await self.error(ErrorCode.TOO_MANY_ERRORS,
+                             f"more than {BAD_MESSAGE_LIMIT} bad messages in "
+                             f"{BAD_MESSAGE_WINDOW_S:g} s", seq)
+        await self.error(code, message, seq)
+
+    # ----------------------------------------------------------------------------- poses
+    async def _on_pose(self, pose: Pose) -> None:
+        pos = np.asarray(pose.position, dtype=np.float64)
+        grid = self.loaded.grid
+        cell = grid.cell_of(pos)
+        if cell is None:
+            if not self._outside:
+                self._outside = True
+                await self.error(ErrorCode.OUTSIDE_GRID,
+                                 f"position {list(pose.position)} is in no viewcell", pose.seq)
+            return
+        self._outside = False
+        if cell != self.cell:
+            self.cell = cell
+            self.cell_seq = pose.seq
+            self.cell_t0 = time.perf_counter()
+            self.skip.clear()
+            self._pin(cell)
+        if self.prefetch:
+            vel = None if pose.velocity is None else np.asarray(pose.velocity)
+            direction = motion_direction(vel, pos, self._last_pos)
+            self.want = prefetch_order(grid, cell, pos, direction, self.settings.prefetch_ahead)
+            self.want_set = frozenset(self.want)
+        self._last_pos = pos
+        if cell not in self.inventory.done:
+            self.stalls += 1
+            self.state.counters["stalls"] += 1
+            if self._stall_cell != cell:
+                self._stall_cell = cell
+                log.info("session %s: stall: pose %d in cell %d before its stream finished",
+                         self.id, pose.seq, cell)
+        self.wake.set()
+
+    # ----------------------------------------------------------------------------- shared state
+    def _pin(self, cell: int) -> None:
+        # The walker's current cell stays cached while it stands there (another walker
+        # entering, or this one losing it to drops, then costs no recomputation).
+        self._unpin()
+        self._pinned = self.state.compute.key(self.loaded.name, self.core, self.params, cell)
+        self.state.compute.cache.pin(self._pinned)
+
+    def _unpin(self) -> None:
+        if self._pinned is not None:
+            self.state.compute.cache.unpin(self._pinned)
+            self._pinned = None
+
+    def wants(self, key: tuple) -> bool:
+        """Whether this session still needs the PVS of cache key ``key`` (called from worker
+        threads: reads only attributes replaced atomically)."""
+        return (self.loaded is not None and key[0] == self.loaded.name
+                and key[2] == self.core.name and key[3] == self.params.cache_key()
+                and (key[1] == self.cell or key[1] in self.want_set))
+
+    def cubemap_cell(self, cell: int | None) -> int | None:
+        """The anchor cell whose cubemap ``cell`` shares (itself without blocks); ``cell``
+        before the handshake or without near-far."""
+        return cell if self.nearfar is None else self.nearfar.anchor(cell)

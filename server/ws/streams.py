@@ -1,0 +1,261 @@
+"""The streamer task of a session: which cell streams next, its PVS, and its messages.
+
+The streamer picks the next job (the current cell first, then the neighbours ahead in order),
+gets its PVS from the shared compute service (cache, in-flight sharing, priority pool; prefetch
+work no walker wants any more is skipped), and queues ``cell_begin``, the triangles the client
+lacks as geometry frames, the cubemap (near-far), ``cell_end``. A prefetch stream yields to the
+current cell's between chunks, and when the walker needs another cell its queued frames are cut
+(``server.sendqueue``: ``cell_end.partial``). When a client's triangle ``budget`` would be
+exceeded, a ``drop`` message first names the held triangles it must drop (outside the current
+and prefetched cells' PVS first, farthest first).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from protocol.codes import ErrorCode
+from protocol.frames import chunk_count, encode_geometry, triangles_per_frame
+from protocol.messages import CellBegin, CellEnd, Drop, Error
+from server.catalog import SceneLoadFailed
+from server.compute import PVSResult, UnsupportedSceneError
+from server.sendqueue import StreamTag
+from server.ws.transport import SessionOver
+from visibility.cores.base import PVS
+
+if TYPE_CHECKING:
+    from server.ws.session import StreamSession
+
+log = logging.getLogger(__name__)
+
+
+class Streamer:
+    """Streams the cells a session's walker needs, in order; ``run`` is the task."""
+
+    def __init__(self, session: StreamSession) -> None:
+        self.s = session
+
+    # ----------------------------------------------------------------------------- jobs
+    def next_job(self) -> tuple[int, bool, int] | None:
+        """(cell, prefetch?, rank) of the next stream: the current cell, then prefetch order."""
+        s = self.s
+        c, done = s.cell, s.inventory.done
+        if c is not None and (c not in done or c != s.announced) and c not in s.skip:
+            return c, False, 0
+        for rank, n in enumerate(s.want):
+            if n not in done and n not in s.skip and n != c:
+                return n, True, rank
+        return None
+
+    def current_pending(self, streaming: int) -> bool:
+        """Whether the walker's cell, not ``streaming``, waits for its stream."""
+        s = self.s
+        c = s.cell
+        return (c is not None and c != streaming and c not in s.inventory.done
+                and c not in s.skip)
+
+    async def run(self) -> None:
+        """Stream until the session ends; a failure ends with an ``internal`` error."""
+        s = self.s
+        try:
+            while True:
+                job = self.next_job()
+                if job is None:
+                    s.wake.clear()
+                    await s.wake.wait()
+                    continue
+                cell, prefetch, rank = job
+                result = await self.get_pvs(cell, prefetch, rank)
+                if result is not None:
+                    await self.stream_cell(cell, result, prefetch)
+        except SessionOver:
+            pass
+        except Exception:
+            log.exception("session %s: streaming failed", s.id)
+            try:
+                await s.error(ErrorCode.INTERNAL, "internal server error while streaming")
+            except SessionOver:
+                pass
+
+    # ----------------------------------------------------------------------------- PVS
+    def _ready(self, cell: int, ids: np.ndarray, stats: dict | None = None) -> PVSResult:
+        """A PVS the session has without computing (as if cached)."""
+        s = self.s
+        box = s.loaded.grid.boxes[cell].copy()
+        pvs = PVS(ids) if stats is None else PVS(ids, stats=stats)
+        return PVSResult(s.loaded.name, cell, box, s.core.name, s.params, pvs, True)
+
+    async def get_pvs(self, cell: int, prefetch: bool, rank: int) -> PVSResult | None:
+        """The PVS of ``cell``, or None when the job was superseded (the walker moved on: the
+        computation goes on in the pool and lands in the cache) or failed (error sent)."""
+        s = self.s
+        name = s.loaded.name
+        known = s.inventory.pvs_of.get(cell)
+        if known is not None and cell in s.inventory.done:
+            return self._ready(cell, known)
+        if s.send_all:
+            return self._ready(cell, np.flatnonzero(s.loaded.scene.valid_faces).astype(np.int32))
+        near = await s.nearfar.near_region_if_it_fits(cell, s.inventory.budget)
+        if near is not None:
+            s.state.counters["cells_sent_whole"] += 1
+            return self._ready(cell, near, stats={
+                "skipped": "the near region fits the client's budget: sent whole"})
+        compute = s.state.compute
+        key = compute.key(name, s.core, s.params, cell)
+        seq = s.cell_seq if not prefetch else None
+        try:
+            cf = compute.submit(name, s.core, s.params, cell=cell,
+                                priority=(1.0 + rank) if prefetch else 0.0,
+                                wanted=(lambda: s.state.wanted(key)) if prefetch else None)
+        except LookupError as exc:
+            await self._job_failed(cell, prefetch, str(exc), seq)
+            return None
+        fut = asyncio.wrap_future(cf)
+        fut.add_done_callback(lambda f: f.cancelled() or f.exception())
+        job = (cell, prefetch)
+        while not fut.done():
+            s.wake.clear()
+            waker = asyncio.ensure_future(s.wake.wait())
+            await asyncio.wait({fut, waker}, return_when=asyncio.FIRST_COMPLETED)
+            waker.cancel()
+            nxt = self.next_job()
+            if not fut.done() and (nxt is None or nxt[:2] != job):
+                return None
+        if fut.cancelled():
+            return None
+        exc = fut.exception()
+        if exc is None:
+            return fut.result()
+        if isinstance(exc, (UnsupportedSceneError, LookupError, SceneLoadFailed)):
+            msg = str(exc)
+        else:
+            log.error("session %s: PVS of %s cell %d failed: %r", s.id, name, cell, exc)
+            msg = f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}"
+        await self._job_failed(cell, prefetch, msg, seq)
+        return None
+
+    async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None) -> None:
+        self.s.skip.add(cell)
+        if not prefetch:
+            await self.s.error(ErrorCode.COMPUTE_FAILED, msg, seq)
+
+    # ----------------------------------------------------------------------------- budget
+    async def _over_budget(self, message: str, seq: int, stream: StreamTag | None) -> None:
+        await self.s.outbox.put(Error(code=ErrorCode.OVER_BUDGET, seq=seq, message=message),
+                                stream)
+        self.s.state.counters["errors_sent"] += 1
+
+    async def _make_room(self, cell: int, ids: np.ndarray, new: np.ndarray,
+                         prefetch: bool, seq: int, stream: StreamTag | None = None) -> bool:
+        """Drop held triangles so ``new`` fits the budget; False when a prefetch cannot fit
+        without touching the current cell's PVS (the prefetch is then skipped)."""
+        s, inv = self.s, self.s.inventory
+        need = inv.over_budget(new)
+        if need <= 0:
+            return True
+        box = s.loaded.grid.boxes[s.cell if s.cell is not None else cell]
+        drops = inv.choose_drops(need, ids, s.cell, s.want, prefetch,
+                                 s.state.centroids(s.loaded), box.mean(axis=0))
+        if len(drops) < need:
+            if prefetch:
+                s.skip.add(cell)
+                return False
+            await self._over_budget(
+                f"PVS of cell {cell} holds {len(ids)} triangles; with the current cell's it "
+                f"exceeds the budget of {inv.budget}", seq, stream)
+        if len(drops):
+            gone = inv.drop(drops)
+            s.state.counters["triangles_dropped"] += len(drops)
+            await s.outbox.put(Drop(ids=np.sort(drops).tolist(), cells=gone), stream)
+        return True
+
+    def yield_prefetch(self) -> None:
+        """Cut the queued prefetch streams (but the current cell's) so the current cell's
+        messages go next: their unsent triangles count as not held, their cells as not done
+        (a later stream sends what is missing)."""
+        s = self.s
+        removed, cut = s.outbox.cut_ahead(s.cell)
+        unsent = [item.ids for item in removed if item.ids is not None]
+        if unsent:
+            # A triangle a queued frame still carries stays held (it was dropped and re-sent).
+            s.inventory.release(np.setdiff1d(np.concatenate(unsent), s.outbox.queued_ids()))
+        for item in removed:
+            if item.kind == "cubemap":
+                s.nearfar.cubemaps_sent.discard(s.nearfar.anchor(item.stream.cell))
+        for tag in cut:
+            s.inventory.done.discard(tag.cell)
+        c = s.state.counters
+        c["prefetch_yields"] += len(cut)
+        c["prefetch_frames_cut"] += len(unsent)
+
+    # ----------------------------------------------------------------------------- one cell
+    async def stream_cell(self, cell: int, result: PVSResult, prefetch: bool) -> None:
+        """Queue ``cell``'s stream: ``cell_begin``, the triangles the client lacks as geometry
+        frames, the cubemap (near-far), ``cell_end``. A current cell's stream first cuts the
+        queued prefetch streams; a prefetch stream stops (cut) when the walker needs another
+        cell."""
+        s, inv, out = self.s, self.s.inventory, self.s.outbox
+        seq = s.cell_seq
+        t0 = s.cell_t0 if not prefetch else time.perf_counter()
+        if not prefetch:
+            s.announced = cell
+            self.yield_prefetch()
+        tag = StreamTag(cell, prefetch, seq, t0, result.seconds, result.cached)
+        ids, near_far, cube = await s.nearfar.geometry(cell, result.pvs.triangle_ids)
+        inv.remember(cell, ids, keep=(s.cell, *s.want))
+        new = inv.missing(ids)
+        if not prefetch and inv.budget is not None and len(ids) > inv.budget:
+            await self._over_budget(f"PVS of cell {cell} holds {len(ids)} triangles, over the "
+                                    f"budget of {inv.budget}", seq, tag)
+        if not await self._make_room(cell, ids, new, prefetch, seq, tag):
+            return
+        max_bytes = s.settings.max_frame_bytes
+        count = chunk_count(len(new), max_bytes)
+        begin = CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new), chunks=count,
+                          prefetch=prefetch, near_far=near_far)
+        if not await out.put(begin, tag):
+            self.yield_prefetch()  # a prefetch stream waited for room: the walker moved on
+            return
+        spheres = result.pvs.sphere_ids
+        if not await s.dynamic.queue(lambda d: d.spheres_for(spheres, cell, seq, tag), tag):
+            self.yield_prefetch()
+            return
+        per = triangles_per_frame(max_bytes)
+        scene = s.loaded.scene
+        for i in range(count):
+            if prefetch and self.current_pending(cell):
+                self.yield_prefetch()  # the walker needs another cell now
+                return
+            part = new[i * per:(i + 1) * per]
+            # A moving triangle's keyframes go just before its geometry (``server.dynamic``).
+            if not await s.dynamic.queue(lambda d, p=part: d.keyframes_for(p, cell, seq), tag):
+                self.yield_prefetch()
+                return
+            # Encoding a full frame takes milliseconds: do it off the loop.
+            frame = await asyncio.to_thread(
+                lambda p=part, k=i: encode_geometry(
+                    p, scene.triangles(p), scene.colors[p], cell=cell, seq=seq, index=k,
+                    count=count,
+                )
+            )
+            if not await out.put(frame, tag, ids=part):
+                self.yield_prefetch()
+                return
+            inv.add(part)
+        if cube is not None:
+            if not await out.put(cube, tag, cubemap=True):
+                self.yield_prefetch()
+                return
+            s.nearfar.cubemaps_sent.add(s.nearfar.anchor(cell))
+        end = CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
+                      compute_seconds=result.seconds, cached=result.cached, prefetch=prefetch,
+                      partial=False)
+        if not await out.put(end, tag):
+            self.yield_prefetch()
+            return
+        inv.done.add(cell)
