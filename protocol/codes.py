@@ -40,6 +40,7 @@ library's hard cap (the library itself closes with 1009, before the session sees
 | outside_grid       | no        | -     | a pose in no viewcell (the session keeps its cell) |
 | compute_failed     | no        | -     | the PVS of a cell could not be computed          |
 | over_budget        | no        | -     | a cell's PVS alone exceeds the client's budget   |
+| deadline_exceeded  | no        | -     | past its deadline, or cancelled (HTTP 503)        |
 
 "handshake": fatal while the server waits for ``hello``, answered and skipped afterwards. Bad
 messages after ``welcome`` (the non-fatal protocol errors above) count towards the abuse limit.
@@ -77,6 +78,7 @@ class ErrorCode(StrEnum):
     OUTSIDE_GRID = "outside_grid"
     COMPUTE_FAILED = "compute_failed"
     OVER_BUDGET = "over_budget"
+    DEADLINE_EXCEEDED = "deadline_exceeded"
     SLOW_CLIENT = "slow_client"
     TOO_MANY_ERRORS = "too_many_errors"
     # HTTP only.
@@ -148,6 +150,7 @@ HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.BAD_PARAMS: 422,
     ErrorCode.UNSUPPORTED_SCENE: 422,
     ErrorCode.UNSUPPORTED_REGION: 422,
+    ErrorCode.DEADLINE_EXCEEDED: 503,
     ErrorCode.SCENE_LOAD_FAILED: 500,
     ErrorCode.COMPUTE_FAILED: 500,
     ErrorCode.INTERNAL: 500,

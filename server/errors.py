@@ -14,7 +14,7 @@ from typing import Any
 from protocol.codes import HTTP_STATUS, ErrorCode
 from server.catalog import SceneLoadFailed, UnknownSceneError
 from server.compute import UnknownCellError, UnknownCoreError, UnsupportedSceneError
-from visibility.cores.base import SegmentNotSupported
+from visibility.cores.base import ComputationCancelled, SegmentNotSupported
 
 #: Known failures and their codes, most specific class first (the first match wins).
 _CODES: tuple[tuple[type[BaseException], ErrorCode], ...] = (
@@ -24,6 +24,7 @@ _CODES: tuple[tuple[type[BaseException], ErrorCode], ...] = (
     (UnsupportedSceneError, ErrorCode.UNSUPPORTED_SCENE),
     (SegmentNotSupported, ErrorCode.UNSUPPORTED_REGION),
     (SceneLoadFailed, ErrorCode.SCENE_LOAD_FAILED),
+    (ComputationCancelled, ErrorCode.DEADLINE_EXCEEDED),
 )
 
 

@@ -373,11 +373,34 @@ _PVS_ERRORS = dict(
 )
 
 
+def core_query_parameters() -> list[dict[str, Any]]:
+    """OpenAPI query parameters for every core parameter, from the cores' own declarations
+    (``Core.param_specs``): one entry per name, its help per core, range and unit. The core
+    converts and checks the values (422 ``bad_params``); they are read from the query string."""
+    from visibility.cores.base import available_cores, get_core
+
+    by_name: dict[str, dict[str, Any]] = {}
+    for name in available_cores():
+        for spec in get_core(name).param_specs():
+            entry = by_name.setdefault(spec.name, {"types": set(), "lines": []})
+            entry["types"].add(spec.type)
+            entry["lines"].append(f"{name}: {spec.describe()}")
+    out = []
+    for pname, entry in by_name.items():
+        # Strings are accepted too: the core converts "32" to 32 and says why it refuses.
+        types = sorted(entry["types"] | {"string"})
+        out.append({"name": pname, "in": "query", "required": False,
+                    "description": ". ".join(entry["lines"]),
+                    "schema": {"anyOf": [{"type": t} for t in types]}})
+    return out
+
+
 @router.get(
     "/scenes/{scene}/cells/{cell}/pvs",
     summary="PVS of a viewcell",
     response_model=PvsResponse,
     responses={**_PVS_OK, **_errors(**_PVS_ERRORS)},
+    openapi_extra={"parameters": core_query_parameters()},
 )
 async def cell_pvs(
     request: Request,
@@ -385,13 +408,6 @@ async def cell_pvs(
     cell: int,
     core: Annotated[str | None, Query(description=f"a core of GET /cores, or {AUTO_CORE!r}: "
                                       "chosen for the scene")] = None,
-    granularity: Annotated[str | None, Query(description="triangle or object")] = None,
-    # Declared (integers, strings accepted) so the spec documents them and fuzzers try them; the
-    # core converts and checks them (422 ``bad_params``), from ``request.query_params``.
-    resolution: Annotated[int | str | None, Query(description="resolution, pixels")] = None,
-    samples: Annotated[int | str | None, Query(description="sampling: viewpoints")] = None,
-    runs: Annotated[int | str | None, Query(description="from_segment: runs")] = None,
-    seed: Annotated[int | str | None, Query(description="random seed")] = None,
 ) -> Any:
     """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``core=auto``
     picks a core for the scene (``chosen_because`` says why). ``granularity``: ``triangle`` or

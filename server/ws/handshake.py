@@ -92,7 +92,7 @@ async def handshake(session: StreamSession) -> None:
     catalog, compute = s.state.catalog, s.state.compute
     try:
         catalog.require(msg.scene)
-        if msg.core != AUTO_CORE:
+        if (msg.core or compute.settings.core) != AUTO_CORE:
             # Check the core and its parameters before paying for loading the scene.
             compute.resolve(msg.core, msg.params)
         s.loaded = await catalog.load(msg.scene)

@@ -8,10 +8,9 @@ import asyncio
 import numpy as np
 import pytest
 
+import visibility.nearfar as nearfar
 from client.session import Session
 from tests.conftest import make_tiny_scene, serving
-
-nearfar = pytest.importorskip("visibility.nearfar")
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +47,6 @@ def test_tiny_scene_gets_no_cubemap(nf_server):
 
 def test_city_cell_gets_a_cubemap_and_near_geometry(nf_server):
     url, app = nf_server
-    if "city" not in app.state.server.catalog:
-        pytest.skip("city generator not available")
     loaded = app.state.server.catalog.get("city")
     grid, scene = loaded.grid, loaded.scene
     cfg = nearfar.NearFarConfig(r1=40.0, r2=80.0, resolution=32)
@@ -75,8 +72,6 @@ def test_cell_whose_near_region_fits_the_budget_is_sent_whole(nf_server):
     """With a budget that holds a city cell's near region (but not the scene), the server sends
     that region without computing a PVS: the client holds every near triangle, not a subset."""
     url, app = nf_server
-    if "city" not in app.state.server.catalog:
-        pytest.skip("city generator not available")
     state = app.state.server
     loaded = state.catalog.get("city")
     grid, scene = loaded.grid, loaded.scene
@@ -120,8 +115,6 @@ def test_cells_of_a_block_share_one_cubemap(settings, registered_test_cores):
     their block's anchor cell: it is sent once, named by both cells' ``cell_begin``."""
     with serving(settings, near_far=True, near_far_r1=40.0, near_far_r2=80.0,
                  near_far_resolution=32, near_far_block=3) as (url, app):
-        if "city" not in app.state.server.catalog:
-            pytest.skip("city generator not available")
         state = app.state.server
         loaded = state.catalog.get("city")
         grid = loaded.grid

@@ -16,7 +16,7 @@ from server.nearfar_store import NearFarStore
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, serving
 from visibility import nearfar
-from visibility.generators import available_generators, make_scene
+from visibility.generators import make_scene
 from visibility.nearfar.cells import cells_needing_cubemap, farthest_static_distance
 from visibility.scene import Scene, WalkArea
 from visibility.viewcells import ViewcellGrid
@@ -55,8 +55,6 @@ def test_all_cells_at_once_equal_needs_cubemap_per_cell(r2):
 
 
 def test_all_cells_at_once_on_a_generated_city():
-    if "city" not in available_generators():
-        pytest.skip("city generator not available")
     scene = make_scene("city", triangles=5000, seed=3)
     grid = ViewcellGrid.for_scene(scene, 4.0)
     centers = grid.boxes.mean(axis=1)
@@ -124,8 +122,6 @@ def test_near_far_store_is_bounded_and_keeps_walkers_cells():
 # --------------------------------------------------------------------------- the welcome
 @pytest.fixture(scope="module")
 def city_server(settings, registered_test_cores):
-    if "city" not in available_generators():
-        pytest.skip("city generator not available")
     with serving(settings, {"tiny": make_tiny_scene()}, near_far=True,
                  generated={"city": 100_000}) as served:
         yield served

@@ -29,10 +29,8 @@ def run(coro, timeout=180):
 def village(live_server):
     """The served village scene (same generator, size and seed as the server) and its grid."""
     from tests.conftest import SMALL_GENERATED_TRIANGLES
-    from visibility.generators import available_generators, make_scene
+    from visibility.generators import make_scene
 
-    if SCENE not in available_generators():
-        pytest.skip("village generator not available")
     scene = make_scene(SCENE, triangles=SMALL_GENERATED_TRIANGLES, seed=0)
     return scene, ViewcellGrid.for_scene(scene, 4.0)
 

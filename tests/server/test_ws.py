@@ -414,11 +414,8 @@ def test_connect_refusal_raises_session_error(live_server):
 
 # --------------------------------------------------------------------------- real core
 def test_generated_scene_stream_equals_http_pvs(live_server, server_app):
-    from visibility.cores.base import available_cores
 
     gens = sorted(server_app.state.server.settings.generated)
-    if not gens or "sampling" not in available_cores():
-        pytest.skip("generators or the sampling core are not available yet")
     name = "rooms" if "rooms" in gens else gens[0]
     params = {"resolution": 32, "samples": 4}
     with httpx.Client(base_url=live_server, timeout=120) as http:
