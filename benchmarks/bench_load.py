@@ -59,6 +59,7 @@ if str(ROOT) not in sys.path:
 
 from client.session import Session, SessionError  # noqa: E402
 from client.walkthrough import generate_walkthrough  # noqa: E402
+from server.settings import Settings  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.viewcells import ViewcellGrid  # noqa: E402
 
@@ -491,7 +492,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="village")
     ap.add_argument("--triangles", type=int, default=20_000)
     ap.add_argument("--cell-size", type=float, default=4.0)
-    ap.add_argument("--core", default="sampling")
+    ap.add_argument("--core", default=Settings.model_fields["core"].default,
+                    help="core the server computes with (default: the server settings' default)")
     ap.add_argument("--params", default="{}",
                     help="core parameters, JSON (default: the core's defaults)")
     ap.add_argument("--budget", type=int, default=None, help="client triangle budget")

@@ -805,6 +805,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view-size", type=int)
     p.add_argument("--resolution", type=int, help="resolution of cores whose knob is not it")
     p.add_argument("--no-peer", action="store_true", help="skip the Embree ray-caster peer")
+    # The peers reproduce the from-segment paper's comparison (Sec. 4.5): named on purpose.
     p.add_argument("--reference", default="from_segment",
                    help="core the from-point peers get equal time and equal completeness "
                         "against ('none' to skip)")

@@ -41,7 +41,7 @@ from visibility.raster.camera import DEFAULT_NEAR, camera_pose_matrix, look_rota
 # Shading lives in visibility so server-baked cubemaps and client frames shade identically;
 # the names stay importable from here.
 from visibility.raster.shading import AMBIENT, BACKGROUND, LIGHT_DIR, shade_colors  # noqa: E402, F401
-from visibility.scene import Scene  # noqa: E402
+from visibility.scene import Scene, moving_faces  # noqa: E402
 
 #: Icosphere subdivisions used for a scene's spheres (320 faces each).
 SPHERE_SUBDIVISIONS = 2
@@ -368,9 +368,6 @@ class OffscreenRenderer:
 
 
 def _moving_faces(scene: Scene) -> np.ndarray:
-    """(m,) bool: faces with a vertex that moves between the scene's keyframes."""
-    if scene.states is None or scene.states.shape[0] < 2:
-        return np.zeros(scene.n_triangles, dtype=bool)
-    moves = np.any(scene.states != scene.states[:1], axis=(0, 2))
-    f = np.clip(scene.faces, 0, max(scene.n_vertices - 1, 0))
-    return np.any(moves[f], axis=1)
+    """(m,) bool: faces with a vertex that moves between the scene's keyframes (the scene's one
+    definition, ``visibility.scene.moving_faces``; callers mask invalid faces anyway)."""
+    return moving_faces(scene)

@@ -433,7 +433,7 @@ async def cell_pvs(
 async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
     """The PVS of an arbitrary region: exactly one of ``{"box": [min, max]}`` and
     ``{"segment": [p, q]}`` (metres; ``cell`` is null in the answer, ``box`` is the region's
-    bounding box). Cores that solve segments natively (``from_segment``, ``sampling``) answer
+    bounding box). Cores with ``native_segments`` (``GET /cores``) answer
     the segment itself; others answer an axis-aligned segment as its degenerate box and refuse
     a diagonal one (422 ``unsupported_region``). ``core`` as for the cell route (``auto``
     included). Binary answers as for the cell route."""

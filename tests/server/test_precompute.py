@@ -128,10 +128,10 @@ def test_precompute_reports_a_cell_whose_computation_fails(disk_settings, monkey
     service = _service(disk_settings)
     core, _ = service.resolve()
 
-    def boom(scene, cell, params):
+    def boom(scene, cell, params, token=None):
         if cell.id == 1:
             raise RuntimeError("kernel blew up")
-        return real(scene, cell, params)
+        return real(scene, cell, params, token=token)
 
     real = type(core).compute.__get__(core)
     monkeypatch.setattr(core, "compute", boom)

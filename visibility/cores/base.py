@@ -335,7 +335,11 @@ class Core(ABC):
         core made for 2.5D scenes (``requires_2_5d``) outranks general ones on the scenes it
         fits; cores that know their costs override this."""
         if self.requires_2_5d:
-            return 4.0, f"2.5D scene: a core made for heightfield-like occluders ({self.fits})"
+            from visibility.scene_analysis import scene_is_2_5d
+
+            how = scene_is_2_5d(scene)[1]
+            return 4.0, (f"2.5D scene ({how['source']}: {how['reason']}): a core made for "
+                         "heightfield-like occluders")
         return 1.0, self.fits
 
     def fit(self, scene: Scene, cell_size: float | None = None) -> Fit:
