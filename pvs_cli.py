@@ -223,9 +223,25 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_until_healthy(url: str, proc: subprocess.Popen, timeout: float = 120.0) -> bool:
+    """Poll ``url``/health until it answers 200 (True), or until ``proc`` exits or ``timeout``
+    seconds pass (False): how every caller that starts a server process waits for it."""
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(url + "/health", timeout=2).status_code == 200:
+                return True
+        except httpx.HTTPError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            return False
+        time.sleep(0.2)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Start the real server in a child process, replay a walkthrough against it, stop it."""
-    import httpx
 
     port = args.port or _free_port()
     url = f"http://127.0.0.1:{port}"
@@ -255,17 +271,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
-            deadline = time.time() + 120
-            while True:
-                try:
-                    if httpx.get(url + "/health", timeout=2).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if proc.poll() is not None or time.time() > deadline:
-                    print(log_path.read_text()[-3000:], file=sys.stderr)
-                    raise SystemExit("[demo] the server did not start")
-                time.sleep(0.3)
+            if not wait_until_healthy(url, proc):
+                print(log_path.read_text()[-3000:], file=sys.stderr)
+                raise SystemExit("[demo] the server did not start")
             print(f"[demo] server up at {url}", flush=True)
             # Every walk option the demo parsed, pointed at the child server.
             walk = argparse.Namespace(**{**vars(args), "server": url, "quiet": False})

@@ -59,6 +59,7 @@ if str(ROOT) not in sys.path:
 
 from client.session import Session, SessionError  # noqa: E402
 from client.walkthrough import generate_walkthrough  # noqa: E402
+from pvs_cli import wait_until_healthy  # noqa: E402
 from server.settings import Settings  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.viewcells import ViewcellGrid  # noqa: E402
@@ -382,17 +383,9 @@ def serving(args: argparse.Namespace) -> Iterator[tuple[str, subprocess.Popen]]:
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     try:
-        deadline = time.time() + 120
-        while True:
-            try:
-                if httpx.get(url + "/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if proc.poll() is not None or time.time() > deadline:
-                print(proc.stderr.read().decode()[-3000:] if proc.stderr else "")
-                raise SystemExit("server did not start")
-            time.sleep(0.2)
+        if not wait_until_healthy(url, proc):
+            print(proc.stderr.read().decode()[-3000:] if proc.stderr else "")
+            raise SystemExit("server did not start")
         yield url, proc
     finally:
         proc.terminate()

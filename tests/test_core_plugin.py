@@ -11,11 +11,12 @@ import socket
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import httpx
 import pytest
+
+from pvs_cli import wait_until_healthy
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -82,16 +83,7 @@ def test_plugin_core_is_served_and_chosen_by_auto(plugin_path, tmp_path):
                             env=env, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if httpx.get(url + "/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert proc.poll() is None, (tmp_path / "server.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, "server did not start"
-            time.sleep(0.2)
+        assert wait_until_healthy(url, proc), (tmp_path / "server.log").read_text()[-3000:]
         listing = httpx.get(url + "/cores", timeout=60).json()
         names = [c["name"] for c in listing["cores"]]
         assert "throwaway" in names and "sampling" in names
