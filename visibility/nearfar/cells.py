@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from visibility.scene import Scene
+from visibility.scene import Scene, moving_faces
 from visibility.viewcells import ViewcellGrid
 
 
@@ -27,10 +27,7 @@ def static_corners_xz(scene: Scene) -> np.ndarray:
     """(k, 2) float64 unique XZ positions (metres) of the corners of the scene's valid static
     faces: the faces ``visibility.nearfar.split_ids`` may bake (a face with a corner that moves
     between keyframes is dynamic and never baked)."""
-    faces = scene.faces[scene.valid_faces]
-    if scene.states is not None and scene.states.shape[0] > 1:
-        moving = np.any(scene.states != scene.states[:1], axis=(0, 2))
-        faces = faces[~np.any(moving[faces], axis=1)]
+    faces = scene.faces[scene.valid_faces & ~moving_faces(scene)]
     if not len(faces):
         return np.zeros((0, 2))
     used = np.unique(faces.reshape(-1))
