@@ -67,7 +67,7 @@ class CosCore(Core):
     native_segments: ClassVar[bool] = False
     fn_bound: ClassVar[float] = 0.0
     #: Measured, see tests/visibility/cores/cos/test_fn_fp.py::test_fp_on_designed_scenes.
-    fp_bound: ClassVar[float] = 0.25
+    fp_bound: ClassVar[float] = 0.5
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

@@ -29,14 +29,15 @@ TILE = 16
 
 
 @njit(cache=True, nogil=True)
-def region_at(corners, sx, sy, h, rv, rr):  # pragma: no cover - numba
+def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
     """COS images (rv (4, 2)) and motion radii (rr (4,)) of the camera rectangle's corners at
-    pixel centre (sx, sy): the supported offsets (the paper's C_Delta) grown for the pixel."""
+    pixel centre (sx, sy), in the frame moving with depth ``wref``: the supported offsets (the
+    paper's C_Delta) grown for the pixel."""
     for k in range(4):
         w = corners[k, 2]
         rv[k, 0] = corners[k, 0] - w * sx
         rv[k, 1] = corners[k, 1] - w * sy
-        rr[k] = abs(w) * h
+        rr[k] = abs(w - wref) * h
 
 
 @njit(cache=True, nogil=True)
@@ -217,8 +218,8 @@ def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, 
                 sy = y_lo + (i + 0.5) * pw
                 for j in range(j0, j1 + 1):
                     sx = x_lo + (j + 0.5) * pw
-                    project(cam, n, sx, sy, h, qv, qr)
-                    region_at(corners, sx, sy, h, rv, rr)
+                    project(cam, n, sx, sy, h, 0.0, qv, qr)
+                    region_at(corners, sx, sy, h, 0.0, rv, rr)
                     if not overlaps(qv, qr, n, tri, rv, rr):
                         continue
                     loc = (i - ty * TILE) * TILE + (j - tx * TILE)

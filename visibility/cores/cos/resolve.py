@@ -18,21 +18,25 @@ occluder, a group of triangles fused along shared edges:
   every active edge against K covers them directly.)
 * Depth (ln 33-36): every occluder triangle T that can cover part of K (its grown bounding box
   meets K's) must be in front of Q for *every* offset and direction: all camera positions of the
-  view strictly on one side of T's plane and all of Q strictly on the other. Then any ray from a
-  camera position to a point of Q crosses T's plane between the two, and where the ray meets T
-  at all it meets it there, in front of Q. This is exact for the non-penetrating case the paper
-  assumes and stays conservative for penetrating, coplanar or near-camera triangles, which the
-  paper's single reference-point depth comparison does not.
+  view strictly on one side of T's plane and all of Q on the other (or on the plane itself,
+  with some of Q strictly beyond: Q's points on the plane are met at T's own depth, a set of
+  rays of no measure, as where a back face meets a front face along the silhouette). Then any
+  ray from a camera position to a point of Q crosses T's plane between the two, and where the
+  ray meets T at all it meets it there, in front of Q. This is exact for the non-penetrating
+  case the paper assumes and stays conservative for penetrating, coplanar or near-camera
+  triangles, which the paper's single reference-point depth comparison does not.
 
 An occluder's union covers K under every delta because the winding number of its silhouette
 around a point of K cannot change while no silhouette edge comes near it, and fused triangles
 are oriented consistently (both counter-clockwise in the COS, sharing the edge in opposite
 directions), so a winding number of one at delta = 0 means covered for every delta.
 
-A triangle that is visible (or already known visible from an earlier view) becomes an occluder
-(ln 37-47): fused with every occluder triangle that shares one of its edges (welded vertex
-ids), merging their groups. A group whose silhouette stays clear of the whole offset region and
-covers it is flagged *coverall* (ln 44-45): later triangles skip straight to the depth test.
+Every listed triangle then becomes an occluder (ln 37-47), visible or not: the depth test makes
+any triangle a sound occluder, and a hidden or unseen neighbour still closes the silhouette of
+the surface it belongs to (the paper keeps only visible ones). It is fused with every occluder
+triangle that shares one of its edges (welded vertex ids), merging their groups. A group whose
+silhouette stays clear of the whole offset region and covers it is flagged *coverall* (ln
+44-45): later triangles skip straight to the depth test.
 Hulls (moving triangles, spheres) are occludees only; a triangle seen edge-on in the COS (no
 robust area) does not occlude.
 """
@@ -55,14 +59,14 @@ from visibility.cores.cos.space import (
 
 
 @njit(cache=True, nogil=True)
-def _clear_of_silhouette(g, head, nxt, ov, orad, oact, kx, ky, nk):  # pragma: no cover
-    """True when no active edge capsule of group g meets polygon K."""
+def _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):  # pragma: no cover
+    """True when no active edge capsule of group g (frame of depth wref) meets polygon K."""
     r = head[g]
     while r >= 0:
         for f in range(3):
             if oact[r, f]:
                 b = (f + 1) % 3
-                rad = max(orad[r, f], orad[r, b])
+                rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
                 if capsule_hits(ov[r, f, 0], ov[r, f, 1], ov[r, b, 0], ov[r, b, 1], rad,
                                 kx, ky, nk):
                     return False
@@ -71,8 +75,9 @@ def _clear_of_silhouette(g, head, nxt, ov, orad, oact, kx, ky, nk):  # pragma: n
 
 
 @njit(cache=True, nogil=True)
-def _covers(g, head, nxt, ov, orad, oact, gbb, kx, ky, nk):  # pragma: no cover - numba
-    """Whether group g covers polygon K under every offset in it and every delta."""
+def _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):  # pragma: no cover - numba
+    """Whether group g covers polygon K (frame of depth wref) under every offset in it and
+    every delta."""
     x0 = np.inf
     x1 = -np.inf
     y0 = np.inf
@@ -88,7 +93,7 @@ def _covers(g, head, nxt, ov, orad, oact, gbb, kx, ky, nk):  # pragma: no cover 
         cy += ky[i]
     if x0 < gbb[g, 0] or x1 > gbb[g, 1] or y0 < gbb[g, 2] or y1 > gbb[g, 3]:
         return False
-    if not _clear_of_silhouette(g, head, nxt, ov, orad, oact, kx, ky, nk):
+    if not _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):
         return False
     cx /= nk
     cy /= nk
@@ -101,18 +106,29 @@ def _covers(g, head, nxt, ov, orad, oact, gbb, kx, ky, nk):  # pragma: no cover 
 
 
 @njit(cache=True, nogil=True)
-def _in_front(g, head, nxt, odb, ouse, oplane, kx0, kx1, ky0, ky1, qcam, nq):  # pragma: no cover
+def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
+              nq):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
-        if not (odb[r, 1] < kx0 or odb[r, 0] > kx1 or odb[r, 3] < ky0 or odb[r, 2] > ky1):
+        grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
+        if not (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
+                or obb[r, 2] - grow > ky1):
             if not ouse[r]:
                 return False
             nx, ny, nz, d, tol = oplane[r, 0], oplane[r, 1], oplane[r, 2], oplane[r, 3], \
                 oplane[r, 4]
+            # Behind or on the plane, strictly behind somewhere: the rays that meet Q on T's
+            # plane meet T at the same point, a set of no measure (a shared edge).
+            behind = False
             for i in range(nq):
-                if nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d >= -tol:
+                dist = nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d
+                if dist > tol:
                     return False
+                if dist < -tol:
+                    behind = True
+            if not behind:
+                return False
         r = nxt[r]
     return True
 
@@ -168,12 +184,13 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
         rx = np.empty(MAX_POLY)
         ry = np.empty(MAX_POLY)
         ov = np.empty((lmax, 3, 2))
-        orad = np.empty((lmax, 3))
+        ow = np.empty((lmax, 3))
+        owr = np.empty((lmax, 2))
         oid = np.empty((lmax, 3), dtype=np.int64)
         oact = np.empty((lmax, 3), dtype=np.bool_)
         oplane = np.empty((lmax, 5))
         ouse = np.empty(lmax, dtype=np.bool_)
-        odb = np.empty((lmax, 4))
+        obb = np.empty((lmax, 4))
         grp = np.empty(lmax, dtype=np.int64)
         nxt = np.empty(lmax, dtype=np.int64)
         head = np.empty(lmax, dtype=np.int64)
@@ -195,44 +212,49 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                 continue
             sx = x_lo + (j + 0.5) * pw
             sy = y_lo + (i + 0.5) * pw
-            region_at(corners, sx, sy, h, rv, rr)
-            n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
             n_polys = 0
             for k in range(a, b):
                 p = entries[k]
                 n = npts[p]
                 tri = kind[p] == 0
                 load_prim(pts, start[p], n, origin, perm, sign, cam)
-                project(cam, n, sx, sy, h, qv, qr)
+                # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
+                # by its depth difference to Q (the relative motion that matters).
+                wref = 0.0
+                for c in range(n):
+                    wref += cam[c, 2]
+                wref /= n
+                project(cam, n, sx, sy, h, wref, qv, qr)
                 if known[p] == 0:
+                    region_at(corners, sx, sy, h, wref, rv, rr)
                     nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
-                    if nk == 0:
-                        continue
-                    tested += 1
-                    kx0 = np.inf
-                    kx1 = -np.inf
-                    ky0 = np.inf
-                    ky1 = -np.inf
-                    for e in range(nk):
-                        kx0 = min(kx0, kx[e])
-                        kx1 = max(kx1, kx[e])
-                        ky0 = min(ky0, ky[e])
-                        ky1 = max(ky1, ky[e])
-                    occluded = False
-                    for g in range(n_polys):
-                        if not alive[g]:
-                            continue
-                        if not gcov[g]:
-                            if not _covers(g, head, nxt, ov, orad, oact, gbb, kx, ky, nk):
+                    if nk > 0:
+                        tested += 1
+                        kx0 = np.inf
+                        kx1 = -np.inf
+                        ky0 = np.inf
+                        ky1 = -np.inf
+                        for e in range(nk):
+                            kx0 = min(kx0, kx[e])
+                            kx1 = max(kx1, kx[e])
+                            ky0 = min(ky0, ky[e])
+                            ky1 = max(ky1, ky[e])
+                        occluded = False
+                        for g in range(n_polys):
+                            if not alive[g]:
                                 continue
-                        if _in_front(g, head, nxt, odb, ouse, oplane, kx0, kx1, ky0, ky1,
-                                     cam, n):
-                            occluded = True
-                            break
-                    if occluded:
-                        hidden += 1
-                        continue
-                    vis[p] = 1
+                            if not gcov[g]:
+                                if not _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky,
+                                               nk):
+                                    continue
+                            if _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1,
+                                         ky0, ky1, cam, n):
+                                occluded = True
+                                break
+                        if occluded:
+                            hidden += 1
+                        else:
+                            vis[p] = 1
                 if not tri:
                     continue
                 # Become an occluder: counter-clockwise in the COS, robust area only.
@@ -248,7 +270,7 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                     src = c if ar > 0.0 else (3 - c) % 3
                     ov[q, c, 0] = qv[src, 0]
                     ov[q, c, 1] = qv[src, 1]
-                    orad[q, c] = qr[src]
+                    ow[q, c] = cam[src, 2]
                     oid[q, c] = vid[p, src]
                     oact[q, c] = True
                 ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
@@ -274,20 +296,12 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                 oplane[q, 2] = pnz
                 oplane[q, 3] = pd
                 oplane[q, 4] = tol
-                bx0 = np.inf
-                bx1 = -np.inf
-                by0 = np.inf
-                by1 = -np.inf
-                for c in range(3):
-                    odb_r = orad[q, c]
-                    bx0 = min(bx0, ov[q, c, 0] - odb_r)
-                    bx1 = max(bx1, ov[q, c, 0] + odb_r)
-                    by0 = min(by0, ov[q, c, 1] - odb_r)
-                    by1 = max(by1, ov[q, c, 1] + odb_r)
-                odb[q, 0] = bx0
-                odb[q, 1] = bx1
-                odb[q, 2] = by0
-                odb[q, 3] = by1
+                obb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                obb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                obb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
+                owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
                 gbb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
                 gbb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
                 gbb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
@@ -316,8 +330,14 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                         if done:
                             break
                 g = grp[q]
-                if not gcov[g] and n_r > 0:
-                    gcov[g] = _covers(g, head, nxt, ov, orad, oact, gbb, rx, ry, n_r)
+                if not gcov[g]:
+                    # Coverall holds for every delta whatever frame proves it; the new
+                    # triangle's depth is as good a frame as any.
+                    region_at(corners, sx, sy, h, wref, rv, rr)
+                    n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
+                    if n_r > 0:
+                        gcov[g] = _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, rx, ry,
+                                          n_r)
         counters[tile, 0] = tested
         counters[tile, 1] = hidden
         counters[tile, 2] = occl

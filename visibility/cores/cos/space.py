@@ -11,8 +11,11 @@ rectangle C itself for a front frustum, a parallelogram for a side one.
 Between-sample directions (Sec. 4.5, Eq. 10): over the pixel's square of directions,
 s + delta with |delta| <= h (L-infinity, h = half a pixel in tangent units), a point's COS image
 moves by -w delta, i.e. within an L-infinity square of radius |w| h around its pixel-centre
-image. Every object is therefore carried at the pixel centre with a per-vertex *motion radius*
-|w| h: an occludee grows to the convex hull of its vertex squares, an occluder silhouette edge
+image. Only relative motion matters to a containment test, so each test picks a reference depth
+w_ref and works in the frame that moves by -w_ref delta (a translation of everything, the same
+for all objects at a given delta); a point then moves within a square of radius |w - w_ref| h.
+Every object is carried at the pixel centre with that per-vertex *motion radius*: an occludee
+grows to the convex hull of its vertex squares, an occluder silhouette edge
 to the hull of its two end squares (a "capsule"); no moving silhouette edge can reach a point
 outside its capsule, so a region clear of every capsule stays inside (or outside) the occluder
 under every delta. This replaces the paper's per-edge sliding-and-rotating analysis by a bound
@@ -51,14 +54,14 @@ def load_prim(pts, start, n, origin, perm, sign, cam):  # pragma: no cover - num
 
 
 @njit(cache=True, nogil=True)
-def project(cam, n, sx, sy, h, v, r):  # pragma: no cover - numba
+def project(cam, n, sx, sy, h, wref, v, r):  # pragma: no cover - numba
     """COS images ``v`` (n, 2) and motion radii ``r`` (n,) of n camera-space points at the pixel
-    centre (sx, sy) with half-pixel h."""
+    centre (sx, sy) with half-pixel h, in the frame that moves with depth ``wref``."""
     for i in range(n):
         w = cam[i, 2]
         v[i, 0] = cam[i, 0] - w * sx
         v[i, 1] = cam[i, 1] - w * sy
-        r[i] = abs(w) * h
+        r[i] = abs(w - wref) * h
 
 
 @njit(cache=True, nogil=True, inline="always")
