@@ -196,7 +196,8 @@ def unregister(name: str) -> None:
     _REGISTRY.pop(name, None)
 
 #: Modules that hold the built-in cores; importing one registers its core.
-BUILTIN_CORE_MODULES = ("visibility.cores.sampling", "visibility.cores.from_segment")
+BUILTIN_CORE_MODULES = ("visibility.cores.sampling", "visibility.cores.from_segment",
+                        "visibility.cores.cos")
 
 
 def register(cls: type[Core]) -> type[Core]:
