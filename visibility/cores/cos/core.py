@@ -74,11 +74,11 @@ class CosCore(Core):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, CosParams)
         return cos_pvs(scene, np.asarray(cell.box, dtype=np.float64), int(params.resolution),
-                       int(params.list_budget_mb))
+                       float(params.list_budget_mb))
 
 
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
-            list_budget_mb: int = 256) -> tuple[np.ndarray, dict[str, Any]]:
+            list_budget_mb: float = 256.0) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -115,7 +115,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0,
     }
-    budget = max(1, (int(list_budget_mb) << 20) // 4)
+    budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
         for view in views:
             _solve_view(prims, order, view, plane_tol, vis, budget, stats)
