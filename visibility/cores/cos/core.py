@@ -66,7 +66,13 @@ class CosCore(Core):
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
     fn_bound: ClassVar[float] = 0.0
-    #: Measured, see tests/visibility/cores/cos/test_fn_fp.py::test_fp_on_designed_scenes.
+    #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
+    #: conformance reference (128 points, 128 px, seed 11) at resolutions 64, 128 and 256: FP
+    #: 0.469 on two rooms and a door at every resolution (30 of 64: the hidden faces of the
+    #: dividing-wall slabs and the box, flush against floor, ceiling and walls, whose edges lie
+    #: on the occluders' silhouettes), 0.000 on the open ring, 0.367 on the stiff cases (the
+    #: 1e6-aspect sliver pair the reference cannot sample, the closed room's hidden faces). FN
+    #: 0.000 everywhere. Bound = the worst measured, rounded up.
     fp_bound: ClassVar[float] = 0.5
 
     def _compute(
