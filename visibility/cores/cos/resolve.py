@@ -31,9 +31,10 @@ around a point of K cannot change while no silhouette edge comes near it, and fu
 are oriented consistently (both counter-clockwise in the COS, sharing the edge in opposite
 directions), so a winding number of one at delta = 0 means covered for every delta.
 
-Every listed triangle then becomes an occluder (ln 37-47), visible or not: the depth test makes
-any triangle a sound occluder, and a hidden or unseen neighbour still closes the silhouette of
-the surface it belongs to (the paper keeps only visible ones). It is fused with every occluder
+Every listed triangle then becomes an occluder (ln 37-47), visible or not, unless a coverall
+occluder hides it: the depth test makes any triangle a sound occluder, and a hidden or unseen
+neighbour still closes the silhouette of the surface it belongs to (the paper keeps only
+visible ones). It is fused with every occluder
 triangle that shares one of its edges (welded vertex ids), merging their groups. A group whose
 silhouette stays clear of the whole offset region and covers it is flagged *coverall* (ln
 44-45): later triangles skip straight to the depth test.
@@ -198,6 +199,7 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
         gbb = np.empty((lmax, 4))
         gcov = np.empty(lmax, dtype=np.bool_)
         alive = np.empty(lmax, dtype=np.bool_)
+        cov = np.empty(lmax, dtype=np.int64)
         tested = 0
         hidden = 0
         occl = 0
@@ -213,6 +215,7 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
             sx = x_lo + (j + 0.5) * pw
             sy = y_lo + (i + 0.5) * pw
             n_polys = 0
+            n_cov = 0
             for k in range(a, b):
                 p = entries[k]
                 n = npts[p]
@@ -240,13 +243,25 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                             ky0 = min(ky0, ky[e])
                             ky1 = max(ky1, ky[e])
                         occluded = False
+                        # Coverall occluders first (the paper's early discard): they need
+                        # only the depth test.
+                        for c in range(n_cov):
+                            g = cov[c]
+                            if alive[g] and _in_front(g, head, nxt, obb, owr, ouse, oplane, wref,
+                                                      h, kx0, kx1, ky0, ky1, cam, n):
+                                occluded = True
+                                break
+                        if occluded:
+                            # Hidden behind a surface that covers every offset: it adds
+                            # nothing as an occluder, and keeping it would make long lists
+                            # quadratic.
+                            hidden += 1
+                            continue
                         for g in range(n_polys):
-                            if not alive[g]:
+                            if not alive[g] or gcov[g]:
                                 continue
-                            if not gcov[g]:
-                                if not _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky,
-                                               nk):
-                                    continue
+                            if not _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):
+                                continue
                             if _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1,
                                          ky0, ky1, cam, n):
                                 occluded = True
@@ -324,7 +339,12 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                             if oact[r, f] and oid[r, f] == vb and oid[r, (f + 1) % 3] == va:
                                 oact[r, f] = False
                                 oact[q, e] = False
-                                _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov, alive)
+                                was = gcov[grp[r]]
+                                g1 = _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov,
+                                            alive)
+                                if gcov[g1] and not was:
+                                    cov[n_cov] = g1
+                                    n_cov += 1
                                 done = True
                                 break
                         if done:
@@ -338,6 +358,9 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                     if n_r > 0:
                         gcov[g] = _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, rx, ry,
                                           n_r)
+                        if gcov[g]:
+                            cov[n_cov] = g
+                            n_cov += 1
         counters[tile, 0] = tested
         counters[tile, 1] = hidden
         counters[tile, 2] = occl
