@@ -1,0 +1,173 @@
+"""Unit tests of the COS kernels on hand-built cases (paper Sec. 3-4, Fig. 8)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from visibility.cores.cos.core import cos_pvs
+from visibility.cores.cos.fusion import weld_vertices
+from visibility.cores.cos.planes import side_plane_views
+from visibility.cores.cos.resolve import _in_front
+from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
+from visibility.scene import Scene
+
+
+def test_cos_of_a_point_is_the_offset_that_moves_the_sample_onto_it():
+    # Eq. 8: Delta = (x - w s_x, y - w s_y): the camera moved by Delta sees the point at s.
+    cam = np.array([[0.3, -0.2, 4.0]])
+    v = np.empty((1, 2))
+    r = np.empty(1)
+    s = (0.1, -0.05)
+    project(cam, 1, s[0], s[1], 0.01, 0.0, v, r)
+    delta = v[0]
+    seen = (cam[0, :2] - delta) / cam[0, 2]
+    np.testing.assert_allclose(seen, s, atol=1e-15)
+    assert r[0] == pytest.approx(0.04)  # depth x half pixel: the Sec. 4.5 motion
+    project(cam, 1, s[0], s[1], 0.01, 4.0, v, r)
+    assert r[0] == 0.0  # in the frame moving with its own depth the point stands still
+
+
+def _tri_cos(tri, s=(0.0, 0.0), h=0.0):
+    v = np.empty((3, 2))
+    r = np.empty(3)
+    project(np.asarray(tri, float), 3, s[0], s[1], h, 0.0, v, r)
+    return v, r
+
+
+def _rect(c):
+    rv = np.array([[-c, -c], [c, -c], [c, c], [-c, c]], float)
+    return rv, np.zeros(4)
+
+
+def test_cos_triangle_against_the_offset_rectangle():
+    # A triangle 1 m right of the axis at 5 m: offsets within 0.5 m never see it at s = 0,
+    # offsets within 1.5 m do, and half a pixel of 0.1 at depth 5 (0.5 m) reaches it too.
+    tri = [[1.0, -0.2, 5.0], [1.4, -0.2, 5.0], [1.2, 0.3, 5.0]]
+    v, r = _tri_cos(tri)
+    rv, rr = _rect(0.5)
+    assert not overlaps(v, r, 3, True, rv, rr)
+    rv2, rr2 = _rect(1.5)
+    assert overlaps(v, r, 3, True, rv2, rr2)
+    v, r = _tri_cos(tri, h=0.1)
+    assert overlaps(v, r, 3, True, rv, rr)
+    kx, ky, tx, ty = (np.empty(16) for _ in range(4))
+    assert region_polygon(v, r, 3, True, rv, rr, kx, ky, tx, ty) > 0
+
+
+@pytest.mark.parametrize("edge,expect", [
+    (((-2.0, 0.0), (2.0, 0.0)), True),    # crossing the region (the paper's CROSSING)
+    (((-0.1, 0.1), (0.1, 0.1)), True),    # inside it (INSIDE)
+    (((-2.0, 3.0), (2.0, 3.0)), False),   # outside (INACTIVE)
+    (((-2.0, 1.05), (2.0, 1.05)), True),  # outside, but within its motion radius of 0.1
+])
+def test_edge_classification_against_the_offset_region(edge, expect):
+    kx = np.array([-1.0, 1.0, 1.0, -1.0])
+    ky = np.array([-1.0, -1.0, 1.0, 1.0])
+    (ax, ay), (bx, by) = edge
+    assert capsule_hits(ax, ay, bx, by, 0.1, kx, ky, 4) == expect
+
+
+def test_depth_plane_test_orders_triangles_for_every_offset():
+    # Occluder plane w = 2 seen from camera corners at w = 0: Q at w = 5 is behind, Q
+    # crossing w = 2 is not, Q touching it with one edge and behind otherwise is.
+    head = np.array([0])
+    nxt = np.array([-1])
+    obb = np.array([[-10.0, 10.0, -10.0, 10.0]])
+    owr = np.array([[2.0, 2.0]])
+    use = np.array([True])
+    plane = np.array([[0.0, 0.0, -1.0, -2.0, 1e-9]])  # n . p - d > 0 on the camera side
+    behind = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [0.0, 1.0, 6.0]])
+    crossing = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 5.0], [0.0, 1.0, 6.0]])
+    touching = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 6.0]])
+    coplanar = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
+    args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0)
+    assert _in_front(*args, behind, 3)
+    assert not _in_front(*args, crossing, 3)
+    assert _in_front(*args, touching, 3)
+    assert not _in_front(*args, coplanar, 3)
+
+
+# ----------------------------------------------------------------- Fig. 8 on hand-built scenes
+def _scene(tris) -> Scene:
+    t = np.asarray(tris, float).reshape(-1, 3, 3)
+    return Scene(t.reshape(-1, 3), np.arange(len(t) * 3).reshape(-1, 3))
+
+
+def _quad(x0, x1, y0, y1, z):
+    return [[(x0, y0, z), (x1, y0, z), (x1, y1, z)], [(x0, y0, z), (x1, y1, z), (x0, y1, z)]]
+
+
+CELL = np.array([[-0.1, 1.6, -0.1], [0.1, 1.8, 0.1]])
+
+
+def _visible(tris, res=64):
+    ids, _ = cos_pvs(_scene(tris), CELL, res)
+    return set(ids.tolist())
+
+
+def test_fig8_a_b_small_occludee_inside_a_big_occluder_is_hidden():
+    # The occludee behind the middle of a 40 m wall, seen through it from the whole cell.
+    occluder = _quad(-20, 20, -5, 15, -6.0)
+    q = [[(-0.5, 1.2, -12.0), (0.5, 1.2, -12.0), (0.0, 2.2, -12.0)]]
+    assert _visible(occluder + q) == {0, 1}
+
+
+def test_fig8_c_d_occluder_inside_the_occludee_leaves_it_visible():
+    occluder = _quad(-0.2, 0.2, 1.5, 1.9, -6.0)
+    q = [[(-20, -5, -12.0), (20, -5, -12.0), (0.0, 20, -12.0)]]
+    assert _visible(occluder + q) == {0, 1, 2}
+
+
+def test_fig8_e_f_disjoint_occluder_and_occludee_are_both_visible():
+    occluder = _quad(-4, -2, 1, 3, -6.0)
+    q = [[(2.0, 1.2, -12.0), (3.0, 1.2, -12.0), (2.5, 2.2, -12.0)]]
+    assert _visible(occluder + q) == {0, 1, 2}
+
+
+def test_fusion_two_triangles_sharing_an_edge_hide_what_neither_hides_alone():
+    # The occludee sits behind the diagonal of the wall quad: each half covers only part of it.
+    wall = _quad(-20, 20, -5, 15, -6.0)
+    # The diagonal runs through (x, 5 + x / 2, -6); from the cell centre (0, 1.7, 0) its
+    # point at x = 0 is seen in front of (0, 8.3, -12).
+    d = np.array([0.0, 8.3, -12.0])
+    q = [[tuple(d + (-0.4, -0.4, 0)), tuple(d + (0.4, -0.4, 0)), tuple(d + (0, 0.4, 0))]]
+    assert _visible(wall + q) == {0, 1}
+    # Each half alone leaves it visible.
+    assert 1 in _visible([wall[0]] + q)
+    assert 1 in _visible([wall[1]] + q)
+    # A hairline gap along the diagonal (no shared vertices) must not fuse: visible again.
+    gap = [list(wall[0]), [tuple(np.add(p, (0, 1e-6, 0))) for p in wall[1]]]
+    assert 2 in _visible(gap + q)
+
+
+def test_welding_is_exact():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 0, 1e-12], [-0.0, 0, 0]], float)
+    ids = weld_vertices(v)
+    assert ids[0] == ids[2] == ids[4]
+    assert ids[1] != ids[3]
+
+
+def test_six_side_planes_cover_every_direction_from_every_face():
+    views = side_plane_views(CELL, 16)
+    assert len(views) == 30
+    assert sum(v.kind == "front" for v in views) == 6
+    # Every unit direction d leaving through some face F (d . n_F > 0) lies in one of F's
+    # five frusta: check on random directions from each face.
+    rng = np.random.default_rng(0)
+    for face in {v.face for v in views}:
+        axis, sgn = face
+        fv = [v for v in views if v.face == face]
+        for d in rng.normal(size=(500, 3)):
+            if d[axis] * sgn <= 0:
+                continue
+            hit = False
+            for v in fv:
+                c = d[v.perm] * v.sign
+                if c[2] <= 0:
+                    continue
+                x, y = c[0] / c[2], c[1] / c[2]
+                y_hi = v.y_lo + v.ny * v.pw
+                if -1 <= x <= 1 and v.y_lo <= y <= y_hi:
+                    hit = True
+            assert hit, (face, d)

@@ -1,0 +1,143 @@
+"""Zero false negatives against dense sampling (the COS core's promise), and what it reports.
+
+The reference (``reference.dense_reference``) counts every triangle seen from at least one of
+256 stratified eyes in the box or its 26 boundary points, at 256 px per cube face; the core must
+report all of them: FN == 0 exactly, at every resolution tried. Real scenes and large cells are
+``slow``.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from tests.visibility.cores.cos.reference import cell_around, dense_reference
+from visibility.cores.base import get_core
+from visibility.generators import make_scene
+from visibility.ground_truth import sample_pvs
+from visibility.viewcells import Viewcell
+
+
+@cache
+def _scene(name: str, triangles: int):
+    return make_scene(name, triangles=triangles)
+
+
+def _missed(scene, box, resolution, n_points=256, seed=0):
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=resolution))
+    ref = dense_reference(scene, box, n_points=n_points, resolution=256, seed=seed)
+    return np.setdiff1d(ref, pvs.triangle_ids), pvs, ref
+
+
+@pytest.mark.parametrize("name,size,index,resolution", [
+    ("rooms", 0.05, 0, 64), ("rooms", 0.3, 3, 128), ("rooms", 1.0, 1, 64),
+    ("village", 0.05, 3, 64), ("village", 0.3, 0, 64), ("village", 1.0, 2, 128),
+    ("village", 4.0, 0, 64),
+    ("city", 0.05, 0, 128), ("city", 0.3, 3, 64), ("city", 1.0, 1, 64), ("city", 4.0, 3, 64),
+])
+def test_no_false_negatives_on_generated_scenes(name, size, index, resolution):
+    scene = _scene(name, 10_000)
+    box = cell_around(scene, size, index)
+    missed, pvs, ref = _missed(scene, box, resolution)
+    assert len(missed) == 0, f"{name} {size} m: missed {missed[:20].tolist()}"
+    assert len(pvs) >= len(ref)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("size", [0.3, 1.0])
+@pytest.mark.parametrize("name", ["rooms", "village", "city"])
+def test_no_false_negatives_on_generated_scenes_at_20k(name, size):
+    # 0.05 and 4 m cells are checked at 10k triangles in the quick tests; here 20k scenes at two
+    # resolutions, kept to what the suite's time allows on 2 cores.
+    scene = _scene(name, 20_000)
+    for index in (0,):
+        for resolution in (32, 128):
+            box = cell_around(scene, size, index)
+            missed, _, _ = _missed(scene, box, resolution, n_points=512)
+            assert len(missed) == 0, f"{name} {size} m res {resolution}: {missed[:20].tolist()}"
+
+
+def test_moving_triangles_are_kept_over_every_keyframe():
+    # swaying_grass: blades move between keyframes; the reference samples random times too.
+    scene = make_scene("swaying_grass", triangles=3000)
+    assert scene.is_dynamic
+    box = cell_around(scene, 0.3, 0)
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=64))
+    gt = sample_pvs(scene, Viewcell(box), n_points=128, resolution=256, seed=1)
+    missed = np.setdiff1d(gt.triangle_ids, pvs.triangle_ids)
+    assert len(missed) == 0, missed[:20]
+
+
+def test_spheres_are_reported_as_occludees():
+    scene = make_scene("spheres", triangles=300)
+    assert scene.n_spheres > 0
+    box = cell_around(scene, 0.3, 0)
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=64))
+    gt = sample_pvs(scene, Viewcell(box), n_points=128, resolution=256, seed=2)
+    assert pvs.sphere_ids is not None
+    assert not np.setdiff1d(gt.sphere_ids, pvs.sphere_ids).size
+    assert not np.setdiff1d(gt.triangle_ids, pvs.triangle_ids).size
+
+
+def test_object_granularity_holds_every_triangle_of_each_visible_object():
+    scene = _scene("village", 10_000)
+    box = cell_around(scene, 0.3, 0)
+    core = get_core("cos")
+    tri = core.compute(scene, Viewcell(box), core.make_params(resolution=64))
+    obj = core.compute(scene, Viewcell(box), core.make_params(resolution=64,
+                                                             granularity="object"))
+    assert set(tri.triangle_ids.tolist()) <= set(obj.triangle_ids.tolist())
+    np.testing.assert_array_equal(np.unique(scene.object_ids[tri.triangle_ids]), obj.object_ids)
+
+
+def test_stats_report_the_phases_and_lists():
+    scene = _scene("city", 10_000)
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(cell_around(scene, 0.3, 0)), core.make_params())
+    for k in ("sort_seconds", "list_seconds", "resolve_seconds"):
+        assert pvs.stats[k] >= 0.0
+    assert pvs.stats["list_entries"] > 0
+    assert 0 < pvs.stats["longest_list"] <= pvs.stats["list_entries"]
+    assert pvs.stats["views"] == 30
+
+
+def test_a_small_list_budget_gives_the_same_answer():
+    scene = _scene("city", 10_000)
+    from visibility.cores.cos.core import cos_pvs
+
+    box = cell_around(scene, 1.0, 2)
+    a_ids, a = cos_pvs(scene, box, 64)
+    b_ids, b = cos_pvs(scene, box, 64, list_budget_mb=0.01)  # 2621 entries per run
+    assert b["list_runs"] > 2 * a["list_runs"]
+    assert b["list_entries"] == a["list_entries"]
+    np.testing.assert_array_equal(a_ids, b_ids)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("size", [0.3])
+def test_no_false_negatives_on_real_scenes(size):
+    """Every real scene the core declares it fits at this cell size (the 1M-triangle kitchen
+    is beyond it: minutes per cell, an open item of the core)."""
+    from tests.visibility.real_scenes import REAL, real_grid, real_scene
+    from visibility.cores.base import get_core
+
+    if not REAL:
+        pytest.skip("no real scenes beside the repository")
+    core = get_core("cos")
+    checked = 0
+    for name in REAL:
+        scene = real_scene(name)
+        if core.fit(scene, size).score < 1.0:
+            continue
+        checked += 1
+        grid = real_grid(name)
+        c = grid.cell(len(grid) // 2).center
+        box = np.stack([c - size / 2, c + size / 2])
+        missed, _, _ = _missed(scene, box, 64, n_points=128)
+        assert len(missed) == 0, f"{name} {size} m: {missed[:20].tolist()}"
+    assert checked >= 3

@@ -1,0 +1,232 @@
+"""Per-pixel triangle lists of one view (paper Sec. 4.2, 5): conservative footprints, binning
+into screen tiles, then count-then-fill so the list memory is allocated once.
+
+A primitive is listed at a pixel when its COS image, grown by the between-sample motion
+(``space``), may meet the supported offsets there: it may cover some direction of the pixel
+from some camera position. The pixel box where that can happen comes from projecting the
+primitive from the four corners of the camera rectangle (a vertex seen from every offset lies
+in the projective image of the rectangle, a convex quad spanned by the corner projections),
+plus half a pixel. Points closer than ``View.near_w`` cannot be projected that way; a primitive
+reaching into ``View.near_box`` is listed at every pixel of the view and left to the exact
+per-pixel test, one that stays outside it is clipped to w >= near_w first (no ray of the view
+reaches its nearer part).
+
+Pixels are numbered tile-major (tiles of ``TILE`` x ``TILE``), so a run of tiles is a contiguous
+range of lists: the view is processed in such runs when its lists would exceed the memory budget.
+Every primitive enters the lists in the order of ``order`` (front to back), so the lists come
+out sorted without a per-list sort.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.cores.cos.space import load_prim, overlaps, project
+
+#: Screen tile side in pixels.
+TILE = 16
+
+
+@njit(cache=True, nogil=True)
+def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
+    """COS images (rv (4, 2)) and motion radii (rr (4,)) of the camera rectangle's corners at
+    pixel centre (sx, sy), in the frame moving with depth ``wref``: the supported offsets (the
+    paper's C_Delta) grown for the pixel."""
+    for k in range(4):
+        w = corners[k, 2]
+        rv[k, 0] = corners[k, 0] - w * sx
+        rv[k, 1] = corners[k, 1] - w * sy
+        rr[k] = abs(w - wref) * h
+
+
+@njit(cache=True, nogil=True)
+def _edge_on(cam, corners, tol):  # pragma: no cover - numba
+    """Whether every camera position of the view lies in the triangle's plane (within tol
+    metres): then each sees it edge-on, as a segment of no area, and it covers no sample."""
+    ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
+    vx, vy, vz = cam[2, 0] - cam[0, 0], cam[2, 1] - cam[0, 1], cam[2, 2] - cam[0, 2]
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if not nn > 0.0:
+        return False
+    for k in range(4):
+        d = (nx * (corners[k, 0] - cam[0, 0]) + ny * (corners[k, 1] - cam[0, 1])
+             + nz * (corners[k, 2] - cam[0, 2]))
+        if abs(d) > tol * nn:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _pixel_span(lo, hi, origin, pw, size):  # pragma: no cover - numba
+    """Inclusive range of pixels (width pw from ``origin``) whose closed square meets [lo, hi],
+    widened by 1e-6 pixel against rounding."""
+    a = (lo - origin) / pw - 1.0 - 1e-6
+    b = (hi - origin) / pw + 1e-6
+    a = max(a, -1.0)
+    b = min(b, size + 1.0)
+    if not a <= b:
+        return 1, 0
+    return max(int(np.ceil(a)), 0), min(int(np.floor(b)), size - 1)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def footprints(pts, start, npts, kind, order, origin, perm, sign, corners, near_box, near_w,
+               nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
+    """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t]."""
+    for t in prange(order.shape[0]):
+        rng[t, 0] = 1
+        rng[t, 1] = 0
+        rng[t, 2] = 1
+        rng[t, 3] = 0
+        p = order[t]
+        n = npts[p]
+        cam = np.empty((8, 3))
+        load_prim(pts, start[p], n, origin, perm, sign, cam)
+        lo = np.empty(3)
+        hi = np.empty(3)
+        for k in range(3):
+            lo[k] = np.inf
+            hi[k] = -np.inf
+            for i in range(n):
+                lo[k] = min(lo[k], cam[i, k])
+                hi[k] = max(hi[k], cam[i, k])
+        if not hi[2] > 0.0:
+            continue  # behind every camera position of the view
+        if kind[p] == 0 and _edge_on(cam, corners, plane_tol):
+            continue
+        if (lo[0] <= near_box[1] and hi[0] >= near_box[0] and lo[1] <= near_box[3]
+                and hi[1] >= near_box[2] and lo[2] <= near_box[5] and hi[2] >= near_box[4]):
+            rng[t, 0] = 0
+            rng[t, 1] = ny - 1
+            rng[t, 2] = 0
+            rng[t, 3] = nx - 1
+            continue
+        # Clip to w >= near_w: triangles by Sutherland-Hodgman, hulls (boxes) by their w range.
+        clip = np.empty((8, 3))
+        m = 0
+        if kind[p] == 0:
+            for i in range(3):
+                j = (i + 1) % 3
+                wi = cam[i, 2]
+                wj = cam[j, 2]
+                if wi >= near_w:
+                    clip[m, 0] = cam[i, 0]
+                    clip[m, 1] = cam[i, 1]
+                    clip[m, 2] = wi
+                    m += 1
+                if (wi < near_w) != (wj < near_w):
+                    s = (near_w - wi) / (wj - wi)
+                    clip[m, 0] = cam[i, 0] + s * (cam[j, 0] - cam[i, 0])
+                    clip[m, 1] = cam[i, 1] + s * (cam[j, 1] - cam[i, 1])
+                    clip[m, 2] = near_w
+                    m += 1
+        else:
+            w0 = max(lo[2], near_w)
+            if w0 <= hi[2]:
+                for c in range(8):
+                    clip[m, 0] = hi[0] if c & 1 else lo[0]
+                    clip[m, 1] = hi[1] if c & 2 else lo[1]
+                    clip[m, 2] = hi[2] if c & 4 else w0
+                    m += 1
+        if m == 0:
+            continue
+        ux0 = np.inf
+        ux1 = -np.inf
+        uy0 = np.inf
+        uy1 = -np.inf
+        for i in range(m):
+            for k in range(4):
+                d = clip[i, 2] - corners[k, 2]
+                u = (clip[i, 0] - corners[k, 0]) / d
+                v = (clip[i, 1] - corners[k, 1]) / d
+                ux0 = min(ux0, u)
+                ux1 = max(ux1, u)
+                uy0 = min(uy0, v)
+                uy1 = max(uy1, v)
+        j0, j1 = _pixel_span(ux0, ux1, x_lo, pw, nx)
+        i0, i1 = _pixel_span(uy0, uy1, y_lo, pw, ny)
+        if j0 > j1 or i0 > i1:
+            continue
+        rng[t, 0] = i0
+        rng[t, 1] = i1
+        rng[t, 2] = j0
+        rng[t, 3] = j1
+
+
+@njit(cache=True, nogil=True)
+def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
+    """CSR (offsets (T + 1,), items) of the positions t whose pixel box meets each tile, in
+    increasing t (so in front-to-back order)."""
+    n_tiles = tiles_x * tiles_y
+    counts = np.zeros(n_tiles + 1, dtype=np.int64)
+    for t in range(rng.shape[0]):
+        if rng[t, 0] > rng[t, 1]:
+            continue
+        for ty in range(rng[t, 0] // TILE, rng[t, 1] // TILE + 1):
+            for tx in range(rng[t, 2] // TILE, rng[t, 3] // TILE + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+    for k in range(n_tiles):
+        counts[k + 1] += counts[k]
+    fill = counts[:-1].copy()
+    items = np.empty(counts[n_tiles], dtype=np.int64)
+    for t in range(rng.shape[0]):
+        if rng[t, 0] > rng[t, 1]:
+            continue
+        for ty in range(rng[t, 0] // TILE, rng[t, 1] // TILE + 1):
+            for tx in range(rng[t, 2] // TILE, rng[t, 3] // TILE + 1):
+                k = ty * tiles_x + tx
+                items[fill[k]] = t
+                fill[k] += 1
+    return counts, items
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, tiles_x,
+               origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, counts, list_off,
+               entries, write):  # pragma: no cover - numba
+    """Count (``write`` False: into ``counts``, per tile-major pixel) or fill (``write`` True:
+    ``entries[list_off[pixel] - list_off[first pixel of tile0] + k]``) the lists of tiles
+    [tile0, tile1)."""
+    h = 0.5 * pw
+    npix = TILE * TILE
+    base = list_off[tile0 * npix] if write else 0
+    for tile in prange(tile0, tile1):
+        ty = tile // tiles_x
+        tx = tile - ty * tiles_x
+        pix0 = tile * npix
+        pos = np.zeros(npix, dtype=np.int64)
+        cam = np.empty((8, 3))
+        qv = np.empty((8, 2))
+        qr = np.empty(8)
+        rv = np.empty((4, 2))
+        rr = np.empty(4)
+        for k in range(tile_off[tile], tile_off[tile + 1]):
+            t = tile_items[k]
+            p = order[t]
+            i0 = max(rng[t, 0], ty * TILE)
+            i1 = min(rng[t, 1], ty * TILE + TILE - 1)
+            j0 = max(rng[t, 2], tx * TILE)
+            j1 = min(rng[t, 3], tx * TILE + TILE - 1)
+            n = npts[p]
+            load_prim(pts, start[p], n, origin, perm, sign, cam)
+            tri = kind[p] == 0
+            for i in range(i0, i1 + 1):
+                sy = y_lo + (i + 0.5) * pw
+                for j in range(j0, j1 + 1):
+                    sx = x_lo + (j + 0.5) * pw
+                    project(cam, n, sx, sy, h, 0.0, qv, qr)
+                    region_at(corners, sx, sy, h, 0.0, rv, rr)
+                    if not overlaps(qv, qr, n, tri, rv, rr):
+                        continue
+                    loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                    if write:
+                        entries[list_off[pix0 + loc] - base + pos[loc]] = p
+                    pos[loc] += 1
+        if not write:
+            for loc in range(npix):
+                counts[pix0 + loc] = pos[loc]
+

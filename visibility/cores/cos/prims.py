@@ -1,0 +1,250 @@
+"""The primitives a cell's COS pass works on, relative to the cell centre in float64.
+
+Static triangles are full primitives (occludees and occluders, with welded vertex ids for
+fusion). What moves (a triangle whose vertices change over the keyframes) and spheres are
+*hulls*: the eight corners of a box that holds every position they take between the keyframes
+(positions are piecewise linear in time, so the keyframe boxes' union bounds the sweep). Hulls
+are occludees only: they are reported when any part of that box may be seen, and never hide
+anything, which keeps both conservative.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.scene import Scene
+
+#: Primitive kinds.
+TRIANGLE = 0
+HULL = 1
+
+
+@dataclass
+class Prims:
+    """Primitive arrays of one cell.
+
+    Attributes
+    ----------
+    pts : (P, 3) float64 points relative to the cell centre, metres.
+    start : (n,) int64 first point of each primitive; ``npts`` (n,) int64 its point count
+        (3 for a triangle, 8 for a hull).
+    kind : (n,) int8, TRIANGLE or HULL.
+    out_id : (n,) int64, the id reported: a triangle id, or ``n_triangles + sphere index``.
+    vid : (n, 3) int64 welded vertex ids of a triangle's corners (-1 for hulls).
+    scale : float, largest absolute world coordinate involved (rounding of the shift to the
+        cell centre is a few ulps of it).
+    """
+
+    pts: np.ndarray
+    start: np.ndarray
+    npts: np.ndarray
+    kind: np.ndarray
+    out_id: np.ndarray
+    vid: np.ndarray
+    scale: float
+
+    def __len__(self) -> int:
+        return int(len(self.start))
+
+
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(k, 8, 3) corners of k boxes."""
+    out = np.empty((len(lo), 8, 3))
+    for c in range(8):
+        for a in range(3):
+            out[:, c, a] = hi[:, a] if (c >> a) & 1 else lo[:, a]
+    return out
+
+
+def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray) -> Prims:
+    """Primitives of ``scene`` around ``centre`` (3,) metres, with welded vertex ids (n_vertices,).
+
+    Degenerate faces (``scene.valid_faces`` False) are left out.
+    """
+    c = np.asarray(centre, dtype=np.float64)
+    m = scene.n_triangles
+    valid = np.flatnonzero(scene.valid_faces)
+    faces = scene.faces[valid].astype(np.int64)
+    scale = float(np.max(np.abs(c))) if c.size else 0.0
+    moving = np.zeros(len(valid), dtype=bool)
+    if scene.states is not None and scene.states.shape[0] > 1:
+        st = scene.states
+        vmove = np.any(np.any(st != st[:1], axis=0), axis=1)  # (n_vertices,)
+        moving = np.any(vmove[faces], axis=1)
+    stat = valid[~moving]
+    sf = faces[~moving]
+    tri_pts = (scene.vertices[sf] - c).reshape(-1, 3)
+    if len(sf):
+        scale = max(scale, float(np.max(np.abs(scene.vertices[sf]))))
+    parts = [tri_pts]
+    n_stat = len(stat)
+    starts = [np.arange(n_stat, dtype=np.int64) * 3]
+    npts = [np.full(n_stat, 3, dtype=np.int64)]
+    kinds = [np.zeros(n_stat, dtype=np.int8)]
+    out = [stat.astype(np.int64)]
+    vids = [welded[sf].astype(np.int64) if n_stat else np.zeros((0, 3), dtype=np.int64)]
+    base = len(tri_pts)
+    hull_lo, hull_hi, hull_id = [], [], []
+    if moving.any():
+        mv = valid[moving]
+        corners = scene.states[:, faces[moving]]  # (k, t, 3, 3)
+        hull_lo.append(corners.min(axis=(0, 2)))
+        hull_hi.append(corners.max(axis=(0, 2)))
+        hull_id.append(mv.astype(np.int64))
+    if scene.n_spheres:
+        cen = scene.sphere_centers  # (k, s, 3)
+        r = scene.sphere_radii[:, None]
+        hull_lo.append(cen.min(axis=0) - r)
+        hull_hi.append(cen.max(axis=0) + r)
+        hull_id.append(m + np.arange(scene.n_spheres, dtype=np.int64))
+    if hull_lo:
+        lo = np.concatenate(hull_lo)
+        hi = np.concatenate(hull_hi)
+        ok = np.all(np.isfinite(lo) & np.isfinite(hi), axis=1)
+        lo, hi, hid = lo[ok], hi[ok], np.concatenate(hull_id)[ok]
+        k = len(lo)
+        if k:
+            scale = max(scale, float(np.max(np.abs(np.concatenate([lo, hi])))))
+        parts.append((_box_corners(lo, hi) - c).reshape(-1, 3))
+        starts.append(base + np.arange(k, dtype=np.int64) * 8)
+        npts.append(np.full(k, 8, dtype=np.int64))
+        kinds.append(np.ones(k, dtype=np.int8))
+        out.append(hid)
+        vids.append(np.full((k, 3), -1, dtype=np.int64))
+    return Prims(np.ascontiguousarray(np.concatenate(parts)), np.concatenate(starts),
+                 np.concatenate(npts), np.concatenate(kinds), np.concatenate(out),
+                 np.ascontiguousarray(np.concatenate(vids)), scale)
+
+
+# ------------------------------------------------------------------------------ numba kernels
+@njit(cache=True, nogil=True)
+def _tri_box_overlap(a, b, c, half, tol):  # pragma: no cover - numba
+    """Separating-axis test of a triangle (corners relative to the box centre) against the box
+    [-half, half] grown by ``tol``: True unless an axis separates them (13 axes)."""
+    hx, hy, hz = half[0] + tol, half[1] + tol, half[2] + tol
+    # Box axes.
+    for k in range(3):
+        hk = hx if k == 0 else (hy if k == 1 else hz)
+        if min(a[k], b[k], c[k]) > hk or max(a[k], b[k], c[k]) < -hk:
+            return False
+    e = np.empty((3, 3))
+    for k in range(3):
+        e[0, k] = b[k] - a[k]
+        e[1, k] = c[k] - b[k]
+        e[2, k] = a[k] - c[k]
+    # Triangle normal.
+    nx = e[0, 1] * e[1, 2] - e[0, 2] * e[1, 1]
+    ny = e[0, 2] * e[1, 0] - e[0, 0] * e[1, 2]
+    nz = e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0]
+    d = nx * a[0] + ny * a[1] + nz * a[2]
+    r = hx * abs(nx) + hy * abs(ny) + hz * abs(nz)
+    if abs(d) > r:
+        return False
+    # Edge x box-axis cross products.
+    for i in range(3):
+        for k in range(3):
+            # axis = unit_k x e_i
+            ax = 0.0
+            ay = 0.0
+            az = 0.0
+            if k == 0:
+                ay, az = -e[i, 2], e[i, 1]
+            elif k == 1:
+                ax, az = e[i, 2], -e[i, 0]
+            else:
+                ax, ay = -e[i, 1], e[i, 0]
+            pa = ax * a[0] + ay * a[1] + az * a[2]
+            pb = ax * b[0] + ay * b[1] + az * b[2]
+            pc = ax * c[0] + ay * c[1] + az * c[2]
+            rr = hx * abs(ax) + hy * abs(ay) + hz * abs(az)
+            if min(pa, pb, pc) > rr or max(pa, pb, pc) < -rr:
+                return False
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _inside_box(pts, start, npts, half, tol, plane_tol, out):  # pragma: no cover - numba
+    for p in prange(start.shape[0]):
+        s = start[p]
+        out[p] = False
+        if npts[p] == 3:
+            a = pts[s]
+            b = pts[s + 1]
+            c = pts[s + 2]
+            if not _tri_box_overlap(a, b, c, half, tol):
+                continue
+            # A flat (or point) cell lying in the triangle's own plane sees it edge-on from
+            # every eye: the projection has no area, so it is not visible.
+            ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+            vx, vy, vz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+            nx = uy * vz - uz * vy
+            ny = uz * vx - ux * vz
+            nz = ux * vy - uy * vx
+            nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+            on = True
+            for k in range(8):
+                cx = half[0] if k & 1 else -half[0]
+                cy = half[1] if k & 2 else -half[1]
+                cz = half[2] if k & 4 else -half[2]
+                dist = nx * (cx - a[0]) + ny * (cy - a[1]) + nz * (cz - a[2])
+                if abs(dist) > plane_tol * nn:
+                    on = False
+                    break
+            out[p] = not on
+        else:
+            ok = True
+            for k in range(3):
+                lo = np.inf
+                hi = -np.inf
+                for i in range(npts[p]):
+                    lo = min(lo, pts[s + i, k])
+                    hi = max(hi, pts[s + i, k])
+                if lo > half[k] + tol or hi < -half[k] - tol:
+                    ok = False
+            out[p] = ok
+
+
+def inside_box(prims: Prims, half: np.ndarray) -> np.ndarray:
+    """(n,) bool: primitives that touch the cell box (centred, half sizes ``half`` (3,) metres).
+
+    An eye inside the box may stand right next to such a primitive, so it is visible (the
+    segment from an eye to the side plane it looks through lies in the box). The box is grown
+    by a few ulps of the coordinates so rounding cannot drop a touching triangle.
+    """
+    out = np.zeros(len(prims), dtype=np.bool_)
+    if len(prims):
+        ulp = np.spacing(max(prims.scale, float(np.max(np.abs(half))), 1.0))
+        _inside_box(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64),
+                    64.0 * ulp, 16.0 * ulp, out)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _gaps(pts, start, npts, half, out):  # pragma: no cover - numba
+    for p in prange(start.shape[0]):
+        s = start[p]
+        d = 0.0
+        for k in range(3):
+            lo = np.inf
+            hi = -np.inf
+            for i in range(npts[p]):
+                lo = min(lo, pts[s + i, k])
+                hi = max(hi, pts[s + i, k])
+            g = max(0.0, lo - half[k], -half[k] - hi)
+            d += g * g
+        out[p] = d
+
+
+def distance_order(prims: Prims, half: np.ndarray) -> np.ndarray:
+    """(n,) int64 primitive indices sorted by the distance from the cell box to each
+    primitive's bounding box: the approximate front-to-back order of every per-pixel list
+    (Sec. 5: sort once, then fill the lists in that order instead of sorting each list)."""
+    n = len(prims)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    d = np.empty(n)
+    _gaps(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64), d)
+    return np.argsort(d, kind="stable").astype(np.int64)

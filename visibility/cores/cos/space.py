@@ -1,0 +1,267 @@
+"""Camera offset space geometry for one pixel (paper Sec. 3, 4.5), as numba kernels.
+
+The 2D COS of a pixel is a parallel projection. A camera offset Delta (in the plane w = 0 of the
+view) sees the point X = (x, y, w) at the sample direction s = (s_x, s_y, 1) exactly when
+Delta = (x - w s_x, y - w s_y) (Eq. 8 with Delta_w = 0): the map is affine in X, so a triangle's
+COS is the triangle of its vertices' COS points (the prism slice of Fig. 5), its depth along the
+ray is affine over it (Eq. 9), and a camera that moves along the ray (the side frusta's forward
+offsets) keeps its COS point. The supported offsets are the camera rectangle's projection: the
+rectangle C itself for a front frustum, a parallelogram for a side one.
+
+Between-sample directions (Sec. 4.5, Eq. 10): over the pixel's square of directions,
+s + delta with |delta| <= h (L-infinity, h = half a pixel in tangent units), a point's COS image
+moves by -w delta, i.e. within an L-infinity square of radius |w| h around its pixel-centre
+image. Only relative motion matters to a containment test, so each test picks a reference depth
+w_ref and works in the frame that moves by -w_ref delta (a translation of everything, the same
+for all objects at a given delta); a point then moves within a square of radius |w - w_ref| h.
+Every object is carried at the pixel centre with that per-vertex *motion radius*: an occludee
+grows to the convex hull of its vertex squares, an occluder silhouette edge
+to the hull of its two end squares (a "capsule"); no moving silhouette edge can reach a point
+outside its capsule, so a region clear of every capsule stays inside (or outside) the occluder
+under every delta. This replaces the paper's per-edge sliding-and-rotating analysis by a bound
+that is simpler and never smaller.
+
+Conventions: COS points are float64 metres relative to the view origin; polygons are arrays
+(k, 2) with a count; "separated" tests are strict, so touching counts as overlapping
+(conservative for occlusion).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: Largest vertex count of a clipped polygon (4 box sides + 3 triangle + 4 region half-planes).
+MAX_POLY = 16
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cam_point(pts, i, origin, perm, sign):  # pragma: no cover - numba
+    """Camera coordinates (x, y, w) of point i; the shift by the origin comes first, in float64."""
+    return (sign[0] * (pts[i, perm[0]] - origin[perm[0]]),
+            sign[1] * (pts[i, perm[1]] - origin[perm[1]]),
+            sign[2] * (pts[i, perm[2]] - origin[perm[2]]))
+
+
+@njit(cache=True, nogil=True)
+def load_prim(pts, start, n, origin, perm, sign, cam):  # pragma: no cover - numba
+    """Fill ``cam`` (>= n, 3) with the camera coordinates of a primitive's n points."""
+    for i in range(n):
+        x, y, w = cam_point(pts, start + i, origin, perm, sign)
+        cam[i, 0] = x
+        cam[i, 1] = y
+        cam[i, 2] = w
+
+
+@njit(cache=True, nogil=True)
+def project(cam, n, sx, sy, h, wref, v, r):  # pragma: no cover - numba
+    """COS images ``v`` (n, 2) and motion radii ``r`` (n,) of n camera-space points at the pixel
+    centre (sx, sy) with half-pixel h, in the frame that moves with depth ``wref``."""
+    for i in range(n):
+        w = cam[i, 2]
+        v[i, 0] = cam[i, 0] - w * sx
+        v[i, 1] = cam[i, 1] - w * sy
+        r[i] = abs(w - wref) * h
+
+
+@njit(cache=True, nogil=True, inline="always")
+def support(v, r, n, nx, ny):  # pragma: no cover - numba
+    """(min, max) of n . p over the hull of the squares (v_i, r_i)."""
+    l1 = abs(nx) + abs(ny)
+    lo = np.inf
+    hi = -np.inf
+    for i in range(n):
+        d = nx * v[i, 0] + ny * v[i, 1]
+        lo = min(lo, d - r[i] * l1)
+        hi = max(hi, d + r[i] * l1)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def area2(v):  # pragma: no cover - numba
+    """Twice the signed area of the COS triangle v[0..2]."""
+    return ((v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1])
+            - (v[1, 1] - v[0, 1]) * (v[2, 0] - v[0, 0]))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def bbox(v, r, n):  # pragma: no cover - numba
+    x0 = np.inf
+    x1 = -np.inf
+    y0 = np.inf
+    y1 = -np.inf
+    for i in range(n):
+        x0 = min(x0, v[i, 0] - r[i])
+        x1 = max(x1, v[i, 0] + r[i])
+        y0 = min(y0, v[i, 1] - r[i])
+        y1 = max(y1, v[i, 1] + r[i])
+    return x0, x1, y0, y1
+
+
+@njit(cache=True, nogil=True)
+def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
+    """Whether the grown occludee (hull of squares (qv, qr), n = nq) may meet the grown offset
+    region (hull of the 4 squares (rv, rr)): separating-axis test on the axes x, y, the
+    triangle's edge normals (``tri``) and the region's edge normals. Conservative: True unless
+    an axis separates them (the list-building test of Sec. 4.2 with the Sec. 4.5 half pixel)."""
+    qx0, qx1, qy0, qy1 = bbox(qv, qr, nq)
+    rx0, rx1, ry0, ry1 = bbox(rv, rr, 4)
+    if qx1 < rx0 or rx1 < qx0 or qy1 < ry0 or ry1 < qy0:
+        return False
+    if tri:
+        for e in range(3):
+            a = e
+            b = (e + 1) % 3
+            nx = qv[b, 1] - qv[a, 1]
+            ny = qv[a, 0] - qv[b, 0]
+            if nx == 0.0 and ny == 0.0:
+                continue
+            lq, hq = support(qv, qr, nq, nx, ny)
+            lr, hr = support(rv, rr, 4, nx, ny)
+            if hq < lr or hr < lq:
+                return False
+    for e in range(4):
+        a = e
+        b = (e + 1) % 4
+        nx = rv[b, 1] - rv[a, 1]
+        ny = rv[a, 0] - rv[b, 0]
+        if nx == 0.0 and ny == 0.0:
+            continue
+        lq, hq = support(qv, qr, nq, nx, ny)
+        lr, hr = support(rv, rr, 4, nx, ny)
+        if hq < lr or hr < lq:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def clip_halfplane(px, py, n, nx, ny, c, ox, oy):  # pragma: no cover - numba
+    """Clip polygon (px, py)[:n] to nx x + ny y <= c, writing into (ox, oy); returns the count."""
+    m = 0
+    if n == 0:
+        return 0
+    for i in range(n):
+        j = (i + 1) % n
+        di = nx * px[i] + ny * py[i] - c
+        dj = nx * px[j] + ny * py[j] - c
+        if di <= 0.0:
+            ox[m] = px[i]
+            oy[m] = py[i]
+            m += 1
+        if (di < 0.0 < dj) or (dj < 0.0 < di):
+            t = di / (di - dj)
+            ox[m] = px[i] + t * (px[j] - px[i])
+            oy[m] = py[i] + t * (py[j] - py[i])
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover - numba
+    """A convex polygon K (kx, ky) holding (grown occludee) n (grown offset region): their
+    bounding-box overlap clipped by the occludee's edge half-planes and the region's, each
+    pushed out to the support of the grown set. Returns the vertex count (0: disjoint)."""
+    qx0, qx1, qy0, qy1 = bbox(qv, qr, nq)
+    rx0, rx1, ry0, ry1 = bbox(rv, rr, 4)
+    x0, x1 = max(qx0, rx0), min(qx1, rx1)
+    y0, y1 = max(qy0, ry0), min(qy1, ry1)
+    if x0 > x1 or y0 > y1:
+        return 0
+    kx[0], ky[0] = x0, y0
+    kx[1], ky[1] = x1, y0
+    kx[2], ky[2] = x1, y1
+    kx[3], ky[3] = x0, y1
+    n = 4
+    if tri:
+        s = 1.0 if area2(qv) >= 0.0 else -1.0
+        for e in range(3):
+            a = e
+            b = (e + 1) % 3
+            # Outward normal of a counter-clockwise edge a -> b.
+            nx = s * (qv[b, 1] - qv[a, 1])
+            ny = s * (qv[a, 0] - qv[b, 0])
+            if nx == 0.0 and ny == 0.0:
+                continue
+            _, hq = support(qv, qr, nq, nx, ny)
+            n = clip_halfplane(kx, ky, n, nx, ny, hq, tx, ty)
+            for i in range(n):
+                kx[i] = tx[i]
+                ky[i] = ty[i]
+            if n == 0:
+                return 0
+    ar = ((rv[1, 0] - rv[0, 0]) * (rv[2, 1] - rv[0, 1])
+          - (rv[1, 1] - rv[0, 1]) * (rv[2, 0] - rv[0, 0]))
+    s = 1.0 if ar >= 0.0 else -1.0
+    for e in range(4):
+        a = e
+        b = (e + 1) % 4
+        nx = s * (rv[b, 1] - rv[a, 1])
+        ny = s * (rv[a, 0] - rv[b, 0])
+        if nx == 0.0 and ny == 0.0:
+            continue
+        _, hr = support(rv, rr, 4, nx, ny)
+        n = clip_halfplane(kx, ky, n, nx, ny, hr, tx, ty)
+        for i in range(n):
+            kx[i] = tx[i]
+            ky[i] = ty[i]
+        if n == 0:
+            return 0
+    return n
+
+
+@njit(cache=True, nogil=True)
+def capsule_hits(ax, ay, bx, by, r, kx, ky, nk):  # pragma: no cover - numba
+    """Whether the hull of the squares of radius r around a and b meets polygon K (nk >= 1).
+
+    Separating axes of the two convex sets: x, y, the segment's normal and K's edge normals.
+    Touching counts as meeting."""
+    kx0 = np.inf
+    kx1 = -np.inf
+    ky0 = np.inf
+    ky1 = -np.inf
+    for i in range(nk):
+        kx0 = min(kx0, kx[i])
+        kx1 = max(kx1, kx[i])
+        ky0 = min(ky0, ky[i])
+        ky1 = max(ky1, ky[i])
+    if max(ax, bx) + r < kx0 or min(ax, bx) - r > kx1:
+        return False
+    if max(ay, by) + r < ky0 or min(ay, by) - r > ky1:
+        return False
+    axes = nk + 1
+    for e in range(axes):
+        if e == nk:
+            nx = by - ay
+            ny = ax - bx
+        else:
+            j = (e + 1) % nk
+            nx = ky[j] - ky[e]
+            ny = kx[e] - kx[j]
+        if nx == 0.0 and ny == 0.0:
+            continue
+        l1 = r * (abs(nx) + abs(ny))
+        da = nx * ax + ny * ay
+        db = nx * bx + ny * by
+        clo = min(da, db) - l1
+        chi = max(da, db) + l1
+        klo = np.inf
+        khi = -np.inf
+        for i in range(nk):
+            d = nx * kx[i] + ny * ky[i]
+            klo = min(klo, d)
+            khi = max(khi, d)
+        if chi < klo or khi < clo:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def in_triangle(px, py, v):  # pragma: no cover - numba
+    """Whether (px, py) lies in the closed counter-clockwise COS triangle v (3, 2)."""
+    for e in range(3):
+        a = e
+        b = (e + 1) % 3
+        c = ((v[b, 0] - v[a, 0]) * (py - v[a, 1]) - (v[b, 1] - v[a, 1]) * (px - v[a, 0]))
+        if c < 0.0:
+            return False
+    return True
