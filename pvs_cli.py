@@ -143,6 +143,25 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _scene_files(scenes: str | None) -> dict[str, Path]:
+    """{stem: path} of the scene files in ``scenes`` (default: ../shared/scenes)."""
+    from visibility.loaders import SCENE_EXTENSIONS
+
+    folder = Path(scenes) if scenes else DEFAULT_SCENES_DIR
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix in SCENE_EXTENSIONS}
+
+
+def _local_scene(name: str, scenes: str | None):
+    """The scene file ``name`` in ``scenes``, else the generated scene of that name."""
+    from visibility.generators import make_scene
+    from visibility.loaders import load_scene
+
+    files = _scene_files(scenes)
+    return load_scene(files[name]) if name in files else make_scene(name)
+
+
 def cores_help() -> str:
     """Every registered core with its promise and parameters (units, ranges, defaults), as the
     cores declare them: the help text of the commands that take ``--core`` and ``--param``."""
@@ -167,14 +186,11 @@ def cmd_cores(args: argparse.Namespace) -> int:
         return 0 if r.status_code == 200 else 1
     if args.scene:
         from visibility.cores.base import core_fit_report
-        from visibility.generators import make_scene
-        from visibility.loaders import SCENE_EXTENSIONS, load_scene
-        from visibility.viewcells import ViewcellGrid
+        from visibility.viewcells import DEFAULT_CELL_SIZE
 
-        scenes_dir = Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR
-        files = {p.stem: p for p in sorted(scenes_dir.glob("*")) if p.suffix in SCENE_EXTENSIONS}
-        scene = load_scene(files[args.scene]) if args.scene in files else make_scene(args.scene)
-        size = args.cell_size or ViewcellGrid.for_scene(scene).cell_size
+        scene = _local_scene(args.scene, args.scenes)
+        # The grid's rule (sidecar, else the default) without building the grid.
+        size = args.cell_size or scene.meta.get("cell_size") or DEFAULT_CELL_SIZE
         print(json.dumps(core_fit_report(scene, size), indent=2))
         return 0
     print(cores_help())
@@ -190,25 +206,18 @@ def cmd_scenes(args: argparse.Namespace) -> int:
         r = httpx.get(base + path, timeout=600)
         print(json.dumps(r.json(), indent=2))
         return 0 if r.status_code == 200 else 1
-    from visibility.generators import DEFAULT_TRIANGLES, available_generators, make_scene
-    from visibility.loaders import SCENE_EXTENSIONS, load_scene
+    from visibility.generators import DEFAULT_TRIANGLES, available_generators
     from visibility.scene_analysis import is_2_5d
     from visibility.viewcells import ViewcellGrid
 
-    scenes_dir = Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR
-    files = {}
-    if scenes_dir.is_dir():
-        files = {p.stem: p for p in sorted(scenes_dir.iterdir()) if p.suffix in SCENE_EXTENSIONS}
+    files = _scene_files(args.scenes)
     if not args.name:
         for g in available_generators():
             print(f"{g:16s} generated  {DEFAULT_TRIANGLES.get(g, 0):>10,d} triangles (default)")
         for stem, p in files.items():
             print(f"{stem:16s} file       {p}")
         return 0
-    if args.name in files:
-        scene = load_scene(files[args.name])
-    else:
-        scene = make_scene(args.name)
+    scene = _local_scene(args.name, args.scenes)
     info = scene.summary()
     flat, how = is_2_5d(scene)
     info["is_2_5d"] = {"value": flat, "source": how["source"], "why": how["reason"]}

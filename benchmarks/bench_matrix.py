@@ -52,7 +52,7 @@ RESULTS_DIR = REPO / "benchmarks" / "results"
 PEER_LEVELS: list[int] = [8, 32, 128]
 
 #: Every generator except ``stress`` (a test scene: a few hundred stiff-case triangles plus random
-#: clutter, whose known answers ``tests/visibility/cores/test_stiff.py`` checks), at two sizes.
+#: clutter, whose known answers ``visibility.cores.checks`` checks), at two sizes.
 #: For ``spheres`` the size is the sphere count. Meadows and moving scenes are smaller: at 64 px
 #: ``from_segment`` needed 11 s for a 20k-triangle meadow cell (everything visible), 13 s for
 #: 200 bouncing spheres and 75 s for 5000 swaying triangles (25 and 10 keyframes).
@@ -366,7 +366,7 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     from visibility.viewcells import ViewcellGrid
 
     cores = cfg["cores"] or available_cores()
-    levels_by_knob = {"samples": PEER_LEVELS, **cfg.get("knob_levels", {})}
+    levels_by_knob = _levels_by_knob(cfg)
     use_peer = cfg["peer"] and peers.available()
     if cfg["peer"] and not use_peer:
         log("embreex is not installed: the ray-caster peer is skipped")

@@ -27,17 +27,16 @@ from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
+from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import (
     AUTO_CORE,
     PVS,
-    CancelToken,
-    ComputationCancelled,
     Core,
     CoreParams,
     get_core,
 )
+from visibility.cores.base import all_fits as registry_fits
 from visibility.cores.base import choose_core as registry_choose_core
-from visibility.cores.base import core_fits as registry_fits
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
@@ -300,13 +299,8 @@ class ComputeService:
         return len(tokens)
 
     def _cell_size(self, scene: Scene) -> float:
-        """The viewcell size (metres) the catalogue uses for ``scene``."""
-        try:
-            loaded = self.catalog.get(scene.name)
-            if loaded.scene is scene:
-                return float(loaded.grid.cell_size)
-        except Exception:  # not a catalogue scene: the sidecar's size or the server's
-            pass
+        """The viewcell size (metres) the catalogue gives ``scene``: its sidecar's, else the
+        server's (``SceneCatalog``'s rule)."""
         return float(scene.meta.get("cell_size") or self.settings.cell_size)
 
     def _cell_box(self, scene: str, cell: int) -> np.ndarray:

@@ -14,7 +14,8 @@ from typing import Any
 from protocol.codes import HTTP_STATUS, ErrorCode
 from server.catalog import SceneLoadFailed, UnknownSceneError
 from server.compute import UnknownCellError, UnknownCoreError, UnsupportedSceneError
-from visibility.cores.base import ComputationCancelled, SegmentNotSupported
+from visibility.cancel import ComputationCancelled
+from visibility.cores.base import SegmentNotSupported
 
 #: Known failures and their codes, most specific class first (the first match wins).
 _CODES: tuple[tuple[type[BaseException], ErrorCode], ...] = (

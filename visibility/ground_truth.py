@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from visibility.cores.base import checkpoint
+from visibility.cancel import checkpoint
 from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotation
 from visibility.raster.spheres import draw_spheres_cubemap

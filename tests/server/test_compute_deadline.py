@@ -11,7 +11,8 @@ import pytest
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.settings import Settings
-from visibility.cores.base import ComputationCancelled, get_core
+from visibility.cancel import ComputationCancelled
+from visibility.cores.base import get_core
 
 #: from_segment at 1024 px on a 20k village cell takes tens of seconds on 2 cores.
 SLOW = {"resolution": 1024, "eye_levels": 3}

@@ -13,13 +13,12 @@ Conventions: Y-up, right-handed, metres; triangle ids are row indices of the sce
 
 from __future__ import annotations
 
-import contextvars
 import dataclasses
+import functools
 import importlib
 import importlib.metadata
 import logging
 import pkgutil
-import threading
 import time
 import typing
 from abc import ABC, abstractmethod
@@ -28,6 +27,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from visibility.cancel import CancelToken, running_under
 from visibility.ids import unique_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -112,6 +112,12 @@ def _type_name(hint: Any) -> str:
 
 def param_specs(params_cls: type[CoreParams]) -> list[ParamSpec]:
     """The ``ParamSpec`` of every field of a ``CoreParams`` class, in declaration order."""
+    return list(_param_specs(params_cls))
+
+
+@functools.cache
+def _param_specs(params_cls: type[CoreParams]) -> tuple[ParamSpec, ...]:
+    # Type hints are resolved once per class: validate() runs on every request.
     hints = typing.get_type_hints(params_cls)
     out = []
     for f in dataclasses.fields(params_cls):
@@ -123,7 +129,7 @@ def param_specs(params_cls: type[CoreParams]) -> list[ParamSpec]:
         out.append(ParamSpec(f.name, _type_name(hint), f.default, md.get("unit", ""),
                              md.get("help", ""), md.get("ge"), md.get("le"),
                              None if choices is None else tuple(choices)))
-    return out
+    return tuple(out)
 
 
 @dataclass
@@ -205,63 +211,6 @@ def expand_to_objects(scene: Scene, triangle_ids: np.ndarray) -> tuple[np.ndarra
 class SegmentNotSupported(ValueError):
     """A core was asked for the PVS of a segment it cannot describe (a diagonal segment for a
     core that only solves boxes)."""
-
-
-class ComputationCancelled(RuntimeError):
-    """A computation stopped at a checkpoint: it was cancelled or its deadline passed."""
-
-
-class CancelToken:
-    """Cancellation and deadline of one computation, polled by ``checkpoint()``.
-
-    Kernels cannot be interrupted, so cores call ``checkpoint()`` between chunks of bounded
-    work (a batch of samples, a segment, a group of pixel tiles); a cancelled or late
-    computation stops at the next one. ``deadline`` is a ``time.monotonic()`` instant.
-    """
-
-    def __init__(self, deadline: float | None = None, budget: float | None = None) -> None:
-        self.deadline = deadline
-        self.budget = budget
-        self._cancelled = threading.Event()
-        self.reason = ""
-
-    @classmethod
-    def after(cls, seconds: float | None) -> CancelToken:
-        """A token whose deadline is ``seconds`` from now (None: no deadline)."""
-        if seconds is None:
-            return cls()
-        return cls(time.monotonic() + float(seconds), float(seconds))
-
-    def cancel(self, reason: str = "cancelled") -> None:
-        """Stop the computation at its next checkpoint."""
-        if not self._cancelled.is_set():
-            self.reason = reason
-            self._cancelled.set()
-
-    @property
-    def cancelled(self) -> bool:
-        return self._cancelled.is_set()
-
-    def check(self) -> None:
-        """Raise ``ComputationCancelled`` when cancelled or past the deadline."""
-        if self._cancelled.is_set():
-            raise ComputationCancelled(self.reason)
-        if self.deadline is not None and time.monotonic() > self.deadline:
-            self.cancel(f"deadline of {self.budget:g} s passed")
-            raise ComputationCancelled(self.reason)
-
-
-_TOKEN: contextvars.ContextVar[CancelToken | None] = contextvars.ContextVar("pvs_cancel_token",
-                                                                            default=None)
-
-
-def checkpoint() -> None:
-    """Raise ``ComputationCancelled`` if the computation running in this context was cancelled
-    or passed its deadline; a no-op outside ``Core.compute`` with a token. Cores call it
-    between chunks of work."""
-    token = _TOKEN.get()
-    if token is not None:
-        token.check()
 
 
 @dataclass(frozen=True)
@@ -382,12 +331,8 @@ class Core(ABC):
         params = params or self.make_params()
         params.validate()
         t0 = time.perf_counter()
-        reset = _TOKEN.set(token)
-        try:
-            checkpoint()
+        with running_under(token):
             ids, stats = self._compute(scene, cell, params)
-        finally:
-            _TOKEN.reset(reset)
         return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
 
     def compute_segment(
@@ -407,12 +352,8 @@ class Core(ABC):
         params = params or self.make_params()
         params.validate()
         t0 = time.perf_counter()
-        reset = _TOKEN.set(token)
-        try:
-            checkpoint()
+        with running_under(token):
             ids, stats = self._compute_segment(scene, a, b, params)
-        finally:
-            _TOKEN.reset(reset)
         return self._finish(scene, params, ids, stats, time.perf_counter() - t0)
 
     def _compute_segment(
@@ -534,7 +475,7 @@ def describe_cores() -> list[dict[str, Any]]:
 AUTO_CORE = "auto"
 
 
-def core_fits(scene: Scene, cell_size: float | None = None) -> dict[str, Fit]:
+def all_fits(scene: Scene, cell_size: float | None = None) -> dict[str, Fit]:
     """``Core.fit`` of every registered core for ``scene`` at ``cell_size`` metres."""
     return {n: get_core(n).fit(scene, cell_size) for n in available_cores()}
 
@@ -543,7 +484,7 @@ def choose_core(scene: Scene, cell_size: float | None = None) -> tuple[str, str]
     """The ``auto`` core for ``scene`` at viewcells of ``cell_size`` metres, and why: every
     core is asked (``Core.fit``) and the best-scoring one that fits wins (ties: by name).
     Raises LookupError when no registered core fits."""
-    fits = core_fits(scene, cell_size)
+    fits = all_fits(scene, cell_size)
     ok = sorted(((f.score, n) for n, f in fits.items() if f.ok), key=lambda t: (-t[0], t[1]))
     if not ok:
         raise LookupError(f"no registered core fits scene {scene.name!r}: " + "; ".join(
@@ -557,7 +498,7 @@ def choose_core(scene: Scene, cell_size: float | None = None) -> tuple[str, str]
 
 def core_fit_report(scene: Scene, cell_size: float | None = None) -> dict[str, Any]:
     """Every core's fit for ``scene`` and the ``auto`` choice, JSON-ready (``GET /cores``)."""
-    fits = core_fits(scene, cell_size)
+    fits = all_fits(scene, cell_size)
     try:
         name, why = choose_core(scene, cell_size)
         auto: dict[str, Any] | None = {"core": name, "why": why}

@@ -22,6 +22,7 @@ the core's ``check_params`` so the whole suite stays quick for every core.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -73,6 +74,15 @@ def check_valid(pvs: PVS, scene: Scene) -> set[int]:
 
 def _solve(core: Core, scene: Scene, cell: Viewcell, resolution: int, **extra: Any) -> set[int]:
     return check_valid(core.compute(scene, cell, check_params(core, resolution, **extra)), scene)
+
+
+@functools.cache
+def _reference(scene_name: str) -> np.ndarray:
+    """The ``REFERENCE`` ground truth of a designed scene's cell (ids), computed once."""
+    from visibility.ground_truth import sample_pvs
+
+    scene, cell, _ = getattr(ds, scene_name)()
+    return sample_pvs(scene, cell, **REFERENCE).triangle_ids
 
 
 def _tri_scene(tris: Any, name: str = "tris") -> Scene:
@@ -183,14 +193,13 @@ def check_fn_fp_against_sampled_ground_truth(core: Core) -> None:
     stated bounds on two rooms, the open ring and the stiff cases. FP counts what the core
     reports that the reference did not see. The stiff cases' sub-pixel sliver is held only
     against conservative cores' FN (which must be 0 everywhere)."""
-    from visibility.ground_truth import fn_fp_rates, sample_pvs
+    from visibility.ground_truth import fn_fp_rates
 
     for name, fn_applies in (("two_rooms_and_a_door", True), ("open_ring", True),
                              ("stiff_cases", core.promise == "conservative")):
         scene, cell, _ = getattr(ds, name)()
-        gt = sample_pvs(scene, cell, **REFERENCE)
         pvs = core.compute(scene, cell, check_params(core))
-        fn, fp = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
+        fn, fp = fn_fp_rates(pvs.triangle_ids, _reference(name))
         if fn_applies:
             assert fn <= core.fn_bound, f"{name}: FN rate {fn:.3f} > its bound {core.fn_bound}"
         assert fp <= core.fp_bound, f"{name}: FP rate {fp:.3f} > its bound {core.fp_bound}"
@@ -199,11 +208,10 @@ def check_fn_fp_against_sampled_ground_truth(core: Core) -> None:
 def check_fp_bound_can_fail(core: Core) -> None:
     """The FP bound is not vacuous: reporting every valid triangle of the two rooms (the box
     hidden behind the wall included) exceeds it."""
-    from visibility.ground_truth import fn_fp_rates, sample_pvs
+    from visibility.ground_truth import fn_fp_rates
 
-    scene, cell, _ = ds.two_rooms_and_a_door()
-    gt = sample_pvs(scene, cell, **REFERENCE)
-    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], gt.triangle_ids)
+    scene, _, _ = ds.two_rooms_and_a_door()
+    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], _reference("two_rooms_and_a_door"))
     assert fp > core.fp_bound, f"fp_bound {core.fp_bound} lets every triangle through ({fp:.3f})"
 
 

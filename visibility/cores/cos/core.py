@@ -17,7 +17,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, checkpoint, param, register
+from visibility.cancel import checkpoint
+from visibility.cores.base import Core, CoreParams, param, register
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views

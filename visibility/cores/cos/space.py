@@ -98,6 +98,23 @@ def bbox(v, r, n):  # pragma: no cover - numba
     return x0, x1, y0, y1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def edges_separate(pv, m, qv, qr, nq, rv, rr):  # pragma: no cover - numba
+    """Whether an edge normal of polygon ``pv`` (m corners) separates the grown occludee
+    (qv, qr, nq) from the grown region (rv, rr, 4 squares)."""
+    for a in range(m):
+        b = (a + 1) % m
+        nx = pv[b, 1] - pv[a, 1]
+        ny = pv[a, 0] - pv[b, 0]
+        if nx == 0.0 and ny == 0.0:
+            continue
+        lq, hq = support(qv, qr, nq, nx, ny)
+        lr, hr = support(rv, rr, 4, nx, ny)
+        if hq < lr or hr < lq:
+            return True
+    return False
+
+
 @njit(cache=True, nogil=True)
 def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     """Whether the grown occludee (hull of squares (qv, qr), n = nq) may meet the grown offset
@@ -108,30 +125,9 @@ def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     rx0, rx1, ry0, ry1 = bbox(rv, rr, 4)
     if qx1 < rx0 or rx1 < qx0 or qy1 < ry0 or ry1 < qy0:
         return False
-    if tri:
-        for e in range(3):
-            a = e
-            b = (e + 1) % 3
-            nx = qv[b, 1] - qv[a, 1]
-            ny = qv[a, 0] - qv[b, 0]
-            if nx == 0.0 and ny == 0.0:
-                continue
-            lq, hq = support(qv, qr, nq, nx, ny)
-            lr, hr = support(rv, rr, 4, nx, ny)
-            if hq < lr or hr < lq:
-                return False
-    for e in range(4):
-        a = e
-        b = (e + 1) % 4
-        nx = rv[b, 1] - rv[a, 1]
-        ny = rv[a, 0] - rv[b, 0]
-        if nx == 0.0 and ny == 0.0:
-            continue
-        lq, hq = support(qv, qr, nq, nx, ny)
-        lr, hr = support(rv, rr, 4, nx, ny)
-        if hq < lr or hr < lq:
-            return False
-    return True
+    if tri and edges_separate(qv, 3, qv, qr, nq, rv, rr):
+        return False
+    return not edges_separate(rv, 4, qv, qr, nq, rv, rr)
 
 
 @njit(cache=True, nogil=True)

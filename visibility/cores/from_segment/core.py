@@ -17,7 +17,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, checkpoint, param, register
+from visibility.cancel import checkpoint
+from visibility.cores.base import Core, CoreParams, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
     DEFAULT_BATCH,

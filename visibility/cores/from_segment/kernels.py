@@ -43,7 +43,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from visibility.cores.base import checkpoint
+from visibility.cancel import checkpoint
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.spheres import sphere_box, sphere_cover, sphere_setup
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
