@@ -41,6 +41,10 @@ library's hard cap (the library itself closes with 1009, before the session sees
 | compute_failed     | no        | -     | the PVS of a cell could not be computed          |
 | over_budget        | no        | -     | a cell's PVS alone exceeds the client's budget   |
 | deadline_exceeded  | no        | -     | past its deadline, or cancelled (HTTP 503)        |
+| over_limit         | no        | -     | estimated cost over a server limit (HTTP 422)    |
+| busy               | no        | -     | the queue is full (HTTP 503, Retry-After)        |
+| too_many_requests  | no        | -     | a client at its cap of computations (HTTP 429)   |
+| shutting_down      | yes       | 1001  | the server is stopping (HTTP 503)                |
 
 "handshake": fatal while the server waits for ``hello``, answered and skipped afterwards. Bad
 messages after ``welcome`` (the non-fatal protocol errors above) count towards the abuse limit.
@@ -79,6 +83,10 @@ class ErrorCode(StrEnum):
     COMPUTE_FAILED = "compute_failed"
     OVER_BUDGET = "over_budget"
     DEADLINE_EXCEEDED = "deadline_exceeded"
+    OVER_LIMIT = "over_limit"
+    BUSY = "busy"
+    TOO_MANY_REQUESTS = "too_many_requests"
+    SHUTTING_DOWN = "shutting_down"
     SLOW_CLIENT = "slow_client"
     TOO_MANY_ERRORS = "too_many_errors"
     # HTTP only.
@@ -125,6 +133,7 @@ FATAL: dict[ErrorCode, CloseCode] = {
     ErrorCode.INTERNAL: CloseCode.INTERNAL_ERROR,
     ErrorCode.SLOW_CLIENT: CloseCode.SLOW_CLIENT,
     ErrorCode.TOO_MANY_ERRORS: CloseCode.POLICY_VIOLATION,
+    ErrorCode.SHUTTING_DOWN: CloseCode.GOING_AWAY,
 }
 
 #: Codes that end the session only during the handshake (before ``welcome``); afterwards the
@@ -150,7 +159,11 @@ HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.BAD_PARAMS: 422,
     ErrorCode.UNSUPPORTED_SCENE: 422,
     ErrorCode.UNSUPPORTED_REGION: 422,
+    ErrorCode.OVER_LIMIT: 422,
+    ErrorCode.TOO_MANY_REQUESTS: 429,
     ErrorCode.DEADLINE_EXCEEDED: 503,
+    ErrorCode.BUSY: 503,
+    ErrorCode.SHUTTING_DOWN: 503,
     ErrorCode.SCENE_LOAD_FAILED: 500,
     ErrorCode.COMPUTE_FAILED: 500,
     ErrorCode.INTERNAL: 500,

@@ -7,6 +7,10 @@ fixture and ``serve`` share it); ``serve(settings)`` runs the server until inter
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
+import socket
 import time
 from collections import Counter
 from collections.abc import AsyncIterator
@@ -18,6 +22,7 @@ import numpy as np
 import uvicorn
 from fastapi import FastAPI
 
+from protocol.codes import ErrorCode
 from protocol.version import PROTOCOL_VERSION
 from server import metrics, routes, ws
 from server.catalog import SceneCatalog
@@ -38,7 +43,13 @@ WS_LIBRARY_MAX_MIN = 1 << 20
 COUNTERS = ("sessions_total", "messages_received", "messages_sent", "text_bytes_sent",
             "errors_sent", "frames_sent", "frame_bytes_sent", "triangles_sent",
             "triangles_dropped", "cells_streamed", "cells_prefetched", "prefetch_yields",
-            "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole", "http_bytes_sent")
+            "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole", "http_bytes_sent",
+            "http_abandoned")
+
+log = logging.getLogger(__name__)
+
+#: Seconds a stopping server waits for its sessions to take their 1001 close.
+CLOSE_SESSIONS_TIMEOUT_S = 2.0
 
 
 @dataclass
@@ -55,11 +66,34 @@ class ServerState:
     started: float = field(default_factory=time.monotonic)
     registry: Any = None
     near_far: NearFarStore | None = None
+    #: True once the server is stopping: computations cancelled then answer shutting_down.
+    stopping: bool = False
     _centroids: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.near_far is None:
             self.near_far = NearFarStore(self.settings.near_far_cache_bytes, self.walker_in)
+        # A computation its last HTTP caller abandoned goes on while a walker wants the cell.
+        self.compute.still_wanted = self.wanted
+
+    async def stop(self) -> None:
+        """Begin stopping: cancel every computation (each stops at its core's next checkpoint)
+        and close every WebSocket session with a ``shutting_down`` error and 1001 (going
+        away), waiting at most ``CLOSE_SESSIONS_TIMEOUT_S``."""
+        if self.stopping:
+            return
+        self.stopping = True
+        n = self.compute.cancel_all("server shutting down")
+        sessions = list(self.sessions.values())
+        log.info("stopping: %d computations cancelled, closing %d sessions", n, len(sessions))
+
+        async def close(s: Any) -> None:
+            with contextlib.suppress(Exception):
+                await s.error(ErrorCode.SHUTTING_DOWN, "the server is shutting down")
+
+        if sessions:
+            await asyncio.wait([asyncio.ensure_future(close(s)) for s in sessions],
+                               timeout=CLOSE_SESSIONS_TIMEOUT_S)
 
     def walker_in(self, scene: str, cell: int) -> bool:
         """Whether a connected walker stands in ``cell`` of ``scene`` now, or in a cell whose
@@ -136,12 +170,37 @@ def uvicorn_config(app: FastAPI, settings: Settings, **overrides: Any) -> uvicor
         ws_ping_interval=settings.ws_ping_interval,
         ws_ping_timeout=settings.ws_ping_interval,
         lifespan="on",
+        timeout_graceful_shutdown=settings.shutdown_grace,
     )
     options.update(overrides)
     return uvicorn.Config(app, **options)
 
 
+class PVSServer(uvicorn.Server):
+    """uvicorn's server, stopping the PVS way on SIGTERM/SIGINT: computations are cancelled
+    and sessions closed with 1001 first (``ServerState.stop``), then uvicorn closes what is
+    left, giving open requests ``settings.shutdown_grace`` seconds."""
+
+    def __init__(self, config: uvicorn.Config, state: ServerState) -> None:
+        super().__init__(config)
+        self.state = state
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        for server in self.servers:
+            server.close()  # no new connections while the sessions close
+        try:
+            await self.state.stop()
+        except Exception:  # stopping must go on whatever a session does
+            log.exception("closing the sessions failed")
+        await super().shutdown(sockets)
+
+
+def make_server(app: FastAPI, settings: Settings, **overrides: Any) -> PVSServer:
+    """The ``PVSServer`` of ``app`` (``uvicorn_config`` options)."""
+    return PVSServer(uvicorn_config(app, settings, **overrides), app.state.server)
+
+
 def serve(settings: Settings | None = None) -> None:
-    """Run the server on ``settings.host:settings.port`` until interrupted (Ctrl-C)."""
+    """Run the server on ``settings.host:settings.port`` until SIGTERM or Ctrl-C."""
     settings = settings or Settings()
-    uvicorn.Server(uvicorn_config(create_app(settings), settings)).run()
+    make_server(create_app(settings), settings).run()

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from pydantic import ConfigDict, TypeAdapter, ValidationError
 
+from server.admission import Admission, Refused
 from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
@@ -33,6 +34,7 @@ from visibility.cores.base import (
     PVS,
     Core,
     CoreParams,
+    Cost,
     get_core,
 )
 from visibility.cores.base import all_fits as registry_fits
@@ -42,9 +44,9 @@ from visibility.viewcells import Viewcell
 
 #: Re-exported: the pool and cache classes lived here before ``server.pool``/``server.cache``.
 __all__ = ["AUTO_CORE", "ByteLRU", "ComputeService", "DiskPVSCache", "PVSCache", "PVSResult",
-           "PriorityWorkerPool", "ThreadWorkerPool", "UnknownCellError", "UnknownCoreError",
-           "UnsupportedSceneError", "WorkerDied", "WorkerPool", "choose_core", "coerce_params",
-           "core_fits", "offered_cores", "pvs_nbytes", "resolve_core"]
+           "PriorityWorkerPool", "Refused", "ThreadWorkerPool", "UnknownCellError",
+           "UnknownCoreError", "UnsupportedSceneError", "WorkerDied", "WorkerPool", "choose_core",
+           "coerce_params", "core_fits", "offered_cores", "pvs_nbytes", "resolve_core"]
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +133,11 @@ class ComputeService:
     ) -> None:
         self.catalog = catalog
         self.settings = settings
-        self.pool = pool or PriorityWorkerPool(settings.workers)
+        self.pool = pool or PriorityWorkerPool(settings.workers, settings.heavy_lane_workers())
+        self.admission = Admission(settings)
+        #: Asked, with a cache key, before a computation nobody waits for any more is
+        #: cancelled: True keeps it (a walker's prefetch list still names the cell).
+        self.still_wanted: Callable[[Hashable], bool] | None = None
         self.cache = PVSCache(settings.cache_bytes)
         self.disk = DiskPVSCache(settings.cache_dir) if settings.cache_dir is not None else None
         #: Called with the seconds of every finished computation (metrics hook).
@@ -141,6 +147,9 @@ class ComputeService:
         self._inflight: dict[Hashable, Future] = {}
         #: The cancellation token of every queued or running computation, by future.
         self._tokens: dict[Future, CancelToken] = {}
+        #: Callers waiting on each queued or running computation (``release``).
+        self._waiters: dict[Future, int] = {}
+        self.abandoned = 0
         self.cancelled = 0
         self.computed = 0
         self.failed = 0
@@ -207,6 +216,7 @@ class ComputeService:
         priority: float = 0.0,
         wanted: Callable[[], bool] | None = None,
         deadline: float | None = None,
+        client: Hashable | None = None,
     ) -> Future:
         """A future of the ``PVSResult`` for a grid cell (``cell``), an ad-hoc ``box`` (2, 3) or
         a ``segment`` (2, 3) [p, q] (metres; ``Core.compute_segment``, exact for cores that
@@ -217,6 +227,14 @@ class ComputeService:
         it (the future is then cancelled). Joining an in-flight job with a lower priority
         promotes it. ``deadline``: seconds this computation may take from now, capped by
         ``settings.compute_deadline``; past it the future raises ``ComputationCancelled``.
+
+        Admission (``server.admission``) applies to new computations only (a cached answer or
+        an identical computation under way is always given): ``OverLimit`` when the core's
+        estimate exceeds ``max_compute_bytes`` or the deadline; ``TooManyInFlight`` when
+        ``client`` (an HTTP client's address; None: not counted) is at its cap; ``Busy`` when
+        the queue is full, except for a walker's current cell (priority 0 without ``client``).
+        Every caller that gets a future without ``wanted`` should ``release`` it when it stops
+        waiting before it is done: the last one to go cancels the computation.
         Raises UnknownSceneError at once for names outside the catalogue; the future raises
         UnknownCellError, UnsupportedSceneError, SceneLoadFailed or the core's errors.
         """
@@ -243,14 +261,23 @@ class ComputeService:
                 fut = None
             if pvs is None and fut is None:
                 limit = self.settings.compute_deadline
-                token = CancelToken.after(limit if deadline is None else min(limit, deadline))
-                args = (self._run, key, scene, core, params, cell, box, segment, token)
+                budget = limit if deadline is None else min(limit, deadline)
+                cost = self._admit(scene, core, params, cell, box, budget, priority, client)
+                token = CancelToken.after(budget)
+                model = float(cost.detail.get("model_seconds", cost.seconds))
+                args = (self._run, key, scene, core, params, cell, box, segment, token, model)
                 if isinstance(self.pool, PriorityWorkerPool):
-                    fut = self.pool.submit(*args, priority=priority, wanted=wanted)
+                    fut = self.pool.submit(
+                        *args, priority=priority, wanted=wanted, seconds=cost.seconds,
+                        heavy=cost.seconds > self.settings.heavy_seconds)
                 else:
                     fut = self.pool.submit(*args)
+                if client is not None:
+                    fut.add_done_callback(lambda f, c=client: self.admission.release(c))
                 if not fut.done():
                     self._tokens[fut] = token
+                    if wanted is None:
+                        self._waiters[fut] = 1
                     # Forgotten only when the caller's future is done: a job retried after its
                     # worker died keeps this future, so identical requests keep joining it.
                     self._inflight[key] = fut
@@ -258,8 +285,10 @@ class ComputeService:
                 return fut
             if fut is not None:
                 self.shared += 1
-                if wanted is None and isinstance(self.pool, PriorityWorkerPool):
-                    self.pool.promote(fut, priority)
+                if wanted is None:
+                    self._waiters[fut] = self._waiters.get(fut, 0) + 1
+                    if isinstance(self.pool, PriorityWorkerPool):
+                        self.pool.promote(fut, priority)
                 return fut
         done: Future = Future()
         ready_box = box if box is not None else self._cell_box(scene, int(cell))
@@ -274,20 +303,79 @@ class ComputeService:
         cell: int | None = None,
         box: np.ndarray | None = None,
         segment: np.ndarray | None = None,
+        *,
+        deadline: float | None = None,
+        client: Hashable | None = None,
     ) -> PVSResult:
-        """``submit`` awaited from the event loop. Cancelling the caller does not cancel the
-        computation (another request may share it; its result lands in the cache)."""
-        fut = self.submit(scene, core, params, cell, box, segment=segment)
+        """``submit`` awaited from the event loop. When the caller is cancelled (its client
+        left) the computation is cancelled too, unless another request shares it or a walker
+        still wants the cell (``release``)."""
+        fut = self.submit(scene, core, params, cell, box, segment=segment, deadline=deadline,
+                          client=client)
         inner = asyncio.wrap_future(fut)
         # When the caller is gone, retrieve the outcome anyway so asyncio does not log it.
         inner.add_done_callback(lambda f: f.cancelled() or f.exception())
-        return await asyncio.shield(inner)
+        try:
+            return await asyncio.shield(inner)
+        except asyncio.CancelledError:
+            self.release(fut)
+            raise
+
+    def release(self, fut: Future, reason: str = "no client wants the result") -> bool:
+        """The caller of ``submit`` stops waiting for ``fut``. When it was the last caller and
+        no walker wants the result any more (``still_wanted``), the computation is cancelled:
+        unstarted, it never runs; running, it stops at its core's next checkpoint. True when
+        it was cancelled."""
+        with self._lock:
+            n = self._waiters.get(fut)
+            if n is None:
+                return False
+            if n > 1:
+                self._waiters[fut] = n - 1
+                return False
+            del self._waiters[fut]
+            if fut.done():
+                return False
+            key = next((k for k, f in self._inflight.items() if f is fut), None)
+            token = self._tokens.get(fut)
+        if key is not None and self.still_wanted is not None and self.still_wanted(key):
+            return False
+        with self._lock:
+            self.abandoned += 1
+        log.info("PVS %s: cancelled, %s", key, reason)
+        if not fut.cancel() and token is not None:
+            token.cancel(reason)
+        return True
+
+    def _admit(self, scene: str, core: Core, params: CoreParams, cell: int | None,
+               box: np.ndarray | None, deadline: float, priority: float,
+               client: Hashable | None) -> Cost:
+        """The cost estimate of a new computation, after the admission checks
+        (``server.admission``; raises its ``Refused`` errors). Called with the lock held."""
+        adm = self.admission
+        cost = Cost(0.0, 0)
+        if self.catalog.is_loaded(scene):
+            loaded = self.catalog.get(scene)
+            try:
+                viewcell = loaded.grid.cell(cell) if cell is not None else Viewcell(box)
+            except IndexError:
+                viewcell = None  # _run answers unknown_cell
+            if viewcell is not None:
+                cost = adm.estimate(core, loaded.scene, viewcell, params, scene)
+        adm.check_limits(cost, deadline, core.name)
+        pool = self.pool if isinstance(self.pool, PriorityWorkerPool) else None
+        ahead = pool.queued_seconds() if pool is not None else 0.0
+        if pool is not None and (priority > 0 or client is not None):
+            adm.check_queue(pool.queued(), ahead)
+        adm.acquire(client, ahead)
+        return cost
 
     def _forget(self, key: Hashable, fut: Future) -> None:
         with self._lock:
             if self._inflight.get(key) is fut:
                 del self._inflight[key]
             self._tokens.pop(fut, None)
+            self._waiters.pop(fut, None)
 
     def cancel_all(self, reason: str = "server shutting down") -> int:
         """Cancel every queued and running computation (each stops at its core's next
@@ -316,6 +404,7 @@ class ComputeService:
         box: np.ndarray | None,
         segment: np.ndarray | None = None,
         token: CancelToken | None = None,
+        model_seconds: float = 0.0,
     ) -> PVSResult:
         try:
             loaded = self.catalog.get(scene)
@@ -346,6 +435,7 @@ class ComputeService:
             else:
                 pvs = core.compute(loaded.scene, viewcell, params, token=token)
             seconds = time.perf_counter() - t0
+            self.admission.observe(scene, core.name, model_seconds, seconds)
             log.debug("PVS %s cell=%s core=%s: %d triangles in %.3f s", scene, cell, core.name,
                       len(pvs), seconds)
             self.cache.put(key, pvs)
@@ -373,12 +463,16 @@ class ComputeService:
         with self._lock:
             inflight = len(self._inflight)
         out = {"cache": self.cache.stats(), "computed": self.computed, "failed": self.failed,
-               "cancelled": self.cancelled,
+               "cancelled": self.cancelled, "abandoned": self.abandoned,
                "shared": self.shared, "inflight": inflight,
-               "workers": getattr(self.pool, "workers", None)}
+               "workers": getattr(self.pool, "workers", None),
+               "admission": self.admission.stats()}
         if isinstance(self.pool, PriorityWorkerPool):
             out["pool"] = {"retried": self.pool.retried, "replaced": self.pool.replaced,
-                           "skipped": self.pool.skipped, "queued": self.pool.queued()}
+                           "skipped": self.pool.skipped, "queued": self.pool.queued(),
+                           "queued_seconds": round(self.pool.queued_seconds(), 3),
+                           "heavy_running": self.pool.heavy_running(),
+                           "heavy_workers": self.pool.heavy_workers}
         if self.disk is not None:
             out["disk"] = self.disk.stats()
         return out

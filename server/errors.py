@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from protocol.codes import HTTP_STATUS, ErrorCode
+from server.admission import Busy, OverLimit, Refused, TooManyInFlight
 from server.catalog import SceneLoadFailed, UnknownSceneError
 from server.compute import UnknownCellError, UnknownCoreError, UnsupportedSceneError
 from visibility.cancel import ComputationCancelled
@@ -26,6 +27,9 @@ _CODES: tuple[tuple[type[BaseException], ErrorCode], ...] = (
     (SegmentNotSupported, ErrorCode.UNSUPPORTED_REGION),
     (SceneLoadFailed, ErrorCode.SCENE_LOAD_FAILED),
     (ComputationCancelled, ErrorCode.DEADLINE_EXCEEDED),
+    (OverLimit, ErrorCode.OVER_LIMIT),
+    (TooManyInFlight, ErrorCode.TOO_MANY_REQUESTS),
+    (Busy, ErrorCode.BUSY),
 )
 
 
@@ -75,23 +79,35 @@ _FRAMEWORK_CODES = frozenset({ErrorCode.BAD_REQUEST, ErrorCode.NOT_FOUND,
 
 
 class ApiError(Exception):
-    """An error answered as ``error_body(code, message)`` with HTTP ``status``."""
+    """An error answered as ``error_body(code, message, **extra)`` with HTTP ``status`` and
+    ``headers`` (``Retry-After`` of a refusal)."""
 
-    def __init__(self, status: int, code: ErrorCode, message: str) -> None:
+    def __init__(self, status: int, code: ErrorCode, message: str,
+                 headers: dict[str, str] | None = None, **extra: Any) -> None:
         super().__init__(message)
         self.status = status
         self.code = code
         self.message = message
+        self.headers = headers or {}
+        self.extra = extra
 
     @classmethod
-    def coded(cls, code: ErrorCode, message: str) -> ApiError:
+    def coded(cls, code: ErrorCode, message: str, headers: dict[str, str] | None = None,
+              **extra: Any) -> ApiError:
         """The error for ``code``, with its ``HTTP_STATUS``."""
-        return cls(HTTP_STATUS[code], code, message)
+        return cls(HTTP_STATUS[code], code, message, headers, **extra)
 
     @classmethod
     def of(cls, exc: BaseException, *, params: bool = False) -> ApiError | None:
-        """The error for a known failure (``error_code``), else None."""
+        """The error for a known failure (``error_code``), else None. An admission refusal
+        carries its limit in the body and ``Retry-After`` when retrying can help."""
         if isinstance(exc, ApiError):
             return exc
         code = error_code(exc, params=params)
-        return None if code is None else cls.coded(code, error_message(exc))
+        if code is None:
+            return None
+        if isinstance(exc, Refused):
+            headers = ({} if exc.retry_after is None
+                       else {"Retry-After": str(int(exc.retry_after))})
+            return cls.coded(code, error_message(exc), headers, **exc.detail)
+        return cls.coded(code, error_message(exc))

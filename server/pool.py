@@ -60,10 +60,17 @@ class _Job:
     wanted: Callable[[], bool] | None = None
     attempts: int = 0
     started: bool = False
+    #: Estimated seconds (shortest first within a priority) and the lane.
+    seconds: float = 0.0
+    heavy: bool = False
 
 
 class PriorityWorkerPool:
-    """``workers`` threads taking jobs lowest ``priority`` first (FIFO among equals).
+    """``workers`` threads taking jobs lowest ``priority`` first, then shortest estimated
+    ``seconds`` first (FIFO among equals).
+
+    Two lanes: ``heavy`` jobs may occupy at most ``heavy_workers`` threads at once (default:
+    all), so with fewer heavy workers than workers a light job always finds one free.
 
     A job whose ``wanted()`` says False when a worker picks it is cancelled unrun (prefetch work
     no walker is heading for any more); ``promote`` moves a queued job forward. A job's
@@ -72,10 +79,12 @@ class PriorityWorkerPool:
     (see the module docstring). ``retried``, ``replaced`` and ``skipped`` count those events.
     """
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, heavy_workers: int | None = None) -> None:
         self.workers = int(workers)
+        self.heavy_workers = self.workers if heavy_workers is None else max(1, int(heavy_workers))
+        self._heavy_running = 0
         self._cv = threading.Condition()
-        self._heap: list[tuple[float, int, _Job]] = []
+        self._heap: list[tuple[float, float, int, _Job]] = []
         self._count = 0
         self._stop = False
         self.retried = 0
@@ -92,10 +101,14 @@ class PriorityWorkerPool:
         t.start()
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, priority: float = 0.0,
-               wanted: Callable[[], bool] | None = None) -> Future:
-        """Queue ``fn(*args)``; its future (``job`` attribute: the handle for ``promote``)."""
+               wanted: Callable[[], bool] | None = None, seconds: float = 0.0,
+               heavy: bool = False) -> Future:
+        """Queue ``fn(*args)``; its future (``job`` attribute: the handle for ``promote``).
+        ``seconds``: its estimated run time (shortest first within a priority); ``heavy``: it
+        runs in the heavy lane."""
         fut: Future = Future()
-        job = _Job(fn, args, fut, float(priority), wanted)
+        job = _Job(fn, args, fut, float(priority), wanted, seconds=float(seconds),
+                   heavy=bool(heavy))
         fut.job = job  # type: ignore[attr-defined]
         self._push(job)
         return fut
@@ -105,7 +118,7 @@ class PriorityWorkerPool:
             if self._stop:
                 job.future.cancel()
                 return
-            heapq.heappush(self._heap, (job.priority, self._count, job))
+            heapq.heappush(self._heap, (job.priority, job.seconds, self._count, job))
             self._count += 1
             self._cv.notify()
 
@@ -121,14 +134,29 @@ class PriorityWorkerPool:
             job.priority = priority
             # The old heap entry stays; whichever entry comes first runs the job, the other is
             # skipped because the job has started.
-            heapq.heappush(self._heap, (priority, self._count, job))
+            heapq.heappush(self._heap, (priority, job.seconds, self._count, job))
             self._count += 1
             self._cv.notify()
+
+    def _waiting(self) -> list[_Job]:
+        # Unique jobs still waiting (a promoted job has two heap entries).
+        return list({id(j): j for *_, j in self._heap
+                     if not j.started and not j.future.done()}.values())
 
     def queued(self) -> int:
         """Jobs waiting for a worker."""
         with self._cv:
-            return sum(1 for _, _, j in self._heap if not j.started)
+            return len(self._waiting())
+
+    def queued_seconds(self) -> float:
+        """The estimated seconds of the jobs waiting for a worker, summed."""
+        with self._cv:
+            return float(sum(j.seconds for j in self._waiting()))
+
+    def heavy_running(self) -> int:
+        """Heavy-lane jobs running now."""
+        with self._cv:
+            return self._heavy_running
 
     def _next(self) -> _Job | None:
         with self._cv:
@@ -137,15 +165,44 @@ class PriorityWorkerPool:
                     self._cv.wait()
                 if self._stop:
                     return None
-                _, _, job = heapq.heappop(self._heap)
-                if job.started or job.future.done():
-                    continue
-                if job.wanted is not None and not job.wanted():
-                    self.skipped += 1
-                    job.future.cancel()
+                job = self._pop_runnable()
+                if job is None:
+                    # Only heavy jobs wait and their lane is full: a heavy job's end wakes us.
+                    self._cv.wait()
                     continue
                 job.started = True
+                if job.heavy:
+                    self._heavy_running += 1
                 return job
+
+    def _pop_runnable(self) -> _Job | None:
+        """The first queued job a worker may start (its lane has room); unwanted jobs met on
+        the way are cancelled. Called with the lock held."""
+        blocked = []
+        found = None
+        while self._heap:
+            entry = heapq.heappop(self._heap)
+            job = entry[-1]
+            if job.started or job.future.done():
+                continue
+            if job.heavy and self._heavy_running >= self.heavy_workers:
+                blocked.append(entry)
+                continue
+            if job.wanted is not None and not job.wanted():
+                self.skipped += 1
+                job.future.cancel()
+                continue
+            found = job
+            break
+        for entry in blocked:
+            heapq.heappush(self._heap, entry)
+        return found
+
+    def _finished(self, job: _Job) -> None:
+        if job.heavy:
+            with self._cv:
+                self._heavy_running -= 1
+                self._cv.notify_all()
 
     def _worker(self) -> None:
         while True:
@@ -153,12 +210,15 @@ class PriorityWorkerPool:
             if job is None:
                 return
             if not job.future.set_running_or_notify_cancel():
+                self._finished(job)
                 continue
             try:
                 result = job.fn(*job.args)
             except Exception as exc:  # the job's answer: a deterministic failure stays one
+                self._finished(job)
                 job.future.set_exception(exc)
             except BaseException as exc:
+                self._finished(job)
                 # The worker is dead: a fresh one takes its place, the job gets one more go.
                 log.error("worker %s died (%r); replacing it", threading.current_thread().name,
                           exc)
@@ -170,6 +230,7 @@ class PriorityWorkerPool:
                     job.future.set_exception(RuntimeError(f"worker died: {exc!r}"))
                 return
             else:
+                self._finished(job)
                 job.future.set_result(result)
 
     def _retry(self, job: _Job, exc: BaseException) -> bool:
@@ -181,7 +242,7 @@ class PriorityWorkerPool:
                     getattr(job.fn, "__name__", job.fn), exc)
         # The caller's future stays the one it holds: the retry's outcome is chained into it.
         retry = _Job(job.fn, job.args, _ChainedFuture(job.future), job.priority, None,
-                     job.attempts + 1)
+                     job.attempts + 1, seconds=job.seconds, heavy=job.heavy)
         self._push(retry)
         return True
 
@@ -190,7 +251,7 @@ class PriorityWorkerPool:
         with self._cv:
             self._stop = True
             if cancel_futures:
-                for _, _, job in self._heap:
+                for *_, job in self._heap:
                     if not job.started:
                         job.future.cancel()
                 self._heap.clear()

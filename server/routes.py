@@ -31,9 +31,11 @@ big answer never delays other sessions' frames.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import math
 import time
+from collections.abc import Awaitable
 from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
@@ -50,6 +52,7 @@ from server.catalog import LoadedScene
 from server.compute import AUTO_CORE, PVSResult, choose_core, core_fits
 from server.errors import ApiError, code_for_status, error_body, error_message
 from server.negotiation import choose_media_type
+from visibility.cancel import ComputationCancelled
 from visibility.cores.base import available_cores, get_core
 
 if TYPE_CHECKING:
@@ -167,6 +170,44 @@ async def _resolve(request: Request, scene: str, core_name: str | None,
     return loaded, core, core_params, why
 
 
+#: Seconds between checks, while a PVS is computed, that the HTTP client is still there.
+DISCONNECT_POLL_S = 0.25
+
+
+def client_of(request: Request) -> str:
+    """Who an HTTP request counts against for ``max_inflight_per_client``: its peer address
+    (behind a proxy, uvicorn's ``--forwarded-allow-ips`` makes it the forwarded one)."""
+    return f"http:{request.client.host if request.client else '?'}"
+
+
+async def _unless_gone(request: Request, work: Awaitable[Any]) -> Any:
+    """Await ``work``; when the HTTP client disconnects first, cancel it (the computation is
+    then cancelled unless another request or walker wants it: ``ComputeService.release``)
+    and raise ``ClientGone``."""
+    task = asyncio.ensure_future(work)
+    try:
+        while True:
+            done, _ = await asyncio.wait({task}, timeout=DISCONNECT_POLL_S)
+            if done:
+                return task.result()
+            if await request.is_disconnected():
+                raise ClientGone
+    finally:
+        if not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
+
+#: The status logged for a request whose client left before the answer (nginx's 499; no
+#: client receives it).
+CLIENT_CLOSED_REQUEST = 499
+
+
+class ClientGone(Exception):
+    """The HTTP client left before its answer was ready (nobody to answer)."""
+
+
 def _header_text(text: str) -> str:
     """``text`` as a header value (latin-1 only, one line)."""
     return " ".join(text.encode("ascii", "replace").decode().split())
@@ -180,6 +221,7 @@ async def _pvs(
     cell: int | None = None,
     box: np.ndarray | None = None,
     segment: np.ndarray | None = None,
+    deadline: float | None = None,
 ) -> Response:
     compute = _state(request).compute
     # Negotiated first: a request no answer form satisfies costs no computation.
@@ -191,9 +233,16 @@ async def _pvs(
     if box is not None or segment is not None:
         _check_region(loaded, box if segment is None else segment)
     try:
-        result: PVSResult = await compute.compute(scene, core, core_params, cell=cell, box=box,
-                                                  segment=segment)
+        result: PVSResult = await _unless_gone(request, compute.compute(
+            scene, core, core_params, cell=cell, box=box, segment=segment, deadline=deadline,
+            client=client_of(request)))
+    except ClientGone:
+        _state(request).counters["http_abandoned"] += 1
+        return Response(status_code=CLIENT_CLOSED_REQUEST)
     except Exception as exc:
+        if isinstance(exc, ComputationCancelled) and _state(request).stopping:
+            raise ApiError.coded(ErrorCode.SHUTTING_DOWN, "the server is shutting down; "
+                                 "retry on another server or later") from None
         api = ApiError.of(exc)
         if api is None:
             raise ApiError.coded(ErrorCode.COMPUTE_FAILED, "PVS computation failed: "
@@ -363,13 +412,21 @@ async def list_cores(
                     media_type=JSON_MEDIA_TYPE)
 
 
+DEADLINE_HELP = ("seconds the computation may take, queueing included (capped by the "
+                 "server's compute_deadline); past it: 503 deadline_exceeded")
+
 _PVS_ERRORS = dict(
     e404="unknown scene, cell or core (unknown_scene, unknown_cell, unknown_core)",
     e406="no answer form the Accept header allows (not_acceptable)",
     e422="bad parameters (validation, bad_params), a core that does not fit the scene "
-         "(unsupported_scene)",
+         "(unsupported_scene), a computation estimated over a server limit (over_limit: the "
+         "body names the limit, its value and the estimate)",
+    e429="this client already has max_inflight_per_client computations in flight "
+         "(too_many_requests; Retry-After)",
     e500="the scene failed to load or the computation failed (scene_load_failed, "
          "compute_failed)",
+    e503="the queue is full (busy; Retry-After), the deadline passed (deadline_exceeded) or "
+         "the server is stopping (shutting_down)",
 )
 
 
@@ -408,6 +465,7 @@ async def cell_pvs(
     cell: int,
     core: Annotated[str | None, Query(description=f"a core of GET /cores, or {AUTO_CORE!r}: "
                                       "chosen for the scene")] = None,
+    deadline: Annotated[float | None, Query(gt=0, le=86400, description=DEADLINE_HELP)] = None,
 ) -> Any:
     """The PVS of grid cell ``cell`` (404 ``unknown_cell`` outside the grid). ``core=auto``
     picks a core for the scene (``chosen_because`` says why). ``granularity``: ``triangle`` or
@@ -416,8 +474,8 @@ async def cell_pvs(
     ``resolution=64&samples=8``), converted to the core's types. ``Accept:
     application/octet-stream`` answers packed int32 ids, ``application/vnd.pvs.geometry``
     geometry frames."""
-    params = {k: v for k, v in request.query_params.items() if k != "core"}
-    return await _pvs(request, scene, core, params, cell=cell)
+    params = {k: v for k, v in request.query_params.items() if k not in ("core", "deadline")}
+    return await _pvs(request, scene, core, params, cell=cell, deadline=deadline)
 
 
 @router.post("/scenes/{scene}/pvs", summary="PVS of an ad-hoc box or segment",
@@ -430,7 +488,10 @@ async def cell_pvs(
                     "core that does not fit the scene (unsupported_scene), a region far "
                     "outside the scene or a diagonal segment for a box-only core "
                     "(unsupported_region)"})})
-async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
+async def box_pvs(
+    request: Request, scene: str, body: BoxPvsRequest,
+    deadline: Annotated[float | None, Query(gt=0, le=86400, description=DEADLINE_HELP)] = None,
+) -> Any:
     """The PVS of an arbitrary region: exactly one of ``{"box": [min, max]}`` and
     ``{"segment": [p, q]}`` (metres; ``cell`` is null in the answer, ``box`` is the region's
     bounding box). Cores with ``native_segments`` (``GET /cores``) answer
@@ -439,9 +500,10 @@ async def box_pvs(request: Request, scene: str, body: BoxPvsRequest) -> Any:
     included). Binary answers as for the cell route."""
     if body.segment is not None:
         seg = np.asarray(body.segment, dtype=np.float64)
-        return await _pvs(request, scene, body.core, dict(body.params), segment=seg)
+        return await _pvs(request, scene, body.core, dict(body.params), segment=seg,
+                          deadline=deadline)
     box = np.asarray(body.box, dtype=np.float64)
-    return await _pvs(request, scene, body.core, dict(body.params), box=box)
+    return await _pvs(request, scene, body.core, dict(body.params), box=box, deadline=deadline)
 
 
 # --------------------------------------------------------------------------- error handlers
@@ -450,7 +512,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return error_response(exc.status, exc.code, exc.message)
+        response = error_response(exc.status, exc.code, exc.message, **jsonable(exc.extra))
+        response.headers.update(exc.headers)
+        return response
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:

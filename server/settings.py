@@ -72,6 +72,20 @@ class Settings(BaseModel):
     compute_deadline : seconds any one PVS computation may take, queueing included; a request
         may ask for less, never more. Past it the computation stops at the core's next
         checkpoint and its requests fail with ``deadline_exceeded``.
+    max_compute_bytes : the most scratch memory one computation may be estimated to need
+        (``Core.estimate_cost``), bytes; above it the request is refused (``over_limit``, 422).
+    refuse_over_deadline : a request estimated to take more than this many times its deadline
+        is refused the same way (the estimates are good to a factor of 2 to 3, so the default
+        of 3 refuses what would almost surely be cancelled anyway).
+    max_queued : computations that may wait for a worker; past it new requests are refused
+        (``busy``, 503 with Retry-After). A walker's current cell is never refused for it.
+    max_inflight_per_client : computations one HTTP client (by address) may have running or
+        waiting at once (``too_many_requests``, 429 with Retry-After).
+    heavy_seconds : computations estimated above this many seconds run in the heavy lane.
+    heavy_workers : workers the heavy lane may occupy at once (None: all but one, so a cheap
+        request always finds a worker; with one worker, that one).
+    shutdown_grace : seconds a stopping server gives open requests after it has cancelled their
+        computations and closed the WebSocket sessions (1001), before it cancels them.
     log_level : uvicorn's log level.
     """
 
@@ -105,6 +119,13 @@ class Settings(BaseModel):
     ws_deflate: bool = False
     ws_ping_interval: float | None = Field(20.0, gt=0)
     compute_deadline: float = Field(300.0, gt=0, le=86400, allow_inf_nan=False)
+    max_compute_bytes: int = Field(4 << 30, ge=1 << 20)
+    refuse_over_deadline: float = Field(3.0, ge=1.0, allow_inf_nan=False)
+    max_queued: int = Field(64, ge=1, le=1 << 20)
+    max_inflight_per_client: int = Field(4, ge=1, le=1 << 16)
+    heavy_seconds: float = Field(2.0, gt=0, allow_inf_nan=False)
+    heavy_workers: int | None = Field(None, ge=1, le=256)
+    shutdown_grace: float = Field(3.0, gt=0, le=600, allow_inf_nan=False)
     log_level: str = "info"
 
     @field_validator("generated")
@@ -122,6 +143,12 @@ class Settings(BaseModel):
         self.near_far_config()
         return self
 
+    def heavy_lane_workers(self) -> int:
+        """Workers the heavy lane may occupy at once (``heavy_workers``, default all but one)."""
+        if self.heavy_workers is not None:
+            return min(self.heavy_workers, self.workers)
+        return max(1, self.workers - 1)
+
     def near_far_config(self) -> NearFarConfig:
         """The ``NearFarConfig`` of these settings (ValueError when it is not a valid one)."""
         return NearFarConfig(r1=self.near_far_r1, r2=self.near_far_r2,
@@ -138,7 +165,9 @@ class Settings(BaseModel):
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
-        disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE,
+        disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE, PVS_MAX_COMPUTE_BYTES, PVS_MAX_QUEUED,
+        PVS_REFUSE_OVER_DEADLINE,
+        PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -160,6 +189,11 @@ class Settings(BaseModel):
             "near_far_block": "PVS_NEAR_FAR_BLOCK",
             "max_body_bytes": "PVS_MAX_BODY_BYTES",
             "log_level": "PVS_LOG_LEVEL", "compute_deadline": "PVS_COMPUTE_DEADLINE",
+            "max_compute_bytes": "PVS_MAX_COMPUTE_BYTES", "max_queued": "PVS_MAX_QUEUED",
+            "refuse_over_deadline": "PVS_REFUSE_OVER_DEADLINE",
+            "max_inflight_per_client": "PVS_MAX_INFLIGHT_PER_CLIENT",
+            "heavy_seconds": "PVS_HEAVY_SECONDS", "heavy_workers": "PVS_HEAVY_WORKERS",
+            "shutdown_grace": "PVS_SHUTDOWN_GRACE",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":

@@ -204,17 +204,14 @@ class LiveServer:
     """uvicorn serving ``app`` on 127.0.0.1 in a daemon thread."""
 
     def __init__(self, app, settings) -> None:
-        import uvicorn
-
-        from server.app import uvicorn_config
+        from server.app import make_server
 
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
-        config = uvicorn_config(app, settings, host="127.0.0.1", port=self.port)
-        self.server = uvicorn.Server(config)
+        self.server = make_server(app, settings, host="127.0.0.1", port=self.port)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
                                        name="live-uvicorn", daemon=True)
 

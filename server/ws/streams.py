@@ -19,11 +19,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol.codes import ErrorCode
+from protocol.codes import ErrorCode, is_fatal
 from protocol.frames import chunk_count, encode_geometry, triangles_per_frame
 from protocol.messages import CellBegin, CellEnd, Drop, Error
-from server.catalog import SceneLoadFailed
-from server.compute import PVSResult, UnsupportedSceneError
+from server.admission import Refused
+from server.compute import PVSResult
+from server.errors import error_code, error_message
 from server.sendqueue import StreamTag
 from server.ws.transport import SessionOver
 from visibility.cores.base import PVS
@@ -112,37 +113,52 @@ class Streamer:
             cf = compute.submit(name, s.core, s.params, cell=cell,
                                 priority=(1.0 + rank) if prefetch else 0.0,
                                 wanted=(lambda: s.state.wanted(key)) if prefetch else None)
-        except LookupError as exc:
-            await self._job_failed(cell, prefetch, str(exc), seq)
+        except (LookupError, Refused) as exc:
+            # Refused: over a server limit (the walker's cell) or a full queue (prefetch only).
+            await self._job_failed(cell, prefetch, error_message(exc), seq, error_code(exc))
             return None
         fut = asyncio.wrap_future(cf)
         fut.add_done_callback(lambda f: f.cancelled() or f.exception())
         job = (cell, prefetch)
-        while not fut.done():
-            s.wake.clear()
-            waker = asyncio.ensure_future(s.wake.wait())
-            await asyncio.wait({fut, waker}, return_when=asyncio.FIRST_COMPLETED)
-            waker.cancel()
-            nxt = self.next_job()
-            if not fut.done() and (nxt is None or nxt[:2] != job):
-                return None
+        try:
+            while not fut.done():
+                s.wake.clear()
+                waker = asyncio.ensure_future(s.wake.wait())
+                await asyncio.wait({fut, waker}, return_when=asyncio.FIRST_COMPLETED)
+                waker.cancel()
+                nxt = self.next_job()
+                if not fut.done() and (nxt is None or nxt[:2] != job):
+                    # Superseded: the walker moved on. The computation goes on only if some
+                    # walker still wants the cell (prefetch lists); else it is cancelled.
+                    if not prefetch:
+                        compute.release(cf, "the walker moved on")
+                    return None
+        except asyncio.CancelledError:
+            if not prefetch:
+                compute.release(cf, "the walker left")
+            raise
         if fut.cancelled():
             return None
         exc = fut.exception()
         if exc is None:
             return fut.result()
-        if isinstance(exc, (UnsupportedSceneError, LookupError, SceneLoadFailed)):
-            msg = str(exc)
+        code = error_code(exc)
+        if code is not None:
+            msg = error_message(exc)
         else:
             log.error("session %s: PVS of %s cell %d failed: %r", s.id, name, cell, exc)
             msg = f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}"
-        await self._job_failed(cell, prefetch, msg, seq)
+        await self._job_failed(cell, prefetch, msg, seq, code)
         return None
 
-    async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None) -> None:
+    async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None,
+                          code: ErrorCode | None = None) -> None:
         self.s.skip.add(cell)
         if not prefetch:
-            await self.s.error(ErrorCode.COMPUTE_FAILED, msg, seq)
+            if code is None or is_fatal(code):
+                # The session goes on with its other cells: a failed cell is never fatal.
+                code = ErrorCode.COMPUTE_FAILED
+            await self.s.error(code, msg, seq)
 
     # ----------------------------------------------------------------------------- budget
     async def _over_budget(self, message: str, seq: int, stream: StreamTag | None) -> None:

@@ -20,7 +20,9 @@ SLOW = {"resolution": 1024, "eye_levels": 3}
 
 @pytest.fixture(scope="module")
 def service():
-    settings = Settings(generated={"village": 20_000}, compute_deadline=60.0, workers=2)
+    # Admission would refuse what cannot finish in time: these tests need it to start.
+    settings = Settings(generated={"village": 20_000}, compute_deadline=60.0, workers=2,
+                        refuse_over_deadline=1e6)
     svc = ComputeService(SceneCatalog(settings), settings)
     yield svc
     svc.shutdown()
@@ -45,7 +47,8 @@ def test_a_request_deadline_stops_a_real_core_and_frees_the_worker(service):
 
 
 def test_the_setting_caps_what_a_request_asks_for():
-    settings = Settings(generated={"village": 20_000}, compute_deadline=0.5, workers=1)
+    settings = Settings(generated={"village": 20_000}, compute_deadline=0.5, workers=1,
+                        refuse_over_deadline=1e6)
     svc = ComputeService(SceneCatalog(settings), settings)
     try:
         core = get_core("from_segment")

@@ -303,9 +303,10 @@ def test_openapi_documents_every_status(http):
     assert statuses("/scenes/{scene}") == statuses("/scenes/{scene}/cells") == {
         "200", "404", "500"}
     assert statuses("/cores") == {"200", "404", "500"}
-    assert statuses("/scenes/{scene}/cells/{cell}/pvs") == {"200", "404", "406", "422", "500"}
+    assert statuses("/scenes/{scene}/cells/{cell}/pvs") == {
+        "200", "404", "406", "422", "429", "500", "503"}
     assert statuses("/scenes/{scene}/pvs", "post") == {
-        "200", "400", "404", "406", "413", "422", "500"}
+        "200", "400", "404", "406", "413", "422", "429", "500", "503"}
     error = paths["/scenes/{scene}"]["get"]["responses"]["404"]["content"]["application/json"]
     assert error["schema"]["$ref"].endswith("/ErrorResponse")
     assert "HTTPValidationError" not in json.dumps(paths)

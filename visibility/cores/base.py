@@ -223,6 +223,25 @@ class Fit:
     why: str
 
 
+@dataclass(frozen=True)
+class Cost:
+    """What one computation is expected to take, for admission control.
+
+    ``seconds``: wall time on one worker of the 2-core development machine (expect a factor of 2
+    to 3 either way elsewhere: ``benchmarks/bench_admission.py`` prints estimate against
+    measurement); ``peak_bytes``: scratch memory beyond the loaded scene, bytes; ``detail``:
+    the quantities the estimate was made from (views, pixels, triangles...), for error answers.
+    """
+
+    seconds: float
+    peak_bytes: int
+    detail: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"seconds": float(self.seconds), "peak_bytes": int(self.peak_bytes),
+                **self.detail}
+
+
 # --------------------------------------------------------------------------- the core
 class Core(ABC):
     """A from-region visibility algorithm.
@@ -310,6 +329,17 @@ class Core(ABC):
             return Fit(True, float(score), why)
         except Exception as exc:  # a core's own check must not take a request down
             return Fit(False, 0.0, f"fit check failed: {type(exc).__name__}: {exc}")
+
+    def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
+        """The expected time and scratch memory of ``compute(scene, cell, params)`` (``Cost``),
+        from the scene's size and the parameters only: cheap, never runs the core. This
+        default prices one cubemap of ``params.resolution`` px faces rendered over every
+        triangle (``visibility.ground_truth.estimate_sampling_cost`` with one viewpoint); cores
+        override it with their own structure (views, segments, lists)."""
+        from visibility.ground_truth import estimate_sampling_cost
+
+        seconds, peak = estimate_sampling_cost(scene.n_triangles, params.resolution, 1)
+        return Cost(seconds, peak, {"views": 1, "triangles": scene.n_triangles})
 
     @classmethod
     def describe(cls) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from visibility.cancel import checkpoint
-from visibility.cores.base import Core, CoreParams, param, register
+from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
     DEFAULT_BATCH,
@@ -136,6 +136,18 @@ def cube_rotations(runs: int, seed: int = 0, first: str = "axis") -> np.ndarray:
     return out
 
 
+#: Cost model of one segment pass (``estimate_cost``), timed on the 2-core development machine
+#: (village 20k and city 100k cells, 128 to 1024 px, 12 segments each): a fixed cost, a cost
+#: per triangle of the scene and one per cubemap pixel (6 R^2); the pixel term dominates from
+#: 256 px on. Bytes: per triangle (clusters, their boxes on six faces, the visible flags) and
+#: per cubemap pixel (tile bins and the envelope buffers of the tile groups).
+SECONDS_PER_SEGMENT = 5e-3
+SECONDS_PER_SEGMENT_TRIANGLE = 1.5e-7
+SECONDS_PER_SEGMENT_PIXEL = 3.7e-7
+BYTES_PER_TRIANGLE = 256
+BYTES_PER_PIXEL = 64
+
+
 @register
 class FromSegmentCore(Core):
     """Continuous from-segment visibility on the perimeter of the cell (Popescu et al. 2024)."""
@@ -164,6 +176,20 @@ class FromSegmentCore(Core):
             # below the sampling fallback for animated scenes.
             return 0.5, ("dynamic scene: from-segment's cost grows linearly with the keyframes")
         return 3.0, "static triangle scene: exact continuous from-segment visibility"
+
+    def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
+        """One pass per segment of the cell's sides, cube orientation and state interval, each
+        priced by triangles and cubemap pixels (the ``SECONDS_PER_SEGMENT*`` constants)."""
+        assert isinstance(params, FromSegmentParams)
+        segments = len(cell_segments(cell.box, params.eye_levels))
+        intervals = 1 if scene.states is None else max(1, scene.states.shape[0] - 1)
+        passes = segments * int(params.runs) * intervals
+        m, pixels = scene.n_triangles, 6 * int(params.resolution) ** 2
+        per_pass = (SECONDS_PER_SEGMENT + m * SECONDS_PER_SEGMENT_TRIANGLE
+                    + pixels * SECONDS_PER_SEGMENT_PIXEL)
+        peak = (m + scene.n_spheres) * BYTES_PER_TRIANGLE + pixels * BYTES_PER_PIXEL
+        return Cost(passes * per_pass, int(peak),
+                    {"views": passes, "pixels": pixels, "triangles": m})
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

@@ -12,8 +12,13 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from visibility.cores.base import Core, CoreParams, param, register
-from visibility.ground_truth import GroundTruth, sample_pvs, sample_segment_pvs
+from visibility.cores.base import Core, CoreParams, Cost, param, register
+from visibility.ground_truth import (
+    GroundTruth,
+    estimate_sampling_cost,
+    sample_pvs,
+    sample_segment_pvs,
+)
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 
@@ -63,6 +68,17 @@ class SamplingCore(Core):
         kind = "dynamic scene" if scene.states is not None else "static scene"
         return 1.0, (f"{kind}: from-point sampling is the general fallback (aggressive: may "
                      "miss what falls between its samples)")
+
+    def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
+        """``samples`` cubemaps of ``resolution`` px over every triangle
+        (``visibility.ground_truth.estimate_sampling_cost``)."""
+        assert isinstance(params, SamplingParams)
+        seconds, peak = estimate_sampling_cost(
+            scene.n_triangles, int(params.resolution), int(params.samples),
+            spheres=scene.n_spheres, dynamic=scene.states is not None)
+        return Cost(seconds, peak, {"views": int(params.samples),
+                                    "pixels": 6 * int(params.resolution) ** 2,
+                                    "triangles": scene.n_triangles})
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams
