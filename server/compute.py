@@ -359,9 +359,9 @@ class ComputeService:
             try:
                 viewcell = loaded.grid.cell(cell) if cell is not None else Viewcell(box)
             except IndexError:
-                viewcell = None  # _run answers unknown_cell
-            if viewcell is not None:
-                cost = adm.estimate(core, loaded.scene, viewcell, params, scene)
+                raise UnknownCellError(f"scene {scene!r} has no cell {cell} (cells "
+                                       f"0..{len(loaded.grid) - 1})") from None
+            cost = adm.estimate(core, loaded.scene, viewcell, params, scene)
         adm.check_limits(cost, deadline, core.name)
         pool = self.pool if isinstance(self.pool, PriorityWorkerPool) else None
         ahead = pool.queued_seconds() if pool is not None else 0.0

@@ -139,12 +139,19 @@ def cube_rotations(runs: int, seed: int = 0, first: str = "axis") -> np.ndarray:
 #: Cost model of one segment pass (``estimate_cost``), timed on the 2-core development machine
 #: (village 20k and city 100k cells, 128 to 1024 px, 12 segments each): a fixed cost, a cost
 #: per triangle of the scene and one per cubemap pixel (6 R^2); the pixel term dominates from
-#: 256 px on. Bytes: per triangle (clusters, their boxes on six faces, the visible flags) and
-#: per cubemap pixel (tile bins and the envelope buffers of the tile groups).
+#: 256 px on. The triangle term is that of open scenes, where most triangles are culled early;
+#: in dense clutter every triangle is binned into many tiles (the 1M kitchen at 64 px: 100 s,
+#: fifty times the model), which the server learns per scene (``server.admission``).
+#: Bytes: the tile bins hold every triangle once per 16 px tile it may cover, which grows with
+#: the square of the resolution: 75 MB at 64 px and 263 MB at 128 px on the kitchen (peak RSS
+#: over the run), so ``BYTES_PER_TRIANGLE`` per triangle at 128 px, times (R / 128)^2 above
+#: (an upper bound for open scenes, whose triangles are mostly small on screen), plus
+#: ``BYTES_PER_PIXEL`` per cubemap pixel (the envelope buffers of the tile groups).
 SECONDS_PER_SEGMENT = 5e-3
 SECONDS_PER_SEGMENT_TRIANGLE = 1.5e-7
 SECONDS_PER_SEGMENT_PIXEL = 3.7e-7
 BYTES_PER_TRIANGLE = 256
+BYTES_PER_TRIANGLE_RESOLUTION = 128
 BYTES_PER_PIXEL = 64
 
 
@@ -187,7 +194,8 @@ class FromSegmentCore(Core):
         m, pixels = scene.n_triangles, 6 * int(params.resolution) ** 2
         per_pass = (SECONDS_PER_SEGMENT + m * SECONDS_PER_SEGMENT_TRIANGLE
                     + pixels * SECONDS_PER_SEGMENT_PIXEL)
-        peak = (m + scene.n_spheres) * BYTES_PER_TRIANGLE + pixels * BYTES_PER_PIXEL
+        growth = max(1.0, (int(params.resolution) / BYTES_PER_TRIANGLE_RESOLUTION) ** 2)
+        peak = (m + scene.n_spheres) * BYTES_PER_TRIANGLE * growth + pixels * BYTES_PER_PIXEL
         return Cost(passes * per_pass, int(peak),
                     {"views": passes, "pixels": pixels, "triangles": m})
 
