@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -128,6 +130,25 @@ def check_declarations(core: Core) -> None:
     assert isinstance(fit.ok, bool) and np.isfinite(fit.score) and isinstance(fit.why, str)
     d = core.describe()
     assert d["name"] == core.name and [p["name"] for p in d["params"]] == names
+
+
+def check_cost_estimate(core: Core) -> None:
+    """``estimate_cost`` (what admission control prices a request by) answers quickly with
+    finite, non-negative seconds and bytes that do not shrink as the resolution grows, and
+    grow in one of them from 64 to 1024 px."""
+    scene, cell, _ = ds.two_rooms_and_a_door()
+    costs = []
+    for r in (64, 256, 1024):
+        t0 = time.perf_counter()
+        cost = core.estimate_cost(scene, cell, check_params(core, resolution=r))
+        assert time.perf_counter() - t0 < 0.5, "an estimate must be cheap (no computing)"
+        assert np.isfinite(cost.seconds) and cost.seconds >= 0, cost
+        assert int(cost.peak_bytes) >= 0, cost
+        costs.append(cost)
+    for lo, hi in itertools.pairwise(costs):
+        assert hi.seconds >= lo.seconds and hi.peak_bytes >= lo.peak_bytes, (lo, hi)
+    assert costs[-1].seconds > costs[0].seconds or costs[-1].peak_bytes > costs[0].peak_bytes, \
+        "the estimate ignores the resolution"
 
 
 # --------------------------------------------------------------------------- designed scenes
@@ -400,7 +421,8 @@ def check_float64_depth_order_at_1e7(core: Core) -> None:
 # --------------------------------------------------------------------------- the suite
 #: Every check, in the order ``check_core`` runs them.
 CHECKS: tuple[Callable[[Core], None], ...] = (
-    check_declarations, check_empty_scene, check_all_degenerate, check_everything_visible,
+    check_declarations, check_cost_estimate, check_empty_scene, check_all_degenerate,
+    check_everything_visible,
     check_deterministic, check_two_rooms_and_a_door, check_object_granularity,
     check_stiff_cases, check_fn_fp_against_sampled_ground_truth, check_fp_bound_can_fail,
     check_tiny_and_huge_cells, check_segment_queries, check_stress_scene, check_lone_sliver,

@@ -66,7 +66,19 @@ class _Unseeded(Core):
         return np.delete(ids, np.random.default_rng().integers(len(ids))), {}
 
 
+class _Priceless(_Nothing):
+    """Estimates every request at the same cost, whatever its resolution."""
+
+    name: ClassVar[str] = "priceless"
+
+    def estimate_cost(self, scene, cell, params):
+        from visibility.cores.base import Cost
+
+        return Cost(1.0, 1 << 20)
+
+
 @pytest.mark.parametrize(("core", "check_name"), [
+    (_Priceless(), "check_cost_estimate"),
     (_Everything(), "check_two_rooms_and_a_door"),
     (_Everything(), "check_fn_fp_against_sampled_ground_truth"),
     (_Nothing(), "check_everything_visible"),
