@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import httpx
 import numpy as np
@@ -146,3 +147,34 @@ def test_openapi_covers_every_route(live_server):
     cell_route = spec["paths"]["/scenes/{scene}/cells/{cell}/pvs"]["get"]
     declared = {p["name"] for p in cell_route.get("parameters", [])}
     assert {"core", "granularity", "resolution", "samples", "runs", "seed"} <= declared
+
+
+# --------------------------------------------------------------------------- robustness probes
+#: Extents around the review's 1e-300 m box: zero, subnormal, tiny, ordinary.
+extents = st.sampled_from([0.0, 5e-324, 1e-300, 1e-200, 1e-12, 1e-6, 0.5, 3.0])
+#: Core parameters around the limits: each at, just inside and far outside its range.
+hostile_params = st.fixed_dictionaries({}, optional={
+    "resolution": st.sampled_from([7, 8, 64, 4096, 4097, 2**31, -1]),
+    "samples": st.sampled_from([0, 1, 1000, 100_000, 100_001, 2**63]),
+    "seed": st.sampled_from([-1, 0, 2**32 - 1, 2**32, 2**64]),
+})
+
+
+@settings(max_examples=40, deadline=None, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(lo=st.tuples(*[st.sampled_from([0.0, 1.0, 2.5, -1e-300])] * 3),
+       size=st.tuples(extents, extents, extents), params=hostile_params)
+def test_hostile_boxes_and_parameters_are_answered_quickly(live_server, lo, size, params):
+    """Neighbours of the review's findings (vanishing boxes, parameters at and past their
+    limits): every answer is a 200 or a documented refusal (422, 429, 503), never a 500, and
+    within seconds: a computation the deadline cannot hold is refused or stopped."""
+    box = [list(lo), [a + b for a, b in zip(lo, size, strict=True)]]
+    t0 = time.monotonic()
+    r = httpx.post(live_server + "/scenes/tiny/pvs", params={"deadline": 2},
+                   json={"box": box, "params": params}, timeout=60)
+    assert r.status_code in (200, 422, 429, 503), r.text
+    assert time.monotonic() - t0 < 15
+    if r.status_code != 200:
+        assert r.json()["error"]["code"] in (
+            "validation", "bad_params", "over_limit", "unsupported_region",
+            "too_many_requests", "busy", "deadline_exceeded")
