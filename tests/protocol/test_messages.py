@@ -223,7 +223,7 @@ def test_codes_table():
     for code, close in FATAL.items():
         assert is_fatal(code)
         assert close_code_for(code) == close
-        assert close in (1003, 1008, 1009, 1011) or 4000 <= close <= 4999
+        assert close in (1001, 1003, 1008, 1009, 1011) or 4000 <= close <= 4999
     for code in (ErrorCode.OUTSIDE_GRID, ErrorCode.INVALID_POSE, ErrorCode.UNKNOWN_TYPE,
                  ErrorCode.COMPUTE_FAILED):
         assert not is_fatal(code)
