@@ -13,6 +13,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol.frames import DEFAULT_MAX_FRAME_BYTES, frame_bytes
+from protocol.ints import INT32_MAX
+from visibility.loaders import MAX_FILE_BYTES, MAX_TRIANGLES
 from visibility.nearfar import MAX_RESOLUTION as NEAR_FAR_MAX_RESOLUTION
 from visibility.nearfar import MIN_RESOLUTION as NEAR_FAR_MIN_RESOLUTION
 from visibility.nearfar import NearFarConfig
@@ -73,6 +75,13 @@ class Settings(BaseModel):
         may ask for less, never more. Past it the computation stops at the core's next
         checkpoint and its requests fail with ``deadline_exceeded``.
     log_level : uvicorn's log level.
+    max_scene_triangles : most triangles a scene file may hold (at most 2**31: ids are int32);
+        a file declaring or holding more is refused (``scene_load_failed`` naming the limit)
+        before it is parsed where its format says its count. Default
+        ``visibility.loaders.MAX_TRIANGLES``.
+    max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
+        memory); a larger one is refused without reading it. Default
+        ``visibility.loaders.MAX_FILE_BYTES``.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -106,6 +115,9 @@ class Settings(BaseModel):
     ws_ping_interval: float | None = Field(20.0, gt=0)
     compute_deadline: float = Field(300.0, gt=0, le=86400, allow_inf_nan=False)
     log_level: str = "info"
+    # scene files
+    max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
+    max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
 
     @field_validator("generated")
     @classmethod
@@ -139,6 +151,7 @@ class Settings(BaseModel):
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
         disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE,
+        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -160,6 +173,9 @@ class Settings(BaseModel):
             "near_far_block": "PVS_NEAR_FAR_BLOCK",
             "max_body_bytes": "PVS_MAX_BODY_BYTES",
             "log_level": "PVS_LOG_LEVEL", "compute_deadline": "PVS_COMPUTE_DEADLINE",
+            # scene files
+            "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
+            "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
