@@ -7,6 +7,12 @@ cell's stream (``cell_begin``, geometry chunks, ``cell_end``); ``wait_cell`` wai
 be complete. Errors from the server are kept in ``errors``; a fatal one (or a close) ends the
 session and wakes every waiter.
 
+A server is not trusted with the client's memory: ids are checked against the scene the welcome
+describes (triangle ids in [0, ``scene.triangles``), sphere ids in [0, ``scene.spheres``), cells
+in [0, ``grid.cells``)), and a cell stream takes no more triangles than its ``cell_begin``
+announced (at most the scene's). Anything else is refused, reported in ``local_errors`` and not
+kept; the store holds one copy per triangle (``client.store``).
+
 ``SyncSession`` runs a ``Session`` on a background event-loop thread for synchronous code (the
 replay loop): same methods, blocking.
 """
@@ -186,7 +192,10 @@ class Session:
         except BaseException:
             await ws.close()
             raise
-        return cls(ws, msg, store if store is not None else GeometryStore(budget))
+        if store is None:
+            store = GeometryStore(budget, scene_triangles=msg.scene.triangles,
+                                  scene_spheres=msg.scene.spheres)
+        return cls(ws, msg, store)
 
     # ----------------------------------------------------------------------------- sending
     async def send_pose(
@@ -302,6 +311,10 @@ class Session:
             except (FrameError, ImportError) as exc:
                 self.local_errors.append(f"undecodable cubemap frame: {exc}")
                 return
+            if not 0 <= cube.cell < self.welcome.grid.cells:
+                self.local_errors.append(f"cubemap of cell {cube.cell}, not a cell of the grid "
+                                         f"({self.welcome.grid.cells} cells): refused")
+                return
             self.cubemaps[cube.cell] = cube
             return
         if kind in (FrameKind.KEYFRAMES, FrameKind.SPHERES):
@@ -312,13 +325,24 @@ class Session:
         except FrameError as exc:
             self.local_errors.append(f"undecodable frame: {exc}")
             return
-        self.store.add_chunk(chunk)
-        ids = chunk.ids[chunk.ids < len(self._held)]
-        self.duplicates += int(np.count_nonzero(self._held[ids]))
-        self._held[ids] = True
-        self.triangles_received += len(chunk)
         cs = self.current
-        if cs is None or cs.cell != chunk.cell:
+        in_stream = cs is not None and cs.cell == chunk.cell
+        if not self._ids_in_scene(chunk.ids, len(self._held), "triangle", "geometry frame"):
+            return
+        if in_stream and cs.begin is not None and cs.triangles + len(chunk) > cs.begin.new:
+            self.local_errors.append(
+                f"cell {cs.cell}: a geometry frame past the {cs.begin.new} triangles its "
+                f"cell_begin announced: refused")
+            return
+        try:
+            self.store.add_chunk(chunk)
+        except ValueError as exc:  # a store of the caller's with its own bounds
+            self.local_errors.append(f"geometry frame refused by the store: {exc}")
+            return
+        self.duplicates += int(np.count_nonzero(self._held[chunk.ids]))
+        self._held[chunk.ids] = True
+        self.triangles_received += len(chunk)
+        if not in_stream:
             self.local_errors.append(f"chunk of cell {chunk.cell} outside its cell stream")
             return
         cs.chunks += 1
@@ -339,18 +363,42 @@ class Session:
             return
         if chunk is None:
             return
+        what = "triangle" if kind == FrameKind.KEYFRAMES else "sphere"
+        count = len(self._kf_held) if what == "triangle" else self.welcome.scene.spheres
+        if not self._ids_in_scene(chunk.ids, count, what, f"{kind.name.lower()} frame"):
+            return
         try:
             if kind == FrameKind.KEYFRAMES:
                 self.store.add_keyframe_chunk(chunk)
-                ids = chunk.ids[chunk.ids < len(self._kf_held)]
-                self.keyframe_duplicates += int(np.count_nonzero(self._kf_held[ids]))
-                self._kf_held[ids] = True
+                self.keyframe_duplicates += int(np.count_nonzero(self._kf_held[chunk.ids]))
+                self._kf_held[chunk.ids] = True
                 self.keyframes_received += len(chunk)
             else:
                 self.store.add_sphere_chunk(chunk)
                 self.spheres_received += len(chunk)
         except ValueError as exc:  # e.g. keyframe times that contradict the held ones
             self.local_errors.append(f"{kind.name.lower()} frame refused by the store: {exc}")
+
+    def _ids_in_scene(self, ids: np.ndarray, count: int, what: str, frame: str) -> bool:
+        """Whether every id of a frame is in [0, ``count``) (the welcome's count of ``what``);
+        if not, the frame is refused and reported in ``local_errors``."""
+        if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= count):
+            self.local_errors.append(
+                f"{frame} with {what} ids up to {int(ids.max())}, outside [0, {count}) (the "
+                f"scene's {what}s per the welcome): refused")
+            return False
+        return True
+
+    def _begin_fits(self, msg: CellBegin) -> bool:
+        """Whether a ``cell_begin`` names a cell of the grid and at most the scene's
+        triangles; if not it is reported in ``local_errors`` and opens no stream."""
+        cells, n = self.welcome.grid.cells, len(self._held)
+        if msg.cell >= cells or msg.triangles > n or msg.new > msg.triangles:
+            self.local_errors.append(
+                f"cell_begin for cell {msg.cell} with {msg.new} new of {msg.triangles} triangles "
+                f"does not fit the welcome ({cells} cells, {n} triangles): refused")
+            return False
+        return True
 
     def _on_text(self, raw: str) -> None:
         self.bytes_received += len(raw)
@@ -360,6 +408,9 @@ class Session:
             self.local_errors.append(f"unreadable server message: {exc}")
             return
         if isinstance(msg, CellBegin):
+            if not self._begin_fits(msg):
+                self.current = None
+                return
             self.current = CellStream(msg.cell, begin=msg)
             self.cells[msg.cell] = self.current
         elif isinstance(msg, Drop):
@@ -368,6 +419,8 @@ class Session:
             cs = self.current
             if cs is None or cs.cell != msg.cell:
                 self.local_errors.append(f"cell_end for {msg.cell} without its cell_begin")
+                if msg.cell >= self.welcome.grid.cells:
+                    return
                 cs = self.cells.setdefault(msg.cell, CellStream(msg.cell))
             elif cs.begin is not None and not msg.partial and (cs.chunks != cs.begin.chunks
                                            or cs.triangles != cs.begin.new):

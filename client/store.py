@@ -1,10 +1,16 @@
 """The client's geometry store: the triangles received so far, by id.
 
-Chunks are appended as they arrive (cheap) and merged into one id-sorted set of arrays only when
-someone reads (``arrays``, ``len``, ``ids``...), so receiving N chunks costs O(total) rather than
-O(N * total). A triangle received twice keeps its latest data. ``version`` bumps on every change so
-a renderer re-uploads only when the content changed. Thread-safe: the network session writes
-from its event loop while a renderer reads from another thread.
+Chunks are appended as they arrive (cheap) and merged into one id-sorted set of arrays when
+someone reads (``arrays``, ``len``, ``ids``...) or once the waiting chunks outgrow what is held
+(``MERGE_ROWS``), so receiving N chunks costs O(total) rather than O(N * total). A triangle
+received twice keeps its latest data. ``version`` bumps on every change so a renderer re-uploads
+only when the content changed. Thread-safe: the network session writes from its event loop while
+a renderer reads from another thread.
+
+Bounded by the scene, whatever a server sends: given the scene's triangle (and sphere) count, as
+the welcome says it, the store refuses ids outside [0, count) (ValueError), holds one copy per
+id once merged, and never lets chunks waiting to merge exceed ``max(MERGE_ROWS, rows held)``
+rows, so a server repeating the same triangles cannot grow it past about twice the scene.
 
 Dynamic scenes. A moving triangle also has keyframes (its corners at the scene's keyframe times,
 ``protocol.keyframes``), kept by id and dropped with the triangle; ``triangles_at(t)`` and
@@ -22,6 +28,33 @@ import numpy as np
 
 from protocol.frames import GeometryChunk
 from protocol.keyframes import KeyframeChunk, SphereChunk
+
+#: Rows (triangles, keyframed triangles or spheres) that may wait unmerged beyond the rows held;
+#: past ``max(MERGE_ROWS, held)`` the store merges at once, which keeps merging O(total) (each
+#: merge at least doubles what it has to do) and the waiting copies bounded.
+MERGE_ROWS = 1 << 16
+
+
+def check_ids(ids: np.ndarray, count: int | None, what: str) -> np.ndarray:
+    """``ids`` as a 1-D integer array when every id is in [0, count) ([0, 2**31) when ``count``
+    is None: ids are int32 on the wire); ValueError naming the bound otherwise.
+
+    Parameters
+    ----------
+    ids : (n,) integer ids.
+    count : the scene's number of such items (the welcome's), or None.
+    what : what the ids name, for the message ("triangle", "sphere").
+    """
+    ids = np.asarray(ids)
+    n = len(ids) if ids.ndim == 1 else 0
+    if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)):
+        raise ValueError(f"{what} ids must be a 1-D integer array, got {ids.dtype} {ids.shape}")
+    bound = int(np.iinfo(np.int32).max) + 1 if count is None else int(count)
+    if n and (ids.min() < 0 or ids.max() >= bound):
+        scope = "2**31" if count is None else f"{bound}, the scene's {what} count"
+        raise ValueError(f"{what} ids must be in [0, {scope}), got ids from {int(ids.min())} "
+                         f"to {int(ids.max())}")
+    return ids
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -65,6 +98,7 @@ class _Tracks:
         self.pos = np.zeros((0, 1, *shape))
         self.extra = {k: np.zeros((0, *s), dtype=d) for k, (s, d) in extra.items()}
         self._pending: list[tuple[np.ndarray, np.ndarray, dict]] = []
+        self._pending_rows = 0
 
     def add(self, ids: np.ndarray, times: np.ndarray, pos: np.ndarray, extra: dict) -> None:
         """``pos`` (k, n, *shape) as on the wire; ValueError when ``times`` differ from the
@@ -79,6 +113,9 @@ class _Tracks:
             self.times = times
             self.pos = np.zeros((0, len(times), *self.shape))
         self._pending.append((ids.astype(np.int32), np.moveaxis(pos, 0, 1).copy(), extra))
+        self._pending_rows += len(ids)
+        if self._pending_rows > max(MERGE_ROWS, len(self.ids)):
+            self.merge()
 
     def merge(self) -> None:
         if not self._pending:
@@ -88,6 +125,7 @@ class _Tracks:
         extra = {k: np.concatenate([self.extra[k]] + [p[2][k] for p in self._pending])
                  for k in self.extra}
         self._pending.clear()
+        self._pending_rows = 0
         # Latest data wins for repeated ids (as for geometry).
         self.ids, src = latest_copies(ids)
         self.pos = pos[src]
@@ -102,6 +140,7 @@ class _Tracks:
 
     def clear(self) -> None:
         self._pending.clear()
+        self._pending_rows = 0
         self.keep(np.zeros(len(self.ids), dtype=bool))
 
     def at(self, t: float | None) -> np.ndarray:
@@ -129,17 +168,29 @@ class GeometryStore:
     budget : most triangles the client means to hold (None: no limit). The store does not evict
         by itself (it cannot know what is still visible); ``over_budget`` tells when the holder
         should ``retain`` the current PVS.
+    scene_triangles : the scene's triangle count (the welcome's ``scene.triangles``): triangle
+        ids (geometry and keyframes) outside [0, scene_triangles) are refused. None: any int32
+        id.
+    scene_spheres : the scene's sphere count (``scene.spheres``), the same for sphere ids.
     """
 
-    def __init__(self, budget: int | None = None) -> None:
+    def __init__(self, budget: int | None = None, *, scene_triangles: int | None = None,
+                 scene_spheres: int | None = None) -> None:
         if budget is not None and int(budget) <= 0:
             raise ValueError(f"budget must be positive, got {budget}")
+        for name, count in (("scene_triangles", scene_triangles),
+                            ("scene_spheres", scene_spheres)):
+            if count is not None and int(count) < 0:
+                raise ValueError(f"{name} must be >= 0, got {count}")
         self.budget = None if budget is None else int(budget)
+        self.scene_triangles = None if scene_triangles is None else int(scene_triangles)
+        self.scene_spheres = None if scene_spheres is None else int(scene_spheres)
         self._lock = threading.RLock()
         self._ids = np.zeros(0, dtype=np.int32)
         self._tris = np.zeros((0, 3, 3), dtype=np.float64)
         self._colors = np.zeros((0, 3), dtype=np.uint8)
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._pending_rows = 0
         self.version = 0
         self._out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._keys = _Tracks((3, 3), {})
@@ -148,14 +199,11 @@ class GeometryStore:
 
     # ----------------------------------------------------------------------------- writing
     def add(self, ids: np.ndarray, triangles: np.ndarray, colors: np.ndarray) -> None:
-        """Add (or replace) triangles: ``ids`` (n,) ints >= 0, ``triangles`` (n, 3, 3) metres,
-        ``colors`` (n, 3) uint8. ValueError on inconsistent shapes or non-finite positions."""
-        ids = np.asarray(ids)
+        """Add (or replace) triangles: ``ids`` (n,) ints in [0, scene_triangles), ``triangles``
+        (n, 3, 3) metres, ``colors`` (n, 3) uint8. ValueError on ids out of range, inconsistent
+        shapes or non-finite positions (nothing is added then)."""
+        ids = check_ids(ids, self.scene_triangles, "triangle")
         n = len(ids)
-        if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)):
-            raise ValueError(f"ids must be a 1-D integer array, got {ids.dtype} {ids.shape}")
-        if n and (ids.min() < 0 or ids.max() > np.iinfo(np.int32).max):
-            raise ValueError("ids must be in [0, 2**31)")
         tris = np.asarray(triangles, dtype=np.float64)
         cols = np.asarray(colors)
         if tris.shape != (n, 3, 3) or cols.shape != (n, 3):
@@ -168,7 +216,10 @@ class GeometryStore:
             return
         with self._lock:
             self._pending.append((ids.astype(np.int32), tris.copy(), cols.astype(np.uint8)))
+            self._pending_rows += n
             self._changed()
+            if self._pending_rows > max(MERGE_ROWS, len(self._ids)):
+                self._merge()
 
     def add_chunk(self, chunk: GeometryChunk) -> None:
         """Add a decoded geometry frame (positions made absolute in float64)."""
@@ -178,13 +229,10 @@ class GeometryStore:
         """Add (or replace) the keyframes of moving triangles: ``ids`` (n,), ``times`` (k,)
         seconds increasing, ``positions`` (k, n, 3, 3) corner positions in metres. Kept whether
         or not the triangle itself is held yet (frames may arrive in either order). ValueError on
-        bad shapes, non-finite positions, or times that differ from the keyframe times held."""
-        ids = np.asarray(ids)
+        ids outside [0, scene_triangles), bad shapes, non-finite positions, or times that
+        differ from the keyframe times held."""
+        ids = check_ids(ids, self.scene_triangles, "triangle")
         n = len(ids)
-        if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)):
-            raise ValueError(f"ids must be a 1-D integer array, got {ids.dtype} {ids.shape}")
-        if n and (ids.min() < 0 or ids.max() > np.iinfo(np.int32).max):
-            raise ValueError("ids must be in [0, 2**31)")
         pos = np.asarray(positions, dtype=np.float64)
         k = len(np.asarray(times).reshape(-1))
         if pos.shape != (k, n, 3, 3):
@@ -206,13 +254,11 @@ class GeometryStore:
 
     def add_spheres(self, ids: np.ndarray, times: np.ndarray, centers: np.ndarray,
                     radii: np.ndarray, colors: np.ndarray) -> None:
-        """Add (or replace) spheres: ``ids`` (s,) sphere indices, ``times`` (k,) seconds,
-        ``centers`` (k, s, 3) metres, ``radii`` (s,) metres > 0, ``colors`` (s, 3) uint8."""
-        ids = np.asarray(ids)
+        """Add (or replace) spheres: ``ids`` (s,) sphere indices in [0, scene_spheres), ``times``
+        (k,) seconds, ``centers`` (k, s, 3) metres, ``radii`` (s,) metres > 0, ``colors`` (s, 3)
+        uint8."""
+        ids = check_ids(ids, self.scene_spheres, "sphere")
         n = len(ids)
-        if ids.ndim != 1 or (n and not np.issubdtype(ids.dtype, np.integer)) or (
-                n and ids.min() < 0):
-            raise ValueError(f"ids must be a 1-D array of ints >= 0, got {ids.dtype} {ids.shape}")
         c = np.asarray(centers, dtype=np.float64)
         k = len(np.asarray(times).reshape(-1))
         r = np.asarray(radii, dtype=np.float64).reshape(-1)
@@ -266,6 +312,7 @@ class GeometryStore:
         """Remove everything (triangles, keyframes, spheres)."""
         with self._lock:
             self._pending.clear()
+            self._pending_rows = 0
             self._keys.clear()
             self._spheres.clear()
             self._set(self._ids[:0], self._tris[:0], self._colors[:0])
@@ -398,6 +445,7 @@ class GeometryStore:
         tris = np.concatenate([self._tris] + [p[1] for p in self._pending])
         cols = np.concatenate([self._colors] + [p[2] for p in self._pending])
         self._pending.clear()
+        self._pending_rows = 0
         # Latest data wins for repeated ids.
         self._ids, src = latest_copies(ids)
         self._tris, self._colors = tris[src], cols[src]

@@ -36,7 +36,7 @@ library's hard cap (the library itself closes with 1009, before the session sees
 | too_many_errors    | yes       | 1008  | bad messages past ``BAD_MESSAGE_LIMIT`` a window |
 | unknown_type       | no        | -     | a message type this server does not know (skipped) |
 | invalid_message    | no        | -     | a known type that failed validation (skipped)    |
-| invalid_pose       | no        | -     | a pose with NaN/inf or a malformed vector (skipped) |
+| invalid_pose       | no        | -     | a pose with NaN/inf, a bad vector, a seq past uint32 |
 | outside_grid       | no        | -     | a pose in no viewcell (the session keeps its cell) |
 | compute_failed     | no        | -     | the PVS of a cell could not be computed          |
 | over_budget        | no        | -     | a cell's PVS alone exceeds the client's budget   |

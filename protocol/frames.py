@@ -37,6 +37,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from protocol.ints import UINT32_MAX
 from protocol.version import PROTOCOL_VERSION
 
 MAGIC = b"PVSG"
@@ -46,7 +47,7 @@ HEADER_BYTES = _HEADER.size  # 56
 TRIANGLE_BYTES = 4 + 36 + 3
 #: Default cap on one frame's size (bytes).
 DEFAULT_MAX_FRAME_BYTES = 1 << 20
-_U32_MAX = 0xFFFFFFFF
+_U32_MAX = UINT32_MAX
 
 
 class FrameKind(IntEnum):

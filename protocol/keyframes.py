@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.frames import MAGIC, FrameError, FrameKind, unpack_header
+from protocol.ints import INT32_MAX, UINT32_MAX
 from protocol.version import PROTOCOL_VERSION
 
 _HEADER = struct.Struct("<4sHBBiIIIIIII3d")
@@ -60,8 +61,8 @@ _HEADER = struct.Struct("<4sHBBiIIIIIII3d")
 HEADER_BYTES = _HEADER.size
 #: Most keyframes an item may have.
 MAX_KEYFRAMES = 4096
-_U32_MAX = 0xFFFFFFFF
-_I32_MAX = 2**31 - 1
+_U32_MAX = UINT32_MAX
+_I32_MAX = INT32_MAX
 #: Wire bytes per item that do not depend on the keyframe count, and per item and keyframe.
 _FIXED = {FrameKind.KEYFRAMES: 4, FrameKind.SPHERES: 4 + 4 + 3}
 _PER_KEY = {FrameKind.KEYFRAMES: 36, FrameKind.SPHERES: 12}

@@ -3,7 +3,9 @@
 Every message is a JSON object with a ``type`` field that picks its schema. Schemas are strict:
 unknown fields, unknown types, NaN/inf numbers, strings where numbers belong and vice versa are
 validation errors. Vectors are ``[x, y, z]`` in metres (Y-up, right-handed, see
-``visibility/camera.py``).
+``visibility/camera.py``). Integers are bounded by the width the wire gives them
+(``protocol.ints``): ``seq`` is uint32, cell and triangle ids int32, so a number past them is a
+validation error of its message, not a failure of the frame encoder later.
 
 Client to server: ``hello`` (once, first), then any number of ``pose``, optionally ``bye``.
 Server to client: ``welcome`` (answer to hello), per cell change ``cell_begin``, binary geometry
@@ -22,10 +24,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     StrictBool,
-    StrictInt,
     StrictStr,
     TypeAdapter,
     ValidationError,
@@ -33,6 +35,17 @@ from pydantic import (
 )
 
 from protocol.codes import ErrorCode
+from protocol.ints import (
+    INT64_MAX,
+    INT64_MIN,
+    Count32,
+    Id32,
+    Int64,
+    PositiveUInt32,
+    UInt16,
+    UInt32,
+    fits_uint32,
+)
 from protocol.version import PROTOCOL_VERSION
 
 #: A finite float (ints accepted, strings, NaN and inf rejected).
@@ -40,11 +53,30 @@ FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 #: A 3-vector of finite floats, metres (or a unit direction).
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 Vec2 = tuple[FiniteFloat, FiniteFloat]
+#: A non-negative integer with no wire width (sizes in bytes, vertex counts: server to client).
 NonNegInt = Annotated[int, Field(strict=True, ge=0)]
-#: A core parameter value (JSON scalar or list of scalars).
-ParamScalar = StrictBool | StrictInt | FiniteFloat | StrictStr | None
+
+#: A core parameter value (JSON scalar or list of scalars); integers are int64, as cores hold
+#: them (each core checks its own narrower ranges, e.g. a seed in uint32).
+ParamScalar = StrictBool | Int64 | FiniteFloat | StrictStr | None
 ParamValue = ParamScalar | list[ParamScalar]
-Params = dict[StrictStr, ParamValue]
+
+
+def _int64_params(params: Any) -> Any:
+    """``params``, unless a value (or a list item) is a JSON integer outside int64. Checked
+    before the union of types, whose float branch would take such an integer as a float."""
+    if not isinstance(params, dict):
+        return params
+    for name, value in params.items():
+        for v in value if isinstance(value, list) else (value,):
+            if isinstance(v, int) and not isinstance(v, bool) and not (
+                    INT64_MIN <= v <= INT64_MAX):
+                raise ValueError(f"parameter {str(name)[:64]!r}: an integer of "
+                                 f"{len(str(abs(v)))} digits does not fit in int64")
+    return params
+
+
+Params = Annotated[dict[StrictStr, ParamValue], BeforeValidator(_int64_params)]
 #: Bound on names (scene, core, session) so a hostile hello cannot carry megabytes of name.
 Name = Annotated[str, Field(strict=True, min_length=1, max_length=256)]
 
@@ -71,12 +103,12 @@ class Hello(_Message):
     """
 
     type: Literal["hello"] = "hello"
-    version: StrictInt = PROTOCOL_VERSION
+    version: UInt16 = PROTOCOL_VERSION
     scene: Name
     #: None: the server's default core (the welcome names it); "auto": chosen per scene.
     core: Name | None = None
     params: Params = Field(default_factory=dict)
-    budget: Annotated[int, Field(strict=True, gt=0)] | None = None
+    budget: PositiveUInt32 | None = None
     #: Whether the server should send the cells ahead before the client reaches them (None:
     #: the server's setting).
     prefetch: StrictBool | None = None
@@ -87,7 +119,8 @@ class Pose(_Message):
     per pose and is echoed in the answers it triggers."""
 
     type: Literal["pose"] = "pose"
-    seq: NonNegInt
+    #: uint32: the binary frames a pose triggers carry it in a uint32 header field.
+    seq: UInt32
     t: FiniteFloat
     position: Vec3
     forward: Vec3
@@ -107,11 +140,11 @@ class SceneInfo(_Message):
 
     name: str
     kind: Literal["file", "generated", "memory"]
-    triangles: NonNegInt
-    valid_triangles: NonNegInt
+    triangles: Count32
+    valid_triangles: Count32
     vertices: NonNegInt
-    objects: NonNegInt
-    spheres: NonNegInt = 0
+    objects: Count32
+    spheres: Count32 = 0
     dynamic: bool = False
     states: NonNegInt = 1
     bounds: tuple[Vec3, Vec3]
@@ -126,7 +159,7 @@ class GridInfo(_Message):
 
     cell_size: FiniteFloat
     origin_xz: Vec2
-    cells: NonNegInt
+    cells: Count32
     levels: NonNegInt
     eye_range: Vec2
     bounds: tuple[Vec3, Vec3]
@@ -143,13 +176,13 @@ class Welcome(_Message):
     """Answer to ``hello``: the session id, the scene and grid, the core's full parameters."""
 
     type: Literal["welcome"] = "welcome"
-    version: StrictInt = PROTOCOL_VERSION
+    version: UInt16 = PROTOCOL_VERSION
     session: str
     scene: SceneInfo
     grid: GridInfo
     core: str
     params: Params
-    budget: NonNegInt | None = None
+    budget: PositiveUInt32 | None = None
     limits: Limits
     #: Whether cells ahead are streamed before the client reaches them (``cell_begin.prefetch``).
     prefetch: bool = False
@@ -163,11 +196,11 @@ class CellBegin(_Message):
     session before; they follow in ``chunks`` binary geometry frames, then ``cell_end``."""
 
     type: Literal["cell_begin"] = "cell_begin"
-    cell: NonNegInt
-    seq: NonNegInt
-    triangles: NonNegInt
-    new: NonNegInt
-    chunks: NonNegInt
+    cell: Id32
+    seq: UInt32
+    triangles: Count32
+    new: Count32
+    chunks: UInt32
     #: True for a cell ahead of the walker, sent before it gets there (lower priority).
     prefetch: bool = False
     #: Near-far partition of this cell's stream: ``{"r1", "r2", "center", "cubemap",
@@ -181,8 +214,8 @@ class CellEnd(_Message):
     ``compute_seconds``: the PVS computation time (of the original computation when ``cached``)."""
 
     type: Literal["cell_end"] = "cell_end"
-    cell: NonNegInt
-    seq: NonNegInt
+    cell: Id32
+    seq: UInt32
     seconds: FiniteFloat
     compute_seconds: FiniteFloat = 0.0
     cached: bool = False
@@ -198,8 +231,8 @@ class Drop(_Message):
     will send their triangles again when needed."""
 
     type: Literal["drop"] = "drop"
-    ids: list[NonNegInt]
-    cells: list[NonNegInt] = Field(default_factory=list)
+    ids: list[Id32]
+    cells: list[Id32] = Field(default_factory=list)
     reason: str = "budget"
 
 
@@ -211,7 +244,7 @@ class Error(_Message):
     code: StrictStr
     message: str
     fatal: bool = False
-    seq: NonNegInt | None = None
+    seq: UInt32 | None = None
 
 
 ClientMessage = Annotated[Hello | Pose | Bye, Field(discriminator="type")]
@@ -408,8 +441,9 @@ def _parse(data: str | bytes, adapter: TypeAdapter, types: dict, what: str) -> A
             ErrorCode.UNKNOWN_TYPE,
             f"unknown {what} message type {kind[:64]!r}; known: {sorted(types)}",
         )
-    seq = obj.get("seq")
-    seq = seq if isinstance(seq, int) and not isinstance(seq, bool) and seq >= 0 else None
+    # The error names the pose only by a seq the wire can carry (an out-of-range seq is the
+    # very thing being refused).
+    seq = obj.get("seq") if fits_uint32(obj.get("seq")) else None
     try:
         return adapter.validate_python(obj)
     except ValidationError as exc:

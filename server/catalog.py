@@ -5,7 +5,11 @@ Scenes come from three places: files in ``settings.scenes_dir`` (named by file s
 embedding). Listing never loads anything; ``get`` loads a scene and builds its viewcell grid the
 first time it is asked for, under a per-scene lock so concurrent requests load it once while other
 scenes stay available. A name is looked up only in the catalogue, never turned into a path, so no
-request can reach a file outside the scenes folder.
+request can reach a file outside the scenes folder; and no answer shows a path either: a load
+failure names the scene and what is wrong (the full path goes to the server log only).
+
+Scene files are loaded within ``settings.max_scene_triangles`` and ``max_scene_bytes``; a file
+over either is refused with a message naming the scene, the limit and the setting.
 """
 
 from __future__ import annotations
@@ -16,12 +20,15 @@ import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from server.settings import Settings
 from visibility.scene import Scene, scene_fingerprint
 from visibility.scene_analysis import scene_is_2_5d
 from visibility.viewcells import ViewcellGrid
+
+if TYPE_CHECKING:
+    from visibility.loaders import SceneTooLarge
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +41,15 @@ class UnknownSceneError(LookupError):
 
 
 class SceneLoadFailed(RuntimeError):
-    """A catalogued scene that could not be loaded (corrupt file, generator error)."""
+    """A catalogued scene that could not be loaded (corrupt file, generator error, a file over
+    the server's limits). The message names the scene, never a file-system path."""
+
+#: Longest reason a load failure quotes from the loader (characters): an exception's text can be
+#: a whole parser dump.
+MAX_REASON_CHARS = 300
+#: The setting and environment variable behind each ``load_scene`` limit.
+_LIMIT_SETTINGS = {"max_triangles": ("max_scene_triangles", "PVS_MAX_SCENE_TRIANGLES"),
+                   "max_bytes": ("max_scene_bytes", "PVS_MAX_SCENE_BYTES")}
 
 
 def scene_extensions() -> tuple[str, ...]:
@@ -211,11 +226,14 @@ class SceneCatalog:
         return await asyncio.to_thread(self.get, name)
 
     def _load(self, e: _Entry) -> LoadedScene:
+        from visibility.loaders import SceneTooLarge
+
         try:
             if e.kind == "file":
                 from visibility.loaders import load_scene
 
-                scene = load_scene(e.path)
+                scene = load_scene(e.path, max_triangles=self.settings.max_scene_triangles,
+                                   max_bytes=self.settings.max_scene_bytes)
             elif e.kind == "generated":
                 from visibility.generators import make_scene
 
@@ -224,9 +242,13 @@ class SceneCatalog:
                 scene = e.pending
             size = scene.meta.get("cell_size") or self.settings.cell_size
             grid = ViewcellGrid.for_scene(scene, float(size))
+        except SceneTooLarge as exc:
+            log.warning("scene %r (%s) refused: %s", e.name, e.path, exc)
+            raise SceneLoadFailed(over_limit_message(e.name, exc)) from exc
         except Exception as exc:  # loaders and generators raise many types
-            log.exception("loading scene %r failed", e.name)
-            raise SceneLoadFailed(f"scene {e.name!r} could not be loaded: {exc}") from exc
+            log.exception("loading scene %r (%s) failed", e.name, e.path or e.kind)
+            raise SceneLoadFailed(f"scene {e.name!r} could not be loaded: "
+                                  f"{self._public_reason(exc, e)}") from exc
         scene.name = e.name
         loaded = self._describe(e.name, e.kind, scene, grid)
         if e.kind == "generated":
@@ -238,6 +260,15 @@ class SceneCatalog:
                  scene.n_triangles, len(grid))
         return loaded
 
+    def _public_reason(self, exc: BaseException, e: _Entry) -> str:
+        """What ``exc`` says, fit for a client: no folders (the scene's, the scenes folder, any
+        absolute path), at most ``MAX_REASON_CHARS`` characters."""
+        from visibility.loaders import strip_paths
+
+        folder = e.path.parent if e.path is not None else None
+        text = strip_paths(str(exc), folder, self.settings.scenes_dir) or type(exc).__name__
+        return text if len(text) <= MAX_REASON_CHARS else text[:MAX_REASON_CHARS - 3] + "..."
+
     @staticmethod
     def _describe(name: str, kind: SceneKind, scene: Scene, grid: ViewcellGrid) -> LoadedScene:
         info = scene.summary()
@@ -247,6 +278,15 @@ class SceneCatalog:
         flat, how = scene_is_2_5d(scene)
         info["is_2_5d"] = {"value": flat, "source": how["source"], "why": how["reason"]}
         return LoadedScene(name, kind, scene, grid, info)
+
+
+def over_limit_message(name: str, exc: SceneTooLarge) -> str:
+    """The message of a scene file over a size limit (``visibility.loaders.SceneTooLarge``):
+    the scene, what its file is, the limit and the setting that raises it."""
+    setting = _LIMIT_SETTINGS.get(exc.param)
+    how = f" (setting {setting[0]}, env {setting[1]})" if setting else ""
+    return (f"scene {name!r} is too large to load: its file {exc.detail}, over this server's "
+            f"limit of {exc.limit}{how}")
 
 
 def check_name_ok(name: str) -> bool:

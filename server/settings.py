@@ -13,6 +13,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from protocol.frames import DEFAULT_MAX_FRAME_BYTES, frame_bytes
+from protocol.ints import INT32_MAX
+from visibility.loaders import MAX_FILE_BYTES, MAX_TRIANGLES
 from visibility.nearfar import MAX_RESOLUTION as NEAR_FAR_MAX_RESOLUTION
 from visibility.nearfar import MIN_RESOLUTION as NEAR_FAR_MIN_RESOLUTION
 from visibility.nearfar import NearFarConfig
@@ -87,6 +89,13 @@ class Settings(BaseModel):
     shutdown_grace : seconds a stopping server gives open requests after it has cancelled their
         computations and closed the WebSocket sessions (1001), before it cancels them.
     log_level : uvicorn's log level.
+    max_scene_triangles : most triangles a scene file may hold (at most 2**31: ids are int32);
+        a file declaring or holding more is refused (``scene_load_failed`` naming the limit)
+        before it is parsed where its format says its count. Default
+        ``visibility.loaders.MAX_TRIANGLES``.
+    max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
+        memory); a larger one is refused without reading it. Default
+        ``visibility.loaders.MAX_FILE_BYTES``.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -127,6 +136,9 @@ class Settings(BaseModel):
     heavy_workers: int | None = Field(None, ge=1, le=256)
     shutdown_grace: float = Field(3.0, gt=0, le=600, allow_inf_nan=False)
     log_level: str = "info"
+    # scene files
+    max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
+    max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
 
     @field_validator("generated")
     @classmethod
@@ -168,6 +180,7 @@ class Settings(BaseModel):
         disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE, PVS_MAX_COMPUTE_BYTES, PVS_MAX_QUEUED,
         PVS_REFUSE_OVER_DEADLINE,
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
+        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -194,6 +207,9 @@ class Settings(BaseModel):
             "max_inflight_per_client": "PVS_MAX_INFLIGHT_PER_CLIENT",
             "heavy_seconds": "PVS_HEAVY_SECONDS", "heavy_workers": "PVS_HEAVY_WORKERS",
             "shutdown_grace": "PVS_SHUTDOWN_GRACE",
+            # scene files
+            "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
+            "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +56,54 @@ _MAX_HEADER_BYTES = 64 << 20
 
 class SceneLoadError(ValueError):
     """A scene file that cannot be turned into a Scene (missing, unsupported, no triangles,
-    over a size limit)."""
+    over a size limit). Messages name the file, never its folder (``strip_paths``): a server
+    shows them to clients."""
+
+
+class SceneTooLarge(SceneLoadError):
+    """A scene file over a size limit of ``load_scene``.
+
+    Attributes
+    ----------
+    file : str, the file's name (no folder).
+    detail : str, what the file is, e.g. "declares 9000000 triangles" or "is 5000 bytes".
+    limit : int, the limit it is over, in the unit ``detail`` names (triangles or bytes).
+    param : str or None, the ``load_scene`` argument that set the limit ("max_triangles",
+        "max_bytes"); None for the loader's own fixed limits (a glTF JSON's size).
+    """
+
+    def __init__(self, file: str, detail: str, limit: int, param: str | None) -> None:
+        super().__init__(f"{file} {detail}, over the limit of {limit}"
+                         + (f" ({param})" if param else ""))
+        self.file, self.detail, self.limit, self.param = file, detail, int(limit), param
+
+
+#: An absolute POSIX path's folders: a "/" that starts no word of a relative path or a unit
+#: ("m/s", "a/b"), then one or more "name/" parts, up to the last name.
+_FOLDERS = re.compile(r"(?<![\w.])/(?:[^/\s'\"]+/)+")
+
+
+def strip_paths(text: str, *folders: str | os.PathLike | None) -> str:
+    """``text`` without file-system folders, for messages shown to clients (an exception's
+    text may quote the path it failed on).
+
+    Parameters
+    ----------
+    text : the message.
+    folders : folders known to appear (relative ones included), as given and resolved; None
+        entries are skipped. Any other absolute path loses its folders by shape.
+
+    Returns
+    -------
+    str, ``text`` where every path is reduced to its file name.
+    """
+    for folder in folders:
+        if folder is None:
+            continue
+        for form in {str(folder), str(Path(folder).resolve())}:
+            if form not in ("", "/", "."):
+                text = text.replace(form.rstrip("/") + "/", "")
+    return _FOLDERS.sub("", text)
 
 
 def _gltf_triangles(doc: dict) -> int:
@@ -101,11 +150,14 @@ def count_triangles(path: str | Path) -> int | None:
                     return None
                 size = int.from_bytes(header[12:16], "little")
                 if size > _MAX_HEADER_BYTES:
-                    raise SceneLoadError(f"{path.name}: glTF JSON of {size} bytes is too large")
+                    raise SceneTooLarge(path.name, f"has a glTF JSON of {size} bytes",
+                                        _MAX_HEADER_BYTES, None)
                 return _gltf_triangles(json.loads(fh.read(size)))
             if ext == ".gltf":
-                if path.stat().st_size > _MAX_HEADER_BYTES:
-                    raise SceneLoadError(f"{path.name}: glTF JSON too large")
+                size = path.stat().st_size
+                if size > _MAX_HEADER_BYTES:
+                    raise SceneTooLarge(path.name, f"is a glTF JSON of {size} bytes",
+                                        _MAX_HEADER_BYTES, None)
                 return _gltf_triangles(json.loads(fh.read()))
             if ext == ".obj":
                 total = 0
@@ -141,10 +193,13 @@ def read_sidecar(path: str | Path) -> dict:
         return {}
     try:
         data = json.loads(side.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise SceneLoadError(f"unreadable sidecar {side}: {exc}") from exc
+    except OSError as exc:
+        # strerror, not str(exc): the latter quotes the full path.
+        raise SceneLoadError(f"unreadable sidecar {side.name}: {exc.strerror or exc}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneLoadError(f"sidecar {side.name} is not valid JSON: {exc}") from exc
     if not isinstance(data, dict):
-        raise SceneLoadError(f"sidecar {side} must hold a JSON object")
+        raise SceneLoadError(f"sidecar {side.name} must hold a JSON object")
     return data
 
 
@@ -182,9 +237,12 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
     path : the scene file.
     scale : metres per file unit; overrides the sidecar's ``"scale"`` (default 1).
     name : the scene's name (default: the file stem).
-    max_triangles : refuse (SceneLoadError naming the limit) a file declaring or holding more
-        triangles; checked before parsing where the format says (``count_triangles``).
-    max_bytes : refuse a larger file without reading it.
+    max_triangles : refuse (``SceneTooLarge`` naming the limit) a file declaring or holding
+        more triangles; checked before parsing where the format says (``count_triangles``).
+    max_bytes : refuse (``SceneTooLarge``) a larger file, bytes, without reading it.
+
+    Raises SceneLoadError (SceneTooLarge over a limit), whose message names the file but not
+    its folder.
 
     Object ids: a custom ``_OBJECT_ID`` vertex attribute when the file has one (per face, the
     first corner's), otherwise one id per mesh instance in scene-graph order.
@@ -193,17 +251,16 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
 
     path = Path(path)
     if not path.is_file():
-        raise SceneLoadError(f"no scene file at {path}")
+        raise SceneLoadError(f"no scene file {path.name!r}")
     if path.suffix.lower() not in SCENE_EXTENSIONS:
         raise SceneLoadError(f"unsupported scene format {path.suffix!r}; use {SCENE_EXTENSIONS}")
     size = path.stat().st_size
     if size > max_bytes:
-        raise SceneLoadError(f"{path.name} is {size} bytes, over the limit of {max_bytes} "
-                             f"(max_bytes)")
+        raise SceneTooLarge(path.name, f"is {size} bytes", max_bytes, "max_bytes")
     declared = count_triangles(path)
     if declared is not None and declared > max_triangles:
-        raise SceneLoadError(f"{path.name} declares {declared} triangles, over the limit of "
-                             f"{max_triangles} (max_triangles)")
+        raise SceneTooLarge(path.name, f"declares {declared} triangles", max_triangles,
+                            "max_triangles")
     side = read_sidecar(path)
     if scale is None:
         scale = float(side.get("scale", 1.0))
@@ -212,7 +269,8 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
     try:
         tscene = trimesh.load(str(path), force="scene", process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise SceneLoadError(f"cannot read {path.name}: {exc}") from exc
+        reason = strip_paths(str(exc), path.parent) or type(exc).__name__
+        raise SceneLoadError(f"cannot read {path.name}: {reason}") from exc
     parts = [g for g in tscene.dump(concatenate=False) if hasattr(g, "faces") and len(g.faces)]
     verts, faces, objs, cols, names = [], [], [], [], []
     offset = 0
@@ -243,8 +301,8 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
         raise SceneLoadError(f"{path.name} holds no triangles")
     held = sum(len(f) for f in faces)
     if held > max_triangles:
-        raise SceneLoadError(f"{path.name} holds {held} triangles, over the limit of "
-                             f"{max_triangles} (max_triangles)")
+        raise SceneTooLarge(path.name, f"holds {held} triangles", max_triangles,
+                            "max_triangles")
     vertices = np.concatenate(verts) * scale
     if str(side.get("up", "y")).lower() == "z":
         # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y).

@@ -25,12 +25,51 @@ MAX_STEP = 1.0
 #: largest real scene (Lyon at 4 m) has 278 000. A walk area of kilometres at a small cell size
 #: is refused with a ValueError naming this limit instead of filling memory.
 MAX_VIEWCELLS = 1 << 20
+#: Smallest extent (metres) a viewcell box keeps on an axis: a thinner axis collapses to zero
+#: extent (max = min), the degenerate region it is. Eyes a micrometre apart see the same
+#: thing at any resolution a core renders or samples at, while cores that divide by an extent
+#: or step through it (samples per metre, a box's own frame) meet denormals, overflow or
+#: billions of steps in a 1e-300 m box; every core already answers zero-extent boxes (points,
+#: segments, flat cells), so the collapse trades nothing for that.
+MIN_EXTENT = 1e-6
+#: ... and at least this many float64 steps (ulps) of the axis's coordinates. An absolute floor
+#: alone stops working far from the origin, where a few ulps exceed a micrometre (past about
+#: 1e8 m) and an extent could be rounding noise; this relative floor collapses such an extent
+#: at any magnitude. Below ~1e8 m (every real scene) MIN_EXTENT is the larger of the two.
+MIN_EXTENT_ULPS = 64
+
+
+def collapse_thin_axes(box: np.ndarray) -> np.ndarray:
+    """``box`` (2, 3) [min, max], metres, with every axis thinner than ``min_extent(box)``
+    collapsed to its min (max = min): a copy, float64.
+
+    Parameters
+    ----------
+    box : (2, 3) float64, finite, max >= min.
+
+    Returns
+    -------
+    (2, 3) float64 [min, max] metres.
+    """
+    out = np.array(box, dtype=np.float64).reshape(2, 3)
+    thin = (out[1] - out[0]) < min_extent(out)
+    out[1, thin] = out[0, thin]
+    return out
+
+
+def min_extent(box: np.ndarray) -> np.ndarray:
+    """(3,) metres: the smallest extent each axis of ``box`` (2, 3) keeps, the larger of
+    ``MIN_EXTENT`` and ``MIN_EXTENT_ULPS`` float64 steps at the axis's largest magnitude."""
+    magnitude = np.abs(np.asarray(box, dtype=np.float64)).max(axis=0)
+    return np.maximum(MIN_EXTENT, MIN_EXTENT_ULPS * np.spacing(magnitude))
 
 
 @dataclass(frozen=True)
 class Viewcell:
     """An axis-aligned box of eye positions. ``box`` is (2, 3) [min, max] metres; ``id`` is the
-    cell's index in its grid, or -1 for an ad-hoc box."""
+    cell's index in its grid, or -1 for an ad-hoc box. An axis thinner than ``min_extent``
+    (``MIN_EXTENT`` metres, or a few ulps far from the origin) is collapsed to zero extent, so
+    a box of 1e-300 m is the point it is (``collapse_thin_axes``)."""
 
     box: np.ndarray
     id: int = -1
@@ -41,7 +80,7 @@ class Viewcell:
             raise ValueError("viewcell box must be finite")
         if np.any(b[1] < b[0]):
             raise ValueError(f"viewcell box max < min: {b.tolist()}")
-        object.__setattr__(self, "box", b)
+        object.__setattr__(self, "box", collapse_thin_axes(b))
 
     @property
     def center(self) -> np.ndarray:

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from client.session import Session, SessionError, SyncSession, ws_url
-from client.store import GeometryStore
+from client.store import MERGE_ROWS, GeometryStore
 from protocol.frames import decode_geometry, encode_geometry
+from protocol.messages import CellBegin, CellEnd, dump_message
 from tests.conftest import make_tiny_scene, near_ids
 
 TINY = make_tiny_scene()
@@ -244,6 +245,36 @@ def test_store_spheres_and_bad_keyframes():
         s.add_keyframes(np.array([1]), np.array([0.0, 3.0]), np.zeros((2, 1, 3, 3)))
 
 
+def test_store_refuses_ids_outside_the_scene():
+    s = GeometryStore(scene_triangles=10, scene_spheres=2)
+    t, c = _tris([0, 9])
+    s.add(np.array([0, 9]), t, c)
+    for bad in ([10], [3, 2**31 - 1], [-1]):
+        t, c = _tris(bad)
+        with pytest.raises(ValueError, match=r"\[0, 10, the scene's triangle count\)"):
+            s.add(np.array(bad), t, c)
+    with pytest.raises(ValueError, match="triangle count"):
+        s.add_keyframes(np.array([10]), np.array([0.0]), np.zeros((1, 1, 3, 3)))
+    with pytest.raises(ValueError, match="sphere count"):
+        s.add_spheres(np.array([2]), np.array([0.0]), np.zeros((1, 1, 3)), np.array([1.0]),
+                      np.zeros((1, 3), np.uint8))
+    assert s.ids.tolist() == [0, 9] and s.version == 1  # nothing refused was added
+
+
+def test_store_memory_stays_bounded_by_the_scene_whatever_is_repeated():
+    """A server sending the same triangles again and again: chunks waiting to merge never
+    outgrow max(MERGE_ROWS, rows held), so the store stays near one copy per id."""
+    n = 1000
+    s = GeometryStore(scene_triangles=n)
+    ids = np.arange(n)
+    t, c = _tris(ids)
+    row = t[0].nbytes + c[0].nbytes + 4
+    for _ in range(3 * MERGE_ROWS // n):
+        s.add(ids, t, c)
+        assert s.nbytes <= (n + MERGE_ROWS + n) * row
+    assert len(s) == n
+
+
 # --------------------------------------------------------------------------- session
 def test_ws_url():
     assert ws_url("http://127.0.0.1:8000") == "ws://127.0.0.1:8000/ws"
@@ -290,8 +321,8 @@ def test_session_streams_into_its_store(live_server, cell_boxes):
 
 
 def test_session_routes_keyframe_and_sphere_frames(live_server):
-    """Keyframe and sphere frames go into the store by kind; a corrupt one is a local error and
-    the session goes on."""
+    """Keyframe and sphere frames go into the store by kind; a corrupt one, or spheres in a
+    scene the welcome says has none, is a local error and the session goes on."""
     from protocol.keyframes import encode_keyframes, encode_spheres
 
     sc = _moving_scene()
@@ -303,12 +334,15 @@ def test_session_routes_keyframe_and_sphere_frames(live_server):
             sp = encode_spheres(np.array([4]), np.array([0.0]), np.zeros((1, 1, 3)),
                                 np.array([0.5]), np.zeros((1, 3), np.uint8))
             s._on_frame(kf)
+            assert s.keyframes_received == 2
+            assert s.store.keyframes()[0].tolist() == [1, 2]
+            assert s.welcome.scene.spheres == 0
             s._on_frame(sp)
-            assert s.keyframes_received == 2 and s.spheres_received == 1
-            assert s.store.keyframes()[0].tolist() == [1, 2] and s.store.n_spheres == 1
+            assert s.spheres_received == 0 and s.store.n_spheres == 0
+            assert "sphere ids up to 4, outside [0, 0)" in s.local_errors[0]
             s._on_frame(kf[: len(kf) // 2])
-            assert s.keyframe_frames == 2 and len(s.local_errors) == 1
-            assert "keyframes" in s.local_errors[0]
+            assert s.keyframe_frames == 2 and len(s.local_errors) == 2
+            assert "keyframes" in s.local_errors[1]
             await s.send_pose(0, 0.0, (2.0, 1.7, 2.0), (0, 0, -1))
             await s.wait_cell(0, timeout=60)  # still streaming
         finally:
@@ -398,3 +432,74 @@ def test_sync_session(live_server, cell_boxes):
     assert s.closed
     with pytest.raises(SessionError):
         SyncSession.connect(live_server, "nope", "test_near")
+
+
+# --------------------------------------------------------------------------- hostile server
+def _hostile_stream() -> list:
+    """What a hostile (or broken) server sends after its welcome for a scene of 10 triangles
+    in 2 cells: a stream of cell 0 announcing 3 new triangles, with frames whose ids are past
+    the scene, a repeat past the announced count, and a cell_begin and cubemap for cells the
+    grid does not have."""
+    def frame(ids, cell=0):
+        t, c = _tris(ids)
+        return encode_geometry(np.array(ids), t, c, cell=cell)
+
+    from protocol.cubemap import encode_cubemap
+
+    cube = encode_cubemap(5, np.zeros(3), np.zeros((6, 8, 8, 3), np.uint8),
+                          np.ones((6, 8, 8), np.float32), 1.0, 2.0)
+    return [
+        dump_message(CellBegin(cell=0, seq=0, triangles=3, new=3, chunks=2)),
+        frame([0, 1]),
+        frame([5, 2**31 - 1]),
+        frame([10]),
+        frame([2]),
+        frame([3]),  # past the 3 announced
+        dump_message(CellEnd(cell=0, seq=0, seconds=0.0)),
+        dump_message(CellBegin(cell=7, seq=1, triangles=1, new=1, chunks=1)),
+        frame([4], cell=7),
+        dump_message(CellBegin(cell=1, seq=2, triangles=11, new=11, chunks=1)),
+        cube,
+    ]
+
+
+def test_session_refuses_what_the_welcome_rules_out():
+    """A real WebSocket server that lies: ids outside [0, scene triangles), more triangles than
+    announced, cells the grid does not have. The client keeps only what the welcome allows and
+    says why in ``local_errors``."""
+    from websockets.asyncio.server import serve
+
+    from tests.protocol.test_messages import _welcome
+
+    welcome = _welcome()  # 10 triangles, 8 cells
+    welcome = welcome.model_copy(update={"grid": welcome.grid.model_copy(update={"cells": 2})})
+
+    async def hostile(ws):
+        await ws.recv()
+        await ws.send(dump_message(welcome))
+        for msg in _hostile_stream():
+            await ws.send(msg)
+        await ws.close()
+
+    async def main():
+        async with serve(hostile, "127.0.0.1", 0) as server:
+            port = server.sockets[0].getsockname()[1]
+            s = await Session.connect(f"http://127.0.0.1:{port}", "x")
+            await s.wait_closed(timeout=30)  # the server closes after its whole stream
+            await s.close()
+            return s
+
+    s = run(main())
+    # Triangle 4 came outside any stream (its cell_begin was refused): ids in the scene are
+    # kept, as ever, and the stray chunk reported.
+    assert s.store.ids.tolist() == [0, 1, 2, 4] and s.held == 4
+    assert s.store.scene_triangles == 10
+    assert set(s.cells) == {0} and s.complete == {0} and not s.cubemaps
+    assert s.cells[0].triangles == 3
+    errors = "\n".join(s.local_errors)
+    assert "ids up to 2147483647, outside [0, 10)" in errors
+    assert "ids up to 10, outside [0, 10)" in errors
+    assert "past the 3 triangles its cell_begin announced" in errors
+    assert "cell_begin for cell 7" in errors and "cell_begin for cell 1" in errors
+    assert "chunk of cell 7 outside its cell stream" in errors
+    assert "cubemap of cell 5" in errors

@@ -11,11 +11,13 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from protocol.codes import FATAL, CloseCode, ErrorCode, close_code_for, is_fatal
+from protocol.ints import INT32_MAX, UINT16_MAX, UINT32_MAX
 from protocol.messages import (
     BoxPvsRequest,
     Bye,
     CellBegin,
     CellEnd,
+    Drop,
     Error,
     GridInfo,
     Hello,
@@ -33,6 +35,7 @@ from protocol.version import PROTOCOL_VERSION
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 vec3 = st.tuples(finite, finite, finite)
 u32 = st.integers(min_value=0, max_value=2**32 - 1)
+id32 = st.integers(min_value=0, max_value=2**31 - 1)
 names = st.text(min_size=1, max_size=40)
 param_values = st.one_of(st.booleans(), st.integers(-(2**40), 2**40), finite, st.text(max_size=10),
                          st.none())
@@ -65,7 +68,7 @@ def test_hello_round_trip(scene, core, params, budget):
 
 
 @settings(max_examples=40, deadline=None)
-@given(cell=u32, seq=u32, n=u32, new=u32, chunks=u32, seconds=finite, cached=st.booleans(),
+@given(cell=id32, seq=u32, n=id32, new=id32, chunks=u32, seconds=finite, cached=st.booleans(),
        code=st.sampled_from(list(ErrorCode)), message=st.text(max_size=50))
 def test_server_messages_round_trip(cell, seq, n, new, chunks, seconds, cached, code, message):
     for msg in (
@@ -232,3 +235,64 @@ def test_codes_table():
     assert close_code_for("binary_unsupported") == 1003
     with pytest.raises(ValueError):
         is_fatal("no_such_code")
+
+
+# --------------------------------------------------------------------------- wire integer bounds
+@pytest.mark.parametrize("seq", [UINT32_MAX + 1, 2**64, 10**30, -1])
+def test_pose_seq_past_uint32_is_an_invalid_pose(seq):
+    # Frames carry seq in a uint32 header field: a larger one is refused here, not by the
+    # encoder, and the error names no seq (the wire could not carry it either).
+    with pytest.raises(ProtocolError) as exc:
+        parse_client_message(_pose_json(seq=seq))
+    assert exc.value.code == ErrorCode.INVALID_POSE
+    assert exc.value.seq is None
+    assert "seq" in exc.value.message
+
+
+def test_pose_seq_bounds_are_inclusive():
+    assert parse_client_message(_pose_json(seq=0)).seq == 0
+    assert parse_client_message(_pose_json(seq=UINT32_MAX)).seq == UINT32_MAX
+
+
+@pytest.mark.parametrize("field, value", [
+    ("budget", UINT32_MAX + 1), ("budget", -1), ("version", UINT16_MAX + 1), ("version", -1),
+    ("params", {"seed": 2**63}), ("params", {"resolution": -(2**63) - 1}),
+    ("params", {"list": [1, 2**70]}),
+])
+def test_hello_integers_past_the_wire_are_invalid(field, value):
+    text = json.dumps({"type": "hello", "scene": "s", field: value})
+    with pytest.raises(ProtocolError) as exc:
+        parse_client_message(text)
+    assert exc.value.code == ErrorCode.INVALID_HELLO
+
+
+def test_hello_integers_at_the_bounds_are_valid():
+    hello = parse_client_message(json.dumps({
+        "type": "hello", "scene": "s", "budget": UINT32_MAX, "version": UINT16_MAX,
+        "params": {"seed": UINT32_MAX, "big": 2**63 - 1, "small": -(2**63)}}))
+    assert hello.budget == UINT32_MAX and hello.params["small"] == -(2**63)
+
+
+@pytest.mark.parametrize("message", [
+    {"type": "cell_begin", "cell": INT32_MAX + 1, "seq": 0, "triangles": 0, "new": 0,
+     "chunks": 0},
+    {"type": "cell_begin", "cell": 0, "seq": UINT32_MAX + 1, "triangles": 0, "new": 0,
+     "chunks": 0},
+    {"type": "cell_begin", "cell": 0, "seq": 0, "triangles": 2**31 + 1, "new": 0, "chunks": 0},
+    {"type": "cell_end", "cell": 0, "seq": 2**64, "seconds": 0},
+    {"type": "drop", "ids": [INT32_MAX + 1]},
+    {"type": "drop", "ids": [0], "cells": [2**40]},
+    {"type": "error", "code": "x", "message": "", "seq": UINT32_MAX + 1},
+])
+def test_server_integers_past_the_wire_are_invalid(message):
+    # A client meets a hostile server's numbers at the same edge.
+    with pytest.raises(ProtocolError) as exc:
+        parse_server_message(json.dumps(message))
+    assert exc.value.code == ErrorCode.INVALID_MESSAGE
+
+
+def test_server_integers_at_the_bounds_are_valid():
+    d = Drop(ids=[0, INT32_MAX], cells=[INT32_MAX])
+    assert parse_server_message(dump_message(d)) == d
+    e = Error(code="x", message="", seq=UINT32_MAX)
+    assert parse_server_message(dump_message(e)) == e

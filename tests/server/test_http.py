@@ -137,6 +137,28 @@ def test_box_pvs(http):
     assert body["triangle_ids"] == near_ids(TINY, np.array(box), 2.5).tolist()
 
 
+@pytest.mark.parametrize("core", ["sampling", "cos", "from_segment"])
+def test_box_thinner_than_the_extent_floor_is_the_point_it_is(http, core):
+    """A 1e-300 m box is answered as the point it is (``viewcells.MIN_EXTENT``): 200, quickly,
+    the point's PVS, and the box the answer names is the point."""
+    from visibility.cores.base import available_cores
+
+    if core not in available_cores():
+        pytest.skip(f"core {core!r} is not installed")
+    params = {"resolution": 32}
+    tiny = [[0.0, 0.0, 0.0], [1e-300, 1e-300, 1e-300]]
+    point = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    r = http.post("/scenes/tiny/pvs", json={"box": tiny, "core": core, "params": params})
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert got["box"] == point
+    assert got["seconds"] < 30  # the point's cost, not a 1e-300 m cell's
+    want = http.post("/scenes/tiny/pvs", json={"box": point, "core": core, "params": params})
+    assert want.status_code == 200, want.text
+    assert got["triangle_ids"] == want.json()["triangle_ids"]
+    assert want.json()["cached"]  # one region, one cache entry
+
+
 def test_default_core_is_the_settings_core(http, server_app):
     from visibility.cores.base import available_cores
 

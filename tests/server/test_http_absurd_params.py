@@ -44,6 +44,11 @@ ABSURD = [
     ("from_segment", {"eye_levels": "7"}),
     ("from_segment", {"depth_knots": "-1"}),
     ("from_segment", {"batch_triangles": "1"}),
+    # Seeds are uint32 (numpy generators): past it, or past int64, is out of range.
+    ("sampling", {"seed": str(2**32)}),
+    ("sampling", {"seed": str(2**64)}),
+    ("sampling", {"seed": "-1"}),
+    ("from_segment", {"seed": str(10**30)}),
 ]
 
 

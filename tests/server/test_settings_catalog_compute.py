@@ -61,6 +61,21 @@ def test_settings_from_env(tmp_path):
             Settings.from_env(bad)
 
 
+def test_scene_file_limits_default_to_the_loaders_and_come_from_env():
+    from visibility.loaders import MAX_FILE_BYTES, MAX_TRIANGLES
+
+    s = Settings(generated={})
+    assert (s.max_scene_triangles, s.max_scene_bytes) == (MAX_TRIANGLES, MAX_FILE_BYTES)
+    env = Settings.from_env({"PVS_MAX_SCENE_TRIANGLES": "1000", "PVS_MAX_SCENE_BYTES": "4096",
+                             "PVS_GENERATED": ""})
+    assert (env.max_scene_triangles, env.max_scene_bytes) == (1000, 4096)
+    # Triangle ids are int32: more than 2**31 triangles could not be named on the wire.
+    for bad in ({"max_scene_triangles": 0}, {"max_scene_triangles": 2**31 + 1},
+                {"max_scene_bytes": 0}):
+        with pytest.raises(ValidationError):
+            Settings(generated={}, **bad)
+
+
 def test_prefetch_ahead_from_env_and_bounds():
     assert Settings.from_env({"PVS_PREFETCH_AHEAD": "0.5", "PVS_GENERATED": ""}
                              ).prefetch_ahead == 0.5

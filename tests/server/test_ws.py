@@ -231,6 +231,34 @@ def test_non_fatal_errors_keep_the_session(live_server, cells, ws_endpoint):
     assert msgs[-1].cell == 3 and msgs[-1].seq == 5
 
 
+@pytest.mark.parametrize("bad_seq", [2**32, 2**64, -1])
+def test_pose_seq_past_uint32_is_refused_and_the_session_goes_on(live_server, cells,
+                                                                 ws_endpoint, bad_seq):
+    """Frames carry ``seq`` as uint32: a pose whose seq the wire cannot carry is answered with a
+    non-fatal ``invalid_pose`` (it used to reach the frame encoder and close the session with
+    1011 ``internal``), and the next valid pose streams its cell."""
+    bad = json.dumps({"type": "pose", "seq": bad_seq, "t": 0,
+                      "position": centre(cells, 2), "forward": [0, 0, -1]})
+
+    async def main():
+        async with connect(ws_endpoint) as ws:
+            await ws.send(hello())
+            await recv_until(ws, "welcome")
+            await ws.send(bad)
+            err = (await recv_until(ws, "error"))[-1]
+            await ws.send(pose(2**32 - 1, centre(cells, 2)))
+            return err, await recv_until(ws, "cell_end")
+
+    err, msgs = run(main())
+    assert err.code == "invalid_pose" and not err.fatal and err.seq is None
+    assert "seq" in err.message
+    assert not [m for m in msgs if getattr(m, "type", None) == "error"]
+    end = msgs[-1]
+    assert (end.cell, end.seq, end.partial) == (2, 2**32 - 1, False)
+    frames = [decode_geometry(m) for m in msgs if isinstance(m, bytes)]
+    assert frames and all(f.seq == 2**32 - 1 for f in frames)
+
+
 BAD_AFTER_WELCOME = [
     ('{"type": "pose", "seq": 0, "t": 0, "pos', "bad_json"),
     ("[1, 2, 3]", "bad_json"),

@@ -73,6 +73,47 @@ def test_bad_files_give_clear_errors(tmp_path):
         load_scene(txt)
 
 
+def test_load_errors_name_the_file_not_its_folder(tmp_path):
+    """Servers show these messages to clients: the file's name, never the folder it is in."""
+    quad = "v 0 0 0\nv 1 0 0\nv 1 0 1\nf 1 2 3\n"
+    cases = {"missing.obj": None, "bad.glb": b"not a glb at all", "side.obj": quad}
+    for name, content in cases.items():
+        if isinstance(content, bytes):
+            (tmp_path / name).write_bytes(content)
+        elif content is not None:
+            (tmp_path / name).write_text(content)
+    (tmp_path / "side.json").write_text('{"scale": ')
+    for name in cases:
+        with pytest.raises(SceneLoadError) as err:
+            load_scene(tmp_path / name)
+        assert name.split(".")[0] in str(err.value) and str(tmp_path) not in str(err.value)
+
+
+def test_strip_paths_leaves_file_names():
+    from visibility.loaders import strip_paths
+
+    text = "[Errno 2] No such file: '/srv/pvs/scenes/a.obj' (see /srv/pvs/scenes/)"
+    assert strip_paths(text, "/srv/pvs/scenes") == "[Errno 2] No such file: 'a.obj' (see )"
+    # Folders not named are removed by shape; relative paths and units are left alone.
+    assert strip_paths("cannot open /home/u/x/b.bin") == "cannot open b.bin"
+    assert strip_paths("speed 3 m/s, see docs/a.md, ratio 1/2") == \
+        "speed 3 m/s, see docs/a.md, ratio 1/2"
+
+
+def test_over_the_limit_errors_say_which_limit(tmp_path):
+    from visibility.loaders import SceneTooLarge
+
+    path = tmp_path / "strip.ply"
+    _grid_mesh(5).export(path)
+    with pytest.raises(SceneTooLarge) as err:
+        load_scene(path, max_triangles=9)
+    assert (err.value.file, err.value.limit, err.value.param) == ("strip.ply", 9, "max_triangles")
+    assert err.value.detail == "declares 10 triangles"
+    with pytest.raises(SceneTooLarge) as err:
+        load_scene(path, max_bytes=10)
+    assert (err.value.limit, err.value.param) == (10, "max_bytes")
+
+
 def test_degenerate_faces_in_a_file_are_reported_not_fatal(tmp_path):
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]], float)
     f = np.array([[0, 1, 2], [0, 1, 3], [1, 1, 2]])

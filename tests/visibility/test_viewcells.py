@@ -73,3 +73,32 @@ def test_walk_area_of_too_many_cells_is_refused_before_allocating():
     # Rectangles wider than float64 spans are refused, not overflowed.
     with pytest.raises(ValueError):
         ViewcellGrid(WalkArea(np.array([[-1.7e308, 0.0, 1.7e308, 4.0, 0.0]])), 4.0)
+
+
+def test_thin_axes_collapse_to_the_degenerate_region():
+    from visibility.viewcells import MIN_EXTENT
+
+    point = Viewcell(np.array([[0.0, 0.0, 0.0], [1e-300, 1e-300, 1e-300]]))
+    np.testing.assert_array_equal(point.box, np.zeros((2, 3)))
+    # Only the thin axes collapse: a 1e-9 m thick slab is the flat cell it is.
+    slab = Viewcell(np.array([[-1.0, 1.7, -1.0], [1.0, 1.7 + 1e-9, 1.0]]))
+    np.testing.assert_array_equal(slab.box, [[-1.0, 1.7, -1.0], [1.0, 1.7, 1.0]])
+    # At the floor an extent is kept; the 1 mm cell of the cores' tiny-cell check is untouched.
+    edge = np.array([[0.0, 0.0, 0.0], [MIN_EXTENT, 2 * MIN_EXTENT, 1e-3]])
+    np.testing.assert_array_equal(Viewcell(edge).box, edge)
+    tiny = np.array([[2.5, 1.7, 3.0], [2.501, 1.701, 3.001]])
+    np.testing.assert_array_equal(Viewcell(tiny).box, tiny)
+
+
+def test_thin_axes_far_from_the_origin_collapse_by_ulps():
+    from visibility.viewcells import MIN_EXTENT, MIN_EXTENT_ULPS, min_extent
+
+    # Near the origin the absolute floor rules; 1e12 m out, a few ulps are more than a micron.
+    np.testing.assert_array_equal(min_extent(np.array([[0.0] * 3, [1e3] * 3])), [MIN_EXTENT] * 3)
+    far = 1e12
+    ulp = np.spacing(far)
+    assert MIN_EXTENT_ULPS * ulp > MIN_EXTENT
+    noise = Viewcell(np.array([[far, 0.0, 0.0], [far + 8 * ulp, 1.0, 1.0]]))
+    assert noise.size[0] == 0.0 and noise.size[1] == 1.0
+    kept = Viewcell(np.array([[far, 0.0, 0.0], [far + 1.0, 1.0, 1.0]]))
+    assert kept.size[0] == 1.0

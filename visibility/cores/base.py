@@ -156,7 +156,9 @@ class CoreParams:
             if spec.type in ("integer", "number"):
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
                     raise ValueError(f"{spec.name} must be a number, got {value!r}")
-                if not np.isfinite(value):
+                # Integers are finite; np.isfinite cannot even take one past int64 (a seed of
+                # 2**64 must read as out of range, not as a numpy type error).
+                if not isinstance(value, (int, np.integer)) and not np.isfinite(value):
                     raise ValueError(f"{spec.name} must be finite, got {value!r}")
                 if spec.type == "integer" and int(value) != value:
                     raise ValueError(f"{spec.name} must be an integer, got {value!r}")
