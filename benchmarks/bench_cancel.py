@@ -129,7 +129,8 @@ def presets(quick: bool) -> dict[str, Any]:
               Case("village 20k", "from_segment", {"resolution": 1024}, "hostile",
                    (0.5, 1.0, 2.0)),
               Case("village 20k", "cos", {"resolution": 512}, "hostile", (1.0, 3.0)),
-              Case("village 20k", "cos", {"resolution": 1024}, "hostile", (2.0,))]
+              # Its first view takes seconds, a later one far longer: a cancel in each.
+              Case("village 20k", "cos", {"resolution": 1024}, "hostile", (2.0, 6.0))]
     return {"scenes": scenes, "cases": cases, "repeats": 3,
             "process_cores": ["sampling", "from_segment", "cos"],
             "process_methods": ["spawn", "forkserver"], "process_repeats": 3, "cold_jit": True,
@@ -324,6 +325,15 @@ def _checkpoint_line(r: dict[str, Any]) -> str:
 
 
 # --------------------------------------------------------------------------- process
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (``/proc/PID/stat``)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def proc_memory(pid: int) -> dict[str, float | None]:
     """RSS and PSS of process ``pid`` in MiB (None when unreadable); PSS shares pages that a
     forkserver child holds in common with its siblings."""
@@ -365,7 +375,8 @@ class Worker:
         kind, marks = self._recv("ready")
         self.t_ready = time.monotonic()
         self.marks = dict(marks)
-        self.memory = proc_memory(self.proc.pid)
+        # What the start cost the machine, not just the wait: the CPU the worker used.
+        self.memory = {**proc_memory(self.proc.pid), "cpu_s": cpu_seconds(self.proc.pid)}
 
     def _recv(self, want: str) -> tuple:
         if not self.conn.poll(STUCK):
@@ -554,13 +565,45 @@ def _ms(x: float | None, digits: int = 0) -> str:
     return "–" if x is None else f"{1e3 * x:.{digits}f}"
 
 
+def _cpu(starts: list[dict[str, Any]]) -> str:
+    cpu = [s["cpu_s"] for s in starts if s.get("cpu_s") is not None]
+    return f"{statistics.median(cpu):.2f}" if cpu else "–"
+
+
 def _med_range(xs: list[float]) -> str:
     return f"{statistics.median(xs):.2f} ({min(xs):.2f}–{max(xs):.2f})"
 
 
+def per_core(res: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per core, the checkpoints' stops next to a kill and replacement of its worker: what
+    the conclusion compares."""
+    ck, pr = res["checkpoints"], res["process"]
+    out = []
+    for core in dict.fromkeys(r["core"] for r in pr["rows"]):
+        rows = [r for r in ck["rows"] if r["core"] == core]
+        req = [c["latency_s"] for r in rows if r["kind"] == "request" for c in r["cancels"]
+               if c["latency_s"] is not None]
+        hos = [c["latency_s"] for r in rows if r["kind"] == "hostile" for c in r["cancels"]
+               if c["latency_s"] is not None]
+        gaps = [r["timeline"]["gap_max_s"] for r in rows if "timeline" in r]
+        gaps += [c["seen_gap_max_s"] for r in rows for c in r["cancels"]
+                 if "seen_gap_max_s" in c]
+        kill = {}
+        for r in pr["rows"]:
+            if r["core"] == core:
+                cpu = [s["cpu_s"] for s in r["starts"] if s.get("cpu_s") is not None]
+                kill[r["method"]] = {"seconds": r["kill_median_s"] + r["ready_median_s"],
+                                     "cpu_s": statistics.median(cpu) if cpu else None}
+        out.append({"core": core, "stop_median_s": statistics.median(req) if req else None,
+                    "stop_max_s": max(req) if req else None,
+                    "hostile_stop_max_s": max(hos) if hos else None,
+                    "gap_max_s": max(gaps) if gaps else None, "kill": kill})
+    return out
+
+
 def conclusion(res: dict[str, Any]) -> list[str]:
-    """The conclusion paragraphs, every figure taken from ``res`` and every comparison made
-    on them (nothing here is written before the numbers are known)."""
+    """The conclusion: paragraphs and a per-core table, every figure taken from ``res`` and
+    every comparison made on them (nothing here is written before the numbers are known)."""
     ck, pr = res.get("checkpoints"), res.get("process")
     if not ck or not pr or not pr["rows"]:
         return ["Only one part was run: no comparison (run both parts for the conclusion)."]
@@ -568,34 +611,32 @@ def conclusion(res: dict[str, Any]) -> list[str]:
     lat_req = [c["latency_s"] for r in req for c in r["cancels"] if c["latency_s"] is not None]
     lat_all = [(c["latency_s"], r) for r in ck["rows"] for c in r["cancels"]
                if c["latency_s"] is not None]
-    worst_lat, worst_row = max(lat_all, key=lambda t: t[0])
     # (gap, row, seconds into the run, run seconds or None for a run stopped by its cancel)
     gaps = [(r["timeline"]["gap_max_s"], r, r["timeline"]["gap_max_at_s"],
              r["timeline"]["run_s"]) for r in req]
     gaps += [(c["seen_gap_max_s"], r, c["seen_gap_max_at_s"], None) for r in ck["rows"]
              for c in r["cancels"] if "seen_gap_max_s" in c]
-    worst_gap, gap_row, gap_at, gap_run = max(gaps, key=lambda t: t[0])
-    est = max(r["overhead_estimated"] for r in req)
-    meas = [r["overhead_measured"] for r in req]
     by_method = {}
-    for m in {r["method"] for r in pr["rows"]}:
+    for m in dict.fromkeys(r["method"] for r in pr["rows"]):
         rs = [r for r in pr["rows"] if r["method"] == m]
-        by_method[m] = {"ready": statistics.median(s["ready_s"] for r in rs for s in r["starts"]),
-                        "kill": statistics.median(k for r in rs for k in r["kill_s"]),
-                        "job": statistics.median(r["job_overhead_median_s"] for r in rs),
-                        "rss": statistics.median(s["rss_mib"] for r in rs for s in r["starts"]
-                                                 if s["rss_mib"] is not None),
-                        "pss": statistics.median(s["pss_mib"] for r in rs for s in r["starts"]
-                                                 if s["pss_mib"] is not None)}
+        starts = [s for r in rs for s in r["starts"]]
+        by_method[m] = {
+            "ready": statistics.median(s["ready_s"] for s in starts),
+            "kill": statistics.median(k for r in rs for k in r["kill_s"]),
+            "job": statistics.median(r["job_overhead_median_s"] for r in rs),
+            "cpu": statistics.median(s["cpu_s"] for s in starts if s.get("cpu_s") is not None),
+            "rss": statistics.median(s["rss_mib"] for s in starts if s["rss_mib"] is not None),
+            "pss": statistics.median(s["pss_mib"] for s in starts if s["pss_mib"] is not None)}
     cheapest = min(by_method, key=lambda m: by_method[m]["ready"])
     c = by_method[cheapest]
     per_kill = c["kill"] + c["ready"]
-    med = statistics.median(lat_req) if lat_req else None
-    ship = max(pr["ship"], key=lambda s: s["triangles"])
+    cores = per_core(res)
     lines = []
-    if med is not None:
+    if lat_req:
+        med = statistics.median(lat_req)
         verdict = "Checkpoints cost less" if med < per_kill else "Kill and replace costs less"
-        ratio = per_kill / med if med > 0 else float("inf")
+        ratios = [min(v["seconds"] for v in k["kill"].values()) / k["stop_median_s"]
+                  for k in cores if k["stop_median_s"]]
         lines.append(
             f"**{verdict}.** Per stop, a checkpointed computation let its worker go "
             f"{1e3 * med:.0f} ms (median) after `cancel()` over {len(lat_req)} cancels of "
@@ -603,36 +644,66 @@ def conclusion(res: dict[str, Any]) -> list[str]:
             f"killed worker is dead {1e3 * c['kill']:.1f} ms after `kill()` but its slot stays "
             f"empty until the replacement can compute again: {c['ready']:.2f} s with "
             f"`{cheapest}`"
-            + ("".join(f" ({v['ready']:.2f} s with `{m}`)" for m, v in by_method.items()
-                       if m != cheapest))
-            + f"; a kill costs the next request {per_kill:.2f} s, {ratio:.0f}x the checkpoints' "
-            "median stop, and the replacement burns that CPU time on the same cores.")
+            + "".join(f" ({v['ready']:.2f} s with `{m}`)" for m, v in by_method.items()
+                      if m != cheapest)
+            + f", medians over the cores. A kill costs the next request {per_kill:.2f} s, "
+            f"{per_kill / med:.0f}x the checkpoints' median stop"
+            + (f" ({min(ratios):.0f}x to {max(ratios):.0f}x core by core, each against its "
+               "own cheapest replacement)" if len(ratios) > 1 else "")
+            + f", and the replacement used {c['cpu']:.2f} CPU-seconds (median) of the cores "
+            "the other requests compute on.")
     cold = pr.get("cold") or []
     cold_txt = (" With an empty numba cache (the first start after a deploy) a replacement "
                 "takes " + ", ".join(f"{r['ready_s']:.0f} s ({r['core']})" for r in cold) + "."
                 if cold else "")
+    est = max(r["overhead_estimated"] for r in req)
+    meas = [r["overhead_measured"] for r in req]
+    # How far apart repeats of one and the same mode were: the noise a difference must beat.
+    spread = max((max(xs) - min(xs)) / statistics.median(xs)
+                 for r in req for xs in (r["none_s"], r["live_s"]))
+    noise = ("within" if max(abs(x) for x in meas) <= spread else "not all within")
+    ship = max(pr["ship"], key=lambda s: s["triangles"])
     lines.append(
         f"Per job, checkpoints cost {est * 100:.4f} % of the run time at most (checks x "
-        f"{ck['check_cost']['live_ns']:.0f} ns per check; the measured differences, "
-        f"{100 * min(meas):+.1f} to {100 * max(meas):+.1f} %, are the machine's noise, both "
-        "signs). A process pool pays on every job: "
-        f"{1e3 * c['job']:.1f} ms of pipe round trip to a worker that holds the scene, or "
-        f"{1e3 * ship['ship_s']:.0f} ms to ship a {ship['pickle_bytes'] / 2**20:.1f} MiB "
-        f"pickled {ship['scene']} to one that does not; and each worker holds its own scene "
-        f"and numba runtime: {c['rss']:.0f} MiB RSS ({c['pss']:.0f} MiB PSS) per `{cheapest}` "
-        f"worker against one shared copy for threads.{cold_txt}")
+        f"{ck['check_cost']['live_ns']:.0f} ns per check); the measured differences between "
+        f"the medians, {100 * min(meas):+.1f} to {100 * max(meas):+.1f} %, are {noise} the "
+        f"spread between repeats of one mode (up to {100 * spread:.0f} % of its median) on "
+        "this shared machine. A process "
+        f"pool pays on every job {1e3 * c['job']:.1f} ms of pipe round trip to a worker that "
+        f"holds the scene, or {1e3 * ship['ship_s']:.1f} ms to ship a "
+        f"{ship['pickle_bytes'] / 2**20:.1f} MiB pickled {ship['scene']} to one that does not; "
+        "and each worker holds its own scene and numba runtime: "
+        f"{c['rss']:.0f} MiB RSS ({c['pss']:.0f} MiB PSS) per `{cheapest}` worker, where "
+        f"threads share one copy.{cold_txt}")
+    worst_lat, worst_row = max(lat_all, key=lambda t: t[0])
+    worst_gap, gap_row, gap_at, gap_run = max(gaps, key=lambda t: t[0])
+    own = next((k for k in cores if k["core"] == worst_row["core"]), None)
+    own_kill = min(v["seconds"] for v in own["kill"].values()) if own else per_kill
     where = (f"{gap_row['label']}, {worst_gap:.2f} s between two checks, {gap_at:.2f} s "
              + (f"into a {gap_run:.2f} s run" if gap_run is not None else
                 "into a run stopped by its cancel"))
     lines.append(
         f"The checkpoints' worst case is where checks are far apart: the longest gap measured "
-        f"was {where}; the slowest stop measured was {worst_lat:.2f} s ({worst_row['label']}). "
-        + ("That is longer than a kill and a replacement: for such requests a kill would free "
-           "the slot sooner, or the core needs a checkpoint inside that stretch (or a cap on "
-           "the parameter that makes it long)."
-           if worst_lat > per_kill else
-           "Even that is shorter than a kill and a replacement."))
-    return lines
+        f"was {where}; the slowest stop measured was {worst_lat:.2f} s ({worst_row['label']}), "
+        f"against {own_kill:.2f} s to kill and replace a {worst_row['core']} worker. "
+        + ("There a kill would free the slot sooner: that stretch of the core needs a "
+           "checkpoint inside it (or a cap on the parameter that makes it long)."
+           if worst_lat > own_kill else "Even that is shorter than a kill and a replacement."))
+    methods = list(by_method)
+    table = ["| core | stop ms median (ordinary) | stop ms max (ordinary) | stop ms max "
+             "(hostile) | longest gap ms | " + " | ".join(f"kill + replace s ({m})"
+                                                       for m in methods)
+             + f" | replacement CPU s ({' / '.join(methods)}) |",
+             "|---|---|---|---|---|" + "---|" * len(methods) + "---|"]
+    for k in cores:
+        cpu = [v["cpu_s"] for v in k["kill"].values() if v["cpu_s"] is not None]
+        table.append(
+            f"| {k['core']} | {_ms(k['stop_median_s'])} | {_ms(k['stop_max_s'])} | "
+            f"{_ms(k['hostile_stop_max_s'])} | {_ms(k['gap_max_s'])} | "
+            + " | ".join(f"{k['kill'][m]['seconds']:.2f}" if m in k["kill"] else "–"
+                         for m in methods)
+            + " | " + ("–" if not cpu else " / ".join(f"{x:.2f}" for x in cpu)) + " |")
+    return lines + ["\n".join(table)]
 
 
 def write_report(res: dict[str, Any], out: Path, name: str) -> Path:
@@ -747,12 +818,14 @@ def write_report(res: dict[str, Any], out: Path, name: str) -> Path:
                + ") killed 0.3 s in. Kill: `kill()` until "
                "`join()` returned. Ready: `start()` until the worker could compute (phases "
                "below: interpreter start, imports of numpy, numba and the cores, the scene "
-               "received, the warm-up). Job overhead: round trip less the worker's compute "
-               "time (pickles of the job and of the PVS ids). First-job extra: the first "
+               "received, the warm-up); CPU: the worker's own CPU seconds by then. Job "
+               "overhead: round trip less the worker's compute time (pickles of the job and "
+               "of the PVS ids). First-job extra: the first "
                "real job's compute time less the second's (what the warm-up left undone).", "",
                "| method | core | kill ms median (max) | ready s median (min–max) | "
-               + " | ".join(PHASES) + " | RSS / PSS MiB | job overhead ms | first-job extra s |",
-               "|---|---|---|---|" + "---|" * len(PHASES) + "---|---|---|"]
+               + " | ".join(PHASES) + " | CPU s | RSS / PSS MiB | job overhead ms | "
+               "first-job extra s |",
+               "|---|---|---|---|" + "---|" * len(PHASES) + "---|---|---|---|"]
         for r in pr["rows"]:
             ph = {k: statistics.median(s[k] for s in r["starts"]) for k in PHASES}
             mem = r["starts"][-1]
@@ -761,7 +834,7 @@ def write_report(res: dict[str, Any], out: Path, name: str) -> Path:
                 f"({_ms(max(r['kill_s']), 1)}) | "
                 f"{_med_range([s['ready_s'] for s in r['starts']])} | "
                 + " | ".join(f"{ph[k]:.2f}" for k in PHASES)
-                + f" | {mem['rss_mib']:.0f} / {mem['pss_mib']:.0f} | "
+                + f" | {_cpu(r['starts'])} | {mem['rss_mib']:.0f} / {mem['pss_mib']:.0f} | "
                 f"{_ms(r['job_overhead_median_s'], 1)} | {r['first_job_extra_s']:+.2f} |")
         fs = [r["forkserver_start_s"] for r in pr["rows"] if r["forkserver_start_s"]]
         if fs:
