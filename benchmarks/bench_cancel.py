@@ -887,7 +887,8 @@ def plot(res: dict[str, Any], path: Path) -> None:
         for j, m in enumerate(sorted({r["method"] for r in pr["rows"]})):
             rs = [r for r in pr["rows"] if r["method"] == m]
             t = statistics.median(r["kill_median_s"] + r["ready_median_s"] for r in rs)
-            a.axvline(t * 1e3, color=f"C{j + 4}", ls="--", label=f"kill + replace ({m})")
+            a.axvline(t * 1e3, color=f"C{j + 4}", ls="--",
+                      label=f"kill + replace ({m}, median over cores)")
     a.plot([], [], "o", color="C0", label="stop, ordinary request")
     a.plot([], [], "o", color="C3", label="stop, hostile request")
     a.plot([], [], "|", color="k", ms=12, label="largest gap between checks")

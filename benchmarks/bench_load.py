@@ -51,7 +51,7 @@ Usage::
     python -m benchmarks.bench_load --clients 50 --cache cold
     python -m benchmarks.bench_load --core from_segment --name load_from_segment
     python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks, cold (smoke)
-    python -m benchmarks.bench_load --hostile --name load_abuse   # 50 walkers +- a hostile flood
+    python -m benchmarks.bench_load --hostile --name load_abuse  # 50 walkers, with/without flood
     python -m benchmarks.bench_load --hostile --quick --no-files  # the same, smoke
 """
 
