@@ -489,13 +489,15 @@ def plot(runs: list[dict], path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for r in runs:
         lat = np.sort(np.asarray(r["latencies_s"], dtype=float)) * 1e3
+        label = f"{r['clients']} clients, {r['cache']}" + (", hostile" if r.get("hostile")
+                                                           else "")
         if len(lat):
             # Never-delivered frames stay off the curve, so it ends below 1.
             n = len(lat) + r["frames_never_delivered"]
             a.plot(lat, np.arange(1, len(lat) + 1) / n, drawstyle="steps-post",
-                   ls="-" if r["cache"] == "cold" else "--",
-                   label=f"{r['clients']} clients, {r['cache']}"
-                   + (", hostile" if r.get("hostile") else ""))
+                   ls="-" if r["cache"] == "cold" else "--", label=label)
+        elif r["frames"]:
+            a.plot([], [], ls="none", label=label + ": no frame delivered")
     if runs:
         a.axvline(1e3 / runs[0]["fps"], color="grey", ls=":", label="one frame interval")
     a.set_xscale("symlog", linthresh=1.0)
