@@ -32,7 +32,7 @@ parent runs numba's thread pool, and forking a threaded process is unsafe):
   once per core (the first start after a deploy); the worker's memory (RSS, PSS).
 
 Writes ``OUT/NAME.md`` (command and machine on top, a table per option, the conclusion),
-``OUT/NAME.json`` (every number) and ``OUT/NAME.png``. Usage (about 8 minutes on 2 cores)::
+``OUT/NAME.json`` (every number) and ``OUT/NAME.png``. Usage (6 to 8 minutes on 2 cores)::
 
     python -m benchmarks.bench_cancel
     python -m benchmarks.bench_cancel --parts process      # one part, merged into the report
