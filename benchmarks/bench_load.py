@@ -22,6 +22,24 @@ The core runs at its default settings (``--params '{}'``) unless told otherwise.
 goes is printed too: the server's CPU seconds (``/proc/PID/stat``), the computation seconds it
 reports (``pvs_computation_seconds_sum``) and the clients' CPU seconds, against the wall time.
 
+Abuse mode (``--hostile``): each run is made twice on the same settings, once as above and once
+while a hostile client floods the server with expensive HTTP PVS requests (``POST
+/scenes/{scene}/pvs``, every box different so nothing is shared through the cache, parameters
+far above the defaults: ``HOSTILE_PARAMS``, ``--hostile-params``), ``--hostile-concurrency`` at
+once, each abandoned after ``--hostile-timeout`` seconds and sent anew, reconnecting when
+refused. It runs in its own process (its flood must not slow the walkers' own event loop) from
+another loopback source address (``127.0.0.2``), so a per-client cap keyed by address applies to
+it and not to the walkers. The abuse table puts each pair side by side: the walkers' stalls and
+latency with and without it, the server's peak RSS and the hostile's answers by status (200,
+422, 429, 503, other; refused connections, requests it gave up on, requests still unanswered
+when it stopped). Cold pairs run on two fresh servers; a warm pair on one warmed server, the
+hostile row last so the work it leaves queued cannot slow the row without it. A flooded server
+may never compute a walker's first cell, so in this mode a walker waits ``--first-cell-timeout``
+(30 s) for it and then walks anyway, its frames counted. Its own run mode, not part of the
+default runs: the default runs measure capacity and are published as ``load.md``; the abuse
+pairs double every run, last longer (the grace waits of a flooded server), and measure admission
+control instead, so they go to their own file (``--name load_abuse``).
+
 Writes the tables (command and machine on top) to ``OUT/NAME.md``, a PNG with the
 frame-latency distributions and the stalled share against the client count to ``OUT/NAME.png``
 and every number to ``OUT/NAME.json`` (``--out``, default ``benchmarks/results``; ``--name``,
@@ -33,6 +51,8 @@ Usage::
     python -m benchmarks.bench_load --clients 50 --cache cold
     python -m benchmarks.bench_load --core from_segment --name load_from_segment
     python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks, cold (smoke)
+    python -m benchmarks.bench_load --hostile --name load_abuse  # 50 walkers, with/without flood
+    python -m benchmarks.bench_load --hostile --quick --no-files  # the same, smoke
 """
 
 from __future__ import annotations
@@ -41,13 +61,15 @@ import argparse
 import asyncio
 import contextlib
 import json
+import multiprocessing
 import os
 import platform
+import random
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
@@ -122,6 +144,7 @@ class ClientStats:
         self.bytes = 0
         self.duplicates = 0
         self.dropped = 0
+        self.first_cell_timeouts = 0
         self.errors: list[str] = []
 
 
@@ -141,7 +164,11 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
     try:
         first = grid.cell_of(pos[0])
         await s.send_pose(0, 0.0, pos[0], walk.forwards[0], vel[0])
-        await s.wait_cell(first, 300)
+        try:
+            await s.wait_cell(first, args.first_cell_timeout)
+        except TimeoutError:
+            # A flooded server may never get to it: walk anyway, so the frames still count.
+            stats.first_cell_timeouts += 1
         t0 = time.perf_counter()
         frame = 1.0 / args.fps
 
@@ -183,6 +210,116 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
         stats.errors += [f"{e.code}: {e.message}" for e in s.errors]
         stats.errors += s.local_errors
         await s.close()
+
+
+#: Expensive parameters of the hostile client's requests, per core (``--hostile-params``): far
+#: above the defaults, within each parameter's declared range so they pass validation.
+HOSTILE_PARAMS: dict[str, dict] = {"sampling": {"resolution": 2048, "samples": 100_000},
+                                   "from_segment": {"resolution": 2048},
+                                   "cos": {"resolution": 2048}}
+#: The hostile client's source address: another loopback address than the walkers' 127.0.0.1.
+HOSTILE_ADDRESS = "127.0.0.2"
+#: The statuses the hostile's answers are counted by; anything else counts as "other".
+HOSTILE_STATUSES = (200, 422, 429, 503)
+
+
+def hostile_box(cells: np.ndarray, rng: random.Random) -> list[list[float]]:
+    """A random box near a random cell of ``cells`` ((k, 2, 3) [min, max]): shifted by up to
+    half the cell and shrunk by up to half, so no two requests ask the same question."""
+    lo, hi = cells[rng.randrange(len(cells))]
+    size = hi - lo
+    shift = np.array([rng.uniform(-0.5, 0.5) for _ in range(3)]) * size * np.array([1, 0, 1])
+    scale = rng.uniform(0.5, 1.0)
+    centre = 0.5 * (lo + hi) + shift
+    half = 0.5 * size * scale
+    return [(centre - half).tolist(), (centre + half).tolist()]
+
+
+async def hostile_flood(url: str, scene: str, core: str, params: dict, cells: np.ndarray,
+                        concurrency: int, timeout: float, pause: float, seed: int,
+                        stop: Callable[[], bool], started: Callable[[], None]) -> dict:
+    """Flood ``POST /scenes/{scene}/pvs`` with expensive ad-hoc boxes from ``HOSTILE_ADDRESS``
+    until ``stop()``: ``concurrency`` requests at once, each abandoned after ``timeout`` s and
+    replaced by a new one; after a refused connection or a 429/503 a loop waits ``pause`` s
+    and sends again. Returns the answers counted by status and what went unanswered."""
+    counts: dict = {"sent": 0, **{str(c): 0 for c in HOSTILE_STATUSES}, "other": 0,
+                    "refused": 0, "timeout": 0, "unfinished": 0, "other_statuses": {}}
+    inflight = [0]
+    rng = random.Random(seed)
+    transport = httpx.AsyncHTTPTransport(local_address=HOSTILE_ADDRESS)
+    limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
+    async with httpx.AsyncClient(base_url=url, transport=transport, timeout=timeout,
+                                 limits=limits) as http:
+        async def loop() -> None:
+            while True:
+                body = {"box": hostile_box(cells, rng), "core": core, "params": params}
+                counts["sent"] += 1
+                inflight[0] += 1
+                try:
+                    r = await http.post(f"/scenes/{scene}/pvs", json=body)
+                except httpx.TimeoutException:
+                    counts["timeout"] += 1
+                    continue
+                except httpx.TransportError:
+                    counts["refused"] += 1
+                    await asyncio.sleep(pause)
+                    continue
+                finally:
+                    inflight[0] -= 1
+                if r.status_code in HOSTILE_STATUSES:
+                    counts[str(r.status_code)] += 1
+                else:
+                    counts["other"] += 1
+                    other = counts["other_statuses"]
+                    other[str(r.status_code)] = other.get(str(r.status_code), 0) + 1
+                if r.status_code in (429, 503):
+                    await asyncio.sleep(pause)
+
+        tasks = [asyncio.create_task(loop()) for _ in range(concurrency)]
+        started()
+        while not stop():
+            await asyncio.sleep(0.1)
+        counts["unfinished"] = inflight[0]
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    return counts
+
+
+def _hostile_main(url: str, scene: str, core: str, params: dict, cells: np.ndarray,
+                  concurrency: int, timeout: float, pause: float, seed: int, stop_ev: object,
+                  started_ev: object, out: object) -> None:
+    """The hostile client's process: flood until ``stop_ev`` is set, put the counts on
+    ``out``."""
+    out.put(asyncio.run(hostile_flood(url, scene, core, params, cells, concurrency, timeout,
+                                      pause, seed, stop_ev.is_set, started_ev.set)))
+
+
+@contextlib.contextmanager
+def hostile_client(url: str, args: argparse.Namespace, grid: ViewcellGrid) -> Iterator[dict]:
+    """Run the hostile client (its own process, ``spawn``: this process runs threads) for the
+    ``with`` block; the dict it yields holds its counts once the block has ended."""
+    ctx = multiprocessing.get_context("spawn")
+    stop_ev, started_ev, out = ctx.Event(), ctx.Event(), ctx.Queue()
+    cells = np.stack([grid.cell(i).box for i in range(len(grid))])
+    proc = ctx.Process(target=_hostile_main, daemon=True, args=(
+        url, args.scene, args.core, args.hostile_params, cells, args.hostile_concurrency,
+        args.hostile_timeout, args.hostile_pause, args.seed, stop_ev, started_ev, out))
+    proc.start()
+    counts: dict = {}
+    try:
+        if not started_ev.wait(120):
+            raise RuntimeError("the hostile client did not start")
+        yield counts
+    finally:
+        stop_ev.set()
+        try:
+            counts.update(out.get(timeout=60))
+        except Exception as exc:  # a lost count must not lose the walkers' numbers
+            counts["error"] = f"{type(exc).__name__}: {exc}"
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
 
 
 async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: ViewcellGrid,
@@ -256,8 +393,10 @@ def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangle
         "duplicates": sum(s.duplicates for s in stats),
         "dropped": sum(s.dropped for s in stats),
         "client_errors": sum(len(s.errors) for s in stats),
+        "first_cell_timeouts": sum(s.first_cell_timeouts for s in stats),
         "errors_sample": [e for s in stats for e in s.errors][:5],
         "wall_seconds": wall, "cell_size": args.cell_size, "grace_seconds": args.grace,
+        "first_cell_timeout": args.first_cell_timeout,
     }
 
 
@@ -307,7 +446,36 @@ def table(r: dict) -> list[tuple[str, str]]:
         ("triangles dropped", f"{r['dropped']}"),
         ("client errors", f"{r['client_errors']}"),
         ("wall time", f"{r['wall_seconds']:.1f} s"),
-    ]
+    ] + hostile_rows(r)
+
+
+def hostile_rows(r: dict) -> list[tuple[str, str]]:
+    """The printed rows about the hostile client and late first cells (none for a run of the
+    default mode, whose layout stays as it was)."""
+    rows = []
+    if "hostile" in r or r.get("first_cell_timeouts"):
+        rows.append(("first cells late (walked anyway)", f"{r.get('first_cell_timeouts', 0)}"))
+    if "hostile" in r:
+        rows.append(("hostile client", "yes" if r["hostile"] else "no"))
+    if r.get("hostile"):
+        h = r["hostile_answers"]
+        rows += [("hostile requests / concurrency / params",
+                  f"{h.get('sent', 0)} / {r['hostile_concurrency']} / "
+                  f"{json.dumps(r['hostile_params'])}"),
+                 ("hostile answers", hostile_answers_text(h))]
+    return rows
+
+
+def hostile_answers_text(h: dict) -> str:
+    """The hostile's answers by status, one line."""
+    if "error" in h and "sent" not in h:
+        return f"not counted: {h['error']}"
+    bits = [f"{c}: {h.get(str(c), 0)}" for c in HOSTILE_STATUSES]
+    other = h.get("other_statuses") or {}
+    bits.append(f"other: {h.get('other', 0)}" + (f" ({json.dumps(other)})" if other else ""))
+    bits += [f"refused: {h.get('refused', 0)}", f"gave up: {h.get('timeout', 0)}",
+             f"unanswered at stop: {h.get('unfinished', 0)}"]
+    return ", ".join(bits)
 
 
 def plot(runs: list[dict], path: Path) -> None:
@@ -321,12 +489,15 @@ def plot(runs: list[dict], path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for r in runs:
         lat = np.sort(np.asarray(r["latencies_s"], dtype=float)) * 1e3
+        label = f"{r['clients']} clients, {r['cache']}" + (", hostile" if r.get("hostile")
+                                                           else "")
         if len(lat):
             # Never-delivered frames stay off the curve, so it ends below 1.
             n = len(lat) + r["frames_never_delivered"]
             a.plot(lat, np.arange(1, len(lat) + 1) / n, drawstyle="steps-post",
-                   ls="-" if r["cache"] == "cold" else "--",
-                   label=f"{r['clients']} clients, {r['cache']}")
+                   ls="-" if r["cache"] == "cold" else "--", label=label)
+        elif r["frames"]:
+            a.plot([], [], ls="none", label=label + ": no frame delivered")
     if runs:
         a.axvline(1e3 / runs[0]["fps"], color="grey", ls=":", label="one frame interval")
     a.set_xscale("symlog", linthresh=1.0)
@@ -335,15 +506,30 @@ def plot(runs: list[dict], path: Path) -> None:
     a.set_ylabel("fraction of frames")
     a.set_title("frame delivery latency")
     a.legend(loc="lower right", fontsize=7)
-    for cache, marker in (("cold", "o-"), ("warm", "s--")):
-        rs = sorted((r for r in runs if r["cache"] == cache), key=lambda r: r["clients"])
-        if rs:
-            b.plot([r["clients"] for r in rs], [100.0 * r["stall_fraction"] for r in rs], marker,
-                   label=f"{cache} cache")
-    b.set_xlabel("concurrent clients")
-    b.set_ylabel("stalled frames (%)")
-    b.set_title("stalls against load")
-    b.legend()
+    if any(r.get("hostile") for r in runs):
+        # Abuse mode: each pair side by side, without and with the hostile client.
+        keys = list(dict.fromkeys((r["clients"], r["cache"]) for r in runs))
+        x = np.arange(len(keys))
+        for off, hostile, colour in ((-0.2, False, "C0"), (0.2, True, "C3")):
+            vals = [next((100.0 * r["stall_fraction"] for r in runs
+                          if (r["clients"], r["cache"]) == k
+                          and bool(r.get("hostile")) == hostile), 0.0) for k in keys]
+            b.bar(x + off, vals, 0.4, color=colour,
+                  label="with the hostile client" if hostile else "without")
+        b.set_xticks(x, [f"{n} clients\n{cache} cache" for n, cache in keys])
+        b.set_ylabel("stalled frames (%)")
+        b.set_title("stalls with and without a hostile client")
+        b.legend()
+    else:
+        for cache, marker in (("cold", "o-"), ("warm", "s--")):
+            rs = sorted((r for r in runs if r["cache"] == cache), key=lambda r: r["clients"])
+            if rs:
+                b.plot([r["clients"] for r in rs], [100.0 * r["stall_fraction"] for r in rs],
+                       marker, label=f"{cache} cache")
+        b.set_xlabel("concurrent clients")
+        b.set_ylabel("stalled frames (%)")
+        b.set_title("stalls against load")
+        b.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -365,6 +551,34 @@ def capacity_table(runs: list[dict]) -> list[str]:
             f"{r['computations']:.0f} | {r['computation_seconds']:.1f} | "
             f"{r['bytes_sent'] / 1e6:.2f} | {r['server_rss_peak_bytes'] / 2**20:.0f} | "
             f"{r['wall_seconds']:.1f} |")
+    return rows
+
+
+def abuse_table(runs: list[dict]) -> list[str]:
+    """One markdown row per run of the abuse mode: the walkers with and without the hostile
+    client, and the hostile's answers by status."""
+    head = ("| cache | clients | hostile | frames | stalls % | clients with stalls | p50 ms | "
+            "p95 ms | never delivered | first cells late | server RSS peak MiB | hostile sent "
+            "| " + " | ".join(str(c) for c in HOSTILE_STATUSES)
+            + " | other | refused | gave up | unanswered at stop |")
+    rows = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in runs:
+        def ms(x: float | None, r: dict = r) -> str:
+            return ("n/a" if not r["frames"] else "never") if x is None else f"{1e3 * x:.0f}"
+
+        h = r.get("hostile_answers", {}) if r.get("hostile") else {}
+
+        def n(key: str, h: dict = h, r: dict = r) -> str:
+            return str(h.get(key, 0)) if r.get("hostile") else "–"
+
+        rows.append(
+            f"| {r['cache']} | {r['clients']} | {'yes' if r.get('hostile') else 'no'} | "
+            f"{r['frames']} | {100 * r['stall_fraction']:.2f} | {r['clients_with_stalls']} | "
+            f"{ms(r['latency_p50_s'])} | {ms(r['latency_p95_s'])} | "
+            f"{r['frames_never_delivered']} | {r.get('first_cell_timeouts', 0)} | "
+            f"{r['server_rss_peak_bytes'] / 2**20:.0f} | {n('sent')} | "
+            + " | ".join(n(str(c)) for c in HOSTILE_STATUSES)
+            + f" | {n('other')} | {n('refused')} | {n('timeout')} | {n('unfinished')} |")
     return rows
 
 
@@ -415,16 +629,28 @@ async def warm_up(url: str, args: argparse.Namespace, cells: int) -> float:
 
 
 def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients: int,
-            cache: str, scene_triangles: int, grid: ViewcellGrid) -> dict:
-    """One run of ``clients`` walkers against the server at ``url``; its summary."""
+            cache: str, scene_triangles: int, grid: ViewcellGrid,
+            hostile: bool | None = None) -> dict:
+    """One run of ``clients`` walkers against the server at ``url``; its summary. ``hostile``
+    True: while the hostile client floods the server; False: a run of the abuse mode without
+    it; None: a run of the default mode (no hostile fields)."""
     before = counters(url)
     cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
-    stats, peak_rss, wall = asyncio.run(run_clients(url, args, clients, grid, proc.pid))
+    with hostile_client(url, args, grid) if hostile else contextlib.nullcontext({}) as flood:
+        stats, peak_rss, wall = asyncio.run(run_clients(url, args, clients, grid, proc.pid))
     server_cpu, client_cpu = cpu_seconds(proc.pid) - cpu0, time.process_time() - own0
     after = counters(url)
     m = {k: after[k] - before[k] for k in COUNTERS}
-    return summarise(args, clients, cache, scene_triangles, len(grid), stats, peak_rss, wall, m,
-                     server_cpu, client_cpu)
+    r = summarise(args, clients, cache, scene_triangles, len(grid), stats, peak_rss, wall, m,
+                  server_cpu, client_cpu)
+    if hostile is not None:
+        r["hostile"] = hostile
+    if hostile:
+        r.update(hostile_answers=flood, hostile_params=args.hostile_params,
+                 hostile_concurrency=args.hostile_concurrency,
+                 hostile_timeout=args.hostile_timeout, hostile_pause=args.hostile_pause,
+                 hostile_address=HOSTILE_ADDRESS)
+    return r
 
 
 def run_lines(r: dict) -> list[str]:
@@ -441,7 +667,28 @@ def write_outputs(out: Path, name: str, command: str, where: str, runs: list[dic
     r0 = runs[0]
     warm = next((r["warm_up_seconds"] for r in runs if "warm_up_seconds" in r), None)
     details = [line for r in runs for line in (
-        f"### {r['clients']} clients, {r['cache']} cache", "", "```", *run_lines(r), "```", "")]
+        f"### {r['clients']} clients, {r['cache']} cache"
+        + {True: ", hostile client", False: ", no hostile client"}.get(r.get("hostile"), ""),
+        "", "```", *run_lines(r), "```", "")]
+    abuse = []
+    hostile = next((r for r in runs if r.get("hostile")), None)
+    if hostile is not None:
+        abuse = ["## Abuse: the walkers with and without a hostile client", "",
+                 f"Each pair runs on the same settings; in the second row a hostile client "
+                 f"floods `POST /scenes/{r0['scene']}/pvs` from {hostile['hostile_address']} "
+                 f"with {hostile['hostile_concurrency']} requests at once, each a different "
+                 f"box near a random cell, core `{r0['core']}` with parameters "
+                 f"`{json.dumps(hostile['hostile_params'])}`, abandoned after "
+                 f"{hostile['hostile_timeout']:g} s and sent anew, sent again "
+                 "at once after an answer (after "
+                 f"{hostile.get('hostile_pause', 0.05):g} s when refused or answered "
+                 "429/503), from before the first walker connects until the last one is done. "
+                 "Cold pairs: two fresh servers; warm pairs: one warmed server, the hostile row "
+                 "second. First cells late: walkers whose first cell did not come within "
+                 f"{r0.get('first_cell_timeout', 300):g} s and walked anyway (their frames "
+                 "count). Hostile answers by status; refused: connections refused or reset; "
+                 "gave up: no answer within its timeout; unanswered at stop: in flight when "
+                 "the walkers were done.", "", *abuse_table(runs), ""]
     md = ["# Load benchmark", "", f"command: `{command}`", "", f"machine: {where}", "",
           f"Scene `{r0['scene']}` ({r0['triangles']} triangles, {r0['cells']} cells of "
           f"{r0.get('cell_size', 4.0):g} m), core `{r0['core']}` with parameters "
@@ -455,8 +702,9 @@ def write_outputs(out: Path, name: str, command: str, where: str, runs: list[dic
           f"{r0.get('grace_seconds', 10.0):g} s after the walk ended (the walker had left the "
           "cell). Latency percentiles are over every frame (nearest rank), a never-delivered "
           "frame counting as the latest: 'never' when the percentile falls on one.", "",
-          *capacity_table(runs), "", f"![latency and stalls]({name}.png)", "", "## Each run",
-          "", *details]
+          *(capacity_table(runs) + [""] if hostile is None else []), *abuse,
+          f"![latency and stalls]({name}.png)", "",
+          "## Each run", "", *details]
     (out / f"{name}.md").write_text("\n".join(md))
     (out / f"{name}.json").write_text(json.dumps(
         {"command": command, "machine": where, "runs": runs}, indent=1))
@@ -477,8 +725,9 @@ def rerender(path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clients", default="5,10,20,50",
-                    help="concurrent clients, a comma-separated list: one run per count")
+    ap.add_argument("--clients", default=None,
+                    help="concurrent clients, a comma-separated list: one run per count "
+                         "(default 5,10,20,50; with --hostile 50)")
     ap.add_argument("--duration", type=float, default=20.0, help="walk length, seconds")
     ap.add_argument("--speed", type=float, default=1.4, help="walking speed, m/s")
     ap.add_argument("--fps", type=float, default=10.0)
@@ -503,6 +752,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="file stem of the outputs (e.g. load_from_segment for another core)")
     ap.add_argument("--no-files", action="store_true", help="print only")
     ap.add_argument("--quick", action="store_true", help="5 clients, 6 s walks, cold (smoke)")
+    ap.add_argument("--hostile", action="store_true",
+                    help="abuse mode: every run twice, without and with a hostile client "
+                         "flooding expensive HTTP PVS requests (see the module docstring)")
+    ap.add_argument("--hostile-concurrency", type=int, default=16,
+                    help="the hostile client's requests in flight at once")
+    ap.add_argument("--hostile-params", default=None,
+                    help="core parameters of the hostile requests, JSON (default: "
+                         "HOSTILE_PARAMS for the core, else resolution 2048)")
+    ap.add_argument("--hostile-timeout", type=float, default=10.0,
+                    help="seconds the hostile client waits for an answer before it sends "
+                         "another request in its place")
+    ap.add_argument("--hostile-pause", type=float, default=0.05,
+                    help="seconds the hostile client waits after a refusal or a 429/503")
+    ap.add_argument("--first-cell-timeout", type=float, default=None,
+                    help="seconds a walker waits for its first cell before it walks anyway "
+                         "(default 300; with --hostile 30)")
     ap.add_argument("--rerender", type=Path, metavar="JSON",
                     help="rewrite the tables and plot of a measured run from its JSON, "
                          "measuring nothing")
@@ -510,6 +775,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.rerender:
         rerender(args.rerender)
         return 0
+    if args.clients is None:
+        args.clients = "50" if args.hostile else "5,10,20,50"
+    if args.first_cell_timeout is None:
+        args.first_cell_timeout = 30.0 if args.hostile else 300.0
+    args.hostile_params = (json.loads(args.hostile_params) if args.hostile_params else
+                           HOSTILE_PARAMS.get(args.core, {"resolution": 2048}))
+    if args.hostile_concurrency < 1 or args.hostile_timeout <= 0:
+        ap.error("--hostile-concurrency takes a positive count, --hostile-timeout seconds > 0")
     counts = [int(x) for x in str(args.clients).split(",") if x.strip()]
     caches = [x.strip() for x in args.cache.split(",") if x.strip()]
     if not counts or min(counts) < 1 or set(caches) - {"cold", "warm"} or not caches:
@@ -532,6 +805,24 @@ def main(argv: list[str] | None = None) -> int:
         print("json: " + json.dumps({k: v for k, v in r.items() if k != "latencies_s"}))
         runs.append(r)
 
+    if args.hostile:
+        # Pairs: the same run without, then with the hostile client (module docstring).
+        for cache in caches:
+            for n in counts:
+                if cache == "cold":
+                    for hostile in (False, True):
+                        with serving(args) as (url, proc):
+                            report(measure(url, proc, args, n, "cold", scene.n_triangles, grid,
+                                           hostile))
+                    continue
+                with serving(args) as (url, proc):
+                    warm_seconds = asyncio.run(warm_up(url, args, len(grid)))
+                    print(f"warm-up: {len(grid)} cells computed in {warm_seconds:.1f} s")
+                    for hostile in (False, True):
+                        r = measure(url, proc, args, n, "warm", scene.n_triangles, grid, hostile)
+                        r["warm_up_seconds"] = warm_seconds
+                        report(r)
+        caches = []
     if "cold" in caches:
         for n in counts:
             with serving(args) as (url, proc):
@@ -545,7 +836,7 @@ def main(argv: list[str] | None = None) -> int:
                 r = measure(url, proc, args, n, "warm", scene.n_triangles, grid)
                 r["warm_up_seconds"] = warm_seconds
                 report(r)
-    print("\n".join(capacity_table(runs)))
+    print("\n".join(abuse_table(runs) if args.hostile else capacity_table(runs)))
     if not args.no_files:
         write_outputs(args.out, args.name, command, where, runs)
     return 0

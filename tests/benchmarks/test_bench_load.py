@@ -67,3 +67,84 @@ def test_warm_cache_serves_every_cell_without_computing(tmp_path, capsys):
         assert r["computations"] == 0 and r["cache_hits"] >= 1
         assert r["client_errors"] == 0 and r["duplicates"] == 0
     assert "| warm | 2 |" in (tmp_path / "load.md").read_text()
+
+
+def test_the_hostile_client_counts_answers_and_comes_from_its_own_address():
+    """Against a stub that refuses every request with 429, the hostile flood comes from
+    127.0.0.2, counts every answer by status and says what was in flight when it stopped."""
+    import asyncio
+
+    import numpy as np
+
+    peers: list[str] = []
+
+    async def main() -> dict:
+        async def answer(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            peers.append(writer.get_extra_info("peername")[0])
+            try:
+                while True:
+                    head = await reader.readuntil(b"\r\n\r\n")
+                    size = next((int(line.split(b":")[1]) for line in head.split(b"\r\n")
+                                 if line.lower().startswith(b"content-length:")), 0)
+                    await reader.readexactly(size)
+                    writer.write(b"HTTP/1.1 429 Too Many Requests\r\ncontent-length: 0\r\n\r\n")
+                    await writer.drain()
+            except (asyncio.IncompleteReadError, ConnectionError):
+                writer.close()
+
+        server = await asyncio.start_server(answer, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        cells = np.array([[[0.0, 1.5, 0.0], [4.0, 1.9, 4.0]]])
+        t_end = asyncio.get_running_loop().time() + 1.0
+        async with server:
+            return await bench_load.hostile_flood(
+                f"http://127.0.0.1:{port}", "village", "sampling", {"samples": 100_000}, cells,
+                concurrency=3, timeout=5.0, pause=0.05, seed=0,
+                stop=lambda: asyncio.get_event_loop().time() > t_end, started=lambda: None)
+
+    counts = asyncio.run(main())
+    assert peers and set(peers) == {bench_load.HOSTILE_ADDRESS}
+    assert counts["429"] >= 3 and counts["200"] == counts["503"] == counts["other"] == 0
+    answered = sum(counts[k] for k in ("200", "422", "429", "503", "other", "refused",
+                                       "timeout"))
+    assert counts["sent"] == answered + counts["unfinished"]
+    assert "429: " in bench_load.hostile_answers_text(counts)
+
+
+def test_hostile_boxes_differ_and_stay_near_the_cells():
+    import random
+
+    import numpy as np
+
+    cells = np.array([[[0.0, 1.5, 0.0], [4.0, 1.9, 4.0]], [[4.0, 1.5, 0.0], [8.0, 1.9, 4.0]]])
+    rng = random.Random(0)
+    boxes = [bench_load.hostile_box(cells, rng) for _ in range(50)]
+    assert len({json.dumps(b) for b in boxes}) == 50
+    for lo, hi in boxes:
+        assert all(a <= b for a, b in zip(lo, hi, strict=True))
+        assert -2.0 <= lo[0] and hi[0] <= 10.0 and 1.5 <= lo[1] and hi[1] <= 1.9
+
+
+def test_abuse_mode_runs_each_row_without_and_with_the_hostile_client(tmp_path, capsys):
+    """``--hostile`` in its quick form: a cold pair on a real server (cheap hostile parameters
+    keep it short; the default ones are the expensive ``HOSTILE_PARAMS``)."""
+    rc = bench_load.main(["--hostile", "--quick", "--clients", "2", "--duration", "3",
+                          "--triangles", "5000", "--params", '{"resolution": 64, "samples": 8}',
+                          "--hostile-params", '{"resolution": 128, "samples": 32}',
+                          "--hostile-concurrency", "3", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    runs = [json.loads(line[6:]) for line in out.splitlines() if line.startswith("json: ")]
+    assert [(r["clients"], r["cache"], r["hostile"]) for r in runs] == [
+        (2, "cold", False), (2, "cold", True)]
+    quiet, flooded = runs
+    assert "hostile_answers" not in quiet
+    h = flooded["hostile_answers"]
+    assert h["sent"] >= 1 and h["200"] >= 1
+    assert flooded["hostile_params"] == {"resolution": 128, "samples": 32}
+    for r in runs:
+        assert r["frames"] > 0 and r["client_errors"] == 0 and r["duplicates"] == 0
+    md = (tmp_path / "load.md").read_text()
+    assert "## Abuse: the walkers with and without a hostile client" in md
+    assert "| cold | 2 | yes |" in md and "| cold | 2 | no |" in md
+    assert (tmp_path / "load.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
