@@ -19,7 +19,7 @@ from numba import njit
 
 from visibility.cancel import checkpoint
 from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
-from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotation
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotations
 from visibility.raster.spheres import draw_spheres_cubemap
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -241,9 +241,7 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
     (m + s,) ``seen`` flags and 104 bytes per point; never a buffer per view kept."""
     n_points = len(points)
     # Drawn in this order (all rotations, then all times) so a seed gives the same views as ever.
-    rotations = np.empty((n_points, 3, 3))
-    for k in range(n_points):
-        rotations[k] = random_rotation(rng)
+    rotations = random_rotations(rng, n_points)
     dynamic = scene.is_dynamic
     if dynamic:
         times = rng.uniform(*scene.time_range(), size=n_points)

@@ -86,6 +86,19 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     )
 
 
+def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3, 3) rotations drawn uniformly from SO(3), vectorized; the same draws from ``rng``
+    as ``n`` calls of ``random_rotation`` (one Gaussian quaternion each, in order)."""
+    q = rng.normal(size=(int(n), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
 def pixel_rays(width: int, height: int, tan_x: float = 1.0, tan_y: float = 1.0) -> np.ndarray:
     """(H, W, 3) float64 camera-space ray directions through pixel centres (z = -1)."""
     j = (np.arange(width) + 0.5) * (2.0 / width) - 1.0

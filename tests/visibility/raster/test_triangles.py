@@ -373,3 +373,18 @@ def test_bad_arguments_raise_value_errors():
         render_cubemap(v, f, O3, 0)
     with pytest.raises(ValueError):
         render_cubemap(v, f, O3, 8, base_rotation=np.zeros((3, 3)))
+
+
+def test_random_rotations_are_the_loops_draws_vectorized():
+    """Same rotations as one ``random_rotation`` per draw (a seed keeps its views), orthonormal
+    with determinant 1."""
+    from visibility.raster.camera import random_rotation, random_rotations
+
+    a, b = np.random.default_rng(5), np.random.default_rng(5)
+    loop = np.stack([random_rotation(a) for _ in range(50)])
+    many = random_rotations(b, 50)
+    np.testing.assert_allclose(many, loop, atol=1e-12)
+    assert a.normal() == b.normal()  # the generators are at the same place
+    np.testing.assert_allclose(many @ many.transpose(0, 2, 1), np.broadcast_to(np.eye(3),
+                               (50, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(many), 1.0)
