@@ -27,7 +27,7 @@ from protocol.version import PROTOCOL_VERSION
 from server import metrics, routes, ws
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
-from server.middleware import HttpGuard
+from server.middleware import HttpGuard, RateLimit
 from server.nearfar_store import NearFarStore
 from server.openapi import install_openapi
 from server.settings import Settings
@@ -44,7 +44,7 @@ COUNTERS = ("sessions_total", "messages_received", "messages_sent", "text_bytes_
             "errors_sent", "frames_sent", "frame_bytes_sent", "triangles_sent",
             "triangles_dropped", "cells_streamed", "cells_prefetched", "prefetch_yields",
             "stalls", "slow_clients", "cubemaps_sent", "cells_sent_whole", "http_bytes_sent",
-            "http_abandoned")
+            "http_abandoned", "http_rate_limited")
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +149,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.server = state
+    app.add_middleware(RateLimit, rate=settings.pvs_rate, burst=settings.pvs_burst,
+                       counters=state.counters)
+    # Added last, so outermost: every answer's bytes are counted, the 429s included.
     app.add_middleware(HttpGuard, max_body_bytes=settings.max_body_bytes,
                        counters=state.counters)
     app.include_router(routes.router)

@@ -86,6 +86,8 @@ class Settings(BaseModel):
     heavy_seconds : computations estimated above this many seconds run in the heavy lane.
     heavy_workers : workers the heavy lane may occupy at once (None: all but one, so a cheap
         request always finds a worker; with one worker, that one).
+    pvs_rate, pvs_burst : PVS requests (HTTP) per second one client address may send, and the
+        burst it may send at once; past them 429 ``too_many_requests`` before any parsing.
     shutdown_grace : seconds a stopping server gives open requests after it has cancelled their
         computations and closed the WebSocket sessions (1001), before it cancels them.
     log_level : uvicorn's log level.
@@ -134,6 +136,8 @@ class Settings(BaseModel):
     max_inflight_per_client: int = Field(4, ge=1, le=1 << 16)
     heavy_seconds: float = Field(2.0, gt=0, allow_inf_nan=False)
     heavy_workers: int | None = Field(None, ge=1, le=256)
+    pvs_rate: float = Field(50.0, gt=0, allow_inf_nan=False)
+    pvs_burst: int = Field(100, ge=1)
     shutdown_grace: float = Field(3.0, gt=0, le=600, allow_inf_nan=False)
     log_level: str = "info"
     # scene files
@@ -180,6 +184,7 @@ class Settings(BaseModel):
         disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE, PVS_MAX_COMPUTE_BYTES, PVS_MAX_QUEUED,
         PVS_REFUSE_OVER_DEADLINE,
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
+        PVS_PVS_RATE, PVS_PVS_BURST,
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
@@ -206,7 +211,8 @@ class Settings(BaseModel):
             "refuse_over_deadline": "PVS_REFUSE_OVER_DEADLINE",
             "max_inflight_per_client": "PVS_MAX_INFLIGHT_PER_CLIENT",
             "heavy_seconds": "PVS_HEAVY_SECONDS", "heavy_workers": "PVS_HEAVY_WORKERS",
-            "shutdown_grace": "PVS_SHUTDOWN_GRACE",
+            "shutdown_grace": "PVS_SHUTDOWN_GRACE", "pvs_rate": "PVS_PVS_RATE",
+            "pvs_burst": "PVS_PVS_BURST",
             # scene files
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",

@@ -209,6 +209,37 @@ def test_one_client_cannot_hold_the_workers_and_leaving_cancels_its_work(server)
     assert refused["too_many_requests"] >= 1 and refused["busy"] >= 1
 
 
+def test_a_flood_of_refusals_is_rate_limited(server):
+    """A client that ignores its refusals and sends hundreds of PVS requests a second gets
+    429s that cost almost nothing (pvs_rate), so the event loop stays with everyone else."""
+    url, app = server
+    body = {"box": [[10, 0, 10], [12, 2, 12]], "params": ABSURD}
+
+    async def main():
+        async with client(url, "127.0.0.9") as hostile:
+            async def loop(k):
+                codes = []
+                for _ in range(12):
+                    codes.append((await hostile.post("/scenes/village/pvs", json=body))
+                                 .status_code)
+                return codes
+
+            t0 = time.monotonic()
+            flood = asyncio.gather(*(loop(k) for k in range(16)))
+            await asyncio.sleep(0.3)
+            seconds, r = await normal_request(url)
+            codes = [c for codes in await flood for c in codes]
+            return codes, time.monotonic() - t0, seconds, r
+
+    codes, lasted, seconds, r = run(main())
+    settings = app.state.server.settings
+    assert set(codes) <= {422, 429} and codes.count(429) > 0
+    # At most the burst plus what the rate refills while the flood lasts got through.
+    assert codes.count(422) <= settings.pvs_burst + lasted * settings.pvs_rate + 1
+    assert r.status_code == 200 and seconds < NORMAL_S
+    assert health(url)["stream"]["http_rate_limited"] >= codes.count(429)
+
+
 def test_a_scene_spanning_20_km_is_answered_without_gigabytes(server):
     """202 triangles over 20 km once drove walk-area detection past 6 GB."""
     url, _ = server
