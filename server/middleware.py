@@ -103,6 +103,9 @@ class RateLimit:
     limit to pass would take the loop from every walker. This answer costs a tenth of that,
     and it comes after ``TARPIT_S`` seconds (a sleeping coroutine costs nothing), so a client
     that waits for its answers sends at most one request per connection that often.
+    A request answered with a refusal (422, 429, 503) costs ``REFUSED_COST`` tokens, not one:
+    a client whose requests succeed keeps the whole rate, one that keeps asking for what the
+    server refuses gets a fifth of it.
     Buckets of addresses idle for ``IDLE_S`` seconds are dropped once there are
     ``MAX_CLIENTS``, so the table stays bounded whatever the number of addresses.
     """
@@ -110,6 +113,8 @@ class RateLimit:
     IDLE_S = 60.0
     MAX_CLIENTS = 10_000
     TARPIT_S = 0.5
+    REFUSED_COST = 5.0
+    REFUSED = frozenset({422, 429, 503})
 
     def __init__(self, app: ASGIApp, rate: float, burst: int, counters: Counter) -> None:
         self.app = app
@@ -118,16 +123,22 @@ class RateLimit:
         self.counters = counters
         self._buckets: dict[str, tuple[float, float]] = {}
 
-    def allow(self, client: str, now: float) -> bool:
-        """Take a token of ``client``'s bucket at monotonic time ``now``; False when empty."""
+    def allow(self, client: str, now: float, cost: float = 1.0) -> bool:
+        """Take ``cost`` tokens of ``client``'s bucket at monotonic time ``now`` (a bucket may
+        go into debt, repaid at ``rate``); False, taking nothing, when it holds less than one."""
         tokens, last = self._buckets.get(client, (self.burst, now))
         tokens = min(self.burst, tokens + (now - last) * self.rate)
         ok = tokens >= 1.0
-        self._buckets[client] = (tokens - 1.0 if ok else tokens, now)
+        self._buckets[client] = (tokens - cost if ok else tokens, now)
         if len(self._buckets) > self.MAX_CLIENTS:
             self._buckets = {k: v for k, v in self._buckets.items()
                              if now - v[1] < self.IDLE_S}
         return ok
+
+    def charge(self, client: str, cost: float) -> None:
+        """Take ``cost`` more tokens from ``client``'s bucket (its request was refused)."""
+        tokens, last = self._buckets.get(client, (self.burst, time.monotonic()))
+        self._buckets[client] = (tokens - cost, last)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or not scope.get("path", "").endswith("/pvs"):
@@ -135,7 +146,13 @@ class RateLimit:
             return
         host = (scope.get("client") or ("?", 0))[0]
         if self.allow(host, time.monotonic()):
-            await self.app(scope, receive, send)
+            async def charged_send(message: Message) -> None:
+                if (message["type"] == "http.response.start"
+                        and message.get("status") in self.REFUSED):
+                    self.charge(host, self.REFUSED_COST - 1.0)
+                await send(message)
+
+            await self.app(scope, receive, charged_send)
             return
         self.counters["http_rate_limited"] += 1
         await asyncio.sleep(self.TARPIT_S)

@@ -154,3 +154,17 @@ def test_a_job_nobody_waits_for_is_cancelled():
     finally:
         gate.set()
         svc.shutdown()
+
+
+def test_rate_limit_bucket_refills_and_refusals_cost_more():
+    from collections import Counter
+
+    from server.middleware import RateLimit
+
+    rl = RateLimit(app=None, rate=10.0, burst=5, counters=Counter())
+    assert all(rl.allow("a", 0.0) for _ in range(5)) and not rl.allow("a", 0.0)
+    assert rl.allow("b", 0.0)  # per address
+    assert rl.allow("a", 0.1) and not rl.allow("a", 0.1)  # 0.1 s refills one
+    rl.charge("a", rl.REFUSED_COST - 1)  # a refused request
+    assert not rl.allow("a", 0.3)  # two refilled, four more owed
+    assert rl.allow("a", 0.7)
