@@ -196,6 +196,9 @@ def settings(scenes_dir: Path):
         host="127.0.0.1", port=0, scenes_dir=scenes_dir, generated=small_generated(),
         workers=2, cache_bytes=8 * 1024 * 1024, max_frame_bytes=1024, max_message_bytes=4096,
         hello_timeout=30.0, ws_ping_interval=None, log_level="warning",
+        # Tests of validation send hundreds of refused requests in a row; the rate limit has
+        # its own tests (tests/server/test_robustness.py, at the defaults).
+        pvs_rate=1e6, pvs_burst=1_000_000,
     )
 
 

@@ -25,6 +25,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from protocol.messages import Hello, Pose, dump_message, parse_server_message
+from server.settings import Settings
 from tests.conftest import serving
 from tests.visibility.real_scenes import real_path
 
@@ -68,6 +69,7 @@ def scenes(tmp_path_factory) -> Path:
 def server(settings, scenes, registered_test_cores):
     with serving(settings, scenes_dir=scenes, generated={"village": 5000}, workers=2,
                  compute_deadline=30.0, max_queued=3, max_inflight_per_client=2,
+                 pvs_rate=Settings().pvs_rate, pvs_burst=Settings().pvs_burst,
                  log_level="warning") as (url, app):
         with httpx.Client(base_url=url, timeout=120) as http:
             for name in ("kitchen", "lavaducts", "village"):  # loaded before the clock runs
