@@ -136,7 +136,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     triangle_ids : (k,) int64 visible triangle ids.
     stats : seconds per phase (``weld_seconds``, ``sort_seconds``, ``list_seconds``,
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
-        ``occluder_triangles``, ``inside_box``, ``views``, ``pixels`` and ``sphere_ids``.
+        ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
+        occluder's depth), ``inside_box``, ``views``, ``pixels`` and ``sphere_ids``.
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -145,7 +146,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     welded, weld_s = scene_welded_ids(scene)
     t1 = time.perf_counter()
     prims = build_prims(scene, centre, welded)
-    order = distance_order(prims, half)
+    order, gap = distance_order(prims, half)
     t2 = time.perf_counter()
     inbox = inside_box(prims, half)
     vis = inbox.astype(np.uint8)
@@ -156,12 +157,12 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
-        "resolution": int(resolution), "list_runs": 0,
+        "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
         for view in views:
-            _solve_view(prims, order, view, plane_tol, vis, budget, stats)
+            _solve_view(prims, order, gap, view, plane_tol, vis, budget, stats)
     m = scene.n_triangles
     ids = prims.out_id[vis != 0]
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
@@ -170,8 +171,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     return ids[ids < m], stats
 
 
-def _solve_view(prims: Prims, order: np.ndarray, view: View, plane_tol: float, vis: np.ndarray,
-                budget: int, stats: dict[str, Any]) -> None:
+def _solve_view(prims: Prims, order: np.ndarray, gap: np.ndarray, view: View, plane_tol: float,
+                vis: np.ndarray, budget: int, stats: dict[str, Any]) -> None:
     """Lists and resolution of one view; sets ``vis`` for what it finds visible."""
     t0 = time.perf_counter()
     known = vis.copy()
@@ -194,7 +195,7 @@ def _solve_view(prims: Prims, order: np.ndarray, view: View, plane_tol: float, v
     stats["list_entries"] += int(list_off[-1])
     stats["longest_list"] = max(stats["longest_list"], int(counts.max(initial=0)))
     stats["list_seconds"] += time.perf_counter() - t0
-    counters = np.zeros((n_tiles, 3), dtype=np.int64)
+    counters = np.zeros((n_tiles, 4), dtype=np.int64)
     t = 0
     while t < n_tiles:
         # A run of tiles whose lists fit the budget (at least one tile).
@@ -214,7 +215,7 @@ def _solve_view(prims: Prims, order: np.ndarray, view: View, plane_tol: float, v
                    view.nx, view.ny, view.x_lo, view.y_lo, view.pw, counts, list_off, entries,
                    True)
         tb = time.perf_counter()
-        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, entries,
+        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
                       list_off, t, t1, tiles_x, view.nx, view.ny, view.x_lo, view.y_lo, view.pw,
                       view.origin, view.perm, view.sign, view.corners, plane_tol, known, vis,
                       counters)
@@ -224,3 +225,4 @@ def _solve_view(prims: Prims, order: np.ndarray, view: View, plane_tol: float, v
     stats["tested"] += int(counters[:, 0].sum())
     stats["occluded"] += int(counters[:, 1].sum())
     stats["occluder_triangles"] += int(counters[:, 2].sum())
+    stats["early_z_cut"] += int(counters[:, 3].sum())

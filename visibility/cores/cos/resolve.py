@@ -135,6 +135,49 @@ def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1,
 
 
 @njit(cache=True, nogil=True)
+def _cover_depth(g, head, nxt, obb, owr, wcam, tol, h, kx, ky, nk, wref):  # pragma: no cover
+    """Depth (camera w) by which every ray of the pixel meets coverall group g, or inf.
+
+    g covers the grown offset region (polygon K, frame of depth wref) for every delta: every
+    ray of the pixel, extended back to w = 0, meets one of g's triangles whose grown bounding
+    box meets K's, at a depth no larger than that triangle's deepest vertex. When all those
+    triangles lie at w >= wcam (the deepest camera position), the meeting point is on the ray
+    itself, in front of its camera position: the largest such deepest vertex bounds it."""
+    kx0 = np.inf
+    kx1 = -np.inf
+    ky0 = np.inf
+    ky1 = -np.inf
+    for i in range(nk):
+        kx0 = min(kx0, kx[i])
+        kx1 = max(kx1, kx[i])
+        ky0 = min(ky0, ky[i])
+        ky1 = max(ky1, ky[i])
+    z = -np.inf
+    r = head[g]
+    while r >= 0:
+        grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
+        if not (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
+                or obb[r, 2] - grow > ky1):
+            if not owr[r, 0] >= wcam + tol:
+                return np.inf
+            z = max(z, owr[r, 1])
+        r = nxt[r]
+    return z if z > -np.inf else np.inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_slot(hk0, hk1, mask, va, vb):  # pragma: no cover - numba
+    """Slot of directed edge (va, vb) in the open-addressing table (hk0, hk1) of ``mask + 1``
+    slots: the slot holding it, or the empty one (hk0 == -1) where it would go."""
+    x = va * 0x9E3779B1 + vb * 0x85EBCA77  # may wrap for huge ids: only spreads the bits
+    x ^= x >> 17
+    k = x & mask
+    while hk0[k] >= 0 and (hk0[k] != va or hk1[k] != vb):
+        k = (k + 1) & mask
+    return k
+
+
+@njit(cache=True, nogil=True)
 def _merge(g1, g2, grp, head, tail, nxt, gbb, gcov, alive):  # pragma: no cover - numba
     if g1 == g2:
         return g1
@@ -154,16 +197,20 @@ def _merge(g1, g2, grp, head, tail, nxt, gbb, gcov, alive):  # pragma: no cover 
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, tiles_x, nx,
-                  ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known, vis,
+def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, tile1, tiles_x,
+                  nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known, vis,
                   counters):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. ``entries`` holds the lists of those tiles from ``list_off[tile0 * TILE^2]``
-    on; ``known[p]`` marks primitives already known visible (tested no more, still occluders).
-    ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles)."""
+    on, each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
+    bounding box, metres); ``known[p]`` marks primitives already known visible (tested no more,
+    still occluders). ``counters[tile]`` gets (entries tested, entries found occluded, occluder
+    triangles, entries cut by the early-z depth)."""
     h = 0.5 * pw
     npix = TILE * TILE
     base = list_off[tile0 * npix]
+    # Largest camera depth of the view's camera rectangle (0 for a front frustum).
+    wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
     for tile in prange(tile0, tile1):
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
@@ -200,9 +247,20 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
         gcov = np.empty(lmax, dtype=np.bool_)
         alive = np.empty(lmax, dtype=np.bool_)
         cov = np.empty(lmax, dtype=np.int64)
+        # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
+        # it (hfirst), chained in insertion order through enext; at most a half full.
+        hcap = 8
+        while hcap < 6 * lmax:
+            hcap *= 2
+        hk0 = np.empty(hcap, dtype=np.int64)
+        hk1 = np.empty(hcap, dtype=np.int64)
+        hfirst = np.empty(hcap, dtype=np.int64)
+        hlast = np.empty(hcap, dtype=np.int64)
+        enext = np.empty(3 * lmax, dtype=np.int64)
         tested = 0
         hidden = 0
         occl = 0
+        cut = 0
         for loc in range(npix):
             i = ty * TILE + loc // TILE
             j = tx * TILE + loc % TILE
@@ -214,13 +272,36 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                 continue
             sx = x_lo + (j + 0.5) * pw
             sy = y_lo + (i + 0.5) * pw
+            # Longest ray per unit of depth over the pixel's directions: a point at distance g
+            # from the box (so from every camera position, which lies on the box) is at depth
+            # at least g / lray on any ray of this pixel.
+            lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
+            hs = 8
+            while hs < 6 * (b - a):
+                hs *= 2
+            hmask = hs - 1
+            hk0[:hs] = -1
             n_polys = 0
             n_cov = 0
+            # Early z: every ray of the pixel (any camera position, any direction in it) meets
+            # a coverall occluder at depth <= zcut, before anything wholly deeper.
+            zcut = np.inf
             for k in range(a, b):
                 p = entries[k]
+                if gap[p] > zcut * lray + plane_tol:
+                    # The lists are sorted by gap: this entry and all later ones lie beyond
+                    # zcut on every ray of the pixel.
+                    cut += b - k
+                    break
                 n = npts[p]
                 tri = kind[p] == 0
                 load_prim(pts, start[p], n, origin, perm, sign, cam)
+                wmin = cam[0, 2]
+                for c in range(1, n):
+                    wmin = min(wmin, cam[c, 2])
+                if wmin > zcut + plane_tol:
+                    cut += 1
+                    continue
                 # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
                 # by its depth difference to Q (the relative motion that matters).
                 wref = 0.0
@@ -327,28 +408,46 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                 nxt[q] = -1
                 gcov[q] = False
                 alive[q] = True
-                # Fuse along shared edges: the neighbour holds the edge reversed.
+                # Fuse along shared edges: the neighbour holds the edge reversed. The first
+                # active occluder edge (in the order they were added) that does is taken.
                 for e in range(3):
                     va = oid[q, e]
                     vb = oid[q, (e + 1) % 3]
                     if va < 0 or vb < 0:
                         continue
-                    done = False
-                    for r in range(q):
-                        for f in range(3):
-                            if oact[r, f] and oid[r, f] == vb and oid[r, (f + 1) % 3] == va:
-                                oact[r, f] = False
-                                oact[q, e] = False
-                                was = gcov[grp[r]]
-                                g1 = _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov,
-                                            alive)
-                                if gcov[g1] and not was:
-                                    cov[n_cov] = g1
-                                    n_cov += 1
-                                done = True
-                                break
-                        if done:
+                    slot = _edge_slot(hk0, hk1, hmask, vb, va)
+                    if hk0[slot] < 0:
+                        continue
+                    node = hfirst[slot]
+                    while node >= 0:
+                        r = node // 3
+                        f = node - 3 * r
+                        if oact[r, f]:
+                            oact[r, f] = False
+                            oact[q, e] = False
+                            was = gcov[grp[r]]
+                            g1 = _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov, alive)
+                            if gcov[g1] and not was:
+                                cov[n_cov] = g1
+                                n_cov += 1
                             break
+                        node = enext[node]
+                # Register q's edges still active (an inactive edge never fuses again).
+                for e in range(3):
+                    va = oid[q, e]
+                    vb = oid[q, (e + 1) % 3]
+                    if va < 0 or vb < 0 or not oact[q, e]:
+                        continue
+                    slot = _edge_slot(hk0, hk1, hmask, va, vb)
+                    node = 3 * q + e
+                    enext[node] = -1
+                    if hk0[slot] < 0:
+                        hk0[slot] = va
+                        hk1[slot] = vb
+                        hfirst[slot] = node
+                    else:
+                        enext[hlast[slot]] = node
+                    hlast[slot] = node
                 g = grp[q]
                 if not gcov[g]:
                     # Coverall holds for every delta whatever frame proves it; the new
@@ -361,6 +460,9 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                         if gcov[g]:
                             cov[n_cov] = g
                             n_cov += 1
+                            zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam,
+                                                          plane_tol, h, rx, ry, n_r, wref))
         counters[tile, 0] = tested
         counters[tile, 1] = hidden
         counters[tile, 2] = occl
+        counters[tile, 3] = cut
