@@ -28,7 +28,7 @@ from visibility.cores.cos.space import load_prim, overlaps, project
 TILE = 16
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
     """COS images (rv (4, 2)) and motion radii (rr (4,)) of the camera rectangle's corners at
     pixel centre (sx, sy), in the frame moving with depth ``wref``: the supported offsets (the

@@ -51,34 +51,18 @@ from visibility.cores.cos.lists import TILE, region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
     area2,
-    capsule_hits,
-    in_triangle,
+    capsule_meets,
     load_prim,
+    polygon_axes,
     project,
     region_polygon,
 )
 
 
-@njit(cache=True, nogil=True)
-def _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):  # pragma: no cover
-    """True when no active edge capsule of group g (frame of depth wref) meets polygon K."""
-    r = head[g]
-    while r >= 0:
-        for f in range(3):
-            if oact[r, f]:
-                b = (f + 1) % 3
-                rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
-                if capsule_hits(ov[r, f, 0], ov[r, f, 1], ov[r, b, 0], ov[r, b, 1], rad,
-                                kx, ky, nk):
-                    return False
-        r = nxt[r]
-    return True
-
-
-@njit(cache=True, nogil=True)
-def _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):  # pragma: no cover - numba
-    """Whether group g covers polygon K (frame of depth wref) under every offset in it and
-    every delta."""
+@njit(cache=True, nogil=True, inline="always")
+def _k_box(kx, ky, nk, kb):  # pragma: no cover - numba
+    """K's box and centroid (kb (7,): x0, x1, y0, y1, cx, cy, axes ready); the edge axes
+    (``polygon_axes``) are left for the first silhouette test that needs them."""
     x0 = np.inf
     x1 = -np.inf
     y0 = np.inf
@@ -92,21 +76,66 @@ def _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):  # pragma: no
         y1 = max(y1, ky[i])
         cx += kx[i]
         cy += ky[i]
-    if x0 < gbb[g, 0] or x1 > gbb[g, 1] or y0 < gbb[g, 2] or y1 > gbb[g, 3]:
-        return False
-    if not _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):
-        return False
-    cx /= nk
-    cy /= nk
-    r = head[g]
-    while r >= 0:
-        if in_triangle(cx, cy, ov[r]):
-            return True
-        r = nxt[r]
-    return False
+    kb[0] = x0
+    kb[1] = x1
+    kb[2] = y0
+    kb[3] = y1
+    kb[4] = cx / nk
+    kb[5] = cy / nk
+    kb[6] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, klo,
+            khi):  # pragma: no cover - numba
+    """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
+    every offset in it and every delta: K's box inside the group's, no active edge capsule
+    meeting K, and a winding number of at least one of the active edges (the silhouette)
+    around K's centroid.
+
+    The active edges are walked through the group's edge list (``gehead``, ``anext``: node
+    3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
+    group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
+    in opposite directions, so the active edges' winding number around a point is the number
+    of the group's triangles holding it; a crossing too close to call counts as not covered."""
+    if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
+        return False
+    if kb[6] == 0.0:
+        polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
+        kb[6] = 1.0
+    cx = kb[4]
+    cy = kb[5]
+    wn = 0
+    node = gehead[g]
+    while node >= 0:
+        r = node // 3
+        f = node - 3 * r
+        b = (f + 1) % 3
+        ax = ov[r, f, 0]
+        ay = ov[r, f, 1]
+        bx = ov[r, b, 0]
+        by = ov[r, b, 1]
+        rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
+        if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
+            return False
+        # Winding number (crossings of the ray from the centroid towards +x).
+        up = ay <= cy < by
+        down = by <= cy < ay
+        if up or down:
+            t1 = (bx - ax) * (cy - ay)
+            t2 = (cx - ax) * (by - ay)
+            side = t1 - t2
+            if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
+                return False
+            if up and side > 0.0:
+                wn += 1
+            elif down and side < 0.0:
+                wn -= 1
+        node = anext[node]
+    return wn >= 1
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
               nq):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
@@ -132,6 +161,81 @@ def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1,
                 return False
         r = nxt[r]
     return True
+
+
+#: Depth grid of a large occluder group: GRID x GRID cells over the pixel's offset region,
+#: each with the depth range of the group's triangles that can reach it; groups of at least
+#: GRID_MIN triangles get one.
+GRID = 8
+GRID_MIN = 16
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell(x, lo, inv):  # pragma: no cover - numba
+    """Grid column (or row) of coordinate x: monotone in x, clamped to [0, GRID - 1]."""
+    t = (x - lo) * inv
+    if not t > 0.0:
+        return 0
+    if t >= GRID - 1:
+        return GRID - 1
+    return int(t)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _grid_add(slot, r, obb, owr, h, dom, szlo, szhi):  # pragma: no cover - numba
+    """Enter occluder triangle r (frame-0 box grown by its largest motion) in grid ``slot``."""
+    grow = max(abs(owr[r, 0]), abs(owr[r, 1])) * h
+    c0 = _cell(obb[r, 0] - grow, dom[0], dom[4])
+    c1 = _cell(obb[r, 1] + grow, dom[0], dom[4])
+    r0 = _cell(obb[r, 2] - grow, dom[2], dom[5])
+    r1 = _cell(obb[r, 3] + grow, dom[2], dom[5])
+    for i in range(r0, r1 + 1):
+        for j in range(c0, c1 + 1):
+            c = i * GRID + j
+            szlo[slot, c] = min(szlo[slot, c], owr[r, 0])
+            szhi[slot, c] = max(szhi[slot, c], owr[r, 1])
+
+
+@njit(cache=True, nogil=True)
+def _grid_build(g, slot, head, nxt, obb, owr, h, dom, szlo, szhi):  # pragma: no cover - numba
+    szlo[slot, :] = np.inf
+    szhi[slot, :] = -np.inf
+    r = head[g]
+    while r >= 0:
+        _grid_add(slot, r, obb, owr, h, dom, szlo, szhi)
+        r = nxt[r]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, szlo, szhi, dom, wcam,
+           tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
+    """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
+
+    Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
+    frame-0 box, grown by its motion, meets K's box grown by |wref| h (the frame change): at a
+    depth no larger than that triangle's deepest vertex and, when the triangle lies beyond
+    every camera position, on the ray itself. So g hides Q when all its triangles that can
+    meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on its
+    depth grid's cells over K; failing both, the per-triangle plane test (``_in_front``)."""
+    if gwhi[g] + tol < wq and gwlo[g] >= wcam + tol:
+        return True
+    slot = gslot[g]
+    if slot >= 0:
+        grow = abs(wref) * h
+        c0 = _cell(kb[0] - grow, dom[0], dom[4])
+        c1 = _cell(kb[1] + grow, dom[0], dom[4])
+        r0 = _cell(kb[2] - grow, dom[2], dom[5])
+        r1 = _cell(kb[3] + grow, dom[2], dom[5])
+        zlo = np.inf
+        zhi = -np.inf
+        for i in range(r0, r1 + 1):
+            for j in range(c0, c1 + 1):
+                zlo = min(zlo, szlo[slot, i * GRID + j])
+                zhi = max(zhi, szhi[slot, i * GRID + j])
+        if zhi + tol < wq and zlo >= wcam + tol:
+            return True
+    return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2], kb[3],
+                     qcam, nq)
 
 
 @njit(cache=True, nogil=True)
@@ -177,20 +281,63 @@ def _edge_slot(hk0, hk1, mask, va, vb):  # pragma: no cover - numba
     return k
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _list_drop(g, pos, lst, n):  # pragma: no cover - numba
+    """Remove group g from the unordered list lst[:n] (pos[g] its index, -1 when absent);
+    returns the new length."""
+    k = pos[g]
+    if k < 0:
+        return n
+    last = lst[n - 1]
+    lst[k] = last
+    pos[last] = k
+    pos[g] = -1
+    return n - 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_unlink(node, g, gehead, getail, anext, aprev):  # pragma: no cover - numba
+    """Take active edge ``node`` out of group g's edge list."""
+    a = aprev[node]
+    b = anext[node]
+    if a >= 0:
+        anext[a] = b
+    else:
+        gehead[g] = b
+    if b >= 0:
+        aprev[b] = a
+    else:
+        getail[g] = a
+
+
 @njit(cache=True, nogil=True)
-def _merge(g1, g2, grp, head, tail, nxt, gbb, gcov, alive):  # pragma: no cover - numba
+def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, gehead, getail,
+           anext, aprev):  # pragma: no cover - numba
+    """Merge groups g1 and g2 (the smaller into the larger); returns the survivor."""
     if g1 == g2:
         return g1
+    if gsize[g1] < gsize[g2]:
+        g1, g2 = g2, g1
     r = head[g2]
     while r >= 0:
         grp[r] = g1
         r = nxt[r]
     nxt[tail[g1]] = head[g2]
     tail[g1] = tail[g2]
+    gsize[g1] += gsize[g2]
+    if gehead[g2] >= 0:
+        if gehead[g1] < 0:
+            gehead[g1] = gehead[g2]
+        else:
+            anext[getail[g1]] = gehead[g2]
+            aprev[gehead[g2]] = getail[g1]
+        getail[g1] = getail[g2]
     gbb[g1, 0] = min(gbb[g1, 0], gbb[g2, 0])
     gbb[g1, 1] = max(gbb[g1, 1], gbb[g2, 1])
     gbb[g1, 2] = min(gbb[g1, 2], gbb[g2, 2])
     gbb[g1, 3] = max(gbb[g1, 3], gbb[g2, 3])
+    gwlo[g1] = min(gwlo[g1], gwlo[g2])
+    gwhi[g1] = max(gwhi[g1], gwhi[g2])
     gcov[g1] = gcov[g1] or gcov[g2]
     alive[g2] = False
     return g1
@@ -231,6 +378,19 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
         ty_ = np.empty(MAX_POLY)
         rx = np.empty(MAX_POLY)
         ry = np.empty(MAX_POLY)
+        # Geometry of Q's region K and of the whole offset region (``_k_box``).
+        kb = np.empty(7)
+        knx = np.empty(MAX_POLY)
+        kny = np.empty(MAX_POLY)
+        klo = np.empty(MAX_POLY)
+        khi = np.empty(MAX_POLY)
+        rb = np.empty(7)
+        rnx = np.empty(MAX_POLY)
+        rny = np.empty(MAX_POLY)
+        rlo = np.empty(MAX_POLY)
+        rhi = np.empty(MAX_POLY)
+        # Occluder triangles q: COS corners (counter-clockwise), depths, welded ids, active
+        # edges, plane, COS box.
         ov = np.empty((lmax, 3, 2))
         ow = np.empty((lmax, 3))
         owr = np.empty((lmax, 2))
@@ -239,14 +399,36 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
         oplane = np.empty((lmax, 5))
         ouse = np.empty(lmax, dtype=np.bool_)
         obb = np.empty((lmax, 4))
+        # Groups (id = their first triangle): members (head, tail, nxt, grp), size, COS box,
+        # depth range, coverall flag, active edges (gehead, getail, anext, aprev over nodes
+        # 3 q + e), the live list (groups not coverall, oldest first; dead entries have
+        # lpos -1 until the list is compacted) and the unordered list of coverall groups.
         grp = np.empty(lmax, dtype=np.int64)
         nxt = np.empty(lmax, dtype=np.int64)
         head = np.empty(lmax, dtype=np.int64)
         tail = np.empty(lmax, dtype=np.int64)
+        gsize = np.empty(lmax, dtype=np.int64)
         gbb = np.empty((lmax, 4))
+        gwlo = np.empty(lmax)
+        gwhi = np.empty(lmax)
         gcov = np.empty(lmax, dtype=np.bool_)
         alive = np.empty(lmax, dtype=np.bool_)
-        cov = np.empty(lmax, dtype=np.int64)
+        gehead = np.empty(lmax, dtype=np.int64)
+        getail = np.empty(lmax, dtype=np.int64)
+        anext = np.empty(3 * lmax, dtype=np.int64)
+        aprev = np.empty(3 * lmax, dtype=np.int64)
+        live = np.empty(lmax, dtype=np.int64)
+        lpos = np.empty(lmax, dtype=np.int64)
+        covl = np.empty(lmax, dtype=np.int64)
+        cpos = np.empty(lmax, dtype=np.int64)
+        # Depth grids of the groups of GRID_MIN triangles or more (slots of szlo, szhi over
+        # the domain dom: x0, x1, y0, y1, cells per metre in x and y), free slots in fslot.
+        nslot = lmax // GRID_MIN + 2
+        gslot = np.empty(lmax, dtype=np.int64)
+        szlo = np.empty((nslot, GRID * GRID))
+        szhi = np.empty((nslot, GRID * GRID))
+        fslot = np.empty(nslot, dtype=np.int64)
+        dom = np.empty(6)
         # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
         # it (hfirst), chained in insertion order through enext; at most a half full.
         hcap = 8
@@ -282,7 +464,25 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
             hmask = hs - 1
             hk0[:hs] = -1
             n_polys = 0
+            n_live = 0
+            n_dead = 0
             n_cov = 0
+            n_slot = 0
+            n_free = 0
+            # The depth grids' domain: the offset region's frame-0 box (what lies outside
+            # falls in the border cells).
+            region_at(corners, sx, sy, h, 0.0, rv, rr)
+            dom[0] = np.inf
+            dom[1] = -np.inf
+            dom[2] = np.inf
+            dom[3] = -np.inf
+            for c in range(4):
+                dom[0] = min(dom[0], rv[c, 0] - rr[c])
+                dom[1] = max(dom[1], rv[c, 0] + rr[c])
+                dom[2] = min(dom[2], rv[c, 1] - rr[c])
+                dom[3] = max(dom[3], rv[c, 1] + rr[c])
+            dom[4] = GRID / (dom[1] - dom[0]) if dom[1] > dom[0] else 0.0
+            dom[5] = GRID / (dom[3] - dom[2]) if dom[3] > dom[2] else 0.0
             # Early z: every ray of the pixel (any camera position, any direction in it) meets
             # a coverall occluder at depth <= zcut, before anything wholly deeper.
             zcut = np.inf
@@ -297,16 +497,15 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                 tri = kind[p] == 0
                 load_prim(pts, start[p], n, origin, perm, sign, cam)
                 wmin = cam[0, 2]
+                wref = cam[0, 2]
                 for c in range(1, n):
                     wmin = min(wmin, cam[c, 2])
+                    wref += cam[c, 2]
                 if wmin > zcut + plane_tol:
                     cut += 1
                     continue
                 # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
                 # by its depth difference to Q (the relative motion that matters).
-                wref = 0.0
-                for c in range(n):
-                    wref += cam[c, 2]
                 wref /= n
                 project(cam, n, sx, sy, h, wref, qv, qr)
                 if known[p] == 0:
@@ -314,22 +513,14 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                     nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
                     if nk > 0:
                         tested += 1
-                        kx0 = np.inf
-                        kx1 = -np.inf
-                        ky0 = np.inf
-                        ky1 = -np.inf
-                        for e in range(nk):
-                            kx0 = min(kx0, kx[e])
-                            kx1 = max(kx1, kx[e])
-                            ky0 = min(ky0, ky[e])
-                            ky1 = max(ky1, ky[e])
+                        _k_box(kx, ky, nk, kb)
                         occluded = False
                         # Coverall occluders first (the paper's early discard): they need
                         # only the depth test.
                         for c in range(n_cov):
-                            g = cov[c]
-                            if alive[g] and _in_front(g, head, nxt, obb, owr, ouse, oplane, wref,
-                                                      h, kx0, kx1, ky0, ky1, cam, n):
+                            if _hides(covl[c], head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
+                                      gslot, szlo, szhi, dom, wcam, plane_tol, wref, h, kb, cam,
+                                      n, wmin):
                                 occluded = True
                                 break
                         if occluded:
@@ -338,13 +529,27 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                             # quadratic.
                             hidden += 1
                             continue
-                        for g in range(n_polys):
-                            if not alive[g] or gcov[g]:
+                        if 2 * n_dead > n_live:
+                            # Compact the live list (oldest groups first, as they came).
+                            m = 0
+                            for c in range(n_live):
+                                g = live[c]
+                                if lpos[g] >= 0:
+                                    live[m] = g
+                                    lpos[g] = m
+                                    m += 1
+                            n_live = m
+                            n_dead = 0
+                        for c in range(n_live):
+                            g = live[c]
+                            if lpos[g] != c:
                                 continue
-                            if not _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):
+                            if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb,
+                                           knx, kny, klo, khi):
                                 continue
-                            if _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1,
-                                         ky0, ky1, cam, n):
+                            if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
+                                      szlo, szhi, dom, wcam, plane_tol, wref, h, kb, cam, n,
+                                      wmin):
                                 occluded = True
                                 break
                         if occluded:
@@ -398,16 +603,29 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                 obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
                 owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
                 owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
-                gbb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                gbb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                gbb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                gbb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                gbb[q, 0] = obb[q, 0]
+                gbb[q, 1] = obb[q, 1]
+                gbb[q, 2] = obb[q, 2]
+                gbb[q, 3] = obb[q, 3]
+                gwlo[q] = owr[q, 0]
+                gwhi[q] = owr[q, 1]
                 grp[q] = q
                 head[q] = q
                 tail[q] = q
                 nxt[q] = -1
+                gsize[q] = 1
                 gcov[q] = False
                 alive[q] = True
+                gehead[q] = 3 * q
+                getail[q] = 3 * q + 2
+                for e in range(3):
+                    anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
+                    aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
+                live[n_live] = q
+                lpos[q] = n_live
+                n_live += 1
+                cpos[q] = -1
+                gslot[q] = -1
                 # Fuse along shared edges: the neighbour holds the edge reversed. The first
                 # active occluder edge (in the order they were added) that does is taken.
                 for e in range(3):
@@ -425,11 +643,56 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                         if oact[r, f]:
                             oact[r, f] = False
                             oact[q, e] = False
-                            was = gcov[grp[r]]
-                            g1 = _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov, alive)
-                            if gcov[g1] and not was:
-                                cov[n_cov] = g1
-                                n_cov += 1
+                            _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
+                            _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
+                            g1 = grp[r]
+                            g2 = grp[q]
+                            if g1 != g2:
+                                c1 = gcov[g1]
+                                c2 = gcov[g2]
+                                gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
+                                            gwhi, gcov, alive, gehead, getail, anext, aprev)
+                                gd = g2 if gs == g1 else g1
+                                if lpos[gd] >= 0:
+                                    lpos[gd] = -1
+                                    n_dead += 1
+                                n_cov = _list_drop(gd, cpos, covl, n_cov)
+                                if gcov[gs] and not (c1 if gs == g1 else c2):
+                                    # The survivor takes the coverall flag of the other.
+                                    if lpos[gs] >= 0:
+                                        lpos[gs] = -1
+                                        n_dead += 1
+                                    covl[n_cov] = gs
+                                    cpos[gs] = n_cov
+                                    n_cov += 1
+                                # Depth grids: every group of GRID_MIN or more has one.
+                                sd = gslot[gd]
+                                ss = gslot[gs]
+                                if sd >= 0 and ss >= 0:
+                                    for c in range(GRID * GRID):
+                                        szlo[ss, c] = min(szlo[ss, c], szlo[sd, c])
+                                        szhi[ss, c] = max(szhi[ss, c], szhi[sd, c])
+                                    gslot[gd] = -1
+                                    fslot[n_free] = sd
+                                    n_free += 1
+                                elif sd >= 0:
+                                    gslot[gd] = -1
+                                    gslot[gs] = sd
+                                    _grid_build(gs, sd, head, nxt, obb, owr, h, dom, szlo, szhi)
+                                elif ss >= 0:
+                                    r2 = head[gd]
+                                    while r2 >= 0:
+                                        _grid_add(ss, r2, obb, owr, h, dom, szlo, szhi)
+                                        r2 = nxt[r2]
+                                elif gsize[gs] >= GRID_MIN:
+                                    if n_free > 0:
+                                        n_free -= 1
+                                        ss = fslot[n_free]
+                                    else:
+                                        ss = n_slot
+                                        n_slot += 1
+                                    gslot[gs] = ss
+                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, szlo, szhi)
                             break
                         node = enext[node]
                 # Register q's edges still active (an inactive edge never fuses again).
@@ -455,13 +718,18 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                     region_at(corners, sx, sy, h, wref, rv, rr)
                     n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
                     if n_r > 0:
-                        gcov[g] = _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, rx, ry,
-                                          n_r)
-                        if gcov[g]:
-                            cov[n_cov] = g
-                            n_cov += 1
-                            zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam,
-                                                          plane_tol, h, rx, ry, n_r, wref))
+                        _k_box(rx, ry, n_r, rb)
+                    if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry, n_r,
+                                           rb, rnx, rny, rlo, rhi):
+                        gcov[g] = True
+                        if lpos[g] >= 0:
+                            lpos[g] = -1
+                            n_dead += 1
+                        covl[n_cov] = g
+                        cpos[g] = n_cov
+                        n_cov += 1
+                        zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
+                                                      h, rx, ry, n_r, wref))
         counters[tile, 0] = tested
         counters[tile, 1] = hidden
         counters[tile, 2] = occl
