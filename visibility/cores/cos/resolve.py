@@ -164,9 +164,10 @@ def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1,
 
 
 #: Depth grid of a large occluder group: GRID x GRID cells over the pixel's offset region,
-#: each with the depth range of the group's triangles that can reach it; groups of at least
-#: GRID_MIN triangles get one.
-GRID = 8
+#: each with the depth range of the group's triangles that can reach it, in the frame moving
+#: with a depth inside the group's range (so a compact group's triangles barely move and
+#: stay in few cells); groups of at least GRID_MIN triangles get one.
+GRID = 16
 GRID_MIN = 16
 
 
@@ -182,9 +183,10 @@ def _cell(x, lo, inv):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _grid_add(slot, r, obb, owr, h, dom, szlo, szhi):  # pragma: no cover - numba
-    """Enter occluder triangle r (frame-0 box grown by its largest motion) in grid ``slot``."""
-    grow = max(abs(owr[r, 0]), abs(owr[r, 1])) * h
+def _grid_add(slot, r, obb, owr, h, dom, szlo, szhi, sfr):  # pragma: no cover - numba
+    """Enter occluder triangle r (its pixel-centre box grown by its largest motion in the
+    frame of depth sfr[slot]) in grid ``slot``."""
+    grow = max(abs(owr[r, 0] - sfr[slot]), abs(owr[r, 1] - sfr[slot])) * h
     c0 = _cell(obb[r, 0] - grow, dom[0], dom[4])
     c1 = _cell(obb[r, 1] + grow, dom[0], dom[4])
     r0 = _cell(obb[r, 2] - grow, dom[2], dom[5])
@@ -197,22 +199,26 @@ def _grid_add(slot, r, obb, owr, h, dom, szlo, szhi):  # pragma: no cover - numb
 
 
 @njit(cache=True, nogil=True)
-def _grid_build(g, slot, head, nxt, obb, owr, h, dom, szlo, szhi):  # pragma: no cover - numba
+def _grid_build(g, slot, head, nxt, obb, owr, h, dom, szlo, szhi, sfr,
+                frame):  # pragma: no cover - numba
+    """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
     szlo[slot, :] = np.inf
     szhi[slot, :] = -np.inf
+    sfr[slot] = frame
     r = head[g]
     while r >= 0:
-        _grid_add(slot, r, obb, owr, h, dom, szlo, szhi)
+        _grid_add(slot, r, obb, owr, h, dom, szlo, szhi, sfr)
         r = nxt[r]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, szlo, szhi, dom, wcam,
-           tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
+def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, szlo, szhi, sfr, dom,
+           wcam, tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
     """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
 
     Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
-    frame-0 box, grown by its motion, meets K's box grown by |wref| h (the frame change): at a
+    box, grown by its motion in the grid's frame f, meets K's box grown by |wref - f| h (the
+    frame change): at a
     depth no larger than that triangle's deepest vertex and, when the triangle lies beyond
     every camera position, on the ray itself. So g hides Q when all its triangles that can
     meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on its
@@ -221,7 +227,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, szlo, szhi, 
         return True
     slot = gslot[g]
     if slot >= 0:
-        grow = abs(wref) * h
+        grow = abs(wref - sfr[slot]) * h
         c0 = _cell(kb[0] - grow, dom[0], dom[4])
         c1 = _cell(kb[1] + grow, dom[0], dom[4])
         r0 = _cell(kb[2] - grow, dom[2], dom[5])
@@ -351,8 +357,9 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
     p found visible. ``entries`` holds the lists of those tiles from ``list_off[tile0 * TILE^2]``
     on, each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
     bounding box, metres); ``known[p]`` marks primitives already known visible (tested no more,
-    still occluders). ``counters[tile]`` gets (entries tested, entries found occluded, occluder
-    triangles, entries cut by the early-z depth)."""
+    still occluders), as are those found visible at an earlier pixel of the same tile.
+    ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
+    entries cut by the early-z depth)."""
     h = 0.5 * pw
     npix = TILE * TILE
     base = list_off[tile0 * npix]
@@ -421,13 +428,15 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
         lpos = np.empty(lmax, dtype=np.int64)
         covl = np.empty(lmax, dtype=np.int64)
         cpos = np.empty(lmax, dtype=np.int64)
-        # Depth grids of the groups of GRID_MIN triangles or more (slots of szlo, szhi over
-        # the domain dom: x0, x1, y0, y1, cells per metre in x and y), free slots in fslot.
+        # Depth grids of the groups of GRID_MIN triangles or more (slots of szlo, szhi in the
+        # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
+        # y), free slots in fslot.
         nslot = lmax // GRID_MIN + 2
         gslot = np.empty(lmax, dtype=np.int64)
         szlo = np.empty((nslot, GRID * GRID))
         szhi = np.empty((nslot, GRID * GRID))
         fslot = np.empty(nslot, dtype=np.int64)
+        sfr = np.empty(nslot)
         dom = np.empty(6)
         # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
         # it (hfirst), chained in insertion order through enext; at most a half full.
@@ -439,6 +448,10 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
         hfirst = np.empty(hcap, dtype=np.int64)
         hlast = np.empty(hcap, dtype=np.int64)
         enext = np.empty(3 * lmax, dtype=np.int64)
+        # Primitives found visible at an earlier pixel of this tile (a bit each): tested no
+        # more, like ``known`` (the pixels of a tile run in order, so this stays
+        # deterministic).
+        tseen = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
         tested = 0
         hidden = 0
         occl = 0
@@ -508,7 +521,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                 # by its depth difference to Q (the relative motion that matters).
                 wref /= n
                 project(cam, n, sx, sy, h, wref, qv, qr)
-                if known[p] == 0:
+                if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
                     region_at(corners, sx, sy, h, wref, rv, rr)
                     nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
                     if nk > 0:
@@ -519,8 +532,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                         # only the depth test.
                         for c in range(n_cov):
                             if _hides(covl[c], head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
-                                      gslot, szlo, szhi, dom, wcam, plane_tol, wref, h, kb, cam,
-                                      n, wmin):
+                                      gslot, szlo, szhi, sfr, dom, wcam, plane_tol, wref, h, kb,
+                                      cam, n, wmin):
                                 occluded = True
                                 break
                         if occluded:
@@ -548,7 +561,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                            knx, kny, klo, khi):
                                 continue
                             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
-                                      szlo, szhi, dom, wcam, plane_tol, wref, h, kb, cam, n,
+                                      szlo, szhi, sfr, dom, wcam, plane_tol, wref, h, kb, cam, n,
                                       wmin):
                                 occluded = True
                                 break
@@ -556,6 +569,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                             hidden += 1
                         else:
                             vis[p] = 1
+                            tseen[p >> 3] |= np.uint8(1 << (p & 7))
                 if not tri:
                     continue
                 # Become an occluder: counter-clockwise in the COS, robust area only.
@@ -668,21 +682,16 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                 # Depth grids: every group of GRID_MIN or more has one.
                                 sd = gslot[gd]
                                 ss = gslot[gs]
-                                if sd >= 0 and ss >= 0:
-                                    for c in range(GRID * GRID):
-                                        szlo[ss, c] = min(szlo[ss, c], szlo[sd, c])
-                                        szhi[ss, c] = max(szhi[ss, c], szhi[sd, c])
+                                if sd >= 0:
                                     gslot[gd] = -1
                                     fslot[n_free] = sd
                                     n_free += 1
-                                elif sd >= 0:
-                                    gslot[gd] = -1
-                                    gslot[gs] = sd
-                                    _grid_build(gs, sd, head, nxt, obb, owr, h, dom, szlo, szhi)
-                                elif ss >= 0:
+                                if ss >= 0:
+                                    # The other's triangles join the survivor's grid (the
+                                    # smaller group: O(n log n) in all).
                                     r2 = head[gd]
                                     while r2 >= 0:
-                                        _grid_add(ss, r2, obb, owr, h, dom, szlo, szhi)
+                                        _grid_add(ss, r2, obb, owr, h, dom, szlo, szhi, sfr)
                                         r2 = nxt[r2]
                                 elif gsize[gs] >= GRID_MIN:
                                     if n_free > 0:
@@ -692,7 +701,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                         ss = n_slot
                                         n_slot += 1
                                     gslot[gs] = ss
-                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, szlo, szhi)
+                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, szlo, szhi,
+                                                sfr, 0.5 * (gwlo[gs] + gwhi[gs]))
                             break
                         node = enext[node]
                 # Register q's edges still active (an inactive edge never fuses again).

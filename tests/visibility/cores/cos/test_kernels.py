@@ -205,7 +205,8 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     kb = np.array([-0.1, 0.1, -0.1, 0.1, 0.0, 0.0, 0.0])
     qcam = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]])
     dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
-    no_grid = (np.array([-1]), np.zeros((1, GRID * GRID)), np.zeros((1, GRID * GRID)))
+    no_grid = (np.array([-1]), np.zeros((1, GRID * GRID)), np.zeros((1, GRID * GRID)),
+               np.zeros(1))
 
     def hides(wcam, wq, grid=no_grid):
         return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
@@ -223,5 +224,6 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
            (GRID // 2) * GRID + GRID // 2 - 1, (GRID // 2) * GRID + GRID // 2]
     hi[0, mid] = 1.0
     assert not hides(0.0, 2.0)
-    assert hides(0.0, 2.0, (np.array([0]), lo, hi))
-    assert not hides(0.6, 2.0, (np.array([0]), lo, hi))
+    grid = (np.array([0]), lo, hi, np.array([2.0]))  # frame at Q's reference depth
+    assert hides(0.0, 2.0, grid)
+    assert not hides(0.6, 2.0, grid)
