@@ -136,39 +136,48 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
+              nq):  # pragma: no cover - numba
+    """Whether occluder triangle r cannot reach K's box or is in front of all of Q."""
+    grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
+    if (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
+            or obb[r, 2] - grow > ky1):
+        return True
+    if not ouse[r]:
+        return False
+    nx, ny, nz, d, tol = oplane[r, 0], oplane[r, 1], oplane[r, 2], oplane[r, 3], oplane[r, 4]
+    # Behind or on the plane, strictly behind somewhere: the rays that meet Q on T's plane
+    # meet T at the same point, a set of no measure (a shared edge).
+    behind = False
+    for i in range(nq):
+        dist = nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d
+        if dist > tol:
+            return False
+        if dist < -tol:
+            behind = True
+    return behind
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
               nq):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
-        grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
-        if not (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
-                or obb[r, 2] - grow > ky1):
-            if not ouse[r]:
-                return False
-            nx, ny, nz, d, tol = oplane[r, 0], oplane[r, 1], oplane[r, 2], oplane[r, 3], \
-                oplane[r, 4]
-            # Behind or on the plane, strictly behind somewhere: the rays that meet Q on T's
-            # plane meet T at the same point, a set of no measure (a shared edge).
-            behind = False
-            for i in range(nq):
-                dist = nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d
-                if dist > tol:
-                    return False
-                if dist < -tol:
-                    behind = True
-            if not behind:
-                return False
+        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq):
+            return False
         r = nxt[r]
     return True
 
 
 #: Depth grid of a large occluder group: GRID x GRID cells over the pixel's offset region,
-#: each with the depth range of the group's triangles that can reach it, in the frame moving
-#: with a depth inside the group's range (so a compact group's triangles barely move and
-#: stay in few cells); groups of at least GRID_MIN triangles get one.
+#: each with the depth range of the group's triangles that can reach it and a list of them,
+#: in the frame moving with a depth inside the group's range (so a compact group's triangles
+#: barely move and stay in few cells); groups of at least GRID_MIN triangles get one. A
+#: triangle over more than GRID_WIDE cells goes to the grid's list of wide ones instead.
 GRID = 16
-GRID_MIN = 16
+GRID_MIN = 32
+GRID_WIDE = 16
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -183,65 +192,107 @@ def _cell(x, lo, inv):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _grid_add(slot, r, obb, owr, h, dom, szlo, szhi, sfr):  # pragma: no cover - numba
+def _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool):  # pragma: no cover - numba
     """Enter occluder triangle r (its pixel-centre box grown by its largest motion in the
-    frame of depth sfr[slot]) in grid ``slot``."""
+    frame of depth sfr[slot]) in grid ``slot``: sg[slot, 0 / 1, cell] (depth range), shead
+    [slot, cell] (member list; shead[slot, GRID^2] the wide ones) over the node pool
+    (pool[0]: nodes used, pool[1]: capacity, then (triangle, next) pairs from pool[2])."""
     grow = max(abs(owr[r, 0] - sfr[slot]), abs(owr[r, 1] - sfr[slot])) * h
     c0 = _cell(obb[r, 0] - grow, dom[0], dom[4])
     c1 = _cell(obb[r, 1] + grow, dom[0], dom[4])
     r0 = _cell(obb[r, 2] - grow, dom[2], dom[5])
     r1 = _cell(obb[r, 3] + grow, dom[2], dom[5])
+    wide = (r1 - r0 + 1) * (c1 - c0 + 1) > GRID_WIDE
     for i in range(r0, r1 + 1):
         for j in range(c0, c1 + 1):
             c = i * GRID + j
-            szlo[slot, c] = min(szlo[slot, c], owr[r, 0])
-            szhi[slot, c] = max(szhi[slot, c], owr[r, 1])
+            sg[slot, 0, c] = min(sg[slot, 0, c], owr[r, 0])
+            sg[slot, 1, c] = max(sg[slot, 1, c], owr[r, 1])
+            if not wide:
+                _push(slot, c, r, shead, pool)
+    if wide:
+        _push(slot, GRID * GRID, r, shead, pool)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(slot, c, r, shead, pool):  # pragma: no cover - numba
+    """Prepend triangle r to list c of grid ``slot``; a full pool marks the grid's lists
+    incomplete (shead[slot, GRID^2 + 1] = 1)."""
+    k = pool[0]
+    if k >= pool[1]:
+        shead[slot, GRID * GRID + 1] = 1
+        return
+    pool[0] = k + 1
+    pool[2 + 2 * k] = r
+    pool[3 + 2 * k] = shead[slot, c]
+    shead[slot, c] = k
 
 
 @njit(cache=True, nogil=True)
-def _grid_build(g, slot, head, nxt, obb, owr, h, dom, szlo, szhi, sfr,
+def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool,
                 frame):  # pragma: no cover - numba
     """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
-    szlo[slot, :] = np.inf
-    szhi[slot, :] = -np.inf
+    sg[slot, 0, :] = np.inf
+    sg[slot, 1, :] = -np.inf
+    shead[slot, :] = -1
+    shead[slot, GRID * GRID + 1] = 0
     sfr[slot] = frame
     r = head[g]
     while r >= 0:
-        _grid_add(slot, r, obb, owr, h, dom, szlo, szhi, sfr)
+        _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool)
         r = nxt[r]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, szlo, szhi, sfr, dom,
+def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, dom,
            wcam, tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
     """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
 
     Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
     box, grown by its motion in the grid's frame f, meets K's box grown by |wref - f| h (the
-    frame change): at a
-    depth no larger than that triangle's deepest vertex and, when the triangle lies beyond
-    every camera position, on the ray itself. So g hides Q when all its triangles that can
-    meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on its
-    depth grid's cells over K; failing both, the per-triangle plane test (``_in_front``)."""
+    frame change; the triangle's growth in Q's frame is at most its growth in f plus that):
+    at a depth no larger than that triangle's deepest vertex and, when the triangle lies
+    beyond every camera position, on the ray itself. So g hides Q when all its triangles that
+    can meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on
+    its depth grid's cells over K. Failing both, the per-triangle plane test
+    (``_front_of``) on the triangles listed in those cells, or on all of g's."""
     if gwhi[g] + tol < wq and gwlo[g] >= wcam + tol:
         return True
     slot = gslot[g]
-    if slot >= 0:
-        grow = abs(wref - sfr[slot]) * h
-        c0 = _cell(kb[0] - grow, dom[0], dom[4])
-        c1 = _cell(kb[1] + grow, dom[0], dom[4])
-        r0 = _cell(kb[2] - grow, dom[2], dom[5])
-        r1 = _cell(kb[3] + grow, dom[2], dom[5])
-        zlo = np.inf
-        zhi = -np.inf
-        for i in range(r0, r1 + 1):
-            for j in range(c0, c1 + 1):
-                zlo = min(zlo, szlo[slot, i * GRID + j])
-                zhi = max(zhi, szhi[slot, i * GRID + j])
-        if zhi + tol < wq and zlo >= wcam + tol:
-            return True
-    return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2], kb[3],
-                     qcam, nq)
+    if slot < 0:
+        return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
+                         kb[3], qcam, nq)
+    grow = abs(wref - sfr[slot]) * h
+    c0 = _cell(kb[0] - grow, dom[0], dom[4])
+    c1 = _cell(kb[1] + grow, dom[0], dom[4])
+    r0 = _cell(kb[2] - grow, dom[2], dom[5])
+    r1 = _cell(kb[3] + grow, dom[2], dom[5])
+    zlo = np.inf
+    zhi = -np.inf
+    for i in range(r0, r1 + 1):
+        for j in range(c0, c1 + 1):
+            zlo = min(zlo, sg[slot, 0, i * GRID + j])
+            zhi = max(zhi, sg[slot, 1, i * GRID + j])
+    if zhi + tol < wq and zlo >= wcam + tol:
+        return True
+    if shead[slot, GRID * GRID + 1] != 0:
+        return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
+                         kb[3], qcam, nq)
+    for c in range(GRID * GRID + 1):
+        if c == GRID * GRID:
+            k = shead[slot, c]
+        else:
+            i = c // GRID
+            j = c - i * GRID
+            if i < r0 or i > r1 or j < c0 or j > c1:
+                continue
+            k = shead[slot, c]
+        while k >= 0:
+            if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
+                             kb[2], kb[3], qcam, nq):
+                return False
+            k = pool[3 + 2 * k]
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -428,13 +479,15 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
         lpos = np.empty(lmax, dtype=np.int64)
         covl = np.empty(lmax, dtype=np.int64)
         cpos = np.empty(lmax, dtype=np.int64)
-        # Depth grids of the groups of GRID_MIN triangles or more (slots of szlo, szhi in the
+        # Depth grids of the groups of GRID_MIN triangles or more (slots of sg, shead in the
         # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
-        # y), free slots in fslot.
+        # y; nodes of the member lists in pool), free slots in fslot.
         nslot = lmax // GRID_MIN + 2
         gslot = np.empty(lmax, dtype=np.int64)
-        szlo = np.empty((nslot, GRID * GRID))
-        szhi = np.empty((nslot, GRID * GRID))
+        sg = np.empty((nslot, 2, GRID * GRID))
+        shead = np.empty((nslot, GRID * GRID + 2), dtype=np.int64)
+        pool = np.empty(2 + 2 * 8 * lmax, dtype=np.int64)
+        pool[1] = 8 * lmax
         fslot = np.empty(nslot, dtype=np.int64)
         sfr = np.empty(nslot)
         dom = np.empty(6)
@@ -482,6 +535,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
             n_cov = 0
             n_slot = 0
             n_free = 0
+            pool[0] = 0
             # The depth grids' domain: the offset region's frame-0 box (what lies outside
             # falls in the border cells).
             region_at(corners, sx, sy, h, 0.0, rv, rr)
@@ -532,8 +586,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                         # only the depth test.
                         for c in range(n_cov):
                             if _hides(covl[c], head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
-                                      gslot, szlo, szhi, sfr, dom, wcam, plane_tol, wref, h, kb,
-                                      cam, n, wmin):
+                                      gslot, sg, sfr, shead, pool, dom, wcam, plane_tol, wref,
+                                      h, kb, cam, n, wmin):
                                 occluded = True
                                 break
                         if occluded:
@@ -561,8 +615,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                            knx, kny, klo, khi):
                                 continue
                             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
-                                      szlo, szhi, sfr, dom, wcam, plane_tol, wref, h, kb, cam, n,
-                                      wmin):
+                                      sg, sfr, shead, pool, dom, wcam, plane_tol, wref, h, kb,
+                                      cam, n, wmin):
                                 occluded = True
                                 break
                         if occluded:
@@ -691,7 +745,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                     # smaller group: O(n log n) in all).
                                     r2 = head[gd]
                                     while r2 >= 0:
-                                        _grid_add(ss, r2, obb, owr, h, dom, szlo, szhi, sfr)
+                                        _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
+                                                  pool)
                                         r2 = nxt[r2]
                                 elif gsize[gs] >= GRID_MIN:
                                     if n_free > 0:
@@ -701,8 +756,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                         ss = n_slot
                                         n_slot += 1
                                     gslot[gs] = ss
-                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, szlo, szhi,
-                                                sfr, 0.5 * (gwlo[gs] + gwhi[gs]))
+                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
+                                                shead, pool, 0.5 * (gwlo[gs] + gwhi[gs]))
                             break
                         node = enext[node]
                 # Register q's edges still active (an inactive edge never fuses again).

@@ -205,8 +205,9 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     kb = np.array([-0.1, 0.1, -0.1, 0.1, 0.0, 0.0, 0.0])
     qcam = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]])
     dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
-    no_grid = (np.array([-1]), np.zeros((1, GRID * GRID)), np.zeros((1, GRID * GRID)),
-               np.zeros(1))
+    pool = np.zeros(2, dtype=np.int64)
+    no_grid = (np.array([-1]), np.zeros((1, 2, GRID * GRID)), np.zeros(1),
+               np.full((1, GRID * GRID + 2), -1), pool)
 
     def hides(wcam, wq, grid=no_grid):
         return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
@@ -217,13 +218,17 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     assert not hides(0.0, 0.9)  # Q reaches nearer than the group's deepest point
     # The group's depth grid: the cells around K hold only near triangles (the group reaches
     # 3 m deep elsewhere), so it hides Q at 2 m; unless those cells start before the cameras.
+    # (Its member lists are empty but marked incomplete: the fallback walks all of g.)
     gwhi[0] = 3.0
-    lo = np.full((1, GRID * GRID), 0.5)
-    hi = np.full((1, GRID * GRID), 3.0)
+    sg = np.empty((1, 2, GRID * GRID))
+    sg[0, 0] = 0.5
+    sg[0, 1] = 3.0
     mid = [(GRID // 2 - 1) * GRID + GRID // 2 - 1, (GRID // 2 - 1) * GRID + GRID // 2,
            (GRID // 2) * GRID + GRID // 2 - 1, (GRID // 2) * GRID + GRID // 2]
-    hi[0, mid] = 1.0
+    sg[0, 1, mid] = 1.0
+    shead = np.full((1, GRID * GRID + 2), -1)
+    shead[0, -1] = 1
     assert not hides(0.0, 2.0)
-    grid = (np.array([0]), lo, hi, np.array([2.0]))  # frame at Q's reference depth
+    grid = (np.array([0]), sg, np.array([2.0]), shead, pool)  # frame at Q's reference depth
     assert hides(0.0, 2.0, grid)
     assert not hides(0.6, 2.0, grid)
