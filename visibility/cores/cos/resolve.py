@@ -158,7 +158,7 @@ def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
     return behind
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)  # a call: inlined, its copies make the kernel slow to compile
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
               nq):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
@@ -582,20 +582,6 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                         tested += 1
                         _k_box(kx, ky, nk, kb)
                         occluded = False
-                        # Coverall occluders first (the paper's early discard): they need
-                        # only the depth test.
-                        for c in range(n_cov):
-                            if _hides(covl[c], head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
-                                      gslot, sg, sfr, shead, pool, dom, wcam, plane_tol, wref,
-                                      h, kb, cam, n, wmin):
-                                occluded = True
-                                break
-                        if occluded:
-                            # Hidden behind a surface that covers every offset: it adds
-                            # nothing as an occluder, and keeping it would make long lists
-                            # quadratic.
-                            hidden += 1
-                            continue
                         if 2 * n_dead > n_live:
                             # Compact the live list (oldest groups first, as they came).
                             m = 0
@@ -607,18 +593,32 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                                     m += 1
                             n_live = m
                             n_dead = 0
-                        for c in range(n_live):
-                            g = live[c]
-                            if lpos[g] != c:
-                                continue
-                            if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb,
-                                           knx, kny, klo, khi):
-                                continue
+                        # Coverall occluders first (the paper's early discard): they need
+                        # only the depth test. Then the live groups, which must cover K. (One
+                        # loop, so the inlined tests are compiled once.)
+                        by_cov = False
+                        for c in range(n_cov + n_live):
+                            if c < n_cov:
+                                g = covl[c]
+                            else:
+                                g = live[c - n_cov]
+                                if lpos[g] != c - n_cov:
+                                    continue
+                                if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk,
+                                               kb, knx, kny, klo, khi):
+                                    continue
                             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
                                       sg, sfr, shead, pool, dom, wcam, plane_tol, wref, h, kb,
                                       cam, n, wmin):
                                 occluded = True
+                                by_cov = c < n_cov
                                 break
+                        if by_cov:
+                            # Hidden behind a surface that covers every offset: it adds
+                            # nothing as an occluder, and keeping it would make long lists
+                            # quadratic.
+                            hidden += 1
+                            continue
                         if occluded:
                             hidden += 1
                         else:
@@ -784,8 +784,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
                     n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
                     if n_r > 0:
                         _k_box(rx, ry, n_r, rb)
-                    if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry, n_r,
-                                           rb, rnx, rny, rlo, rhi):
+                    if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry,
+                                           n_r, rb, rnx, rny, rlo, rhi):
                         gcov[g] = True
                         if lpos[g] >= 0:
                             lpos[g] = -1

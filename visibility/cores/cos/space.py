@@ -130,7 +130,7 @@ def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     return not edges_separate(rv, 4, qv, qr, nq, rv, rr)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def clip_halfplane(px, py, n, nx, ny, c, ox, oy):  # pragma: no cover - numba
     """Clip polygon (px, py)[:n] to nx x + ny y <= c, writing into (ox, oy); returns the count."""
     m = 0
@@ -152,7 +152,7 @@ def clip_halfplane(px, py, n, nx, ny, c, ox, oy):  # pragma: no cover - numba
     return m
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover - numba
     """A convex polygon K (kx, ky) holding (grown occludee) n (grown offset region): their
     bounding-box overlap clipped by the occludee's edge half-planes and the region's, each
