@@ -184,41 +184,39 @@ def _solve_view(prims: Prims, order: np.ndarray, gap: np.ndarray, view: View, pl
     tiles_y = -(-view.ny // TILE)
     n_tiles = tiles_x * tiles_y
     npix = TILE * TILE
-    tile_off, tile_items = bin_tiles(rng, tiles_x, tiles_y)
-    counts = np.zeros(n_tiles * npix, dtype=np.int64)
-    list_off = np.zeros(n_tiles * npix + 1, dtype=np.int64)
-    dummy = np.zeros(1, dtype=np.int32)
-    fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off, tile_items,
-               0, n_tiles, tiles_x, view.origin, view.perm, view.sign, view.corners, view.nx,
-               view.ny, view.x_lo, view.y_lo, view.pw, counts, list_off, dummy, False)
-    np.cumsum(counts, out=list_off[1:])
-    stats["list_entries"] += int(list_off[-1])
-    stats["longest_list"] = max(stats["longest_list"], int(counts.max(initial=0)))
+    tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
     counters = np.zeros((n_tiles, 4), dtype=np.int64)
     t = 0
     while t < n_tiles:
-        # A run of tiles whose lists fit the budget (at least one tile).
+        # A run of tiles whose list slots (bounded by their footprint pixels) fit the budget
+        # (at least one tile).
         t1 = t + 1
-        while t1 < n_tiles and list_off[(t1 + 1) * npix] - list_off[t * npix] <= budget:
+        size = int(bound[t])
+        while t1 < n_tiles and size + bound[t1] <= budget:
+            size += int(bound[t1])
             t1 += 1
-        size = int(list_off[t1 * npix] - list_off[t * npix])
         stats["list_runs"] += 1
         if size == 0:
             t = t1
             continue
         checkpoint()  # a cancelled or late computation stops between runs of tiles
         ta = time.perf_counter()
+        slot = np.zeros(t1 - t + 1, dtype=np.int64)
+        np.cumsum(bound[t:t1], out=slot[1:])
         entries = np.empty(size, dtype=np.int32)
+        pstart = np.empty((t1 - t) * npix, dtype=np.int64)
+        pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
                    tile_items, t, t1, tiles_x, view.origin, view.perm, view.sign, view.corners,
-                   view.nx, view.ny, view.x_lo, view.y_lo, view.pw, counts, list_off, entries,
-                   True)
+                   view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
+        stats["list_entries"] += int(pcount.sum())
+        stats["longest_list"] = max(stats["longest_list"], int(pcount.max(initial=0)))
         tb = time.perf_counter()
         resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
-                      list_off, t, t1, tiles_x, view.nx, view.ny, view.x_lo, view.y_lo, view.pw,
-                      view.origin, view.perm, view.sign, view.corners, plane_tol, known, vis,
-                      counters)
+                      pstart, pcount, t, t1, tiles_x, view.nx, view.ny, view.x_lo, view.y_lo,
+                      view.pw, view.origin, view.perm, view.sign, view.corners, plane_tol,
+                      known, vis, counters)
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb
         t = t1

@@ -401,28 +401,28 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, tile1, tiles_x,
-                  nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known, vis,
-                  counters):  # pragma: no cover - numba
+def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, tile0, tile1,
+                  tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known,
+                  vis, counters):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
-    p found visible. ``entries`` holds the lists of those tiles from ``list_off[tile0 * TILE^2]``
-    on, each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
+    p found visible. ``entries`` holds the lists of those tiles (``lists.fill_lists``: pixel
+    ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
+    long), each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
     bounding box, metres); ``known[p]`` marks primitives already known visible (tested no more,
     still occluders), as are those found visible at an earlier pixel of the same tile.
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth)."""
     h = 0.5 * pw
     npix = TILE * TILE
-    base = list_off[tile0 * npix]
     # Largest camera depth of the view's camera rectangle (0 for a front frustum).
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
     for tile in prange(tile0, tile1):
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
-        pix0 = tile * npix
+        pix0 = (tile - tile0) * npix
         lmax = 0
         for loc in range(npix):
-            lmax = max(lmax, list_off[pix0 + loc + 1] - list_off[pix0 + loc])
+            lmax = max(lmax, pcount[pix0 + loc])
         if lmax == 0:
             continue
         cam = np.empty((8, 3))
@@ -514,8 +514,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, list_off, tile0, ti
             j = tx * TILE + loc % TILE
             if i >= ny or j >= nx:
                 continue
-            a = list_off[pix0 + loc] - base
-            b = list_off[pix0 + loc + 1] - base
+            a = pstart[pix0 + loc]
+            b = a + pcount[pix0 + loc]
             if a == b:
                 continue
             sx = x_lo + (j + 0.5) * pw
