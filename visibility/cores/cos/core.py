@@ -22,7 +22,13 @@ from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
-from visibility.cores.cos.prims import Prims, build_prims, distance_order, inside_box
+from visibility.cores.cos.prims import (
+    Prims,
+    build_prims,
+    distance_order,
+    inside_box,
+    prim_bounds,
+)
 from visibility.cores.cos.resolve import resolve_tiles
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -161,8 +167,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
+        sel = _face_subsets(prims, order, half, views, plane_tol)
         for view in views:
-            _solve_view(prims, order, gap, view, plane_tol, vis, budget, stats)
+            _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis, budget, stats)
     m = scene.n_triangles
     ids = prims.out_id[vis != 0]
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
@@ -171,15 +178,36 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     return ids[ids < m], stats
 
 
-def _solve_view(prims: Prims, order: np.ndarray, gap: np.ndarray, view: View, plane_tol: float,
-                vis: np.ndarray, budget: int, stats: dict[str, Any]) -> None:
-    """Lists and resolution of one view; sets ``vis`` for what it finds visible."""
+def _face_subsets(prims: Prims, order: np.ndarray, half: np.ndarray, views: list[View],
+                  plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
+    """Per side plane F, the positions t (into ``order``) of the primitives its views can
+    list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
+    it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
+    the plane (what stays further behind projects to rows below the view)."""
+    bo = prim_bounds(prims)[order]
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for face in {v.face for v in views}:
+        axis, sgn = face
+        margin = max(0.0 if v.kind == "front" else float(-v.near_box[2])
+                     for v in views if v.face == face)
+        reach = bo[:, 1, axis] if sgn > 0 else -bo[:, 0, axis]
+        keep = reach >= float(half[axis]) - margin - plane_tol
+        out[face] = np.flatnonzero(keep).astype(np.int64)
+    return out
+
+
+def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarray, view: View,
+                plane_tol: float, vis: np.ndarray, budget: int, stats: dict[str, Any]) -> None:
+    """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
+    plane can list); sets ``vis`` for what it finds visible."""
     t0 = time.perf_counter()
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
-    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, view.origin, view.perm,
-               view.sign, view.corners, view.near_box, view.near_w, view.nx, view.ny,
-               view.x_lo, view.y_lo, view.pw, plane_tol, rng)
+    rng[:, 0] = 1
+    rng[:, 1] = 0
+    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, sel, view.origin,
+               view.perm, view.sign, view.corners, view.near_box, view.near_w, view.nx,
+               view.ny, view.x_lo, view.y_lo, view.pw, plane_tol, rng)
     tiles_x = -(-view.nx // TILE)
     tiles_y = -(-view.ny // TILE)
     n_tiles = tiles_x * tiles_y

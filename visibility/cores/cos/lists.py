@@ -74,10 +74,12 @@ def _pixel_span(lo, hi, origin, pw, size):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def footprints(pts, start, npts, kind, order, origin, perm, sign, corners, near_box, near_w,
-               nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
-    """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t]."""
-    for t in prange(order.shape[0]):
+def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, near_box,
+               near_w, nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
+    """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t], for the
+    positions t in ``sel`` (the others are left as they are)."""
+    for s in prange(sel.shape[0]):
+        t = sel[s]
         rng[t, 0] = 1
         rng[t, 1] = 0
         rng[t, 2] = 1

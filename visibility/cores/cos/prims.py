@@ -223,6 +223,29 @@ def inside_box(prims: Prims, half: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, parallel=True)
+def _bounds(pts, start, npts, out):  # pragma: no cover - numba
+    for p in prange(start.shape[0]):
+        s = start[p]
+        for k in range(3):
+            lo = np.inf
+            hi = -np.inf
+            for i in range(npts[p]):
+                lo = min(lo, pts[s + i, k])
+                hi = max(hi, pts[s + i, k])
+            out[p, 0, k] = lo
+            out[p, 1, k] = hi
+
+
+def prim_bounds(prims: Prims) -> np.ndarray:
+    """(n, 2, 3) float64 bounding box [min, max] of each primitive, relative to the cell
+    centre, metres."""
+    out = np.empty((len(prims), 2, 3))
+    if len(prims):
+        _bounds(prims.pts, prims.start, prims.npts, out)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def _gaps(pts, start, npts, half, out):  # pragma: no cover - numba
     for p in prange(start.shape[0]):
         s = start[p]

@@ -232,3 +232,38 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     grid = (np.array([0]), sg, np.array([2.0]), shead, pool)  # frame at Q's reference depth
     assert hides(0.0, 2.0, grid)
     assert not hides(0.6, 2.0, grid)
+
+
+def test_face_subsets_drop_only_empty_footprints():
+    # Each side plane's views look only at what its subset holds: on a city cell (the cell
+    # between buildings and ground) and a box cell of random triangles around and inside
+    # it, every footprint outside the subset is empty.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.core import _face_subsets
+    from visibility.cores.cos.fusion import weld_vertices
+    from visibility.cores.cos.lists import footprints
+    from visibility.cores.cos.prims import build_prims, distance_order
+    from visibility.generators import make_scene
+
+    city = make_scene("city", triangles=3000)
+    rng_ = np.random.default_rng(5)
+    soup = rng_.uniform(-1.0, 1.0, (400, 3, 3)) * [[[1.0, 1.0, 1.0]]] + rng_.uniform(
+        -0.3, 0.3, (400, 1, 3))
+    cases = [(city, cell_around(city, 1.0, 0)), (_scene(soup), np.array([[-0.2] * 3, [0.2] * 3]))]
+    for scene, box in cases:
+        centre = box.mean(axis=0)
+        half = 0.5 * (box[1] - box[0])
+        prims = build_prims(scene, centre, weld_vertices(scene.vertices))
+        order, _ = distance_order(prims, half)
+        views = side_plane_views(box, 32)
+        tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+        subsets = _face_subsets(prims, order, half, views, tol)
+        every = np.arange(len(order), dtype=np.int64)
+        for v in views:
+            full = np.empty((len(order), 4), dtype=np.int32)
+            footprints(prims.pts, prims.start, prims.npts, prims.kind, order, every, v.origin,
+                       v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
+                       v.y_lo, v.pw, tol, full)
+            listed = np.flatnonzero(full[:, 0] <= full[:, 1])
+            assert np.isin(listed, subsets[v.face]).all(), (v.face, v.kind)
+            assert len(subsets[v.face]) < len(order)
