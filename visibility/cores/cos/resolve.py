@@ -402,21 +402,24 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 
 @njit(cache=True, nogil=True, parallel=True)
 def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, tile0, tile1,
-                  tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known,
-                  vis, counters):  # pragma: no cover - numba
+                  torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
+                  plane_tol, known, vis, counters):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. ``entries`` holds the lists of those tiles (``lists.fill_lists``: pixel
     ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
     long), each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
-    bounding box, metres); ``known[p]`` marks primitives already known visible (tested no more,
-    still occluders), as are those found visible at an earlier pixel of the same tile.
+    bounding box, metres), taken in the order ``torder`` (a permutation of [tile0, tile1) that
+    balances the threads' shares); ``known[p]`` marks primitives already known visible
+    (tested no more, still occluders), as are those found visible at an earlier pixel of the
+    same tile.
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth)."""
     h = 0.5 * pw
     npix = TILE * TILE
     # Largest camera depth of the view's camera rectangle (0 for a front frustum).
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
-    for tile in prange(tile0, tile1):
+    for it in prange(tile1 - tile0):
+        tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         pix0 = (tile - tile0) * npix
