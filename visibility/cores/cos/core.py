@@ -197,12 +197,16 @@ def _face_subsets(prims: Prims, order: np.ndarray, half: np.ndarray, views: list
     return out
 
 
-def _balanced_order(pcount: np.ndarray, t0: int, t1: int) -> np.ndarray:
+def _tile_work(pcount: np.ndarray, n_tiles: int) -> np.ndarray:
+    """Resolution cost estimate per tile: the sum of its squared list lengths (dense clutter
+    makes it about quadratic in list length)."""
+    return (pcount.reshape(n_tiles, -1).astype(np.float64) ** 2).sum(axis=1)
+
+
+def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     """Tiles [t0, t1) ordered so that the threads' contiguous shares of a parallel loop (its
-    static schedule) get a like mix: tile costs vary by orders of magnitude in dense clutter
-    (resolution is about quadratic in list length). Ranked by the sum of their squared list
-    lengths, costliest first, dealt round-robin to the shares."""
-    work = (pcount.reshape(t1 - t0, -1).astype(np.float64) ** 2).sum(axis=1)
+    static schedule) get a like mix of the costs ``work`` (t1 - t0,), which vary by orders of
+    magnitude in dense clutter: ranked costliest first, dealt round-robin to the shares."""
     ranked = np.argsort(-work, kind="stable")
     k = max(1, min(numba.get_num_threads(), t1 - t0))
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
@@ -248,13 +252,15 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
         pstart = np.empty((t1 - t) * npix, dtype=np.int64)
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
-                   tile_items, t, t1, tiles_x, view.origin, view.perm, view.sign, view.corners,
+                   tile_items, t, t1, _balanced_order(bound[t:t1].astype(np.float64), t, t1),
+                   tiles_x, view.origin, view.perm, view.sign, view.corners,
                    view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
         stats["list_entries"] += int(pcount.sum())
         stats["longest_list"] = max(stats["longest_list"], int(pcount.max(initial=0)))
         tb = time.perf_counter()
         resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
-                      pstart, pcount, t, t1, _balanced_order(pcount, t, t1), tiles_x, view.nx,
+                      pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
+                      tiles_x, view.nx,
                       view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
                       view.sign, view.corners, plane_tol, known, vis, counters)
         stats["list_seconds"] += tb - ta

@@ -192,16 +192,18 @@ def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, tiles_x,
-               origin, perm, sign, corners, x_lo, y_lo, pw, slot, entries, pstart,
+def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, torder,
+               tiles_x, origin, perm, sign, corners, x_lo, y_lo, pw, slot, entries, pstart,
                pcount):  # pragma: no cover - numba
     """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
     ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
     pixel, each in the order of ``order``; pixel ``loc`` of the tile (tile-major) starts at
-    ``pstart[(tile - tile0) * TILE^2 + loc]`` and holds ``pcount[...]`` entries."""
+    ``pstart[(tile - tile0) * TILE^2 + loc]`` and holds ``pcount[...]`` entries. Tiles are
+    taken in the order ``torder`` (a permutation of [tile0, tile1))."""
     h = 0.5 * pw
     npix = TILE * TILE
-    for tile in prange(tile0, tile1):
+    for it in prange(tile1 - tile0):
+        tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         base = slot[tile - tile0]
