@@ -10,7 +10,9 @@ occluder, a group of triangles fused along shared edges:
   end squares, ``space``) meets K, the silhouette may cross Q under some offset and some
   between-sample direction: not covered, next occluder.
 * Reference point (ln 31-32): with no silhouette near K, K lies wholly inside or wholly outside
-  the occluder under every offset and delta, and one point of K (its centroid) decides. Inside:
+  the occluder under every offset and delta, and one point of K (its centroid) decides: the
+  winding number of the active edges around it, which counts the group's triangles holding it
+  (see below), is at least one. Inside:
   Fig. 8 cases (a) Q inside the occluder and (b) inside it within C_Delta. Outside: cases (e)
   and (f), disjoint (within C_Delta). Cases (c) and (d), the occluder inside Q (within C_Delta),
   put silhouette edges inside K and are caught by the silhouette test. (The paper needs its
@@ -40,6 +42,27 @@ silhouette stays clear of the whole offset region and covers it is flagged *cove
 44-45): later triangles skip straight to the depth test.
 Hulls (moving triangles, spheres) are occludees only; a triangle seen edge-on in the COS (no
 robust area) does not occlude.
+
+Cost (issue 13; dense clutter gives lists of 10^5 entries): nothing per entry scales with the
+number of groups or with a group's triangle count in the common cases.
+
+* Fusion finds the neighbour across an edge in a per-pixel hash of active directed edges;
+  groups merge smaller into larger; each keeps its active edges in a linked list, so the cover
+  test walks the silhouette, not the triangles.
+* Only live groups (not coverall, not merged away) are tried, oldest first.
+* Early z (paper Sec. 5): when a group becomes coverall, every ray of the pixel meets it no
+  deeper than zcut, the deepest vertex of its triangles that can reach the offset region (valid
+  when those lie beyond every camera position). An entry wholly deeper is hidden without a
+  test; and since a point at distance g from the box is at depth >= g / |(s, 1)| on any ray of
+  the pixel, and the lists are sorted by that distance (``prims.distance_order``), the rest of
+  the list is cut once it passes zcut |(s, 1)|.
+* Depth shortcuts: a group that covers K and lies wholly nearer than Q (and beyond the cameras)
+  hides it by the same argument, without the per-triangle plane test. Groups of ``GRID_MIN``
+  triangles or more keep a grid over the offset region (in a frame moving with their own
+  depth) with per-cell depth ranges and member lists: the shortcut then holds per cell around
+  K, and the plane test walks only the members listed there.
+* A primitive found visible at one pixel of a tile is not tested again in that tile's later
+  pixels (still an occluder), as for those known from earlier views.
 """
 
 from __future__ import annotations
