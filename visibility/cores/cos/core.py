@@ -54,16 +54,24 @@ class CosParams(CoreParams):
                                 help="most memory the per-pixel lists of one view take at once")
 
 
-#: Cost model (``estimate_cost``), timed on the 2-core development machine (4 m cells of a 20k
-#: village and a 100k city, 64 to 256 px): per pixel of the views, per triangle and side plane.
-#: List lengths, and so the resolution's true cost, depend on the depth complexity around the
-#: cell, which no cheap estimate sees: dense clutter (the 1M kitchen) costs far more than this
-#: says, and the deadline stops what the estimate lets through. Bytes: per triangle (the
-#: primitives, their footprints and order), per pixel (list counts and offsets), and the lists
-#: themselves up to ``list_budget_mb``.
-SECONDS_PER_PIXEL = 7e-6
-SECONDS_PER_PLANE_TRIANGLE = 2e-6
-BYTES_PER_TRIANGLE = 160
+#: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
+#: on the 2-core development machine (load about 1) after the issue-13 speed-up: a least-squares
+#: fit over 4 m cells of a 20k village and a 100k city at 64, 128 and 256 px gives 2.0e-6 s per
+#: pixel (0.29-2.8 s measured; the per-triangle term fits near zero there), and the 0.3 m cell
+#: of the 100k city at 64 px (0.19 s, mostly the per-triangle sort and footprints) bounds the
+#: per-triangle term. 0.3 m cells cost 2-6 times less than this says (0.22-0.26 s for the 100k
+#: city and village at 128 px, benchmarks/results/cos.md). List lengths, and so the
+#: resolution's true cost, depend on the depth complexity around the cell, which no cheap
+#: estimate sees: dense clutter costs far more (the 1M kitchen's 0.3 m cell: 87 s against 1.2 s
+#: estimated; 20k rooms at 4 m: 22 s against 0.6 s), and the deadline stops what the estimate
+#: lets through. Bytes: per triangle (the primitives, their order, box distance, bounds, face
+#: subsets, footprints and tile bins, about 320 B at the peak), per pixel (list starts and
+#: counts of a run), and the lists themselves up to ``list_budget_mb``. Not counted: each
+#: thread's working set for its current tile, which grows with the longest list there (about
+#: 1 KB per entry of it: some 120 MB for the kitchen's 125k-entry lists).
+SECONDS_PER_PIXEL = 2e-6
+SECONDS_PER_PLANE_TRIANGLE = 1e-7
+BYTES_PER_TRIANGLE = 320
 BYTES_PER_PIXEL = 24
 
 
@@ -81,8 +89,10 @@ class CosCore(Core):
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
-    fits: ClassVar[str] = ("small cells (up to about 0.5 m) of scenes up to a few 100k "
-                           "triangles; larger cells and denser scenes cost minutes")
+    fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
+                           "(0.2-0.3 s for a 0.3 m cell of 100k); 4 m cells cost about a "
+                           "second (city) to 20 s (rooms), dense clutter minutes (the 1M "
+                           "kitchen: 90 s for a 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
@@ -95,15 +105,16 @@ class CosCore(Core):
     fp_bound: ClassVar[float] = 0.5
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
-        # benchmarks/results/cos.md: 0.6-0.8 s for 0.3 m cells of 100k scenes, 3 s for a 4 m
-        # city cell, > 500 s for a 0.3 m kitchen cell (1M triangles) and 218 s for a 4 m cell of
-        # 20k rooms: only small cells of moderate scenes are worth picking automatically.
+        # benchmarks/results/cos.md (2 cores): 0.22-0.26 s for 0.3 m cells of 100k scenes,
+        # 0.1-1.5 s for 1 m cells of 20k ones, 0.74 s for a 4 m city cell but 22 s for a 4 m
+        # cell of 20k rooms, 87 s for a 0.3 m kitchen cell (1M triangles, dense clutter): small
+        # cells of moderate scenes are worth picking automatically, the rest only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
             return 5.0, ("small cells: conservative camera-offset-space visibility, no false "
                          "negatives")
         return 0.1, ("conservative but slow here: cells above 0.5 m or scenes above 200k "
-                     "triangles cost seconds to minutes")
+                     "triangles cost seconds (4 m cells) to minutes (dense clutter)")
 
     def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
         """Six side planes of five frusta each, priced per pixel and per triangle and plane;
