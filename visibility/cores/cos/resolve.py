@@ -558,6 +558,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
             n_polys = 0
             n_live = 0
             n_dead = 0
+            last_g = -1
             n_cov = 0
             n_slot = 0
             n_free = 0
@@ -620,16 +621,23 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                             n_live = m
                             n_dead = 0
                         # Coverall occluders first (the paper's early discard): they need
-                        # only the depth test. Then the live groups, which must cover K. (One
-                        # loop, so the inlined tests are compiled once.)
+                        # only the depth test. Then the live groups, which must cover K: the
+                        # one that hid the last entry first (neighbours in the list are often
+                        # hidden by the same surface), then the rest. (One loop, so the
+                        # inlined tests are compiled once.)
                         by_cov = False
-                        for c in range(n_cov + n_live):
+                        for c in range(n_cov + 1 + n_live):
                             if c < n_cov:
                                 g = covl[c]
                             else:
-                                g = live[c - n_cov]
-                                if lpos[g] != c - n_cov:
-                                    continue
+                                if c == n_cov:
+                                    g = last_g
+                                    if g < 0 or lpos[g] < 0:
+                                        continue
+                                else:
+                                    g = live[c - n_cov - 1]
+                                    if lpos[g] != c - n_cov - 1 or g == last_g:
+                                        continue
                                 if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk,
                                                kb, knx, kny, klo, khi):
                                     continue
@@ -638,6 +646,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                       cam, n, wmin):
                                 occluded = True
                                 by_cov = c < n_cov
+                                if not by_cov:
+                                    last_g = g
                                 break
                         if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
