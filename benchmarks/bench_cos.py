@@ -73,7 +73,8 @@ def _row(label, scene, box, resolution, ref) -> dict[str, Any]:
            "fn_count": missed, "fp": fp, "overestimation": (len(pvs) - len(ref) + missed)
            / max(1, len(ref)), "list_entries": st["list_entries"],
            "longest_list": st["longest_list"], "mean_list": st["list_entries"] / st["pixels"],
-           "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"]}
+           "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
+           "early_z_cut": st.get("early_z_cut", 0)}
     for k in PHASES + ("weld_seconds",):
         row[k] = float(st[k])
     row["gpu_ratio"] = [pvs.seconds * 1e3 / PAPER_MS[1], pvs.seconds * 1e3 / PAPER_MS[0]]
@@ -162,7 +163,9 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 f"{r['list_seconds']:.2f} + resolve {r['resolve_seconds']:.2f} s "
                 f"({100 * r['resolve_seconds'] / s:.0f} % resolving), "
                 f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} x the paper's times; "
-                f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}); "
+                f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}), "
+                f"{100 * r.get('early_z_cut', 0) / max(1, r['list_entries']):.0f} % of them "
+                "cut by early z behind surfaces covering a pixel's offsets; "
                 f"FN {r['fn_count']}, overestimation {100 * r['overestimation']:.0f} % "
                 "(paper: 20-90 %).")
         out.append("")
