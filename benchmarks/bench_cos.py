@@ -13,8 +13,8 @@ Two parts, printed and written to ``benchmarks/results/cos.md`` (+ ``cos.json``,
 The reference: every triangle seen from ``--points`` stratified eyes in the box plus its 26
 boundary points (corners, edge midpoints, face centres), random cube orientation each, 256 px
 per face (``tests/visibility/cores/cos/reference.py``). Usage:
-``python -m benchmarks.bench_cos`` (with the kitchen about 15 minutes on 2 cores,
-``--skip-kitchen`` about 5), ``--quick`` for a smoke run. Times are the best of 2 runs after
+``python -m benchmarks.bench_cos`` (with the kitchen about 6 minutes on 2 cores,
+``--skip-kitchen`` about 2), ``--quick`` for a smoke run. Times are the best of 2 runs after
 a warm-up compile.
 """
 
@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--parts", nargs="+", default=["speed", "fp"])
     ap.add_argument("--skip-kitchen", action="store_true",
                     help="leave out the 1M-triangle kitchen cell (its dense clutter makes "
-                         "long lists: about 90 s per run at R = 128 on 2 cores, see the "
+                         "long lists: about 80 s per run at R = 128 on 2 cores, see the "
                          "report)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()

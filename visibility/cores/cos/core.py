@@ -62,8 +62,8 @@ class CosParams(CoreParams):
 #: per-triangle term. 0.3 m cells cost 2-6 times less than this says (0.22-0.26 s for the 100k
 #: city and village at 128 px, benchmarks/results/cos.md). List lengths, and so the
 #: resolution's true cost, depend on the depth complexity around the cell, which no cheap
-#: estimate sees: dense clutter costs far more (the 1M kitchen's 0.3 m cell: 87 s against 1.2 s
-#: estimated; 20k rooms at 4 m: 22 s against 0.6 s), and the deadline stops what the estimate
+#: estimate sees: dense clutter costs far more (the 1M kitchen's 0.3 m cell: 80 s against 1.2 s
+#: estimated; 20k rooms at 4 m: 20 s against 0.6 s), and the deadline stops what the estimate
 #: lets through. Bytes: per triangle (the primitives, their order, box distance, bounds, face
 #: subsets, footprints and tile bins, about 320 B at the peak), per pixel (list starts and
 #: counts of a run), and the lists themselves up to ``list_budget_mb``. Not counted: each
@@ -92,7 +92,7 @@ class CosCore(Core):
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
                            "(0.2-0.3 s for a 0.3 m cell of 100k); 4 m cells cost about a "
                            "second (city) to 20 s (rooms), dense clutter minutes (the 1M "
-                           "kitchen: 90 s for a 0.3 m cell)")
+                           "kitchen: 80 s for a 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
@@ -106,8 +106,8 @@ class CosCore(Core):
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # benchmarks/results/cos.md (2 cores): 0.22-0.26 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.5 s for 1 m cells of 20k ones, 0.74 s for a 4 m city cell but 22 s for a 4 m
-        # cell of 20k rooms, 87 s for a 0.3 m kitchen cell (1M triangles, dense clutter): small
+        # 0.1-1.5 s for 1 m cells of 20k ones, 0.72 s for a 4 m city cell but 20 s for a 4 m
+        # cell of 20k rooms, 80 s for a 0.3 m kitchen cell (1M triangles, dense clutter): small
         # cells of moderate scenes are worth picking automatically, the rest only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
