@@ -13,8 +13,9 @@ Two parts, printed and written to ``benchmarks/results/cos.md`` (+ ``cos.json``,
 The reference: every triangle seen from ``--points`` stratified eyes in the box plus its 26
 boundary points (corners, edge midpoints, face centres), random cube orientation each, 256 px
 per face (``tests/visibility/cores/cos/reference.py``). Usage:
-``python -m benchmarks.bench_cos`` (``--skip-kitchen``: about 10 minutes on 2 cores),
-``--quick`` for a smoke run. Times are the best of 2 runs after a warm-up compile.
+``python -m benchmarks.bench_cos`` (with the kitchen about 6 minutes on 2 cores,
+``--skip-kitchen`` about 2), ``--quick`` for a smoke run. Times are the best of 2 runs after
+a warm-up compile.
 """
 
 from __future__ import annotations
@@ -72,7 +73,8 @@ def _row(label, scene, box, resolution, ref) -> dict[str, Any]:
            "fn_count": missed, "fp": fp, "overestimation": (len(pvs) - len(ref) + missed)
            / max(1, len(ref)), "list_entries": st["list_entries"],
            "longest_list": st["longest_list"], "mean_list": st["list_entries"] / st["pixels"],
-           "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"]}
+           "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
+           "early_z_cut": st.get("early_z_cut", 0)}
     for k in PHASES + ("weld_seconds",):
         row[k] = float(st[k])
     row["gpu_ratio"] = [pvs.seconds * 1e3 / PAPER_MS[1], pvs.seconds * 1e3 / PAPER_MS[0]]
@@ -124,30 +126,83 @@ def fp_table(quick: bool, points: int) -> list[dict[str, Any]]:
 
 
 def _plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """Stacked time per phase; cells above 5 s (the kitchen) in a panel of their own, so the
+    sub-second ones stay readable."""
     import matplotlib.pyplot as plt
 
-    labels = [f"{r['cell']}\nR={r['resolution']}" for r in rows]
-    fig, ax = plt.subplots(figsize=(10, 4.5))
-    left = np.zeros(len(rows))
-    for k, colour in zip(PHASES, ("#8da0cb", "#66c2a5", "#fc8d62"), strict=True):
-        vals = np.array([r[k] for r in rows])
-        ax.barh(labels, vals, left=left, color=colour, label=k.replace("_seconds", ""))
-        left += vals
-    ax.axvline(PAPER_MS[1] / 1e3, color="k", ls="--", lw=1, label="paper, GPU, 220 ms")
-    ax.set_xlabel("seconds (2 CPU cores)")
-    ax.set_title("cos core: time per phase (paper Fig. 19 breakdown)")
-    ax.legend(loc="lower right")
-    ax.invert_yaxis()
+    groups = [[r for r in rows if r["seconds"] < 5.0], [r for r in rows if r["seconds"] >= 5.0]]
+    groups = [g for g in groups if g]
+    fig, axes = plt.subplots(1, len(groups), figsize=(6 * len(groups), 4.5), squeeze=False)
+    for i, (ax, group) in enumerate(zip(axes[0], groups, strict=True)):
+        labels = [f"{r['cell']}\nR={r['resolution']}" for r in group]
+        left = np.zeros(len(group))
+        for k, colour in zip(PHASES, ("#8da0cb", "#66c2a5", "#fc8d62"), strict=True):
+            vals = np.array([r[k] for r in group])
+            ax.barh(labels, vals, left=left, color=colour, label=k.replace("_seconds", ""))
+            left += vals
+        ax.axvline(PAPER_MS[1] / 1e3, color="k", ls="--", lw=1, label="paper, GPU, 220 ms")
+        ax.set_xlabel("seconds (2 CPU cores)")
+        ax.invert_yaxis()
+        if i == 0:
+            ax.legend(loc="upper right")
+    fig.suptitle("cos core: time per phase (paper Fig. 19 breakdown)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def _md(speed_rows, fp_rows, points, elapsed, argv) -> str:
+def _reading(speed_rows, fp_rows) -> list[str]:
+    """What the tables say, in sentences built from the measured rows."""
+    from visibility.cores.cos.core import DEFAULT_RESOLUTION
+
+    out = ["## Reading", ""]
+    rows = [r for r in speed_rows if r["resolution"] == DEFAULT_RESOLUTION]
+    if rows:
+        out.append(f"Speed cells at the default resolution (R = {DEFAULT_RESOLUTION}), time "
+                   "per phase (the paper's Fig. 19 breakdown) and the ratio to the paper's "
+                   "35-220 ms per cell on a GPU:")
+        out.append("")
+        for r in rows:
+            s = max(r["seconds"], 1e-9)
+            out.append(
+                f"- {r['cell']}: {r['seconds']:.2f} s = sort {r['sort_seconds']:.2f} + lists "
+                f"{r['list_seconds']:.2f} + resolve {r['resolve_seconds']:.2f} s "
+                f"({100 * r['resolve_seconds'] / s:.0f} % resolving), "
+                f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} x the paper's times; "
+                f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}), "
+                f"{100 * r.get('early_z_cut', 0) / max(1, r['list_entries']):.0f} % of them "
+                "cut by early z behind surfaces covering a pixel's offsets; "
+                f"FN {r['fn_count']}, overestimation {100 * r['overestimation']:.0f} % "
+                "(paper: 20-90 %).")
+        out.append("")
+    if fp_rows:
+        out.append("Overestimation against the dense reference, per scene (paper: 20-90 %):")
+        out.append("")
+        for scene in dict.fromkeys(r["scene"] for r in fp_rows):
+            rs = [r for r in fp_rows if r["scene"] == scene]
+            small = [100 * r["overestimation"] for r in rs if r["size"] <= 0.3]
+            big = ", ".join(f"{100 * r['overestimation']:.0f} % at {r['size']:g} m"
+                            for r in rs if r["size"] > 0.3)
+            fn = sum(r["fn_count"] for r in rs)
+            line = f"- {scene}: "
+            if small:
+                line += f"{min(small):.0f}-{max(small):.0f} % for cells up to 0.3 m"
+            line += (f"; {big}" if big else "") + f"; FN {fn} in all."
+            out.append(line)
+        out.append("")
+    return out
+
+
+def _md(speed_rows, fp_rows, points, elapsed, argv, load=None) -> str:
     cmd = " ".join(["python -m benchmarks.bench_cos", *argv])
+    loadavg = ""
+    if load:
+        loadavg = (f" Load average (1 min) {load[0]:.2f} at the start, {load[1]:.2f} at the "
+                   "end.")
     out = ["# cos core (camera offset space, Hladky et al. 2019)", "",
            f"Command: `{cmd}`; {platform.machine()}, "
-           f"{os.cpu_count()} CPU cores, {elapsed:.0f} s in all. Times: best of 2 runs after a "
+           f"{os.cpu_count()} CPU cores, {elapsed:.0f} s in all.{loadavg} Times: best of 2 "
+           "runs after a "
            "warm-up compile. Reference: every triangle seen from "
            f"{points} stratified eyes in the box plus its 26 boundary points (random cube "
            "orientation each) at 256 px per face; FN counts reference triangles missing from "
@@ -163,8 +218,10 @@ def _md(speed_rows, fp_rows, points, elapsed, argv) -> str:
                    f"{r['resolve_seconds']:.2f} | {r['list_entries']:,} | {r['longest_list']} | "
                    f"{r['mean_list']:.1f} | {r['pvs']:,} | {r['reference']:,} | {r['fn_count']} | "
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "
-                   f"{r['gpu_ratio'][0]:.0f}-{r['gpu_ratio'][1]:.0f} |")
-    out += ["", "![time per phase](cos.png)", "", "## FP per scene and cell size (R = 128)", "",
+                   f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} |")
+    out += ["", "![time per phase](cos.png)", ""]
+    out += _reading(speed_rows, fp_rows)
+    out += ["## FP per scene and cell size (R = 128)", "",
             "| scene | cell | PVS | ref | FN | FP | overestimation (paper: 20-90 %) | s |",
             "|---|---|---|---|---|---|---|---|"]
     for r in fp_rows:
@@ -180,10 +237,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--points", type=int, default=256)
     ap.add_argument("--parts", nargs="+", default=["speed", "fp"])
     ap.add_argument("--skip-kitchen", action="store_true",
-                    help="leave out the 1M-triangle kitchen cell (its lists are quadratic "
-                         "to resolve: more than 500 s at R = 128, see the report)")
+                    help="leave out the 1M-triangle kitchen cell (its dense clutter makes "
+                         "long lists: about 80 s per run at R = 128 on 2 cores, see the "
+                         "report)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    load0 = os.getloadavg()[0]
     # Warm-up compile.
     warm = make_scene("city", triangles=2000)
     _run(warm, cell_around(warm, 0.3, 0), 16, repeats=1)
@@ -191,16 +250,19 @@ def main(argv: list[str] | None = None) -> None:
                   if "speed" in args.parts else [])
     fp_rows = fp_table(args.quick, args.points) if "fp" in args.parts else []
     elapsed = time.perf_counter() - t0
+    load = (load0, os.getloadavg()[0])
     RESULTS.mkdir(exist_ok=True)
     stem = "cos_quick" if args.quick else "cos"
     (RESULTS / f"{stem}.json").write_text(json.dumps(
-        {"speed": speed_rows, "fp": fp_rows, "points": args.points, "seconds": elapsed},
+        {"speed": speed_rows, "fp": fp_rows, "points": args.points, "seconds": elapsed,
+         "loadavg": load},
         indent=1))
     if speed_rows:
         _plot(speed_rows, RESULTS / f"{stem}.png")
     import sys
 
-    md = _md(speed_rows, fp_rows, args.points, elapsed, sys.argv[1:] if argv is None else argv)
+    md = _md(speed_rows, fp_rows, args.points, elapsed, sys.argv[1:] if argv is None else argv,
+             load)
     (RESULTS / f"{stem}.md").write_text(md.replace("(cos.png)", f"({stem}.png)"))
     print(md)
 

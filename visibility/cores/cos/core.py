@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import numba
 import numpy as np
 
 from visibility.cancel import checkpoint
@@ -22,7 +23,13 @@ from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
-from visibility.cores.cos.prims import Prims, build_prims, distance_order, inside_box
+from visibility.cores.cos.prims import (
+    Prims,
+    build_prims,
+    distance_order,
+    inside_box,
+    prim_bounds,
+)
 from visibility.cores.cos.resolve import resolve_tiles
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -47,16 +54,24 @@ class CosParams(CoreParams):
                                 help="most memory the per-pixel lists of one view take at once")
 
 
-#: Cost model (``estimate_cost``), timed on the 2-core development machine (4 m cells of a 20k
-#: village and a 100k city, 64 to 256 px): per pixel of the views, per triangle and side plane.
-#: List lengths, and so the resolution's true cost, depend on the depth complexity around the
-#: cell, which no cheap estimate sees: dense clutter (the 1M kitchen) costs far more than this
-#: says, and the deadline stops what the estimate lets through. Bytes: per triangle (the
-#: primitives, their footprints and order), per pixel (list counts and offsets), and the lists
-#: themselves up to ``list_budget_mb``.
-SECONDS_PER_PIXEL = 7e-6
-SECONDS_PER_PLANE_TRIANGLE = 2e-6
-BYTES_PER_TRIANGLE = 160
+#: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
+#: on the 2-core development machine (load about 1) after the issue-13 speed-up: a least-squares
+#: fit over 4 m cells of a 20k village and a 100k city at 64, 128 and 256 px gives 2.0e-6 s per
+#: pixel (0.29-2.8 s measured; the per-triangle term fits near zero there), and the 0.3 m cell
+#: of the 100k city at 64 px (0.19 s, mostly the per-triangle sort and footprints) bounds the
+#: per-triangle term. 0.3 m cells cost 2-6 times less than this says (0.22-0.26 s for the 100k
+#: city and village at 128 px, benchmarks/results/cos.md). List lengths, and so the
+#: resolution's true cost, depend on the depth complexity around the cell, which no cheap
+#: estimate sees: dense clutter costs far more (the 1M kitchen's 0.3 m cell: 80 s against 1.2 s
+#: estimated; 20k rooms at 4 m: 20 s against 0.6 s), and the deadline stops what the estimate
+#: lets through. Bytes: per triangle (the primitives, their order, box distance, bounds, face
+#: subsets, footprints and tile bins, about 320 B at the peak), per pixel (list starts and
+#: counts of a run), and the lists themselves up to ``list_budget_mb``. Not counted: each
+#: thread's working set for its current tile, which grows with the longest list there (about
+#: 1 KB per entry of it: some 120 MB for the kitchen's 125k-entry lists).
+SECONDS_PER_PIXEL = 2e-6
+SECONDS_PER_PLANE_TRIANGLE = 1e-7
+BYTES_PER_TRIANGLE = 320
 BYTES_PER_PIXEL = 24
 
 
@@ -74,8 +89,10 @@ class CosCore(Core):
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
-    fits: ClassVar[str] = ("small cells (up to about 0.5 m) of scenes up to a few 100k "
-                           "triangles; larger cells and denser scenes cost minutes")
+    fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
+                           "(0.2-0.3 s for a 0.3 m cell of 100k); 4 m cells cost about a "
+                           "second (city) to 20 s (rooms), dense clutter minutes (the 1M "
+                           "kitchen: 80 s for a 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
@@ -88,15 +105,16 @@ class CosCore(Core):
     fp_bound: ClassVar[float] = 0.5
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
-        # benchmarks/results/cos.md: 0.6-0.8 s for 0.3 m cells of 100k scenes, 3 s for a 4 m
-        # city cell, > 500 s for a 0.3 m kitchen cell (1M triangles) and 218 s for a 4 m cell of
-        # 20k rooms: only small cells of moderate scenes are worth picking automatically.
+        # benchmarks/results/cos.md (2 cores): 0.22-0.26 s for 0.3 m cells of 100k scenes,
+        # 0.1-1.5 s for 1 m cells of 20k ones, 0.72 s for a 4 m city cell but 20 s for a 4 m
+        # cell of 20k rooms, 80 s for a 0.3 m kitchen cell (1M triangles, dense clutter): small
+        # cells of moderate scenes are worth picking automatically, the rest only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
             return 5.0, ("small cells: conservative camera-offset-space visibility, no false "
                          "negatives")
         return 0.1, ("conservative but slow here: cells above 0.5 m or scenes above 200k "
-                     "triangles cost seconds to minutes")
+                     "triangles cost seconds (4 m cells) to minutes (dense clutter)")
 
     def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
         """Six side planes of five frusta each, priced per pixel and per triangle and plane;
@@ -136,7 +154,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     triangle_ids : (k,) int64 visible triangle ids.
     stats : seconds per phase (``weld_seconds``, ``sort_seconds``, ``list_seconds``,
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
-        ``occluder_triangles``, ``inside_box``, ``views``, ``pixels`` and ``sphere_ids``.
+        ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
+        occluder's depth), ``inside_box``, ``views``, ``pixels`` and ``sphere_ids``.
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -145,7 +164,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     welded, weld_s = scene_welded_ids(scene)
     t1 = time.perf_counter()
     prims = build_prims(scene, centre, welded)
-    order = distance_order(prims, half)
+    order, gap = distance_order(prims, half)
     t2 = time.perf_counter()
     inbox = inside_box(prims, half)
     vis = inbox.astype(np.uint8)
@@ -156,12 +175,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
-        "resolution": int(resolution), "list_runs": 0,
+        "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
+        sel = _face_subsets(prims, order, half, views, plane_tol)
         for view in views:
-            _solve_view(prims, order, view, plane_tol, vis, budget, stats)
+            _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis, budget, stats)
     m = scene.n_triangles
     ids = prims.out_id[vis != 0]
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
@@ -170,57 +190,94 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     return ids[ids < m], stats
 
 
-def _solve_view(prims: Prims, order: np.ndarray, view: View, plane_tol: float, vis: np.ndarray,
-                budget: int, stats: dict[str, Any]) -> None:
-    """Lists and resolution of one view; sets ``vis`` for what it finds visible."""
+def _face_subsets(prims: Prims, order: np.ndarray, half: np.ndarray, views: list[View],
+                  plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
+    """Per side plane F, the positions t (into ``order``) of the primitives its views can
+    list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
+    it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
+    the plane (what stays further behind projects to rows below the view)."""
+    bo = prim_bounds(prims)[order]
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for face in {v.face for v in views}:
+        axis, sgn = face
+        margin = max(0.0 if v.kind == "front" else float(-v.near_box[2])
+                     for v in views if v.face == face)
+        reach = bo[:, 1, axis] if sgn > 0 else -bo[:, 0, axis]
+        keep = reach >= float(half[axis]) - margin - plane_tol
+        out[face] = np.flatnonzero(keep).astype(np.int64)
+    return out
+
+
+def _tile_work(pcount: np.ndarray, n_tiles: int) -> np.ndarray:
+    """Resolution cost estimate per tile: the sum of its squared list lengths (dense clutter
+    makes it about quadratic in list length)."""
+    return (pcount.reshape(n_tiles, -1).astype(np.float64) ** 2).sum(axis=1)
+
+
+def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
+    """Tiles [t0, t1) ordered so that the threads' contiguous shares of a parallel loop (its
+    static schedule) get a like mix of the costs ``work`` (t1 - t0,), which vary by orders of
+    magnitude in dense clutter: ranked costliest first, dealt round-robin to the shares."""
+    ranked = np.argsort(-work, kind="stable")
+    k = max(1, min(numba.get_num_threads(), t1 - t0))
+    return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
+
+
+def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarray, view: View,
+                plane_tol: float, vis: np.ndarray, budget: int, stats: dict[str, Any]) -> None:
+    """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
+    plane can list); sets ``vis`` for what it finds visible."""
     t0 = time.perf_counter()
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
-    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, view.origin, view.perm,
-               view.sign, view.corners, view.near_box, view.near_w, view.nx, view.ny,
-               view.x_lo, view.y_lo, view.pw, plane_tol, rng)
+    rng[:, 0] = 1
+    rng[:, 1] = 0
+    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, sel, view.origin,
+               view.perm, view.sign, view.corners, view.near_box, view.near_w, view.nx,
+               view.ny, view.x_lo, view.y_lo, view.pw, plane_tol, rng)
     tiles_x = -(-view.nx // TILE)
     tiles_y = -(-view.ny // TILE)
     n_tiles = tiles_x * tiles_y
     npix = TILE * TILE
-    tile_off, tile_items = bin_tiles(rng, tiles_x, tiles_y)
-    counts = np.zeros(n_tiles * npix, dtype=np.int64)
-    list_off = np.zeros(n_tiles * npix + 1, dtype=np.int64)
-    dummy = np.zeros(1, dtype=np.int32)
-    fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off, tile_items,
-               0, n_tiles, tiles_x, view.origin, view.perm, view.sign, view.corners, view.nx,
-               view.ny, view.x_lo, view.y_lo, view.pw, counts, list_off, dummy, False)
-    np.cumsum(counts, out=list_off[1:])
-    stats["list_entries"] += int(list_off[-1])
-    stats["longest_list"] = max(stats["longest_list"], int(counts.max(initial=0)))
+    tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
-    counters = np.zeros((n_tiles, 3), dtype=np.int64)
+    counters = np.zeros((n_tiles, 4), dtype=np.int64)
     t = 0
     while t < n_tiles:
-        # A run of tiles whose lists fit the budget (at least one tile).
+        # A run of tiles whose list slots (bounded by their footprint pixels) fit the budget
+        # (at least one tile).
         t1 = t + 1
-        while t1 < n_tiles and list_off[(t1 + 1) * npix] - list_off[t * npix] <= budget:
+        size = int(bound[t])
+        while t1 < n_tiles and size + bound[t1] <= budget:
+            size += int(bound[t1])
             t1 += 1
-        size = int(list_off[t1 * npix] - list_off[t * npix])
         stats["list_runs"] += 1
         if size == 0:
             t = t1
             continue
         checkpoint()  # a cancelled or late computation stops between runs of tiles
         ta = time.perf_counter()
+        slot = np.zeros(t1 - t + 1, dtype=np.int64)
+        np.cumsum(bound[t:t1], out=slot[1:])
         entries = np.empty(size, dtype=np.int32)
+        pstart = np.empty((t1 - t) * npix, dtype=np.int64)
+        pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
-                   tile_items, t, t1, tiles_x, view.origin, view.perm, view.sign, view.corners,
-                   view.nx, view.ny, view.x_lo, view.y_lo, view.pw, counts, list_off, entries,
-                   True)
+                   tile_items, t, t1, _balanced_order(bound[t:t1].astype(np.float64), t, t1),
+                   tiles_x, view.origin, view.perm, view.sign, view.corners,
+                   view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
+        stats["list_entries"] += int(pcount.sum())
+        stats["longest_list"] = max(stats["longest_list"], int(pcount.max(initial=0)))
         tb = time.perf_counter()
-        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, entries,
-                      list_off, t, t1, tiles_x, view.nx, view.ny, view.x_lo, view.y_lo, view.pw,
-                      view.origin, view.perm, view.sign, view.corners, plane_tol, known, vis,
-                      counters)
+        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
+                      pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
+                      tiles_x, view.nx,
+                      view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
+                      view.sign, view.corners, plane_tol, known, vis, counters)
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb
         t = t1
     stats["tested"] += int(counters[:, 0].sum())
     stats["occluded"] += int(counters[:, 1].sum())
     stats["occluder_triangles"] += int(counters[:, 2].sum())
+    stats["early_z_cut"] += int(counters[:, 3].sum())

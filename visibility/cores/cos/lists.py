@@ -1,5 +1,5 @@
 """Per-pixel triangle lists of one view (paper Sec. 4.2, 5): conservative footprints, binning
-into screen tiles, then count-then-fill so the list memory is allocated once.
+into screen tiles, then one pass per tile into a slot sized by the tile's footprint pixels.
 
 A primitive is listed at a pixel when its COS image, grown by the between-sample motion
 (``space``), may meet the supported offsets there: it may cover some direction of the pixel
@@ -11,8 +11,8 @@ reaching into ``View.near_box`` is listed at every pixel of the view and left to
 per-pixel test, one that stays outside it is clipped to w >= near_w first (no ray of the view
 reaches its nearer part).
 
-Pixels are numbered tile-major (tiles of ``TILE`` x ``TILE``), so a run of tiles is a contiguous
-range of lists: the view is processed in such runs when its lists would exceed the memory budget.
+Pixels are numbered tile-major (tiles of ``TILE`` x ``TILE``): the view is processed in runs of
+tiles whose slots fit the memory budget.
 Every primitive enters the lists in the order of ``order`` (front to back), so the lists come
 out sorted without a per-list sort.
 """
@@ -28,7 +28,7 @@ from visibility.cores.cos.space import load_prim, overlaps, project
 TILE = 16
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
     """COS images (rv (4, 2)) and motion radii (rr (4,)) of the camera rectangle's corners at
     pixel centre (sx, sy), in the frame moving with depth ``wref``: the supported offsets (the
@@ -74,10 +74,12 @@ def _pixel_span(lo, hi, origin, pw, size):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def footprints(pts, start, npts, kind, order, origin, perm, sign, corners, near_box, near_w,
-               nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
-    """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t]."""
-    for t in prange(order.shape[0]):
+def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, near_box,
+               near_w, nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
+    """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t], for the
+    positions t in ``sel`` (the others are left as they are)."""
+    for s in prange(sel.shape[0]):
+        t = sel[s]
         rng[t, 0] = 1
         rng[t, 1] = 0
         rng[t, 2] = 1
@@ -160,15 +162,20 @@ def footprints(pts, start, npts, kind, order, origin, perm, sign, corners, near_
 @njit(cache=True, nogil=True)
 def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
     """CSR (offsets (T + 1,), items) of the positions t whose pixel box meets each tile, in
-    increasing t (so in front-to-back order)."""
+    increasing t (so in front-to-back order), and per tile the pixels of those boxes inside
+    it (T,): a bound on the tile's list entries."""
     n_tiles = tiles_x * tiles_y
     counts = np.zeros(n_tiles + 1, dtype=np.int64)
+    bound = np.zeros(n_tiles, dtype=np.int64)
     for t in range(rng.shape[0]):
         if rng[t, 0] > rng[t, 1]:
             continue
         for ty in range(rng[t, 0] // TILE, rng[t, 1] // TILE + 1):
+            rows = min(rng[t, 1], ty * TILE + TILE - 1) - max(rng[t, 0], ty * TILE) + 1
             for tx in range(rng[t, 2] // TILE, rng[t, 3] // TILE + 1):
+                cols = min(rng[t, 3], tx * TILE + TILE - 1) - max(rng[t, 2], tx * TILE) + 1
                 counts[ty * tiles_x + tx + 1] += 1
+                bound[ty * tiles_x + tx] += rows * cols
     for k in range(n_tiles):
         counts[k + 1] += counts[k]
     fill = counts[:-1].copy()
@@ -181,29 +188,35 @@ def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
                 k = ty * tiles_x + tx
                 items[fill[k]] = t
                 fill[k] += 1
-    return counts, items
+    return counts, items, bound
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, tiles_x,
-               origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, counts, list_off,
-               entries, write):  # pragma: no cover - numba
-    """Count (``write`` False: into ``counts``, per tile-major pixel) or fill (``write`` True:
-    ``entries[list_off[pixel] - list_off[first pixel of tile0] + k]``) the lists of tiles
-    [tile0, tile1)."""
+def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, torder,
+               tiles_x, origin, perm, sign, corners, x_lo, y_lo, pw, slot, entries, pstart,
+               pcount):  # pragma: no cover - numba
+    """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
+    ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
+    pixel, each in the order of ``order``; pixel ``loc`` of the tile (tile-major) starts at
+    ``pstart[(tile - tile0) * TILE^2 + loc]`` and holds ``pcount[...]`` entries. Tiles are
+    taken in the order ``torder`` (a permutation of [tile0, tile1))."""
     h = 0.5 * pw
     npix = TILE * TILE
-    base = list_off[tile0 * npix] if write else 0
-    for tile in prange(tile0, tile1):
+    for it in prange(tile1 - tile0):
+        tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
-        pix0 = tile * npix
-        pos = np.zeros(npix, dtype=np.int64)
+        base = slot[tile - tile0]
+        size = slot[tile - tile0 + 1] - base
+        tmp = np.empty(size, dtype=np.int32)
+        tloc = np.empty(size, dtype=np.int16)
+        cnt = np.zeros(npix, dtype=np.int64)
         cam = np.empty((8, 3))
         qv = np.empty((8, 2))
         qr = np.empty(8)
         rv = np.empty((4, 2))
         rr = np.empty(4)
+        m = 0
         for k in range(tile_off[tile], tile_off[tile + 1]):
             t = tile_items[k]
             p = order[t]
@@ -223,10 +236,18 @@ def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, 
                     if not overlaps(qv, qr, n, tri, rv, rr):
                         continue
                     loc = (i - ty * TILE) * TILE + (j - tx * TILE)
-                    if write:
-                        entries[list_off[pix0 + loc] - base + pos[loc]] = p
-                    pos[loc] += 1
-        if not write:
-            for loc in range(npix):
-                counts[pix0 + loc] = pos[loc]
-
+                    tmp[m] = p
+                    tloc[m] = loc
+                    cnt[loc] += 1
+                    m += 1
+        pix0 = (tile - tile0) * npix
+        pos = base
+        for loc in range(npix):
+            pstart[pix0 + loc] = pos
+            pcount[pix0 + loc] = cnt[loc]
+            cnt[loc] = pos
+            pos += pcount[pix0 + loc]
+        for e in range(m):
+            loc = tloc[e]
+            entries[cnt[loc]] = tmp[e]
+            cnt[loc] += 1

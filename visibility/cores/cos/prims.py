@@ -223,6 +223,29 @@ def inside_box(prims: Prims, half: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, parallel=True)
+def _bounds(pts, start, npts, out):  # pragma: no cover - numba
+    for p in prange(start.shape[0]):
+        s = start[p]
+        for k in range(3):
+            lo = np.inf
+            hi = -np.inf
+            for i in range(npts[p]):
+                lo = min(lo, pts[s + i, k])
+                hi = max(hi, pts[s + i, k])
+            out[p, 0, k] = lo
+            out[p, 1, k] = hi
+
+
+def prim_bounds(prims: Prims) -> np.ndarray:
+    """(n, 2, 3) float64 bounding box [min, max] of each primitive, relative to the cell
+    centre, metres."""
+    out = np.empty((len(prims), 2, 3))
+    if len(prims):
+        _bounds(prims.pts, prims.start, prims.npts, out)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def _gaps(pts, start, npts, half, out):  # pragma: no cover - numba
     for p in prange(start.shape[0]):
         s = start[p]
@@ -238,13 +261,25 @@ def _gaps(pts, start, npts, half, out):  # pragma: no cover - numba
         out[p] = d
 
 
-def distance_order(prims: Prims, half: np.ndarray) -> np.ndarray:
-    """(n,) int64 primitive indices sorted by the distance from the cell box to each
-    primitive's bounding box: the approximate front-to-back order of every per-pixel list
-    (Sec. 5: sort once, then fill the lists in that order instead of sorting each list)."""
-    n = len(prims)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    d = np.empty(n)
-    _gaps(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64), d)
-    return np.argsort(d, kind="stable").astype(np.int64)
+def box_gaps(prims: Prims, half: np.ndarray) -> np.ndarray:
+    """(n,) float64 distance (metres) from the cell box (centred, half sizes ``half``) to each
+    primitive's bounding box: no point of the primitive is nearer to the box."""
+    d = np.empty(len(prims))
+    if len(prims):
+        _gaps(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64), d)
+    return np.sqrt(d)
+
+
+def distance_order(prims: Prims, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Primitive indices sorted by the distance from the cell box to each primitive's bounding
+    box: the approximate front-to-back order of every per-pixel list (Sec. 5: sort once, then
+    fill the lists in that order instead of sorting each list).
+
+    Returns
+    -------
+    order : (n,) int64, nondecreasing in ``gap``.
+    gap : (n,) float64 per primitive (``box_gaps``); the resolution's early-z cut relies on
+        every list being nondecreasing in it.
+    """
+    gap = box_gaps(prims, half)
+    return np.argsort(gap, kind="stable").astype(np.int64), gap

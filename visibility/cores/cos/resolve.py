@@ -10,7 +10,9 @@ occluder, a group of triangles fused along shared edges:
   end squares, ``space``) meets K, the silhouette may cross Q under some offset and some
   between-sample direction: not covered, next occluder.
 * Reference point (ln 31-32): with no silhouette near K, K lies wholly inside or wholly outside
-  the occluder under every offset and delta, and one point of K (its centroid) decides. Inside:
+  the occluder under every offset and delta, and one point of K (its centroid) decides: the
+  winding number of the active edges around it, which counts the group's triangles holding it
+  (see below), is at least one. Inside:
   Fig. 8 cases (a) Q inside the occluder and (b) inside it within C_Delta. Outside: cases (e)
   and (f), disjoint (within C_Delta). Cases (c) and (d), the occluder inside Q (within C_Delta),
   put silhouette edges inside K and are caught by the silhouette test. (The paper needs its
@@ -40,6 +42,27 @@ silhouette stays clear of the whole offset region and covers it is flagged *cove
 44-45): later triangles skip straight to the depth test.
 Hulls (moving triangles, spheres) are occludees only; a triangle seen edge-on in the COS (no
 robust area) does not occlude.
+
+Cost (issue 13; dense clutter gives lists of 10^5 entries): nothing per entry scales with the
+number of groups or with a group's triangle count in the common cases.
+
+* Fusion finds the neighbour across an edge in a per-pixel hash of active directed edges;
+  groups merge smaller into larger; each keeps its active edges in a linked list, so the cover
+  test walks the silhouette, not the triangles.
+* Only live groups (not coverall, not merged away) are tried, oldest first.
+* Early z (paper Sec. 5): when a group becomes coverall, every ray of the pixel meets it no
+  deeper than zcut, the deepest vertex of its triangles that can reach the offset region (valid
+  when those lie beyond every camera position). An entry wholly deeper is hidden without a
+  test; and since a point at distance g from the box is at depth >= g / |(s, 1)| on any ray of
+  the pixel, and the lists are sorted by that distance (``prims.distance_order``), the rest of
+  the list is cut once it passes zcut |(s, 1)|.
+* Depth shortcuts: a group that covers K and lies wholly nearer than Q (and beyond the cameras)
+  hides it by the same argument, without the per-triangle plane test. Groups of ``GRID_MIN``
+  triangles or more keep a grid over the offset region (in a frame moving with their own
+  depth) with per-cell depth ranges and member lists: the shortcut then holds per cell around
+  K, and the plane test walks only the members listed there.
+* A primitive found visible at one pixel of a tile is not tested again in that tile's later
+  pixels (still an occluder), as for those known from earlier views.
 """
 
 from __future__ import annotations
@@ -51,34 +74,18 @@ from visibility.cores.cos.lists import TILE, region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
     area2,
-    capsule_hits,
-    in_triangle,
+    capsule_meets,
     load_prim,
+    polygon_axes,
     project,
     region_polygon,
 )
 
 
-@njit(cache=True, nogil=True)
-def _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):  # pragma: no cover
-    """True when no active edge capsule of group g (frame of depth wref) meets polygon K."""
-    r = head[g]
-    while r >= 0:
-        for f in range(3):
-            if oact[r, f]:
-                b = (f + 1) % 3
-                rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
-                if capsule_hits(ov[r, f, 0], ov[r, f, 1], ov[r, b, 0], ov[r, b, 1], rad,
-                                kx, ky, nk):
-                    return False
-        r = nxt[r]
-    return True
-
-
-@njit(cache=True, nogil=True)
-def _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):  # pragma: no cover - numba
-    """Whether group g covers polygon K (frame of depth wref) under every offset in it and
-    every delta."""
+@njit(cache=True, nogil=True, inline="always")
+def _k_box(kx, ky, nk, kb):  # pragma: no cover - numba
+    """K's box and centroid (kb (7,): x0, x1, y0, y1, cx, cy, axes ready); the edge axes
+    (``polygon_axes``) are left for the first silhouette test that needs them."""
     x0 = np.inf
     x1 = -np.inf
     y0 = np.inf
@@ -92,85 +99,356 @@ def _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):  # pragma: no
         y1 = max(y1, ky[i])
         cx += kx[i]
         cy += ky[i]
-    if x0 < gbb[g, 0] or x1 > gbb[g, 1] or y0 < gbb[g, 2] or y1 > gbb[g, 3]:
-        return False
-    if not _clear_of_silhouette(g, head, nxt, ov, ow, oact, wref, h, kx, ky, nk):
-        return False
-    cx /= nk
-    cy /= nk
-    r = head[g]
-    while r >= 0:
-        if in_triangle(cx, cy, ov[r]):
-            return True
-        r = nxt[r]
-    return False
+    kb[0] = x0
+    kb[1] = x1
+    kb[2] = y0
+    kb[3] = y1
+    kb[4] = cx / nk
+    kb[5] = cy / nk
+    kb[6] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, klo,
+            khi):  # pragma: no cover - numba
+    """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
+    every offset in it and every delta: K's box inside the group's, no active edge capsule
+    meeting K, and a winding number of at least one of the active edges (the silhouette)
+    around K's centroid.
+
+    The active edges are walked through the group's edge list (``gehead``, ``anext``: node
+    3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
+    group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
+    in opposite directions, so the active edges' winding number around a point is the number
+    of the group's triangles holding it; a crossing too close to call counts as not covered."""
+    if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
+        return False
+    if kb[6] == 0.0:
+        polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
+        kb[6] = 1.0
+    cx = kb[4]
+    cy = kb[5]
+    wn = 0
+    node = gehead[g]
+    while node >= 0:
+        r = node // 3
+        f = node - 3 * r
+        b = (f + 1) % 3
+        ax = ov[r, f, 0]
+        ay = ov[r, f, 1]
+        bx = ov[r, b, 0]
+        by = ov[r, b, 1]
+        rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
+        if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
+            return False
+        # Winding number (crossings of the ray from the centroid towards +x).
+        up = ay <= cy < by
+        down = by <= cy < ay
+        if up or down:
+            t1 = (bx - ax) * (cy - ay)
+            t2 = (cx - ax) * (by - ay)
+            side = t1 - t2
+            if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
+                return False
+            if up and side > 0.0:
+                wn += 1
+            elif down and side < 0.0:
+                wn -= 1
+        node = anext[node]
+    return wn >= 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
+              nq):  # pragma: no cover - numba
+    """Whether occluder triangle r cannot reach K's box or is in front of all of Q."""
+    grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
+    if (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
+            or obb[r, 2] - grow > ky1):
+        return True
+    if not ouse[r]:
+        return False
+    nx, ny, nz, d, tol = oplane[r, 0], oplane[r, 1], oplane[r, 2], oplane[r, 3], oplane[r, 4]
+    # Behind or on the plane, strictly behind somewhere: the rays that meet Q on T's plane
+    # meet T at the same point, a set of no measure (a shared edge).
+    behind = False
+    for i in range(nq):
+        dist = nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d
+        if dist > tol:
+            return False
+        if dist < -tol:
+            behind = True
+    return behind
+
+
+@njit(cache=True, nogil=True)  # a call: inlined, its copies make the kernel slow to compile
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
               nq):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
-        grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
-        if not (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
-                or obb[r, 2] - grow > ky1):
-            if not ouse[r]:
-                return False
-            nx, ny, nz, d, tol = oplane[r, 0], oplane[r, 1], oplane[r, 2], oplane[r, 3], \
-                oplane[r, 4]
-            # Behind or on the plane, strictly behind somewhere: the rays that meet Q on T's
-            # plane meet T at the same point, a set of no measure (a shared edge).
-            behind = False
-            for i in range(nq):
-                dist = nx * qcam[i, 0] + ny * qcam[i, 1] + nz * qcam[i, 2] - d
-                if dist > tol:
-                    return False
-                if dist < -tol:
-                    behind = True
-            if not behind:
-                return False
+        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq):
+            return False
         r = nxt[r]
     return True
 
 
+#: Depth grid of a large occluder group: GRID x GRID cells over the pixel's offset region,
+#: each with the depth range of the group's triangles that can reach it and a list of them,
+#: in the frame moving with a depth inside the group's range (so a compact group's triangles
+#: barely move and stay in few cells); groups of at least GRID_MIN triangles get one. A
+#: triangle over more than GRID_WIDE cells goes to the grid's list of wide ones instead.
+GRID = 16
+GRID_MIN = 32
+GRID_WIDE = 16
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell(x, lo, inv):  # pragma: no cover - numba
+    """Grid column (or row) of coordinate x: monotone in x, clamped to [0, GRID - 1]."""
+    t = (x - lo) * inv
+    if not t > 0.0:
+        return 0
+    if t >= GRID - 1:
+        return GRID - 1
+    return int(t)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool):  # pragma: no cover - numba
+    """Enter occluder triangle r (its pixel-centre box grown by its largest motion in the
+    frame of depth sfr[slot]) in grid ``slot``: sg[slot, 0 / 1, cell] (depth range), shead
+    [slot, cell] (member list; shead[slot, GRID^2] the wide ones) over the node pool
+    (pool[0]: nodes used, pool[1]: capacity, then (triangle, next) pairs from pool[2])."""
+    grow = max(abs(owr[r, 0] - sfr[slot]), abs(owr[r, 1] - sfr[slot])) * h
+    c0 = _cell(obb[r, 0] - grow, dom[0], dom[4])
+    c1 = _cell(obb[r, 1] + grow, dom[0], dom[4])
+    r0 = _cell(obb[r, 2] - grow, dom[2], dom[5])
+    r1 = _cell(obb[r, 3] + grow, dom[2], dom[5])
+    wide = (r1 - r0 + 1) * (c1 - c0 + 1) > GRID_WIDE
+    for i in range(r0, r1 + 1):
+        for j in range(c0, c1 + 1):
+            c = i * GRID + j
+            sg[slot, 0, c] = min(sg[slot, 0, c], owr[r, 0])
+            sg[slot, 1, c] = max(sg[slot, 1, c], owr[r, 1])
+            if not wide:
+                _push(slot, c, r, shead, pool)
+    if wide:
+        _push(slot, GRID * GRID, r, shead, pool)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(slot, c, r, shead, pool):  # pragma: no cover - numba
+    """Prepend triangle r to list c of grid ``slot``; a full pool marks the grid's lists
+    incomplete (shead[slot, GRID^2 + 1] = 1)."""
+    k = pool[0]
+    if k >= pool[1]:
+        shead[slot, GRID * GRID + 1] = 1
+        return
+    pool[0] = k + 1
+    pool[2 + 2 * k] = r
+    pool[3 + 2 * k] = shead[slot, c]
+    shead[slot, c] = k
+
+
 @njit(cache=True, nogil=True)
-def _merge(g1, g2, grp, head, tail, nxt, gbb, gcov, alive):  # pragma: no cover - numba
+def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool,
+                frame):  # pragma: no cover - numba
+    """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
+    sg[slot, 0, :] = np.inf
+    sg[slot, 1, :] = -np.inf
+    shead[slot, :] = -1
+    shead[slot, GRID * GRID + 1] = 0
+    sfr[slot] = frame
+    r = head[g]
+    while r >= 0:
+        _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool)
+        r = nxt[r]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, dom,
+           wcam, tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
+    """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
+
+    Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
+    box, grown by its motion in the grid's frame f, meets K's box grown by |wref - f| h (the
+    frame change; the triangle's growth in Q's frame is at most its growth in f plus that):
+    at a depth no larger than that triangle's deepest vertex and, when the triangle lies
+    beyond every camera position, on the ray itself. So g hides Q when all its triangles that
+    can meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on
+    its depth grid's cells over K. Failing both, the per-triangle plane test
+    (``_front_of``) on the triangles listed in those cells, or on all of g's."""
+    if gwhi[g] + tol < wq and gwlo[g] >= wcam + tol:
+        return True
+    slot = gslot[g]
+    if slot < 0:
+        return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
+                         kb[3], qcam, nq)
+    grow = abs(wref - sfr[slot]) * h
+    c0 = _cell(kb[0] - grow, dom[0], dom[4])
+    c1 = _cell(kb[1] + grow, dom[0], dom[4])
+    r0 = _cell(kb[2] - grow, dom[2], dom[5])
+    r1 = _cell(kb[3] + grow, dom[2], dom[5])
+    zlo = np.inf
+    zhi = -np.inf
+    for i in range(r0, r1 + 1):
+        for j in range(c0, c1 + 1):
+            zlo = min(zlo, sg[slot, 0, i * GRID + j])
+            zhi = max(zhi, sg[slot, 1, i * GRID + j])
+    if zhi + tol < wq and zlo >= wcam + tol:
+        return True
+    if shead[slot, GRID * GRID + 1] != 0:
+        return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
+                         kb[3], qcam, nq)
+    for c in range(GRID * GRID + 1):
+        if c == GRID * GRID:
+            k = shead[slot, c]
+        else:
+            i = c // GRID
+            j = c - i * GRID
+            if i < r0 or i > r1 or j < c0 or j > c1:
+                continue
+            k = shead[slot, c]
+        while k >= 0:
+            if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
+                             kb[2], kb[3], qcam, nq):
+                return False
+            k = pool[3 + 2 * k]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _cover_depth(g, head, nxt, obb, owr, wcam, tol, h, kx, ky, nk, wref):  # pragma: no cover
+    """Depth (camera w) by which every ray of the pixel meets coverall group g, or inf.
+
+    g covers the grown offset region (polygon K, frame of depth wref) for every delta: every
+    ray of the pixel, extended back to w = 0, meets one of g's triangles whose grown bounding
+    box meets K's, at a depth no larger than that triangle's deepest vertex. When all those
+    triangles lie at w >= wcam (the deepest camera position), the meeting point is on the ray
+    itself, in front of its camera position: the largest such deepest vertex bounds it."""
+    kx0 = np.inf
+    kx1 = -np.inf
+    ky0 = np.inf
+    ky1 = -np.inf
+    for i in range(nk):
+        kx0 = min(kx0, kx[i])
+        kx1 = max(kx1, kx[i])
+        ky0 = min(ky0, ky[i])
+        ky1 = max(ky1, ky[i])
+    z = -np.inf
+    r = head[g]
+    while r >= 0:
+        grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
+        if not (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
+                or obb[r, 2] - grow > ky1):
+            if not owr[r, 0] >= wcam + tol:
+                return np.inf
+            z = max(z, owr[r, 1])
+        r = nxt[r]
+    return z if z > -np.inf else np.inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_slot(hk0, hk1, mask, va, vb):  # pragma: no cover - numba
+    """Slot of directed edge (va, vb) in the open-addressing table (hk0, hk1) of ``mask + 1``
+    slots: the slot holding it, or the empty one (hk0 == -1) where it would go."""
+    x = va * 0x9E3779B1 + vb * 0x85EBCA77  # may wrap for huge ids: only spreads the bits
+    x ^= x >> 17
+    k = x & mask
+    while hk0[k] >= 0 and (hk0[k] != va or hk1[k] != vb):
+        k = (k + 1) & mask
+    return k
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _list_drop(g, pos, lst, n):  # pragma: no cover - numba
+    """Remove group g from the unordered list lst[:n] (pos[g] its index, -1 when absent);
+    returns the new length."""
+    k = pos[g]
+    if k < 0:
+        return n
+    last = lst[n - 1]
+    lst[k] = last
+    pos[last] = k
+    pos[g] = -1
+    return n - 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_unlink(node, g, gehead, getail, anext, aprev):  # pragma: no cover - numba
+    """Take active edge ``node`` out of group g's edge list."""
+    a = aprev[node]
+    b = anext[node]
+    if a >= 0:
+        anext[a] = b
+    else:
+        gehead[g] = b
+    if b >= 0:
+        aprev[b] = a
+    else:
+        getail[g] = a
+
+
+@njit(cache=True, nogil=True)
+def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, gehead, getail,
+           anext, aprev):  # pragma: no cover - numba
+    """Merge groups g1 and g2 (the smaller into the larger); returns the survivor."""
     if g1 == g2:
         return g1
+    if gsize[g1] < gsize[g2]:
+        g1, g2 = g2, g1
     r = head[g2]
     while r >= 0:
         grp[r] = g1
         r = nxt[r]
     nxt[tail[g1]] = head[g2]
     tail[g1] = tail[g2]
+    gsize[g1] += gsize[g2]
+    if gehead[g2] >= 0:
+        if gehead[g1] < 0:
+            gehead[g1] = gehead[g2]
+        else:
+            anext[getail[g1]] = gehead[g2]
+            aprev[gehead[g2]] = getail[g1]
+        getail[g1] = getail[g2]
     gbb[g1, 0] = min(gbb[g1, 0], gbb[g2, 0])
     gbb[g1, 1] = max(gbb[g1, 1], gbb[g2, 1])
     gbb[g1, 2] = min(gbb[g1, 2], gbb[g2, 2])
     gbb[g1, 3] = max(gbb[g1, 3], gbb[g2, 3])
+    gwlo[g1] = min(gwlo[g1], gwlo[g2])
+    gwhi[g1] = max(gwhi[g1], gwhi[g2])
     gcov[g1] = gcov[g1] or gcov[g2]
     alive[g2] = False
     return g1
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, tiles_x, nx,
-                  ny, x_lo, y_lo, pw, origin, perm, sign, corners, plane_tol, known, vis,
-                  counters):  # pragma: no cover - numba
+def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, tile0, tile1,
+                  torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
+                  plane_tol, known, vis, counters):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
-    p found visible. ``entries`` holds the lists of those tiles from ``list_off[tile0 * TILE^2]``
-    on; ``known[p]`` marks primitives already known visible (tested no more, still occluders).
-    ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles)."""
+    p found visible. ``entries`` holds the lists of those tiles (``lists.fill_lists``: pixel
+    ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
+    long), each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
+    bounding box, metres), taken in the order ``torder`` (a permutation of [tile0, tile1) that
+    balances the threads' shares); ``known[p]`` marks primitives already known visible
+    (tested no more, still occluders), as are those found visible at an earlier pixel of the
+    same tile.
+    ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
+    entries cut by the early-z depth)."""
     h = 0.5 * pw
     npix = TILE * TILE
-    base = list_off[tile0 * npix]
-    for tile in prange(tile0, tile1):
+    # Largest camera depth of the view's camera rectangle (0 for a front frustum).
+    wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
+    for it in prange(tile1 - tile0):
+        tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
-        pix0 = tile * npix
+        pix0 = (tile - tile0) * npix
         lmax = 0
         for loc in range(npix):
-            lmax = max(lmax, list_off[pix0 + loc + 1] - list_off[pix0 + loc])
+            lmax = max(lmax, pcount[pix0 + loc])
         if lmax == 0:
             continue
         cam = np.empty((8, 3))
@@ -184,6 +462,19 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
         ty_ = np.empty(MAX_POLY)
         rx = np.empty(MAX_POLY)
         ry = np.empty(MAX_POLY)
+        # Geometry of Q's region K and of the whole offset region (``_k_box``).
+        kb = np.empty(7)
+        knx = np.empty(MAX_POLY)
+        kny = np.empty(MAX_POLY)
+        klo = np.empty(MAX_POLY)
+        khi = np.empty(MAX_POLY)
+        rb = np.empty(7)
+        rnx = np.empty(MAX_POLY)
+        rny = np.empty(MAX_POLY)
+        rlo = np.empty(MAX_POLY)
+        rhi = np.empty(MAX_POLY)
+        # Occluder triangles q: COS corners (counter-clockwise), depths, welded ids, active
+        # edges, plane, COS box.
         ov = np.empty((lmax, 3, 2))
         ow = np.empty((lmax, 3))
         owr = np.empty((lmax, 2))
@@ -192,84 +483,183 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
         oplane = np.empty((lmax, 5))
         ouse = np.empty(lmax, dtype=np.bool_)
         obb = np.empty((lmax, 4))
+        # Groups (id = their first triangle): members (head, tail, nxt, grp), size, COS box,
+        # depth range, coverall flag, active edges (gehead, getail, anext, aprev over nodes
+        # 3 q + e), the live list (groups not coverall, oldest first; dead entries have
+        # lpos -1 until the list is compacted) and the unordered list of coverall groups.
         grp = np.empty(lmax, dtype=np.int64)
         nxt = np.empty(lmax, dtype=np.int64)
         head = np.empty(lmax, dtype=np.int64)
         tail = np.empty(lmax, dtype=np.int64)
+        gsize = np.empty(lmax, dtype=np.int64)
         gbb = np.empty((lmax, 4))
+        gwlo = np.empty(lmax)
+        gwhi = np.empty(lmax)
         gcov = np.empty(lmax, dtype=np.bool_)
         alive = np.empty(lmax, dtype=np.bool_)
-        cov = np.empty(lmax, dtype=np.int64)
+        gehead = np.empty(lmax, dtype=np.int64)
+        getail = np.empty(lmax, dtype=np.int64)
+        anext = np.empty(3 * lmax, dtype=np.int64)
+        aprev = np.empty(3 * lmax, dtype=np.int64)
+        live = np.empty(lmax, dtype=np.int64)
+        lpos = np.empty(lmax, dtype=np.int64)
+        covl = np.empty(lmax, dtype=np.int64)
+        cpos = np.empty(lmax, dtype=np.int64)
+        # Depth grids of the groups of GRID_MIN triangles or more (slots of sg, shead in the
+        # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
+        # y; nodes of the member lists in pool), free slots in fslot.
+        nslot = lmax // GRID_MIN + 2
+        gslot = np.empty(lmax, dtype=np.int64)
+        sg = np.empty((nslot, 2, GRID * GRID))
+        shead = np.empty((nslot, GRID * GRID + 2), dtype=np.int64)
+        pool = np.empty(2 + 2 * 8 * lmax, dtype=np.int64)
+        pool[1] = 8 * lmax
+        fslot = np.empty(nslot, dtype=np.int64)
+        sfr = np.empty(nslot)
+        dom = np.empty(6)
+        # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
+        # it (hfirst), chained in insertion order through enext; at most a half full.
+        hcap = 8
+        while hcap < 6 * lmax:
+            hcap *= 2
+        hk0 = np.empty(hcap, dtype=np.int64)
+        hk1 = np.empty(hcap, dtype=np.int64)
+        hfirst = np.empty(hcap, dtype=np.int64)
+        hlast = np.empty(hcap, dtype=np.int64)
+        enext = np.empty(3 * lmax, dtype=np.int64)
+        # Primitives found visible at an earlier pixel of this tile (a bit each): tested no
+        # more, like ``known`` (the pixels of a tile run in order, so this stays
+        # deterministic).
+        tseen = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
         tested = 0
         hidden = 0
         occl = 0
+        cut = 0
         for loc in range(npix):
             i = ty * TILE + loc // TILE
             j = tx * TILE + loc % TILE
             if i >= ny or j >= nx:
                 continue
-            a = list_off[pix0 + loc] - base
-            b = list_off[pix0 + loc + 1] - base
+            a = pstart[pix0 + loc]
+            b = a + pcount[pix0 + loc]
             if a == b:
                 continue
             sx = x_lo + (j + 0.5) * pw
             sy = y_lo + (i + 0.5) * pw
+            # Longest ray per unit of depth over the pixel's directions: a point at distance g
+            # from the box (so from every camera position, which lies on the box) is at depth
+            # at least g / lray on any ray of this pixel.
+            lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
+            hs = 8
+            while hs < 6 * (b - a):
+                hs *= 2
+            hmask = hs - 1
+            hk0[:hs] = -1
             n_polys = 0
+            n_live = 0
+            n_dead = 0
+            last_g = -1
             n_cov = 0
+            n_slot = 0
+            n_free = 0
+            pool[0] = 0
+            # The depth grids' domain: the offset region's frame-0 box (what lies outside
+            # falls in the border cells).
+            region_at(corners, sx, sy, h, 0.0, rv, rr)
+            dom[0] = np.inf
+            dom[1] = -np.inf
+            dom[2] = np.inf
+            dom[3] = -np.inf
+            for c in range(4):
+                dom[0] = min(dom[0], rv[c, 0] - rr[c])
+                dom[1] = max(dom[1], rv[c, 0] + rr[c])
+                dom[2] = min(dom[2], rv[c, 1] - rr[c])
+                dom[3] = max(dom[3], rv[c, 1] + rr[c])
+            dom[4] = GRID / (dom[1] - dom[0]) if dom[1] > dom[0] else 0.0
+            dom[5] = GRID / (dom[3] - dom[2]) if dom[3] > dom[2] else 0.0
+            # Early z: every ray of the pixel (any camera position, any direction in it) meets
+            # a coverall occluder at depth <= zcut, before anything wholly deeper.
+            zcut = np.inf
             for k in range(a, b):
                 p = entries[k]
+                if gap[p] > zcut * lray + plane_tol:
+                    # The lists are sorted by gap: this entry and all later ones lie beyond
+                    # zcut on every ray of the pixel.
+                    cut += b - k
+                    break
                 n = npts[p]
                 tri = kind[p] == 0
                 load_prim(pts, start[p], n, origin, perm, sign, cam)
+                wmin = cam[0, 2]
+                wref = cam[0, 2]
+                for c in range(1, n):
+                    wmin = min(wmin, cam[c, 2])
+                    wref += cam[c, 2]
+                if wmin > zcut + plane_tol:
+                    cut += 1
+                    continue
                 # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
                 # by its depth difference to Q (the relative motion that matters).
-                wref = 0.0
-                for c in range(n):
-                    wref += cam[c, 2]
                 wref /= n
                 project(cam, n, sx, sy, h, wref, qv, qr)
-                if known[p] == 0:
+                if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
                     region_at(corners, sx, sy, h, wref, rv, rr)
                     nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
                     if nk > 0:
                         tested += 1
-                        kx0 = np.inf
-                        kx1 = -np.inf
-                        ky0 = np.inf
-                        ky1 = -np.inf
-                        for e in range(nk):
-                            kx0 = min(kx0, kx[e])
-                            kx1 = max(kx1, kx[e])
-                            ky0 = min(ky0, ky[e])
-                            ky1 = max(ky1, ky[e])
+                        _k_box(kx, ky, nk, kb)
                         occluded = False
+                        if 2 * n_dead > n_live:
+                            # Compact the live list (oldest groups first, as they came).
+                            m = 0
+                            for c in range(n_live):
+                                g = live[c]
+                                if lpos[g] >= 0:
+                                    live[m] = g
+                                    lpos[g] = m
+                                    m += 1
+                            n_live = m
+                            n_dead = 0
                         # Coverall occluders first (the paper's early discard): they need
-                        # only the depth test.
-                        for c in range(n_cov):
-                            g = cov[c]
-                            if alive[g] and _in_front(g, head, nxt, obb, owr, ouse, oplane, wref,
-                                                      h, kx0, kx1, ky0, ky1, cam, n):
+                        # only the depth test. Then the live groups, which must cover K: the
+                        # one that hid the last entry first (neighbours in the list are often
+                        # hidden by the same surface), then the rest. (One loop, so the
+                        # inlined tests are compiled once.)
+                        by_cov = False
+                        for c in range(n_cov + 1 + n_live):
+                            if c < n_cov:
+                                g = covl[c]
+                            else:
+                                if c == n_cov:
+                                    g = last_g
+                                    if g < 0 or lpos[g] < 0:
+                                        continue
+                                else:
+                                    g = live[c - n_cov - 1]
+                                    if lpos[g] != c - n_cov - 1 or g == last_g:
+                                        continue
+                                if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk,
+                                               kb, knx, kny, klo, khi):
+                                    continue
+                            if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
+                                      sg, sfr, shead, pool, dom, wcam, plane_tol, wref, h, kb,
+                                      cam, n, wmin):
                                 occluded = True
+                                by_cov = c < n_cov
+                                if not by_cov:
+                                    last_g = g
                                 break
-                        if occluded:
+                        if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
                             # nothing as an occluder, and keeping it would make long lists
                             # quadratic.
                             hidden += 1
                             continue
-                        for g in range(n_polys):
-                            if not alive[g] or gcov[g]:
-                                continue
-                            if not _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, kx, ky, nk):
-                                continue
-                            if _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1,
-                                         ky0, ky1, cam, n):
-                                occluded = True
-                                break
                         if occluded:
                             hidden += 1
                         else:
                             vis[p] = 1
+                            tseen[p >> 3] |= np.uint8(1 << (p & 7))
                 if not tri:
                     continue
                 # Become an occluder: counter-clockwise in the COS, robust area only.
@@ -317,38 +707,111 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                 obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
                 owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
                 owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
-                gbb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                gbb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                gbb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                gbb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                gbb[q, 0] = obb[q, 0]
+                gbb[q, 1] = obb[q, 1]
+                gbb[q, 2] = obb[q, 2]
+                gbb[q, 3] = obb[q, 3]
+                gwlo[q] = owr[q, 0]
+                gwhi[q] = owr[q, 1]
                 grp[q] = q
                 head[q] = q
                 tail[q] = q
                 nxt[q] = -1
+                gsize[q] = 1
                 gcov[q] = False
                 alive[q] = True
-                # Fuse along shared edges: the neighbour holds the edge reversed.
+                gehead[q] = 3 * q
+                getail[q] = 3 * q + 2
+                for e in range(3):
+                    anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
+                    aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
+                live[n_live] = q
+                lpos[q] = n_live
+                n_live += 1
+                cpos[q] = -1
+                gslot[q] = -1
+                # Fuse along shared edges: the neighbour holds the edge reversed. The first
+                # active occluder edge (in the order they were added) that does is taken.
                 for e in range(3):
                     va = oid[q, e]
                     vb = oid[q, (e + 1) % 3]
                     if va < 0 or vb < 0:
                         continue
-                    done = False
-                    for r in range(q):
-                        for f in range(3):
-                            if oact[r, f] and oid[r, f] == vb and oid[r, (f + 1) % 3] == va:
-                                oact[r, f] = False
-                                oact[q, e] = False
-                                was = gcov[grp[r]]
-                                g1 = _merge(grp[r], grp[q], grp, head, tail, nxt, gbb, gcov,
-                                            alive)
-                                if gcov[g1] and not was:
-                                    cov[n_cov] = g1
+                    slot = _edge_slot(hk0, hk1, hmask, vb, va)
+                    if hk0[slot] < 0:
+                        continue
+                    node = hfirst[slot]
+                    while node >= 0:
+                        r = node // 3
+                        f = node - 3 * r
+                        if oact[r, f]:
+                            oact[r, f] = False
+                            oact[q, e] = False
+                            _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
+                            _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
+                            g1 = grp[r]
+                            g2 = grp[q]
+                            if g1 != g2:
+                                c1 = gcov[g1]
+                                c2 = gcov[g2]
+                                gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
+                                            gwhi, gcov, alive, gehead, getail, anext, aprev)
+                                gd = g2 if gs == g1 else g1
+                                if lpos[gd] >= 0:
+                                    lpos[gd] = -1
+                                    n_dead += 1
+                                n_cov = _list_drop(gd, cpos, covl, n_cov)
+                                if gcov[gs] and not (c1 if gs == g1 else c2):
+                                    # The survivor takes the coverall flag of the other.
+                                    if lpos[gs] >= 0:
+                                        lpos[gs] = -1
+                                        n_dead += 1
+                                    covl[n_cov] = gs
+                                    cpos[gs] = n_cov
                                     n_cov += 1
-                                done = True
-                                break
-                        if done:
+                                # Depth grids: every group of GRID_MIN or more has one.
+                                sd = gslot[gd]
+                                ss = gslot[gs]
+                                if sd >= 0:
+                                    gslot[gd] = -1
+                                    fslot[n_free] = sd
+                                    n_free += 1
+                                if ss >= 0:
+                                    # The other's triangles join the survivor's grid (the
+                                    # smaller group: O(n log n) in all).
+                                    r2 = head[gd]
+                                    while r2 >= 0:
+                                        _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
+                                                  pool)
+                                        r2 = nxt[r2]
+                                elif gsize[gs] >= GRID_MIN:
+                                    if n_free > 0:
+                                        n_free -= 1
+                                        ss = fslot[n_free]
+                                    else:
+                                        ss = n_slot
+                                        n_slot += 1
+                                    gslot[gs] = ss
+                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
+                                                shead, pool, 0.5 * (gwlo[gs] + gwhi[gs]))
                             break
+                        node = enext[node]
+                # Register q's edges still active (an inactive edge never fuses again).
+                for e in range(3):
+                    va = oid[q, e]
+                    vb = oid[q, (e + 1) % 3]
+                    if va < 0 or vb < 0 or not oact[q, e]:
+                        continue
+                    slot = _edge_slot(hk0, hk1, hmask, va, vb)
+                    node = 3 * q + e
+                    enext[node] = -1
+                    if hk0[slot] < 0:
+                        hk0[slot] = va
+                        hk1[slot] = vb
+                        hfirst[slot] = node
+                    else:
+                        enext[hlast[slot]] = node
+                    hlast[slot] = node
                 g = grp[q]
                 if not gcov[g]:
                     # Coverall holds for every delta whatever frame proves it; the new
@@ -356,11 +819,19 @@ def resolve_tiles(pts, start, npts, kind, vid, entries, list_off, tile0, tile1, 
                     region_at(corners, sx, sy, h, wref, rv, rr)
                     n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
                     if n_r > 0:
-                        gcov[g] = _covers(g, head, nxt, ov, ow, oact, gbb, wref, h, rx, ry,
-                                          n_r)
-                        if gcov[g]:
-                            cov[n_cov] = g
-                            n_cov += 1
+                        _k_box(rx, ry, n_r, rb)
+                    if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry,
+                                           n_r, rb, rnx, rny, rlo, rhi):
+                        gcov[g] = True
+                        if lpos[g] >= 0:
+                            lpos[g] = -1
+                            n_dead += 1
+                        covl[n_cov] = g
+                        cpos[g] = n_cov
+                        n_cov += 1
+                        zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
+                                                      h, rx, ry, n_r, wref))
         counters[tile, 0] = tested
         counters[tile, 1] = hidden
         counters[tile, 2] = occl
+        counters[tile, 3] = cut

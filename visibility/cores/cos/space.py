@@ -43,7 +43,7 @@ def cam_point(pts, i, origin, perm, sign):  # pragma: no cover - numba
             sign[2] * (pts[i, perm[2]] - origin[perm[2]]))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def load_prim(pts, start, n, origin, perm, sign, cam):  # pragma: no cover - numba
     """Fill ``cam`` (>= n, 3) with the camera coordinates of a primitive's n points."""
     for i in range(n):
@@ -53,7 +53,7 @@ def load_prim(pts, start, n, origin, perm, sign, cam):  # pragma: no cover - num
         cam[i, 2] = w
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def project(cam, n, sx, sy, h, wref, v, r):  # pragma: no cover - numba
     """COS images ``v`` (n, 2) and motion radii ``r`` (n,) of n camera-space points at the pixel
     centre (sx, sy) with half-pixel h, in the frame that moves with depth ``wref``."""
@@ -115,7 +115,7 @@ def edges_separate(pv, m, qv, qr, nq, rv, rr):  # pragma: no cover - numba
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     """Whether the grown occludee (hull of squares (qv, qr), n = nq) may meet the grown offset
     region (hull of the 4 squares (rv, rr)): separating-axis test on the axes x, y, the
@@ -206,49 +206,83 @@ def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def capsule_hits(ax, ay, bx, by, r, kx, ky, nk):  # pragma: no cover - numba
-    """Whether the hull of the squares of radius r around a and b meets polygon K (nk >= 1).
-
-    Separating axes of the two convex sets: x, y, the segment's normal and K's edge normals.
-    Touching counts as meeting."""
-    kx0 = np.inf
-    kx1 = -np.inf
-    ky0 = np.inf
-    ky1 = -np.inf
+def polygon_axes(kx, ky, nk, kbox, knx, kny, klo, khi):  # pragma: no cover - numba
+    """Precompute polygon K's box (kbox (4,): x0, x1, y0, y1) and, per edge e, its normal
+    (knx, kny) and K's extent (klo, khi) along it, for ``capsule_meets``."""
+    kbox[0] = np.inf
+    kbox[1] = -np.inf
+    kbox[2] = np.inf
+    kbox[3] = -np.inf
     for i in range(nk):
-        kx0 = min(kx0, kx[i])
-        kx1 = max(kx1, kx[i])
-        ky0 = min(ky0, ky[i])
-        ky1 = max(ky1, ky[i])
-    if max(ax, bx) + r < kx0 or min(ax, bx) - r > kx1:
+        kbox[0] = min(kbox[0], kx[i])
+        kbox[1] = max(kbox[1], kx[i])
+        kbox[2] = min(kbox[2], ky[i])
+        kbox[3] = max(kbox[3], ky[i])
+    for e in range(nk):
+        j = (e + 1) % nk
+        nx = ky[j] - ky[e]
+        ny = kx[e] - kx[j]
+        knx[e] = nx
+        kny[e] = ny
+        lo = np.inf
+        hi = -np.inf
+        for i in range(nk):
+            d = nx * kx[i] + ny * ky[i]
+            lo = min(lo, d)
+            hi = max(hi, d)
+        klo[e] = lo
+        khi[e] = hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def capsule_meets(ax, ay, bx, by, r, kx, ky, nk, kbox, knx, kny, klo, khi):  # pragma: no cover
+    """``capsule_hits`` with K's box and edge axes precomputed (``polygon_axes``)."""
+    if max(ax, bx) + r < kbox[0] or min(ax, bx) - r > kbox[1]:
         return False
-    if max(ay, by) + r < ky0 or min(ay, by) - r > ky1:
+    if max(ay, by) + r < kbox[2] or min(ay, by) - r > kbox[3]:
         return False
-    axes = nk + 1
-    for e in range(axes):
-        if e == nk:
-            nx = by - ay
-            ny = ax - bx
-        else:
-            j = (e + 1) % nk
-            nx = ky[j] - ky[e]
-            ny = kx[e] - kx[j]
+    for e in range(nk):
+        nx = knx[e]
+        ny = kny[e]
         if nx == 0.0 and ny == 0.0:
             continue
         l1 = r * (abs(nx) + abs(ny))
         da = nx * ax + ny * ay
         db = nx * bx + ny * by
-        clo = min(da, db) - l1
-        chi = max(da, db) + l1
-        klo = np.inf
-        khi = -np.inf
-        for i in range(nk):
-            d = nx * kx[i] + ny * ky[i]
-            klo = min(klo, d)
-            khi = max(khi, d)
-        if chi < klo or khi < clo:
+        if max(da, db) + l1 < klo[e] or khi[e] < min(da, db) - l1:
             return False
-    return True
+    # The segment's own normal.
+    nx = by - ay
+    ny = ax - bx
+    if nx == 0.0 and ny == 0.0:
+        return True
+    l1 = r * (abs(nx) + abs(ny))
+    da = nx * ax + ny * ay
+    db = nx * bx + ny * by
+    clo = min(da, db) - l1
+    chi = max(da, db) + l1
+    lo = np.inf
+    hi = -np.inf
+    for i in range(nk):
+        d = nx * kx[i] + ny * ky[i]
+        lo = min(lo, d)
+        hi = max(hi, d)
+    return not (chi < lo or hi < clo)
+
+
+@njit(cache=True, nogil=True)
+def capsule_hits(ax, ay, bx, by, r, kx, ky, nk):  # pragma: no cover - numba
+    """Whether the hull of the squares of radius r around a and b meets polygon K (nk >= 1).
+
+    Separating axes of the two convex sets: x, y, K's edge normals and the segment's normal.
+    Touching counts as meeting."""
+    kbox = np.empty(4)
+    knx = np.empty(nk)
+    kny = np.empty(nk)
+    klo = np.empty(nk)
+    khi = np.empty(nk)
+    polygon_axes(kx, ky, nk, kbox, knx, kny, klo, khi)
+    return capsule_meets(ax, ay, bx, by, r, kx, ky, nk, kbox, knx, kny, klo, khi)
 
 
 @njit(cache=True, nogil=True, inline="always")

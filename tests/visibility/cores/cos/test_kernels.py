@@ -8,7 +8,7 @@ import pytest
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.fusion import weld_vertices
 from visibility.cores.cos.planes import side_plane_views
-from visibility.cores.cos.resolve import _in_front
+from visibility.cores.cos.resolve import GRID, _hides, _in_front
 from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
 from visibility.scene import Scene
 
@@ -171,3 +171,99 @@ def test_six_side_planes_cover_every_direction_from_every_face():
                 if -1 <= x <= 1 and v.y_lo <= y <= y_hi:
                     hit = True
             assert hit, (face, d)
+
+
+# ------------------------------------------------------------------------------ accelerations
+def test_early_z_cut_keeps_what_lies_in_front_of_the_coverall_depth():
+    # A 100 m wall 5 m beyond the cell's -z face covers every pixel looking that way (coverall,
+    # early z at its depth, 5 m). A small triangle 4.9 m out but 3 m off the axis is farther
+    # from the box (6.3 m) than the wall's depth, yet in front of the wall: the lists are sorted
+    # by distance to the box, so the cut must allow for the ray's slant (a point at distance g
+    # is only at depth >= g / |(s, 1)|); cutting at distance > 5 m would drop it. Its twin
+    # behind the wall is hidden.
+    wall = _quad(-50, 50, -50, 50, -5.1)
+    front = [[(2.9, 4.6, -5.0), (3.1, 4.6, -5.0), (3.0, 4.8, -5.0)]]
+    behind = [[(2.9, 4.6, -6.0), (3.1, 4.6, -6.0), (3.0, 4.8, -6.0)]]
+    ids, stats = cos_pvs(_scene(wall + front + behind), CELL, 64)
+    assert set(ids.tolist()) == {0, 1, 2}
+    assert stats["early_z_cut"] > 0
+
+
+def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
+    # _hides: a group covering K hides Q when all its triangles near K are nearer than Q, but
+    # only when they lie beyond the deepest camera position (w = 0.6 here, a side frustum):
+    # nearer than that, the extended ray meets them behind its camera. ouse False makes the
+    # per-triangle fallback refuse, so the shortcut alone decides.
+    head = np.array([0])
+    nxt = np.array([-1])
+    obb = np.array([[-1.0, 1.0, -1.0, 1.0]])
+    owr = np.array([[0.5, 1.0]])
+    ouse = np.array([False])
+    oplane = np.zeros((1, 5))
+    gwlo = np.array([0.5])
+    gwhi = np.array([1.0])
+    kb = np.array([-0.1, 0.1, -0.1, 0.1, 0.0, 0.0, 0.0])
+    qcam = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]])
+    dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
+    pool = np.zeros(2, dtype=np.int64)
+    no_grid = (np.array([-1]), np.zeros((1, 2, GRID * GRID)), np.zeros(1),
+               np.full((1, GRID * GRID + 2), -1), pool)
+
+    def hides(wcam, wq, grid=no_grid):
+        return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
+                      2.0, 0.01, kb, qcam, 3, wq)
+
+    assert hides(0.0, 2.0)
+    assert not hides(0.6, 2.0)  # part of the group lies before the camera positions
+    assert not hides(0.0, 0.9)  # Q reaches nearer than the group's deepest point
+    # The group's depth grid: the cells around K hold only near triangles (the group reaches
+    # 3 m deep elsewhere), so it hides Q at 2 m; unless those cells start before the cameras.
+    # (Its member lists are empty but marked incomplete: the fallback walks all of g.)
+    gwhi[0] = 3.0
+    sg = np.empty((1, 2, GRID * GRID))
+    sg[0, 0] = 0.5
+    sg[0, 1] = 3.0
+    mid = [(GRID // 2 - 1) * GRID + GRID // 2 - 1, (GRID // 2 - 1) * GRID + GRID // 2,
+           (GRID // 2) * GRID + GRID // 2 - 1, (GRID // 2) * GRID + GRID // 2]
+    sg[0, 1, mid] = 1.0
+    shead = np.full((1, GRID * GRID + 2), -1)
+    shead[0, -1] = 1
+    assert not hides(0.0, 2.0)
+    grid = (np.array([0]), sg, np.array([2.0]), shead, pool)  # frame at Q's reference depth
+    assert hides(0.0, 2.0, grid)
+    assert not hides(0.6, 2.0, grid)
+
+
+def test_face_subsets_drop_only_empty_footprints():
+    # Each side plane's views look only at what its subset holds: on a city cell (the cell
+    # between buildings and ground) and a box cell of random triangles around and inside
+    # it, every footprint outside the subset is empty.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.core import _face_subsets
+    from visibility.cores.cos.fusion import weld_vertices
+    from visibility.cores.cos.lists import footprints
+    from visibility.cores.cos.prims import build_prims, distance_order
+    from visibility.generators import make_scene
+
+    city = make_scene("city", triangles=3000)
+    rng_ = np.random.default_rng(5)
+    soup = rng_.uniform(-1.0, 1.0, (400, 3, 3)) * [[[1.0, 1.0, 1.0]]] + rng_.uniform(
+        -0.3, 0.3, (400, 1, 3))
+    cases = [(city, cell_around(city, 1.0, 0)), (_scene(soup), np.array([[-0.2] * 3, [0.2] * 3]))]
+    for scene, box in cases:
+        centre = box.mean(axis=0)
+        half = 0.5 * (box[1] - box[0])
+        prims = build_prims(scene, centre, weld_vertices(scene.vertices))
+        order, _ = distance_order(prims, half)
+        views = side_plane_views(box, 32)
+        tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+        subsets = _face_subsets(prims, order, half, views, tol)
+        every = np.arange(len(order), dtype=np.int64)
+        for v in views:
+            full = np.empty((len(order), 4), dtype=np.int32)
+            footprints(prims.pts, prims.start, prims.npts, prims.kind, order, every, v.origin,
+                       v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
+                       v.y_lo, v.pw, tol, full)
+            listed = np.flatnonzero(full[:, 0] <= full[:, 1])
+            assert np.isin(listed, subsets[v.face]).all(), (v.face, v.kind)
+            assert len(subsets[v.face]) < len(order)
