@@ -164,9 +164,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     welded, weld_s = scene_welded_ids(scene)
     t1 = time.perf_counter()
     prims = build_prims(scene, centre, welded)
-    order, gap = distance_order(prims, half)
+    bounds = prim_bounds(prims)
+    order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
-    inbox = inside_box(prims, half)
+    inbox = inside_box(prims, half, bounds)
     vis = inbox.astype(np.uint8)
     views = side_plane_views(box, resolution)
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
@@ -179,7 +180,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
-        sel = _face_subsets(prims, order, half, views, plane_tol)
+        sel = _face_subsets(bounds, order, half, views, plane_tol)
         for view in views:
             _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis, budget, stats)
     m = scene.n_triangles
@@ -190,13 +191,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     return ids[ids < m], stats
 
 
-def _face_subsets(prims: Prims, order: np.ndarray, half: np.ndarray, views: list[View],
+def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views: list[View],
                   plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
     """Per side plane F, the positions t (into ``order``) of the primitives its views can
     list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
     it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
     the plane (what stays further behind projects to rows below the view)."""
-    bo = prim_bounds(prims)[order]
+    bo = bounds[order]
     out: dict[tuple[int, int], np.ndarray] = {}
     for face in {v.face for v in views}:
         axis, sgn = face

@@ -166,7 +166,7 @@ def _tri_box_overlap(a, b, c, half, tol):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _inside_box(pts, start, npts, half, tol, plane_tol, out):  # pragma: no cover - numba
+def _inside_box(pts, start, npts, bounds, half, tol, plane_tol, out):  # pragma: no cover
     for p in prange(start.shape[0]):
         s = start[p]
         out[p] = False
@@ -197,18 +197,14 @@ def _inside_box(pts, start, npts, half, tol, plane_tol, out):  # pragma: no cove
         else:
             ok = True
             for k in range(3):
-                lo = np.inf
-                hi = -np.inf
-                for i in range(npts[p]):
-                    lo = min(lo, pts[s + i, k])
-                    hi = max(hi, pts[s + i, k])
-                if lo > half[k] + tol or hi < -half[k] - tol:
+                if bounds[p, 0, k] > half[k] + tol or bounds[p, 1, k] < -half[k] - tol:
                     ok = False
             out[p] = ok
 
 
-def inside_box(prims: Prims, half: np.ndarray) -> np.ndarray:
+def inside_box(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None) -> np.ndarray:
     """(n,) bool: primitives that touch the cell box (centred, half sizes ``half`` (3,) metres).
+    ``bounds``: their ``prim_bounds`` when the caller has them already.
 
     An eye inside the box may stand right next to such a primitive, so it is visible (the
     segment from an eye to the side plane it looks through lies in the box). The box is grown
@@ -217,8 +213,10 @@ def inside_box(prims: Prims, half: np.ndarray) -> np.ndarray:
     out = np.zeros(len(prims), dtype=np.bool_)
     if len(prims):
         ulp = np.spacing(max(prims.scale, float(np.max(np.abs(half))), 1.0))
-        _inside_box(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64),
-                    64.0 * ulp, 16.0 * ulp, out)
+        if bounds is None:
+            bounds = prim_bounds(prims)
+        _inside_box(prims.pts, prims.start, prims.npts, bounds,
+                    np.asarray(half, dtype=np.float64), 64.0 * ulp, 16.0 * ulp, out)
     return out
 
 
@@ -245,32 +243,18 @@ def prim_bounds(prims: Prims) -> np.ndarray:
     return out
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _gaps(pts, start, npts, half, out):  # pragma: no cover - numba
-    for p in prange(start.shape[0]):
-        s = start[p]
-        d = 0.0
-        for k in range(3):
-            lo = np.inf
-            hi = -np.inf
-            for i in range(npts[p]):
-                lo = min(lo, pts[s + i, k])
-                hi = max(hi, pts[s + i, k])
-            g = max(0.0, lo - half[k], -half[k] - hi)
-            d += g * g
-        out[p] = d
-
-
-def box_gaps(prims: Prims, half: np.ndarray) -> np.ndarray:
+def box_gaps(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None) -> np.ndarray:
     """(n,) float64 distance (metres) from the cell box (centred, half sizes ``half``) to each
-    primitive's bounding box: no point of the primitive is nearer to the box."""
-    d = np.empty(len(prims))
-    if len(prims):
-        _gaps(prims.pts, prims.start, prims.npts, np.asarray(half, dtype=np.float64), d)
-    return np.sqrt(d)
+    primitive's bounding box (``bounds``: its ``prim_bounds``, computed when not given): no
+    point of the primitive is nearer to the box."""
+    b = prim_bounds(prims) if bounds is None else bounds
+    h = np.asarray(half, dtype=np.float64)
+    g = np.maximum(0.0, np.maximum(b[:, 0] - h, -h - b[:, 1]))
+    return np.sqrt((g * g).sum(axis=1))
 
 
-def distance_order(prims: Prims, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def distance_order(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Primitive indices sorted by the distance from the cell box to each primitive's bounding
     box: the approximate front-to-back order of every per-pixel list (Sec. 5: sort once, then
     fill the lists in that order instead of sorting each list).
@@ -281,5 +265,5 @@ def distance_order(prims: Prims, half: np.ndarray) -> tuple[np.ndarray, np.ndarr
     gap : (n,) float64 per primitive (``box_gaps``); the resolution's early-z cut relies on
         every list being nondecreasing in it.
     """
-    gap = box_gaps(prims, half)
+    gap = box_gaps(prims, half, bounds)
     return np.argsort(gap, kind="stable").astype(np.int64), gap

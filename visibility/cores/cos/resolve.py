@@ -362,6 +362,18 @@ def _edge_slot(hk0, hk1, mask, va, vb):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _to_coverall(g, lpos, covl, cpos, n_cov, n_dead):  # pragma: no cover - numba
+    """Move group g from the live list (marked dead in ``lpos``) to the coverall list
+    ``covl``; returns the new (n_cov, n_dead)."""
+    if lpos[g] >= 0:
+        lpos[g] = -1
+        n_dead += 1
+    covl[n_cov] = g
+    cpos[g] = n_cov
+    return n_cov + 1, n_dead
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _list_drop(g, pos, lst, n):  # pragma: no cover - numba
     """Remove group g from the unordered list lst[:n] (pos[g] its index, -1 when absent);
     returns the new length."""
@@ -763,12 +775,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                 n_cov = _list_drop(gd, cpos, covl, n_cov)
                                 if gcov[gs] and not (c1 if gs == g1 else c2):
                                     # The survivor takes the coverall flag of the other.
-                                    if lpos[gs] >= 0:
-                                        lpos[gs] = -1
-                                        n_dead += 1
-                                    covl[n_cov] = gs
-                                    cpos[gs] = n_cov
-                                    n_cov += 1
+                                    n_cov, n_dead = _to_coverall(gs, lpos, covl, cpos, n_cov,
+                                                                 n_dead)
                                 # Depth grids: every group of GRID_MIN or more has one.
                                 sd = gslot[gd]
                                 ss = gslot[gs]
@@ -823,12 +831,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                     if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry,
                                            n_r, rb, rnx, rny, rlo, rhi):
                         gcov[g] = True
-                        if lpos[g] >= 0:
-                            lpos[g] = -1
-                            n_dead += 1
-                        covl[n_cov] = g
-                        cpos[g] = n_cov
-                        n_cov += 1
+                        n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
                         zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
                                                       h, rx, ry, n_r, wref))
         counters[tile, 0] = tested

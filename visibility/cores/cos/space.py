@@ -169,34 +169,28 @@ def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover
     kx[3], ky[3] = x0, y1
     n = 4
     if tri:
-        s = 1.0 if area2(qv) >= 0.0 else -1.0
-        for e in range(3):
-            a = e
-            b = (e + 1) % 3
-            # Outward normal of a counter-clockwise edge a -> b.
-            nx = s * (qv[b, 1] - qv[a, 1])
-            ny = s * (qv[a, 0] - qv[b, 0])
-            if nx == 0.0 and ny == 0.0:
-                continue
-            _, hq = support(qv, qr, nq, nx, ny)
-            n = clip_halfplane(kx, ky, n, nx, ny, hq, tx, ty)
-            for i in range(n):
-                kx[i] = tx[i]
-                ky[i] = ty[i]
-            if n == 0:
-                return 0
-    ar = ((rv[1, 0] - rv[0, 0]) * (rv[2, 1] - rv[0, 1])
-          - (rv[1, 1] - rv[0, 1]) * (rv[2, 0] - rv[0, 0]))
-    s = 1.0 if ar >= 0.0 else -1.0
-    for e in range(4):
-        a = e
-        b = (e + 1) % 4
-        nx = s * (rv[b, 1] - rv[a, 1])
-        ny = s * (rv[a, 0] - rv[b, 0])
+        n = clip_by_grown_edges(kx, ky, n, qv, qr, 3, tx, ty)
+    if n == 0:
+        return 0
+    return clip_by_grown_edges(kx, ky, n, rv, rr, 4, tx, ty)
+
+
+@njit(cache=True, nogil=True)
+def clip_by_grown_edges(kx, ky, n, pv, pr, m, tx, ty):  # pragma: no cover - numba
+    """Clip the convex polygon (kx, ky) of ``n`` vertices, in place, by the edge half-planes
+    of the convex polygon ``pv`` (its first ``m`` rows, in either winding) grown by ``pr``,
+    each pushed out to the support of the grown set (``support``). Returns the new vertex
+    count (0: empty). ``tx, ty``: scratch of the same size as ``kx, ky``."""
+    s = 1.0 if area2(pv) >= 0.0 else -1.0
+    for a in range(m):
+        b = (a + 1) % m
+        # Outward normal of a counter-clockwise edge a -> b.
+        nx = s * (pv[b, 1] - pv[a, 1])
+        ny = s * (pv[a, 0] - pv[b, 0])
         if nx == 0.0 and ny == 0.0:
             continue
-        _, hr = support(rv, rr, 4, nx, ny)
-        n = clip_halfplane(kx, ky, n, nx, ny, hr, tx, ty)
+        _, h = support(pv, pr, m, nx, ny)
+        n = clip_halfplane(kx, ky, n, nx, ny, h, tx, ty)
         for i in range(n):
             kx[i] = tx[i]
             ky[i] = ty[i]

@@ -242,7 +242,7 @@ def test_face_subsets_drop_only_empty_footprints():
     from visibility.cores.cos.core import _face_subsets
     from visibility.cores.cos.fusion import weld_vertices
     from visibility.cores.cos.lists import footprints
-    from visibility.cores.cos.prims import build_prims, distance_order
+    from visibility.cores.cos.prims import build_prims, distance_order, prim_bounds
     from visibility.generators import make_scene
 
     city = make_scene("city", triangles=3000)
@@ -257,7 +257,7 @@ def test_face_subsets_drop_only_empty_footprints():
         order, _ = distance_order(prims, half)
         views = side_plane_views(box, 32)
         tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
-        subsets = _face_subsets(prims, order, half, views, tol)
+        subsets = _face_subsets(prim_bounds(prims), order, half, views, tol)
         every = np.arange(len(order), dtype=np.int64)
         for v in views:
             full = np.empty((len(order), 4), dtype=np.int32)
