@@ -55,20 +55,21 @@ class CosParams(CoreParams):
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
-#: on the 2-core development machine (load about 1) after the issue-13 speed-up: a least-squares
-#: fit over 4 m cells of a 20k village and a 100k city at 64, 128 and 256 px gives 2.0e-6 s per
-#: pixel (0.29-2.8 s measured; the per-triangle term fits near zero there), and the 0.3 m cell
-#: of the 100k city at 64 px (0.19 s, mostly the per-triangle sort and footprints) bounds the
-#: per-triangle term. 0.3 m cells cost 2-6 times less than this says (0.22-0.26 s for the 100k
-#: city and village at 128 px, benchmarks/results/cos.md). List lengths, and so the
-#: resolution's true cost, depend on the depth complexity around the cell, which no cheap
-#: estimate sees: dense clutter costs far more (the 1M kitchen's 0.3 m cell: 80 s against 1.2 s
-#: estimated; 20k rooms at 4 m: 20 s against 0.6 s), and the deadline stops what the estimate
-#: lets through. Bytes: per triangle (the primitives, their order, box distance, bounds, face
-#: subsets, footprints and tile bins, about 320 B at the peak), per pixel (list starts and
-#: counts of a run), and the lists themselves up to ``list_budget_mb``. Not counted: each
-#: thread's working set for its current tile, which grows with the longest list there (about
-#: 1 KB per entry of it: some 120 MB for the kitchen's 125k-entry lists).
+#: on the 2-core development machine (load about 1): a least-squares fit over 4 m cells of a
+#: 20k village and a 100k city at 64, 128 and 256 px gives 2.0e-6 s per pixel (the
+#: per-triangle term fits near zero there), and the 0.3 m cell of the 100k city at 64 px
+#: (mostly the per-triangle sort and footprints) bounds the per-triangle term.
+#: ``python -m benchmarks.bench_admission`` (benchmarks/results/admission.md) checks it on
+#: 4 m cells: measured / estimated 1.2-2.1. 0.3 m cells cost less than this says
+#: (benchmarks/results/cos.md). List lengths, and so the resolution's true cost, depend on the
+#: depth complexity around the cell, which no cheap estimate sees: dense clutter costs far
+#: more (the 1M kitchen, 20k rooms at 4 m: benchmarks/results/cos.md), and the deadline
+#: stops what the estimate lets through. Bytes: per triangle (the primitives, their order,
+#: box distance, bounds, face subsets, footprints and tile bins, about 320 B at the peak), per
+#: pixel (list starts and counts of a run), and the lists themselves up to ``list_budget_mb``
+#: (a cap, so the estimate is an upper bound: the benchmark measures a few per cent of it).
+#: Not counted: each thread's working set for its current tile, which grows with the longest
+#: list there (about 1 KB per entry of it).
 SECONDS_PER_PIXEL = 2e-6
 SECONDS_PER_PLANE_TRIANGLE = 1e-7
 BYTES_PER_TRIANGLE = 320

@@ -139,14 +139,15 @@ def cube_rotations(runs: int, seed: int = 0, first: str = "axis") -> np.ndarray:
 #: Cost model of one segment pass (``estimate_cost``), timed on the 2-core development machine
 #: (village 20k and city 100k cells, 128 to 1024 px, 12 segments each): a fixed cost, a cost
 #: per triangle of the scene and one per cubemap pixel (6 R^2); the pixel term dominates from
-#: 256 px on. The triangle term is that of open scenes, where most triangles are culled early;
-#: in dense clutter every triangle is binned into many tiles (the 1M kitchen at 64 px: 100 s,
-#: fifty times the model), which the server learns per scene (``server.admission``).
+#: 256 px on. ``python -m benchmarks.bench_admission`` (benchmarks/results/admission.md) checks
+#: it: measured / estimated seconds 0.5-0.8 on 4 m cells of those scenes, but 40 on the 1M
+#: kitchen at 64 px (81 s): in dense clutter every triangle is binned into many tiles, which
+#: the server learns per scene (``server.admission``).
 #: Bytes: the tile bins hold every triangle once per 16 px tile it may cover, which grows with
-#: the square of the resolution: 75 MB at 64 px and 263 MB at 128 px on the kitchen (peak RSS
-#: over the run), so ``BYTES_PER_TRIANGLE`` per triangle at 128 px, times (R / 128)^2 above
-#: (an upper bound for open scenes, whose triangles are mostly small on screen), plus
-#: ``BYTES_PER_PIXEL`` per cubemap pixel (the envelope buffers of the tile groups).
+#: the square of the resolution, so ``BYTES_PER_TRIANGLE`` per triangle at 128 px, times
+#: (R / 128)^2 above, plus ``BYTES_PER_PIXEL`` per cubemap pixel (the envelope buffers of the
+#: tile groups). An upper bound: the same benchmark measures 0.3 times it on the kitchen and
+#: a few per cent of it on open scenes, whose triangles are mostly small on screen.
 SECONDS_PER_SEGMENT = 5e-3
 SECONDS_PER_SEGMENT_TRIANGLE = 1.5e-7
 SECONDS_PER_SEGMENT_PIXEL = 3.7e-7
