@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 import numba
 import numpy as np
 
-from visibility.cancel import checkpoint
+from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
@@ -244,6 +244,7 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
     counters = np.zeros((n_tiles, 4), dtype=np.int64)
+    stop = stop_flag()
     t = 0
     while t < n_tiles:
         # A run of tiles whose list slots (bounded by their footprint pixels) fit the budget
@@ -275,7 +276,8 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
                       pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
                       tiles_x, view.nx,
                       view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
-                      view.sign, view.corners, plane_tol, known, vis, counters)
+                      view.sign, view.corners, plane_tol, known, vis, counters, stop)
+        checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb
         t = t1

@@ -70,6 +70,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.cancel import flag_set
 from visibility.cores.cos.lists import TILE, region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
@@ -200,6 +201,8 @@ def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1,
 #: triangle over more than GRID_WIDE cells goes to the grid's list of wide ones instead.
 GRID = 16
 GRID_MIN = 32
+#: Entries of one pixel's list between two polls of the stop flag.
+STOP_EVERY = 256
 GRID_WIDE = 16
 
 
@@ -438,7 +441,7 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 @njit(cache=True, nogil=True, parallel=True)
 def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, tile0, tile1,
                   torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
-                  plane_tol, known, vis, counters):  # pragma: no cover - numba
+                  plane_tol, known, vis, counters, stop):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. ``entries`` holds the lists of those tiles (``lists.fill_lists``: pixel
     ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
@@ -448,7 +451,9 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
     (tested no more, still occluders), as are those found visible at an earlier pixel of the
     same tile.
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
-    entries cut by the early-z depth)."""
+    entries cut by the early-z depth). ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``)
+    is polled between pixels and every ``STOP_EVERY`` entries: once it is set the kernel
+    returns with ``vis`` incomplete, and the caller's checkpoint raises."""
     h = 0.5 * pw
     npix = TILE * TILE
     # Largest camera depth of the view's camera rectangle (0 for a front frustum).
@@ -548,6 +553,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
         occl = 0
         cut = 0
         for loc in range(npix):
+            if flag_set(stop):
+                break
             i = ty * TILE + loc // TILE
             j = tx * TILE + loc % TILE
             if i >= ny or j >= nx:
@@ -593,6 +600,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
             # a coverall occluder at depth <= zcut, before anything wholly deeper.
             zcut = np.inf
             for k in range(a, b):
+                if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
+                    break  # one pixel's list of 10^5 entries takes seconds in dense clutter
                 p = entries[k]
                 if gap[p] > zcut * lray + plane_tol:
                     # The lists are sorted by gap: this entry and all later ones lie beyond

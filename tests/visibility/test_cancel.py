@@ -1,0 +1,69 @@
+"""``visibility.cancel``: tokens, checkpoints and the stop flag kernels poll."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from numba import njit
+
+from visibility.cancel import (
+    CancelToken,
+    ComputationCancelled,
+    checkpoint,
+    flag_set,
+    running_under,
+    stop_flag,
+)
+
+
+@njit(nogil=True, cache=True)
+def _spin(flag, limit):  # pragma: no cover - numba
+    """Count up to ``limit`` unless the flag is set first; returns the count."""
+    n = 0
+    while n < limit:
+        if flag_set(flag):
+            break
+        n += 1
+    return n
+
+
+def test_a_kernel_sees_the_flag_set_by_another_thread():
+    flag = np.zeros(1, dtype=np.uint8)
+    _spin(flag, 10)
+    out = []
+    th = threading.Thread(target=lambda: out.append(_spin(flag, 1 << 62)))
+    th.start()
+    time.sleep(0.2)
+    flag[0] = 1
+    th.join(timeout=30)
+    # A plain read of flag[0] is hoisted out of the loop and the kernel would spin for ever.
+    assert not th.is_alive(), "the kernel never saw the flag"
+    assert 0 < out[0] < 1 << 62
+
+
+def test_the_flag_follows_cancel_and_the_deadline():
+    assert not stop_flag()[0]  # outside a computation: never set
+    token = CancelToken()
+    with running_under(token):
+        assert stop_flag() is token.flag
+        token.cancel("enough")
+        assert token.flag[0] == 1
+        with pytest.raises(ComputationCancelled, match="enough"):
+            checkpoint()
+    late = CancelToken.after(0.05)
+    with running_under(late):
+        time.sleep(0.5)
+        # No checkpoint ran: the deadline's timer set the flag for the kernels.
+        assert late.flag[0] == 1 and late.cancelled
+        assert "deadline" in late.reason
+
+
+def test_the_timer_is_gone_after_the_computation():
+    token = CancelToken.after(0.2)
+    with running_under(token):
+        pass
+    time.sleep(0.4)
+    assert not token.cancelled and token.flag[0] == 0
