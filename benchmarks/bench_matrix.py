@@ -42,6 +42,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np  # noqa: E402
 
+from visibility.cancel import CancelToken  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SCENES = REPO.parent / "shared" / "scenes"
 RESULTS_DIR = REPO / "benchmarks" / "results"
@@ -484,6 +486,29 @@ def _jobs(cores, levels_by_knob, cfg, use_peer) -> list[dict[str, Any]]:
     return jobs
 
 
+def merge_rows(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of an earlier run with a new run's rows merged in: a new row replaces an old one
+    of the same point (scene, cell size, cell, core, knob, level) and otherwise follows the old
+    rows of its cell, so each scene's table keeps its cells together."""
+    def key(r):
+        return (r["scene"], r["cell_size"], r["cell"], r["core"], r["knob"], str(r["level"]))
+
+    def cell(r):
+        return (r["scene"], r["cell_size"], r["cell"])
+
+    fresh = {key(r): r for r in new}
+    out = [fresh.pop(key(r), r) for r in old]
+    for r in new:
+        if key(r) in fresh:
+            last = max((i for i, o in enumerate(out) if cell(o) == cell(r)), default=None)
+            if last is None:
+                out.append(r)
+            else:
+                out.insert(last + 1, r)
+            fresh.pop(key(r))
+    return out
+
+
 def peers_name() -> str:
     from benchmarks import peers
 
@@ -524,9 +549,13 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None, peer_ca
         if job["level"] is not None:
             over[job["knob"]] = job["level"]
         params = core.make_params(**over)
+        deadline = _run_point.deadline
 
         def once():
-            return core.compute(scene, cell, params)
+            # Under the benchmark's deadline, if any: a point that runs past it is a finding
+            # (the row says so), not an hour of the run.
+            return core.compute(scene, cell, params,
+                                token=CancelToken.after(deadline) if deadline else None)
     elif job["kind"] == "peer":
         def once():
             return peers.from_point_pvs(scene, cell, "embree", job["level"], cfg_res)
@@ -550,7 +579,10 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None, peer_ca
             return peers.from_point_pvs(scene, cell, job["engine"], resolution=cfg_res, **kw)
     secs, out, peak, traced, extra = [], None, None, None, {}
     if job["kind"] in ("core", "peer"):
+        t0 = time.perf_counter()
         _, peak, traced = measure_peak(once, traced=True)
+        if time.perf_counter() - t0 > SLOW_POINT_SECONDS:
+            repeats = 1  # one timed run is enough to say a point takes this long
     for r in range(max(1, repeats)):
         t0 = time.perf_counter()
         if r == 0 and peak is None:
@@ -568,6 +600,10 @@ def _run_point(job, scene, cell, repeats, rows, label, cid, gt_ids=None, peer_ca
 
 
 _run_point.resolution = 128
+_run_point.deadline = None
+#: A core point whose untimed first run takes longer than this is timed once, not ``repeats``
+#: times.
+SLOW_POINT_SECONDS = 10.0
 
 
 # --------------------------------------------------------------------------- output
@@ -681,11 +717,21 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
     (results_dir / f"bench_{tag}.json").write_text(json.dumps(
         {"command": command, "config": {k: v for k, v in cfg.items() if k != "cache_dir"},
          "rows": rows}, indent=1, default=str))
+    runs = cfg.get("runs") or [{"command": command, "wall_s": wall,
+                                "load_start": cfg["load_start"], "load_end": _load()}]
+    run_lines = []
+    for run in runs:
+        took = "" if run.get("wall_s") is None else f", wall time {run['wall_s'] / 60:.1f} min"
+        load = "" if run.get("load_start") is None else (
+            f", load average (1 min) at start {run['load_start']}"
+            + (f", at end {run['load_end']}" if run.get("load_end") else ""))
+        run_lines.append(f"`{run['command']}`{took}{load}")
     parts = [
         "# Benchmarks: error against run time, every core on the same cells\n",
-        f"Command: `{command}`  \nPreset `{tag}`, total wall time {wall / 60:.1f} min.  \n"
-        f"Machine: {machine_description()}. Load average (1 min) at start {cfg['load_start']}, "
-        f"at end {_load()} (other jobs shared the cores: times are wall times under that load).\n",
+        ("Command: " if len(runs) == 1 else "Commands (the later runs' rows merged into the "
+         "first's tables with `--merge`): ") + "; ".join(run_lines) + f".  \nPreset `{tag}`.  \n"
+        f"Machine: {machine_description()}. Other jobs shared the cores: times are wall times "
+        "under that load.\n",
         method_paragraph(cfg),
         *([f"Scenes NOT measured (they failed to load): {'; '.join(cfg['load_errors'])}.\n"]
           if cfg.get("load_errors") else []),
@@ -695,7 +741,21 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "clients, cold and warm cache ([benchmarks/results/load.md](benchmarks/results/load.md)"
         ", `python -m benchmarks.bench_load`; `from_segment`: "
         "[benchmarks/results/load_from_segment.md](benchmarks/results/load_from_segment.md), "
-        "`python -m benchmarks.bench_load --core from_segment --name load_from_segment`).\n",
+        "`python -m benchmarks.bench_load --core from_segment --name load_from_segment`). "
+        "Under abuse (50 and 20 walkers with and without a client flooding expensive requests: "
+        "[benchmarks/results/load_abuse.md](benchmarks/results/load_abuse.md), "
+        "[benchmarks/results/load_abuse_20.md](benchmarks/results/load_abuse_20.md), "
+        "`python -m benchmarks.bench_load --clients 50 --hostile --name load_abuse`), the cost "
+        "of stopping a computation, checkpoints against a killed worker process "
+        "([benchmarks/results/cancel.md](benchmarks/results/cancel.md), "
+        "`python -m benchmarks.bench_cancel`), the cores' cost estimates against measurements "
+        "([benchmarks/results/admission.md](benchmarks/results/admission.md), "
+        "`python -m benchmarks.bench_admission`). The `cos` core's own experiments (the "
+        "paper's speed cells, FP per cell size: [benchmarks/results/cos.md]"
+        "(benchmarks/results/cos.md), `python -m benchmarks.bench_cos`) and the small cells "
+        "(5-30 cm) where `cos`, `from_segment` and `sampling` meet "
+        "([benchmarks/results/small_cells.md](benchmarks/results/small_cells.md), "
+        "`python -m benchmarks.bench_small_cells`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         srows = [r for r in rows if r["scene"] == label]
@@ -812,6 +872,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="report (default BENCHMARKS.md)")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR)
     p.add_argument("--cache-dir", type=Path, default=None)
+    p.add_argument("--point-deadline", type=float, default=None,
+                   help="seconds a core point may run before it is stopped and reported as "
+                        "over the deadline (default: none)")
+    p.add_argument("--merge", action="store_true",
+                   help="keep the rows of the last run of this preset (RESULTS_DIR/"
+                        "bench_PRESET.json) that this run does not measure again, and write "
+                        "the report from both (e.g. a new core added to the published tables)")
     return p
 
 
@@ -865,11 +932,24 @@ def main(argv: list[str] | None = None) -> int:
     out_md = args.out or (REPO / "BENCHMARKS.md")
     command = "pvs bench " + shlex.join(argv)
     _run_point.resolution = int(cfg["resolution"])
+    _run_point.deadline = args.point_deadline
     cfg["load_start"] = _load()
     t0 = time.perf_counter()
     _warm_up(cfg)
     rows = run_matrix(cfg, log=lambda s: print(s, flush=True))
-    write_outputs(rows, cfg, command, time.perf_counter() - t0, out_md, args.results_dir)
+    wall = time.perf_counter() - t0
+    if args.merge:
+        prev_path = args.results_dir / f"bench_{cfg['preset']}.json"
+        if prev_path.exists():
+            prev = json.loads(prev_path.read_text())
+            rows = merge_rows(prev["rows"], rows)
+            pc = prev.get("config", {})
+            cfg["runs"] = pc.get("runs") or [{"command": prev["command"],
+                                              "load_start": pc.get("load_start")}]
+    cfg.setdefault("runs", [])
+    cfg["runs"] = [*cfg["runs"], {"command": command, "wall_s": wall,
+                                  "load_start": cfg["load_start"], "load_end": _load()}]
+    write_outputs(rows, cfg, command, wall, out_md, args.results_dir)
     print(f"wrote {out_md} and {args.results_dir}")
     return 0
 

@@ -235,3 +235,32 @@ def test_spheres_are_counted_and_sphere_blind_cores_read_n_a(tmp_path):
     text = (tmp_path / "B.md").read_text()
     assert "| sphere FN % | sphere FP % |" in text
     assert "of 12 spheres" in text and "last batch of 8 points added" in text
+
+
+def test_merge_adds_a_core_to_an_earlier_run_and_replaces_its_own_rows():
+    def row(cell, core, level, fn):
+        return {"scene": "s", "cell_size": 4.0, "cell": cell, "core": core,
+                "knob": "resolution", "level": level, "fn": fn}
+
+    old = [row(1, "a", 32, 0.1), row(1, "b", 32, 0.2), row(2, "a", 32, 0.3)]
+    new = [row(1, "c", 32, 0.0), row(2, "c", 32, 0.0), row(1, "b", 32, 0.9),
+           row(3, "c", 32, 0.0)]
+    out = bench_matrix.merge_rows(old, new)
+    assert [(r["cell"], r["core"], r["fn"]) for r in out] == [
+        (1, "a", 0.1), (1, "b", 0.9), (1, "c", 0.0), (2, "a", 0.3), (2, "c", 0.0),
+        (3, "c", 0.0)]
+
+
+def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
+    argv = TINY + ["--out", str(tmp_path / "B.md"), "--results-dir", str(tmp_path),
+                   "--cache-dir", str(tmp_path / "cache"), "--no-peer", "--reference", "none"]
+    assert bench_matrix.main(argv + ["--cores", "sampling"]) == 0
+    # cos on a deadline it cannot meet: the row says so, and sampling's rows stay.
+    assert bench_matrix.main(argv + ["--cores", "cos", "--merge",
+                                     "--point-deadline", "0.000001"]) == 0
+    data = json.loads((tmp_path / "bench_quick.json").read_text())
+    cores = [r["core"] for r in data["rows"]]
+    assert "sampling" in cores and "cos" in cores
+    assert all("deadline" in r["error"] for r in data["rows"] if r["core"] == "cos")
+    text = (tmp_path / "B.md").read_text()
+    assert "--cores sampling" in text and "--cores cos --merge" in text
