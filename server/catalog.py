@@ -240,7 +240,7 @@ class SceneCatalog:
                 scene = make_scene(e.name, triangles=e.triangles, seed=0)
             else:
                 scene = e.pending
-            size = scene.meta.get("cell_size") or self.settings.cell_size
+            size = self.settings.cell_size_for(scene.meta.get("cell_size"))
             grid = ViewcellGrid.for_scene(scene, float(size))
         except SceneTooLarge as exc:
             log.warning("scene %r (%s) refused: %s", e.name, e.path, exc)

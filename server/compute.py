@@ -387,9 +387,9 @@ class ComputeService:
         return len(tokens)
 
     def _cell_size(self, scene: Scene) -> float:
-        """The viewcell size (metres) the catalogue gives ``scene``: its sidecar's, else the
-        server's (``SceneCatalog``'s rule)."""
-        return float(scene.meta.get("cell_size") or self.settings.cell_size)
+        """The viewcell size (metres) the catalogue gives ``scene`` (``SceneCatalog``'s rule,
+        ``Settings.cell_size_for``)."""
+        return self.settings.cell_size_for(scene.meta.get("cell_size"))
 
     def _cell_box(self, scene: str, cell: int) -> np.ndarray:
         return self.catalog.get(scene).grid.boxes[cell].copy()

@@ -18,6 +18,7 @@ from visibility.loaders import MAX_FILE_BYTES, MAX_TRIANGLES
 from visibility.nearfar import MAX_RESOLUTION as NEAR_FAR_MAX_RESOLUTION
 from visibility.nearfar import MIN_RESOLUTION as NEAR_FAR_MIN_RESOLUTION
 from visibility.nearfar import NearFarConfig
+from visibility.viewcells import DEFAULT_CELL_SIZE
 
 #: Near-far defaults come from ``visibility.nearfar.NearFarConfig`` (one source of truth; its
 #: module docstring says why they suit 4 m cells).
@@ -42,7 +43,9 @@ class Settings(BaseModel):
     scenes_dir : folder of scene files (``visibility.loaders.SCENE_EXTENSIONS``); None: none.
     generated : generated scenes to serve, {generator name: triangles}; default every available
         generator at its ``DEFAULT_TRIANGLES``.
-    cell_size : viewcell size in metres (a scene file's sidecar ``cell_size`` overrides it).
+    cell_size : viewcell size in metres for every scene; None (the default): each scene's own
+        (a sidecar's or hint's ``cell_size``), else ``DEFAULT_CELL_SIZE`` (4 m). Set, it wins
+        over the scenes' own, as ``pvs precompute --cell-size`` does (small cells for ``cos``).
     core, core_params : the core and parameters used when a request names none.
     workers : PVS computations running at once (threads; numba kernels release the GIL).
     cache_bytes : bound of the in-memory PVS cache, bytes.
@@ -106,7 +109,7 @@ class Settings(BaseModel):
     port: int = Field(8000, ge=0, le=65535)
     scenes_dir: Path | None = None
     generated: dict[str, int] = Field(default_factory=default_generated)
-    cell_size: float = Field(4.0, gt=0, allow_inf_nan=False)
+    cell_size: float | None = Field(None, gt=0, allow_inf_nan=False)
     core: str = "sampling"
     core_params: dict[str, Any] = Field(default_factory=dict)
     workers: int = Field(2, ge=1, le=256)
@@ -158,6 +161,11 @@ class Settings(BaseModel):
         # fail at start-up, not at every hello.
         self.near_far_config()
         return self
+
+    def cell_size_for(self, scene_cell_size: float | None) -> float:
+        """Viewcell size (metres) of a scene whose own (sidecar, hint) is ``scene_cell_size``:
+        the server's setting when given, else the scene's, else ``DEFAULT_CELL_SIZE``."""
+        return float(self.cell_size or scene_cell_size or DEFAULT_CELL_SIZE)
 
     def heavy_lane_workers(self) -> int:
         """Workers the heavy lane may occupy at once (``heavy_workers``, default all but one)."""

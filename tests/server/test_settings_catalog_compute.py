@@ -26,8 +26,9 @@ from visibility.cores.base import PVS
 # --------------------------------------------------------------------------- settings
 def test_settings_defaults_and_validation():
     s = Settings(generated={})
-    assert (s.host, s.port, s.cell_size, s.core, s.workers) == ("127.0.0.1", 8000, 4.0,
+    assert (s.host, s.port, s.cell_size, s.core, s.workers) == ("127.0.0.1", 8000, None,
                                                                 "sampling", 2)
+    assert s.cell_size_for(None) == 4.0 and s.cell_size_for(2.0) == 2.0
     assert s.cache_bytes == 256 * 1024 * 1024 and s.max_frame_bytes == 1 << 20
     for bad in ({"cell_size": 0}, {"cell_size": float("nan")}, {"workers": 0},
                 {"max_frame_bytes": 50}, {"generated": {"city": 0}}, {"port": 70000},
@@ -141,6 +142,14 @@ def test_catalog_files_lazy_and_once(scenes_dir, tmp_path):
     with pytest.raises(SceneLoadFailed):
         cat.get("broken")
     assert not cat.is_loaded("broken")
+
+
+def test_a_cell_size_setting_wins_over_the_scenes_own(scenes_dir):
+    # The sidecar says 3 m; a server told 0.5 m (small cells for cos) uses 0.5 m everywhere.
+    small = SceneCatalog(Settings(scenes_dir=scenes_dir, generated={}, cell_size=0.5))
+    assert small.get("box").grid.cell_size == 0.5
+    assert SceneCatalog(Settings(scenes_dir=scenes_dir, generated={})).get(
+        "box").grid.cell_size == 3.0
 
 
 def test_catalog_picks_up_new_files_and_prefers_formats(tmp_path, scenes_dir):
