@@ -185,7 +185,7 @@ def test_near_far_stream_is_composed_and_measured(settings, server_app, tmp_path
         assert np.isfinite(f["delta_composed"]) and np.isfinite(f["delta_conventional"])
         assert f["compose_seconds"] > 0 and isinstance(f["frame"], int)
         # Per-cell cubemaps: the eye stays within half a cell's diagonal of the centre O.
-        assert 0.0 <= f["eye_offset"] <= settings.cell_size * 0.5 ** 0.5 + 1e-6
+        assert 0.0 <= f["eye_offset"] <= settings.cell_size_for(None) * 0.5 ** 0.5 + 1e-6
     # The report carries the composed means and delta; side by side shows them in columns.
     assert summary["delta_composed"] == pytest.approx(
         np.mean([f["delta_composed"] for f in composed]))
@@ -194,3 +194,34 @@ def test_near_far_stream_is_composed_and_measured(settings, server_app, tmp_path
     cells = row.split()
     assert float(cells[4]) == pytest.approx(summary["epsilon_composed"], abs=1e-3)
     assert float(cells[7]) == pytest.approx(summary["delta_composed"], abs=1e-4)
+
+
+@pytest.mark.slow
+def test_cos_walk_through_a_real_level_in_small_cells_draws_what_the_full_scene_does(
+        settings, tmp_path):
+    """The README's small-cell walk: lavaducts (a real Quake level) served in 0.3 m cells,
+    replayed with cos at 32 px. A conservative PVS holds every triangle a frame shows, so the
+    frames match the full scene's up to rasterization ties (a pixel or two)."""
+    from server.app import create_app
+    from tests.conftest import LiveServer
+    from tests.visibility.real_scenes import SHARED_SCENES
+
+    if not (SHARED_SCENES / "lavaducts.glb").exists():
+        pytest.skip("../shared/scenes/lavaducts.glb is not here")
+    small = settings.model_copy(update={"scenes_dir": SHARED_SCENES, "cell_size": 0.3,
+                                        "generated": {}, "max_frame_bytes": 1 << 20})
+    srv = LiveServer(create_app(small), small)
+    srv.start()
+    try:
+        opts = ReplayOptions(server=srv.url, scene="lavaducts", params={"resolution": 32},
+                             out_dir=tmp_path, duration=3.0, fps=5.0, width=128, height=128,
+                             quiet=True, realtime=False, scenes_dir=SHARED_SCENES)
+        summary = replay(opts, "cos", tmp_path)
+    finally:
+        srv.stop()
+    frames = summary["frames"]
+    assert summary["meta"]["cells"] > 10_000  # 0.3 m cells, not the scene's own 2 m
+    assert len({f["cell"] for f in frames}) >= 5  # the walk crossed cells
+    # One pixel of 128^2 is 0.0061 %.
+    assert max(f["epsilon"] for f in frames) <= 0.02
+    assert min(f["ssim"] for f in frames) >= 0.999
