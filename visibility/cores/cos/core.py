@@ -156,7 +156,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats : seconds per phase (``weld_seconds``, ``sort_seconds``, ``list_seconds``,
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
-        occluder's depth), ``inside_box``, ``views``, ``pixels`` and ``sphere_ids``.
+        occluder's depth), ``inside_box``, ``views``, ``pixels``, ``sphere_ids`` and
+        ``costliest_view`` (the side plane and frustum that took longest, its seconds, list
+        entries and longest list).
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -182,8 +184,21 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
+        worst = -1.0
         for view in views:
+            tv, entries0, longest0 = time.perf_counter(), stats["list_entries"], 0
+            stats["longest_list"], longest0 = 0, stats["longest_list"]
             _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis, budget, stats)
+            seconds = time.perf_counter() - tv
+            if seconds > worst:
+                # Dense clutter is rarely spread evenly: say which view the time went to.
+                worst = seconds
+                axis, sgn = view.face
+                stats["costliest_view"] = {
+                    "plane": f"{'+' if sgn > 0 else '-'}{'xyz'[axis]}", "frustum": view.kind,
+                    "seconds": seconds, "list_entries": stats["list_entries"] - entries0,
+                    "longest_list": stats["longest_list"]}
+            stats["longest_list"] = max(longest0, stats["longest_list"])
     m = scene.n_triangles
     ids = prims.out_id[vis != 0]
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
