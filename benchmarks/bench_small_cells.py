@@ -11,7 +11,7 @@ FP: share of the PVS the reference did not see; seconds: best of 2 runs after a 
 compile; RSS rise: VmHWM over VmRSS of the untimed first run (numba's allocations included).
 
 Writes ``benchmarks/results/small_cells.md`` (+ ``.json``, ``.png``: FN against seconds per
-core). Usage: ``python -m benchmarks.bench_small_cells`` (about 10 minutes on 2 cores),
+core). Usage: ``python -m benchmarks.bench_small_cells`` (about 8 minutes on 2 cores),
 ``--quick`` for a smoke run into ``--out``.
 """
 
@@ -45,13 +45,22 @@ RESULTS = ROOT / "benchmarks" / "results"
 SHARED = ROOT.parent / "shared" / "scenes"
 SIZES = (0.05, 0.1, 0.2, 0.3)
 #: Each core at its default parameters and at the resolution the cos paper compares at.
+#: cos also at 32 px (what a walker in 0.3 m cells can afford online on 2 cores) and 512 px
+#: (what resolution buys back of its overestimation).
 CORES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("cos", {}),
+    ("cos", {"resolution": 32}),
+    ("cos", {"resolution": 512}),
     ("from_segment", {}),
     ("from_segment", {"resolution": 512}),
     ("sampling", {}),
     ("sampling", {"samples": 128}),
 )
+
+
+#: The smoke run's cores: one setting each, the cheapest.
+QUICK_CORES: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("cos", {"resolution": 32}), ("from_segment", {}), ("sampling", {}))
 
 
 def _rss_rise(fn) -> tuple[Any, float]:
@@ -99,7 +108,13 @@ def measure(label: str, scene: Any, size: float, points: int, cores) -> list[dic
         best = min((first, core.compute(scene, Viewcell(box), p)), key=lambda x: x.seconds)
         fn, fp = fn_fp_rates(best.triangle_ids, ref)
         missed = int(len(np.setdiff1d(ref, best.triangle_ids)))
-        rows.append({"scene": label, "size": size, "core": name, "params": params,
+        # Where the extra triangles lie: distance from the cell's centre to their centroids.
+        extra = np.setdiff1d(best.triangle_ids, ref)
+        dist = np.linalg.norm(scene.vertices[scene.faces[extra]].mean(axis=1)
+                              - box.mean(axis=0), axis=1) if len(extra) else np.zeros(0)
+        fp_dist = [float(q) for q in np.quantile(dist, (0.1, 0.5, 0.9))] if len(dist) else None
+        rows.append({"fp_distance_m": fp_dist, "scene": label, "size": size, "core": name,
+                     "params": params,
                      "label": name + (" " + ",".join(f"{k}={v}" for k, v in params.items())
                                       if params else ""),
                      "seconds": best.seconds, "pvs": len(best), "reference": int(len(ref)),
@@ -138,14 +153,19 @@ def markdown(rows, points, elapsed, argv, load) -> str:
            "boundary points at 256 px per face. FN: reference triangles missing (count, share); "
            "FP: share of the PVS the reference did not see (a sampled reference misses, so part "
            "of a conservative core's FP is truly visible); seconds: best of 2 after a warm-up; "
-           "RSS rise of the first run.", "",
+           "RSS rise of the first run; FP distance: from the cell's centre to the centroids "
+           "of the triangles the reference did not see (quantiles).", "",
            "![FN against seconds](small_cells.png)", "",
-           "| scene | cell | core | s | PVS | ref | FN | FN % | FP % | RSS rise MiB |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "| scene | cell | core | s | PVS | ref | FN | FN % | FP % | FP distance m "
+           "(10 / 50 / 90 %) | RSS rise MiB |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        d = r.get("fp_distance_m")
+        dist = "–" if not d else " / ".join(f"{x:.0f}" if x >= 10 else f"{x:.1f}" for x in d)
         out.append(f"| {r['scene']} | {100 * r['size']:.0f} cm | {r['label']} | "
                    f"{r['seconds']:.3f} | {r['pvs']:,} | {r['reference']:,} | {r['fn_count']} | "
-                   f"{100 * r['fn']:.2f} | {100 * r['fp']:.1f} | {r['rss_mib']:.0f} |")
+                   f"{100 * r['fn']:.2f} | {100 * r['fp']:.1f} | {dist} | "
+                   f"{r['rss_mib']:.0f} |")
     out += ["", "## Per core, over every cell", "",
             "| core | cells | median s | max s | cells with a miss | mean FN % | mean FP % |",
             "|---|---|---|---|---|---|---|"]
@@ -170,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     points = 16 if args.quick else args.points
     sizes = (0.05, 0.3) if args.quick else SIZES
-    cores = CORES[::2] if args.quick else CORES
+    cores = QUICK_CORES if args.quick else CORES
     warm = make_scene("city", triangles=2000)
     for name, params in cores:  # compile every kernel before the clock matters
         core = get_core(name)
