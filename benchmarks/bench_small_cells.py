@@ -98,8 +98,11 @@ def scenes(quick: bool) -> list[tuple[str, Any]]:
 
 def measure(label: str, scene: Any, size: float, points: int, cores) -> list[dict[str, Any]]:
     """Every core on one cube cell of ``size`` metres over the scene's first grid cell."""
+    from visibility.cores.cos.fusion import open_edge_share
+
     box = cell_around(scene, size, 0)
     ref = dense_reference(scene, box, n_points=points, resolution=256)
+    open_edges = open_edge_share(scene)
     rows = []
     for name, params in cores:
         core = get_core(name)
@@ -113,8 +116,8 @@ def measure(label: str, scene: Any, size: float, points: int, cores) -> list[dic
         dist = np.linalg.norm(scene.vertices[scene.faces[extra]].mean(axis=1)
                               - box.mean(axis=0), axis=1) if len(extra) else np.zeros(0)
         fp_dist = [float(q) for q in np.quantile(dist, (0.1, 0.5, 0.9))] if len(dist) else None
-        rows.append({"fp_distance_m": fp_dist, "scene": label, "size": size, "core": name,
-                     "params": params,
+        rows.append({"fp_distance_m": fp_dist, "open_edges": open_edges, "scene": label,
+                     "size": size, "core": name, "params": params,
                      "label": name + (" " + ",".join(f"{k}={v}" for k, v in params.items())
                                       if params else ""),
                      "seconds": best.seconds, "pvs": len(best), "reference": int(len(ref)),
@@ -155,6 +158,11 @@ def markdown(rows, points, elapsed, argv, load) -> str:
            "of a conservative core's FP is truly visible); seconds: best of 2 after a warm-up; "
            "RSS rise of the first run; FP distance: from the cell's centre to the centroids "
            "of the triangles the reference did not see (quantiles).", "",
+           "Open edges (after welding vertices, the share of edges that belong to one "
+           "triangle only: open borders and T-junctions, where cos cannot fuse occluders): "
+           + ", ".join(f"{r['scene']} {100 * r['open_edges']:.1f} %"
+                       for r in {r["scene"]: r for r in rows if "open_edges" in r}.values())
+           + ".", "",
            "![FN against seconds](small_cells.png)", "",
            "| scene | cell | core | s | PVS | ref | FN | FN % | FP % | FP distance m "
            "(10 / 50 / 90 %) | RSS rise MiB |",

@@ -57,3 +57,16 @@ def scene_welded_ids(scene: Scene) -> tuple[np.ndarray, float]:
     ids = weld_vertices(scene.vertices)
     _CACHE[scene] = (scene.n_vertices, ids)
     return ids, time.perf_counter() - t0
+
+
+def open_edge_share(scene: Scene) -> float:
+    """Share of the scene's edges (after welding, valid faces only) that belong to one triangle
+    only: open borders and T-junctions, where occluders cannot fuse (a wall split at a
+    T-junction keeps a silhouette across its face). 0 for a closed, welded mesh."""
+    ids, _ = scene_welded_ids(scene)
+    f = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
+    if len(f) == 0:
+        return 0.0
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return float(np.mean(counts == 1))

@@ -267,3 +267,19 @@ def test_face_subsets_drop_only_empty_footprints():
             listed = np.flatnonzero(full[:, 0] <= full[:, 1])
             assert np.isin(listed, subsets[v.face]).all(), (v.face, v.kind)
             assert len(subsets[v.face]) < len(order)
+
+
+def test_open_edge_share_counts_borders_and_t_junctions():
+    from visibility.cores.cos.fusion import open_edge_share
+
+    quad = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    two = Scene(quad, np.array([[0, 1, 2], [0, 2, 3]]), name="quad")
+    assert open_edge_share(two) == pytest.approx(4 / 5)  # the diagonal is shared
+    # A tetrahedron is closed.
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    closed = Scene(tet, np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]), name="tet")
+    assert open_edge_share(closed) == 0.0
+    # A T-junction: the right triangle's vertex lies on the left one's edge, unshared.
+    t = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0], [1, 1, 0], [2, 0, 0]], float)
+    tj = Scene(t, np.array([[0, 1, 2], [5, 3, 4]]), name="tj")
+    assert open_edge_share(tj) == 1.0
