@@ -815,7 +815,11 @@ def method_paragraph(cfg: dict[str, Any]) -> str:
         "methods (`sampling`, our rasterizer, and `embree_rays`) add viewpoints one at a time "
         "until they have used its median time (equal time) or found as large a share of the "
         f"ground truth as it did (equal completeness; capped at max({cap_s:g} s, {cap_f:g}x its "
-        "time), marked NOT reached otherwise). Levels and sizes are chosen so the medium preset "
+        "time), marked NOT reached otherwise). "
+        + (f"A core point still running after {cfg['point_deadline']:g} s was stopped (its row "
+           "says so), and one whose first run took over "
+           f"{SLOW_POINT_SECONDS:g} s was timed once. " if cfg.get("point_deadline") else "")
+        + "Levels and sizes are chosen so the medium preset "
         "takes about half an hour on 2 cores: two levels per knob show the slope of each "
         "error-against-time curve, the ground truth is the dominant fixed cost per cell.\n")
 
@@ -875,6 +879,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--point-deadline", type=float, default=None,
                    help="seconds a core point may run before it is stopped and reported as "
                         "over the deadline (default: none)")
+    p.add_argument("--report-only", action="store_true",
+                   help="run nothing: rewrite the report from RESULTS_DIR/bench_PRESET.json")
     p.add_argument("--merge", action="store_true",
                    help="keep the rows of the last run of this preset (RESULTS_DIR/"
                         "bench_PRESET.json) that this run does not measure again, and write "
@@ -930,9 +936,19 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     out_md = args.out or (REPO / "BENCHMARKS.md")
+    if args.report_only:
+        saved = json.loads((args.results_dir / f"bench_{cfg['preset']}.json").read_text())
+        scfg = saved["config"]
+        runs = scfg.get("runs") or [{"command": saved["command"]}]
+        write_outputs(saved["rows"], scfg, runs[-1]["command"], runs[-1].get("wall_s") or 0.0,
+                      out_md, args.results_dir)
+        print(f"wrote {out_md} from {args.results_dir}")
+        return 0
     command = "pvs bench " + shlex.join(argv)
     _run_point.resolution = int(cfg["resolution"])
     _run_point.deadline = args.point_deadline
+    if args.point_deadline:
+        cfg["point_deadline"] = float(args.point_deadline)
     cfg["load_start"] = _load()
     t0 = time.perf_counter()
     _warm_up(cfg)
@@ -946,6 +962,17 @@ def main(argv: list[str] | None = None) -> int:
             pc = prev.get("config", {})
             cfg["runs"] = pc.get("runs") or [{"command": prev["command"],
                                               "load_start": pc.get("load_start")}]
+            # The report describes the merged tables: every core in them, the earlier run's
+            # peers and reference.
+            ran = {r["core"] for r in rows}
+            cfg["cores"] = [c for c in available_cores() if c in ran] or None
+            if cfg["cores"] is not None and set(cfg["cores"]) == set(available_cores()):
+                cfg["cores"] = None
+            for k in ("peer", "reference"):
+                if k in pc:
+                    cfg[k] = pc[k]
+            if pc.get("point_deadline"):
+                cfg["point_deadline"] = pc["point_deadline"]
     cfg.setdefault("runs", [])
     cfg["runs"] = [*cfg["runs"], {"command": command, "wall_s": wall,
                                   "load_start": cfg["load_start"], "load_end": _load()}]

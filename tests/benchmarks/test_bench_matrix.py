@@ -264,3 +264,6 @@ def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
     assert all("deadline" in r["error"] for r in data["rows"] if r["core"] == "cos")
     text = (tmp_path / "B.md").read_text()
     assert "--cores sampling" in text and "--cores cos --merge" in text
+    (tmp_path / "B.md").unlink()
+    assert bench_matrix.main(argv + ["--report-only"]) == 0  # rewritten from the JSON alone
+    assert (tmp_path / "B.md").read_text() == text
