@@ -15,5 +15,6 @@ def test_quick_run_writes_tables_and_plot(tmp_path):
     # cos promises no false negatives: the benchmark's own reference holds it to that.
     assert all(r["fn_count"] == 0 for r in rows if r["core"] == "cos")
     md = (tmp_path / "small_cells.md").read_text()
-    assert "| cos | 6 |" in md  # the per-core summary: 3 scenes x 2 sizes
+    assert "| cos resolution=32 | 6 |" in md  # the per-core summary: 3 scenes x 2 sizes
+    assert "Open edges" in md
     assert (tmp_path / "small_cells.png").stat().st_size > 0
