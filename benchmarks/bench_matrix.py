@@ -363,7 +363,7 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     from benchmarks import peers
     from benchmarks.gt_cache import cached_ground_truth, scene_fingerprint
     from client.render import OffscreenRenderer
-    from visibility.cores.base import available_cores
+    from visibility.cores.base import available_cores, get_core
     from visibility.ground_truth import fn_fp_rates
     from visibility.viewcells import ViewcellGrid
 
@@ -386,6 +386,20 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 continue
             fp = scene_fingerprint(scene)
             n_valid = max(1, int(scene.valid_faces.sum()))
+            # A core made for other scenes (2.5D only) is refused once, with its reason.
+            fitting = []
+            for name in cores:
+                fit = get_core(name).fit(scene)
+                if fit.ok:
+                    fitting.append(name)
+                else:
+                    rows.append({"scene": label, "triangles": scene.n_triangles,
+                                 "spheres": scene.n_spheres, "cell_size": None, "cell": None,
+                                 "core": name, "knob": "-", "level": None,
+                                 "refused": fit.why})
+                    log(f"[{label}] {name} does not fit: {fit.why}")
+            if not fitting:
+                continue
             log(f"[{label}] {scene.n_triangles} triangles, loaded in "
                 f"{time.perf_counter() - t0:.1f} s")
             for cs in cfg["cell_sizes"]:
@@ -411,7 +425,7 @@ def run_matrix(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         f"{gt_rec['seconds']:.1f} s)")
                     views = view_set(scene, cell, cfg["views"])
                     gt_frames = [renderer.render_scene(scene, e, f) for e, f in views]
-                    jobs = _jobs(cores, levels_by_knob, cfg, use_peer)
+                    jobs = _jobs(fitting, levels_by_knob, cfg, use_peer)
                     for job in jobs:
                         row = dict(base, gt_triangles=int(len(gt_ids)),
                                    gt_spheres=int(len(gt_spheres)), gt_last_batch=share,
@@ -758,7 +772,13 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "`python -m benchmarks.bench_small_cells`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
-        srows = [r for r in rows if r["scene"] == label]
+        refused = [r for r in rows if r["scene"] == label and "refused" in r]
+        srows = [r for r in rows if r["scene"] == label and "refused" not in r]
+        note = "".join(f"Not run here: `{r['core']}` does not fit this scene ({r['refused']}).\n\n"
+                       for r in refused)
+        if not srows:
+            parts.append(f"## {label} ({refused[0]['triangles']} triangles)\n\n{note}")
+            continue
         table = scene_table(srows)
         png = results_dir / f"{tag}_{label}.png"
         plot_scene(srows, label, png)
@@ -766,7 +786,7 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         rel = os.path.relpath(png, out_md.parent)
         sph = f", {srows[0]['spheres']} spheres" if srows[0].get("spheres") else ""
         parts.append(f"## {label} ({srows[0]['triangles']} triangles{sph})\n\n"
-                     f"{ground_truth_lines(srows, cfg)}\n{table}\n![{label}]({rel})\n")
+                     f"{ground_truth_lines(srows, cfg)}\n{note}{table}\n![{label}]({rel})\n")
     out_md.parent.mkdir(parents=True, exist_ok=True)
     out_md.write_text("\n".join(parts))
 

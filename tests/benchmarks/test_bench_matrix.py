@@ -267,3 +267,29 @@ def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
     (tmp_path / "B.md").unlink()
     assert bench_matrix.main(argv + ["--report-only"]) == 0  # rewritten from the JSON alone
     assert (tmp_path / "B.md").read_text() == text
+
+
+def test_a_core_that_does_not_fit_a_scene_is_named_once_not_run(tmp_path):
+    from visibility.cores import base as core_base
+    from visibility.cores.sampling import SamplingCore
+
+    class _Picky(SamplingCore):
+        name = "test_picky"
+
+        def supports(self, scene):
+            return False, "made for no scene at all"
+
+    core_base.register(_Picky)
+    try:
+        argv = TINY + ["--out", str(tmp_path / "B.md"), "--results-dir", str(tmp_path),
+                       "--cache-dir", str(tmp_path / "cache"), "--no-peer", "--reference",
+                       "none", "--cores", "sampling", "test_picky"]
+        assert bench_matrix.main(argv) == 0
+    finally:
+        core_base.unregister(_Picky.name)
+    rows = json.loads((tmp_path / "bench_quick.json").read_text())["rows"]
+    picky = [r for r in rows if r["core"] == "test_picky"]
+    assert len(picky) == 1 and "made for no scene" in picky[0]["refused"]
+    text = (tmp_path / "B.md").read_text()
+    assert "Not run here: `test_picky` does not fit this scene (made for no scene at all)" in text
+    assert "| sampling |" in text and "| test_picky |" not in text
