@@ -1,0 +1,246 @@
+"""The ``dual_ray`` core: from-region visibility in a dual ray space (Koltun, Chrysanthou,
+Cohen-Or 2001), for 2.5D scenes and big cells.
+
+Conservative for eyes in the open air of a 2.5D scene: a kd-tree over the scene (``kdtree``) is
+traversed from the root; each node's box is tested against the cell (``dual_space``: the shaft's
+ceiling, the dual ray space, a hierarchical conservative raster) among the walls closed
+downwards (``fences``); an occluded node ends its recursion. The PVS is the triangles of the
+visible leaves, each then tested on its own bounds (clipped to its leaf) the same way.
+Everything whose bounds reach over the cell's footprint is visible (the shaft needs a gap),
+so a cell that reaches into a building reports that building's triangles around it. What is not
+a wall (roofs, terrain, trees), moving triangles (over their swept bounds) and spheres (all
+reported) never occlude.
+
+Only for 2.5D scenes: ``requires_2_5d`` makes ``fit`` refuse the others, and ``compute`` on one
+raises ``NotTwoPointFiveD`` with the reason (``visibility.scene_analysis``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from visibility.cancel import checkpoint
+from visibility.cores.base import Core, CoreParams, Cost, param, register
+from visibility.cores.dual_ray.dual_space import COARSE, nodes_visible
+from visibility.cores.dual_ray.fences import Fences, scene_fences
+from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+#: The paper's choice (Sec. 6): 128 x 128 for 100 m cells.
+DEFAULT_RESOLUTION = 128
+#: Nodes (or triangles) tested per parallel batch; a cancellation checkpoint after each.
+BATCH = 4096
+#: Cells from this size up (metres, the larger horizontal side) are what the core is for.
+BIG_CELL = 10.0
+
+
+class NotTwoPointFiveD(ValueError):
+    """The scene is not 2.5D, so the dual-ray core cannot answer for it."""
+
+
+@dataclass
+class DualRayParams(CoreParams):
+    """Parameters of the dual-ray core.
+
+    resolution : side of the dual ray space raster (pixels); the PVS stays conservative at any
+        value, higher costs more and overestimates less. Tested 16 x 16 first, refined where
+        needed; rounded up to a multiple of 16.
+    triangle_refine : test each triangle of a visible leaf on its own bounds (smaller PVS).
+    """
+
+    resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
+                            help="side of the dual ray space raster (16 x 16 first, refined)")
+    triangle_refine: bool = param(True, help="test each triangle of a visible kd leaf on its "
+                                             "own bounds (smaller PVS, a little more time)")
+
+
+#: Cost model (``estimate_cost``), fitted to ``python benchmarks/bench_dual_ray.py`` on the
+#: 2-core development machine (benchmarks/results/dual_ray.md): a fixed part per cell plus a
+#: part per triangle of the scene that grows with the cell (more visible leaves and triangle
+#: tests) and, slowly, with the resolution (occluded nodes rasterize all their pixels).
+SECONDS_BASE = 0.02
+SECONDS_PER_TRIANGLE = 6e-7
+BYTES_PER_TRIANGLE = 64
+
+
+@register
+class DualRayCore(Core):
+    """Koltun et al. 2001: kd-tree traversal, cell-to-node visibility on the shaft's ceiling
+    in the dual ray space (conservative, 2.5D scenes only)."""
+
+    name: ClassVar[str] = "dual_ray"
+    description: ClassVar[str] = (
+        "Dual ray space (Koltun, Chrysanthou, Cohen-Or 2001): kd-tree nodes tested against the "
+        "cell on the shaft's ceiling plane, occluding walls rasterized conservatively in the "
+        "dual ray space (conservative; 2.5D scenes only, made for big cells)")
+    Params: ClassVar[type[CoreParams]] = DualRayParams
+    promise: ClassVar[str] = "conservative"
+    knob: ClassVar[str] = "resolution"
+    knob_levels: ClassVar[tuple[int, ...]] = (16, 32, 64, 128, 256)
+    native_segments: ClassVar[bool] = False
+    requires_2_5d: ClassVar[bool] = True
+    fits: ClassVar[str] = ("2.5D scenes (cities: walls standing on the ground) at big cells, "
+                           "10 m to a few hundred metres")
+    check_params: ClassVar[dict[str, Any]] = {}
+    fn_bound: ClassVar[float] = 0.0
+    #: Measured on the 2.5D designed scenes (visibility/cores/designed_scenes.py) against the
+    #: conformance reference: the core reports whole kd-leaf-sized neighbourhoods of what is
+    #: seen and never uses roofs or terrain as occluders, so it over-reports more than the
+    #: per-pixel cores; the bound still catches reporting everything (check_fp_bound_can_fail).
+    fp_bound: ClassVar[float] = 0.5
+
+    def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
+        # Only called on 2.5D scenes (fit refuses the rest). Big cells are what the core is
+        # for: the tree's early termination prunes whole districts at once, and the cost grows
+        # slowly with the cell (benchmarks/results/dual_ray.md); small cells are better served
+        # by the per-pixel cores, which also use roofs and terrain as occluders.
+        if cell_size is not None and cell_size >= BIG_CELL:
+            return 6.0, (f"2.5D scene and big cells ({cell_size:g} m >= {BIG_CELL:g} m): "
+                         "conservative dual-ray-space visibility, fast on big cells")
+        return 0.5, (f"conservative, but made for big cells (>= {BIG_CELL:g} m) of 2.5D "
+                     "scenes; smaller cells are better served by per-pixel cores")
+
+    def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
+        """Linear in the scene's triangles, growing with the cell's size and, as its square
+        root, with the resolution; memory per triangle (tree, fences, bounds)."""
+        r = int(params.resolution)
+        size = float(np.max(cell.size[[0, 2]])) if np.all(np.isfinite(cell.size)) else 0.0
+        m = scene.n_triangles
+        scale = (1.0 + size / 100.0) * np.sqrt(max(r, 16) / 128.0)
+        seconds = SECONDS_BASE + m * SECONDS_PER_TRIANGLE * scale
+        peak = m * BYTES_PER_TRIANGLE + 256 * r * r
+        return Cost(float(seconds), int(peak), {"triangles": m, "resolution": r,
+                                                "cell_size": size})
+
+    def _compute(
+        self, scene: Scene, cell: Viewcell, params: CoreParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        assert isinstance(params, DualRayParams)
+        from visibility.scene_analysis import scene_is_2_5d
+
+        flat, how = scene_is_2_5d(scene)
+        if not flat:
+            raise NotTwoPointFiveD(f"core 'dual_ray' needs a 2.5D scene; {scene.name!r} is "
+                                   f"not: {how['reason']}")
+        return dual_ray_pvs(scene, np.asarray(cell.box, dtype=np.float64),
+                            int(params.resolution), bool(params.triangle_refine))
+
+
+def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int, triangle_refine: bool = True,
+                 coarse: int = COARSE) -> tuple[np.ndarray, dict[str, Any]]:
+    """PVS of a box cell of a 2.5D scene (module docstring).
+
+    Parameters
+    ----------
+    scene : the scene.
+    box : (2, 3) float64 [min, max], metres.
+    resolution : side of the dual ray space raster, pixels.
+    triangle_refine : test each triangle of a visible leaf on its own bounds.
+    coarse : side of the first raster pass.
+
+    Returns
+    -------
+    triangle_ids : (k,) int64 visible triangle ids (any order).
+    stats : seconds per phase (``kdtree_seconds`` and ``fence_seconds``: 0 once cached,
+        ``traversal_seconds``, ``refine_seconds``), ``nodes_visited``, ``nodes_culled``,
+        ``leaves_visible``, ``triangle_tests``, ``triangles_culled``, ``occluders`` (fence
+        pieces of the scene), ``occluding_segments`` (summed over the tests),
+        ``coarse_pixels_refined``, and ``sphere_ids`` (every sphere: they never occlude).
+    """
+    t0 = time.perf_counter()
+    tree, kd_s = scene_kdtree(scene)
+    fences, fence_s = scene_fences(scene)
+    alo = np.ascontiguousarray(box[0], dtype=np.float64)
+    ahi = np.ascontiguousarray(box[1], dtype=np.float64)
+    stats: dict[str, Any] = {
+        "kdtree_seconds": kd_s, "fence_seconds": fence_s, "traversal_seconds": 0.0,
+        "refine_seconds": 0.0, "nodes_visited": 0, "nodes_culled": 0, "leaves_visible": 0,
+        "triangle_tests": 0, "triangles_culled": 0, "occluders": len(fences),
+        "occluding_segments": 0, "coarse_pixels_refined": 0, "resolution": int(resolution),
+        "kd_nodes": tree.n_nodes, "kd_leaves": tree.n_leaves,
+    }
+    t1 = time.perf_counter()
+    leaves = traverse(tree, fences, alo, ahi, resolution, coarse, stats)
+    t2 = time.perf_counter()
+    stats["traversal_seconds"] = t2 - t1
+    if len(leaves):
+        cand = np.concatenate([tree.leaf_items(int(n)) for n in leaves])
+    else:
+        cand = np.zeros(0, np.int64)
+    if triangle_refine and len(cand):
+        ids = refine_triangles(tree, fences, leaves, alo, ahi, resolution, coarse, stats)
+    else:
+        ids = np.unique(cand)
+    stats["refine_seconds"] = time.perf_counter() - t2
+    stats["setup_seconds"] = t1 - t0 - kd_s - fence_s
+    stats["sphere_ids"] = np.arange(scene.n_spheres, dtype=np.int32)
+    return ids, stats
+
+
+def _test(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
+          resolution: int, coarse: int) -> np.ndarray:
+    """``nodes_visible`` over the scene's fences, in batches with a checkpoint between."""
+    out = np.zeros((len(blo), 3), dtype=np.int64)
+    for s in range(0, len(blo), BATCH):
+        checkpoint()
+        out[s:s + BATCH] = nodes_visible(
+            alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
+            np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.grid_lo,
+            fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
+            int(resolution), int(coarse))
+    return out
+
+
+def traverse(tree: KdTree, fences: Fences, alo: np.ndarray, ahi: np.ndarray, resolution: int,
+             coarse: int, stats: dict[str, Any]) -> np.ndarray:
+    """Visible leaves (int64 node ids): the tree from the root, a level at a time (each
+    level's nodes tested in parallel); an occluded node ends its recursion."""
+    if tree.n_nodes == 0 or len(tree.items) == 0:
+        return np.zeros(0, np.int64)
+    frontier = np.array([0], dtype=np.int64)
+    leaves: list[np.ndarray] = []
+    while len(frontier):
+        res = _test(fences, alo, ahi, tree.lo[frontier], tree.hi[frontier], resolution, coarse)
+        stats["nodes_visited"] += len(frontier)
+        stats["occluding_segments"] += int(res[:, 1].sum())
+        stats["coarse_pixels_refined"] += int(res[:, 2].sum())
+        vis = frontier[res[:, 0] == 1]
+        stats["nodes_culled"] += int(len(frontier) - len(vis))
+        is_leaf = tree.child[vis, 0] < 0
+        leaves.append(vis[is_leaf])
+        inner = vis[~is_leaf]
+        frontier = tree.child[inner].reshape(-1)
+        frontier = frontier[frontier >= 0]
+    out = np.concatenate(leaves)
+    out = out[tree.item_start[out + 1] > tree.item_start[out]]
+    stats["leaves_visible"] = int(len(out))
+    return out
+
+
+def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.ndarray,
+                     ahi: np.ndarray, resolution: int, coarse: int,
+                     stats: dict[str, Any]) -> np.ndarray:
+    """Triangles of the visible ``leaves`` whose own bounds, clipped to their leaf's region,
+    are visible from the cell (a triangle in several leaves: visible if any part is)."""
+    counts = tree.item_start[leaves + 1] - tree.item_start[leaves]
+    leaf_of = np.repeat(leaves, counts)
+    tri = np.concatenate([tree.leaf_items(int(n)) for n in leaves])
+    blo = tree.tri_lo[tri].copy()
+    bhi = tree.tri_hi[tri].copy()
+    # Clip X and Z to the leaf's box (its region, which holds the triangle's part there).
+    for c in (0, 2):
+        blo[:, c] = np.maximum(blo[:, c], tree.lo[leaf_of, c])
+        bhi[:, c] = np.minimum(bhi[:, c], tree.hi[leaf_of, c])
+    bhi[:, [0, 2]] = np.maximum(bhi[:, [0, 2]], blo[:, [0, 2]])
+    res = _test(fences, alo, ahi, blo, bhi, resolution, coarse)
+    stats["triangle_tests"] = int(len(tri))
+    stats["occluding_segments"] += int(res[:, 1].sum())
+    stats["coarse_pixels_refined"] += int(res[:, 2].sum())
+    vis = np.unique(tri[res[:, 0] == 1])
+    stats["triangles_culled"] = int(len(np.unique(tri)) - len(vis))
+    return vis
