@@ -41,6 +41,9 @@ COARSE = 16
 #: Slack of the sign tests in the dual space, metres of lateral offset: far below anything
 #: that decides visibility, above the rounding of coordinates up to 1e7 m.
 EPS = 1e-7
+#: Occluders within this of the slab's faces (metres) are left out: the slab is open. A wall
+#: lying in B's near face is what B holds (a wall triangle's own box), not what hides it.
+SLAB_TOL = 1e-6
 
 
 @njit(cache=True, nogil=True)
@@ -109,13 +112,17 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, out):  # pragma: no cover - numba
         pu, pw, qu, qw = sgn * pz, px, sgn * qz, qx
     t0, t1 = 0.0, 1.0
     du = qu - pu
-    # Inside the slab.
+    # Inside the open slab.
+    ua = uA + SLAB_TOL
+    ub = uB - SLAB_TOL
+    if ua >= ub:
+        return False
     if du == 0.0:
-        if pu < uA or pu > uB:
+        if pu < ua or pu > ub:
             return False
     else:
-        a = (uA - pu) / du
-        b = (uB - pu) / du
+        a = (ua - pu) / du
+        b = (ub - pu) / du
         if a > b:
             a, b = b, a
         t0 = max(t0, a)
