@@ -190,7 +190,8 @@ def _test(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi
         checkpoint()
         out[s:s + BATCH] = nodes_visible(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
-            np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.grid_lo,
+            np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.bot,
+            fences.grid_lo,
             fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
             int(resolution), int(coarse))
     return out

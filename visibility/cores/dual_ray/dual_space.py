@@ -7,12 +7,16 @@ face F_A and B's face F_B, and ``w`` is lateral. Every segment from a point of A
 B crosses F_A inside ``s1`` and F_B inside ``s2``, the cross-sections of the convex hull of the
 two footprints there. The ceiling ``T`` is the plane over the slab through a top edge of each
 box that lies above both boxes (through A's far top edge and B's near one when B is higher,
-else A's near one and B's far one): every segment between the boxes' tops runs under it.
-Observation 1 with occluders closed downwards (``fences``): a free segment from A to B, its
-end points lifted to the boxes' tops and then to T, stays free; so when every segment of T
-from s1 to s2 is blocked by the occluders' cross-sections with T, A and B are mutually
-hidden. That cross-section of a fence piece is the part of it whose top is above T, clipped
-to the slab: one segment.
+else A's near one and B's far one): every segment between the boxes runs under it. The paper
+reduces to T through Observation 1, which holds for occluders closed downwards; real walls stop
+at their bottom edge (in the Lyon tile some float a centimetre above where a grazing ray
+passes, with no ground under them), so here the floor ``V`` (the plane under both boxes, T
+mirrored) bounds the segments from below too. The occluding segment of a wall strip
+(``fences``) is the part of it, over the open slab, that spans the shaft from V to T: any
+segment between the boxes whose XZ projection crosses it passes there between V and T, so it
+hits the wall. For walls standing on the ground and cells above it (2.5D), that is the
+paper's cross-section with T; and the test holds whatever the eye's place (inside a building,
+under a floating wall): what it calls hidden is hidden.
 
 **The dual ray space (Sec. 5.1).** ``(x, y)`` in the unit square is the segment from
 ``s1(x)`` to ``s2(y)``. At slab depth ``d = (u - uA) / (uB - uA)`` its lateral position is
@@ -52,13 +56,15 @@ def shaft_frame(alo, ahi, blo, bhi):  # pragma: no cover - numba
 
     Returns
     -------
-    frame : (14,) float64 ``[axis, sign, uA, uB, au0, bu1, s1lo, s1hi, s2lo, s2hi, yA, yB,
-        gap, ok]``: the separating axis (0: x, 2: z) and its sign (+1: B on the + side), the
+    frame : (16,) float64 ``[axis, sign, uA, uB, au0, bu1, s1lo, s1hi, s2lo, s2hi, yA, yB,
+        gap, ok, yA_low, yB_low]``: the separating axis (0: x, 2: z) and its sign (+1: B on
+        the + side), the
         slab's faces ``uA < uB`` and the boxes' far faces ``au0 <= uA``, ``bu1 >= uB`` in the
         frame's ``u = sign * coord[axis]``, the lateral ranges ``s1`` on F_A and ``s2`` on F_B,
-        the boxes' tops, the gap, and ``ok`` = 0 when the footprints overlap (no shaft).
+        the boxes' tops, the gap, ``ok`` = 0 when the footprints overlap (no shaft), and the
+        boxes' bottoms.
     """
-    out = np.zeros(14)
+    out = np.zeros(16)
     gaps = np.array([blo[0] - ahi[0], alo[0] - bhi[0], blo[2] - ahi[2], alo[2] - bhi[2]])
     k = int(np.argmax(gaps))
     g = gaps[k]
@@ -88,6 +94,8 @@ def shaft_frame(alo, ahi, blo, bhi):  # pragma: no cover - numba
     out[11] = bhi[1]
     out[12] = g
     out[13] = 1.0
+    out[14] = alo[1]
+    out[15] = blo[1]
     return out
 
 
@@ -101,10 +109,36 @@ def ceiling(frame, u):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def cut_piece(frame, px, pz, qx, qz, tp, tq, out):  # pragma: no cover - numba
-    """The occluding segment of one fence piece in the shaft: the part of it over the slab
-    whose top is at or above the ceiling, as ``out = [d0, l0, d1, l1]`` (slab depth 0..1,
-    lateral metres). Returns False when none of it occludes inside the shaft's hull."""
+def floor(frame, u):  # pragma: no cover - numba
+    """Height of the shaft's floor V at frame coordinate ``u`` (metres): the lowest any segment
+    between the boxes passes there (``ceiling`` mirrored)."""
+    uA, uB, au0, bu1, yA, yB = frame[2], frame[3], frame[4], frame[5], frame[14], frame[15]
+    if yB <= yA:
+        return yA + (yB - yA) * (u - au0) / (uB - au0)
+    return yA + (yB - yA) * (u - uA) / (bu1 - uA)
+
+
+@njit(cache=True, nogil=True)
+def _keep_nonneg(g0, g1, t0, t1):  # pragma: no cover - numba
+    """[t0, t1] cut to where the linear g (g0 at t=0, g1 at t=1) is >= 0 (t0 > t1: empty)."""
+    dg = g1 - g0
+    if dg == 0.0:
+        if g0 < 0.0:
+            return 1.0, 0.0
+        return t0, t1
+    r = -g0 / dg
+    if dg > 0.0:
+        return max(t0, r), t1
+    return t0, min(t1, r)
+
+
+@njit(cache=True, nogil=True)
+def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover - numba
+    """The occluding segment of one fence piece in the shaft: the part of it over the open
+    slab whose strip spans the shaft from floor to ceiling (bottom <= V, top >= T), as
+    ``out = [d0, l0, d1, l1]`` (slab depth 0..1, lateral metres). Every segment between the
+    boxes whose XZ projection crosses that part passes it between V and T: it hits the wall.
+    Returns False when none of it occludes inside the shaft's hull."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
     if axis == 0:
         pu, pw, qu, qw = sgn * px, pz, sgn * qx, qz
@@ -129,21 +163,13 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, out):  # pragma: no cover - numba
         t1 = min(t1, b)
         if t0 > t1:
             return False
-    # Top at or above the ceiling: g(t) = top(t) - T(u(t)) >= 0, linear in t.
-    g0 = tp - ceiling(frame, pu)
-    g1 = tq - ceiling(frame, qu)
-    dg = g1 - g0
-    if dg == 0.0:
-        if g0 < 0.0:
-            return False
-    else:
-        r = -g0 / dg
-        if dg > 0.0:
-            t0 = max(t0, r)
-        else:
-            t1 = min(t1, r)
-        if t0 > t1:
-            return False
+    # Top at or above the ceiling, bottom at or below the floor (both linear in t).
+    t0, t1 = _keep_nonneg(tp - ceiling(frame, pu), tq - ceiling(frame, qu), t0, t1)
+    if t0 > t1:
+        return False
+    t0, t1 = _keep_nonneg(floor(frame, pu) - bp, floor(frame, qu) - bq, t0, t1)
+    if t0 > t1:
+        return False
     u0 = pu + t0 * du
     u1 = pu + t1 * du
     w0 = pw + t0 * (qw - pw)
@@ -182,7 +208,8 @@ def region(frame, d0, l0, d1, l1, out):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def shaft_regions(frame, seg, top, glo, step, gn, cell_start, cell_items):  # pragma: no cover
+def shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
+                  cell_items):  # pragma: no cover
     """Dual regions (n, 6) of every fence piece occluding inside the shaft ``frame``, and the
     occluding segments (n, 4) ``[d0, l0, d1, l1]`` they come from."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
@@ -220,7 +247,7 @@ def shaft_regions(frame, seg, top, glo, step, gn, cell_start, cell_items):  # pr
                 if max(pa, i0) != a or max(pb, j0) != b:
                     continue
                 if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0],
-                             top[p, 1], cut):
+                             top[p, 1], bot[p, 0], bot[p, 1], cut):
                     region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
                     segs[n, :] = cut
                     n += 1
@@ -318,20 +345,20 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def node_visible(alo, ahi, blo, bhi, seg, top, glo, step, gn, cell_start, cell_items,
+def node_visible(alo, ahi, blo, bhi, seg, top, bot, glo, step, gn, cell_start, cell_items,
                  resolution, coarse_side):  # pragma: no cover - numba
     """Whether box B may be seen from box A among the fences (1) or not (0), the number of
     occluding segments in the shaft and the coarse pixels refined."""
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return 1, 0, 0
-    regs, _ = shaft_regions(frame, seg, top, glo, step, gn, cell_start, cell_items)
+    regs, _ = shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
     vis, refined = raster_visible(regs, resolution, coarse_side)
     return (1 if vis else 0), regs.shape[0], refined
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def nodes_visible(alo, ahi, blo, bhi, seg, top, glo, step, gn, cell_start, cell_items,
+def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, glo, step, gn, cell_start, cell_items,
                   resolution, coarse_side):  # pragma: no cover - numba
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
@@ -339,8 +366,8 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, glo, step, gn, cell_start, cell_
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
     for i in prange(n):
-        v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, glo, step, gn, cell_start,
-                               cell_items, resolution, coarse_side)
+        v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, glo, step, gn,
+                               cell_start, cell_items, resolution, coarse_side)
         out[i, 0] = v
         out[i, 1] = s
         out[i, 2] = r

@@ -1,20 +1,19 @@
-"""The occluders of a 2.5D scene as *fences*: vertical walls, each closed downwards.
+"""The occluders of a 2.5D scene as wall *strips* (fence pieces).
 
-A static wall triangle (``|n_y| <= WALL_NY``) occludes as its downward closure: everything under
-its top edge over its XZ footprint, a vertical strip with a piecewise-linear top (the upper hull
-of its corners). That closure is what the reduction to the ceiling plane needs (Observation 1
-lifts a free segment upward; a set closed downwards cannot catch the lifted one unless it
-caught the original). A wall of a 2.5D scene stands on the ground, so its closure adds only
-the solid under it. Each triangle gives one or two *pieces*: an XZ segment ``p -> q`` with the
-fence top ``yp -> yq`` linear along it.
+A static wall triangle (``|n_y| <= WALL_NY``) is cut, along its horizontal direction u, at its
+middle corner into (at most) two pieces; over each, its vertical section is a strip whose
+bottom and top are linear in u. A piece is an XZ segment ``p -> q`` with the strip's bottom and
+top at both ends. Pieces over the same XZ segment whose strips touch stack into one (a quad's
+two triangles, a facade's rows: contiguity is checked at both ends, which suffices since the
+gap between a convex bottom and a concave top is concave); pieces that continue each other
+along a line with the same bottom and top merge (a facade's columns). So a city's facades
+become a few strips each, every one inside the walls it comes from.
 
-What is not a wall (roofs, terrain, trees, street furniture), moving triangles and walls thinner
-than ``MIN_LENGTH`` never occlude: they are occludees only. Pieces over the same XZ segment (a
-facade split into rows) keep the highest; pieces that continue each other along a line at the
-same top (a facade split into columns) are merged, so a city's facades become a few pieces each.
+What is not a wall (roofs, terrain, trees, street furniture), moving triangles and walls
+tilted past ``WALL_NY`` never occlude: they are occludees only.
 
-Built once per scene (``scene_fences``), with a uniform XZ grid (``FenceGrid``) that lists the
-pieces crossing each grid cell, for the shaft queries.
+Built once per scene (``scene_fences``), with a uniform XZ grid that lists the pieces crossing
+each grid cell, for the shaft queries.
 """
 
 from __future__ import annotations
@@ -34,8 +33,11 @@ from visibility.scene import Scene
 WALL_NY = 0.02
 #: Shortest fence piece kept, metres.
 MIN_LENGTH = 1e-4
-#: Rounding of end points and tops when pieces are compared (dedupe, merge), metres.
+#: Rounding of end points when pieces are compared (same XZ segment), metres.
 SNAP = 1e-3
+#: Largest mismatch of end points or heights (metres) at which pieces still join; joined
+#: strips shrink by it, so they stay inside the walls they come from.
+JOIN = 1e-6
 #: Target pieces per grid cell of the query grid.
 PIECES_PER_CELL = 4.0
 
@@ -47,7 +49,7 @@ class Fences:
     Attributes
     ----------
     seg : (k, 4) float64 XZ end points ``[px, pz, qx, qz]``, metres.
-    top : (k, 2) float64 fence top at p and at q, metres.
+    top, bot : (k, 2) float64 the strip's top and bottom at p and at q, metres.
     grid_lo : (2,) float64 XZ corner of the grid; ``grid_step`` its cell side; ``grid_n``
         (2,) int64 cells along X and Z.
     cell_start : (nx * nz + 1,) int64 CSR offsets; ``cell_items`` (k',) int64 piece ids per cell
@@ -58,6 +60,7 @@ class Fences:
 
     seg: np.ndarray
     top: np.ndarray
+    bot: np.ndarray
     grid_lo: np.ndarray
     grid_step: float
     grid_n: np.ndarray
@@ -71,9 +74,38 @@ class Fences:
 
 
 @njit(cache=True, nogil=True)
-def _pieces(tri, out_seg, out_top):  # pragma: no cover - numba
-    """Upper-hull pieces of vertical triangles ``tri`` (t, 3, 3); returns the count written."""
+def _span_at(us, ys, u):  # pragma: no cover - numba
+    """(lowest, highest) height of the triangle with corners (us, ys) in its plane at ``u``."""
+    lo = np.inf
+    hi = -np.inf
+    for a in range(3):
+        b = (a + 1) % 3
+        ua, ub = us[a], us[b]
+        if ua > ub:
+            ua, ub = ub, ua
+        if u < ua - 1e-12 or u > ub + 1e-12:
+            continue
+        if ub - ua <= 1e-12:
+            y0, y1 = ys[a], ys[b]
+            lo = min(lo, y0, y1)
+            hi = max(hi, y0, y1)
+        else:
+            w = (u - us[a]) / (us[b] - us[a])
+            w = min(max(w, 0.0), 1.0)
+            y = ys[a] + w * (ys[b] - ys[a])
+            lo = min(lo, y)
+            hi = max(hi, y)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _pieces(tri, out_seg, out_top, out_bot):  # pragma: no cover - numba
+    """Pieces of vertical triangles ``tri`` (t, 3, 3): over each of the two u-intervals
+    between its corners (u along the wall), the triangle's section is a strip whose bottom and
+    top are linear. Returns the count written."""
     k = 0
+    us = np.empty(3)
+    ys = np.empty(3)
     for t in range(tri.shape[0]):
         # Horizontal direction of the wall: the longest XZ extent between two corners.
         best = -1.0
@@ -92,66 +124,63 @@ def _pieces(tri, out_seg, out_top):  # pragma: no cover - numba
         ux = (tri[t, ib, 0] - tri[t, ia, 0]) / ln
         uz = (tri[t, ib, 2] - tri[t, ia, 2]) / ln
         ox, oz = tri[t, ia, 0], tri[t, ia, 2]
-        us = np.empty(3)
-        ys = np.empty(3)
         for c in range(3):
             us[c] = (tri[t, c, 0] - ox) * ux + (tri[t, c, 2] - oz) * uz
             ys[c] = tri[t, c, 1]
-        # Sort the corners by u (ties: higher first, so the hull starts at the top).
-        order = np.argsort(us - 1e-12 * ys)
-        u0, u1, u2 = us[order[0]], us[order[1]], us[order[2]]
-        y0, y1, y2 = ys[order[0]], ys[order[1]], ys[order[2]]
-        # The middle corner is on the upper hull when it lies above the chord 0 -> 2.
-        if u2 - u0 <= 0.0:
-            continue
-        chord = y0 + (y2 - y0) * (u1 - u0) / (u2 - u0)
-        if u1 - u0 < 1e-12:
-            # Vertical left edge: the top there is the higher of corners 0 and 1.
-            ya = max(y0, y1)
-            out_seg[k, 0] = ox + u0 * ux
-            out_seg[k, 1] = oz + u0 * uz
-            out_seg[k, 2] = ox + u2 * ux
-            out_seg[k, 3] = oz + u2 * uz
-            out_top[k, 0] = ya
-            out_top[k, 1] = y2
-            k += 1
-        elif u2 - u1 < 1e-12:
-            yb = max(y1, y2)
-            out_seg[k, 0] = ox + u0 * ux
-            out_seg[k, 1] = oz + u0 * uz
-            out_seg[k, 2] = ox + u2 * ux
-            out_seg[k, 3] = oz + u2 * uz
-            out_top[k, 0] = y0
-            out_top[k, 1] = yb
-            k += 1
-        elif y1 > chord:
+        su = np.sort(us)
+        for q in range(2):
+            u0, u1 = su[q], su[q + 1]
+            if u1 - u0 <= 1e-9:
+                continue
+            lo0, hi0 = _span_at(us, ys, u0)
+            lo1, hi1 = _span_at(us, ys, u1)
+            if not (hi0 >= lo0 and hi1 >= lo1):
+                continue
             out_seg[k, 0] = ox + u0 * ux
             out_seg[k, 1] = oz + u0 * uz
             out_seg[k, 2] = ox + u1 * ux
             out_seg[k, 3] = oz + u1 * uz
-            out_top[k, 0] = y0
-            out_top[k, 1] = y1
-            k += 1
-            out_seg[k, 0] = ox + u1 * ux
-            out_seg[k, 1] = oz + u1 * uz
-            out_seg[k, 2] = ox + u2 * ux
-            out_seg[k, 3] = oz + u2 * uz
-            out_top[k, 0] = y1
-            out_top[k, 1] = y2
-            k += 1
-        else:
-            out_seg[k, 0] = ox + u0 * ux
-            out_seg[k, 1] = oz + u0 * uz
-            out_seg[k, 2] = ox + u2 * ux
-            out_seg[k, 3] = oz + u2 * uz
-            out_top[k, 0] = y0
-            out_top[k, 1] = y2
+            out_top[k, 0] = hi0
+            out_top[k, 1] = hi1
+            out_bot[k, 0] = lo0
+            out_bot[k, 1] = lo1
             k += 1
     return k
 
 
 @njit(cache=True, nogil=True)
-def _merge_runs(seg, top, order, key_line, snap):  # pragma: no cover - numba
+def _stack(order, grp, top, bot, keep, tol):  # pragma: no cover - numba
+    """Within each group of pieces over one XZ segment (``grp``, ``order`` sorting by group
+    and bottom), join the strips that touch or overlap into one (bottom of the first, the
+    higher top) while they stay contiguous at both ends: the gap between a convex bottom and a
+    concave top is concave, so checking the ends suffices. Joined pieces are dropped from
+    ``keep``; the first of each run holds the union."""
+    n = len(order)
+    i = 0
+    while i < n:
+        a = order[i]
+        keep[a] = True
+        j = i + 1
+        while j < n:
+            b = order[j]
+            if grp[b] != grp[a]:
+                break
+            if bot[b, 0] > top[a, 0] + tol or bot[b, 1] > top[a, 1] + tol:
+                break
+            if top[b, 0] >= top[a, 0] and top[b, 1] >= top[a, 1]:
+                top[a, 0] = top[b, 0]
+                top[a, 1] = top[b, 1]
+            elif not (top[b, 0] <= top[a, 0] and top[b, 1] <= top[a, 1]):
+                # Crossing tops: either alone is inside the union; keep the higher on average.
+                if top[b, 0] + top[b, 1] > top[a, 0] + top[a, 1]:
+                    top[a, 0] = top[b, 0]
+                    top[a, 1] = top[b, 1]
+            j += 1
+        i = j
+
+
+@njit(cache=True, nogil=True)
+def _merge_runs(seg, top, bot, order, key_line, snap):  # pragma: no cover - numba
     """Merge pieces that continue each other: ``order`` sorts them by line and by start along
     it; consecutive pieces on one line (``key_line``) whose ends meet (within ``snap``) at the
     same top, with the same top slope, become one. Returns a keep mask (merged pieces are
@@ -162,13 +191,15 @@ def _merge_runs(seg, top, order, key_line, snap):  # pragma: no cover - numba
     while i < n:
         a = order[i]
         keep[a] = True
+        merged = False
         j = i + 1
         while j < n:
             b = order[j]
             if key_line[b] != key_line[a]:
                 break
             gap = abs(seg[b, 0] - seg[a, 2]) + abs(seg[b, 1] - seg[a, 3])
-            if gap > snap or abs(top[b, 0] - top[a, 1]) > snap:
+            if gap > snap or abs(top[b, 0] - top[a, 1]) > snap or \
+                    abs(bot[b, 0] - bot[a, 1]) > snap:
                 break
             la = np.hypot(seg[a, 2] - seg[a, 0], seg[a, 3] - seg[a, 1])
             lb = np.hypot(seg[b, 2] - seg[b, 0], seg[b, 3] - seg[b, 1])
@@ -176,21 +207,34 @@ def _merge_runs(seg, top, order, key_line, snap):  # pragma: no cover - numba
                 break
             sa = (top[a, 1] - top[a, 0]) / la
             sb = (top[b, 1] - top[b, 0]) / lb
-            if abs(sa - sb) * (la + lb) > snap:
+            ba = (bot[a, 1] - bot[a, 0]) / la
+            bb = (bot[b, 1] - bot[b, 0]) / lb
+            if abs(sa - sb) * (la + lb) > snap or abs(ba - bb) * (la + lb) > snap:
                 break
+            # The joint's heights are taken inside both pieces' (within snap): lower top,
+            # higher bottom, so the merged strip stays inside the two.
             seg[a, 2] = seg[b, 2]
             seg[a, 3] = seg[b, 3]
             top[a, 1] = top[b, 1]
+            bot[a, 1] = bot[b, 1]
+            merged = True
             j += 1
+        if merged:
+            # Heights matched within ``snap`` only: shrink the strip by it to stay inside.
+            top[a, 0] -= snap
+            top[a, 1] -= snap
+            bot[a, 0] += snap
+            bot[a, 1] += snap
         i = j
     return keep
 
 
-def _orient(seg: np.ndarray, top: np.ndarray) -> None:
+def _orient(seg: np.ndarray, top: np.ndarray, bot: np.ndarray) -> None:
     """Make every piece run in increasing x (then z), in place, so equal segments compare."""
     flip = (seg[:, 2] < seg[:, 0]) | ((seg[:, 2] == seg[:, 0]) & (seg[:, 3] < seg[:, 1]))
     seg[flip] = seg[flip][:, [2, 3, 0, 1]]
     top[flip] = top[flip][:, ::-1]
+    bot[flip] = bot[flip][:, ::-1]
 
 
 def wall_mask(scene: Scene, wall_ny: float = WALL_NY) -> np.ndarray:
@@ -216,30 +260,31 @@ def wall_mask(scene: Scene, wall_ny: float = WALL_NY) -> np.ndarray:
 
 
 def build_fences(scene: Scene) -> Fences:
-    """Fence pieces of ``scene``'s walls, deduplicated and merged, with their query grid."""
+    """Fence pieces of ``scene``'s walls, stacked and merged, with their query grid."""
     t0 = time.perf_counter()
     walls = np.flatnonzero(wall_mask(scene))
     tri = np.ascontiguousarray(scene.vertices[scene.faces[walls]], dtype=np.float64)
     seg = np.empty((2 * len(tri), 4))
     top = np.empty((2 * len(tri), 2))
-    k = _pieces(tri, seg, top) if len(tri) else 0
-    seg, top = seg[:k], top[:k]
+    bot = np.empty((2 * len(tri), 2))
+    k = _pieces(tri, seg, top, bot) if len(tri) else 0
+    seg, top, bot = seg[:k], top[:k], bot[:k]
     length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
     ok = length >= MIN_LENGTH
-    seg, top = seg[ok], top[ok]
-    _orient(seg, top)
+    seg, top, bot = seg[ok], top[ok], bot[ok]
+    _orient(seg, top, bot)
     if len(seg):
-        # Same XZ segment (a facade in rows): keep the piece with the highest lower top. Any
-        # subset of the occluders is conservative; this one drops only what a kept piece
-        # covers when the two tops are parallel, as in a facade grid.
+        # Pieces over one XZ segment (a facade's rows, a quad's two triangles) stack into one
+        # strip where they are contiguous. Segments compare after rounding to SNAP; the
+        # stacked strip keeps the first piece's exact end points.
         q = np.round(seg / SNAP).astype(np.int64)
-        order = np.lexsort((-np.minimum(top[:, 0], top[:, 1]), q[:, 3], q[:, 2], q[:, 1],
-                            q[:, 0]))
-        qs = q[order]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = np.any(qs[1:] != qs[:-1], axis=1)
-        pick = order[first]
-        seg, top = np.ascontiguousarray(seg[pick]), np.ascontiguousarray(top[pick])
+        _, grp = np.unique(q, axis=0, return_inverse=True)
+        grp = grp.reshape(-1).astype(np.int64)
+        order = np.lexsort((bot[:, 0] + bot[:, 1], grp)).astype(np.int64)
+        keep = np.zeros(len(seg), dtype=bool)
+        seg, top, bot = (np.ascontiguousarray(a) for a in (seg, top, bot))
+        _stack(order, grp, top, bot, keep, JOIN)
+        seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
         # Runs along one line (a facade in columns): merge.
         d = seg[:, 2:] - seg[:, :2]
         ln = np.hypot(d[:, 0], d[:, 1])
@@ -250,10 +295,11 @@ def build_fences(scene: Scene) -> Fences:
         key_line = key_line.reshape(-1).astype(np.int64)
         along = seg[:, 0] * (d[:, 0] / ln) + seg[:, 1] * (d[:, 1] / ln)
         order = np.lexsort((along, key_line)).astype(np.int64)
-        keep = _merge_runs(seg, top, order, key_line, SNAP)
-        seg, top = np.ascontiguousarray(seg[keep]), np.ascontiguousarray(top[keep])
+        keep = _merge_runs(seg, top, bot, order, key_line, JOIN)
+        seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
     grid = _grid(seg)
-    return Fences(seg, top, *grid, walls=len(walls), build_seconds=time.perf_counter() - t0)
+    return Fences(seg, top, bot, *grid, walls=len(walls),
+                  build_seconds=time.perf_counter() - t0)
 
 
 @njit(cache=True, nogil=True)
