@@ -25,7 +25,12 @@ import numpy as np
 
 from visibility.cancel import checkpoint
 from visibility.cores.base import Core, CoreParams, Cost, param, register
-from visibility.cores.dual_ray.dual_space import COARSE, nodes_visible
+from visibility.cores.dual_ray.dual_space import (
+    COARSE,
+    boxes_visible_among,
+    leaf_piece_ids,
+    nodes_visible,
+)
 from visibility.cores.dual_ray.fences import Fences, scene_fences
 from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
 from visibility.scene import Scene
@@ -238,7 +243,23 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
         blo[:, c] = np.maximum(blo[:, c], tree.lo[leaf_of, c])
         bhi[:, c] = np.minimum(bhi[:, c], tree.hi[leaf_of, c])
     bhi[:, [0, 2]] = np.maximum(bhi[:, [0, 2]], blo[:, [0, 2]])
-    res = _test(fences, alo, ahi, blo, bhi, resolution, coarse)
+    # Each triangle draws its occluders from its leaf's shaft and footprint
+    # (``shaft_piece_ids``: its own shaft's when it shares the leaf's axis, a subset when not,
+    # conservative either way), gathered once per leaf.
+    checkpoint()
+    start, ids, ok = leaf_piece_ids(alo, ahi, np.ascontiguousarray(tree.lo[leaves]),
+                                np.ascontiguousarray(tree.hi[leaves]), fences.seg, fences.top,
+                                fences.bot, fences.grid_lo, fences.grid_step, fences.grid_n,
+                                fences.cell_start, fences.cell_items)
+    group = np.repeat(np.arange(len(leaves), dtype=np.int64), counts)
+    res = np.zeros((len(tri), 3), dtype=np.int64)
+    for s in range(0, len(tri), BATCH):
+        checkpoint()
+        res[s:s + BATCH] = boxes_visible_among(
+            alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
+            np.ascontiguousarray(bhi[s:s + BATCH]), group[s:s + BATCH], start, ids, ok,
+            fences.seg, fences.top, fences.bot, fences.grid_lo, fences.grid_step,
+            fences.grid_n, fences.cell_start, fences.cell_items, int(resolution), int(coarse))
     stats["triangle_tests"] = int(len(tri))
     stats["occluding_segments"] += int(res[:, 1].sum())
     stats["coarse_pixels_refined"] += int(res[:, 2].sum())

@@ -30,9 +30,11 @@ covers it whole: the region's two affine functions keep their signs over the pix
 its centre with the margin ``a (|df/dx| + |df/dy|)`` (a = half the pixel side), which is
 moving each bounding line inwards by the pixel's support distance: the exact form of the
 paper's sqrt(2) a shrink (never more than it). An uncovered pixel means visible. Hierarchical:
-a 16 x 16 pass first (a pixel whose centre ray no region blocks ends the test: visible); only
-the coarse pixels it leaves uncovered are refined, each with the regions that touch it, to the
-configured resolution. The answer is exactly that of the full-resolution raster.
+a 16 x 16 pass first; a square whose centre ray no region blocks ends the test (visible); a
+square neither covered nor free is split in four, with only the regions that meet it, down to
+the configured resolution (a quadtree below the coarse pass). The answer is exactly that of the
+full-resolution raster: a covered square's pixels are covered, and the pixels around a free
+centre are not.
 """
 
 from __future__ import annotations
@@ -209,139 +211,112 @@ def region(frame, d0, l0, d1, l1, out):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True)
 def shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
-                  cell_items):  # pragma: no cover
+                  cell_items):  # pragma: no cover - numba
     """Dual regions (n, 6) of every fence piece occluding inside the shaft ``frame``, and the
     occluding segments (n, 4) ``[d0, l0, d1, l1]`` they come from."""
-    axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
-    wlo = min(frame[6], frame[8])
-    whi = max(frame[7], frame[9])
-    if axis == 0:
-        x0, x1 = min(sgn * uA, sgn * uB), max(sgn * uA, sgn * uB)
-        z0, z1 = wlo, whi
-    else:
-        z0, z1 = min(sgn * uA, sgn * uB), max(sgn * uA, sgn * uB)
-        x0, x1 = wlo, whi
-    nx, nz = gn[0], gn[1]
-    i0 = min(max(int(np.floor((x0 - glo[0]) / step)), 0), nx - 1)
-    i1 = min(max(int(np.floor((x1 - glo[0]) / step)), 0), nx - 1)
-    j0 = min(max(int(np.floor((z0 - glo[1]) / step)), 0), nz - 1)
-    j1 = min(max(int(np.floor((z1 - glo[1]) / step)), 0), nz - 1)
-    total = 0
-    for a in range(i0, i1 + 1):
-        for b in range(j0, j1 + 1):
-            total += cell_start[a * nz + b + 1] - cell_start[a * nz + b]
-    regs = np.empty((total, 6))
-    segs = np.empty((total, 4))
-    cut = np.empty(4)
-    n = 0
-    for a in range(i0, i1 + 1):
-        for b in range(j0, j1 + 1):
-            c = a * nz + b
-            for e in range(cell_start[c], cell_start[c + 1]):
-                p = cell_items[e]
-                # Visit each piece once: in the first query cell its bounds overlap.
-                pa = min(max(int(np.floor((min(seg[p, 0], seg[p, 2]) - glo[0]) / step)), 0),
-                         nx - 1)
-                pb = min(max(int(np.floor((min(seg[p, 1], seg[p, 3]) - glo[1]) / step)), 0),
-                         nz - 1)
-                if max(pa, i0) != a or max(pb, j0) != b:
-                    continue
-                if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0],
-                             top[p, 1], bot[p, 0], bot[p, 1], cut):
-                    region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
-                    segs[n, :] = cut
-                    n += 1
-    return regs[:n], segs[:n]
+    regs, segs, _ = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    return regs, segs
 
 
 @njit(cache=True, nogil=True)
-def _covers(r, cx, cy, a):  # pragma: no cover - numba
-    """Whether region r covers the whole pixel of centre (cx, cy) and half side a."""
-    f0 = r[0] + r[1] * cx + r[2] * cy
-    f1 = r[3] + r[4] * cx + r[5] * cy
-    s0 = a * (abs(r[1]) + abs(r[2]))
-    s1 = a * (abs(r[4]) + abs(r[5]))
-    return (f0 + s0 <= -EPS and f1 - s1 >= EPS) or (f0 - s0 >= EPS and f1 + s1 <= -EPS)
-
-
-@njit(cache=True, nogil=True)
-def _touches(r, cx, cy, a):  # pragma: no cover - numba
-    """Whether region r may meet the pixel (its two functions do not keep one strict sign)."""
-    f0 = r[0] + r[1] * cx + r[2] * cy
-    f1 = r[3] + r[4] * cx + r[5] * cy
-    s0 = a * (abs(r[1]) + abs(r[2]))
-    s1 = a * (abs(r[4]) + abs(r[5]))
-    outside = (f0 - s0 > EPS and f1 - s1 > EPS) or (f0 + s0 < -EPS and f1 + s1 < -EPS)
-    return not outside
+def _classify(regs, cand, n_cand, cx, cy, a, out, final):  # pragma: no cover - numba
+    """One square of the raster (centre (cx, cy), half side a) against the candidate regions
+    ``cand[:n_cand]``: 1 when one region covers it whole, 2 when no region holds its centre
+    (a free ray: visible), else 0, with the regions that may meet it written to ``out`` (their
+    count returned second). At the final level only coverage is asked."""
+    m = 0
+    free = True
+    for t in range(n_cand):
+        r = regs[cand[t]]
+        f0 = r[0] + r[1] * cx + r[2] * cy
+        f1 = r[3] + r[4] * cx + r[5] * cy
+        s0 = a * (abs(r[1]) + abs(r[2]))
+        s1 = a * (abs(r[4]) + abs(r[5]))
+        if (f0 + s0 <= -EPS and f1 - s1 >= EPS) or (f0 - s0 >= EPS and f1 + s1 <= -EPS):
+            # Found first next time: neighbouring squares are often covered by the same one.
+            if t > 0:
+                c0 = cand[0]
+                cand[0] = cand[t]
+                cand[t] = c0
+            return 1, 0
+        if final:
+            continue
+        if free and (f0 * f1 <= 0.0 or abs(f0) <= EPS or abs(f1) <= EPS):
+            free = False
+        if not ((f0 - s0 > EPS and f1 - s1 > EPS) or (f0 + s0 < -EPS and f1 + s1 < -EPS)):
+            out[m] = cand[t]
+            m += 1
+    if final:
+        return 0, 0
+    if free:
+        return 2, 0
+    return 0, m
 
 
 @njit(cache=True, nogil=True)
 def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
-    """Hierarchical conservative raster test (module docstring).
+    """Hierarchical conservative raster test (module docstring): the ``coarse_side`` square
+    grid first; each square neither covered whole by one region nor free at its centre is
+    split in four, with the regions that meet it, down to pixels of 1 / ``resolution``
+    (rounded up to ``coarse_side`` times a power of two).
 
     Returns
     -------
-    visible : True when some pixel at ``resolution`` (rounded up to a multiple of the coarse
-        side) is not wholly covered by one region.
-    refined : coarse pixels refined.
+    visible : True when some pixel at the final resolution is not wholly covered by one region.
+    refined : coarse squares that had to be split.
     """
-    c = min(coarse_side, resolution)
-    k = (resolution + c - 1) // c
     n = regs.shape[0]
     if n == 0:
         return True, 0
+    c = min(coarse_side, resolution)
+    depth = 0
+    while c * (1 << depth) < resolution:
+        depth += 1
+    lists = np.empty((depth + 2, n), dtype=np.int64)
+    counts = np.zeros(depth + 2, dtype=np.int64)
+    for r in range(n):
+        lists[0, r] = r
+    counts[0] = n
     hc = 1.0 / c
-    ac = 0.5 * hc
-    pending = np.empty(c * c, dtype=np.int64)
-    n_pending = 0
+    refined = 0
+    stack_l = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
+    stack_i = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
+    stack_j = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
     for i in range(c):
-        cx = (i + 0.5) * hc
         for j in range(c):
-            cy = (j + 0.5) * hc
-            covered = False
-            free = True
-            for r in range(n):
-                if _covers(regs[r], cx, cy, ac):
-                    covered = True
-                    break
-                if free:
-                    f0 = regs[r, 0] + regs[r, 1] * cx + regs[r, 2] * cy
-                    f1 = regs[r, 3] + regs[r, 4] * cx + regs[r, 5] * cy
-                    if f0 * f1 <= 0.0 or abs(f0) <= EPS or abs(f1) <= EPS:
-                        free = False
-            if covered:
+            kind, m = _classify(regs, lists[0], counts[0], (i + 0.5) * hc, (j + 0.5) * hc,
+                                0.5 * hc, lists[1], depth == 0)
+            if kind == 1:
                 continue
-            if free:
-                return True, 0
-            pending[n_pending] = i * c + j
-            n_pending += 1
-    if k == 1:
-        return n_pending > 0, n_pending
-    hf = hc / k
-    af = 0.5 * hf
-    sub = np.empty(n, dtype=np.int64)
-    for q in range(n_pending):
-        i = pending[q] // c
-        j = pending[q] % c
-        cx = (i + 0.5) * hc
-        cy = (j + 0.5) * hc
-        m = 0
-        for r in range(n):
-            if _touches(regs[r], cx, cy, ac):
-                sub[m] = r
-                m += 1
-        for si in range(k):
-            fx = i * hc + (si + 0.5) * hf
-            for sj in range(k):
-                fy = j * hc + (sj + 0.5) * hf
-                covered = False
-                for t in range(m):
-                    if _covers(regs[sub[t]], fx, fy, af):
-                        covered = True
-                        break
-                if not covered:
-                    return True, q + 1
-    return False, n_pending
+            if kind == 2 or depth == 0:
+                return True, refined
+            refined += 1
+            counts[1] = m
+            # Depth first over the quadtree below square (i, j); a square at level l (side
+            # hc / 2^l) reads its parent's list lists[l] and writes its own to lists[l + 1].
+            top = 0
+            for q in range(4):
+                stack_l[top] = 1
+                stack_i[top] = 2 * i + q // 2
+                stack_j[top] = 2 * j + q % 2
+                top += 1
+            while top > 0:
+                top -= 1
+                lv, si, sj = stack_l[top], stack_i[top], stack_j[top]
+                h = hc / (1 << lv)
+                kind, m = _classify(regs, lists[lv], counts[lv], (si + 0.5) * h, (sj + 0.5) * h,
+                                    0.5 * h, lists[lv + 1], lv == depth)
+                if kind == 1:
+                    continue
+                if kind == 2 or lv == depth:
+                    return True, refined
+                counts[lv + 1] = m
+                for q in range(4):
+                    stack_l[top] = lv + 1
+                    stack_i[top] = 2 * si + q // 2
+                    stack_j[top] = 2 * sj + q % 2
+                    top += 1
+    return False, refined
 
 
 @njit(cache=True, nogil=True)
@@ -371,4 +346,180 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, glo, step, gn, cell_start, 
         out[i, 0] = v
         out[i, 1] = s
         out[i, 2] = r
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _heightless(frame):  # pragma: no cover - numba
+    """``frame`` with its ceiling far below and its floor far above every strip: cut_piece then
+    keeps every piece over the slab and inside the hull, whatever its heights."""
+    f = frame.copy()
+    f[10] = -1e300
+    f[11] = -1e300
+    f[14] = 1e300
+    f[15] = 1e300
+    return f
+
+
+@njit(cache=True, nogil=True)
+def _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items):  # pragma: no cover
+    """Ids of the pieces whose XZ bounds meet box B's footprint."""
+    nx, nz = gn[0], gn[1]
+    i0 = min(max(int(np.floor((blo[0] - glo[0]) / step)), 0), nx - 1)
+    i1 = min(max(int(np.floor((bhi[0] - glo[0]) / step)), 0), nx - 1)
+    j0 = min(max(int(np.floor((blo[2] - glo[1]) / step)), 0), nz - 1)
+    j1 = min(max(int(np.floor((bhi[2] - glo[1]) / step)), 0), nz - 1)
+    total = 0
+    for a in range(i0, i1 + 1):
+        for b in range(j0, j1 + 1):
+            total += cell_start[a * nz + b + 1] - cell_start[a * nz + b]
+    ids = np.empty(total, dtype=np.int64)
+    n = 0
+    for a in range(i0, i1 + 1):
+        for b in range(j0, j1 + 1):
+            c = a * nz + b
+            for e in range(cell_start[c], cell_start[c + 1]):
+                p = cell_items[e]
+                pa = min(max(int(np.floor((min(seg[p, 0], seg[p, 2]) - glo[0]) / step)), 0),
+                         nx - 1)
+                pb = min(max(int(np.floor((min(seg[p, 1], seg[p, 3]) - glo[1]) / step)), 0),
+                         nz - 1)
+                if max(pa, i0) != a or max(pb, j0) != b:
+                    continue
+                if max(seg[p, 0], seg[p, 2]) < blo[0] or min(seg[p, 0], seg[p, 2]) > bhi[0] \
+                        or max(seg[p, 1], seg[p, 3]) < blo[2] \
+                        or min(seg[p, 1], seg[p, 3]) > bhi[2]:
+                    continue
+                ids[n] = p
+                n += 1
+    return ids[:n]
+
+
+@njit(cache=True, nogil=True)
+def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
+                    cell_items):  # pragma: no cover - numba
+    """Ids of the fence pieces over the slab of ``frame`` inside its hull, heights aside,
+    and of those within box B's footprint: the occluders of the shaft of any box inside B
+    that shares B's axis."""
+    _, _, ids1 = _gather(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
+                         cell_items)
+    ids2 = _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items)
+    out = np.empty(len(ids1) + len(ids2), dtype=np.int64)
+    out[:len(ids1)] = ids1
+    out[len(ids1):] = ids2
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pragma: no cover
+    """``shaft_regions`` plus the ids of the pieces the regions come from."""
+    axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
+    wlo = min(frame[6], frame[8])
+    whi = max(frame[7], frame[9])
+    if axis == 0:
+        x0, x1 = min(sgn * uA, sgn * uB), max(sgn * uA, sgn * uB)
+        z0, z1 = wlo, whi
+    else:
+        z0, z1 = min(sgn * uA, sgn * uB), max(sgn * uA, sgn * uB)
+        x0, x1 = wlo, whi
+    nx, nz = gn[0], gn[1]
+    i0 = min(max(int(np.floor((x0 - glo[0]) / step)), 0), nx - 1)
+    i1 = min(max(int(np.floor((x1 - glo[0]) / step)), 0), nx - 1)
+    j0 = min(max(int(np.floor((z0 - glo[1]) / step)), 0), nz - 1)
+    j1 = min(max(int(np.floor((z1 - glo[1]) / step)), 0), nz - 1)
+    total = 0
+    for a in range(i0, i1 + 1):
+        for b in range(j0, j1 + 1):
+            total += cell_start[a * nz + b + 1] - cell_start[a * nz + b]
+    regs = np.empty((total, 6))
+    segs = np.empty((total, 4))
+    ids = np.empty(total, dtype=np.int64)
+    cut = np.empty(4)
+    n = 0
+    for a in range(i0, i1 + 1):
+        for b in range(j0, j1 + 1):
+            c = a * nz + b
+            for e in range(cell_start[c], cell_start[c + 1]):
+                p = cell_items[e]
+                # Visit each piece once: in the first query cell its bounds overlap.
+                pa = min(max(int(np.floor((min(seg[p, 0], seg[p, 2]) - glo[0]) / step)), 0),
+                         nx - 1)
+                pb = min(max(int(np.floor((min(seg[p, 1], seg[p, 3]) - glo[1]) / step)), 0),
+                         nz - 1)
+                if max(pa, i0) != a or max(pb, j0) != b:
+                    continue
+                if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0],
+                             top[p, 1], bot[p, 0], bot[p, 1], cut):
+                    region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
+                    segs[n, :] = cut
+                    ids[n] = p
+                    n += 1
+    return regs[:n], segs[:n], ids[:n]
+
+
+@njit(cache=True, nogil=True)
+def regions_from(frame, ids, seg, top, bot):  # pragma: no cover - numba
+    """Dual regions (n, 6) of the pieces ``ids`` occluding inside the shaft ``frame``."""
+    regs = np.empty((len(ids), 6))
+    cut = np.empty(4)
+    n = 0
+    for e in range(len(ids)):
+        p = ids[e]
+        if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
+                     bot[p, 0], bot[p, 1], cut):
+            region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
+            n += 1
+    return regs[:n]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cell_start,
+                   cell_items):  # pragma: no cover - numba
+    """Per leaf box (n, 3), the pieces of ``shaft_piece_ids`` for its shaft, as CSR
+    (start (n + 1,), ids), and whether the leaf has a shaft at all (``ok``; a leaf over the
+    cell's footprint has none): what its triangles' tests draw their occluders from."""
+    n = leaf_lo.shape[0]
+    counts = np.zeros(n + 1, dtype=np.int64)
+    ok = np.zeros(n, dtype=np.bool_)
+    for i in prange(n):
+        frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
+        if frame[13] != 0.0:
+            ok[i] = True
+            counts[i + 1] = len(shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot,
+                                                glo, step, gn, cell_start, cell_items))
+    start = np.cumsum(counts)
+    ids = np.empty(start[-1], dtype=np.int64)
+    for i in prange(n):
+        if ok[i]:
+            frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
+            got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, glo, step, gn,
+                                  cell_start, cell_items)
+            ids[start[i]:start[i] + len(got)] = got
+    return start, ids, ok
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, glo, step,
+                        gn, cell_start, cell_items, resolution,
+                        coarse_side):  # pragma: no cover - numba
+    """Like ``nodes_visible``, each box (n, 3) drawing its occluders from its group's pieces
+    ``ids[start[g]:start[g + 1]]`` (a subset of its shaft's at most: still conservative), or
+    from the whole grid when its group has no list (``ok[g]`` False)."""
+    n = blo.shape[0]
+    out = np.zeros((n, 3), dtype=np.int64)
+    for i in prange(n):
+        frame = shaft_frame(alo, ahi, blo[i], bhi[i])
+        if frame[13] == 0.0:
+            out[i, 0] = 1
+            continue
+        g = group[i]
+        if ok[g]:
+            regs = regions_from(frame, ids[start[g]:start[g + 1]], seg, top, bot)
+        else:
+            regs, _ = shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
+                                    cell_items)
+        vis, refined = raster_visible(regs, resolution, coarse_side)
+        out[i, 0] = 1 if vis else 0
+        out[i, 1] = regs.shape[0]
+        out[i, 2] = refined
     return out
