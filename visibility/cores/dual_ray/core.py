@@ -24,7 +24,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from visibility.cancel import checkpoint
-from visibility.cores.base import Core, CoreParams, Cost, param, register
+from visibility.cores.base import Core, CoreParams, Cost, Fit, param, register
+from visibility.cores.dual_ray.cache import per_scene
 from visibility.cores.dual_ray.dual_space import (
     COARSE,
     boxes_visible_among,
@@ -100,6 +101,14 @@ class DualRayCore(Core):
     #: every triangle of the city blocks (0.81) still exceeds it.
     fp_bound: ClassVar[float] = 0.75
 
+    def fit(self, scene: Scene, cell_size: float | None = None) -> Fit:
+        """``Core.fit``; a refusal of a scene whose meta states it is not 2.5D also says what
+        its geometry shows (the share under overhangs and where the first one is)."""
+        out = super().fit(scene, cell_size)
+        if out.ok or "2.5D" not in out.why:
+            return out
+        return Fit(False, out.score, out.why + _geometry_says(scene))
+
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # Only called on 2.5D scenes (fit refuses the rest). Big cells are what the core is
         # for: the tree's early termination prunes whole districts at once, and the cost grows
@@ -132,9 +141,20 @@ class DualRayCore(Core):
         flat, how = scene_is_2_5d(scene)
         if not flat:
             raise NotTwoPointFiveD(f"core 'dual_ray' needs a 2.5D scene; {scene.name!r} is "
-                                   f"not: {how['reason']}")
+                                   f"not: {how['reason']}{_geometry_says(scene)}")
         return dual_ray_pvs(scene, np.asarray(cell.box, dtype=np.float64),
                             int(params.resolution), bool(params.triangle_refine))
+
+
+def _geometry_says(scene: Scene) -> str:
+    """``"; its geometry: <reason>"`` when the 2.5D answer came from the scene's meta (which
+    says only who stated it), else ``""``. The analysis is cached with the scene."""
+    from visibility.scene_analysis import analyse_2_5d, stated_2_5d
+
+    if stated_2_5d(scene) is None:
+        return ""
+    geo, _ = per_scene(scene, "analysis_2_5d", analyse_2_5d)
+    return f"; its geometry: {geo.reason}"
 
 
 def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int, triangle_refine: bool = True,
