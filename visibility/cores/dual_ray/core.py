@@ -252,10 +252,12 @@ def traverse(tree: KdTree, fences: Fences, alo: np.ndarray, ahi: np.ndarray, res
 def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.ndarray,
                      ahi: np.ndarray, resolution: int, coarse: int,
                      stats: dict[str, Any]) -> np.ndarray:
-    """Triangles of the visible ``leaves`` whose own bounds, clipped to their leaf's region,
-    are visible from the cell (a triangle in several leaves: visible if any part is)."""
+    """Triangles of the visible ``leaves`` whose own bounds, clipped to the visible leaves'
+    regions, are visible from the cell. A triangle is tested once: over the box of its parts in
+    the visible leaves."""
     counts = tree.item_start[leaves + 1] - tree.item_start[leaves]
     leaf_of = np.repeat(leaves, counts)
+    group = np.repeat(np.arange(len(leaves), dtype=np.int64), counts)
     tri = np.concatenate([tree.leaf_items(int(n)) for n in leaves])
     blo = tree.tri_lo[tri].copy()
     bhi = tree.tri_hi[tri].copy()
@@ -264,26 +266,42 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
         blo[:, c] = np.maximum(blo[:, c], tree.lo[leaf_of, c])
         bhi[:, c] = np.minimum(bhi[:, c], tree.hi[leaf_of, c])
     bhi[:, [0, 2]] = np.maximum(bhi[:, [0, 2]], blo[:, [0, 2]])
-    # Each triangle draws its occluders from its leaf's shaft and footprint
+    # One box per triangle: the union of its parts in the visible leaves.
+    order = np.argsort(tri, kind="stable")
+    tri, blo, bhi, group = tri[order], blo[order], bhi[order], group[order]
+    first = np.flatnonzero(np.r_[True, tri[1:] != tri[:-1]])
+    n_parts = np.diff(np.r_[first, len(tri)])
+    ubox_lo = np.minimum.reduceat(blo, first, axis=0)
+    ubox_hi = np.maximum.reduceat(bhi, first, axis=0)
+    utri = tri[first]
+    ugroup = group[first]
+    single = n_parts == 1
+    # A triangle in one visible leaf draws its occluders from that leaf's shaft and footprint
     # (``shaft_piece_ids``: its own shaft's when it shares the leaf's axis, a subset when not,
-    # conservative either way), gathered once per leaf.
+    # conservative either way), gathered once per leaf; one in several, from the grid.
     checkpoint()
     start, ids, ok = leaf_piece_ids(alo, ahi, np.ascontiguousarray(tree.lo[leaves]),
-                                np.ascontiguousarray(tree.hi[leaves]), fences.seg, fences.top,
-                                fences.bot, fences.grid_lo, fences.grid_step, fences.grid_n,
-                                fences.cell_start, fences.cell_items)
-    group = np.repeat(np.arange(len(leaves), dtype=np.int64), counts)
-    res = np.zeros((len(tri), 3), dtype=np.int64)
-    for s in range(0, len(tri), BATCH):
+                                    np.ascontiguousarray(tree.hi[leaves]), fences.seg,
+                                    fences.top, fences.bot, fences.grid_lo, fences.grid_step,
+                                    fences.grid_n, fences.cell_start, fences.cell_items)
+    ok_single = ok.copy()
+    res = np.zeros((len(utri), 3), dtype=np.int64)
+    sel = np.flatnonzero(single)
+    for s in range(0, len(sel), BATCH):
         checkpoint()
-        res[s:s + BATCH] = boxes_visible_among(
-            alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
-            np.ascontiguousarray(bhi[s:s + BATCH]), group[s:s + BATCH], start, ids, ok,
-            fences.seg, fences.top, fences.bot, fences.grid_lo, fences.grid_step,
-            fences.grid_n, fences.cell_start, fences.cell_items, int(resolution), int(coarse))
-    stats["triangle_tests"] = int(len(tri))
+        part = sel[s:s + BATCH]
+        res[part] = boxes_visible_among(
+            alo, ahi, np.ascontiguousarray(ubox_lo[part]), np.ascontiguousarray(ubox_hi[part]),
+            ugroup[part], start, ids, ok_single, fences.seg, fences.top, fences.bot,
+            fences.grid_lo, fences.grid_step, fences.grid_n, fences.cell_start,
+            fences.cell_items, int(resolution), int(coarse))
+    multi = np.flatnonzero(~single)
+    if len(multi):
+        res[multi] = _test(fences, alo, ahi, ubox_lo[multi], ubox_hi[multi], resolution, coarse)
+    stats["candidate_pieces"] = int(np.sum((start[1:] - start[:-1])[ugroup[sel]]))
+    stats["triangle_tests"] = int(len(utri))
     stats["occluding_segments"] += int(res[:, 1].sum())
     stats["coarse_pixels_refined"] += int(res[:, 2].sum())
-    vis = np.unique(tri[res[:, 0] == 1])
-    stats["triangles_culled"] = int(len(np.unique(tri)) - len(vis))
+    vis = utri[res[:, 0] == 1]
+    stats["triangles_culled"] = int(len(utri) - len(vis))
     return vis
