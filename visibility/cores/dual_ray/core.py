@@ -261,11 +261,11 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
     tri = np.concatenate([tree.leaf_items(int(n)) for n in leaves])
     blo = tree.tri_lo[tri].copy()
     bhi = tree.tri_hi[tri].copy()
-    # Clip X and Z to the leaf's box (its region, which holds the triangle's part there).
-    for c in (0, 2):
+    # Clip to the leaf's box (its region, which holds the triangle's part there).
+    for c in (0, 1, 2):
         blo[:, c] = np.maximum(blo[:, c], tree.lo[leaf_of, c])
         bhi[:, c] = np.minimum(bhi[:, c], tree.hi[leaf_of, c])
-    bhi[:, [0, 2]] = np.maximum(bhi[:, [0, 2]], blo[:, [0, 2]])
+    bhi = np.maximum(bhi, blo)
     # One box per triangle: the union of its parts in the visible leaves.
     order = np.argsort(tri, kind="stable")
     tri, blo, bhi, group = tri[order], blo[order], bhi[order], group[order]
@@ -275,30 +275,26 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
     ubox_hi = np.maximum.reduceat(bhi, first, axis=0)
     utri = tri[first]
     ugroup = group[first]
-    single = n_parts == 1
-    # A triangle in one visible leaf draws its occluders from that leaf's shaft and footprint
-    # (``shaft_piece_ids``: its own shaft's when it shares the leaf's axis, a subset when not,
-    # conservative either way), gathered once per leaf; one in several, from the grid.
+    # Each triangle draws its occluders from the list of one of its visible leaves: that
+    # leaf's shaft and footprint (``shaft_piece_ids``), gathered once per leaf. For a triangle
+    # in that leaf alone and sharing its axis, these are its own shaft's; otherwise a subset
+    # (parts in other leaves, mostly the same footprint at other heights, may have occluders
+    # the list lacks): conservative either way.
     checkpoint()
     start, ids, ok = leaf_piece_ids(alo, ahi, np.ascontiguousarray(tree.lo[leaves]),
                                     np.ascontiguousarray(tree.hi[leaves]), fences.seg,
                                     fences.top, fences.bot, fences.grid_lo, fences.grid_step,
                                     fences.grid_n, fences.cell_start, fences.cell_items)
-    ok_single = ok.copy()
     res = np.zeros((len(utri), 3), dtype=np.int64)
-    sel = np.flatnonzero(single)
-    for s in range(0, len(sel), BATCH):
+    for s in range(0, len(utri), BATCH):
         checkpoint()
-        part = sel[s:s + BATCH]
-        res[part] = boxes_visible_among(
-            alo, ahi, np.ascontiguousarray(ubox_lo[part]), np.ascontiguousarray(ubox_hi[part]),
-            ugroup[part], start, ids, ok_single, fences.seg, fences.top, fences.bot,
-            fences.grid_lo, fences.grid_step, fences.grid_n, fences.cell_start,
-            fences.cell_items, int(resolution), int(coarse))
-    multi = np.flatnonzero(~single)
-    if len(multi):
-        res[multi] = _test(fences, alo, ahi, ubox_lo[multi], ubox_hi[multi], resolution, coarse)
-    stats["candidate_pieces"] = int(np.sum((start[1:] - start[:-1])[ugroup[sel]]))
+        res[s:s + BATCH] = boxes_visible_among(
+            alo, ahi, np.ascontiguousarray(ubox_lo[s:s + BATCH]),
+            np.ascontiguousarray(ubox_hi[s:s + BATCH]), ugroup[s:s + BATCH], start, ids, ok,
+            fences.seg, fences.top, fences.bot, fences.grid_lo, fences.grid_step,
+            fences.grid_n, fences.cell_start, fences.cell_items, int(resolution), int(coarse))
+    stats["candidate_pieces"] = int(np.sum((start[1:] - start[:-1])[ugroup]))
+    stats["multi_leaf_triangles"] = int(np.count_nonzero(n_parts > 1))
     stats["triangle_tests"] = int(len(utri))
     stats["occluding_segments"] += int(res[:, 1].sum())
     stats["coarse_pixels_refined"] += int(res[:, 2].sum())

@@ -47,6 +47,9 @@ COARSE = 16
 #: Slack of the sign tests in the dual space, metres of lateral offset: far below anything
 #: that decides visibility, above the rounding of coordinates up to 1e7 m.
 EPS = 1e-7
+_d16 = np.array([abs(q // COARSE - 0.5 * (COARSE - 1)) + abs(q % COARSE - 0.5 * (COARSE - 1))
+                 for q in range(COARSE * COARSE)])
+_SCAN16 = np.argsort(_d16, kind="mergesort").astype(np.int64)
 #: Occluders within this of the slab's faces (metres) are left out: the slab is open. A wall
 #: lying in B's near face is what B holds (a wall triangle's own box), not what hides it.
 SLAB_TOL = 1e-6
@@ -254,6 +257,17 @@ def _classify(regs, cand, n_cand, cx, cy, a, out, final):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
+def _centre_out(c):  # pragma: no cover - numba
+    """Indices of a c x c grid, centre first, outwards (the coarse pass's order)."""
+    if c == COARSE:
+        return _SCAN16
+    dist = np.empty(c * c)
+    for q in range(c * c):
+        dist[q] = abs(q // c - 0.5 * (c - 1)) + abs(q % c - 0.5 * (c - 1))
+    return np.argsort(dist, kind="mergesort")
+
+
+@njit(cache=True, nogil=True)
 def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
     """Hierarchical conservative raster test (module docstring): the ``coarse_side`` square
     grid first; each square neither covered whole by one region nor free at its centre is
@@ -279,11 +293,16 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
     counts[0] = n
     hc = 1.0 / c
     refined = 0
+    # Centre first, outwards: a visible node usually has free rays near the middle ray (from
+    # the middle of s1 to the middle of s2), and its test ends at the first one found.
+    scan = _centre_out(c)
     stack_l = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
     stack_i = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
     stack_j = np.empty(4 * (depth + 1) + 4, dtype=np.int64)
-    for i in range(c):
-        for j in range(c):
+    for q0 in range(c * c):
+        i = scan[q0] // c
+        j = scan[q0] % c
+        if True:
             kind, m = _classify(regs, lists[0], counts[0], (i + 0.5) * hc, (j + 0.5) * hc,
                                 0.5 * hc, lists[1], depth == 0)
             if kind == 1:

@@ -1,10 +1,10 @@
-"""The kd-tree the dual-ray core traverses: a 2D (XZ) kd-tree over the scene's triangles.
+"""The kd-tree the dual-ray core traverses, over the scene's triangles.
 
-The occluders are 2.5D, so cell-to-node visibility depends on a node's footprint and top
-height only (``dual_space``); splitting in Y would add nodes without adding occlusion. A
-triangle sits in every leaf whose XZ region its bounds overlap, so a node's box (its region
-clipped to its triangles' bounds, their full height range) holds every part of its triangles
-that lies in its region. Moving triangles take part over the bounds of every keyframe (their
+Cell-to-node visibility depends on a node's footprint, top and bottom (``dual_space``): a lower
+top is a lower ceiling, so tall nodes are split in Y too (heights weigh double when the axis
+is chosen). A triangle sits in every leaf whose region its bounds overlap, so a node's box (its
+region clipped to its triangles' bounds) holds every part of its triangles that lies in its
+region. Moving triangles take part over the bounds of every keyframe (their
 sweep: positions are piecewise linear in time), spheres are left to the caller.
 
 Built once per scene (``scene_kdtree``, cached with the scene).
@@ -24,6 +24,8 @@ from visibility.scene import Scene
 LEAF_SIZE = 48
 #: Deepest split; leaves stop here whatever they hold.
 MAX_DEPTH = 28
+#: Weight of a node's height against its width when the split axis is chosen.
+Y_WEIGHT = 2.0
 #: A split whose children hold together more than this share of the parent's triangles (large
 #: triangles straddling it) is not made.
 MAX_DUPLICATION = 1.7
@@ -31,12 +33,12 @@ MAX_DUPLICATION = 1.7
 
 @dataclass
 class KdTree:
-    """A 2D kd-tree over triangle bounds.
+    """A kd-tree over triangle bounds.
 
     Attributes
     ----------
     lo, hi : (n_nodes, 3) float64 node boxes [min, max], metres (tight on the node's triangles,
-        clipped in X and Z to the node's region).
+        clipped to the node's region).
     child : (n_nodes, 2) int64 children, -1 for a leaf.
     depth : (n_nodes,) int64.
     item_start : (n_nodes + 1,) int64 CSR offsets into ``items`` (leaves only; inner nodes
@@ -105,14 +107,12 @@ def build_kdtree(scene: Scene, leaf_size: int = LEAF_SIZE) -> KdTree:
     child_l: list[list[int]] = []
     depth_l: list[int] = []
     leaf_of: list[np.ndarray | None] = []
-    cx = 0.5 * (tlo[:, 0] + thi[:, 0])
-    cz = 0.5 * (tlo[:, 2] + thi[:, 2])
-    # Stack of (triangle ids, region lo xz, region hi xz, depth, parent slot).
+    centre = 0.5 * (tlo + thi)
     if len(ids):
-        region = (np.array([tlo[ids, 0].min(), tlo[ids, 2].min()]),
-                  np.array([thi[ids, 0].max(), thi[ids, 2].max()]))
+        region = (tlo[ids].min(axis=0), thi[ids].max(axis=0))
     else:
-        region = (np.zeros(2), np.zeros(2))
+        region = (np.zeros(3), np.zeros(3))
+    # Stack of (triangle ids, region lo, region hi, depth, parent, side).
     stack: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]] = [
         (ids, region[0], region[1], 0, -1, 0)]
     while stack:
@@ -121,13 +121,10 @@ def build_kdtree(scene: Scene, leaf_size: int = LEAF_SIZE) -> KdTree:
         if parent >= 0:
             child_l[parent][side] = node
         if len(idx):
-            blo = np.array([max(tlo[idx, 0].min(), rlo[0]), tlo[idx, 1].min(),
-                            max(tlo[idx, 2].min(), rlo[1])])
-            bhi = np.array([min(thi[idx, 0].max(), rhi[0]), thi[idx, 1].max(),
-                            min(thi[idx, 2].max(), rhi[1])])
+            blo = np.maximum(tlo[idx].min(axis=0), rlo)
+            bhi = np.minimum(thi[idx].max(axis=0), rhi)
         else:
-            blo = np.array([rlo[0], 0.0, rlo[1]])
-            bhi = np.array([rhi[0], 0.0, rhi[1]])
+            blo, bhi = rlo.copy(), rlo.copy()
         lo_l.append(blo)
         hi_l.append(bhi)
         child_l.append([-1, -1])
@@ -135,28 +132,29 @@ def build_kdtree(scene: Scene, leaf_size: int = LEAF_SIZE) -> KdTree:
         leaf_of.append(idx)
         if len(idx) <= leaf_size or depth >= MAX_DEPTH:
             continue
-        ext = bhi[[0, 2]] - blo[[0, 2]]
-        axis = 0 if ext[0] >= ext[1] else 1
-        col = 0 if axis == 0 else 2
-        c = cx[idx] if axis == 0 else cz[idx]
-        pos = float(np.median(c))
-        a_lo, a_hi = float(blo[col]), float(bhi[col])
-        if not (a_lo < pos < a_hi):
-            pos = 0.5 * (a_lo + a_hi)
+        # Split the longest side; heights count double: a lower box has a lower ceiling
+        # (``dual_space``), so splitting tall nodes in Y pays in occlusion.
+        ext = (bhi - blo) * np.array([1.0, Y_WEIGHT, 1.0])
+        for axis in np.argsort(-ext):
+            pos = float(np.median(centre[idx, axis]))
+            a_lo, a_hi = float(blo[axis]), float(bhi[axis])
             if not (a_lo < pos < a_hi):
+                pos = 0.5 * (a_lo + a_hi)
+                if not (a_lo < pos < a_hi):
+                    continue
+            left = idx[tlo[idx, axis] <= pos]
+            right = idx[thi[idx, axis] >= pos]
+            if len(left) + len(right) > MAX_DUPLICATION * len(idx) or \
+                    len(left) == len(idx) or len(right) == len(idx):
                 continue
-        left = idx[tlo[idx, col] <= pos]
-        right = idx[thi[idx, col] >= pos]
-        if len(left) + len(right) > MAX_DUPLICATION * len(idx) or \
-                len(left) == len(idx) or len(right) == len(idx):
-            continue
-        leaf_of[node] = None
-        llo, lhi = blo[[0, 2]].copy(), bhi[[0, 2]].copy()
-        lhi[axis] = pos
-        rlo2, rhi2 = blo[[0, 2]].copy(), bhi[[0, 2]].copy()
-        rlo2[axis] = pos
-        stack.append((right, rlo2, rhi2, depth + 1, node, 1))
-        stack.append((left, llo, lhi, depth + 1, node, 0))
+            leaf_of[node] = None
+            llo, lhi = blo.copy(), bhi.copy()
+            lhi[axis] = pos
+            rlo2, rhi2 = blo.copy(), bhi.copy()
+            rlo2[axis] = pos
+            stack.append((right, rlo2, rhi2, depth + 1, node, 1))
+            stack.append((left, llo, lhi, depth + 1, node, 0))
+            break
     n = len(lo_l)
     counts = np.array([0 if leaf_of[i] is None else len(leaf_of[i]) for i in range(n)],
                       dtype=np.int64)
