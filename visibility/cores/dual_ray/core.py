@@ -281,10 +281,13 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
     # (parts in other leaves, mostly the same footprint at other heights, may have occluders
     # the list lacks): conservative either way.
     checkpoint()
+    t_lists = time.perf_counter()
     start, ids, ok = leaf_piece_ids(alo, ahi, np.ascontiguousarray(tree.lo[leaves]),
                                     np.ascontiguousarray(tree.hi[leaves]), fences.seg,
                                     fences.top, fences.bot, fences.grid_lo, fences.grid_step,
                                     fences.grid_n, fences.cell_start, fences.cell_items)
+    t_tests = time.perf_counter()
+    stats["occluder_list_seconds"] = t_tests - t_lists
     res = np.zeros((len(utri), 3), dtype=np.int64)
     for s in range(0, len(utri), BATCH):
         checkpoint()
@@ -293,6 +296,7 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
             np.ascontiguousarray(ubox_hi[s:s + BATCH]), ugroup[s:s + BATCH], start, ids, ok,
             fences.seg, fences.top, fences.bot, fences.grid_lo, fences.grid_step,
             fences.grid_n, fences.cell_start, fences.cell_items, int(resolution), int(coarse))
+    stats["triangle_test_seconds"] = time.perf_counter() - t_tests
     stats["candidate_pieces"] = int(np.sum((start[1:] - start[:-1])[ugroup]))
     stats["multi_leaf_triangles"] = int(np.count_nonzero(n_parts > 1))
     stats["triangle_tests"] = int(len(utri))
