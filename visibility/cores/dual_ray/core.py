@@ -217,7 +217,7 @@ def _test(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi
         out[s:s + BATCH] = nodes_visible(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
             np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.bot,
-            fences.grid_lo,
+            fences.vid, fences.grid_lo,
             fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
             int(resolution), int(coarse))
     return out
@@ -294,7 +294,7 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
         res[s:s + BATCH] = boxes_visible_among(
             alo, ahi, np.ascontiguousarray(ubox_lo[s:s + BATCH]),
             np.ascontiguousarray(ubox_hi[s:s + BATCH]), ugroup[s:s + BATCH], start, ids, ok,
-            fences.seg, fences.top, fences.bot, fences.grid_lo, fences.grid_step,
+            fences.seg, fences.top, fences.bot, fences.vid, fences.grid_lo, fences.grid_step,
             fences.grid_n, fences.cell_start, fences.cell_items, int(resolution), int(coarse))
     stats["triangle_test_seconds"] = time.perf_counter() - t_tests
     stats["candidate_pieces"] = int(np.sum((start[1:] - start[:-1])[ugroup]))

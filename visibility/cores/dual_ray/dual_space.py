@@ -141,7 +141,8 @@ def _keep_nonneg(g0, g1, t0, t1):  # pragma: no cover - numba
 def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover - numba
     """The occluding segment of one fence piece in the shaft: the part of it over the open
     slab whose strip spans the shaft from floor to ceiling (bottom <= V, top >= T), as
-    ``out = [d0, l0, d1, l1]`` (slab depth 0..1, lateral metres). Every segment between the
+    ``out = [d0, l0, d1, l1, kept0, kept1]`` (slab depth 0..1, lateral metres; kept: the end is
+    the piece's own, not cut). Every segment between the
     boxes whose XZ projection crosses that part passes it between V and T: it hits the wall.
     Returns False when none of it occludes inside the shaft's hull."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
@@ -193,6 +194,9 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover -
     out[1] = w0
     out[2] = d1
     out[3] = w1
+    # Whether each end is the piece's own end (it joins the pieces that share it there).
+    out[4] = 1.0 if t0 == 0.0 else 0.0
+    out[5] = 1.0 if t1 == 1.0 else 0.0
     return True
 
 
@@ -215,27 +219,46 @@ def region(frame, d0, l0, d1, l1, out):  # pragma: no cover - numba
 @njit(cache=True, nogil=True)
 def shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
                   cell_items):  # pragma: no cover - numba
-    """Dual regions (n, 6) of every fence piece occluding inside the shaft ``frame``, and the
-    occluding segments (n, 4) ``[d0, l0, d1, l1]`` they come from."""
-    regs, segs, _ = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
-    return regs, segs
+    """Dual regions (n, 6) of every fence piece occluding inside the shaft ``frame`` (one per
+    segment, for the exact test), the occluding segments (n, 6) and their pieces (n,)."""
+    segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    regs = np.empty((segs.shape[0], 6))
+    for i in range(segs.shape[0]):
+        region(frame, segs[i, 0], segs[i, 1], segs[i, 2], segs[i, 3], regs[i])
+    return regs, segs, ids
 
 
 @njit(cache=True, nogil=True)
-def _classify(regs, cand, n_cand, cx, cy, a, out, final):  # pragma: no cover - numba
-    """One square of the raster (centre (cx, cy), half side a) against the candidate regions
-    ``cand[:n_cand]``: 1 when one region covers it whole, 2 when no region holds its centre
-    (a free ray: visible), else 0, with the regions that may meet it written to ``out`` (their
-    count returned second). At the final level only coverage is asked."""
+def _classify(vf, vstart, cand, n_cand, cx, cy, a, out, final):  # pragma: no cover - numba
+    """One square of the raster (centre (cx, cy), half side a) against the candidate
+    occluders ``cand[:n_cand]`` (``occluders``): 1 when one occluder covers it whole, 2 when
+    no occluder blocks its centre ray (a free ray: visible), else 0, with the occluders that
+    may meet it written to ``out`` (their count returned second). At the final level only
+    coverage is asked."""
     m = 0
     free = True
     for t in range(n_cand):
-        r = regs[cand[t]]
-        f0 = r[0] + r[1] * cx + r[2] * cy
-        f1 = r[3] + r[4] * cx + r[5] * cy
-        s0 = a * (abs(r[1]) + abs(r[2]))
-        s1 = a * (abs(r[4]) + abs(r[5]))
-        if (f0 + s0 <= -EPS and f1 - s1 >= EPS) or (f0 - s0 >= EPS and f1 + s1 <= -EPS):
+        g = cand[t]
+        neg_all = False
+        pos_all = False
+        any_nonpos = False
+        any_nonneg = False
+        cmin = np.inf
+        cmax = -np.inf
+        for v in range(vstart[g], vstart[g + 1]):
+            f = vf[v, 0] + vf[v, 1] * cx + vf[v, 2] * cy
+            sp = a * (abs(vf[v, 1]) + abs(vf[v, 2]))
+            if f + sp <= -EPS:
+                neg_all = True
+            if f - sp >= EPS:
+                pos_all = True
+            if f - sp <= EPS:
+                any_nonpos = True
+            if f + sp >= -EPS:
+                any_nonneg = True
+            cmin = min(cmin, f)
+            cmax = max(cmax, f)
+        if neg_all and pos_all:
             # Found first next time: neighbouring squares are often covered by the same one.
             if t > 0:
                 c0 = cand[0]
@@ -244,10 +267,10 @@ def _classify(regs, cand, n_cand, cx, cy, a, out, final):  # pragma: no cover - 
             return 1, 0
         if final:
             continue
-        if free and (f0 * f1 <= 0.0 or abs(f0) <= EPS or abs(f1) <= EPS):
+        if free and cmin <= EPS and cmax >= -EPS:
             free = False
-        if not ((f0 - s0 > EPS and f1 - s1 > EPS) or (f0 + s0 < -EPS and f1 + s1 < -EPS)):
-            out[m] = cand[t]
+        if any_nonpos and any_nonneg:
+            out[m] = g
             m += 1
     if final:
         return 0, 0
@@ -268,7 +291,7 @@ def _centre_out(c):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
+def raster_visible(vf, vstart, resolution, coarse_side):  # pragma: no cover - numba
     """Hierarchical conservative raster test (module docstring): the ``coarse_side`` square
     grid first; each square neither covered whole by one region nor free at its centre is
     split in four, with the regions that meet it, down to pixels of 1 / ``resolution``
@@ -279,8 +302,8 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
     visible : True when some pixel at the final resolution is not wholly covered by one region.
     refined : coarse squares that had to be split.
     """
-    n = regs.shape[0]
-    if n == 0:
+    n = len(vstart) - 1
+    if n <= 0:
         return True, 0
     c = min(coarse_side, resolution)
     depth = 0
@@ -303,7 +326,8 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
         i = scan[q0] // c
         j = scan[q0] % c
         if True:
-            kind, m = _classify(regs, lists[0], counts[0], (i + 0.5) * hc, (j + 0.5) * hc,
+            kind, m = _classify(vf, vstart, lists[0], counts[0], (i + 0.5) * hc,
+                                (j + 0.5) * hc,
                                 0.5 * hc, lists[1], depth == 0)
             if kind == 1:
                 continue
@@ -323,8 +347,8 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
                 top -= 1
                 lv, si, sj = stack_l[top], stack_i[top], stack_j[top]
                 h = hc / (1 << lv)
-                kind, m = _classify(regs, lists[lv], counts[lv], (si + 0.5) * h, (sj + 0.5) * h,
-                                    0.5 * h, lists[lv + 1], lv == depth)
+                kind, m = _classify(vf, vstart, lists[lv], counts[lv], (si + 0.5) * h,
+                                    (sj + 0.5) * h, 0.5 * h, lists[lv + 1], lv == depth)
                 if kind == 1:
                     continue
                 if kind == 2 or lv == depth:
@@ -339,28 +363,29 @@ def raster_visible(regs, resolution, coarse_side):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def node_visible(alo, ahi, blo, bhi, seg, top, bot, glo, step, gn, cell_start, cell_items,
-                 resolution, coarse_side):  # pragma: no cover - numba
+def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
+                 cell_items, resolution, coarse_side):  # pragma: no cover - numba
     """Whether box B may be seen from box A among the fences (1) or not (0), the number of
     occluding segments in the shaft and the coarse pixels refined."""
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return 1, 0, 0
-    regs, _ = shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
-    vis, refined = raster_visible(regs, resolution, coarse_side)
-    return (1 if vis else 0), regs.shape[0], refined
+    segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    vf, vstart = occluders(frame, segs, ids, vid)
+    vis, refined = raster_visible(vf, vstart, resolution, coarse_side)
+    return (1 if vis else 0), segs.shape[0], refined
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, glo, step, gn, cell_start, cell_items,
-                  resolution, coarse_side):  # pragma: no cover - numba
+def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
+                  cell_items, resolution, coarse_side):  # pragma: no cover - numba
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
     Returns (n, 3) int64: visible, occluding segments, coarse pixels refined."""
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
     for i in prange(n):
-        v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, glo, step, gn,
+        v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, vid, glo, step, gn,
                                cell_start, cell_items, resolution, coarse_side)
         out[i, 0] = v
         out[i, 1] = s
@@ -420,8 +445,8 @@ def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
     """Ids of the fence pieces over the slab of ``frame`` inside its hull, heights aside,
     and of those within box B's footprint: the occluders of the shaft of any box inside B
     that shares B's axis."""
-    _, _, ids1 = _gather(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
-                         cell_items)
+    _, ids1 = _gather(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
+                      cell_items)
     ids2 = _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items)
     out = np.empty(len(ids1) + len(ids2), dtype=np.int64)
     out[:len(ids1)] = ids1
@@ -431,7 +456,8 @@ def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
 
 @njit(cache=True, nogil=True)
 def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pragma: no cover
-    """``shaft_regions`` plus the ids of the pieces the regions come from."""
+    """Every fence piece occluding inside the shaft ``frame``: the occluding segments (n, 6)
+    ``[d0, l0, d1, l1, kept0, kept1]`` (``cut_piece``) and the pieces' ids (n,)."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
     wlo = min(frame[6], frame[8])
     whi = max(frame[7], frame[9])
@@ -450,10 +476,8 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pra
     for a in range(i0, i1 + 1):
         for b in range(j0, j1 + 1):
             total += cell_start[a * nz + b + 1] - cell_start[a * nz + b]
-    regs = np.empty((total, 6))
-    segs = np.empty((total, 4))
+    segs = np.empty((total, 6))
     ids = np.empty(total, dtype=np.int64)
-    cut = np.empty(4)
     n = 0
     for a in range(i0, i1 + 1):
         for b in range(j0, j1 + 1):
@@ -468,27 +492,108 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pra
                 if max(pa, i0) != a or max(pb, j0) != b:
                     continue
                 if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0],
-                             top[p, 1], bot[p, 0], bot[p, 1], cut):
-                    region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
-                    segs[n, :] = cut
+                             top[p, 1], bot[p, 0], bot[p, 1], segs[n]):
                     ids[n] = p
                     n += 1
-    return regs[:n], segs[:n], ids[:n]
+    return segs[:n], ids[:n]
 
 
 @njit(cache=True, nogil=True)
-def regions_from(frame, ids, seg, top, bot):  # pragma: no cover - numba
-    """Dual regions (n, 6) of the pieces ``ids`` occluding inside the shaft ``frame``."""
-    regs = np.empty((len(ids), 6))
-    cut = np.empty(4)
+def segments_from(frame, ids, seg, top, bot):  # pragma: no cover - numba
+    """The occluding segments (n, 6) of the pieces ``ids`` inside the shaft ``frame``, and
+    the ids of those that occlude."""
+    segs = np.empty((len(ids), 6))
+    out_ids = np.empty(len(ids), dtype=np.int64)
     n = 0
     for e in range(len(ids)):
         p = ids[e]
         if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
-                     bot[p, 0], bot[p, 1], cut):
-            region(frame, cut[0], cut[1], cut[2], cut[3], regs[n])
+                     bot[p, 0], bot[p, 1], segs[n]):
+            out_ids[n] = p
             n += 1
-    return regs[:n]
+    return segs[:n], out_ids[:n]
+
+
+@njit(cache=True, nogil=True)
+def _find(parent, i):  # pragma: no cover - numba
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(cache=True, nogil=True)
+def occluders(frame, segs, ids, vid):  # pragma: no cover - numba
+    """The occluding segments joined where they share an end (a building's walls around a
+    corner): connected occluders for the raster.
+
+    A ray (x, y) meets a connected union of segments iff their end points are not all strictly
+    on one side of it: ``min_v f_v <= 0 <= max_v f_v`` over its end points v, with ``f_v``
+    the affine function of ``region``. So a pixel is covered whole by one connected occluder
+    when some end point's function is <= 0 over the whole pixel and some other's >= 0: two
+    walls meeting at a corner cover the rays through the corner, which neither covers alone.
+
+    Parameters
+    ----------
+    segs : (n, 6) occluding segments (``cut_piece``); ids : (n,) their pieces;
+    vid : (k, 2) int64 the pieces' end point ids (equal ids: the same XZ point).
+
+    Returns
+    -------
+    vf : (m, 3) float64 ``[c, a, b]`` of each distinct end point, grouped by occluder.
+    start : (g + 1,) int64 CSR offsets of the occluders into ``vf``.
+    """
+    n = segs.shape[0]
+    key = np.empty(2 * n, dtype=np.int64)
+    for i in range(n):
+        for e in range(2):
+            if segs[i, 4 + e] != 0.0:
+                key[2 * i + e] = vid[ids[i], e]
+            else:
+                key[2 * i + e] = -(2 * i + e) - 1
+    order = np.argsort(key, kind="mergesort")
+    node = np.empty(2 * n, dtype=np.int64)
+    m = 0
+    for q in range(2 * n):
+        if q > 0 and key[order[q]] == key[order[q - 1]]:
+            node[order[q]] = m - 1
+        else:
+            node[order[q]] = m
+            m += 1
+    parent = np.arange(m)
+    for i in range(n):
+        ra = _find(parent, node[2 * i])
+        rb = _find(parent, node[2 * i + 1])
+        if ra != rb:
+            parent[ra] = rb
+    # Each node's function (from any of its segment ends: they are the same point).
+    f = np.empty((m, 3))
+    s1lo, s1hi, s2lo, s2hi = frame[6], frame[7], frame[8], frame[9]
+    L1 = s1hi - s1lo
+    L2 = s2hi - s2lo
+    for i in range(n):
+        for e in range(2):
+            d = segs[i, 2 * e]
+            lat = segs[i, 2 * e + 1]
+            k = node[2 * i + e]
+            f[k, 0] = (1.0 - d) * s1lo + d * s2lo - lat
+            f[k, 1] = (1.0 - d) * L1
+            f[k, 2] = d * L2
+    root = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        root[k] = _find(parent, k)
+    by = np.argsort(root, kind="mergesort")
+    vf = np.empty((m, 3))
+    start = np.empty(m + 1, dtype=np.int64)
+    g = 0
+    for q in range(m):
+        k = by[q]
+        vf[q] = f[k]
+        if q == 0 or root[k] != root[by[q - 1]]:
+            start[g] = q
+            g += 1
+    start[g] = m
+    return vf, start[:g + 1]
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -518,8 +623,8 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, glo, step,
-                        gn, cell_start, cell_items, resolution,
+def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, vid, glo,
+                        step, gn, cell_start, cell_items, resolution,
                         coarse_side):  # pragma: no cover - numba
     """Like ``nodes_visible``, each box (n, 3) drawing its occluders from its group's pieces
     ``ids[start[g]:start[g + 1]]`` (a subset of its shaft's at most: still conservative), or
@@ -533,12 +638,12 @@ def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot
             continue
         g = group[i]
         if ok[g]:
-            regs = regions_from(frame, ids[start[g]:start[g + 1]], seg, top, bot)
+            segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot)
         else:
-            regs, _ = shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
-                                    cell_items)
-        vis, refined = raster_visible(regs, resolution, coarse_side)
+            segs, sids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+        vf, vstart = occluders(frame, segs, sids, vid)
+        vis, refined = raster_visible(vf, vstart, resolution, coarse_side)
         out[i, 0] = 1 if vis else 0
-        out[i, 1] = regs.shape[0]
+        out[i, 1] = segs.shape[0]
         out[i, 2] = refined
     return out

@@ -50,6 +50,8 @@ class Fences:
     ----------
     seg : (k, 4) float64 XZ end points ``[px, pz, qx, qz]``, metres.
     top, bot : (k, 2) float64 the strip's top and bottom at p and at q, metres.
+    vid : (k, 2) int64 ids of p and q: equal ids, the same XZ point exactly (pieces that meet
+        there join into one occluder in a shaft where both reach it, ``dual_space.occluders``).
     grid_lo : (2,) float64 XZ corner of the grid; ``grid_step`` its cell side; ``grid_n``
         (2,) int64 cells along X and Z.
     cell_start : (nx * nz + 1,) int64 CSR offsets; ``cell_items`` (k',) int64 piece ids per cell
@@ -61,6 +63,7 @@ class Fences:
     seg: np.ndarray
     top: np.ndarray
     bot: np.ndarray
+    vid: np.ndarray
     grid_lo: np.ndarray
     grid_step: float
     grid_n: np.ndarray
@@ -298,7 +301,13 @@ def build_fences(scene: Scene) -> Fences:
         keep = _merge_runs(seg, top, bot, order, key_line, JOIN)
         seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
     grid = _grid(seg)
-    return Fences(seg, top, bot, *grid, walls=len(walls),
+    if len(seg):
+        ends = np.concatenate([seg[:, :2], seg[:, 2:]])
+        _, inv = np.unique(ends, axis=0, return_inverse=True)
+        vid = np.ascontiguousarray(inv.reshape(-1).reshape(2, -1).T).astype(np.int64)
+    else:
+        vid = np.zeros((0, 2), dtype=np.int64)
+    return Fences(seg, top, bot, vid, *grid, walls=len(walls),
                   build_seconds=time.perf_counter() - t0)
 
 

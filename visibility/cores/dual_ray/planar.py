@@ -23,7 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visibility.cores.dual_ray.dual_space import raster_visible, shaft_frame, shaft_regions
+from visibility.cores.dual_ray.dual_space import (
+    occluders,
+    raster_visible,
+    shaft_frame,
+    shaft_regions,
+)
 from visibility.cores.dual_ray.fences import Fences, scene_fences
 from visibility.cores.dual_ray.kdtree import scene_kdtree
 from visibility.scene import Scene
@@ -99,9 +104,9 @@ def shaft_visible_exact(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: 
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return True
-    regs, _ = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.grid_lo,
-                            fences.grid_step, fences.grid_n, fences.cell_start,
-                            fences.cell_items)
+    regs, _, _ = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.grid_lo,
+                               fences.grid_step, fences.grid_n, fences.cell_start,
+                               fences.cell_items)
     return exact_visible(regs)
 
 
@@ -140,14 +145,15 @@ def overestimation(scene: Scene, box: np.ndarray, resolutions: list[int],
             continue
         n += 1
         area = float((bhi[0] - blo[0]) * (bhi[2] - blo[2]))
-        regs, _ = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.grid_lo,
-                                fences.grid_step, fences.grid_n, fences.cell_start,
-                                fences.cell_items)
+        regs, segs, ids = shaft_regions(frame, fences.seg, fences.top, fences.bot,
+                                        fences.grid_lo, fences.grid_step, fences.grid_n,
+                                        fences.cell_start, fences.cell_items)
+        vf, vstart = occluders(frame, segs, ids, fences.vid)
         ex = exact_visible(regs)
         if not ex:
             p_e += area
         for r in resolutions:
-            vis, _ = raster_visible(regs, int(r), int(coarse))
+            vis, _ = raster_visible(vf, vstart, int(r), int(coarse))
             if not vis:
                 p_c[int(r)] += area
                 if ex:
