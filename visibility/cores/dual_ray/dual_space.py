@@ -362,6 +362,36 @@ def raster_visible(vf, vstart, resolution, coarse_side):  # pragma: no cover - n
     return False, refined
 
 
+#: Rays probed before the raster (dual ray space coordinates): the middle ray first. A probe
+#: that no segment blocks is a free ray: the node is visible, and the raster would say so too
+#: (no region holds that point, so the pixels around it are not covered).
+_PROBES = np.array([[0.5, 0.5], [0.25, 0.25], [0.75, 0.75], [0.25, 0.75], [0.75, 0.25],
+                    [0.5, 0.0], [0.5, 1.0], [0.0, 0.5], [1.0, 0.5]])
+
+
+@njit(cache=True, nogil=True)
+def probe_free(frame, segs):  # pragma: no cover - numba
+    """Whether one of ``_PROBES`` is a ray that no occluding segment (n, 6) blocks."""
+    s1lo, s1hi, s2lo, s2hi = frame[6], frame[7], frame[8], frame[9]
+    L1 = s1hi - s1lo
+    L2 = s2hi - s2lo
+    for q in range(_PROBES.shape[0]):
+        x, y = _PROBES[q, 0], _PROBES[q, 1]
+        a = s1lo + x * L1
+        b = s2lo + y * L2
+        free = True
+        for i in range(segs.shape[0]):
+            d0, d1 = segs[i, 0], segs[i, 2]
+            f0 = (1.0 - d0) * a + d0 * b - segs[i, 1]
+            f1 = (1.0 - d1) * a + d1 * b - segs[i, 3]
+            if f0 * f1 <= 0.0 or abs(f0) <= EPS or abs(f1) <= EPS:
+                free = False
+                break
+        if free:
+            return True
+    return False
+
+
 @njit(cache=True, nogil=True)
 def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
                  cell_items, resolution, coarse_side):  # pragma: no cover - numba
@@ -371,6 +401,8 @@ def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_sta
     if frame[13] == 0.0:
         return 1, 0, 0
     segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    if probe_free(frame, segs):
+        return 1, segs.shape[0], 0
     vf, vstart = occluders(frame, segs, ids, vid)
     vis, refined = raster_visible(vf, vstart, resolution, coarse_side)
     return (1 if vis else 0), segs.shape[0], refined
@@ -455,8 +487,9 @@ def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
 
 
 @njit(cache=True, nogil=True)
-def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pragma: no cover
-    """Every fence piece occluding inside the shaft ``frame``: the occluding segments (n, 6)
+def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
+            cell_items):  # pragma: no cover - numba
+    """The fence pieces occluding inside the shaft ``frame``: the occluding segments (n, 6)
     ``[d0, l0, d1, l1, kept0, kept1]`` (``cut_piece``) and the pieces' ids (n,)."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
     wlo = min(frame[6], frame[8])
@@ -472,29 +505,55 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items):  # pra
     i1 = min(max(int(np.floor((x1 - glo[0]) / step)), 0), nx - 1)
     j0 = min(max(int(np.floor((z0 - glo[1]) / step)), 0), nz - 1)
     j1 = min(max(int(np.floor((z1 - glo[1]) / step)), 0), nz - 1)
+    # Columns of cells along the separation axis, nearest to A first; in each, only the cells
+    # the shaft's hull reaches (its lateral bounds are linear in the depth), so a long
+    # diagonal shaft visits a thin band of cells, not its bounding box.
+    lo_u, hi_u = (i0, i1) if axis == 0 else (j0, j1)
+    lo_w, hi_w = (j0, j1) if axis == 0 else (i0, i1)
+    g_u = glo[0] if axis == 0 else glo[1]
+    g_w = glo[1] if axis == 0 else glo[0]
+    n_cols = hi_u - lo_u + 1
+    span = uB - uA
+    band = np.empty((n_cols, 2), dtype=np.int64)
     total = 0
-    for a in range(i0, i1 + 1):
-        for b in range(j0, j1 + 1):
+    for k in range(n_cols):
+        col = lo_u + k if sgn > 0 else hi_u - k
+        # The column's u range in the frame (u = sgn * coordinate), as slab depths.
+        c0 = sgn * (g_u + col * step)
+        c1 = sgn * (g_u + (col + 1) * step)
+        da = min(max((min(c0, c1) - uA) / span, 0.0), 1.0)
+        db = min(max((max(c0, c1) - uA) / span, 0.0), 1.0)
+        wl = min((1.0 - da) * frame[6] + da * frame[8], (1.0 - db) * frame[6] + db * frame[8])
+        wh = max((1.0 - da) * frame[7] + da * frame[9], (1.0 - db) * frame[7] + db * frame[9])
+        w0 = max(int(np.floor((wl - g_w) / step)), lo_w)
+        w1 = min(int(np.floor((wh - g_w) / step)), hi_w)
+        band[k, 0] = w0
+        band[k, 1] = w1
+        for w in range(w0, w1 + 1):
+            a = col if axis == 0 else w
+            b = w if axis == 0 else col
             total += cell_start[a * nz + b + 1] - cell_start[a * nz + b]
-    segs = np.empty((total, 6))
-    ids = np.empty(total, dtype=np.int64)
+    cand = np.empty(total, dtype=np.int64)
     n = 0
-    for a in range(i0, i1 + 1):
-        for b in range(j0, j1 + 1):
+    for k in range(n_cols):
+        col = lo_u + k if sgn > 0 else hi_u - k
+        for w in range(band[k, 0], band[k, 1] + 1):
+            a = col if axis == 0 else w
+            b = w if axis == 0 else col
             c = a * nz + b
             for e in range(cell_start[c], cell_start[c + 1]):
-                p = cell_items[e]
-                # Visit each piece once: in the first query cell its bounds overlap.
-                pa = min(max(int(np.floor((min(seg[p, 0], seg[p, 2]) - glo[0]) / step)), 0),
-                         nx - 1)
-                pb = min(max(int(np.floor((min(seg[p, 1], seg[p, 3]) - glo[1]) / step)), 0),
-                         nz - 1)
-                if max(pa, i0) != a or max(pb, j0) != b:
-                    continue
-                if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0],
-                             top[p, 1], bot[p, 0], bot[p, 1], segs[n]):
-                    ids[n] = p
-                    n += 1
+                cand[n] = cell_items[e]
+                n += 1
+    # A piece is listed in every cell it crosses: each is cut once.
+    cand = np.unique(cand[:n])
+    segs = np.empty((len(cand), 6))
+    ids = np.empty(len(cand), dtype=np.int64)
+    n = 0
+    for p in cand:
+        if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
+                     bot[p, 0], bot[p, 1], segs[n]):
+            ids[n] = p
+            n += 1
     return segs[:n], ids[:n]
 
 
@@ -641,6 +700,10 @@ def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot
             segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot)
         else:
             segs, sids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+        out[i, 1] = segs.shape[0]
+        if probe_free(frame, segs):
+            out[i, 0] = 1
+            continue
         vf, vstart = occluders(frame, segs, sids, vid)
         vis, refined = raster_visible(vf, vstart, resolution, coarse_side)
         out[i, 0] = 1 if vis else 0
