@@ -395,14 +395,16 @@ def probe_free(frame, segs):  # pragma: no cover - numba
 @njit(cache=True, nogil=True)
 def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
                  cell_items, resolution, coarse_side):  # pragma: no cover - numba
-    """Whether box B may be seen from box A among the fences (1) or not (0), the number of
-    occluding segments in the shaft and the coarse pixels refined."""
+    """Whether box B may be seen from box A among the fences, and how it was decided: 0
+    hidden, 1 visible by the raster, 2 visible by a probe ray no occluder blocks (``probe_free``),
+    3 visible since the footprints overlap; the number of occluding segments in the shaft and
+    the coarse pixels refined."""
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
-        return 1, 0, 0
+        return 3, 0, 0
     segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
     if probe_free(frame, segs):
-        return 1, segs.shape[0], 0
+        return 2, segs.shape[0], 0
     vf, vstart = occluders(frame, segs, ids, vid)
     vis, refined = raster_visible(vf, vstart, resolution, coarse_side)
     return (1 if vis else 0), segs.shape[0], refined
@@ -413,7 +415,8 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_st
                   cell_items, resolution, coarse_side):  # pragma: no cover - numba
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
-    Returns (n, 3) int64: visible, occluding segments, coarse pixels refined."""
+    Returns (n, 3) int64: how it was decided (0: hidden, 1-3: visible, ``node_visible``),
+    occluding segments, coarse pixels refined."""
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
     for i in prange(n):

@@ -28,12 +28,14 @@ def test_designed_cases_at_every_resolution(resolution):
     assert not set(known["hidden"]) & found
 
 
-def test_the_leaf_answer_without_triangle_refinement_is_a_superset():
+def test_less_triangle_refinement_gives_supersets():
     scene, cell, known = ds.city_blocks()
-    fine = set(CORE.compute(scene, cell, CORE.make_params()).triangle_ids.tolist())
-    coarse = set(CORE.compute(scene, cell, CORE.make_params(triangle_refine=False))
-                 .triangle_ids.tolist())
-    assert fine <= coarse and set(known["visible"]) <= coarse
+    found = {p: set(CORE.compute(scene, cell, CORE.make_params(triangle_refine=p))
+                    .triangle_ids.tolist()) for p in ("all", "marginal", "none")}
+    assert found["all"] <= found["marginal"] <= found["none"]
+    assert found["all"] != found["none"]
+    for f in found.values():
+        assert set(known["visible"]) <= f
 
 
 def test_a_facade_grid_becomes_one_strip_per_side():
