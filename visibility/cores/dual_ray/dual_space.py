@@ -138,6 +138,19 @@ def _keep_nonneg(g0, g1, t0, t1):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
+def _outside_hull(frame, u0, u1, w0, w1, uA, span):  # pragma: no cover - numba
+    """Whether the segment (u0, w0) - (u1, w1) over the slab lies wholly on one side of the
+    shaft's hull (then it blocks no ray from s1 to s2)."""
+    d0 = min(max((u0 - uA) / span, 0.0), 1.0)
+    d1 = min(max((u1 - uA) / span, 0.0), 1.0)
+    lo0 = (1.0 - d0) * frame[6] + d0 * frame[8]
+    lo1 = (1.0 - d1) * frame[6] + d1 * frame[8]
+    hi0 = (1.0 - d0) * frame[7] + d0 * frame[9]
+    hi1 = (1.0 - d1) * frame[7] + d1 * frame[9]
+    return (w0 > hi0 + EPS and w1 > hi1 + EPS) or (w0 < lo0 - EPS and w1 < lo1 - EPS)
+
+
+@njit(cache=True, nogil=True)
 def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover - numba
     """The occluding segment of one fence piece in the shaft: the part of it over the open
     slab whose strip spans the shaft from floor to ceiling (bottom <= V, top >= T), as
@@ -169,6 +182,11 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover -
         t1 = min(t1, b)
         if t0 > t1:
             return False
+    span = uB - uA
+    # Outside the shaft's hull on one side (checked again once the heights cut it).
+    if _outside_hull(frame, pu + t0 * du, pu + t1 * du, pw + t0 * (qw - pw),
+                     pw + t1 * (qw - pw), uA, span):
+        return False
     # Top at or above the ceiling, bottom at or below the floor (both linear in t).
     t0, t1 = _keep_nonneg(tp - ceiling(frame, pu), tq - ceiling(frame, qu), t0, t1)
     if t0 > t1:
@@ -180,16 +198,11 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover -
     u1 = pu + t1 * du
     w0 = pw + t0 * (qw - pw)
     w1 = pw + t1 * (qw - pw)
-    span = uB - uA
+    # Outside the hull of the shaft on one side: blocks no ray from s1 to s2.
+    if _outside_hull(frame, u0, u1, w0, w1, uA, span):
+        return False
     d0 = min(max((u0 - uA) / span, 0.0), 1.0)
     d1 = min(max((u1 - uA) / span, 0.0), 1.0)
-    # Outside the hull of the shaft on one side: blocks no ray from s1 to s2.
-    lo0 = (1.0 - d0) * frame[6] + d0 * frame[8]
-    lo1 = (1.0 - d1) * frame[6] + d1 * frame[8]
-    hi0 = (1.0 - d0) * frame[7] + d0 * frame[9]
-    hi1 = (1.0 - d1) * frame[7] + d1 * frame[9]
-    if (w0 > hi0 + EPS and w1 > hi1 + EPS) or (w0 < lo0 - EPS and w1 < lo1 - EPS):
-        return False
     out[0] = d0
     out[1] = w0
     out[2] = d1
