@@ -79,3 +79,15 @@ def test_auto_never_picks_it_where_it_does_not_fit(name, cell_size):
 @pytest.mark.parametrize("cell_size", [0.3, 4.0, None])
 def test_auto_leaves_small_city_cells_to_the_other_cores(cell_size):
     assert choose_core(make_scene("city", triangles=10_000), cell_size)[0] != "dual_ray"
+
+
+def test_a_city_served_at_big_cells_is_answered_by_dual_ray_under_auto(settings):
+    # PVS_CELL_SIZE (here the settings' cell_size) sets the grid; auto weighs the scene at it.
+    from tests.conftest import serving
+
+    with serving(settings, cell_size=50.0) as (url, _):
+        r = httpx.get(f"{url}/scenes/city/cells/0/pvs", params={"core": "auto"}, timeout=120)
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["core"] == "dual_ray" and "big cells" in body["chosen_because"]
+        assert len(body["triangle_ids"]) > 0

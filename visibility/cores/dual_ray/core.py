@@ -71,13 +71,17 @@ class DualRayParams(CoreParams):
              "up to twice the PVS) or none (whole leaves)")
 
 
-#: Cost model (``estimate_cost``), fitted to ``python benchmarks/bench_dual_ray.py`` on the
-#: 2-core development machine (benchmarks/results/dual_ray.md): a fixed part per cell plus a
-#: part per triangle of the scene that grows with the cell (more visible leaves and triangle
-#: tests) and, slowly, with the resolution (occluded nodes rasterize all their pixels).
+#: Cost model (``estimate_cost``), fitted to ``python -m benchmarks.bench_dual_ray`` on the
+#: 2-core development machine (benchmarks/results/dual_ray.md, load 2-3 from other work): the
+#: time grows about linearly with the scene's triangles and with the cell's side (a bigger cell
+#: sees more leaves and tests more triangles, each with a wider shaft), and barely with the
+#: resolution (16^2 to 256^2 within 20 %: the quadtree refines only along region boundaries).
+#: 100k city: 0.3 s at 25 m, 1.2 s at 100 m, 3.3 s at 300 m (1.2e-7 s per triangle and metre);
+#: Lyon (183k) 40 m: 1.2-2.2 s; 1M city 100 m: 8 s. Bytes: tree, bounds and fences per
+#: triangle, and the raster's lists per pixel of the coarse square.
 SECONDS_BASE = 0.02
-SECONDS_PER_TRIANGLE = 6e-7
-BYTES_PER_TRIANGLE = 64
+SECONDS_PER_TRIANGLE_METRE = 1.2e-7
+BYTES_PER_TRIANGLE = 160
 
 
 @register
@@ -127,14 +131,15 @@ class DualRayCore(Core):
                      "scenes; smaller cells are better served by per-pixel cores")
 
     def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
-        """Linear in the scene's triangles, growing with the cell's size and, as its square
-        root, with the resolution; memory per triangle (tree, fences, bounds)."""
+        """Linear in the scene's triangles and in the cell's side (at least 20 m), slowly
+        growing with the resolution; memory per triangle (tree, fences, bounds) and per
+        pixel."""
         r = int(params.resolution)
         size = float(np.max(cell.size[[0, 2]])) if np.all(np.isfinite(cell.size)) else 0.0
         m = scene.n_triangles
-        scale = (1.0 + size / 100.0) * np.sqrt(max(r, 16) / 128.0)
-        seconds = SECONDS_BASE + m * SECONDS_PER_TRIANGLE * scale
-        peak = m * BYTES_PER_TRIANGLE + 256 * r * r
+        res_factor = (max(r, 16) / 128.0) ** 0.1
+        seconds = SECONDS_BASE + m * SECONDS_PER_TRIANGLE_METRE * max(size, 20.0) * res_factor
+        peak = m * BYTES_PER_TRIANGLE + 64 * r * r
         return Cost(float(seconds), int(peak), {"triangles": m, "resolution": r,
                                                 "cell_size": size})
 
