@@ -576,12 +576,17 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
 @njit(cache=True, nogil=True)
 def segments_from(frame, ids, seg, top, bot):  # pragma: no cover - numba
     """The occluding segments (n, 6) of the pieces ``ids`` inside the shaft ``frame``, and
-    the ids of those that occlude."""
+    the ids of those that occlude. ``ids`` come sorted by their highest top, highest first
+    (``leaf_piece_ids``): the scan stops at the first piece lower than the ceiling's lowest
+    point over the slab, which no later piece can reach either."""
     segs = np.empty((len(ids), 6))
     out_ids = np.empty(len(ids), dtype=np.int64)
+    t_min = min(ceiling(frame, frame[2]), ceiling(frame, frame[3]))
     n = 0
     for e in range(len(ids)):
         p = ids[e]
+        if max(top[p, 0], top[p, 1]) < t_min:
+            break
         if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
                      bot[p, 0], bot[p, 1], segs[n]):
             out_ids[n] = p
@@ -675,8 +680,9 @@ def occluders(frame, segs, ids, vid):  # pragma: no cover - numba
 def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cell_start,
                    cell_items):  # pragma: no cover - numba
     """Per leaf box (n, 3), the pieces of ``shaft_piece_ids`` for its shaft, as CSR
-    (start (n + 1,), ids), and whether the leaf has a shaft at all (``ok``; a leaf over the
-    cell's footprint has none): what its triangles' tests draw their occluders from."""
+    (start (n + 1,), ids; each leaf's sorted by the pieces' highest top, highest first), and
+    whether the leaf has a shaft at all (``ok``; a leaf over the cell's footprint has none):
+    what its triangles' tests draw their occluders from."""
     n = leaf_lo.shape[0]
     counts = np.zeros(n + 1, dtype=np.int64)
     ok = np.zeros(n, dtype=np.bool_)
@@ -693,6 +699,11 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
             frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
             got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, glo, step, gn,
                                   cell_start, cell_items)
+            # Highest top first: a test stops at the first piece under its ceiling.
+            key = np.empty(len(got))
+            for k in range(len(got)):
+                key[k] = -max(top[got[k], 0], top[got[k], 1])
+            got = got[np.argsort(key, kind="mergesort")]
             ids[start[i]:start[i] + len(got)] = got
     return start, ids, ok
 
