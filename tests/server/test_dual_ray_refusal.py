@@ -86,7 +86,8 @@ def test_a_city_served_at_big_cells_is_answered_by_dual_ray_under_auto(settings)
     from tests.conftest import serving
 
     with serving(settings, cell_size=50.0) as (url, _):
-        r = httpx.get(f"{url}/scenes/city/cells/0/pvs", params={"core": "auto"}, timeout=120)
+        r = httpx.post(f"{url}/scenes/city/pvs", timeout=120,
+                       json={"box": [[-25.0, 1.0, -25.0], [25.0, 3.0, 25.0]], "core": "auto"})
         assert r.status_code == 200, r.text
         body = r.json()
         assert body["core"] == "dual_ray" and "big cells" in body["chosen_because"]
