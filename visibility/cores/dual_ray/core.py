@@ -74,15 +74,15 @@ class DualRayParams(CoreParams):
 
 
 #: Cost model (``estimate_cost``), fitted to ``python -m benchmarks.bench_dual_ray`` on the
-#: 2-core development machine (benchmarks/results/dual_ray.md, load 2-3 from other work): the
-#: time grows about linearly with the scene's triangles and with the cell's side (a bigger cell
-#: sees more leaves and tests more triangles, each with a wider shaft), and barely with the
-#: resolution (16^2 to 256^2 within 20 %: the quadtree refines only along region boundaries).
-#: 100k city: 0.3 s at 25 m, 1.2 s at 100 m, 3.3 s at 300 m (1.2e-7 s per triangle and metre);
-#: Lyon (183k) 40 m: 1.2-2.2 s; 1M city 100 m: 8 s. Bytes: tree, bounds and fences per
-#: triangle, and the raster's lists per pixel of the coarse square.
+#: 2-core development machine (benchmarks/results/dual_ray.md, load average about 1): the time
+#: grows about linearly with the scene's triangles and with the cell's side (a bigger cell sees
+#: more leaves and tests more triangles, each with a wider shaft), and barely with the
+#: resolution (16^2 to 256^2 within 25 %: the quadtree refines only along region boundaries).
+#: 100k city at 128^2: 0.14 s at 25 m, 0.55 s at 100 m, 1.8 s at 300 m (about 6e-8 s per
+#: triangle and metre); Lyon (183k) 40 m: 0.6-1.2 s; 1M city 100 m: 4.5 s. Bytes: tree, bounds
+#: and fences per triangle, and the raster's lists per pixel of the coarse square.
 SECONDS_BASE = 0.02
-SECONDS_PER_TRIANGLE_METRE = 1.2e-7
+SECONDS_PER_TRIANGLE_METRE = 6e-8
 BYTES_PER_TRIANGLE = 160
 
 
