@@ -77,6 +77,9 @@ class HeightFieldAnalysis:
     cell_size: float = 0.0
     seconds: float = 0.0
     source: str = "geometry"
+    #: Where the first overhang was found: (x, z) of the column's centre and the open space's
+    #: bottom and top heights, metres; None when there is none.
+    first_overhang: tuple[float, float, float, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly fields."""
@@ -236,22 +239,49 @@ def analyse_2_5d(
                                        float(s), nz, float(clearance), float(clearance))
     occupied = int(np.count_nonzero(top))
     n_viol = int(np.count_nonzero(violating))
+    first = _first_overhang(violating, start, tri_of, plane, up, float(lo[0]), float(lo[1]),
+                            float(s), nz, float(clearance), origin)
     share = n_viol / occupied if occupied else 0.0
     top_up = float(np.count_nonzero(top > 0) / occupied) if occupied else 1.0
     stats = dict(violating_share=share, wall_area_share=wall_share, top_up_share=top_up,
                  occupied_cells=occupied, violating_cells=n_viol, samples=samples,
-                 cell_size=float(s), seconds=time.perf_counter() - t0)
+                 cell_size=float(s), seconds=time.perf_counter() - t0, first_overhang=first)
     if top_up < 0.5:
         why = (f"its topmost surfaces face down over {1 - top_up:.0%} of the footprint: "
                "ceilings over everything (an interior) or inverted winding")
         return HeightFieldAnalysis(False, why, **stats)
     if share > max_violating_share:
+        x, z, y0, y1 = first  # type: ignore[misc]
         why = (f"{share:.1%} of the footprint lies under an overhang (open space under a "
-               f"surface; the limit is {max_violating_share:.0%})")
+               f"surface; the limit is {max_violating_share:.0%}); the first found at x = "
+               f"{x:.1f}, z = {z:.1f} m: open from y = {y0:.1f} to {y1:.1f} m")
         return HeightFieldAnalysis(False, why, **stats)
     why = (f"a height field plus walls: {share:.2%} of the footprint under an overhang (limit "
            f"{max_violating_share:.0%}), {wall_share:.0%} of the area in walls")
     return HeightFieldAnalysis(True, why, **stats)
+
+
+def _first_overhang(violating: np.ndarray, start: np.ndarray, tri_of: np.ndarray,
+                    plane: np.ndarray, up: np.ndarray, x0: float, z0: float, s: float, nz: int,
+                    clearance: float, origin: np.ndarray
+                    ) -> tuple[float, float, float, float] | None:
+    """(x, z, bottom, top) in world metres of the open space of the first violating column,
+    or None."""
+    hit = np.flatnonzero(violating)
+    if len(hit) == 0:
+        return None
+    c = int(hit[0])
+    px, pz = x0 + (c // nz + 0.5) * s, z0 + (c % nz + 0.5) * s
+    t = tri_of[start[c]:start[c + 1]]
+    h = plane[t, 0] * px + plane[t, 1] * pz + plane[t, 2]
+    order = np.argsort(h, kind="stable")
+    h, f = h[order], up[t][order]
+    for m in range(len(h) - 1):
+        if f[m] and not f[m + 1] and h[m + 1] - h[m] > clearance:
+            return (float(px + origin[0]), float(pz + origin[2]), float(h[m] + origin[1]),
+                    float(h[m + 1] + origin[1]))
+    return (float(px + origin[0]), float(pz + origin[2]), float(h[0] + origin[1]),
+            float(h[-1] + origin[1]))
 
 
 def stated_2_5d(scene: Scene) -> HeightFieldAnalysis | None:

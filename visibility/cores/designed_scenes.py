@@ -171,3 +171,48 @@ def stiff_cases(offset=(0.0, 0.0, 0.0)):
         + known["through_cell"]
     )
     return scene, cell, known
+
+
+def city_blocks(offset=(0.0, 0.0, 0.0)):
+    """A 2.5D scene (closed boxes standing on a ground quad) around a 10 m cell at the origin,
+    one designed case per side:
+
+    * +z, a wall between: a 120 m long, 15 m high block; a small box behind it is hidden.
+    * -z, a gap between two buildings: two 15 m high blocks 2 m apart; the box behind the gap
+      shows its near face through it.
+    * +x, occluder fusion: three 8 m blocks side by side, none of which alone hides the low box
+      behind them; together they do.
+    * -x, a tall building behind a low one: a 4 m high block hides a 2 m box behind it but not
+      the 40 m tower further back, whose near face rises above it.
+
+    ``known`` also names each case's ids ("wall_hidden", "gap_visible", "fusion_hidden",
+    "tall_visible", "low_hidden")."""
+    b = Builder()
+    b.quad((-150, 0, -150), (-150, 0, 150), (150, 0, 150), (150, 0, -150), 0, (90, 110, 80))
+    # +z: a wall between.
+    b.box((-60, 0, 20), (60, 15, 22), 1)
+    wall_hidden = b.box((-3, 0, 40), (3, 5, 44), 2, (200, 60, 60))
+    # -z: a gap between two buildings.
+    b.box((-60, 0, -22), (-1, 15, -20), 3)
+    b.box((1, 0, -22), (60, 15, -20), 4)
+    gap_target = b.box((-1, 0, -44), (1, 5, -40), 5, (60, 200, 60))
+    # +x: occluder fusion.
+    for k, (z0, z1) in enumerate(((-12, -4), (-4, 4), (4, 12))):
+        b.box((20, 0, z0), (24, 15, z1), 6 + k)
+    fusion_hidden = b.box((40, 0, -1), (42, 5, 1), 9, (60, 60, 200))
+    # -x: a tall building behind a low one.
+    b.box((-24, 0, -15), (-20, 4, 15), 10)
+    low_hidden = b.box((-34, 0, -1), (-32, 2, 1), 11, (200, 200, 60))
+    tower = b.box((-44, 0, -3), (-40, 40, 3), 12, (120, 120, 200))
+    scene = b.scene("city_blocks", offset)
+    scene.meta["is_2_5d"] = None  # decided from the geometry, as for a loaded tile
+    o = np.asarray(offset, dtype=np.float64)
+    cell = Viewcell(np.array([[-5.0, 1.5, -5.0], [5.0, 1.9, 5.0]]) + o)
+    # Box faces: z0, z1, x0, x1, y0, y1 quads. The gap box's z1 face (z = -40) faces the cell;
+    # the tower's x1 face (x = -40) faces it, and its upper part shows over the low block.
+    known = {"wall_hidden": wall_hidden, "gap_visible": gap_target[2:4],
+             "fusion_hidden": fusion_hidden, "tall_visible": tower[6:8],
+             "low_hidden": low_hidden}
+    known["visible"] = known["gap_visible"] + known["tall_visible"]
+    known["hidden"] = known["wall_hidden"] + known["fusion_hidden"] + known["low_hidden"]
+    return scene, cell, known
