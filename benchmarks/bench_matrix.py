@@ -769,7 +769,15 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "(benchmarks/results/cos.md), `python -m benchmarks.bench_cos`) and the small cells "
         "(5-30 cm) where `cos`, `from_segment` and `sampling` meet "
         "([benchmarks/results/small_cells.md](benchmarks/results/small_cells.md), "
-        "`python -m benchmarks.bench_small_cells`).\n",
+        "`python -m benchmarks.bench_small_cells`). The `dual_ray` core's experiments (the "
+        "paper's Table 1 grid, its speed targets: [benchmarks/results/dual_ray.md]"
+        "(benchmarks/results/dual_ray.md), `python -m benchmarks.bench_dual_ray`) and the big "
+        "cells (25 and 100 m) of the 100k city and Lyon where it should win, beside "
+        "`from_segment`, `sampling` and the ray-casting peer "
+        "([benchmarks/results/big_cells.md](benchmarks/results/big_cells.md), `pvs bench "
+        "--preset medium --scenes city:100000 ../shared/scenes/lyon_vilo3d.glb --cell-sizes 25 "
+        "100 --cores dual_ray from_segment sampling --point-deadline 120 --out "
+        "benchmarks/results/big_cells.md --results-dir benchmarks/results/big_cells`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         refused = [r for r in rows if r["scene"] == label and "refused" in r]
