@@ -17,11 +17,15 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import weakref
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
+import numpy as np
+
+from protocol.frames import common_origin
 from server.settings import Settings
 from visibility.scene import Scene, scene_fingerprint
 from visibility.scene_analysis import scene_is_2_5d
@@ -296,3 +300,15 @@ def check_name_ok(name: str) -> bool:
     except UnknownSceneError:
         return False
     return True
+
+
+_ORIGINS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def wire_origin(scene: Scene) -> np.ndarray:
+    """(3,) float64 origin of every geometry frame sent of ``scene`` (``common_origin`` of its
+    vertices), computed once per scene: frames of different cells hold shared vertices too."""
+    hit = _ORIGINS.get(scene)
+    if hit is None:
+        hit = _ORIGINS[scene] = common_origin(scene.vertices)
+    return hit

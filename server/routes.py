@@ -48,7 +48,7 @@ from protocol.codes import ErrorCode
 from protocol.frames import chunk_geometry
 from protocol.messages import BoxPvsRequest, CoresResponse, ErrorResponse, PvsResponse
 from protocol.version import PROTOCOL_VERSION
-from server.catalog import LoadedScene
+from server.catalog import LoadedScene, wire_origin
 from server.compute import AUTO_CORE, PVSResult, choose_core, core_fits
 from server.errors import ApiError, code_for_status, error_body, error_message
 from server.negotiation import choose_media_type
@@ -261,7 +261,8 @@ async def _pvs(
             def encode() -> bytes:
                 return b"".join(chunk_geometry(
                     ids, scene_obj.triangles(ids), scene_obj.colors[ids],
-                    cell=-1 if cell is None else int(cell), max_frame_bytes=limit))
+                    cell=-1 if cell is None else int(cell), max_frame_bytes=limit,
+                    origin=wire_origin(scene_obj)))
 
             body_bytes = await asyncio.to_thread(encode)
             return Response(body_bytes, media_type=GEOMETRY_MEDIA_TYPE, headers=headers)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,6 +23,7 @@ from protocol.codes import ErrorCode, is_fatal
 from protocol.frames import chunk_count, encode_geometry, triangles_per_frame
 from protocol.messages import CellBegin, CellEnd, Drop, Error
 from server.admission import Refused
+from server.catalog import wire_origin
 from server.compute import PVSResult
 from server.errors import error_code, error_message
 from server.sendqueue import StreamTag
@@ -35,24 +35,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-
-_ORIGINS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def wire_origin(scene) -> np.ndarray:
-    """(3,) float64 origin of every geometry frame of ``scene``: the centre of its bounding box,
-    in whole metres. One origin for all frames makes a vertex that two frames share decode to
-    the same position in both: with an origin per frame, triangles on either side of a chunk
-    boundary met with float32 rounding of their own, and the client saw cracks along shared
-    edges on the skyline of a 2 km city tile (0.04 % of pixels). The price is float32 precision
-    over half the scene's extent (0.06 mm at 1 km, 2 mm at 30 km)."""
-    hit = _ORIGINS.get(scene)
-    if hit is None:
-        v = np.asarray(scene.vertices, dtype=np.float64)
-        v = v[np.isfinite(v).all(axis=1)]  # a scene keeps its NaN vertices (invalid faces)
-        hit = np.round((v.min(axis=0) + v.max(axis=0)) / 2) if len(v) else np.zeros(3)
-        _ORIGINS[scene] = hit
-    return hit
 
 
 class Streamer:

@@ -1,4 +1,4 @@
-"""Geometry frames of one scene share one origin (``server.ws.streams.wire_origin``), so a
+"""Geometry frames of one scene share one origin (``server.catalog.wire_origin``), so a
 vertex that two frames hold decodes to the same position in both: no cracks along shared edges
 at chunk boundaries."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.frames import decode_geometry, encode_geometry
-from server.ws.streams import wire_origin
+from server.catalog import wire_origin
 from visibility.scene import Scene
 
 
@@ -40,3 +40,4 @@ def test_a_shared_vertex_decodes_the_same_in_every_frame():
                                         np.full((2, 3), 200, np.uint8)))
     pc = np.asarray(c.positions, dtype=np.float64) + c.origin
     assert not np.array_equal(pa[0, 1], pc[0, 0]) or not np.array_equal(pa[0, 2], pc[0, 2])
+
