@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.bench_matrix import measure_peak  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.viewcells import ViewcellGrid  # noqa: E402
@@ -51,23 +52,12 @@ CASES = (
 )
 
 
-def _status(field: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field):
-                return int(line.split()[1]) * 1024
-    return 0
-
-
 def peak_rise(fn) -> tuple[Any, float, int]:
-    """``fn()``, its wall seconds and its peak resident size above the size before it, bytes."""
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")  # resets VmHWM to the current RSS (Linux >= 4.0)
-    base = _status("VmRSS")
+    """``fn()``, its wall seconds and its peak resident size above the size before it, bytes
+    (``benchmarks.bench_matrix.measure_peak``: VmHWM reset through /proc/self/clear_refs)."""
     t0 = time.perf_counter()
-    out = fn()
-    seconds = time.perf_counter() - t0
-    return out, seconds, max(0, _status("VmHWM") - base)
+    out, rise_mib, _ = measure_peak(fn, traced=False)
+    return out, time.perf_counter() - t0, int((rise_mib or 0.0) * 2**20)
 
 
 def load(label: str):

@@ -35,6 +35,7 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from benchmarks.bench_matrix import measure_peak  # noqa: E402
 from tests.visibility.cores.cos.reference import cell_around, dense_reference  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
@@ -63,24 +64,6 @@ QUICK_CORES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("cos", {"resolution": 32}), ("from_segment", {}), ("sampling", {}))
 
 
-def _rss_rise(fn) -> tuple[Any, float]:
-    """``fn()`` and the rise of the process's peak RSS over its RSS before, MiB."""
-    def status(key: str) -> int:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(key):
-                    return int(line.split()[1]) * 1024
-        return 0
-
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        pass
-    before = status("VmRSS")
-    out = fn()
-    return out, max(0, status("VmHWM") - before) / 2**20
-
-
 def scenes(quick: bool) -> list[tuple[str, Any]]:
     """(label, Scene) of the scenes measured."""
     n = 5_000 if quick else 20_000
@@ -107,7 +90,8 @@ def measure(label: str, scene: Any, size: float, points: int, cores) -> list[dic
     for name, params in cores:
         core = get_core(name)
         p = core.make_params(**params)
-        first, rss = _rss_rise(lambda c=core, p=p: c.compute(scene, Viewcell(box), p))
+        first, rss, _ = measure_peak(lambda c=core, p=p: c.compute(scene, Viewcell(box), p),
+                                     traced=False)
         best = min((first, core.compute(scene, Viewcell(box), p)), key=lambda x: x.seconds)
         fn, fp = fn_fp_rates(best.triangle_ids, ref)
         missed = int(len(np.setdiff1d(ref, best.triangle_ids)))
@@ -121,7 +105,7 @@ def measure(label: str, scene: Any, size: float, points: int, cores) -> list[dic
                      "label": name + (" " + ",".join(f"{k}={v}" for k, v in params.items())
                                       if params else ""),
                      "seconds": best.seconds, "pvs": len(best), "reference": int(len(ref)),
-                     "fn": fn, "fn_count": missed, "fp": fp, "rss_mib": rss,
+                     "fn": fn, "fn_count": missed, "fp": fp, "rss_mib": rss or 0.0,
                      "triangles": scene.n_triangles})
     return rows
 
