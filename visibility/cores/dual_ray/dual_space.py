@@ -561,27 +561,18 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
                 cand[n] = cell_items[e]
                 n += 1
     # A piece is listed in every cell it crosses: each is cut once.
-    cand = np.unique(cand[:n])
-    segs = np.empty((len(cand), 6))
-    ids = np.empty(len(cand), dtype=np.int64)
-    n = 0
-    for p in cand:
-        if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
-                     bot[p, 0], bot[p, 1], segs[n]):
-            ids[n] = p
-            n += 1
-    return segs[:n], ids[:n]
+    return segments_from(frame, np.unique(cand[:n]), seg, top, bot, False)
 
 
 @njit(cache=True, nogil=True)
-def segments_from(frame, ids, seg, top, bot):  # pragma: no cover - numba
+def segments_from(frame, ids, seg, top, bot, by_top=True):  # pragma: no cover - numba
     """The occluding segments (n, 6) of the pieces ``ids`` inside the shaft ``frame``, and
-    the ids of those that occlude. ``ids`` come sorted by their highest top, highest first
-    (``leaf_piece_ids``): the scan stops at the first piece lower than the ceiling's lowest
-    point over the slab, which no later piece can reach either."""
+    the ids of those that occlude. With ``by_top`` the ``ids`` come sorted by their highest
+    top, highest first (``leaf_piece_ids``): the scan stops at the first piece lower than the
+    ceiling's lowest point over the slab, which no later piece can reach either."""
     segs = np.empty((len(ids), 6))
     out_ids = np.empty(len(ids), dtype=np.int64)
-    t_min = min(ceiling(frame, frame[2]), ceiling(frame, frame[3]))
+    t_min = min(ceiling(frame, frame[2]), ceiling(frame, frame[3])) if by_top else -np.inf
     n = 0
     for e in range(len(ids)):
         p = ids[e]
