@@ -186,9 +186,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         sel = _face_subsets(bounds, order, half, views, plane_tol)
         worst = -1.0
         for view in views:
-            tv, entries0, longest0 = time.perf_counter(), stats["list_entries"], 0
-            stats["longest_list"], longest0 = 0, stats["longest_list"]
-            _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis, budget, stats)
+            tv, entries0 = time.perf_counter(), stats["list_entries"]
+            longest = _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis,
+                                  budget, stats)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -197,8 +197,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
                 stats["costliest_view"] = {
                     "plane": f"{'+' if sgn > 0 else '-'}{'xyz'[axis]}", "frustum": view.kind,
                     "seconds": seconds, "list_entries": stats["list_entries"] - entries0,
-                    "longest_list": stats["longest_list"]}
-            stats["longest_list"] = max(longest0, stats["longest_list"])
+                    "longest_list": longest}
     m = scene.n_triangles
     ids = prims.out_id[vis != 0]
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
@@ -241,9 +240,10 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
 
 
 def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarray, view: View,
-                plane_tol: float, vis: np.ndarray, budget: int, stats: dict[str, Any]) -> None:
+                plane_tol: float, vis: np.ndarray, budget: int, stats: dict[str, Any]) -> int:
     """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
-    plane can list); sets ``vis`` for what it finds visible."""
+    plane can list); sets ``vis`` for what it finds visible, adds to ``stats`` and returns the
+    view's longest list."""
     t0 = time.perf_counter()
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
@@ -259,6 +259,7 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
     counters = np.zeros((n_tiles, 4), dtype=np.int64)
+    longest = 0
     stop = stop_flag()
     t = 0
     while t < n_tiles:
@@ -285,7 +286,8 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
                    tiles_x, view.origin, view.perm, view.sign, view.corners,
                    view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
         stats["list_entries"] += int(pcount.sum())
-        stats["longest_list"] = max(stats["longest_list"], int(pcount.max(initial=0)))
+        longest = max(longest, int(pcount.max(initial=0)))
+        stats["longest_list"] = max(stats["longest_list"], longest)
         tb = time.perf_counter()
         resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
                       pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
@@ -300,3 +302,4 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
     stats["occluded"] += int(counters[:, 1].sum())
     stats["occluder_triangles"] += int(counters[:, 2].sum())
     stats["early_z_cut"] += int(counters[:, 3].sum())
+    return longest
