@@ -204,10 +204,9 @@ def test_cos_walk_through_a_real_level_in_small_cells_draws_what_the_full_scene_
     frames match the full scene's up to rasterization ties (a pixel or two)."""
     from server.app import create_app
     from tests.conftest import LiveServer
-    from tests.visibility.real_scenes import SHARED_SCENES
+    from tests.visibility.real_scenes import SHARED_SCENES, real_path
 
-    if not (SHARED_SCENES / "lavaducts.glb").exists():
-        pytest.skip("../shared/scenes/lavaducts.glb is not here")
+    real_path("lavaducts")  # the real scene must be there: a KeyError, not a skip
     small = settings.model_copy(update={"scenes_dir": SHARED_SCENES, "cell_size": 0.3,
                                         "generated": {}, "max_frame_bytes": 1 << 20})
     srv = LiveServer(create_app(small), small)

@@ -48,3 +48,35 @@ def real_scene(name: str) -> Scene:
 def real_grid(name: str) -> ViewcellGrid:
     """Its viewcell grid at the scene's default cell size."""
     return ViewcellGrid.for_scene(real_scene(name))
+
+
+def assert_pvs_frames_match(name: str, cell_size: float, core: str, params: dict,
+                            walk_dir: Path, poses: list[int]) -> None:
+    """Frames drawn from a core's PVS equal the full scene's in every pixel (ε = 0): for each
+    index in ``poses`` of the walkthrough saved in ``walk_dir`` (``walkthrough.json``), the PVS
+    of the cell of ``name`` (at ``cell_size`` m) holding the eye, rendered with the client's
+    renderer against the whole scene."""
+    import json
+
+    import numpy as np
+
+    from client.metrics import frame_metrics
+    from client.render import OffscreenRenderer
+    from visibility.cores.base import get_core
+
+    walk = json.loads((walk_dir / "walkthrough.json").read_text())["poses"]
+    scene = real_scene(name)
+    grid = ViewcellGrid.for_scene(scene, cell_size)
+    c = get_core(core)
+    r = OffscreenRenderer(256, 256)
+    try:
+        for i in poses:
+            eye, fwd = np.array(walk[i]["position"]), np.array(walk[i]["forward"])
+            cid = grid.cell_of(eye)
+            assert cid is not None, f"pose {i} lies in no cell"
+            ids = c.compute(scene, grid.cell(cid), c.make_params(**params)).triangle_ids
+            frame = r.render(scene.vertices[scene.faces[ids]], scene.colors[ids], eye, fwd)
+            m = frame_metrics(frame, r.render_scene(scene, eye, fwd))
+            assert m["epsilon"] == 0.0, (i, m)
+    finally:
+        r.close()

@@ -7,37 +7,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from tests.visibility.real_scenes import SHARED_SCENES
+from tests.visibility.real_scenes import assert_pvs_frames_match
 
 WALK = Path(__file__).resolve().parents[4] / "benchmarks/results/walk_dual_ray_lyon"
 
 
 @pytest.mark.slow
 def test_frames_from_the_pvs_match_the_full_scene_on_lyon():
-    if not (SHARED_SCENES / "lyon_vilo3d.glb").exists():
-        pytest.skip("../shared/scenes/lyon_vilo3d.glb is not here")
-    from client.metrics import frame_metrics
-    from client.render import OffscreenRenderer
-    from visibility.cores.base import get_core
-    from visibility.loaders import load_scene
-    from visibility.viewcells import ViewcellGrid
-
-    poses = json.loads((WALK / "walkthrough.json").read_text())["poses"]
-    scene = load_scene(SHARED_SCENES / "lyon_vilo3d.glb")
-    grid = ViewcellGrid.for_scene(scene, 40.0)
-    core = get_core("dual_ray")
-    r = OffscreenRenderer(256, 256)
-    try:
-        for i in (0, 96, len(poses) - 1):
-            eye, fwd = np.array(poses[i]["position"]), np.array(poses[i]["forward"])
-            cid = grid.cell_of(eye)
-            assert cid is not None
-            ids = core.compute(scene, grid.cell(cid), core.make_params()).triangle_ids
-            frame = r.render(scene.vertices[scene.faces[ids]], scene.colors[ids], eye, fwd)
-            m = frame_metrics(frame, r.render_scene(scene, eye, fwd))
-            assert m["epsilon"] == 0.0, (i, m)
-    finally:
-        r.close()
+    n = len(json.loads((WALK / "walkthrough.json").read_text())["poses"])
+    assert_pvs_frames_match("lyon_vilo3d", 40.0, "dual_ray", {}, WALK, [0, 96, n - 1])
