@@ -965,7 +965,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out_md = args.out or (REPO / "BENCHMARKS.md")
     if args.report_only:
-        saved = json.loads((args.results_dir / f"bench_{cfg['preset']}.json").read_text())
+        path = args.results_dir / f"bench_{cfg['preset']}.json"
+        if not path.is_file():
+            print(f"pvs bench: --report-only needs the results of a run: {path} is missing",
+                  file=sys.stderr)
+            return 2
+        saved = json.loads(path.read_text())
         scfg = saved["config"]
         runs = scfg.get("runs") or [{"command": saved["command"]}]
         write_outputs(saved["rows"], scfg, runs[-1]["command"], runs[-1].get("wall_s") or 0.0,

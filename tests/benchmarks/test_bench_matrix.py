@@ -272,6 +272,8 @@ def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
     (tmp_path / "B.md").unlink()
     assert bench_matrix.main(argv + ["--report-only"]) == 0  # rewritten from the JSON alone
     assert (tmp_path / "B.md").read_text() == text
+    empty = tmp_path / "none"
+    assert bench_matrix.main(TINY + ["--report-only", "--results-dir", str(empty)]) == 2
 
 
 def test_a_core_that_does_not_fit_a_scene_is_named_once_not_run(tmp_path):
