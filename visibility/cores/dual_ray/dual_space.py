@@ -531,6 +531,7 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
     n_cols = hi_u - lo_u + 1
     span = uB - uA
     band = np.empty((n_cols, 2), dtype=np.int64)
+    t_col = np.empty(n_cols)
     total = 0
     for k in range(n_cols):
         col = lo_u + k if sgn > 0 else hi_u - k
@@ -545,6 +546,9 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
         w1 = min(int(np.floor((wh - g_w) / step)), hi_w)
         band[k, 0] = w0
         band[k, 1] = w1
+        # The ceiling's lowest point over the column's part of the slab (it is linear in u).
+        t_col[k] = min(ceiling(frame, min(max(min(c0, c1), uA), uB)),
+                       ceiling(frame, min(max(max(c0, c1), uA), uB)))
         for w in range(w0, w1 + 1):
             a = col if axis == 0 else w
             b = w if axis == 0 else col
@@ -557,8 +561,15 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
             a = col if axis == 0 else w
             b = w if axis == 0 else col
             c = a * nz + b
+            # A cell's pieces come highest top first: the scan stops at the first one under
+            # the ceiling's lowest point over the column. Its part in this column cannot
+            # reach the ceiling, nor can any later piece's; a part in another column is
+            # found there (a piece is listed in every cell it crosses).
             for e in range(cell_start[c], cell_start[c + 1]):
-                cand[n] = cell_items[e]
+                p = cell_items[e]
+                if max(top[p, 0], top[p, 1]) < t_col[k]:
+                    break
+                cand[n] = p
                 n += 1
     # A piece is listed in every cell it crosses: each is cut once.
     return segments_from(frame, np.unique(cand[:n]), seg, top, bot, False)

@@ -55,6 +55,7 @@ class Fences:
     grid_lo : (2,) float64 XZ corner of the grid; ``grid_step`` its cell side; ``grid_n``
         (2,) int64 cells along X and Z.
     cell_start : (nx * nz + 1,) int64 CSR offsets; ``cell_items`` (k',) int64 piece ids per cell
+        (highest top first)
         (a piece is listed in every cell its bounds overlap).
     walls : number of wall triangles the pieces come from.
     build_seconds : time the build took.
@@ -300,7 +301,7 @@ def build_fences(scene: Scene) -> Fences:
         order = np.lexsort((along, key_line)).astype(np.int64)
         keep = _merge_runs(seg, top, bot, order, key_line, JOIN)
         seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
-    grid = _grid(seg)
+    grid = _grid(seg, top)
     if len(seg):
         ends = np.concatenate([seg[:, :2], seg[:, 2:]])
         _, inv = np.unique(ends, axis=0, return_inverse=True)
@@ -328,8 +329,10 @@ def _fill_grid(seg, x0, z0, step, nx, nz, counts, start, items, mode):  # pragma
                     counts[c] += 1
 
 
-def _grid(seg: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-    """Uniform XZ grid over the pieces: (lo, step, (nx, nz), cell_start, cell_items)."""
+def _grid(seg: np.ndarray, top: np.ndarray
+          ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+    """Uniform XZ grid over the pieces (k, 4) with their tops (k, 2): (lo, step, (nx, nz),
+    cell_start, cell_items), each cell's items highest top first."""
     if len(seg) == 0:
         return (np.zeros(2), 1.0, np.array([1, 1], dtype=np.int64), np.zeros(2, np.int64),
                 np.zeros(0, np.int64))
@@ -347,6 +350,10 @@ def _grid(seg: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, n
     items = np.empty(int(start[-1]), dtype=np.int64)
     counts[:] = 0
     _fill_grid(seg, lo[0], lo[1], step, int(n[0]), int(n[1]), counts, start, items, 1)
+    # Each cell's pieces highest top first: a shaft query stops at the first piece under its
+    # ceiling there (``dual_space._gather``).
+    cell = np.repeat(np.arange(len(counts)), np.diff(start))
+    items = items[np.lexsort((-np.maximum(top[items, 0], top[items, 1]), cell))]
     return lo, step, n, start, items
 
 
