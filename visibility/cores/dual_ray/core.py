@@ -43,6 +43,12 @@ DEFAULT_RESOLUTION = 128
 BATCH = 4096
 #: Triangles of a leaf tested together first (``refine_triangles``).
 GROUP = 8
+#: ``triangle_refine="auto"`` tests every triangle of the visible leaves when they hold at most
+#: this many (leaf-triangle entries), else only those of the leaves the raster decided. Testing
+#: them all costs about 7 us per entry on 2 cores (Lyon's far-seeing 40 m cell: 105k entries,
+#: 0.73 s; a 100 m cell of the 1M city: 600k entries, 3.3 s against 1.8 s for the marginal
+#: ones; ``python -m benchmarks.bench_dual_ray``), so this keeps the refinement near a second.
+REFINE_ALL_MAX = 150_000
 #: Cells from this size up (metres, the larger horizontal side) are what the core is for.
 BIG_CELL = 10.0
 
@@ -59,16 +65,18 @@ class DualRayParams(CoreParams):
         value, higher costs more and overestimates less. Tested 16 x 16 first, refined where
         needed; rounded up to a multiple of 16.
     triangle_refine : which visible kd leaves have each triangle tested on its own bounds:
-        "all" (smallest PVS; the default), "marginal" (only those the raster had to decide:
-        no probe ray was free; on Lyon's 40 m cells about half the time for up to twice the
-        PVS) or "none" (whole leaves).
+        "auto" (the default: "all" when the visible leaves hold at most ``REFINE_ALL_MAX``
+        triangle entries, about a second of tests, else "marginal"), "all" (smallest PVS),
+        "marginal" (only those the raster had to decide: no probe ray was free; on Lyon's
+        40 m cells about half the time for up to twice the PVS) or "none" (whole leaves).
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
                             help="side of the dual ray space raster (16 x 16 first, refined)")
     triangle_refine: str = param(
-        "all", choices=("all", "marginal", "none"),
-        help="which visible kd leaves have each triangle tested on its own bounds: all "
+        "auto", choices=("auto", "all", "marginal", "none"),
+        help="which visible kd leaves have each triangle tested on its own bounds: auto "
+             "(all while that is cheap: at most 150k leaf triangles, else marginal), all "
              "(smallest PVS), marginal (only those no probe ray saw: about half the time, "
              "up to twice the PVS) or none (whole leaves)")
 
@@ -171,7 +179,7 @@ def _geometry_says(scene: Scene) -> str:
 
 
 def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
-                 triangle_refine: str = "all",
+                 triangle_refine: str = "auto",
                  coarse: int = COARSE) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell of a 2.5D scene (module docstring).
 
@@ -181,8 +189,9 @@ def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
     box : (2, 3) float64 [min, max], metres.
     resolution : side of the dual ray space raster, pixels.
     triangle_refine : which visible leaves have each triangle tested on its own bounds:
-        "all", "marginal" (those only the raster found visible: no probe ray was free) or
-        "none".
+        "all", "marginal" (those only the raster found visible: no probe ray was free),
+        "none", or "auto" ("all" up to ``REFINE_ALL_MAX`` leaf-triangle entries, else
+        "marginal").
     coarse : side of the first raster pass.
 
     Returns
@@ -190,7 +199,8 @@ def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
     triangle_ids : (k,) int64 visible triangle ids (any order).
     stats : seconds per phase (``kdtree_seconds`` and ``fence_seconds``: 0 once cached,
         ``traversal_seconds``, ``refine_seconds``), ``nodes_visited``, ``nodes_culled``,
-        ``leaves_visible``, ``triangle_tests``, ``triangles_culled``, ``occluders`` (fence
+        ``leaves_visible``, ``leaf_triangles`` (their triangle entries), ``triangle_refine``
+        (the mode used), ``triangle_tests``, ``triangles_culled``, ``occluders`` (fence
         pieces of the scene), ``occluding_segments`` (summed over the tests),
         ``coarse_pixels_refined``, and ``sphere_ids`` (every sphere: they never occlude).
     """
@@ -210,6 +220,11 @@ def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
     leaves, decided = traverse(tree, fences, alo, ahi, resolution, coarse, stats)
     t2 = time.perf_counter()
     stats["traversal_seconds"] = t2 - t1
+    held = tree.item_start[leaves + 1] - tree.item_start[leaves]
+    stats["leaf_triangles"] = int(held.sum())
+    if triangle_refine == "auto":
+        triangle_refine = "all" if held.sum() <= REFINE_ALL_MAX else "marginal"
+    stats["triangle_refine"] = triangle_refine
     if triangle_refine == "all":
         fine = np.ones(len(leaves), dtype=bool)
     elif triangle_refine == "marginal":

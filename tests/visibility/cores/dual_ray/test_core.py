@@ -38,6 +38,21 @@ def test_less_triangle_refinement_gives_supersets():
         assert set(known["visible"]) <= f
 
 
+def test_auto_refinement_tests_every_triangle_only_while_that_is_cheap(monkeypatch):
+    import visibility.cores.dual_ray.core as dual_ray_core
+
+    scene, cell, _ = ds.city_blocks()
+    box = np.asarray(cell.box, dtype=np.float64)
+    ids = {p: dual_ray_pvs(scene, box, 64, p) for p in ("all", "marginal", "auto")}
+    assert ids["auto"][1]["triangle_refine"] == "all"
+    assert np.array_equal(np.sort(ids["auto"][0]), np.sort(ids["all"][0]))
+    held = ids["auto"][1]["leaf_triangles"]
+    monkeypatch.setattr(dual_ray_core, "REFINE_ALL_MAX", held - 1)
+    ids_small, stats = dual_ray_pvs(scene, box, 64, "auto")
+    assert stats["triangle_refine"] == "marginal"
+    assert np.array_equal(np.sort(ids_small), np.sort(ids["marginal"][0]))
+
+
 def test_a_facade_grid_becomes_one_strip_per_side():
     scene = make_scene("city", triangles=20_000)
     fences = build_fences(scene)
