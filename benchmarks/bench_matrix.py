@@ -503,13 +503,20 @@ def _jobs(cores, levels_by_knob, cfg, use_peer) -> list[dict[str, Any]]:
 def merge_rows(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The rows of an earlier run with a new run's rows merged in: a new row replaces an old one
     of the same point (scene, cell size, cell, core, knob, level) and otherwise follows the old
-    rows of its cell, so each scene's table keeps its cells together."""
+    rows of its cell, so each scene's table keeps its cells together. A core's old rows on a
+    scene and cell size where the new run measured it on other cells are dropped: the grid's
+    cells changed, and the command now picks the new ones."""
     def key(r):
         return (r["scene"], r["cell_size"], r["cell"], r["core"], r["knob"], str(r["level"]))
 
     def cell(r):
         return (r["scene"], r["cell_size"], r["cell"])
 
+    measured: dict[tuple, set] = {}
+    for r in new:
+        measured.setdefault((r["scene"], r["cell_size"], r["core"]), set()).add(r["cell"])
+    old = [r for r in old
+           if r["cell"] in measured.get((r["scene"], r["cell_size"], r["core"]), {r["cell"]})]
     fresh = {key(r): r for r in new}
     out = [fresh.pop(key(r), r) for r in old]
     for r in new:

@@ -256,6 +256,17 @@ def test_merge_adds_a_core_to_an_earlier_run_and_replaces_its_own_rows():
         (3, "c", 0.0)]
 
 
+def test_merge_drops_a_cores_rows_on_cells_the_grid_no_longer_picks():
+    def row(cell, core):
+        return {"scene": "s", "cell_size": 4.0, "cell": cell, "core": core,
+                "knob": "resolution", "level": 32, "fn": 0.0}
+
+    old = [row(7, "a"), row(7, "b"), row(9, "a")]
+    out = bench_matrix.merge_rows(old, [row(8, "a")])
+    # Core a now measures cell 8 at this size: its rows on 7 and 9 go; b's row on 7 stays.
+    assert [(r["cell"], r["core"]) for r in out] == [(7, "b"), (8, "a")]
+
+
 def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
     argv = TINY + ["--out", str(tmp_path / "B.md"), "--results-dir", str(tmp_path),
                    "--cache-dir", str(tmp_path / "cache"), "--no-peer", "--reference", "none"]

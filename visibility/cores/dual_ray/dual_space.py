@@ -407,15 +407,16 @@ def probe_free(frame, segs):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True)
 def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
-                 cell_items, resolution, coarse_side):  # pragma: no cover - numba
+                 cell_items, resolution, coarse_side, mark, stamp):  # pragma: no cover - numba
     """Whether box B may be seen from box A among the fences, and how it was decided: 0
     hidden, 1 visible by the raster, 2 visible by a probe ray no occluder blocks (``probe_free``),
     3 visible since the footprints overlap; the number of occluding segments in the shaft and
-    the coarse pixels refined."""
+    the coarse pixels refined. ``mark``, ``stamp``: ``_gather_marked``."""
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return 3, 0, 0
-    segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    segs, ids = _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items,
+                               mark, stamp)
     if probe_free(frame, segs):
         return 2, segs.shape[0], 0
     vf, vstart = occluders(frame, segs, ids, vid)
@@ -432,12 +433,18 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_st
     occluding segments, coarse pixels refined."""
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
-    for i in prange(n):
-        v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, vid, glo, step, gn,
-                               cell_start, cell_items, resolution, coarse_side)
-        out[i, 0] = v
-        out[i, 1] = s
-        out[i, 2] = r
+    # Runs of boxes, one ``mark`` array each (``_gather_marked``), many more runs than threads
+    # so uneven boxes even out.
+    runs = min(n, 64)
+    for t in prange(runs):
+        mark = np.full(seg.shape[0], -1, dtype=np.int64)
+        for i in range(t * n // runs, (t + 1) * n // runs):
+            v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, vid, glo, step,
+                                   gn, cell_start, cell_items, resolution, coarse_side, mark,
+                                   i)
+            out[i, 0] = v
+            out[i, 1] = s
+            out[i, 2] = r
     return out
 
 
@@ -489,12 +496,12 @@ def _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items):  # pra
 
 @njit(cache=True, nogil=True)
 def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
-                    cell_items):  # pragma: no cover - numba
+                    cell_items, mark, stamp):  # pragma: no cover - numba
     """Ids of the fence pieces over the slab of ``frame`` inside its hull, heights aside,
     and of those within box B's footprint: the occluders of the shaft of any box inside B
-    that shares B's axis."""
-    _, ids1 = _gather(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
-                      cell_items)
+    that shares B's axis. ``mark``, ``stamp``: ``_gather_marked``."""
+    _, ids1 = _gather_marked(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
+                             cell_items, mark, stamp)
     ids2 = _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items)
     out = np.empty(len(ids1) + len(ids2), dtype=np.int64)
     out[:len(ids1)] = ids1
@@ -507,6 +514,17 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
             cell_items):  # pragma: no cover - numba
     """The fence pieces occluding inside the shaft ``frame``: the occluding segments (n, 6)
     ``[d0, l0, d1, l1, kept0, kept1]`` (``cut_piece``) and the pieces' ids (n,)."""
+    mark = np.full(seg.shape[0], -1, dtype=np.int64)
+    return _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items, mark, 0)
+
+
+@njit(cache=True, nogil=True)
+def _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items, mark,
+                   stamp):  # pragma: no cover - numba
+    """``_gather`` with the caller's ``mark`` (k,) int64 array: a piece listed in several cells
+    of the shaft is taken once, where ``mark[p]`` is not yet ``stamp`` (then set to it). One
+    array serves a thread's queries in turn, each with its own stamp, so no query sorts its
+    candidates to drop the repeats."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
     wlo = min(frame[6], frame[8])
     whi = max(frame[7], frame[9])
@@ -569,10 +587,12 @@ def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
                 p = cell_items[e]
                 if max(top[p, 0], top[p, 1]) < t_col[k]:
                     break
-                cand[n] = p
-                n += 1
-    # A piece is listed in every cell it crosses: each is cut once.
-    return segments_from(frame, np.unique(cand[:n]), seg, top, bot, False)
+                # A piece is listed in every cell it crosses: each is cut once.
+                if mark[p] != stamp:
+                    mark[p] = stamp
+                    cand[n] = p
+                    n += 1
+    return segments_from(frame, cand[:n], seg, top, bot, False)
 
 
 @njit(cache=True, nogil=True)
@@ -688,25 +708,31 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
     n = leaf_lo.shape[0]
     counts = np.zeros(n + 1, dtype=np.int64)
     ok = np.zeros(n, dtype=np.bool_)
-    for i in prange(n):
-        frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
-        if frame[13] != 0.0:
-            ok[i] = True
-            counts[i + 1] = len(shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot,
-                                                glo, step, gn, cell_start, cell_items))
+    runs = min(n, 64)
+    for t in prange(runs):
+        mark = np.full(seg.shape[0], -1, dtype=np.int64)
+        for i in range(t * n // runs, (t + 1) * n // runs):
+            frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
+            if frame[13] != 0.0:
+                ok[i] = True
+                counts[i + 1] = len(shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top,
+                                                    bot, glo, step, gn, cell_start,
+                                                    cell_items, mark, 2 * i))
     start = np.cumsum(counts)
     ids = np.empty(start[-1], dtype=np.int64)
-    for i in prange(n):
-        if ok[i]:
-            frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
-            got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, glo, step, gn,
-                                  cell_start, cell_items)
-            # Highest top first: a test stops at the first piece under its ceiling.
-            key = np.empty(len(got))
-            for k in range(len(got)):
-                key[k] = -max(top[got[k], 0], top[got[k], 1])
-            got = got[np.argsort(key, kind="mergesort")]
-            ids[start[i]:start[i] + len(got)] = got
+    for t in prange(runs):
+        mark = np.full(seg.shape[0], -1, dtype=np.int64)
+        for i in range(t * n // runs, (t + 1) * n // runs):
+            if ok[i]:
+                frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
+                got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, glo, step,
+                                      gn, cell_start, cell_items, mark, 2 * i + 1)
+                # Highest top first: a test stops at the first piece under its ceiling.
+                key = np.empty(len(got))
+                for k in range(len(got)):
+                    key[k] = -max(top[got[k], 0], top[got[k], 1])
+                got = got[np.argsort(key, kind="mergesort")]
+                ids[start[i]:start[i] + len(got)] = got
     return start, ids, ok
 
 
