@@ -135,6 +135,13 @@ class ViewcellGrid:
         i1 = np.minimum(np.floor((rects[:, 2] - lo[0]) / s - 0.5 + 1e-9), nx - 1)
         k0 = np.maximum(np.ceil((rects[:, 1] - lo[1]) / s - 0.5 - 1e-9), 0)
         k1 = np.minimum(np.floor((rects[:, 3] - lo[1]) / s - 0.5 + 1e-9), nz - 1)
+        # A rectangle narrower than a cell may hold no column centre along an axis (a 10 m
+        # street under 50 m cells): along that axis it takes every column it overlaps, so
+        # every walkable point lies in some cell.
+        for a0, a1, c0, c1, n in ((i0, i1, 0, 2, nx), (k0, k1, 1, 3, nz)):
+            thin = a0 > a1
+            a0[thin] = np.clip(np.floor((rects[thin, c0] - lo[c0]) / s), 0, n - 1)
+            a1[thin] = np.clip(np.ceil((rects[thin, c1] - lo[c0]) / s) - 1, a0[thin], n - 1)
         total = float(np.sum(np.maximum(i1 - i0 + 1, 0) * np.maximum(k1 - k0 + 1, 0)))
         if total > MAX_VIEWCELLS:
             raise ValueError(

@@ -102,3 +102,17 @@ def test_thin_axes_far_from_the_origin_collapse_by_ulps():
     assert noise.size[0] == 0.0 and noise.size[1] == 1.0
     kept = Viewcell(np.array([[far, 0.0, 0.0], [far + 1.0, 1.0, 1.0]]))
     assert kept.size[0] == 1.0
+
+
+def test_streets_narrower_than_a_cell_still_get_cells():
+    # Two 10 m streets crossing, under 50 m cells: no column centre lies in either, yet every
+    # point of them must lie in a cell (a city served at big cells for dual_ray).
+    w = WalkArea([[0, 45, 200, 55, 0.0], [95, 0, 105, 200, 0.0]])
+    g = ViewcellGrid(w, 50.0)
+    assert len(g) > 0
+    rng = np.random.default_rng(0)
+    for x0, z0, x1, z1, *_ in w.rects:
+        for x, z in zip(rng.uniform(x0, x1, 50), rng.uniform(z0, z1, 50), strict=True):
+            assert g.cell_of([x, 1.7, z]) is not None, (x, z)
+    # Rectangles at least a cell wide keep the centre rule: nothing changes for them.
+    assert len(ViewcellGrid(WalkArea([[0, 0, 10, 10, 0.0]]), 5.0)) == 4
