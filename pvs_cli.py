@@ -48,7 +48,8 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
     flags = {"host": args.host, "port": args.port, "core": args.core,
              "cell_size": args.cell_size, "workers": args.workers,
              "scenes_dir": Path(args.scenes) if args.scenes else None,
-             "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None}
+             "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None,
+             "progressive": getattr(args, "progressive", None)}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -376,6 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="PVS worker threads (PVS_WORKERS)")
     p.add_argument("--cache-dir", help="on-disk PVS cache folder, kept across restarts "
                                        "(PVS_CACHE_DIR; `pvs precompute` fills it)")
+    p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
+                   help="a walker's cell gets a cheap first answer at once, refined in place "
+                        "when the core's answer is ready (PVS_PROGRESSIVE; default on)")
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client",

@@ -189,6 +189,8 @@ def replay(opts: ReplayOptions, core: str | None, out: Path) -> dict:
             stream = session.cells.get(cell) if cell is not None else None
             if stream is not None and stream.begin is not None:
                 rec["pvs_triangles"] = int(stream.begin.triangles)  # the cell's, per the server
+            # Which answer the frame's cell held (a first answer not yet refined, or not).
+            rec["answer"] = (stream.answer if stream is not None else None) or "none"
             cube = session.cubemap_for(cell) if cell is not None else None
             if cube is not None:
                 # Near-far stream: the geometry-only frame above lacks the far field; the

@@ -91,6 +91,21 @@ def metric_stats(frames: list[dict]) -> dict[str, dict[str, float]]:
     return out
 
 
+def answer_stats(frames: list[dict]) -> dict[str, dict[str, float]]:
+    """Per answer the frames' cell held (``answer``: "first" before refinement, "refined" or
+    "full" after, "none" for no complete stream): ``{answer: {"frames", "share", metric means
+    (the main and near-far metrics present)}}``; empty when no frame records an answer."""
+    out: dict[str, dict[str, float]] = {}
+    named = [f for f in frames if f.get("answer")]
+    for answer in sorted({str(f["answer"]) for f in named}):
+        sub = [f for f in named if f["answer"] == answer]
+        stats = metric_stats(sub)
+        out[answer] = {"frames": len(sub), "share": len(sub) / len(frames),
+                       **{m: stats[m]["mean"] for m in (*MAIN_METRICS, *NEAR_FAR_METRICS)
+                          if m in stats}}
+    return out
+
+
 def _write_csv(path: Path, frames: list[dict]) -> None:
     cols: list[str] = []
     for f in frames:
@@ -211,6 +226,7 @@ def write_report(out_dir: str | Path, frames: list[dict], meta: dict) -> dict:
         "stalls": int(sum(bool(f.get("stalled", False)) for f in frames)),
         "psnr_cap_db": PSNR_CAP_DB,
         "summary": stats,
+        "answers": answer_stats(frames),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
     _write_csv(out / "frames.csv", frames)
@@ -251,6 +267,13 @@ def format_summary(summary: dict, per_frame: bool = False) -> str:
         lines.append(
             f"{name:<{width}}{s['mean']:>12.4g}{s['min']:>12.4g}{s['max']:>12.4g}{s['count']:>7d}"
         )
+    answers = summary.get("answers") or {}
+    if set(answers) - {"full", "none"}:
+        # Progressive streams: the frames drawn from a first answer, and after refinement.
+        for a, st in answers.items():
+            means = "  ".join(f"{m} {st[m]:.4g}" for m in MAIN_METRICS if m in st)
+            lines.append(f"answer {a:<8} {int(st['frames']):5d} frames ({100 * st['share']:.0f} %)"
+                         f"  {means}")
     tail = f"frames: {len(frames)}   stalls: {summary.get('stalls', 0)}"
     startup = (summary.get("meta") or {}).get("startup_seconds")
     if _is_number(startup):

@@ -72,7 +72,10 @@ class CellStream:
     """What the client knows of one cell's stream (the latest one for that cell).
 
     ``begin``/``end`` are the messages, ``chunks`` and ``triangles`` what arrived in between,
-    ``received_at`` the client clock (perf_counter seconds) at ``cell_end``.
+    ``received_at`` the client clock (perf_counter seconds) at ``cell_end``. ``answer``: the
+    answer the cell holds as far as complete streams go (``protocol.messages.ANSWERS``;
+    None before the first ``cell_end``): a "refined" stream under way leaves it "first" until
+    its end, and keeps the ids of the first answer's stream.
     """
 
     cell: int
@@ -82,6 +85,7 @@ class CellStream:
     triangles: int = 0
     received_at: float | None = None
     ids: list[np.ndarray] = field(default_factory=list, repr=False)
+    answer: str | None = None
 
     @property
     def complete(self) -> bool:
@@ -158,6 +162,7 @@ class Session:
         budget: int | None = None,
         *,
         prefetch: bool | None = None,
+        progressive: bool | None = None,
         store: GeometryStore | None = None,
         timeout: float = 30.0,
         max_size: int | None = 64 * 1024 * 1024,
@@ -167,12 +172,13 @@ class Session:
         Waits (at most ``timeout`` seconds) for the ``welcome``; raises SessionError when the
         server answers with an error or closes, TimeoutError when it does not answer.
         ``prefetch``: ask for (True) or against (False) cells streamed ahead; None: the
-        server's default.
+        server's default. ``progressive``: False asks for the core's answers only, never a
+        cheap first answer refined later (``cell_begin.answer``); None: the server's default.
         """
         ws = await connect(ws_url(url), max_size=max_size, open_timeout=timeout, compression=None)
         try:
             hello = Hello(scene=scene, core=core, params=params or {}, budget=budget,
-                          prefetch=prefetch)
+                          prefetch=prefetch, progressive=progressive)
             await ws.send(dump_message(hello))
             raw = await asyncio.wait_for(ws.recv(), timeout)
             if isinstance(raw, bytes):
@@ -411,7 +417,14 @@ class Session:
             if not self._begin_fits(msg):
                 self.current = None
                 return
-            self.current = CellStream(msg.cell, begin=msg)
+            before = self.cells.get(msg.cell)
+            if msg.answer == "refined" and before is not None:
+                # A refinement adds to the cell's first answer: the cell stays complete, with
+                # the first answer, until this stream ends.
+                self.current = CellStream(msg.cell, begin=msg, ids=list(before.ids),
+                                          answer=before.answer)
+            else:
+                self.current = CellStream(msg.cell, begin=msg)
             self.cells[msg.cell] = self.current
         elif isinstance(msg, Drop):
             self._on_drop(msg)
@@ -431,6 +444,7 @@ class Session:
             cs.end = msg
             cs.received_at = time.perf_counter()
             if not msg.partial:
+                cs.answer = msg.answer
                 self.complete.add(msg.cell)
             self.current = None
         elif isinstance(msg, Error):

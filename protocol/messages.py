@@ -91,6 +91,12 @@ class ProtocolError(ValueError):
         self.seq = seq
 
 
+#: What a cell's stream holds (``cell_begin.answer``): the session core's whole PVS, a cheap
+#: first answer, or what refines a first answer into the core's PVS.
+ANSWERS = ("full", "first", "refined")
+Answer = Literal["full", "first", "refined"]
+
+
 class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -112,6 +118,9 @@ class Hello(_Message):
     #: Whether the server should send the cells ahead before the client reaches them (None:
     #: the server's setting).
     prefetch: StrictBool | None = None
+    #: Whether a cell the walker needs now may come first as a cheap answer, refined in place
+    #: (``cell_begin.answer``; None: the server's setting).
+    progressive: StrictBool | None = None
 
 
 class Pose(_Message):
@@ -207,6 +216,10 @@ class CellBegin(_Message):
     #: "cubemap_cell"}`` (metres; ``center`` is the cubemap centre O, ``cubemap_cell`` the cell
     #: whose cubemap frame this cell composes with: cells of a block share one).
     near_far: dict[str, Any] | None = None
+    #: Which answer the stream brings (``ANSWERS``): "full", the session core's PVS; "first",
+    #: a cheap one (the welcome's ``features.progressive``) sent while that core computes;
+    #: "refined", the rest of the core's PVS for a cell that got a first answer.
+    answer: Answer = "full"
 
 
 class CellEnd(_Message):
@@ -223,6 +236,8 @@ class CellEnd(_Message):
     #: True when the stream was cut short (a prefetch stream yielding to the current cell's):
     #: the chunks that arrived are valid, but the cell is not complete.
     partial: bool = False
+    #: The answer the stream brought (``cell_begin.answer``).
+    answer: Answer = "full"
 
 
 class Drop(_Message):

@@ -4,12 +4,15 @@ Bump ``PROTOCOL_VERSION`` on any change a peer of the previous version could mis
 required field, a changed meaning, a changed binary layout. Additive optional fields in JSON
 messages do not need a bump only when both ends already accept them (they are strict: unknown
 fields are rejected), so in practice every schema change bumps it.
+
+History: 1, the first; 2, ``hello.progressive`` and ``cell_begin``/``cell_end.answer``
+(progressive PVS).
 """
 
 from __future__ import annotations
 
 #: The version this code speaks, in ``hello``/``welcome`` and every binary frame header.
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 #: Versions a server built from this code accepts in ``hello``.
 SUPPORTED_VERSIONS: tuple[int, ...] = (PROTOCOL_VERSION,)

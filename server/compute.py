@@ -134,6 +134,10 @@ class ComputeService:
         self.catalog = catalog
         self.settings = settings
         self.pool = pool or PriorityWorkerPool(settings.workers, settings.heavy_lane_workers())
+        #: First answers (``settings.progressive``) run here, on a worker of their own: they
+        #: take tens of milliseconds, and must not queue behind the session cores' work.
+        self.first_pool = PriorityWorkerPool(1) if settings.progressive else None
+        self._first: tuple[Core, CoreParams] | None = None
         self.admission = Admission(settings)
         #: Asked, with a cache key, before a computation nobody waits for any more is
         #: cancelled: True keeps it (a walker's prefetch list still names the cell).
@@ -217,6 +221,7 @@ class ComputeService:
         wanted: Callable[[], bool] | None = None,
         deadline: float | None = None,
         client: Hashable | None = None,
+        lane: str = "main",
     ) -> Future:
         """A future of the ``PVSResult`` for a grid cell (``cell``), an ad-hoc ``box`` (2, 3) or
         a ``segment`` (2, 3) [p, q] (metres; ``Core.compute_segment``, exact for cores that
@@ -234,7 +239,8 @@ class ComputeService:
         ``client`` (an HTTP client's address; None: not counted) is at its cap; ``Busy`` when
         the queue is full, except for a walker's current cell (priority 0 without ``client``).
         Every caller that gets a future without ``wanted`` should ``release`` it when it stops
-        waiting before it is done: the last one to go cancels the computation.
+        waiting before it is done: the last one to go cancels the computation. ``lane``:
+        "first" runs a new computation on the first answers' worker (``first_answer``).
         Raises UnknownSceneError at once for names outside the catalogue; the future raises
         UnknownCellError, UnsupportedSceneError, SceneLoadFailed or the core's errors.
         """
@@ -262,16 +268,18 @@ class ComputeService:
             if pvs is None and fut is None:
                 limit = self.settings.compute_deadline
                 budget = limit if deadline is None else min(limit, deadline)
-                cost = self._admit(scene, core, params, cell, box, budget, priority, client)
+                pool = self.first_pool if lane == "first" and self.first_pool else self.pool
+                cost = self._admit(scene, core, params, cell, box, budget, priority, client,
+                                   pool)
                 token = CancelToken.after(budget)
                 model = float(cost.detail.get("model_seconds", cost.seconds))
                 args = (self._run, key, scene, core, params, cell, box, segment, token, model)
-                if isinstance(self.pool, PriorityWorkerPool):
-                    fut = self.pool.submit(
+                if isinstance(pool, PriorityWorkerPool):
+                    fut = pool.submit(
                         *args, priority=priority, wanted=wanted, seconds=cost.seconds,
                         heavy=cost.seconds > self.settings.heavy_seconds)
                 else:
-                    fut = self.pool.submit(*args)
+                    fut = pool.submit(*args)
                 if client is not None:
                     fut.add_done_callback(lambda f, c=client: self.admission.release(c))
                 if not fut.done():
@@ -347,11 +355,26 @@ class ComputeService:
             token.cancel(reason)
         return True
 
+    def first_core(self) -> tuple[Core, CoreParams]:
+        """The core and parameters of first answers (``settings.first_core``,
+        ``first_params``); raises UnknownCoreError, ValueError for bad settings."""
+        if self._first is None:
+            core = resolve_core(self.settings.first_core)
+            self._first = core, coerce_params(core, self.settings.first_params)
+        return self._first
+
+    def first_answer(self, scene: str, cell: int) -> Future:
+        """A future of the cheap first answer for a walker's cell (``first_core``), run on the
+        first answers' worker ahead of everything there; cached like any PVS."""
+        core, params = self.first_core()
+        return self.submit(scene, core, params, cell=cell, priority=0.0, lane="first")
+
     def _admit(self, scene: str, core: Core, params: CoreParams, cell: int | None,
                box: np.ndarray | None, deadline: float, priority: float,
-               client: Hashable | None) -> Cost:
+               client: Hashable | None, pool: WorkerPool | None = None) -> Cost:
         """The cost estimate of a new computation, after the admission checks
-        (``server.admission``; raises its ``Refused`` errors). Called with the lock held."""
+        (``server.admission``; raises its ``Refused`` errors). Called with the lock held.
+        ``pool``: the one it will run on (default the main pool)."""
         adm = self.admission
         cost = Cost(0.0, 0)
         if self.catalog.is_loaded(scene):
@@ -363,7 +386,8 @@ class ComputeService:
                                        f"0..{len(loaded.grid) - 1})") from None
             cost = adm.estimate(core, loaded.scene, viewcell, params, scene)
         adm.check_limits(cost, deadline, core.name)
-        pool = self.pool if isinstance(self.pool, PriorityWorkerPool) else None
+        pool = pool or self.pool
+        pool = pool if isinstance(pool, PriorityWorkerPool) else None
         ahead = pool.queued_seconds() if pool is not None else 0.0
         if pool is not None and (priority > 0 or client is not None):
             adm.check_queue(pool.queued(), ahead)
@@ -482,6 +506,8 @@ class ComputeService:
         next checkpoint."""
         self.cancel_all()
         self.pool.shutdown(wait=False, cancel_futures=True)
+        if self.first_pool is not None:
+            self.first_pool.shutdown(wait=False, cancel_futures=True)
 
 
 # --------------------------------------------------------------------------- auto core

@@ -55,6 +55,14 @@ class Settings(BaseModel):
         in their hello).
     prefetch_ahead : cosine threshold: a neighbour is ahead of a walker when the cosine between
         its predicted motion and the direction to the neighbour's centre exceeds this.
+    progressive : a walker's cell whose PVS is not ready gets a cheap first answer at once
+        (``first_core``) while the session's core computes, then only what that core adds
+        (``cell_begin.answer``); clients may opt out in their hello. False: the walker waits
+        for the session core's answer.
+    first_core, first_params : the core and parameters of the first answer (default
+        ``sampling``, 4 viewpoints at 128 px: tens of milliseconds on the 100k scenes). First
+        answers run on a worker of their own, so computations of the session cores never
+        hold them up.
     send_queue_frames : frames (binary and text) queued per session before the streamer waits.
     send_timeout : seconds one send may wait for a slow client before the session is closed
         (``slow_client``).
@@ -117,6 +125,10 @@ class Settings(BaseModel):
     cache_dir: Path | None = None
     prefetch: bool = True
     prefetch_ahead: float = Field(-0.2, ge=-1.0, le=1.0, allow_inf_nan=False)
+    progressive: bool = True
+    first_core: str = "sampling"
+    first_params: dict[str, Any] = Field(
+        default_factory=lambda: {"samples": 4, "batch": 4, "resolution": 128})
     send_queue_frames: int = Field(16, ge=1, le=4096)
     send_timeout: float = Field(10.0, gt=0, allow_inf_nan=False)
     near_far: bool = False
@@ -185,6 +197,7 @@ class Settings(BaseModel):
         PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_PREFETCH_AHEAD,
+        PVS_PROGRESSIVE, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object),
         PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
@@ -207,6 +220,7 @@ class Settings(BaseModel):
             "max_message_bytes": "PVS_MAX_MESSAGE_BYTES", "ws_deflate": "PVS_WS_DEFLATE",
             "hello_timeout": "PVS_HELLO_TIMEOUT", "cache_dir": "PVS_CACHE_DIR",
             "prefetch": "PVS_PREFETCH", "prefetch_ahead": "PVS_PREFETCH_AHEAD",
+            "progressive": "PVS_PROGRESSIVE", "first_core": "PVS_FIRST_CORE",
             "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
             "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
             "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
@@ -231,14 +245,16 @@ class Settings(BaseModel):
         if "PVS_WS_PING_INTERVAL" in env:
             raw = env["PVS_WS_PING_INTERVAL"].strip().lower()
             values["ws_ping_interval"] = None if raw in ("", "none", "0") else raw
-        if env.get("PVS_CORE_PARAMS", "").strip():
-            try:
-                params = json.loads(env["PVS_CORE_PARAMS"])
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"PVS_CORE_PARAMS is not JSON: {exc}") from None
-            if not isinstance(params, dict):
-                raise ValueError("PVS_CORE_PARAMS must be a JSON object")
-            values["core_params"] = params
+        for field, var in (("core_params", "PVS_CORE_PARAMS"),
+                           ("first_params", "PVS_FIRST_PARAMS")):
+            if env.get(var, "").strip():
+                try:
+                    params = json.loads(env[var])
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{var} is not JSON: {exc}") from None
+                if not isinstance(params, dict):
+                    raise ValueError(f"{var} must be a JSON object")
+                values[field] = params
         if "PVS_GENERATED" in env:
             values["generated"] = _parse_generated(env["PVS_GENERATED"])
         values.update(overrides)

@@ -199,6 +199,9 @@ def settings(scenes_dir: Path):
         # Tests of validation send hundreds of refused requests in a row; the rate limit has
         # its own tests (tests/server/test_robustness.py, at the defaults).
         pvs_rate=1e6, pvs_burst=1_000_000,
+        # Streams carry the session core's answers only, as these tests expect; progressive
+        # streams (the default) have their own tests (tests/server/test_progressive.py).
+        progressive=False,
     )
 
 

@@ -114,6 +114,7 @@ async def handshake(session: StreamSession) -> None:
     s.dynamic = DynamicFrames(scene, settings.max_frame_bytes, s.outbox, s.state.counters, s.id)
     valid = int(np.count_nonzero(scene.valid_faces))
     s.send_all = msg.budget is not None and valid <= msg.budget
+    s.progressive, s.progressive_why = progressive_on(s, msg.progressive)
     features = await asyncio.to_thread(session_features, s, why, valid)
     # Registered before the welcome leaves: a client that has its welcome finds its session
     # (pins, /sessions, metrics) already there. ``run`` removes it on every way out.
@@ -133,6 +134,26 @@ async def handshake(session: StreamSession) -> None:
     s.welcomed = True
 
 
+def progressive_on(s: StreamSession, asked: bool | None) -> tuple[bool, str]:
+    """Whether the session gets first answers refined in place (``settings.progressive``,
+    the hello's ``progressive``), and why."""
+    settings = s.settings
+    if not settings.progressive:
+        return False, "off on this server (PVS_PROGRESSIVE=0): the walker waits for the core"
+    if asked is False:
+        return False, "the client asked for the core's answers only"
+    if s.send_all:
+        return False, "the whole scene is sent: no PVS to refine"
+    try:
+        first, params = s.state.compute.first_core()
+    except (LookupError, ValueError) as exc:
+        return False, f"the first answers' core is misconfigured: {exc}"
+    if first.name == s.core.name and params.cache_key() == s.params.cache_key():
+        return False, "the session's core is the first answers' core: nothing to refine"
+    return True, (f"a cell not yet computed comes first as {first.name}'s cheap answer, then "
+                  f"what {s.core.name} adds")
+
+
 def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
     """What the session's streams include and leave out, and why (the welcome's
     ``features``); ``why``: why its core was chosen, ``valid``: the scene's valid triangles."""
@@ -150,6 +171,7 @@ def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
     return {
         "pvs": pvs,
         "prefetch": {"on": s.prefetch},
+        "progressive": progressive_feature(s),
         "delta": {"on": True, "why": "each triangle is sent once unless dropped"},
         "dynamic_updates": {"on": dynamic, "why": "the scene has moving triangles or "
                             "spheres: their keyframes follow their geometry" if dynamic
@@ -158,3 +180,13 @@ def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
         "cores": offered_cores(scene),
         "core_choice": {"core": s.core.name, "why": why},
     }
+
+
+def progressive_feature(s: StreamSession) -> dict[str, Any]:
+    """The welcome's ``features.progressive``: on or off and why; the first answers' core and
+    parameters when on."""
+    out: dict[str, Any] = {"on": s.progressive, "why": s.progressive_why}
+    if s.progressive:
+        core, params = s.state.compute.first_core()
+        out["first"] = {"core": core.name, "params": jsonable_params(params)}
+    return out

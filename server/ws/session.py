@@ -13,7 +13,7 @@ import logging
 import time
 import uuid
 from collections import deque
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from starlette.websockets import WebSocket
@@ -71,6 +71,13 @@ class StreamSession:
         self.nearfar: NearFarStreams | None = None
         self.dynamic: DynamicFrames | None = None
         self.prefetch = False
+        #: Cheap first answers for the walker's cell, refined in place (``server.ws.streams``).
+        self.progressive = False
+        self.progressive_why = ""
+        #: Cells streamed with a first answer whose core computation goes on: (the compute
+        #: service's future, the seq of the pose that asked for the cell).
+        self.refining: dict[int, tuple[Any, int | None]] = {}
+        self.first_failed = False
         self.send_all = False
         self.cell: int | None = None
         self.cell_seq = 0
@@ -131,6 +138,7 @@ class StreamSession:
         finally:
             self.state.sessions.pop(self.id, None)
             self._unpin()
+            self.streamer.release_refinements()
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,16 +44,65 @@ class Streamer:
         self.s = session
 
     # ----------------------------------------------------------------------------- jobs
-    def next_job(self) -> tuple[int, bool, int] | None:
-        """(cell, prefetch?, rank) of the next stream: the current cell, then prefetch order."""
+    def next_job(self) -> tuple[int, bool, int, bool] | None:
+        """(cell, prefetch?, rank, refinement?) of the next stream: the current cell first, then
+        refinements that are ready (the current cell's, then those ahead), then prefetch
+        order."""
         s = self.s
         c, done = s.cell, s.inventory.done
         if c is not None and (c not in done or c != s.announced) and c not in s.skip:
-            return c, False, 0
+            return c, False, 0, False
+        self._drop_unwanted_refinements()
+        ready = [n for n, (fut, _) in s.refining.items() if fut.done()]
+        if c in ready:
+            return c, False, 0, True
+        for rank, n in enumerate(s.want):
+            if n in ready:
+                return n, True, rank, True
         for rank, n in enumerate(s.want):
             if n not in done and n not in s.skip and n != c:
-                return n, True, rank
+                return n, True, rank, False
         return None
+
+    # ----------------------------------------------------------------------------- refinements
+    def _drop_unwanted_refinements(self) -> None:
+        """Give up the refinements of cells the walker left (neither current nor ahead): the
+        computation stops unless another walker wants it, and the cell counts as not done, so
+        coming back streams it again (what it lacks, then its refinement)."""
+        s = self.s
+        for n in [n for n in s.refining if n != s.cell and n not in s.want_set]:
+            cf, _ = s.refining.pop(n)
+            s.state.compute.release(cf, "the walker left the cell before its refinement")
+            s.inventory.done.discard(n)
+            s.state.counters["refinements_dropped"] += 1
+
+    def release_refinements(self) -> None:
+        """The session ends: give up every pending refinement."""
+        s = self.s
+        for cf, _ in s.refining.values():
+            s.state.compute.release(cf, "the walker left")
+        s.refining.clear()
+
+    async def refine(self, cell: int, prefetch: bool) -> None:
+        """Stream what the session core's answer adds to ``cell``'s first answer."""
+        s = self.s
+        cf, seq = s.refining.pop(cell)
+        if cf.cancelled():
+            s.inventory.done.discard(cell)
+            return
+        exc = cf.exception()
+        if exc is not None:
+            code = error_code(exc)
+            msg = error_message(exc) if code is not None else (
+                f"refinement of cell {cell} failed: {type(exc).__name__}: {exc}")
+            if code is None:
+                log.error("session %s: refinement of %s cell %d failed: %r", s.id,
+                          s.loaded.name, cell, exc)
+            s.state.counters["refinements_failed"] += 1
+            await self._job_failed(cell, prefetch, msg, seq, code)
+            return
+        s.state.counters["refinements"] += 1
+        await self.stream_cell(cell, cf.result(), prefetch, answer="refined")
 
     def current_pending(self, streaming: int) -> bool:
         """Whether the walker's cell, not ``streaming``, waits for its stream."""
@@ -72,10 +121,13 @@ class Streamer:
                     s.wake.clear()
                     await s.wake.wait()
                     continue
-                cell, prefetch, rank = job
-                result = await self.get_pvs(cell, prefetch, rank)
-                if result is not None:
-                    await self.stream_cell(cell, result, prefetch)
+                cell, prefetch, rank, refinement = job
+                if refinement:
+                    await self.refine(cell, prefetch)
+                    continue
+                got = await self.get_pvs(cell, prefetch, rank)
+                if got is not None:
+                    await self.stream_cell(cell, got[0], prefetch, answer=got[1])
         except SessionOver:
             pass
         except Exception:
@@ -93,21 +145,29 @@ class Streamer:
         pvs = PVS(ids) if stats is None else PVS(ids, stats=stats)
         return PVSResult(s.loaded.name, cell, box, s.core.name, s.params, pvs, True)
 
-    async def get_pvs(self, cell: int, prefetch: bool, rank: int) -> PVSResult | None:
-        """The PVS of ``cell``, or None when the job was superseded (the walker moved on: the
-        computation goes on in the pool and lands in the cache) or failed (error sent)."""
+    async def get_pvs(self, cell: int, prefetch: bool,
+                      rank: int) -> tuple[PVSResult, str] | None:
+        """The PVS of ``cell`` and which answer it is (``protocol.messages.ANSWERS``), or None
+        when the job was superseded (the walker moved on: the computation goes on in the pool
+        and lands in the cache) or failed (error sent).
+
+        Progressive (``StreamSession.progressive``): for the walker's cell, when the session
+        core's answer is not ready at once, the cheap first answer (``ComputeService.
+        first_answer``) is returned as soon as it is there, and the core's computation goes on
+        as the cell's refinement (``refine``)."""
         s = self.s
         name = s.loaded.name
         known = s.inventory.pvs_of.get(cell)
         if known is not None and cell in s.inventory.done:
-            return self._ready(cell, known)
+            return self._ready(cell, known), "full"
         if s.send_all:
-            return self._ready(cell, np.flatnonzero(s.loaded.scene.valid_faces).astype(np.int32))
+            return self._ready(
+                cell, np.flatnonzero(s.loaded.scene.valid_faces).astype(np.int32)), "full"
         near = await s.nearfar.near_region_if_it_fits(cell, s.inventory.budget)
         if near is not None:
             s.state.counters["cells_sent_whole"] += 1
             return self._ready(cell, near, stats={
-                "skipped": "the near region fits the client's budget: sent whole"})
+                "skipped": "the near region fits the client's budget: sent whole"}), "full"
         compute = s.state.compute
         key = compute.key(name, s.core, s.params, cell)
         seq = s.cell_seq if not prefetch else None
@@ -121,12 +181,22 @@ class Streamer:
             return None
         fut = asyncio.wrap_future(cf)
         fut.add_done_callback(lambda f: f.cancelled() or f.exception())
+        first = self._first_answer(cell, cf) if not prefetch else None
         job = (cell, prefetch)
         try:
             while not fut.done():
+                if first is not None and first.done():
+                    if not first.cancelled() and first.exception() is None:
+                        # The core goes on computing; its answer refines this one.
+                        s.refining[cell] = (cf, seq)
+                        fut.add_done_callback(lambda f: s.wake.set())
+                        s.state.counters["first_answers"] += 1
+                        return first.result(), "first"
+                    first = None  # no first answer: wait for the core's
                 s.wake.clear()
                 waker = asyncio.ensure_future(s.wake.wait())
-                await asyncio.wait({fut, waker}, return_when=asyncio.FIRST_COMPLETED)
+                await asyncio.wait({fut, waker} | ({first} if first is not None else set()),
+                                   return_when=asyncio.FIRST_COMPLETED)
                 waker.cancel()
                 nxt = self.next_job()
                 if not fut.done() and (nxt is None or nxt[:2] != job):
@@ -139,11 +209,14 @@ class Streamer:
             if not prefetch:
                 compute.release(cf, "the walker left")
             raise
+        finally:
+            if first is not None and not first.done():
+                first.cancel()  # releases the first answer's job (``_first_answer``)
         if fut.cancelled():
             return None
         exc = fut.exception()
         if exc is None:
-            return fut.result()
+            return fut.result(), "full"
         code = error_code(exc)
         if code is not None:
             msg = error_message(exc)
@@ -152,6 +225,28 @@ class Streamer:
             msg = f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}"
         await self._job_failed(cell, prefetch, msg, seq, code)
         return None
+
+    def _first_answer(self, cell: int, cf: Any) -> asyncio.Future | None:
+        """The first answer's future for the walker's ``cell`` whose core future ``cf`` is not
+        done, or None when the session is not progressive or it cannot be had (a bad
+        ``first_core`` setting is logged once per session, never an error to the walker)."""
+        s = self.s
+        if not s.progressive or cf.done():
+            return None
+        compute = s.state.compute
+        try:
+            ff = compute.first_answer(s.loaded.name, cell)
+        except Exception as exc:
+            if not s.first_failed:
+                s.first_failed = True
+                log.warning("session %s: no first answers: %s", s.id, exc)
+            return None
+        first = asyncio.wrap_future(ff)
+        first.add_done_callback(lambda f: f.cancelled() or f.exception())
+        # Cancelling the asyncio future leaves ``ff`` to the service: release the job so the
+        # computation stops when no one else waits for it.
+        first.add_done_callback(lambda f: f.cancelled() and compute.release(ff, "not needed"))
+        return first
 
     async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None,
                           code: ErrorCode | None = None) -> None:
@@ -212,11 +307,12 @@ class Streamer:
         c["prefetch_frames_cut"] += len(unsent)
 
     # ----------------------------------------------------------------------------- one cell
-    async def stream_cell(self, cell: int, result: PVSResult, prefetch: bool) -> None:
+    async def stream_cell(self, cell: int, result: PVSResult, prefetch: bool,
+                          answer: str = "full") -> None:
         """Queue ``cell``'s stream: ``cell_begin``, the triangles the client lacks as geometry
         frames, the cubemap (near-far), ``cell_end``. A current cell's stream first cuts the
         queued prefetch streams; a prefetch stream stops (cut) when the walker needs another
-        cell."""
+        cell. ``answer``: which answer ``result`` is (``cell_begin.answer``)."""
         s, inv, out = self.s, self.s.inventory, self.s.outbox
         seq = s.cell_seq
         t0 = s.cell_t0 if not prefetch else time.perf_counter()
@@ -235,7 +331,7 @@ class Streamer:
         max_bytes = s.settings.max_frame_bytes
         count = chunk_count(len(new), max_bytes)
         begin = CellBegin(cell=cell, seq=seq, triangles=len(ids), new=len(new), chunks=count,
-                          prefetch=prefetch, near_far=near_far)
+                          prefetch=prefetch, near_far=near_far, answer=answer)
         if not await out.put(begin, tag):
             self.yield_prefetch()  # a prefetch stream waited for room: the walker moved on
             return
@@ -272,7 +368,7 @@ class Streamer:
             s.nearfar.cubemaps_sent.add(s.nearfar.anchor(cell))
         end = CellEnd(cell=cell, seq=seq, seconds=time.perf_counter() - t0,
                       compute_seconds=result.seconds, cached=result.cached, prefetch=prefetch,
-                      partial=False)
+                      partial=False, answer=answer)
         if not await out.put(end, tag):
             self.yield_prefetch()
             return

@@ -373,7 +373,7 @@ def test_session_end_by_fatal_error_wakes_waiters(live_server):
         waiter = asyncio.create_task(s.wait_cell(0, 60))
         await asyncio.sleep(0.05)
         # A second hello is fatal in any phase (binary frames are fatal only before welcome).
-        await s.send_raw('{"type": "hello", "version": 1, "scene": "tiny", "core": "test_near"}')
+        await s.send_raw('{"type": "hello", "version": 2, "scene": "tiny", "core": "test_near"}')
         with pytest.raises(SessionError) as exc:
             await waiter
         await s.wait_closed(5)

@@ -9,6 +9,7 @@ import httpx
 import numpy as np
 import pytest
 
+from protocol.version import PROTOCOL_VERSION
 from tests.conftest import SlowCore, make_tiny_scene, near_ids
 
 # After every test the server still answers /health.
@@ -28,7 +29,7 @@ TINY = make_tiny_scene()
 
 def test_health(http):
     body = http.get("/health").json()
-    assert body["status"] == "ok" and body["version"] == 1
+    assert body["status"] == "ok" and body["version"] == PROTOCOL_VERSION
     assert body["compute"]["workers"] == 2
     assert {"cache", "inflight", "computed"} <= set(body["compute"])
 

@@ -1,0 +1,165 @@
+"""Progressive PVS on a real server and client: a walker's cell comes first as a cheap answer,
+then only what the session core adds (``cell_begin.answer``); prefetched cells skip the first
+pass; the setting and the hello turn it off."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from client.session import SyncSession
+from tests.conftest import make_tiny_scene, near_ids, serving
+from visibility.viewcells import ViewcellGrid
+
+pytestmark = pytest.mark.usefixtures("registered_test_cores")
+
+#: The session core's answer takes this long: the first answer (sampling, tens of ms) comes
+#: well before it.
+DELAY = 1.5
+
+
+def _wait(pred, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not met in time")
+        time.sleep(0.01)
+
+
+@pytest.fixture(scope="module")
+def progressive_server(settings):
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True) as (url, app):
+        yield url, app, scene
+
+
+def _pose(session: SyncSession, scene, cell: int, seq: int) -> None:
+    grid = ViewcellGrid.for_scene(scene, session.welcome.grid.cell_size)
+    c = grid.boxes[cell].mean(axis=0)
+    session.send_pose(seq, float(seq), c, (1.0, 0.0, 0.0))
+
+
+def _ids(stream) -> set[int]:
+    return set(np.concatenate(stream.ids).tolist()) if stream.ids else set()
+
+
+def test_first_answer_then_what_the_core_adds(progressive_server):
+    url, app, scene = progressive_server
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        feature = s.welcome.features["progressive"]
+        assert feature["on"] and feature["first"]["core"] == "sampling"
+        t0 = time.perf_counter()
+        _pose(s, scene, 0, 0)
+        s.wait_cell(0, timeout=DELAY * 0.8)  # the first answer, before the core's
+        assert time.perf_counter() - t0 < DELAY
+        first = s.cells[0]
+        assert first.answer == "first" and first.begin.answer == "first"
+        first_ids = _ids(first)
+        # The first answer is the first core's PVS of the cell, as computed directly.
+        core, params = app.state.server.compute.first_core()
+        grid = app.state.server.catalog.get("tiny").grid
+        direct = core.compute(scene, grid.cell(0), params).triangle_ids
+        assert first_ids == set(direct.tolist())
+        _wait(lambda: s.cells[0].answer == "refined")
+        refined = s.cells[0]
+        assert refined.begin.answer == "refined" and refined.end.answer == "refined"
+        want = set(near_ids(scene, grid.boxes[0], 5.0).tolist())
+        # Only the difference travelled, and the cell now holds the core's whole PVS.
+        assert refined.begin.new == len(want - first_ids)
+        assert refined.begin.triangles == len(want)
+        assert want <= set(s.store.ids.tolist())
+        assert not s.errors and not s.local_errors
+
+
+def test_a_cell_already_computed_comes_whole(progressive_server):
+    url, _, scene = progressive_server
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        _pose(s, scene, 1, 0)
+        _wait(lambda: 1 in s.cells and s.cells[1].answer == "refined")
+    # A second walker finds the core's answer in the cache: no first pass.
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        _pose(s, scene, 1, 0)
+        s.wait_cell(1, timeout=10)
+        assert s.cells[1].answer == "full"
+
+
+def test_prefetched_cells_skip_the_first_pass(progressive_server):
+    url, _, scene = progressive_server
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": 0.3, "radius": 4.0},
+                             prefetch=True) as s:
+        _pose(s, scene, 4, 0)
+        _wait(lambda: len([c for c in s.cells.values() if c.answer]) >= 3)
+        ahead = [c for c in s.cells.values() if c.begin.prefetch and c.answer]
+        assert ahead and all(c.answer == "full" for c in ahead)
+
+
+def test_the_client_or_the_server_turns_it_off(progressive_server, settings):
+    url, _, scene = progressive_server
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": 0.5}, prefetch=False,
+                             progressive=False) as s:
+        feature = s.welcome.features["progressive"]
+        assert not feature["on"] and "client" in feature["why"]
+        _pose(s, scene, 2, 0)
+        s.wait_cell(2, timeout=10)
+        assert s.cells[2].answer == "full"
+    with serving(settings, scenes={"tiny": make_tiny_scene()}) as (url2, _):
+        with SyncSession.connect(url2, "tiny", "test_slow", {"delay": 0.5},
+                                 prefetch=False) as s:
+            assert not s.welcome.features["progressive"]["on"]
+
+
+def test_the_first_core_itself_is_not_refined(progressive_server):
+    url, app, _ = progressive_server
+    core, params = app.state.server.compute.first_core()
+    with SyncSession.connect(url, "tiny", core.name, params.as_dict(), prefetch=False) as s:
+        feature = s.welcome.features["progressive"]
+        assert not feature["on"] and "nothing to refine" in feature["why"]
+
+
+def test_leaving_before_the_refinement_gives_it_up(progressive_server):
+    url, app, scene = progressive_server
+    counters = app.state.server.counters
+    dropped = counters["refinements_dropped"]
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": 3.0, "radius": 3.0},
+                             prefetch=False) as s:
+        _pose(s, scene, 5, 0)
+        s.wait_cell(5, timeout=2.5)
+        assert s.cells[5].answer == "first"
+        _pose(s, scene, 7, 1)  # far from cell 5: it is neither current nor ahead
+        s.wait_cell(7, timeout=2.5)
+        _wait(lambda: counters["refinements_dropped"] > dropped)
+        # Back in cell 5: it streams again, and this time its refinement arrives.
+        _pose(s, scene, 5, 2)
+        _wait(lambda: s.cells[5].answer == "refined", timeout=30)
+        grid = app.state.server.catalog.get("tiny").grid
+        assert set(near_ids(scene, grid.boxes[5], 3.0).tolist()) <= set(s.store.ids.tolist())
+
+
+def test_progressive_settings_from_the_environment():
+    from server.settings import Settings
+
+    s = Settings.from_env({"PVS_PROGRESSIVE": "0", "PVS_FIRST_CORE": "sampling",
+                           "PVS_FIRST_PARAMS": '{"samples": 2}'})
+    assert s.progressive is False and s.first_params == {"samples": 2}
+    with pytest.raises(ValueError, match="PVS_FIRST_PARAMS"):
+        Settings.from_env({"PVS_FIRST_PARAMS": "[1]"})
+
+
+def test_first_answers_do_not_wait_for_busy_workers(settings):
+    """Both workers busy with the session core's work: the first answer still comes at once,
+    from its own worker."""
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True, workers=1) as (url, app):
+        with SyncSession.connect(url, "tiny", "test_slow", {"delay": 2.0},
+                                 prefetch=False) as a, \
+                SyncSession.connect(url, "tiny", "test_slow", {"delay": 2.0},
+                                    prefetch=False) as b:
+            _pose(a, scene, 0, 0)
+            time.sleep(0.1)  # a's computation holds the only worker
+            t0 = time.perf_counter()
+            _pose(b, scene, 3, 0)
+            b.wait_cell(3, timeout=1.5)
+            assert time.perf_counter() - t0 < 1.5
+            assert b.cells[3].answer == "first"
