@@ -146,10 +146,21 @@ class ClientStats:
         self.dropped = 0
         self.first_cell_timeouts = 0
         self.errors: list[str] = []
+        #: Frames by the answer their cell held when drawn (``cell_begin.answer``: "first",
+        #: "refined", "full"), "stalled" when it had none in time.
+        self.answers: dict[str, int] = {}
+        #: (eye, forward, ids held, answer) of some frames, drawn after the run (``frame_eps``).
+        self.samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]] = []
+
+
+#: Frames whose error is measured after the run: every SAMPLE_EVERY-th frame of the first
+#: SAMPLE_CLIENTS walkers (the ids each held then are kept).
+SAMPLE_CLIENTS = 4
+SAMPLE_EVERY = 5
 
 
 async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, seed: int,
-                     stats: ClientStats) -> None:
+                     stats: ClientStats, sample: bool = False) -> None:
     walk = generate_walkthrough(grid, duration=args.duration, speed=args.speed, fps=args.fps,
                                 seed=seed)
     pos, t = walk.positions, walk.t
@@ -157,7 +168,7 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
     pending: list[asyncio.Task] = []
     try:
         s = await Session.connect(url, args.scene, args.core, args.params, budget=args.budget,
-                                  timeout=120)
+                                  timeout=120, progressive=args.progressive)
     except (SessionError, OSError, TimeoutError) as exc:
         stats.errors.append(f"connect: {exc}")
         return
@@ -187,13 +198,19 @@ async def one_client(url: str, args: argparse.Namespace, grid: ViewcellGrid, see
             cell = grid.cell_of(pos[i])
             if s.is_complete(cell):
                 stats.latencies.append(0.0)
-                continue
-            try:
-                await s.wait_cell(cell, frame)
-                stats.latencies.append(time.perf_counter() - sent)
-            except TimeoutError:
-                stats.stalls += 1
-                pending.append(asyncio.create_task(late(cell, sent)))
+            else:
+                try:
+                    await s.wait_cell(cell, frame)
+                    stats.latencies.append(time.perf_counter() - sent)
+                except TimeoutError:
+                    stats.stalls += 1
+                    pending.append(asyncio.create_task(late(cell, sent)))
+            held = s.cells.get(cell)
+            answer = (held.answer if held is not None else None) or "stalled"
+            stats.answers[answer] = stats.answers.get(answer, 0) + 1
+            if sample and i % SAMPLE_EVERY == 0 and answer != "stalled":
+                stats.samples.append((pos[i].copy(), walk.forwards[i].copy(),
+                                      s.store.ids.copy(), answer))
         if pending:
             # A cell the walker has left may never come (the server drops prefetch work no
             # walker is heading for): after a grace period it counts as never delivered.
@@ -337,7 +354,7 @@ async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: Vi
     # Stagger the starts over a second, as real clients arrive.
     async def delayed(i: int) -> None:
         await asyncio.sleep(i / max(1, clients))
-        await one_client(url, args, grid, args.seed + i, stats[i])
+        await one_client(url, args, grid, args.seed + i, stats[i], sample=i < SAMPLE_CLIENTS)
 
     await asyncio.gather(*(delayed(i) for i in range(clients)))
     wall = time.perf_counter() - t0
@@ -368,7 +385,13 @@ def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangle
     finite = lat[np.isfinite(lat)]
     frames = sum(s.frames for s in stats)
     stalls = sum(s.stalls for s in stats)
+    answers: dict[str, int] = {}
+    for st in stats:
+        for k, v in st.answers.items():
+            answers[k] = answers.get(k, 0) + v
     return {
+        "progressive": args.progressive, "frames_by_answer": answers,
+        "first_answer_share": answers.get("first", 0) / max(1, frames),
         "clients": clients, "cache": cache, "scene": args.scene, "triangles": scene_triangles,
         "cells": cells, "core": args.core, "params": args.params, "workers": args.workers,
         "walk_seconds": args.duration, "speed": args.speed, "fps": args.fps,
@@ -425,6 +448,13 @@ def table(r: dict) -> list[tuple[str, str]]:
         ("walk", f"{r['walk_seconds']:g} s at {r['speed']:g} m/s, {r['fps']:g} fps"),
         ("frames", f"{r['frames']}"),
         ("stalls", f"{r['stalls']} ({100.0 * r['stall_fraction']:.2f} %)"),
+        ("progressive", "server default" if r.get("progressive") is None
+         else ("on" if r["progressive"] else "off")),
+        ("frames by answer", ", ".join(f"{k} {v}" for k, v in
+                                       sorted((r.get("frames_by_answer") or {}).items()))),
+        *((f"ε {a} (sampled frames)", f"{e['eps_mean']:.3f} % mean, {e['eps_worst']:.3f} % "
+           f"worst, SSIM {e['ssim_mean']:.4f} ({e['frames']} frames)")
+          for a, e in (r.get("frame_error_by_answer") or {}).items()),
         ("clients with stalls", f"{r['clients_with_stalls']}"),
         ("frame latency p50", ms(r["latency_p50_s"])),
         ("frame latency p95", ms(r["latency_p95_s"])),
@@ -537,15 +567,21 @@ def plot(runs: list[dict], path: Path) -> None:
 
 def capacity_table(runs: list[dict]) -> list[str]:
     """One markdown row per run: the load each run put on the server and how it held."""
-    rows = ["| cache | clients | frames | stalls % | clients with stalls | p50 ms | p95 ms | "
+    rows = ["| cache | clients | frames | stalls % | first-answer frames % | ε first / after "
+            "% | clients with stalls | p50 ms | p95 ms | "
             "never delivered | computations | computation s | MB sent | server RSS peak MiB | "
-            "wall s |", "|" + "---|" * 13]
+            "wall s |", "|" + "---|" * 15]
     for r in runs:
         def ms(x: float | None, r: dict = r) -> str:
             return ("n/a" if not r["frames"] else "never") if x is None else f"{1e3 * x:.0f}"
 
+        err = r.get("frame_error_by_answer") or {}
+        eps = " / ".join("-" if a not in err else f"{err[a]['eps_mean']:.3f}"
+                         for a in ("first", "refined" if "refined" in err else "full"))
+        share = r.get("first_answer_share")
         rows.append(
             f"| {r['cache']} | {r['clients']} | {r['frames']} | {100 * r['stall_fraction']:.2f} "
+            f"| {'-' if share is None else f'{100 * share:.1f}'} | {eps} "
             f"| {r['clients_with_stalls']} | {ms(r['latency_p50_s'])} | "
             f"{ms(r['latency_p95_s'])} | {r['frames_never_delivered']} | "
             f"{r['computations']:.0f} | {r['computation_seconds']:.1f} | "
@@ -643,6 +679,7 @@ def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients:
     m = {k: after[k] - before[k] for k in COUNTERS}
     r = summarise(args, clients, cache, scene_triangles, len(grid), stats, peak_rss, wall, m,
                   server_cpu, client_cpu)
+    r["frame_error_by_answer"] = frame_eps(args, [x for st in stats for x in st.samples])
     if hostile is not None:
         r["hostile"] = hostile
     if hostile:
@@ -651,6 +688,39 @@ def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients:
                  hostile_timeout=args.hostile_timeout, hostile_pause=args.hostile_pause,
                  hostile_address=HOSTILE_ADDRESS)
     return r
+
+
+def frame_eps(args: argparse.Namespace,
+              samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]]) -> dict:
+    """ε (mean, worst), PSNR and SSIM per answer of the sampled frames (``ClientStats.
+    samples``): each drawn from the ids the walker held then against the full scene, at
+    ``FRAME_SIZE`` px, 90 degree field of view, after the run (so drawing does not slow the
+    walkers)."""
+    if not samples:
+        return {}
+    from client.metrics import capped_psnr, frame_metrics
+    from client.render import OffscreenRenderer
+
+    scene = make_scene(args.scene, triangles=args.triangles, seed=0)
+    renderer = OffscreenRenderer(FRAME_SIZE, FRAME_SIZE, yfov_deg=90.0)
+    got: dict[str, list[dict]] = {}
+    try:
+        for eye, fwd, ids, answer in samples:
+            ids = ids[scene.valid_faces[ids]] if len(ids) else ids
+            fr = renderer.render(scene.triangles(ids), scene.colors[ids], eye, fwd)
+            gt = renderer.render_scene(scene, eye, fwd)
+            got.setdefault(answer, []).append(frame_metrics(fr, gt))
+    finally:
+        renderer.close()
+    return {a: {"frames": len(ms), "eps_mean": float(np.mean([m["epsilon"] for m in ms])),
+                "eps_worst": float(np.max([m["epsilon"] for m in ms])),
+                "psnr_mean": float(np.mean(capped_psnr(np.array([m["psnr"] for m in ms])))),
+                "ssim_mean": float(np.mean([m["ssim"] for m in ms]))}
+            for a, ms in sorted(got.items())}
+
+
+#: Side of the frames ``frame_eps`` draws, pixels.
+FRAME_SIZE = 128
 
 
 def run_lines(r: dict) -> list[str]:
@@ -740,6 +810,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="core parameters, JSON (default: the core's defaults)")
     ap.add_argument("--budget", type=int, default=None, help="client triangle budget")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
+                    help="ask for progressive streams (or not); default: the server's")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--grace", type=float, default=10.0,
                     help="seconds after its walk a client still waits for stalled frames' cells")
