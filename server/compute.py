@@ -28,6 +28,7 @@ from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
+from visibility.calibration import Calibration
 from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import (
     AUTO_CORE,
@@ -138,6 +139,8 @@ class ComputeService:
         #: take tens of milliseconds, and must not queue behind the session cores' work.
         self.first_pool = PriorityWorkerPool(1) if settings.progressive else None
         self._first: tuple[Core, CoreParams] | None = None
+        #: Calibrations of ``auto`` by (scene name, cell size); None while one is measured.
+        self.calibrations: dict[tuple[str, float], Calibration | None] = {}
         self.admission = Admission(settings)
         #: Asked, with a cache key, before a computation nobody waits for any more is
         #: cancelled: True keeps it (a walker's prefetch list still names the cell).
@@ -188,10 +191,85 @@ class ComputeService:
             core, p = self.resolve(name, params)
             return core, p, "requested" if core_name else "server default"
         if cell_size is None:
-            cell_size = self._cell_size(scene)
+            cell_size = self.cell_size_of(scene)
+        picked = self._calibrated_choice(scene, cell_size)
+        if picked is not None:
+            trial, why = picked
+            core, p = self.resolve(trial.core, {**trial.params, **(params or {})})
+            return core, p, why
         chosen, why = choose_core(scene, cell_size)
         core, p = self.resolve(chosen, params)
+        if self.settings.calibrate:
+            why += "; calibration under way: the cores' declared fits decide until it is done"
         return core, p, why
+
+    # ----------------------------------------------------------------------------- calibration
+    def calibration(self, scene: Scene, cell_size: float, wait: bool = False,
+                    progress: Callable[[str], None] | None = None) -> Calibration | None:
+        """The calibration of ``scene`` at ``cell_size`` metres (``visibility.calibration``),
+        from memory or ``settings.cache_dir``; else one is started in the background (None
+        until it is done) or, with ``wait``, measured now. None when ``settings.calibrate`` is
+        off (and not ``wait``)."""
+        key = (scene.name, float(cell_size))
+        with self._lock:
+            if key in self.calibrations:
+                cal = self.calibrations[key]
+                if cal is not None or not wait:
+                    return cal
+            elif not self.settings.calibrate and not wait:
+                return None
+            else:
+                self.calibrations[key] = None
+        if wait:
+            return self._calibrate(scene, float(cell_size), progress)
+        threading.Thread(target=self._calibrate, args=(scene, float(cell_size), None),
+                         name=f"pvs-calibrate-{scene.name}", daemon=True).start()
+        return None
+
+    def _calibrate(self, scene: Scene, cell_size: float,
+                   progress: Callable[[str], None] | None) -> Calibration | None:
+        from visibility.calibration import calibrate, load_calibration, save_calibration
+        from visibility.scene import scene_fingerprint
+
+        key = (scene.name, cell_size)
+        folder = self.settings.cache_dir
+        try:
+            cal = None
+            if folder is not None:
+                cal = load_calibration(folder, scene_fingerprint(scene), cell_size)
+            if cal is None:
+                log.info("calibrating auto on %s at %g m cells (at most %g s)", scene.name,
+                         cell_size, self.settings.calibration_seconds)
+                cal = calibrate(scene, cell_size, budget_seconds=self.settings.auto_budget,
+                                time_limit=self.settings.calibration_seconds,
+                                progress=progress)
+                if folder is not None:
+                    save_calibration(folder, cal)
+                log.info("calibrated auto on %s in %.1f s", scene.name, cal.seconds)
+        except Exception:
+            log.exception("calibration of %s failed: auto keeps the declared fits", scene.name)
+            with self._lock:
+                self.calibrations.pop(key, None)
+            return None
+        with self._lock:
+            self.calibrations[key] = cal
+        return cal
+
+    def _calibrated_choice(self, scene: Scene, cell_size: float) -> tuple[Any, str] | None:
+        """``visibility.calibration.choose`` on the scene's calibration (starting one when
+        there is none yet), among the cores that fit; None while there is none."""
+        from visibility.calibration import choose
+
+        cal = self.calibration(scene, cell_size)
+        if cal is None:
+            return None
+        def allowed(name: str) -> bool:
+            try:
+                return core_fits(resolve_core(name), scene, cell_size)[0]
+            except UnknownCoreError:  # measured, then unregistered
+                return False
+
+        return choose(cal, self.settings.auto_budget, allowed=allowed)
 
     @staticmethod
     def key(scene: str, core: Core, params: CoreParams, cell: int) -> tuple:
@@ -410,7 +488,7 @@ class ComputeService:
             t.cancel(reason)
         return len(tokens)
 
-    def _cell_size(self, scene: Scene) -> float:
+    def cell_size_of(self, scene: Scene) -> float:
         """The viewcell size (metres) the catalogue gives ``scene`` (``SceneCatalog``'s rule,
         ``Settings.cell_size_for``)."""
         return self.settings.cell_size_for(scene.meta.get("cell_size"))

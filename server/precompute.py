@@ -17,7 +17,7 @@ from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.compute import ComputeService, UnknownCellError
+from server.compute import AUTO_CORE, ComputeService, UnknownCellError
 
 
 @dataclass
@@ -85,6 +85,12 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
     bad = [c for c in ids if not 0 <= c < n]
     if bad:
         raise UnknownCellError(f"scene {scene!r} has no cell {bad[0]} (cells 0..{n - 1})")
+    if (core or service.settings.core) == AUTO_CORE and service.settings.calibrate:
+        # ``auto`` picks by measurement: calibrate now (kept in the cache folder with the
+        # scene's content hash, so the server finds it), then resolve.
+        service.calibration(loaded.scene, service.cell_size_of(loaded.scene), wait=True,
+                            progress=(lambda line: print("calibration: " + line))
+                            if progress else None)
     core_obj, p, why = service.resolve_for(loaded.scene, core, params)
     report = PrecomputeReport(scene, core_obj.name, dataclasses.asdict(p), len(ids), why=why)
     t0 = time.perf_counter()

@@ -63,6 +63,12 @@ class Settings(BaseModel):
         ``sampling``, 4 viewpoints at 128 px: tens of milliseconds on the 100k scenes). First
         answers run on a worker of their own, so computations of the session cores never
         hold them up.
+    calibrate : ``auto`` picks by a calibration (``visibility.calibration``): each fitting
+        core's time and misses on a few cells of the scene, measured once per scene and cell
+        size in the background (kept in ``cache_dir`` across restarts); until it is done, the
+        cores' declared fits decide. False: the declared fits always decide.
+    auto_budget : seconds per cell ``auto`` may spend (the calibration's time budget).
+    calibration_seconds : most seconds one calibration may take.
     send_queue_frames : frames (binary and text) queued per session before the streamer waits.
     send_timeout : seconds one send may wait for a slow client before the session is closed
         (``slow_client``).
@@ -126,6 +132,9 @@ class Settings(BaseModel):
     prefetch: bool = True
     prefetch_ahead: float = Field(-0.2, ge=-1.0, le=1.0, allow_inf_nan=False)
     progressive: bool = True
+    calibrate: bool = True
+    auto_budget: float = Field(1.0, gt=0, le=3600, allow_inf_nan=False)
+    calibration_seconds: float = Field(120.0, gt=0, le=86400, allow_inf_nan=False)
     first_core: str = "sampling"
     first_params: dict[str, Any] = Field(
         default_factory=lambda: {"samples": 4, "batch": 4, "resolution": 128})
@@ -197,7 +206,8 @@ class Settings(BaseModel):
         PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_PREFETCH_AHEAD,
-        PVS_PROGRESSIVE, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object),
+        PVS_PROGRESSIVE, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object), PVS_CALIBRATE,
+        PVS_AUTO_BUDGET, PVS_CALIBRATION_SECONDS,
         PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,
@@ -221,6 +231,8 @@ class Settings(BaseModel):
             "hello_timeout": "PVS_HELLO_TIMEOUT", "cache_dir": "PVS_CACHE_DIR",
             "prefetch": "PVS_PREFETCH", "prefetch_ahead": "PVS_PREFETCH_AHEAD",
             "progressive": "PVS_PROGRESSIVE", "first_core": "PVS_FIRST_CORE",
+            "calibrate": "PVS_CALIBRATE", "auto_budget": "PVS_AUTO_BUDGET",
+            "calibration_seconds": "PVS_CALIBRATION_SECONDS",
             "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
             "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
             "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",

@@ -202,6 +202,9 @@ def settings(scenes_dir: Path):
         # Streams carry the session core's answers only, as these tests expect; progressive
         # streams (the default) have their own tests (tests/server/test_progressive.py).
         progressive=False,
+        # ``auto`` follows the cores' declared fits here, deterministically; calibrated choices
+        # have their own tests (tests/server/test_calibration.py).
+        calibrate=False,
     )
 
 
