@@ -441,11 +441,12 @@ class ComputeService:
             self._first = core, coerce_params(core, self.settings.first_params)
         return self._first
 
-    def first_answer(self, scene: str, cell: int) -> Future:
+    def first_answer(self, scene: str, cell: int, priority: float = 0.0) -> Future:
         """A future of the cheap first answer for a walker's cell (``first_core``), run on the
-        first answers' worker ahead of everything there; cached like any PVS."""
+        first answers' worker (lowest ``priority`` first: 0 for the cell a walker stands in);
+        cached like any PVS."""
         core, params = self.first_core()
-        return self.submit(scene, core, params, cell=cell, priority=0.0, lane="first")
+        return self.submit(scene, core, params, cell=cell, priority=priority, lane="first")
 
     def _admit(self, scene: str, core: Core, params: CoreParams, cell: int | None,
                box: np.ndarray | None, deadline: float, priority: float,

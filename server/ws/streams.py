@@ -182,6 +182,13 @@ class Streamer:
         fut = asyncio.wrap_future(cf)
         fut.add_done_callback(lambda f: f.cancelled() or f.exception())
         first = self._first_answer(cell, cf) if not prefetch else None
+        if prefetch and s.progressive and not cf.done():
+            # Should the walker get there before the core's answer, its first answer is
+            # then ready at once: computed now, after the first answers walkers wait for.
+            try:
+                compute.first_answer(name, cell, priority=1.0 + rank)
+            except Exception:  # noqa: BLE001 - a warm-up only; ``_first_answer`` reports
+                pass
         job = (cell, prefetch)
         try:
             while not fut.done():

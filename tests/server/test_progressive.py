@@ -163,3 +163,28 @@ def test_first_answers_do_not_wait_for_busy_workers(settings):
             b.wait_cell(3, timeout=1.5)
             assert time.perf_counter() - t0 < 1.5
             assert b.cells[3].answer == "first"
+
+
+def test_cells_ahead_have_their_first_answer_ready(settings):
+    """While a walker stands in a cell, the cells ahead of it get their first answers computed
+    (after those walkers wait for), so stepping into one costs no first pass."""
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True) as (url, app), \
+            SyncSession.connect(url, "tiny", "test_slow", {"delay": 5.0, "radius": 2.5},
+                                prefetch=True) as s:
+        compute = app.state.server.compute
+        core, params = compute.first_core()
+        assert all(compute.cache.get(compute.key("tiny", core, params, n)) is None
+                   for n in range(8))
+        _pose(s, scene, 5, 0)
+        s.wait_cell(5, timeout=4)
+
+        def warmed() -> list[int]:
+            return [n for n in range(8) if n != 5 and compute.cache.get(
+                compute.key("tiny", core, params, n)) is not None]
+
+        _wait(lambda: warmed(), timeout=10)
+        ahead = warmed()[0]
+        _pose(s, scene, ahead, 1)
+        s.wait_cell(ahead, timeout=1.0)
+        assert s.cells[ahead].answer == "first"
