@@ -192,6 +192,17 @@ def cmd_cores(args: argparse.Namespace) -> int:
         scene = _local_scene(args.scene, args.scenes)
         # The grid's rule (sidecar, else the default) without building the grid.
         size = args.cell_size or scene.meta.get("cell_size") or DEFAULT_CELL_SIZE
+        if args.calibrate:
+            from visibility.calibration import BUDGET_SECONDS, calibrate, choose
+
+            budget = args.budget or BUDGET_SECONDS
+            cal = calibrate(scene, size, budget_seconds=budget, progress=print)
+            for what, why in cal.skipped.items():
+                print(f"{what}: skipped: {why}")
+            picked = choose(cal, budget)
+            print(f"calibrated in {cal.seconds:.1f} s; auto: "
+                  + (f"{picked[0].label()}: {picked[1]}" if picked else "nothing measured"))
+            return 0
         print(json.dumps(core_fit_report(scene, size), indent=2))
         return 0
     print(cores_help())
@@ -411,6 +422,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", help="a scene name: every core's fit and the auto choice")
     p.add_argument("--scenes", help="folder of scene files")
     p.add_argument("--cell-size", type=float, help="viewcell size in metres for the fit")
+    p.add_argument("--calibrate", action="store_true",
+                   help="with --scene: measure every fitting core on a few cells against a "
+                        "dense sample, as the server's auto does, and print its pick")
+    p.add_argument("--budget", type=float, help="seconds per cell for --calibrate (default 1)")
     p.set_defaults(fn=cmd_cores)
 
     p = sub.add_parser("scenes", help="list scenes, or describe one")
