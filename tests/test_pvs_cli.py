@@ -79,6 +79,23 @@ def test_serve_settings_flags_override_env(tmp_path):
     assert s.cell_size == 8.0  # not given as a flag: the environment's value stays
 
 
+def test_serve_progressive_flag_overrides_env():
+    assert _serve_settings([], {}).progressive is True
+    assert _serve_settings(["--no-progressive"], {}).progressive is False
+    assert _serve_settings(["--progressive"], {"PVS_PROGRESSIVE": "0"}).progressive is True
+
+
+def test_cores_calibrate_prints_the_trials_and_autos_pick(tmp_path, capsys):
+    from tests.conftest import write_scene_files
+
+    write_scene_files(tmp_path / "scenes")
+    assert pvs_cli.main(["cores", "--scene", "box", "--scenes", str(tmp_path / "scenes"),
+                         "--calibrate", "--budget", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"sampling \(samples=8\) +[0-9.]+ s/cell +FN", out)
+    assert "auto: " in out and "calibrated on" in out
+
+
 def test_serve_rejects_bad_values_with_a_message():
     with pytest.raises(SystemExit, match="pvs serve"):
         pvs_cli.main(["serve", "--workers", "0"])
