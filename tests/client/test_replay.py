@@ -196,6 +196,29 @@ def test_near_far_stream_is_composed_and_measured(settings, server_app, tmp_path
     assert float(cells[7]) == pytest.approx(summary["delta_composed"], abs=1e-4)
 
 
+def test_progressive_frames_are_reported_by_answer(settings, tmp_path):
+    """With progressive streams, frames drawn from a first answer and from the core's answer
+    are counted and measured apart in the summary."""
+    from tests.conftest import serving
+
+    with serving(settings, progressive=True) as (url, _):
+        opts = ReplayOptions(server=url, scene="rooms", params={"resolution": 256},
+                             out_dir=tmp_path, duration=4.0, fps=5.0, width=128, height=128,
+                             quiet=True, realtime=True)
+        summary = replay(opts, "from_segment", tmp_path)
+    answers = summary["answers"]
+    frames = summary["frames"]
+    assert "first" in answers, answers
+    assert sum(a["frames"] for a in answers.values()) == len(frames)
+    assert {f["answer"] for f in frames} == set(answers)
+    first = [f["epsilon"] for f in frames if f["answer"] == "first"]
+    assert answers["first"]["epsilon"] == pytest.approx(np.mean(first))
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert set(saved["answers"]) == set(answers)
+    for a, st in answers.items():
+        assert saved["answers"][a] == pytest.approx(st)
+
+
 @pytest.mark.slow
 def test_cos_walk_through_a_real_level_in_small_cells_draws_what_the_full_scene_does(
         settings, tmp_path):
