@@ -112,7 +112,7 @@ def from_point_pvs(
         need = int(np.ceil(float(target_share) * want.sum() - 1e-9))
     seen = np.zeros(scene.n_triangles, dtype=bool)
     if engine == "embree":
-        view = _embree_views(scene, valid, cell, resolution)
+        view = embree_views(scene, valid, cell, resolution)
     else:
         def view(eye, rot):
             ids = render_cubemap_ids(scene.vertices, scene.faces, eye, resolution, rot,
@@ -135,7 +135,7 @@ def from_point_pvs(
                                      "engine": engine})
 
 
-def _embree_views(scene: Scene, valid: np.ndarray, cell: Viewcell, resolution: int):
+def embree_views(scene: Scene, valid: np.ndarray, cell: Viewcell, resolution: int):
     """A function (eye, cube rotation) -> triangle ids hit by the cube's pixel-centre rays."""
     from trimesh import Trimesh
     from trimesh.ray.ray_pyembree import RayMeshIntersector
