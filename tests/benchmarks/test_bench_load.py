@@ -30,6 +30,12 @@ def test_three_clients_report_every_field(tmp_path, capsys):
     assert r["server_rss_peak_bytes"] > 0 and r["computations"] >= 1
     # Each triangle once per session, and nothing went wrong on the protocol.
     assert r["duplicates"] == 0 and r["client_errors"] == 0
+    # Frames by the answer their cell held, and the error of sampled frames per answer.
+    assert sum(r["frames_by_answer"].values()) == r["frames"]
+    assert 0.0 <= r["first_answer_share"] <= 1.0
+    for answer, err in r["frame_error_by_answer"].items():
+        assert answer in r["frames_by_answer"] and err["frames"] > 0
+        assert 0.0 <= err["eps_mean"] <= err["eps_worst"] <= 100.0
     md = (tmp_path / "load.md").read_text()
     assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
     assert (tmp_path / "load.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

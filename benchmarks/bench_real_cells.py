@@ -1,0 +1,235 @@
+"""``from_segment`` against ``sampling`` on the real scenes, scored by dense ray casting.
+
+For each real scene in ``../shared/scenes/`` a seeded walk (``client.walkthrough.
+generate_walkthrough``, the scene's own grid) picks the cells it stands in at a third and at
+two thirds of its length, as a user's walk would. The reference of a cell is independent of
+both cores' rasterizer: Intel Embree rays (``benchmarks.peers.embree_views``) through the pixel
+centres of randomly turned cubes from ``POINTS`` stratified points of the cell, ``RAYS`` rays per
+face side; a triangle counts as visible when at least ``MIN_HITS`` rays hit it first (a
+one-ray hit is as likely a numerical grazing as a sight). Each cell is then solved by
+``from_segment`` at its defaults, by ``sampling`` at its defaults, and by ``sampling`` given
+``from_segment``'s time (equal time: viewpoints added until that time is spent,
+``peers.from_point_pvs`` with our rasterizer). The table gives the share of the reference each
+missed, the PVS size, the seconds, and the frames: 4 fixed views in the cell
+(``bench_matrix.view_set``) drawn from the PVS against the full scene (ε, PSNR, SSIM), plus the
+size in pixels of what was missed (the median projected area, at the reference's resolution,
+of the missed triangles from the cell's centre).
+
+Writes ``benchmarks/results/real_cells.md`` and ``.json``; prints as it goes.
+
+Usage::
+
+    python -m benchmarks.bench_real_cells            # every real scene, 2 cells each
+    python -m benchmarks.bench_real_cells --quick    # lavaducts, 1 cell, a lighter reference
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_matrix import (  # noqa: E402
+    SHARED_SCENES,
+    frame_summary,
+    machine_description,
+    view_set,
+)
+from benchmarks.peers import embree_views, from_point_pvs  # noqa: E402
+from visibility.ground_truth import sample_points  # noqa: E402
+from visibility.raster.camera import random_rotation  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+#: Reference: points per cell, rays per cube face side, first hits a triangle needs.
+POINTS = 64
+RAYS = 183
+MIN_HITS = 3
+#: A core run stopped after this many seconds (its row says so).
+DEADLINE = 120.0
+
+
+def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarray, float]:
+    """Triangle ids first-hit by at least ``MIN_HITS`` Embree rays (module docstring), and the
+    seconds it took."""
+    t0 = time.perf_counter()
+    valid = np.flatnonzero(scene.valid_faces)
+    view = embree_views(scene, valid, cell, rays)
+    rng = np.random.default_rng(seed)
+    hits = np.zeros(scene.n_triangles, dtype=np.int64)
+    for eye in sample_points(cell.box, points, rng):
+        hits += np.bincount(view(eye, random_rotation(rng)), minlength=scene.n_triangles)
+    return np.flatnonzero(hits >= MIN_HITS).astype(np.int32), time.perf_counter() - t0
+
+
+def walk_cells(scene, seed: int, k: int) -> list[int]:
+    """The cells a seeded walk through the scene's grid stands in at 1/(k+1) ... k/(k+1) of it."""
+    from client.walkthrough import generate_walkthrough
+    from visibility.viewcells import ViewcellGrid
+
+    grid = ViewcellGrid.for_scene(scene)
+    walk = generate_walkthrough(grid, duration=30.0, seed=seed)
+    n = len(walk.positions)
+    out = []
+    for j in range(1, k + 1):
+        c = grid.cell_of(walk.positions[(j * n) // (k + 1)])
+        if c is not None and c not in out:
+            out.append(int(c))
+    return out
+
+
+def missed_pixels(scene, ids: np.ndarray, eye: np.ndarray, rays: int) -> float:
+    """Median projected area (pixels of a 90 degree face ``rays`` wide) of triangles ``ids``
+    seen from ``eye``: their area over the squared distance, in units of one pixel's solid
+    angle at the face centre."""
+    if not len(ids):
+        return 0.0
+    tri = scene.triangles(ids)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    d2 = np.sum((tri.mean(axis=1) - eye) ** 2, axis=1)
+    pixel = (2.0 / rays) ** 2  # solid angle of one pixel at the centre of a 90 degree face
+    return float(np.median(area / np.maximum(d2, 1e-12) / pixel))
+
+
+def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
+    from client.render import OffscreenRenderer
+    from visibility.cancel import CancelToken, ComputationCancelled
+    from visibility.cores.base import get_core
+    from visibility.ground_truth import fn_fp_rates
+    from visibility.loaders import load_scene
+    from visibility.viewcells import ViewcellGrid
+
+    renderer = OffscreenRenderer(128, 128, yfov_deg=90.0)
+    rows: list[dict[str, Any]] = []
+    # Compile the kernels once, on a small scene: no real scene's first run pays for it.
+    from visibility.generators import make_scene
+
+    small = make_scene("rooms", triangles=2_000)
+    small_grid = ViewcellGrid.for_scene(small)
+    for name in ("from_segment", "sampling"):
+        get_core(name).compute(small, small_grid.cell(0))
+    try:
+        for path in cfg["scenes"]:
+            scene = load_scene(path)
+            grid = ViewcellGrid.for_scene(scene)
+            for cell_id in walk_cells(scene, cfg["seed"], cfg["cells"]):
+                cell = grid.cell(cell_id)
+                ref, ref_s = reference(scene, cell, cfg["points"], cfg["rays"], cfg["seed"])
+                views = view_set(scene, cell, 4)
+                gt = [renderer.render_scene(scene, e, f) for e, f in views]
+                centre = np.asarray(cell.box).mean(axis=0)
+                log(f"[{scene.name}] cell {cell_id} ({grid.cell_size:g} m): reference "
+                    f"{len(ref)} triangles from {cfg['points']} points x 6 x {cfg['rays']}^2 "
+                    f"rays in {ref_s:.1f} s")
+                base = {"scene": scene.name, "triangles": scene.n_triangles, "cell": cell_id,
+                        "cell_size": grid.cell_size, "reference": int(len(ref)),
+                        "reference_seconds": ref_s}
+                fs_seconds = None
+                for label, name in (("from_segment (defaults)", "from_segment"),
+                                    ("sampling (defaults)", "sampling")):
+                    core = get_core(name)
+                    try:
+                        pvs = core.compute(scene, cell, core.make_params(),
+                                           token=CancelToken.after(DEADLINE))
+                    except ComputationCancelled:
+                        rows.append({**base, "method": label, "error": f"past {DEADLINE:g} s"})
+                        continue
+                    if name == "from_segment":
+                        fs_seconds = pvs.seconds
+                    rows.append(_row(base, label, pvs.triangle_ids, pvs.seconds, ref, scene,
+                                     renderer, views, gt, centre, cfg, fn_fp_rates))
+                    log(_line(rows[-1]))
+                if fs_seconds is not None:
+                    peer = from_point_pvs(scene, cell, "raster", samples=100_000,
+                                          resolution=get_core("sampling").make_params()
+                                          .resolution, seed=cfg["seed"] + 1,
+                                          time_budget=fs_seconds)
+                    rows.append(_row(base, f"sampling at equal time ({peer.stats['samples']} "
+                                     "points)", peer.triangle_ids, peer.seconds, ref, scene,
+                                     renderer, views, gt, centre, cfg, fn_fp_rates))
+                    log(_line(rows[-1]))
+    finally:
+        renderer.close()
+    return rows
+
+
+def _row(base, label, ids, seconds, ref, scene, renderer, views, gt, centre, cfg,
+         fn_fp_rates) -> dict[str, Any]:
+    fn, fp = fn_fp_rates(ids, ref)
+    missed = np.setdiff1d(ref, ids)
+    frames = frame_summary(renderer, scene, ids, views, gt, key=label)
+    return {**base, "method": label, "seconds": float(seconds), "pvs": int(len(ids)),
+            "fn": fn, "fp": fp, "missed": int(len(missed)),
+            "missed_median_px": missed_pixels(scene, missed, centre, cfg["rays"]), **frames}
+
+
+def _line(r: dict[str, Any]) -> str:
+    return (f"    {r['method']:38s} {r['seconds']:7.2f} s  PVS {r['pvs']:7d}  FN "
+            f"{100 * r['fn']:6.2f} % ({r['missed']} missed, median {r['missed_median_px']:.2f}"
+            f" px)  eps {r['eps_mean']:.3f} % (worst {r['eps_worst']:.3f} %)")
+
+
+def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: float) -> str:
+    load = os.getloadavg()[0]
+    lines = ["# from_segment and sampling on the real scenes, against dense ray casting", "",
+             f"Command: `{command}`, wall time {wall / 60:.1f} min, load average (1 min) at "
+             f"the end {load:.1f}.  ",
+             f"Machine: {machine_description()}", "",
+             f"Per scene, the cells a seeded walk (seed {cfg['seed']}) stands in; reference: "
+             f"triangles first-hit by at least {MIN_HITS} Embree rays from {cfg['points']} "
+             f"points x 6 x {cfg['rays']}^2 rays (module docstring of "
+             "`benchmarks/bench_real_cells.py`). FN = share of the reference missed; FP = share "
+             "of the PVS the rays did not see; missed px = median projected size of the missed "
+             "triangles from the cell centre, in pixels of a 90 degree face as wide as the "
+             "reference's; frames: 4 views at 128 px, PVS against the full scene.", "",
+             "| scene | cell (m) | reference | method | s | PVS | FN % | missed px | FP % | "
+             "ε mean % | ε worst % | PSNR dB | SSIM |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['reference']}"
+                         f" | {r['method']} | {r['error']} | | | | | | | | |")
+            continue
+        lines.append(
+            f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['reference']} | "
+            f"{r['method']} | {r['seconds']:.2f} | {r['pvs']} | {100 * r['fn']:.2f} | "
+            f"{r['missed_median_px']:.2f} | {100 * r['fp']:.1f} | {r['eps_mean']:.3f} | "
+            f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="lavaducts, 1 cell, lighter reference")
+    ap.add_argument("--cells", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
+    args = ap.parse_args(argv)
+    scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb"))
+    cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
+           "rays": RAYS}
+    if args.quick:
+        cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96)
+    command = "python -m benchmarks.bench_real_cells " + " ".join(
+        argv if argv is not None else sys.argv[1:])
+    t0 = time.perf_counter()
+    rows = run(cfg)
+    text = report(rows, cfg, command.strip(), time.perf_counter() - t0)
+    args.out.write_text(text)
+    args.out.with_suffix(".json").write_text(json.dumps({"command": command, "config": cfg,
+                                                          "rows": rows}, indent=1))
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

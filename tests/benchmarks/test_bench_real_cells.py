@@ -1,0 +1,40 @@
+"""The real-scene benchmark's instruments: the ray-cast reference and the missed-size measure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks import bench_real_cells, peers
+from visibility.cores import designed_scenes as ds
+from visibility.generators import make_scene
+
+pytestmark = pytest.mark.skipif(not peers.available(), reason="embreex is not installed")
+
+
+def test_the_ray_cast_reference_sees_through_the_door_and_not_behind_the_wall():
+    scene, cell, known = ds.two_rooms_and_a_door()
+    ref, seconds = bench_real_cells.reference(scene, cell, points=16, rays=96, seed=0)
+    assert seconds > 0
+    assert set(known["visible"]) <= set(ref.tolist())
+    assert not set(known["hidden"]) & set(ref.tolist())
+
+
+def test_missed_pixels_is_area_over_distance_in_pixels():
+    scene, _, _ = ds.two_rooms_and_a_door()
+    # The far wall's first triangle, 1 m^2 of it 10 m away from an eye at x = 2:
+    eye = np.array([2.0, 1.5, 3.0])
+    ids = np.array([ds.two_rooms_and_a_door()[2]["visible"][0]])
+    tri = scene.triangles(ids)[0]
+    area = 0.5 * np.linalg.norm(np.cross(tri[1] - tri[0], tri[2] - tri[0]))
+    d2 = np.sum((tri.mean(axis=0) - eye) ** 2)
+    px = bench_real_cells.missed_pixels(scene, ids, eye, 100)
+    assert px == pytest.approx(area / d2 / (2.0 / 100) ** 2)
+    assert bench_real_cells.missed_pixels(scene, ids[:0], eye, 100) == 0.0
+
+
+def test_walk_cells_are_cells_of_the_grid_and_deterministic():
+    scene = make_scene("rooms", triangles=5_000)
+    a = bench_real_cells.walk_cells(scene, seed=3, k=2)
+    assert a == bench_real_cells.walk_cells(scene, seed=3, k=2)
+    assert 1 <= len(a) <= 2 and all(isinstance(c, int) and c >= 0 for c in a)
