@@ -21,6 +21,8 @@ Usage::
 
     python -m benchmarks.bench_real_cells            # every real scene, 2 cells each
     python -m benchmarks.bench_real_cells --quick    # lavaducts, 1 cell, a lighter reference
+    python -m benchmarks.bench_real_cells --scenes lyon_vilo3d lavaducts \
+        --fs-resolutions 512 --out benchmarks/results/real_cells_512.md
 """
 
 from __future__ import annotations
@@ -134,16 +136,19 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         "cell_size": grid.cell_size, "reference": int(len(ref)),
                         "reference_seconds": ref_s}
                 fs_seconds = None
-                for label, name in (("from_segment (defaults)", "from_segment"),
-                                    ("sampling (defaults)", "sampling")):
+                runs = [("from_segment (defaults)", "from_segment", {}),
+                        ("sampling (defaults)", "sampling", {})]
+                runs += [(f"from_segment (resolution={r})", "from_segment", {"resolution": r})
+                         for r in cfg.get("fs_resolutions", [])]
+                for label, name, params in runs:
                     core = get_core(name)
                     try:
-                        pvs = core.compute(scene, cell, core.make_params(),
+                        pvs = core.compute(scene, cell, core.make_params(**params),
                                            token=CancelToken.after(DEADLINE))
                     except ComputationCancelled:
                         rows.append({**base, "method": label, "error": f"past {DEADLINE:g} s"})
                         continue
-                    if name == "from_segment":
+                    if name == "from_segment" and not params:
                         fs_seconds = pvs.seconds
                     rows.append(_row(base, label, pvs.triangle_ids, pvs.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
@@ -212,11 +217,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="lavaducts, 1 cell, lighter reference")
     ap.add_argument("--cells", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one)")
+    ap.add_argument("--fs-resolutions", nargs="*", type=int, default=[],
+                    help="from_segment also at these resolutions (px)")
     ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
     args = ap.parse_args(argv)
-    scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb"))
+    scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
+                    if not args.scenes or p.stem in args.scenes)
     cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
-           "rays": RAYS}
+           "rays": RAYS, "fs_resolutions": args.fs_resolutions}
     if args.quick:
         cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96)
     command = "python -m benchmarks.bench_real_cells " + " ".join(

@@ -168,7 +168,7 @@ class FromSegmentCore(Core):
     fits = ("static triangle scenes, any cell size (dynamic scenes too, at a cost linear in "
             "their keyframes)")
     knob = "resolution"
-    knob_levels = (64, 128, 256)
+    knob_levels = (64, 128, 256, 512)
     native_segments = True
     check_params: ClassVar[dict[str, Any]] = {"runs": 1}
     fn_bound = 0.05
