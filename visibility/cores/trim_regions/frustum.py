@@ -75,11 +75,11 @@ def cover_box(box: np.ndarray, max_delta: float) -> tuple[np.ndarray, float]:
     # A cube of side 2Δ/√3 has a circumscribed radius of Δ.
     side = 2.0 * float(max_delta) / np.sqrt(3.0)
     n = np.maximum(1, np.ceil(size / side - 1e-9)).astype(np.int64)
-    while int(np.prod(n)) > MAX_SPHERES:
-        k = int(np.argmax(size / n))
-        n[k] = max(1, n[k] - 1)
-        if np.all(n == 1):
-            break
+    if int(np.prod(n.astype(float))) > MAX_SPHERES:
+        # Too many: larger sub-boxes, at most cbrt(MAX_SPHERES) along every axis.
+        per_axis = int(round(MAX_SPHERES ** (1.0 / 3.0)))
+        side = float(np.max(size)) / per_axis
+        n = np.clip(np.ceil(size / side - 1e-9), 1, per_axis).astype(np.int64)
     sub = size / n
     delta = max(0.5 * float(np.linalg.norm(sub)), 1e-6)
     grids = [lo[a] + (np.arange(n[a]) + 0.5) * sub[a] for a in range(3)]

@@ -7,7 +7,8 @@ dynamic objects in lazily; here, conservatively, they never occlude and are alwa
   keyframes (positions are piecewise linear in time, so the keyframe boxes bound the sweep). A
   hull is reported when any pixel centre of its box faces, drawn from v*, lies in front of that
   pixel's seal depth (the terminator face found by the layers; unsealed pixels see to
-  infinity), or when the box meets the sphere.
+  infinity) and outside the depth spans its validated intervals hide, or when the box meets
+  the sphere.
 """
 
 from __future__ import annotations
@@ -90,9 +91,12 @@ def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True)
-def hulls_in_front(poly, npoly, box, owner, seal, res, seen):  # pragma: no cover - numba
+def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
+                   seen):  # pragma: no cover - numba
     """Set ``seen[owner[i]] = 1`` when a pixel centre of set-up triangle i (``raster.
-    setup_triangles`` arrays) lies nearer than the pixel's seal depth ``seal`` (res * res,)."""
+    setup_triangles`` arrays) lies nearer than the pixel's seal depth ``seal`` (res * res,)
+    and outside the hidden spans of its validated intervals (``kbuffer.KBuffer.spans``); for
+    a hull with ``open_only[owner]``, nearer than the pixel's first surface (``first``)."""
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or box[i, 1] <= box[i, 0] or box[i, 3] <= box[i, 2]:
             continue
@@ -121,7 +125,15 @@ def hulls_in_front(poly, npoly, box, owner, seal, res, seen):  # pragma: no cove
                     if w0 < -0.5 or w1 < -0.5 or w2 < -0.5:
                         continue
                     iz = w0 * az + w1 * bz + w2 * cz
-                    if iz <= 0.0 or 1.0 / iz < seal[y * res + x]:
+                    p = y * res + x
+                    z = 1.0 / iz if iz > 0.0 else 0.0
+                    if z >= seal[p] or (open_only[owner[i]] and z >= first[p]):
+                        continue
+                    hidden = False
+                    for q in range(n_spans[p]):
+                        if spans[p, q, 0] < z <= spans[p, q, 1]:
+                            hidden = True
+                    if not hidden:
                         hit = True
                         break
         if hit:

@@ -28,6 +28,9 @@ TRIMMED = 1
 SEALED = 2
 #: Entries per pixel.
 K = 48
+#: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the hull
+#: test (more are dropped: a dropped span only makes hulls more visible).
+SPANS = 4
 
 
 @dataclass
@@ -46,6 +49,9 @@ class KBuffer:
     overflow : (n,) uint8, 1 once the pixel overflowed.
     cover : (n,) float64, depth up to which earlier validated intervals' umbrae hide (metres).
     seal : (n,) float64, depth of the terminator face of a sealed pixel (inf otherwise).
+    spans : (n, SPANS, 2) float64, hidden depth spans of the pixel's validated intervals;
+        ``n_spans`` (n,) int64 how many are held.
+    first : (n,) float64, depth of the first surface the pixel resolved (inf: none).
     """
 
     depth: np.ndarray
@@ -58,6 +64,9 @@ class KBuffer:
     overflow: np.ndarray
     cover: np.ndarray
     seal: np.ndarray
+    spans: np.ndarray
+    n_spans: np.ndarray
+    first: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> KBuffer:
@@ -66,6 +75,7 @@ class KBuffer:
                    np.full((n, K), -1, dtype=np.int32), np.zeros((n, K)),
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
+                   np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
                    np.full(n, np.inf))
 
     @property

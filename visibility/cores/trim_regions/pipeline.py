@@ -58,7 +58,8 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
-             max_delta: float) -> tuple[np.ndarray, dict[str, Any]]:
+             max_delta: float, margin_px: float = TRIM_MARGIN_PX
+             ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
     Parameters
@@ -67,6 +68,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     box : (2, 3) float64 [min, max] of the cell, metres.
     resolution : pixels across each cube face.
     max_delta : largest sphere radius Δ the box is covered with, metres.
+    margin_px : safety margin added to every trim width, pixels (0 only for tests that compare
+        Δ = 0 with from-point visibility at pixel centres).
 
     Returns
     -------
@@ -78,6 +81,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
+        ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
+        hulls),
         ``sphere_ids`` (the spheres of the scene found visible).
     """
     box = np.asarray(box, dtype=np.float64)
@@ -93,6 +98,18 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                  single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
                  kbuffer_used_bytes=0, resolution=int(resolution))
     hull_boxes, hull_ids = _hulls(scene, data, centre)
+    graze = _grazing(scene, data, centres + centre, delta, int(resolution))
+    if len(graze):
+        # A slab along the normal, thick enough for a few pixels at its distance (at most Δ).
+        t = scene.vertices[scene.faces[graze].astype(np.int64)] - centre
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        dist = np.linalg.norm(t.mean(axis=1), axis=1)
+        grow = np.abs(n) * np.minimum(delta, 4.0 * dist / resolution)[:, None]
+        gbox = np.stack([t.min(axis=1) - grow, t.max(axis=1) + grow], axis=1)
+        hull_boxes = np.concatenate([hull_boxes, gbox])
+        hull_ids = np.concatenate([hull_ids, graze])
+    stats["grazing"] = len(graze)
     seen_hull = np.zeros(len(hull_ids), dtype=np.uint8)
     if not len(data.static) and not len(hull_ids):
         stats.update(kbuffer_allocated_bytes=0, mean_sequence_length=0.0, near_eye=0,
@@ -109,6 +126,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         if len(hull_ids) else np.zeros((0, 3))
     hull_faces = (np.arange(len(hull_ids))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
     hull_owner = np.repeat(np.arange(len(hull_ids), dtype=np.int64), len(BOX_FACES))
+    # Grazing triangles are static: they count only where they lie in front of the first
+    # surface a pixel sees (moving hulls are tested against seals and hidden spans).
+    open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
     for v0 in centres:
         near_sphere(verts, faces, data.static, v0, delta, vis)
         hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
@@ -120,15 +140,16 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     for v0 in centres:
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
-            _solve_view(view, verts, faces, data, frame, item_rows, kb, vis, stats)
+            _solve_view(view, verts, faces, data, frame, item_rows, kb, vis, stats, margin_px)
             if len(hull_ids):
                 t = time.perf_counter()
-                _test_hulls(view, hull_corners, hull_faces, hull_owner, kb.seal, seen_hull)
+                _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
+                            seen_hull)
                 stats["p4_gather"] += time.perf_counter() - t
     t = time.perf_counter()
-    ids = np.flatnonzero(vis).astype(np.int64)
     seen = hull_ids[seen_hull != 0]
-    ids = np.union1d(ids, seen[seen < m])
+    ids = _not_edge_on(scene, np.union1d(np.flatnonzero(vis), seen[seen < m]).astype(np.int64),
+                       box)
     stats["sphere_ids"] = (seen[seen >= m] - m).astype(np.int32)
     stats["p4_gather"] += time.perf_counter() - t
     n = max(stats.pop("pixel_resolves"), 1)
@@ -136,9 +157,44 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     return ids, stats
 
 
+def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
+             resolution: int) -> np.ndarray:
+    """Static triangles whose plane passes within Δ of a sphere centre (world ``centres``
+    (k, 3)) and which that centre sees thinner than a pixel: an eye of the sphere may see them
+    at a steeper angle than v*, which samples them at no pixel centre, so they are also tested
+    as hulls (their box grown along the normal)."""
+    ids = data.static
+    if not len(ids):
+        return ids
+    t = scene.vertices[scene.faces[ids].astype(np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    close = np.zeros(len(ids), dtype=bool)
+    mid = t.mean(axis=1)
+    for c in centres:
+        off = np.abs(np.einsum("ij,ij->i", n, c - t[:, 0]))
+        dist = np.maximum(np.linalg.norm(mid - c, axis=1), 1e-12)
+        close |= (off <= delta) & (off / dist * (0.5 * resolution) < 1.0)
+    return ids[close]
+
+
+def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """``ids`` without the triangles whose plane holds the whole cell: they have no area from
+    any eye of the cell, only from the spheres' and v*'s extra eye positions."""
+    if not len(ids):
+        return ids
+    t = scene.vertices[scene.faces[ids].astype(np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    corners = np.array([[box[(c >> a) & 1, a] for a in range(3)] for c in range(8)])
+    dist = np.abs(np.einsum("ij,kij->ki", n, corners[:, None, :] - t[None, :, 0]))
+    scale = np.max(np.abs(t), axis=(1, 2)) + np.max(np.abs(box))
+    return ids[~np.all(dist <= 1e-12 * scale, axis=0)]
+
+
 def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneData,
                 frame: LeafFrame, item_rows: np.ndarray, kb: KBuffer, vis: np.ndarray,
-                stats: dict[str, Any]) -> None:
+                stats: dict[str, Any], margin_px: float) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
     stop = stop_flag()
@@ -159,7 +215,7 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
     e = data.edges
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan, res, view.delta,
-        view.back, TRIM_MARGIN_PX, view.vstar, view.rot, frame.grid_origin, octree.cell,
+        view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
         octree.leaf_of_cell, layer)
     keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0)
     inst = np.flatnonzero(keep)
@@ -171,7 +227,7 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
     trims = np.ascontiguousarray(trims[trim_order])
     all_layers = np.union1d(inst_layers, trim_layers)
     _reset(kb)
-    margin = TRIM_MARGIN_PX * 2.0 * view.tan / res
+    margin = margin_px * 2.0 * view.tan / res
     n_bands = (res + 7) // 8
     counters = np.zeros((n_bands, 4), dtype=np.int64)
     t2 = time.perf_counter()
@@ -201,15 +257,13 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
                                           int(kb.count.sum()) * ENTRY_BYTES)
         stats["pixel_resolves"] += int(kb.active.sum())
-        resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal,
-                      kb.stencil, kb.active, kb.overflow, res, False, vis, counters, stop)
+        _resolve(kb, res, False, vis, counters, stop)
         stats["p2_raster"] += tb - ta
         stats["p3_resolve"] += time.perf_counter() - tb
     checkpoint()
     tb = time.perf_counter()
     stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
-    resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal,
-                  kb.stencil, kb.active, kb.overflow, res, True, vis, counters, stop)
+    _resolve(kb, res, True, vis, counters, stop)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     stats["validated_intervals"] += int(counters[:, 0].sum())
@@ -222,6 +276,13 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
     stats["overflow_pixels"] += int(kb.overflow.sum())
 
 
+def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
+             stop: np.ndarray) -> None:
+    resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
+                  kb.n_spans, kb.first, kb.stencil, kb.active, kb.overflow, res, final, vis,
+                  counters, stop)
+
+
 def _reset(kb: KBuffer) -> None:
     kb.count[:] = 0
     kb.stencil[:] = 0
@@ -229,11 +290,14 @@ def _reset(kb: KBuffer) -> None:
     kb.overflow[:] = 0
     kb.cover[:] = 0.0
     kb.seal[:] = np.inf
+    kb.n_spans[:] = 0
+    kb.first[:] = np.inf
 
 
 def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.ndarray,
-                seal: np.ndarray, seen: np.ndarray) -> None:
-    """Mark the hulls with a pixel in front of the view's seal depths."""
+                open_only: np.ndarray, kb: KBuffer, seen: np.ndarray) -> None:
+    """Mark the hulls with a pixel in front of the view's seal depths and outside its hidden
+    spans."""
     cam = to_camera(corners, view.vstar, view.rot)
     n = len(faces)
     facing = np.zeros(n, dtype=np.int8)
@@ -242,7 +306,8 @@ def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.nd
     pbox = np.zeros((n, 4), dtype=np.int64)
     setup_triangles(cam, faces, np.arange(n, dtype=np.int64), view.near, view.tan, view.res,
                     facing, poly, npoly, pbox)
-    hulls_in_front(poly, npoly, pbox, owner, seal, view.res, seen)
+    hulls_in_front(poly, npoly, pbox, owner, open_only, kb.seal, kb.spans, kb.n_spans,
+                   kb.first, view.res, seen)
 
 
 __all__ = ["K", "PHASES", "trim_pvs"]

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.cancel import flag_set
-from visibility.cores.trim_regions.kbuffer import BACK, FRONT, K, SEALED, TRIM, TRIMMED
+from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
 
 #: Rows of pixels per band of the parallel rasterization.
 BAND_ROWS = 8

@@ -2,19 +2,23 @@
 what each pixel found visible (P4).
 
 Per active pixel the trim sequence (its k-buffer) is sorted by depth. Surface entries hidden by
-the umbra of an interval validated earlier (``cover``) are skipped. The first open surface
-starts an occlusion interval: the run of entries of its facing, closed by the next entry of
-the other facing (front faces closed by a back face; a soup wound the other way gives back
-faces then front faces, handled alike). An interval is validated when a trim
-fragment lies inside it (depth tolerance ``DEPTH_TOL``): its first face goes to the PVS and the
-umbra replaces its back face, i.e. everything up to the (smallest) umbra depth of those trim
-fragments is hidden, and the walk goes on behind. An interval that is not validated is a
-terminator: its first face goes to the PVS and the pixel is sealed. A run with nothing after it
-yet is carried to the next layer (its closing faces may lie in a later octree node).
+the umbra of an interval validated earlier (``cover``) are skipped. The first open front face
+starts an occlusion interval: the run of front faces, closed by the next back face. An
+interval is validated when a trim fragment lies inside it (depth tolerance ``DEPTH_TOL``): its
+first face goes to the PVS and the umbra replaces its back face, i.e. everything up to the
+(smallest) umbra depth of those trim fragments is hidden, and the walk goes on behind. A run of
+several front faces is validated as a whole (the paper's extension at the front), but the
+umbra comes from the trims of its last face and the closing face (the simple interval), and
+without such trims that face terminates the ray: the trim of a small surface in front must not
+lend its umbra to an untrimmed wall. An interval that is not validated is a terminator: its
+first face goes to the PVS and the pixel is sealed. A run with nothing after it yet is carried
+to the next layer (its closing face may lie in a later octree node).
 
-After the last layer (``final``), a carried run is read as single-sided surfaces: each front
-face in turn is seen; it is trimmed (validated) when a trim fragment lies between it and the
-next one, else it terminates the pixel.
+A back face met first, and after the last layer a carried run, read as single-sided surfaces:
+each face in turn is seen (a back face only as the first surface of the ray: behind a trimmed
+interval it is the back of something whose front lies in the umbra); it is trimmed
+(validated) when a trim fragment lies between it and the next surface, else it terminates the
+pixel.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.cancel import flag_set
-from visibility.cores.trim_regions.kbuffer import SEALED, TRIM
+from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM
 
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
 #: validation: trimming more only adds false positives).
@@ -60,10 +64,12 @@ def _umbra_in(sd, sk, su, n, lo, hi):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis,
-                  stats):  # pragma: no cover - numba
+def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, p,
+                  final, vis, stats):  # pragma: no cover - numba
     """Resolve pixel p's trim sequence (see the module docstring); compacts the residual
-    sequence back into the k-buffer. Returns True when the pixel got sealed.
+    sequence back into the k-buffer and records the hidden span of each validated interval in
+    ``spans`` / ``n_spans`` and the depth of its first surface in ``first``. Returns True when
+    the pixel got sealed.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
     n = count[p]
@@ -79,6 +85,10 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis
         si[q] = idents[p, order[q]]
         su[q] = umbra[p, order[q]]
     cov = cover[p]
+    # A back face is reported only as the first surface of the ray (single-sided geometry
+    # seen from behind); behind a trimmed interval it is the back of an object whose front
+    # lies in the umbra, hidden with it.
+    fresh = cov == 0.0
     i = 0
     keep_from = n  # first surface entry of the carried run (n: none)
     last = -1.0  # depth of the last resolved surface entry
@@ -112,17 +122,23 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis
                     end_second = j
                 break
             j += 1
-        if end_second < 0:
-            if not final:
+        if first[p] == np.inf:
+            first[p] = d
+        if end_second < 0 or k0 == BACK:
+            if end_second < 0 and not final:
                 keep_from = i
                 break
-            # Single-sided reading: this face, up to the next surface of the run.
+            # Single-sided reading: this face, up to the next surface. A back face always reads
+            # so (nothing closes it: single-sided geometry seen from behind, or the back of
+            # something whose front lies in an umbra).
             nxt = 1e300
             for q in range(i + 1, n):
                 if sk[q] != TRIM:
                     nxt = sd[q]
                     break
-            vis[si[i]] = 1
+            if k0 != BACK or fresh:
+                vis[si[i]] = 1
+            fresh = False
             u = _umbra_in(sd, sk, su, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
             last = d
             if u >= 0:
@@ -136,11 +152,30 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis
             sealed = True
             break
         b = sd[end_second]
-        vis[si[i]] = 1
+        if k0 != BACK or fresh:
+            vis[si[i]] = 1
+        fresh = False
+        if end_first > i:
+            # Several faces before the closing one (soups, intersecting or nested objects):
+            # the run is extended at the front as in the paper and validated by any trim
+            # fragment inside it; its last face and the closing face then form the simple
+            # interval whose own trims give the umbra, or which terminates the ray.
+            if _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b) < 0:
+                stats[1] += 1
+                seal[p] = d
+                sealed = True
+                break
+            # The last face is not reported: it may lie inside what the first encloses.
+            d = sd[end_first]
+            tol = DEPTH_TOL * d
         u = _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b)
         last = b
         if u >= 0:
             stats[0] += 1
+            if n_spans[p] < spans.shape[1]:
+                spans[p, n_spans[p], 0] = sd[i]
+                spans[p, n_spans[p], 1] = max(u, b)
+                n_spans[p] += 1
             if u > cov:
                 cov = u
             i = end_second + 1
@@ -175,8 +210,8 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis
 
 
 @njit(cache=True, parallel=True)
-def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, stencil, active, overflow,
-                  res, final, vis, stats, stop):  # pragma: no cover - numba
+def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first,
+                  stencil, active, overflow, res, final, vis, stats, stop):
     """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
     bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band."""
     n_bands = (res + 7) // 8
@@ -190,6 +225,6 @@ def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, stencil, acti
             if not (active[p] or final):
                 continue
             active[p] = 0
-            if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, p, final, vis,
-                             stats[band]):
+            if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
+                             first, p, final, vis, stats[band]):
                 stencil[p] = SEALED
