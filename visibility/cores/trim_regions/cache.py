@@ -23,6 +23,8 @@ class SceneData:
     static : (s,) int64 ids of the valid triangles that never move (occluders and occludees).
     moving : (d,) int64 ids of the valid triangles whose vertices change between keyframes
         (occludees only, tested as swept boxes).
+    static_mask : (m,) bool, True for the static triangles.
+    faces : (m, 3) int64 copy of the scene's faces.
     edges : the static triangles' edges.
     octree : the static triangles' octree.
     build_seconds : time the build took, seconds.
@@ -30,6 +32,8 @@ class SceneData:
 
     static: np.ndarray
     moving: np.ndarray
+    static_mask: np.ndarray
+    faces: np.ndarray
     edges: Edges
     octree: Octree
     build_seconds: float
@@ -58,7 +62,10 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
                           tris.max(axis=1) if len(static) else np.zeros((0, 3)),
                           static, max_prims, MAX_DEPTH)
     edges = build_edges(scene.vertices, scene.faces, static)
-    return SceneData(static, np.flatnonzero(moving).astype(np.int64), edges, octree,
+    mask = np.zeros(scene.n_triangles, dtype=bool)
+    mask[static] = True
+    return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
+                     np.ascontiguousarray(scene.faces.astype(np.int64)), edges, octree,
                      time.perf_counter() - t0)
 
 

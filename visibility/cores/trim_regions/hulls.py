@@ -138,3 +138,53 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
                         break
         if hit:
             seen[owner[i]] = 1
+
+
+@njit(cache=True, parallel=True)
+def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
+    """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
+    arrays) that touches some pixel (its square, not only its centre: conservative
+    rasterization) with its nearest point in front of that pixel's first surface ``first``
+    (res * res,): the thin and small triangles that pixel centres miss, in front of everything
+    the view samples. They are occludees only here, never occluders."""
+    for i in prange(npoly.shape[0]):
+        if npoly[i] < 3 or vis[tri_ids[i]]:
+            continue
+        zmin = 1e300
+        for k in range(npoly[i]):
+            zmin = min(zmin, 1.0 / poly[i, k, 2])
+        x0 = max(0, box[i, 0] - 1)
+        x1 = min(res, box[i, 1] + 1)
+        y0 = max(0, box[i, 2] - 1)
+        y1 = min(res, box[i, 3] + 1)
+        hit = False
+        for t in range(1, npoly[i] - 1):
+            if hit:
+                break
+            ax, ay = poly[i, 0, 0], poly[i, 0, 1]
+            bx, by = poly[i, t, 0], poly[i, t, 1]
+            cx, cy = poly[i, t + 1, 0], poly[i, t + 1, 1]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            sg = 1.0 if area >= 0 else -1.0
+            for y in range(y0, y1):
+                if hit:
+                    break
+                py = y + 0.5
+                for x in range(x0, x1):
+                    px = x + 0.5
+                    # Edge functions oriented inwards, grown by the half-pixel reach of the
+                    # pixel square along each edge normal.
+                    e0 = sg * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
+                    e1 = sg * ((cx - bx) * (py - by) - (cy - by) * (px - bx))
+                    e2 = sg * ((ax - cx) * (py - cy) - (ay - cy) * (px - cx))
+                    if e0 < -0.5 * (abs(bx - ax) + abs(by - ay)):
+                        continue
+                    if e1 < -0.5 * (abs(cx - bx) + abs(cy - by)):
+                        continue
+                    if e2 < -0.5 * (abs(ax - cx) + abs(ay - cy)):
+                        continue
+                    if zmin < first[y * res + x]:
+                        hit = True
+                        break
+        if hit:
+            vis[tri_ids[i]] = 1

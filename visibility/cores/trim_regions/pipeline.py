@@ -17,6 +17,7 @@ from visibility.cores.trim_regions.hulls import (
     box_corners,
     hulls_in_front,
     near_sphere,
+    touching_in_front,
 )
 from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
@@ -28,8 +29,11 @@ from visibility.cores.trim_regions.raster import (
 )
 from visibility.cores.trim_regions.resolve import resolve_layer
 from visibility.cores.trim_regions.silhouettes import TRIM_MARGIN_PX, silhouette_trims
+from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
 
+#: Sample points per pixel side of the depth the conservative occludee test compares with.
+SUPERSAMPLE = 4
 #: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
 ENTRY_BYTES = 21
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
@@ -117,7 +121,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         return np.zeros(0, dtype=np.int64), stats
     t0 = time.perf_counter()
     verts = np.ascontiguousarray(scene.vertices - centre)
-    faces = np.ascontiguousarray(scene.faces.astype(np.int64))
     frame = leaf_frame(data.octree, centre)
     row_of = np.full(m, -1, dtype=np.int64)
     row_of[data.static] = np.arange(len(data.static))
@@ -130,7 +133,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
     for v0 in centres:
-        near_sphere(verts, faces, data.static, v0, delta, vis)
+        near_sphere(verts, data.faces, data.static, v0, delta, vis)
         hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
         seen_hull[hit] = 1
     stats["near_eye"] = int(vis.sum())
@@ -140,7 +143,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     for v0 in centres:
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
-            _solve_view(view, verts, faces, data, frame, item_rows, kb, vis, stats, margin_px)
+            _solve_view(scene, view, verts, data, frame, item_rows, kb, vis, stats, margin_px)
             if len(hull_ids):
                 t = time.perf_counter()
                 _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
@@ -192,13 +195,14 @@ def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
     return ids[~np.all(dist <= 1e-12 * scale, axis=0)]
 
 
-def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneData,
+def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 frame: LeafFrame, item_rows: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
     stop = stop_flag()
     res = view.res
+    faces = data.faces
     t0 = time.perf_counter()
     octree = data.octree
     layer, drawn = leaf_layers(octree, frame, view)
@@ -266,6 +270,10 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
     _resolve(kb, res, True, vis, counters, stop)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
+    tc = time.perf_counter()
+    touching_in_front(poly, npoly, pbox, data.static,
+                      _farthest_in_pixel(scene, data.static_mask, verts, view), res, vis)
+    stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
     stats["entries_resolved"] += int(counters[:, 2].sum())
@@ -274,6 +282,19 @@ def _solve_view(view: View, verts: np.ndarray, faces: np.ndarray, data: SceneDat
     stats["trimmed_pixels"] += int(np.count_nonzero(kb.stencil == 1))
     stats["sealed_pixels"] += int(np.count_nonzero(kb.stencil == 2))
     stats["overflow_pixels"] += int(kb.overflow.sum())
+
+
+def _farthest_in_pixel(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
+                       view: View) -> np.ndarray:
+    """(res * res,) the farthest nearest-surface depth among ``SUPERSAMPLE``² sample points in
+    each pixel's square, drawn from v* (``visibility.raster.triangles.render_ids``): where an
+    occluder's edge crosses a pixel, the part of the square it leaves open shows here."""
+    res = view.res
+    ss = SUPERSAMPLE * res
+    depth, _ = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan, view.tan,
+                          near=view.near, face_mask=static_mask)
+    blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
+    return np.ascontiguousarray(blocks.max(axis=(1, 3)).reshape(-1))
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
