@@ -144,7 +144,7 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
 def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
     """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
     arrays) that touches some pixel (its square, not only its centre: conservative
-    rasterization) with its nearest point in front of that pixel's first surface ``first``
+    rasterization) with its nearest point over the pixel in front of its ``first`` depth
     (res * res,): the thin and small triangles that pixel centres miss, in front of everything
     the view samples. They are occludees only here, never occluders."""
     for i in prange(npoly.shape[0]):
@@ -161,11 +161,18 @@ def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no
         for t in range(1, npoly[i] - 1):
             if hit:
                 break
-            ax, ay = poly[i, 0, 0], poly[i, 0, 1]
-            bx, by = poly[i, t, 0], poly[i, t, 1]
-            cx, cy = poly[i, t + 1, 0], poly[i, t + 1, 1]
+            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
+            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
+            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
             area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
             sg = 1.0 if area >= 0 else -1.0
+            if area == 0.0:
+                continue
+            # 1 / depth is linear in the image: its gradient gives the nearest point of the
+            # triangle's plane over a pixel square (clamped to the triangle's own range).
+            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
+            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
+            izmax = max(az, max(bz, cz))
             for y in range(y0, y1):
                 if hit:
                     break
@@ -183,7 +190,9 @@ def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no
                         continue
                     if e2 < -0.5 * (abs(ax - cx) + abs(ay - cy)):
                         continue
-                    if zmin < first[y * res + x]:
+                    iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
+                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    if z < first[y * res + x]:
                         hit = True
                         break
         if hit:
