@@ -52,6 +52,7 @@ class KBuffer:
     spans : (n, SPANS, 2) float64, hidden depth spans of the pixel's validated intervals;
         ``n_spans`` (n,) int64 how many are held.
     first : (n,) float64, depth of the first surface the pixel resolved (inf: none).
+    hid : (n,) uint8, a front face hid in an umbra since the last front face seen.
     """
 
     depth: np.ndarray
@@ -67,6 +68,7 @@ class KBuffer:
     spans: np.ndarray
     n_spans: np.ndarray
     first: np.ndarray
+    hid: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> KBuffer:
@@ -76,7 +78,7 @@ class KBuffer:
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
-                   np.full(n, np.inf))
+                   np.full(n, np.inf), np.zeros(n, dtype=np.uint8))
 
     @property
     def allocated_bytes(self) -> int:

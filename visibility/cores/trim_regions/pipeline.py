@@ -62,7 +62,7 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
-             max_delta: float, margin_px: float = TRIM_MARGIN_PX
+             max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True
              ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
@@ -74,6 +74,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     max_delta : largest sphere radius Δ the box is covered with, metres.
     margin_px : safety margin added to every trim width, pixels (0 only for tests that compare
         Δ = 0 with from-point visibility at pixel centres).
+    footprints : also report every triangle whose pixel footprint (conservative) lies in front
+        of the farthest surface sampled in that pixel (``hulls.touching_in_front``): what pixel
+        centres miss. False only for tests of pixel-centre visibility.
 
     Returns
     -------
@@ -132,18 +135,26 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # Grazing triangles are static: they count only where they lie in front of the first
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
-    for v0 in centres:
-        near_sphere(verts, data.faces, data.static, v0, delta, vis)
-        hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
-        seen_hull[hit] = 1
-    stats["near_eye"] = int(vis.sum())
     kb = KBuffer.empty(int(resolution) ** 2)
     stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
+    stats["near_eye"] = 0
     stats["p1_geometry"] += time.perf_counter() - t0
     for v0 in centres:
+        t = time.perf_counter()
+        # What passes through the sphere is beside some eye and in front of others: reported,
+        # and never an occluder for this sphere (the erosion theorem needs occluders outside
+        # the viewcell).
+        near = np.zeros(m, dtype=np.uint8)
+        near_sphere(verts, data.faces, data.static, v0, delta, near)
+        vis |= near
+        stats["near_eye"] += int(near.sum())
+        hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
+        seen_hull[hit] = 1
+        stats["p1_geometry"] += time.perf_counter() - t
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
-            _solve_view(scene, view, verts, data, frame, item_rows, kb, vis, stats, margin_px)
+            _solve_view(scene, view, verts, data, frame, item_rows, near, kb, vis, stats,
+                        margin_px, footprints)
             if len(hull_ids):
                 t = time.perf_counter()
                 _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
@@ -196,8 +207,9 @@ def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 
 def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
-                frame: LeafFrame, item_rows: np.ndarray, kb: KBuffer, vis: np.ndarray,
-                stats: dict[str, Any], margin_px: float) -> None:
+                frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray, kb: KBuffer,
+                vis: np.ndarray,
+                stats: dict[str, Any], margin_px: float, footprints: bool) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
     stop = stop_flag()
@@ -221,7 +233,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan, res, view.delta,
         view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
         octree.leaf_of_cell, layer)
-    keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0)
+    keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0) & (near[data.octree.tri_items] == 0)
     inst = np.flatnonzero(keep)
     inst_order, inst_layers, inst_starts = by_layer(layer[frame.item_leaf[inst]])
     inst = inst[inst_order]
@@ -270,10 +282,11 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     _resolve(kb, res, True, vis, counters, stop)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
-    tc = time.perf_counter()
-    touching_in_front(poly, npoly, pbox, data.static,
-                      _farthest_in_pixel(scene, data.static_mask, verts, view), res, vis)
-    stats["p4_gather"] += time.perf_counter() - tc
+    if footprints:
+        tc = time.perf_counter()
+        touching_in_front(poly, npoly, pbox, data.static,
+                          _farthest_in_pixel(scene, data.static_mask, verts, view), res, vis)
+        stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
     stats["entries_resolved"] += int(counters[:, 2].sum())
@@ -300,7 +313,7 @@ def _farthest_in_pixel(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
              stop: np.ndarray) -> None:
     resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
-                  kb.n_spans, kb.first, kb.stencil, kb.active, kb.overflow, res, final, vis,
+                  kb.n_spans, kb.first, kb.hid, kb.stencil, kb.active, kb.overflow, res, final, vis,
                   counters, stop)
 
 
@@ -313,6 +326,7 @@ def _reset(kb: KBuffer) -> None:
     kb.seal[:] = np.inf
     kb.n_spans[:] = 0
     kb.first[:] = np.inf
+    kb.hid[:] = 0
 
 
 def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.ndarray,

@@ -15,8 +15,8 @@ first face goes to the PVS and the pixel is sealed. A run with nothing after it 
 to the next layer (its closing face may lie in a later octree node).
 
 A back face met first, and after the last layer a carried run, read as single-sided surfaces:
-each face in turn is seen (a back face only as the first surface of the ray: behind a trimmed
-interval it is the back of something whose front lies in the umbra); it is trimmed
+each face in turn is seen (a back face unless a front face lies hidden in an umbra before it:
+then it is the back of that object); it is trimmed
 (validated) when a trim fragment lies between it and the next surface, else it terminates the
 pixel.
 """
@@ -64,12 +64,13 @@ def _umbra_in(sd, sk, su, n, lo, hi):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, p,
-                  final, vis, stats):  # pragma: no cover - numba
+def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
+                  p, final, vis, stats):  # pragma: no cover - numba
     """Resolve pixel p's trim sequence (see the module docstring); compacts the residual
     sequence back into the k-buffer and records the hidden span of each validated interval in
     ``spans`` / ``n_spans`` and the depth of its first surface in ``first``. Returns True when
-    the pixel got sealed.
+    the pixel got sealed. ``hid`` (n,) uint8 remembers, across layers, that a front face hid
+    in an umbra since the last front face seen.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
     n = count[p]
@@ -85,10 +86,10 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         si[q] = idents[p, order[q]]
         su[q] = umbra[p, order[q]]
     cov = cover[p]
-    # A back face is reported only as the first surface of the ray (single-sided geometry
-    # seen from behind); behind a trimmed interval it is the back of an object whose front
-    # lies in the umbra, hidden with it.
-    fresh = cov == 0.0
+    # A back face is reported unless a front face hid in an umbra before it: then it is the
+    # back of that object, hidden with it. Otherwise it is single-sided geometry seen from
+    # behind (or a soup wound the other way round) and may well be seen.
+    fresh = hid[p] == 0
     i = 0
     keep_from = n  # first surface entry of the carried run (n: none)
     last = -1.0  # depth of the last resolved surface entry
@@ -100,6 +101,9 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         d = sd[i]
         tol = DEPTH_TOL * d
         if d <= cov:
+            if sk[i] != BACK:
+                fresh = False
+                hid[p] = 1
             last = d
             i += 1
             continue
@@ -138,7 +142,6 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
                     break
             if k0 != BACK or fresh:
                 vis[si[i]] = 1
-            fresh = False
             u = _umbra_in(sd, sk, su, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
             last = d
             if u >= 0:
@@ -154,7 +157,10 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         b = sd[end_second]
         if k0 != BACK or fresh:
             vis[si[i]] = 1
-        fresh = False
+        if k0 != BACK:
+            # A front face seen opens a new stretch of the ray.
+            fresh = True
+            hid[p] = 0
         if end_first > i:
             # Several faces before the closing one (soups, intersecting or nested objects):
             # the run is extended at the front as in the paper and validated by any trim
@@ -210,7 +216,7 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
 
 
 @njit(cache=True, parallel=True)
-def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first,
+def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
                   stencil, active, overflow, res, final, vis, stats, stop):
     """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
     bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band."""
@@ -226,5 +232,5 @@ def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
                 continue
             active[p] = 0
             if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
-                             first, p, final, vis, stats[band]):
+                             first, hid, p, final, vis, stats[band]):
                 stencil[p] = SEALED
