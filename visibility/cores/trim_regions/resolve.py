@@ -142,7 +142,8 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
                     break
             if k0 != BACK or fresh:
                 vis[si[i]] = 1
-            u = _umbra_in(sd, sk, su, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
+            # Up to the next surface, not including trims at its depth: those are its own rim.
+            u = _umbra_in(sd, sk, su, n, d - tol, nxt - DEPTH_TOL * min(nxt, 1e290))
             last = d
             if u >= 0:
                 stats[3] += 1
