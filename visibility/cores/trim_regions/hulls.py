@@ -90,43 +90,49 @@ def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True, inline="always")
+def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
+    """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the
+    sign of its area): each edge function, oriented inwards, grown by the square's reach
+    along the edge normal."""
+    e0 = sg * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
+    e1 = sg * ((cx - bx) * (py - by) - (cy - by) * (px - bx))
+    e2 = sg * ((ax - cx) * (py - cy) - (ay - cy) * (px - cx))
+    return (e0 >= -0.5 * (abs(bx - ax) + abs(by - ay))
+            and e1 >= -0.5 * (abs(cx - bx) + abs(cy - by))
+            and e2 >= -0.5 * (abs(ax - cx) + abs(ay - cy)))
+
+
 @njit(cache=True, parallel=True)
 def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
                    seen):  # pragma: no cover - numba
-    """Set ``seen[owner[i]] = 1`` when a pixel centre of set-up triangle i (``raster.
-    setup_triangles`` arrays) lies nearer than the pixel's seal depth ``seal`` (res * res,)
-    and outside the hidden spans of its validated intervals (``kbuffer.KBuffer.spans``); for
-    a hull with ``open_only[owner]``, nearer than the pixel's first surface (``first``)."""
+    """Set ``seen[owner[i]] = 1`` when set-up triangle i (``raster.setup_triangles`` arrays)
+    touches a pixel square (conservative) with its nearest corner in front of the pixel's seal
+    depth ``seal`` (res * res,) and outside the hidden spans of its validated intervals
+    (``kbuffer.KBuffer.spans``); for a hull with ``open_only[owner]``, in front of the
+    pixel's first surface (``first``)."""
     for i in prange(npoly.shape[0]):
-        if npoly[i] < 3 or box[i, 1] <= box[i, 0] or box[i, 3] <= box[i, 2]:
+        if npoly[i] < 3 or seen[owner[i]]:
             continue
+        z = 1e300
+        for k in range(npoly[i]):
+            z = min(z, 1.0 / poly[i, k, 2])
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:
                 break
-            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
-            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
-            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
+            ax, ay = poly[i, 0, 0], poly[i, 0, 1]
+            bx, by = poly[i, t, 0], poly[i, t, 1]
+            cx, cy = poly[i, t + 1, 0], poly[i, t + 1, 1]
             area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-            if abs(area) < 1e-300:
-                continue
-            inv = 1.0 / area
-            for y in range(box[i, 2], box[i, 3]):
+            sg = 1.0 if area >= 0 else -1.0
+            for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
                 if hit:
                     break
-                py = y + 0.5
-                for x in range(box[i, 0], box[i, 1]):
-                    px = x + 0.5
-                    w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) * inv
-                    w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) * inv
-                    w2 = 1.0 - w0 - w1
-                    # Generous slack: a hull is an occludee only; testing more pixels only
-                    # adds false positives.
-                    if w0 < -0.5 or w1 < -0.5 or w2 < -0.5:
+                for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
                         continue
-                    iz = w0 * az + w1 * bz + w2 * cz
                     p = y * res + x
-                    z = 1.0 / iz if iz > 0.0 else 0.0
                     if z >= seal[p] or (open_only[owner[i]] and z >= first[p]):
                         continue
                     hidden = False
@@ -179,16 +185,7 @@ def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no
                 py = y + 0.5
                 for x in range(x0, x1):
                     px = x + 0.5
-                    # Edge functions oriented inwards, grown by the half-pixel reach of the
-                    # pixel square along each edge normal.
-                    e0 = sg * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
-                    e1 = sg * ((cx - bx) * (py - by) - (cy - by) * (px - bx))
-                    e2 = sg * ((ax - cx) * (py - cy) - (ay - cy) * (px - cx))
-                    if e0 < -0.5 * (abs(bx - ax) + abs(by - ay)):
-                        continue
-                    if e1 < -0.5 * (abs(cx - bx) + abs(cy - by)):
-                        continue
-                    if e2 < -0.5 * (abs(ax - cx) + abs(ay - cy)):
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, px, py):
                         continue
                     iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
                     z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
