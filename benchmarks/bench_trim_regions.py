@@ -12,7 +12,7 @@ small cells.
 - Side by side: ``cos`` at its default on the same cube cells of the 20k scenes and lavaducts.
 
 Writes ``benchmarks/results/trim_regions.md`` (+ ``.json``, ``.png``). Usage:
-``python -m benchmarks.bench_trim_regions`` (about 15 minutes on 2 cores), ``--quick`` for a
+``python -m benchmarks.bench_trim_regions`` (about 4 minutes on 2 cores), ``--quick`` for a
 smoke run into ``--out``.
 """
 
