@@ -56,12 +56,13 @@ CORES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("from_segment", {"resolution": 512}),
     ("sampling", {}),
     ("sampling", {"samples": 128}),
+    ("trim_regions", {}),
 )
 
 
 #: The smoke run's cores: one setting each, the cheapest.
 QUICK_CORES: tuple[tuple[str, dict[str, Any]], ...] = (
-    ("cos", {"resolution": 32}), ("from_segment", {}), ("sampling", {}))
+    ("cos", {"resolution": 32}), ("from_segment", {}), ("sampling", {}), ("trim_regions", {}))
 
 
 def scenes(quick: bool) -> list[tuple[str, Any]]:

@@ -1,0 +1,74 @@
+"""The core around the kernels: stats per phase (no NaN), moving geometry tested as hulls,
+granularity, determinism and cancellation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import visibility.cores.trim_regions.pipeline as pipeline
+from tests.visibility.cores.cos.reference import cell_around
+from visibility.cancel import CancelToken, ComputationCancelled
+from visibility.cores.base import get_core
+from visibility.cores.trim_regions.cache import moving_faces
+from visibility.generators import make_scene
+from visibility.ground_truth import sample_pvs
+from visibility.viewcells import Viewcell
+
+CORE = get_core("trim_regions")
+
+
+def test_stats_report_every_phase_and_the_k_buffers():
+    scene = make_scene("village", triangles=5000)
+    pvs = CORE.compute(scene, Viewcell(cell_around(scene, 0.3, 0)), CORE.make_params())
+    st = pvs.stats
+    for k in pipeline.PHASES:
+        assert st[k] >= 0.0
+    assert st["views"] == 6 * st["spheres"] and st["layers"] >= st["views"]
+    assert 0 < st["kbuffer_used_bytes"] <= st["kbuffer_allocated_bytes"]
+    assert st["mean_sequence_length"] > 0 and st["active_pixels"] > 0
+    assert st["sealed_pixels"] + st["trimmed_pixels"] <= st["views"] * 256 * 256
+    for k, v in st.items():
+        if isinstance(v, float):
+            assert math.isfinite(v), k
+
+
+def test_moving_triangles_and_spheres_are_always_tested():
+    for name, seed in (("swaying_grass", 1), ("spheres", 2)):
+        scene = make_scene(name, triangles=3000 if name == "swaying_grass" else 300)
+        box = cell_around(scene, 0.3, 0)
+        pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=128))
+        gt = sample_pvs(scene, Viewcell(box), n_points=32, resolution=128, seed=seed)
+        moving = np.flatnonzero(moving_faces(scene))
+        seen_moving = np.intersect1d(gt.triangle_ids, moving)
+        assert not np.setdiff1d(seen_moving, pvs.triangle_ids).size, name
+        if scene.n_spheres:
+            assert not np.setdiff1d(gt.sphere_ids, pvs.sphere_ids).size
+
+
+def test_object_granularity_and_determinism():
+    scene = make_scene("city", triangles=5000)
+    cell = Viewcell(cell_around(scene, 0.3, 1))
+    tri = CORE.compute(scene, cell, CORE.make_params())
+    again = CORE.compute(scene, cell, CORE.make_params())
+    np.testing.assert_array_equal(tri.triangle_ids, again.triangle_ids)
+    obj = CORE.compute(scene, cell, CORE.make_params(granularity="object"))
+    assert set(tri.triangle_ids.tolist()) <= set(obj.triangle_ids.tolist())
+    np.testing.assert_array_equal(np.unique(scene.object_ids[tri.triangle_ids]), obj.object_ids)
+
+
+def test_a_cancelled_computation_stops_between_layers():
+    scene = make_scene("rooms", triangles=5000)
+    cell = Viewcell(cell_around(scene, 0.3, 0))
+    token = CancelToken()
+    token.cancel("test")
+    with pytest.raises(ComputationCancelled):
+        CORE.compute(scene, cell, CORE.make_params(), token=token)
+
+
+def test_auto_considers_it_for_small_cells_only():
+    scene = make_scene("city", triangles=2000)
+    assert CORE.fit(scene, 0.3).score > 1.0
+    assert CORE.fit(scene, 4.0).score < 1.0

@@ -1,0 +1,92 @@
+"""The per-pixel resolve (paper Sec. 4.3) on hand-made trim sequences with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visibility.cores.trim_regions.kbuffer import BACK, FRONT, TRIM, KBuffer
+from visibility.cores.trim_regions.resolve import resolve_pixel
+
+INF = np.inf
+
+
+def _resolve(entries, final=True, cover=0.0):
+    """Resolve one pixel holding ``entries`` [(kind, depth, id, umbra)]; returns (visible ids,
+    sealed, seal depth, cover after, entries left)."""
+    kb = KBuffer.empty(1)
+    for q, (kind, d, ident, um) in enumerate(entries):
+        kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
+    kb.count[0] = len(entries)
+    kb.cover[0] = cover
+    vis = np.zeros(16, dtype=np.uint8)
+    stats = np.zeros(4, dtype=np.int64)
+    sealed = resolve_pixel(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal,
+                           kb.spans, kb.n_spans, kb.first, kb.hid, 0, final, vis, stats)
+    return set(np.flatnonzero(vis).tolist()), sealed, kb.seal[0], kb.cover[0], int(kb.count[0])
+
+
+def test_an_untrimmed_box_hides_what_is_behind_it():
+    vis, sealed, seal, _, _ = _resolve([(BACK, 2.0, 1, 0), (FRONT, 1.0, 0, 0),
+                                        (FRONT, 5.0, 2, 0), (BACK, 6.0, 3, 0)])
+    assert vis == {0} and sealed and seal == 1.0
+
+
+def test_a_trimmed_box_shows_what_lies_behind_its_umbra_only():
+    # Trim fragment inside [1, 2] with umbra at 4: the triangle at 3 is in the umbra, the one
+    # at 5 is seen (and terminates the ray).
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (FRONT, 3.0, 2, 0),
+           (BACK, 3.5, 3, 0), (FRONT, 5.0, 4, 0), (BACK, 5.5, 5, 0)]
+    vis, sealed, seal, cover, _ = _resolve(seq)
+    assert vis == {0, 4} and sealed and seal == 5.0 and cover == 4.0
+
+
+def test_a_trim_fragment_outside_the_interval_does_not_validate_it():
+    seq = [(FRONT, 1.0, 0, 0), (BACK, 2.0, 1, 0), (TRIM, 2.5, -1, 9.0), (FRONT, 5.0, 4, 0),
+           (BACK, 5.5, 5, 0)]
+    vis, sealed, _, _, _ = _resolve(seq)
+    assert vis == {0} and sealed
+
+
+def test_an_open_run_is_carried_to_the_next_layer():
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (FRONT, 2.0, 2, 0)]
+    vis, sealed, _, _, left = _resolve(seq, final=False)
+    assert vis == set() and not sealed and left == 3
+    vis, sealed, seal, _, _ = _resolve(seq, final=True)
+    # Single-sided reading: the first face is trimmed by the fragment behind it, its umbra
+    # (4) hides the second.
+    assert vis == {0} and not sealed
+
+
+def test_a_single_sided_wall_without_trims_terminates():
+    vis, sealed, seal, _, _ = _resolve([(FRONT, 1.0, 0, 0), (FRONT, 3.0, 2, 0)])
+    assert vis == {0} and sealed and seal == 1.0
+
+
+def test_a_back_face_is_reported_unless_a_front_face_hid_before_it():
+    vis, sealed, _, _, _ = _resolve([(BACK, 1.0, 7, 0), (FRONT, 3.0, 2, 0)])
+    assert vis == {7} and sealed
+    # Behind a trimmed interval's umbra: the back of an object whose front hid in the umbra
+    # is hidden with it; a back face with no hidden front before it is single-sided geometry
+    # seen from behind, reported.
+    hidden = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (FRONT, 3.0, 6, 0),
+              (BACK, 4.5, 7, 0)]
+    vis, sealed, _, _, _ = _resolve(hidden)
+    assert vis == {0} and sealed
+    alone = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (BACK, 4.5, 7, 0)]
+    vis, sealed, _, _, _ = _resolve(alone)
+    assert vis == {0, 7} and sealed
+
+
+def test_the_umbra_of_a_run_comes_from_its_closing_interval():
+    # A small single-sided face with its own trim in front of an untrimmed closed wall: the
+    # small face is seen, the wall terminates (the small trim's umbra does not open it).
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.2, -1, 1.3), (FRONT, 4.0, 1, 0), (BACK, 4.4, 2, 0),
+           (FRONT, 6.0, 3, 0), (BACK, 7.0, 4, 0)]
+    vis, sealed, seal, _, _ = _resolve(seq)
+    assert vis == {0} and sealed and seal == 4.0
+
+
+def test_entries_in_a_carried_umbra_are_hidden():
+    seq = [(FRONT, 5.0, 2, 0), (BACK, 5.5, 3, 0), (FRONT, 9.0, 4, 0), (BACK, 9.5, 5, 0)]
+    vis, sealed, seal, _, _ = _resolve(seq, cover=6.0)
+    assert vis == {4} and sealed and seal == 9.0

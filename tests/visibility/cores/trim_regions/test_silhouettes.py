@@ -1,0 +1,67 @@
+"""Silhouettes of a cube as seen from v*, and the trim width (paper Secs. 3.3, 4.1, Fig. 7)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visibility.cores.designed_scenes import Builder
+from visibility.cores.trim_regions.cache import build_scene_data
+from visibility.cores.trim_regions.frustum import sphere_views
+from visibility.cores.trim_regions.layers import leaf_frame
+from visibility.cores.trim_regions.raster import setup_triangles, to_camera
+from visibility.cores.trim_regions.silhouettes import silhouette_trims
+
+
+def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64):
+    b = Builder()
+    b.box((-1, -1, -6), (1, 1, -4), 0)
+    scene = b.scene("cube")
+    data = build_scene_data(scene)
+    view = sphere_views(np.asarray(eye, float), delta, res)[face]
+    cam = to_camera(scene.vertices, view.vstar, view.rot)
+    s = len(data.static)
+    facing = np.zeros(s, dtype=np.int8)
+    setup_triangles(cam, scene.faces.astype(np.int64), data.static, view.near, view.tan, res,
+                    facing, np.empty((s, 4, 3)), np.zeros(s, dtype=np.int64),
+                    np.zeros((s, 4), dtype=np.int64))
+    facing_of = np.zeros(scene.n_triangles, dtype=np.int8)
+    facing_of[data.static] = facing
+    frame = leaf_frame(data.octree, np.zeros(3))
+    e = data.edges
+    lay = np.zeros(len(data.octree), dtype=np.int64)
+    return silhouette_trims(cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan,
+                            res, view.delta, view.back, margin_px, view.vstar, view.rot,
+                            frame.grid_origin, data.octree.cell, data.octree.leaf_of_cell,
+                            lay)[0], view
+
+
+def test_a_cube_seen_face_on_has_four_silhouette_edges():
+    trims, _ = _trims((0.0, 0.0, 0.0))
+    assert len(trims) == 4
+
+
+def test_a_cube_seen_from_off_a_corner_has_a_hexagon_of_silhouettes():
+    trims, _ = _trims((3.0, 2.5, 0.0))
+    assert len(trims) == 6
+
+
+def test_trims_lie_inside_the_cube_image_and_widen_with_delta():
+    narrow, _ = _trims((0.0, 0.0, 0.0), delta=0.05)
+    wide, view = _trims((0.0, 0.0, 0.0), delta=0.2)
+    assert np.all(wide[:, 10:12] > narrow[:, 10:12])
+    # The face at depth 4 m from v0 (4 + R from v*): W = Δ (sqrt(1 + σ²) + |σ| R / Δ) / (z - R - Δ)
+    # with σ = 0.25 at the edge midpoints; the ends (σ up to 0.35) are wider.
+    z = 4.0 + view.back
+    sigma = 0.25
+    w_mid = 0.2 * (np.sqrt(1 + sigma**2) + sigma * view.back / 0.2) / (z - view.back - 0.2)
+    assert np.all(wide[:, 10:12] >= w_mid * 0.9)
+    # The inner side is towards the image centre (where the cube is).
+    for row in wide:
+        n, side = row[:3], row[3]
+        assert side * (n[0] * 0.0 + n[1] * 0.0 - n[2]) > 0
+
+
+def test_margin_is_added_in_pixels():
+    a, view = _trims((0.0, 0.0, 0.0), margin_px=0.0)
+    b, _ = _trims((0.0, 0.0, 0.0), margin_px=1.5)
+    np.testing.assert_allclose(b[:, 10:12] - a[:, 10:12], 1.5 * 2 * view.tan / view.res)

@@ -1,0 +1,76 @@
+"""What the trim region core keeps per scene (paper Sec. 5.1: the octree is created once when
+the scene loads): the static triangles, their edges and the octree, built on first use and kept
+while the scene lives (``dual_ray.cache.per_scene``: weak keys, one build per scene)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visibility.cores.dual_ray.cache import per_scene
+from visibility.cores.trim_regions.edges import Edges, build_edges
+from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
+from visibility.scene import Scene
+
+
+@dataclass
+class SceneData:
+    """Per-scene structures.
+
+    Attributes
+    ----------
+    static : (s,) int64 ids of the valid triangles that never move (occluders and occludees).
+    moving : (d,) int64 ids of the valid triangles whose vertices change between keyframes
+        (occludees only, tested as swept boxes).
+    static_mask : (m,) bool, True for the static triangles.
+    faces : (m, 3) int64 copy of the scene's faces.
+    edges : the static triangles' edges.
+    octree : the static triangles' octree.
+    build_seconds : time the build took, seconds.
+    """
+
+    static: np.ndarray
+    moving: np.ndarray
+    static_mask: np.ndarray
+    faces: np.ndarray
+    edges: Edges
+    octree: Octree
+    build_seconds: float
+
+
+def moving_faces(scene: Scene) -> np.ndarray:
+    """(m,) bool, True for faces with a vertex that moves between keyframes."""
+    faces = np.clip(scene.faces.astype(np.int64), 0, max(scene.n_vertices - 1, 0))
+    if scene.states is None or scene.states.shape[0] < 2 or not len(faces):
+        return np.zeros(scene.n_triangles, dtype=bool)
+    st = scene.states
+    vmove = np.any(np.any(st != st[:1], axis=0), axis=1)
+    return np.any(vmove[faces], axis=1)
+
+
+def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
+    """Edges and octree of ``scene``'s static triangles (see ``SceneData``)."""
+    import time
+
+    t0 = time.perf_counter()
+    valid = scene.valid_faces.copy()
+    moving = moving_faces(scene) & valid
+    static = np.flatnonzero(valid & ~moving).astype(np.int64)
+    tris = scene.vertices[scene.faces[static].astype(np.int64)]
+    octree = build_octree(tris.min(axis=1) if len(static) else np.zeros((0, 3)),
+                          tris.max(axis=1) if len(static) else np.zeros((0, 3)),
+                          static, max_prims, MAX_DEPTH)
+    edges = build_edges(scene.vertices, scene.faces, static)
+    mask = np.zeros(scene.n_triangles, dtype=bool)
+    mask[static] = True
+    return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
+                     np.ascontiguousarray(scene.faces.astype(np.int64)), edges, octree,
+                     time.perf_counter() - t0)
+
+
+def scene_data(scene: Scene, max_prims: int = 256) -> tuple[SceneData, bool]:
+    """The cached ``SceneData`` of ``scene`` for ``max_prims`` per node, and whether this call
+    built it."""
+    return per_scene(scene, f"trim_regions/{max_prims}",
+                     lambda s: build_scene_data(s, max_prims))

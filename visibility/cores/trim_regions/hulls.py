@@ -1,0 +1,196 @@
+"""What the layers do not decide: geometry at the eye, and what moves (paper Sec. 5.1 sorts
+dynamic objects in lazily; here, conservatively, they never occlude and are always tested).
+
+- A triangle within Δ of the sphere's centre may be beside or around an eye: it is reported
+  directly.
+- A moving triangle or a sphere is a hull: the box holding every position it takes over the
+  keyframes (positions are piecewise linear in time, so the keyframe boxes bound the sweep). A
+  hull is reported when any pixel centre of its box faces, drawn from v*, lies in front of that
+  pixel's seal depth (the terminator face found by the layers; unsealed pixels see to
+  infinity) and outside the depth spans its validated intervals hide, or when the box meets
+  the sphere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Triangles of a box's faces, as corner indices (corner c has bit a set for max along axis a).
+BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
+                     dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _closest_on_triangle(p, a, b, c):  # pragma: no cover - numba
+    """Squared distance from p to triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = ab @ ap
+    d2 = ac @ ap
+    if d1 <= 0 and d2 <= 0:
+        q = a
+    else:
+        bp = p - b
+        d3 = ab @ bp
+        d4 = ac @ bp
+        cp = p - c
+        d5 = ab @ cp
+        d6 = ac @ cp
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0 and d4 <= d3:
+            q = b
+        elif vc <= 0 and d1 >= 0 and d3 <= 0:
+            q = a + ab * (d1 / (d1 - d3))
+        elif d6 >= 0 and d5 <= d6:
+            q = c
+        elif vb <= 0 and d2 >= 0 and d6 <= 0:
+            q = a + ac * (d2 / (d2 - d6))
+        elif va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+            q = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+        else:
+            den = 1.0 / (va + vb + vc)
+            q = a + ab * (vb * den) + ac * (vc * den)
+    r = p - q
+    return r @ r
+
+
+@njit(cache=True, parallel=True)
+def near_sphere(verts, faces, rows, centre, radius, vis):  # pragma: no cover - numba
+    """Set ``vis[f] = 1`` for each triangle f of ``rows`` within ``radius`` (metres) of
+    ``centre`` (3,) (vertices (n, 3) in the same frame)."""
+    r2 = radius * radius
+    for i in prange(rows.shape[0]):
+        f = rows[i]
+        a = verts[faces[f, 0]]
+        b = verts[faces[f, 1]]
+        c = verts[faces[f, 2]]
+        out = False
+        for k in range(3):
+            lo = min(a[k], min(b[k], c[k]))
+            hi = max(a[k], max(b[k], c[k]))
+            if lo > centre[k] + radius or hi < centre[k] - radius:
+                out = True
+        if out:
+            continue
+        if _closest_on_triangle(centre, a, b, c) <= r2:
+            vis[f] = 1
+
+
+def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(k, 8, 3) corners of k boxes [lo, hi] (k, 3) each."""
+    out = np.empty((len(lo), 8, 3))
+    for c in range(8):
+        for a in range(3):
+            out[:, c, a] = hi[:, a] if (c >> a) & 1 else lo[:, a]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
+    """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the
+    sign of its area): each edge function, oriented inwards, grown by the square's reach
+    along the edge normal."""
+    e0 = sg * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
+    e1 = sg * ((cx - bx) * (py - by) - (cy - by) * (px - bx))
+    e2 = sg * ((ax - cx) * (py - cy) - (ay - cy) * (px - cx))
+    return (e0 >= -0.5 * (abs(bx - ax) + abs(by - ay))
+            and e1 >= -0.5 * (abs(cx - bx) + abs(cy - by))
+            and e2 >= -0.5 * (abs(ax - cx) + abs(ay - cy)))
+
+
+@njit(cache=True, parallel=True)
+def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
+                   seen):  # pragma: no cover - numba
+    """Set ``seen[owner[i]] = 1`` when set-up triangle i (``raster.setup_triangles`` arrays)
+    touches a pixel square (conservative) with its nearest corner in front of the pixel's seal
+    depth ``seal`` (res * res,) and outside the hidden spans of its validated intervals
+    (``kbuffer.KBuffer.spans``); for a hull with ``open_only[owner]``, in front of the
+    pixel's first surface (``first``)."""
+    for i in prange(npoly.shape[0]):
+        if npoly[i] < 3 or seen[owner[i]]:
+            continue
+        z = 1e300
+        for k in range(npoly[i]):
+            z = min(z, 1.0 / poly[i, k, 2])
+        hit = False
+        for t in range(1, npoly[i] - 1):
+            if hit:
+                break
+            ax, ay = poly[i, 0, 0], poly[i, 0, 1]
+            bx, by = poly[i, t, 0], poly[i, t, 1]
+            cx, cy = poly[i, t + 1, 0], poly[i, t + 1, 1]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            sg = 1.0 if area >= 0 else -1.0
+            for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
+                if hit:
+                    break
+                for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
+                        continue
+                    p = y * res + x
+                    if z >= seal[p] or (open_only[owner[i]] and z >= first[p]):
+                        continue
+                    hidden = False
+                    for q in range(n_spans[p]):
+                        if spans[p, q, 0] < z <= spans[p, q, 1]:
+                            hidden = True
+                    if not hidden:
+                        hit = True
+                        break
+        if hit:
+            seen[owner[i]] = 1
+
+
+@njit(cache=True, parallel=True)
+def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
+    """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
+    arrays) that touches some pixel (its square, not only its centre: conservative
+    rasterization) with its nearest point over the pixel in front of its ``first`` depth
+    (res * res,): the thin and small triangles that pixel centres miss, in front of everything
+    the view samples. They are occludees only here, never occluders."""
+    for i in prange(npoly.shape[0]):
+        if npoly[i] < 3 or vis[tri_ids[i]]:
+            continue
+        zmin = 1e300
+        for k in range(npoly[i]):
+            zmin = min(zmin, 1.0 / poly[i, k, 2])
+        x0 = max(0, box[i, 0] - 1)
+        x1 = min(res, box[i, 1] + 1)
+        y0 = max(0, box[i, 2] - 1)
+        y1 = min(res, box[i, 3] + 1)
+        hit = False
+        for t in range(1, npoly[i] - 1):
+            if hit:
+                break
+            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
+            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
+            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            sg = 1.0 if area >= 0 else -1.0
+            if area == 0.0:
+                continue
+            # 1 / depth is linear in the image: its gradient gives the nearest point of the
+            # triangle's plane over a pixel square (clamped to the triangle's own range).
+            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
+            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
+            izmax = max(az, max(bz, cz))
+            for y in range(y0, y1):
+                if hit:
+                    break
+                py = y + 0.5
+                for x in range(x0, x1):
+                    px = x + 0.5
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, px, py):
+                        continue
+                    iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
+                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    if z < first[y * res + x]:
+                        hit = True
+                        break
+        if hit:
+            vis[tri_ids[i]] = 1

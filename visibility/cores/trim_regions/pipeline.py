@@ -1,0 +1,356 @@
+"""One PVS computation of the trim region method: spheres covering the cell, six adapted
+frusta per sphere, octree layers front to back (P0), geometry generation (P1), rasterization
+into the k-buffers (P2), per-pixel resolve (P3) and the gather (P4) (paper Fig. 8)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from visibility.cancel import checkpoint, stop_flag
+from visibility.cores.trim_regions.cache import SceneData
+from visibility.cores.trim_regions.frustum import View, cover_box, sphere_views
+from visibility.cores.trim_regions.hulls import (
+    BOX_FACES,
+    box_corners,
+    hulls_in_front,
+    near_sphere,
+    touching_in_front,
+)
+from visibility.cores.trim_regions.kbuffer import K, KBuffer
+from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
+from visibility.cores.trim_regions.raster import (
+    raster_surfaces,
+    raster_trims,
+    setup_triangles,
+    to_camera,
+)
+from visibility.cores.trim_regions.resolve import resolve_layer
+from visibility.cores.trim_regions.silhouettes import TRIM_MARGIN_PX, silhouette_trims
+from visibility.raster.triangles import render_ids
+from visibility.scene import Scene
+
+#: Sample points per pixel side of the depth the conservative occludee test compares with.
+SUPERSAMPLE = 4
+#: How many of a pixel's samples must see a depth for the occludee test to use it.
+OPEN_SAMPLES = 3
+#: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
+ENTRY_BYTES = 21
+PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
+
+
+def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes (k, 2, 3) (relative to ``centre``) of the moving triangles and spheres over the
+    keyframes, and the id each reports (a triangle id, or ``n_triangles + sphere index``)."""
+    lo, hi, ids = [], [], []
+    if len(data.moving):
+        corners = scene.states[:, scene.faces[data.moving].astype(np.int64)]  # (k, t, 3, 3)
+        lo.append(corners.min(axis=(0, 2)))
+        hi.append(corners.max(axis=(0, 2)))
+        ids.append(data.moving)
+    if scene.n_spheres:
+        r = scene.sphere_radii[:, None]
+        lo.append(scene.sphere_centers.min(axis=0) - r)
+        hi.append(scene.sphere_centers.max(axis=0) + r)
+        ids.append(scene.n_triangles + np.arange(scene.n_spheres, dtype=np.int64))
+    if not lo:
+        return np.zeros((0, 2, 3)), np.zeros(0, dtype=np.int64)
+    lo_a, hi_a, id_a = np.concatenate(lo), np.concatenate(hi), np.concatenate(ids)
+    ok = np.all(np.isfinite(lo_a) & np.isfinite(hi_a), axis=1)
+    boxes = np.stack([lo_a[ok], hi_a[ok]], axis=1) - centre
+    return boxes, id_a[ok]
+
+
+def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
+             max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True
+             ) -> tuple[np.ndarray, dict[str, Any]]:
+    """PVS of a box cell by trim regions.
+
+    Parameters
+    ----------
+    scene : the scene; ``data`` its cached structures (``cache.scene_data``).
+    box : (2, 3) float64 [min, max] of the cell, metres.
+    resolution : pixels across each cube face.
+    max_delta : largest sphere radius Δ the box is covered with, metres.
+    margin_px : safety margin added to every trim width, pixels (0 only for tests that compare
+        Δ = 0 with from-point visibility at pixel centres).
+    footprints : also report every triangle whose pixel footprint (conservative) lies in front
+        of the farthest surface sampled in that pixel (``hulls.touching_in_front``): what pixel
+        centres miss. False only for tests of pixel-centre visibility.
+
+    Returns
+    -------
+    ids : (k,) int64 triangle ids found potentially visible (any order).
+    stats : seconds per phase (``p0_layers`` ... ``p4_gather``), ``spheres``, ``delta``,
+        ``views``, ``layers`` (drawn, summed over views), ``kbuffer_allocated_bytes``,
+        ``kbuffer_used_bytes`` (most entries held at once), ``active_pixels`` (pixels that
+        held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
+        resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
+        ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
+        ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
+        ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
+        hulls),
+        ``sphere_ids`` (the spheres of the scene found visible).
+    """
+    box = np.asarray(box, dtype=np.float64)
+    centre = 0.5 * (box[0] + box[1])
+    centres, delta = cover_box(box, max_delta)
+    centres = centres - centre
+    m = scene.n_triangles
+    vis = np.zeros(m, dtype=np.uint8)
+    stats: dict[str, Any] = {k: 0.0 for k in PHASES}
+    stats.update(spheres=len(centres), delta=float(delta), views=0, layers=0,
+                 active_pixels=0, trimmed_pixels=0, sealed_pixels=0, overflow_pixels=0,
+                 silhouette_trims=0, validated_intervals=0, terminators=0,
+                 single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
+                 kbuffer_used_bytes=0, resolution=int(resolution))
+    hull_boxes, hull_ids = _hulls(scene, data, centre)
+    graze = _grazing(scene, data, centres + centre, delta, int(resolution))
+    if len(graze):
+        # A slab along the normal, thick enough for a few pixels at its distance (at most Δ).
+        t = scene.vertices[scene.faces[graze].astype(np.int64)] - centre
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        dist = np.linalg.norm(t.mean(axis=1), axis=1)
+        grow = np.abs(n) * np.minimum(delta, 4.0 * dist / resolution)[:, None]
+        gbox = np.stack([t.min(axis=1) - grow, t.max(axis=1) + grow], axis=1)
+        hull_boxes = np.concatenate([hull_boxes, gbox])
+        hull_ids = np.concatenate([hull_ids, graze])
+    stats["grazing"] = len(graze)
+    seen_hull = np.zeros(len(hull_ids), dtype=np.uint8)
+    if not len(data.static) and not len(hull_ids):
+        stats.update(kbuffer_allocated_bytes=0, mean_sequence_length=0.0, near_eye=0,
+                     sphere_ids=np.zeros(0, dtype=np.int32))
+        return np.zeros(0, dtype=np.int64), stats
+    t0 = time.perf_counter()
+    verts = np.ascontiguousarray(scene.vertices - centre)
+    frame = leaf_frame(data.octree, centre)
+    row_of = np.full(m, -1, dtype=np.int64)
+    row_of[data.static] = np.arange(len(data.static))
+    item_rows = row_of[data.octree.tri_items]
+    hull_corners = box_corners(hull_boxes[:, 0], hull_boxes[:, 1]).reshape(-1, 3) \
+        if len(hull_ids) else np.zeros((0, 3))
+    hull_faces = (np.arange(len(hull_ids))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
+    hull_owner = np.repeat(np.arange(len(hull_ids), dtype=np.int64), len(BOX_FACES))
+    # Grazing triangles are static: they count only where they lie in front of the first
+    # surface a pixel sees (moving hulls are tested against seals and hidden spans).
+    open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
+    kb = KBuffer.empty(int(resolution) ** 2)
+    stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
+    stats["near_eye"] = 0
+    stats["p1_geometry"] += time.perf_counter() - t0
+    for v0 in centres:
+        t = time.perf_counter()
+        # What passes through the sphere is beside some eye and in front of others: reported,
+        # and never an occluder for this sphere (the erosion theorem needs occluders outside
+        # the viewcell).
+        near = np.zeros(m, dtype=np.uint8)
+        near_sphere(verts, data.faces, data.static, v0, delta, near)
+        vis |= near
+        stats["near_eye"] += int(near.sum())
+        hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
+        seen_hull[hit] = 1
+        stats["p1_geometry"] += time.perf_counter() - t
+        for view in sphere_views(v0, delta, int(resolution)):
+            checkpoint()
+            _solve_view(scene, view, verts, data, frame, item_rows, near, kb, vis, stats,
+                        margin_px, footprints)
+            if len(hull_ids):
+                t = time.perf_counter()
+                _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
+                            seen_hull)
+                stats["p4_gather"] += time.perf_counter() - t
+    t = time.perf_counter()
+    seen = hull_ids[seen_hull != 0]
+    ids = _not_edge_on(scene, np.union1d(np.flatnonzero(vis), seen[seen < m]).astype(np.int64),
+                       box)
+    stats["sphere_ids"] = (seen[seen >= m] - m).astype(np.int32)
+    stats["p4_gather"] += time.perf_counter() - t
+    n = max(stats.pop("pixel_resolves"), 1)
+    stats["mean_sequence_length"] = float(stats.pop("entries_resolved") / n)
+    return ids, stats
+
+
+def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
+             resolution: int) -> np.ndarray:
+    """Static triangles whose plane passes within Δ of a sphere centre (world ``centres``
+    (k, 3)) and which that centre sees thinner than a pixel: an eye of the sphere may see them
+    at a steeper angle than v*, which samples them at no pixel centre, so they are also tested
+    as hulls (their box grown along the normal)."""
+    ids = data.static
+    if not len(ids):
+        return ids
+    t = scene.vertices[scene.faces[ids].astype(np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    close = np.zeros(len(ids), dtype=bool)
+    mid = t.mean(axis=1)
+    for c in centres:
+        off = np.abs(np.einsum("ij,ij->i", n, c - t[:, 0]))
+        dist = np.maximum(np.linalg.norm(mid - c, axis=1), 1e-12)
+        close |= (off <= delta) & (off / dist * (0.5 * resolution) < 1.0)
+    return ids[close]
+
+
+def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """``ids`` without the triangles whose plane holds the whole cell: they have no area from
+    any eye of the cell, only from the spheres' and v*'s extra eye positions."""
+    if not len(ids):
+        return ids
+    t = scene.vertices[scene.faces[ids].astype(np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    corners = np.array([[box[(c >> a) & 1, a] for a in range(3)] for c in range(8)])
+    dist = np.abs(np.einsum("ij,kij->ki", n, corners[:, None, :] - t[None, :, 0]))
+    scale = np.max(np.abs(t), axis=(1, 2)) + np.max(np.abs(box))
+    return ids[~np.all(dist <= 1e-12 * scale, axis=0)]
+
+
+def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
+                frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray, kb: KBuffer,
+                vis: np.ndarray,
+                stats: dict[str, Any], margin_px: float, footprints: bool) -> None:
+    """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
+    to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
+    stop = stop_flag()
+    res = view.res
+    faces = data.faces
+    t0 = time.perf_counter()
+    octree = data.octree
+    layer, drawn = leaf_layers(octree, frame, view)
+    t1 = time.perf_counter()
+    cam = to_camera(verts, view.vstar, view.rot)
+    s = len(data.static)
+    facing = np.zeros(s, dtype=np.int8)
+    poly = np.empty((s, 4, 3))
+    npoly = np.zeros(s, dtype=np.int64)
+    pbox = np.zeros((s, 4), dtype=np.int64)
+    setup_triangles(cam, faces, data.static, view.near, view.tan, res, facing, poly, npoly, pbox)
+    facing_of = np.zeros(len(vis), dtype=np.int8)
+    facing_of[data.static] = facing
+    e = data.edges
+    trims, trim_layer = silhouette_trims(
+        cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan, res, view.delta,
+        view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
+        octree.leaf_of_cell, layer)
+    keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0) & (near[data.octree.tri_items] == 0)
+    inst = np.flatnonzero(keep)
+    inst_order, inst_layers, inst_starts = by_layer(layer[frame.item_leaf[inst]])
+    inst = inst[inst_order]
+    inst_row = np.ascontiguousarray(item_rows[inst])
+    inst_leaf = np.ascontiguousarray(frame.item_leaf[inst])
+    trim_order, trim_layers, trim_starts = by_layer(trim_layer)
+    trims = np.ascontiguousarray(trims[trim_order])
+    all_layers = np.union1d(inst_layers, trim_layers)
+    _reset(kb)
+    margin = margin_px * 2.0 * view.tan / res
+    n_bands = (res + 7) // 8
+    counters = np.zeros((n_bands, 4), dtype=np.int64)
+    t2 = time.perf_counter()
+    stats["p0_layers"] += t1 - t0
+    stats["p1_geometry"] += t2 - t1
+    stats["silhouette_trims"] += len(trims)
+    stats["layers"] += len(all_layers)
+    stats["views"] += 1
+    held = np.zeros(res * res, dtype=bool)
+    for lay in all_layers:
+        checkpoint()
+        ta = time.perf_counter()
+        k = np.searchsorted(trim_layers, lay)
+        if k < len(trim_layers) and trim_layers[k] == lay:
+            raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin,
+                         kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil,
+                         kb.overflow, vis, stop)
+        k = np.searchsorted(inst_layers, lay)
+        if k < len(inst_layers) and inst_layers[k] == lay:
+            sl = slice(inst_starts[k], inst_starts[k + 1])
+            raster_surfaces(inst_row[sl], inst_leaf[sl], data.static, facing, poly, npoly, pbox,
+                            frame.lo, frame.hi, view.vstar, view.rot, view.tan, res, kb.depth,
+                            kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil, kb.active,
+                            kb.overflow, vis, stop)
+        tb = time.perf_counter()
+        held |= kb.count > 0
+        stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
+                                          int(kb.count.sum()) * ENTRY_BYTES)
+        stats["pixel_resolves"] += int(kb.active.sum())
+        _resolve(kb, res, False, vis, counters, stop)
+        stats["p2_raster"] += tb - ta
+        stats["p3_resolve"] += time.perf_counter() - tb
+    checkpoint()
+    tb = time.perf_counter()
+    stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
+    _resolve(kb, res, True, vis, counters, stop)
+    checkpoint()
+    stats["p3_resolve"] += time.perf_counter() - tb
+    if footprints:
+        tc = time.perf_counter()
+        touching_in_front(poly, npoly, pbox, data.static,
+                          _farthest_in_pixel(scene, data.static_mask, verts, view), res, vis)
+        stats["p4_gather"] += time.perf_counter() - tc
+    stats["validated_intervals"] += int(counters[:, 0].sum())
+    stats["terminators"] += int(counters[:, 1].sum())
+    stats["entries_resolved"] += int(counters[:, 2].sum())
+    stats["single_sided_trims"] += int(counters[:, 3].sum())
+    stats["active_pixels"] += int(held.sum())
+    stats["trimmed_pixels"] += int(np.count_nonzero(kb.stencil == 1))
+    stats["sealed_pixels"] += int(np.count_nonzero(kb.stencil == 2))
+    stats["overflow_pixels"] += int(kb.overflow.sum())
+
+
+def _farthest_in_pixel(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
+                       view: View) -> np.ndarray:
+    """(res * res,) the farthest nearest-surface depth that ``OPEN_SAMPLES`` of the
+    ``SUPERSAMPLE``² sample points in each pixel's square see, drawn from v*
+    (``visibility.raster.triangles.render_ids``): where an occluder's edge crosses a pixel,
+    the part of the square it leaves open shows here."""
+    res = view.res
+    ss = SUPERSAMPLE * res
+    depth, _ = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan, view.tan,
+                          near=view.near, face_mask=static_mask)
+    blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
+    samples = blocks.transpose(0, 2, 1, 3).reshape(res * res, SUPERSAMPLE * SUPERSAMPLE)
+    # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
+    # of a mesh that is not watertight opens one or two samples onto the far side, and would
+    # let everything behind the mesh through (the 1M kitchen: 80 % of the scene).
+    k = SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES
+    return np.ascontiguousarray(np.partition(samples, k, axis=1)[:, k])
+
+
+def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
+             stop: np.ndarray) -> None:
+    resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
+                  kb.n_spans, kb.first, kb.hid, kb.stencil, kb.active, kb.overflow, res, final, vis,
+                  counters, stop)
+
+
+def _reset(kb: KBuffer) -> None:
+    kb.count[:] = 0
+    kb.stencil[:] = 0
+    kb.active[:] = 0
+    kb.overflow[:] = 0
+    kb.cover[:] = 0.0
+    kb.seal[:] = np.inf
+    kb.n_spans[:] = 0
+    kb.first[:] = np.inf
+    kb.hid[:] = 0
+
+
+def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.ndarray,
+                open_only: np.ndarray, kb: KBuffer, seen: np.ndarray) -> None:
+    """Mark the hulls with a pixel in front of the view's seal depths and outside its hidden
+    spans."""
+    cam = to_camera(corners, view.vstar, view.rot)
+    n = len(faces)
+    facing = np.zeros(n, dtype=np.int8)
+    poly = np.empty((n, 4, 3))
+    npoly = np.zeros(n, dtype=np.int64)
+    pbox = np.zeros((n, 4), dtype=np.int64)
+    setup_triangles(cam, faces, np.arange(n, dtype=np.int64), view.near, view.tan, view.res,
+                    facing, poly, npoly, pbox)
+    hulls_in_front(poly, npoly, pbox, owner, open_only, kb.seal, kb.spans, kb.n_spans,
+                   kb.first, view.res, seen)
+
+
+__all__ = ["K", "PHASES", "trim_pvs"]

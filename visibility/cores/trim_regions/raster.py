@@ -1,0 +1,283 @@
+"""Geometry generation and rasterization into the k-buffers (paper Secs. 4.1-4.2, phases P1
+and P2), on the CPU: numba kernels parallel over triangles (set-up) and over bands of pixel
+rows (rasterization; a band's pixels belong to one thread, so no atomics are needed).
+
+Camera space: x right, y up, looking along -z; depth z = -z_cam from v*, metres. Image
+coordinates u = x / z, v = y / z in [-tan, tan]; pixel column (u / tan + 1) res / 2, row
+(1 - v / tan) res / 2. Fragments are sampled at pixel centres; depth is perspective-correct
+(1 / z interpolated in screen space), float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.cancel import flag_set
+from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
+
+#: Rows of pixels per band of the parallel rasterization.
+BAND_ROWS = 8
+
+
+@njit(cache=True, parallel=True)
+def to_camera(verts, vstar, rot):  # pragma: no cover - numba
+    """(n, 3) camera-space positions of ``verts`` (n, 3) metres for viewpoint and rotation."""
+    n = verts.shape[0]
+    out = np.empty((n, 3))
+    for i in prange(n):
+        p0 = verts[i, 0] - vstar[0]
+        p1 = verts[i, 1] - vstar[1]
+        p2 = verts[i, 2] - vstar[2]
+        for r in range(3):
+            out[i, r] = rot[r, 0] * p0 + rot[r, 1] * p1 + rot[r, 2] * p2
+    return out
+
+
+@njit(cache=True, inline="always")
+def _clip_near(a, b, near, out):  # pragma: no cover - numba
+    """Point where segment a-b (camera space) crosses depth ``near``, written to ``out``."""
+    za = -a[2]
+    zb = -b[2]
+    t = (za - near) / (za - zb)
+    for k in range(3):
+        out[k] = a[k] + t * (b[k] - a[k])
+
+
+@njit(cache=True, parallel=True)
+def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):  # pragma: no cover
+    """Clip triangles to the near plane and project them (P1).
+
+    Parameters
+    ----------
+    cam : (n, 3) camera-space vertices; faces : (m, 3) int64 vertex rows; rows : (s,) int64
+        the triangles (rows of ``faces``) to set up.
+    near, tan, res : near depth (m), half-angle tangent, pixels across.
+    facing : (s,) int8 out, +1 front-facing (counter-clockwise towards v*), -1 back-facing,
+        0 edge-on (geometric: also set for triangles wholly nearer than ``near``).
+    poly : (s, 4, 3) out, clipped polygon corners as (column, row, 1 / depth), in pixels.
+    npoly : (s,) int64 out, corners (0: nothing in front of the near plane).
+    box : (s, 4) int64 out, pixel range [x0, x1) x [y0, y1) of the corners (may be empty).
+    """
+    half = 0.5 * res
+    for i in prange(rows.shape[0]):
+        f = rows[i]
+        a = cam[faces[f, 0]]
+        b = cam[faces[f, 1]]
+        c = cam[faces[f, 2]]
+        e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        s = -(nx * a[0] + ny * a[1] + nz * a[2])
+        facing[i] = 1 if s > 0 else (-1 if s < 0 else 0)
+        pts = np.empty((4, 3))
+        m = 0
+        tri = (a, b, c)
+        for k in range(3):
+            p = tri[k]
+            q = tri[(k + 1) % 3]
+            pin = -p[2] >= near
+            qin = -q[2] >= near
+            if pin:
+                pts[m] = p
+                m += 1
+            if pin != qin:
+                _clip_near(p, q, near, pts[m])
+                m += 1
+        npoly[i] = m
+        if m == 0:
+            box[i, 0] = 0
+            box[i, 1] = 0
+            box[i, 2] = 0
+            box[i, 3] = 0
+            continue
+        x0, x1, y0, y1 = 1e300, -1e300, 1e300, -1e300
+        for k in range(m):
+            z = -pts[k, 2]
+            px = (pts[k, 0] / z / tan + 1.0) * half
+            py = (1.0 - pts[k, 1] / z / tan) * half
+            poly[i, k, 0] = px
+            poly[i, k, 1] = py
+            poly[i, k, 2] = 1.0 / z
+            x0 = min(x0, px)
+            x1 = max(x1, px)
+            y0 = min(y0, py)
+            y1 = max(y1, py)
+        box[i, 0] = max(0, int(np.floor(x0 - 0.5)))
+        box[i, 1] = min(res, int(np.ceil(x1 + 0.5)))
+        box[i, 2] = max(0, int(np.floor(y0 - 0.5)))
+        box[i, 3] = min(res, int(np.ceil(y1 + 0.5)))
+
+
+@njit(cache=True, inline="always")
+def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, count, overflow,
+            vis):  # pragma: no cover - numba
+    """Append an entry to pixel p's k-buffer; an overflowing pixel reports what it holds and
+    everything that comes later (no occlusion there any more)."""
+    if overflow[p]:
+        if kind != TRIM:
+            vis[ident] = 1
+        return
+    c = count[p]
+    if c == K:
+        overflow[p] = 1
+        for q in range(c):
+            if kinds[p, q] != TRIM:
+                vis[idents[p, q]] = 1
+        count[p] = 0
+        if kind != TRIM:
+            vis[ident] = 1
+        return
+    depth[p, c] = d
+    kinds[p, c] = kind
+    idents[p, c] = ident
+    umbra[p, c] = um
+    count[p] = c + 1
+
+
+@njit(cache=True, parallel=True)
+def raster_surfaces(inst_row, inst_leaf, tri_ids, facing, poly, npoly, box, leaf_lo, leaf_hi,
+                    vstar, rot, tan, res, depth, kinds, idents, umbra, count, stencil, active,
+                    overflow, vis, stop):  # pragma: no cover - numba
+    """Rasterize one layer's (triangle, leaf) instances into the k-buffers (P2).
+
+    ``inst_row`` (k,) rows into the set-up arrays, ``inst_leaf`` (k,) the leaf each instance
+    belongs to: a fragment whose 3D point lies outside that leaf's box (``leaf_lo``/``leaf_hi``
+    (L, 3), metres, same frame as ``vstar``) is dropped, so a triangle that crosses leaves
+    delivers each fragment once, in the layer of the leaf it lies in, and layers stay in depth
+    order along every ray. Sealed pixels take nothing (early ray termination).
+    """
+    n_bands = (res + 7) // 8
+    half = 0.5 * res
+    for band in prange(n_bands):
+        if flag_set(stop):
+            continue
+        r0 = band * 8
+        r1 = min(res, r0 + 8)
+        for q in range(inst_row.shape[0]):
+            i = inst_row[q]
+            if box[i, 3] <= r0 or box[i, 2] >= r1 or box[i, 1] <= box[i, 0]:
+                continue
+            kind = FRONT if facing[i] > 0 else BACK
+            leaf = inst_leaf[q]
+            tol = 1e-6 * (leaf_hi[leaf, 0] - leaf_lo[leaf, 0])
+            ya = max(r0, box[i, 2])
+            yb = min(r1, box[i, 3])
+            for t in range(1, npoly[i] - 1):
+                ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
+                bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
+                cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
+                area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+                if abs(area) < 1e-300:
+                    continue
+                inv = 1.0 / area
+                xa = max(box[i, 0], int(np.floor(min(ax, min(bx, cx)) - 0.5)))
+                xb = min(box[i, 1], int(np.ceil(max(ax, max(bx, cx)) + 0.5)))
+                ylo = max(ya, int(np.floor(min(ay, min(by, cy)) - 0.5)))
+                yhi = min(yb, int(np.ceil(max(ay, max(by, cy)) + 0.5)))
+                for y in range(ylo, yhi):
+                    py = y + 0.5
+                    for x in range(xa, xb):
+                        px = x + 0.5
+                        w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) * inv
+                        w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) * inv
+                        w2 = 1.0 - w0 - w1
+                        if w0 < -1e-9 or w1 < -1e-9 or w2 < -1e-9:
+                            continue
+                        p = y * res + x
+                        if stencil[p] == SEALED:
+                            continue
+                        iz = w0 * az + w1 * bz + w2 * cz
+                        if iz <= 0.0:
+                            continue
+                        z = 1.0 / iz
+                        u = (px / half - 1.0) * tan
+                        v = (1.0 - py / half) * tan
+                        cxp, cyp, czp = u * z, v * z, -z
+                        inside = True
+                        for a in range(3):
+                            w = vstar[a] + rot[0, a] * cxp + rot[1, a] * cyp + rot[2, a] * czp
+                            if w < leaf_lo[leaf, a] - tol or w > leaf_hi[leaf, a] + tol:
+                                inside = False
+                                break
+                        if not inside:
+                            continue
+                        _insert(p, z, kind, tri_ids[i], 0.0, depth, kinds, idents, umbra,
+                                count, overflow, vis)
+                        active[p] = 1
+
+
+@njit(cache=True, parallel=True)
+def raster_trims(trims, res, tan, margin, depth, kinds, idents, umbra, count, stencil,
+                 overflow, vis, stop):  # pragma: no cover - numba
+    """Rasterize one layer's trim region quads (P2) with their umbrae.
+
+    ``trims`` (t, 12): plane normal of (v*, edge) in camera space (3), inner side sign, end
+    points u0, v0, u1, v1 (tan units), 1 / depth at both ends, widths W0, W1 (tan units, the
+    safety margin included).
+    A pixel centre is in the region when its distance to the edge line on the inner side is at
+    most the width interpolated along the edge (and at least ``-margin``), and it projects
+    within the edge extended by ``margin`` (tan units). Its entry holds the silhouette depth
+    and the umbra depth t / (1 - d / W) (the depth up to which every eye of the sphere sees the
+    ray blocked by the trimmed occluder: Sec. 3.3, Fig. 4).
+    """
+    n_bands = (res + 7) // 8
+    half = 0.5 * res
+    for band in prange(n_bands):
+        if flag_set(stop):
+            continue
+        r0 = band * 8
+        r1 = min(res, r0 + 8)
+        for q in range(trims.shape[0]):
+            nx, ny, nz, side = trims[q, 0], trims[q, 1], trims[q, 2], trims[q, 3]
+            u0, v0, u1, v1 = trims[q, 4], trims[q, 5], trims[q, 6], trims[q, 7]
+            iz0, iz1, w0, w1 = trims[q, 8], trims[q, 9], trims[q, 10], trims[q, 11]
+            wmax = max(w0, w1)
+            # Pixel box of the region: the edge widened by the larger width on every side.
+            ulo = min(u0, u1) - wmax - margin
+            uhi = max(u0, u1) + wmax + margin
+            vlo = min(v0, v1) - wmax - margin
+            vhi = max(v0, v1) + wmax + margin
+            ya = max(r0, int(np.floor((1.0 - vhi / tan) * half)))
+            yb = min(r1, int(np.ceil((1.0 - vlo / tan) * half)) + 1)
+            if ya >= yb:
+                continue
+            xa = max(0, int(np.floor((ulo / tan + 1.0) * half)))
+            xb = min(res, int(np.ceil((uhi / tan + 1.0) * half)) + 1)
+            if xa >= xb:
+                continue
+            nl = np.sqrt(nx * nx + ny * ny)
+            if nl == 0.0:
+                continue
+            ex, ey = u1 - u0, v1 - v0
+            el2 = ex * ex + ey * ey
+            el = np.sqrt(el2)
+            lm = margin / el if el > 0 else 1e300
+            for y in range(ya, yb):
+                v = (1.0 - (y + 0.5) / half) * tan
+                for x in range(xa, xb):
+                    p = y * res + x
+                    if stencil[p] == SEALED:
+                        continue
+                    u = ((x + 0.5) / half - 1.0) * tan
+                    d = side * (nx * u + ny * v - nz) / nl
+                    if d < -margin:
+                        continue
+                    lam = ((u - u0) * ex + (v - v0) * ey) / el2 if el2 > 0 else 0.0
+                    if lam < -lm or lam > 1.0 + lm:
+                        continue
+                    lc = min(1.0, max(0.0, lam))
+                    wid = (1.0 - lc) * w0 + lc * w1
+                    if d > wid:
+                        continue
+                    t = 1.0 / ((1.0 - lc) * iz0 + lc * iz1)
+                    frac = d / wid if wid > 0 else 0.0
+                    um = t / (1.0 - frac) if frac < 1.0 - 1e-12 else np.inf
+                    if um < t:
+                        um = t
+                    if stencil[p] == 0:
+                        stencil[p] = TRIMMED
+                    _insert(p, t, TRIM, -1, um, depth, kinds, idents, umbra, count, overflow,
+                            vis)

@@ -1,0 +1,237 @@
+"""Occlusion interval resolve per pixel (paper Sec. 4.3, Fig. 9), phase P3, and the gather of
+what each pixel found visible (P4).
+
+Per active pixel the trim sequence (its k-buffer) is sorted by depth. Surface entries hidden by
+the umbra of an interval validated earlier (``cover``) are skipped. The first open front face
+starts an occlusion interval: the run of front faces, closed by the next back face. An
+interval is validated when a trim fragment lies inside it (depth tolerance ``DEPTH_TOL``): its
+first face goes to the PVS and the umbra replaces its back face, i.e. everything up to the
+(smallest) umbra depth of those trim fragments is hidden, and the walk goes on behind. A run of
+several front faces is validated as a whole (the paper's extension at the front), but the
+umbra comes from the trims of its last face and the closing face (the simple interval), and
+without such trims that face terminates the ray: the trim of a small surface in front must not
+lend its umbra to an untrimmed wall. An interval that is not validated is a terminator: its
+first face goes to the PVS and the pixel is sealed. A run with nothing after it yet is carried
+to the next layer (its closing face may lie in a later octree node).
+
+A back face met first, and after the last layer a carried run, read as single-sided surfaces:
+each face in turn is seen (a back face unless a front face lies hidden in an umbra before it:
+then it is the back of that object); it is trimmed
+(validated) when a trim fragment lies between it and the next surface, else it terminates the
+pixel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.cancel import flag_set
+from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM
+
+#: Relative depth tolerance when testing a trim fragment against an interval (erring towards
+#: validation: trimming more only adds false positives).
+DEPTH_TOL = 1e-3
+
+
+@njit(cache=True)
+def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
+    """Insertion sort of the first n entries by (depth, kind) into ``order``."""
+    for i in range(n):
+        order[i] = i
+    for i in range(1, n):
+        j = i
+        while j > 0:
+            a = order[j - 1]
+            b = order[j]
+            if depth[a] > depth[b] or (depth[a] == depth[b] and kinds[a] > kinds[b]):
+                order[j - 1] = b
+                order[j] = a
+                j -= 1
+            else:
+                break
+
+
+@njit(cache=True)
+def _umbra_in(sd, sk, su, n, lo, hi):  # pragma: no cover - numba
+    """Smallest umbra depth of the trim entries with depth in [lo, hi]; -1 if none."""
+    best = -1.0
+    for q in range(n):
+        if sk[q] == TRIM and sd[q] >= lo and sd[q] <= hi:
+            if best < 0 or su[q] < best:
+                best = su[q]
+    return best
+
+
+@njit(cache=True)
+def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
+                  p, final, vis, stats):  # pragma: no cover - numba
+    """Resolve pixel p's trim sequence (see the module docstring); compacts the residual
+    sequence back into the k-buffer and records the hidden span of each validated interval in
+    ``spans`` / ``n_spans`` and the depth of its first surface in ``first``. Returns True when
+    the pixel got sealed. ``hid`` (n,) uint8 remembers, across layers, that a front face hid
+    in an umbra since the last front face seen.
+    ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
+    """
+    n = count[p]
+    order = np.empty(n, dtype=np.int64)
+    _sort(depth[p], kinds[p], idents[p], umbra[p], n, order)
+    sd = np.empty(n)
+    sk = np.empty(n, dtype=np.int8)
+    si = np.empty(n, dtype=np.int32)
+    su = np.empty(n)
+    for q in range(n):
+        sd[q] = depth[p, order[q]]
+        sk[q] = kinds[p, order[q]]
+        si[q] = idents[p, order[q]]
+        su[q] = umbra[p, order[q]]
+    cov = cover[p]
+    # A back face is reported unless a front face hid in an umbra before it: then it is the
+    # back of that object, hidden with it. Otherwise it is single-sided geometry seen from
+    # behind (or a soup wound the other way round) and may well be seen.
+    fresh = hid[p] == 0
+    i = 0
+    keep_from = n  # first surface entry of the carried run (n: none)
+    last = -1.0  # depth of the last resolved surface entry
+    sealed = False
+    while i < n:
+        if sk[i] == TRIM:
+            i += 1
+            continue
+        d = sd[i]
+        tol = DEPTH_TOL * d
+        if d <= cov:
+            if sk[i] != BACK:
+                fresh = False
+                hid[p] = 1
+            last = d
+            i += 1
+            continue
+        # The run of this facing, then the run of the other facing (trim entries between
+        # them do not break a run).
+        k0 = sk[i]
+        j = i
+        end_first = i
+        while j < n and (sk[j] == k0 or sk[j] == TRIM):
+            if sk[j] == k0:
+                end_first = j
+            j += 1
+        # The interval closes at the first face of the other facing (the paper's simple
+        # interval [f, b], extended over the preceding run of front faces); further faces of
+        # that facing are walked on their own: uncovered, they terminate (conservative).
+        end_second = -1
+        while j < n:
+            if sk[j] != TRIM:
+                if sk[j] != k0:
+                    end_second = j
+                break
+            j += 1
+        if first[p] == np.inf:
+            first[p] = d
+        if end_second < 0 or k0 == BACK:
+            if end_second < 0 and not final:
+                keep_from = i
+                break
+            # Single-sided reading: this face, up to the next surface. A back face always reads
+            # so (nothing closes it: single-sided geometry seen from behind, or the back of
+            # something whose front lies in an umbra).
+            nxt = 1e300
+            for q in range(i + 1, n):
+                if sk[q] != TRIM:
+                    nxt = sd[q]
+                    break
+            if k0 != BACK or fresh:
+                vis[si[i]] = 1
+            # Up to the next surface, not including trims at its depth: those are its own rim.
+            u = _umbra_in(sd, sk, su, n, d - tol, nxt - DEPTH_TOL * min(nxt, 1e290))
+            last = d
+            if u >= 0:
+                stats[3] += 1
+                if u > cov:
+                    cov = u
+                i += 1
+                continue
+            stats[1] += 1
+            seal[p] = d
+            sealed = True
+            break
+        b = sd[end_second]
+        if k0 != BACK or fresh:
+            vis[si[i]] = 1
+        if k0 != BACK:
+            # A front face seen opens a new stretch of the ray.
+            fresh = True
+            hid[p] = 0
+        if end_first > i:
+            # Several faces before the closing one (soups, intersecting or nested objects):
+            # the run is extended at the front as in the paper and validated by any trim
+            # fragment inside it; its last face and the closing face then form the simple
+            # interval whose own trims give the umbra, or which terminates the ray.
+            if _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b) < 0:
+                stats[1] += 1
+                seal[p] = d
+                sealed = True
+                break
+            # The last face is not reported: it may lie inside what the first encloses.
+            d = sd[end_first]
+            tol = DEPTH_TOL * d
+        u = _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b)
+        last = b
+        if u >= 0:
+            stats[0] += 1
+            if n_spans[p] < spans.shape[1]:
+                spans[p, n_spans[p], 0] = sd[i]
+                spans[p, n_spans[p], 1] = max(u, b)
+                n_spans[p] += 1
+            if u > cov:
+                cov = u
+            i = end_second + 1
+            continue
+        stats[1] += 1
+        seal[p] = d
+        sealed = True
+        break
+    stats[2] += n
+    cover[p] = cov
+    if sealed:
+        count[p] = 0
+        return True
+    # The residual sequence: the carried run and every trim fragment that may still validate
+    # an interval that starts at or behind it.
+    w = 0
+    if keep_from < n:
+        lim = sd[keep_from] * (1.0 - DEPTH_TOL)
+    elif last >= 0:
+        lim = last * (1.0 - DEPTH_TOL)
+    else:
+        lim = -1.0
+    for q in range(n):
+        if (sk[q] == TRIM and sd[q] >= lim) or (sk[q] != TRIM and q >= keep_from):
+            depth[p, w] = sd[q]
+            kinds[p, w] = sk[q]
+            idents[p, w] = si[q]
+            umbra[p, w] = su[q]
+            w += 1
+    count[p] = w
+    return False
+
+
+@njit(cache=True, parallel=True)
+def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
+                  stencil, active, overflow, res, final, vis, stats, stop):
+    """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
+    bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band."""
+    n_bands = (res + 7) // 8
+    for band in prange(n_bands):
+        if flag_set(stop):
+            continue
+        for p in range(band * 8 * res, min(res, band * 8 + 8) * res):
+            if overflow[p] or stencil[p] == SEALED or count[p] == 0:
+                active[p] = 0
+                continue
+            if not (active[p] or final):
+                continue
+            active[p] = 0
+            if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
+                             first, hid, p, final, vis, stats[band]):
+                stencil[p] = SEALED

@@ -1,0 +1,196 @@
+"""Silhouette edges and their trim region quads as seen from v* (paper Secs. 3.3, 3.6, 4.1;
+Fig. 7), phase P1.
+
+An edge is a silhouette when its two triangles face v* differently, when it has one triangle
+(a border: a single-sided wall trims at its rim) or more than two (non-manifold). Its trim
+region is the edge extruded in the image towards the occluder (the side its triangles lie on;
+both sides where that is ambiguous) by the image-space displacement that moving the eye inside
+the sphere can cause at the silhouette's depth:
+
+    W = (Δ sqrt(1 + σ²) + |σ| R) / (z - R - Δ)
+
+in tan units, where z is the depth from v*, R the distance v* lies behind v0 and σ the end
+point's image coordinate along the edge normal. It bounds, for every eye v1 = v0 + w
+(|w| <= Δ), how far behind the edge line (as seen from v*) a point can lie and still be seen
+past the edge from v1 (lateral motion Δ, plus forward motion of up to R + Δ scaling the image
+about its centre); where z <= R + Δ the silhouette may be beside an eye and the whole face is
+trimmed. A safety margin of ``TRIM_MARGIN_PX`` pixels is added for pixel-centre sampling.
+
+Each trim quad is drawn in the earliest layer of any leaf its 3D extent meets (the edge's box
+grown by the trim width at its depth), so a trim fragment is in the k-buffer no later than the
+surfaces of the occlusion interval it validates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Pixels added to every trim width (and around the quad's ends).
+TRIM_MARGIN_PX = 1.5
+#: Columns of a trim row (see ``raster.raster_trims``).
+TRIM_COLUMNS = 12
+#: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
+MAX_LOOKUP_CELLS = 4096
+
+
+@njit(cache=True, inline="always")
+def _side(n, q):  # pragma: no cover - numba
+    s = n[0] * q[0] + n[1] * q[1] + n[2] * q[2]
+    return 1.0 if s > 0 else (-1.0 if s < 0 else 0.0)
+
+
+@njit(cache=True)
+def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
+    """Earliest layer of the leaves meeting the box of points pa, pb (camera frame's world
+    positions, metres) grown by ``grow`` metres."""
+    g = leaf_of_cell.shape[0]
+    lo = np.empty(3, dtype=np.int64)
+    hi = np.empty(3, dtype=np.int64)
+    n = 1
+    for a in range(3):
+        mn = min(pa[a], pb[a]) - grow - grid_origin[a]
+        mx = max(pa[a], pb[a]) + grow - grid_origin[a]
+        lo[a] = min(g - 1, max(0, int(np.floor(mn / cell))))
+        hi[a] = min(g - 1, max(0, int(np.floor(mx / cell))))
+        n *= hi[a] - lo[a] + 1
+    if n > MAX_LOOKUP_CELLS:
+        return 0
+    best = 1 << 62
+    for i in range(lo[0], hi[0] + 1):
+        for j in range(lo[1], hi[1] + 1):
+            for k in range(lo[2], hi[2] + 1):
+                leaf = leaf_of_cell[i, j, k]
+                if leaf >= 0 and leaf_layer[leaf] < best:
+                    best = leaf_layer[leaf]
+    return 0 if best == 1 << 62 else best
+
+
+@njit(cache=True)
+def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
+              out, sides):  # pragma: no cover - numba
+    """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
+    part of the row (normal, ends, depths, widths) is written to ``out``."""
+    f0 = ef[e, 0]
+    f1 = ef[e, 1]
+    a0 = facing_of[f0]
+    if f1 >= 0:
+        a1 = facing_of[f1]
+        if a0 == a1 and not many[e]:
+            return 0
+    elif a0 == 0:
+        return 0
+    a = cam[ev[e, 0]].copy()
+    b = cam[ev[e, 1]].copy()
+    za, zb = -a[2], -b[2]
+    if za < near and zb < near:
+        return 0
+    if za < near:
+        t = (zb - near) / (zb - za)
+        for k in range(3):
+            a[k] = b[k] + t * (a[k] - b[k])
+    elif zb < near:
+        t = (za - near) / (za - zb)
+        for k in range(3):
+            b[k] = a[k] + t * (b[k] - a[k])
+    # Normal of the plane through v* (the origin) and the edge: its trace in the image is
+    # the edge line, and the side of a point is the sign of n . (u, v, -1).
+    n = np.empty(3)
+    n[0] = a[1] * b[2] - a[2] * b[1]
+    n[1] = a[2] * b[0] - a[0] * b[2]
+    n[2] = a[0] * b[1] - a[1] * b[0]
+    nl = np.sqrt(n[0] * n[0] + n[1] * n[1])
+    if nl == 0.0:
+        return 0
+    s0 = _side(n, cam[eo[e, 0]])
+    s1 = _side(n, cam[eo[e, 1]]) if f1 >= 0 else s0
+    za, zb = -a[2], -b[2]
+    out[0], out[1], out[2] = n[0], n[1], n[2]
+    out[4], out[5] = a[0] / za, a[1] / za
+    out[6], out[7] = b[0] / zb, b[1] / zb
+    out[8], out[9] = 1.0 / za, 1.0 / zb
+    big = 4.0 * tan
+    for k in range(2):
+        z = za if k == 0 else zb
+        u = out[4 + 2 * k]
+        v = out[5 + 2 * k]
+        w = big
+        den = z - back - delta
+        if den > 1e-9 * z:
+            # sigma along the outward normal; the sign of the inner side is fixed per row
+            # below, so take the larger of the two sides' widths here.
+            sg = (n[0] * u + n[1] * v) / nl
+            w = delta * np.sqrt(1.0 + sg * sg) + abs(sg) * back
+            w = min(big, max(0.0, w / den))
+        out[10 + k] = w + margin
+    m = 0
+    if s0 == s1 and s0 != 0.0 and not many[e]:
+        sides[0] = s0
+        m = 1
+    else:
+        sides[0] = 1.0
+        sides[1] = -1.0
+        m = 2
+    return m
+
+
+@njit(cache=True, parallel=True)
+def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, back, margin_px,
+                     vstar, rot, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
+    """Trim region rows of every silhouette edge of one view, and their layers.
+
+    Parameters
+    ----------
+    cam : (n, 3) camera-space vertices, metres.
+    ev, ef, eo : (E, 2) int64 edge end points, triangles and opposite corners
+        (``edges.Edges``); many : (E,) bool non-manifold.
+    facing_of : (m,) int8 facing of each triangle id (+1 front, -1 back, 0 edge-on).
+    near, tan, res, delta, back : the view (``frustum.View``); margin_px : trim margin, px.
+    vstar, rot : viewpoint and rotation (to place the trims in the octree).
+    grid_origin, cell, leaf_of_cell, leaf_layer : the octree's fine grid (origin in the
+        view's frame, metres) and the layer of each leaf in this view.
+
+    Returns
+    -------
+    trims : (t, TRIM_COLUMNS) float64 rows for ``raster.raster_trims``.
+    layer : (t,) int64 the layer each trim is drawn in.
+    """
+    n_e = ev.shape[0]
+    margin = margin_px * 2.0 * tan / res
+    counts = np.zeros(n_e, dtype=np.int64)
+    for e in prange(n_e):
+        row = np.empty(TRIM_COLUMNS)
+        sides = np.empty(2)
+        counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
+                              margin, row, sides)
+    start = np.zeros(n_e + 1, dtype=np.int64)
+    for e in range(n_e):
+        start[e + 1] = start[e] + counts[e]
+    trims = np.empty((start[n_e], TRIM_COLUMNS))
+    layer = np.empty(start[n_e], dtype=np.int64)
+    for e in prange(n_e):
+        if counts[e] == 0:
+            continue
+        row = np.empty(TRIM_COLUMNS)
+        sides = np.empty(2)
+        m = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
+                      row, sides)
+        # World positions of the (clipped) ends: back from the image ends at their depths.
+        pa = np.empty(3)
+        pb = np.empty(3)
+        za = 1.0 / row[8]
+        zb = 1.0 / row[9]
+        ca = (row[4] * za, row[5] * za, -za)
+        cb = (row[6] * zb, row[7] * zb, -zb)
+        for k in range(3):
+            pa[k] = vstar[k] + rot[0, k] * ca[0] + rot[1, k] * ca[1] + rot[2, k] * ca[2]
+            pb[k] = vstar[k] + rot[0, k] * cb[0] + rot[1, k] * cb[1] + rot[2, k] * cb[2]
+        grow = max(row[10] * za, row[11] * zb)
+        lay = _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer)
+        for q in range(m):
+            w = start[e] + q
+            for c in range(TRIM_COLUMNS):
+                trims[w, c] = row[c]
+            trims[w, 3] = sides[q]
+            layer[w] = lay
+    return trims, layer
