@@ -179,7 +179,8 @@ def save_walkthrough(w: Walkthrough, path: str | Path) -> None:
 
 # --------------------------------------------------------------------------------- generation
 def _cell_centre(grid: ViewcellGrid, cid: int) -> np.ndarray:
-    return grid.boxes[cid].mean(axis=0)
+    # The box centre, or where one may walk in a cell over a street narrower than a cell.
+    return grid.walk_point(cid)
 
 
 def _next_cell(

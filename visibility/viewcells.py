@@ -207,6 +207,28 @@ class ViewcellGrid:
             raise IndexError(f"cell {cell_id} out of range [0, {len(self)})")
         return Viewcell(self.boxes[cid], cid)
 
+    def walk_point(self, cell_id: int) -> np.ndarray:
+        """(3,) a point of cell ``cell_id`` where one may walk, metres: the box centre when the
+        walk area holds it, else (a cell over a street narrower than a cell, whose centre may
+        lie in a wall) the nearest point of a walk rectangle under the cell, at the centre's
+        height."""
+        box = self.boxes[int(cell_id)]
+        c = box.mean(axis=0)
+        r = self.walk.rects
+        if not len(r):
+            return c
+        if np.any((c[0] >= r[:, 0]) & (c[0] <= r[:, 2]) & (c[2] >= r[:, 1]) & (c[2] <= r[:, 3])):
+            return c
+        under = r[(r[:, 0] <= box[1, 0]) & (r[:, 2] >= box[0, 0]) & (r[:, 1] <= box[1, 2])
+                  & (r[:, 3] >= box[0, 2])]
+        if not len(under):
+            return c
+        # Nearest point of each rectangle's part inside the box.
+        x = np.clip(c[0], np.maximum(under[:, 0], box[0, 0]), np.minimum(under[:, 2], box[1, 0]))
+        z = np.clip(c[2], np.maximum(under[:, 1], box[0, 2]), np.minimum(under[:, 3], box[1, 2]))
+        k = int(np.argmin((x - c[0]) ** 2 + (z - c[2]) ** 2))
+        return np.array([x[k], c[1], z[k]])
+
     def cell_of(self, point: np.ndarray) -> int | None:
         """Id of the cell containing the eye position ``point`` (metres), or None.
 

@@ -297,6 +297,10 @@ def test_large_resolution_buffers_stay_within_the_estimate():
     r = 2048
     assert not gt_module._whole_cubemap(r, False)
     sample_pvs(scene, cell, n_points=1, resolution=64, seed=0)  # compile outside the trace
+    # Buffers kept by earlier renders (other tests) would hide this one's allocations.
+    from visibility.raster.triangles import release_scratch
+
+    release_scratch()
     tracemalloc.start()
     try:
         sample_pvs(scene, cell, n_points=2, resolution=r, seed=0)

@@ -116,3 +116,15 @@ def test_streets_narrower_than_a_cell_still_get_cells():
             assert g.cell_of([x, 1.7, z]) is not None, (x, z)
     # Rectangles at least a cell wide keep the centre rule: nothing changes for them.
     assert len(ViewcellGrid(WalkArea([[0, 0, 10, 10, 0.0]]), 5.0)) == 4
+
+
+def test_a_cell_over_a_thin_street_walks_on_the_street():
+    # A 10 m street under 50 m cells: cell centres lie off the street, walk points on it.
+    w = WalkArea([[0, 45, 200, 55, 0.0]])
+    g = ViewcellGrid(w, 50.0)
+    for c in range(len(g)):
+        p = g.walk_point(c)
+        assert 45.0 <= p[2] <= 55.0 and g.cell_of(p) == c
+    # A cell whose centre is walkable keeps its centre.
+    g4 = ViewcellGrid(WalkArea([[0, 0, 10, 10, 0.0]]), 5.0)
+    assert np.allclose(g4.walk_point(0), g4.boxes[0].mean(axis=0))

@@ -536,6 +536,12 @@ _SCRATCH = threading.local()
 _SCRATCH_KEEP = 32 << 20
 
 
+def release_scratch() -> None:
+    """Drop this thread's kept scratch buffers (``_scratch``): their memory goes back, and the
+    next render allocates afresh."""
+    _SCRATCH.pool = {}
+
+
 def _scratch(name, shape, dtype):
     """An uninitialised array of ``shape`` from this thread's buffer ``name``, kept between
     calls: on these machines first-touch page faults of fresh buffers cost as much as the
