@@ -86,8 +86,9 @@ class DualRayParams(CoreParams):
 #: grows about linearly with the scene's triangles and with the cell's side (a bigger cell sees
 #: more leaves and tests more triangles, each with a wider shaft), and barely with the
 #: resolution (16^2 to 256^2 within 25 %: the quadtree refines only along region boundaries).
-#: 100k city at 128^2: 0.14 s at 25 m, 0.55 s at 100 m, 1.8 s at 300 m (about 6e-8 s per
-#: triangle and metre); Lyon (183k) 40 m: 0.6-1.2 s; 1M city 100 m: 4.5 s. Bytes: tree, bounds
+#: 100k city at 128^2: 0.12 s at 25 m, 0.46 s at 100 m, 1.2 s at 300 m (4-6e-8 s per
+#: triangle and metre); Lyon (183k) 40 m: 0.46-0.82 s; 1M city 100 m: 2.2-2.4 s. The model
+#: keeps 6e-8: an upper estimate, as admission wants. Bytes: tree, bounds
 #: and fences per triangle, and the raster's lists per pixel of the coarse square.
 SECONDS_BASE = 0.02
 SECONDS_PER_TRIANGLE_METRE = 6e-8
