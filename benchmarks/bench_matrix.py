@@ -771,10 +771,20 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "([benchmarks/results/cancel.md](benchmarks/results/cancel.md), "
         "`python -m benchmarks.bench_cancel`), the cores' cost estimates against measurements "
         "([benchmarks/results/admission.md](benchmarks/results/admission.md), "
-        "`python -m benchmarks.bench_admission`). The `cos` core's own experiments (the "
+        "`python -m benchmarks.bench_admission`). With progressive streams (a first answer "
+        "at once, refined in place), 20 walkers on a cold cache "
+        "([benchmarks/results/load_progressive_from_segment.md]"
+        "(benchmarks/results/load_progressive_from_segment.md), `python -m "
+        "benchmarks.bench_load --clients 20 --cache cold --core from_segment --name "
+        "load_progressive_from_segment`; [benchmarks/results/load_progressive_sampling.md]"
+        "(benchmarks/results/load_progressive_sampling.md), the same with `--core sampling "
+        "--name load_progressive_sampling`). `from_segment` and `sampling` on cells of the "
+        "real scenes scored by ray casting ([benchmarks/results/real_cells.md]"
+        "(benchmarks/results/real_cells.md), `python -m benchmarks.bench_real_cells`). The "
+        "`cos` core's own experiments (the "
         "paper's speed cells, FP per cell size: [benchmarks/results/cos.md]"
         "(benchmarks/results/cos.md), `python -m benchmarks.bench_cos`) and the small cells "
-        "(5-30 cm) where `cos`, `from_segment` and `sampling` meet "
+        "(5-30 cm) where `cos`, `trim_regions`, `from_segment` and `sampling` meet "
         "([benchmarks/results/small_cells.md](benchmarks/results/small_cells.md), "
         "`python -m benchmarks.bench_small_cells`). The `dual_ray` core's experiments (the "
         "paper's Table 1 grid, its speed targets: [benchmarks/results/dual_ray.md]"
@@ -784,7 +794,10 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "([benchmarks/results/big_cells.md](benchmarks/results/big_cells.md), `pvs bench "
         "--preset medium --scenes city:100000 ../shared/scenes/lyon_vilo3d.glb --cell-sizes 25 "
         "100 --cores dual_ray from_segment sampling --point-deadline 120 --out "
-        "benchmarks/results/big_cells.md --results-dir benchmarks/results/big_cells`).\n",
+        "benchmarks/results/big_cells.md --results-dir benchmarks/results/big_cells`). The "
+        "`trim_regions` core's experiments (time per phase against Δ, false-negative pixels, "
+        "side by side with `cos`: [benchmarks/results/trim_regions.md]"
+        "(benchmarks/results/trim_regions.md), `python -m benchmarks.bench_trim_regions`).\n",
     ]
     for label in dict.fromkeys(r["scene"] for r in rows):
         refused = [r for r in rows if r["scene"] == label and "refused" in r]

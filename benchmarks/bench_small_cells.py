@@ -131,7 +131,8 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 
 def markdown(rows, points, elapsed, argv, load) -> str:
     cmd = " ".join(["python -m benchmarks.bench_small_cells", *argv])
-    out = ["# Small cells: cos, from_segment and sampling on equal cells", "",
+    cores = ", ".join(dict.fromkeys(r["label"].split(" ")[0] for r in rows))
+    out = [f"# Small cells: {cores} on equal cells", "",
            f"Command: `{cmd}`; {platform.processor() or platform.machine()}, {os.cpu_count()} "
            f"CPU cores, {elapsed:.0f} s in all; load average (1 min) {load[0]:.1f} at start, "
            f"{load[1]:.1f} at end (other jobs shared the cores: wall times under that load).",
