@@ -170,9 +170,9 @@ def calibrate(scene: Scene, cell_size: float, *, cells: int = CELLS,
                           float(np.mean(fns)) if fns else 1.0,
                           float(np.mean(over)) if over else float("inf"), stopped)
             cal.trials.append(trial)
-            say(f"{trial.label():40s} {trial.seconds:7.3f} s/cell  FN {100 * trial.fn:6.2f} %  "
-                f"PVS {trial.overestimation:5.2f}x the reference"
-                + ("  (stopped)" if stopped else ""))
+            say(f"{trial.label():40s} stopped at the {deadline:g} s deadline" if stopped else
+                f"{trial.label():40s} {trial.seconds:7.3f} s/cell  FN {100 * trial.fn:6.2f} %  "
+                f"PVS {trial.overestimation:5.2f}x the reference")
             if stopped or trial.seconds > budget_seconds:
                 break  # its next levels cost more still
     cal.seconds = time.perf_counter() - t_start
