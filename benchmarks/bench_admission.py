@@ -32,13 +32,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_matrix import measure_peak  # noqa: E402
+from benchmarks.bench_matrix import SHARED_SCENES, measure_peak  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.viewcells import ViewcellGrid  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
-SHARED = ROOT.parent / "shared" / "scenes"
 #: (scene, core, resolutions) measured by the full run.
 CASES = (
     ("village 20k", "sampling", (128, 512)),
@@ -64,7 +63,7 @@ def load(label: str):
     if label == "kitchen":
         from visibility.loaders import load_scene
 
-        return load_scene(SHARED / "kitchen.glb")
+        return load_scene(SHARED_SCENES / "kitchen.glb")
     name, size = label.split()
     return make_scene(name, triangles=int(size.rstrip("k")) * 1000)
 
@@ -97,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     ctx = multiprocessing.get_context("spawn")
     for label, core_name, resolutions in cases:
-        if label == "kitchen" and not (SHARED / "kitchen.glb").exists():
+        if label == "kitchen" and not (SHARED_SCENES / "kitchen.glb").exists():
             print("kitchen.glb not found: skipped")
             continue
         for r in resolutions:

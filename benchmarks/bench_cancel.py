@@ -67,7 +67,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 RESULTS = ROOT / "benchmarks" / "results"
-SHARED = ROOT.parent / "shared" / "scenes"
 #: Deadline of the live token of the overhead runs: far enough never to fire.
 NEVER = 3600.0
 #: Longest wait for a cancelled thread or a worker message before the run is called stuck.
@@ -144,9 +143,10 @@ def load(spec: tuple[str, Any]) -> Any:
     ``../shared/scenes``."""
     kind, arg = spec
     if kind == "file":
+        from benchmarks.bench_matrix import SHARED_SCENES
         from visibility.loaders import load_scene
 
-        return load_scene(SHARED / arg)
+        return load_scene(SHARED_SCENES / arg)
     from visibility.generators import make_scene
 
     return make_scene(kind, triangles=arg, seed=0)

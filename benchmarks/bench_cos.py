@@ -32,6 +32,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 import numpy as np  # noqa: E402
 
+from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from tests.visibility.cores.cos.reference import cell_around, dense_reference  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
@@ -39,7 +40,6 @@ from visibility.ground_truth import fn_fp_rates  # noqa: E402
 from visibility.viewcells import Viewcell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "scenes"
 PAPER_MS = (35.0, 220.0)
 PHASES = ("sort_seconds", "list_seconds", "resolve_seconds")
 
@@ -47,9 +47,8 @@ PHASES = ("sort_seconds", "list_seconds", "resolve_seconds")
 def _kitchen():
     from visibility.loaders import load_scene
 
-    for folder in (SHARED, Path("/work/shared/scenes")):
-        if (folder / "kitchen.glb").exists():
-            return load_scene(folder / "kitchen.glb")
+    if (SHARED_SCENES / "kitchen.glb").exists():
+        return load_scene(SHARED_SCENES / "kitchen.glb")
     return None
 
 

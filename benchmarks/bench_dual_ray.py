@@ -34,6 +34,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 import numpy as np  # noqa: E402
 
+from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from tests.visibility.cores.cos.reference import dense_reference  # noqa: E402
 from visibility.cores.dual_ray.core import dual_ray_pvs  # noqa: E402
 from visibility.cores.dual_ray.fences import build_fences  # noqa: E402
@@ -44,7 +45,6 @@ from visibility.ground_truth import fn_fp_rates  # noqa: E402
 from visibility.viewcells import ViewcellGrid  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "scenes"
 #: Table 1 of the paper: seconds and overestimation (%) per resolution, for 50, 100, 300 m.
 PAPER = {
     16: ((0.4, 0.5, 1.8), (0.391, 0.518, 1.192)),
@@ -118,10 +118,10 @@ def target_part(cfg: dict[str, Any], log) -> tuple[list[dict[str, Any]], list[di
     """The issue's speed targets and the build times (module docstring)."""
     rows, builds = [], []
     scenes = []
-    if cfg["lyon"] and (SHARED / "lyon_vilo3d.glb").exists():
+    if cfg["lyon"] and (SHARED_SCENES / "lyon_vilo3d.glb").exists():
         from visibility.loaders import load_scene
 
-        scenes.append(("lyon_vilo3d", load_scene(SHARED / "lyon_vilo3d.glb"), 40.0, 1.0))
+        scenes.append(("lyon_vilo3d", load_scene(SHARED_SCENES / "lyon_vilo3d.glb"), 40.0, 1.0))
     if cfg["city1m"]:
         scenes.append((f"city {cfg['city1m'] // 1000}k", make_scene(
             "city", triangles=cfg["city1m"]), 100.0, 3.0))

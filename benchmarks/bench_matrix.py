@@ -43,6 +43,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 import numpy as np  # noqa: E402
 
 from visibility.cancel import CancelToken  # noqa: E402
+from visibility.viewcells import spread_evenly  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SCENES = REPO.parent / "shared" / "scenes"
@@ -267,9 +268,7 @@ def pick_cells(grid, k: int, scene=None) -> list[int]:
                       & (c[:, 2] <= hi[2]))
             if inside.any():
                 ids = ids[inside]
-    m = len(ids)
-    pos = np.linspace(0, m - 1, min(k, m) + 2)[1:-1].round().astype(int)
-    return sorted({int(ids[i]) for i in pos}) or [int(ids[0])]
+    return spread_evenly(ids, k) or [int(ids[0])]
 
 
 #: Candidate eyes per kept view, and the id-buffer size used to score their directions.
@@ -762,7 +761,9 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "clients, cold and warm cache ([benchmarks/results/load.md](benchmarks/results/load.md)"
         ", `python -m benchmarks.bench_load`; `from_segment`: "
         "[benchmarks/results/load_from_segment.md](benchmarks/results/load_from_segment.md), "
-        "`python -m benchmarks.bench_load --core from_segment --name load_from_segment`). "
+        "`python -m benchmarks.bench_load --core from_segment --name load_from_segment`; "
+        "these and the abuse runs predate progressive streams: add `--no-progressive` to "
+        "reproduce them). "
         "Under abuse (50 and 20 walkers with and without a client flooding expensive requests: "
         "[benchmarks/results/load_abuse.md](benchmarks/results/load_abuse.md), "
         "[benchmarks/results/load_abuse_20.md](benchmarks/results/load_abuse_20.md), "

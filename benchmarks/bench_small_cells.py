@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from benchmarks.bench_matrix import measure_peak  # noqa: E402
+from benchmarks.bench_matrix import SHARED_SCENES, measure_peak  # noqa: E402
 from tests.visibility.cores.cos.reference import cell_around, dense_reference  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
@@ -43,7 +43,6 @@ from visibility.ground_truth import fn_fp_rates  # noqa: E402
 from visibility.viewcells import Viewcell  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
-SHARED = ROOT.parent / "shared" / "scenes"
 SIZES = (0.05, 0.1, 0.2, 0.3)
 #: Each core at its default parameters and at the resolution the cos paper compares at.
 #: cos also at 32 px (what a walker in 0.3 m cells can afford online on 2 cores) and 512 px
@@ -74,7 +73,7 @@ def scenes(quick: bool) -> list[tuple[str, Any]]:
         from visibility.loaders import load_scene
 
         for name in ("lavaducts", "denhaag"):
-            path = SHARED / f"{name}.glb"
+            path = SHARED_SCENES / f"{name}.glb"
             if path.exists():
                 out.append((name, load_scene(path)))
     return out

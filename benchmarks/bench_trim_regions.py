@@ -35,6 +35,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
+from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.cores.trim_regions.pipeline import PHASES  # noqa: E402
 from visibility.cores.trim_regions.quality import frame_errors  # noqa: E402
@@ -43,7 +44,6 @@ from visibility.scene import Scene  # noqa: E402
 from visibility.viewcells import Viewcell, ViewcellGrid  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
-SHARED = ROOT.parent / "shared" / "scenes"
 DELTAS = (0.05, 0.1, 0.2, 0.3)
 #: The paper's frame times on an RTX 4090 (Sec. 6.2, Fig. 13): 16-22 ms.
 PAPER_MS = (16.0, 22.0)
@@ -55,7 +55,7 @@ def load(name: str, triangles: int | None = None) -> Scene:
         return make_scene(name, triangles=triangles)
     from visibility.loaders import load_scene
 
-    return load_scene(SHARED / f"{name}.glb")
+    return load_scene(SHARED_SCENES / f"{name}.glb")
 
 
 def sphere_cell(scene: Scene, delta: float, which: int) -> np.ndarray:

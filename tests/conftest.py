@@ -208,6 +208,15 @@ def settings(scenes_dir: Path):
     )
 
 
+def wait_for(pred, timeout: float = 20.0) -> None:
+    """Poll ``pred()`` every 10 ms until it is true; TimeoutError after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not met in time")
+        time.sleep(0.01)
+
+
 # --------------------------------------------------------------------------- live server
 class LiveServer:
     """uvicorn serving ``app`` on 127.0.0.1 in a daemon thread."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.scene import Scene, scene_fingerprint
-from visibility.viewcells import ViewcellGrid
+from visibility.viewcells import ViewcellGrid, spread_evenly
 
 log = logging.getLogger(__name__)
 
@@ -100,11 +100,7 @@ class Calibration:
 
 def pick(grid: ViewcellGrid, k: int) -> list[int]:
     """``k`` cell ids spread evenly over the grid's id order, ends excluded (deterministic)."""
-    n = len(grid)
-    if n == 0:
-        return []
-    pos = np.linspace(0, n - 1, min(k, n) + 2)[1:-1].round().astype(int)
-    return sorted({int(i) for i in pos})
+    return spread_evenly(np.arange(len(grid)), k)
 
 
 def calibrate(scene: Scene, cell_size: float, *, cells: int = CELLS,

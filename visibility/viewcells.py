@@ -91,6 +91,17 @@ class Viewcell:
         return self.box[1] - self.box[0]
 
 
+def spread_evenly(ids: np.ndarray, k: int) -> list[int]:
+    """``k`` of ``ids`` (cell ids, in their order) spread evenly over it, its two ends left out
+    (the middle one for ``k`` = 1); sorted and deterministic, fewer when ``ids`` is shorter."""
+    ids = np.asarray(ids)
+    m = len(ids)
+    if m == 0 or k <= 0:
+        return []
+    pos = np.linspace(0, m - 1, min(k, m) + 2)[1:-1].round().astype(int)
+    return sorted({int(ids[i]) for i in pos})
+
+
 class ViewcellGrid:
     """Viewcells over a scene's walk area.
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import platform
+import sys
+
 import numpy as np
 import pytest
 
@@ -9,7 +12,11 @@ from benchmarks import bench_real_cells, peers
 from visibility.cores import designed_scenes as ds
 from visibility.generators import make_scene
 
-pytestmark = pytest.mark.skipif(not peers.available(), reason="embreex is not installed")
+#: embreex has wheels for Linux x86_64, the project's machines: there its absence is a broken
+#: set-up and must fail these tests; elsewhere the set-up may lack it (scripts/setup.sh).
+WHEELS = sys.platform == "linux" and platform.machine() == "x86_64"
+pytestmark = pytest.mark.skipif(not peers.available() and not WHEELS,
+                                reason="embreex has no wheel for this platform")
 
 
 def test_the_ray_cast_reference_sees_through_the_door_and_not_behind_the_wall():

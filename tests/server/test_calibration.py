@@ -9,20 +9,12 @@ import time
 import pytest
 
 from client.session import SyncSession
-from tests.conftest import serving
+from tests.conftest import serving, wait_for
 
 pytestmark = pytest.mark.usefixtures("registered_test_cores")
 
 #: Small and quick: the generated village of the test settings, a tight time limit.
 FAST = {"calibrate": True, "auto_budget": 0.5, "calibration_seconds": 20.0}
-
-
-def _wait(pred, timeout: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not met in time")
-        time.sleep(0.05)
 
 
 def test_auto_follows_the_calibration_once_it_is_measured(settings, tmp_path):
@@ -31,7 +23,7 @@ def test_auto_follows_the_calibration_once_it_is_measured(settings, tmp_path):
         with SyncSession.connect(url, "village", "auto", prefetch=False) as s:
             why = s.welcome.features["core_choice"]["why"]
             assert "calibration under way" in why
-        _wait(lambda: any(c is not None for c in compute.calibrations.values()))
+        wait_for(lambda: any(c is not None for c in compute.calibrations.values()), 120.0)
         cal = next(c for c in compute.calibrations.values() if c is not None)
         assert cal.trials and cal.seconds <= FAST["calibration_seconds"] + 30
         with SyncSession.connect(url, "village", "auto", prefetch=False) as s:

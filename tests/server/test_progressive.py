@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from client.session import SyncSession
-from tests.conftest import make_tiny_scene, near_ids, serving
+from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from visibility.viewcells import ViewcellGrid
 
 pytestmark = pytest.mark.usefixtures("registered_test_cores")
@@ -18,14 +18,6 @@ pytestmark = pytest.mark.usefixtures("registered_test_cores")
 #: The session core's answer takes this long: the first answer (sampling, tens of ms) comes
 #: well before it.
 DELAY = 1.5
-
-
-def _wait(pred, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            raise TimeoutError("condition not met in time")
-        time.sleep(0.01)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +54,7 @@ def test_first_answer_then_what_the_core_adds(progressive_server):
         grid = app.state.server.catalog.get("tiny").grid
         direct = core.compute(scene, grid.cell(0), params).triangle_ids
         assert first_ids == set(direct.tolist())
-        _wait(lambda: s.cells[0].answer == "refined")
+        wait_for(lambda: s.cells[0].answer == "refined")
         refined = s.cells[0]
         assert refined.begin.answer == "refined" and refined.end.answer == "refined"
         want = set(near_ids(scene, grid.boxes[0], 5.0).tolist())
@@ -77,7 +69,7 @@ def test_a_cell_already_computed_comes_whole(progressive_server):
     url, _, scene = progressive_server
     with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
         _pose(s, scene, 1, 0)
-        _wait(lambda: 1 in s.cells and s.cells[1].answer == "refined")
+        wait_for(lambda: 1 in s.cells and s.cells[1].answer == "refined")
     # A second walker finds the core's answer in the cache: no first pass.
     with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
         _pose(s, scene, 1, 0)
@@ -90,7 +82,7 @@ def test_prefetched_cells_skip_the_first_pass(progressive_server):
     with SyncSession.connect(url, "tiny", "test_slow", {"delay": 0.3, "radius": 4.0},
                              prefetch=True) as s:
         _pose(s, scene, 4, 0)
-        _wait(lambda: len([c for c in s.cells.values() if c.answer]) >= 3)
+        wait_for(lambda: len([c for c in s.cells.values() if c.answer]) >= 3)
         ahead = [c for c in s.cells.values() if c.begin.prefetch and c.answer]
         assert ahead and all(c.answer == "full" for c in ahead)
 
@@ -129,10 +121,10 @@ def test_leaving_before_the_refinement_gives_it_up(progressive_server):
         assert s.cells[5].answer == "first"
         _pose(s, scene, 7, 1)  # far from cell 5: it is neither current nor ahead
         s.wait_cell(7, timeout=2.5)
-        _wait(lambda: counters["refinements_dropped"] > dropped)
+        wait_for(lambda: counters["refinements_dropped"] > dropped)
         # Back in cell 5: it streams again, and this time its refinement arrives.
         _pose(s, scene, 5, 2)
-        _wait(lambda: s.cells[5].answer == "refined", timeout=30)
+        wait_for(lambda: s.cells[5].answer == "refined", timeout=30)
         grid = app.state.server.catalog.get("tiny").grid
         assert set(near_ids(scene, grid.boxes[5], 3.0).tolist()) <= set(s.store.ids.tolist())
 
@@ -183,7 +175,7 @@ def test_cells_ahead_have_their_first_answer_ready(settings):
             return [n for n in range(8) if n != 5 and compute.cache.get(
                 compute.key("tiny", core, params, n)) is not None]
 
-        _wait(lambda: warmed(), timeout=10)
+        wait_for(lambda: warmed(), timeout=10)
         ahead = warmed()[0]
         _pose(s, scene, ahead, 1)
         s.wait_cell(ahead, timeout=1.0)

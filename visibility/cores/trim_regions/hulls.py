@@ -103,6 +103,15 @@ def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
             and e2 >= -0.5 * (abs(ax - cx) + abs(ay - cy)))
 
 
+@njit(cache=True, nogil=True)
+def _nearest_depth(poly, npoly, i):  # pragma: no cover - numba
+    """Nearest depth (metres) of set-up polygon i, whose vertices carry 1 / depth."""
+    z = 1e300
+    for k in range(npoly[i]):
+        z = min(z, 1.0 / poly[i, k, 2])
+    return z
+
+
 @njit(cache=True, parallel=True)
 def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
                    seen):  # pragma: no cover - numba
@@ -114,9 +123,7 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or seen[owner[i]]:
             continue
-        z = 1e300
-        for k in range(npoly[i]):
-            z = min(z, 1.0 / poly[i, k, 2])
+        z = _nearest_depth(poly, npoly, i)
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:
@@ -156,9 +163,7 @@ def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
-        zmin = 1e300
-        for k in range(npoly[i]):
-            zmin = min(zmin, 1.0 / poly[i, k, 2])
+        zmin = _nearest_depth(poly, npoly, i)
         x0 = max(0, box[i, 0] - 1)
         x1 = min(res, box[i, 1] + 1)
         y0 = max(0, box[i, 2] - 1)
