@@ -263,6 +263,7 @@ class ComputeService:
         cal = self.calibration(scene, cell_size)
         if cal is None:
             return None
+
         def allowed(name: str) -> bool:
             try:
                 return core_fits(resolve_core(name), scene, cell_size)[0]

@@ -36,7 +36,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-
 class Streamer:
     """Streams the cells a session's walker needs, in order; ``run`` is the task."""
 
@@ -159,7 +158,8 @@ class Streamer:
         name = s.loaded.name
         known = s.inventory.pvs_of.get(cell)
         if known is not None and cell in s.inventory.done:
-            return self._ready(cell, known), "full"
+            # A cell whose refinement is still under way holds its first answer.
+            return self._ready(cell, known), "first" if cell in s.refining else "full"
         if s.send_all:
             return self._ready(
                 cell, np.flatnonzero(s.loaded.scene.valid_faces).astype(np.int32)), "full"

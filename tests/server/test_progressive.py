@@ -180,3 +180,24 @@ def test_cells_ahead_have_their_first_answer_ready(settings):
         _pose(s, scene, ahead, 1)
         s.wait_cell(ahead, timeout=1.0)
         assert s.cells[ahead].answer == "first"
+
+
+def test_coming_back_before_the_refinement_is_announced_as_the_first_answer(settings):
+    """A walker steps out of a cell and back while its core still computes: the cell is
+    announced again as holding its first answer, and its refinement follows."""
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True) as (url, _), \
+            SyncSession.connect(url, "tiny", "test_slow", {"delay": 3.0, "radius": 3.0},
+                                prefetch=True) as s:
+        grid = ViewcellGrid.for_scene(scene, s.welcome.grid.cell_size)
+        a, b = grid.boxes[0].mean(axis=0), grid.boxes[1].mean(axis=0)
+        s.send_pose(0, 0.0, a, (1.0, 0.0, 0.0))
+        s.wait_cell(0, timeout=2.5)
+        assert s.cells[0].answer == "first"
+        # Into the next cell, heading back: the first cell stays ahead, its refinement kept.
+        s.send_pose(1, 1.0, b, (-1.0, 0.0, 0.0), a - b)
+        s.wait_cell(1, timeout=2.5)
+        s.send_pose(2, 2.0, a, (-1.0, 0.0, 0.0), a - b)
+        wait_for(lambda: s.cells[0].begin.seq == 2, timeout=5)
+        assert s.cells[0].begin.answer == "first" and s.cells[0].answer == "first"
+        wait_for(lambda: s.cells[0].answer == "refined", timeout=15)
