@@ -304,15 +304,12 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     if shead[slot, GRID * GRID + 1] != 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
                          kb[3], qcam, nq)
-    for c in range(GRID * GRID + 1):
-        if c == GRID * GRID:
-            k = shead[slot, c]
-        else:
-            i = c // GRID
-            j = c - i * GRID
-            if i < r0 or i > r1 or j < c0 or j > c1:
-                continue
-            k = shead[slot, c]
+    # The cells around K, then the list of wide triangles.
+    wc = c1 - c0 + 1
+    nc = (r1 - r0 + 1) * wc
+    for t in range(nc + 1):
+        c = (r0 + t // wc) * GRID + c0 + t % wc if t < nc else GRID * GRID
+        k = shead[slot, c]
         while k >= 0:
             if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
                              kb[2], kb[3], qcam, nq):
