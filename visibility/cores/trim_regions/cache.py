@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from visibility.cores.dual_ray.cache import per_scene
-from visibility.cores.trim_regions.edges import Edges, build_edges
+from visibility.cores.trim_regions.edges import Edges, build_edges, closed_components
 from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
 from visibility.scene import Scene
 
@@ -26,6 +26,8 @@ class SceneData:
     static_mask : (m,) bool, True for the static triangles.
     faces : (m, 3) int64 copy of the scene's faces.
     edges : the static triangles' edges.
+    closed : (m,) int64 label of the closed, consistently wound part each triangle belongs to,
+        -1 for the rest (``edges.closed_components``).
     octree : the static triangles' octree.
     build_seconds : time the build took, seconds.
     """
@@ -35,6 +37,7 @@ class SceneData:
     static_mask: np.ndarray
     faces: np.ndarray
     edges: Edges
+    closed: np.ndarray
     octree: Octree
     build_seconds: float
 
@@ -65,7 +68,8 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
     mask = np.zeros(scene.n_triangles, dtype=bool)
     mask[static] = True
     return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
-                     np.ascontiguousarray(scene.faces.astype(np.int64)), edges, octree,
+                     np.ascontiguousarray(scene.faces.astype(np.int64)), edges,
+                     closed_components(edges, scene.n_triangles), octree,
                      time.perf_counter() - t0)
 
 

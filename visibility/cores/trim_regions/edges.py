@@ -26,12 +26,15 @@ class Edges:
     opp : (E, 2) int64 vertex row of each adjacent triangle's corner off the edge (-1: none).
     many : (E,) bool, True for non-manifold edges (three or more triangles): trimmed on both
         sides.
+    paired : (E,) bool, True for an edge of exactly two triangles that hold it in opposite
+        directions (consistently wound there).
     """
 
     vert: np.ndarray
     face: np.ndarray
     opp: np.ndarray
     many: np.ndarray
+    paired: np.ndarray
 
     def __len__(self) -> int:
         return int(len(self.vert))
@@ -42,7 +45,7 @@ def build_edges(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray) -> Edg
     ids = np.asarray(ids, dtype=np.int64)
     if not len(ids):
         z = np.zeros((0, 2), dtype=np.int64)
-        return Edges(z, z.copy(), z.copy(), np.zeros(0, dtype=bool))
+        return Edges(z, z.copy(), z.copy(), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
     weld = weld_vertices(vertices)
     f = faces[ids].astype(np.int64)
     w = weld[f]
@@ -70,4 +73,44 @@ def build_edges(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray) -> Edg
     face[two, 1] = tri[order][first[two] + 1]
     opp[two, 1] = vo[order][first[two] + 1]
     vert = np.stack([va[order][first], vb[order][first]], axis=1)
-    return Edges(vert, face, opp, count > 2)
+    start = a[order]
+    paired = count == 2
+    paired[two] &= start[first[two]] != start[first[two] + 1]
+    return Edges(vert, face, opp, count > 2, paired)
+
+
+def closed_components(edges: Edges, n_triangles: int) -> np.ndarray:
+    """Closed, consistently wound parts of the scene (trim_regions' back-face rule).
+
+    A part is a set of triangles connected through paired edges (``Edges.paired``); it is
+    closed when none of its triangles has an edge that is a border, non-manifold or held in
+    the same direction by its two triangles. From an eye outside such a part, every ray meets
+    one of its front faces before any of its back faces, so a back face of it is never seen.
+
+    Returns
+    -------
+    (n_triangles,) int64: the part's label for the triangles of closed parts, -1 elsewhere
+    (and for triangles without edges).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    label = np.full(n_triangles, -1, dtype=np.int64)
+    if not len(edges):
+        return label
+    pe = edges.face[edges.paired]
+    graph = coo_matrix((np.ones(len(pe)), (pe[:, 0], pe[:, 1])),
+                       shape=(n_triangles, n_triangles))
+    _, comp = connected_components(graph, directed=False)
+    has = np.zeros(n_triangles, dtype=bool)
+    bad = np.zeros(n_triangles, dtype=bool)
+    for k in range(2):
+        f = edges.face[:, k]
+        ok = f >= 0
+        has[f[ok]] = True
+        bad[f[ok & ~edges.paired]] = True
+    bad_comp = np.zeros(int(comp.max()) + 1, dtype=bool)
+    bad_comp[comp[bad]] = True
+    closed = has & ~bad_comp[comp]
+    label[closed] = comp[closed]
+    return label

@@ -52,7 +52,8 @@ class KBuffer:
     spans : (n, SPANS, 2) float64, hidden depth spans of the pixel's validated intervals;
         ``n_spans`` (n,) int64 how many are held.
     first : (n,) float64, depth of the first surface the pixel resolved (inf: none).
-    hid : (n,) uint8, a front face hid in an umbra since the last front face seen.
+    hid : (n,) int64, 1 + the closed part (``SceneData.closed``) of the front face that hid in
+        an umbra since the last front face seen, 0 for none or a face of no closed part.
     """
 
     depth: np.ndarray
@@ -78,7 +79,7 @@ class KBuffer:
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
-                   np.full(n, np.inf), np.zeros(n, dtype=np.uint8))
+                   np.full(n, np.inf), np.zeros(n, dtype=np.int64))
 
     @property
     def allocated_bytes(self) -> int:

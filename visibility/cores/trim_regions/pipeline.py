@@ -275,13 +275,13 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
                                           int(kb.count.sum()) * ENTRY_BYTES)
         stats["pixel_resolves"] += int(kb.active.sum())
-        _resolve(kb, res, False, vis, counters, stop)
+        _resolve(kb, res, False, vis, counters, stop, data.closed)
         stats["p2_raster"] += tb - ta
         stats["p3_resolve"] += time.perf_counter() - tb
     checkpoint()
     tb = time.perf_counter()
     stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
-    _resolve(kb, res, True, vis, counters, stop)
+    _resolve(kb, res, True, vis, counters, stop, data.closed)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
@@ -319,10 +319,10 @@ def _farthest_in_pixel(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
-             stop: np.ndarray) -> None:
+             stop: np.ndarray, closed: np.ndarray) -> None:
     resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
-                  kb.n_spans, kb.first, kb.hid, kb.stencil, kb.active, kb.overflow, res, final, vis,
-                  counters, stop)
+                  kb.n_spans, kb.first, kb.hid, closed, kb.stencil, kb.active, kb.overflow, res,
+                  final, vis, counters, stop)
 
 
 def _reset(kb: KBuffer) -> None:

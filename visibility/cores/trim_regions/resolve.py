@@ -15,10 +15,16 @@ first face goes to the PVS and the pixel is sealed. A run with nothing after it 
 to the next layer (its closing face may lie in a later octree node).
 
 A back face met first, and after the last layer a carried run, read as single-sided surfaces:
-each face in turn is seen (a back face unless a front face lies hidden in an umbra before it:
-then it is the back of that object); it is trimmed
-(validated) when a trim fragment lies between it and the next surface, else it terminates the
-pixel.
+each face in turn is seen, and trimmed (validated) when a trim fragment lies between it and the
+next surface, that surface's depth included, else it terminates the pixel. (A trim at the next
+surface's depth is often that surface's rim, but it may be this face's own: the edge a single-
+sided or inward-wound face shares with the face the ray leaves by, as in the Quake level
+lavaducts; letting it validate only ever reveals more.)
+
+A back face is not reported when a front face of the same closed, consistently wound part
+(``edges.closed_components``) hid in an umbra before it: it is that part's back, never seen
+from outside it. Any other back face may be seen (single-sided or inward-wound geometry seen
+from behind, as in lavaducts, where the whole level is one open part).
 """
 
 from __future__ import annotations
@@ -63,14 +69,21 @@ def _umbra_in(sd, sk, su, n, lo, hi):  # pragma: no cover - numba
     return best
 
 
+@njit(cache=True, inline="always")
+def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
+    """Whether back face ``ident`` belongs to the closed part h - 1 whose front face hid."""
+    return h > 0 and closed[ident] + 1 == h
+
+
 @njit(cache=True)
 def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                  p, final, vis, stats):  # pragma: no cover - numba
+                  closed, p, final, vis, stats):  # pragma: no cover - numba
     """Resolve pixel p's trim sequence (see the module docstring); compacts the residual
     sequence back into the k-buffer and records the hidden span of each validated interval in
     ``spans`` / ``n_spans`` and the depth of its first surface in ``first``. Returns True when
-    the pixel got sealed. ``hid`` (n,) uint8 remembers, across layers, that a front face hid
-    in an umbra since the last front face seen.
+    the pixel got sealed. ``hid`` (n,) int64 remembers, across layers, the closed part
+    (1 + ``closed[id]``, 0 none) of the front face that hid in an umbra since the last front
+    face seen.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
     n = count[p]
@@ -86,10 +99,6 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         si[q] = idents[p, order[q]]
         su[q] = umbra[p, order[q]]
     cov = cover[p]
-    # A back face is reported unless a front face hid in an umbra before it: then it is the
-    # back of that object, hidden with it. Otherwise it is single-sided geometry seen from
-    # behind (or a soup wound the other way round) and may well be seen.
-    fresh = hid[p] == 0
     i = 0
     keep_from = n  # first surface entry of the carried run (n: none)
     last = -1.0  # depth of the last resolved surface entry
@@ -102,8 +111,7 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         tol = DEPTH_TOL * d
         if d <= cov:
             if sk[i] != BACK:
-                fresh = False
-                hid[p] = 1
+                hid[p] = closed[si[i]] + 1
             last = d
             i += 1
             continue
@@ -140,10 +148,10 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
                 if sk[q] != TRIM:
                     nxt = sd[q]
                     break
-            if k0 != BACK or fresh:
+            if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
                 vis[si[i]] = 1
-            # Up to the next surface, not including trims at its depth: those are its own rim.
-            u = _umbra_in(sd, sk, su, n, d - tol, nxt - DEPTH_TOL * min(nxt, 1e290))
+            # Up to the next surface, trims at its depth included (see the module docstring).
+            u = _umbra_in(sd, sk, su, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
             last = d
             if u >= 0:
                 stats[3] += 1
@@ -156,11 +164,10 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
             sealed = True
             break
         b = sd[end_second]
-        if k0 != BACK or fresh:
+        if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
             vis[si[i]] = 1
         if k0 != BACK:
             # A front face seen opens a new stretch of the ray.
-            fresh = True
             hid[p] = 0
         if end_first > i:
             # Several faces before the closing one (soups, intersecting or nested objects):
@@ -218,7 +225,7 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
 
 @njit(cache=True, parallel=True)
 def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                  stencil, active, overflow, res, final, vis, stats, stop):
+                  closed, stencil, active, overflow, res, final, vis, stats, stop):
     """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
     bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band."""
     n_bands = (res + 7) // 8
@@ -233,5 +240,5 @@ def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
                 continue
             active[p] = 0
             if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
-                             first, hid, p, final, vis, stats[band]):
+                             first, hid, closed, p, final, vis, stats[band]):
                 stencil[p] = SEALED

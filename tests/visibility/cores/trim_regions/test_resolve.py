@@ -10,9 +10,10 @@ from visibility.cores.trim_regions.resolve import resolve_pixel
 INF = np.inf
 
 
-def _resolve(entries, final=True, cover=0.0):
-    """Resolve one pixel holding ``entries`` [(kind, depth, id, umbra)]; returns (visible ids,
-    sealed, seal depth, cover after, entries left)."""
+def _resolve(entries, final=True, cover=0.0, closed=None):
+    """Resolve one pixel holding ``entries`` [(kind, depth, id, umbra)], triangle ids below 16
+    (``closed``: {id: closed part}, the rest of no closed part); returns (visible ids, sealed,
+    seal depth, cover after, entries left)."""
     kb = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(entries):
         kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
@@ -20,8 +21,11 @@ def _resolve(entries, final=True, cover=0.0):
     kb.cover[0] = cover
     vis = np.zeros(16, dtype=np.uint8)
     stats = np.zeros(4, dtype=np.int64)
+    part = np.full(16, -1, dtype=np.int64)
+    for ident, label in (closed or {}).items():
+        part[ident] = label
     sealed = resolve_pixel(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal,
-                           kb.spans, kb.n_spans, kb.first, kb.hid, 0, final, vis, stats)
+                           kb.spans, kb.n_spans, kb.first, kb.hid, part, 0, final, vis, stats)
     return set(np.flatnonzero(vis).tolist()), sealed, kb.seal[0], kb.cover[0], int(kb.count[0])
 
 
@@ -62,19 +66,35 @@ def test_a_single_sided_wall_without_trims_terminates():
     assert vis == {0} and sealed and seal == 1.0
 
 
-def test_a_back_face_is_reported_unless_a_front_face_hid_before_it():
+def test_a_back_face_is_reported_unless_a_front_face_of_its_closed_part_hid_before_it():
     vis, sealed, _, _, _ = _resolve([(BACK, 1.0, 7, 0), (FRONT, 3.0, 2, 0)])
     assert vis == {7} and sealed
-    # Behind a trimmed interval's umbra: the back of an object whose front hid in the umbra
-    # is hidden with it; a back face with no hidden front before it is single-sided geometry
-    # seen from behind, reported.
+    # Behind a trimmed interval's umbra: the back of a closed object whose front hid in the
+    # umbra is hidden with it; a back face with no hidden front before it is single-sided
+    # geometry seen from behind, reported.
     hidden = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (FRONT, 3.0, 6, 0),
               (BACK, 4.5, 7, 0)]
-    vis, sealed, _, _, _ = _resolve(hidden)
+    vis, sealed, _, _, _ = _resolve(hidden, closed={6: 3, 7: 3})
     assert vis == {0} and sealed
     alone = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (BACK, 4.5, 7, 0)]
     vis, sealed, _, _, _ = _resolve(alone)
     assert vis == {0, 7} and sealed
+    # The hidden front face belongs to no closed part, or to another one: the back face
+    # behind the umbra may be seen (single-sided or inward-wound geometry).
+    for closed in (None, {6: 3, 7: 4}):
+        vis, sealed, _, _, _ = _resolve(hidden, closed=closed)
+        assert vis == {0, 7} and sealed
+
+
+def test_an_inward_wound_corner_is_trimmed_by_the_edge_it_shares_with_its_exit_face():
+    # Lavaducts (issue 15): a ray from v* enters a thin inward-wound pillar through a back face
+    # (0) and leaves through a front face (1) right at their shared silhouette edge, whose
+    # trim lies at the exit face's depth; a far wall seen from behind (2) lies past the
+    # umbra and is seen from eyes of the cell. The corner must not terminate the ray.
+    seq = [(BACK, 1.066, 0, 0), (TRIM, 1.106, -1, 1.415), (FRONT, 1.106, 1, 0),
+           (BACK, 7.3, 2, 0)]
+    vis, _, seal, cover, _ = _resolve(seq)
+    assert {0, 2} <= vis and cover == 1.415 and seal == 7.3
 
 
 def test_the_umbra_of_a_run_comes_from_its_closing_interval():
