@@ -38,6 +38,24 @@ def _parse_params(items: list[str] | None) -> dict:
     return out
 
 
+def _token(args: argparse.Namespace) -> str | None:
+    """The bearer token for a server with access control: ``--token``, else ``PVS_TOKEN``."""
+    return getattr(args, "token", None) or os.environ.get("PVS_TOKEN") or None
+
+
+def _auth_headers(args: argparse.Namespace) -> dict[str, str]:
+    """The ``Authorization`` header of ``_token`` ({} without one)."""
+    from protocol.auth import authorization_header
+
+    token = _token(args)
+    return authorization_header(token) if token else {}
+
+
+def _add_token_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--token", help="bearer token of a server with access control (default "
+                                   "PVS_TOKEN, which keeps it out of the process list)")
+
+
 def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = None):
     """The server's ``Settings`` for ``pvs serve``: flags the user gave override ``PVS_*``
     environment variables (``env``, default ``os.environ``), which override the defaults; the
@@ -49,7 +67,9 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
              "cell_size": args.cell_size, "workers": args.workers,
              "scenes_dir": Path(args.scenes) if args.scenes else None,
              "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None,
-             "progressive": getattr(args, "progressive", None)}
+             "progressive": getattr(args, "progressive", None),
+             "tokens_file": Path(args.tokens_file) if getattr(args, "tokens_file", None)
+             else None, "cors_origins": getattr(args, "cors_origin", None)}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -83,6 +103,7 @@ def walk_cores(args: argparse.Namespace) -> list[str | None]:
 
 def cmd_walk(args: argparse.Namespace) -> int:
     from client.replay import ReplayOptions, replay_cores
+    from client.session import SessionError
 
     opts = ReplayOptions(
         server=args.server,
@@ -99,8 +120,12 @@ def cmd_walk(args: argparse.Namespace) -> int:
         seed=args.seed,
         quiet=args.quiet,
         budget=args.budget,
+        token=_token(args),
     )
-    summaries = replay_cores(opts)
+    try:
+        summaries = replay_cores(opts)
+    except SessionError as exc:  # refused: no token, a bad one, a scene it may not use, ...
+        raise SystemExit(f"pvs walk: the server refused the session: {exc}") from None
     bad = [s for s in summaries if s.get("frames_rendered", 0) == 0]
     return 1 if bad else 0
 
@@ -126,11 +151,12 @@ def cmd_query(args: argparse.Namespace) -> int:
         req: dict = {"segment" if args.segment else "box": [p, q], "params": params}
         if args.core:
             req["core"] = args.core
-        r = httpx.post(f"{base}/pvs", json=req, timeout=args.timeout)
+        r = httpx.post(f"{base}/pvs", json=req, timeout=args.timeout, headers=_auth_headers(args))
     else:
         if args.core:
             params["core"] = args.core
-        r = httpx.get(f"{base}/cells/{args.cell}/pvs", params=params, timeout=args.timeout)
+        r = httpx.get(f"{base}/cells/{args.cell}/pvs", params=params, timeout=args.timeout,
+                      headers=_auth_headers(args))
     body = r.json()
     if r.status_code != 200:
         print(json.dumps(body, indent=2), file=sys.stderr)
@@ -182,7 +208,8 @@ def cmd_cores(args: argparse.Namespace) -> int:
         import httpx
 
         query = {"scene": args.scene} if args.scene else {}
-        r = httpx.get(args.server.rstrip("/") + "/cores", params=query, timeout=600)
+        r = httpx.get(args.server.rstrip("/") + "/cores", params=query, timeout=600,
+                      headers=_auth_headers(args))
         print(json.dumps(r.json(), indent=2))
         return 0 if r.status_code == 200 else 1
     if args.scene:
@@ -215,7 +242,7 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
         base = args.server.rstrip("/")
         path = f"/scenes/{args.name}" if args.name else "/scenes"
-        r = httpx.get(base + path, timeout=600)
+        r = httpx.get(base + path, timeout=600, headers=_auth_headers(args))
         print(json.dumps(r.json(), indent=2))
         return 0 if r.status_code == 200 else 1
     from visibility.generators import DEFAULT_TRIANGLES, available_generators
@@ -391,12 +418,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
                    help="a walker's cell gets a cheap first answer at once, refined in place "
                         "when the core's answer is ready (PVS_PROGRESSIVE; default on)")
+    p.add_argument("--tokens-file", help="JSON or TOML file of bearer tokens, each with its "
+                                         "scenes and quotas: access control on "
+                                         "(PVS_TOKENS_FILE; PVS_TOKENS adds tokens for all)")
+    p.add_argument("--cors-origin", action="append", metavar="ORIGIN",
+                   help="origin whose pages may use the API and WebSockets from a browser, "
+                        "e.g. https://viewer.example.org, or * (repeatable; PVS_CORS_ORIGINS)")
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client",
                        epilog=cores_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--server", default="http://127.0.0.1:8000")
     p.add_argument("--quiet", action="store_true")
+    _add_token_option(p)
     _add_walk_options(p, "runs/walk")
     p.set_defaults(fn=cmd_walk)
 
@@ -413,12 +447,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--core", default=None, help="core name (default: the server's)")
     p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")
     p.add_argument("--ids", action="store_true", help="print every id")
+    _add_token_option(p)
     p.add_argument("--timeout", type=float, default=600)
     p.set_defaults(fn=cmd_query)
 
     p = sub.add_parser("cores", help="list the cores, their promises and parameters; with "
                                      "--scene, how well each fits it and what auto picks")
     p.add_argument("--server", help="ask a running server (GET /cores) instead of this install")
+    _add_token_option(p)
     p.add_argument("--scene", help="a scene name: every core's fit and the auto choice")
     p.add_argument("--scenes", help="folder of scene files")
     p.add_argument("--cell-size", type=float, help="viewcell size in metres for the fit")
@@ -431,6 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("scenes", help="list scenes, or describe one")
     p.add_argument("name", nargs="?")
     p.add_argument("--server", help="ask a running server instead of loading locally")
+    _add_token_option(p)
     p.add_argument("--scenes", help="folder of scene files")
     p.set_defaults(fn=cmd_scenes)
 

@@ -62,6 +62,8 @@ class ReplayOptions:
     worst_frames: int = 3
     #: Most triangles the client holds (None: no limit); declared to the server in the hello.
     budget: int | None = None
+    #: Bearer token of a server with access control (never in the report or a repr).
+    token: str | None = field(default=None, repr=False)
 
 
 def local_scene(info: Any, scenes_dir: Path | None) -> Scene:
@@ -109,7 +111,7 @@ def replay(opts: ReplayOptions, core: str | None, out: Path) -> dict:
     into ``out``; its summary (``meta.core`` names the core the server used)."""
     out.mkdir(parents=True, exist_ok=True)
     session = SyncSession.connect(opts.server, opts.scene, core, opts.params,
-                                  budget=opts.budget)
+                                  budget=opts.budget, token=opts.token)
     try:
         welcome = session.welcome
         core = welcome.core

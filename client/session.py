@@ -34,6 +34,7 @@ import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
 from client.store import GeometryStore
+from protocol.auth import authorization_header, is_token
 from protocol.frames import FrameError, FrameKind, decode_geometry
 from protocol.keyframes import KeyframeAssembler, decode_keyframes, decode_spheres
 from protocol.messages import (
@@ -166,6 +167,7 @@ class Session:
         store: GeometryStore | None = None,
         timeout: float = 30.0,
         max_size: int | None = 64 * 1024 * 1024,
+        token: str | None = None,
     ) -> Session:
         """Open a session on the server at ``url`` (http(s):// or ws(s)://) for ``scene``.
 
@@ -174,12 +176,21 @@ class Session:
         ``prefetch``: ask for (True) or against (False) cells streamed ahead; None: the
         server's default. ``progressive``: False asks for the core's answers only, never a
         cheap first answer refined later (``cell_begin.answer``); None: the server's default.
+        ``token``: the bearer token of a server with access control (``protocol.auth``), sent
+        in the ``Authorization`` header; refused, SessionError ``unauthorized`` (4401).
         """
-        ws = await connect(ws_url(url), max_size=max_size, open_timeout=timeout, compression=None)
+        if token is not None and not is_token(token):
+            raise ValueError("not a bearer token (protocol.auth.TOKEN_CHARS)")
+        headers = authorization_header(token) if token is not None else None
+        ws = await connect(ws_url(url), max_size=max_size, open_timeout=timeout, compression=None,
+                           additional_headers=headers)
         try:
             hello = Hello(scene=scene, core=core, params=params or {}, budget=budget,
                           prefetch=prefetch, progressive=progressive)
-            await ws.send(dump_message(hello))
+            try:
+                await ws.send(dump_message(hello))
+            except websockets.ConnectionClosed:
+                pass  # refused before its hello (the token): the error waits for recv below
             raw = await asyncio.wait_for(ws.recv(), timeout)
             if isinstance(raw, bytes):
                 raise SessionError("protocol", "binary frame before welcome")

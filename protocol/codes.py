@@ -45,12 +45,17 @@ library's hard cap (the library itself closes with 1009, before the session sees
 | busy               | no        | -     | the queue is full (HTTP 503, Retry-After)        |
 | too_many_requests  | no        | -     | a client at its cap of computations (HTTP 429)   |
 | shutting_down      | yes       | 1001  | the server is stopping (HTTP 503)                |
+| unauthorized       | yes       | 4401  | no valid bearer token (HTTP 401)                 |
+| forbidden          | yes       | 4403  | the token may not use this scene (HTTP 403)      |
+| over_quota         | yes       | 4429  | the token is past its own quota (HTTP 429)       |
 
 "handshake": fatal while the server waits for ``hello``, answered and skipped afterwards. Bad
 messages after ``welcome`` (the non-fatal protocol errors above) count towards the abuse limit.
 HTTP-only codes: ``bad_request`` (400, a body that cannot be parsed), ``not_found`` (404),
-``method_not_allowed`` (405), ``not_acceptable`` (406), ``validation`` (422). ``HTTP_STATUS``
-gives the HTTP status of every code an HTTP answer carries.
+``method_not_allowed`` (405), ``not_acceptable`` (406), ``validation`` (422). The last three
+rows of the table come only from a server with access control on (``server.auth``); its
+WebSocket refusals of a token happen before ``hello`` is read, of a scene right after it.
+``HTTP_STATUS`` gives the HTTP status of every code an HTTP answer carries.
 """
 
 from __future__ import annotations
@@ -89,6 +94,10 @@ class ErrorCode(StrEnum):
     SHUTTING_DOWN = "shutting_down"
     SLOW_CLIENT = "slow_client"
     TOO_MANY_ERRORS = "too_many_errors"
+    # Access control (server.auth).
+    UNAUTHORIZED = "unauthorized"
+    FORBIDDEN = "forbidden"
+    OVER_QUOTA = "over_quota"
     # HTTP only.
     BAD_REQUEST = "bad_request"
     NOT_FOUND = "not_found"
@@ -112,6 +121,10 @@ class CloseCode(IntEnum):
     UNKNOWN_CORE = 4005
     BAD_PARAMS = 4022
     UNSUPPORTED_SCENE = 4023
+    #: Access control: 4000 + the HTTP status, as above.
+    UNAUTHORIZED = 4401
+    FORBIDDEN = 4403
+    OVER_QUOTA = 4429
 
 
 #: Bad messages a session answers and skips within ``BAD_MESSAGE_WINDOW_S`` seconds; one more
@@ -134,6 +147,9 @@ FATAL: dict[ErrorCode, CloseCode] = {
     ErrorCode.SLOW_CLIENT: CloseCode.SLOW_CLIENT,
     ErrorCode.TOO_MANY_ERRORS: CloseCode.POLICY_VIOLATION,
     ErrorCode.SHUTTING_DOWN: CloseCode.GOING_AWAY,
+    ErrorCode.UNAUTHORIZED: CloseCode.UNAUTHORIZED,
+    ErrorCode.FORBIDDEN: CloseCode.FORBIDDEN,
+    ErrorCode.OVER_QUOTA: CloseCode.OVER_QUOTA,
 }
 
 #: Codes that end the session only during the handshake (before ``welcome``); afterwards the
@@ -148,6 +164,8 @@ HANDSHAKE_FATAL: dict[ErrorCode, CloseCode] = {
 #: The HTTP status of an answer carrying each code (the codes HTTP routes answer).
 HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.BAD_REQUEST: 400,
+    ErrorCode.UNAUTHORIZED: 401,
+    ErrorCode.FORBIDDEN: 403,
     ErrorCode.UNKNOWN_SCENE: 404,
     ErrorCode.UNKNOWN_CELL: 404,
     ErrorCode.UNKNOWN_CORE: 404,
@@ -161,6 +179,7 @@ HTTP_STATUS: dict[ErrorCode, int] = {
     ErrorCode.UNSUPPORTED_REGION: 422,
     ErrorCode.OVER_LIMIT: 422,
     ErrorCode.TOO_MANY_REQUESTS: 429,
+    ErrorCode.OVER_QUOTA: 429,
     ErrorCode.DEADLINE_EXCEEDED: 503,
     ErrorCode.BUSY: 503,
     ErrorCode.SHUTTING_DOWN: 503,

@@ -24,9 +24,10 @@ from fastapi import FastAPI
 
 from protocol.codes import ErrorCode
 from protocol.version import PROTOCOL_VERSION
-from server import metrics, routes, ws
+from server import auth, metrics, routes, ws
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
+from server.cors import add_cors
 from server.middleware import HttpGuard, RateLimit
 from server.nearfar_store import NearFarStore
 from server.openapi import install_openapi
@@ -66,6 +67,8 @@ class ServerState:
     started: float = field(default_factory=time.monotonic)
     registry: Any = None
     near_far: NearFarStore | None = None
+    #: Tokens, quotas and origins (``server.auth.Access``); None: access control off.
+    access: Any = None
     #: True once the server is stopping: computations cancelled then answer shutting_down.
     stopping: bool = False
     _centroids: dict[str, np.ndarray] = field(default_factory=dict)
@@ -135,6 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for key in COUNTERS:
         state.counters[key] = 0
     metrics.install(app_state=state)
+    state.access = auth.Access.from_settings(settings, state.counters)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -149,8 +153,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.server = state
+    if state.access is not None:  # innermost: after the address's rate limit, inside CORS
+        app.add_middleware(auth.AccessGuard, access=state.access)
     app.add_middleware(RateLimit, rate=settings.pvs_rate, burst=settings.pvs_burst,
                        counters=state.counters)
+    add_cors(app, settings.cors_origins)
     # Added last, so outermost: every answer's bytes are counted, the 429s included.
     app.add_middleware(HttpGuard, max_body_bytes=settings.max_body_bytes,
                        counters=state.counters)
@@ -159,6 +166,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_api_websocket_route("/ws", ws.websocket_endpoint)
     routes.install_error_handlers(app)
     install_openapi(app)
+    if state.access is not None and state.access.book is not None:
+        auth.document(app)
     return app
 
 

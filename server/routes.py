@@ -48,6 +48,7 @@ from protocol.codes import ErrorCode
 from protocol.frames import chunk_geometry
 from protocol.messages import BoxPvsRequest, CoresResponse, ErrorResponse, PvsResponse
 from protocol.version import PROTOCOL_VERSION
+from server.auth import visible_scenes
 from server.catalog import LoadedScene, wire_origin
 from server.compute import AUTO_CORE, PVSResult, choose_core, core_fits
 from server.errors import ApiError, code_for_status, error_body, error_message
@@ -367,8 +368,9 @@ async def health(request: Request) -> dict:
 
 @router.get("/scenes", summary="The scene catalogue")
 async def list_scenes(request: Request) -> dict:
-    """Every scene: name, kind (file, generated, memory), whether it is loaded, triangles."""
-    return {"scenes": _state(request).catalog.listing()}
+    """Every scene (with access control, every scene the token may use): name, kind (file,
+    generated, memory), whether it is loaded, triangles."""
+    return {"scenes": visible_scenes(request.scope, _state(request).catalog.listing())}
 
 
 _SCENE_ERRORS = _errors(e404="unknown scene (unknown_scene)",

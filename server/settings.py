@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from protocol.frames import DEFAULT_MAX_FRAME_BYTES, frame_bytes
 from protocol.ints import INT32_MAX
@@ -115,6 +115,12 @@ class Settings(BaseModel):
     max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
         memory); a larger one is refused without reading it. Default
         ``visibility.loaders.MAX_FILE_BYTES``.
+    tokens_file, tokens : access control (``server.auth``): a tokens file (JSON or TOML: each
+        token's name, scenes and quotas, ``server.tokens``) and tokens with access to
+        everything; with neither (the default) no route needs a token.
+    cors_origins : origins whose pages may call the API from a browser (CORS) and open
+        WebSockets (``*``: any; ``server.cors``); none (the default): no CORS headers and
+        WebSockets from any origin.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -167,6 +173,10 @@ class Settings(BaseModel):
     # scene files
     max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
     max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
+    # access control (server/auth.py); tokens are checked where no error message quotes them
+    tokens_file: Path | None = None
+    tokens: list[SecretStr] = Field(default_factory=list)
+    cors_origins: list[str] = Field(default_factory=list)
 
     @field_validator("generated")
     @classmethod
@@ -175,6 +185,22 @@ class Settings(BaseModel):
             if n <= 0:
                 raise ValueError(f"generated scene {name!r} needs a positive triangle count")
         return v
+
+    @field_validator("tokens_file")
+    @classmethod
+    def _tokens_file_reads(cls, v: Path | None) -> Path | None:
+        if v is not None:
+            from server.tokens import read_tokens_file
+
+            read_tokens_file(v)
+        return v
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, v: list[str]) -> list[str]:
+        from server.cors import normalize_origins
+
+        return normalize_origins(v)
 
     @model_validator(mode="after")
     def _near_far_config(self) -> Settings:
@@ -217,6 +243,7 @@ class Settings(BaseModel):
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
         PVS_PVS_RATE, PVS_PVS_BURST,
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
+        PVS_TOKENS_FILE, PVS_TOKENS and PVS_CORS_ORIGINS (comma lists),
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -250,6 +277,7 @@ class Settings(BaseModel):
             # scene files
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
+            "tokens_file": "PVS_TOKENS_FILE",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
@@ -269,6 +297,13 @@ class Settings(BaseModel):
                 values[field] = params
         if "PVS_GENERATED" in env:
             values["generated"] = _parse_generated(env["PVS_GENERATED"])
+        for field, var in (("tokens", "PVS_TOKENS"), ("cors_origins", "PVS_CORS_ORIGINS")):
+            if env.get(var, "").strip():
+                values[field] = [t.strip() for t in env[var].split(",") if t.strip()]
+        if "tokens" in values:
+            from server.tokens import env_grants
+
+            env_grants(values["tokens"])  # a malformed token named by its place, not quoted
         values.update(overrides)
         return cls.model_validate(values)
 

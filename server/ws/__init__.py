@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from starlette.websockets import WebSocket
 
+from server.auth import subprotocol
 from server.ws.inventory import MAX_KNOWN_PVS
 from server.ws.session import StreamSession
 
@@ -33,6 +34,7 @@ __all__ = ["MAX_KNOWN_PVS", "StreamSession", "websocket_endpoint"]
 
 
 async def websocket_endpoint(websocket: WebSocket) -> None:
-    """The ``/ws`` route: accept, run one ``StreamSession``."""
-    await websocket.accept()
+    """The ``/ws`` route: accept (selecting ``protocol.auth.SUBPROTOCOL`` when offered), run
+    one ``StreamSession``."""
+    await websocket.accept(subprotocol=subprotocol(websocket.scope))
     await StreamSession(websocket, websocket.app.state.server).run()

@@ -1,8 +1,9 @@
 """The opening of a session: ``hello`` in, checks, the scene loaded, ``welcome`` out.
 
 Every error before ``welcome`` is fatal: ``StreamSession.error`` closes and ends the session.
-Cheap checks go first (version, scene name, core and parameters) so a bad hello never pays for
-loading a scene.
+With access control on (``server.auth``) the token is checked before ``hello`` is read and the
+scene against its allow list right after. Cheap checks go first (version, scene name, core and
+parameters) so a bad hello never pays for loading a scene.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from protocol.messages import (
     parse_client_message,
 )
 from protocol.version import SUPPORTED_VERSIONS
+from server.auth import admit_session, check_scene
 from server.catalog import LoadedScene
 from server.compute import AUTO_CORE, core_fits, offered_cores
 from server.errors import error_code, error_message
@@ -81,10 +83,13 @@ async def read_hello(session: StreamSession) -> Hello:
 
 
 async def handshake(session: StreamSession) -> None:
-    """Read and check ``hello``, load the scene, set up the session's parts, send ``welcome``.
-    Registers the session in ``ServerState.sessions`` just before the welcome leaves."""
+    """Check the token (access control on), read and check ``hello``, load the scene, set up
+    the session's parts, send ``welcome``. Registers the session in ``ServerState.sessions``
+    just before the welcome leaves."""
     s = session
+    await admit_session(s)
     msg = await read_hello(s)
+    await check_scene(s, msg.scene)
     if msg.version not in SUPPORTED_VERSIONS:
         await s.error(ErrorCode.VERSION_MISMATCH,
                       f"protocol version {msg.version} not supported; server speaks "

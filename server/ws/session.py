@@ -27,6 +27,7 @@ from protocol.codes import (
     is_fatal,
 )
 from protocol.messages import Bye, Error, Hello, Pose, ProtocolError, parse_client_message
+from server.auth import release_session
 from server.catalog import LoadedScene
 from server.prefetch import motion_direction, prefetch_order
 from server.ws.dynamic import DynamicFrames
@@ -71,6 +72,9 @@ class StreamSession:
         self.nearfar: NearFarStreams | None = None
         self.dynamic: DynamicFrames | None = None
         self.prefetch = False
+        #: The token's grant (``server.tokens.Grant``), holding one of its ``max_sessions``
+        #: places until the session ends; None without access control.
+        self.grant: Any = None
         #: Cheap first answers for the walker's cell, refined in place (``server.ws.streams``).
         self.progressive = False
         self.progressive_why = ""
@@ -137,6 +141,7 @@ class StreamSession:
             await self.close(int(close_code_for(ErrorCode.INTERNAL)), "internal")
         finally:
             self.state.sessions.pop(self.id, None)
+            release_session(self)
             self._unpin()
             self.streamer.release_refinements()
             for t in tasks:
