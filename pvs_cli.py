@@ -49,7 +49,8 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
              "cell_size": args.cell_size, "workers": args.workers,
              "scenes_dir": Path(args.scenes) if args.scenes else None,
              "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None,
-             "progressive": getattr(args, "progressive", None)}
+             "progressive": getattr(args, "progressive", None),
+             "executor": getattr(args, "executor", None)}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -372,6 +373,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(list(args.rest))
 
 
+EXECUTOR_HELP = ("where computations run: local (default) or dask://HOST:PORT, a Dask "
+                 "scheduler (PVS_EXECUTOR)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="pvs", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -391,6 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
                    help="a walker's cell gets a cheap first answer at once, refined in place "
                         "when the core's answer is ready (PVS_PROGRESSIVE; default on)")
+    p.add_argument("--executor", help=EXECUTOR_HELP)
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client",
@@ -464,6 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", help="folder of scene files (PVS_SCENES_DIR)")
     p.add_argument("--cell-size", type=float, help="viewcell size in metres (PVS_CELL_SIZE)")
     p.add_argument("--workers", type=int, help="computations at once (PVS_WORKERS)")
+    p.add_argument("--executor", help=EXECUTOR_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_precompute, host=None, port=None)
 

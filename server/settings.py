@@ -115,6 +115,10 @@ class Settings(BaseModel):
     max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
         memory); a larger one is refused without reading it. Default
         ``visibility.loaders.MAX_FILE_BYTES``.
+    executor : where the session cores' computations run: ``local`` (this process's worker
+        pool, the default) or ``dask://HOST:PORT`` (a ``distributed`` scheduler,
+        ``server.dask_executor``; ``workers`` then bounds the local stand-in while the
+        scheduler is away, and the pool gets a thread per cluster worker thread).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -167,6 +171,16 @@ class Settings(BaseModel):
     # scene files
     max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
     max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
+    # where computations run
+    executor: str = "local"
+
+    @field_validator("executor")
+    @classmethod
+    def _executor(cls, v: str) -> str:
+        from server.executor import scheduler_address
+
+        scheduler_address(v)  # ValueError naming the two forms
+        return v.strip()
 
     @field_validator("generated")
     @classmethod
@@ -216,7 +230,7 @@ class Settings(BaseModel):
         PVS_REFUSE_OVER_DEADLINE,
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
         PVS_PVS_RATE, PVS_PVS_BURST,
-        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
+        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES, PVS_EXECUTOR (local or dask://HOST:PORT),
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -250,6 +264,7 @@ class Settings(BaseModel):
             # scene files
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
+            "executor": "PVS_EXECUTOR",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
