@@ -65,6 +65,8 @@ RECONNECT_S = 15.0
 POLL_S = 0.1
 #: Seconds to fetch a finished job's answer from its worker.
 GATHER_TIMEOUT_S = 60.0
+#: Seconds a scatter waits for a cluster without workers to get one.
+NO_WORKERS_S = 10.0
 
 
 class _Lost(Exception):
@@ -98,6 +100,7 @@ class DaskExecutor:
         self._connected = False
         self._reconnecting = False
         self._last_try = 0.0
+        self._lost_at = 0.0
         self._closed = False
         self._threads = 0
         self.remote_jobs = 0
@@ -153,8 +156,12 @@ class DaskExecutor:
         with self._lock:
             client = self._client
             if client is not None and client.status == "running":
+                if not self._connected and \
+                        time.monotonic() - self._lost_at < self.reconnect_every:
+                    return None  # the cluster failed a job lately: not before the next try
                 if not self._connected:
-                    # distributed reconnected by itself: scattered data did not survive.
+                    # distributed reconnected by itself (scattered data did not survive),
+                    # or the cluster failed a job a while ago: try it again.
                     self._connected = True
                     reconnected = True
                 else:
@@ -180,8 +187,9 @@ class DaskExecutor:
     def _mark_lost_locked(self, why: str) -> None:
         if self._connected:
             self._connected = False
+            self._lost_at = time.monotonic()
             self.losses += 1
-            log.warning("Dask scheduler %s lost (%s): computing on the local pool until it is "
+            log.warning("Dask cluster %s lost (%s): computing on the local pool until it is "
                         "back", self.name, why)
 
     def _lost(self, why: str) -> None:
@@ -199,7 +207,7 @@ class DaskExecutor:
             if fut is None or fut.status != "finished":
                 key = f"pvs-scene-{fp}"
                 fut = client.scatter({key: loaded.scene}, broadcast=True,
-                                     timeout=GATHER_TIMEOUT_S)[key]
+                                     timeout=NO_WORKERS_S)[key]
                 self._scenes[fp] = fut
             return fut
 
@@ -216,10 +224,10 @@ class DaskExecutor:
                 return self._remote(client, loaded, core, params, box, segment, token, priority)
             except _Lost as exc:
                 if client.status == "running" and attempt == 0:
-                    # The cluster is there but the job's data went (every holder of the
-                    # scene died): scatter again, once.
-                    log.warning("Dask job for %s lost its data (%s); resubmitting", loaded.name,
-                                exc)
+                    # The scheduler is there but the job failed around it (every holder of
+                    # the scene died, no worker to scatter to): scatter again, once.
+                    log.warning("Dask job for %s failed on the cluster (%s); trying once more",
+                                loaded.name, exc)
                     with self._scene_lock:
                         self._scenes.pop(loaded.fingerprint, None)
                     continue
