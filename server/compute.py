@@ -556,7 +556,7 @@ class ComputeService:
             priority = pool_job.priority if pool_job is not None else (job or {}).get(
                 "priority", 0.0)
             pvs = (executor or self.executor).compute(
-                loaded, core, params, box=None if segment is not None else viewcell.box,
+                loaded, core, params, cell=None if segment is not None else viewcell,
                 segment=segment, token=token, priority=priority)
             seconds = time.perf_counter() - t0
             # The core's own time: a remote round trip must not teach the cost model that

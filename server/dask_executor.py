@@ -6,7 +6,7 @@ What goes where
   under the key ``pvs-scene-<fingerprint>``, so every job refers to it instead of carrying it,
   and two servers on one cluster scattering the same geometry share one key. A worker started
   later fetches it from a peer.
-- A job is ``visibility.jobs.compute_within(scene, core, params, box, segment, seconds)``; it
+- A job is ``visibility.jobs.compute_within(scene, core, params, cell, segment, seconds)``; it
   returns the ``PVS`` (sorted int32 ids and the core's stats). The core travels as the
   object itself (its class by reference), so a core registered at run time in the server
   works as long as the workers can import its module.
@@ -48,6 +48,7 @@ import numpy as np
 from visibility.cancel import CancelToken
 from visibility.cores.base import PVS, Core, CoreParams
 from visibility.jobs import compute_region, compute_within
+from visibility.viewcells import Viewcell
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -212,7 +213,7 @@ class DaskExecutor:
             return fut
 
     def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
-                box: np.ndarray | None = None, segment: np.ndarray | None = None,
+                cell: Viewcell | None = None, segment: np.ndarray | None = None,
                 token: CancelToken | None = None, priority: float = 0.0) -> PVS:
         """The PVS on the cluster (see the module docstring), or on the local pool while the
         scheduler is away; the job's own exceptions are raised as they are."""
@@ -221,7 +222,7 @@ class DaskExecutor:
             if client is None:
                 break
             try:
-                return self._remote(client, loaded, core, params, box, segment, token, priority)
+                return self._remote(client, loaded, core, params, cell, segment, token, priority)
             except _Lost as exc:
                 if client.status == "running" and attempt == 0:
                     # The scheduler is there but the job failed around it (every holder of
@@ -233,18 +234,18 @@ class DaskExecutor:
                     continue
                 self._lost(str(exc))
                 break
-        return self._compute_here(loaded, core, params, box, segment, token)
+        return self._compute_here(loaded, core, params, cell, segment, token)
 
     def _compute_here(self, loaded: LoadedScene, core: Core, params: CoreParams,
-                      box: np.ndarray | None, segment: np.ndarray | None,
+                      cell: Viewcell | None, segment: np.ndarray | None,
                       token: CancelToken | None) -> PVS:
         with self._local:
             with self._lock:
                 self.local_jobs += 1
-            return compute_region(loaded.scene, core, params, box, segment, token)
+            return compute_region(loaded.scene, core, params, cell, segment, token)
 
     def _remote(self, client: Client, loaded: LoadedScene, core: Core, params: CoreParams,
-                box: np.ndarray | None, segment: np.ndarray | None, token: CancelToken | None,
+                cell: Viewcell | None, segment: np.ndarray | None, token: CancelToken | None,
                 priority: float) -> PVS:
         if token is not None:
             token.check()
@@ -254,7 +255,7 @@ class DaskExecutor:
         t0 = time.monotonic()
         try:
             scene = self._scene_future(client, loaded)
-            fut = client.submit(compute_within, scene, core, params, box, segment, seconds,
+            fut = client.submit(compute_within, scene, core, params, cell, segment, seconds,
                                 key=f"pvs-{core.name}-{uuid.uuid4().hex}", pure=False,
                                 priority=-round(1000 * float(priority)))
         except Exception as exc:  # the connection went while scattering or submitting

@@ -18,6 +18,7 @@ import numpy as np
 from visibility.cancel import CancelToken
 from visibility.cores.base import PVS, Core, CoreParams
 from visibility.jobs import compute_region
+from visibility.viewcells import Viewcell
 
 if TYPE_CHECKING:
     from server.catalog import LoadedScene
@@ -45,9 +46,9 @@ class Executor(Protocol):
     kind: str
 
     def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
-                box: np.ndarray | None = None, segment: np.ndarray | None = None,
+                cell: Viewcell | None = None, segment: np.ndarray | None = None,
                 token: CancelToken | None = None, priority: float = 0.0) -> PVS:
-        """The PVS of ``box`` or ``segment`` in the loaded scene, blocking the calling pool
+        """The PVS of viewcell ``cell`` or ``segment`` in the loaded scene, blocking the pool
         thread; stops with ``ComputationCancelled`` once ``token`` is cancelled or late.
         ``priority``: lower first (0: a walker needs it now)."""
         ...
@@ -75,11 +76,11 @@ class LocalExecutor:
         self.workers = int(workers)
 
     def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
-                box: np.ndarray | None = None, segment: np.ndarray | None = None,
+                cell: Viewcell | None = None, segment: np.ndarray | None = None,
                 token: CancelToken | None = None, priority: float = 0.0) -> PVS:
         """``visibility.jobs.compute_region`` here and now (``priority`` is the pool's
         business)."""
-        return compute_region(loaded.scene, core, params, box, segment, token)
+        return compute_region(loaded.scene, core, params, cell, segment, token)
 
     def slots(self) -> int:
         """The configured worker count."""
