@@ -181,7 +181,6 @@ def test_a_walkthrough_streams_through_the_cluster(cluster, settings):
     assert ex["overhead_ms"] is not None and ex["overhead_ms"] >= 0
 
 
-@pytest.mark.slow
 def test_a_worker_killed_mid_job_is_retried_and_the_client_sees_no_error(
         cluster, client, settings, registered_test_cores):
     with serving(settings, {"tiny": TINY}, executor=dask_url(cluster)) as (url, app):
