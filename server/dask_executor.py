@@ -108,23 +108,25 @@ class DaskExecutor:
         self.local_jobs = 0
         self.losses = 0
         self._overhead = 0.0
-        self._try_connect()
+        self._try_connect(initial=True)
 
     # ----------------------------------------------------------------------------- connection
-    def _try_connect(self) -> bool:
-        """One attempt to reach the scheduler; True when connected."""
+    def _try_connect(self, initial: bool = False) -> bool:
+        """One attempt to reach the scheduler; True when connected. The first one, failing,
+        says so in a warning; later ones only at debug level."""
         from distributed import Client
 
         self._last_try = time.monotonic()
+        client = None
         try:
             client = Client(self.address, timeout=self.connect_timeout, set_as_default=False)
             threads = int(sum(client.nthreads().values()))
         except Exception as exc:  # OSError, TimeoutError, version mismatches...
-            with self._lock:
-                first = self._client is None and self.losses == 0 and not self._connected
-                if first:
+            if client is not None:
+                _close_quietly(client)
+            if initial:
+                with self._lock:
                     self.losses += 1
-            if first:
                 log.warning("Dask scheduler %s unreachable (%s): computing on the local pool "
                             "until it is", self.name, _short(exc))
             else:

@@ -109,6 +109,37 @@ def test_an_unreachable_scheduler_leaves_the_local_pool_computing(settings, capl
     assert [r.message for r in caplog.records if "unreachable" in r.getMessage()]
 
 
+def test_the_executor_goes_back_to_the_cluster_when_its_scheduler_comes(settings, caplog):
+    from distributed import LocalCluster
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ex = DaskExecutor(f"tcp://127.0.0.1:{port}", 1, connect_timeout=0.5, reconnect_every=0.5)
+    catalog = SceneCatalog(settings.model_copy(update={"generated": {}}))
+    catalog.register("tiny", TINY)
+    loaded = catalog.get("tiny")
+    core = get_core("sampling")
+    params = core.make_params(**FAST)
+    want = core.compute(TINY, loaded.grid.cell(0), params).triangle_ids
+    late = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                        scheduler_port=port, dashboard_address=":0",
+                        silence_logs=logging.ERROR)
+    try:
+        with caplog.at_level(logging.INFO, logger="server.dask_executor"):
+            # Each job asks for the cluster; one of them starts the reconnection.
+            wait_for(lambda: ex.compute(loaded, core, params, cell=loaded.grid.cell(0)) is not None
+                     and ex.state()["state"] == "dask", 60)
+            got = ex.compute(loaded, core, params, cell=loaded.grid.cell(0))
+        state = ex.state()
+    finally:
+        ex.close()
+        late.close()
+    np.testing.assert_array_equal(got.triangle_ids, want)
+    assert state["remote_jobs"] >= 1 and state["local_jobs"] >= 1
+    assert any("computing on the Dask cluster" in r.getMessage() for r in caplog.records)
+
+
 # --------------------------------------------------------------------------- same answers
 @pytest.fixture(scope="module")
 def services(cluster):
