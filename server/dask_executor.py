@@ -188,7 +188,7 @@ class DaskExecutor:
         return client
 
     def _mark_lost_locked(self, why: str) -> None:
-        if self._connected:
+        if self._connected and not self._closed:  # closing is no loss
             self._connected = False
             self._lost_at = time.monotonic()
             self.losses += 1
