@@ -374,7 +374,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 EXECUTOR_HELP = ("where computations run: local (default) or dask://HOST:PORT, a Dask "
-                 "scheduler (PVS_EXECUTOR)")
+                 "scheduler; add ?scenes=load for workers that load the scenes themselves "
+                 "(PVS_EXECUTOR)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -138,7 +138,8 @@ class ComputeService:
         self.catalog = catalog
         self.settings = settings
         #: Where the session cores' computations run (``settings.executor``).
-        self.executor = executor or make_executor(settings.executor, settings.workers)
+        self.executor = executor or make_executor(settings.executor, settings.workers,
+                                                  settings.scenes_dir)
         # A pool thread waits on each remote job: as many threads as the cluster has workers,
         # keeping the light lane's reserve of settings.workers - heavy_lane_workers().
         jobs = max(settings.workers, self.executor.slots())

@@ -5,7 +5,11 @@ What goes where
 - The scene goes to the workers once per content hash: ``scatter`` with ``broadcast=True``
   under the key ``pvs-scene-<fingerprint>``, so every job refers to it instead of carrying it,
   and two servers on one cluster scattering the same geometry share one key. A worker started
-  later fetches it from a peer.
+  later fetches it from a peer. With ``?scenes=load`` the jobs carry a
+  ``visibility.jobs.SceneSource`` instead (the scene file's path, the same on every machine,
+  or the generator and size) and each worker process loads the scene once, checking its
+  content hash; a worker that cannot (no such file, other content) fails the job with
+  ``SceneUnavailable`` and that scene is scattered from then on (one warning line).
 - A job is ``visibility.jobs.compute_within(scene, core, params, cell, segment, seconds)``; it
   returns the ``PVS`` (sorted int32 ids and the core's stats). The core travels as the
   object itself (its class by reference), so a core registered at run time in the server
@@ -41,13 +45,14 @@ import logging
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from visibility.cancel import CancelToken
 from visibility.cores.base import PVS, Core, CoreParams
-from visibility.jobs import compute_region, compute_within
+from visibility.jobs import SceneSource, SceneUnavailable, compute_region, compute_within
 from visibility.viewcells import Viewcell
 
 if TYPE_CHECKING:
@@ -87,8 +92,14 @@ class DaskExecutor:
 
     def __init__(self, address: str, local_workers: int, *, name: str | None = None,
                  connect_timeout: float = CONNECT_TIMEOUT_S,
-                 reconnect_every: float = RECONNECT_S) -> None:
+                 reconnect_every: float = RECONNECT_S, load_scenes: bool = False,
+                 scenes_dir: Path | None = None) -> None:
         self.address = address
+        self.load_scenes = bool(load_scenes)
+        self.scenes_dir = scenes_dir
+        #: Fingerprints of scenes some worker could not load: scattered instead.
+        self._scatter_only: set[str] = set()
+        self.scattered = 0
         self.name = name or address
         self.connect_timeout = float(connect_timeout)
         self.reconnect_every = float(reconnect_every)
@@ -202,6 +213,15 @@ class DaskExecutor:
             self._scenes.clear()
 
     # ----------------------------------------------------------------------------- jobs
+    def _scene_arg(self, client: Client, loaded: LoadedScene) -> Future | SceneSource:
+        """What a job gets for its scene: its source when the workers load scenes themselves
+        and this one has a file or generator, else the scattered scene."""
+        if self.load_scenes and loaded.fingerprint not in self._scatter_only:
+            source = scene_source(loaded, self.scenes_dir)
+            if source is not None:
+                return source
+        return self._scene_future(client, loaded)
+
     def _scene_future(self, client: Client, loaded: LoadedScene) -> Future:
         """The scattered scene (once per fingerprint while the connection lasts)."""
         fp = loaded.fingerprint
@@ -212,6 +232,7 @@ class DaskExecutor:
                 fut = client.scatter({key: loaded.scene}, broadcast=True,
                                      timeout=NO_WORKERS_S)[key]
                 self._scenes[fp] = fut
+                self.scattered += 1
             return fut
 
     def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
@@ -219,12 +240,20 @@ class DaskExecutor:
                 token: CancelToken | None = None, priority: float = 0.0) -> PVS:
         """The PVS on the cluster (see the module docstring), or on the local pool while the
         scheduler is away; the job's own exceptions are raised as they are."""
-        for attempt in range(2):
+        for attempt in range(3):
             client = self._usable()
             if client is None:
                 break
             try:
                 return self._remote(client, loaded, core, params, cell, segment, token, priority)
+            except SceneUnavailable as exc:
+                with self._lock:
+                    first = loaded.fingerprint not in self._scatter_only
+                    self._scatter_only.add(loaded.fingerprint)
+                if first:
+                    log.warning("a Dask worker could not load scene %s (%s): scattering it "
+                                "instead", loaded.name, exc)
+                continue
             except _Lost as exc:
                 if client.status == "running" and attempt == 0:
                     # The scheduler is there but the job failed around it (every holder of
@@ -256,7 +285,7 @@ class DaskExecutor:
             seconds = max(0.0, token.deadline - time.monotonic())
         t0 = time.monotonic()
         try:
-            scene = self._scene_future(client, loaded)
+            scene = self._scene_arg(client, loaded)
             fut = client.submit(compute_within, scene, core, params, cell, segment, seconds,
                                 key=f"pvs-{core.name}-{uuid.uuid4().hex}", pure=False,
                                 priority=-round(1000 * float(priority)))
@@ -302,6 +331,8 @@ class DaskExecutor:
             n = self.remote_jobs
             return {"kind": "dask", "scheduler": self.name,
                     "state": "dask" if on else "local_fallback",
+                    "scenes": "load" if self.load_scenes else "scatter",
+                    "scattered": self.scattered,
                     "worker_threads": self._threads, "remote_jobs": n,
                     "local_jobs": self.local_jobs, "losses": self.losses,
                     "overhead_ms": round(1000 * self._overhead / n, 2) if n else None}
@@ -314,6 +345,19 @@ class DaskExecutor:
             self._connected = False
         if client is not None:
             _close_quietly(client)
+
+
+def scene_source(loaded: LoadedScene, scenes_dir: Path | None) -> SceneSource | None:
+    """Where a worker finds ``loaded``: its file under ``scenes_dir`` (an absolute path) or
+    its generator; None for a scene registered in memory."""
+    src = loaded.info.get("source") or {}
+    fp = loaded.fingerprint
+    if loaded.kind == "file" and scenes_dir is not None and "file" in src:
+        return SceneSource(fp, loaded.name, path=str(Path(scenes_dir).resolve() / src["file"]))
+    if loaded.kind == "generated" and "generator" in src:
+        return SceneSource(fp, loaded.name, generator=src["generator"],
+                           triangles=int(src["triangles"]), seed=int(src.get("seed", 0)))
+    return None
 
 
 def _short(exc: BaseException) -> str:

@@ -11,6 +11,7 @@ imported only when a Dask executor is made: the default path never loads it.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -24,19 +25,34 @@ if TYPE_CHECKING:
     from server.catalog import LoadedScene
 
 LOCAL = "local"
-_DASK = re.compile(r"^dask://(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>\d{1,5})/?$")
+_DASK = re.compile(r"^dask://(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>\d{1,5})/?"
+                   r"(\?scenes=(?P<scenes>scatter|load))?$")
 
 
-def scheduler_address(executor: str) -> str | None:
-    """The Dask scheduler address (``tcp://host:port``) an ``executor`` setting names, or None
-    for ``"local"``; ValueError for anything else."""
+def _parse(executor: str) -> re.Match | None:
     text = executor.strip()
     if text == LOCAL:
         return None
     m = _DASK.match(text)
     if m is None or not 0 < int(m["port"]) <= 65535:
-        raise ValueError(f"executor must be 'local' or 'dask://HOST:PORT', got {executor!r}")
-    return f"tcp://{m['host']}:{int(m['port'])}"
+        raise ValueError(f"executor must be 'local' or 'dask://HOST:PORT' (optionally "
+                         f"'?scenes=load'), got {executor!r}")
+    return m
+
+
+def scheduler_address(executor: str) -> str | None:
+    """The Dask scheduler address (``tcp://host:port``) an ``executor`` setting names, or None
+    for ``"local"``; ValueError for anything else."""
+    m = _parse(executor)
+    return None if m is None else f"tcp://{m['host']}:{int(m['port'])}"
+
+
+def workers_load_scenes(executor: str) -> bool:
+    """Whether a ``dask://...?scenes=load`` setting asks the workers to load each scene
+    themselves (the same scene file path on every machine, or the same generator) instead of
+    receiving it scattered from the server."""
+    m = _parse(executor)
+    return m is not None and m["scenes"] == "load"
 
 
 class Executor(Protocol):
@@ -94,12 +110,14 @@ class LocalExecutor:
         """Nothing to release."""
 
 
-def make_executor(executor: str, workers: int) -> Executor:
+def make_executor(executor: str, workers: int, scenes_dir: Path | None = None) -> Executor:
     """The executor an ``executor`` setting names; ``workers``: local computations at once
-    (also the Dask executor's fallback while its scheduler is away)."""
+    (also the Dask executor's fallback while its scheduler is away); ``scenes_dir``: where the
+    server's scene files are (for ``?scenes=load``)."""
     address = scheduler_address(executor)
     if address is None:
         return LocalExecutor(workers)
     from server.dask_executor import DaskExecutor
 
-    return DaskExecutor(address, workers, name=executor.strip())
+    return DaskExecutor(address, workers, name=executor.strip(),
+                        load_scenes=workers_load_scenes(executor), scenes_dir=scenes_dir)

@@ -118,7 +118,9 @@ class Settings(BaseModel):
     executor : where the session cores' computations run: ``local`` (this process's worker
         pool, the default) or ``dask://HOST:PORT`` (a ``distributed`` scheduler,
         ``server.dask_executor``; ``workers`` then bounds the local stand-in while the
-        scheduler is away, and the pool gets a thread per cluster worker thread).
+        scheduler is away, and the pool gets a thread per cluster worker thread);
+        ``dask://HOST:PORT?scenes=load``: the workers load each scene themselves (same file
+        path, or the generator), checked by content hash, instead of receiving it scattered.
     """
 
     model_config = ConfigDict(extra="forbid")

@@ -70,7 +70,8 @@ def test_the_executor_setting_names_local_or_a_scheduler():
     assert Settings(executor="dask://10.0.0.5:8786").executor == "dask://10.0.0.5:8786"
     assert scheduler_address("dask://sched.example:8786") == "tcp://sched.example:8786"
     assert Settings.from_env({"PVS_EXECUTOR": "dask://h:1"}).executor == "dask://h:1"
-    for bad in ("dask://host", "spark://h:1", "dask://h:0", "dask://h:99999", ""):
+    for bad in ("dask://host", "spark://h:1", "dask://h:0", "dask://h:99999", "",
+                "dask://h:1?scenes=copy"):
         with pytest.raises(ValueError):
             Settings(executor=bad)
 
@@ -176,6 +177,55 @@ def test_same_pvs_on_the_cluster_as_on_the_local_pool(services, core_name):
     state = remote.executor.state()
     assert state["state"] == "dask" and state["remote_jobs"] == before + 1
     assert state["local_jobs"] == 0
+
+
+def test_workers_load_scenes_themselves_by_content_hash(cluster, settings, scenes_dir, tmp_path,
+                                                        caplog):
+    """``?scenes=load``: the workers load scene files (the same path) and regenerate generated
+    scenes, checked by content hash, and nothing is scattered; a scene registered in memory,
+    and a file whose content changed after the server loaded it, are scattered instead."""
+    import shutil
+
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    for f in ("box.obj", "box.json"):
+        shutil.copy(scenes_dir / f, folder / f)
+    shutil.copy(scenes_dir / "box.obj", folder / "changed.obj")
+    s = settings.model_copy(update={"scenes_dir": folder, "generated": {"rooms": 3000},
+                                    "executor": dask_url(cluster) + "?scenes=load"})
+    assert Settings(executor="dask://h:1?scenes=load").executor.endswith("?scenes=load")
+    service = ComputeService(SceneCatalog(s), s)
+    service.catalog.register("tiny", TINY)
+    core = get_core("sampling")
+    params = core.make_params(**FAST)
+
+    def both(name: str, cell: int) -> tuple[np.ndarray, np.ndarray]:
+        loaded = service.catalog.get(name)
+        want = core.compute(loaded.scene, loaded.grid.cell(cell), params).triangle_ids
+        got = service.submit(name, core, params, cell=cell).result(timeout=120)
+        return got.pvs.triangle_ids, want
+
+    try:
+        for name in ("box", "rooms"):
+            np.testing.assert_array_equal(*both(name, 0))
+        state = service.executor.state()
+        assert state["scenes"] == "load" and state["scattered"] == 0
+        assert state["remote_jobs"] == 2 and state["local_jobs"] == 0
+        np.testing.assert_array_equal(*both("tiny", 1))  # in memory: scattered
+        assert service.executor.state()["scattered"] == 1
+        service.catalog.get("changed")  # the server holds the box...
+        v = "\n".join(f"v {x} {y} {z}" for x, y, z in
+                      [(0, 0, 0), (9, 0, 0), (9, 4, 0), (0, 4, 9)])
+        (folder / "changed.obj").write_text(v + "\nf 1 2 3\nf 1 3 4\n")  # ...the file, other
+        with caplog.at_level(logging.WARNING, logger="server.dask_executor"):
+            got, want = both("changed", 0)
+        np.testing.assert_array_equal(got, want)
+        assert len(want) > 0
+        state = service.executor.state()
+    finally:
+        service.shutdown()
+    assert state["scattered"] == 2 and state["local_jobs"] == 0
+    assert [r for r in caplog.records if "could not load scene changed" in r.getMessage()]
 
 
 # --------------------------------------------------------------------------- live server
