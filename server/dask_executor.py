@@ -21,9 +21,10 @@ What goes where
 
 Faults
 ------
-- A worker that dies mid-job: the scheduler itself gives the job to another worker (up to
-  ``distributed.scheduler.allowed-failures`` deaths, default 3, then ``KilledWorker``, the
-  job's failure). ``retries=`` is deliberately not used: it re-runs jobs that *raised*, and a
+- A worker that dies mid-job: the scheduler itself gives the job to another worker (a job
+  survives ``distributed.scheduler.allowed-failures`` such deaths, default 3; the next fails
+  it with ``KilledWorker``, the job's failure: it may be what kills them). ``retries=`` is
+  deliberately not used: it re-runs jobs that *raised*, and a
   core's exception is its answer, as in the local pool (``server.pool``).
 - A lost scheduler (unreachable at start, closed, network gone): one warning line, then every
   job, including those under way, runs on the local pool (at most ``workers`` at once); a new
