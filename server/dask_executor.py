@@ -24,8 +24,8 @@ Faults
 - A worker that dies mid-job: the scheduler itself gives the job to another worker (a job
   survives ``distributed.scheduler.allowed-failures`` such deaths, default 3; the next fails
   it with ``KilledWorker``, the job's failure: it may be what kills them). ``retries=`` is
-  deliberately not used: it re-runs jobs that *raised*, and a
-  core's exception is its answer, as in the local pool (``server.pool``).
+  deliberately not used: it re-runs jobs that *raised*, and a core's exception is its
+  answer, as in the local pool (``server.pool``).
 - A lost scheduler (unreachable at start, closed, network gone): one warning line, then every
   job, including those under way, runs on the local pool (at most ``workers`` at once); a new
   connection is tried every ``RECONNECT_S`` seconds, and an info line says when it is back.
