@@ -69,7 +69,8 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
              "cache_dir": Path(args.cache_dir) if getattr(args, "cache_dir", None) else None,
              "progressive": getattr(args, "progressive", None),
              "tokens_file": Path(args.tokens_file) if getattr(args, "tokens_file", None)
-             else None, "cors_origins": getattr(args, "cors_origin", None)}
+             else None, "cors_origins": getattr(args, "cors_origin", None),
+             "executor": getattr(args, "executor", None)}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -399,6 +400,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(list(args.rest))
 
 
+EXECUTOR_HELP = ("where computations run: local (default) or dask://HOST:PORT, a Dask "
+                 "scheduler; add ?scenes=load for workers that load the scenes themselves "
+                 "(PVS_EXECUTOR)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="pvs", description=__doc__.splitlines()[0])
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -424,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cors-origin", action="append", metavar="ORIGIN",
                    help="origin whose pages may use the API and WebSockets from a browser, "
                         "e.g. https://viewer.example.org, or * (repeatable; PVS_CORS_ORIGINS)")
+    p.add_argument("--executor", help=EXECUTOR_HELP)
     p.set_defaults(fn=cmd_serve)
 
     p = sub.add_parser("walk", help="replay a walkthrough with the headless client",
@@ -501,6 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", help="folder of scene files (PVS_SCENES_DIR)")
     p.add_argument("--cell-size", type=float, help="viewcell size in metres (PVS_CELL_SIZE)")
     p.add_argument("--workers", type=int, help="computations at once (PVS_WORKERS)")
+    p.add_argument("--executor", help=EXECUTOR_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_precompute, host=None, port=None)
 

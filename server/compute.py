@@ -26,6 +26,7 @@ from pydantic import ConfigDict, TypeAdapter, ValidationError
 from server.admission import Admission, Refused
 from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
+from server.executor import Executor, LocalExecutor, make_executor
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
 from server.settings import Settings
 from visibility.calibration import Calibration
@@ -127,17 +128,28 @@ class PVSResult:
 
 # --------------------------------------------------------------------------- service
 class ComputeService:
-    """PVS requests for catalogue scenes: cache, shared in-flight work, a worker pool."""
+    """PVS requests for catalogue scenes: cache, shared in-flight work, a worker pool whose
+    jobs compute on an executor (``server.executor``: here, or on a Dask cluster)."""
 
     def __init__(
-        self, catalog: SceneCatalog, settings: Settings, pool: WorkerPool | None = None
+        self, catalog: SceneCatalog, settings: Settings, pool: WorkerPool | None = None,
+        executor: Executor | None = None,
     ) -> None:
         self.catalog = catalog
         self.settings = settings
-        self.pool = pool or PriorityWorkerPool(settings.workers, settings.heavy_lane_workers())
+        #: Where the session cores' computations run (``settings.executor``).
+        self.executor = executor or make_executor(settings.executor, settings.workers,
+                                                  settings.scenes_dir)
+        # A pool thread waits on each remote job: as many threads as the cluster has workers,
+        # keeping the light lane's reserve of settings.workers - heavy_lane_workers().
+        jobs = max(settings.workers, self.executor.slots())
+        heavy = jobs - (settings.workers - settings.heavy_lane_workers())
+        self.pool = pool or PriorityWorkerPool(jobs, heavy)
         #: First answers (``settings.progressive``) run here, on a worker of their own: they
-        #: take tens of milliseconds, and must not queue behind the session cores' work.
+        #: take tens of milliseconds, and must not queue behind the session cores' work. They
+        #: compute in this process whatever the executor: a cluster's round trip costs as much.
         self.first_pool = PriorityWorkerPool(1) if settings.progressive else None
+        self._here = LocalExecutor(1)
         self._first: tuple[Core, CoreParams] | None = None
         #: Calibrations of ``auto`` by (scene name, cell size); None while one is measured.
         self.calibrations: dict[tuple[str, float], Calibration | None] = {}
@@ -352,11 +364,17 @@ class ComputeService:
                                    pool)
                 token = CancelToken.after(budget)
                 model = float(cost.detail.get("model_seconds", cost.seconds))
-                args = (self._run, key, scene, core, params, cell, box, segment, token, model)
+                executor = self._here if pool is self.first_pool else self.executor
+                job: dict[str, Any] = {"priority": priority}
+                args = (self._run, key, scene, core, params, cell, box, segment, token, model,
+                        executor, job)
                 if isinstance(pool, PriorityWorkerPool):
                     fut = pool.submit(
                         *args, priority=priority, wanted=wanted, seconds=cost.seconds,
                         heavy=cost.seconds > self.settings.heavy_seconds)
+                    # The executor reads the priority when the job starts: a promoted job
+                    # (a walker reached a prefetched cell) goes to a cluster at its new rank.
+                    job["pool_job"] = getattr(fut, "job", None)
                 else:
                     fut = pool.submit(*args)
                 if client is not None:
@@ -509,6 +527,8 @@ class ComputeService:
         segment: np.ndarray | None = None,
         token: CancelToken | None = None,
         model_seconds: float = 0.0,
+        executor: Executor | None = None,
+        job: dict[str, Any] | None = None,
     ) -> PVSResult:
         try:
             loaded = self.catalog.get(scene)
@@ -533,13 +553,16 @@ class ComputeService:
                 self.cache.put(key, pvs)
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
             t0 = time.perf_counter()
-            if segment is not None:
-                pvs = core.compute_segment(loaded.scene, segment[0], segment[1], params,
-                                           token=token)
-            else:
-                pvs = core.compute(loaded.scene, viewcell, params, token=token)
+            pool_job = (job or {}).get("pool_job")
+            priority = pool_job.priority if pool_job is not None else (job or {}).get(
+                "priority", 0.0)
+            pvs = (executor or self.executor).compute(
+                loaded, core, params, cell=None if segment is not None else viewcell,
+                segment=segment, token=token, priority=priority)
             seconds = time.perf_counter() - t0
-            self.admission.observe(scene, core.name, model_seconds, seconds)
+            # The core's own time: a remote round trip must not teach the cost model that
+            # this machine is slower.
+            self.admission.observe(scene, core.name, model_seconds, pvs.seconds or seconds)
             log.debug("PVS %s cell=%s core=%s: %d triangles in %.3f s", scene, cell, core.name,
                       len(pvs), seconds)
             self.cache.put(key, pvs)
@@ -570,7 +593,7 @@ class ComputeService:
                "cancelled": self.cancelled, "abandoned": self.abandoned,
                "shared": self.shared, "inflight": inflight,
                "workers": getattr(self.pool, "workers", None),
-               "admission": self.admission.stats()}
+               "admission": self.admission.stats(), "executor": self.executor.state()}
         if isinstance(self.pool, PriorityWorkerPool):
             out["pool"] = {"retried": self.pool.retried, "replaced": self.pool.replaced,
                            "skipped": self.pool.skipped, "queued": self.pool.queued(),
@@ -588,6 +611,7 @@ class ComputeService:
         self.pool.shutdown(wait=False, cancel_futures=True)
         if self.first_pool is not None:
             self.first_pool.shutdown(wait=False, cancel_futures=True)
+        self.executor.close()
 
 
 # --------------------------------------------------------------------------- auto core

@@ -121,6 +121,12 @@ class Settings(BaseModel):
     cors_origins : origins whose pages may call the API from a browser (CORS) and open
         WebSockets (``*``: any; ``server.cors``); none (the default): no CORS headers and
         WebSockets from any origin.
+    executor : where the session cores' computations run: ``local`` (this process's worker
+        pool, the default) or ``dask://HOST:PORT`` (a ``distributed`` scheduler,
+        ``server.dask_executor``; ``workers`` then bounds the local stand-in while the
+        scheduler is away, and the pool gets a thread per cluster worker thread);
+        ``dask://HOST:PORT?scenes=load``: the workers load each scene themselves (same file
+        path, or the generator), checked by content hash, instead of receiving it scattered.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -177,6 +183,16 @@ class Settings(BaseModel):
     tokens_file: Path | None = None
     tokens: list[SecretStr] = Field(default_factory=list)
     cors_origins: list[str] = Field(default_factory=list)
+    # where computations run
+    executor: str = "local"
+
+    @field_validator("executor")
+    @classmethod
+    def _executor(cls, v: str) -> str:
+        from server.executor import scheduler_address
+
+        scheduler_address(v)  # ValueError naming the two forms
+        return v.strip()
 
     @field_validator("generated")
     @classmethod
@@ -244,6 +260,7 @@ class Settings(BaseModel):
         PVS_PVS_RATE, PVS_PVS_BURST,
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_TOKENS_FILE, PVS_TOKENS and PVS_CORS_ORIGINS (comma lists),
+        PVS_EXECUTOR (local or dask://HOST:PORT),
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -278,6 +295,7 @@ class Settings(BaseModel):
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
             "tokens_file": "PVS_TOKENS_FILE",
+            "executor": "PVS_EXECUTOR",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":

@@ -1,0 +1,123 @@
+"""Where a PVS computation runs: in the server's own worker threads (``LocalExecutor``, the
+default) or on a Dask cluster (``server.dask_executor.DaskExecutor``, ``executor =
+"dask://host:8786"``).
+
+``ComputeService`` keeps everything around a computation (cache, shared in-flight requests,
+admission, the priority pool that orders the work) and hands only the computation itself to its
+executor, so both executors give the same answers under the same keys. ``distributed`` is
+imported only when a Dask executor is made: the default path never loads it.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from visibility.cancel import CancelToken
+from visibility.cores.base import PVS, Core, CoreParams
+from visibility.jobs import compute_region
+from visibility.viewcells import Viewcell
+
+if TYPE_CHECKING:
+    from server.catalog import LoadedScene
+
+LOCAL = "local"
+_DASK = re.compile(r"^dask://(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>\d{1,5})/?"
+                   r"(\?scenes=(?P<scenes>scatter|load))?$")
+
+
+def _parse(executor: str) -> re.Match | None:
+    text = executor.strip()
+    if text == LOCAL:
+        return None
+    m = _DASK.match(text)
+    if m is None or not 0 < int(m["port"]) <= 65535:
+        raise ValueError(f"executor must be 'local' or 'dask://HOST:PORT' (optionally "
+                         f"'?scenes=load'), got {executor!r}")
+    return m
+
+
+def scheduler_address(executor: str) -> str | None:
+    """The Dask scheduler address (``tcp://host:port``) an ``executor`` setting names, or None
+    for ``"local"``; ValueError for anything else."""
+    m = _parse(executor)
+    return None if m is None else f"tcp://{m['host']}:{int(m['port'])}"
+
+
+def workers_load_scenes(executor: str) -> bool:
+    """Whether a ``dask://...?scenes=load`` setting asks the workers to load each scene
+    themselves (the same scene file path on every machine, or the same generator) instead of
+    receiving it scattered from the server."""
+    m = _parse(executor)
+    return m is not None and m["scenes"] == "load"
+
+
+class Executor(Protocol):
+    """What ``ComputeService`` needs from the place computations run."""
+
+    #: "local" or "dask".
+    kind: str
+
+    def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
+                cell: Viewcell | None = None, segment: np.ndarray | None = None,
+                token: CancelToken | None = None, priority: float = 0.0) -> PVS:
+        """The PVS of viewcell ``cell`` or ``segment`` in the loaded scene, blocking the pool
+        thread; stops with ``ComputationCancelled`` once ``token`` is cancelled or late.
+        ``priority``: lower first (0: a walker needs it now)."""
+        ...
+
+    def slots(self) -> int:
+        """Computations worth keeping under way at once (the pool's thread count)."""
+        ...
+
+    def state(self) -> dict[str, Any]:
+        """What /health shows: the kind, where, and whether it is working."""
+        ...
+
+    def close(self) -> None:
+        """Release connections (idempotent)."""
+        ...
+
+
+class LocalExecutor:
+    """Computes in the calling thread: the pool's threads are the workers (numba kernels
+    release the GIL)."""
+
+    kind = LOCAL
+
+    def __init__(self, workers: int = 1) -> None:
+        self.workers = int(workers)
+
+    def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
+                cell: Viewcell | None = None, segment: np.ndarray | None = None,
+                token: CancelToken | None = None, priority: float = 0.0) -> PVS:
+        """``visibility.jobs.compute_region`` here and now (``priority`` is the pool's
+        business)."""
+        return compute_region(loaded.scene, core, params, cell, segment, token)
+
+    def slots(self) -> int:
+        """The configured worker count."""
+        return self.workers
+
+    def state(self) -> dict[str, Any]:
+        """``{"kind": "local", "state": "running", "workers": n}``."""
+        return {"kind": LOCAL, "state": "running", "workers": self.workers}
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def make_executor(executor: str, workers: int, scenes_dir: Path | None = None) -> Executor:
+    """The executor an ``executor`` setting names; ``workers``: local computations at once
+    (also the Dask executor's fallback while its scheduler is away); ``scenes_dir``: where the
+    server's scene files are (for ``?scenes=load``)."""
+    address = scheduler_address(executor)
+    if address is None:
+        return LocalExecutor(workers)
+    from server.dask_executor import DaskExecutor
+
+    return DaskExecutor(address, workers, name=executor.strip(),
+                        load_scenes=workers_load_scenes(executor), scenes_dir=scenes_dir)
