@@ -9,6 +9,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -115,6 +116,15 @@ class Settings(BaseModel):
     max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
         memory); a larger one is refused without reading it. Default
         ``visibility.loaders.MAX_FILE_BYTES``.
+    cache : the PVS cache behind memory: ``"disk"`` (the default: ``cache_dir`` when set) or a
+        Redis URL (``redis://host:port/db``, ``rediss://``, ``unix://``) that several replicas
+        share for PVS and near-far cubemaps (``server.redis_cache``), before ``cache_dir``.
+    redis_ttl : seconds a value lives in Redis (0: until Redis evicts it; bound the total with
+        Redis's ``maxmemory`` and an LRU policy).
+    redis_max_value_bytes : largest value written to Redis, bytes (larger ones stay local).
+    redis_timeout : seconds one Redis call may take; past it Redis counts as down.
+    redis_retry : seconds between pings of a Redis that is down (and of one that is up, so
+        ``/health`` tells).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -167,6 +177,24 @@ class Settings(BaseModel):
     # scene files
     max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
     max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
+    # shared cache (Redis)
+    cache: str = "disk"
+    redis_ttl: float = Field(7 * 86400.0, ge=0, allow_inf_nan=False)
+    redis_max_value_bytes: int = Field(8 << 20, ge=1024, le=512 << 20)
+    redis_timeout: float = Field(0.25, gt=0, le=30, allow_inf_nan=False)
+    redis_retry: float = Field(2.0, gt=0, le=3600, allow_inf_nan=False)
+
+    @field_validator("cache")
+    @classmethod
+    def _cache_url(cls, v: str) -> str:
+        v = v.strip()
+        if v == "disk":
+            return v
+        u = urlsplit(v)
+        if u.scheme in ("redis", "rediss") and u.hostname or u.scheme == "unix" and u.path:
+            return v
+        raise ValueError(f"cache must be 'disk' or a Redis URL (redis://host:port/db, "
+                         f"rediss://..., unix:///path), got {v!r}")
 
     @field_validator("generated")
     @classmethod
@@ -217,6 +245,7 @@ class Settings(BaseModel):
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
         PVS_PVS_RATE, PVS_PVS_BURST,
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
+        PVS_CACHE, PVS_REDIS_TTL, PVS_REDIS_MAX_VALUE_BYTES, PVS_REDIS_TIMEOUT, PVS_REDIS_RETRY,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -250,6 +279,10 @@ class Settings(BaseModel):
             # scene files
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
+            # shared cache (Redis)
+            "cache": "PVS_CACHE", "redis_ttl": "PVS_REDIS_TTL",
+            "redis_max_value_bytes": "PVS_REDIS_MAX_VALUE_BYTES",
+            "redis_timeout": "PVS_REDIS_TIMEOUT", "redis_retry": "PVS_REDIS_RETRY",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
