@@ -194,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     args.params = json.loads(args.params)
     if not available():
         raise SystemExit("redis-server is not installed (scripts/setup.sh installs it)")
-    command = "python -m benchmarks.bench_redis " + " ".join(
-        argv if argv is not None else sys.argv[1:])
+    command = ("python -m benchmarks.bench_redis " + " ".join(
+        argv if argv is not None else sys.argv[1:])).strip()
     where = machine()
     print("command: " + command)
     print("machine: " + where)
