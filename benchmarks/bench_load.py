@@ -375,7 +375,7 @@ async def run_clients(url: str | list[str], args: argparse.Namespace, clients: i
 
 
 #: PVS answered from the shared Redis cache (``--replicas``; NaN without Redis).
-REDIS_HITS = 'pvs_cache_tier_hits_total{tier="redis",kind="pvs"}'
+REDIS_HITS = 'pvs_cache_tier_hits_total{kind="pvs",tier="redis"}'
 #: Server counters the summary reports (``/metrics``), as differences over one run.
 COUNTERS = ("pvs_bytes_sent_total", "pvs_computations_total", "pvs_stalls_total",
             "pvs_computation_seconds_sum", "pvs_cache_hits_total",

@@ -152,11 +152,14 @@ def test_cache_setting_env_and_flag():
     assert serve_settings(args, env={}).cache == "redis://127.0.0.1:7000/0"
 
 
-def test_health_names_the_disk_backend_without_redis(settings):
-    with serving(settings) as (url, app):
+def test_health_names_the_disk_backend_without_redis(settings, tmp_path):
+    with serving(settings, cache_dir=tmp_path) as (url, app):
         cache = httpx.get(url + "/health", timeout=30).json()["cache"]
-        assert cache == {"backend": "disk", "up": True, "disk": False}
-        assert "pvs_redis_up" not in httpx.get(url + "/metrics", timeout=30).text
+        assert cache == {"backend": "disk", "up": True, "disk": True}
+        text = httpx.get(url + "/metrics", timeout=30).text
+        assert "pvs_redis_up" not in text
+        assert metric(text, "pvs_cache_tier_hits_total", tier="disk", kind="pvs") == 0
+        assert metric(text, "pvs_cache_tier_misses_total", tier="memory", kind="near_far") == 0
 
 
 # --------------------------------------------------------------------------- helpers
@@ -420,3 +423,20 @@ def test_precompute_fills_redis_and_resumes_from_it(settings, registered_test_co
     finally:
         dead.shutdown()
     assert report.failed and "Redis" in report.failed[4]
+
+
+def test_pvs_precompute_command_fills_redis(redis_server, monkeypatch, capsys):
+    """``pvs precompute --cache redis://…`` needs no folder; a second run finds every cell."""
+    from pvs_cli import main
+
+    monkeypatch.setenv("PVS_GENERATED", "rooms=2000")
+    monkeypatch.setenv("PVS_CALIBRATE", "0")
+    monkeypatch.delenv("PVS_CACHE_DIR", raising=False)
+    argv = ["precompute", "--scene", "rooms", "--cache", redis_server.url, "--cells", "0-1",
+            "--core", "sampling", "--param", "samples=2", "--param", "resolution=32",
+            "--scenes", str(REPO / "nonexistent-scenes-dir"), "--quiet"]
+    assert main(argv) == 0
+    assert "2 computed" in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "0 computed" in capsys.readouterr().out and \
+        len(redis_server.client().keys("pvs:v1:*:sampling:*:[01]:*")) >= 2
