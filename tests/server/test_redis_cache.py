@@ -210,6 +210,35 @@ def server_process(redis_url: str) -> Iterator[str]:
 
 
 # --------------------------------------------------------------------------- live, shared
+def test_shared_cache_bounds_values_and_deletes_bad_ones(redis_server):
+    """A value over ``redis_max_value_bytes`` stays local; a value that fails its checks is a
+    miss and is deleted; the TTL is set on every write."""
+    from server.redis_cache import RedisLink, SharedCache
+
+    shared = SharedCache(RedisLink(redis_server.url, timeout=1.0), ttl=30,
+                         max_value_bytes=2048)
+    client = redis_server.client()
+    try:
+        key = pvs_key("b" * 16, "sampling", "", 1, BOX)
+        ids = np.unique(np.random.default_rng(2).integers(0, 200_000, 20_000))
+        big = PVS(ids.astype(np.int32))  # random gaps: over 2 KiB even compressed
+        assert not shared.put_pvs(key, big, 200_000)
+        assert client.get(key) is None and shared.stats()["pvs"]["too_large"] == 1
+        small = PVS(np.array([1, 2, 3], np.int32))
+        assert shared.put_pvs(key, small, 10)
+        assert 0 < client.pttl(key) <= 30_000
+        np.testing.assert_array_equal(shared.get_pvs(key, 10).triangle_ids, [1, 2, 3])
+        client.set(key, b"PVSr this is not a value")
+        assert shared.get_pvs(key, 10) is None
+        assert client.get(key) is None  # deleted, so the next writer replaces it
+        assert shared.stats()["pvs"]["rejected"] == 1
+        bkey = cubemap_key("b" * 16, "c", 40.0, 80.0, 32, 1, BOX)
+        assert shared.put_blob(bkey, b"frame" * 10) and shared.get_blob(bkey) == b"frame" * 10
+    finally:
+        shared.close()
+        client.close()
+
+
 def test_two_server_processes_share_a_pvs_through_redis(redis_server):
     """The first process computes cell 3; the second answers it from Redis: cached, marked as
     Redis's, its Redis hit counted and no computation run."""
