@@ -345,6 +345,28 @@ def test_redis_restart_mid_walkthrough_costs_the_walker_nothing(settings, regist
         redis.close()
 
 
+def test_progressive_walker_gets_redis_answers_without_first_answers(
+        settings, registered_test_cores, redis_server):
+    """Progressive streams on two servers sharing Redis: the second server's walker gets each
+    cell the first computed as the full answer from Redis, and no first answer is computed
+    for it (the session waits ``SHARED_CACHE_GRACE_S`` for Redis before starting one)."""
+    tiny = make_tiny_scene()
+    opts = dict(progressive=True, cache=redis_server.url)
+    with serving(settings, {"tiny": tiny}, **opts) as (url_a, app_a), \
+            serving(settings, {"tiny": tiny}, **opts) as (url_b, app_b):
+        boxes = app_a.state.server.catalog.get("tiny").grid.boxes
+        walk = [(c, boxes[c].mean(axis=0)) for c in (4, 5, 6)]
+        _walk(url_a, walk, {})
+        b = _walk(url_b, walk, {})
+        assert not b.errors and not b.local_errors
+        assert [b.cells[c].answer for c, _ in walk] == ["full"] * 3
+        compute = app_b.state.server.compute
+        first_core = compute.first_core()[0].name
+        assert compute.computed == 0
+        assert not [k for k in list(compute.cache._data) if k[2] == first_core]
+        assert redis_stats(url_b)["pvs"]["hits"] == 3
+
+
 def test_server_serves_with_redis_down_at_start(settings, registered_test_cores):
     if not available():
         pytest.skip("redis-server is not installed (scripts/setup.sh installs it)")
