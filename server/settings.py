@@ -191,6 +191,10 @@ class Settings(BaseModel):
         if v == "disk":
             return v
         u = urlsplit(v)
+        try:
+            u.port  # noqa: B018 - raises ValueError for a port that is not a number
+        except ValueError:
+            raise ValueError(f"cache: bad port in Redis URL {v!r}") from None
         if u.scheme in ("redis", "rediss") and u.hostname or u.scheme == "unix" and u.path:
             return v
         raise ValueError(f"cache must be 'disk' or a Redis URL (redis://host:port/db, "

@@ -146,6 +146,8 @@ def test_cache_setting_env_and_flag():
     for bad in ("memcached://x:1", "redis://", "somewhere"):
         with pytest.raises(ValueError, match="Redis URL"):
             Settings(cache=bad, generated={})
+    with pytest.raises(ValueError, match="port"):
+        Settings(cache="redis://localhost:sixty/0", generated={})
     with pytest.raises(ValueError):
         Settings(redis_ttl=-1, generated={})
     args = build_parser().parse_args(["serve", "--cache", "redis://127.0.0.1:7000/0"])
