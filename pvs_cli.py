@@ -70,7 +70,8 @@ def serve_settings(args: argparse.Namespace, env: Mapping[str, str] | None = Non
              "progressive": getattr(args, "progressive", None),
              "tokens_file": Path(args.tokens_file) if getattr(args, "tokens_file", None)
              else None, "cors_origins": getattr(args, "cors_origin", None),
-             "executor": getattr(args, "executor", None)}
+             "executor": getattr(args, "executor", None),
+             "cache": getattr(args, "cache", None)}
     updates = {k: v for k, v in flags.items() if v is not None}
     if "scenes_dir" not in updates and not env.get("PVS_SCENES_DIR") \
             and DEFAULT_SCENES_DIR.is_dir():
@@ -368,9 +369,10 @@ def cmd_precompute(args: argparse.Namespace) -> int:
         settings = serve_settings(args)
     except ValueError as exc:
         raise SystemExit(f"pvs precompute: {exc}") from None
-    if settings.cache_dir is None:
-        raise SystemExit("pvs precompute: name the on-disk cache the server will read "
-                         "(--cache-dir or PVS_CACHE_DIR); without it the work is lost on exit")
+    if settings.cache_dir is None and settings.cache == "disk":
+        raise SystemExit("pvs precompute: name the on-disk cache or the Redis the server will "
+                         "read (--cache-dir or PVS_CACHE_DIR, --cache redis://... or PVS_CACHE); "
+                         "without one the work is lost on exit")
     catalog = SceneCatalog(settings)
     service = ComputeService(catalog, settings)
     try:
@@ -421,6 +423,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="PVS worker threads (PVS_WORKERS)")
     p.add_argument("--cache-dir", help="on-disk PVS cache folder, kept across restarts "
                                        "(PVS_CACHE_DIR; `pvs precompute` fills it)")
+    p.add_argument("--cache", help="'disk' (default) or a Redis URL redis://host:port/db that "
+                                   "replicas share (PVS_CACHE; PVS_REDIS_* tune it)")
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
                    help="a walker's cell gets a cheap first answer at once, refined in place "
                         "when the core's answer is ready (PVS_PROGRESSIVE; default on)")
@@ -497,11 +501,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_demo)
 
     p = sub.add_parser("precompute", help="compute a scene's cell PVS into the on-disk cache "
-                                          "a server then starts with", epilog=cores_help(),
+                                          "(or Redis) a server then starts with",
+                       epilog=cores_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", required=True)
     p.add_argument("--cache-dir", help="on-disk PVS cache folder (PVS_CACHE_DIR); start the "
                                        "server with the same one")
+    p.add_argument("--cache", help="a Redis URL to fill instead of (or with) the folder "
+                                   "(PVS_CACHE)")
     p.add_argument("--cells", help="cell ids and ranges, e.g. 0-99,120 (default: every cell)")
     p.add_argument("--core", help="core name (PVS_CORE; 'auto' as the server picks)")
     p.add_argument("--param", action="append", help="core parameter NAME=VALUE (repeatable)")

@@ -53,6 +53,12 @@ Usage::
     python -m benchmarks.bench_load --quick      # 5 clients, 6 s walks, cold (smoke)
     python -m benchmarks.bench_load --hostile --name load_abuse  # 50 walkers, with/without flood
     python -m benchmarks.bench_load --hostile --quick --no-files  # the same, smoke
+    python -m benchmarks.bench_load --replicas 2 --name load_redis  # 2 servers share Redis
+
+With ``--replicas N`` (N > 1) every run starts a fresh ``redis-server`` and N server processes
+sharing it (``PVS_CACHE``); the walkers go to them in turn, counters, CPU and RSS are summed
+over them, and the warm-up computes through the first one only (the others find every cell in
+Redis). The tables add the PVS answered from Redis.
 """
 
 from __future__ import annotations
@@ -71,6 +77,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -339,14 +346,18 @@ def hostile_client(url: str, args: argparse.Namespace, grid: ViewcellGrid) -> It
             proc.kill()
 
 
-async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: ViewcellGrid,
-                      pid: int) -> tuple[list[ClientStats], int, float]:
+async def run_clients(url: str | list[str], args: argparse.Namespace, clients: int,
+                      grid: ViewcellGrid, pid: int | list[int]
+                      ) -> tuple[list[ClientStats], int, float]:
+    """The run's walkers (client i on replica i mod N when ``url`` lists several), their stats,
+    the servers' peak RSS (summed over replicas) and the wall time."""
     stats = [ClientStats() for _ in range(clients)]
-    peak = [rss_bytes(pid)]
+    urls, pids = as_list(url), as_list(pid)
+    peak = [sum(rss_bytes(p) for p in pids)]
 
     async def sample_rss() -> None:
         while True:
-            peak[0] = max(peak[0], rss_bytes(pid))
+            peak[0] = max(peak[0], sum(rss_bytes(p) for p in pids))
             await asyncio.sleep(0.25)
 
     sampler = asyncio.create_task(sample_rss())
@@ -354,7 +365,8 @@ async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: Vi
     # Stagger the starts over a second, as real clients arrive.
     async def delayed(i: int) -> None:
         await asyncio.sleep(i / max(1, clients))
-        await one_client(url, args, grid, args.seed + i, stats[i], sample=i < SAMPLE_CLIENTS)
+        await one_client(urls[i % len(urls)], args, grid, args.seed + i, stats[i],
+                         sample=i < SAMPLE_CLIENTS)
 
     await asyncio.gather(*(delayed(i) for i in range(clients)))
     wall = time.perf_counter() - t0
@@ -362,17 +374,19 @@ async def run_clients(url: str, args: argparse.Namespace, clients: int, grid: Vi
     return stats, peak[0], wall
 
 
+#: PVS answered from the shared Redis cache (``--replicas``; NaN without Redis).
+REDIS_HITS = 'pvs_cache_tier_hits_total{kind="pvs",tier="redis"}'
 #: Server counters the summary reports (``/metrics``), as differences over one run.
 COUNTERS = ("pvs_bytes_sent_total", "pvs_computations_total", "pvs_stalls_total",
             "pvs_computation_seconds_sum", "pvs_cache_hits_total",
             "pvs_computations_shared_total", "pvs_prefetch_skipped_total",
-            "pvs_prefetch_yields_total", "pvs_slow_clients_total")
+            "pvs_prefetch_yields_total", "pvs_slow_clients_total", REDIS_HITS)
 
 
-def counters(url: str) -> dict[str, float]:
-    """The server's ``COUNTERS`` now."""
-    text = httpx.get(url + "/metrics", timeout=30).text
-    return {k: metric(text, k) for k in COUNTERS}
+def counters(url: str | list[str]) -> dict[str, float]:
+    """The server's ``COUNTERS`` now (summed over replicas)."""
+    texts = [httpx.get(u + "/metrics", timeout=30).text for u in as_list(url)]
+    return {k: sum(metric(t, k) for t in texts) for k in COUNTERS}
 
 
 def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangles: int,
@@ -410,6 +424,8 @@ def summarise(args: argparse.Namespace, clients: int, cache: str, scene_triangle
         "prefetch_skipped": m["pvs_prefetch_skipped_total"],
         "prefetch_yields": m["pvs_prefetch_yields_total"],
         "slow_clients": m["pvs_slow_clients_total"],
+        **({"replicas": args.replicas, "redis_hits": m[REDIS_HITS]} if args.replicas > 1
+           else {}),
         "server_stalls": m["pvs_stalls_total"],
         "server_rss_peak_bytes": peak_rss,
         "server_cpu_seconds": server_cpu, "client_cpu_seconds": client_cpu,
@@ -463,6 +479,8 @@ def table(r: dict) -> list[tuple[str, str]]:
         ("bytes received (clients)", f"{r['bytes_received'] / 1e6:.2f} MB"),
         ("bytes sent (server metrics)", f"{r['bytes_sent'] / 1e6:.2f} MB"),
         ("PVS computations / cache hits", f"{r['computations']:.0f} / {r['cache_hits']:.0f}"),
+        *((("replicas / PVS from Redis", f"{r['replicas']} / {r['redis_hits']:.0f}"),)
+          if "replicas" in r else ()),
         ("joined in-flight / prefetch skipped",
          f"{r['computations_shared']:.0f} / {r['prefetch_skipped']:.0f}"),
         ("prefetch yields / slow clients",
@@ -619,14 +637,41 @@ def abuse_table(runs: list[dict]) -> list[str]:
 
 
 @contextlib.contextmanager
-def serving(args: argparse.Namespace) -> Iterator[tuple[str, subprocess.Popen]]:
+def serving(args: argparse.Namespace) -> Iterator[tuple[Any, Any]]:
     """A fresh ``pvs serve`` on a free loopback port, with the run's scene, core and workers:
-    (base URL, process). Its caches start empty."""
+    (base URL, process). Its caches start empty. With ``--replicas N`` > 1: a fresh
+    ``redis-server`` (``tests.redis_process``) and N servers sharing it (``PVS_CACHE``):
+    (their URLs, their processes)."""
+    if args.replicas <= 1:
+        with _serve_one(args) as served:
+            yield served
+        return
+    from tests.redis_process import RedisProcess
+
+    redis = RedisProcess(maxmemory="1gb").start()
+    try:
+        with contextlib.ExitStack() as stack:
+            served = [stack.enter_context(_serve_one(args, {"PVS_CACHE": redis.url}))
+                      for _ in range(args.replicas)]
+            yield [u for u, _ in served], [p for _, p in served]
+    finally:
+        redis.close()
+
+
+def as_list(x: Any) -> list:
+    """``x`` when it is a list (replicas), else ``[x]``."""
+    return x if isinstance(x, list) else [x]
+
+
+@contextlib.contextmanager
+def _serve_one(args: argparse.Namespace, extra_env: dict[str, str] | None = None
+               ) -> Iterator[tuple[str, subprocess.Popen]]:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PVS_GENERATED=f"{args.scene}={args.triangles}",
                PVS_CORE=args.core, PVS_WORKERS=str(args.workers), PVS_LOG_LEVEL="warning",
-               PVS_CELL_SIZE=str(args.cell_size), PVS_WS_PING_INTERVAL="none")
+               PVS_CELL_SIZE=str(args.cell_size), PVS_WS_PING_INTERVAL="none",
+               **(extra_env or {}))
     env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
     cmd = [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1", "--port", str(port),
            "--scenes", str(ROOT / "nonexistent-scenes-dir")]
@@ -645,11 +690,13 @@ def serving(args: argparse.Namespace) -> Iterator[tuple[str, subprocess.Popen]]:
             proc.kill()
 
 
-async def warm_up(url: str, args: argparse.Namespace, cells: int) -> float:
+async def warm_up(url: str | list[str], args: argparse.Namespace, cells: int) -> float:
     """Compute every cell's PVS through the HTTP route (the walkers' cache keys: same scene,
     core and parameters), ``args.workers`` at a time; seconds taken. Not ``pvs precompute``:
     that fills an on-disk cache for a server yet to start, while this fills the memory cache
-    of the server under test, so the warm rows measure streaming alone."""
+    of the server under test, so the warm rows measure streaming alone. With replicas, the
+    first one computes; the others then find every cell in Redis."""
+    url = as_list(url)[0]
     t0 = time.perf_counter()
     gate = asyncio.Semaphore(args.workers)
     query = {"core": args.core, **{k: json.dumps(v) if not isinstance(v, str) else v
@@ -671,10 +718,13 @@ def measure(url: str, proc: subprocess.Popen, args: argparse.Namespace, clients:
     True: while the hostile client floods the server; False: a run of the abuse mode without
     it; None: a run of the default mode (no hostile fields)."""
     before = counters(url)
-    cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
-    with hostile_client(url, args, grid) if hostile else contextlib.nullcontext({}) as flood:
-        stats, peak_rss, wall = asyncio.run(run_clients(url, args, clients, grid, proc.pid))
-    server_cpu, client_cpu = cpu_seconds(proc.pid) - cpu0, time.process_time() - own0
+    pids = [p.pid for p in as_list(proc)]
+    cpu0, own0 = sum(cpu_seconds(p) for p in pids), time.process_time()
+    with hostile_client(as_list(url)[0], args, grid) if hostile else \
+            contextlib.nullcontext({}) as flood:
+        stats, peak_rss, wall = asyncio.run(run_clients(url, args, clients, grid, pids))
+    server_cpu = sum(cpu_seconds(p) for p in pids) - cpu0
+    client_cpu = time.process_time() - own0
     after = counters(url)
     m = {k: after[k] - before[k] for k in COUNTERS}
     r = summarise(args, clients, cache, scene_triangles, len(grid), stats, peak_rss, wall, m,
@@ -810,6 +860,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="core parameters, JSON (default: the core's defaults)")
     ap.add_argument("--budget", type=int, default=None, help="client triangle budget")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--replicas", type=int, default=1,
+                    help="server processes sharing one fresh redis-server (PVS_CACHE); the "
+                         "walkers are spread over them in turn (default 1: no Redis)")
     ap.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=None,
                     help="ask for progressive streams (or not); default: the server's")
     ap.add_argument("--seed", type=int, default=0)

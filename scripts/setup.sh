@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL, a
-# virtualenv at .venv, the project and its dev tools, then the optional benchmark peer. Safe to run
-# again; it skips what is already there.
+# Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL,
+# redis-server (the shared-cache tests), a virtualenv at .venv, the project and its dev tools, then
+# the optional benchmark peer. Safe to run again; it skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -9,7 +9,9 @@ PY=${PYTHON:-python3}
 have_venv() { [ -x .venv/bin/python ] && .venv/bin/python -m pip --version >/dev/null 2>&1; }
 
 need_apt=()
-for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6; do
+# redis-server: the shared cache's tests and benchmark start their own on a loopback port (no
+# system service is relied on).
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6 redis-server; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 # Python itself, and what `python3 -m venv` needs: Debian splits venv/ensurepip (python3-venv)

@@ -75,7 +75,8 @@ class ServerState:
 
     def __post_init__(self) -> None:
         if self.near_far is None:
-            self.near_far = NearFarStore(self.settings.near_far_cache_bytes, self.walker_in)
+            self.near_far = NearFarStore(self.settings.near_far_cache_bytes, self.walker_in,
+                                         shared=self.compute.redis)
         # A computation its last HTTP caller abandoned goes on while a walker wants the cell.
         self.compute.still_wanted = self.wanted
 

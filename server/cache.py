@@ -214,6 +214,10 @@ def _check_ids(name: str, arr: np.ndarray, upper: int | None) -> np.ndarray:
     return arr.astype(np.int32)
 
 
+#: Public name of the id check, shared with the Redis values (``server.redis_codec``).
+check_ids = _check_ids
+
+
 class DiskPVSCache:
     """PVS as ``.npz`` files under ``folder`` (one per key), surviving restarts. Caches are
     checked, not trusted.

@@ -28,6 +28,8 @@ from server.cache import ByteLRU, DiskPVSCache, PVSCache, pvs_nbytes
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.executor import Executor, LocalExecutor, make_executor
 from server.pool import PriorityWorkerPool, ThreadWorkerPool, WorkerDied, WorkerPool
+from server.redis_cache import SharedCache
+from server.redis_codec import pvs_key
 from server.settings import Settings
 from visibility.calibration import Calibration
 from visibility.cancel import CancelToken, ComputationCancelled
@@ -159,6 +161,8 @@ class ComputeService:
         self.still_wanted: Callable[[Hashable], bool] | None = None
         self.cache = PVSCache(settings.cache_bytes)
         self.disk = DiskPVSCache(settings.cache_dir) if settings.cache_dir is not None else None
+        #: The cache replicas share (``settings.cache``: Redis), between memory and disk.
+        self.redis = SharedCache.from_settings(settings)
         #: Called with the seconds of every finished computation (metrics hook).
         self.on_computed: Callable[[float], None] | None = None
         # Re-entrant: a pool that runs work inline would re-enter from _run.
@@ -298,6 +302,21 @@ class ComputeService:
         (another cell size, an edited scene file, another generated size)."""
         corners = tuple(float(x) for x in np.asarray(box, dtype=np.float64).ravel())
         return (loaded.fingerprint, corners, core.name, params.cache_key())
+
+    @staticmethod
+    def redis_key(loaded: LoadedScene, core: Core, params: CoreParams, cell: int) -> str:
+        """The shared-cache key of a grid cell's PVS (``server.redis_codec.pvs_key``: scene
+        content hash, core, parameters, cell and its box, format version)."""
+        return pvs_key(loaded.fingerprint, core.name, params.cache_key(), cell,
+                       loaded.grid.boxes[int(cell)])
+
+    def cache_state(self) -> dict[str, Any]:
+        """Which cache tiers serve and whether the shared one is up (``/health``'s
+        ``cache``): ``{"backend": "redis", "up": ..., ...}`` or ``{"backend": "disk", "up":
+        true, "disk": bool}``."""
+        if self.redis is not None:
+            return {**self.redis.link.state(), "disk": self.disk is not None}
+        return {"backend": "disk", "up": True, "disk": self.disk is not None}
 
     def submit(
         self,
@@ -544,11 +563,18 @@ class ComputeService:
             ok, why = core_fits(core, loaded.scene, float(loaded.grid.cell_size))
             if not ok:
                 raise UnsupportedSceneError(f"core {core.name!r} does not fit {scene!r}: {why}")
-            dkey = None
+            dkey = rkey = None
             if self.disk is not None and cell is not None:
                 dkey = self.disk_key(loaded, core, params, viewcell.box)
+            if self.redis is not None and cell is not None:
+                rkey = self.redis_key(loaded, core, params, cell)
             n = loaded.scene.n_triangles
-            pvs = self.disk.get(dkey, n_triangles=n) if dkey is not None else None
+            # Memory missed (``submit``): the shared tier first, then this machine's disk.
+            pvs = self.redis.get_pvs(rkey, n) if rkey is not None else None
+            if pvs is None and dkey is not None:
+                pvs = self.disk.get(dkey, n_triangles=n)
+                if pvs is not None and rkey is not None:
+                    self.redis.put_pvs(rkey, pvs, n)  # the other replicas' gain
             if pvs is not None:
                 self.cache.put(key, pvs)
                 return PVSResult(scene, cell, viewcell.box.copy(), core.name, params, pvs, True)
@@ -568,6 +594,8 @@ class ComputeService:
             self.cache.put(key, pvs)
             if dkey is not None:
                 self.disk.put(dkey, pvs, n_triangles=n)
+            if rkey is not None:
+                self.redis.put_pvs(rkey, pvs, n)
             with self._lock:
                 self.computed += 1
             if self.on_computed is not None:
@@ -602,6 +630,8 @@ class ComputeService:
                            "heavy_workers": self.pool.heavy_workers}
         if self.disk is not None:
             out["disk"] = self.disk.stats()
+        if self.redis is not None:
+            out["redis"] = self.redis.stats()
         return out
 
     def shutdown(self) -> None:
@@ -612,6 +642,8 @@ class ComputeService:
         if self.first_pool is not None:
             self.first_pool.shutdown(wait=False, cancel_futures=True)
         self.executor.close()
+        if self.redis is not None:
+            self.redis.close()
 
 
 # --------------------------------------------------------------------------- auto core

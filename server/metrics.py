@@ -22,6 +22,13 @@ histogram observed by the compute service.
 | pvs_cells_prefetched_total          | counter   | complete prefetch streams                 |
 | pvs_slow_clients_total              | counter   | sessions closed for falling behind        |
 | pvs_worker_retries_total / pvs_worker_replacements_total | counter | pool fault handling  |
+| pvs_cache_tier_hits_total etc.      | counter   | hits, misses, errors by tier, kind (1)    |
+| pvs_redis_up / pvs_redis_downs_total| gauge / counter | Redis answers (1/0) / went down (2) |
+| pvs_redis_skipped_total{kind}       | counter   | Redis calls skipped while it was down (2) |
+
+(1) ``pvs_cache_tier_{hits,misses,errors}_total{tier, kind}``: tier memory, disk or redis; kind
+pvs, near_far (the near-far memory LRU) or cubemap (shared cubemaps). (2) With a Redis cache
+(``PVS_CACHE=redis://…``) only.
 """
 
 from __future__ import annotations
@@ -104,6 +111,38 @@ class _StateCollector:
         yield counter("pvs_slow_clients", "sessions closed for falling behind",
                       c["slow_clients"])
         yield counter("pvs_errors_sent", "error messages sent", c["errors_sent"])
+        yield from _tier_metrics(st, stats)
+
+
+def _tier_metrics(st: ServerState, stats: dict[str, Any]) -> Any:
+    """Hits, misses and errors per cache tier and kind of value; the shared cache's state."""
+    rows: list[tuple[str, str, dict]] = [("memory", "pvs", stats["cache"])]
+    if "disk" in stats:
+        d = stats["disk"]
+        rows.append(("disk", "pvs", {**d, "errors": d["write_errors"] + d["rejected"]}))
+    if st.near_far is not None:
+        rows.append(("memory", "near_far", st.near_far.cache.stats()))
+    redis = stats.get("redis")
+    if redis is not None:
+        for kind in ("pvs", "cubemap"):
+            r = redis[kind]
+            rows.append(("redis", kind, {**r, "errors": r["errors"] + r["rejected"]}))
+    for what in ("hits", "misses", "errors"):
+        fam = CounterMetricFamily(f"pvs_cache_tier_{what}", f"cache lookups per tier and kind: "
+                                  f"{what}", labels=["tier", "kind"])
+        for tier, kind, row in rows:
+            fam.add_metric([tier, kind], float(row.get(what, 0)))
+        yield fam
+    if redis is not None:
+        yield GaugeMetricFamily("pvs_redis_up", "the shared Redis cache answers (1) or not (0)",
+                                value=1.0 if redis["up"] else 0.0)
+        yield CounterMetricFamily("pvs_redis_downs", "times the shared Redis cache went down",
+                                  value=float(redis["downs"]))
+        fam = CounterMetricFamily("pvs_redis_skipped", "Redis calls skipped while it was down",
+                                  labels=["kind"])
+        for kind in ("pvs", "cubemap"):
+            fam.add_metric([kind], float(redis[kind]["skipped"]))
+        yield fam
 
 
 def install(app_state: ServerState) -> CollectorRegistry:

@@ -12,6 +12,10 @@
 Splits and cubemaps share one ``ByteLRU`` bounded by ``settings.near_far_cache_bytes``; an entry
 of a cell where a connected walker stands (``in_use(scene, cell)``) is never evicted. Keys carry
 the scene's geometry fingerprint, so a scene replaced under the same name never meets old data.
+
+With a shared cache (``shared``: Redis, ``server.redis_cache``), encoded cubemaps missing from
+memory are looked up there before they are baked, and what is baked is written there, so
+replicas bake each cubemap once between them.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 
 from server.cache import ByteLRU
 from server.catalog import LoadedScene
+from server.redis_codec import colours_digest, cubemap_key
 from visibility import nearfar
 from visibility.nearfar.cells import cells_needing_cubemap, cubemap_anchors
 
@@ -31,8 +36,12 @@ from visibility.nearfar.cells import cells_needing_cubemap, cubemap_anchors
 class NearFarStore:
     """Cubemap masks, splits and encoded cubemaps of loaded scenes. Thread-safe."""
 
-    def __init__(self, max_bytes: int, in_use: Callable[[str, int], bool] | None = None) -> None:
+    def __init__(self, max_bytes: int, in_use: Callable[[str, int], bool] | None = None,
+                 shared: Any = None) -> None:
         self._in_use = in_use
+        #: A ``server.redis_cache.SharedCache`` replicas share cubemaps through, or None.
+        self.shared = shared
+        self._colours: dict[tuple, str] = {}
         self.cache = ByteLRU(max_bytes, keep=self._keep)
         self._masks: dict[tuple, np.ndarray] = {}
         self._anchors: dict[tuple, np.ndarray] = {}
@@ -104,9 +113,25 @@ class NearFarStore:
                cfg.resolution)
         frame = self.cache.get(key)
         if frame is None:
-            frame = bake()
+            skey = self._shared_key(loaded, cell, cfg) if self.shared is not None else None
+            frame = self.shared.get_blob(skey) if skey is not None else None
+            if frame is None:
+                frame = bake()
+                if skey is not None:
+                    self.shared.put_blob(skey, frame)
             self.cache.put(key, frame)
         return frame
+
+    def _shared_key(self, loaded: LoadedScene, cell: int, cfg: nearfar.NearFarConfig) -> str:
+        # A cubemap shows colours, which the fingerprint leaves out: they join the key.
+        ck = (loaded.name, loaded.fingerprint)
+        colours = self._colours.get(ck)
+        if colours is None:
+            colours = colours_digest(loaded.scene.colors)
+            with self._lock:
+                self._colours[ck] = colours
+        return cubemap_key(loaded.fingerprint, colours, cfg.r1, cfg.r2, cfg.resolution,
+                           int(cell), loaded.grid.boxes[int(cell)])
 
     def stats(self) -> dict[str, Any]:
         """The LRU's statistics plus the number of per-scene masks."""

@@ -4,8 +4,9 @@ The load benchmark shows computation, not streaming, bounds how many walkers a m
 (``benchmarks/results/load.md``): with every cell computed beforehand, 50 walkers stream on two
 cores without a stall. ``precompute`` runs the cells through the same ``ComputeService`` the
 server uses, so the results land under the keys sessions and HTTP queries look up; with an
-on-disk cache (``Settings.cache_dir``) they survive until a server starts on that folder. Cells
-already on disk are read, not recomputed, so an interrupted run resumes where it stopped.
+on-disk cache (``Settings.cache_dir``) they survive until a server starts on that folder; with a
+Redis cache (``Settings.cache``) they land where every replica reads them. Cells already on disk
+or in Redis are read, not recomputed, so an interrupted run resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -74,8 +75,9 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
     """Compute the PVS of ``cells`` (default: every cell of the scene's grid) of catalogue
     scene ``scene`` with ``core`` (default and ``"auto"`` as the server resolves them) and
     ``params``, on the service's worker pool; results go to its caches (memory, and disk when
-    configured). A cell that fails is reported, not raised: its computation failed or, with an
-    on-disk cache, its entry is not on disk and valid afterwards (``DiskPVSCache.check``).
+    configured, and Redis when ``settings.cache`` names one). A cell that fails is reported, not
+    raised: its computation failed or its entry is not valid afterwards in the on-disk cache
+    (``DiskPVSCache.check``) or in Redis (a Redis that is down fails the cells it misses).
     Raises UnknownSceneError,
     UnknownCoreError, ValueError (bad parameters) and UnknownCellError (ids outside the grid)
     before computing anything."""
@@ -114,6 +116,11 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
             key = service.disk_key(loaded, core_obj, p, loaded.grid.boxes[cell])
             if not disk.check(key, loaded.scene.n_triangles):
                 report.failed[cell] = "its on-disk cache entry could not be written"
+                continue
+        if service.redis is not None:
+            rkey = service.redis_key(loaded, core_obj, p, cell)
+            if service.redis.get_pvs(rkey, loaded.scene.n_triangles, count=False) is None:
+                report.failed[cell] = "its Redis entry could not be written"
                 continue
         if result.cached:
             report.cached += 1

@@ -351,7 +351,9 @@ def core_fit_report(loaded: LoadedScene) -> dict[str, Any]:
 # --------------------------------------------------------------------------- routes
 @router.get("/health", summary="Liveness and load")
 async def health(request: Request) -> dict:
-    """Server status: protocol version, uptime, open sessions, cache and worker statistics."""
+    """Server status: protocol version, uptime, open sessions, cache and worker statistics;
+    ``cache`` names the cache backend and whether it is up (a Redis that is down leaves the
+    server serving from memory and recomputing: status stays ok)."""
     st = _state(request)
     listing = st.catalog.names()
     return {
@@ -362,6 +364,7 @@ async def health(request: Request) -> dict:
         "sessions_total": st.counters["sessions_total"],
         "scenes": len(listing),
         "compute": st.compute.stats(),
+        "cache": st.compute.cache_state(),
         "stream": {k: v for k, v in st.counters.items() if k != "sessions_total"},
     }
 

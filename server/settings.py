@@ -9,6 +9,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
@@ -127,6 +128,15 @@ class Settings(BaseModel):
         scheduler is away, and the pool gets a thread per cluster worker thread);
         ``dask://HOST:PORT?scenes=load``: the workers load each scene themselves (same file
         path, or the generator), checked by content hash, instead of receiving it scattered.
+    cache : the PVS cache behind memory: ``"disk"`` (the default: ``cache_dir`` when set) or a
+        Redis URL (``redis://host:port/db``, ``rediss://``, ``unix://``) that several replicas
+        share for PVS and near-far cubemaps (``server.redis_cache``), before ``cache_dir``.
+    redis_ttl : seconds a value lives in Redis (0: until Redis evicts it; bound the total with
+        Redis's ``maxmemory`` and an LRU policy).
+    redis_max_value_bytes : largest value written to Redis, bytes (larger ones stay local).
+    redis_timeout : seconds one Redis call may take; past it Redis counts as down.
+    redis_retry : seconds between pings of a Redis that is down (and of one that is up, so
+        ``/health`` tells).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -193,6 +203,28 @@ class Settings(BaseModel):
 
         scheduler_address(v)  # ValueError naming the two forms
         return v.strip()
+    # shared cache (Redis)
+    cache: str = "disk"
+    redis_ttl: float = Field(7 * 86400.0, ge=0, allow_inf_nan=False)
+    redis_max_value_bytes: int = Field(8 << 20, ge=1024, le=512 << 20)
+    redis_timeout: float = Field(0.25, gt=0, le=30, allow_inf_nan=False)
+    redis_retry: float = Field(2.0, gt=0, le=3600, allow_inf_nan=False)
+
+    @field_validator("cache")
+    @classmethod
+    def _cache_url(cls, v: str) -> str:
+        v = v.strip()
+        if v == "disk":
+            return v
+        u = urlsplit(v)
+        try:
+            u.port  # noqa: B018 - raises ValueError for a port that is not a number
+        except ValueError:
+            raise ValueError(f"cache: bad port in Redis URL {v!r}") from None
+        if u.scheme in ("redis", "rediss") and u.hostname or u.scheme == "unix" and u.path:
+            return v
+        raise ValueError(f"cache must be 'disk' or a Redis URL (redis://host:port/db, "
+                         f"rediss://..., unix:///path), got {v!r}")
 
     @field_validator("generated")
     @classmethod
@@ -261,6 +293,7 @@ class Settings(BaseModel):
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_TOKENS_FILE, PVS_TOKENS and PVS_CORS_ORIGINS (comma lists),
         PVS_EXECUTOR (local or dask://HOST:PORT),
+        PVS_CACHE, PVS_REDIS_TTL, PVS_REDIS_MAX_VALUE_BYTES, PVS_REDIS_TIMEOUT, PVS_REDIS_RETRY,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -296,6 +329,10 @@ class Settings(BaseModel):
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
             "tokens_file": "PVS_TOKENS_FILE",
             "executor": "PVS_EXECUTOR",
+            # shared cache (Redis)
+            "cache": "PVS_CACHE", "redis_ttl": "PVS_REDIS_TTL",
+            "redis_max_value_bytes": "PVS_REDIS_MAX_VALUE_BYTES",
+            "redis_timeout": "PVS_REDIS_TIMEOUT", "redis_retry": "PVS_REDIS_RETRY",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":

@@ -22,3 +22,19 @@ def still_healthy(http: httpx.Client) -> Iterator[None]:
     yield
     r = http.get("/health")
     assert r.status_code == 200 and r.json()["status"] == "ok"
+
+
+@pytest.fixture(scope="module")
+def redis_server() -> Iterator:
+    """A REAL ``redis-server`` on a free loopback port for the module (``tests.redis_process``);
+    skipped, with the reason, where the binary is missing (``scripts/setup.sh`` installs it)."""
+    from tests.redis_process import RedisProcess, available
+
+    if not available():
+        pytest.skip("redis-server is not installed (scripts/setup.sh installs the Debian "
+                    "package redis-server)")
+    proc = RedisProcess().start()
+    try:
+        yield proc
+    finally:
+        proc.close()

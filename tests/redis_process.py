@@ -1,0 +1,95 @@
+"""A real ``redis-server`` on a loopback port, for tests and benchmarks: started, killed and
+restarted on demand, never persisting anything (``--save ''``, ``--appendonly no``).
+
+``scripts/setup.sh`` installs the Debian package ``redis-server``; ``available()`` says whether
+the binary is here (tests skip with a reason when it is not).
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+
+REDIS_SERVER = "redis-server"
+
+
+def available() -> bool:
+    """Whether ``redis-server`` is on PATH."""
+    return shutil.which(REDIS_SERVER) is not None
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class RedisProcess:
+    """``redis-server`` on 127.0.0.1:``port`` (default a free one), bounded by ``maxmemory``
+    with LRU eviction, as the README advises for the shared cache."""
+
+    def __init__(self, port: int | None = None, maxmemory: str = "64mb") -> None:
+        self.port = port or free_port()
+        self.maxmemory = maxmemory
+        self.proc: subprocess.Popen | None = None
+        self._dir = tempfile.TemporaryDirectory(prefix="pvs-redis-")
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self, timeout: float = 15.0) -> RedisProcess:
+        """Start it and wait until it answers PING; RuntimeError when it does not."""
+        import redis
+
+        cmd = [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1",
+               "--save", "", "--appendonly", "no", "--dir", self._dir.name,
+               "--maxmemory", self.maxmemory, "--maxmemory-policy", "allkeys-lru"]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        client = redis.Redis(host="127.0.0.1", port=self.port, socket_timeout=0.5,
+                             socket_connect_timeout=0.5)
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                try:
+                    if client.ping():
+                        return self
+                except redis.RedisError:
+                    pass
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    err = self.proc.stderr.read().decode()[-2000:] if self.proc.stderr else ""
+                    self.stop()
+                    raise RuntimeError(f"redis-server on port {self.port} did not start: {err}")
+                time.sleep(0.05)
+        finally:
+            client.close()
+
+    def stop(self, kill: bool = False) -> None:
+        """Stop it: SIGKILL when ``kill`` (a crash), else SIGTERM."""
+        proc, self.proc = self.proc, None
+        if proc is None:
+            return
+        if proc.poll() is None:
+            proc.kill() if kill else proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+        if proc.stderr is not None:
+            proc.stderr.close()
+
+    def client(self):
+        """A redis-py client on it (for assertions)."""
+        import redis
+
+        return redis.Redis(host="127.0.0.1", port=self.port, socket_timeout=2)
+
+    def close(self) -> None:
+        """Stop it and remove its folder."""
+        self.stop()
+        self._dir.cleanup()
