@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL,
-# redis-server (the shared-cache tests), a virtualenv at .venv, the project and its dev tools, then
+# redis-server and nginx (the shared-cache and deployment tests), a virtualenv at .venv, the project and its dev tools, then
 # the optional benchmark peer. Safe to run again; it skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -8,10 +8,14 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 have_venv() { [ -x .venv/bin/python ] && .venv/bin/python -m pip --version >/dev/null 2>&1; }
 
+# PVS_SETUP_RUNTIME=1 (the Docker image) installs what the server needs to run, not what only
+# the tests and benchmarks start (they start their own redis-server and nginx on loopback ports;
+# no system service is relied on), nor the dev tools.
+RUNTIME=${PVS_SETUP_RUNTIME:-0}
+pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6)
+[ "$RUNTIME" = 1 ] || pkgs+=(redis-server nginx-light)
 need_apt=()
-# redis-server: the shared cache's tests and benchmark start their own on a loopback port (no
-# system service is relied on).
-for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6 redis-server; do
+for pkg in "${pkgs[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 # Python itself, and what `python3 -m venv` needs: Debian splits venv/ensurepip (python3-venv)
@@ -43,17 +47,20 @@ stamp=.venv/.pvs-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[setup] installing the project into .venv"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  if [ "$RUNTIME" = 1 ]; then extras=""; else extras="[dev]"; fi
+  .venv/bin/python -m pip install -q -e ".$extras"
   # pyrender pins PyOpenGL 3.1.0 whose OSMesa binding is broken; install the working one as a
   # separate step (asking for both at once makes pip fall back to an ancient pyrender).
   .venv/bin/python -m pip install -q "PyOpenGL==3.1.10"
   # The `bench` extra (embreex, the benchmark's ray-caster peer) has no wheel on some platforms;
   # the benchmark skips that peer without it (benchmarks.peers.available), so its failure must
   # not fail the set-up. Installed by name, not as `.[bench]`, which would re-pin PyOpenGL.
-  mapfile -t bench < <(.venv/bin/python -c 'import tomllib
+  if [ "$RUNTIME" != 1 ]; then
+    mapfile -t bench < <(.venv/bin/python -c 'import tomllib
 print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["bench"]))')
-  if ! .venv/bin/python -m pip install -q "${bench[@]}" >.venv/bench-install.log 2>&1; then
-    echo "[setup] optional ${bench[*]} not installed (see .venv/bench-install.log); the benchmark skips its peer"
+    if ! .venv/bin/python -m pip install -q "${bench[@]}" >.venv/bench-install.log 2>&1; then
+      echo "[setup] optional ${bench[*]} not installed (see .venv/bench-install.log); the benchmark skips its peer"
+    fi
   fi
   touch "$stamp"
 fi
