@@ -115,6 +115,8 @@ class Settings(BaseModel):
     max_scene_bytes : largest scene file loaded, bytes (a file is read whole, so its size is
         memory); a larger one is refused without reading it. Default
         ``visibility.loaders.MAX_FILE_BYTES``.
+    viewer_three_dir : three.js's build folder the viewer's page imports (``/viewer/vendor/``);
+        None: the repository's ``node_modules/three/build`` (``npm ci``).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -167,6 +169,7 @@ class Settings(BaseModel):
     # scene files
     max_scene_triangles: int = Field(MAX_TRIANGLES, ge=1, le=INT32_MAX + 1)
     max_scene_bytes: int = Field(MAX_FILE_BYTES, ge=1)
+    viewer_three_dir: Path | None = None
 
     @field_validator("generated")
     @classmethod
@@ -216,7 +219,7 @@ class Settings(BaseModel):
         PVS_REFUSE_OVER_DEADLINE,
         PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
         PVS_PVS_RATE, PVS_PVS_BURST,
-        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
+        PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES, PVS_VIEWER_THREE_DIR,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -250,6 +253,7 @@ class Settings(BaseModel):
             # scene files
             "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
             "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
+            "viewer_three_dir": "PVS_VIEWER_THREE_DIR",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":
