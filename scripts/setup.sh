@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL, a
-# virtualenv at .venv, the project and its dev tools, then the optional benchmark peer. Safe to run
-# again; it skips what is already there.
+# virtualenv at .venv, the project and its dev tools, then the optional benchmark peer; chromium
+# and node/npm for the browser viewer and its tests, and three.js from npm (`npm ci`). Safe to
+# run again; it skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -12,6 +13,12 @@ need_apt=()
 for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
+# The viewer's browser tests drive Debian's chromium through its driver (selenium); node and
+# npm install three.js, which the server serves to the viewer's page (package-lock.json).
+for pkg in chromium chromium-driver; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
+done
+command -v npm >/dev/null 2>&1 || need_apt+=(nodejs npm)
 # Python itself, and what `python3 -m venv` needs: Debian splits venv/ensurepip (python3-venv)
 # and pip (python3-pip) out of python3, so a fresh machine fails at `-m venv` without them.
 if ! command -v "$PY" >/dev/null 2>&1; then
@@ -54,4 +61,13 @@ print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-
     echo "[setup] optional ${bench[*]} not installed (see .venv/bench-install.log); the benchmark skips its peer"
   fi
   touch "$stamp"
+fi
+
+# three.js for the browser viewer, exactly as package-lock.json pins it (node_modules/ is not
+# in the repository; the server serves its build folder at /viewer/vendor/).
+npm_stamp=node_modules/.pvs-installed
+if [ ! -f "$npm_stamp" ] || [ package-lock.json -nt "$npm_stamp" ]; then
+  echo "[setup] installing three.js (npm ci)"
+  npm ci --no-audit --no-fund --loglevel=error
+  touch "$npm_stamp"
 fi

@@ -161,7 +161,24 @@ async function inflate(bytes, rawLength) {
     await written;
   }
   if (got !== rawLength) throw new FrameError(`compressed payload does not hold exactly ${rawLength} bytes`);
+  // A zlib stream ends with the Adler-32 of its data. Some DecompressionStreams ignore bytes
+  // after the end of the stream, which Python's decoder refuses: the payload's last 4 bytes
+  // must be that checksum.
+  const n = bytes.length;
+  const tail = n >= 4 ? ((bytes[n - 4] << 24) | (bytes[n - 3] << 16) | (bytes[n - 2] << 8) | bytes[n - 1]) >>> 0 : -1;
+  if (tail !== adler32(out)) throw new FrameError("compressed payload has bytes after its end");
   return out;
+}
+
+function adler32(data) {
+  let a = 1, b = 0;
+  for (let i = 0; i < data.length; i += 4096) {
+    const end = Math.min(data.length, i + 4096);
+    for (let j = i; j < end; j++) { a += data[j]; b += a; }
+    a %= 65521;
+    b %= 65521;
+  }
+  return ((b << 16) | a) >>> 0;
 }
 
 /** A cubemap frame (async: its payload may be zlib-compressed): {kind, cell, resolution,
