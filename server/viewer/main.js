@@ -287,15 +287,16 @@ class Viewer {
     };
   }
 
-  /** Stop the loop and draw one frame at a pose; the frame as a PNG data URL and the ids held
-   * (what the headless client would draw there). */
-  snapshot(position, forward) {
+  /** Stop the loop and draw one frame at a pose (and scene time `t`, seconds, for a dynamic
+   * scene; default the page's clock); the frame as a PNG data URL, the triangle and sphere ids
+   * held (what the headless client would draw there) and the cell. */
+  snapshot(position, forward, t = undefined) {
     this.frozen = true;
     this.controls.set(position, forward);
     this.cell = this.cellOf(position);
-    this.draw(position, forward, this.sceneTime(performance.now()));
+    this.draw(position, forward, t === undefined ? this.sceneTime(performance.now()) : t);
     const png = this.renderer.canvas.toDataURL("image/png");
-    return { png, ids: Array.from(this.store.heldIds()), cell: this.cell };
+    return { png, ids: Array.from(this.store.heldIds()), spheres: [...this.store.sphereInfo.keys()], cell: this.cell };
   }
 }
 

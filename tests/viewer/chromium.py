@@ -74,12 +74,17 @@ def wait_state(driver: Any, pred: Callable[[dict], bool], timeout: float = 120.0
                          f"{console_errors(driver)}")
 
 
-def snapshot(driver: Any, position: Any, forward: Any) -> tuple[np.ndarray, np.ndarray, Any]:
-    """Freeze the page and draw one frame at a pose: ((H, W, 3) uint8 image, held ids, cell)."""
+def snapshot(driver: Any, position: Any, forward: Any, t: float | None = None) -> dict:
+    """Freeze the page and draw one frame at a pose (and scene time ``t``, seconds):
+    {"image": (H, W, 3) uint8, "ids": held triangle ids, "spheres": held sphere ids, "cell"}."""
     from PIL import Image
 
-    snap = driver.execute_script("return window.pvsViewer.snapshot(arguments[0], arguments[1])",
-                                 [float(x) for x in position], [float(x) for x in forward])
+    args = [[float(x) for x in position], [float(x) for x in forward]]
+    if t is not None:
+        args.append(float(t))
+    snap = driver.execute_script(
+        "return window.pvsViewer.snapshot(...arguments)", *args)
     png = base64.b64decode(snap["png"].split(",", 1)[1])
-    image = np.array(Image.open(io.BytesIO(png)).convert("RGB"))
-    return image, np.asarray(snap["ids"], dtype=np.int64), snap["cell"]
+    return {"image": np.array(Image.open(io.BytesIO(png)).convert("RGB")),
+            "ids": np.asarray(snap["ids"], dtype=np.int64),
+            "spheres": np.asarray(snap["spheres"], dtype=np.int64), "cell": snap["cell"]}

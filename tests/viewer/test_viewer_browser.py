@@ -95,8 +95,9 @@ def test_frames_match_the_headless_client_at_three_poses(walked, walk, rooms):
     try:
         for i in (0, len(w) // 2, len(w) - 1):
             pos, fwd = w.positions[i], w.forwards[i]
-            image, ids, cell = snapshot(driver, pos, fwd)
-            assert cell == cells[i]
+            snap = snapshot(driver, pos, fwd)
+            image, ids = snap["image"], snap["ids"]
+            assert snap["cell"] == cells[i]
             frame = renderer.render(rooms.triangles(ids), rooms.colors[ids], pos, fwd)
             # Not a blank frame on both sides: most pixels show geometry.
             assert np.mean(np.any(image != BACKGROUND, axis=2)) > 0.5
