@@ -122,6 +122,7 @@ class Viewer {
     this.nextWalkPose = 0;
     this.evicted = 0;
     this.renderer.layout = -1;
+    this.renderer.dynamicKey = null;
     this.renderer.setCubemap(null, [0, 0, 0]);
   }
 
@@ -272,6 +273,8 @@ class Viewer {
       scene: this.scene,
       core: this.welcome ? this.welcome.core : null,
       cell: this.cell,
+      eye: this.controls.position.slice(),
+      forward: this.controls.forward,
       complete: s ? [...s.complete] : [],
       begun: s ? [...s.cells.keys()] : [],
       held: this.store ? this.store.count : 0,

@@ -178,8 +178,18 @@ export class ViewRenderer {
       }
     }
     this.staticMesh.geometry.setDrawRange(0, 3 * store.used);
+    // Triangles drawn: the held ones (moving ones included) and the spheres' faces.
+    this.drawn = store.count + (this.drawnSpheres ?? 0);
+    // Moving triangles and spheres are rebuilt when the store or (if anything has more than
+    // one keyframe) the scene time changed.
+    const animated = [store.keys, store.spheres].some((k) => k.times !== null && k.times.length > 1);
+    const key = `${store.version}:${animated ? t : ""}`;
+    if (key === this.dynamicKey) return;
+    this.dynamicKey = key;
     const moving = store.keys.byId.size ? store.movingAt(t) : null;
     const spheres = store.sphereInfo.size ? store.spheresAt(t) : null;
+    this.drawnSpheres = spheres ? spheres.positions.length / 9 : 0;
+    this.drawn = store.count + this.drawnSpheres;
     const dyn = this.dynamicMesh.geometry;
     if (moving || spheres || dyn.getAttribute("position")) {
       const parts = [moving, spheres].filter(Boolean);
@@ -193,8 +203,6 @@ export class ViewRenderer {
       fresh.setAttribute("color", new THREE.BufferAttribute(col, 3, true));
       this.dynamicMesh.geometry = fresh;
     }
-    // Triangles drawn: the held ones (moving ones included) and the spheres' faces.
-    this.drawn = store.count + (spheres ? spheres.positions.length / 9 : 0);
   }
 
   /** Use `cube` (decode.decodeCubemap) as the far field behind the geometry, with the
