@@ -119,3 +119,27 @@ def _yawed(forward: np.ndarray, angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     x, y, z = forward
     return np.array([c * x + s * z, y, -s * x + c * z])
+
+
+def test_page_stays_within_its_triangle_budget(server, walk):
+    """With a budget in the link the hello declares it; the server's drops (and the page's own
+    eviction, its last resort) keep the triangles held within it over the whole walk."""
+    w, cells = walk
+    budget = 2500
+    driver = start_chromium()
+    try:
+        driver.get(f"{server}/viewer?scene={SCENE}&core=sampling&budget={budget}"
+                   f"&size=160x120&walk={walk_data_url(w)}")
+        most = 0
+
+        def done(s: dict) -> bool:
+            nonlocal most
+            most = max(most, s["held"])
+            return s["replayDone"] and cells[-1] in s["complete"]
+
+        st = wait_state(driver, done)
+        assert 0 < most <= budget and st["held"] <= budget
+        assert st["dropped"] > 0  # the walk needs more than the budget: the server dropped
+        assert st["localErrors"] == [] and console_errors(driver) == []
+    finally:
+        driver.quit()
