@@ -7,6 +7,7 @@ same pose and triangles shows (SSIM >= 0.95; antialiasing off, as pyrender's fra
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import httpx
@@ -141,5 +142,28 @@ def test_page_stays_within_its_triangle_budget(server, walk):
         assert 0 < most <= budget and st["held"] <= budget
         assert st["dropped"] > 0  # the walk needs more than the budget: the server dropped
         assert st["localErrors"] == [] and console_errors(driver) == []
+    finally:
+        driver.quit()
+
+
+def test_person_walks_with_the_keyboard(server):
+    """Without a walk the page starts in the first walkable cell; W held for a second walks
+    the eye forward at walking speed, and the poses it sends stream the cells it enters."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    driver = start_chromium()
+    try:
+        driver.get(f"{server}/viewer?scene={SCENE}&core=sampling&size=160x120")
+        st = wait_state(driver, lambda s: s["cell"] is not None and s["cell"] in s["complete"])
+        start, fwd = np.array(st["eye"]), np.array(st["forward"])
+        ActionChains(driver).key_down("w").perform()
+        time.sleep(1.5)
+        ActionChains(driver).key_up("w").perform()
+        st = wait_state(driver, lambda s: s["cell"] is not None and s["cell"] in s["complete"])
+        step = np.array(st["eye"]) - start
+        ahead = np.array([fwd[0], 0.0, fwd[2]]) / np.hypot(fwd[0], fwd[2])
+        assert 1.0 < step @ ahead < 4.0 and abs(step[1]) < 1e-9  # 1.4 m/s, level
+        assert np.linalg.norm(step - (step @ ahead) * ahead) < 1e-6
+        assert console_errors(driver) == []
     finally:
         driver.quit()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -114,5 +115,23 @@ def test_page_reports_the_fault_and_reconnects(server, fault, says):
             wait_state(driver, lambda s: s["framesNonEmpty"] > drawn + 5, 30)
             # The browser's own note of the aborted socket is the only console error allowed.
             assert [e for e in console_errors(driver) if "WebSocket" not in e] == []
+        finally:
+            driver.quit()
+
+
+def test_page_says_when_its_modules_do_not_load(settings, tmp_path):
+    """An incomplete three.js install (its module there, the core it imports not) leaves no
+    page at "loading": the page says what is missing."""
+    (tmp_path / "three.module.js").write_text("export * from './three.core.js';\n")
+    with serving(settings, viewer_three_dir=tmp_path) as (url, _app):
+        driver = start_chromium()
+        try:
+            driver.get(f"{url}/viewer?scene=rooms")
+            status = driver.find_element("id", "status")
+            deadline = time.monotonic() + 30
+            while "did not load" not in status.text and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert "the viewer's modules did not load" in status.text
+            assert "npm ci" in status.text
         finally:
             driver.quit()
