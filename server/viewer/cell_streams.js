@@ -20,6 +20,7 @@ export class CellStreams {
     this.triangles = 0;
     this.assemble = { [FrameKind.KEYFRAMES]: new KeyframeAssembler(), [FrameKind.SPHERES]: new KeyframeAssembler() };
     this.poseSentAt = new Map(); // seq -> performance.now() when sent, for latency
+    this.lastLatency = null; // {cell, seconds}: pose to cell_end of the latest walker's stream
   }
 
   refuse(why) {
@@ -70,7 +71,10 @@ export class CellStreams {
     }
     cs.end = msg;
     const sent = this.poseSentAt.get(msg.seq);
-    if (!msg.prefetch && sent !== undefined) cs.latency = (performance.now() - sent) / 1000;
+    if (!msg.prefetch && sent !== undefined) {
+      cs.latency = (performance.now() - sent) / 1000;
+      this.lastLatency = { cell: msg.cell, seconds: cs.latency };
+    }
     if (!msg.partial) {
       cs.answer = msg.answer;
       this.complete.add(msg.cell);

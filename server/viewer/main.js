@@ -247,7 +247,7 @@ class Viewer {
     const w = this.welcome;
     const s = this.streams;
     const stream = s && this.cell !== null ? s.cells.get(this.cell) : null;
-    const latency = s ? [...s.cells.values()].filter((c) => c.latency !== null && c.latency !== undefined).at(-1) : null;
+    const latency = s ? s.lastLatency : null;
     const p = this.controls.position;
     overlay.setStats([
       ["scene", this.scene + (w ? ` (${w.scene.triangles.toLocaleString()} triangles)` : "")],
@@ -256,7 +256,7 @@ class Viewer {
       ["eye", p.map((x) => x.toFixed(1)).join(", ")],
       ["triangles held", this.store ? this.store.count.toLocaleString() : "0"],
       ["bytes received", formatBytes(this.connection.bytes)],
-      ["PVS latency", latency ? `${(latency.latency * 1000).toFixed(0)} ms (cell ${latency.cell})` : "-"],
+      ["PVS latency", latency ? `${(latency.seconds * 1000).toFixed(0)} ms (cell ${latency.cell})` : "-"],
       ["stalls", `${this.stalls} (${this.stallSeconds.toFixed(1)} s)`],
       ["mode", this.walk ? (this.controls.touched ? "walking (replay left)" : "replay") : "walking: WASD, mouse (click), Q/E, Shift"],
     ]);
@@ -282,6 +282,7 @@ class Viewer {
       framesDrawn: this.framesDrawn,
       framesNonEmpty: this.framesNonEmpty,
       stalls: this.stalls,
+      latency: s && s.lastLatency ? s.lastLatency.seconds : null,
       evicted: this.evicted,
       dropped: s ? s.dropped : 0,
       serverErrors: s ? s.errors.map((e) => `${e.code}: ${e.message}`) : [],

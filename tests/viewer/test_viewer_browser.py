@@ -86,6 +86,7 @@ def test_page_connects_streams_the_walked_cells_and_draws(walked, walk, server):
             assert set(pvs.json()["triangle_ids"]) <= held, cell
     overlay = driver.find_element("id", "overlay").text
     assert SCENE in overlay and "sampling" in overlay and "triangles held" in overlay
+    assert st["latency"] > 0 and " ms (cell " in overlay  # pose to cell_end, measured
     assert console_errors(driver) == []
 
 
