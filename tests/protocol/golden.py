@@ -250,5 +250,7 @@ def write_golden(folder: Path) -> list[dict]:
         (folder / f"{name}.json").write_text(text)
         manifest.append({"name": name, "files": [f"{name}.json"], "what": "message",
                          "expect": expect(lambda t=text: parse_server_message(t))})
-    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    # One entry per line: a readable diff when a sample changes.
+    (folder / "manifest.json").write_text(
+        "[\n" + ",\n".join(json.dumps(e) for e in manifest) + "\n]\n")
     return manifest
