@@ -86,8 +86,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings = serve_settings(args)
     except ValueError as exc:  # pydantic's ValidationError: a bad flag or PVS_* value
         raise SystemExit(f"pvs serve: {exc}") from None
+    print(f"viewer: {served_viewer_url(settings.host, settings.port)}", flush=True)
     serve(settings)
     return 0
+
+
+def served_viewer_url(host: str, port: int, scene: str | None = None,
+                      core: str | None = None) -> str:
+    """The browser viewer's URL on a server listening on ``host:port`` (a wildcard address is
+    reached on this machine's loopback)."""
+    from server.viewer_files import viewer_url
+
+    host = "127.0.0.1" if host in ("", "0.0.0.0") else "[::1]" if host == "::" else host
+    return viewer_url(f"http://{host}:{port}", scene, core)
 
 
 def walk_cores(args: argparse.Namespace) -> list[str | None]:
@@ -324,7 +335,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             if not wait_until_healthy(url, proc):
                 print(log_path.read_text()[-3000:], file=sys.stderr)
                 raise SystemExit("[demo] the server did not start")
-            print(f"[demo] server up at {url}", flush=True)
+            print(f"[demo] server up at {url}; watch it in a browser while the walk runs: "
+                  f"{served_viewer_url('127.0.0.1', port, args.scene, args.core)}", flush=True)
             # Every walk option the demo parsed, pointed at the child server.
             walk = argparse.Namespace(**{**vars(args), "server": url, "quiet": False})
             return cmd_walk(walk)

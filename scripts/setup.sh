@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL,
-# redis-server and nginx (the shared-cache and deployment tests), a virtualenv at .venv, the project and its dev tools, then
-# the optional benchmark peer. Safe to run again; it skips what is already there.
+# Idempotent set-up on a fresh Debian machine: Python with venv/pip, Mesa for headless OpenGL, a
+# virtualenv at .venv, the project and its dev tools, then the optional benchmark peer;
+# redis-server and nginx (the shared-cache and deployment tests), chromium and node/npm for the
+# browser viewer and its tests, and three.js from npm (`npm ci`). Safe to run again; it skips
+# what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -18,6 +20,15 @@ need_apt=()
 for pkg in "${pkgs[@]}"; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
+# The viewer's browser tests drive Debian's chromium through its driver (selenium); node and
+# npm install three.js, which the server serves to the viewer's page (package-lock.json; the
+# Docker image takes it from a node stage instead).
+if [ "$RUNTIME" != 1 ]; then
+  for pkg in chromium chromium-driver; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
+  done
+  command -v npm >/dev/null 2>&1 || need_apt+=(nodejs npm)
+fi
 # Python itself, and what `python3 -m venv` needs: Debian splits venv/ensurepip (python3-venv)
 # and pip (python3-pip) out of python3, so a fresh machine fails at `-m venv` without them.
 if ! command -v "$PY" >/dev/null 2>&1; then
@@ -63,4 +74,13 @@ print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-
     fi
   fi
   touch "$stamp"
+fi
+
+# three.js for the browser viewer, exactly as package-lock.json pins it (node_modules/ is not
+# in the repository; the server serves its build folder at /viewer/vendor/).
+npm_stamp=node_modules/.pvs-installed
+if [ "$RUNTIME" != 1 ] && { [ ! -f "$npm_stamp" ] || [ package-lock.json -nt "$npm_stamp" ]; }; then
+  echo "[setup] installing three.js (npm ci)"
+  npm ci --no-audit --no-fund --loglevel=error
+  touch "$npm_stamp"
 fi

@@ -32,6 +32,7 @@ from server.middleware import HttpGuard, RateLimit
 from server.nearfar_store import NearFarStore
 from server.openapi import install_openapi
 from server.settings import Settings
+from server.viewer_files import install_viewer
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
 #: that oversized messages reach the session, which answers them with a named ``too_big`` error;
@@ -166,6 +167,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(metrics.router)
     app.add_api_websocket_route("/ws", ws.websocket_endpoint)
     routes.install_error_handlers(app)
+    install_viewer(app, settings)
     install_openapi(app)
     if state.access is not None and state.access.book is not None:
         auth.document(app)

@@ -392,7 +392,8 @@ async def scene_info(request: Request, scene: str) -> dict:
 @router.get("/scenes/{scene}/cells", summary="The viewcells of a scene",
             responses=_SCENE_ERRORS)
 async def scene_cells(request: Request, scene: str) -> dict:
-    """Every viewcell: id, grid column ``ij`` and box [[x0, y0, z0], [x1, y1, z1]] metres."""
+    """Every viewcell: id, grid column ``ij``, box [[x0, y0, z0], [x1, y1, z1]], floor height
+    and ``walk``, a point of the cell where one may walk (metres)."""
     loaded = await _loaded(request, scene)
     grid = loaded.grid.to_dict(include_cells=True)
     cells = grid.pop("cell_list")

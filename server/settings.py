@@ -137,6 +137,8 @@ class Settings(BaseModel):
     redis_timeout : seconds one Redis call may take; past it Redis counts as down.
     redis_retry : seconds between pings of a Redis that is down (and of one that is up, so
         ``/health`` tells).
+    viewer_three_dir : three.js's build folder the viewer's page imports (``/viewer/vendor/``);
+        None: the repository's ``node_modules/three/build`` (``npm ci``).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -203,6 +205,7 @@ class Settings(BaseModel):
 
         scheduler_address(v)  # ValueError naming the two forms
         return v.strip()
+
     # shared cache (Redis)
     cache: str = "disk"
     redis_ttl: float = Field(7 * 86400.0, ge=0, allow_inf_nan=False)
@@ -225,6 +228,7 @@ class Settings(BaseModel):
             return v
         raise ValueError(f"cache must be 'disk' or a Redis URL (redis://host:port/db, "
                          f"rediss://..., unix:///path), got {v!r}")
+    viewer_three_dir: Path | None = None
 
     @field_validator("generated")
     @classmethod
@@ -294,6 +298,7 @@ class Settings(BaseModel):
         PVS_TOKENS_FILE, PVS_TOKENS and PVS_CORS_ORIGINS (comma lists),
         PVS_EXECUTOR (local or dask://HOST:PORT),
         PVS_CACHE, PVS_REDIS_TTL, PVS_REDIS_MAX_VALUE_BYTES, PVS_REDIS_TIMEOUT, PVS_REDIS_RETRY,
+        PVS_VIEWER_THREE_DIR,
         PVS_GENERATED: a JSON object {name: triangles} or a comma list ``name[=triangles]``
         (a bare name takes the generator's default size; an empty value serves none).
         Raises ValueError (pydantic's ValidationError) on malformed values.
@@ -333,6 +338,7 @@ class Settings(BaseModel):
             "cache": "PVS_CACHE", "redis_ttl": "PVS_REDIS_TTL",
             "redis_max_value_bytes": "PVS_REDIS_MAX_VALUE_BYTES",
             "redis_timeout": "PVS_REDIS_TIMEOUT", "redis_retry": "PVS_REDIS_RETRY",
+            "viewer_three_dir": "PVS_VIEWER_THREE_DIR",
         }
         for field, var in simple.items():
             if env.get(var, "") != "":

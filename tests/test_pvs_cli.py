@@ -173,3 +173,17 @@ def test_serve_cache_dir_flag_overrides_env(tmp_path):
     s = _serve_settings(["--cache-dir", str(tmp_path / "a")], {"PVS_CACHE_DIR": str(tmp_path)})
     assert s.cache_dir == tmp_path / "a"
     assert _serve_settings([], {"PVS_CACHE_DIR": str(tmp_path)}).cache_dir == tmp_path
+
+
+def test_serve_prints_the_viewer_url():
+    port = pvs_cli._free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "pvs_cli", "serve", "--host", "0.0.0.0",
+                             "--port", str(port)], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True,
+                            cwd=Path(__file__).resolve().parents[1])
+    try:
+        line = proc.stdout.readline()
+    finally:
+        proc.terminate()
+        proc.wait(20)
+    assert line.strip() == f"viewer: http://127.0.0.1:{port}/viewer/"

@@ -282,7 +282,8 @@ class ViewcellGrid:
         return np.stack([self.boxes[:, 0].min(axis=0), self.boxes[:, 1].max(axis=0)])
 
     def to_dict(self, include_cells: bool = False) -> dict:
-        """JSON-friendly description; with ``include_cells`` every cell's id and box."""
+        """JSON-friendly description; with ``include_cells`` every cell's id, grid column, box,
+        floor height and a point where one may walk (``walk_point``)."""
         d = {
             "cell_size": self.cell_size,
             "origin_xz": self.origin.tolist(),
@@ -293,7 +294,8 @@ class ViewcellGrid:
         }
         if include_cells:
             d["cell_list"] = [
-                {"id": i, "ij": self.ij[i].tolist(), "box": self.boxes[i].tolist()}
+                {"id": i, "ij": self.ij[i].tolist(), "box": self.boxes[i].tolist(),
+                 "floor": float(self.floor[i]), "walk": self.walk_point(i).tolist()}
                 for i in range(len(self))
             ]
         return d

@@ -66,7 +66,7 @@ def test_the_services_pass_only_real_settings():
 
 
 @pytest.mark.parametrize("line", [ln for ln in (DOCKER / "Dockerfile").read_text().splitlines()
-                                  if ln.startswith("COPY")])
+                                  if ln.startswith("COPY") and "--from=" not in ln])
 def test_the_dockerfile_copies_what_exists(line):
     parts = line.split()[1:-1]
     for src in parts:
@@ -79,6 +79,9 @@ def test_the_dockerfile_copies_what_exists(line):
 
 def test_the_image_runs_the_readme_set_up_and_the_pvs_command():
     text = (DOCKER / "Dockerfile").read_text()
+    # A stage copied from is a stage of this file.
+    for stage in re.findall(r"COPY --from=(\S+)", text):
+        assert stage in _targets(), stage
     assert "bash scripts/setup.sh" in text
     assert 'ENTRYPOINT ["pvs"]' in text
     assert 'pvs = "pvs_cli:main"' in (ROOT / "pyproject.toml").read_text()

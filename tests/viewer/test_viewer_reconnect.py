@@ -1,0 +1,137 @@
+"""A bad server message or a dropped connection: the page says so and reconnects, never hangs.
+
+A WebSocket relay (real sockets, ``websockets``) sits between headless Chromium and the real
+server's ``/ws`` and spoils the page's first session once it is streaming: it sends a frame
+that is no frame, or cuts the TCP connection without a close. Later sessions pass untouched.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+import websockets
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import serve
+
+from tests.conftest import serving
+from tests.viewer.chromium import console_errors, start_chromium, wait_state
+
+#: Binary frames relayed before the first session is spoiled.
+SPOIL_AFTER = 5
+
+
+class FaultyRelay:
+    """Relays ``ws://127.0.0.1:PORT/ws`` to ``upstream``; its first session gets ``fault``
+    ("bad_frame" or "drop") after ``SPOIL_AFTER`` binary frames. Runs on its own loop thread."""
+
+    def __init__(self, upstream: str, fault: str) -> None:
+        self.upstream = upstream
+        self.fault = fault
+        self.sessions = 0
+        self.loop = asyncio.new_event_loop()
+        self.ready = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="faulty-relay", daemon=True)
+
+    def __enter__(self) -> FaultyRelay:
+        self.thread.start()
+        assert self.ready.wait(10), "the relay did not start"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.loop.call_soon_threadsafe(self.stop.set)
+        self.thread.join(10)
+
+    def _run(self) -> None:
+        self.loop.run_until_complete(self._main())
+
+    async def _main(self) -> None:
+        self.stop = asyncio.Event()
+        async with serve(self._session, "127.0.0.1", 0, compression=None) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            self.ready.set()
+            await self.stop.wait()
+
+    async def _session(self, page) -> None:
+        self.sessions += 1
+        spoil = self.sessions == 1
+        async with connect(self.upstream, compression=None, max_size=None) as up:
+
+            async def to_server() -> None:
+                async for msg in page:
+                    await up.send(msg)
+
+            async def to_page() -> None:
+                frames = 0
+                async for msg in up:
+                    await page.send(msg)
+                    frames += isinstance(msg, bytes)
+                    if spoil and frames == SPOIL_AFTER:
+                        if self.fault == "bad_frame":
+                            await page.send(b"not a PVS frame, though as long as a header" * 2)
+                        else:
+                            page.transport.abort()  # no close frame: the page sees 1006
+                            return
+
+            tasks = [asyncio.ensure_future(t()) for t in (to_server, to_page)]
+            try:
+                await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            except websockets.ConnectionClosed:
+                pass
+            finally:
+                for t in tasks:
+                    t.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+
+
+@pytest.fixture(scope="module")
+def server(settings) -> Iterator[str]:
+    with serving(settings) as (url, _app):
+        yield url
+
+
+@pytest.mark.parametrize("fault, says", [
+    ("bad_frame", "bad message from the server: bad magic"),
+    ("drop", "connection lost (close 1006)"),
+])
+def test_page_reports_the_fault_and_reconnects(server, fault, says):
+    upstream = server.replace("http://", "ws://") + "/ws"
+    with FaultyRelay(upstream, fault) as relay:
+        driver = start_chromium()
+        try:
+            driver.get(f"{server}/viewer?scene=rooms&core=sampling&size=160x120"
+                       f"&ws=ws://127.0.0.1:{relay.port}/ws")
+            # The message is on screen, then a second session streams the eye's cell again.
+            st = wait_state(driver, lambda s: s["connections"] >= 2 and s["connected"]
+                            and s["cell"] is not None and s["cell"] in s["complete"], 120)
+            errors = [h for h in st["history"] if h.startswith("error:")]
+            assert errors and says in errors[0] and "reconnecting in 1 s" in errors[0]
+            assert relay.sessions == 2 and st["connections"] == 2
+            assert st["status"].startswith("connected") and st["held"] > 0
+            drawn = st["framesNonEmpty"]
+            wait_state(driver, lambda s: s["framesNonEmpty"] > drawn + 5, 30)
+            # The browser's own note of the aborted socket is the only console error allowed.
+            assert [e for e in console_errors(driver) if "WebSocket" not in e] == []
+        finally:
+            driver.quit()
+
+
+def test_page_says_when_its_modules_do_not_load(settings, tmp_path):
+    """An incomplete three.js install (its module there, the core it imports not) leaves no
+    page at "loading": the page says what is missing."""
+    (tmp_path / "three.module.js").write_text("export * from './three.core.js';\n")
+    with serving(settings, viewer_three_dir=tmp_path) as (url, _app):
+        driver = start_chromium()
+        try:
+            driver.get(f"{url}/viewer?scene=rooms")
+            status = driver.find_element("id", "status")
+            deadline = time.monotonic() + 30
+            while "did not load" not in status.text and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert "the viewer's modules did not load" in status.text
+            assert "npm ci" in status.text
+        finally:
+            driver.quit()
