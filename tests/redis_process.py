@@ -13,6 +13,8 @@ import subprocess
 import tempfile
 import time
 
+from tests.processes import stop_process
+
 REDIS_SERVER = "redis-server"
 
 
@@ -71,17 +73,8 @@ class RedisProcess:
     def stop(self, kill: bool = False) -> None:
         """Stop it: SIGKILL when ``kill`` (a crash), else SIGTERM."""
         proc, self.proc = self.proc, None
-        if proc is None:
-            return
-        if proc.poll() is None:
-            proc.kill() if kill else proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-        if proc.stderr is not None:
-            proc.stderr.close()
+        if proc is not None:
+            stop_process(proc, kill=kill, timeout=10)
 
     def client(self):
         """A redis-py client on it (for assertions)."""

@@ -24,6 +24,7 @@ import yaml
 
 from client.session import Session
 from pvs_cli import wait_until_healthy
+from tests.processes import stop_process
 from tests.redis_process import RedisProcess, free_port
 from visibility.generators import make_scene
 from visibility.viewcells import ViewcellGrid
@@ -48,12 +49,7 @@ def _process(args: list[str], env: dict[str, str], log: Path) -> Iterator[subpro
         try:
             yield proc
         finally:
-            proc.terminate()
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
+            stop_process(proc)
 
 
 def _wait_port(port: int, proc: subprocess.Popen, log: Path, timeout: float = 60.0) -> None:

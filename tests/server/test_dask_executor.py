@@ -378,3 +378,24 @@ def test_precompute_on_the_cluster_equals_the_local_pool_and_resumes(cluster, tm
 
     for a, b in zip(read_all(on_cluster), read_all(here), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_precompute_on_the_cluster_into_redis_resumes(cluster, redis_server, tmp_path,
+                                                      monkeypatch, capsys):
+    """The scale-out pieces together: cells computed on the cluster land in the shared Redis
+    cache (no disk cache), and a second run finds them there."""
+    from pvs_cli import main
+
+    monkeypatch.setenv("PVS_GENERATED", "rooms=3000")
+    monkeypatch.setenv("PVS_SCENES_DIR", str(tmp_path / "no-scenes"))
+    (tmp_path / "no-scenes").mkdir()
+    common = ["precompute", "--scene", "rooms", "--core", "sampling", "--param", "samples=4",
+              "--param", "resolution=32", "--quiet", "--cache", redis_server.url,
+              "--executor", dask_url(cluster), "--cells", "0-3"]
+    assert main(common) == 0
+    assert "4 computed" in capsys.readouterr().out
+    keys = redis_server.client().keys("pvs:v1:*:sampling:*")
+    assert sorted(int(k.decode().split(":")[5]) for k in keys) == [0, 1, 2, 3]
+    assert main(common) == 0
+    summary = capsys.readouterr().out
+    assert "4 already cached" in summary and "0 computed" in summary, summary

@@ -37,6 +37,7 @@ from server.redis_codec import (
 )
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
+from tests.processes import stop_process
 from tests.redis_process import RedisProcess, available, free_port
 from visibility.cores.base import PVS
 
@@ -201,14 +202,7 @@ def server_process(redis_url: str) -> Iterator[str]:
             raise RuntimeError(f"the server process did not start: {err}")
         yield url
     finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-        if proc.stderr is not None:
-            proc.stderr.close()
+        stop_process(proc)
 
 
 # --------------------------------------------------------------------------- live, shared
