@@ -96,6 +96,10 @@ class Viewer {
     this.stalls = 0;
     this.stallSeconds = 0;
     this.budget = params.get("budget") ? Number(params.get("budget")) : null;
+    // Seconds into the walkthrough where its clock (re)starts: a replay cut by a dropped
+    // connection resumes where it was, not from its first pose.
+    this.replayOffset = 0;
+    this.replayStart = null;
     this.reset();
     this.connection = new Connection(wsUrl(), {
       scene, core: params.get("core") || null, budget: this.budget,
@@ -108,8 +112,9 @@ class Viewer {
     });
   }
 
-  /** A new session: nothing held, nothing streamed. */
+  /** A new session: nothing held, nothing streamed; a replay keeps its place. */
   reset() {
+    if (this.walk && this.replayStart !== null) this.replayOffset = this.replayElapsed(performance.now());
     this.store = null;
     this.streams = null;
     this.welcome = null;
@@ -124,6 +129,12 @@ class Viewer {
     this.renderer.layout = -1;
     this.renderer.dynamicKey = null;
     this.renderer.setCubemap(null, [0, 0, 0]);
+  }
+
+  /** Seconds of the walkthrough played at `now` (its clock runs once its first cell is held). */
+  replayElapsed(now) {
+    const run = this.replayStart === null ? 0 : (now - this.replayStart) / 1000;
+    return Math.min(duration(this.walk), this.replayOffset + run);
   }
 
   start() {
@@ -142,10 +153,14 @@ class Viewer {
     this.streams = new CellStreams(w, this.store);
     overlay.setCores(w.features.cores || [], params.get("core") || w.core);
     // The first pose at once: the server streams its cell while the page waits for it.
-    const p = this.walk ? poseAt(this.walk, this.walk.t[0]) : { position: this.controls.position, forward: this.controls.forward };
-    if (this.walk) this.controls.set(p.position, p.forward);
-    this.nextWalkPose = this.walk ? 1 : 0;
-    this.sendPose(this.walk ? this.walk.t[0] : 0, p.position, p.forward, null);
+    const t0 = this.walk ? this.walk.t[0] + this.replayOffset : 0;
+    const p = this.walk ? poseAt(this.walk, t0) : { position: this.controls.position, forward: this.controls.forward };
+    if (this.walk) {
+      this.controls.set(p.position, p.forward);
+      this.nextWalkPose = this.walk.t.findIndex((t) => t > t0);
+      if (this.nextWalkPose < 0) this.nextWalkPose = this.walk.t.length;
+    }
+    this.sendPose(t0, p.position, p.forward, null);
   }
 
   onMessage(msg) {
@@ -175,11 +190,11 @@ class Viewer {
     const walk = this.walk;
     if (walk && this.replayStart === null) {
       // Like the headless client: wait behind the loading screen for the first cell.
-      const c = this.cellOf(walk.positions[0]);
+      const c = this.cellOf(poseAt(walk, walk.t[0] + this.replayOffset).position);
       if (c === null || this.streams.isComplete(c)) this.replayStart = now;
     }
     if (walk && this.replayStart !== null && this.controls.touched === 0) {
-      const t = walk.t[0] + (now - this.replayStart) / 1000;
+      const t = walk.t[0] + this.replayElapsed(now);
       const p = poseAt(walk, t);
       this.controls.set(p.position, p.forward);
       // Every pose of the walk goes out at its time, as client/replay.py sends them.
@@ -220,7 +235,7 @@ class Viewer {
   /** Scene time of a dynamic scene's keyframes: the replay's clock, else seconds walked. */
   sceneTime(now) {
     if (!this.welcome.scene.dynamic) return null;
-    if (this.walk && this.replayStart !== null) return this.walk.t[0] + (now - this.replayStart) / 1000;
+    if (this.walk && this.replayStart !== null) return this.walk.t[0] + this.replayElapsed(now);
     return now / 1000;
   }
 
@@ -287,7 +302,8 @@ class Viewer {
       dropped: s ? s.dropped : 0,
       serverErrors: s ? s.errors.map((e) => `${e.code}: ${e.message}`) : [],
       localErrors: s ? s.localErrors.slice() : [],
-      replayDone: !!(this.walk && this.replayStart !== null && (performance.now() - this.replayStart) / 1000 >= duration(this.walk)),
+      replayDone: !!(this.walk && this.replayStart !== null && this.replayElapsed(performance.now()) >= duration(this.walk)),
+      replayAt: this.walk ? this.replayElapsed(performance.now()) : null,
     };
   }
 

@@ -17,8 +17,11 @@ import websockets
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import serve
 
-from tests.conftest import serving
-from tests.viewer.chromium import console_errors, start_chromium, wait_state
+from client.walkthrough import generate_walkthrough
+from tests.conftest import SMALL_GENERATED_TRIANGLES, serving
+from tests.viewer.chromium import console_errors, start_chromium, state, wait_state, walk_data_url
+from visibility.generators import make_scene
+from visibility.viewcells import ViewcellGrid
 
 #: Binary frames relayed before the first session is spoiled.
 SPOIL_AFTER = 5
@@ -28,9 +31,11 @@ class FaultyRelay:
     """Relays ``ws://127.0.0.1:PORT/ws`` to ``upstream``; its first session gets ``fault``
     ("bad_frame" or "drop") after ``SPOIL_AFTER`` binary frames. Runs on its own loop thread."""
 
-    def __init__(self, upstream: str, fault: str) -> None:
+    def __init__(self, upstream: str, fault: str, drop_after_s: float | None = None) -> None:
         self.upstream = upstream
         self.fault = fault
+        #: With a time, the first session is cut that many seconds after it opened instead.
+        self.drop_after_s = drop_after_s
         self.sessions = 0
         self.loop = asyncio.new_event_loop()
         self.ready = threading.Event()
@@ -58,6 +63,9 @@ class FaultyRelay:
     async def _session(self, page) -> None:
         self.sessions += 1
         spoil = self.sessions == 1
+        if spoil and self.drop_after_s is not None:
+            asyncio.get_running_loop().call_later(self.drop_after_s, page.transport.abort)
+            spoil = False
         async with connect(self.upstream, compression=None, max_size=None) as up:
 
             async def to_server() -> None:
@@ -133,5 +141,36 @@ def test_page_says_when_its_modules_do_not_load(settings, tmp_path):
                 time.sleep(0.1)
             assert "the viewer's modules did not load" in status.text
             assert "npm ci" in status.text
+        finally:
+            driver.quit()
+
+
+def test_a_replay_cut_by_a_dropped_connection_resumes_where_it_was(server):
+    """The walkthrough's clock does not go back to its first pose after a reconnect: the
+    second session starts at the pose the first one had reached."""
+    grid = ViewcellGrid.for_scene(make_scene("rooms", triangles=SMALL_GENERATED_TRIANGLES,
+                                             seed=0))
+    walk = generate_walkthrough(grid, duration=8.0, fps=10, seed=4)
+    upstream = server.replace("http://", "ws://") + "/ws"
+    with FaultyRelay(upstream, "drop", drop_after_s=3.0) as relay:
+        driver = start_chromium()
+        try:
+            driver.get(f"{server}/viewer?scene=rooms&core=sampling&size=160x120"
+                       f"&ws=ws://127.0.0.1:{relay.port}/ws&walk={walk_data_url(walk)}")
+            samples: list[tuple[int, float]] = []
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline:
+                st = state(driver)
+                if st is not None and st["replayAt"] is not None:
+                    samples.append((st["connections"], st["replayAt"]))
+                    if st["connections"] >= 2 and st["replayDone"]:
+                        break
+                time.sleep(0.05)
+            first = [t for c, t in samples if c == 1]
+            second = [t for c, t in samples if c >= 2]
+            assert relay.sessions == 2 and first and second, samples[-5:]
+            assert max(first) > 0.5, "the drop must come after the replay's clock started"
+            assert min(second) >= max(first) - 0.05, (max(first), min(second))
+            assert second[-1] >= 8.0 - 1e-6  # and it plays to the end
         finally:
             driver.quit()
