@@ -297,6 +297,46 @@ def test_a_worker_killed_mid_job_is_retried_and_the_client_sees_no_error(
     assert pid not in client.run(os.getpid).values()
 
 
+def test_a_walkthrough_survives_a_worker_killed_mid_job(cluster, client, settings,
+                                                       registered_test_cores):
+    """A walker's cell is being computed on a worker that is SIGKILLed: the scheduler reruns
+    the job elsewhere, the walker gets the cell and then the next one, with no error."""
+    radius = 4.5
+    with serving(settings, {"tiny": TINY}, executor=dask_url(cluster)) as (url, app):
+        grid = app.state.server.catalog.get("tiny").grid
+        walk = [3, 2]
+
+        def busy() -> list:
+            return [w for w, keys in client.processing().items()
+                    if any(str(k).startswith("pvs-test_slow") for k in keys)]
+
+        async def main():
+            s = await Session.connect(url, "tiny", "test_slow",
+                                      {"radius": radius, "delay": 3.0}, prefetch=False)
+            await s.send_pose(0, 0.0, grid.boxes[walk[0]].mean(axis=0), (1.0, 0.0, 0.0))
+            await asyncio.to_thread(wait_for, lambda: bool(busy()), 60)
+            await asyncio.sleep(0.5)  # inside the job's 3 s sleep
+            victim = busy()[:1]
+            pid = client.run(os.getpid, workers=victim)[victim[0]]
+            os.kill(pid, signal.SIGKILL)
+            await s.wait_cell(walk[0], 180)
+            await s.send_pose(1, 1.0, grid.boxes[walk[1]].mean(axis=0), (1.0, 0.0, 0.0))
+            await s.wait_cell(walk[1], 180)
+            held = s.store.ids.copy()
+            await s.close()
+            return s, held, pid
+
+        s, held, pid = asyncio.run(asyncio.wait_for(main(), 300))
+        state = app.state.server.compute.executor.state()
+    assert not s.errors
+    want = set(near_ids(TINY, grid.boxes[walk[0]], radius).tolist()) \
+        | set(near_ids(TINY, grid.boxes[walk[1]], radius).tolist())
+    assert set(held.tolist()) == want
+    assert state["state"] == "dask" and state["local_jobs"] == 0
+    client.wait_for_workers(2, timeout=120)  # the nanny restarts it for the next tests
+    assert pid not in client.run(os.getpid).values()
+
+
 def test_a_lost_scheduler_degrades_to_the_local_pool(settings, registered_test_cores, caplog):
     from distributed import LocalCluster
 
