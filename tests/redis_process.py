@@ -2,7 +2,7 @@
 restarted on demand, never persisting anything (``--save ''``, ``--appendonly no``).
 
 ``scripts/setup.sh`` installs the Debian package ``redis-server``; ``available()`` says whether
-the binary is here (tests skip with a reason when it is not).
+the binary is here (tests fail with that reason when it is not: a broken set-up).
 """
 
 from __future__ import annotations

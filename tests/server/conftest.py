@@ -27,12 +27,10 @@ def still_healthy(http: httpx.Client) -> Iterator[None]:
 @pytest.fixture(scope="module")
 def redis_server() -> Iterator:
     """A REAL ``redis-server`` on a free loopback port for the module (``tests.redis_process``);
-    skipped, with the reason, where the binary is missing (``scripts/setup.sh`` installs it)."""
+    a missing binary fails (``scripts/setup.sh`` installs the Debian package redis-server)."""
     from tests.redis_process import RedisProcess, available
 
-    if not available():
-        pytest.skip("redis-server is not installed (scripts/setup.sh installs the Debian "
-                    "package redis-server)")
+    assert available(), "redis-server is missing: scripts/setup.sh installs it"
     proc = RedisProcess().start()
     try:
         yield proc

@@ -296,8 +296,7 @@ def test_redis_restart_mid_walkthrough_costs_the_walker_nothing(settings, regist
     """A walker walks cells while Redis is killed (SIGKILL) and started again: every cell
     arrives complete, no error reaches the walker, /health says down, then up, and values land
     in the new Redis once it is back."""
-    if not available():
-        pytest.skip("redis-server is not installed (scripts/setup.sh installs it)")
+    assert available(), "redis-server is missing: scripts/setup.sh installs it"
     redis = RedisProcess().start()
     tiny = make_tiny_scene()
     try:
@@ -364,8 +363,7 @@ def test_progressive_walker_gets_redis_answers_without_first_answers(
 
 
 def test_server_serves_with_redis_down_at_start(settings, registered_test_cores):
-    if not available():
-        pytest.skip("redis-server is not installed (scripts/setup.sh installs it)")
+    assert available(), "redis-server is missing: scripts/setup.sh installs it"
     port = free_port()
     with serving(settings, {"tiny": make_tiny_scene()}, cache=f"redis://127.0.0.1:{port}/0",
                  redis_retry=0.2, redis_timeout=0.3) as (url, app):
