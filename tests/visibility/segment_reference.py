@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from visibility.cores.from_segment.kernels import sample_offset
 from visibility.raster import render_cubemap
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
 
@@ -80,11 +81,13 @@ def sampled_visible(vertices0: np.ndarray, vertices1: np.ndarray, faces: np.ndar
 def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
                      rotation: np.ndarray, resolution: int, row: int, col: int,
                      centers: np.ndarray | None = None, radii: np.ndarray | None = None,
-                     near: float = DEFAULT_NEAR) -> tuple[int, float]:
-    """Brute-force ray cast of one pixel centre of a 90-degree face: (id of the nearest
-    primitive (triangles first, spheres after them; -1 for none), its depth)."""
-    x = (col + 0.5) * (2.0 / resolution) - 1.0
-    y = 1.0 - (row + 0.5) * (2.0 / resolution)
+                     near: float = DEFAULT_NEAR,
+                     offset: tuple[float, float] = (0.0, 0.0)) -> tuple[int, float]:
+    """Brute-force ray cast of one pixel's sample of a 90-degree face (its centre moved by
+    ``offset`` pixels, x right and y up): (id of the nearest primitive (triangles first, spheres
+    after them; -1 for none), its depth)."""
+    x = (col + 0.5 + offset[0]) * (2.0 / resolution) - 1.0
+    y = 1.0 - (row + 0.5 - offset[1]) * (2.0 / resolution)
     w = np.asarray(rotation).T @ np.array([x, y, -1.0])  # world direction, depth 1 per unit
     tri = np.asarray(vertices)[np.asarray(faces)] - eye  # (m, 3, 3)
     best, best_id = np.inf, -1
@@ -128,9 +131,11 @@ def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
 def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
                 vertices1: np.ndarray, faces: np.ndarray, v0: np.ndarray, v1: np.ndarray,
                 resolution: int, base_rotation: np.ndarray | None = None, centers0=None,
-                centers1=None, radii=None, near: float = DEFAULT_NEAR) -> list[int]:
+                centers1=None, radii=None, near: float = DEFAULT_NEAR, jitter: float = 0.0,
+                seed: int = 0) -> list[int]:
     """Ids reported visible whose witness (t, face, pixel) a brute-force ray cast does not
-    confirm as the nearest primitive there: should be empty for an exact algorithm."""
+    confirm as the nearest primitive there: should be empty for an exact algorithm. With
+    ``jitter``, the pixel's sample is where ``segment_visible`` put it (``sample_offset``)."""
     rots = cube_face_rotations(base_rotation)
     bad = []
     for pid in np.flatnonzero(visible):
@@ -138,8 +143,56 @@ def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
         eye = v0 + t * (v1 - v0)
         verts = (1 - t) * vertices0 + t * vertices1
         c = None if radii is None else (1 - t) * centers0 + t * centers1
+        off = sample_offset(int(f), int(row), int(col), resolution, jitter, seed)
         got, _ = nearest_at_pixel(verts, faces, eye, rots[int(f)], resolution, int(row),
-                                  int(col), c, radii, near)
+                                  int(col), c, radii, near, off)
         if got != pid:
             bad.append(int(pid))
     return bad
+
+
+def jittered_visible(vertices: np.ndarray, faces: np.ndarray, v0: np.ndarray, v1: np.ndarray,
+                     resolution: int, samples: int, jitter: float, seed: int,
+                     base_rotation: np.ndarray | None = None,
+                     near: float = DEFAULT_NEAR) -> np.ndarray:
+    """(m,) bool: static triangles first hit, at ``samples`` evenly spaced points of v0 -> v1,
+    by the ray of some pixel's jittered sample (``sample_offset``) of the cubemap: a brute-force
+    ray cast of every sample against every triangle (small scenes only)."""
+    res = int(resolution)
+    rows, cols = np.divmod(np.arange(res * res), res)
+    rots = cube_face_rotations(base_rotation)
+    dirs = []
+    for f in range(6):
+        off = np.array([sample_offset(f, int(i), int(j), res, jitter, seed)
+                        for i, j in zip(rows, cols)])
+        x = (cols + 0.5 + off[:, 0]) * (2.0 / res) - 1.0
+        y = 1.0 - (rows + 0.5 - off[:, 1]) * (2.0 / res)
+        cam = np.stack([x, y, -np.ones_like(x)], axis=1)
+        dirs.append(cam @ rots[f])  # world directions, depth 1 per unit along the face axis
+    w = np.concatenate(dirs)  # (p, 3)
+    seen = np.zeros(len(faces), dtype=bool)
+    v0 = np.asarray(v0, dtype=np.float64)
+    v1 = np.asarray(v1, dtype=np.float64)
+    for t in np.linspace(0.0, 1.0, samples):
+        tri = np.asarray(vertices)[np.asarray(faces)] - (v0 + t * (v1 - v0))  # (m, 3, 3)
+        e1 = tri[:, 1] - tri[:, 0]
+        e2 = tri[:, 2] - tri[:, 0]
+        n = np.cross(e1, e2)
+        wn = w @ n.T  # (p, m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.einsum("ij,ij->i", tri[:, 0], n)[None] / wn
+            q = s[..., None] * w[:, None] - tri[None, :, 0]  # (p, m, 3)
+            d00 = np.einsum("ij,ij->i", e1, e1)
+            d01 = np.einsum("ij,ij->i", e1, e2)
+            d11 = np.einsum("ij,ij->i", e2, e2)
+            d20 = np.einsum("pmk,mk->pm", q, e1)
+            d21 = np.einsum("pmk,mk->pm", q, e2)
+            den = d00 * d11 - d01 * d01
+            bv = (d11 * d20 - d01 * d21) / den
+            bw = (d00 * d21 - d01 * d20) / den
+        ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
+        depth = np.where(ok, s, np.inf)
+        k = np.argmin(depth, axis=1)
+        hit = np.isfinite(depth[np.arange(len(w)), k])
+        seen[k[hit]] = True
+    return seen

@@ -41,12 +41,13 @@ Granularity = Literal["triangle", "object"]
 PROMISES: dict[str, str] = {
     "aggressive": "reports only what it saw from sampled points; may miss what falls between "
                   "its samples and pixels (false negatives), rarely reports hidden triangles",
-    "exact_at_pixel_centres": "exact visibility at pixel centres along the cell's sides; misses "
-                              "only what falls between pixel centres",
+    "exact_at_pixel_samples": "exact visibility at one sample per cubemap pixel (its centre, or a "
+                              "fixed point jittered inside it) along the cell's sides; misses "
+                              "only what falls between samples",
     "conservative": "no false negatives for any eye position in the cell and any view "
                     "direction; over-reports by a measured share",
 }
-Promise = Literal["aggressive", "exact_at_pixel_centres", "conservative"]
+Promise = Literal["aggressive", "exact_at_pixel_samples", "conservative"]
 
 #: The entry-point group through which another installed package registers cores.
 ENTRY_POINT_GROUP = "pvs.cores"

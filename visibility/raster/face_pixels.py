@@ -12,12 +12,13 @@ from numba import njit
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def pixel_range(umin: float, umax: float, vmin: float, vmax: float, res: int,
-                box: np.ndarray) -> bool:
+                box: np.ndarray, pad: float = 0.0) -> bool:
     """Write into ``box`` (4,) int the pixel-centre box [row0, row1, col0, col1] (inclusive) of
-    the NDC rectangle [umin, umax] x [vmin, vmax], widened by 1e-6 pixel against rounding;
-    False (box untouched) when the rectangle holds no pixel centre of the face."""
+    the NDC rectangle [umin, umax] x [vmin, vmax], widened by ``pad`` pixels (the reach of a
+    sample jittered off its pixel centre, 0 to 0.5) and by 1e-6 pixel against rounding;
+    False (box untouched) when the widened rectangle holds no pixel centre of the face."""
     h = 0.5 * res
-    eps = 1e-6
+    eps = 1e-6 + pad
     col0 = max(-1.0, (umin + 1.0) * h - 0.5)
     col1 = min(res + 1.0, (umax + 1.0) * h - 0.5)
     row0 = max(-1.0, (1.0 - vmax) * h - 0.5)

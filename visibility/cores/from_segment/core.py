@@ -62,6 +62,11 @@ class FromSegmentParams(CoreParams):
         on a 100k city cell, 2.0 against 7.1 % on village, 0 against 1.6 % on rooms, for 10-25 %
         more time (benchmarks/results/from_segment.md, "First orientation").
     near : near-plane distance of the visibility cameras, metres.
+    jitter : each pixel is sampled at a fixed pseudo-random point up to ``jitter`` pixels off its
+        centre per axis (``kernels.sample_offset``), a new pattern per segment and run; 0 samples
+        the centres (the paper). Sub-pixel triangles slide along a line on the cube as the eye
+        walks a side; with centres on a regular grid that line can pass between every row of
+        centres, while jittered samples do not line up (see BENCHMARKS.md for what it buys).
     eye_levels : heights at which the rectangle is walked: 1 = mid height, 2 = bottom and top of
         the box, 3 = all three (a box without height always uses one).
     depth_knots : depth of moving triangles and spheres is interpolated between multiples of
@@ -77,6 +82,8 @@ class FromSegmentParams(CoreParams):
         help="the first cube: oblique (aligned with no world axis) or axis (the paper's)")
     near: float = param(DEFAULT_NEAR, ge=1e-6, le=10.0, unit="m",
                         help="near-plane distance of the visibility cameras")
+    jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
+                          help="how far each pixel's sample lies off its centre (0 = centres)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
     depth_knots: int = param(16, ge=1, le=1024,
                              help="depth of moving primitives interpolated between these knots")
@@ -162,9 +169,10 @@ class FromSegmentCore(Core):
 
     name = "from_segment"
     description = ("Continuous from-segment visibility (Popescu et al. 2024): exact visibility "
-                   "at cubemap pixel centres along the cell's sides; static, dynamic, spheres")
+                   "at one jittered sample per cubemap pixel along the cell's sides; static, "
+                   "dynamic, spheres")
     Params = FromSegmentParams
-    promise = "exact_at_pixel_centres"
+    promise = "exact_at_pixel_samples"
     fits = ("static triangle scenes, any cell size (dynamic scenes too, at a cost linear in "
             "their keyframes)")
     knob = "resolution"
@@ -224,12 +232,16 @@ class FromSegmentCore(Core):
         stats: dict[str, Any] = {}
         batch = max(1, int(params.batch_triangles) // CLUSTER)
         if len(geoms[0].tri_sel) or len(geoms[0].sphere_sel):
-            for rot in rotations:
-                for v0, v1 in segments:
+            for k, rot in enumerate(rotations):
+                for s, (v0, v1) in enumerate(segments):
+                    # A fresh jitter pattern per segment and run: a triangle seen from several
+                    # sides gets independent chances to meet a sample.
+                    pattern = (int(params.seed) * 256 + k) * 64 + s
                     for g in geoms:
                         checkpoint()
                         segment_visible(g, v0, v1, rot, params.resolution, params.near,
-                                        params.depth_knots, batch, visible, stats)
+                                        params.depth_knots, batch, visible, stats,
+                                        jitter=params.jitter, seed=pattern)
         m = scene.n_triangles
         stats["segments"] = int(len(segments))
         stats["runs"] = int(params.runs)

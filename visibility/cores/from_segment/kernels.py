@@ -92,9 +92,41 @@ def _face_permutation() -> tuple[np.ndarray, np.ndarray]:
 _PERM, _SGN = _face_permutation()
 
 
+# ------------------------------------------------------------------------------ samples
+_U64_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_U64_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_U64_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+@njit(**_JIT)
+def _unit_hash(key):
+    """A float in [0, 1) from a uint64 key (splitmix64's finaliser): decorrelated for
+    neighbouring keys, so neighbouring pixels get unrelated offsets."""
+    z = key + _U64_GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _U64_MIX1
+    z = (z ^ (z >> np.uint64(27))) * _U64_MIX2
+    z = z ^ (z >> np.uint64(31))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(**_JIT)
+def sample_offset(face: int, row: int, col: int, res: int, jitter: float,
+                  seed: int) -> tuple[float, float]:
+    """Offset (dx, dy), in pixels along +x (columns) and +y (up, i.e. against rows), of pixel
+    (face, row, col)'s sample from its centre: uniform in [-jitter, jitter]^2, a fixed hash of
+    the pixel and ``seed``. ``jitter = 0`` gives the pixel centre."""
+    if jitter == 0.0:
+        return 0.0, 0.0
+    key = ((np.uint64(seed) * np.uint64(6) + np.uint64(face)) * np.uint64(res)
+           + np.uint64(row)) * np.uint64(res) + np.uint64(col)
+    k2 = key + key
+    return (jitter * (2.0 * _unit_hash(k2) - 1.0),
+            jitter * (2.0 * _unit_hash(k2 + np.uint64(1)) - 1.0))
+
+
 # ------------------------------------------------------------------------------ boxes
 @njit(**_JIT)
-def _hull_box(cube, npts, f, perm, sgn, near, res, box):
+def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
     """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
     the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
     hull reaches the near plane)."""
@@ -160,7 +192,7 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box):
                     vmax = max(vmax, v)
     if not (umin <= umax and vmin <= vmax):
         return False, 0.0, False
-    if not pixel_range(umin, umax, vmin, vmax, res, box):
+    if not pixel_range(umin, umax, vmin, vmax, res, box, pad):
         return False, 0.0, False
     return True, zm, slow
 
@@ -193,7 +225,7 @@ def _to_cube(rb, x, y, z, cube, q):
 
 
 @njit(**_JIT)
-def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
                          out_flag, first, last):  # pragma: no cover - numba
     """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
     corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
@@ -212,7 +244,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box
         f_lo = 0 if sole < 0 else sole
         f_hi = 6 if sole < 0 else sole + 1
         for f in range(f_lo, f_hi):
-            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx)
+            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad)
             if ok:
                 for r in range(4):
                     out_box[c, f, r] = bx[r]
@@ -221,12 +253,12 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box
 
 
 @njit(**_PJIT)
-def _cluster_boxes(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+def _cluster_boxes(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
                    out_flag):  # pragma: no cover - numba
     n = lo_c.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
-        _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, out_box, out_z,
+        _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
                              out_flag, ch * n // nch, (ch + 1) * n // nch)
 
 
@@ -242,7 +274,7 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 
 @njit(**_JIT)
 def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
-                          sgn, res, near, out_box, out_z, out_flag, first,
+                          sgn, res, near, pad, out_box, out_z, out_flag, first,
                           last):  # pragma: no cover - numba
     cube = np.empty((6, 3))
     bx = np.empty(4, dtype=np.int64)
@@ -251,7 +283,7 @@ def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, 
         f = exp_face[k]
         out_flag[k] = 0
         _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
-        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx)
+        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad)
         if ok:
             for r in range(4):
                 out_box[k, r] = bx[r]
@@ -262,13 +294,13 @@ def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, 
 
 @njit(**_PJIT)
 def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
-                    res, near, out_box, out_z, out_flag):  # pragma: no cover - numba
+                    res, near, pad, out_box, out_z, out_flag):  # pragma: no cover - numba
     """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters."""
     n = exp_tri.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
         _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
-                              perm, sgn, res, near, out_box, out_z, out_flag, ch * n // nch,
+                              perm, sgn, res, near, pad, out_box, out_z, out_flag, ch * n // nch,
                               (ch + 1) * n // nch)
 
 
@@ -325,7 +357,7 @@ def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: 
 
 
 @njit(**_JIT)
-def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, out_box, out_z,
+def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, pad, out_box, out_z,
                   out_flag):  # pragma: no cover - numba
     """Per selected sphere and cube face: pixel box, smallest depth and flags (0 = absent)."""
     p0 = np.empty(3)
@@ -341,7 +373,7 @@ def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, out_box, out_z,
                 for c in range(3):
                     p0[r] += rots[f, r, c] * (c0[s, c] - v0[c])
                     p1[r] += rots[f, r, c] * (c1[s, c] - v0[c] - dvec[c])
-            ok, zm, slow = sphere_box(p0, p1, radii[s], near, res, bx)
+            ok, zm, slow = sphere_box(p0, p1, radii[s], near, res, bx, pad)
             if ok:
                 for r in range(4):
                     out_box[k, f, r] = bx[r]
@@ -703,7 +735,7 @@ def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
 
 
 @njit(**_JIT)
-def _front_box(P, U, res, box):
+def _front_box(P, U, res, box, pad):
     """Pixel box and smallest depth of a triangle's six swept points, all known to be in front
     of the near plane (a cluster that is not near the eye)."""
     umin = np.inf
@@ -722,14 +754,15 @@ def _front_box(P, U, res, box):
             vmin = min(vmin, y * inv)
             vmax = max(vmax, y * inv)
             zm = min(zm, d)
-    return pixel_range(umin, umax, vmin, vmax, res, box), zm
+    return pixel_range(umin, umax, vmin, vmax, res, box, pad), zm
 
 
 @njit(**_JIT)
 def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, knots, coef,
-            env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk):
+            env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy):
     """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere) into
-    the envelopes of the pixels [ia, ib] x [ja, jb] of the current tile. Returns (env, eid, T,
+    the envelopes of the pixels [ia, ib] x [ja, jb] of the current tile, sampled at their
+    centres moved by (jx, jy)[pixel] NDC units (``sample_offset``). Returns (env, eid, T,
     tid, pixels newly bounded, overflow, pairs, pieces, grows); the storage is reallocated
     when it grows."""
     closed = 0
@@ -737,13 +770,14 @@ def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, 
     pieces = 0
     grows = 0
     for i in range(ia, ib + 1):
-        y = 1.0 - (i + 0.5) * step
+        yc = 1.0 - (i + 0.5) * step
         for j in range(ja, jb + 1):
             px = (i - r0) * tw + (j - cl0)
             bpx = bound[px]
             if zpr >= bpx:
                 continue
-            x = (j + 0.5) * step - 1.0
+            x = (j + 0.5) * step - 1.0 + jx[px]
+            y = yc + jy[px]
             pairs += 1
             if kind == 0:
                 ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
@@ -785,23 +819,23 @@ def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, 
 @njit(**_PJIT)
 def _resolve(tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z, prim_zkey,
              prim_flag, prim_face, verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1,
-             radii, n_tri, v0, dvec, rots, res, near, knots, visible, overflow, counters,
-             witness):  # pragma: no cover - numba
+             radii, n_tri, v0, dvec, rots, res, near, knots, jitter, seed, visible, overflow,
+             counters, witness):  # pragma: no cover - numba
     """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
     n_tri + sphere). A tile whose envelopes outgrow MAX_CAP sets ``overflow``, marks nothing.
     Tiles are strided over chunks so that busy screen regions spread over the threads."""
     for ch in prange(n_chunks):
         _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
                        prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
-                       cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, visible,
-                       overflow, counters, witness)
+                       cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
+                       seed, visible, overflow, counters, witness)
 
 
 @njit(**_JIT)
 def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
                    prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
-                   cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, visible,
-                   overflow, counters, witness):  # pragma: no cover - numba
+                   cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
+                   seed, visible, overflow, counters, witness):  # pragma: no cover - numba
     ntx = (res + TILE - 1) // TILE
     per_face = ntx * ntx
     npx_max = TILE * TILE
@@ -829,6 +863,9 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
     cen = np.empty(3)
     vel = np.empty(3)
     bx = np.empty(4, dtype=np.int64)
+    jx = np.zeros(npx_max)
+    jy = np.zeros(npx_max)
+    pad = jitter
     n_pairs = 0
     n_pieces = 0
     n_grows = 0
@@ -848,6 +885,10 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
         for p in range(npx):
             cnt[p] = 0
             bound[p] = np.inf
+            if jitter > 0.0:
+                dx, dy = sample_offset(f, r0 + p // tw, cl0 + p % tw, res, jitter, seed)
+                jx[p] = dx * step
+                jy[p] = dy * step
         open_px = npx
         tbound = np.inf
         since = 0
@@ -873,7 +914,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                 for k in range(cl_start[src], cl_start[src + 1]):
                     t = cl_tris[k]
                     _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
-                    ok, zt = _front_box(P, U, res, bx)
+                    ok, zt = _front_box(P, U, res, bx, pad)
                     if not ok or zt >= tbound:
                         continue
                     ia = max(bx[0], r0)
@@ -890,7 +931,8 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                         kind = 0
                     env, eid, T, tid, nc, ovf, a0, a1, a2 = _raster(
                         kind, t, False, zt, ia, ib, ja, jb, r0, cl0, tw, npx, step, near,
-                        knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk)
+                        knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk,
+                        jx, jy)
                     closed += nc
                     n_pairs += a0
                     n_pieces += a1
@@ -919,7 +961,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                     kind, src, slow, prim_z[pr], max(prim_box[pr, 0], r0),
                     min(prim_box[pr, 1], r1 - 1), max(prim_box[pr, 2], cl0),
                     min(prim_box[pr, 3], cl1 - 1), r0, cl0, tw, npx, step, near, knots, coef,
-                    env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk)
+                    env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy)
                 n_pairs += a0
                 n_pieces += a1
                 n_grows += a2
@@ -1109,8 +1151,8 @@ def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
 
 
 # ------------------------------------------------------------------------------ Python driver
-def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
-    """All (primitive, face) pairs that can touch a pixel centre of the segment's cubemap:
+def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
+    """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
     whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s)."""
     parts = []
     nc = len(geom.cl_start) - 1
@@ -1123,7 +1165,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
         cz = np.empty((k, 6))
         cflag = np.empty((k, 6), dtype=np.uint8)
         _cluster_boxes(geom.cl_lo[first:last], geom.cl_hi[first:last], v0, dvec, rb, _PERM, _SGN,
-                       res, near, cbox, cz, cflag)
+                       res, near, pad, cbox, cz, cflag)
         kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
                                                       cflag, first, res)
         parts.append((kc, kf, kb, kz, kfl))
@@ -1133,7 +1175,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
             ez = np.empty(len(et))
             efl = np.empty(len(et), dtype=np.uint8)
             _expanded_boxes(geom.verts0, geom.verts1, geom.faces, geom.moving, et, ef, v0, dvec,
-                            rb, _PERM, _SGN, res, near, ebox, ez, efl)
+                            rb, _PERM, _SGN, res, near, pad, ebox, ez, efl)
             keep = efl != 0
             parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
                           ez[keep], efl[keep]))
@@ -1144,7 +1186,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, batch, stats):
         z = np.empty((k, 6))
         flag = np.empty((k, 6), dtype=np.uint8)
         _sphere_boxes(geom.centers0, geom.centers1, geom.radii, geom.sphere_sel, v0, dvec, rots,
-                      res, near, box, z, flag)
+                      res, near, pad, box, z, flag)
         si, sf = np.nonzero(flag)
         parts.append(((geom.sphere_sel[si] + geom.n_triangles).astype(np.int32),
                       sf.astype(np.int32), box[si, sf], z[si, sf], flag[si, sf]))
@@ -1171,8 +1213,10 @@ def segment_visible(
     visible: np.ndarray | None = None,
     stats: dict | None = None,
     witness: np.ndarray | None = None,
+    jitter: float = 0.0,
+    seed: int = 0,
 ) -> np.ndarray:
-    """Primitives visible at some pixel centre of a cubemap moving along v0 -> v1.
+    """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
 
     Parameters
     ----------
@@ -1188,7 +1232,15 @@ def segment_visible(
     stats : optional dict; counters and per-phase seconds are added to it.
     witness : optional (geom.n_ids, 5) float64 array (zeros to start): for each visible primitive,
         its longest envelope piece seen so far as (length in t, mid t, face, row, col), i.e. a
-        time and pixel centre at which it is the nearest surface (for tests and debugging).
+        time and pixel at which it is the nearest surface (for tests and debugging; the
+        pixel's sample is ``sample_offset(face, row, col, resolution, jitter, seed)`` off its
+        centre).
+    jitter : how far, in pixels (0 to 0.5), each pixel's sample lies off its centre, per axis:
+        a fixed pseudo-random point of the pixel (``sample_offset``), the same for the whole
+        segment. 0 samples pixel centres. A thin band sliding along itself between two pixel
+        rows covers no centre anywhere on the segment; jittered samples do not line up, so it
+        meets some.
+    seed : picks the jitter pattern (non-negative).
 
     Returns
     -------
@@ -1205,6 +1257,11 @@ def segment_visible(
         raise ValueError(f"near must be a positive number of metres, got {near}")
     if int(knots) < 1:
         raise ValueError(f"knots must be >= 1, got {knots}")
+    jitter = float(jitter)
+    if not 0.0 <= jitter <= 0.5:
+        raise ValueError(f"jitter must be in [0, 0.5] pixels, got {jitter}")
+    if int(seed) < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
     if visible is None:
         visible = np.zeros(geom.n_ids, dtype=bool)
     elif visible.shape != (geom.n_ids,) or visible.dtype != np.bool_:
@@ -1218,7 +1275,7 @@ def segment_visible(
     dvec = v1 - v0
     t0 = time.perf_counter()
     prim_src, prim_face, prim_box, prim_z, prim_flag = _collect_prims(
-        geom, v0, dvec, rb, rots, res, float(near), max(1, int(batch)), stats)
+        geom, v0, dvec, rb, rots, res, float(near), jitter, max(1, int(batch)), stats)
     t1 = time.perf_counter()
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, res, float(near))
     t2 = time.perf_counter()
@@ -1240,7 +1297,8 @@ def segment_visible(
         _resolve(tiles[sel], nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
                  prim_face, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
                  geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
-                 dvec, rots, res, float(near), int(knots), visible, group_overflow, counters, wit)
+                 dvec, rots, res, float(near), int(knots), jitter, int(seed), visible,
+                 group_overflow, counters, wit)
         overflow[sel] = group_overflow
     if overflow.any():
         raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "

@@ -125,13 +125,14 @@ def _tangent_range(c, d, r):
 
 @njit(**_JIT)
 def sphere_box(c0: np.ndarray, c1: np.ndarray, r: float, near: float, res: int,
-               box: np.ndarray) -> tuple[bool, float, bool]:
+               box: np.ndarray, pad: float = 0.0) -> tuple[bool, float, bool]:
     """Pixel-centre box of a sphere swept from camera-space centre c0 (t = 0) to c1 (t = 1).
 
     Writes [row0, row1, col0, col1] (inclusive) to ``box``; returns (touches the face, smallest
     depth it can have, may cross the near plane). The swept sphere (a capsule) is convex and
     x / depth is quasi-linear, so the box of the two end projections bounds every intermediate
-    one; when the capsule reaches the near plane the whole face is taken.
+    one; when the capsule reaches the near plane the whole face is taken. ``pad`` widens the
+    box by that many pixels (jittered samples, ``face_pixels.pixel_range``).
     """
     d0 = -c0[2]
     d1 = -c1[2]
@@ -159,6 +160,6 @@ def sphere_box(c0: np.ndarray, c1: np.ndarray, r: float, near: float, res: int,
     u1 = max(xb0, xb1)
     v0 = min(ya0, ya1)
     v1 = max(yb0, yb1)
-    if not pixel_range(u0, u1, v0, v1, res, box):
+    if not pixel_range(u0, u1, v0, v1, res, box, pad):
         return False, 0.0, False
     return True, zmin, False
