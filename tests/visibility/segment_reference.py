@@ -164,7 +164,7 @@ def jittered_visible(vertices: np.ndarray, faces: np.ndarray, v0: np.ndarray, v1
     dirs = []
     for f in range(6):
         off = np.array([sample_offset(f, int(i), int(j), res, jitter, seed)
-                        for i, j in zip(rows, cols)])
+                        for i, j in zip(rows, cols, strict=True)])
         x = (cols + 0.5 + off[:, 0]) * (2.0 / res) - 1.0
         y = 1.0 - (rows + 0.5 - off[:, 1]) * (2.0 / res)
         cam = np.stack([x, y, -np.ones_like(x)], axis=1)

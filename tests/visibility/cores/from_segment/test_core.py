@@ -293,12 +293,13 @@ def test_compute_segment_is_exact_on_a_diagonal_segment():
 
 
 def test_lone_sliver_is_reported_exactly_when_a_pixel_centre_crosses_it():
-    """Exact at pixel centres (``jitter=0``, the paper's samples): the 1e6-aspect sliver of ``checks.check_lone_sliver`` is reported
-    exactly when a row centre of the axis-aligned -Z face crosses it for some eye of the
-    perimeter (a crossing lasts a tiny stretch of a side, so point samples along the sides miss
-    it: the reason for a continuous method). The eyes are at y in {1.5, 1.7, 1.9}, 7 to 9 m from
-    the sliver's plane, so it spans the vertical tangents [(1.7 - y) / d, (1.7 + 4e-6 - y) / d]
-    for d in [7, 9]; row centres are at tangents (2k + 1) / R - 1."""
+    """Exact at pixel centres (``jitter=0``, the paper's samples): the 1e6-aspect sliver of
+    ``checks.check_lone_sliver`` is reported exactly when a row centre of the axis-aligned -Z
+    face crosses it for some eye of the perimeter (a crossing lasts a tiny stretch of a side, so
+    point samples along the sides miss it: the reason for a continuous method). The eyes are at
+    y in {1.5, 1.7, 1.9}, 7 to 9 m from the sliver's plane, so it spans the vertical tangents
+    [(1.7 - y) / d, (1.7 + 4e-6 - y) / d] for d in [7, 9]; row centres are at tangents (2k + 1)
+    / R - 1."""
     from visibility.cores.checks import check_valid
 
     core = FromSegmentCore()
