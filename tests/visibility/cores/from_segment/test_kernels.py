@@ -192,6 +192,42 @@ def test_jittered_spheres_are_confirmed_at_their_samples():
     assert len(bad) <= 0.01 * np.count_nonzero(vis), bad
 
 
+def test_a_segment_cut_into_pieces_sees_what_the_whole_sees(monkeypatch):
+    """Pieces (``kernels._piece``): forced to cut every piece (up to 2^6 of them), the segment's
+    visible set is the same as solved whole, every witness time is a time of the whole segment
+    confirmed by a brute-force ray cast, and ``stats["splits"]`` counts the cuts."""
+    from visibility.cores.from_segment import kernels
+
+    v, f = _soup(500, seed=41, lo=0.5, hi=4.0)
+    scene = Scene(v, f)
+    a, b = np.array([-0.9, 0.1, 0.3]), np.array([1.1, -0.3, 0.2])
+    geom = scene_geometries(scene)[0]
+    whole = segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2)
+    monkeypatch.setattr(kernels, "SPLIT_AREA", 0)
+    monkeypatch.setattr(kernels, "MAX_SPLIT_DEPTH", 3)
+    wit = np.zeros((geom.n_ids, 5))
+    stats = {}
+    cut = segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2, witness=wit,
+                          stats=stats)
+    assert stats["splits"] == 1 + 2 + 4
+    assert np.array_equal(whole, cut)
+    assert unwitnessed(wit, cut, v, v, f, a, b, 24, jitter=0.5, seed=2) == []
+    times = wit[cut, 1]
+    assert times.min() < 0.125 and times.max() > 0.875  # spread over the whole segment
+
+
+def test_moving_geometry_is_never_cut(monkeypatch):
+    from visibility.cores.from_segment import kernels
+
+    v0, f = _soup(100, seed=42)
+    scene = Scene(v0, f, states=np.stack([v0, v0 + 0.3]))
+    monkeypatch.setattr(kernels, "SPLIT_AREA", 0)
+    stats = {}
+    segment_visible(scene_geometries(scene)[0], np.zeros(3), np.ones(3), resolution=16,
+                    stats=stats)
+    assert "splits" not in stats
+
+
 def test_segment_equals_union_of_id_buffers_along_it():
     """Exactness at pixel centres, both ways: nothing the id buffers see along the segment is
     missed, and every triangle reported has a witness (a time and pixel centre where a
