@@ -23,6 +23,7 @@ Usage::
     python -m benchmarks.bench_real_cells --quick    # lavaducts, 1 cell, a lighter reference
     python -m benchmarks.bench_real_cells --scenes lyon_vilo3d lavaducts \
         --fs-resolutions 512 --out benchmarks/results/real_cells_512.md
+    python -m benchmarks.bench_real_cells --fs-variants jitter=0 cuts=0   # what each buys
 """
 
 from __future__ import annotations
@@ -71,6 +72,24 @@ def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarra
     for eye in sample_points(cell.box, points, rng):
         hits += np.bincount(view(eye, random_rotation(rng)), minlength=scene.n_triangles)
     return np.flatnonzero(hits >= MIN_HITS).astype(np.int32), time.perf_counter() - t0
+
+
+def parse_variant(text: str) -> dict[str, Any]:
+    """``"jitter=0,cuts=0"`` -> {"jitter": 0.0, "cuts": 0}: core parameters to try besides the
+    defaults (numbers are parsed; the core's ``make_params`` checks names and ranges)."""
+    out: dict[str, Any] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"expected KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = int(value)
+        except ValueError:
+            try:
+                out[key.strip()] = float(value)
+            except ValueError:
+                out[key.strip()] = value.strip()
+    return out
 
 
 def walk_cells(scene, seed: int, k: int) -> list[int]:
@@ -140,6 +159,8 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         ("sampling (defaults)", "sampling", {})]
                 runs += [(f"from_segment (resolution={r})", "from_segment", {"resolution": r})
                          for r in cfg.get("fs_resolutions", [])]
+                runs += [(f"from_segment ({text})", "from_segment", parse_variant(text))
+                         for text in cfg.get("fs_variants", [])]
                 for label, name, params in runs:
                     core = get_core(name)
                     try:
@@ -220,12 +241,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one)")
     ap.add_argument("--fs-resolutions", nargs="*", type=int, default=[],
                     help="from_segment also at these resolutions (px)")
+    ap.add_argument("--fs-variants", nargs="*", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                    help="from_segment also with these parameters, e.g. jitter=0 cuts=0")
     ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
     args = ap.parse_args(argv)
     scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
                     if not args.scenes or p.stem in args.scenes)
     cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
-           "rays": RAYS, "fs_resolutions": args.fs_resolutions}
+           "rays": RAYS, "fs_resolutions": args.fs_resolutions,
+           "fs_variants": args.fs_variants}
     if args.quick:
         cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96)
     command = "python -m benchmarks.bench_real_cells " + " ".join(

@@ -302,7 +302,9 @@ def part_segment(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
         grid = ViewcellGrid.for_scene(scene)
         cid = pick_cells(grid, 1)[0]
         p, q = cell_segments(grid.cell(cid).box, eye_levels=1)[0]
-        params = core.make_params(resolution=res, runs=1,
+        # Pixel centres (jitter 0), as in the paper: the from-point views it is compared with
+        # sample the centres, so an exact pass holds all they see.
+        params = core.make_params(resolution=res, runs=1, jitter=0.0,
                                   first_orientation=cfg["first_orientation"])
         fs, secs = _timed(lambda s=scene, a=p, b=q, pr=params: core.compute_segment(s, a, b, pr),
                           cfg["repeats"])

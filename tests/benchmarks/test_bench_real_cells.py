@@ -45,3 +45,11 @@ def test_walk_cells_are_cells_of_the_grid_and_deterministic():
     a = bench_real_cells.walk_cells(scene, seed=3, k=2)
     assert a == bench_real_cells.walk_cells(scene, seed=3, k=2)
     assert 1 <= len(a) <= 2 and all(isinstance(c, int) and c >= 0 for c in a)
+
+
+def test_parse_variant_reads_numbers_and_words():
+    assert bench_real_cells.parse_variant("jitter=0,cuts=0") == {"jitter": 0, "cuts": 0}
+    assert bench_real_cells.parse_variant("jitter=0.25, first_orientation=axis") == {
+        "jitter": 0.25, "first_orientation": "axis"}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        bench_real_cells.parse_variant("jitter")

@@ -22,6 +22,7 @@ from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
     DEFAULT_BATCH,
+    MAX_SPLIT_DEPTH,
     scene_geometries,
     segment_visible,
 )
@@ -69,6 +70,10 @@ class FromSegmentParams(CoreParams):
         centres, while jittered samples do not line up (see BENCHMARKS.md for what it buys).
     eye_levels : heights at which the rectangle is walked: 1 = mid height, 2 = bottom and top of
         the box, 3 = all three (a box without height always uses one).
+    cuts : a side along which near geometry sweeps across much of the cube (pixel boxes adding
+        up to more than ``kernels.SPLIT_AREA`` cubes) is solved as halves, up to this many times
+        over; 0 never cuts. Same set, less time in clutter: the boxes shrink and occlusion bounds
+        come nearer (static scenes only).
     depth_knots : depth of moving triangles and spheres is interpolated between multiples of
         1 / depth_knots of the segment (coverage events stay exact).
     batch_triangles : triangles per batch of the box pass (bounds its scratch memory; the pass
@@ -85,6 +90,8 @@ class FromSegmentParams(CoreParams):
     jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
                           help="how far each pixel's sample lies off its centre (0 = centres)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
+    cuts: int = param(MAX_SPLIT_DEPTH, ge=0, le=16,
+                      help="most times a side is halved where near geometry sweeps the cube")
     depth_knots: int = param(16, ge=1, le=1024,
                              help="depth of moving primitives interpolated between these knots")
     batch_triangles: int = param(DEFAULT_BATCH * CLUSTER, ge=1024, le=1 << 26, unit="triangles",
@@ -241,7 +248,8 @@ class FromSegmentCore(Core):
                         checkpoint()
                         segment_visible(g, v0, v1, rot, params.resolution, params.near,
                                         params.depth_knots, batch, visible, stats,
-                                        jitter=params.jitter, seed=pattern)
+                                        jitter=params.jitter, seed=pattern,
+                                        max_cuts=params.cuts)
         m = scene.n_triangles
         stats["segments"] = int(len(segments))
         stats["runs"] = int(params.runs)

@@ -1220,6 +1220,7 @@ def segment_visible(
     witness: np.ndarray | None = None,
     jitter: float = 0.0,
     seed: int = 0,
+    max_cuts: int | None = None,
 ) -> np.ndarray:
     """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
 
@@ -1247,8 +1248,9 @@ def segment_visible(
         meets some.
     seed : picks the jitter pattern (non-negative).
 
-    A segment along which near geometry sweeps across much of the cube is solved as pieces
-    (``_piece``, ``stats["splits"]``) when nothing in the scene moves.
+    max_cuts : a segment along which near geometry sweeps across much of the cube is solved as
+        pieces, halved up to this many times over (``_piece``, ``stats["splits"]``; None =
+        ``MAX_SPLIT_DEPTH``, 0 = never), when nothing in the scene moves.
 
     Returns
     -------
@@ -1270,6 +1272,9 @@ def segment_visible(
         raise ValueError(f"jitter must be in [0, 0.5] pixels, got {jitter}")
     if int(seed) < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
+    cuts = MAX_SPLIT_DEPTH if max_cuts is None else int(max_cuts)
+    if not 0 <= cuts <= 16:
+        raise ValueError(f"max_cuts must be in [0, 16], got {max_cuts}")
     if visible is None:
         visible = np.zeros(geom.n_ids, dtype=bool)
     elif visible.shape != (geom.n_ids,) or visible.dtype != np.bool_:
@@ -1282,7 +1287,7 @@ def segment_visible(
     rots = np.ascontiguousarray(cube_face_rotations(rb))
     # Geometry that moves with t cannot be cut at a mid time without re-interpolating it.
     splittable = geom.verts0 is geom.verts1 and geom.centers0 is geom.centers1
-    _piece(geom, v0, v1 - v0, 0.0, 1.0, MAX_SPLIT_DEPTH if splittable else 0, rb, rots, res,
+    _piece(geom, v0, v1 - v0, 0.0, 1.0, cuts if splittable else 0, rb, rots, res,
            float(near), int(knots), jitter, int(seed), max(1, int(batch)), visible, stats,
            witness)
     return visible

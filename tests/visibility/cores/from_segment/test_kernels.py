@@ -204,11 +204,13 @@ def test_a_segment_cut_into_pieces_sees_what_the_whole_sees(monkeypatch):
     geom = scene_geometries(scene)[0]
     whole = segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2)
     monkeypatch.setattr(kernels, "SPLIT_AREA", 0)
-    monkeypatch.setattr(kernels, "MAX_SPLIT_DEPTH", 3)
-    wit = np.zeros((geom.n_ids, 5))
     stats = {}
+    assert np.array_equal(whole, segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2,
+                                                 max_cuts=0, stats=stats))
+    assert "splits" not in stats
+    wit = np.zeros((geom.n_ids, 5))
     cut = segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2, witness=wit,
-                          stats=stats)
+                          stats=stats, max_cuts=3)
     assert stats["splits"] == 1 + 2 + 4
     assert np.array_equal(whole, cut)
     assert unwitnessed(wit, cut, v, v, f, a, b, 24, jitter=0.5, seed=2) == []
@@ -372,3 +374,5 @@ def test_bad_segment_inputs_raise():
         segment_visible(geom, np.zeros(3), np.zeros(3), jitter=0.7)
     with pytest.raises(ValueError, match="seed"):
         segment_visible(geom, np.zeros(3), np.zeros(3), jitter=0.5, seed=-1)
+    with pytest.raises(ValueError, match="max_cuts"):
+        segment_visible(geom, np.zeros(3), np.zeros(3), max_cuts=-1)
