@@ -1,10 +1,12 @@
 """Continuous from-segment visibility (Popescu et al. 2024, Alg. 1) on the six faces of a cubemap.
 
-For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel centre of every face
-gets a lower envelope over t of the depths of the primitives that cover it; the primitives owning a
-piece of some envelope form the segment's visible set. Conventions are
-``visibility.raster.camera``'s: a pixel centre's ray is (ndc_x, ndc_y, -1) in camera space and
-depth is ``-z_cam``.
+For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel of every face gets a
+lower envelope over t of the depths of the primitives that cover its sample; the primitives owning
+a piece of some envelope form the segment's visible set. A pixel's sample is its centre (the
+paper) or, with ``jitter``, a fixed pseudo-random point of the pixel (``sample_offset``), so that
+sub-pixel triangles sliding between two rows of centres still meet samples. Conventions are
+``visibility.raster.camera``'s: a sample's ray is (ndc_x, ndc_y, -1) in camera space and depth is
+``-z_cam``.
 
 Static triangles (Eqs. 1-2). Relative to the moving eye a static triangle translates by ``-t d``.
 With ``w`` the pixel ray, the edge value ``w . ((P - t d) x (Q - t d))`` is linear in t and equals
@@ -20,7 +22,8 @@ Pixels a primitive can touch: its swept volume (the convex hull of its corners a
 relative to the eye) clipped at the near plane and projected: the paper's hull of six points,
 made safe for points behind the eye.
 
-Pipeline per segment, memory O(primitive-face pairs):
+Pipeline per segment (or per piece of it: ``_piece`` halves a segment along which near clutter
+sweeps across much of the cube), memory O(primitive-face pairs):
 (1) box pass: triangles are grouped once per scene into spatial clusters of CLUSTER triangles
 (Morton order); prange over clusters gives each cube face's pixel box of the cluster's swept
 bounding box and its smallest depth. Clusters that are large on screen or reach the near plane are
