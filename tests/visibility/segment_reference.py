@@ -78,6 +78,29 @@ def sampled_visible(vertices0: np.ndarray, vertices1: np.ndarray, faces: np.ndar
     return tri, sph
 
 
+def ray_triangle_depths(tri: np.ndarray, w: np.ndarray, near: float) -> np.ndarray:
+    """(p, m) depth at which ray p (direction ``w[p]``, depth 1 per unit, from the origin) hits
+    triangle m (``tri`` (m, 3, 3), relative to the eye), inf where it misses or the hit is
+    nearer than ``near``."""
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    n = np.cross(e1, e2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.einsum("ij,ij->i", tri[:, 0], n)[None] / (w @ n.T)
+        q = s[..., None] * w[:, None] - tri[None, :, 0]  # (p, m, 3)
+        # Barycentrics of the hit point q (relative to corner 0).
+        d00 = np.einsum("ij,ij->i", e1, e1)
+        d01 = np.einsum("ij,ij->i", e1, e2)
+        d11 = np.einsum("ij,ij->i", e2, e2)
+        d20 = np.einsum("pmk,mk->pm", q, e1)
+        d21 = np.einsum("pmk,mk->pm", q, e2)
+        den = d00 * d11 - d01 * d01
+        bv = (d11 * d20 - d01 * d21) / den
+        bw = (d00 * d21 - d01 * d20) / den
+    ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
+    return np.where(ok, s, np.inf)
+
+
 def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
                      rotation: np.ndarray, resolution: int, row: int, col: int,
                      centers: np.ndarray | None = None, radii: np.ndarray | None = None,
@@ -92,26 +115,10 @@ def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
     tri = np.asarray(vertices)[np.asarray(faces)] - eye  # (m, 3, 3)
     best, best_id = np.inf, -1
     if len(tri):
-        e1 = tri[:, 1] - tri[:, 0]
-        e2 = tri[:, 2] - tri[:, 0]
-        n = np.cross(e1, e2)
-        wn = n @ w
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.einsum("ij,ij->i", tri[:, 0], n) / wn
-            q = s[:, None] * w[None] - tri[:, 0]
-            # Barycentrics of the hit point q (relative to corner 0).
-            d00 = np.einsum("ij,ij->i", e1, e1)
-            d01 = np.einsum("ij,ij->i", e1, e2)
-            d11 = np.einsum("ij,ij->i", e2, e2)
-            d20 = np.einsum("ij,ij->i", q, e1)
-            d21 = np.einsum("ij,ij->i", q, e2)
-            den = d00 * d11 - d01 * d01
-            bv = (d11 * d20 - d01 * d21) / den
-            bw = (d00 * d21 - d01 * d20) / den
-        ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
-        if ok.any():
-            k = int(np.argmin(np.where(ok, s, np.inf)))
-            best, best_id = float(s[k]), k
+        depth = ray_triangle_depths(tri, w[None], near)[0]
+        k = int(np.argmin(depth))
+        if np.isfinite(depth[k]):
+            best, best_id = float(depth[k]), k
     if radii is not None and len(radii):
         o = np.asarray(centers) - eye
         ww = w @ w
@@ -175,23 +182,7 @@ def jittered_visible(vertices: np.ndarray, faces: np.ndarray, v0: np.ndarray, v1
     v1 = np.asarray(v1, dtype=np.float64)
     for t in np.linspace(0.0, 1.0, samples):
         tri = np.asarray(vertices)[np.asarray(faces)] - (v0 + t * (v1 - v0))  # (m, 3, 3)
-        e1 = tri[:, 1] - tri[:, 0]
-        e2 = tri[:, 2] - tri[:, 0]
-        n = np.cross(e1, e2)
-        wn = w @ n.T  # (p, m)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.einsum("ij,ij->i", tri[:, 0], n)[None] / wn
-            q = s[..., None] * w[:, None] - tri[None, :, 0]  # (p, m, 3)
-            d00 = np.einsum("ij,ij->i", e1, e1)
-            d01 = np.einsum("ij,ij->i", e1, e2)
-            d11 = np.einsum("ij,ij->i", e2, e2)
-            d20 = np.einsum("pmk,mk->pm", q, e1)
-            d21 = np.einsum("pmk,mk->pm", q, e2)
-            den = d00 * d11 - d01 * d01
-            bv = (d11 * d20 - d01 * d21) / den
-            bw = (d00 * d21 - d01 * d20) / den
-        ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
-        depth = np.where(ok, s, np.inf)
+        depth = ray_triangle_depths(tri, w, near)
         k = np.argmin(depth, axis=1)
         hit = np.isfinite(depth[np.arange(len(w)), k])
         seen[k[hit]] = True
