@@ -9,7 +9,7 @@ their ``promise`` (``visibility.cores.base.PROMISES``):
 - every core: valid, sorted, unique ids of valid faces; no NaN in its stats; determinism for a
   seed; the known answers of the designed scenes; its stated FN and FP bounds against a dense
   sampled ground truth;
-- cores not ``aggressive`` (exact at pixel centres along the cell, or conservative) also find the
+- cores not ``aggressive`` (exact at pixel samples along the cell, or conservative) also find the
   slivers in plain view that move across many pixel centres as the eye crosses the cell;
 - ``conservative`` cores have no false negative at all on the designed scenes, find a lone
   1e6-aspect sliver, and report every triangle of a cell that contains the whole scene; a
