@@ -146,7 +146,7 @@ class ComputeService:
         # keeping the light lane's reserve of settings.workers - heavy_lane_workers().
         jobs = max(settings.workers, self.executor.slots())
         heavy = jobs - (settings.workers - settings.heavy_lane_workers())
-        self.pool = pool or PriorityWorkerPool(jobs, heavy)
+        self.pool = pool or PriorityWorkerPool(jobs, heavy, nice=settings.worker_nice)
         #: First answers (``settings.progressive``) run here, on a worker of their own: they
         #: take tens of milliseconds, and must not queue behind the session cores' work. They
         #: compute in this process whatever the executor: a cluster's round trip costs as much.

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -45,6 +46,22 @@ class ThreadWorkerPool:
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self._executor.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def lower_priority(nice: int) -> bool:
+    """Make the calling thread ``nice`` steps nicer (Linux: the nice value is per thread, and the
+    threads it starts later, such as a numba kernel's OpenMP team, inherit it). Returns whether
+    it took effect; elsewhere it does nothing. Raising one's nice value needs no privilege."""
+    if nice <= 0 or not hasattr(os, "setpriority") or not hasattr(threading, "get_native_id"):
+        return False
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + int(nice))
+    except OSError as exc:  # a sandbox that forbids it: run at the usual priority
+        log.warning("could not lower the priority of %s: %s", threading.current_thread().name,
+                    exc)
+        return False
+    return True
 
 
 class WorkerDied(BaseException):
@@ -79,8 +96,10 @@ class PriorityWorkerPool:
     (see the module docstring). ``retried``, ``replaced`` and ``skipped`` count those events.
     """
 
-    def __init__(self, workers: int, heavy_workers: int | None = None) -> None:
+    def __init__(self, workers: int, heavy_workers: int | None = None, nice: int = 0) -> None:
         self.workers = int(workers)
+        #: How much nicer (lower CPU priority) its threads run (``lower_priority``).
+        self.nice = max(0, int(nice))
         self.heavy_workers = self.workers if heavy_workers is None else max(1, int(heavy_workers))
         self._heavy_running = 0
         self._cv = threading.Condition()
@@ -205,6 +224,8 @@ class PriorityWorkerPool:
                 self._cv.notify_all()
 
     def _worker(self) -> None:
+        if self.nice:
+            lower_priority(self.nice)
         while True:
             job = self._next()
             if job is None:

@@ -104,6 +104,9 @@ class Settings(BaseModel):
     heavy_seconds : computations estimated above this many seconds run in the heavy lane.
     heavy_workers : workers the heavy lane may occupy at once (None: all but one, so a cheap
         request always finds a worker; with one worker, that one).
+    worker_nice : how much nicer (lower CPU priority, Linux) the session cores' worker threads
+        run than the event loop and the first answers' worker: when computations fill the cores,
+        streaming and first answers still get the CPU first (0: the same priority).
     pvs_rate, pvs_burst : PVS requests (HTTP) per second one client address may send, and the
         burst it may send at once; past them 429 ``too_many_requests`` before any parsing.
     shutdown_grace : seconds a stopping server gives open requests after it has cancelled their
@@ -184,6 +187,7 @@ class Settings(BaseModel):
     max_inflight_per_client: int = Field(4, ge=1, le=1 << 16)
     heavy_seconds: float = Field(2.0, gt=0, allow_inf_nan=False)
     heavy_workers: int | None = Field(None, ge=1, le=256)
+    worker_nice: int = Field(5, ge=0, le=19)
     pvs_rate: float = Field(50.0, gt=0, allow_inf_nan=False)
     pvs_burst: int = Field(100, ge=1)
     shutdown_grace: float = Field(3.0, gt=0, le=600, allow_inf_nan=False)
@@ -292,7 +296,8 @@ class Settings(BaseModel):
         PVS_WS_DEFLATE (1/0/true/false), PVS_WS_PING_INTERVAL ("none"
         disables), PVS_LOG_LEVEL, PVS_COMPUTE_DEADLINE, PVS_MAX_COMPUTE_BYTES, PVS_MAX_QUEUED,
         PVS_REFUSE_OVER_DEADLINE,
-        PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_SHUTDOWN_GRACE,
+        PVS_MAX_INFLIGHT_PER_CLIENT, PVS_HEAVY_SECONDS, PVS_HEAVY_WORKERS, PVS_WORKER_NICE,
+        PVS_SHUTDOWN_GRACE,
         PVS_PVS_RATE, PVS_PVS_BURST,
         PVS_MAX_SCENE_TRIANGLES, PVS_MAX_SCENE_BYTES,
         PVS_TOKENS_FILE, PVS_TOKENS and PVS_CORS_ORIGINS (comma lists),
@@ -327,6 +332,7 @@ class Settings(BaseModel):
             "refuse_over_deadline": "PVS_REFUSE_OVER_DEADLINE",
             "max_inflight_per_client": "PVS_MAX_INFLIGHT_PER_CLIENT",
             "heavy_seconds": "PVS_HEAVY_SECONDS", "heavy_workers": "PVS_HEAVY_WORKERS",
+            "worker_nice": "PVS_WORKER_NICE",
             "shutdown_grace": "PVS_SHUTDOWN_GRACE", "pvs_rate": "PVS_PVS_RATE",
             "pvs_burst": "PVS_PVS_BURST",
             # scene files

@@ -3,6 +3,7 @@ PVS cache."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -368,3 +369,30 @@ def test_old_format_entries_are_misses_not_errors(tmp_path):
     s = disk.stats()
     assert (s["misses"], s["outdated"], s["rejected"], s["hits"]) == (1, 1, 0, 0)
     assert disk.put(key, _pvs(3)) and disk.get(key, 3) is not None
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="thread priorities are Linux's")
+def test_pool_threads_run_nicer_than_the_process():
+    """``worker_nice``: a job sees its thread's nice value raised by the pool's ``nice``; a pool
+    without it (the first answers' worker) runs at the caller's priority, as does the caller."""
+    here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    def own_nice():
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    nicer, plain = PriorityWorkerPool(1, nice=5), PriorityWorkerPool(1)
+    try:
+        assert nicer.submit(own_nice).result(timeout=10) == min(19, here + 5)
+        assert plain.submit(own_nice).result(timeout=10) == here
+    finally:
+        nicer.shutdown()
+        plain.shutdown()
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == here
+    assert Settings().worker_nice == 5
+    assert Settings.from_env({"PVS_WORKER_NICE": "0"}).worker_nice == 0
+    settings = Settings(generated={}, workers=1, worker_nice=3)
+    svc = ComputeService(SceneCatalog(settings), settings)
+    try:
+        assert svc.pool.nice == 3 and svc.first_pool.nice == 0
+    finally:
+        svc.shutdown()
