@@ -24,7 +24,7 @@ from pathlib import Path
 DEFAULT_SCENES_DIR = Path(__file__).resolve().parent.parent / "shared" / "scenes"
 
 
-def _parse_params(items: list[str] | None) -> dict:
+def parse_params(items: list[str] | None) -> dict:
     """``["resolution=128", "runs=2"]`` -> {"resolution": 128, "runs": 2} (JSON values)."""
     out = {}
     for item in items or []:
@@ -122,7 +122,7 @@ def cmd_walk(args: argparse.Namespace) -> int:
         server=args.server,
         scene=args.scene,
         cores=walk_cores(args),
-        params=_parse_params(args.param),
+        params=parse_params(args.param),
         walkthrough=Path(args.walkthrough) if args.walkthrough else None,
         out_dir=Path(args.out),
         scenes_dir=Path(args.scenes) if args.scenes else DEFAULT_SCENES_DIR,
@@ -156,7 +156,7 @@ def _six_floats(text: str) -> list[float]:
 def cmd_query(args: argparse.Namespace) -> int:
     import httpx
 
-    params = _parse_params(args.param)
+    params = parse_params(args.param)
     base = f"{args.server.rstrip('/')}/scenes/{args.scene}"
     region = args.segment or args.box
     if region is not None:
@@ -391,7 +391,7 @@ def cmd_precompute(args: argparse.Namespace) -> int:
         cells = None
         if args.cells:
             cells = parse_cells(args.cells, len(catalog.get(args.scene).grid))
-        report = precompute(service, args.scene, args.core, _parse_params(args.param), cells,
+        report = precompute(service, args.scene, args.core, parse_params(args.param), cells,
                             progress=not args.quiet)
     except (UnknownSceneError, UnknownCoreError, UnknownCellError, SceneLoadFailed,
             ValueError) as exc:

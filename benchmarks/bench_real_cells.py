@@ -22,7 +22,7 @@ Usage::
     python -m benchmarks.bench_real_cells            # every real scene, 2 cells each
     python -m benchmarks.bench_real_cells --quick    # lavaducts, 1 cell, a lighter reference
     python -m benchmarks.bench_real_cells --scenes lyon_vilo3d lavaducts \
-        --fs-resolutions 512 --out benchmarks/results/real_cells_512.md
+        --fs-variants resolution=512 --out benchmarks/results/real_cells_512.md
     python -m benchmarks.bench_real_cells --fs-variants jitter=0 cuts=0   # what each buys
 """
 
@@ -75,21 +75,12 @@ def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarra
 
 
 def parse_variant(text: str) -> dict[str, Any]:
-    """``"jitter=0,cuts=0"`` -> {"jitter": 0.0, "cuts": 0}: core parameters to try besides the
-    defaults (numbers are parsed; the core's ``make_params`` checks names and ranges)."""
-    out: dict[str, Any] = {}
-    for item in filter(None, (t.strip() for t in text.split(","))):
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"expected KEY=VALUE, got {item!r}")
-        try:
-            out[key.strip()] = int(value)
-        except ValueError:
-            try:
-                out[key.strip()] = float(value)
-            except ValueError:
-                out[key.strip()] = value.strip()
-    return out
+    """``"jitter=0,cuts=0"`` -> {"jitter": 0, "cuts": 0}: core parameters to try besides the
+    defaults, read as ``pvs --param`` reads them (``pvs_cli.parse_params``; the core's
+    ``make_params`` checks names and ranges)."""
+    from pvs_cli import parse_params
+
+    return parse_params([t.strip() for t in text.split(",") if t.strip()])
 
 
 def walk_cells(scene, seed: int, k: int) -> list[int]:
@@ -157,8 +148,6 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 fs_seconds = None
                 runs = [("from_segment (defaults)", "from_segment", {}),
                         ("sampling (defaults)", "sampling", {})]
-                runs += [(f"from_segment (resolution={r})", "from_segment", {"resolution": r})
-                         for r in cfg.get("fs_resolutions", [])]
                 runs += [(f"from_segment ({text})", "from_segment", parse_variant(text))
                          for text in cfg.get("fs_variants", [])]
                 for label, name, params in runs:
@@ -239,8 +228,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cells", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one)")
-    ap.add_argument("--fs-resolutions", nargs="*", type=int, default=[],
-                    help="from_segment also at these resolutions (px)")
     ap.add_argument("--fs-variants", nargs="*", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="from_segment also with these parameters, e.g. jitter=0 cuts=0")
     ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
@@ -248,8 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
                     if not args.scenes or p.stem in args.scenes)
     cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
-           "rays": RAYS, "fs_resolutions": args.fs_resolutions,
-           "fs_variants": args.fs_variants}
+           "rays": RAYS, "fs_variants": args.fs_variants}
     if args.quick:
         cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96)
     command = "python -m benchmarks.bench_real_cells " + " ".join(

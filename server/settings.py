@@ -310,43 +310,9 @@ class Settings(BaseModel):
         """
         env = os.environ if env is None else env
         values: dict[str, Any] = {}
-        simple = {
-            "host": "PVS_HOST", "port": "PVS_PORT", "scenes_dir": "PVS_SCENES_DIR",
-            "cell_size": "PVS_CELL_SIZE", "core": "PVS_CORE", "workers": "PVS_WORKERS",
-            "cache_bytes": "PVS_CACHE_BYTES", "max_frame_bytes": "PVS_MAX_FRAME_BYTES",
-            "max_message_bytes": "PVS_MAX_MESSAGE_BYTES", "ws_deflate": "PVS_WS_DEFLATE",
-            "hello_timeout": "PVS_HELLO_TIMEOUT", "cache_dir": "PVS_CACHE_DIR",
-            "prefetch": "PVS_PREFETCH", "prefetch_ahead": "PVS_PREFETCH_AHEAD",
-            "progressive": "PVS_PROGRESSIVE", "first_core": "PVS_FIRST_CORE",
-            "calibrate": "PVS_CALIBRATE", "auto_budget": "PVS_AUTO_BUDGET",
-            "calibration_seconds": "PVS_CALIBRATION_SECONDS",
-            "send_queue_frames": "PVS_SEND_QUEUE_FRAMES",
-            "send_timeout": "PVS_SEND_TIMEOUT", "near_far": "PVS_NEAR_FAR",
-            "near_far_r1": "PVS_NEAR_FAR_R1", "near_far_r2": "PVS_NEAR_FAR_R2",
-            "near_far_resolution": "PVS_NEAR_FAR_RESOLUTION",
-            "near_far_cache_bytes": "PVS_NEAR_FAR_CACHE_BYTES",
-            "near_far_block": "PVS_NEAR_FAR_BLOCK",
-            "max_body_bytes": "PVS_MAX_BODY_BYTES",
-            "log_level": "PVS_LOG_LEVEL", "compute_deadline": "PVS_COMPUTE_DEADLINE",
-            "max_compute_bytes": "PVS_MAX_COMPUTE_BYTES", "max_queued": "PVS_MAX_QUEUED",
-            "refuse_over_deadline": "PVS_REFUSE_OVER_DEADLINE",
-            "max_inflight_per_client": "PVS_MAX_INFLIGHT_PER_CLIENT",
-            "heavy_seconds": "PVS_HEAVY_SECONDS", "heavy_workers": "PVS_HEAVY_WORKERS",
-            "worker_nice": "PVS_WORKER_NICE",
-            "shutdown_grace": "PVS_SHUTDOWN_GRACE", "pvs_rate": "PVS_PVS_RATE",
-            "pvs_burst": "PVS_PVS_BURST",
-            # scene files
-            "max_scene_triangles": "PVS_MAX_SCENE_TRIANGLES",
-            "max_scene_bytes": "PVS_MAX_SCENE_BYTES",
-            "tokens_file": "PVS_TOKENS_FILE",
-            "executor": "PVS_EXECUTOR",
-            # shared cache (Redis)
-            "cache": "PVS_CACHE", "redis_ttl": "PVS_REDIS_TTL",
-            "redis_max_value_bytes": "PVS_REDIS_MAX_VALUE_BYTES",
-            "redis_timeout": "PVS_REDIS_TIMEOUT", "redis_retry": "PVS_REDIS_RETRY",
-            "viewer_three_dir": "PVS_VIEWER_THREE_DIR",
-        }
-        for field, var in simple.items():
+        # Every field is read from PVS_<FIELD> as it stands, but those parsed below.
+        for field in cls.model_fields.keys() - _PARSED_ENV_FIELDS:
+            var = "PVS_" + field.upper()
             if env.get(var, "") != "":
                 values[field] = env[var]
         if "PVS_WS_PING_INTERVAL" in env:
@@ -373,6 +339,11 @@ class Settings(BaseModel):
             env_grants(values["tokens"])  # a malformed token named by its place, not quoted
         values.update(overrides)
         return cls.model_validate(values)
+
+
+#: Settings fields whose PVS_ variable ``Settings.from_env`` parses itself (JSON, lists, "none").
+_PARSED_ENV_FIELDS = frozenset({"core_params", "first_params", "generated", "tokens",
+                                "cors_origins", "ws_ping_interval"})
 
 
 def _parse_generated(raw: str) -> dict[str, int]:

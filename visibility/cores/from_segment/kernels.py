@@ -876,7 +876,6 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
     bx = np.empty(4, dtype=np.int64)
     jx = np.zeros(npx_max)
     jy = np.zeros(npx_max)
-    pad = jitter
     n_pairs = 0
     n_pieces = 0
     n_grows = 0
@@ -925,7 +924,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                 for k in range(cl_start[src], cl_start[src + 1]):
                     t = cl_tris[k]
                     _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
-                    ok, zt = _front_box(P, U, res, bx, pad)
+                    ok, zt = _front_box(P, U, res, bx, jitter)
                     if not ok or zt >= tbound:
                         continue
                     ia = max(bx[0], r0)
