@@ -97,7 +97,7 @@ def ray_triangle_depths(tri: np.ndarray, w: np.ndarray, near: float) -> np.ndarr
         den = d00 * d11 - d01 * d01
         bv = (d11 * d20 - d01 * d21) / den
         bw = (d00 * d21 - d01 * d20) / den
-    ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
+        ok = (s >= near) & (bv >= 0) & (bw >= 0) & (bv + bw <= 1) & np.isfinite(s)
     return np.where(ok, s, np.inf)
 
 
