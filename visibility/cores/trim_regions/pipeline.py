@@ -19,7 +19,7 @@ from visibility.cores.trim_regions.hulls import (
     near_sphere,
     touching_in_front,
 )
-from visibility.cores.trim_regions.kbuffer import K, KBuffer
+from visibility.cores.trim_regions.kbuffer import TRIMMED, K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
 from visibility.cores.trim_regions.raster import (
     raster_surfaces,
@@ -27,7 +27,7 @@ from visibility.cores.trim_regions.raster import (
     setup_triangles,
     to_camera,
 )
-from visibility.cores.trim_regions.resolve import resolve_layer
+from visibility.cores.trim_regions.resolve import DEPTH_TOL, resolve_layer
 from visibility.cores.trim_regions.silhouettes import TRIM_MARGIN_PX, silhouette_trims
 from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
@@ -36,6 +36,14 @@ from visibility.scene import Scene
 SUPERSAMPLE = 4
 #: How many of a pixel's samples must see a depth for the occludee test to use it.
 OPEN_SAMPLES = 3
+#: Roll of the second grid the gather samples from v*, radians (atan 1/2: no scene axis of a
+#: cube face lies along its rows or columns or their diagonals).
+ROLL = float(np.arctan(0.5))
+#: Samples per pixel side of that rolled grid.
+ROLLED_SAMPLES = 2
+#: Image length (pixels, |dx| + |dy| of the longest edge) from which a thin triangle in a
+#: trimmed pixel is tested against the seal depth, not only the first surface.
+LONG_PX = 4.0
 #: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
 ENTRY_BYTES = 21
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
@@ -76,9 +84,11 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     max_delta : largest sphere radius Δ the box is covered with, metres.
     margin_px : safety margin added to every trim width, pixels (0 only for tests that compare
         Δ = 0 with from-point visibility at pixel centres).
-    footprints : also report every triangle whose pixel footprint (conservative) lies in front
-        of the farthest surface sampled in that pixel (``hulls.touching_in_front``): what pixel
-        centres miss. False only for tests of pixel-centre visibility.
+    footprints : also report what pixel centres miss: every triangle v* sees at 16 samples
+        per pixel or on a rolled grid (``_sample_from_vstar``), and every triangle whose pixel
+        footprint (conservative) lies in front of the farthest surface sampled in that pixel
+        or, for a long one in a trimmed pixel, in front of the seal outside the hidden spans
+        (``hulls.touching_in_front``). False only for tests of pixel-centre visibility.
 
     Returns
     -------
@@ -178,7 +188,13 @@ def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
     """Static triangles whose plane passes within Δ of a sphere centre (world ``centres``
     (k, 3)) and which that centre sees thinner than a pixel: an eye of the sphere may see them
     at a steeper angle than v*, which samples them at no pixel centre, so they are also tested
-    as hulls (their box grown along the normal)."""
+    as hulls (their box grown along the normal).
+
+    Thin means either the plane's line lies within a pixel of the centre (the triangle is seen
+    edge-on) or the triangle's extent across that line is under a pixel: its corners, at
+    distances d_i from the centre, rise off / d_i radians off the plane's line, so a triangle
+    reaching in depth but not across (a door jamb 4 m off, 4 cm beside the eye) spans
+    off (1 / d_min - 1 / d_max) radians however far its line lies from the centre."""
     ids = data.static
     if not len(ids):
         return ids
@@ -187,10 +203,13 @@ def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     close = np.zeros(len(ids), dtype=bool)
     mid = t.mean(axis=1)
+    px = 0.5 * resolution  # pixels per radian at a face's centre, the fewest on the face
     for c in centres:
         off = np.abs(np.einsum("ij,ij->i", n, c - t[:, 0]))
         dist = np.maximum(np.linalg.norm(mid - c, axis=1), 1e-12)
-        close |= (off <= delta) & (off / dist * (0.5 * resolution) < 1.0)
+        d = np.maximum(np.linalg.norm(t - c, axis=2), 1e-12)
+        across = off * (1.0 / d.min(axis=1) - 1.0 / d.max(axis=1))
+        close |= (off <= delta) & ((off / dist * px < 1.0) | (across * px < 1.0))
     return ids[close]
 
 
@@ -255,6 +274,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["layers"] += len(all_layers)
     stats["views"] += 1
     held = np.zeros(res * res, dtype=bool)
+    trimmed = np.zeros(res * res, dtype=bool)
     for lay in all_layers:
         checkpoint()
         ta = time.perf_counter()
@@ -263,6 +283,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
             raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin,
                          kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil,
                          kb.overflow, vis, stop)
+            trimmed |= kb.stencil == TRIMMED
         k = np.searchsorted(inst_layers, lay)
         if k < len(inst_layers) and inst_layers[k] == lay:
             sl = slice(inst_starts[k], inst_starts[k + 1])
@@ -286,8 +307,10 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
         tc = time.perf_counter()
-        touching_in_front(poly, npoly, pbox, data.static,
-                          _farthest_in_pixel(scene, data.static_mask, verts, view), res, vis)
+        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view)
+        vis[seen] = 1
+        touching_in_front(poly, npoly, pbox, data.static, first, trimmed, kb.seal, kb.spans,
+                          kb.n_spans, DEPTH_TOL, LONG_PX, res, vis)
         stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
@@ -299,23 +322,41 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["overflow_pixels"] += int(kb.overflow.sum())
 
 
-def _farthest_in_pixel(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
-                       view: View) -> np.ndarray:
-    """(res * res,) the farthest nearest-surface depth that ``OPEN_SAMPLES`` of the
-    ``SUPERSAMPLE``² sample points in each pixel's square see, drawn from v*
-    (``visibility.raster.triangles.render_ids``): where an occluder's edge crosses a pixel,
-    the part of the square it leaves open shows here."""
+def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
+                       view: View) -> tuple[np.ndarray, np.ndarray]:
+    """What v* sees between the pixel centres of a view (``visibility.raster.triangles
+    .render_ids``, static triangles only).
+
+    Returns
+    -------
+    first : (res * res,) the farthest nearest-surface depth that ``OPEN_SAMPLES`` of the
+        ``SUPERSAMPLE``² sample points in each pixel's square see: where an occluder's edge
+        crosses a pixel, the part of the square it leaves open shows here.
+    seen : (k,) int64 ids of the triangles nearest at any of those samples or at the samples
+        of a second grid, rolled by ``ROLL`` with ``ROLLED_SAMPLES`` per pixel side.
+    """
     res = view.res
     ss = SUPERSAMPLE * res
-    depth, _ = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan, view.tan,
-                          near=view.near, face_mask=static_mask)
+    depth, ids = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan,
+                            view.tan, near=view.near, face_mask=static_mask)
     blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
     samples = blocks.transpose(0, 2, 1, 3).reshape(res * res, SUPERSAMPLE * SUPERSAMPLE)
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
     # of a mesh that is not watertight opens one or two samples onto the far side, and would
     # let everything behind the mesh through (the 1M kitchen: 80 % of the scene).
     k = SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES
-    return np.ascontiguousarray(np.partition(samples, k, axis=1)[:, k])
+    first = np.ascontiguousarray(np.partition(samples, k, axis=1)[:, k])
+    # A sliver lying along a row or column of the face's grid (wall edges, cabinet bevels: the
+    # scene's axes are often the cube's) can run between two rows of samples for its whole
+    # length; on a rolled grid covering the same frustum it crosses them.
+    c, s = np.cos(ROLL), np.sin(ROLL)
+    roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    reach = view.tan * (c + s)
+    n_rolled = int(np.ceil(ROLLED_SAMPLES * res * (c + s)))
+    _, rolled = render_ids(verts, scene.faces, view.vstar, roll @ view.rot, n_rolled, n_rolled,
+                           reach, reach, near=view.near, face_mask=static_mask)
+    seen = np.unique(np.concatenate([ids[ids >= 0], rolled[rolled >= 0]])).astype(np.int64)
+    return first, seen
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+import visibility.cores.trim_regions.pipeline as pipeline
 from visibility.cores.designed_scenes import Builder
 from visibility.cores.trim_regions.cache import build_scene_data
 from visibility.cores.trim_regions.frustum import cover_box, sphere_views
@@ -95,3 +96,62 @@ def test_a_larger_cell_is_covered_by_more_spheres():
     corners = np.array([[x, y, z] for x in (0, 1) for y in (1.5, 1.9) for z in (0, 1)])
     d = np.linalg.norm(corners[:, None] - centres[None], axis=2).min(axis=1)
     assert np.all(d <= delta + 1e-12)
+
+
+def _jamb_scene():
+    """A 0.2 m thick wall 4.1-4.3 m ahead along +x from z = 0.037 m up, and a far wall
+    behind its opening: the wall's end face (the jamb, normal -z) lies 3.7 cm beside the
+    cell's centre, so the centre sees it at under a tenth of a pixel, an eye 4 cm lower sees
+    it in a line of pixels."""
+    b = Builder()
+    b.box((4.092, -1.7, 0.037), (4.292, 1.3, 1.395), 0)
+    b.box((8.0, -3.0, -3.0), (8.2, 3.0, 3.0), 1)
+    scene = b.scene("jamb")
+    v = scene.vertices[scene.faces.astype(np.int64)]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    jamb = np.flatnonzero((n[:, 2] < 0) & np.all(np.abs(v[:, :, 2] - 0.037) < 1e-9, axis=1)
+                          & np.all(v[:, :, 0] < 5.0, axis=1))
+    assert len(jamb) == 2
+    return scene, jamb
+
+
+def test_a_face_thin_across_its_line_is_tested_as_grazing():
+    # The jamb's line lies 0.037 / 4.2 rad (1.1 px at 256 px) off the centre, so "seen
+    # edge-on" alone misses it; its extent across that line is 0.05 px.
+    scene, jamb = _jamb_scene()
+    graze = pipeline._grazing(scene, build_scene_data(scene), np.zeros((1, 3)), 0.0866, 256)
+    assert set(jamb.tolist()) <= set(graze.tolist())
+    found, stats = _solve(scene, 0.0866, centre=(0.0, 0.0, 0.0), res=256)
+    assert set(jamb.tolist()) & found and stats["grazing"] >= 2
+    # An eye of the cell 3.4 cm lower does see it (a line of pixels).
+    eye = np.array([0.0, 0.0, -0.034])
+    rot = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # looking along +x
+    _, ids = render_ids(scene.vertices, scene.faces, eye, rot, 1024, 1024, 0.2, 0.2)
+    assert np.isin(ids, jamb).any()
+
+
+def test_a_sliver_along_the_grid_is_sampled_on_the_rolled_grid():
+    # A vertical sliver 0.1 px wide in front of a wall, centred between two columns of the
+    # 4 x 4 samples per pixel v* draws: no sample of that grid meets it, the rolled grid does.
+    res = 64
+    view = sphere_views(np.zeros(3), 0.05, res)[5]  # the face looking along -z
+    ss = pipeline.SUPERSAMPLE * res
+    depth = 3.0
+    x_img = (40 / ss) * 2.0 * view.tan - view.tan  # a boundary between sample columns
+    half = 0.05 * 2.0 * view.tan / res
+    cam_pts = np.array([[x_img - half, -0.5, -depth], [x_img + half, -0.5, -depth],
+                        [x_img, 0.5, -depth]]) * np.array([depth, depth, 1.0])
+    world = view.vstar + cam_pts @ view.rot
+    b = Builder()
+    b.box((-4.0, -4.0, -8.2), (4.0, 4.0, -8.0), 0)
+    sliver = len(b.tris)
+    b.tris.append(world)
+    b.obj.append(1)
+    b.col.append((200, 0, 0))
+    scene = b.scene("sliver")
+    _, ids = render_ids(scene.vertices, scene.faces, view.vstar, view.rot, ss, ss, view.tan,
+                        view.tan, near=view.near)
+    assert not (ids == sliver).any()
+    _, seen = pipeline._sample_from_vstar(scene, np.ones(scene.n_triangles, bool),
+                                          scene.vertices, view)
+    assert sliver in seen
