@@ -154,20 +154,12 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
 
 
 @njit(cache=True, parallel=True)
-def touching_in_front(poly, npoly, box, tri_ids, first, trimmed, seal, spans, n_spans, tol,
-                      long_px, res, vis):  # pragma: no cover
+def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
     """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
     arrays) that touches some pixel (its square, not only its centre: conservative
     rasterization) with its nearest point over the pixel in front of its ``first`` depth
     (res * res,): the thin and small triangles that pixel centres miss, in front of everything
-    the view samples. They are occludees only here, never occluders.
-
-    In a pixel a trim region reached (``trimmed`` (res * res,) bool) the surface v* samples
-    first does not hide what lies behind it from every eye: there a triangle whose image spans
-    at least ``long_px`` pixels (|dx| + |dy| of its longest edge) counts when it lies in front
-    of the pixel's seal depth (relative tolerance ``tol``: a sliver on the sealing surface
-    itself) and outside the hidden spans of its validated intervals
-    (``kbuffer.KBuffer.spans``)."""
+    the view samples. They are occludees only here, never occluders."""
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
@@ -176,16 +168,6 @@ def touching_in_front(poly, npoly, box, tri_ids, first, trimmed, seal, spans, n_
         x1 = min(res, box[i, 1] + 1)
         y0 = max(0, box[i, 2] - 1)
         y1 = min(res, box[i, 3] + 1)
-        # Only a long triangle counts in a trimmed pixel's gaps: a sliver there (a bevel along
-        # a cabinet's edge) shows in a line of pixels of every frame, while a small one shows
-        # in a pixel or two, and the dense clutter behind small trimmed occluders holds so
-        # many that counting them all reports the whole scene (the 1M kitchen at Δ 0.2 m).
-        longest = 0.0
-        for a in range(npoly[i]):
-            b = (a + 1) % npoly[i]
-            longest = max(longest, abs(poly[i, a, 0] - poly[i, b, 0])
-                          + abs(poly[i, a, 1] - poly[i, b, 1]))
-        long = longest >= long_px
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:
@@ -212,17 +194,8 @@ def touching_in_front(poly, npoly, box, tri_ids, first, trimmed, seal, spans, n_
                         continue
                     iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
                     z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
-                    p = y * res + x
-                    if z < first[p]:
+                    if z < first[y * res + x]:
                         hit = True
                         break
-                    if long and trimmed[p] and z < seal[p] * (1.0 + tol):
-                        hidden = False
-                        for q in range(n_spans[p]):
-                            if spans[p, q, 0] < z <= spans[p, q, 1]:
-                                hidden = True
-                        if not hidden:
-                            hit = True
-                            break
         if hit:
             vis[tri_ids[i]] = 1

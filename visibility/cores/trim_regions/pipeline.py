@@ -19,7 +19,7 @@ from visibility.cores.trim_regions.hulls import (
     near_sphere,
     touching_in_front,
 )
-from visibility.cores.trim_regions.kbuffer import TRIMMED, K, KBuffer
+from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
 from visibility.cores.trim_regions.raster import (
     raster_surfaces,
@@ -27,7 +27,7 @@ from visibility.cores.trim_regions.raster import (
     setup_triangles,
     to_camera,
 )
-from visibility.cores.trim_regions.resolve import DEPTH_TOL, resolve_layer
+from visibility.cores.trim_regions.resolve import resolve_layer
 from visibility.cores.trim_regions.silhouettes import TRIM_MARGIN_PX, silhouette_trims
 from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
@@ -41,9 +41,6 @@ OPEN_SAMPLES = 3
 ROLL = float(np.arctan(0.5))
 #: Samples per pixel side of that rolled grid.
 ROLLED_SAMPLES = 2
-#: Image length (pixels, |dx| + |dy| of the longest edge) from which a thin triangle in a
-#: trimmed pixel is tested against the seal depth, not only the first surface.
-LONG_PX = 4.0
 #: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
 ENTRY_BYTES = 21
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
@@ -87,7 +84,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     footprints : also report what pixel centres miss: every triangle v* sees at 16 samples
         per pixel or on a rolled grid (``_sample_from_vstar``), and every triangle whose pixel
         footprint (conservative) lies in front of the farthest surface sampled in that pixel
-        or, for a long one in a trimmed pixel, in front of the seal outside the hidden spans
         (``hulls.touching_in_front``). False only for tests of pixel-centre visibility.
 
     Returns
@@ -274,7 +270,6 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["layers"] += len(all_layers)
     stats["views"] += 1
     held = np.zeros(res * res, dtype=bool)
-    trimmed = np.zeros(res * res, dtype=bool)
     for lay in all_layers:
         checkpoint()
         ta = time.perf_counter()
@@ -283,7 +278,6 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
             raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin,
                          kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil,
                          kb.overflow, vis, stop)
-            trimmed |= kb.stencil == TRIMMED
         k = np.searchsorted(inst_layers, lay)
         if k < len(inst_layers) and inst_layers[k] == lay:
             sl = slice(inst_starts[k], inst_starts[k + 1])
@@ -309,8 +303,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         tc = time.perf_counter()
         first, seen = _sample_from_vstar(scene, data.static_mask, verts, view)
         vis[seen] = 1
-        touching_in_front(poly, npoly, pbox, data.static, first, trimmed, kb.seal, kb.spans,
-                          kb.n_spans, DEPTH_TOL, LONG_PX, res, vis)
+        touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
         stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
