@@ -14,7 +14,10 @@ point's image coordinate along the edge normal. It bounds, for every eye v1 = v0
 (|w| <= Δ), how far behind the edge line (as seen from v*) a point can lie and still be seen
 past the edge from v1 (lateral motion Δ, plus forward motion of up to R + Δ scaling the image
 about its centre); where z <= R + Δ the silhouette may be beside an eye and the whole face is
-trimmed. A safety margin of ``TRIM_MARGIN_PX`` pixels is added for pixel-centre sampling.
+trimmed. ``TRIM_MARGIN_PX`` pixels are added for pixel-centre sampling: a pixel whose square
+meets the region has its centre within sqrt(2) / 2 px of it, so the quads are rasterized
+conservatively. (An earlier 1.5 px bought no pixel in 16 measured cells of six scenes and cost
+5-15 % of the PVS.)
 
 Each trim quad is drawn in the earliest layer of any leaf its 3D extent meets (the edge's box
 grown by the trim width at its depth), so a trim fragment is in the k-buffer no later than the
@@ -26,8 +29,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-#: Pixels added to every trim width (and around the quad's ends).
-TRIM_MARGIN_PX = 1.5
+#: Pixels added to every trim width (and around the quad's ends): sqrt(2) / 2, rounded up.
+TRIM_MARGIN_PX = 0.75
 #: Columns of a trim row (see ``raster.raster_trims``).
 TRIM_COLUMNS = 12
 #: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
