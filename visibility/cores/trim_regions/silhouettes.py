@@ -7,17 +7,22 @@ region is the edge extruded in the image towards the occluder (the side its tria
 both sides where that is ambiguous) by the image-space displacement that moving the eye inside
 the sphere can cause at the silhouette's depth:
 
-    W = (Δ sqrt(1 + σ²) + |σ| R) / (z - R - Δ)
+    W = (Δ sqrt(1 + σ²) + σ R) / (z - R - Δ)    (at least 0)
 
 in tan units, where z is the depth from v*, R the distance v* lies behind v0 and σ the end
-point's image coordinate along the edge normal. It bounds, for every eye v1 = v0 + w
-(|w| <= Δ), how far behind the edge line (as seen from v*) a point can lie and still be seen
-past the edge from v1 (lateral motion Δ, plus forward motion of up to R + Δ scaling the image
-about its centre); where z <= R + Δ the silhouette may be beside an eye and the whole face is
-trimmed. ``TRIM_MARGIN_PX`` pixels are added for pixel-centre sampling: a pixel whose square
-meets the region has its centre within sqrt(2) / 2 px of it, so the quads are rasterized
-conservatively. (An earlier 1.5 px bought no pixel in 16 measured cells of six scenes and cost
-5-15 % of the PVS.)
+point's image coordinate along the normal pointing into the occluder. It bounds, for every
+eye v1 = v* + (w, a) (lateral w, forward a, (w, a - R) within Δ), how far behind the edge line
+(as seen from v*) a point can lie and still be seen past the edge from v1: the edge's image
+moves towards the occluder by (w - σ' a) / (z - a) against a point at infinity (σ' = -σ, the
+coordinate along the outward normal; a nearer point moves less, by the factor
+(z_p - z) / z_p), and the largest w - σ' (a - R) over the disc is Δ sqrt(1 + σ²). Forward
+motion scales the image about its centre, so it widens the trim of an occluder lying away
+from the centre (σ > 0) and narrows that of one lying towards it (σ < 0), down to nothing
+where v*'s frustum edge grazes the sphere. Where z <= R + Δ the silhouette may be beside an
+eye and the whole face is trimmed. ``TRIM_MARGIN_PX`` pixels are added for pixel-centre
+sampling: a pixel whose square meets the region has its centre within sqrt(2) / 2 px of it,
+so the quads are rasterized conservatively. (An earlier 1.5 px bought no pixel in 16
+measured cells of six scenes and cost 5-15 % of the PVS.)
 
 Each trim quad is drawn in the earliest layer of any leaf its 3D extent meets (the edge's box
 grown by the trim width at its depth), so a trim fragment is in the k-buffer no later than the
@@ -71,9 +76,10 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
 
 @njit(cache=True)
 def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
-              out, sides):  # pragma: no cover - numba
+              out, sides, widths):  # pragma: no cover - numba
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
-    part of the row (normal, ends, depths, widths) is written to ``out``."""
+    part of the row (normal, ends, depths, the larger widths) is written to ``out``, the
+    widths at both ends of a trim into side +1 and side -1 to ``widths`` (2, 2)."""
     f0 = ef[e, 0]
     f1 = ef[e, 1]
     a0 = facing_of[f0]
@@ -117,15 +123,19 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
         z = za if k == 0 else zb
         u = out[4 + 2 * k]
         v = out[5 + 2 * k]
-        w = big
         den = z - back - delta
-        if den > 1e-9 * z:
-            # sigma along the outward normal; the sign of the inner side is fixed per row
-            # below, so take the larger of the two sides' widths here.
-            sg = (n[0] * u + n[1] * v) / nl
-            w = delta * np.sqrt(1.0 + sg * sg) + abs(sg) * back
-            w = min(big, max(0.0, w / den))
-        out[10 + k] = w + margin
+        sg = (n[0] * u + n[1] * v) / nl
+        for q in range(2):
+            w = big
+            if den > 1e-9 * z:
+                # The end point's image coordinate towards the occluder on side +1 / -1 is
+                # +sg / -sg: forward motion only widens the trim of an occluder lying away
+                # from the image centre.
+                into = sg if q == 0 else -sg
+                w = delta * np.sqrt(1.0 + sg * sg) + into * back
+                w = min(big, max(0.0, w / den))
+            widths[q, k] = w + margin
+        out[10 + k] = max(widths[0, k], widths[1, k])
     m = 0
     if s0 == s1 and s0 != 0.0 and not many[e]:
         sides[0] = s0
@@ -165,7 +175,7 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
         row = np.empty(TRIM_COLUMNS)
         sides = np.empty(2)
         counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
-                              margin, row, sides)
+                              margin, row, sides, np.empty((2, 2)))
     start = np.zeros(n_e + 1, dtype=np.int64)
     for e in range(n_e):
         start[e + 1] = start[e] + counts[e]
@@ -176,8 +186,9 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
             continue
         row = np.empty(TRIM_COLUMNS)
         sides = np.empty(2)
+        widths = np.empty((2, 2))
         m = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
-                      row, sides)
+                      row, sides, widths)
         # World positions of the (clipped) ends: back from the image ends at their depths.
         pa = np.empty(3)
         pb = np.empty(3)
@@ -195,5 +206,7 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
             for c in range(TRIM_COLUMNS):
                 trims[w, c] = row[c]
             trims[w, 3] = sides[q]
+            trims[w, 10] = widths[0 if sides[q] > 0 else 1, 0]
+            trims[w, 11] = widths[0 if sides[q] > 0 else 1, 1]
             layer[w] = lay
     return trims, layer

@@ -45,20 +45,57 @@ def test_a_cube_seen_from_off_a_corner_has_a_hexagon_of_silhouettes():
     assert len(trims) == 6
 
 
+def _expected_widths(trims, view):
+    """Trim widths at both ends by the formula: (Δ sqrt(1 + σ²) + σ R) / (z - R - Δ), σ the
+    end's image coordinate along the normal into the occluder, at least 0."""
+    out = np.empty((len(trims), 2))
+    for i, row in enumerate(trims):
+        n, side = row[:3], row[3]
+        into = side * n[:2] / np.hypot(n[0], n[1])
+        for k in range(2):
+            uv = row[4 + 2 * k:6 + 2 * k]
+            sigma = float(uv @ into)
+            z = 1.0 / row[8 + k]
+            w = view.delta * np.sqrt(1 + sigma**2) + sigma * view.back
+            out[i, k] = max(0.0, w) / (z - view.back - view.delta)
+    return out
+
+
 def test_trims_lie_inside_the_cube_image_and_widen_with_delta():
     narrow, _ = _trims((0.0, 0.0, 0.0), delta=0.05)
     wide, view = _trims((0.0, 0.0, 0.0), delta=0.2)
     assert np.all(wide[:, 10:12] > narrow[:, 10:12])
-    # The face at depth 4 m from v0 (4 + R from v*): W = Δ (sqrt(1 + σ²) + |σ| R / Δ) / (z - R - Δ)
-    # with σ = 0.25 at the edge midpoints; the ends (σ up to 0.35) are wider.
+    np.testing.assert_allclose(wide[:, 10:12], _expected_widths(wide, view), rtol=1e-9)
+    # The inner side is towards the image centre (where the cube is), so moving forward only
+    # hides more there: narrower than the lateral motion alone (σ = 0.25 at the front face's
+    # edge midpoints, 4 m from v0).
     z = 4.0 + view.back
-    sigma = 0.25
-    w_mid = 0.2 * (np.sqrt(1 + sigma**2) + sigma * view.back / 0.2) / (z - view.back - 0.2)
-    assert np.all(wide[:, 10:12] >= w_mid * 0.9)
-    # The inner side is towards the image centre (where the cube is).
+    lateral = 0.2 * np.sqrt(1 + 0.25**2) / (z - view.back - 0.2)
+    assert np.all(wide[:, 10:12] < lateral)
     for row in wide:
         n, side = row[:3], row[3]
         assert side * (n[0] * 0.0 + n[1] * 0.0 - n[2]) > 0
+
+
+def test_forward_motion_widens_the_trim_of_an_occluder_away_from_the_centre():
+    # From 3 m to the side the cube's image lies left of the centre: its right silhouette has
+    # the cube away from the centre (the eye's forward motion lets the image grow past it),
+    # its left one towards the centre.
+    trims, view = _trims((3.0, 0.0, 0.0), delta=0.2)
+    expected = _expected_widths(trims, view)
+    np.testing.assert_allclose(trims[:, 10:12], expected, rtol=1e-9)
+    signs = []
+    for row in trims:
+        n, side = row[:3], row[3]
+        into = side * n[:2] / np.hypot(n[0], n[1])
+        for k in range(2):
+            sigma = float(row[4 + 2 * k:6 + 2 * k] @ into)
+            z = 1.0 / row[8 + k]
+            lateral = view.delta * np.sqrt(1 + sigma**2) / (z - view.back - view.delta)
+            if abs(sigma) > 1e-9:  # an end at the image's centre line: equal
+                assert (row[10 + k] > lateral) == (sigma > 0), (sigma, row[10 + k], lateral)
+                signs.append(sigma > 0)
+    assert any(signs) and not all(signs)
 
 
 def test_margin_is_added_in_pixels():
