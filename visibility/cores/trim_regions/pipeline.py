@@ -28,7 +28,11 @@ from visibility.cores.trim_regions.raster import (
     to_camera,
 )
 from visibility.cores.trim_regions.resolve import resolve_layer
-from visibility.cores.trim_regions.silhouettes import TRIM_MARGIN_PX, silhouette_trims
+from visibility.cores.trim_regions.silhouettes import (
+    AMBIGUOUS,
+    TRIM_MARGIN_PX,
+    silhouette_trims,
+)
 from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
 
@@ -143,6 +147,12 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # Grazing triangles are static: they count only where they lie in front of the first
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
+    tri = verts[data.faces[data.static]]
+    unit_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    unit_n /= np.maximum(np.linalg.norm(unit_n, axis=1, keepdims=True), 1e-300)
+    anchor = tri[:, 0]
+    half_box = 0.5 * (box[1] - box[0])
+    box_centre = np.zeros(3)  # the box's centre in the frame of ``verts``
     kb = KBuffer.empty(int(resolution) ** 2)
     stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
     stats["near_eye"] = 0
@@ -156,13 +166,18 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         near_sphere(verts, data.faces, data.static, v0, delta, near)
         vis |= near
         stats["near_eye"] += int(near.sum())
+        # Planes through the eyes this sphere answers for: those of the sphere in the box.
+        off = np.einsum("ij,ij->i", unit_n, v0 - anchor)
+        box_reach = np.abs(unit_n) @ half_box
+        ambiguous = data.static[(np.abs(off) <= delta)
+                                & (np.abs(off + unit_n @ (box_centre - v0)) <= box_reach)]
         hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
         seen_hull[hit] = 1
         stats["p1_geometry"] += time.perf_counter() - t
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
-            _solve_view(scene, view, verts, data, frame, item_rows, near, kb, vis, stats,
-                        margin_px, footprints)
+            _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
+                        stats, margin_px, footprints)
             if len(hull_ids):
                 t = time.perf_counter()
                 _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
@@ -224,8 +239,8 @@ def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 
 def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
-                frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray, kb: KBuffer,
-                vis: np.ndarray,
+                frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
+                ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float, footprints: bool) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
@@ -245,6 +260,10 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     setup_triangles(cam, faces, data.static, view.near, view.tan, res, facing, poly, npoly, pbox)
     facing_of = np.zeros(len(vis), dtype=np.int8)
     facing_of[data.static] = facing
+    # A triangle whose plane passes through the sphere faces some of its eyes and turns its
+    # back on others: its edges may be silhouettes for them though not for v* (an eye
+    # behind one wall of a corner sees past the other wall's end).
+    facing_of[ambiguous] = AMBIGUOUS
     e = data.edges
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan, res, view.delta,

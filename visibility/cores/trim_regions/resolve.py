@@ -186,9 +186,19 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
         last = b
         if u >= 0:
             stats[0] += 1
+            # The closing back face is the occluder's own back, never seen, only when it and
+            # the face before it (the simple interval's front) belong to one closed part; any
+            # other back face beyond the umbra (a single-sided wall seen from behind, as in
+            # lavaducts) may be seen past the occluder's silhouette: reported, and the walk
+            # goes on behind it as before.
+            reach = max(u, b)
+            part = closed[si[end_second]]
+            if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
+                vis[si[end_second]] = 1
+                reach = u
             if n_spans[p] < spans.shape[1]:
                 spans[p, n_spans[p], 0] = sd[i]
-                spans[p, n_spans[p], 1] = max(u, b)
+                spans[p, n_spans[p], 1] = reach
                 n_spans[p] += 1
             if u > cov:
                 cov = u

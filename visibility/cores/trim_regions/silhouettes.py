@@ -34,6 +34,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+#: ``facing_of`` code of a triangle whose plane passes through the sphere: it faces some eyes
+#: and turns its back on others, so every edge it has is taken as a silhouette.
+AMBIGUOUS = 2
 #: Pixels added to every trim width (and around the quad's ends): sqrt(2) / 2, rounded up.
 TRIM_MARGIN_PX = 0.75
 #: Columns of a trim row (see ``raster.raster_trims``).
@@ -46,6 +49,23 @@ MAX_LOOKUP_CELLS = 4096
 def _side(n, q):  # pragma: no cover - numba
     s = n[0] * q[0] + n[1] * q[1] + n[2] * q[2]
     return 1.0 if s > 0 else (-1.0 if s < 0 else 0.0)
+
+
+@njit(cache=True, inline="always")
+def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
+    """Whether edge e's second opposite corner lies in the plane of its first triangle
+    (relative tolerance 1e-9)."""
+    a = cam[ev[e, 0]]
+    b = cam[ev[e, 1]]
+    c = cam[eo[e, 0]]
+    d = cam[eo[e, 1]]
+    u = b - a
+    v = c - a
+    n = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                  u[0] * v[1] - u[1] * v[0]])
+    w = d - a
+    scale = np.sqrt(n @ n) * max(np.sqrt(w @ w), np.sqrt(u @ u))
+    return abs(n @ w) <= 1e-9 * scale
 
 
 @njit(cache=True)
@@ -83,9 +103,11 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
     f0 = ef[e, 0]
     f1 = ef[e, 1]
     a0 = facing_of[f0]
+    either = a0 == AMBIGUOUS
     if f1 >= 0:
         a1 = facing_of[f1]
-        if a0 == a1 and not many[e]:
+        either = either or a1 == AMBIGUOUS
+        if a0 == a1 and not many[e] and not either:
             return 0
     elif a0 == 0:
         return 0
@@ -137,7 +159,9 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
             widths[q, k] = w + margin
         out[10 + k] = max(widths[0, k], widths[1, k])
     m = 0
-    if s0 == s1 and s0 != 0.0 and not many[e]:
+    if either and f1 >= 0 and a0 == a1 and _coplanar(cam, ev, eo, e):
+        return 0  # two triangles of one plane: no eye sees a silhouette between them
+    if s0 == s1 and s0 != 0.0 and not many[e] and not either:
         sides[0] = s0
         m = 1
     else:
@@ -157,7 +181,9 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
     cam : (n, 3) camera-space vertices, metres.
     ev, ef, eo : (E, 2) int64 edge end points, triangles and opposite corners
         (``edges.Edges``); many : (E,) bool non-manifold.
-    facing_of : (m,) int8 facing of each triangle id (+1 front, -1 back, 0 edge-on).
+    facing_of : (m,) int8 facing of each triangle id (+1 front, -1 back, 0 edge-on,
+        ``AMBIGUOUS`` when its plane passes through the eyes: every edge it shares with
+        a triangle of another plane, and every border of it, trims both sides).
     near, tan, res, delta, back : the view (``frustum.View``); margin_px : trim margin, px.
     vstar, rot : viewpoint and rotation (to place the trims in the octree).
     grid_origin, cell, leaf_of_cell, leaf_layer : the octree's fine grid (origin in the

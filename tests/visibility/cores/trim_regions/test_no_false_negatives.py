@@ -57,7 +57,7 @@ def test_false_negative_pixels_on_real_scenes(name, which, delta):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("delta", [0.05, 0.1, 0.2])
+@pytest.mark.parametrize("delta", [0.05, 0.1, 0.2, 0.3])
 @pytest.mark.parametrize("which", [0, 1])
 def test_false_negative_pixels_on_lavaducts(which, delta):
     from tests.visibility.real_scenes import REAL, real_scene
@@ -66,5 +66,8 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
     e = _errors(real_scene("lavaducts"), which, delta, frames=24, seed=1)
     # The second cell's 325 pixels at Δ 0.1 m in benchmarks/results/trim_regions.md (24
     # frames, seed 1) were a wall 7 cm from an eye cut by the frames' near plane, not a miss
-    # (quality.FRAME_NEAR, test_quality).
+    # (quality.FRAME_NEAR, test_quality). Its 1,380 at Δ 0.3 m were eyes behind one wall of
+    # a corner (its plane passes through the sphere: silhouettes.AMBIGUOUS) seeing past the
+    # other wall's end a wall seen from behind, which closed the trimmed interval and was
+    # dropped as the occluder's own back (test_resolve).
     assert e["fn_pixel_rate_max"] <= BOUND, (delta, which, e["fn_pixels_max"], e["missed"][:20])

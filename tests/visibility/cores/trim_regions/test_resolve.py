@@ -110,3 +110,28 @@ def test_entries_in_a_carried_umbra_are_hidden():
     seq = [(FRONT, 5.0, 2, 0), (BACK, 5.5, 3, 0), (FRONT, 9.0, 4, 0), (BACK, 9.5, 5, 0)]
     vis, sealed, seal, _, _ = _resolve(seq, cover=6.0)
     assert vis == {4} and sealed and seal == 9.0
+
+
+def test_a_back_face_beyond_the_umbra_is_seen_unless_it_is_the_occluders_own():
+    # A trimmed single-sided wall (0) and, 4 m behind its umbra's end, a wall seen from behind
+    # (1): an eye that sees past the first wall's silhouette may see the second.
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 2.0), (BACK, 5.0, 1, 0)]
+    vis, sealed, _, cover, _ = _resolve(seq)
+    assert vis == {0, 1} and not sealed and cover == 2.0
+    # The back of a closed part whose front was seen is never seen.
+    vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 3})
+    assert vis == {0}
+    # Within the umbra the back face stays hidden whatever it belongs to.
+    vis, _, _, _, _ = _resolve([(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 9.0), (BACK, 5.0, 1, 0)])
+    assert vis == {0}
+
+
+def test_the_back_of_a_closed_box_inside_a_trimmed_run_stays_hidden():
+    # A room's wall (part 3) and, inside the room, a box (part 4): the run room wall, box
+    # front closes at the box's back; the box's back belongs to the part of the face before
+    # it, so it is the box's own back even past a short umbra (the stiff cases' closed room).
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 1.5), (FRONT, 3.0, 1, 0), (BACK, 4.0, 2, 0)]
+    vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 4, 2: 4})
+    assert 2 not in vis
+    vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 4})
+    assert 2 in vis

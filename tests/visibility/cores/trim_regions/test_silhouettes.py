@@ -9,13 +9,14 @@ from visibility.cores.trim_regions.cache import build_scene_data
 from visibility.cores.trim_regions.frustum import sphere_views
 from visibility.cores.trim_regions.layers import leaf_frame
 from visibility.cores.trim_regions.raster import setup_triangles, to_camera
-from visibility.cores.trim_regions.silhouettes import silhouette_trims
+from visibility.cores.trim_regions.silhouettes import AMBIGUOUS, silhouette_trims
 
 
-def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64):
-    b = Builder()
-    b.box((-1, -1, -6), (1, 1, -4), 0)
-    scene = b.scene("cube")
+def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64, scene=None, ambiguous=()):
+    if scene is None:
+        b = Builder()
+        b.box((-1, -1, -6), (1, 1, -4), 0)
+        scene = b.scene("cube")
     data = build_scene_data(scene)
     view = sphere_views(np.asarray(eye, float), delta, res)[face]
     cam = to_camera(scene.vertices, view.vstar, view.rot)
@@ -26,6 +27,7 @@ def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64):
                     np.zeros((s, 4), dtype=np.int64))
     facing_of = np.zeros(scene.n_triangles, dtype=np.int8)
     facing_of[data.static] = facing
+    facing_of[list(ambiguous)] = AMBIGUOUS
     frame = leaf_frame(data.octree, np.zeros(3))
     e = data.edges
     lay = np.zeros(len(data.octree), dtype=np.int64)
@@ -102,3 +104,30 @@ def test_margin_is_added_in_pixels():
     a, view = _trims((0.0, 0.0, 0.0), margin_px=0.0)
     b, _ = _trims((0.0, 0.0, 0.0), margin_px=1.5)
     np.testing.assert_allclose(b[:, 10:12] - a[:, 10:12], 1.5 * 2 * view.tan / view.res)
+
+
+def test_an_edge_of_a_triangle_whose_plane_passes_through_the_sphere_is_a_silhouette():
+    # A concave fold (two walls meeting in a corner, both facing v*): no silhouette, unless
+    # one wall's plane passes through the sphere, whose eyes behind it see past the corner.
+    b = Builder()
+    b.tris.append(np.array([(-2.0, -1.0, -4.0), (0.5, -1.0, -4.0), (0.5, 1.0, -4.0)]))
+    b.tris.append(np.array([(0.5, -1.0, -4.0), (0.5, -1.0, -1.0), (0.5, 1.0, -4.0)]))
+    b.obj += [0, 1]
+    b.col += [(100, 100, 100)] * 2
+    scene = b.scene("fold")
+    plain, _ = _trims((0.0, 0.0, 0.0), delta=0.3, scene=scene)
+    with_side, _ = _trims((0.0, 0.0, 0.0), delta=0.3, scene=scene, ambiguous=[1])
+    def at_corner(rows):
+        # The corner edge, x = 0.5 at depth 4 + R from v*: a vertical line near u = 0.11.
+        return [r for r in rows if abs(r[4] - r[6]) < 1e-9 and 0.05 < r[4] < 0.13]
+
+    assert len(with_side) > len(plain) and len(at_corner(with_side)) == 2
+    assert not at_corner(plain)
+    # Two triangles of one plane through the sphere: no silhouette between them.
+    b = Builder()
+    b.quad((-1.0, -1.0, -4.0), (1.0, -1.0, -4.0), (1.0, 1.0, -4.0), (-1.0, 1.0, -4.0), 0)
+    quad = b.scene("quad")
+    both, _ = _trims((0.0, 0.0, 0.0), delta=0.3, scene=quad, ambiguous=[0, 1])
+    alone, _ = _trims((0.0, 0.0, 0.0), delta=0.3, scene=quad)
+    assert len(both) > len(alone) == 4  # its borders now trim on both sides
+    assert not [r for r in both if abs(r[4] - r[6]) > 1e-9 and abs(r[5] - r[7]) > 1e-9]
