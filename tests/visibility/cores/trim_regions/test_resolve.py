@@ -130,7 +130,8 @@ def test_the_back_of_a_closed_box_inside_a_trimmed_run_stays_hidden():
     # A room's wall (part 3) and, inside the room, a box (part 4): the run room wall, box
     # front closes at the box's back; the box's back belongs to the part of the face before
     # it, so it is the box's own back even past a short umbra (the stiff cases' closed room).
-    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 1.5), (FRONT, 3.0, 1, 0), (BACK, 4.0, 2, 0)]
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 1.5), (FRONT, 3.0, 1, 0),
+           (TRIM, 3.05, -1, 3.5), (BACK, 4.0, 2, 0)]
     vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 4, 2: 4})
     assert 2 not in vis
     vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 4})
