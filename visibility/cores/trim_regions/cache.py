@@ -29,6 +29,8 @@ class SceneData:
     closed : (m,) int64 label of the closed, consistently wound part each triangle belongs to,
         -1 for the rest (``edges.closed_components``).
     octree : the static triangles' octree.
+    normals : (s, 3) float64 unit normals of the static triangles (rows follow ``static``).
+    plane : (s,) float64 their planes' offsets, normal . corner, metres (world frame).
     build_seconds : time the build took, seconds.
     """
 
@@ -39,6 +41,8 @@ class SceneData:
     edges: Edges
     closed: np.ndarray
     octree: Octree
+    normals: np.ndarray
+    plane: np.ndarray
     build_seconds: float
 
 
@@ -67,9 +71,13 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
     edges = build_edges(scene.vertices, scene.faces, static)
     mask = np.zeros(scene.n_triangles, dtype=bool)
     mask[static] = True
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]) if len(static) \
+        else np.zeros((0, 3))
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    plane = np.einsum("ij,ij->i", normals, tris[:, 0]) if len(static) else np.zeros(0)
     return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
                      np.ascontiguousarray(scene.faces.astype(np.int64)), edges,
-                     closed_components(edges, scene.n_triangles), octree,
+                     closed_components(edges, scene.n_triangles), octree, normals, plane,
                      time.perf_counter() - t0)
 
 

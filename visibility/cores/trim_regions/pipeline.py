@@ -121,8 +121,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     if len(graze):
         # A slab along the normal, thick enough for a few pixels at its distance (at most Δ).
         t = scene.vertices[scene.faces[graze].astype(np.int64)] - centre
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n = data.normals[np.searchsorted(data.static, graze)]
         dist = np.linalg.norm(t.mean(axis=1), axis=1)
         grow = np.abs(n) * np.minimum(delta, 4.0 * dist / resolution)[:, None]
         gbox = np.stack([t.min(axis=1) - grow, t.max(axis=1) + grow], axis=1)
@@ -147,12 +146,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # Grazing triangles are static: they count only where they lie in front of the first
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
-    tri = verts[data.faces[data.static]]
-    unit_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    unit_n /= np.maximum(np.linalg.norm(unit_n, axis=1, keepdims=True), 1e-300)
-    anchor = tri[:, 0]
-    half_box = 0.5 * (box[1] - box[0])
-    box_centre = np.zeros(3)  # the box's centre in the frame of ``verts``
+    # Static triangles whose plane passes through the box (tested per sphere below).
+    through_box = (np.abs(data.normals @ centre - data.plane)
+                   <= np.abs(data.normals) @ (0.5 * (box[1] - box[0])))
     kb = KBuffer.empty(int(resolution) ** 2)
     stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
     stats["near_eye"] = 0
@@ -167,10 +163,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         vis |= near
         stats["near_eye"] += int(near.sum())
         # Planes through the eyes this sphere answers for: those of the sphere in the box.
-        off = np.einsum("ij,ij->i", unit_n, v0 - anchor)
-        box_reach = np.abs(unit_n) @ half_box
-        ambiguous = data.static[(np.abs(off) <= delta)
-                                & (np.abs(off + unit_n @ (box_centre - v0)) <= box_reach)]
+        ambiguous = data.static[through_box
+                                & (np.abs(data.normals @ (v0 + centre) - data.plane) <= delta)]
         hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
         seen_hull[hit] = 1
         stats["p1_geometry"] += time.perf_counter() - t
@@ -210,13 +204,11 @@ def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
     if not len(ids):
         return ids
     t = scene.vertices[scene.faces[ids].astype(np.int64)]
-    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
     close = np.zeros(len(ids), dtype=bool)
     mid = t.mean(axis=1)
     px = 0.5 * resolution  # pixels per radian at a face's centre, the fewest on the face
     for c in centres:
-        off = np.abs(np.einsum("ij,ij->i", n, c - t[:, 0]))
+        off = np.abs(data.normals @ c - data.plane)
         dist = np.maximum(np.linalg.norm(mid - c, axis=1), 1e-12)
         d = np.maximum(np.linalg.norm(t - c, axis=2), 1e-12)
         across = off * (1.0 / d.min(axis=1) - 1.0 / d.max(axis=1))

@@ -109,6 +109,8 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
         either = either or a1 == AMBIGUOUS
         if a0 == a1 and not many[e] and not either:
             return 0
+        if either and a0 == a1 and _coplanar(cam, ev, eo, e):
+            return 0  # two triangles of one plane: no eye sees a silhouette between them
     elif a0 == 0:
         return 0
     a = cam[ev[e, 0]].copy()
@@ -159,8 +161,6 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
             widths[q, k] = w + margin
         out[10 + k] = max(widths[0, k], widths[1, k])
     m = 0
-    if either and f1 >= 0 and a0 == a1 and _coplanar(cam, ev, eo, e):
-        return 0  # two triangles of one plane: no eye sees a silhouette between them
     if s0 == s1 and s0 != 0.0 and not many[e] and not either:
         sides[0] = s0
         m = 1

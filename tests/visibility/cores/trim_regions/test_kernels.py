@@ -101,7 +101,7 @@ def test_a_larger_cell_is_covered_by_more_spheres():
 def _jamb_scene():
     """A 0.2 m thick wall 4.1-4.3 m ahead along +x from z = 0.037 m up, and a far wall
     behind its opening: the wall's end face (the jamb, normal -z) lies 3.7 cm beside the
-    cell's centre, so the centre sees it at under a tenth of a pixel, an eye 4 cm lower sees
+    cell's centre, so the centre sees it at under a tenth of a pixel, an eye 3.4 cm along -z sees
     it in a line of pixels."""
     b = Builder()
     b.box((4.092, -1.7, 0.037), (4.292, 1.3, 1.395), 0)
@@ -123,7 +123,7 @@ def test_a_face_thin_across_its_line_is_tested_as_grazing():
     assert set(jamb.tolist()) <= set(graze.tolist())
     found, stats = _solve(scene, 0.0866, centre=(0.0, 0.0, 0.0), res=256)
     assert set(jamb.tolist()) & found and stats["grazing"] >= 2
-    # An eye of the cell 3.4 cm lower does see it (a line of pixels).
+    # An eye of the cell 3.4 cm along -z does see it (a line of pixels).
     eye = np.array([0.0, 0.0, -0.034])
     rot = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # looking along +x
     _, ids = render_ids(scene.vertices, scene.faces, eye, rot, 1024, 1024, 0.2, 0.2)
