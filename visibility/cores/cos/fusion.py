@@ -13,31 +13,9 @@ import weakref
 import numpy as np
 
 from visibility.scene import Scene
+from visibility.topology import weld_vertices
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def weld_vertices(vertices: np.ndarray) -> np.ndarray:
-    """(n,) int64 id per vertex, equal for bitwise-equal positions.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float64 positions, metres.
-    """
-    v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
-    n = len(v)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    # -0.0 and 0.0 are the same point.
-    v = v + 0.0
-    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
-    s = v[order]
-    new = np.empty(n, dtype=bool)
-    new[0] = True
-    new[1:] = np.any(s[1:] != s[:-1], axis=1)
-    ids = np.empty(n, dtype=np.int64)
-    ids[order] = np.cumsum(new) - 1
-    return ids
 
 
 def scene_welded_ids(scene: Scene) -> tuple[np.ndarray, float]:

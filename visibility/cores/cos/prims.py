@@ -59,14 +59,16 @@ def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
-def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray) -> Prims:
+def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
+                drop: np.ndarray | None = None) -> Prims:
     """Primitives of ``scene`` around ``centre`` (3,) metres, with welded vertex ids (n_vertices,).
 
-    Degenerate faces (``scene.valid_faces`` False) are left out.
+    Degenerate faces (``scene.valid_faces`` False) are left out, and so are the triangles
+    ``drop`` (m,) bool marks (ones no eye of the cell can see, ``topology.unseen_back_faces``).
     """
     c = np.asarray(centre, dtype=np.float64)
     m = scene.n_triangles
-    valid = np.flatnonzero(scene.valid_faces)
+    valid = np.flatnonzero(scene.valid_faces if drop is None else scene.valid_faces & ~drop)
     faces = scene.faces[valid].astype(np.int64)
     scale = float(np.max(np.abs(c))) if c.size else 0.0
     moving = np.zeros(len(valid), dtype=bool)

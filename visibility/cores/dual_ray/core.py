@@ -25,7 +25,6 @@ import numpy as np
 
 from visibility.cancel import checkpoint
 from visibility.cores.base import Core, CoreParams, Cost, Fit, param, register
-from visibility.cores.dual_ray.cache import per_scene
 from visibility.cores.dual_ray.dual_space import (
     COARSE,
     boxes_visible_among,
@@ -35,6 +34,7 @@ from visibility.cores.dual_ray.dual_space import (
 from visibility.cores.dual_ray.fences import Fences, scene_fences
 from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
 from visibility.scene import Scene
+from visibility.scene_cache import per_scene
 from visibility.viewcells import Viewcell
 
 #: The paper's choice (Sec. 6): 128 x 128 for 100 m cells.

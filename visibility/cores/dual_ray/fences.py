@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from visibility.cores.dual_ray.cache import per_scene
 from visibility.scene import Scene
+from visibility.scene_cache import per_scene
 
 #: A triangle is a wall, an occluder, when its normal is within this of horizontal (|n_y|; 0.02
 #: is 1.1 degrees). The 2.5D analysis takes walls up to 0.1; walls between the two are

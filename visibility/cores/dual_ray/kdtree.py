@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visibility.cores.dual_ray.cache import per_scene
 from visibility.scene import Scene
+from visibility.scene_cache import per_scene
 
 #: Most triangles a leaf holds before it is split (more leaves: finer PVS, more tests).
 LEAF_SIZE = 48

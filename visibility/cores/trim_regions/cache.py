@@ -1,6 +1,6 @@
 """What the trim region core keeps per scene (paper Sec. 5.1: the octree is created once when
 the scene loads): the static triangles, their edges and the octree, built on first use and kept
-while the scene lives (``dual_ray.cache.per_scene``: weak keys, one build per scene)."""
+while the scene lives (``visibility.scene_cache.per_scene``: weak keys, one build per scene)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visibility.cores.dual_ray.cache import per_scene
-from visibility.cores.trim_regions.edges import Edges, build_edges, closed_components
 from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
-from visibility.scene import Scene
+from visibility.scene import Scene, moving_faces
+from visibility.scene_cache import per_scene
+from visibility.topology import Edges, closed_parts
 
 
 @dataclass
@@ -27,7 +27,7 @@ class SceneData:
     faces : (m, 3) int64 copy of the scene's faces.
     edges : the static triangles' edges.
     closed : (m,) int64 label of the closed, consistently wound part each triangle belongs to,
-        -1 for the rest (``edges.closed_components``).
+        -1 for the rest (``topology.closed_components``).
     octree : the static triangles' octree.
     normals : (s, 3) float64 unit normals of the static triangles (rows follow ``static``).
     plane : (s,) float64 their planes' offsets, normal . corner, metres (world frame).
@@ -46,16 +46,6 @@ class SceneData:
     build_seconds: float
 
 
-def moving_faces(scene: Scene) -> np.ndarray:
-    """(m,) bool, True for faces with a vertex that moves between keyframes."""
-    faces = np.clip(scene.faces.astype(np.int64), 0, max(scene.n_vertices - 1, 0))
-    if scene.states is None or scene.states.shape[0] < 2 or not len(faces):
-        return np.zeros(scene.n_triangles, dtype=bool)
-    st = scene.states
-    vmove = np.any(np.any(st != st[:1], axis=0), axis=1)
-    return np.any(vmove[faces], axis=1)
-
-
 def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
     """Edges and octree of ``scene``'s static triangles (see ``SceneData``)."""
     import time
@@ -68,7 +58,7 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
     octree = build_octree(tris.min(axis=1) if len(static) else np.zeros((0, 3)),
                           tris.max(axis=1) if len(static) else np.zeros((0, 3)),
                           static, max_prims, MAX_DEPTH)
-    edges = build_edges(scene.vertices, scene.faces, static)
+    parts, _ = closed_parts(scene)
     mask = np.zeros(scene.n_triangles, dtype=bool)
     mask[static] = True
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]) if len(static) \
@@ -76,8 +66,8 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     plane = np.einsum("ij,ij->i", normals, tris[:, 0]) if len(static) else np.zeros(0)
     return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
-                     np.ascontiguousarray(scene.faces.astype(np.int64)), edges,
-                     closed_components(edges, scene.n_triangles), octree, normals, plane,
+                     np.ascontiguousarray(scene.faces.astype(np.int64)), parts.edges,
+                     parts.label, octree, normals, plane,
                      time.perf_counter() - t0)
 
 

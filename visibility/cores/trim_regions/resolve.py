@@ -22,7 +22,7 @@ sided or inward-wound face shares with the face the ray leaves by, as in the Qua
 lavaducts; letting it validate only ever reveals more.)
 
 A back face is not reported when a front face of the same closed, consistently wound part
-(``edges.closed_components``) hid in an umbra before it: it is that part's back, never seen
+(``topology.closed_components``) hid in an umbra before it: it is that part's back, never seen
 from outside it. Any other back face may be seen (single-sided or inward-wound geometry seen
 from behind, as in lavaducts, where the whole level is one open part).
 """

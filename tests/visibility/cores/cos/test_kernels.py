@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from visibility.cores.cos.core import cos_pvs
-from visibility.cores.cos.fusion import weld_vertices
+from visibility.topology import weld_vertices
 from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import GRID, _hides, _in_front
 from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
@@ -141,13 +141,6 @@ def test_fusion_two_triangles_sharing_an_edge_hide_what_neither_hides_alone():
     assert 2 in _visible(gap + q)
 
 
-def test_welding_is_exact():
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 0, 1e-12], [-0.0, 0, 0]], float)
-    ids = weld_vertices(v)
-    assert ids[0] == ids[2] == ids[4]
-    assert ids[1] != ids[3]
-
-
 def test_six_side_planes_cover_every_direction_from_every_face():
     views = side_plane_views(CELL, 16)
     assert len(views) == 30
@@ -240,7 +233,7 @@ def test_face_subsets_drop_only_empty_footprints():
     # it, every footprint outside the subset is empty.
     from tests.visibility.cores.cos.reference import cell_around
     from visibility.cores.cos.core import _face_subsets
-    from visibility.cores.cos.fusion import weld_vertices
+    from visibility.topology import weld_vertices
     from visibility.cores.cos.lists import footprints
     from visibility.cores.cos.prims import build_prims, distance_order, prim_bounds
     from visibility.generators import make_scene

@@ -12,9 +12,9 @@ import visibility.cores.trim_regions.pipeline as pipeline
 from tests.visibility.cores.cos.reference import cell_around
 from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import get_core
-from visibility.cores.trim_regions.cache import moving_faces
 from visibility.generators import make_scene
 from visibility.ground_truth import sample_pvs
+from visibility.scene import moving_faces
 from visibility.viewcells import Viewcell
 
 CORE = get_core("trim_regions")

@@ -1,5 +1,6 @@
-"""Per-scene caches of the dual-ray core (kd-tree, fences): built once per scene object, kept
-while the scene lives (weak keys), rebuilt when the scene's arrays change size."""
+"""Per-scene caches of what a core builds once per scene (kd-trees, fences, octrees, edge
+topology): built once per scene object, kept while the scene lives (weak keys), rebuilt when
+the scene's arrays change size."""
 
 from __future__ import annotations
 

@@ -1,0 +1,399 @@
+"""Topology of a triangle soup: which corners are one point, which triangles share an edge,
+and which parts of the scene are closed surfaces.
+
+Vertices are welded by exact position (bitwise equal float64 coordinates): a tolerance would
+join triangles across a hairline gap, and a ray through that gap would then count as blocked.
+Edges with one triangle (a border) or more than two (non-manifold) are kept apart from the
+two-triangle edges the cores fuse or read silhouettes from.
+
+A *closed part* (``closed_components``) is a set of triangles joined through edges of exactly
+two triangles that hold them in opposite directions, with no other edge: a watertight,
+consistently wound surface. ``closed_parts`` adds its orientation (the sign of its enclosed
+volume) and box, and ``unseen_back_faces`` uses them: from an eye outside a closed surface,
+a ray that meets one of its triangles from the inside has crossed the surface before, so a
+triangle whose outer side faces away from every eye of a cell is never seen from that cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from visibility.scene import Scene, moving_faces
+from visibility.scene_cache import per_scene
+
+
+def weld_vertices(vertices: np.ndarray) -> np.ndarray:
+    """(n,) int64 id per vertex, equal for bitwise-equal positions.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64 positions, metres.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    n = len(v)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    # -0.0 and 0.0 are the same point.
+    v = v + 0.0
+    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    s = v[order]
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    new[1:] = np.any(s[1:] != s[:-1], axis=1)
+    ids = np.empty(n, dtype=np.int64)
+    ids[order] = np.cumsum(new) - 1
+    return ids
+
+
+
+@dataclass
+class Edges:
+    """Unique edges of a set of triangles.
+
+    Attributes
+    ----------
+    vert : (E, 2) int64 vertex rows (of the scene's vertex array) of the two end points.
+    face : (E, 2) int64 the adjacent triangles' ids (-1 where the edge has only one).
+    opp : (E, 2) int64 vertex row of each adjacent triangle's corner off the edge (-1: none).
+    many : (E,) bool, True for non-manifold edges (three or more triangles): trimmed on both
+        sides.
+    paired : (E,) bool, True for an edge of exactly two triangles that hold it in opposite
+        directions (consistently wound there).
+    """
+
+    vert: np.ndarray
+    face: np.ndarray
+    opp: np.ndarray
+    many: np.ndarray
+    paired: np.ndarray
+
+    def __len__(self) -> int:
+        return int(len(self.vert))
+
+
+def build_edges(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray) -> Edges:
+    """Edges of the triangles ``ids`` of ``faces`` (m, 3) over ``vertices`` (n, 3) float64."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if not len(ids):
+        z = np.zeros((0, 2), dtype=np.int64)
+        return Edges(z, z.copy(), z.copy(), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
+    weld = weld_vertices(vertices)
+    f = faces[ids].astype(np.int64)
+    w = weld[f]
+    # Half-edges k -> k+1 of each triangle, the opposite corner k+2.
+    a = np.concatenate([w[:, 0], w[:, 1], w[:, 2]])
+    b = np.concatenate([w[:, 1], w[:, 2], w[:, 0]])
+    va = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    vb = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    vo = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+    tri = np.tile(ids, 3)
+    lo = np.minimum(a, b)
+    hi = np.maximum(a, b)
+    order = np.lexsort((hi, lo))
+    lo, hi = lo[order], hi[order]
+    new = np.ones(len(lo), dtype=bool)
+    new[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
+    first = np.flatnonzero(new)
+    count = np.diff(np.append(first, len(lo)))
+    n_e = len(first)
+    face = np.full((n_e, 2), -1, dtype=np.int64)
+    opp = np.full((n_e, 2), -1, dtype=np.int64)
+    face[:, 0] = tri[order][first]
+    opp[:, 0] = vo[order][first]
+    two = count >= 2
+    face[two, 1] = tri[order][first[two] + 1]
+    opp[two, 1] = vo[order][first[two] + 1]
+    vert = np.stack([va[order][first], vb[order][first]], axis=1)
+    start = a[order]
+    paired = count == 2
+    paired[two] &= start[first[two]] != start[first[two] + 1]
+    return Edges(vert, face, opp, count > 2, paired)
+
+
+def closed_components(edges: Edges, n_triangles: int) -> np.ndarray:
+    """Closed, consistently wound parts of the scene (trim_regions' back-face rule).
+
+    A part is a set of triangles connected through paired edges (``Edges.paired``); it is
+    closed when none of its triangles has an edge that is a border, non-manifold or held in
+    the same direction by its two triangles. From an eye outside such a part, every ray meets
+    one of its front faces before any of its back faces, so a back face of it is never seen.
+
+    Returns
+    -------
+    (n_triangles,) int64: the part's label for the triangles of closed parts, -1 elsewhere
+    (and for triangles without edges).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    label = np.full(n_triangles, -1, dtype=np.int64)
+    if not len(edges):
+        return label
+    pe = edges.face[edges.paired]
+    graph = coo_matrix((np.ones(len(pe)), (pe[:, 0], pe[:, 1])),
+                       shape=(n_triangles, n_triangles))
+    _, comp = connected_components(graph, directed=False)
+    has = np.zeros(n_triangles, dtype=bool)
+    bad = np.zeros(n_triangles, dtype=bool)
+    for k in range(2):
+        f = edges.face[:, k]
+        ok = f >= 0
+        has[f[ok]] = True
+        bad[f[ok & ~edges.paired]] = True
+    bad_comp = np.zeros(int(comp.max()) + 1, dtype=bool)
+    bad_comp[comp[bad]] = True
+    closed = has & ~bad_comp[comp]
+    label[closed] = comp[closed]
+    return label
+
+
+#: A closed part's orientation is trusted when its signed volume (about its box centre) is at
+#: least this share of the volume its triangles' cones enclose unsigned: a zero-volume part (a
+#: sheet closed by a reversed copy of itself) has no outside to speak of.
+ORIENTED_SHARE = 1e-6
+#: Triangles with twice their area under this share of their longest edge squared (an aspect
+#: of about 10^6) are never taken for unseen: their normal is too rounded to trust.
+NEEDLE = 1e-6
+
+
+@dataclass
+class ClosedParts:
+    """The closed parts of a scene's static triangles (``closed_components``).
+
+    Attributes
+    ----------
+    edges : the static valid triangles' edges (``build_edges``).
+    label : (m,) int64 the closed part of each triangle, -1 for triangles in none.
+    outward : (m,) int8 +1 where a triangle's winding normal (counter-clockwise corners, right
+        hand) points out of its closed part, -1 where it points in, 0 for triangles of no
+        closed part or of a part whose volume is too small to tell (``ORIENTED_SHARE``).
+    box : (p, 2, 3) float64 each part's bounding box [min, max], metres (world frame).
+    """
+
+    edges: Edges
+    label: np.ndarray
+    outward: np.ndarray
+    box: np.ndarray
+
+
+#: Triangles are shrunk towards their centroids by this share before the crossing test, so that
+#: neighbours meeting along a shared edge or corner do not count as crossing.
+SHRINK = 1e-5
+
+
+@njit(cache=True, inline="always")
+def _orient2(ax, ay, bx, by, cx, cy):  # pragma: no cover - numba
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
+@njit(cache=True)
+def _coplanar_meets(p, q, t, n):  # pragma: no cover - numba
+    """Whether segment [p, q], lying in the plane of triangle t (normal n), meets it: in 2D,
+    dropping the normal's largest axis. Touching counts as meeting."""
+    k = np.argmax(np.abs(n))
+    i = (k + 1) % 3
+    j = (k + 2) % 3
+    px, py, qx, qy = p[i], p[j], q[i], q[j]
+    sgn = 1.0 if _orient2(t[0, i], t[0, j], t[1, i], t[1, j], t[2, i], t[2, j]) > 0 else -1.0
+    for e in (p, q):
+        inside = True
+        for c in range(3):
+            a = t[c]
+            b = t[(c + 1) % 3]
+            if sgn * _orient2(a[i], a[j], b[i], b[j], e[i], e[j]) < 0.0:
+                inside = False
+        if inside:
+            return True
+    for c in range(3):
+        a = t[c]
+        b = t[(c + 1) % 3]
+        o1 = _orient2(px, py, qx, qy, a[i], a[j])
+        o2 = _orient2(px, py, qx, qy, b[i], b[j])
+        o3 = _orient2(a[i], a[j], b[i], b[j], px, py)
+        o4 = _orient2(a[i], a[j], b[i], b[j], qx, qy)
+        if o1 * o2 <= 0.0 and o3 * o4 <= 0.0:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _segment_meets(p, q, t):  # pragma: no cover - numba
+    """Whether segment [p, q] (3,) meets triangle t (3, 3); a segment (nearly) in the
+    triangle's plane counts as meeting (the caller takes that for a crossing: conservative)."""
+    e1 = t[1] - t[0]
+    e2 = t[2] - t[0]
+    d = q - p
+    h = np.cross(d, e2)
+    det = np.dot(e1, h)
+    scale = np.sqrt(np.dot(e1, e1) * np.dot(e2, e2) * np.dot(d, d))
+    if abs(det) <= 1e-12 * scale:
+        n = np.cross(e1, e2)
+        nn = np.sqrt(np.dot(n, n))
+        dp = abs(np.dot(n, p - t[0]))
+        dq = abs(np.dot(n, q - t[0]))
+        if max(dp, dq) > 1e-9 * nn * np.sqrt(np.dot(d, d) + np.dot(e1, e1)):
+            return False  # parallel to the plane, off it
+        return _coplanar_meets(p, q, t, n)
+    f = 1.0 / det
+    sv = p - t[0]
+    u = f * np.dot(sv, h)
+    if u < -1e-12 or u > 1.0 + 1e-12:
+        return False
+    qv = np.cross(sv, e1)
+    v = f * np.dot(d, qv)
+    if v < -1e-12 or u + v > 1.0 + 1e-12:
+        return False
+    w = f * np.dot(e2, qv)
+    return -1e-12 <= w <= 1.0 + 1e-12
+
+
+@njit(cache=True, inline="always")
+def _cross(a, b):  # pragma: no cover - numba
+    """Whether triangles a and b (3, 3), shrunk, meet: an edge of one meets the other."""
+    for i in range(3):
+        if _segment_meets(a[i], a[(i + 1) % 3], b):
+            return True
+        if _segment_meets(b[i], b[(i + 1) % 3], a):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _self_crossing(tris, lo, hi, start, axis, out):  # pragma: no cover - numba
+    """out[k] = True when two triangles of part k cross. Part k holds rows start[k] to
+    start[k + 1] of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound
+    along the part's longest axis ``axis[k]``; ``lo``, ``hi`` (n, 3) their boxes."""
+    for k in range(len(start) - 1):
+        ax = axis[k]
+        for i in range(start[k], start[k + 1]):
+            for j in range(i + 1, start[k + 1]):
+                if lo[j, ax] > hi[i, ax]:
+                    break
+                if (lo[j, 0] > hi[i, 0] or hi[j, 0] < lo[i, 0] or lo[j, 1] > hi[i, 1]
+                        or hi[j, 1] < lo[i, 1] or lo[j, 2] > hi[i, 2] or hi[j, 2] < lo[i, 2]):
+                    continue
+                if _cross(tris[i], tris[j]):
+                    out[k] = True
+                    break
+            if out[k]:
+                break
+
+
+def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarray:
+    """(p,) bool, True for the parts some two of whose triangles cross or overlap (beyond the
+    edges and corners they share).
+
+    Parameters
+    ----------
+    tris : (k, 3, 3) float64 triangles, metres; ``label`` (k,) int64 their part in [0, p).
+    """
+    out = np.zeros(p, dtype=bool)
+    if not len(tris):
+        return out
+    c = tris.mean(axis=1, keepdims=True)
+    t = c + (tris - c) * (1.0 - SHRINK)
+    lo = t.min(axis=1)
+    hi = t.max(axis=1)
+    ext = np.zeros((p, 3))
+    for a in range(3):
+        top = np.full(p, -np.inf)
+        bot = np.full(p, np.inf)
+        np.maximum.at(top, label, hi[:, a])
+        np.minimum.at(bot, label, lo[:, a])
+        ext[:, a] = top - bot
+    axis = np.argmax(ext, axis=1).astype(np.int64)
+    order = np.lexsort((lo[np.arange(len(t)), axis[label]], label))
+    start = np.searchsorted(label[order], np.arange(p + 1)).astype(np.int64)
+    _self_crossing(np.ascontiguousarray(t[order]), np.ascontiguousarray(lo[order]),
+                   np.ascontiguousarray(hi[order]), start, axis, out)
+    return out
+
+
+def build_closed_parts(scene: Scene) -> ClosedParts:
+    """Closed parts of ``scene``'s valid static triangles (a part touching a moving triangle
+    has a border there and is not closed), with their orientation and boxes."""
+    m = scene.n_triangles
+    static = np.flatnonzero(scene.valid_faces & ~moving_faces(scene)).astype(np.int64)
+    edges = build_edges(scene.vertices, scene.faces, static)
+    label = closed_components(edges, m)
+    outward = np.zeros(m, dtype=np.int8)
+    inpart = np.flatnonzero(label >= 0)
+    if not len(inpart):
+        return ClosedParts(edges, label, outward, np.zeros((0, 2, 3)))
+    # Compact labels 0..p-1.
+    uniq, lab = np.unique(label[inpart], return_inverse=True)
+    label[inpart] = lab
+    p = len(uniq)
+    tri = scene.vertices[scene.faces[inpart].astype(np.int64)]  # (k, 3, 3)
+    box = np.empty((p, 2, 3))
+    for a in range(3):
+        box[:, 0, a] = np.full(p, np.inf)
+        box[:, 1, a] = np.full(p, -np.inf)
+        np.minimum.at(box[:, 0, a], lab, tri[:, :, a].min(axis=1))
+        np.maximum.at(box[:, 1, a], lab, tri[:, :, a].max(axis=1))
+    # Six times the signed volume of each triangle's cone from the part's box centre.
+    rel = tri - (0.5 * (box[lab, 0] + box[lab, 1]))[:, None, :]
+    cone = np.einsum("ij,ij->i", rel[:, 0], np.cross(rel[:, 1], rel[:, 2]))
+    vol = np.bincount(lab, weights=cone, minlength=p)
+    mag = np.bincount(lab, weights=np.abs(cone), minlength=p)
+    sign = np.where(np.abs(vol) > ORIENTED_SHARE * mag, np.sign(vol), 0.0).astype(np.int8)
+    # A surface that passes through itself can be inside out in places (an inner piece
+    # wound against the rest): its volume's sign says nothing there.
+    sign[self_crossing_parts(tri, lab, p)] = 0
+    outward[inpart] = sign[lab]
+    return ClosedParts(edges, label, outward, box)
+
+
+def closed_parts(scene: Scene) -> tuple[ClosedParts, bool]:
+    """The cached ``ClosedParts`` of ``scene`` and whether this call built them."""
+    return per_scene(scene, "topology/closed_parts", build_closed_parts)
+
+
+def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float = 0.0) -> np.ndarray:
+    """Triangles that no eye in ``box`` can see: the triangles of oriented closed parts whose
+    box the cell's box does not meet, with every corner of the cell strictly behind their
+    outer side.
+
+    An eye outside a closed, consistently wound surface (outside its box) that looks at one of
+    its triangles from the inside looks along a ray that entered the surface before: the
+    surface hides the triangle there. Holds for any surface whose inside has a nonnegative
+    winding number (no part of it turned inside out), which watertight models are.
+
+    Parameters
+    ----------
+    box : (2, 3) float64 the cell [min, max], metres.
+    tol : distance (metres) by which the cell must clear a part's box and lie behind a
+        triangle's plane (rounding of the caller's frame).
+
+    Returns
+    -------
+    (m,) bool, True for the triangles never seen from the cell.
+    """
+    parts, _ = closed_parts(scene)
+    out = np.zeros(scene.n_triangles, dtype=bool)
+    cand = np.flatnonzero(parts.outward != 0)
+    if not len(cand):
+        return out
+    lo = np.asarray(box[0], dtype=np.float64)
+    hi = np.asarray(box[1], dtype=np.float64)
+    pb = parts.box
+    apart = np.any((pb[:, 0] > hi + tol) | (pb[:, 1] < lo - tol), axis=1)  # (p,)
+    cand = cand[apart[parts.label[cand]]]
+    if not len(cand):
+        return out
+    tri = scene.vertices[scene.faces[cand].astype(np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    # A needle's normal is rounding: such triangles are kept.
+    long2 = np.max(np.sum((tri - np.roll(tri, 1, axis=1)) ** 2, axis=2), axis=1)
+    norm = np.linalg.norm(n, axis=1)
+    sure = norm > NEEDLE * long2
+    cand, tri, n, norm = cand[sure], tri[sure], n[sure], norm[sure]
+    n *= (parts.outward[cand] / norm)[:, None]
+    # The cell corner farthest along the outer normal decides.
+    far = np.where(n > 0.0, hi, lo)
+    ahead = np.einsum("ij,ij->i", n, far - tri[:, 0])
+    out[cand[ahead < -tol]] = True
+    return out
