@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
 from visibility.scene_cache import per_scene
 
@@ -154,6 +155,10 @@ def closed_components(edges: Edges, n_triangles: int) -> np.ndarray:
 #: least this share of the volume its triangles' cones enclose unsigned: a zero-volume part (a
 #: sheet closed by a reversed copy of itself) has no outside to speak of.
 ORIENTED_SHARE = 1e-6
+#: A part closer to the cell than this (metres) keeps its back faces: a camera's near plane
+#: (``raster.camera.DEFAULT_NEAR`` along the axis of a 90 degree view, up to sqrt(3) times
+#: that off it) can cut its front away and show its inside.
+NEAR_CLEARANCE = float(np.sqrt(3.0)) * DEFAULT_NEAR
 #: Triangles with twice their area under this share of their longest edge squared (an aspect
 #: of about 10^6) are never taken for unseen: their normal is too rounded to trust.
 NEEDLE = 1e-6
@@ -352,10 +357,10 @@ def closed_parts(scene: Scene) -> tuple[ClosedParts, bool]:
     return per_scene(scene, "topology/closed_parts", build_closed_parts)
 
 
-def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float = 0.0) -> np.ndarray:
+def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -> np.ndarray:
     """Triangles that no eye in ``box`` can see: the triangles of oriented closed parts whose
-    box the cell's box does not meet, with every corner of the cell strictly behind their
-    outer side.
+    box lies more than ``NEAR_CLEARANCE`` from the cell's, with every corner of the cell
+    strictly behind their outer side.
 
     An eye outside a closed, consistently wound surface (outside its box) that looks at one of
     its triangles from the inside looks along a ray that entered the surface before: the
@@ -366,7 +371,8 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float = 0.0) -> np.nda
     ----------
     box : (2, 3) float64 the cell [min, max], metres.
     tol : distance (metres) by which the cell must clear a part's box and lie behind a
-        triangle's plane (rounding of the caller's frame).
+        triangle's plane; by default 1 nm plus 64 ulps of the box's largest coordinate (the
+        rounding of a frame shifted to the cell).
 
     Returns
     -------
@@ -379,8 +385,11 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float = 0.0) -> np.nda
         return out
     lo = np.asarray(box[0], dtype=np.float64)
     hi = np.asarray(box[1], dtype=np.float64)
+    if tol is None:
+        tol = 1e-9 + 64.0 * float(np.spacing(max(float(np.max(np.abs(box))), 1.0)))
     pb = parts.box
-    apart = np.any((pb[:, 0] > hi + tol) | (pb[:, 1] < lo - tol), axis=1)  # (p,)
+    gap = tol + NEAR_CLEARANCE
+    apart = np.any((pb[:, 0] > hi + gap) | (pb[:, 1] < lo - gap), axis=1)  # (p,)
     cand = cand[apart[parts.label[cand]]]
     if not len(cand):
         return out

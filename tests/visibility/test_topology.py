@@ -101,6 +101,15 @@ def test_nothing_is_unseen_from_a_cell_in_the_part_s_box_or_through_a_hole():
     assert not unseen_back_faces(holed, cell).any()
 
 
+def test_a_part_within_a_near_plane_of_the_cell_keeps_its_back_faces():
+    # A camera's near plane can cut the front of a part this close and show its inside.
+    sc = _scene([_cube()])
+    near = np.array([[-0.85, -0.15, -0.15], [-0.55, 0.15, 0.15]])  # 5 cm from the cube
+    assert not unseen_back_faces(sc, near).any()
+    far = near - [0.1, 0.0, 0.0]
+    assert unseen_back_faces(sc, far).sum() == 10
+
+
 def test_a_moving_part_is_not_closed():
     sc = _scene([_cube()])
     moved = sc.vertices.copy()

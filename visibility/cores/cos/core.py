@@ -169,11 +169,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     half = 0.5 * (hi - lo)
     welded, weld_s = scene_welded_ids(scene)
     t1 = time.perf_counter()
-    scale = max(float(np.max(np.abs(box))), 1.0)
     # Back faces of closed surfaces that face away from the whole cell are never seen from it:
     # they leave the lists (in dense clutter about a quarter of the triangles, the ones every
     # pixel had to prove hidden) and can hide nothing their surface's front does not.
-    unseen = unseen_back_faces(scene, box, 1e-9 + 64.0 * float(np.spacing(scale)))
+    unseen = unseen_back_faces(scene, box)
     t1b = time.perf_counter()
     prims = build_prims(scene, centre, welded, unseen)
     bounds = prim_bounds(prims)

@@ -25,6 +25,7 @@ from visibility.cores.trim_regions.frustum import cover_box
 from visibility.cores.trim_regions.kbuffer import K
 from visibility.cores.trim_regions.pipeline import ENTRY_BYTES, trim_pvs
 from visibility.scene import Scene
+from visibility.topology import unseen_back_faces
 from visibility.viewcells import Viewcell
 
 #: Default pixels across each cube face.
@@ -110,8 +111,14 @@ class TrimRegionsCore(Core):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, TrimRegionsParams)
         data, built = scene_data(scene, int(params.max_prims))
-        ids, stats = trim_pvs(scene, data, np.asarray(cell.box, dtype=np.float64),
-                              int(params.resolution), float(params.max_delta))
+        box = np.asarray(cell.box, dtype=np.float64)
+        ids, stats = trim_pvs(scene, data, box, int(params.resolution),
+                              float(params.max_delta))
+        # Back faces of closed surfaces facing away from the whole cell are never seen from
+        # it: what the interval rules let through of them leaves the answer.
+        unseen = unseen_back_faces(scene, box)[ids]
+        stats["unseen_back_faces"] = int(unseen.sum())
+        ids = ids[~unseen]
         stats["octree_build_seconds"] = data.build_seconds if built else 0.0
         stats["octree_leaves"] = len(data.octree)
         return ids, stats

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from visibility.cores.cos.core import cos_pvs
-from visibility.topology import weld_vertices
 from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import GRID, _hides, _in_front
 from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
 from visibility.scene import Scene
+from visibility.topology import weld_vertices
 
 
 def test_cos_of_a_point_is_the_offset_that_moves_the_sample_onto_it():
@@ -233,7 +233,6 @@ def test_face_subsets_drop_only_empty_footprints():
     # it, every footprint outside the subset is empty.
     from tests.visibility.cores.cos.reference import cell_around
     from visibility.cores.cos.core import _face_subsets
-    from visibility.topology import weld_vertices
     from visibility.cores.cos.lists import footprints
     from visibility.cores.cos.prims import build_prims, distance_order, prim_bounds
     from visibility.generators import make_scene

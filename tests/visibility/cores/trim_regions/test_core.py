@@ -15,6 +15,7 @@ from visibility.cores.base import get_core
 from visibility.generators import make_scene
 from visibility.ground_truth import sample_pvs
 from visibility.scene import moving_faces
+from visibility.topology import unseen_back_faces
 from visibility.viewcells import Viewcell
 
 CORE = get_core("trim_regions")
@@ -33,6 +34,16 @@ def test_stats_report_every_phase_and_the_k_buffers():
     for k, v in st.items():
         if isinstance(v, float):
             assert math.isfinite(v), k
+
+
+def test_back_faces_no_eye_of_the_cell_can_see_leave_the_answer():
+    # The village's houses are closed boxes: the interval rules let some of their far sides
+    # through, and the closed-surface rule (topology.unseen_back_faces) takes them out.
+    scene = make_scene("village", triangles=20_000)
+    box = cell_around(scene, 0.3, 0)
+    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params())
+    assert pvs.stats["unseen_back_faces"] > 0
+    assert not unseen_back_faces(scene, box)[pvs.triangle_ids].any()
 
 
 def test_moving_triangles_and_spheres_are_always_tested():
