@@ -122,7 +122,7 @@ def test_a_small_list_budget_gives_the_same_answer():
 @pytest.mark.parametrize("size", [0.3])
 def test_no_false_negatives_on_real_scenes(size):
     """Every real scene the core declares it fits at this cell size (the 1M-triangle kitchen
-    is beyond it: about 80 s per 0.3 m cell; checked by benchmarks/bench_cos.py, FN 0)."""
+    is beyond it: about a minute per 0.3 m cell; checked by benchmarks/bench_cos.py, FN 0)."""
     from tests.visibility.real_scenes import REAL, real_grid, real_scene
     from visibility.cores.base import get_core
 
