@@ -50,6 +50,22 @@ def weld_vertices(vertices: np.ndarray) -> np.ndarray:
 
 
 
+
+def scene_welded_ids(scene: Scene) -> tuple[np.ndarray, float]:
+    """Welded vertex ids of ``scene`` (rest positions), cached per scene object.
+
+    Returns
+    -------
+    ids : (n_vertices,) int64.
+    seconds : time spent welding now (0.0 on a cache hit).
+    """
+    import time
+
+    t0 = time.perf_counter()
+    ids, built = per_scene(scene, "topology/welded", lambda s: weld_vertices(s.vertices))
+    return ids, (time.perf_counter() - t0) if built else 0.0
+
+
 @dataclass
 class Edges:
     """Unique edges of a set of triangles.
@@ -75,13 +91,16 @@ class Edges:
         return int(len(self.vert))
 
 
-def build_edges(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray) -> Edges:
-    """Edges of the triangles ``ids`` of ``faces`` (m, 3) over ``vertices`` (n, 3) float64."""
+def build_edges(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray,
+                weld: np.ndarray | None = None) -> Edges:
+    """Edges of the triangles ``ids`` of ``faces`` (m, 3) over ``vertices`` (n, 3) float64;
+    ``weld`` (n,) the vertices' welded ids when already known (``weld_vertices``)."""
     ids = np.asarray(ids, dtype=np.int64)
     if not len(ids):
         z = np.zeros((0, 2), dtype=np.int64)
         return Edges(z, z.copy(), z.copy(), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
-    weld = weld_vertices(vertices)
+    if weld is None:
+        weld = weld_vertices(vertices)
     f = faces[ids].astype(np.int64)
     w = weld[f]
     # Half-edges k -> k+1 of each triangle, the opposite corner k+2.
@@ -176,12 +195,18 @@ class ClosedParts:
         hand) points out of its closed part, -1 where it points in, 0 for triangles of no
         closed part or of a part whose volume is too small to tell (``ORIENTED_SHARE``).
     box : (p, 2, 3) float64 each part's bounding box [min, max], metres (world frame).
+    oriented : (k,) int64 the triangles with ``outward`` != 0 whose normal can be trusted (not
+        needles, ``NEEDLE``): the candidates of ``unseen_back_faces``.
+    normal : (k, 3) float64 their outer unit normals; ``offset`` (k,) normal . corner, metres.
     """
 
     edges: Edges
     label: np.ndarray
     outward: np.ndarray
     box: np.ndarray
+    oriented: np.ndarray
+    normal: np.ndarray
+    offset: np.ndarray
 
 
 #: Triangles are shrunk towards their centroids by this share before the crossing test, so that
@@ -322,12 +347,13 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
     has a border there and is not closed), with their orientation and boxes."""
     m = scene.n_triangles
     static = np.flatnonzero(scene.valid_faces & ~moving_faces(scene)).astype(np.int64)
-    edges = build_edges(scene.vertices, scene.faces, static)
+    edges = build_edges(scene.vertices, scene.faces, static, scene_welded_ids(scene)[0])
     label = closed_components(edges, m)
     outward = np.zeros(m, dtype=np.int8)
     inpart = np.flatnonzero(label >= 0)
     if not len(inpart):
-        return ClosedParts(edges, label, outward, np.zeros((0, 2, 3)))
+        return ClosedParts(edges, label, outward, np.zeros((0, 2, 3)),
+                           np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0))
     # Compact labels 0..p-1.
     uniq, lab = np.unique(label[inpart], return_inverse=True)
     label[inpart] = lab
@@ -349,7 +375,14 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
     # wound against the rest): its volume's sign says nothing there.
     sign[self_crossing_parts(tri, lab, p)] = 0
     outward[inpart] = sign[lab]
-    return ClosedParts(edges, label, outward, box)
+    # Outer unit normals of the oriented triangles; a needle's normal is rounding: left out.
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    long2 = np.max(np.sum((tri - np.roll(tri, 1, axis=1)) ** 2, axis=2), axis=1)
+    norm = np.linalg.norm(n, axis=1)
+    keep = (outward[inpart] != 0) & (norm > NEEDLE * long2)
+    n = n[keep] * (outward[inpart][keep] / norm[keep])[:, None]
+    return ClosedParts(edges, label, outward, box, inpart[keep], n,
+                       np.einsum("ij,ij->i", n, tri[keep, 0]))
 
 
 def closed_parts(scene: Scene) -> tuple[ClosedParts, bool]:
@@ -364,8 +397,9 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
 
     An eye outside a closed, consistently wound surface (outside its box) that looks at one of
     its triangles from the inside looks along a ray that entered the surface before: the
-    surface hides the triangle there. Holds for any surface whose inside has a nonnegative
-    winding number (no part of it turned inside out), which watertight models are.
+    surface hides the triangle there. That needs the surface's inside to be inside
+    everywhere; parts that pass through themselves can be inside out in places, and are left
+    unoriented (``self_crossing_parts``).
 
     Parameters
     ----------
@@ -380,8 +414,7 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
     """
     parts, _ = closed_parts(scene)
     out = np.zeros(scene.n_triangles, dtype=bool)
-    cand = np.flatnonzero(parts.outward != 0)
-    if not len(cand):
+    if not len(parts.oriented):
         return out
     lo = np.asarray(box[0], dtype=np.float64)
     hi = np.asarray(box[1], dtype=np.float64)
@@ -390,19 +423,10 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
     pb = parts.box
     gap = tol + NEAR_CLEARANCE
     apart = np.any((pb[:, 0] > hi + gap) | (pb[:, 1] < lo - gap), axis=1)  # (p,)
-    cand = cand[apart[parts.label[cand]]]
-    if not len(cand):
-        return out
-    tri = scene.vertices[scene.faces[cand].astype(np.int64)]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    # A needle's normal is rounding: such triangles are kept.
-    long2 = np.max(np.sum((tri - np.roll(tri, 1, axis=1)) ** 2, axis=2), axis=1)
-    norm = np.linalg.norm(n, axis=1)
-    sure = norm > NEEDLE * long2
-    cand, tri, n, norm = cand[sure], tri[sure], n[sure], norm[sure]
-    n *= (parts.outward[cand] / norm)[:, None]
+    sel = apart[parts.label[parts.oriented]]
+    n = parts.normal[sel]
     # The cell corner farthest along the outer normal decides.
     far = np.where(n > 0.0, hi, lo)
-    ahead = np.einsum("ij,ij->i", n, far - tri[:, 0])
-    out[cand[ahead < -tol]] = True
+    ahead = np.einsum("ij,ij->i", n, far) - parts.offset[sel]
+    out[parts.oriented[sel][ahead < -tol]] = True
     return out

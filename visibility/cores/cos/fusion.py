@@ -8,33 +8,10 @@ through that gap would then count as blocked (a false negative).
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
 from visibility.scene import Scene
-from visibility.topology import weld_vertices
-
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def scene_welded_ids(scene: Scene) -> tuple[np.ndarray, float]:
-    """Welded vertex ids of ``scene`` (rest positions), cached per scene object.
-
-    Returns
-    -------
-    ids : (n_vertices,) int64.
-    seconds : time spent welding now (0.0 on a cache hit).
-    """
-    import time
-
-    hit = _CACHE.get(scene)
-    if hit is not None and hit[0] == scene.n_vertices:
-        return hit[1], 0.0
-    t0 = time.perf_counter()
-    ids = weld_vertices(scene.vertices)
-    _CACHE[scene] = (scene.n_vertices, ids)
-    return ids, time.perf_counter() - t0
+from visibility.topology import scene_welded_ids
 
 
 def open_edge_share(scene: Scene) -> float:
