@@ -158,7 +158,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds``,
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
-        occluder's depth), ``unseen_back_faces`` (triangles of closed surfaces that face away
+        occluder's depth), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
+        occluder silhouette edges walked by the cover tests, occluder triangles put through
+        the depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids`` and ``costliest_view`` (the side plane and frustum that
         took longest, its seconds, list entries and longest list).
@@ -189,6 +191,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
+        "silhouette_edges": 0, "plane_tests": 0,
         "unseen_back_faces": int(unseen.sum()),
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
@@ -269,7 +272,7 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
     npix = TILE * TILE
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
-    counters = np.zeros((n_tiles, 4), dtype=np.int64)
+    counters = np.zeros((n_tiles, 6), dtype=np.int64)
     longest = 0
     stop = stop_flag()
     t = 0
@@ -313,4 +316,6 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
     stats["occluded"] += int(counters[:, 1].sum())
     stats["occluder_triangles"] += int(counters[:, 2].sum())
     stats["early_z_cut"] += int(counters[:, 3].sum())
+    stats["silhouette_edges"] += int(counters[:, 4].sum())
+    stats["plane_tests"] += int(counters[:, 5].sum())
     return longest

@@ -112,7 +112,7 @@ def _k_box(kx, ky, nk, kb):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True, inline="always")
 def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, klo,
-            khi):  # pragma: no cover - numba
+            khi, work):  # pragma: no cover - numba
     """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
     every offset in it and every delta: K's box inside the group's, no active edge capsule
     meeting K, and a winding number of at least one of the active edges (the silhouette)
@@ -122,7 +122,8 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
     3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
     group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
     in opposite directions, so the active edges' winding number around a point is the number
-    of the group's triangles holding it; a crossing too close to call counts as not covered."""
+    of the group's triangles holding it; a crossing too close to call counts as not covered.
+    ``work[0]`` counts the silhouette edges walked."""
     if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
         return False
     if kb[6] == 0.0:
@@ -141,6 +142,7 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
         bx = ov[r, b, 0]
         by = ov[r, b, 1]
         rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
+        work[0] += 1
         if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
             return False
         # Winding number (crossings of the ray from the centroid towards +x).
@@ -162,8 +164,10 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
 
 @njit(cache=True, nogil=True, inline="always")
 def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq):  # pragma: no cover - numba
-    """Whether occluder triangle r cannot reach K's box or is in front of all of Q."""
+              nq, work):  # pragma: no cover - numba
+    """Whether occluder triangle r cannot reach K's box or is in front of all of Q
+    (``work[1]`` counts the calls)."""
+    work[1] += 1
     grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
     if (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
             or obb[r, 2] - grow > ky1):
@@ -185,11 +189,11 @@ def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
 
 @njit(cache=True, nogil=True)  # a call: inlined, its copies make the kernel slow to compile
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq):  # pragma: no cover - numba
+              nq, work):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
-        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq):
+        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq, work):
             return False
         r = nxt[r]
     return True
@@ -272,7 +276,7 @@ def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool,
 
 @njit(cache=True, nogil=True, inline="always")
 def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, dom,
-           wcam, tol, wref, h, kb, qcam, nq, wq):  # pragma: no cover - numba
+           wcam, tol, wref, h, kb, qcam, nq, wq, work):  # pragma: no cover - numba
     """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
 
     Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
@@ -288,7 +292,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     slot = gslot[g]
     if slot < 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq)
+                         kb[3], qcam, nq, work)
     grow = abs(wref - sfr[slot]) * h
     c0 = _cell(kb[0] - grow, dom[0], dom[4])
     c1 = _cell(kb[1] + grow, dom[0], dom[4])
@@ -304,7 +308,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         return True
     if shead[slot, GRID * GRID + 1] != 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq)
+                         kb[3], qcam, nq, work)
     # The cells around K, then the list of wide triangles.
     wc = c1 - c0 + 1
     nc = (r1 - r0 + 1) * wc
@@ -313,7 +317,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         k = shead[slot, c]
         while k >= 0:
             if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
-                             kb[2], kb[3], qcam, nq):
+                             kb[2], kb[3], qcam, nq, work):
                 return False
             k = pool[3 + 2 * k]
     return True
@@ -449,7 +453,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
     (tested no more, still occluders), as are those found visible at an earlier pixel of the
     same tile.
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
-    entries cut by the early-z depth). ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``)
+    entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
+    triangles put through the depth test: the last two are where dense clutter's time goes). ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``)
     is polled between pixels and every ``STOP_EVERY`` entries: once it is set the kernel
     returns with ``vis`` incomplete, and the caller's checkpoint raises."""
     h = 0.5 * pw
@@ -546,6 +551,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
         # more, like ``known`` (the pixels of a tile run in order, so this stays
         # deterministic).
         tseen = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
+        work = np.zeros(2, dtype=np.int64)
         tested = 0
         hidden = 0
         occl = 0
@@ -658,11 +664,11 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                     if lpos[g] != c - n_cov - 1 or g == last_g:
                                         continue
                                 if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk,
-                                               kb, knx, kny, klo, khi):
+                                               kb, knx, kny, klo, khi, work):
                                     continue
                             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
                                       sg, sfr, shead, pool, dom, wcam, plane_tol, wref, h, kb,
-                                      cam, n, wmin):
+                                      cam, n, wmin, work):
                                 occluded = True
                                 by_cov = c < n_cov
                                 if not by_cov:
@@ -844,7 +850,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                     if n_r > 0:
                         _k_box(rx, ry, n_r, rb)
                     if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry,
-                                           n_r, rb, rnx, rny, rlo, rhi):
+                                           n_r, rb, rnx, rny, rlo, rhi, work):
                         gcov[g] = True
                         n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
                         zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
@@ -853,3 +859,5 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
         counters[tile, 1] = hidden
         counters[tile, 2] = occl
         counters[tile, 3] = cut
+        counters[tile, 4] = work[0]
+        counters[tile, 5] = work[1]

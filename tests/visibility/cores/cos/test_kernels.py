@@ -141,6 +141,23 @@ def test_fusion_two_triangles_sharing_an_edge_hide_what_neither_hides_alone():
     assert 2 in _visible(gap + q)
 
 
+def test_resolution_work_counts_silhouette_edges_and_plane_tests():
+    # Generated rooms: entries hidden by groups that cover them without covering a pixel's
+    # whole offset region walk those groups' silhouettes (cover test) and depth-test their
+    # triangles; both are counted. A lone triangle has nothing to test against.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.generators import make_scene
+
+    rooms = make_scene("rooms", triangles=2000)
+    _, stats = cos_pvs(rooms, cell_around(rooms, 0.3, 0), 32)
+    assert stats["occluded"] > 0
+    assert stats["silhouette_edges"] > 0 and stats["plane_tests"] > 0
+    q = [[(-0.5, 1.2, -12.0), (0.5, 1.2, -12.0), (0.0, 2.2, -12.0)]]
+    _, alone = cos_pvs(_scene(q), CELL, 64)
+    assert alone["tested"] > 0
+    assert alone["silhouette_edges"] == 0 and alone["plane_tests"] == 0
+
+
 def test_six_side_planes_cover_every_direction_from_every_face():
     views = side_plane_views(CELL, 16)
     assert len(views) == 30
