@@ -454,9 +454,10 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
     same tile.
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
-    triangles put through the depth test: the last two are where dense clutter's time goes). ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``)
-    is polled between pixels and every ``STOP_EVERY`` entries: once it is set the kernel
-    returns with ``vis`` incomplete, and the caller's checkpoint raises."""
+    triangles put through the depth test: the last two are where dense clutter's time goes).
+    ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
+    ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
+    caller's checkpoint raises."""
     h = 0.5 * pw
     npix = TILE * TILE
     # Largest camera depth of the view's camera rectangle (0 for a front frustum).
