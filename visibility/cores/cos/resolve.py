@@ -223,11 +223,13 @@ def _cell(x, lo, inv):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool):  # pragma: no cover - numba
+def _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool,
+              pdep):  # pragma: no cover - numba
     """Enter occluder triangle r (its pixel-centre box grown by its largest motion in the
     frame of depth sfr[slot]) in grid ``slot``: sg[slot, 0 / 1, cell] (depth range), shead
     [slot, cell] (member list; shead[slot, GRID^2] the wide ones) over the node pool
-    (pool[0]: nodes used, pool[1]: capacity, then (triangle, next) pairs from pool[2])."""
+    (pool[0]: nodes used, pool[1]: capacity, then (triangle, next) pairs from pool[2]; pdep
+    the depth range of each node's list from it to its end, ``_push``)."""
     grow = max(abs(owr[r, 0] - sfr[slot]), abs(owr[r, 1] - sfr[slot])) * h
     c0 = _cell(obb[r, 0] - grow, dom[0], dom[4])
     c1 = _cell(obb[r, 1] + grow, dom[0], dom[4])
@@ -240,13 +242,13 @@ def _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool):  # pragma: no co
             sg[slot, 0, c] = min(sg[slot, 0, c], owr[r, 0])
             sg[slot, 1, c] = max(sg[slot, 1, c], owr[r, 1])
             if not wide:
-                _push(slot, c, r, shead, pool)
+                _push(slot, c, r, shead, pool, pdep, owr)
     if wide:
-        _push(slot, GRID * GRID, r, shead, pool)
+        _push(slot, GRID * GRID, r, shead, pool, pdep, owr)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _push(slot, c, r, shead, pool):  # pragma: no cover - numba
+def _push(slot, c, r, shead, pool, pdep, owr):  # pragma: no cover - numba
     """Prepend triangle r to list c of grid ``slot``; a full pool marks the grid's lists
     incomplete (shead[slot, GRID^2 + 1] = 1)."""
     k = pool[0]
@@ -255,12 +257,22 @@ def _push(slot, c, r, shead, pool):  # pragma: no cover - numba
         return
     pool[0] = k + 1
     pool[2 + 2 * k] = r
-    pool[3 + 2 * k] = shead[slot, c]
+    nx = shead[slot, c]
+    pool[3 + 2 * k] = nx
+    # The deepest and the nearest vertex of this node's triangle and every one after it in the
+    # list: a walk can stop where the rest all lie nearer than Q and beyond the cameras.
+    hi = owr[r, 1]
+    lo = owr[r, 0]
+    if nx >= 0:
+        hi = max(hi, pdep[2 * nx])
+        lo = min(lo, pdep[2 * nx + 1])
+    pdep[2 * k] = hi
+    pdep[2 * k + 1] = lo
     shead[slot, c] = k
 
 
 @njit(cache=True, nogil=True)
-def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool,
+def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool, pdep,
                 frame):  # pragma: no cover - numba
     """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
     sg[slot, 0, :] = np.inf
@@ -270,13 +282,13 @@ def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool,
     sfr[slot] = frame
     r = head[g]
     while r >= 0:
-        _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool)
+        _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool, pdep)
         r = nxt[r]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, dom,
-           wcam, tol, wref, h, kb, qcam, nq, wq, work):  # pragma: no cover - numba
+def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, pdep,
+           dom, wcam, tol, wref, h, kb, qcam, nq, wq, work):  # pragma: no cover - numba
     """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
 
     Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
@@ -286,7 +298,10 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     beyond every camera position, on the ray itself. So g hides Q when all its triangles that
     can meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on
     its depth grid's cells over K. Failing both, the per-triangle plane test
-    (``_front_of``) on the triangles listed in those cells, or on all of g's."""
+    (``_front_of``) on the triangles listed in those cells, or on all of g's. A cell's list
+    runs newest first, so roughly deepest first: its walk stops where every triangle left in
+    it lies nearer than Q and beyond the cameras (the same depth argument per triangle; in
+    dense clutter the lists hold hundreds of a surface's triangles in front of Q)."""
     if gwhi[g] + tol < wq and gwlo[g] >= wcam + tol:
         return True
     slot = gslot[g]
@@ -316,6 +331,8 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         c = (r0 + t // wc) * GRID + c0 + t % wc if t < nc else GRID * GRID
         k = shead[slot, c]
         while k >= 0:
+            if pdep[2 * k] + tol < wq and pdep[2 * k + 1] >= wcam + tol:
+                break
             if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
                              kb[2], kb[3], qcam, nq, work):
                 return False
@@ -535,6 +552,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
         shead = np.empty((nslot, GRID * GRID + 2), dtype=np.int64)
         pool = np.empty(2 + 2 * 8 * lmax, dtype=np.int64)
         pool[1] = 8 * lmax
+        pdep = np.empty(2 * 8 * lmax)
         fslot = np.empty(nslot, dtype=np.int64)
         sfr = np.empty(nslot)
         dom = np.empty(6)
@@ -668,8 +686,8 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                                kb, knx, kny, klo, khi, work):
                                     continue
                             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
-                                      sg, sfr, shead, pool, dom, wcam, plane_tol, wref, h, kb,
-                                      cam, n, wmin, work):
+                                      sg, sfr, shead, pool, pdep, dom, wcam, plane_tol, wref,
+                                      h, kb, cam, n, wmin, work):
                                 occluded = True
                                 by_cov = c < n_cov
                                 if not by_cov:
@@ -804,7 +822,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                     r2 = head[gd]
                                     while r2 >= 0:
                                         _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
-                                                  pool)
+                                                  pool, pdep)
                                         r2 = nxt[r2]
                                 elif gsize[gs] >= GRID_MIN:
                                     if n_free > 0:
@@ -815,7 +833,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                                         n_slot += 1
                                     gslot[gs] = ss
                                     _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
-                                                shead, pool, 0.5 * (gwlo[gs] + gwhi[gs]))
+                                                shead, pool, pdep, 0.5 * (gwlo[gs] + gwhi[gs]))
                             break
                         node = enext[node]
                 # Register q's edges still active (an inactive edge never fuses again).

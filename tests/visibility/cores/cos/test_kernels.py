@@ -7,7 +7,7 @@ import pytest
 
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.planes import side_plane_views
-from visibility.cores.cos.resolve import GRID, _hides, _in_front
+from visibility.cores.cos.resolve import GRID, _hides, _in_front, _push
 from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
 from visibility.scene import Scene
 from visibility.topology import weld_vertices
@@ -221,7 +221,7 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
     pool = np.zeros(2, dtype=np.int64)
     no_grid = (np.array([-1]), np.zeros((1, 2, GRID * GRID)), np.zeros(1),
-               np.full((1, GRID * GRID + 2), -1), pool)
+               np.full((1, GRID * GRID + 2), -1), pool, np.zeros(2))
 
     def hides(wcam, wq, grid=no_grid):
         return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
@@ -243,7 +243,7 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     shead = np.full((1, GRID * GRID + 2), -1)
     shead[0, -1] = 1
     assert not hides(0.0, 2.0)
-    grid = (np.array([0]), sg, np.array([2.0]), shead, pool)  # frame at Q's reference depth
+    grid = (np.array([0]), sg, np.array([2.0]), shead, pool, np.zeros(2))  # frame at Q's depth
     assert hides(0.0, 2.0, grid)
     assert not hides(0.6, 2.0, grid)
 
@@ -296,3 +296,42 @@ def test_open_edge_share_counts_borders_and_t_junctions():
     t = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0], [1, 1, 0], [2, 0, 0]], float)
     tj = Scene(t, np.array([[0, 1, 2], [5, 3, 4]]), name="tj")
     assert open_edge_share(tj) == 1.0
+
+
+def _walk_hides(depths):
+    """_hides on a group whose depth grid lists triangles of the given depth ranges (oldest
+    first) in the cell under K, their plane test refused (ouse False) and the cells' depth
+    range forced past the cell shortcut, so only the list walk's depth stop can hide Q (its
+    nearest depth 2 m, cameras at w = 0)."""
+    k = len(depths)
+    owr = np.array(depths, dtype=float)
+    obb = np.tile([-1.0, 1.0, -1.0, 1.0], (k, 1))
+    pool = np.zeros(2 + 2 * 8, dtype=np.int64)
+    pool[1] = 8
+    pdep = np.zeros(16)
+    shead = np.full((1, GRID * GRID + 2), -1)
+    shead[0, GRID * GRID + 1] = 0
+    cell = (GRID // 2 - 1) * GRID + GRID // 2 - 1
+    for r in range(k):
+        _push(0, cell, r, shead, pool, pdep, owr)
+    sg = np.empty((1, 2, GRID * GRID))
+    sg[0, 0] = 0.5
+    sg[0, 1] = 3.0
+    kb = np.array([-0.1, 0.1, -0.1, 0.1, 0.0, 0.0, 0.0])
+    qcam = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]])
+    dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
+    return _hides(0, np.arange(k), np.append(np.arange(1, k), -1), obb, owr,
+                  np.zeros(k, dtype=bool), np.zeros((k, 5)), np.array([0.5]),
+                  np.array([3.0]), np.array([0]), sg, np.array([2.0]), shead, pool, pdep, dom,
+                  0.0, 1e-9, 2.0, 0.01, kb, qcam, 3, 2.0, WORK)
+
+
+def test_cell_list_walk_stops_only_where_everything_left_lies_nearer():
+    # Every listed triangle nearer than Q and beyond the cameras: the walk stops at once and Q
+    # is hidden (the depth argument per triangle), though each plane test would refuse.
+    assert _walk_hides([[0.5, 1.0], [0.6, 1.2]])
+    # A triangle reaching behind Q's nearest point further down the list (older) keeps the
+    # walk going past the near newest one, and its refused plane test stands: not hidden.
+    assert not _walk_hides([[0.5, 2.5], [0.6, 1.2]])
+    # So does one reaching before the cameras.
+    assert not _walk_hides([[-0.1, 1.0], [0.6, 1.2]])
