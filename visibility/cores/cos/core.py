@@ -108,9 +108,10 @@ class CosCore(Core):
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # benchmarks/results/cos.md (2 cores): 0.26-0.27 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.6 s for 1 m cells of 20k ones, 0.85 s for a 4 m city cell but 23 s for a 4 m
-        # cell of 20k rooms, 63 s for a 0.3 m kitchen cell (1M triangles, clutter): small
-        # cells of moderate scenes are worth picking automatically, the rest only on request.
+        # 0.1-1.2 s for 1 m cells of 20k ones, 0.73 s for a 4 m city cell but 16 s for a 4 m
+        # cell of 20k rooms, 55 s for a 0.3 m kitchen cell (1M triangles, clutter; 6.9 s at
+        # 5 cm): small cells of moderate scenes are worth picking automatically, the rest
+        # only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
             return 5.0, ("small cells: conservative camera-offset-space visibility, no false "
