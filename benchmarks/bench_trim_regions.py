@@ -288,8 +288,8 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads) 
         out += ["", f"Provably unseen: {min(shares):.0f}-{max(shares):.0f} % of trim_regions' "
                 "answer on these cells. The method walks each ray from v* alone and reports "
                 "what lies past the umbra of a trimmed silhouette; it fuses no occluders "
-                "across rays, as cos does per pixel, so what other occluders hide from every "
-                "eye stays in its answer."]
+                "across rays, as cos does per pixel, so a triangle that other occluders hide "
+                "from every eye can stay in its answer."]
     return "\n".join(out) + "\n"
 
 
