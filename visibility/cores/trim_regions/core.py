@@ -23,7 +23,12 @@ from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.trim_regions.cache import scene_data
 from visibility.cores.trim_regions.frustum import cover_box
 from visibility.cores.trim_regions.kbuffer import K
-from visibility.cores.trim_regions.pipeline import ENTRY_BYTES, trim_pvs
+from visibility.cores.trim_regions.pipeline import (
+    ENTRY_BYTES,
+    GATHER_EYES,
+    SUPERSAMPLE,
+    trim_pvs,
+)
 from visibility.scene import Scene
 from visibility.topology import unseen_back_faces
 from visibility.viewcells import Viewcell
@@ -40,6 +45,9 @@ class TrimRegionsParams(CoreParams):
     max_delta : the cell is covered by spheres of at most this radius Δ (metres); smaller
         spheres trim less (a tighter PVS, fewer misses) and cost one computation each.
     max_prims : most triangles per octree node (the octree is cached per value).
+    gather_eyes : eyes stratified in the cell whose supersampled views the gather adds (0:
+        the paper's gather from v* alone); they catch the small triangles v*, outside the
+        cell, sees under no pixel centre behind trimmed occluders.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -47,6 +55,8 @@ class TrimRegionsParams(CoreParams):
     max_delta: float = param(0.3, unit="m", ge=1e-4, le=1e4,
                              help="largest sphere radius the cell is covered with")
     max_prims: int = param(256, ge=8, le=1 << 20, help="most triangles per octree node")
+    gather_eyes: int = param(GATHER_EYES, ge=0, le=256,
+                             help="eyes in the cell whose supersampled views the gather adds")
 
 
 #: Cost model (``estimate_cost``), fitted on the 2-core development machine with
@@ -55,6 +65,8 @@ class TrimRegionsParams(CoreParams):
 #: k-buffers of one view (``K`` entries per pixel) and the per-triangle arrays of a view.
 SECONDS_PER_PIXEL = 1.5e-6
 SECONDS_PER_VIEW_TRIANGLE = 1.5e-7
+#: The eyes' gather, per pixel rendered (6 faces of SUPERSAMPLE x the resolution per eye).
+SECONDS_PER_GATHER_PIXEL = 1e-8
 BYTES_PER_TRIANGLE = 160
 
 
@@ -102,6 +114,7 @@ class TrimRegionsCore(Core):
         views = 6 * len(centres)
         m = scene.n_triangles + scene.n_spheres
         seconds = views * (r * r * SECONDS_PER_PIXEL + m * SECONDS_PER_VIEW_TRIANGLE)
+        seconds += int(params.gather_eyes) * 6 * (SUPERSAMPLE * r) ** 2 * SECONDS_PER_GATHER_PIXEL
         peak = r * r * K * ENTRY_BYTES + m * BYTES_PER_TRIANGLE
         return Cost(seconds, int(peak), {"views": views, "pixels": views * r * r,
                                          "triangles": scene.n_triangles})
@@ -113,7 +126,7 @@ class TrimRegionsCore(Core):
         data, built = scene_data(scene, int(params.max_prims))
         box = np.asarray(cell.box, dtype=np.float64)
         ids, stats = trim_pvs(scene, data, box, int(params.resolution),
-                              float(params.max_delta))
+                              float(params.max_delta), gather_eyes=int(params.gather_eyes))
         # Back faces of closed surfaces facing away from the whole cell are never seen from
         # it: what the interval rules let through of them leaves the answer.
         unseen = unseen_back_faces(scene, box)[ids]

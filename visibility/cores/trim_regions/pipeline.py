@@ -21,6 +21,7 @@ from visibility.cores.trim_regions.hulls import (
 )
 from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
+from visibility.cores.trim_regions.quality import FRAME_NEAR
 from visibility.cores.trim_regions.raster import (
     raster_surfaces,
     raster_trims,
@@ -33,8 +34,10 @@ from visibility.cores.trim_regions.silhouettes import (
     TRIM_MARGIN_PX,
     silhouette_trims,
 )
+from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
 from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
+from visibility.viewcells import Viewcell
 
 #: Sample points per pixel side of the depth the conservative occludee test compares with.
 SUPERSAMPLE = 4
@@ -45,6 +48,10 @@ OPEN_SAMPLES = 3
 ROLL = float(np.arctan(0.5))
 #: Samples per pixel side of that rolled grid.
 ROLLED_SAMPLES = 2
+#: Eyes inside the cell whose views (``SUPERSAMPLE``² samples per pixel) the gather adds, and
+#: the seed that places and turns them (fixed: the same cell gets the same answer).
+GATHER_EYES = 8
+GATHER_SEED = 104729
 #: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
 ENTRY_BYTES = 21
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
@@ -73,8 +80,8 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
-             max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True
-             ) -> tuple[np.ndarray, dict[str, Any]]:
+             max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True,
+             gather_eyes: int = GATHER_EYES) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
     Parameters
@@ -89,6 +96,12 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         per pixel or on a rolled grid (``_sample_from_vstar``), and every triangle whose pixel
         footprint (conservative) lies in front of the farthest surface sampled in that pixel
         (``hulls.touching_in_front``). False only for tests of pixel-centre visibility.
+    gather_eyes : with ``footprints``, also report every triangle and sphere seen from this
+        many eyes stratified in the box (random cube orientations, ``SUPERSAMPLE`` times the
+        resolution, ``ground_truth.sample_pvs``): v* stands outside the cell, and a triangle
+        it sees behind a trimmed occluder under no pixel centre (the clutter of the 1M
+        kitchen, each under a pixel or so) is often in plain view of an eye inside. 0: the
+        paper's gather from v* alone.
 
     Returns
     -------
@@ -101,7 +114,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
         ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
-        hulls),
+        hulls), ``eye_gathered`` (triangles only the eyes' views added),
         ``sphere_ids`` (the spheres of the scene found visible).
     """
     box = np.asarray(box, dtype=np.float64)
@@ -178,10 +191,21 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                             seen_hull)
                 stats["p4_gather"] += time.perf_counter() - t
     t = time.perf_counter()
+    gathered_spheres = np.zeros(0, dtype=np.int32)
+    stats["eye_gathered"] = 0
+    if footprints and gather_eyes > 0:
+        checkpoint()
+        g = sample_pvs(scene, Viewcell(box), n_points=int(gather_eyes),
+                       resolution=min(SUPERSAMPLE * int(resolution), MAX_RESOLUTION),
+                       seed=GATHER_SEED, near=FRAME_NEAR)
+        stats["eye_gathered"] = int(np.count_nonzero(vis[g.triangle_ids] == 0))
+        vis[g.triangle_ids] = 1
+        gathered_spheres = g.sphere_ids.astype(np.int32)
     seen = hull_ids[seen_hull != 0]
     ids = _not_edge_on(scene, np.union1d(np.flatnonzero(vis), seen[seen < m]).astype(np.int64),
                        box)
-    stats["sphere_ids"] = (seen[seen >= m] - m).astype(np.int32)
+    stats["sphere_ids"] = np.union1d((seen[seen >= m] - m).astype(np.int32),
+                                     gathered_spheres).astype(np.int32)
     stats["p4_gather"] += time.perf_counter() - t
     n = max(stats.pop("pixel_resolves"), 1)
     stats["mean_sequence_length"] = float(stats.pop("entries_resolved") / n)

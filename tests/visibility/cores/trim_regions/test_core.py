@@ -83,3 +83,23 @@ def test_auto_considers_it_for_small_cells_only():
     scene = make_scene("city", triangles=2000)
     assert CORE.fit(scene, 0.3).score > 1.0
     assert CORE.fit(scene, 4.0).score < 1.0
+
+
+def test_the_eyes_gather_adds_what_eyes_inside_the_cell_see():
+    # gather_eyes: the views of eyes stratified in the cell (the pipeline's seed, SUPERSAMPLE
+    # times the resolution) join the answer; 0 leaves the paper's gather from v* alone.
+    from visibility.cores.trim_regions.quality import FRAME_NEAR
+
+    scene = make_scene("rooms", triangles=5000)
+    box = cell_around(scene, 0.3, 2)
+    with_eyes = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
+    without = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64,
+                                                                  gather_eyes=0))
+    assert with_eyes.stats["eye_gathered"] >= len(with_eyes) - len(without) >= 0
+    assert without.stats["eye_gathered"] == 0
+    assert set(without.triangle_ids.tolist()) <= set(with_eyes.triangle_ids.tolist())
+    eyes = sample_pvs(scene, Viewcell(box), n_points=pipeline.GATHER_EYES,
+                      resolution=pipeline.SUPERSAMPLE * 64, seed=pipeline.GATHER_SEED,
+                      near=FRAME_NEAR)
+    seen = eyes.triangle_ids[~unseen_back_faces(scene, box)[eyes.triangle_ids]]
+    assert not np.setdiff1d(seen, with_eyes.triangle_ids).size
