@@ -4,7 +4,9 @@ Per sphere covering the cell and per cube face, the scene octree is peeled in la
 back from the moved-back viewpoint v*; each layer's front and back faces, trim region quads at
 the silhouettes and their umbrae go into fixed-size per-pixel k-buffers, and every pixel's trim
 sequence is resolved into occlusion intervals, validated where a trim fragment lies inside,
-with early termination at the first untrimmed occluder. The PVS is what the pixels found.
+with early termination at the first untrimmed occluder. The PVS is what the pixels found, and
+what eyes stratified inside the cell see at 16 samples per pixel (``gather_eyes``): v* stands
+outside the cell and meets small triangles behind trimmed occluders at no pixel centre.
 
 Aggressive: rasterization at pixel centres can miss what covers no pixel centre (thin or far
 triangles), and a trim region is local to its silhouette, so an eye near the edge of a large
