@@ -42,6 +42,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.raster.hierarchy import Hierarchy
 
 #: log2 of the height in pixel rows of the screen bands dealt out to the raster workers.
 BAND_SHIFT = 3
@@ -348,7 +349,8 @@ def _setup(v, eye, faces, sel, idx, box, ids_of, rots, k, width, height, tan_x, 
         rec[t, 10] = ny * ky / dd
         rec[t, 11] = (nx * k0x + ny * k0y - nz) / dd
         # id and the three top-left flags packed exactly into one float64.
-        rec[t, 12] = ids_of[f] * 8.0 + (int(etl) + 2 * int(ftl) + 4 * int(gtl))
+        fid = f if ids_of.shape[0] == 0 else ids_of[f]  # no ids given: the row index
+        rec[t, 12] = fid * 8.0 + (int(etl) + 2 * int(ftl) + 4 * int(gtl))
         bounds[t, 0] = px0
         bounds[t, 1] = px1
         bounds[t, 2] = py0
@@ -472,7 +474,10 @@ def _finish(invd, idbuf, depth):  # pragma: no cover - numba
 
 
 # --------------------------------------------------------------------------------- Python API
-def _check_inputs(vertices, faces, face_mask, face_ids):
+def _check_inputs(vertices, faces, face_mask, face_ids, need_sel=True):
+    """Checked (vertices float64, faces int32, selected face rows int64, ids int32: empty for
+    the row index). ``need_sel`` False leaves the selection empty (culled renders walk the
+    hierarchy instead)."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"vertices must be (n, 3), got shape {v.shape}")
@@ -487,16 +492,17 @@ def _check_inputs(vertices, faces, face_mask, face_ids):
     f = np.ascontiguousarray(f, dtype=np.int32)
     m = len(f)
     if face_mask is None:
-        sel = np.arange(m, dtype=np.int64)
+        sel = np.arange(m if need_sel else 0, dtype=np.int64)
     else:
         mask = np.asarray(face_mask)
         if mask.dtype != np.bool_ or mask.shape != (m,):
             raise ValueError(
                 f"face_mask must be a ({m},) bool array, got {mask.dtype} {mask.shape}"
             )
-        sel = np.flatnonzero(mask).astype(np.int64, copy=False)
+        sel = np.flatnonzero(mask).astype(np.int64, copy=False) if need_sel else \
+            np.zeros(0, np.int64)
     if face_ids is None:
-        ids = np.arange(m, dtype=np.int32)
+        ids = np.zeros(0, dtype=np.int32)
     else:
         ids = np.ascontiguousarray(face_ids)
         if ids.shape != (m,) or not np.issubdtype(ids.dtype, np.integer):
@@ -559,10 +565,23 @@ def _scratch(name, shape, dtype):
     return buf[:n].reshape(shape)
 
 
+def raster_workers(height: int) -> int:
+    """Raster workers for an image ``height`` rows high: a power of two, at least two per numba
+    thread, no more than there are bands of rows."""
+    n_workers = 1
+    while n_workers < WORKERS_PER_THREAD * numba.get_num_threads() and \
+            n_workers * (1 << BAND_SHIFT) < height:
+        n_workers *= 2
+    return n_workers
+
+
 def _render_views(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
-                  stats, want_depth=True):
+                  stats, want_depth=True, hierarchy=None, face_mask=None):
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing an eye: one view, or
     the six cube faces of ``base`` (then ``rots`` = ``cube_face_rotations(base)``)."""
+    if hierarchy is not None:
+        return _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near,
+                              stats, want_depth, hierarchy, face_mask)
     n_views = len(rots)
     small = (len(sel) * n_views < PARALLEL_MIN_TRIANGLES
              and n_views * width * height < PARALLEL_MIN_PIXELS)
@@ -580,6 +599,20 @@ def _render_views(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan
         numba.set_num_threads(threads)
 
 
+def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near, stats,
+                   want_depth, hierarchy, face_mask):
+    """``_render_views`` through the hierarchy (``visibility.raster.culling``)."""
+    from visibility.raster.culling import render_views_culled
+
+    m = len(faces)
+    if hierarchy.n_faces != m:
+        raise ValueError(f"the hierarchy was built for {hierarchy.n_faces} faces, not {m}")
+    mask = np.ones(m, dtype=bool) if face_mask is None else np.asarray(face_mask, dtype=bool)
+    loose = hierarchy.loose[mask[hierarchy.loose]] if len(hierarchy.loose) else None
+    return render_views_culled(v, eye, faces, hierarchy, mask, ids, rots, base, width, height,
+                               tan_x, tan_y, near, stats, want_depth, loose)
+
+
 def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
                      stats, want_depth):
     rots = np.ascontiguousarray(rots, dtype=np.float64)
@@ -592,11 +625,7 @@ def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, 
     invd = _scratch("invd", (n_views, height, width), np.float64)
     invd.fill(0.0)
     idbuf = np.full((n_views, height, width), -1, dtype=np.int32)
-    # A power of two of workers, at least two per thread, no more than there are bands.
-    n_workers = 1
-    while n_workers < WORKERS_PER_THREAD * numba.get_num_threads() and \
-            n_workers * (1 << BAND_SHIFT) < height:
-        n_workers *= 2
+    n_workers = raster_workers(height)
     counts = np.zeros((n_workers, 2), dtype=np.int64)
     tan_x, tan_y, near = float(tan_x), float(tan_y), float(near)
     for s in range(0, len(sel), BATCH):
@@ -637,6 +666,7 @@ def render_ids(
     face_mask: np.ndarray | None = None,
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
+    hierarchy: Hierarchy | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth and triangle-id buffers of one perspective view.
 
@@ -654,17 +684,20 @@ def render_ids(
     face_ids : (m,) int32, the id written for each face (default: its row index).
     stats : optional dict to which ``triangles``, ``pixels``, ``pixel_tests`` (pixel centres
         tested) and ``band_pairs`` (triangle x row-band pairs rasterized) are added.
+    hierarchy : the faces' ``visibility.raster.hierarchy.Hierarchy``: draw through frustum and
+        occlusion culling (``visibility.raster.culling``; the same image, at a cost that follows
+        what the view sees). None draws every face.
 
     Returns
     -------
     depth : (height, width) float32, ``-z_cam`` in metres, +inf where nothing is drawn.
     ids : (height, width) int32, the id of the nearest face (ties: smaller id), -1 where empty.
     """
-    v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids)
+    v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids, hierarchy is None)
     e = _check_view(eye, width, height, tan_x, tan_y, near)
     r = _check_rotation(rotation)
     depth, out = _render_views(v, e, f, sel, ids, r[None], None, int(width), int(height), tan_x,
-                               tan_y, near, stats)
+                               tan_y, near, stats, True, hierarchy, face_mask)
     return depth[0], out[0]
 
 
@@ -678,6 +711,7 @@ def render_cubemap(
     face_mask: np.ndarray | None = None,
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
+    hierarchy: Hierarchy | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth and id buffers of the six cube faces around ``eye``.
 
@@ -690,7 +724,7 @@ def render_cubemap(
     depth : (6, R, R) float32 metres (+inf where empty); ids : (6, R, R) int32 (-1 where empty).
     """
     return _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids,
-                    stats, True)
+                    stats, True, hierarchy)
 
 
 def render_cubemap_ids(
@@ -703,19 +737,20 @@ def render_cubemap_ids(
     face_mask: np.ndarray | None = None,
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
+    hierarchy: Hierarchy | None = None,
 ) -> np.ndarray:
     """(6, R, R) int32 id buffers of ``render_cubemap`` (identical), without the depth pass."""
     return _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids,
-                    stats, False)[1]
+                    stats, False, hierarchy)[1]
 
 
 def _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids, stats,
-             want_depth):
-    v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids)
+             want_depth, hierarchy=None):
+    v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids, hierarchy is None)
     e = _check_view(eye, resolution, resolution, 1.0, 1.0, near)
     base = np.eye(3) if base_rotation is None else _check_rotation(base_rotation)
     # Same product as cube_face_rotations(base), without rebuilding the axis-aligned faces.
     rots = _CUBE_FACES @ base
     res = int(resolution)
     return _render_views(v, e, f, sel, ids, rots, base, res, res, 1.0, 1.0, near, stats,
-                         want_depth)
+                         want_depth, hierarchy, face_mask)

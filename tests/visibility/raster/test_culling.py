@@ -1,0 +1,119 @@
+"""Culled renders equal full renders bit for bit (ids and depth): on generated scenes, on the
+real scenes beside the repository, at georeferenced offsets, with masks and moving faces,
+and with the eye inside geometry; and culling does skip work where walls close the view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.visibility.real_scenes import REAL, real_grid, real_scene
+from visibility.generators import make_scene
+from visibility.generators._mesh import box_mesh
+from visibility.raster.camera import look_rotation, random_rotation
+from visibility.raster.hierarchy import build_hierarchy, scene_hierarchy
+from visibility.raster.triangles import render_cubemap, render_cubemap_ids, render_ids
+from visibility.scene import Scene, moving_faces
+from visibility.viewcells import ViewcellGrid
+
+
+def _eyes(grid, n, rng):
+    """Eyes drawn uniformly in ``n`` cells of ``grid`` spread over it, and random rotations."""
+    cells = np.linspace(0, len(grid) - 1, n).astype(int)
+    out = []
+    for c in cells:
+        lo, hi = grid.boxes[c]
+        out.append((lo + (hi - lo) * rng.random(3), random_rotation(rng)))
+    return out
+
+
+def _same(scene, h, eye, rot, res, mask=None, t=None):
+    verts = scene.vertices if t is None else scene.vertices_at(t)
+    d0, i0 = render_cubemap(verts, scene.faces, eye, res, rot, face_mask=mask)
+    st: dict = {}
+    d1, i1 = render_cubemap(verts, scene.faces, eye, res, rot, face_mask=mask, hierarchy=h,
+                            stats=st)
+    assert np.array_equal(i0, i1), f"{int((i0 != i1).sum())} pixels differ"
+    assert np.array_equal(d0, d1)
+    return st
+
+
+def test_city_views_identical_and_culled():
+    scene = make_scene("city", 200_000, seed=0)
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    h = scene_hierarchy(scene)
+    rng = np.random.default_rng(0)
+    drawn = []
+    for eye, rot in _eyes(grid, 6, rng):
+        st = _same(scene, h, eye, rot, 128, mask=scene.valid_faces)
+        drawn.append(st["triangles"])
+        assert st["nodes_hidden"] > 0
+    # A street view sees a small part of a city: culling must skip most of it.
+    assert np.median(drawn) < 0.5 * scene.n_triangles
+
+
+@pytest.mark.parametrize("name", REAL)
+def test_real_scene_views_identical(name):
+    scene = real_scene(name)
+    grid = real_grid(name)
+    h = scene_hierarchy(scene)
+    rng = np.random.default_rng(7)
+    for eye, rot in _eyes(grid, 3, rng):
+        _same(scene, h, eye, rot, 128, mask=scene.valid_faces)
+        # One perspective view too, off the cube's axes.
+        fwd = rng.normal(size=3)
+        r = look_rotation(fwd)
+        a = render_ids(scene.vertices, scene.faces, eye, r, 96, 64, 1.3, 0.8,
+                       face_mask=scene.valid_faces)
+        b = render_ids(scene.vertices, scene.faces, eye, r, 96, 64, 1.3, 0.8,
+                       face_mask=scene.valid_faces, hierarchy=h)
+        assert np.array_equal(a[1], b[1]) and np.array_equal(a[0], b[0])
+
+
+def test_georeferenced_offset_and_subset_mask():
+    base = make_scene("village", 30_000, seed=2)
+    far = Scene(base.vertices + np.array([4.2e6, 35.0, 5.6e6]), base.faces, base.object_ids,
+                base.colors)
+    h = build_hierarchy(far.vertices, far.faces)
+    rng = np.random.default_rng(3)
+    mask = far.valid_faces & (rng.random(far.n_triangles) < 0.7)
+    for eye, rot in _eyes(ViewcellGrid.for_scene(far, 4.0), 4, rng):
+        _same(far, h, eye, rot, 96, mask=mask)
+        ids = render_cubemap_ids(far.vertices, far.faces, eye, 96, rot, face_mask=mask,
+                                 hierarchy=h)
+        assert not np.isin(ids[ids >= 0], np.flatnonzero(~mask)).any()
+
+
+def test_moving_faces_drawn_at_every_time():
+    scene = make_scene("swaying_grass", 2000, seed=1)
+    assert moving_faces(scene).any()
+    h = scene_hierarchy(scene)
+    lo, hi = scene.bounds()
+    rng = np.random.default_rng(4)
+    for t in np.linspace(*scene.time_range(), 4):
+        eye = np.array([(lo[0] + hi[0]) / 2, lo[1] + 1.0, (lo[2] + hi[2]) / 2])
+        _same(scene, h, eye + rng.normal(size=3) * [3, 0.2, 3], random_rotation(rng), 64,
+              mask=scene.valid_faces, t=t)
+
+
+def test_eye_inside_a_box_and_behind_the_near_plane():
+    # A closed box around the eye, and a large scene outside it: nothing outside is drawn,
+    # and the box's own faces, some nearer than the near plane, are all where they should be.
+    city = make_scene("city", 20_000, seed=6)
+    v, f, _, _ = box_mesh(np.array([-0.5, 1.0, -0.5]), np.array([0.5, 2.0, 0.5]))
+    verts = np.concatenate([city.vertices, v])
+    faces = np.concatenate([city.faces, f + len(city.vertices)])
+    h = build_hierarchy(verts, faces)
+    scene = Scene(verts, faces)
+    for eye in (np.array([0.0, 1.5, 0.0]), np.array([0.0, 1.01, 0.0]),
+                np.array([0.49, 1.97, -0.48])):
+        st = _same(scene, h, eye, np.eye(3), 64)
+        assert st["triangles"] < scene.n_triangles
+
+
+def test_wrong_hierarchy_is_refused():
+    a = make_scene("village", 2000, seed=0)
+    b = make_scene("village", 3000, seed=0)
+    h = build_hierarchy(a.vertices, a.faces)
+    with pytest.raises(ValueError, match="built for"):
+        render_cubemap_ids(b.vertices, b.faces, np.zeros(3), 16, hierarchy=h)

@@ -1,0 +1,335 @@
+"""Rendering through the scene hierarchy: frustum and hierarchical occlusion culling.
+
+The same images as ``visibility.raster.triangles`` (bit for bit: the depth test keeps the
+nearest surface and, on ties, the smaller id, whatever the drawing order), at a cost that
+follows what a view sees rather than the whole scene. The hierarchy (``hierarchy.Hierarchy``)
+is walked front to back in batches: nodes are taken nearest box first (a priority queue), so
+occluders are drawn before what they hide; each batch's leaves are rasterized by the shared
+kernels, the depth pyramid (``pyramid``) is rebuilt, and the walk goes on testing nodes against
+it. A node is skipped when, in every view whose frustum it meets, its box lies entirely behind
+what is drawn: its nearest depth is farther than the farthest depth drawn anywhere under its
+projected pixel-centre rectangle. A box that reaches behind the near plane is never skipped, so
+nothing near the eye is culled.
+
+Why nothing the full render draws is lost: a triangle inside a skipped box has, at every pixel
+centre it could cover, a depth no nearer than the box's nearest corner, which is farther (by a
+relative margin that covers rounding) than what that pixel already holds; it would lose the
+depth test there.
+"""
+
+from __future__ import annotations
+
+from collections import namedtuple
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.raster.hierarchy import Hierarchy
+from visibility.raster.pyramid import PyramidLayout, build_pyramid, rect_min
+from visibility.raster.triangles import (
+    _REC,
+    BAND_SHIFT,
+    _centre_range,
+    _corner,
+    _finish,
+    _outside,
+    _pixel_box,
+    _raster,
+    _scratch,
+    _setup,
+    _split_views,
+    raster_workers,
+)
+
+#: Relative depth margin of the occlusion test: a box must lie this much farther than what a
+#: pixel holds to be skipped (rounding of the triangle's depth plane is far below it).
+DEPTH_MARGIN = 1e-6
+#: Triangles in the first batch (drawn before any test can skip anything) and the most per
+#: batch; batches double in between, so the pyramid is fresh where it culls most.
+FIRST_BATCH = 2048
+MAX_BATCH = 1 << 17
+
+#: The hierarchy as the walk reads it.
+Tree = namedtuple("Tree", "boxes order leaf slots")
+#: A set of views sharing an eye: rotations (F, 3, 3), image size, tangents, near plane.
+Views = namedtuple("Views", "eye rots width height tan_x tan_y near")
+#: A depth pyramid: flat storage (F, size) and its level layout.
+Pyramid = namedtuple("Pyramid", "hz heights widths offsets")
+
+
+@njit(cache=True, nogil=True)
+def _box_hidden(boxes, node, views, pyr):  # pragma: no cover - numba
+    """Whether every pixel centre node's box may cover, in every view, already holds
+    something nearer than the box's nearest point."""
+    eye, rots = views.eye, views.rots
+    hw = 0.5 * views.width
+    hh = 0.5 * views.height
+    for k in range(rots.shape[0]):
+        common = 31
+        behind = False
+        zmin = np.inf
+        sx0, sx1, sy0, sy1 = np.inf, -np.inf, np.inf, -np.inf
+        for c in range(8):
+            x = boxes[node, c & 1, 0] - eye[0]
+            y = boxes[node, (c >> 1) & 1, 1] - eye[1]
+            z = boxes[node, (c >> 2) & 1, 2] - eye[2]
+            px = rots[k, 0, 0] * x + rots[k, 0, 1] * y + rots[k, 0, 2] * z
+            py = rots[k, 1, 0] * x + rots[k, 1, 1] * y + rots[k, 1, 2] * z
+            w = -(rots[k, 2, 0] * x + rots[k, 2, 1] * y + rots[k, 2, 2] * z)
+            common &= _outside(px, py, w, views.near, views.tan_x, views.tan_y)
+            if w < views.near:
+                behind = True
+            else:
+                sx = (px / (w * views.tan_x) + 1.0) * hw
+                sy = (1.0 - py / (w * views.tan_y)) * hh
+                sx0, sx1 = min(sx0, sx), max(sx1, sx)
+                sy0, sy1 = min(sy0, sy), max(sy1, sy)
+                zmin = min(zmin, w)
+        if common != 0:
+            continue  # outside this view's frustum
+        if behind:
+            return False
+        px0, px1 = _centre_range(sx0, sx1, views.width)
+        py0, py1 = _centre_range(sy0, sy1, views.height)
+        if px0 > px1 or py0 > py1:
+            continue  # between pixel centres: covers none
+        m = rect_min(pyr.hz, k, pyr.heights, pyr.widths, pyr.offsets, px0, px1, py0, py1)
+        if not m > (1.0 / zmin) * (1.0 + DEPTH_MARGIN):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box_distance2(boxes, node, eye):  # pragma: no cover - numba
+    """Squared distance from ``eye`` to node's box (0 inside)."""
+    d = 0.0
+    for a in range(3):
+        g = max(boxes[node, 0, a] - eye[a], eye[a] - boxes[node, 1, a], 0.0)
+        d += g * g
+    return d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(heap_key, heap_node, size, key, node):  # pragma: no cover - numba
+    """Insert (key, node) into the binary min-heap of ``size`` entries; the new size."""
+    i = size
+    while i > 0:
+        parent = (i - 1) >> 1
+        if heap_key[parent] <= key:
+            break
+        heap_key[i] = heap_key[parent]
+        heap_node[i] = heap_node[parent]
+        i = parent
+    heap_key[i] = key
+    heap_node[i] = node
+    return size + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pop(heap_key, heap_node, size):  # pragma: no cover - numba
+    """Remove the smallest entry of the heap; (its node, the new size)."""
+    top = heap_node[0]
+    size -= 1
+    key, node = heap_key[size], heap_node[size]
+    i = 0
+    while True:
+        c = 2 * i + 1
+        if c >= size:
+            break
+        if c + 1 < size and heap_key[c + 1] < heap_key[c]:
+            c += 1
+        if key <= heap_key[c]:
+            break
+        heap_key[i] = heap_key[c]
+        heap_node[i] = heap_node[c]
+        i = c
+    heap_key[i] = key
+    heap_node[i] = node
+    return top, size
+
+
+@njit(cache=True, nogil=True)
+def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: no cover - numba
+    """Take nodes nearest first (``front``: a min-heap of (squared box distance, node) pairs of
+    ``size`` entries) until ``budget`` triangles are listed in ``out`` or none is left; hidden
+    nodes are dropped, a leaf's triangles (those ``mask`` keeps) listed, an inner node's
+    children queued. Returns (triangles listed, heap size). ``counts``: nodes tested, nodes
+    hidden, leaves drawn."""
+    boxes, order = tree.boxes, tree.order
+    heap_key, heap_node = front
+    eye = views.eye
+    n_tri = order.shape[0]
+    n = 0
+    while size > 0 and n < budget:
+        node, size = _pop(heap_key, heap_node, size)
+        counts[0] += 1
+        if _box_hidden(boxes, node, views, pyr):
+            counts[1] += 1
+            continue
+        if node >= tree.slots:
+            counts[2] += 1
+            s = (node - tree.slots) * tree.leaf
+            for t in range(s, min(s + tree.leaf, n_tri)):
+                f = order[t]
+                if mask[f]:
+                    out[n] = f
+                    n += 1
+            continue
+        for ch in (2 * node, 2 * node + 1):
+            if boxes[ch, 0, 0] <= boxes[ch, 1, 0]:  # not an empty slot
+                size = _push(heap_key, heap_node, size, _box_distance2(boxes, ch, eye), ch)
+    return n, size
+
+
+@njit(cache=True, nogil=True)
+def _home(v, eye, i, rots, base, cube, width, height, tan_x, tan_y, near):  # pragma: no cover
+    """(view, screen x, screen y) of vertex i: the view whose frustum holds it (-1 none, -2 not
+    finite), as ``triangles._home_views`` decides it."""
+    x, y, z = v[i, 0] - eye[0], v[i, 1] - eye[1], v[i, 2] - eye[2]
+    if not np.isfinite(x + y + z):
+        return -2, 0.0, 0.0
+    k = 0
+    if cube:
+        cx = base[0, 0] * x + base[0, 1] * y + base[0, 2] * z
+        cy = base[1, 0] * x + base[1, 1] * y + base[1, 2] * z
+        cz = base[2, 0] * x + base[2, 1] * y + base[2, 2] * z
+        ax, ay, az = abs(cx), abs(cy), abs(cz)
+        if ax >= ay and ax >= az:
+            k = 0 if cx >= 0 else 1
+        elif ay >= az:
+            k = 2 if cy >= 0 else 3
+        else:
+            k = 4 if cz >= 0 else 5
+    px, py, pz = _corner(v, eye, i, rots, k)
+    w = -pz
+    if w >= near and abs(px) <= w * tan_x and abs(py) <= w * tan_y:
+        return k, (px / (w * tan_x) + 1.0) * 0.5 * width, (1.0 - py / (w * tan_y)) * 0.5 * height
+    return -1, 0.0, 0.0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _bin(v, faces, sel, views, base, cube, out, box):  # pragma: no cover - numba
+    """``triangles._cull`` for a selection, each face's corners placed on the fly: bit k of
+    ``out[t]`` when face ``sel[t]`` may cover a pixel centre of view k, and its pixel box
+    when its corners share a view (``box[t, 0] = -1``: left to ``_setup``)."""
+    n = v.shape[0]
+    eye, rots = views.eye, views.rots
+    width, height = views.width, views.height
+    tan_x, tan_y, near = views.tan_x, views.tan_y, views.near
+    for t in prange(sel.shape[0]):
+        out[t] = 0
+        box[t, 0] = -1
+        f = sel[t]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n or i1 >= n or i2 >= n:
+            continue
+        h0, x0, y0 = _home(v, eye, i0, rots, base, cube, width, height, tan_x, tan_y, near)
+        h1, x1, y1 = _home(v, eye, i1, rots, base, cube, width, height, tan_x, tan_y, near)
+        h2, x2, y2 = _home(v, eye, i2, rots, base, cube, width, height, tan_x, tan_y, near)
+        if h0 == -2 or h1 == -2 or h2 == -2:
+            continue
+        if h0 >= 0 and h0 == h1 and h0 == h2:
+            px0, px1 = _centre_range(min(x0, x1, x2), max(x0, x1, x2), width)
+            py0, py1 = _centre_range(min(y0, y1, y2), max(y0, y1, y2), height)
+            if px0 <= px1 and py0 <= py1:
+                out[t] = 1 << h0
+                box[t, 0] = px0
+                box[t, 1] = px1
+                box[t, 2] = py0
+                box[t, 3] = py1
+            continue
+        bits = 0
+        for k in range(rots.shape[0]):
+            ax, ay, az = _corner(v, eye, i0, rots, k)
+            bx, by, bz = _corner(v, eye, i1, rots, k)
+            cx, cy, cz = _corner(v, eye, i2, rots, k)
+            px0, px1, py0, py1 = _pixel_box(ax, ay, -az, bx, by, -bz, cx, cy, -cz, width,
+                                            height, tan_x, tan_y, near)
+            if px0 <= px1:
+                bits |= 1 << k
+        out[t] = bits
+
+
+def _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers):
+    """Rasterize faces ``sel`` into every view's ``invd`` and ``idbuf``."""
+    n_views = len(views.rots)
+    cube = base is not None
+    bits = _scratch("cull_bits", len(sel), np.uint8)
+    box = _scratch("cull_box", (len(sel), 4), np.int32)
+    _bin(v, faces, sel, views, np.eye(3) if base is None else base, cube, bits, box)
+    offsets, order = _split_views(bits, n_views)
+    for k in range(n_views):
+        idx = order[offsets[k]: offsets[k + 1]]
+        if len(idx) == 0:
+            continue
+        bounds = _scratch("cull_bounds", (len(idx), 4), np.int32)
+        rec = _scratch("cull_rec", (len(idx), _REC), np.float64)
+        _setup(v, views.eye, faces, sel, idx, box, ids, views.rots, k, views.width,
+               views.height, views.tan_x, views.tan_y, views.near, bounds, rec)
+        _raster(rec, bounds, views.width, views.near, BAND_SHIFT, n_workers, invd[k],
+                idbuf[k], counts)
+
+
+def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
+                        hierarchy: Hierarchy, mask: np.ndarray, ids: np.ndarray,
+                        rots: np.ndarray, base: np.ndarray | None, width: int, height: int,
+                        tan_x: float, tan_y: float, near: float, stats: dict | None,
+                        want_depth: bool = True, always: np.ndarray | None = None,
+                        ) -> tuple[np.ndarray | None, np.ndarray]:
+    """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing ``eye``, drawing only
+    what the hierarchy's culling keeps: identical to ``triangles._render_views`` on the
+    faces of ``mask``.
+
+    ``mask``: (m,) bool, faces to draw (checked inputs: ``triangles._check_inputs``);
+    ``always``: int64 face ids drawn without culling (moving faces, which the hierarchy does not
+    hold), in the first batch. ``stats`` gains ``triangles`` (drawn), ``pixels``,
+    ``pixel_tests``, ``band_pairs`` as the full render reports them, and ``nodes_tested``,
+    ``nodes_hidden``, ``leaves_drawn``, ``batches``.
+    """
+    n_views = len(rots)
+    views = Views(np.ascontiguousarray(eye, dtype=np.float64),
+                  np.ascontiguousarray(rots, dtype=np.float64), int(width), int(height),
+                  float(tan_x), float(tan_y), float(near))
+    tree = Tree(hierarchy.boxes, hierarchy.order, int(hierarchy.leaf_size),
+                int(hierarchy.n_leaf_slots))
+    layout = PyramidLayout.of(height, width)
+    pyr = Pyramid(layout.empty(n_views), layout.heights, layout.widths, layout.offsets)
+    invd = _scratch("cull_invd", (n_views, height, width), np.float64)
+    invd.fill(0.0)
+    idbuf = np.full((n_views, height, width), -1, dtype=np.int32)
+    n_workers = raster_workers(height)
+    counts = np.zeros((n_workers, 2), dtype=np.int64)
+    walk = np.zeros(3, dtype=np.int64)
+    # The walk's front: a min-heap by box distance, at most one entry per node.
+    front = (np.empty(len(hierarchy.boxes)), np.empty(len(hierarchy.boxes), dtype=np.int64))
+    sp = 0
+    if hierarchy.boxes[1, 0, 0] <= hierarchy.boxes[1, 1, 0]:
+        sp = _push(front[0], front[1], 0, 0.0, 1)
+    out = np.empty(MAX_BATCH + tree.leaf, dtype=np.int64)
+    budget, drawn, batches = FIRST_BATCH, 0, 0
+    extra = np.zeros(0, np.int64) if always is None else np.asarray(always, np.int64)
+    while sp > 0 or (batches == 0 and len(extra)):
+        n, sp = _walk(tree, views, pyr, mask, front, sp, out, budget, walk)
+        sel = out[:n]
+        if batches == 0 and len(extra):
+            sel = np.concatenate([extra, sel])
+        batches += 1
+        if len(sel):
+            drawn += len(sel)
+            _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers)
+            if sp > 0:
+                build_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz)
+        budget = min(2 * budget, MAX_BATCH)
+    depth = None
+    if want_depth:
+        depth = np.empty((n_views, height, width), dtype=np.float32)
+        _finish(invd, idbuf, depth)
+    if stats is not None:
+        for key, val in (("triangles", drawn), ("pixels", n_views * width * height),
+                         ("pixel_tests", int(counts[:, 0].sum())),
+                         ("band_pairs", int(counts[:, 1].sum())),
+                         ("nodes_tested", int(walk[0])), ("nodes_hidden", int(walk[1])),
+                         ("leaves_drawn", int(walk[2])), ("batches", batches)):
+            stats[key] = stats.get(key, 0) + int(val)
+    return depth, idbuf
+
