@@ -51,31 +51,67 @@ MAX_BATCH = 1 << 17
 
 #: The hierarchy as the walk reads it.
 Tree = namedtuple("Tree", "boxes order leaf slots")
-#: A set of views sharing an eye: rotations (F, 3, 3), image size, tangents, near plane.
-Views = namedtuple("Views", "eye rots width height tan_x tan_y near")
+#: A set of views sharing an eye: rotations (F, 3, 3), image size, tangents, near plane; and
+#: each rotation as a signed permutation of ``base``'s axes (rots[k][r] = signs[k, r] *
+#: base[axes[k, r]]), so a point goes to ``base``'s frame once for all views.
+Views = namedtuple("Views", "eye rots width height tan_x tan_y near base axes signs")
+
+
+def _as_permutations(rots: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(axes (F, 3) int64, signs (F, 3) float64) with rots[k] = signs[k][:, None] *
+    base[axes[k]], exactly; ValueError when a view is not so aligned with ``base``."""
+    rel = rots @ base.T
+    axes = np.argmax(np.abs(rel), axis=2)
+    signs = np.sign(np.take_along_axis(rel, axes[..., None], axis=2)[..., 0])
+    if not np.array_equal(signs[..., None] * base[axes], rots):
+        raise ValueError("every view must be a signed permutation of the base rotation")
+    return axes.astype(np.int64), signs.astype(np.float64)
 #: A depth pyramid: flat storage (F, size) and its level layout.
 Pyramid = namedtuple("Pyramid", "hz heights widths offsets")
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pick(c0, c1, c2, axis):  # pragma: no cover - numba
+    return c0 if axis == 0 else (c1 if axis == 1 else c2)
 
 
 @njit(cache=True, nogil=True)
 def _box_hidden(boxes, node, views, pyr):  # pragma: no cover - numba
     """Whether every pixel centre node's box may cover, in every view, already holds
-    something nearer than the box's nearest point."""
-    eye, rots = views.eye, views.rots
+    something nearer than the box's nearest point.
+
+    The box goes to the frame of ``views.base`` once (a corner and three edge vectors); each
+    view's camera coordinates are a signed permutation of those (``views.axes``,
+    ``views.signs``)."""
+    eye, base, axes, signs = views.eye, views.base, views.axes, views.signs
     hw = 0.5 * views.width
     hh = 0.5 * views.height
-    for k in range(rots.shape[0]):
+    dx = boxes[node, 1, 0] - boxes[node, 0, 0]
+    dy = boxes[node, 1, 1] - boxes[node, 0, 1]
+    dz = boxes[node, 1, 2] - boxes[node, 0, 2]
+    ox, oy, oz = boxes[node, 0, 0] - eye[0], boxes[node, 0, 1] - eye[1], boxes[node, 0, 2] - eye[2]
+    o0 = base[0, 0] * ox + base[0, 1] * oy + base[0, 2] * oz
+    o1 = base[1, 0] * ox + base[1, 1] * oy + base[1, 2] * oz
+    o2 = base[2, 0] * ox + base[2, 1] * oy + base[2, 2] * oz
+    x0, x1, x2 = base[0, 0] * dx, base[1, 0] * dx, base[2, 0] * dx
+    y0, y1, y2 = base[0, 1] * dy, base[1, 1] * dy, base[2, 1] * dy
+    z0, z1, z2 = base[0, 2] * dz, base[1, 2] * dz, base[2, 2] * dz
+    for k in range(axes.shape[0]):
         common = 31
         behind = False
         zmin = np.inf
         sx0, sx1, sy0, sy1 = np.inf, -np.inf, np.inf, -np.inf
-        for c in range(8):
-            x = boxes[node, c & 1, 0] - eye[0]
-            y = boxes[node, (c >> 1) & 1, 1] - eye[1]
-            z = boxes[node, (c >> 2) & 1, 2] - eye[2]
-            px = rots[k, 0, 0] * x + rots[k, 0, 1] * y + rots[k, 0, 2] * z
-            py = rots[k, 1, 0] * x + rots[k, 1, 1] * y + rots[k, 1, 2] * z
-            w = -(rots[k, 2, 0] * x + rots[k, 2, 1] * y + rots[k, 2, 2] * z)
+        for q in range(8):
+            c0, c1, c2 = o0, o1, o2
+            if q & 1:
+                c0, c1, c2 = c0 + x0, c1 + x1, c2 + x2
+            if q & 2:
+                c0, c1, c2 = c0 + y0, c1 + y1, c2 + y2
+            if q & 4:
+                c0, c1, c2 = c0 + z0, c1 + z1, c2 + z2
+            px = signs[k, 0] * _pick(c0, c1, c2, axes[k, 0])
+            py = signs[k, 1] * _pick(c0, c1, c2, axes[k, 1])
+            w = -signs[k, 2] * _pick(c0, c1, c2, axes[k, 2])
             common &= _outside(px, py, w, views.near, views.tan_x, views.tan_y)
             if w < views.near:
                 behind = True
@@ -181,34 +217,41 @@ def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: 
     return n, size
 
 
-@njit(cache=True, nogil=True)
-def _home(v, eye, i, rots, base, cube, width, height, tan_x, tan_y, near):  # pragma: no cover
+@njit(cache=True, nogil=True, inline="always")
+def _home(v, eye, i, views, cube):  # pragma: no cover - numba
     """(view, screen x, screen y) of vertex i: the view whose frustum holds it (-1 none, -2 not
-    finite), as ``triangles._home_views`` decides it."""
+    finite), as ``triangles._home_views`` decides it: for a cube, the face of the dominant axis
+    in ``views.base``'s frame, else view 0."""
+    base, axes, signs = views.base, views.axes, views.signs
     x, y, z = v[i, 0] - eye[0], v[i, 1] - eye[1], v[i, 2] - eye[2]
-    if not np.isfinite(x + y + z):
+    c0 = base[0, 0] * x + base[0, 1] * y + base[0, 2] * z
+    c1 = base[1, 0] * x + base[1, 1] * y + base[1, 2] * z
+    c2 = base[2, 0] * x + base[2, 1] * y + base[2, 2] * z
+    if not np.isfinite(c0 + c1 + c2):
         return -2, 0.0, 0.0
     k = 0
     if cube:
-        cx = base[0, 0] * x + base[0, 1] * y + base[0, 2] * z
-        cy = base[1, 0] * x + base[1, 1] * y + base[1, 2] * z
-        cz = base[2, 0] * x + base[2, 1] * y + base[2, 2] * z
-        ax, ay, az = abs(cx), abs(cy), abs(cz)
-        if ax >= ay and ax >= az:
-            k = 0 if cx >= 0 else 1
-        elif ay >= az:
-            k = 2 if cy >= 0 else 3
+        a0, a1, a2 = abs(c0), abs(c1), abs(c2)
+        if a0 >= a1 and a0 >= a2:
+            k = 0 if c0 >= 0 else 1
+        elif a1 >= a2:
+            k = 2 if c1 >= 0 else 3
         else:
-            k = 4 if cz >= 0 else 5
-    px, py, pz = _corner(v, eye, i, rots, k)
-    w = -pz
-    if w >= near and abs(px) <= w * tan_x and abs(py) <= w * tan_y:
-        return k, (px / (w * tan_x) + 1.0) * 0.5 * width, (1.0 - py / (w * tan_y)) * 0.5 * height
+            k = 4 if c2 >= 0 else 5
+    # The view's coordinates: a signed permutation of the base frame's (``Views``).
+    a, b, d = axes[k, 0], axes[k, 1], axes[k, 2]
+    px = signs[k, 0] * (c0 if a == 0 else (c1 if a == 1 else c2))
+    py = signs[k, 1] * (c0 if b == 0 else (c1 if b == 1 else c2))
+    w = -signs[k, 2] * (c0 if d == 0 else (c1 if d == 1 else c2))
+    tan_x, tan_y = views.tan_x, views.tan_y
+    if w >= views.near and abs(px) <= w * tan_x and abs(py) <= w * tan_y:
+        return (k, (px / (w * tan_x) + 1.0) * 0.5 * views.width,
+                (1.0 - py / (w * tan_y)) * 0.5 * views.height)
     return -1, 0.0, 0.0
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bin(v, faces, sel, views, base, cube, out, box):  # pragma: no cover - numba
+def _bin(v, faces, sel, views, cube, out, box):  # pragma: no cover - numba
     """``triangles._cull`` for a selection, each face's corners placed on the fly: bit k of
     ``out[t]`` when face ``sel[t]`` may cover a pixel centre of view k, and its pixel box
     when its corners share a view (``box[t, 0] = -1``: left to ``_setup``)."""
@@ -223,9 +266,9 @@ def _bin(v, faces, sel, views, base, cube, out, box):  # pragma: no cover - numb
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
         if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n or i1 >= n or i2 >= n:
             continue
-        h0, x0, y0 = _home(v, eye, i0, rots, base, cube, width, height, tan_x, tan_y, near)
-        h1, x1, y1 = _home(v, eye, i1, rots, base, cube, width, height, tan_x, tan_y, near)
-        h2, x2, y2 = _home(v, eye, i2, rots, base, cube, width, height, tan_x, tan_y, near)
+        h0, x0, y0 = _home(v, eye, i0, views, cube)
+        h1, x1, y1 = _home(v, eye, i1, views, cube)
+        h2, x2, y2 = _home(v, eye, i2, views, cube)
         if h0 == -2 or h1 == -2 or h2 == -2:
             continue
         if h0 >= 0 and h0 == h1 and h0 == h2:
@@ -256,7 +299,7 @@ def _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers):
     cube = base is not None
     bits = _scratch("cull_bits", len(sel), np.uint8)
     box = _scratch("cull_box", (len(sel), 4), np.int32)
-    _bin(v, faces, sel, views, np.eye(3) if base is None else base, cube, bits, box)
+    _bin(v, faces, sel, views, cube, bits, box)
     offsets, order = _split_views(bits, n_views)
     for k in range(n_views):
         idx = order[offsets[k]: offsets[k + 1]]
@@ -287,9 +330,11 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     ``nodes_hidden``, ``leaves_drawn``, ``batches``.
     """
     n_views = len(rots)
-    views = Views(np.ascontiguousarray(eye, dtype=np.float64),
-                  np.ascontiguousarray(rots, dtype=np.float64), int(width), int(height),
-                  float(tan_x), float(tan_y), float(near))
+    rots = np.ascontiguousarray(rots, dtype=np.float64)
+    frame = rots[0] if base is None else np.ascontiguousarray(base, dtype=np.float64)
+    axes, signs = _as_permutations(rots, frame)
+    views = Views(np.ascontiguousarray(eye, dtype=np.float64), rots, int(width), int(height),
+                  float(tan_x), float(tan_y), float(near), frame, axes, signs)
     tree = Tree(hierarchy.boxes, hierarchy.order, int(hierarchy.leaf_size),
                 int(hierarchy.n_leaf_slots))
     layout = PyramidLayout.of(height, width)
