@@ -97,6 +97,9 @@ def run_rows(r: dict) -> list[tuple[str, str]]:
         ("client errors", f"{r['client_errors']}"),
         ("wall time", f"{r['wall_seconds']:.1f} s"),
     ]
+    if "warm_up_seconds" in r:
+        rows.append(("warm-up (before the run)", f"{r['warm_up_seconds']:.1f} s"
+                     + _get(r, "warm_cells", lambda v: f" for {v} cells", "")))
     return rows + hostile_rows(r)
 
 
@@ -294,15 +297,19 @@ def _setting_text(runs: list[dict]) -> str:
         f"{r0.get('cell_size', 4.0):g} m), core `{r0['core']}` with parameters "
         f"`{json.dumps(r0['params'])}`, workers {', '.join(map(str, workers))}; every walker "
         f"walks {r0['walk_seconds']:g} s at {r0['speed']:g} m/s sending {r0['fps']:g} poses/s "
-        "(walker i walks the same walk in every run). Walks stay on the ground: a walk with a "
-        "pose inside a solid, in no cell or with the eye off the ground is drawn again"
-        + (f" ({walks['walks_redrawn']} of the largest run's walks were; "
-           f"{walks['poses_off_ground']} poses still off the ground)" if walks else "")
-        + ". Cold: a fresh server per row, every PVS computed while the walkers walk. Warm: one "
-        "server per worker count whose cache holds the PVS of every cell the walks pass "
-        "through and its neighbours before the walkers come"
-        + (f" ({warm['warm_cells']} cells, computed in {warm['warm_up_seconds']:.1f} s with "
-           f"{warm['workers']} workers)" if warm and "warm_cells" in warm else "")
+        "(walker i walks the same walk in every run)."
+        + (" Walks stay on the ground: a walk with a pose inside a solid, in no cell or with "
+           "the eye off the ground is drawn again "
+           f"({walks['walks_redrawn']} of the largest run's walks were; "
+           f"{walks['poses_off_ground']} poses still off the ground)." if walks else "")
+        + " Cold: a fresh server per row, every PVS computed while the walkers walk. Warm: one "
+        + ("server per worker count whose cache holds the PVS of every cell the walks pass "
+           "through and its neighbours before the walkers come"
+           + (f" ({warm['warm_cells']} cells, computed in {warm['warm_up_seconds']:.1f} s "
+              f"with {_workers(warm['workers'])})" if warm else "")
+           if warm is None or "warm_cells" in warm else
+           "server whose cache holds every cell's PVS before the walkers come"
+           f" (computed in {warm['warm_up_seconds']:.1f} s)")
         + "; its rows run one after another on it. A stall is a frame whose cell was not "
         "complete one frame interval after its pose was sent; never delivered: still missing "
         f"{r0.get('grace_seconds', 10.0):g} s after the walk ended (the walker had left the "
@@ -387,4 +394,8 @@ def rerender(path: Path) -> None:
         r.setdefault("workers", 2)
         if "computations_per_second" not in r and r.get("wall_seconds"):
             r["computations_per_second"] = r["computations"] / r["wall_seconds"]
+        fba = r.get("frames_by_answer")
+        if "core_answer_share" not in r and fba:
+            r["core_answer_share"] = (sum(fba.get(a, 0) for a in CORE_ANSWERS)
+                                      / max(1, r["frames"]))
     write_outputs(path.parent, path.stem, data["command"], data["machine"], data["runs"])
