@@ -61,14 +61,17 @@ class BenchScene:
 
     @property
     def triangles(self) -> int:
+        """Triangles of the scene (rows of its face array)."""
         return int(self.loaded.scene.n_triangles)
 
     @property
     def cells(self) -> int:
+        """Viewcells of its grid."""
         return len(self.loaded.grid)
 
     @property
     def cell_size(self) -> float:
+        """Side of its viewcells, metres."""
         return float(self.loaded.grid.cell_size)
 
     def describe(self) -> dict:

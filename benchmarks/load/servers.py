@@ -43,6 +43,7 @@ class Served:
 
     @property
     def pids(self) -> list[int]:
+        """The servers' process ids."""
         return [p.pid for p in self.procs]
 
     def counters(self) -> dict[str, float]:
