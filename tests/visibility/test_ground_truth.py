@@ -335,3 +335,26 @@ def test_estimate_is_within_a_factor_of_the_measured_time():
     gt = sample_pvs(scene, cell, n_points=16, resolution=256, seed=0)
     seconds, _ = estimate_sampling_cost(scene.n_triangles, 256, 16)
     assert gt.seconds / 10 < seconds < gt.seconds * 10
+
+
+def test_sampled_pvs_same_with_the_scene_hierarchy(monkeypatch):
+    """The sampled PVS through culling (once the scene's hierarchy is built) equals the one
+    drawing every face, id for id."""
+    from visibility.generators import make_scene
+    from visibility.raster import hierarchy
+    from visibility.raster.hierarchy import peek, scene_hierarchy
+    from visibility.scene import Scene
+    from visibility.viewcells import ViewcellGrid
+
+    scene = make_scene("city", 80_000, seed=3)
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    # The same arrays in a scene object that never gets a hierarchy: every face drawn.
+    bare = Scene(scene.vertices, scene.faces, scene.object_ids, scene.colors)
+    monkeypatch.setattr(hierarchy, "MIN_TRIANGLES", 1 << 62)
+    scene_hierarchy(scene)
+    for cell in (len(grid) // 2, len(grid) // 3):
+        a = sample_pvs(scene, grid.cell(cell), n_points=8, resolution=96, seed=cell)
+        b = sample_pvs(bare, grid.cell(cell), n_points=8, resolution=96, seed=cell)
+        assert len(a.triangle_ids) > 0
+        assert np.array_equal(a.triangle_ids, b.triangle_ids)
+    assert peek(bare, hierarchy.KIND) is None

@@ -26,6 +26,7 @@ import numpy as np
 
 from visibility.raster import render_cubemap
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
+from visibility.raster.hierarchy import ready_hierarchy
 from visibility.raster.shading import BACKGROUND, shade_colors
 from visibility.scene import Scene
 
@@ -238,7 +239,8 @@ def bake_cubemap(
     mask = np.zeros(scene.n_triangles, dtype=bool)
     mask[split.far_static_ids] = True
     if len(split.far_static_ids):
-        depth, ids = render_cubemap(verts, scene.faces, c, res, near=DEFAULT_NEAR, face_mask=mask)
+        depth, ids = render_cubemap(verts, scene.faces, c, res, near=DEFAULT_NEAR, face_mask=mask,
+                                    hierarchy=ready_hierarchy(scene))
     else:
         depth = np.full((6, res, res), np.inf, dtype=np.float32)
         ids = np.full((6, res, res), -1, dtype=np.int32)
