@@ -25,14 +25,13 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.raster.hierarchy import Hierarchy
-from visibility.raster.pyramid import PyramidLayout, build_pyramid, rect_min
+from visibility.raster.pyramid import PyramidLayout, rect_min, update_pyramid
 from visibility.raster.triangles import (
     _REC,
     BAND_SHIFT,
     _centre_range,
     _corner,
     _finish,
-    _outside,
     _pixel_box,
     _raster,
     _scratch,
@@ -46,8 +45,8 @@ from visibility.raster.triangles import (
 DEPTH_MARGIN = 1e-6
 #: Triangles in the first batch (drawn before any test can skip anything) and the most per
 #: batch; batches double in between, so the pyramid is fresh where it culls most.
-FIRST_BATCH = 2048
-MAX_BATCH = 1 << 17
+FIRST_BATCH = 1024
+MAX_BATCH = 1 << 13
 
 #: The hierarchy as the walk reads it.
 Tree = namedtuple("Tree", "boxes order leaf slots")
@@ -75,15 +74,39 @@ def _pick(c0, c1, c2, axis):  # pragma: no cover - numba
     return c0 if axis == 0 else (c1 if axis == 1 else c2)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _box_corner(q, o0, o1, o2, x0, x1, x2, y0, y1, y2, z0, z1, z2):  # pragma: no cover - numba
+    """Corner q (bits: +x, +y, +z edge) of a box given by a corner o and its edge vectors."""
+    c0, c1, c2 = o0, o1, o2
+    if q & 1:
+        c0, c1, c2 = c0 + x0, c1 + x1, c2 + x2
+    if q & 2:
+        c0, c1, c2 = c0 + y0, c1 + y1, c2 + y2
+    if q & 4:
+        c0, c1, c2 = c0 + z0, c1 + z1, c2 + z2
+    return c0, c1, c2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _plane_max(a, b, c, d):  # pragma: no cover - numba
+    """Largest value over a box of an affine function worth ``a`` at a corner and changing
+    by ``b``, ``c``, ``d`` along its three edges; and a bound on its rounding."""
+    return a + max(b, 0.0) + max(c, 0.0) + max(d, 0.0), \
+        1e-9 * (abs(a) + abs(b) + abs(c) + abs(d))
+
+
 @njit(cache=True, nogil=True)
 def _box_hidden(boxes, node, views, pyr):  # pragma: no cover - numba
     """Whether every pixel centre node's box may cover, in every view, already holds
     something nearer than the box's nearest point.
 
-    The box goes to the frame of ``views.base`` once (a corner and three edge vectors); each
-    view's camera coordinates are a signed permutation of those (``views.axes``,
-    ``views.signs``)."""
+    The box goes to the frame of ``views.base`` once, as a corner o and three edge vectors;
+    each view's camera coordinates are a signed permutation of those (``views.axes``,
+    ``views.signs``). A frustum plane's value is affine over the box, so whether the box lies
+    outside it, and its nearest depth, come from those four vectors without its corners
+    (branch-free); only views the box meets project its corners."""
     eye, base, axes, signs = views.eye, views.base, views.axes, views.signs
+    tan_x, tan_y, near = views.tan_x, views.tan_y, views.near
     hw = 0.5 * views.width
     hh = 0.5 * views.height
     dx = boxes[node, 1, 0] - boxes[node, 0, 0]
@@ -97,34 +120,41 @@ def _box_hidden(boxes, node, views, pyr):  # pragma: no cover - numba
     y0, y1, y2 = base[0, 1] * dy, base[1, 1] * dy, base[2, 1] * dy
     z0, z1, z2 = base[0, 2] * dz, base[1, 2] * dz, base[2, 2] * dz
     for k in range(axes.shape[0]):
-        common = 31
-        behind = False
-        zmin = np.inf
+        ax, ay, aw = axes[k, 0], axes[k, 1], axes[k, 2]
+        sx_, sy_, sw_ = signs[k, 0], signs[k, 1], -signs[k, 2]
+        # (x, y, w) in view k of the corner and of the three edges.
+        ox_, oy_, ow_ = sx_ * _pick(o0, o1, o2, ax), sy_ * _pick(o0, o1, o2, ay), \
+            sw_ * _pick(o0, o1, o2, aw)
+        ex, ey, ew = sx_ * _pick(x0, x1, x2, ax), sy_ * _pick(x0, x1, x2, ay), \
+            sw_ * _pick(x0, x1, x2, aw)
+        fx, fy, fw = sx_ * _pick(y0, y1, y2, ax), sy_ * _pick(y0, y1, y2, ay), \
+            sw_ * _pick(y0, y1, y2, aw)
+        gx, gy, gw = sx_ * _pick(z0, z1, z2, ax), sy_ * _pick(z0, z1, z2, ay), \
+            sw_ * _pick(z0, z1, z2, aw)
+        # Outside the frustum: wholly on the outer side of one of its side planes. The near
+        # plane needs no test: a box reaching in front of it is "behind" and kept below.
+        out = False
+        for sgn in (1.0, -1.0):
+            m, tol = _plane_max(ow_ * tan_x - sgn * ox_, ew * tan_x - sgn * ex,
+                                fw * tan_x - sgn * fx, gw * tan_x - sgn * gx)
+            out |= m < -tol
+            m, tol = _plane_max(ow_ * tan_y - sgn * oy_, ew * tan_y - sgn * ey,
+                                fw * tan_y - sgn * fy, gw * tan_y - sgn * gy)
+            out |= m < -tol
+        m, tol = _plane_max(ow_ - near, ew, fw, gw)
+        out |= m < -tol
+        if out:
+            continue
+        zmin = ow_ + min(ew, 0.0) + min(fw, 0.0) + min(gw, 0.0)
+        if zmin < near * (1.0 + 1e-9) + 1e-9 * (abs(ow_) + abs(ew) + abs(fw) + abs(gw)):
+            return False  # reaches the near plane (or the eye): never culled
         sx0, sx1, sy0, sy1 = np.inf, -np.inf, np.inf, -np.inf
         for q in range(8):
-            c0, c1, c2 = o0, o1, o2
-            if q & 1:
-                c0, c1, c2 = c0 + x0, c1 + x1, c2 + x2
-            if q & 2:
-                c0, c1, c2 = c0 + y0, c1 + y1, c2 + y2
-            if q & 4:
-                c0, c1, c2 = c0 + z0, c1 + z1, c2 + z2
-            px = signs[k, 0] * _pick(c0, c1, c2, axes[k, 0])
-            py = signs[k, 1] * _pick(c0, c1, c2, axes[k, 1])
-            w = -signs[k, 2] * _pick(c0, c1, c2, axes[k, 2])
-            common &= _outside(px, py, w, views.near, views.tan_x, views.tan_y)
-            if w < views.near:
-                behind = True
-            else:
-                sx = (px / (w * views.tan_x) + 1.0) * hw
-                sy = (1.0 - py / (w * views.tan_y)) * hh
-                sx0, sx1 = min(sx0, sx), max(sx1, sx)
-                sy0, sy1 = min(sy0, sy), max(sy1, sy)
-                zmin = min(zmin, w)
-        if common != 0:
-            continue  # outside this view's frustum
-        if behind:
-            return False
+            px, py, w = _box_corner(q, ox_, oy_, ow_, ex, ey, ew, fx, fy, fw, gx, gy, gw)
+            sx = (px / (w * tan_x) + 1.0) * hw
+            sy = (1.0 - py / (w * tan_y)) * hh
+            sx0, sx1 = min(sx0, sx), max(sx1, sx)
+            sy0, sy1 = min(sy0, sy), max(sy1, sy)
         px0, px1 = _centre_range(sx0, sx1, views.width)
         py0, py1 = _centre_range(sy0, sy1, views.height)
         if px0 > px1 or py0 > py1:
@@ -219,16 +249,16 @@ def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: 
 
 @njit(cache=True, nogil=True, inline="always")
 def _home(v, eye, i, views, cube):  # pragma: no cover - numba
-    """(view, screen x, screen y) of vertex i: the view whose frustum holds it (-1 none, -2 not
-    finite), as ``triangles._home_views`` decides it: for a cube, the face of the dominant axis
-    in ``views.base``'s frame, else view 0."""
+    """(view, screen x, screen y, depth) of vertex i: the view whose frustum holds it (-1 none,
+    -2 not finite), as ``triangles._home_views`` decides it: for a cube, the face of the
+    dominant axis in ``views.base``'s frame, else view 0."""
     base, axes, signs = views.base, views.axes, views.signs
     x, y, z = v[i, 0] - eye[0], v[i, 1] - eye[1], v[i, 2] - eye[2]
     c0 = base[0, 0] * x + base[0, 1] * y + base[0, 2] * z
     c1 = base[1, 0] * x + base[1, 1] * y + base[1, 2] * z
     c2 = base[2, 0] * x + base[2, 1] * y + base[2, 2] * z
     if not np.isfinite(c0 + c1 + c2):
-        return -2, 0.0, 0.0
+        return -2, 0.0, 0.0, 0.0
     k = 0
     if cube:
         a0, a1, a2 = abs(c0), abs(c1), abs(c2)
@@ -246,19 +276,22 @@ def _home(v, eye, i, views, cube):  # pragma: no cover - numba
     tan_x, tan_y = views.tan_x, views.tan_y
     if w >= views.near and abs(px) <= w * tan_x and abs(py) <= w * tan_y:
         return (k, (px / (w * tan_x) + 1.0) * 0.5 * views.width,
-                (1.0 - py / (w * tan_y)) * 0.5 * views.height)
-    return -1, 0.0, 0.0
+                (1.0 - py / (w * tan_y)) * 0.5 * views.height, w)
+    return -1, 0.0, 0.0, 0.0
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _bin(v, faces, sel, views, cube, out, box):  # pragma: no cover - numba
+def _bin(v, faces, sel, views, pyr, cube, out, box):  # pragma: no cover - numba
     """``triangles._cull`` for a selection, each face's corners placed on the fly: bit k of
     ``out[t]`` when face ``sel[t]`` may cover a pixel centre of view k, and its pixel box
-    when its corners share a view (``box[t, 0] = -1``: left to ``_setup``)."""
+    when its corners share a view (``box[t, 0] = -1``: left to ``_setup``). A face inside one
+    view whose box lies behind what the pyramid holds (as ``_box_hidden`` judges boxes) gets
+    no bit. Returns the faces so hidden."""
     n = v.shape[0]
     eye, rots = views.eye, views.rots
     width, height = views.width, views.height
     tan_x, tan_y, near = views.tan_x, views.tan_y, views.near
+    hidden = 0
     for t in prange(sel.shape[0]):
         out[t] = 0
         box[t, 0] = -1
@@ -266,15 +299,21 @@ def _bin(v, faces, sel, views, cube, out, box):  # pragma: no cover - numba
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
         if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n or i1 >= n or i2 >= n:
             continue
-        h0, x0, y0 = _home(v, eye, i0, views, cube)
-        h1, x1, y1 = _home(v, eye, i1, views, cube)
-        h2, x2, y2 = _home(v, eye, i2, views, cube)
+        h0, x0, y0, w0 = _home(v, eye, i0, views, cube)
+        h1, x1, y1, w1 = _home(v, eye, i1, views, cube)
+        h2, x2, y2, w2 = _home(v, eye, i2, views, cube)
         if h0 == -2 or h1 == -2 or h2 == -2:
             continue
         if h0 >= 0 and h0 == h1 and h0 == h2:
             px0, px1 = _centre_range(min(x0, x1, x2), max(x0, x1, x2), width)
             py0, py1 = _centre_range(min(y0, y1, y2), max(y0, y1, y2), height)
             if px0 <= px1 and py0 <= py1:
+                # Depth is affine over the triangle: its nearest point is a corner.
+                m = rect_min(pyr.hz, h0, pyr.heights, pyr.widths, pyr.offsets, px0, px1,
+                             py0, py1)
+                if m > (1.0 / min(w0, w1, w2)) * (1.0 + DEPTH_MARGIN):
+                    hidden += 1
+                    continue
                 out[t] = 1 << h0
                 box[t, 0] = px0
                 box[t, 1] = px1
@@ -291,16 +330,20 @@ def _bin(v, faces, sel, views, cube, out, box):  # pragma: no cover - numba
             if px0 <= px1:
                 bits |= 1 << k
         out[t] = bits
+    return hidden
 
 
-def _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers):
-    """Rasterize faces ``sel`` into every view's ``invd`` and ``idbuf``."""
+def _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts, n_workers, dirty):
+    """Rasterize faces ``sel`` into every view's ``invd`` and ``idbuf``, but those the pyramid
+    already hides; ``dirty`` (F, 4) gets each view's drawn pixel box [x0, x1, y0, y1] (x0 > x1:
+    none). Returns the faces the pyramid hid."""
     n_views = len(views.rots)
     cube = base is not None
     bits = _scratch("cull_bits", len(sel), np.uint8)
     box = _scratch("cull_box", (len(sel), 4), np.int32)
-    _bin(v, faces, sel, views, cube, bits, box)
+    hidden = _bin(v, faces, sel, views, pyr, cube, bits, box)
     offsets, order = _split_views(bits, n_views)
+    dirty[:] = (1, 0, 1, 0)
     for k in range(n_views):
         idx = order[offsets[k]: offsets[k + 1]]
         if len(idx) == 0:
@@ -311,6 +354,11 @@ def _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers):
                views.height, views.tan_x, views.tan_y, views.near, bounds, rec)
         _raster(rec, bounds, views.width, views.near, BAND_SHIFT, n_workers, invd[k],
                 idbuf[k], counts)
+        drawn = bounds[bounds[:, 0] <= bounds[:, 1]]
+        if len(drawn):
+            dirty[k] = (drawn[:, 0].min(), drawn[:, 1].max(), drawn[:, 2].min(),
+                        drawn[:, 3].max())
+    return hidden
 
 
 def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
@@ -327,7 +375,8 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     ``always``: int64 face ids drawn without culling (moving faces, which the hierarchy does not
     hold), in the first batch. ``stats`` gains ``triangles`` (drawn), ``pixels``,
     ``pixel_tests``, ``band_pairs`` as the full render reports them, and ``nodes_tested``,
-    ``nodes_hidden``, ``leaves_drawn``, ``batches``.
+    ``nodes_hidden``, ``leaves_drawn``, ``triangles_hidden`` (in drawn leaves, hidden one by
+    one), ``batches``.
     """
     n_views = len(rots)
     rots = np.ascontiguousarray(rots, dtype=np.float64)
@@ -351,7 +400,8 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     if hierarchy.boxes[1, 0, 0] <= hierarchy.boxes[1, 1, 0]:
         sp = _push(front[0], front[1], 0, 0.0, 1)
     out = np.empty(MAX_BATCH + tree.leaf, dtype=np.int64)
-    budget, drawn, batches = FIRST_BATCH, 0, 0
+    budget, drawn, batches, hidden = FIRST_BATCH, 0, 0, 0
+    dirty = np.zeros((n_views, 4), dtype=np.int64)
     extra = np.zeros(0, np.int64) if always is None else np.asarray(always, np.int64)
     while sp > 0 or (batches == 0 and len(extra)):
         n, sp = _walk(tree, views, pyr, mask, front, sp, out, budget, walk)
@@ -361,16 +411,18 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
         batches += 1
         if len(sel):
             drawn += len(sel)
-            _draw(v, faces, sel, ids, views, base, invd, idbuf, counts, n_workers)
+            hidden += _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts,
+                            n_workers, dirty)
             if sp > 0:
-                build_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz)
+                update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
         budget = min(2 * budget, MAX_BATCH)
     depth = None
     if want_depth:
         depth = np.empty((n_views, height, width), dtype=np.float32)
         _finish(invd, idbuf, depth)
     if stats is not None:
-        for key, val in (("triangles", drawn), ("pixels", n_views * width * height),
+        for key, val in (("triangles", drawn - hidden), ("triangles_hidden", hidden),
+                         ("pixels", n_views * width * height),
                          ("pixel_tests", int(counts[:, 0].sum())),
                          ("band_pairs", int(counts[:, 1].sum())),
                          ("nodes_tested", int(walk[0])), ("nodes_hidden", int(walk[1])),

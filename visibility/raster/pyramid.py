@@ -85,3 +85,30 @@ def rect_min(hz, k, heights, widths, offsets, x0, x1, y0, y1):  # pragma: no cov
         for j in range(x0 >> lv, (x1 >> lv) + 1):
             m = min(m, hz[k, o + i * w + j])
     return m
+
+
+@njit(cache=True, nogil=True)
+def update_pyramid(invd, heights, widths, offsets, hz, dirty):  # pragma: no cover - numba
+    """``build_pyramid`` over the pixels of ``dirty`` (F, 4) [x0, x1, y0, y1] per view
+    (inclusive; x0 > x1: unchanged) and the tiles above them only."""
+    w0 = invd.shape[2]
+    for k in range(invd.shape[0]):
+        x0, x1, y0, y1 = dirty[k, 0], dirty[k, 1], dirty[k, 2], dirty[k, 3]
+        if x0 > x1 or y0 > y1:
+            continue
+        for i in range(y0, y1 + 1):
+            for j in range(x0, x1 + 1):
+                hz[k, i * w0 + j] = invd[k, i, j]
+        for lv in range(1, heights.shape[0]):
+            hp, wp, op = heights[lv - 1], widths[lv - 1], offsets[lv - 1]
+            w, o = widths[lv], offsets[lv]
+            x0, x1, y0, y1 = x0 >> 1, x1 >> 1, y0 >> 1, y1 >> 1
+            for i in range(y0, y1 + 1):
+                i0 = 2 * i
+                i1 = min(i0 + 1, hp - 1)
+                for j in range(x0, x1 + 1):
+                    j0 = 2 * j
+                    j1 = min(j0 + 1, wp - 1)
+                    m = min(hz[k, op + i0 * wp + j0], hz[k, op + i0 * wp + j1])
+                    m = min(m, hz[k, op + i1 * wp + j0])
+                    hz[k, o + i * w + j] = min(m, hz[k, op + i1 * wp + j1])

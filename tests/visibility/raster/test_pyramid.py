@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from visibility.raster.pyramid import PyramidLayout, build_pyramid, rect_min
+from visibility.raster.pyramid import PyramidLayout, build_pyramid, rect_min, update_pyramid
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (5, 3), (64, 64), (37, 100)])
@@ -43,3 +43,23 @@ def test_rect_min_is_a_lower_bound_and_exact_for_small_rects():
         assert got <= exact
         if x1 - x0 <= 7 and y1 - y0 <= 7:
             assert got == exact
+
+
+def test_update_over_a_dirty_rect_equals_a_rebuild():
+    rng = np.random.default_rng(2)
+    invd = rng.random((3, 45, 61))
+    lay = PyramidLayout.of(45, 61)
+    hz = lay.empty(3)
+    build_pyramid(invd, lay.heights, lay.widths, lay.offsets, hz)
+    for _ in range(50):
+        dirty = np.zeros((3, 4), dtype=np.int64)
+        dirty[:] = (1, 0, 1, 0)
+        k = int(rng.integers(0, 3))
+        x0, x1 = np.sort(rng.integers(0, 61, 2))
+        y0, y1 = np.sort(rng.integers(0, 45, 2))
+        invd[k, y0:y1 + 1, x0:x1 + 1] = rng.random((y1 - y0 + 1, x1 - x0 + 1))
+        dirty[k] = (x0, x1, y0, y1)
+        update_pyramid(invd, lay.heights, lay.widths, lay.offsets, hz, dirty)
+        full = lay.empty(3)
+        build_pyramid(invd, lay.heights, lay.widths, lay.offsets, full)
+        assert np.array_equal(hz, full)
