@@ -218,9 +218,9 @@ def _pop(heap_key, heap_node, size):  # pragma: no cover - numba
 def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: no cover - numba
     """Take nodes nearest first (``front``: a min-heap of (squared box distance, node) pairs of
     ``size`` entries) until ``budget`` triangles are listed in ``out`` or none is left; hidden
-    nodes are dropped, a leaf's triangles (those ``mask`` keeps) listed, an inner node's
-    children queued. Returns (triangles listed, heap size). ``counts``: nodes tested, nodes
-    hidden, leaves drawn."""
+    nodes are dropped, a leaf's triangles (those ``mask`` keeps, by their positions in leaf
+    order) listed, an inner node's children queued. Returns (triangles listed, heap size).
+    ``counts``: nodes tested, nodes hidden, leaves drawn."""
     boxes, order = tree.boxes, tree.order
     heap_key, heap_node = front
     eye = views.eye
@@ -236,9 +236,8 @@ def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: 
             counts[2] += 1
             s = (node - tree.slots) * tree.leaf
             for t in range(s, min(s + tree.leaf, n_tri)):
-                f = order[t]
-                if mask[f]:
-                    out[n] = f
+                if mask[order[t]]:
+                    out[n] = t  # a position in leaf order (``Hierarchy.faces``)
                     n += 1
             continue
         for ch in (2 * node, 2 * node + 1):
@@ -333,17 +332,19 @@ def _bin(v, faces, sel, views, pyr, cube, out, box):  # pragma: no cover - numba
     return hidden
 
 
-def _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts, n_workers, dirty):
+def _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts, n_workers, dirty,
+          merge=False):
     """Rasterize faces ``sel`` into every view's ``invd`` and ``idbuf``, but those the pyramid
     already hides; ``dirty`` (F, 4) gets each view's drawn pixel box [x0, x1, y0, y1] (x0 > x1:
-    none). Returns the faces the pyramid hid."""
+    none), or grows by it with ``merge``. Returns the faces the pyramid hid."""
     n_views = len(views.rots)
     cube = base is not None
     bits = _scratch("cull_bits", len(sel), np.uint8)
     box = _scratch("cull_box", (len(sel), 4), np.int32)
     hidden = _bin(v, faces, sel, views, pyr, cube, bits, box)
     offsets, order = _split_views(bits, n_views)
-    dirty[:] = (1, 0, 1, 0)
+    if not merge:
+        dirty[:] = (1 << 30, -1, 1 << 30, -1)
     for k in range(n_views):
         idx = order[offsets[k]: offsets[k + 1]]
         if len(idx) == 0:
@@ -356,8 +357,8 @@ def _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts, n_workers, 
                 idbuf[k], counts)
         drawn = bounds[bounds[:, 0] <= bounds[:, 1]]
         if len(drawn):
-            dirty[k] = (drawn[:, 0].min(), drawn[:, 1].max(), drawn[:, 2].min(),
-                        drawn[:, 3].max())
+            dirty[k] = (min(dirty[k, 0], drawn[:, 0].min()), max(dirty[k, 1], drawn[:, 1].max()),
+                        min(dirty[k, 2], drawn[:, 2].min()), max(dirty[k, 3], drawn[:, 3].max()))
     return hidden
 
 
@@ -403,18 +404,22 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     budget, drawn, batches, hidden = FIRST_BATCH, 0, 0, 0
     dirty = np.zeros((n_views, 4), dtype=np.int64)
     extra = np.zeros(0, np.int64) if always is None else np.asarray(always, np.int64)
+    # The tree's triangles are drawn from its leaf-ordered copy; their ids are the rows of
+    # the scene's faces they stand for.
+    tree_ids = hierarchy.order if len(ids) == 0 else ids[hierarchy.order]
     while sp > 0 or (batches == 0 and len(extra)):
         n, sp = _walk(tree, views, pyr, mask, front, sp, out, budget, walk)
-        sel = out[:n]
         if batches == 0 and len(extra):
-            sel = np.concatenate([extra, sel])
-        batches += 1
-        if len(sel):
-            drawn += len(sel)
-            hidden += _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts,
+            drawn += len(extra)
+            hidden += _draw(v, faces, extra, ids, views, pyr, base, invd, idbuf, counts,
                             n_workers, dirty)
-            if sp > 0:
-                update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
+        batches += 1
+        if n:
+            drawn += n
+            hidden += _draw(hierarchy.vertices, hierarchy.faces, out[:n], tree_ids, views, pyr,
+                            base, invd, idbuf, counts, n_workers, dirty, merge=batches == 1)
+        if sp > 0 and (n or len(extra)):
+            update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
         budget = min(2 * budget, MAX_BATCH)
     depth = None
     if want_depth:

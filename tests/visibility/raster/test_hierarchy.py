@@ -38,6 +38,8 @@ def test_every_static_face_in_one_leaf_and_boxes_hold_it(leaf_size):
     box = h.boxes[slots + leaf[h.order]]
     assert np.all(tri[h.order].min(axis=1) >= box[:, 0])
     assert np.all(tri[h.order].max(axis=1) <= box[:, 1])
+    # The leaf-ordered copy draws the same corners.
+    assert np.array_equal(h.vertices[h.faces], scene.vertices[scene.faces[h.order]])
     inner = np.arange(1, slots)
     for child in (2 * inner, 2 * inner + 1):
         full = h.boxes[child, 0, 0] <= h.boxes[child, 1, 0]
@@ -68,17 +70,20 @@ def test_save_load_round_trip_and_checks(tmp_path):
     h = build_hierarchy(scene.vertices, scene.faces)
     p = tmp_path / "h.npz"
     h.save(p)
-    back = Hierarchy.load(p, scene.n_triangles)
+    back = Hierarchy.load(p, scene.vertices, scene.faces)
     assert back is not None
-    assert np.array_equal(back.order, h.order) and np.array_equal(back.boxes, h.boxes)
+    for name in ("order", "boxes", "faces", "vertices", "loose"):
+        assert np.array_equal(getattr(back, name), getattr(h, name)), name
     assert back.leaf_size == h.leaf_size
-    assert Hierarchy.load(p, scene.n_triangles + 1) is None  # another scene's faces
-    assert Hierarchy.load(tmp_path / "missing.npz", scene.n_triangles) is None
+    other = np.concatenate([scene.faces, scene.faces[:1]])
+    assert Hierarchy.load(p, scene.vertices, other) is None  # another scene's faces
+    assert Hierarchy.load(tmp_path / "missing.npz", scene.vertices, scene.faces) is None
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
-    assert Hierarchy.load(tmp_path / "bad.npz", scene.n_triangles) is None
+    assert Hierarchy.load(tmp_path / "bad.npz", scene.vertices, scene.faces) is None
     np.savez(tmp_path / "old.npz", format=np.array("bvh-0"), order=h.order, boxes=h.boxes,
              leaf_size=np.array(16), n_faces=np.array(scene.n_triangles), loose=h.loose)
-    assert FORMAT != "bvh-0" and Hierarchy.load(tmp_path / "old.npz", scene.n_triangles) is None
+    assert FORMAT != "bvh-0"
+    assert Hierarchy.load(tmp_path / "old.npz", scene.vertices, scene.faces) is None
 
 
 def test_kept_on_disk_by_content_hash(tmp_path):
