@@ -29,7 +29,8 @@ from client.session import Session
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.dask_executor import DaskExecutor
-from server.executor import LocalExecutor, scheduler_address
+from server.executor import LocalExecutor
+from server.executor_address import scheduler_address
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from visibility.cores import checks

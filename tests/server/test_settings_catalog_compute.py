@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from server.catalog import SceneCatalog, SceneLoadFailed, UnknownSceneError, check_scene_name
 from server.cache import PVSCache, pvs_nbytes
+from server.catalog import SceneCatalog, SceneLoadFailed, UnknownSceneError, check_scene_name
 from server.compute import ComputeService
 from server.region import UnknownCellError
 from server.resolve import Resolver, UnknownCoreError, coerce_params
