@@ -87,3 +87,41 @@ def test_precompute_with_auto_calibrates_first(settings, tmp_path):
         service.shutdown()
     assert report.why.startswith("calibrated on") and not report.failed
     assert list(tmp_path.glob("calibration-*.json"))
+
+
+def test_pvs_cores_and_a_server_on_its_cache_folder_agree(settings, scenes_dir, tmp_path,
+                                                          capsys):
+    """``pvs cores --calibrate --cache-dir`` keeps its calibration where a server on that
+    folder finds it; ``pvs cores --scene`` then reports as ``auto`` exactly what the server's
+    ``GET /cores``, its sessions and its PVS answers get (one decision, ``decide_auto``)."""
+    import json
+
+    import pvs_cli
+
+    cache = tmp_path / "cache"
+    common = ["cores", "--scene", "box", "--scenes", str(scenes_dir), "--budget", "0.5",
+              "--cache-dir", str(cache)]
+    assert pvs_cli.main([*common, "--calibrate"]) == 0
+    assert "calibrated on" in capsys.readouterr().out
+    assert pvs_cli.main(common) == 0
+    auto = json.loads(capsys.readouterr().out)["auto"]
+    assert auto["calibrated"] is True and auto["why"].startswith("calibrated on")
+    with serving(settings, cache_dir=cache, calibrate=True, auto_budget=0.5) as (url, app):
+        loaded = app.state.server.catalog.get("box")
+        t0 = time.perf_counter()
+        # Read from the folder, not measured again.
+        assert app.state.server.resolver.calibration.calibration(
+            loaded.scene, loaded.grid.cell_size, wait=True) is not None
+        assert time.perf_counter() - t0 < 5.0
+        fit = httpx.get(url + "/cores", params={"scene": "box"}, timeout=120).json()["fit"]
+        assert fit["auto"] == auto
+        with SyncSession.connect(url, "box", "auto", prefetch=False) as s:
+            assert s.welcome.core == auto["core"]
+            assert s.welcome.features["core_choice"] == {"core": auto["core"],
+                                                         "why": auto["why"]}
+            assert all(s.welcome.params[k] == v for k, v in auto["params"].items())
+            welcome = s.welcome
+        body = httpx.get(url + "/scenes/box/cells/0/pvs", params={"core": "auto"},
+                         timeout=300).json()
+        assert (body["core"], body["chosen_because"]) == (auto["core"], auto["why"])
+        assert body["params"] == welcome.params
