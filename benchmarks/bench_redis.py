@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
           "emptied first and only that tier stands behind it, so the lookup runs on the "
           "worker pool as a real memory miss does.", "", *body, "",
           "Redis values are the id gaps of the sorted set, int32, under zlib level 1 "
-          "(`server.redis_codec`).", ""]
+          "(`server.cache.codec`).", ""]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.md").write_text("\n".join(md))
     (args.out / f"{args.name}.json").write_text(json.dumps(

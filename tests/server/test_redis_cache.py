@@ -1,4 +1,4 @@
-"""The shared Redis cache (``server.redis_codec``, ``server.redis_cache``): values round-trip
+"""The shared Redis cache (``server.cache.codec``, ``server.cache.shared``): values round-trip
 and refuse what is not theirs; keys carry scene content hash, core, parameters and format
 version; and against a REAL ``redis-server`` on loopback: two server processes share a PVS (the
 second answers from Redis), a walker keeps walking while Redis is killed and restarted, a
