@@ -226,24 +226,38 @@ def cmd_cores(args: argparse.Namespace) -> int:
         print(json.dumps(r.json(), indent=2))
         return 0 if r.status_code == 200 else 1
     if args.scene:
-        from visibility.cores.base import core_fit_report
+        from server.calibration import decide_auto, fit_report
+        from visibility.calibration import (
+            BUDGET_SECONDS,
+            calibrate,
+            load_calibration,
+            save_calibration,
+        )
+        from visibility.scene import scene_fingerprint
         from visibility.viewcells import DEFAULT_CELL_SIZE
 
         scene = _local_scene(args.scene, args.scenes)
         # The grid's rule (sidecar, else the default) without building the grid.
-        size = args.cell_size or scene.meta.get("cell_size") or DEFAULT_CELL_SIZE
+        size = float(args.cell_size or scene.meta.get("cell_size") or DEFAULT_CELL_SIZE)
+        budget = args.budget or BUDGET_SECONDS
+        folder = Path(args.cache_dir) if args.cache_dir else None
+        cal = None
         if args.calibrate:
-            from visibility.calibration import BUDGET_SECONDS, calibrate, choose
-
-            budget = args.budget or BUDGET_SECONDS
             cal = calibrate(scene, size, budget_seconds=budget, progress=print)
             for what, why in cal.skipped.items():
                 print(f"{what}: skipped: {why}")
-            picked = choose(cal, budget)
-            print(f"calibrated in {cal.seconds:.1f} s; auto: "
-                  + (f"{picked[0].label()}: {picked[1]}" if picked else "nothing measured"))
+            if folder is not None:
+                save_calibration(folder, cal)
+        elif folder is not None:
+            cal = load_calibration(folder, scene_fingerprint(scene), size)
+        # The server's own decision (``server.calibration``): what a server with this
+        # calibration in its cache folder gives a session asking for auto.
+        decision = decide_auto(scene, size, cal, budget)
+        if args.calibrate:
+            print(f"calibrated in {cal.seconds:.1f} s; auto: {decision.label()}: "
+                  f"{decision.why}")
             return 0
-        print(json.dumps(core_fit_report(scene, size), indent=2))
+        print(json.dumps(fit_report(scene, size, decision), indent=2))
         return 0
     print(cores_help())
     return 0
@@ -374,8 +388,10 @@ def _add_walk_options(p: argparse.ArgumentParser, default_out: str) -> None:
 
 def cmd_precompute(args: argparse.Namespace) -> int:
     from server.catalog import SceneCatalog, SceneLoadFailed, UnknownSceneError
-    from server.compute import ComputeService, UnknownCellError, UnknownCoreError
+    from server.compute import ComputeService
     from server.precompute import parse_cells, precompute
+    from server.region import UnknownCellError
+    from server.resolve import UnknownCoreError
 
     try:
         settings = serve_settings(args)
@@ -484,7 +500,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibrate", action="store_true",
                    help="with --scene: measure every fitting core on a few cells against a "
                         "dense sample, as the server's auto does, and print its pick")
-    p.add_argument("--budget", type=float, help="seconds per cell for --calibrate (default 1)")
+    p.add_argument("--budget", type=float, help="seconds per cell auto may spend, for "
+                                                "--calibrate and the pick (default 1, as "
+                                                "the server's PVS_AUTO_BUDGET)")
+    p.add_argument("--cache-dir", help="with --scene: the server's cache folder, where "
+                                       "--calibrate keeps its calibration and the auto pick "
+                                       "reads it, as a server on that folder does")
     p.set_defaults(fn=cmd_cores)
 
     p = sub.add_parser("scenes", help="list scenes, or describe one")

@@ -38,6 +38,7 @@ from benchmarks.bench_cancel import machine
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.precompute import precompute
+from server.resolve import Resolver
 from server.settings import Settings
 from visibility.viewcells import spread_evenly
 
@@ -70,8 +71,9 @@ def run(scene: str, triangles: int, core: str, params: dict[str, Any], cells: li
         t0 = time.perf_counter()
         report = precompute(svc, scene, core, params, cells, progress=False)
         wall = time.perf_counter() - t0
-        c, p = svc.resolve(core, params)
-        ids = [svc.cache.get(svc.key(scene, c, p, cell)).triangle_ids for cell in cells]
+        choice = Resolver(svc.settings).named(core, params)
+        ids = [svc.cache.get(svc.key(scene, choice.core, choice.params, cell)).triangle_ids
+               for cell in cells]
         state = svc.executor.state()
         slots = svc.pool.workers
     finally:

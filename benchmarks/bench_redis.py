@@ -40,9 +40,10 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_load import machine  # noqa: E402
+from server.cache.codec import decode_pvs, encode_pvs  # noqa: E402
 from server.catalog import SceneCatalog  # noqa: E402
 from server.compute import ComputeService  # noqa: E402
-from server.redis_codec import decode_pvs, encode_pvs  # noqa: E402
+from server.resolve import Resolver  # noqa: E402
 from server.settings import Settings  # noqa: E402
 from tests.redis_process import RedisProcess, available  # noqa: E402
 from visibility.viewcells import spread_evenly  # noqa: E402
@@ -78,45 +79,46 @@ def measure(args: argparse.Namespace) -> dict:
         loaded = service.catalog.get(args.scene)
         n = loaded.scene.n_triangles
         cells = spread_evenly(np.arange(len(loaded.grid)), args.cells)
-        core, params, _ = service.resolve_for(loaded.scene, args.core, args.params)
+        choice = Resolver(settings).resolve(args.core, args.params, loaded)
+        core, params = choice.core, choice.params
         t0 = time.perf_counter()
         results = [service.submit(args.scene, core, params, cell=c) for c in cells]
         results = [f.result() for f in results]
         fill = time.perf_counter() - t0
         print(f"computed {len(cells)} cells in {fill:.1f} s "
               f"({sum(r.seconds for r in results):.1f} s of computation)")
-        keys = {c: (service.key(args.scene, core, params, c),
-                    service.disk_key(loaded, core, params, loaded.grid.boxes[c]),
-                    service.redis_key(loaded, core, params, c)) for c in cells}
-        disk, shared, memory = service.disk, service.redis, service.cache
+        # One key for every tier; Redis stores it as its ``shared()`` string.
+        keys = {c: service.key(args.scene, core, params, c) for c in cells}
+        tiered = service.cache
+        disk, shared, memory = tiered.disk, tiered.shared, tiered.memory
         tiers: dict[str, list[float]] = {k: [] for k in ("memory", "disk", "redis")}
         via: dict[str, list[float]] = {k: [] for k in ("memory", "disk", "redis")}
 
         def through(tier: str, cell: int) -> float:
             if tier != "memory":
                 memory.clear()
-            service.disk = disk if tier == "disk" else None
-            service.redis = shared if tier == "redis" else None
+            tiered.disk = disk if tier == "disk" else None
+            tiered.shared = shared if tier == "redis" else None
             try:
                 dt = timed(lambda: service.submit(args.scene, core, params, cell=cell).result())
             finally:
-                service.disk, service.redis = disk, shared
+                tiered.disk, tiered.shared = disk, shared
             for c, r in zip(cells, results, strict=True):  # the memory tier as it was
-                memory.put(keys[c][0], r.pvs)
+                memory.put(keys[c], r.pvs)
             return dt
 
         for _ in range(args.repeats):
             for c in cells:
-                mk, dk, rk = keys[c]
-                tiers["memory"].append(timed(lambda mk=mk: memory.get(mk)))
-                tiers["disk"].append(timed(lambda dk=dk: disk.get(dk, n_triangles=n)))
-                tiers["redis"].append(timed(lambda rk=rk: shared.get_pvs(rk, n)))
+                k = keys[c]
+                tiers["memory"].append(timed(lambda k=k: memory.get(k)))
+                tiers["disk"].append(timed(lambda k=k: disk.get(k, n_triangles=n)))
+                tiers["redis"].append(timed(lambda k=k: shared.get_pvs(k.shared(), n)))
                 for tier in via:
                     via[tier].append(through(tier, c))
         sizes = []
         client = redis.client()
         for c, r in zip(cells, results, strict=True):
-            rk = keys[c][2]
+            rk = keys[c].shared()
             ids = r.pvs.triangle_ids
             value = client.get(rk)
             raw = encode_pvs(rk, r.pvs, n, compress=False)
@@ -124,7 +126,7 @@ def measure(args: argparse.Namespace) -> dict:
             dec = [timed(lambda v=value, rk=rk: decode_pvs(rk, v, n)) for _ in range(20)]
             dec_raw = [timed(lambda v=raw, rk=rk: decode_pvs(rk, v, n)) for _ in range(20)]
             sizes.append({"cell": int(c), "ids": int(len(ids)), "raw_bytes": int(4 * len(ids)),
-                          "npz_bytes": disk.path(keys[c][1]).stat().st_size,
+                          "npz_bytes": disk.path(keys[c]).stat().st_size,
                           "redis_bytes": len(value), "redis_raw_bytes": len(raw),
                           "encode_s": statistics.median(enc),
                           "decode_s": statistics.median(dec),
@@ -215,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
           "emptied first and only that tier stands behind it, so the lookup runs on the "
           "worker pool as a real memory miss does.", "", *body, "",
           "Redis values are the id gaps of the sorted set, int32, under zlib level 1 "
-          "(`server.redis_codec`).", ""]
+          "(`server.cache.codec`).", ""]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.md").write_text("\n".join(md))
     (args.out / f"{args.name}.json").write_text(json.dumps(

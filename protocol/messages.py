@@ -398,12 +398,16 @@ class CoreFit(BaseModel):
 
 
 class AutoChoice(BaseModel):
-    """The core ``auto`` picks for a scene (None when no core fits) and why."""
+    """The core ``auto`` picks for a scene (None when no core fits) and why; ``params``: the
+    parameters the choice comes with (a calibrated trial's knob level), ``calibrated``: whether
+    a calibration decided (else the cores' declared fits did)."""
 
     model_config = ConfigDict(extra="allow")
 
     core: str | None = None
     why: str = ""
+    params: dict[str, Any] = Field(default_factory=dict)
+    calibrated: bool = False
 
 
 class CoreFitReport(BaseModel):

@@ -42,7 +42,7 @@ from server.settings import Settings
 from server.tokens import Grant, TokenBook, env_grants, read_tokens_file
 
 if TYPE_CHECKING:
-    from server.ws.session import StreamSession
+    from server.state import Session
 
 log = logging.getLogger(__name__)
 
@@ -273,7 +273,7 @@ def subprotocol(scope: Scope) -> str | None:
     return SUBPROTOCOL if SUBPROTOCOL in (scope.get("subprotocols") or ()) else None
 
 
-async def admit_session(session: StreamSession) -> None:
+async def admit_session(session: Session) -> None:
     """Before ``hello``: refuse a session without a valid token (``unauthorized``, 4401) or
     past its token's ``max_sessions`` (``over_quota``, 4429), else hold one of its places
     until ``release_session``. Nothing without access control."""
@@ -293,7 +293,7 @@ async def admit_session(session: StreamSession) -> None:
     session.grant = grant
 
 
-async def check_scene(session: StreamSession, scene: str) -> None:
+async def check_scene(session: Session, scene: str) -> None:
     """Right after ``hello``: refuse a scene outside the session's token's allow list
     (``forbidden``, 4403), whether it exists or not."""
     grant = session.grant
@@ -303,7 +303,7 @@ async def check_scene(session: StreamSession, scene: str) -> None:
                             f"token {grant.name!r} may not use scene {scene!r}")
 
 
-def release_session(session: StreamSession) -> None:
+def release_session(session: Session) -> None:
     """Give back the session's place in its token's ``max_sessions`` (once)."""
     grant, session.grant = session.grant, None
     if grant is not None:

@@ -14,7 +14,8 @@ from typing import Any
 from protocol.codes import HTTP_STATUS, ErrorCode
 from server.admission import Busy, OverLimit, Refused, TooManyInFlight
 from server.catalog import SceneLoadFailed, UnknownSceneError
-from server.compute import UnknownCellError, UnknownCoreError, UnsupportedSceneError
+from server.region import UnknownCellError, UnsupportedSceneError
+from server.resolve import UnknownCoreError
 from visibility.cancel import ComputationCancelled
 from visibility.cores.base import SegmentNotSupported
 

@@ -10,12 +10,12 @@ imported only when a Dask executor is made: the default path never loads it.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from server.executor_address import LOCAL, scheduler_address, workers_load_scenes
 from visibility.cancel import CancelToken
 from visibility.cores.base import PVS, Core, CoreParams
 from visibility.jobs import compute_region
@@ -23,37 +23,6 @@ from visibility.viewcells import Viewcell
 
 if TYPE_CHECKING:
     from server.catalog import LoadedScene
-
-LOCAL = "local"
-_DASK = re.compile(r"^dask://(?P<host>[A-Za-z0-9_.\-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>\d{1,5})/?"
-                   r"(\?scenes=(?P<scenes>scatter|load))?$")
-
-
-def _parse(executor: str) -> re.Match | None:
-    text = executor.strip()
-    if text == LOCAL:
-        return None
-    m = _DASK.match(text)
-    if m is None or not 0 < int(m["port"]) <= 65535:
-        raise ValueError(f"executor must be 'local' or 'dask://HOST:PORT' (optionally "
-                         f"'?scenes=load'), got {executor!r}")
-    return m
-
-
-def scheduler_address(executor: str) -> str | None:
-    """The Dask scheduler address (``tcp://host:port``) an ``executor`` setting names, or None
-    for ``"local"``; ValueError for anything else."""
-    m = _parse(executor)
-    return None if m is None else f"tcp://{m['host']}:{int(m['port'])}"
-
-
-def workers_load_scenes(executor: str) -> bool:
-    """Whether a ``dask://...?scenes=load`` setting asks the workers to load each scene
-    themselves (the same scene file path on every machine, or the same generator) instead of
-    receiving it scattered from the server."""
-    m = _parse(executor)
-    return m is not None and m["scenes"] == "load"
-
 
 class Executor(Protocol):
     """What ``ComputeService`` needs from the place computations run."""

@@ -13,8 +13,8 @@ Splits and cubemaps share one ``ByteLRU`` bounded by ``settings.near_far_cache_b
 of a cell where a connected walker stands (``in_use(scene, cell)``) is never evicted. Keys carry
 the scene's geometry fingerprint, so a scene replaced under the same name never meets old data.
 
-With a shared cache (``shared``: Redis, ``server.redis_cache``), encoded cubemaps missing from
-memory are looked up there before they are baked, and what is baked is written there, so
+With a shared cache (``shared``: Redis, ``server.cache.shared``), encoded cubemaps missing
+from memory are looked up there before they are baked, and what is baked is written there, so
 replicas bake each cubemap once between them.
 """
 
@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from server.cache import ByteLRU
+from server.cache.codec import colours_digest, cubemap_key
+from server.cache.memory import ByteLRU
 from server.catalog import LoadedScene
-from server.redis_codec import colours_digest, cubemap_key
 from visibility import nearfar
 from visibility.nearfar.cells import cells_needing_cubemap, cubemap_anchors
 
@@ -39,7 +39,7 @@ class NearFarStore:
     def __init__(self, max_bytes: int, in_use: Callable[[str, int], bool] | None = None,
                  shared: Any = None) -> None:
         self._in_use = in_use
-        #: A ``server.redis_cache.SharedCache`` replicas share cubemaps through, or None.
+        #: A ``server.cache.shared.SharedCache`` replicas share cubemaps through, or None.
         self.shared = shared
         self._colours: dict[tuple, str] = {}
         self.cache = ByteLRU(max_bytes, keep=self._keep)

@@ -18,14 +18,17 @@ from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.compute import AUTO_CORE, ComputeService, UnknownCellError
+from server.compute import ComputeService
+from server.region import UnknownCellError, cell_key
+from server.resolve import Resolver
+from visibility.cores.base import AUTO_CORE
 
 
 @dataclass
 class PrecomputeReport:
     """What a ``precompute`` run did: cells computed now, found cached (memory or disk), and
     failed ({cell: message}); ``compute_seconds`` sums the computations' own times, ``wall``
-    is the run's wall time (seconds); ``why`` how the core was chosen (``resolve_for``)."""
+    is the run's wall time (seconds); ``why`` how the core was chosen (``Resolver.resolve``)."""
 
     scene: str
     core: str
@@ -71,16 +74,17 @@ def parse_cells(text: str, n_cells: int) -> list[int]:
 
 def precompute(service: ComputeService, scene: str, core: str | None = None,
                params: Mapping[str, Any] | None = None, cells: Sequence[int] | None = None,
-               progress: bool = True) -> PrecomputeReport:
+               progress: bool = True, resolver: Resolver | None = None) -> PrecomputeReport:
     """Compute the PVS of ``cells`` (default: every cell of the scene's grid) of catalogue
-    scene ``scene`` with ``core`` (default and ``"auto"`` as the server resolves them) and
-    ``params``, on the service's worker pool; results go to its caches (memory, and disk when
-    configured, and Redis when ``settings.cache`` names one). A cell that fails is reported, not
-    raised: its computation failed or its entry is not valid afterwards in the on-disk cache
-    (``DiskPVSCache.check``) or in Redis (a Redis that is down fails the cells it misses).
-    Raises UnknownSceneError,
+    scene ``scene`` with ``core`` (default and ``"auto"`` as the server resolves them:
+    ``resolver``, default one of the service's settings) and ``params``, on the service's
+    worker pool; results go to its caches (memory, and disk when configured, and Redis when
+    ``settings.cache`` names one). A cell that fails is reported, not raised: its computation
+    failed or its entry is not valid afterwards in the on-disk cache (``DiskPVSCache.check``)
+    or in Redis (a Redis that is down fails the cells it misses). Raises UnknownSceneError,
     UnknownCoreError, ValueError (bad parameters) and UnknownCellError (ids outside the grid)
     before computing anything."""
+    resolver = resolver or Resolver(service.settings)
     loaded = service.catalog.get(scene)
     n = len(loaded.grid)
     ids = list(range(n)) if cells is None else sorted({int(c) for c in cells})
@@ -90,19 +94,19 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
     if (core or service.settings.core) == AUTO_CORE and service.settings.calibrate:
         # ``auto`` picks by measurement: calibrate now (kept in the cache folder with the
         # scene's content hash, so the server finds it), then resolve.
-        service.calibration(loaded.scene, service.cell_size_of(loaded.scene), wait=True,
-                            progress=(lambda line: print("calibration: " + line))
-                            if progress else None)
-    core_obj, p, why = service.resolve_for(loaded.scene, core, params)
-    report = PrecomputeReport(scene, core_obj.name, dataclasses.asdict(p), len(ids), why=why)
+        resolver.calibration.calibration(
+            loaded.scene, float(loaded.grid.cell_size), wait=True,
+            progress=(lambda line: print("calibration: " + line)) if progress else None)
+    choice = resolver.resolve(core, params, loaded)
+    report = PrecomputeReport(scene, choice.core.name, dataclasses.asdict(choice.params),
+                              len(ids), why=choice.why)
     t0 = time.perf_counter()
-    futures = {service.submit(scene, core_obj, p, cell=c): c for c in ids}
+    futures = {service.submit(scene, choice.core, choice.params, cell=c): c for c in ids}
     done = as_completed(futures)
     if progress:
         from tqdm import tqdm
 
         done = tqdm(done, total=len(futures), desc=f"precompute {scene}", unit="cell")
-    disk = service.disk
     for fut in done:
         cell = futures[fut]
         try:
@@ -110,18 +114,14 @@ def precompute(service: ComputeService, scene: str, core: str | None = None,
         except Exception as exc:  # one cell's failure must not lose the others
             report.failed[cell] = f"{type(exc).__name__}: {exc}"
             continue
-        if disk is not None:
-            # The point of the run is the entry a server will read: one that is not there, or
-            # would be rejected, is a failure however the computation went.
-            key = service.disk_key(loaded, core_obj, p, loaded.grid.boxes[cell])
-            if not disk.check(key, loaded.scene.n_triangles):
-                report.failed[cell] = "its on-disk cache entry could not be written"
-                continue
-        if service.redis is not None:
-            rkey = service.redis_key(loaded, core_obj, p, cell)
-            if service.redis.get_pvs(rkey, loaded.scene.n_triangles, count=False) is None:
-                report.failed[cell] = "its Redis entry could not be written"
-                continue
+        # The point of the run is the entry a server will read: one that is not there, or
+        # would be rejected, is a failure however the computation went.
+        key = cell_key(loaded, cell, choice.core, choice.params)
+        missing = service.cache.missing(key, loaded.scene.n_triangles)
+        if missing:
+            where = "on-disk cache" if "disk" in missing else "Redis"
+            report.failed[cell] = f"its {where} entry could not be written"
+            continue
         if result.cached:
             report.cached += 1
         else:

@@ -32,11 +32,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import math
 import time
 from collections.abc import Awaitable
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, FastAPI, Query, Request
@@ -50,14 +49,13 @@ from protocol.messages import BoxPvsRequest, CoresResponse, ErrorResponse, PvsRe
 from protocol.version import PROTOCOL_VERSION
 from server.auth import visible_scenes
 from server.catalog import LoadedScene, wire_origin
-from server.compute import AUTO_CORE, PVSResult, choose_core, core_fits
-from server.errors import ApiError, code_for_status, error_body, error_message
+from server.errors import ApiError, code_for_status, error_body
 from server.negotiation import choose_media_type
+from server.region import PVSResult
+from server.resolve import CoreChoice
+from server.state import ServerState
 from visibility.cancel import ComputationCancelled
-from visibility.cores.base import available_cores, get_core
-
-if TYPE_CHECKING:
-    from server.app import ServerState
+from visibility.cores.base import AUTO_CORE, available_cores, describe_cores, get_core
 
 __all__ = ["ApiError", "error_response", "install_error_handlers", "jsonable", "router"]
 
@@ -153,22 +151,22 @@ def _check_region(loaded: LoadedScene, region: np.ndarray) -> None:
 
 
 async def _resolve(request: Request, scene: str, core_name: str | None,
-                   params: dict[str, Any]) -> tuple[LoadedScene, Any, Any, str]:
-    """The loaded scene, the core (``auto`` chosen per scene), its parameters and why it was
-    chosen. Cheap checks first: an unknown scene, core or parameter never loads a scene."""
-    compute = _state(request).compute
+                   params: dict[str, Any]) -> tuple[LoadedScene, CoreChoice]:
+    """The loaded scene and the request's core choice (``server.resolve``: ``auto`` decided
+    for the scene). Cheap checks first: an unknown scene, core or parameter never loads a
+    scene."""
+    state = _state(request)
     try:
-        compute.catalog.require(scene)
-        if (core_name or compute.settings.core) != AUTO_CORE:
-            compute.resolve(core_name, params)
+        state.catalog.require(scene)
+        choice = state.resolver.resolve(core_name, params)
         loaded = await _loaded(request, scene)
-        core, core_params, why = compute.resolve_for(loaded.scene, core_name, params)
+        choice = choice or state.resolver.resolve(core_name, params, loaded)
     except Exception as exc:
         api = ApiError.of(exc, params=True)
         if api is None:
             raise
         raise api from None
-    return loaded, core, core_params, why
+    return loaded, choice
 
 
 #: Seconds between checks, while a PVS is computed, that the HTTP client is still there.
@@ -230,12 +228,13 @@ async def _pvs(
     if media is None:
         raise ApiError.coded(ErrorCode.NOT_ACCEPTABLE, "no acceptable answer form; this route "
                              f"answers {list(PVS_MEDIA_TYPES)}")
-    loaded, core, core_params, why = await _resolve(request, scene, core_name, params)
+    loaded, choice = await _resolve(request, scene, core_name, params)
+    core_params, why = choice.params, choice.why
     if box is not None or segment is not None:
         _check_region(loaded, box if segment is None else segment)
     try:
         result: PVSResult = await _unless_gone(request, compute.compute(
-            scene, core, core_params, cell=cell, box=box, segment=segment, deadline=deadline,
+            scene, choice.core, core_params, cell=cell, box=box, segment=segment, deadline=deadline,
             client=client_of(request)))
     except ClientGone:
         _state(request).counters["http_abandoned"] += 1
@@ -291,63 +290,6 @@ async def _pvs(
     return await asyncio.to_thread(render)
 
 
-# --------------------------------------------------------------------------- cores
-def _param_info(field: dataclasses.Field) -> dict[str, Any]:
-    if field.default is not dataclasses.MISSING:
-        default = field.default
-    elif field.default_factory is not dataclasses.MISSING:
-        default = field.default_factory()
-    else:
-        default = None
-    kind = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", None)
-    return {"name": field.name, "type": kind, "default": default}
-
-
-def describe_cores() -> list[dict[str, Any]]:
-    """Every registered core with its parameters (``visibility.cores.base.describe_cores``;
-    until that exists, names, descriptions and the parameters' names, types and defaults)."""
-    try:
-        from visibility.cores.base import describe_cores as describe
-    except (ImportError, AttributeError):
-        pass
-    else:
-        return describe()
-    out = []
-    for name in available_cores():
-        try:
-            core = get_core(name)
-        except KeyError:  # unregistered meanwhile
-            continue
-        out.append({"name": name, "description": core.description,
-                    "params": [_param_info(f) for f in dataclasses.fields(core.Params)]})
-    return out
-
-
-def core_fit_report(loaded: LoadedScene) -> dict[str, Any]:
-    """How every core fits ``loaded`` and what ``auto`` picks
-    (``visibility.cores.base.core_fit_report``; until that exists, ``core_fits`` and
-    ``choose_core``). Blocking: scene analysis can take a while."""
-    try:
-        from visibility.cores.base import core_fit_report as report
-    except (ImportError, AttributeError):
-        pass
-    else:
-        return report(loaded.scene, loaded.grid.cell_size)
-    scene = loaded.scene
-    cores = []
-    for name in available_cores():
-        try:
-            ok, why = core_fits(get_core(name), scene)
-        except KeyError:
-            continue
-        cores.append({"core": name, "ok": ok, "score": None, "why": why or "fits"})
-    try:
-        auto, auto_why = choose_core(scene)
-    except LookupError as exc:
-        auto, auto_why = None, error_message(exc)
-    return {"cores": cores, "auto": {"core": auto, "why": auto_why}}
-
-
 # --------------------------------------------------------------------------- routes
 @router.get("/health", summary="Liveness and load")
 async def health(request: Request) -> dict:
@@ -364,7 +306,7 @@ async def health(request: Request) -> dict:
         "sessions_total": st.counters["sessions_total"],
         "scenes": len(listing),
         "compute": st.compute.stats(),
-        "cache": st.compute.cache_state(),
+        "cache": st.compute.cache.state(),
         "stream": {k: v for k, v in st.counters.items() if k != "sessions_total"},
     }
 
@@ -409,12 +351,14 @@ async def list_cores(
 ) -> Any:
     """Every core with its parameters (name, type, default, unit, bounds) and what it fits;
     ``default`` is the core a request without one gets. With ``scene``, ``fit`` says how each
-    core fits that scene and what ``auto`` picks there (404 ``unknown_scene``)."""
+    core fits that scene and what ``auto`` picks there, the very choice a session or PVS
+    request with ``core=auto`` gets now (``server.calibration``; 404 ``unknown_scene``)."""
     answer: dict[str, Any] = {"default": _state(request).settings.core,
                               "cores": await asyncio.to_thread(describe_cores)}
     if scene is not None:
         loaded = await _loaded(request, scene)
-        answer["fit"] = await asyncio.to_thread(core_fit_report, loaded)
+        answer["fit"] = await asyncio.to_thread(_state(request).resolver.calibration.report,
+                                                loaded)
     return Response(CoresResponse.model_validate(jsonable(answer)).model_dump_json(),
                     media_type=JSON_MEDIA_TYPE)
 
@@ -441,8 +385,6 @@ def core_query_parameters() -> list[dict[str, Any]]:
     """OpenAPI query parameters for every core parameter, from the cores' own declarations
     (``Core.param_specs``): one entry per name, its help per core, range and unit. The core
     converts and checks the values (422 ``bad_params``); they are read from the query string."""
-    from visibility.cores.base import available_cores, get_core
-
     by_name: dict[str, dict[str, Any]] = {}
     for name in available_cores():
         for spec in get_core(name).param_specs():

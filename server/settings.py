@@ -133,7 +133,7 @@ class Settings(BaseModel):
         path, or the generator), checked by content hash, instead of receiving it scattered.
     cache : the PVS cache behind memory: ``"disk"`` (the default: ``cache_dir`` when set) or a
         Redis URL (``redis://host:port/db``, ``rediss://``, ``unix://``) that several replicas
-        share for PVS and near-far cubemaps (``server.redis_cache``), before ``cache_dir``.
+        share for PVS and near-far cubemaps (``server.cache.shared``), before ``cache_dir``.
     redis_ttl : seconds a value lives in Redis (0: until Redis evicts it; bound the total with
         Redis's ``maxmemory`` and an LRU policy).
     redis_max_value_bytes : largest value written to Redis, bytes (larger ones stay local).
@@ -205,7 +205,7 @@ class Settings(BaseModel):
     @field_validator("executor")
     @classmethod
     def _executor(cls, v: str) -> str:
-        from server.executor import scheduler_address
+        from server.executor_address import scheduler_address
 
         scheduler_address(v)  # ValueError naming the two forms
         return v.strip()

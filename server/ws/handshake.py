@@ -1,6 +1,6 @@
 """The opening of a session: ``hello`` in, checks, the scene loaded, ``welcome`` out.
 
-Every error before ``welcome`` is fatal: ``StreamSession.error`` closes and ends the session.
+Every error before ``welcome`` is fatal: ``Session.error`` closes and ends the session.
 With access control on (``server.auth``) the token is checked before ``hello`` is read and the
 scene against its allow list right after. Cheap checks go first (version, scene name, core and
 parameters) so a bad hello never pays for loading a scene.
@@ -26,15 +26,15 @@ from protocol.messages import (
 from protocol.version import SUPPORTED_VERSIONS
 from server.auth import admit_session, check_scene
 from server.catalog import LoadedScene
-from server.compute import AUTO_CORE, core_fits, offered_cores
 from server.errors import error_code, error_message
+from server.resolve import core_fits, offered_cores
 from server.ws.dynamic import DynamicFrames
 from server.ws.inventory import Inventory
 from server.ws.nearfar import NearFarStreams
 from visibility.cores.base import CoreParams
 
 if TYPE_CHECKING:
-    from server.ws.session import StreamSession
+    from server.state import Session
 
 #: Handshake errors answered with their own code; any other bad first message is
 #: ``expected_hello``.
@@ -67,7 +67,7 @@ def jsonable_params(params: CoreParams) -> dict[str, Any]:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in params.as_dict().items()}
 
 
-async def read_hello(session: StreamSession) -> Hello:
+async def read_hello(session: Session) -> Hello:
     """The client's ``hello``, within ``settings.hello_timeout``; anything else is fatal."""
     try:
         text = await session.transport.receive(timeout=session.settings.hello_timeout)
@@ -82,7 +82,7 @@ async def read_hello(session: StreamSession) -> Hello:
     return msg
 
 
-async def handshake(session: StreamSession) -> None:
+async def handshake(session: Session) -> None:
     """Check the token (access control on), read and check ``hello``, load the scene, set up
     the session's parts, send ``welcome``. Registers the session in ``ServerState.sessions``
     just before the welcome leaves."""
@@ -94,14 +94,14 @@ async def handshake(session: StreamSession) -> None:
         await s.error(ErrorCode.VERSION_MISMATCH,
                       f"protocol version {msg.version} not supported; server speaks "
                       f"{list(SUPPORTED_VERSIONS)}")
-    catalog, compute = s.state.catalog, s.state.compute
+    catalog, resolver = s.state.catalog, s.state.resolver
     try:
         catalog.require(msg.scene)
-        if (msg.core or compute.settings.core) != AUTO_CORE:
-            # Check the core and its parameters before paying for loading the scene.
-            compute.resolve(msg.core, msg.params)
+        # A named core and its parameters are checked before paying for loading the scene.
+        choice = resolver.resolve(msg.core, msg.params)
         s.loaded = await catalog.load(msg.scene)
-        s.core, s.params, why = compute.resolve_for(s.loaded.scene, msg.core, msg.params)
+        choice = choice or resolver.resolve(msg.core, msg.params, s.loaded)
+        s.core, s.params, why = choice.core, choice.params, choice.why
     except Exception as exc:
         code = error_code(exc, params=True)
         if code is None:
@@ -115,7 +115,7 @@ async def handshake(session: StreamSession) -> None:
     settings = s.settings
     s.prefetch = settings.prefetch if msg.prefetch is None else bool(msg.prefetch)
     s.inventory = Inventory(scene.n_triangles, msg.budget)
-    s.nearfar = NearFarStreams(s.state, s.loaded)
+    s.nearfar = NearFarStreams(settings, s.state.near_far, s.loaded)
     s.dynamic = DynamicFrames(scene, settings.max_frame_bytes, s.outbox, s.state.counters, s.id)
     valid = int(np.count_nonzero(scene.valid_faces))
     s.send_all = msg.budget is not None and valid <= msg.budget
@@ -139,7 +139,7 @@ async def handshake(session: StreamSession) -> None:
     s.welcomed = True
 
 
-def progressive_on(s: StreamSession, asked: bool | None) -> tuple[bool, str]:
+def progressive_on(s: Session, asked: bool | None) -> tuple[bool, str]:
     """Whether the session gets first answers refined in place (``settings.progressive``,
     the hello's ``progressive``), and why."""
     settings = s.settings
@@ -150,16 +150,16 @@ def progressive_on(s: StreamSession, asked: bool | None) -> tuple[bool, str]:
     if s.send_all:
         return False, "the whole scene is sent: no PVS to refine"
     try:
-        first, params = s.state.compute.first_core()
+        first = s.state.resolver.first()
     except (LookupError, ValueError) as exc:
         return False, f"the first answers' core is misconfigured: {exc}"
-    if first.name == s.core.name and params.cache_key() == s.params.cache_key():
+    if first.core.name == s.core.name and first.params.cache_key() == s.params.cache_key():
         return False, "the session's core is the first answers' core: nothing to refine"
-    return True, (f"a cell not yet computed comes first as {first.name}'s cheap answer, then "
+    return True, (f"a cell not yet computed comes first as {first.core.name}'s cheap answer, then "
                   f"what {s.core.name} adds")
 
 
-def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
+def session_features(s: Session, why: str, valid: int) -> dict[str, Any]:
     """What the session's streams include and leave out, and why (the welcome's
     ``features``); ``why``: why its core was chosen, ``valid``: the scene's valid triangles."""
     budget = s.inventory.budget
@@ -187,11 +187,11 @@ def session_features(s: StreamSession, why: str, valid: int) -> dict[str, Any]:
     }
 
 
-def progressive_feature(s: StreamSession) -> dict[str, Any]:
+def progressive_feature(s: Session) -> dict[str, Any]:
     """The welcome's ``features.progressive``: on or off and why; the first answers' core and
     parameters when on."""
     out: dict[str, Any] = {"on": s.progressive, "why": s.progressive_why}
     if s.progressive:
-        core, params = s.state.compute.first_core()
-        out["first"] = {"core": core.name, "params": jsonable_params(params)}
+        first = s.state.resolver.first()
+        out["first"] = {"core": first.core.name, "params": jsonable_params(first.params)}
     return out

@@ -3,22 +3,22 @@ cell's geometry is PVS ∩ near ids ∪ far dynamic ids and the far static part 
 baked from O.
 
 Cells of a block (``settings.near_far_block``) share their anchor cell's centre, split and
-cubemap; splits and cubemaps are computed once per server (``ServerState.near_far``, bounded).
+cubemap; splits and cubemaps are computed once per server (``store``: ``ServerState.near_far``,
+bounded).
 """
 
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from protocol.cubemap import encode_cubemap
 from server.catalog import LoadedScene
+from server.nearfar_store import NearFarStore
+from server.settings import Settings
 from visibility import nearfar
-
-if TYPE_CHECKING:
-    from server.app import ServerState
 
 
 class NearFarStreams:
@@ -30,17 +30,17 @@ class NearFarStreams:
     cubemaps_sent : set of anchor cells whose cubemap this session was sent.
     """
 
-    def __init__(self, state: ServerState, loaded: LoadedScene) -> None:
-        self.state = state
+    def __init__(self, settings: Settings, store: NearFarStore, loaded: LoadedScene) -> None:
+        self.store = store
         self.loaded = loaded
-        self.on = bool(state.settings.near_far)
-        self.block = state.settings.near_far_block
-        self.cfg = state.settings.near_far_config()
+        self.on = bool(settings.near_far)
+        self.block = settings.near_far_block
+        self.cfg = settings.near_far_config()
         self.cubemaps_sent: set[int] = set()
 
     def anchors(self) -> np.ndarray:
         """(cells,) the cell whose centre is each cell's cubemap centre (``near_far_block``)."""
-        return self.state.near_far.anchors(self.loaded, self.block)
+        return self.store.anchors(self.loaded, self.block)
 
     def anchor(self, cell: int | None) -> int | None:
         """The anchor cell whose cubemap ``cell`` shares (itself without blocks or near-far)."""
@@ -51,7 +51,7 @@ class NearFarStreams:
     async def split(self, anchor: int) -> Any:
         """The near-far split of ``anchor`` (``visibility.nearfar.NearFarSplit``), or False when
         nothing static lies beyond r2 of its centre."""
-        store = self.state.near_far
+        store = self.store
         split = store.cached_split(self.loaded, anchor, self.cfg)
         if split is None:
             split = await asyncio.to_thread(store.split, self.loaded, anchor, self.cfg)
@@ -93,7 +93,7 @@ class NearFarStreams:
             cube = nearfar.bake_cubemap(scene, centre, cfg)
             return encode_cubemap(anchor, cube.center, cube.colors, cube.ranges, cfg.r1, cfg.r2)
 
-        frame = await asyncio.to_thread(self.state.near_far.cubemap, self.loaded, anchor, cfg,
+        frame = await asyncio.to_thread(self.store.cubemap, self.loaded, anchor, cfg,
                                         bake)
         return near, info, frame
 
@@ -105,7 +105,7 @@ class NearFarStreams:
         # Every cell at once, computed once per scene and r2 (shared by all sessions); a cell
         # needs a cubemap when its anchor (its block's centre cell) does.
         anchors = self.anchors()
-        need = self.state.near_far.cubemap_cells(self.loaded, cfg)[anchors]
+        need = self.store.cubemap_cells(self.loaded, cfg)[anchors]
         n = int(np.count_nonzero(need))
         maps = int(len(np.unique(anchors[need])))
         block = self.block

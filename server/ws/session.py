@@ -28,8 +28,10 @@ from protocol.codes import (
 )
 from protocol.messages import Bye, Error, Hello, Pose, ProtocolError, parse_client_message
 from server.auth import release_session
+from server.cache import PVSKey
 from server.catalog import LoadedScene
 from server.prefetch import motion_direction, prefetch_order
+from server.region import cell_key
 from server.ws.dynamic import DynamicFrames
 from server.ws.handshake import handshake
 from server.ws.inventory import Inventory
@@ -40,7 +42,7 @@ from server.ws.transport import SessionOver, Transport
 from visibility.cores.base import Core, CoreParams
 
 if TYPE_CHECKING:
-    from server.app import ServerState
+    from server.state import ServerState
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +51,8 @@ MAX_ERROR_MESSAGE = 2000
 
 
 class StreamSession:
-    """One WebSocket client: handshake, pose handling, the streamer and the sender.
+    """One WebSocket client: handshake, pose handling, the streamer and the sender (what other
+    modules may use of it: ``server.state.Session``).
 
     The parts set up by the handshake (``loaded``, ``core``, ``params``, ``inventory``,
     ``nearfar``, ``dynamic``) are None before it.
@@ -95,7 +98,11 @@ class StreamSession:
         self.stalls = 0
         self._stall_cell: int | None = None
         self._last_pos: np.ndarray | None = None
-        self._pinned: tuple | None = None
+        self._pinned: PVSKey | None = None
+        #: Cache keys of the cells' PVS with the session's core and parameters (``key_of``).
+        self._keys: dict[int, PVSKey] = {}
+        #: The keys of the current cell and the prefetch list (``wants``), replaced whole.
+        self._wanted_keys: frozenset[PVSKey] = frozenset()
         self._outside = False
         #: True once ``welcome`` is sent: bad messages are then answered, not fatal.
         self.welcomed = False
@@ -206,6 +213,7 @@ class StreamSession:
             direction = motion_direction(vel, pos, self._last_pos)
             self.want = prefetch_order(grid, cell, pos, direction, self.settings.prefetch_ahead)
             self.want_set = frozenset(self.want)
+        self._wanted_keys = frozenset(self.key_of(c) for c in (cell, *self.want))
         self._last_pos = pos
         if cell not in self.inventory.done:
             self.stalls += 1
@@ -217,11 +225,19 @@ class StreamSession:
         self.wake.set()
 
     # ----------------------------------------------------------------------------- shared state
+    def key_of(self, cell: int) -> PVSKey:
+        """The cache key of ``cell``'s PVS with the session's core and parameters (kept: a
+        walker asks for the same few cells again and again)."""
+        key = self._keys.get(cell)
+        if key is None:
+            key = self._keys[cell] = cell_key(self.loaded, cell, self.core, self.params)
+        return key
+
     def _pin(self, cell: int) -> None:
         # The walker's current cell stays cached while it stands there (another walker
         # entering, or this one losing it to drops, then costs no recomputation).
         self._unpin()
-        self._pinned = self.state.compute.key(self.loaded.name, self.core, self.params, cell)
+        self._pinned = self.key_of(cell)
         self.state.compute.cache.pin(self._pinned)
 
     def _unpin(self) -> None:
@@ -229,12 +245,11 @@ class StreamSession:
             self.state.compute.cache.unpin(self._pinned)
             self._pinned = None
 
-    def wants(self, key: tuple) -> bool:
-        """Whether this session still needs the PVS of cache key ``key`` (called from worker
-        threads: reads only attributes replaced atomically)."""
-        return (self.loaded is not None and key[0] == self.loaded.name
-                and key[2] == self.core.name and key[3] == self.params.cache_key()
-                and (key[1] == self.cell or key[1] in self.want_set))
+    def wants(self, key: PVSKey) -> bool:
+        """Whether this session still needs the PVS of cache key ``key``: its current cell's or
+        one on its prefetch list (called from worker threads: reads only an attribute replaced
+        atomically)."""
+        return key in self._wanted_keys
 
     def cubemap_cell(self, cell: int | None) -> int | None:
         """The anchor cell whose cubemap ``cell`` shares (itself without blocks); ``cell``

@@ -24,14 +24,14 @@ from protocol.frames import chunk_count, encode_geometry, triangles_per_frame
 from protocol.messages import CellBegin, CellEnd, Drop, Error
 from server.admission import Refused
 from server.catalog import wire_origin
-from server.compute import PVSResult
 from server.errors import error_code, error_message
+from server.region import PVSResult
 from server.sendqueue import StreamTag
 from server.ws.transport import SessionOver
 from visibility.cores.base import PVS
 
 if TYPE_CHECKING:
-    from server.ws.session import StreamSession
+    from server.state import Session
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ SHARED_CACHE_GRACE_S = 0.02
 class Streamer:
     """Streams the cells a session's walker needs, in order; ``run`` is the task."""
 
-    def __init__(self, session: StreamSession) -> None:
+    def __init__(self, session: Session) -> None:
         self.s = session
 
     # ----------------------------------------------------------------------------- jobs
@@ -155,10 +155,10 @@ class Streamer:
         when the job was superseded (the walker moved on: the computation goes on in the pool
         and lands in the cache) or failed (error sent).
 
-        Progressive (``StreamSession.progressive``): for the walker's cell, when the session
-        core's answer is not ready at once, the cheap first answer (``ComputeService.
-        first_answer``) is returned as soon as it is there, and the core's computation goes on
-        as the cell's refinement (``refine``)."""
+        Progressive (``Session.progressive``): for the walker's cell, when the session core's
+        answer is not ready at once, the cheap first answer (``_submit_first``) is returned as
+        soon as it is there, and the core's computation goes on as the cell's refinement
+        (``refine``)."""
         s = self.s
         name = s.loaded.name
         known = s.inventory.pvs_of.get(cell)
@@ -174,7 +174,7 @@ class Streamer:
             return self._ready(cell, near, stats={
                 "skipped": "the near region fits the client's budget: sent whole"}), "full"
         compute = s.state.compute
-        key = compute.key(name, s.core, s.params, cell)
+        key = s.key_of(cell)
         seq = s.cell_seq if not prefetch else None
         try:
             cf = compute.submit(name, s.core, s.params, cell=cell,
@@ -186,7 +186,7 @@ class Streamer:
             return None
         fut = asyncio.wrap_future(cf)
         fut.add_done_callback(lambda f: f.cancelled() or f.exception())
-        shared = s.progressive and compute.redis is not None and compute.redis.up
+        shared = s.progressive and compute.cache.shared_up
         if shared and not prefetch and not cf.done():
             await asyncio.wait({fut}, timeout=SHARED_CACHE_GRACE_S)
         first = self._first_answer(cell, cf) if not prefetch else None
@@ -197,7 +197,7 @@ class Streamer:
                 if cf.done():
                     return
                 try:
-                    compute.first_answer(name, cell, priority=1.0 + rank)
+                    self._submit_first(cell, priority=1.0 + rank)
                 except Exception:  # noqa: BLE001 - a warm-up only; ``_first_answer`` reports
                     pass
 
@@ -258,7 +258,7 @@ class Streamer:
             return None
         compute = s.state.compute
         try:
-            ff = compute.first_answer(s.loaded.name, cell)
+            ff = self._submit_first(cell)
         except Exception as exc:
             if not s.first_failed:
                 s.first_failed = True
@@ -270,6 +270,15 @@ class Streamer:
         # computation stops when no one else waits for it.
         first.add_done_callback(lambda f: f.cancelled() and compute.release(ff, "not needed"))
         return first
+
+    def _submit_first(self, cell: int, priority: float = 0.0) -> Any:
+        """The compute service's future of the cheap first answer for ``cell``
+        (``Resolver.first``), on the first answers' worker (lowest ``priority`` first: 0 for
+        the cell the walker stands in); cached like any PVS."""
+        s = self.s
+        first = s.state.resolver.first()
+        return s.state.compute.submit(s.loaded.name, first.core, first.params, cell=cell,
+                                      priority=priority, lane="first")
 
     async def _job_failed(self, cell: int, prefetch: bool, msg: str, seq: int | None,
                           code: ErrorCode | None = None) -> None:

@@ -29,7 +29,10 @@ from client.session import Session
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.dask_executor import DaskExecutor
-from server.executor import LocalExecutor, scheduler_address
+from server.executor import LocalExecutor
+from server.executor_address import scheduler_address
+from server.region import cell_key
+from server.resolve import Resolver
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from visibility.cores import checks
@@ -434,8 +437,11 @@ def test_precompute_on_the_cluster_into_redis_resumes(cluster, redis_server, tmp
               "--executor", dask_url(cluster), "--cells", "0-3"]
     assert main(common) == 0
     assert "4 computed" in capsys.readouterr().out
-    keys = redis_server.client().keys("pvs:v1:*:sampling:*")
-    assert sorted(int(k.decode().split(":")[5]) for k in keys) == [0, 1, 2, 3]
+    keys = {k.decode() for k in redis_server.client().keys("pvs:*:sampling:*")}
+    s = Settings(generated={"rooms": 3000})
+    loaded = SceneCatalog(s).get("rooms")
+    choice = Resolver(s).named("sampling", {"samples": 4, "resolution": 32})
+    assert keys == {cell_key(loaded, c, choice.core, choice.params).shared() for c in range(4)}
     assert main(common) == 0
     summary = capsys.readouterr().out
     assert "4 already cached" in summary and "0 computed" in summary, summary

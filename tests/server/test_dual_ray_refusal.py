@@ -11,7 +11,7 @@ import pytest
 from websockets.asyncio.client import connect
 
 from protocol.messages import Hello, dump_message, parse_server_message
-from server.compute import choose_core
+from server.resolve import choose_core
 from visibility.cores.base import choose_core as registry_choose_core
 from visibility.generators import make_scene
 

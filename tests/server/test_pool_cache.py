@@ -10,16 +10,12 @@ import time
 import numpy as np
 import pytest
 
+from server.cache import DiskPVSCache, PVSCache, PVSKey
 from server.catalog import SceneCatalog
-from server.compute import (
-    ComputeService,
-    DiskPVSCache,
-    PriorityWorkerPool,
-    PVSCache,
-    WorkerDied,
-    choose_core,
-    core_fits,
-)
+from server.compute import ComputeService
+from server.pool import PriorityWorkerPool, WorkerDied
+from server.region import cell_key
+from server.resolve import Resolver, choose_core, core_fits
 from server.settings import Settings
 from tests.conftest import NearCore, make_tiny_scene, near_ids
 from visibility.cores.base import PVS
@@ -27,6 +23,15 @@ from visibility.cores.base import PVS
 
 def _pvs(n: int, start: int = 0) -> PVS:
     return PVS(np.arange(start, start + n, dtype=np.int32))
+
+
+def _named(svc: ComputeService, core: str, params: dict):
+    choice = Resolver(svc.settings).named(core, params)
+    return choice.core, choice.params
+
+
+#: A key of a made-up scene for the disk tier on its own.
+KEY = PVSKey.of("f" * 16, "box", np.zeros((2, 3)), "core", "p=1")
 
 
 # --------------------------------------------------------------------------- pool
@@ -138,7 +143,7 @@ def test_disk_cache_survives_restart_and_ignores_corrupt_files(tmp_path, registe
         return ComputeService(cat, settings)
 
     a = service()
-    core, params = a.resolve("test_near", {"radius": 4.0})
+    core, params = _named(a, "test_near", {"radius": 4.0})
     before = NearCore.calls
     first = a.submit("tiny", core, params, cell=2).result(30)
     assert not first.cached and NearCore.calls == before + 1
@@ -161,8 +166,7 @@ def test_disk_cache_survives_restart_and_ignores_corrupt_files(tmp_path, registe
     assert c.stats()["disk"]["corrupt"] == 1
     c.shutdown()
     disk = DiskPVSCache(tmp_path / "pvs")
-    loaded = c.catalog.get("tiny")
-    key = ComputeService.disk_key(loaded, core, params, loaded.grid.boxes[2])
+    key = cell_key(c.catalog.get("tiny"), 2, core, params)
     assert disk.get(key) is not None  # rewritten
 
 
@@ -195,7 +199,7 @@ def test_disk_cache_never_shares_entries_across_grids_or_geometry(tmp_path, regi
         cat = SceneCatalog(settings)
         cat.register("tiny", scene)
         svc = ComputeService(cat, settings)
-        core, params = svc.resolve("test_near", {"radius": 2.0})
+        core, params = _named(svc, "test_near", {"radius": 2.0})
         try:
             r = svc.submit("tiny", core, params, cell=1).result(30)
         finally:
@@ -272,7 +276,7 @@ def _disk_service(folder):
 def _rewrite(path, **changes) -> None:
     """Rewrite the entry at ``path`` with ``changes``; ``resign=True`` recomputes the checksum
     (a forged entry), otherwise it is left stale (a corrupted one)."""
-    from server.cache import _checksum
+    from server.cache.disk import _checksum
 
     resign = changes.pop("resign", False)
     with np.load(path, allow_pickle=False) as z:
@@ -314,7 +318,7 @@ def test_bad_disk_entries_are_rejected_deleted_and_recomputed(tmp_path, register
                                                                 how, caplog):
     folder = tmp_path / "pvs"
     a = _disk_service(folder)
-    core, params = a.resolve("test_near", {"radius": 4.0})
+    core, params = _named(a, "test_near", {"radius": 4.0})
     first = a.submit("tiny", core, params, cell=2).result(30)
     a.shutdown()
     [entry] = list(folder.rglob("*.npz"))
@@ -332,7 +336,7 @@ def test_bad_disk_entries_are_rejected_deleted_and_recomputed(tmp_path, register
     assert str(tmp_path) not in caplog.text and str(tmp_path) not in repr(disk)
     # The bad file was replaced by a good entry that the next start reads.
     loaded = b.catalog.get("tiny")
-    key = ComputeService.disk_key(loaded, core, params, loaded.grid.boxes[2])
+    key = cell_key(loaded, 2, core, params)
     assert DiskPVSCache(folder).check(key, loaded.scene.n_triangles)
     c = _disk_service(folder)
     assert c.submit("tiny", core, params, cell=2).result(30).cached
@@ -341,7 +345,7 @@ def test_bad_disk_entries_are_rejected_deleted_and_recomputed(tmp_path, register
 
 def test_reader_bounds_ids_by_the_scene_it_knows(tmp_path):
     disk = DiskPVSCache(tmp_path)
-    key = ("f" * 16, (0.0,) * 6, "core", ("p", 1))
+    key = KEY
     assert disk.put(key, _pvs(5, start=3))  # writer did not know the triangle count
     assert disk.get(key) is not None
     assert disk.get(key, n_triangles=8) is not None
@@ -357,7 +361,7 @@ def test_reader_bounds_ids_by_the_scene_it_knows(tmp_path):
 
 def test_old_format_entries_are_misses_not_errors(tmp_path):
     disk = DiskPVSCache(tmp_path)
-    key = ("f" * 16, (0.0,) * 6, "core", ("p", 1))
+    key = KEY
     p = disk.path(key)
     p.parent.mkdir(parents=True)
     with open(p, "wb") as fh:  # what the previous server wrote

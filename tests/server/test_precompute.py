@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from server.catalog import SceneCatalog, UnknownSceneError
-from server.compute import ComputeService, UnknownCellError, UnknownCoreError
+from server.compute import ComputeService
 from server.precompute import parse_cells, precompute
+from server.region import UnknownCellError, cell_key
+from server.resolve import CoreChoice, Resolver, UnknownCoreError
 from tests.conftest import serving
 
 FAST = {"samples": 4, "resolution": 32}
@@ -28,12 +30,18 @@ def _service(s) -> ComputeService:
     return ComputeService(SceneCatalog(s), s)
 
 
+def _default(service: ComputeService) -> CoreChoice:
+    """The server default core and parameters of ``service``'s settings."""
+    return Resolver(service.settings).named()
+
+
 def test_precompute_fills_the_disk_cache_a_restart_reads(disk_settings):
     first = _service(disk_settings)
     try:
         report = precompute(first, "rooms", cells=[0, 1, 2, 3], progress=False)
-        ids = {c: first.submit("rooms", *first.resolve(), cell=c).result().pvs.triangle_ids
-               for c in range(4)}
+        default = _default(first)
+        ids = {c: first.submit("rooms", default.core, default.params,
+                               cell=c).result().pvs.triangle_ids for c in range(4)}
     finally:
         first.shutdown()
     assert (report.computed, report.cached, report.failed) == (4, 0, {})
@@ -110,11 +118,10 @@ def test_precompute_counts_unwritable_entries_and_failed_cells_as_failures(disk_
     monkeypatch.setattr(DiskPVSCache, "put", flaky_put)
     try:
         report = precompute(service, "rooms", cells=range(6), progress=False)
-        boxes = service.catalog.get("rooms").grid.boxes
-        core, params = service.resolve()
+        default = _default(service)
         loaded = service.catalog.get("rooms")
         unwritten = {c for c in range(6)
-                     if unlucky(service.disk_key(loaded, core, params, boxes[c]))}
+                     if unlucky(cell_key(loaded, c, default.core, default.params))}
     finally:
         service.shutdown()
     assert unwritten and len(unwritten) < 6
@@ -126,7 +133,8 @@ def test_precompute_counts_unwritable_entries_and_failed_cells_as_failures(disk_
 
 def test_precompute_reports_a_cell_whose_computation_fails(disk_settings, monkeypatch):
     service = _service(disk_settings)
-    core, _ = service.resolve()
+    default = _default(service)
+    core = default.core
 
     def boom(scene, cell, params, token=None):
         if cell.id == 1:
@@ -135,10 +143,11 @@ def test_precompute_reports_a_cell_whose_computation_fails(disk_settings, monkey
 
     real = type(core).compute.__get__(core)
     monkeypatch.setattr(core, "compute", boom)
-    monkeypatch.setattr(service, "resolve_for", lambda *a, **k: (core, service.resolve()[1],
-                                                                 "requested"))
+    resolver = Resolver(service.settings)
+    monkeypatch.setattr(resolver, "resolve", lambda *a, **k: default)
     try:
-        report = precompute(service, "rooms", cells=[0, 1, 2], progress=False)
+        report = precompute(service, "rooms", cells=[0, 1, 2], progress=False,
+                            resolver=resolver)
     finally:
         service.shutdown()
     assert set(report.failed) == {1} and "kernel blew up" in report.failed[1]

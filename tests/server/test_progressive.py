@@ -50,7 +50,8 @@ def test_first_answer_then_what_the_core_adds(progressive_server):
         assert first.answer == "first" and first.begin.answer == "first"
         first_ids = _ids(first)
         # The first answer is the first core's PVS of the cell, as computed directly.
-        core, params = app.state.server.compute.first_core()
+        first = app.state.server.resolver.first()
+        core, params = first.core, first.params
         grid = app.state.server.catalog.get("tiny").grid
         direct = core.compute(scene, grid.cell(0), params).triangle_ids
         assert first_ids == set(direct.tolist())
@@ -104,7 +105,8 @@ def test_the_client_or_the_server_turns_it_off(progressive_server, settings):
 
 def test_the_first_core_itself_is_not_refined(progressive_server):
     url, app, _ = progressive_server
-    core, params = app.state.server.compute.first_core()
+    first = app.state.server.resolver.first()
+    core, params = first.core, first.params
     with SyncSession.connect(url, "tiny", core.name, params.as_dict(), prefetch=False) as s:
         feature = s.welcome.features["progressive"]
         assert not feature["on"] and "nothing to refine" in feature["why"]
@@ -165,15 +167,16 @@ def test_cells_ahead_have_their_first_answer_ready(settings):
             SyncSession.connect(url, "tiny", "test_slow", {"delay": 5.0, "radius": 2.5},
                                 prefetch=True) as s:
         compute = app.state.server.compute
-        core, params = compute.first_core()
-        assert all(compute.cache.get(compute.key("tiny", core, params, n)) is None
+        first = app.state.server.resolver.first()
+        core, params = first.core, first.params
+        assert all(compute.cache.get(compute.key("tiny", core, params, n), upto="memory") is None
                    for n in range(8))
         _pose(s, scene, 5, 0)
         s.wait_cell(5, timeout=4)
 
         def warmed() -> list[int]:
             return [n for n in range(8) if n != 5 and compute.cache.get(
-                compute.key("tiny", core, params, n)) is not None]
+                compute.key("tiny", core, params, n), upto="memory") is not None]
 
         wait_for(lambda: warmed(), timeout=10)
         ahead = warmed()[0]

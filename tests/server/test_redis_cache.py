@@ -1,4 +1,4 @@
-"""The shared Redis cache (``server.redis_codec``, ``server.redis_cache``): values round-trip
+"""The shared Redis cache (``server.cache.codec``, ``server.cache.shared``): values round-trip
 and refuse what is not theirs; keys carry scene content hash, core, parameters and format
 version; and against a REAL ``redis-server`` on loopback: two server processes share a PVS (the
 second answers from Redis), a walker keeps walking while Redis is killed and restarted, a
@@ -24,8 +24,8 @@ import pytest
 import visibility.nearfar as nearfar
 from client.session import Session
 from pvs_cli import build_parser, serve_settings, wait_until_healthy
-from server.cache import BadEntry
-from server.redis_codec import (
+from server.cache import BadEntry, PVSKey
+from server.cache.codec import (
     FORMAT_VERSION,
     PVS_HEADER,
     cubemap_key,
@@ -33,8 +33,8 @@ from server.redis_codec import (
     decode_pvs,
     encode_blob,
     encode_pvs,
-    pvs_key,
 )
+from server.cache.key import KEY_VERSION
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from tests.processes import stop_process
@@ -46,9 +46,15 @@ BOX = np.array([[0.0, 0.0, 0.0], [4.0, 3.0, 4.0]])
 RADIUS = 4.5
 
 
+def pvs_key(fingerprint: str, core: str, params: str, region: np.ndarray = BOX,
+            kind: str = "box") -> str:
+    """The Redis key of a PVS (``PVSKey.shared``)."""
+    return PVSKey.of(fingerprint, kind, region, core, params).shared()
+
+
 # --------------------------------------------------------------------------- values and keys
 def test_pvs_value_round_trips_every_array():
-    key = pvs_key("0123456789abcdef", "sampling", "resolution=64", 3, BOX)
+    key = pvs_key("0123456789abcdef", "sampling", "resolution=64")
     pvs = PVS(np.array([0, 5, 6, 90_000], np.int32), granularity="object",
               object_ids=np.array([2, 7], np.int32), sphere_ids=np.array([1, 3, 4], np.int32),
               stats={"seconds": 1.25})
@@ -64,7 +70,7 @@ def test_pvs_value_round_trips_every_array():
 
 def test_pvs_value_is_compact():
     ids = np.unique(np.random.default_rng(0).integers(0, 100_000, 5_000)).astype(np.int32)
-    key = pvs_key("f" * 16, "sampling", "", 0, BOX)
+    key = pvs_key("f" * 16, "sampling", "")
     value = encode_pvs(key, PVS(ids), 100_000)
     raw = encode_pvs(key, PVS(ids), 100_000, compress=False)
     assert len(raw) >= 4 * len(ids)
@@ -74,9 +80,9 @@ def test_pvs_value_is_compact():
 
 
 def test_values_refuse_what_is_not_theirs():
-    key = pvs_key("0123456789abcdef", "sampling", "resolution=64", 3, BOX)
+    key = pvs_key("0123456789abcdef", "sampling", "resolution=64")
     value = encode_pvs(key, PVS(np.arange(0, 100, 7, dtype=np.int32)), 200)
-    other = pvs_key("0123456789abcdef", "sampling", "resolution=64", 4, BOX)
+    other = pvs_key("0123456789abcdef", "sampling", "resolution=64", BOX + 1.0)
     with pytest.raises(BadEntry, match="checksum"):
         decode_pvs(other, value, 200)  # copied under another key
     damaged = bytearray(value)
@@ -97,7 +103,7 @@ def test_values_refuse_what_is_not_theirs():
 
 
 def test_a_value_claiming_more_ids_than_its_payload_is_refused():
-    key = pvs_key("a" * 16, "c", "", 0, BOX)
+    key = pvs_key("a" * 16, "c", "")
     value = bytearray(encode_pvs(key, PVS(np.arange(10, dtype=np.int32)), 1_000_000))
     fields = list(PVS_HEADER.unpack_from(value))
     fields[6] = 900_000  # n_ids: a decompression "bomb" header
@@ -118,24 +124,31 @@ def test_blob_round_trip_and_checks():
         decode_blob(key, encode_blob(key, bytes(1000)), 100)
 
 
-def test_keys_carry_version_scene_core_params_and_cell():
-    key = pvs_key("0123456789abcdef", "dual_ray", "resolution=64", 12, BOX)
+def test_keys_carry_version_scene_core_params_and_region():
+    key = pvs_key("0123456789abcdef", "dual_ray", "resolution=64")
     parts = key.split(":")
-    assert parts[:4] == ["pvs", f"v{FORMAT_VERSION}", "0123456789abcdef", "dual_ray"]
-    assert parts[5] == "12" and len(parts) == 7
+    assert parts[:4] == ["pvs", f"v{KEY_VERSION}", "0123456789abcdef", "dual_ray"]
+    assert parts[5] == "box" and len(parts) == 7
     variants = {
-        pvs_key("0123456789abcdef", "dual_ray", "resolution=128", 12, BOX),
-        pvs_key("fedcba9876543210", "dual_ray", "resolution=64", 12, BOX),
-        pvs_key("0123456789abcdef", "sampling", "resolution=64", 12, BOX),
-        pvs_key("0123456789abcdef", "dual_ray", "resolution=64", 13, BOX),
-        pvs_key("0123456789abcdef", "dual_ray", "resolution=64", 12, BOX * 2),
+        pvs_key("0123456789abcdef", "dual_ray", "resolution=128"),
+        pvs_key("fedcba9876543210", "dual_ray", "resolution=64"),
+        pvs_key("0123456789abcdef", "sampling", "resolution=64"),
+        pvs_key("0123456789abcdef", "dual_ray", "resolution=64", BOX * 2),
+        pvs_key("0123456789abcdef", "dual_ray", "resolution=64", kind="segment"),
+        PVSKey("0123456789abcdef", "box", tuple(BOX.ravel().tolist()), "dual_ray",
+               "resolution=64", KEY_VERSION + 1).shared(),
     }
-    assert key not in variants and len(variants) == 5
+    assert key not in variants and len(variants) == 6
+    # A grid cell and an ad-hoc box with the same corners are one entry; the key is the same
+    # in every process (floats, not a scene name or a cell id).
+    assert pvs_key("0123456789abcdef", "dual_ray", "resolution=64", BOX.tolist()) == key
     # A ':' in a name cannot shift the other parts.
-    assert len(pvs_key("x:y", "a:b", "", 0, BOX).split(":")) == 7
+    assert len(pvs_key("x:y", "a:b", "").split(":")) == 7
+    with pytest.raises(ValueError):
+        PVSKey.of("0123456789abcdef", "sphere", BOX, "dual_ray", "")
     colour = cubemap_key("0123456789abcdef", "c0", 40.0, 80.0, 32, 1, BOX)
     assert colour != cubemap_key("0123456789abcdef", "c1", 40.0, 80.0, 32, 1, BOX)
-    assert colour.split(":")[3] == "cubemap"
+    assert colour.split(":")[3] == "cubemap" and colour.split(":")[5] == "1"
 
 
 # --------------------------------------------------------------------------- settings, CLI
@@ -209,13 +222,13 @@ def server_process(redis_url: str) -> Iterator[str]:
 def test_shared_cache_bounds_values_and_deletes_bad_ones(redis_server):
     """A value over ``redis_max_value_bytes`` stays local; a value that fails its checks is a
     miss and is deleted; the TTL is set on every write."""
-    from server.redis_cache import RedisLink, SharedCache
+    from server.cache.shared import RedisLink, SharedCache
 
     shared = SharedCache(RedisLink(redis_server.url, timeout=1.0), ttl=30,
                          max_value_bytes=2048)
     client = redis_server.client()
     try:
-        key = pvs_key("b" * 16, "sampling", "", 1, BOX)
+        key = pvs_key("b" * 16, "sampling", "")
         ids = np.unique(np.random.default_rng(2).integers(0, 200_000, 20_000))
         big = PVS(ids.astype(np.int32))  # random gaps: over 2 KiB even compressed
         assert not shared.put_pvs(key, big, 200_000)
@@ -235,42 +248,85 @@ def test_shared_cache_bounds_values_and_deletes_bad_ones(redis_server):
         client.close()
 
 
+def _rooms_keys(regions: list[tuple[str, object]]) -> list[str]:
+    """The Redis keys of the regions [("cell", id) | ("box", box) | ("segment", seg)] of the
+    ``rooms`` scene ``server_process`` serves, with the sampling core of ``ROOMS_QUERY``."""
+    from server.catalog import SceneCatalog
+    from server.region import region_of
+    from server.resolve import Resolver
+
+    s = Settings(generated={"rooms": 4000}, core="sampling")
+    loaded = SceneCatalog(s).get("rooms")
+    choice = Resolver(s).named("sampling", ROOMS_PARAMS)
+    return [region_of(loaded, **{kind: where}).key(loaded.fingerprint, choice.core,
+                                                   choice.params).shared()
+            for kind, where in regions]
+
+
+ROOMS_PARAMS = {"samples": 4, "resolution": 64}
+
+
 def test_two_server_processes_share_a_pvs_through_redis(redis_server):
-    """The first process computes cell 3; the second answers it from Redis: cached, marked as
-    Redis's, its Redis hit counted and no computation run."""
-    query = {"core": "sampling", "samples": 4, "resolution": 64}
+    """The first process computes cell 3, an ad-hoc box, a segment and a box with another
+    cell's corners; the second answers each from Redis (the cell as that box's entry: one key
+    for cells and boxes alike): cached, marked as Redis's, its Redis hits counted and no
+    computation run."""
+    query = {"core": "sampling", **ROOMS_PARAMS}
+    body = {"core": "sampling", "params": ROOMS_PARAMS}
     with server_process(redis_server.url) as first, server_process(redis_server.url) as second:
         for url in (first, second):  # scene loaded first, so the timings are the answers'
             assert httpx.get(url + "/scenes/rooms", timeout=120).status_code == 200
-        t0 = time.perf_counter()
-        a = httpx.get(first + "/scenes/rooms/cells/3/pvs", params=query, timeout=300)
-        t_first = time.perf_counter() - t0
-        assert a.status_code == 200, a.text
-        assert not a.json()["cached"]
-        assert redis_stats(first)["pvs"]["writes"] == 1
-        t0 = time.perf_counter()
-        b = httpx.get(second + "/scenes/rooms/cells/3/pvs", params=query, timeout=300)
-        t_second = time.perf_counter() - t0
-        assert b.status_code == 200, b.text
-        body = b.json()
-        assert body["cached"] and body["stats"]["redis"] is True
-        assert body["triangle_ids"] == a.json()["triangle_ids"]
-        assert body["seconds"] == a.json()["seconds"]  # the original computation's time
+        cells = httpx.get(first + "/scenes/rooms/cells", timeout=60).json()["cells"]
+        box3 = np.asarray(cells[3]["box"])
+        inner = box3 + [[0.25, 0.0, 0.25], [-0.25, 0.0, -0.25]]
+        centre = box3.mean(axis=0)
+        segment = np.stack([centre - [0.5, 0.0, 0.0], centre + [0.5, 0.0, 0.0]])
+        other = len(cells) - 1
+        asks = [  # (what the first server is asked, what the second is asked)
+            (("get", "/scenes/rooms/cells/3/pvs", None),) * 2,
+            (("post", "/scenes/rooms/pvs", {"box": inner.tolist()}),) * 2,
+            (("post", "/scenes/rooms/pvs", {"segment": segment.tolist()}),) * 2,
+            (("post", "/scenes/rooms/pvs", {"box": cells[other]["box"]}),
+             ("get", f"/scenes/rooms/cells/{other}/pvs", None)),
+        ]
+
+        def ask(url: str, how: tuple) -> tuple[dict, float]:
+            method, path, region = how
+            t0 = time.perf_counter()
+            if method == "get":
+                r = httpx.get(url + path, params=query, timeout=300)
+            else:
+                r = httpx.post(url + path, json={**body, **region}, timeout=300)
+            assert r.status_code == 200, r.text
+            return r.json(), time.perf_counter() - t0
+
+        firsts = [ask(first, a) for a, _ in asks]
+        assert not any(a["cached"] for a, _ in firsts)
+        assert redis_stats(first)["pvs"]["writes"] == len(asks)
+        seconds = [ask(second, b) for _, b in asks]
+        for (a, _), (b, _) in zip(firsts, seconds, strict=True):
+            assert b["cached"] and b["stats"]["redis"] is True
+            assert b["triangle_ids"] == a["triangle_ids"] and a["triangle_ids"]
+            assert b["seconds"] == a["seconds"]  # the original computation's time
+        assert seconds[1][0]["cell"] is None and seconds[3][0]["cell"] == other
         t0 = time.perf_counter()
         assert httpx.get(second + "/scenes/rooms/cells/3/pvs", params=query,
                          timeout=300).json()["cached"]
         t_memory = time.perf_counter() - t0
         text = httpx.get(second + "/metrics", timeout=30).text
-        assert metric(text, "pvs_cache_tier_hits_total", tier="redis", kind="pvs") == 1
+        assert metric(text, "pvs_cache_tier_hits_total", tier="redis", kind="pvs") == len(asks)
         assert metric(text, "pvs_computations_total") == 0
         assert metric(text, "pvs_redis_up") == 1
         health = httpx.get(second + "/health", timeout=30).json()
         assert health["cache"]["backend"] == "redis" and health["cache"]["up"] is True
-        print(f"\nHTTP answer of cell 3: first process (computed) {1e3 * t_first:.1f} ms, "
-              f"second (from Redis) {1e3 * t_second:.1f} ms, second again (memory) "
-              f"{1e3 * t_memory:.1f} ms; the computation took {1e3 * a.json()['seconds']:.1f} ms")
-    keys = redis_server.client().keys("pvs:v1:*:sampling:*")
-    assert len(keys) == 1 and keys[0].decode().split(":")[5] == "3"
+        print(f"\nHTTP answer of cell 3: first process (computed) {1e3 * firsts[0][1]:.1f} ms, "
+              f"second (from Redis) {1e3 * seconds[0][1]:.1f} ms, second again (memory) "
+              f"{1e3 * t_memory:.1f} ms; the computation took "
+              f"{1e3 * firsts[0][0]['seconds']:.1f} ms; the box from Redis "
+              f"{1e3 * seconds[1][1]:.1f} ms")
+    keys = {k.decode() for k in redis_server.client().keys(f"pvs:v{KEY_VERSION}:*:sampling:*")}
+    want = _rooms_keys([("cell", 3), ("box", inner), ("segment", segment), ("cell", other)])
+    assert set(want) <= keys and len(set(want)) == len(asks)
 
 
 def _walk(url: str, positions: list[tuple[int, np.ndarray]], between: dict) -> Session:
@@ -308,7 +364,7 @@ def test_redis_restart_mid_walkthrough_costs_the_walker_nothing(settings, regist
             seen: dict[str, object] = {}
 
             def kill() -> None:
-                seen["before"] = len(redis.client().keys("pvs:v1:*"))
+                seen["before"] = len(redis.client().keys(f"pvs:v{KEY_VERSION}:*"))
                 redis.stop(kill=True)
                 wait_for(lambda: http.get("/health").json()["cache"]["up"] is False, 10)
                 seen["down"] = True
@@ -332,7 +388,7 @@ def test_redis_restart_mid_walkthrough_costs_the_walker_nothing(settings, regist
             after = redis_stats(url)
             assert after["downs"] >= 1 and after["up"] is True
             # Cells 5..7 were computed after the restart and are in the new Redis.
-            assert len(redis.client().keys("pvs:v1:*")) == len(walk) - 5
+            assert len(redis.client().keys(f"pvs:v{KEY_VERSION}:*")) == len(walk) - 5
             text = http.get("/metrics").text
             assert metric(text, "pvs_redis_up") == 1 and metric(text, "pvs_redis_downs_total") >= 1
             http.close()
@@ -356,9 +412,9 @@ def test_progressive_walker_gets_redis_answers_without_first_answers(
         assert not b.errors and not b.local_errors
         assert [b.cells[c].answer for c, _ in walk] == ["full"] * 3
         compute = app_b.state.server.compute
-        first_core = compute.first_core()[0].name
+        first_core = app_b.state.server.resolver.first().core.name
         assert compute.computed == 0
-        assert not [k for k in list(compute.cache._data) if k[2] == first_core]
+        assert not [k for k in list(compute.cache.memory._data) if k.core == first_core]
         assert redis_stats(url_b)["pvs"]["hits"] == 3
 
 
@@ -384,7 +440,9 @@ def test_server_serves_with_redis_down_at_start(settings, registered_test_cores)
                 r = http.get("/scenes/tiny/cells/2/pvs", params=params)
                 assert r.status_code == 200
                 assert redis_stats(url)["pvs"]["writes"] == 1
-                assert len(redis.client().keys("pvs:v1:*:test_near:*:2:*")) == 1
+                choice = app.state.server.resolver.named("test_near", {"radius": RADIUS})
+                key = app.state.server.compute.key("tiny", choice.core, choice.params, cell=2)
+                assert redis.client().keys(f"pvs:v{KEY_VERSION}:*") == [key.shared().encode()]
             finally:
                 redis.close()
 
@@ -455,7 +513,7 @@ def test_precompute_fills_redis_and_resumes_from_it(settings, registered_test_co
         report = precompute(again, "tiny_pre", "test_near", {"radius": 3.0}, [0, 1, 2, 3],
                             progress=False)
         assert (report.computed, report.cached, report.failed) == (1, 3, {})
-        assert again.redis.stats()["pvs"]["hits"] == 3
+        assert again.cache.shared.stats()["pvs"]["hits"] == 3
     finally:
         again.shutdown()
     # A Redis that is down: the cells are computed, but they are not where servers read them.
@@ -483,5 +541,14 @@ def test_pvs_precompute_command_fills_redis(redis_server, monkeypatch, capsys):
     assert main(argv) == 0
     assert "2 computed" in capsys.readouterr().out
     assert main(argv) == 0
-    assert "0 computed" in capsys.readouterr().out and \
-        len(redis_server.client().keys("pvs:v1:*:sampling:*:[01]:*")) >= 2
+    assert "0 computed" in capsys.readouterr().out
+    from server.catalog import SceneCatalog
+    from server.region import cell_key
+    from server.resolve import Resolver
+
+    s = Settings(generated={"rooms": 2000})
+    loaded = SceneCatalog(s).get("rooms")
+    choice = Resolver(s).named("sampling", {"samples": 2, "resolution": 32})
+    client = redis_server.client()
+    assert all(client.exists(cell_key(loaded, c, choice.core, choice.params).shared())
+               for c in (0, 1))

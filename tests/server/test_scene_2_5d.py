@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from server.compute import choose_core, core_fits
+from server.resolve import choose_core, core_fits
 from tests.conftest import NearCore, _box, make_tiny_scene
 from visibility.cores import base as core_base
 from visibility.scene import Scene

@@ -9,15 +9,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from server.cache import PVSCache, pvs_nbytes
 from server.catalog import SceneCatalog, SceneLoadFailed, UnknownSceneError, check_scene_name
-from server.compute import (
-    ComputeService,
-    PVSCache,
-    UnknownCellError,
-    UnknownCoreError,
-    coerce_params,
-    pvs_nbytes,
-)
+from server.compute import ComputeService
+from server.region import UnknownCellError
+from server.resolve import Resolver, UnknownCoreError, coerce_params
 from server.settings import Settings
 from tests.conftest import NearCore, make_tiny_scene, near_ids
 from visibility.cores.base import PVS
@@ -223,14 +219,21 @@ def service(registered_test_cores):
 
 
 def test_service_defaults_cache_and_errors(service):
-    core, params = service.resolve()
+    resolver = Resolver(service.settings)
+    choice = resolver.named()
+    core, params = choice.core, choice.params
     assert core.name == "test_near" and params.radius == 3.0  # settings' default params
-    _, other = service.resolve(None, {"radius": 4.0})
-    assert other.radius == 4.0
+    assert choice.why == "server default"
+    other = resolver.named(None, {"radius": 4.0})
+    assert other.params.radius == 4.0 and other.why == "server default"
+    assert resolver.named("test_near").why == "requested"
     with pytest.raises(UnknownCoreError):
-        service.resolve("nope")
+        resolver.named("nope")
+    with pytest.raises(UnknownCoreError):
+        resolver.named("auto")  # chosen per scene: ``resolve`` with the loaded scene
+    assert resolver.resolve("auto", {}) is None
     with pytest.raises(ValueError):
-        service.resolve(None, {"radius": -1})
+        resolver.named(None, {"radius": -1})
     r1 = service.submit("tiny", core, params, cell=2).result(10)
     r2 = service.submit("tiny", core, params, cell=2).result(10)
     assert not r1.cached and r2.cached and r2.pvs is r1.pvs
@@ -249,7 +252,8 @@ def test_service_defaults_cache_and_errors(service):
 
 
 def test_service_shares_inflight_work(service):
-    core, params = service.resolve("test_slow", {"delay": 0.3})
+    choice = Resolver(service.settings).named("test_slow", {"delay": 0.3})
+    core, params = choice.core, choice.params
     before = type(core).calls
     futs = [service.submit("tiny", core, params, cell=1) for _ in range(5)]
     assert len({id(f) for f in futs}) == 1
@@ -278,7 +282,8 @@ def test_service_with_an_inline_pool(registered_test_cores):
     cat = SceneCatalog(settings)
     cat.register("tiny", make_tiny_scene())
     svc = ComputeService(cat, settings, pool=InlinePool())
-    core, params = svc.resolve()
+    choice = Resolver(settings).named()
+    core, params = choice.core, choice.params
     r = svc.submit("tiny", core, params, cell=0).result()
     assert not r.cached and svc.stats()["inflight"] == 0
     assert svc.submit("tiny", core, params, cell=0).result().cached

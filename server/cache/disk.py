@@ -1,10 +1,4 @@
-"""Caches of the server: a thread-safe LRU bounded in bytes (``ByteLRU``; ``PVSCache`` holds PVS
-in it) and the on-disk PVS cache that survives restarts (``DiskPVSCache``).
-
-Eviction never drops what a walker needs now: a key is kept while it is pinned (``pin``, counted)
-or while the cache's ``keep(key)`` predicate says so (asked only when an eviction considers the
-key), so the bound may be exceeded while such entries hold it; eviction catches up later.
-"""
+"""The disk tier: PVS as checked ``.npz`` files that survive restarts (``DiskPVSCache``)."""
 
 from __future__ import annotations
 
@@ -13,171 +7,20 @@ import io
 import logging
 import os
 import threading
-from collections import OrderedDict
-from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from server.cache.checks import BadEntry, check_ids
+from server.cache.key import PVSKey
 from visibility.cores.base import PVS
 
 log = logging.getLogger(__name__)
 
-
-def pvs_nbytes(pvs: PVS) -> int:
-    """Approximate memory held by a PVS (its arrays plus a fixed overhead), bytes."""
-    n = 512 + pvs.triangle_ids.nbytes
-    for arr in (pvs.object_ids, pvs.sphere_ids):
-        if arr is not None:
-            n += arr.nbytes
-    for v in pvs.stats.values():
-        n += v.nbytes if isinstance(v, np.ndarray) else 64
-    return int(n)
-
-
-def nbytes_of(value: Any) -> int:
-    """Approximate memory held by ``value``, bytes: buffers (bytes, arrays) by their length,
-    dataclasses and containers by the sum of their parts, anything else a fixed 64."""
-    if isinstance(value, (bytes, bytearray, memoryview)):
-        return 64 + len(value)
-    if isinstance(value, np.ndarray):
-        return 128 + int(value.nbytes)
-    if isinstance(value, PVS):
-        return pvs_nbytes(value)
-    if isinstance(value, (list, tuple)):
-        return 64 + sum(nbytes_of(v) for v in value)
-    if isinstance(value, dict):
-        return 64 + sum(nbytes_of(v) for v in value.values())
-    fields = getattr(value, "__dataclass_fields__", None)
-    if fields:
-        return 64 + sum(nbytes_of(getattr(value, f)) for f in fields)
-    return 64
-
-
-class ByteLRU:
-    """A thread-safe LRU map bounded by the total ``sizeof`` of its values (bytes).
-
-    A value larger than the whole bound is not stored (unless its key is pinned). Pinned keys
-    (``pin``; a count per key) and keys for which ``keep(key)`` is true are never evicted.
-    """
-
-    def __init__(self, max_bytes: int, sizeof: Callable[[Any], int] = nbytes_of,
-                 keep: Callable[[Hashable], bool] | None = None) -> None:
-        self.max_bytes = int(max_bytes)
-        self.sizeof = sizeof
-        self.keep = keep
-        self._data: OrderedDict[Hashable, tuple[Any, int]] = OrderedDict()
-        self._lock = threading.Lock()
-        self._pins: dict[Hashable, int] = {}
-        self.nbytes = 0
-        self.hits = 0
-        self.misses = 0
-        self.evictions = 0
-
-    def get(self, key: Hashable) -> Any | None:
-        """The cached value (now the most recently used) or None."""
-        with self._lock:
-            item = self._data.get(key)
-            if item is None:
-                self.misses += 1
-                return None
-            self._data.move_to_end(key)
-            self.hits += 1
-            return item[0]
-
-    def put(self, key: Hashable, value: Any) -> None:
-        """Store ``value``, evicting least recently used entries that nobody needs to stay
-        within ``max_bytes``."""
-        size = int(self.sizeof(value))
-        with self._lock:
-            old = self._data.pop(key, None)
-            if old is not None:
-                self.nbytes -= old[1]
-            if size > self.max_bytes and key not in self._pins:
-                return
-            self._data[key] = (value, size)
-            self.nbytes += size
-            self._evict()
-
-    def _kept(self, key: Hashable) -> bool:
-        if key in self._pins:
-            return True
-        if self.keep is None:
-            return False
-        try:
-            return bool(self.keep(key))
-        except Exception:  # a failing predicate must not break a put: keep the entry
-            log.exception("cache keep() failed for %r", key)
-            return True
-
-    def _evict(self) -> None:
-        if self.nbytes <= self.max_bytes:
-            return
-        for k in list(self._data):
-            if self.nbytes <= self.max_bytes:
-                break
-            if self._kept(k):
-                continue
-            _, s = self._data.pop(k)
-            self.nbytes -= s
-            self.evictions += 1
-
-    def pin(self, key: Hashable) -> None:
-        """Keep ``key`` (now or once stored) from eviction until as many ``unpin`` calls."""
-        with self._lock:
-            self._pins[key] = self._pins.get(key, 0) + 1
-
-    def unpin(self, key: Hashable) -> None:
-        """Undo one ``pin``; unknown keys are ignored."""
-        with self._lock:
-            n = self._pins.get(key, 0) - 1
-            if n > 0:
-                self._pins[key] = n
-            else:
-                self._pins.pop(key, None)
-                self._evict()
-
-    def pinned(self) -> int:
-        """Keys pinned now."""
-        with self._lock:
-            return len(self._pins)
-
-    def __contains__(self, key: Hashable) -> bool:
-        with self._lock:
-            return key in self._data
-
-    def clear(self) -> None:
-        """Drop every entry (pins stay)."""
-        with self._lock:
-            self._data.clear()
-            self.nbytes = 0
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def stats(self) -> dict[str, int]:
-        """Entries, bytes, bound, hits, misses, evictions, pinned keys."""
-        with self._lock:
-            return {"entries": len(self._data), "bytes": self.nbytes, "max_bytes": self.max_bytes,
-                    "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
-                    "pinned": len(self._pins)}
-
-
-class PVSCache(ByteLRU):
-    """A ``ByteLRU`` of PVS sized by ``pvs_nbytes`` (keys: ``ComputeService.key``)."""
-
-    def __init__(self, max_bytes: int, keep: Callable[[Hashable], bool] | None = None) -> None:
-        super().__init__(max_bytes, pvs_nbytes, keep)
-
-
 #: Format tag of on-disk PVS entries. Entries without it (or with another) are from an older
 #: server: a miss, recomputed and overwritten, never read.
 DISK_FORMAT = "pvs-disk-2"
-
-
-class BadEntry(ValueError):
-    """An on-disk PVS entry that fails a check (the reason is safe to log: no paths)."""
 
 
 def _checksum(key_repr: str, n_triangles: int, granularity: str, ids: np.ndarray,
@@ -197,34 +40,14 @@ def _checksum(key_repr: str, n_triangles: int, granularity: str, ids: np.ndarray
     return h.hexdigest()
 
 
-def _check_ids(name: str, arr: np.ndarray, upper: int | None) -> np.ndarray:
-    """``arr`` as int32 when it is a 1-D array of sorted unique ids in [0, upper); BadEntry."""
-    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
-        raise BadEntry(f"{name} are not a 1-D integer array ({arr.dtype}, {arr.shape})")
-    if len(arr):
-        a = arr.astype(np.int64)
-        if a[0] < 0:
-            raise BadEntry(f"{name} hold a negative id")
-        if upper is not None and a[-1] >= upper:
-            raise BadEntry(f"{name} hold id {int(a[-1])}, outside [0, {upper})")
-        if a[-1] > np.iinfo(np.int32).max:
-            raise BadEntry(f"{name} hold ids beyond int32")
-        if len(a) > 1 and not np.all(a[1:] > a[:-1]):
-            raise BadEntry(f"{name} are not sorted and unique")
-    return arr.astype(np.int32)
-
-
-#: Public name of the id check, shared with the Redis values (``server.redis_codec``).
-check_ids = _check_ids
-
-
 class DiskPVSCache:
     """PVS as ``.npz`` files under ``folder`` (one per key), surviving restarts. Caches are
     checked, not trusted.
 
-    A key is a tuple whose first item names the scene's geometry (``ComputeService.disk_key``:
-    the scene fingerprint, so a changed scene file or generator size never meets old files).
-    File name: ``<sha256 of key[0]>/<sha256 of repr(key)>.npz``. An entry carries its format
+    Keys are ``PVSKey``s: their first item names the scene's geometry (its fingerprint, so a
+    changed scene file or generator size never meets old files), the rest the region, core,
+    parameters and key version. File name: ``<sha256 of the fingerprint>/<sha256 of
+    repr(key)>.npz``. An entry carries its format
     (``DISK_FORMAT``), the key's ``repr``, the scene fingerprint, the parameters (the rest of
     the key), the scene's triangle count when the writer knew it, the ids, granularity,
     seconds and a blake2b checksum of key, count and ids. On read the key, fingerprint and
@@ -248,17 +71,17 @@ class DiskPVSCache:
         self.write_errors = 0
         self._lock = threading.Lock()
 
-    def path(self, key: tuple) -> Path:
+    def path(self, key: PVSKey) -> Path:
         """Where the PVS of ``key`` lives."""
         digest = hashlib.sha256(repr(key).encode()).hexdigest()[:40]
-        scene = hashlib.sha256(str(key[0]).encode()).hexdigest()[:16]
+        scene = hashlib.sha256(key.fingerprint.encode()).hexdigest()[:16]
         return self.folder / scene / f"{digest}.npz"
 
     def _count(self, name: str) -> None:
         with self._lock:
             setattr(self, name, getattr(self, name) + 1)
 
-    def _read(self, p: Path, key: tuple, n_triangles: int | None) -> PVS | None:
+    def _read(self, p: Path, key: PVSKey, n_triangles: int | None) -> PVS | None:
         """The checked PVS in ``p``; None for an older format; BadEntry for a bad entry."""
         try:
             z = np.load(p, allow_pickle=False)
@@ -271,9 +94,9 @@ class DiskPVSCache:
                 key_repr = repr(key)
                 if str(z["key"]) != key_repr:
                     raise BadEntry("it holds another key")
-                if str(z["fingerprint"]) != str(key[0]):
+                if str(z["fingerprint"]) != key.fingerprint:
                     raise BadEntry("it is from another scene fingerprint")
-                if str(z["params"]) != repr(key[1:]):
+                if str(z["params"]) != repr(tuple(key)[1:]):
                     raise BadEntry("it holds other parameters")
                 stored_n = int(z["n_triangles"])
                 if n_triangles is not None and stored_n >= 0 and stored_n != int(n_triangles):
@@ -288,9 +111,9 @@ class DiskPVSCache:
                 if str(z["checksum"]) != _checksum(key_repr, stored_n, granularity, raw_ids,
                                                    raw_obj, raw_sph):
                     raise BadEntry("checksum mismatch")
-                ids = _check_ids("triangle ids", raw_ids, upper)
-                obj = None if raw_obj is None else _check_ids("object ids", raw_obj, None)
-                sph = None if raw_sph is None else _check_ids("sphere ids", raw_sph, None)
+                ids = check_ids("triangle ids", raw_ids, upper)
+                obj = None if raw_obj is None else check_ids("object ids", raw_obj, None)
+                sph = None if raw_sph is None else check_ids("sphere ids", raw_sph, None)
                 seconds = float(z["seconds"])
             except BadEntry:
                 raise
@@ -299,7 +122,7 @@ class DiskPVSCache:
         return PVS(ids, granularity=granularity, object_ids=obj, sphere_ids=sph,
                    stats={"seconds": seconds, "disk": True})
 
-    def get(self, key: tuple, n_triangles: int | None = None) -> PVS | None:
+    def get(self, key: PVSKey, n_triangles: int | None = None) -> PVS | None:
         """The stored, checked PVS of ``key`` or None (missing, older format or rejected).
 
         ``n_triangles``: the scene's triangle count; ids must lie below it (without it, below
@@ -321,7 +144,7 @@ class DiskPVSCache:
         self._count("hits")
         return pvs
 
-    def check(self, key: tuple, n_triangles: int | None = None) -> bool:
+    def check(self, key: PVSKey, n_triangles: int | None = None) -> bool:
         """Whether a valid entry for ``key`` is on disk (a bad one is rejected and deleted);
         counts no hit or miss."""
         p = self.path(key)
@@ -333,10 +156,10 @@ class DiskPVSCache:
             self._reject(p, key, str(exc))
             return False
 
-    def _reject(self, p: Path, key: tuple, why: str) -> None:
+    def _reject(self, p: Path, key: PVSKey, why: str) -> None:
         # The scene fingerprint identifies the entry well enough; the path stays out of logs.
         log.warning("rejected an on-disk PVS cache entry of scene %s (%s): %s; recomputing",
-                    str(key[0])[:16], str(key[2]) if len(key) > 2 else "?", why)
+                    key.fingerprint[:16], key.core, why)
         self._count("rejected")
         if why.startswith(("unreadable", "malformed")):
             self._count("corrupt")
@@ -346,7 +169,7 @@ class DiskPVSCache:
         except OSError:
             pass
 
-    def put(self, key: tuple, pvs: PVS, n_triangles: int | None = None) -> bool:
+    def put(self, key: PVSKey, pvs: PVS, n_triangles: int | None = None) -> bool:
         """Store ``pvs`` under ``key``; True when written. Errors are logged (without the
         path) and counted in ``write_errors``, never raised. ``n_triangles``: the scene's
         triangle count, stored so readers that do not know it can still bound the ids."""
@@ -359,11 +182,11 @@ class DiskPVSCache:
             sph = None if pvs.sphere_ids is None else np.asarray(pvs.sphere_ids, np.int32)
             key_repr = repr(key)
             # Never write what a reader would reject.
-            _check_ids("triangle ids", ids, n if n >= 0 else None)
+            check_ids("triangle ids", ids, n if n >= 0 else None)
             empty = np.zeros(0, np.int32)
             buf = io.BytesIO()
             np.savez(buf, format=np.array(DISK_FORMAT), key=np.array(key_repr),
-                     fingerprint=np.array(str(key[0])), params=np.array(repr(key[1:])),
+                     fingerprint=np.array(key.fingerprint), params=np.array(repr(tuple(key)[1:])),
                      n_triangles=np.array(n), triangle_ids=ids,
                      granularity=np.array(pvs.granularity), seconds=np.array(pvs.seconds),
                      has_objects=np.array(obj is not None),
@@ -376,7 +199,7 @@ class DiskPVSCache:
             os.replace(tmp, p)
         except Exception as exc:  # a full disk or a bad PVS must not fail the request
             log.warning("could not write an on-disk PVS cache entry of scene %s: %s",
-                        str(key[0])[:16], exc if isinstance(exc, BadEntry) else
+                        key.fingerprint[:16], exc if isinstance(exc, BadEntry) else
                         type(exc).__name__)
             self._count("write_errors")
             try:

@@ -1,13 +1,14 @@
 """Keys and values of the shared (Redis) cache: pure functions, no I/O.
 
 Keys name everything a value depends on, so replicas that differ in anything never meet each
-other's values: ``pvs:v<FORMAT_VERSION>:<scene hash>:<core>:<params hash>:<cell>:<box hash>``.
-The scene hash is the scene's content fingerprint (``visibility.scene.scene_fingerprint``), the
-params hash a digest of ``CoreParams.cache_key()``; the cell id is there for people reading the
-keys (``redis-cli --scan``), the box hash (the cell's corners) for the machines: two replicas
-with other cell sizes number other boxes alike. Cubemaps take ``cubemap`` as their core and a
-digest of radii, resolution and the scene's colours (a cubemap shows colours, which the
-fingerprint leaves out) as their parameters.
+other's values. A PVS is stored under its ``PVSKey.shared()`` (``server.cache.key``:
+``pvs:v<key version>:<scene hash>:<core>:<params hash>:<box|segment>:<region hash>``), the
+same for a grid cell and an ad-hoc box with the same corners. A cell's near-far cubemap is
+stored under ``cubemap_key`` (``cell_key`` with ``cubemap`` as its core and a digest of radii,
+resolution and the scene's colours, which the fingerprint leaves out, as its parameters:
+``pvs:v<FORMAT_VERSION>:<scene hash>:cubemap:<params hash>:<cell>:<box hash>``; the cell id is
+there for people reading the keys, ``redis-cli --scan``, the box hash for the machines). The
+scene hash is the scene's content fingerprint (``visibility.scene.scene_fingerprint``).
 
 Values are compact binary with a header carrying the format version and a checksum of the key
 and body, so a value copied under another key, truncated or of another format is refused
@@ -31,7 +32,7 @@ import zlib
 
 import numpy as np
 
-from server.cache import BadEntry, check_ids
+from server.cache.checks import BadEntry, check_ids
 from visibility.cores.base import PVS
 
 #: Version of keys and values; bump it whenever either changes meaning (old values then simply
@@ -66,14 +67,15 @@ def box_digest(box: np.ndarray) -> str:
     return digest(np.ascontiguousarray(box, dtype="<f8").tobytes(), 4)
 
 
-def _token(text: str) -> str:
-    # Key parts are separated by ':'; a core name holding one must not shift the others.
+def token(text: str) -> str:
+    """``text`` fit for one part of a key: key parts are separated by ':', so a core name
+    holding one must not shift the others."""
     return _SAFE.sub("_", text) or "_"
 
 
-def pvs_key(fingerprint: str, core: str, params_key: str, cell: int, box: np.ndarray) -> str:
-    """The shared-cache key of a grid cell's PVS (module docstring)."""
-    return (f"{NAMESPACE}:v{FORMAT_VERSION}:{_token(fingerprint)}:{_token(core)}:"
+def cell_key(fingerprint: str, core: str, params_key: str, cell: int, box: np.ndarray) -> str:
+    """The shared-cache key of a value kept per grid cell (module docstring: cubemaps)."""
+    return (f"{NAMESPACE}:v{FORMAT_VERSION}:{token(fingerprint)}:{token(core)}:"
             f"{digest(params_key)}:{int(cell)}:{box_digest(box)}")
 
 
@@ -82,7 +84,7 @@ def cubemap_key(fingerprint: str, colours: str, r1: float, r2: float, resolution
     """The shared-cache key of a cell's encoded cubemap frame (module docstring); ``colours``
     is ``colours_digest`` of the scene."""
     params = f"r1={float(r1)!r},r2={float(r2)!r},resolution={int(resolution)},colours={colours}"
-    return pvs_key(fingerprint, "cubemap", params, cell, box)
+    return cell_key(fingerprint, "cubemap", params, cell, box)
 
 
 def colours_digest(colors: np.ndarray) -> str:

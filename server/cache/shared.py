@@ -4,14 +4,14 @@ Several server replicas pointed at one Redis (``Settings.cache``, ``PVS_CACHE=re
 share the PVS they compute and the near-far cubemaps they bake. Each process keeps its memory
 cache in front (L1); Redis is the shared L2, beside the on-disk cache when ``cache_dir`` is
 also set (memory, then Redis, then disk, then a computation; what is computed or read from disk
-is written to Redis). Keys and values: ``server.redis_codec``.
+is written to Redis: ``server.cache.tiered``). Keys and values: ``server.cache.codec``.
 
 Calls are blocking and made from worker threads (the compute pool, the cubemap baker's
-``asyncio.to_thread``), never from the event loop. Every call has ``redis_timeout`` seconds;
-a connection error or timeout marks Redis down: calls are then skipped at once (a miss; the
-server recomputes and serves from memory) while a background thread pings Redis every
-``redis_retry`` seconds and marks it up again when it answers. ``/health`` (``cache``) and
-``/metrics`` (``pvs_redis_up``, per-tier counters) say which.
+``asyncio.to_thread``, ``TieredCache.peek_async``), never from the event loop. Every call has
+``redis_timeout`` seconds; a connection error or timeout marks Redis down: calls are then
+skipped at once (a miss; the server recomputes and serves from memory) while a background
+thread pings Redis every ``redis_retry`` seconds and marks it up again when it answers.
+``/health`` (``cache``) and ``/metrics`` (``pvs_redis_up``, per-tier counters) say which.
 
 Bounds: a value over ``redis_max_value_bytes`` is not stored (counted ``too_large``); each
 value expires after ``redis_ttl`` seconds (0: never). The total is Redis's own
@@ -29,8 +29,8 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
-from server.cache import BadEntry
-from server.redis_codec import decode_blob, decode_pvs, encode_blob, encode_pvs
+from server.cache.checks import BadEntry
+from server.cache.codec import decode_blob, decode_pvs, encode_blob, encode_pvs
 from visibility.cores.base import PVS
 
 log = logging.getLogger(__name__)
@@ -173,7 +173,7 @@ class RedisLink:
 
 class SharedCache:
     """PVS and blobs (cubemap frames) in Redis through a ``RedisLink``: counted per kind,
-    checked on read (a value failing ``server.redis_codec``'s checks is deleted and a miss)."""
+    checked on read (a value failing ``server.cache.codec``'s checks is deleted and a miss)."""
 
     def __init__(self, link: RedisLink, ttl: float = 0.0,
                  max_value_bytes: int = 8 << 20) -> None:
