@@ -1,0 +1,33 @@
+"""Smoke test of the memory benchmark: a small city through the real catalogue, core and
+/proc readings in a child process, and a report that says what it measured (the real numbers
+live in benchmarks/results/memory.md)."""
+
+from __future__ import annotations
+
+import json
+
+from benchmarks import bench_memory as bm
+
+
+def test_a_small_city_is_measured_stage_by_stage(tmp_path):
+    assert bm.main(["--sizes", "20000", "--out", str(tmp_path), "--tag", "smoke"]) == 0
+    text = (tmp_path / "smoke.md").read_text()
+    assert text.startswith("`python -m benchmarks.bench_memory --sizes 20000")
+    data = json.loads((tmp_path / "smoke.json").read_text())
+    (res,) = data["results"]
+    n, nv = res["triangles"], res["vertices"]
+    assert abs(n - 20000) < 0.2 * 20000 and res["pvs"] > 0 and res["cells"] > 0
+    assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "sampling"]
+    for r in res["stages"]:
+        # A stage's peak is at least what it left resident; resident = anon + file + shmem.
+        assert r["peak"] >= r["rss"] > 0
+        assert r["rss"] == r["anon"] + r["file"] + r["shmem"]
+    assert res["peak_reset"] is True
+    assert res["process_peak"] == max(r["peak"] for r in res["stages"])
+    arrays = res["arrays"]
+    assert arrays["scene.vertices"] == 24 * nv and arrays["scene.faces"] == 12 * n
+    assert arrays["scene.valid"] == n and arrays["server.centroids"] == 24 * n
+    d = res["derived"]
+    assert d["kept_arrays_bytes"] == sum(arrays.values())
+    assert d["peak_per_triangle"] >= d["served_rss_per_triangle"]
+    assert "| scene.vertices |" in text and "| city 20,000 |" in text
