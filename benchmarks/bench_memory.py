@@ -20,7 +20,8 @@ stage is its own (the kernel's peak counter is reset between stages through
 and, per stage, the transient: the stage's peak above what it left resident.
 
 Usage: ``python -m benchmarks.bench_memory`` (city at 1M and 4M triangles), ``--big`` adds 16M
-(minutes), ``--sizes 200000 ...`` picks others, ``--tag NAME`` writes
+(minutes), ``--sizes 200000 ...`` picks others, ``--files a.glb ...`` measures scene files too
+(served from their folder, sidecars and walk-area detection included), ``--tag NAME`` writes
 ``benchmarks/results/NAME.md`` and ``.json`` (default ``memory``).
 """
 
@@ -161,9 +162,10 @@ class Stages:
         return row
 
 
-def measure(generator: str, triangles: int) -> dict[str, Any]:
-    """Load ``generator`` at ``triangles`` through the catalogue, derive what the server derives,
-    compute one sampling cell; the memory of each stage (see the module docstring)."""
+def measure(generator: str, triangles: int, file: Path | None = None) -> dict[str, Any]:
+    """Load ``generator`` at ``triangles`` (or the scene ``file``, served from its folder)
+    through the catalogue, derive what the server derives, compute one sampling cell; the
+    memory of each stage (see the module docstring)."""
     from types import SimpleNamespace
 
     from server.app import ServerState
@@ -175,15 +177,21 @@ def measure(generator: str, triangles: int) -> dict[str, Any]:
 
     core = get_core("sampling")
     params = core.make_params()
-    tiny = make_scene(generator, 1000, seed=1)
+    tiny = make_scene("city", 1000, seed=1)
     tiny_grid = ViewcellGrid.for_scene(tiny)
     core.compute(tiny, tiny_grid.cell(len(tiny_grid) // 2), params)
     del tiny, tiny_grid
 
     stages = Stages()
     base = stages.mark("runtime")
-    catalog = SceneCatalog(Settings(generated={generator: triangles}, scenes_dir=None))
-    loaded = catalog.get(generator)
+    if file is None:
+        catalog = SceneCatalog(Settings(generated={generator: triangles}, scenes_dir=None))
+        loaded = catalog.get(generator)
+    else:
+        from visibility.loaders import load_scene  # noqa: F401 - imported before measuring
+
+        catalog = SceneCatalog(Settings(generated={}, scenes_dir=file.parent))
+        loaded = catalog.get(file.stem)
     scene, grid = loaded.scene, loaded.grid
     stages.mark("load")
     _ = loaded.fingerprint
@@ -199,7 +207,8 @@ def measure(generator: str, triangles: int) -> dict[str, Any]:
     arrays = kept_arrays(loaded, centroids)
     n = scene.n_triangles
     return {
-        "generator": generator, "requested": triangles, "triangles": n,
+        "generator": generator if file is None else file.name,
+        "requested": triangles if file is None else n, "triangles": n,
         "vertices": scene.n_vertices, "cells": len(grid), "cell": cell,
         "params": params.as_dict(), "pvs": len(pvs.triangle_ids),
         "peak_reset": stages.can_reset, "baseline_rss": base["rss"],
@@ -295,10 +304,11 @@ def report(results: list[dict[str, Any]], argv: list[str], header: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_child(generator: str, triangles: int, timeout: float) -> dict[str, Any]:
+def run_child(generator: str, triangles: int, timeout: float,
+              file: Path | None = None) -> dict[str, Any]:
     """``measure`` in a fresh interpreter; its result."""
     cmd = [sys.executable, "-m", "benchmarks.bench_memory", "--child", generator,
-           str(triangles)]
+           str(triangles)] + ([] if file is None else ["--child-file", str(file.resolve())])
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                           cwd=Path(__file__).resolve().parent.parent)
     if proc.returncode != 0:
@@ -338,17 +348,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tag", default="memory", help="results file stem")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR, help="results folder")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per size")
+    ap.add_argument("--files", type=Path, nargs="+", default=[],
+                    help="scene files to measure too, each served from its own folder")
     ap.add_argument("--child", nargs=2, metavar=("GENERATOR", "TRIANGLES"),
                     help=argparse.SUPPRESS)
+    ap.add_argument("--child-file", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        print(json.dumps(measure(args.child[0], int(args.child[1]))))
+        print(json.dumps(measure(args.child[0], int(args.child[1]), args.child_file)))
         return 0
     sizes = list(args.sizes) + ([BIG_SIZE] if args.big and BIG_SIZE not in args.sizes else [])
+    jobs = [(n, None) for n in sizes] + [(0, f) for f in args.files]
     results = []
-    for n in sizes:
-        print(f"{args.generator} {n:,} ...", flush=True)
-        res = run_child(args.generator, n, args.timeout)
+    for n, file in jobs:
+        print(f"{file.name if file else f'{args.generator} {n:,}'} ...", flush=True)
+        res = run_child(args.generator, n, args.timeout, file)
         res["derived"] = derive(res)
         results.append(res)
         d = res["derived"]

@@ -7,14 +7,22 @@ from __future__ import annotations
 import json
 
 from benchmarks import bench_memory as bm
+from tests.conftest import write_scene_files
 
 
-def test_a_small_city_is_measured_stage_by_stage(tmp_path):
-    assert bm.main(["--sizes", "20000", "--out", str(tmp_path), "--tag", "smoke"]) == 0
+def test_a_small_city_and_a_file_are_measured_stage_by_stage(tmp_path):
+    write_scene_files(tmp_path / "scenes")
+    box = tmp_path / "scenes" / "box.obj"
+    assert bm.main(["--sizes", "20000", "--files", str(box), "--out", str(tmp_path),
+                    "--tag", "smoke"]) == 0
     text = (tmp_path / "smoke.md").read_text()
     assert text.startswith("`python -m benchmarks.bench_memory --sizes 20000")
     data = json.loads((tmp_path / "smoke.json").read_text())
-    (res,) = data["results"]
+    res, from_file = data["results"]
+    # The file is served from its folder with its sidecar's walk area (a 6 x 6 m room, 3 m cells).
+    assert from_file["generator"] == "box.obj" and from_file["triangles"] == 12
+    assert from_file["cells"] == 4 and from_file["pvs"] > 0
+    assert "| box.obj 12 |" in text
     n, nv = res["triangles"], res["vertices"]
     assert abs(n - 20000) < 0.2 * 20000 and res["pvs"] > 0 and res["cells"] > 0
     assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "sampling"]
