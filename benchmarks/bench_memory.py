@@ -11,7 +11,8 @@ count against the next). The child does what the server does with a scene:
 ``server``   what the server derives per scene on first use: the fingerprint (disk and Redis
              keys), the wire origin (every geometry frame), the valid count (the handshake), and
              the triangle centroids a streaming session keeps (``server.app.ServerState``).
-``sampling`` one cell of ``get_core("sampling")`` at the server's default parameters.
+``sampling`` one cell of ``get_core("sampling")`` at the server's default parameters
+             (``--cells K``: K cells one after the other, a stage each).
 
 Memory is read from ``/proc/self/status`` (VmHWM: the peak resident set, VmRSS, and its anonymous
 and file-backed parts, so mapped files count) and ``/proc/self/smaps_rollup``. The peak of each
@@ -162,10 +163,11 @@ class Stages:
         return row
 
 
-def measure(generator: str, triangles: int, file: Path | None = None) -> dict[str, Any]:
+def measure(generator: str, triangles: int, file: Path | None = None,
+            cells: int = 1) -> dict[str, Any]:
     """Load ``generator`` at ``triangles`` (or the scene ``file``, served from its folder)
-    through the catalogue, derive what the server derives, compute one sampling cell; the
-    memory of each stage (see the module docstring)."""
+    through the catalogue, derive what the server derives, compute ``cells`` sampling cells
+    (one stage each); the memory of each stage (see the module docstring)."""
     from types import SimpleNamespace
 
     from server.app import ServerState
@@ -173,7 +175,7 @@ def measure(generator: str, triangles: int, file: Path | None = None) -> dict[st
     from server.settings import Settings
     from visibility.cores.base import get_core
     from visibility.generators import make_scene
-    from visibility.viewcells import ViewcellGrid
+    from visibility.viewcells import ViewcellGrid, spread_evenly
 
     core = get_core("sampling")
     params = core.make_params()
@@ -201,15 +203,17 @@ def measure(generator: str, triangles: int, file: Path | None = None) -> dict[st
     holder = SimpleNamespace(_centroids={})
     centroids = ServerState.centroids(holder, loaded)
     stages.mark("server")
-    cell = len(grid) // 2
-    pvs = core.compute(scene, grid.cell(cell), params)
-    stages.mark("sampling")
+    picks = [len(grid) // 2] + [c for c in spread_evenly(np.arange(len(grid)), cells)
+                                 if c != len(grid) // 2][:cells - 1]
+    for i, cell in enumerate(picks):
+        pvs = core.compute(scene, grid.cell(cell), params)
+        stages.mark("sampling" if i == 0 else f"sampling {i + 1}")
     arrays = kept_arrays(loaded, centroids)
     n = scene.n_triangles
     return {
         "generator": generator if file is None else file.name,
         "requested": triangles if file is None else n, "triangles": n,
-        "vertices": scene.n_vertices, "cells": len(grid), "cell": cell,
+        "vertices": scene.n_vertices, "cells": len(grid), "cell": picks,
         "params": params.as_dict(), "pvs": len(pvs.triangle_ids),
         "peak_reset": stages.can_reset, "baseline_rss": base["rss"],
         "stages": stages.rows, "arrays": arrays, "smaps_rollup": read_smaps_rollup(),
@@ -230,10 +234,10 @@ def derive(res: dict[str, Any]) -> dict[str, Any]:
         "kept_arrays_bytes": kept,
         "kept_arrays_per_triangle": kept / n,
         "loaded_rss_per_triangle": (load_rss - base) / n,
-        "served_rss_per_triangle": (rows["sampling"]["rss"] - base) / n,
+        "served_rss_per_triangle": (res["stages"][-1]["rss"] - base) / n,
         "peak_per_triangle": (res["process_peak"] - base) / n,
         # Freed memory the allocator kept: resident, yet no array holds it.
-        "allocator_held": rows["sampling"]["rss"] - base - kept,
+        "allocator_held": res["stages"][-1]["rss"] - base - kept,
         "transient": {},
     }
     prev = base
@@ -264,7 +268,7 @@ def report(results: list[dict[str, Any]], argv: list[str], header: str) -> str:
         lines.append(
             f"| {res['generator']} {res['requested']:,} | {res['triangles']:,} | "
             f"{res['vertices']:,} | {res['cells']:,} | {_mb(res['baseline_rss'])} | "
-            f"{_mb(rows['load']['rss'])} | {_mb(rows['sampling']['rss'])} | "
+            f"{_mb(rows['load']['rss'])} | {_mb(res['stages'][-1]['rss'])} | "
             f"{_mb(res['process_peak'])} | {d['kept_arrays_per_triangle']:.1f} | "
             f"{d['loaded_rss_per_triangle']:.1f} | {d['served_rss_per_triangle']:.1f} | "
             f"{d['peak_per_triangle']:.1f} |")
@@ -304,11 +308,12 @@ def report(results: list[dict[str, Any]], argv: list[str], header: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_child(generator: str, triangles: int, timeout: float,
-              file: Path | None = None) -> dict[str, Any]:
+def run_child(generator: str, triangles: int, timeout: float, file: Path | None = None,
+              cells: int = 1) -> dict[str, Any]:
     """``measure`` in a fresh interpreter; its result."""
     cmd = [sys.executable, "-m", "benchmarks.bench_memory", "--child", generator,
-           str(triangles)] + ([] if file is None else ["--child-file", str(file.resolve())])
+           str(triangles), "--cells", str(cells)]
+    cmd += [] if file is None else ["--child-file", str(file.resolve())]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                           cwd=Path(__file__).resolve().parent.parent)
     if proc.returncode != 0:
@@ -350,19 +355,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per size")
     ap.add_argument("--files", type=Path, nargs="+", default=[],
                     help="scene files to measure too, each served from its own folder")
+    ap.add_argument("--cells", type=int, default=1,
+                    help="sampling cells computed one after the other (a stage each)")
     ap.add_argument("--child", nargs=2, metavar=("GENERATOR", "TRIANGLES"),
                     help=argparse.SUPPRESS)
     ap.add_argument("--child-file", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        print(json.dumps(measure(args.child[0], int(args.child[1]), args.child_file)))
+        print(json.dumps(measure(args.child[0], int(args.child[1]), args.child_file,
+                                 args.cells)))
         return 0
     sizes = list(args.sizes) + ([BIG_SIZE] if args.big and BIG_SIZE not in args.sizes else [])
     jobs = [(n, None) for n in sizes] + [(0, f) for f in args.files]
     results = []
     for n, file in jobs:
         print(f"{file.name if file else f'{args.generator} {n:,}'} ...", flush=True)
-        res = run_child(args.generator, n, args.timeout, file)
+        res = run_child(args.generator, n, args.timeout, file, args.cells)
         res["derived"] = derive(res)
         results.append(res)
         d = res["derived"]
@@ -372,12 +380,13 @@ def main(argv: list[str] | None = None) -> int:
               f"B/tri", flush=True)
     header = f"{time.strftime('%Y-%m-%d %H:%M')}; {machine()}"
     text = report(results, argv, header)
-    print(text)
+    # Written before printing: a closed stdout (piped into head) must not lose the results.
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.tag}.md").write_text(text)
     (args.out / f"{args.tag}.json").write_text(json.dumps(
         {"command": ["python", "-m", "benchmarks.bench_memory", *argv], "header": header,
          "results": results}, indent=1))
+    print(text)
     return 0
 
 

@@ -13,8 +13,8 @@ from tests.conftest import write_scene_files
 def test_a_small_city_and_a_file_are_measured_stage_by_stage(tmp_path):
     write_scene_files(tmp_path / "scenes")
     box = tmp_path / "scenes" / "box.obj"
-    assert bm.main(["--sizes", "20000", "--files", str(box), "--out", str(tmp_path),
-                    "--tag", "smoke"]) == 0
+    assert bm.main(["--sizes", "20000", "--files", str(box), "--cells", "2", "--out",
+                    str(tmp_path), "--tag", "smoke"]) == 0
     text = (tmp_path / "smoke.md").read_text()
     assert text.startswith("`python -m benchmarks.bench_memory --sizes 20000")
     data = json.loads((tmp_path / "smoke.json").read_text())
@@ -25,7 +25,9 @@ def test_a_small_city_and_a_file_are_measured_stage_by_stage(tmp_path):
     assert "| box.obj 12 |" in text
     n, nv = res["triangles"], res["vertices"]
     assert abs(n - 20000) < 0.2 * 20000 and res["pvs"] > 0 and res["cells"] > 0
-    assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "sampling"]
+    assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "sampling",
+                                                   "sampling 2"]
+    assert len(set(res["cell"])) == 2
     for r in res["stages"]:
         # A stage's peak is at least what it left resident; resident = anon + file + shmem.
         assert r["peak"] >= r["rss"] > 0
