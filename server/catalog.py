@@ -26,8 +26,9 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from protocol.frames import common_origin
+from server.heap import release_freed_memory
 from server.settings import Settings
-from visibility.scene import Scene, scene_fingerprint
+from visibility.scene import FACE_BLOCK, Scene, scene_fingerprint
 from visibility.scene_analysis import scene_is_2_5d
 from visibility.viewcells import ViewcellGrid
 
@@ -218,8 +219,13 @@ class SceneCatalog:
             return e.loaded
         with e.lock:
             if e.loaded is None:
-                e.loaded = self._load(e)
-                e.pending = None
+                try:
+                    e.loaded = self._load(e)
+                    e.pending = None
+                finally:
+                    # A load frees its temporaries (as much as the scene again, or more): give
+                    # those pages back instead of keeping them resident in the heap.
+                    release_freed_memory()
             return e.loaded
 
     async def load(self, name: str) -> LoadedScene:
@@ -310,5 +316,21 @@ def wire_origin(scene: Scene) -> np.ndarray:
     vertices), computed once per scene: frames of different cells hold shared vertices too."""
     hit = _ORIGINS.get(scene)
     if hit is None:
-        hit = _ORIGINS[scene] = common_origin(scene.vertices)
+        hit = _ORIGINS[scene] = _blockwise_origin(scene.vertices)
     return hit
+
+
+def _blockwise_origin(vertices: np.ndarray, block: int = FACE_BLOCK) -> np.ndarray:
+    """``common_origin(vertices)``, equal to it, from the bounds of its finite rows taken by
+    blocks: no copy of the finite vertices is made."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for s in range(0, len(vertices), block):
+        v = vertices[s:s + block]
+        v = v[np.isfinite(v).all(axis=1)]
+        if len(v):
+            lo = np.minimum(lo, v.min(axis=0))
+            hi = np.maximum(hi, v.max(axis=0))
+    if not np.all(lo <= hi):
+        return common_origin(np.zeros((0, 3)))
+    return common_origin(np.stack([lo, hi]))

@@ -163,7 +163,6 @@ class ServerState:
         """(m, 3) triangle centroids of a loaded scene, metres (computed once per scene)."""
         c = self._centroids.get(loaded.name)
         if c is None or len(c) != loaded.scene.n_triangles:
-            with np.errstate(invalid="ignore"):
-                c = loaded.scene.triangles().mean(axis=1)
+            c = loaded.scene.centroids()
             self._centroids[loaded.name] = c
         return c

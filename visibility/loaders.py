@@ -23,6 +23,7 @@ stay stable) and reported; ``Scene.valid_faces`` keeps them out of computation.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -42,10 +43,11 @@ SCENE_EXTENSIONS = (".glb", ".gltf", ".obj", ".ply")
 DEFAULT_COLOR = (200, 200, 200)
 
 
-#: Most triangles a scene file may hold (``load_scene``'s default ``max_triangles``). A loaded
-#: triangle costs ~150 bytes in the Scene and as much again in trimesh while loading, so 2^23
-#: (8 times the largest real scene, kitchen's 1M) needs ~2.5 GB; past it a file is refused
-#: before it is parsed (counts read from the PLY header, the glTF JSON, OBJ face lines).
+#: Most triangles a scene file may hold (``load_scene``'s default ``max_triangles``): 8 times
+#: the largest real scene (kitchen's 1M). What a loaded triangle costs, at the peak of a load
+#: and once loaded, is measured by ``benchmarks/bench_memory.py`` (docs/memory.md). Past the
+#: limit a file is refused before it is parsed (counts read from the PLY header, the glTF JSON,
+#: OBJ face lines).
 MAX_TRIANGLES = 1 << 23
 #: Largest scene file read (``load_scene``'s default ``max_bytes``): 1 GiB, 45 times kitchen.glb
 #: (22 MB); trimesh reads a file whole, so its size is memory.
@@ -272,20 +274,36 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
         reason = strip_paths(str(exc), path.parent) or type(exc).__name__
         raise SceneLoadError(f"cannot read {path.name}: {reason}") from exc
     parts = [g for g in tscene.dump(concatenate=False) if hasattr(g, "faces") and len(g.faces)]
-    verts, faces, objs, cols, names = [], [], [], [], []
-    offset = 0
+    # The dumped parts are transformed copies: trimesh's own scene is no longer needed.
+    del tscene
+    if not parts:
+        raise SceneLoadError(f"{path.name} holds no triangles")
+    held = sum(len(g.faces) for g in parts)
+    if held > max_triangles:
+        raise SceneTooLarge(path.name, f"holds {held} triangles", max_triangles,
+                            "max_triangles")
+    # The scene's arrays are allocated once in their final dtypes and filled part by part, each
+    # part released as soon as it is copied: no concatenated int64 or float64 copies.
+    vertices = np.empty((sum(len(g.vertices) for g in parts), 3))
+    faces = np.empty((held, 3), dtype=np.int32)
+    objs = np.empty(held, dtype=np.int32)
+    cols = np.empty((held, 3), dtype=np.uint8)
+    names: list[str] = []
+    offset = first = 0
     next_obj = 0
-    for k, g in enumerate(parts):
+    for k in range(len(parts)):
+        g, parts[k] = parts[k], None
         v = np.asarray(g.vertices, dtype=np.float64)
         f = np.asarray(g.faces, dtype=np.int64)
-        verts.append(v)
-        faces.append(f + offset)
-        offset += len(v)
-        cols.append(_face_colors(g))
+        nv, m = len(v), len(f)
+        np.multiply(v, scale, out=vertices[offset:offset + nv])
+        # Indices past int32 wrap, as an int32 cast wraps them (such faces are out of range).
+        np.add(f, offset, out=faces[first:first + m], casting="unsafe")
+        cols[first:first + m] = _face_colors(g)
         attr = getattr(g, "vertex_attributes", {}).get("_OBJECT_ID")
-        if attr is not None and len(attr) == len(v):
-            local = np.asarray(attr).reshape(len(v), -1)[:, 0].astype(np.int64)[f[:, 0]]
-            objs.append(local + next_obj)
+        if attr is not None and len(attr) == nv:
+            local = np.asarray(attr).reshape(nv, -1)[:, 0].astype(np.int64)[f[:, 0]]
+            objs[first:first + m] = local + next_obj
             obj_names = g.metadata.get("object_names") if hasattr(g, "metadata") else None
             n_local = int(local.max()) + 1 if len(local) else 0
             if isinstance(obj_names, (list, tuple)) and len(obj_names) >= n_local:
@@ -294,20 +312,22 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
                 names.extend(f"{path.stem}#{k}.{i}" for i in range(n_local))
             next_obj += n_local
         else:
-            objs.append(np.full(len(f), next_obj, dtype=np.int64))
+            objs[first:first + m] = next_obj
             names.append(str(g.metadata.get("name", f"{path.stem}#{k}")))
             next_obj += 1
-    if not faces:
-        raise SceneLoadError(f"{path.name} holds no triangles")
-    held = sum(len(f) for f in faces)
-    if held > max_triangles:
-        raise SceneTooLarge(path.name, f"holds {held} triangles", max_triangles,
-                            "max_triangles")
-    vertices = np.concatenate(verts) * scale
+        offset += nv
+        first += m
+        del g, v, f
+    # trimesh's meshes hold reference cycles (mesh <-> visuals, caches): only the cycle
+    # collector frees their arrays, so run it now rather than at some later allocation.
+    gc.collect()
     if str(side.get("up", "y")).lower() == "z":
-        # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y).
-        vertices = np.stack([vertices[:, 0], vertices[:, 2], -vertices[:, 1]], axis=1)
-    side = {**read_hints(path, sum(len(f) for f in faces)), **side}
+        # Z-up to Y-up, right-handed: (x, y, z) -> (x, z, -y), in place.
+        y = vertices[:, 1].copy()
+        vertices[:, 1] = vertices[:, 2]
+        np.negative(y, out=vertices[:, 2])
+        del y
+    side = {**read_hints(path, held), **side}
     walk = None
     if "walk" in side:
         w = side["walk"]
@@ -318,9 +338,9 @@ def load_scene(path: str | Path, scale: float | None = None, name: str | None = 
         )
     scene = Scene(
         vertices=vertices,
-        faces=np.concatenate(faces),
-        object_ids=np.concatenate(objs),
-        colors=np.concatenate(cols),
+        faces=faces,
+        object_ids=objs,
+        colors=cols,
         name=name or path.stem,
         walk=walk,
         object_names=names,

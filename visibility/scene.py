@@ -11,10 +11,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visibility.ids import unique_ids, unique_inverse
+from visibility.ids import unique_inverse
 
 #: Smallest triangle area (m^2) that still counts as a surface; below it a face is degenerate.
 MIN_FACE_AREA = 1e-12
+#: Faces (or vertices) per block of the per-face passes (validity, bounds, hashing, centroids):
+#: their temporaries stay a few tens of MB instead of growing with the scene.
+FACE_BLOCK = 1 << 18
+
+
+def _as_faces(faces: np.ndarray) -> np.ndarray:
+    """(m, 3) int32 C-contiguous faces: ``faces`` itself when it already is, else converted
+    (indices past int32 wrap as ``astype`` wraps them; non-integers go through int64)."""
+    f = np.asarray(faces)
+    if f.dtype == np.int32:
+        return np.ascontiguousarray(f).reshape(-1, 3)
+    if not np.issubdtype(f.dtype, np.integer):
+        f = np.asarray(f, dtype=np.int64)
+    return np.ascontiguousarray(f.reshape(-1, 3).astype(np.int32))
 
 
 @dataclass(frozen=True)
@@ -109,9 +123,7 @@ class Scene:
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
-        self.faces = (
-            np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3).astype(np.int32)
-        )
+        self.faces = _as_faces(self.faces)
         m = len(self.faces)
         if self.object_ids is None:
             self.object_ids = np.zeros(m, dtype=np.int32)
@@ -170,35 +182,45 @@ class Scene:
     def _classify(self) -> None:
         n = len(self.vertices)
         f = self.faces
-        out_of_range = np.any((f < 0) | (f >= n), axis=1)
-        fi = np.where(out_of_range[:, None], 0, f)
-        if n == 0:
-            fi = np.zeros_like(f)
-        repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+        m = len(f)
         verts = self.vertices if self.states is None else self.states.reshape(-1, n, 3)
         if verts.ndim == 2:
             verts = verts[None]
-        non_finite = np.zeros(len(f), dtype=bool)
-        zero_area = np.ones(len(f), dtype=bool) if n == 0 else np.zeros(len(f), dtype=bool)
-        if n:
-            finite_v = np.all(np.isfinite(verts), axis=(0, 2))  # (n,)
-            non_finite = ~np.all(finite_v[fi], axis=1)
-            # A moving face counts as a surface if it has area in any state.
-            has_area = np.zeros(len(f), dtype=bool)
-            for v in verts:
-                a, b, c = v[fi[:, 0]], v[fi[:, 1]], v[fi[:, 2]]
-                # Relative to the first vertex keeps the cross product exact-ish at 1e5 m offsets.
-                with np.errstate(invalid="ignore", over="ignore"):
-                    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-                has_area |= np.isfinite(area2) & (area2 > 2 * MIN_FACE_AREA)
-            zero_area = ~has_area & ~non_finite
-        bad = out_of_range | repeated | non_finite | zero_area
-        self._valid = ~bad
+        finite_v = np.ones(n, dtype=bool)
+        for v in verts:
+            finite_v &= np.all(np.isfinite(v), axis=1)
+        valid = np.empty(m, dtype=bool)
+        counts = np.zeros(4, dtype=np.int64)  # zero area, non-finite, repeated, out of range
+        # Face blocks bound the temporaries (corners, edges, cross products, per-reason flags)
+        # to a few tens of MB whatever the scene's size; every test is per face.
+        for s in range(0, m, FACE_BLOCK):
+            fb = f[s:s + FACE_BLOCK]
+            out_of_range = np.any((fb < 0) | (fb >= n), axis=1)
+            repeated = (fb[:, 0] == fb[:, 1]) | (fb[:, 1] == fb[:, 2]) | (fb[:, 0] == fb[:, 2])
+            if n:
+                fi = np.where(out_of_range[:, None], 0, fb) if out_of_range.any() else fb
+                non_finite = ~np.all(finite_v[fi], axis=1)
+                # A moving face counts as a surface if it has area in any state.
+                has_area = np.zeros(len(fb), dtype=bool)
+                for v in verts:
+                    a, b, c = v[fi[:, 0]], v[fi[:, 1]], v[fi[:, 2]]
+                    # Relative to the first vertex keeps the cross product exact-ish at 1e5 m
+                    # offsets.
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+                    has_area |= np.isfinite(area2) & (area2 > 2 * MIN_FACE_AREA)
+                zero_area = ~has_area & ~non_finite
+            else:
+                non_finite = np.zeros(len(fb), dtype=bool)
+                zero_area = np.ones(len(fb), dtype=bool)
+            valid[s:s + len(fb)] = ~(out_of_range | repeated | non_finite | zero_area)
+            counts += [np.count_nonzero(zero_area & ~repeated & ~out_of_range),
+                       np.count_nonzero(non_finite & ~out_of_range),
+                       np.count_nonzero(repeated), np.count_nonzero(out_of_range)]
+        self._valid = valid
         self._report = DegenerateReport(
-            zero_area=int(np.count_nonzero(zero_area & ~repeated & ~out_of_range)),
-            non_finite=int(np.count_nonzero(non_finite & ~out_of_range)),
-            repeated_index=int(np.count_nonzero(repeated)),
-            out_of_range=int(np.count_nonzero(out_of_range)),
+            zero_area=int(counts[0]), non_finite=int(counts[1]),
+            repeated_index=int(counts[2]), out_of_range=int(counts[3]),
         )
 
     @property
@@ -218,19 +240,34 @@ class Scene:
     # ----------------------------------------------------------------------------- geometry
     def bounds(self) -> np.ndarray:
         """(2, 3) float64 [min, max] over finite vertices of valid faces (all states), metres."""
-        idx = unique_ids(self.faces[self.valid_faces])
-        pts = []
-        if len(idx):
-            v = self.vertices[idx] if self.states is None else self.states[:, idx].reshape(-1, 3)
-            pts.append(v)
+        used = self.used_vertices()
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        # By vertex blocks: no copy of the used vertices (or of every state's) is made whole.
+        for s in range(0, len(used), FACE_BLOCK):
+            u = used[s:s + FACE_BLOCK]
+            if not u.any():
+                continue
+            v = (self.vertices[s:s + FACE_BLOCK][u] if self.states is None
+                 else self.states[:, s:s + FACE_BLOCK][:, u].reshape(-1, 3))
+            lo = np.minimum(lo, v.min(axis=0))
+            hi = np.maximum(hi, v.max(axis=0))
         if self.n_spheres:
             c = self.sphere_centers.reshape(-1, 3)
             r = np.tile(self.sphere_radii, self.sphere_centers.shape[0])[:, None]
-            pts.extend([c - r, c + r])
-        if not pts:
+            lo = np.minimum(lo, (c - r).min(axis=0))
+            hi = np.maximum(hi, (c + r).max(axis=0))
+        if not np.all(lo <= hi):
             return np.zeros((2, 3))
-        allp = np.concatenate(pts)
-        return np.stack([allp.min(axis=0), allp.max(axis=0)])
+        return np.stack([lo, hi])
+
+    def used_vertices(self) -> np.ndarray:
+        """(n,) bool: the vertices that some valid face uses."""
+        used = np.zeros(self.n_vertices, dtype=bool)
+        valid = self.valid_faces
+        for s in range(0, self.n_triangles, FACE_BLOCK):
+            used[self.faces[s:s + FACE_BLOCK][valid[s:s + FACE_BLOCK]].reshape(-1)] = True
+        return used
 
     def vertices_at(self, t: float) -> np.ndarray:
         """(n, 3) float64 vertex positions at time t (seconds), clamped to the keyframe range."""
@@ -271,6 +308,22 @@ class Scene:
         if c.shape[0] == 1:
             return c[0]
         return _lerp_keyframes(c, self.sphere_times, t)
+
+    def centroids(self, t: float | None = None) -> np.ndarray:
+        """(m, 3) float64 centroid of every triangle (at time t, seconds, when given), metres;
+        NaN rows for faces with an index out of range. Equal to ``triangles().mean(axis=1)``
+        without its (m, 3, 3) temporary."""
+        v = self.vertices if t is None else self.vertices_at(t)
+        n = len(v)
+        out = np.empty((self.n_triangles, 3))
+        for s in range(0, self.n_triangles, FACE_BLOCK):
+            fb = self.faces[s:s + FACE_BLOCK]
+            bad = np.any((fb < 0) | (fb >= n), axis=1)
+            with np.errstate(invalid="ignore", over="ignore"):
+                c = v[np.where(bad[:, None], 0, fb) if n else fb].mean(axis=1)
+            c[bad] = np.nan
+            out[s:s + len(fb)] = c
+        return out
 
     def triangles(self, ids: np.ndarray | None = None, t: float | None = None) -> np.ndarray:
         """(len(ids), 3, 3) float64 corner positions of the given triangle ids (all by default)."""
@@ -322,10 +375,13 @@ def scene_fingerprint(scene: Scene) -> str:
         if arr is None:
             h.update(b"-")
             continue
-        a = np.ascontiguousarray(arr, dtype=dtype)
         # The shape separates arrays, so (n, 3) + (0,) never hashes like (n - 1, 3) + (3,).
-        h.update(repr(a.shape).encode())
-        h.update(a.tobytes())
+        h.update(repr(arr.shape).encode())
+        # Row blocks in C order: the same bytes as the whole array's, without a converted copy
+        # (int32 faces become int64) or a bytes copy of it.
+        flat = arr.reshape(len(arr), -1) if arr.ndim else arr.reshape(1, 1)
+        for s in range(0, len(flat), FACE_BLOCK):
+            h.update(np.ascontiguousarray(flat[s:s + FACE_BLOCK], dtype=dtype).data)
     return h.hexdigest()
 
 

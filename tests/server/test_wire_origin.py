@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.frames import decode_geometry, encode_geometry
+from protocol.frames import common_origin, decode_geometry, encode_geometry
 from server.catalog import wire_origin
 from visibility.scene import Scene
 
@@ -41,3 +41,16 @@ def test_a_shared_vertex_decodes_the_same_in_every_frame():
     pc = np.asarray(c.positions, dtype=np.float64) + c.origin
     assert not np.array_equal(pa[0, 1], pc[0, 0]) or not np.array_equal(pa[0, 2], pc[0, 2])
 
+
+
+def test_the_origin_by_blocks_is_common_origin():
+    from server.catalog import _blockwise_origin
+
+    rng = np.random.default_rng(3)
+    v = rng.uniform(-800, 1200, (1000, 3)) + [4.5e5, 90.0, 5.2e6]
+    v[rng.integers(0, 1000, 40), rng.integers(0, 3, 40)] = np.nan
+    v[17] = [np.inf, 0.0, 0.0]
+    for block in (1, 7, 1000, 1 << 18):
+        np.testing.assert_array_equal(_blockwise_origin(v, block), common_origin(v))
+    np.testing.assert_array_equal(_blockwise_origin(np.full((5, 3), np.nan), 2), np.zeros(3))
+    np.testing.assert_array_equal(_blockwise_origin(np.zeros((0, 3))), np.zeros(3))

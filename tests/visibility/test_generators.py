@@ -563,3 +563,86 @@ def test_walk_violations_finds_an_intruder():
     assert len(gm.walk_violations(s)) == 0
     s = Scene(v + [0, 2.5, 0], f, walk=WalkArea(rects=[[0, 0, 4, 4, 0]]))  # above head height
     assert len(gm.walk_violations(s)) == 0
+
+
+# ----------------------------------------------------------------------------------- memory
+def _solid_batch(n: int = 40) -> gm.Solids:
+    """``n`` random swept solids of 3 to 8 corners with capped ends and facade grids."""
+    rng = np.random.default_rng(11)
+    b = gm.SolidBatch()
+    for i in range(n):
+        k = int(rng.integers(3, 9))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+        prof = np.stack([np.cos(ang), np.sin(ang)], 1) * rng.uniform(2, 9)
+        b.add(prof, rng.normal(size=3) * 20, [1, 0, 0], [0, 0, 1], [0, rng.uniform(3, 30), 0],
+              obj=i, step=rng.uniform(0.5, 3), nv=int(rng.integers(1, 9)),
+              cap0=bool(rng.random() < 0.5), cap1=True, tag=i % 3)
+    return b.freeze()
+
+
+def test_solid_mesh_pieces_join_to_the_whole_mesh():
+    s = _solid_batch()
+    whole = list(gm.solids_mesh_parts(s, max_faces=1 << 30))
+    assert len(whole) == 3  # walls, caps at s = 1, caps at s = 0
+    pieces = list(gm.solids_mesh_parts(s, max_faces=60))
+    assert len(pieces) > 10
+    mesh = gm.solids_mesh(s)
+    # Each piece is within the limit unless it is one wall or one cap.
+    for p in pieces:
+        assert len(p.faces) <= 60 or len(np.unique(p.solid)) == 1
+        assert p.faces.min() == 0 and p.faces.max() == len(p.verts) - 1
+    offsets = np.cumsum([0] + [len(p.verts) for p in pieces[:-1]])
+    np.testing.assert_array_equal(np.concatenate([p.verts for p in pieces]), mesh.verts)
+    np.testing.assert_array_equal(
+        np.concatenate([p.faces + o for p, o in zip(pieces, offsets, strict=True)]), mesh.faces)
+    for name in ("solid", "kind", "edge", "iu", "iv", "nu"):
+        np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in pieces]),
+                                      getattr(mesh, name))
+    assert np.array_equal(np.bincount(mesh.solid, minlength=len(s)), gm.solids_count(s))
+
+
+def test_mesh_parts_hand_the_pieces_over_in_final_dtypes():
+    parts = gm.MeshParts()
+    v, f, _, _ = gm.box_mesh([[0, 0, 0]], [[1, 1, 1]])
+    assert parts.add(v, f, 3, [10.4, 300.0, -5.0]).tolist() == list(range(12))
+    assert parts.add(v + 5, f, np.arange(12), np.full((12, 3), 7, np.uint8))[0] == 12
+    verts, faces, obj, rgb = parts.build()
+    assert verts.dtype == np.float64 and faces.dtype == np.int32
+    assert obj.dtype == np.int32 and rgb.dtype == np.uint8
+    np.testing.assert_array_equal(faces[12:], f + 8)
+    assert rgb[0].tolist() == [10, 255, 0] and rgb[12].tolist() == [7, 7, 7]
+    # Handed over: the parts are empty, so the pieces are no longer held twice.
+    assert parts.n_faces == 0 and len(parts.build()[1]) == 0
+    parts.n_vertices = 2**31 - 5
+    with pytest.raises(ValueError, match="int32"):
+        parts.add(v, f, 0, [1, 2, 3])
+
+
+def test_to_rgb_and_shading_by_blocks_equal_one_pass(monkeypatch):
+    s = make_scene("city", 5000, seed=2)
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(-20, 280, (s.n_triangles, 3))
+    one = gm.to_rgb(rgb), gm.shade_by_normal(s.vertices, s.faces, s.colors)
+    monkeypatch.setattr(gm, "FACE_BLOCK", 97)
+    np.testing.assert_array_equal(gm.to_rgb(rgb), one[0])
+    np.testing.assert_array_equal(gm.shade_by_normal(s.vertices, s.faces, s.colors), one[1])
+
+
+def test_city_generation_peak_stays_near_the_scene_size(monkeypatch):
+    """The city is generated piece by piece into its final dtypes: at no time does it hold
+    more than the finished arrays twice over (the pieces and the joined scene), plus blocks."""
+    import tracemalloc
+
+    import visibility.scene as scene_module
+
+    monkeypatch.setattr(gm, "FACE_BLOCK", 1 << 14)
+    monkeypatch.setattr(scene_module, "FACE_BLOCK", 1 << 14)
+    make_scene("city", 2000, seed=1)  # imports and caches out of the measurement
+    tracemalloc.start()
+    try:
+        s = make_scene("city", 300_000, seed=0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    kept = s.vertices.nbytes + s.faces.nbytes + s.object_ids.nbytes + s.colors.nbytes
+    assert peak <= 2 * kept

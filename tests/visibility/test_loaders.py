@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_grid, real_path, real_scene
-from visibility.loaders import SceneLoadError, load_scene
+from visibility.loaders import SceneLoadError, _face_colors, load_scene
 
 
 def test_shared_scenes_are_present():
@@ -58,6 +58,40 @@ def test_z_up_sidecar_rotates_to_y_up(tmp_path):
     (tmp_path / "tall.json").write_text(json.dumps({"up": "z"}))
     s = load_scene(p)
     assert s.bounds()[1, 1] == pytest.approx(5.0)
+
+
+def test_parts_fill_one_array_each_in_final_dtypes(tmp_path):
+    # Three instances of two meshes, one moved twice, one with its own colour, Z-up and scaled.
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    box = trimesh.creation.box()
+    box.visual.face_colors = [10, 200, 30, 255]
+    move = np.eye(4)
+    move[:3, 3] = [5.0, 0.0, 2.0]
+    scene = trimesh.Scene()
+    scene.add_geometry(ball, node_name="ball")
+    scene.add_geometry(box, node_name="box1", transform=move)
+    scene.add_geometry(box, node_name="box2", transform=move @ move)
+    path = tmp_path / "parts.glb"
+    scene.export(path)
+    (tmp_path / "parts.json").write_text(json.dumps({"up": "z", "scale": 0.5}))
+    s = load_scene(path)
+    ref = trimesh.load(str(path), force="scene", process=False).dump(concatenate=False)
+    v = np.concatenate([g.vertices for g in ref]) * 0.5
+    np.testing.assert_array_equal(s.vertices, np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1))
+    offsets = np.cumsum([0] + [len(g.vertices) for g in ref[:-1]])
+    np.testing.assert_array_equal(
+        s.faces, np.concatenate([g.faces + o for g, o in zip(ref, offsets, strict=True)]))
+    np.testing.assert_array_equal(s.object_ids, np.repeat(np.arange(3), [len(g.faces)
+                                                                       for g in ref]))
+    assert s.object_names == [g.metadata["name"] for g in ref]
+    np.testing.assert_array_equal(s.colors, np.concatenate([_face_colors(g) for g in ref]))
+    assert len(np.unique(s.colors, axis=0)) > 1
+    # The scene owns its arrays (no view keeps a trimesh mesh alive), in their final dtypes.
+    for a, dtype in ((s.vertices, np.float64), (s.faces, np.int32), (s.object_ids, np.int32),
+                     (s.colors, np.uint8)):
+        root = a if a.base is None else a.base
+        assert a.dtype == dtype and a.flags.c_contiguous
+        assert root.base is None and root.nbytes == a.nbytes
 
 
 def test_bad_files_give_clear_errors(tmp_path):

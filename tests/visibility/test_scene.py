@@ -73,3 +73,103 @@ def test_walk_area_validation():
         WalkArea([[0, 0, 1, 1]])
     with pytest.raises(ValueError):
         WalkArea([[0, 0, np.nan, 1, 0]])
+
+
+# ----------------------------------------------------------------------------- memory
+def _messy_scene(states: bool = False, spheres: bool = False) -> Scene:
+    """600 random faces over 200 vertices (4 NaN), with out-of-range, repeated-index and
+    zero-area rows; optionally 3 keyframes (one vertex NaN in the last) and 5 spheres."""
+    rng = np.random.default_rng(7)
+    v = rng.uniform(-50, 50, (200, 3)) + [1e6, 0.0, 5e6]
+    v[[3, 50, 120, 199]] = np.nan
+    f = rng.integers(0, 200, (600, 3))
+    f[::37, 2] = 250  # out of range
+    f[5::41, 1] = f[5::41, 0]  # repeated index
+    v[10] = (v[11] + v[12]) / 2
+    f[7] = [10, 11, 12]  # collinear: zero area
+    kw = {}
+    if states:
+        st = np.stack([v, v + [0.0, 0.0, 3.0], v * [1.0, 2.0, 1.0]])
+        st[2, 7] = np.nan
+        kw.update(states=st, state_times=[0.0, 1.0, 2.5])
+    if spheres:
+        kw.update(sphere_centers=rng.uniform(-5, 5, (1, 5, 3)), sphere_radii=np.ones(5))
+    return Scene(v, f, object_ids=np.arange(600) % 9, **kw)
+
+
+def _passes(scene: Scene) -> tuple:
+    from visibility.scene import scene_fingerprint
+
+    return (scene.valid_faces.copy(), scene.degenerate_report, scene.bounds(),
+            scene_fingerprint(scene), scene.centroids(), scene.used_vertices())
+
+
+@pytest.mark.parametrize("states, spheres", [(False, False), (True, False), (False, True)])
+def test_block_passes_equal_one_pass_over_the_whole_arrays(monkeypatch, states, spheres):
+    import visibility.scene as scene_module
+
+    monkeypatch.setattr(scene_module, "FACE_BLOCK", 1 << 30)
+    whole = _passes(_messy_scene(states, spheres))
+    monkeypatch.setattr(scene_module, "FACE_BLOCK", 7)
+    blocks = _passes(_messy_scene(states, spheres))
+    assert whole[1].total_reasons > 0 and not whole[0].all()
+    for a, b in zip(whole, blocks, strict=True):
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+        else:
+            assert a == b
+
+
+def test_fingerprint_is_the_hash_of_the_whole_arrays():
+    # The fingerprint keys on-disk and Redis caches: hashing by blocks must not change it.
+    import hashlib
+
+    from visibility.scene import scene_fingerprint
+
+    for s in (_messy_scene(), _messy_scene(states=True), _messy_scene(spheres=True)):
+        h = hashlib.blake2b(digest_size=8)
+        for arr, dtype in ((s.vertices, np.float64), (s.faces, np.int64),
+                           (s.object_ids, np.int32), (s.states, np.float64),
+                           (s.sphere_centers, np.float64), (s.sphere_radii, np.float64)):
+            if arr is None:
+                h.update(b"-")
+                continue
+            a = np.ascontiguousarray(arr, dtype=dtype)
+            h.update(repr(a.shape).encode())
+            h.update(a.tobytes())
+        assert scene_fingerprint(s) == h.hexdigest()
+
+
+def test_int32_faces_are_kept_not_copied_and_others_convert():
+    v = np.zeros((4, 3))
+    f = np.array([[0, 1, 2], [1, 2, 3]], dtype=np.int32)
+    assert np.shares_memory(Scene(v, f).faces, f)
+    for other in (f.astype(np.int64), f.astype(np.uint16), f.tolist(), f.astype(float),
+                  f.reshape(-1)):
+        s = Scene(v, other)
+        assert s.faces.dtype == np.int32 and s.faces.flags.c_contiguous
+        np.testing.assert_array_equal(s.faces, f)
+    # A strided int32 view is made contiguous (the rasterizer needs C order).
+    wide = np.zeros((2, 6), dtype=np.int32)
+    wide[:, ::2] = f
+    s = Scene(v, wide[:, ::2])
+    assert s.faces.flags.c_contiguous
+    np.testing.assert_array_equal(s.faces, f)
+
+
+def test_centroids_are_the_corner_means_and_nan_out_of_range():
+    s = _messy_scene(states=True)
+    ok = np.all((s.faces >= 0) & (s.faces < s.n_vertices), axis=1)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(s.centroids()[ok], s.triangles(np.flatnonzero(ok))
+                                      .mean(axis=1))
+        np.testing.assert_array_equal(s.centroids(t=1.7)[ok],
+                                      s.triangles(np.flatnonzero(ok), t=1.7).mean(axis=1))
+    assert np.isnan(s.centroids()[~ok]).all() and (~ok).any()
+
+
+def test_used_vertices_are_the_corners_of_valid_faces():
+    s = _messy_scene()
+    expect = np.zeros(s.n_vertices, dtype=bool)
+    expect[np.unique(s.faces[s.valid_faces])] = True
+    np.testing.assert_array_equal(s.used_vertices(), expect)

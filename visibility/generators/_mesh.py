@@ -7,6 +7,7 @@ A triangle (a, b, c) faces where ``(b - a) x (c - a)`` points; closed solids fac
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -19,6 +20,9 @@ MIN_TRIANGLES = 1_000
 MAX_TRIANGLES = 50_000_000
 #: Direction of the light baked into face colours (so faces of different orientation differ).
 LIGHT_DIR = np.array([0.35, 1.0, 0.55]) / np.linalg.norm([0.35, 1.0, 0.55])
+#: Faces per block of the per-face passes (colour conversion, shading, solid tessellation):
+#: their float64 and int64 temporaries stay a few tens of MB whatever the mesh's size.
+FACE_BLOCK = 1 << 18
 
 
 def check_request(triangles: int, seed: int) -> tuple[int, int]:
@@ -39,8 +43,15 @@ def check_request(triangles: int, seed: int) -> tuple[int, int]:
 
 
 def to_rgb(values: np.ndarray) -> np.ndarray:
-    """(..., 3) uint8 colours from float RGB in [0, 255] (clipped, rounded)."""
-    return np.clip(np.rint(np.asarray(values, dtype=np.float64)), 0, 255).astype(np.uint8)
+    """(..., 3) uint8 colours from float RGB in [0, 255] (clipped, rounded); many rows are
+    converted FACE_BLOCK rows at a time (no whole float64 copy of a mesh's colours)."""
+    values = np.asarray(values)
+    if values.ndim < 2 or len(values) <= FACE_BLOCK:
+        return np.clip(np.rint(np.asarray(values, dtype=np.float64)), 0, 255).astype(np.uint8)
+    out = np.empty(values.shape, dtype=np.uint8)
+    for s in range(0, len(values), FACE_BLOCK):
+        out[s:s + FACE_BLOCK] = to_rgb(values[s:s + FACE_BLOCK])
+    return out
 
 
 def vary(rgb: np.ndarray, rng: np.random.Generator, n: int, amount: float = 0.12) -> np.ndarray:
@@ -53,7 +64,10 @@ def vary(rgb: np.ndarray, rng: np.random.Generator, n: int, amount: float = 0.12
 
 # ----------------------------------------------------------------------------------- assembly
 class MeshParts:
-    """Accumulates mesh pieces (vertices, local faces, object ids, colours); joins them once."""
+    """Accumulates mesh pieces (vertices, local faces, object ids, colours); joins them once.
+
+    Pieces are kept in their final dtypes (int32 faces, int32 object ids, uint8 colours), so a
+    generator that adds its mesh in pieces holds little more than the finished scene."""
 
     def __init__(self) -> None:
         self._verts: list[np.ndarray] = []
@@ -67,13 +81,17 @@ class MeshParts:
         """Append a piece; return the (m,) int64 triangle ids it received.
 
         verts (n, 3) metres; faces (m, 3) indices into ``verts``; obj scalar or (m,) object ids;
-        rgb (3,) or (m, 3) colours (float or uint8, clipped to [0, 255]).
+        rgb (3,) or (m, 3) colours (float or uint8, clipped to [0, 255]). ValueError when the
+        vertices no longer fit int32 face indices.
         """
         verts = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
         faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         m = len(faces)
+        if self.n_vertices + len(verts) >= 2**31 - 1:
+            raise ValueError(f"too many vertices for int32 faces: "
+                             f"{self.n_vertices + len(verts)}")
         self._verts.append(verts)
-        self._faces.append(faces + self.n_vertices)
+        self._faces.append((faces + self.n_vertices).astype(np.int32))
         self._obj.append(np.broadcast_to(np.asarray(obj, dtype=np.int64), (m,)).astype(np.int32))
         rgb = np.asarray(rgb)
         rgb = rgb if rgb.dtype == np.uint8 else to_rgb(rgb)
@@ -85,18 +103,21 @@ class MeshParts:
 
     def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(vertices (n, 3) float64, faces (m, 3) int32, object ids (m,) int32, colours (m, 3)
-        uint8)."""
-        if self.n_vertices >= 2**31 - 1:
-            raise ValueError(f"too many vertices for int32 faces: {self.n_vertices}")
+        uint8). The pieces are handed over: each list is released as soon as it is joined (so
+        the peak is the pieces plus one joined array), and the parts are empty afterwards."""
         if not self._faces:
             return (np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, np.int32),
                     np.zeros((0, 3), np.uint8))
-        return (
-            np.concatenate(self._verts),
-            np.concatenate(self._faces).astype(np.int32),
-            np.concatenate(self._obj),
-            np.concatenate(self._rgb).astype(np.uint8),
-        )
+        out = []
+        for name, dtype in (("_verts", np.float64), ("_faces", np.int32), ("_obj", np.int32),
+                            ("_rgb", np.uint8)):
+            pieces = getattr(self, name)
+            setattr(self, name, [])
+            joined = np.concatenate(pieces)
+            pieces.clear()
+            out.append(joined if joined.dtype == dtype else joined.astype(dtype))
+        self.n_vertices = self.n_faces = 0
+        return out[0], out[1], out[2], out[3]
 
 
 def _face_cross(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -118,14 +139,21 @@ def shade_by_normal(verts: np.ndarray, faces: np.ndarray, rgb: np.ndarray) -> np
     """(m, 3) uint8 colours darkened by each face's angle to LIGHT_DIR.
 
     Baking a fixed light in keeps faces of different orientation distinguishable in flat-shaded
-    images. Degenerate or non-finite faces keep their colour.
+    images. Degenerate or non-finite faces keep their colour. Works through the faces in
+    blocks of FACE_BLOCK (each face's colour depends on that face alone).
     """
-    nx, ny, nz = _face_cross(verts, faces)
-    with np.errstate(invalid="ignore", over="ignore"):
-        ln = np.sqrt(nx * nx + ny * ny + nz * nz)
-        cos = (nx * LIGHT_DIR[0] + ny * LIGHT_DIR[1] + nz * LIGHT_DIR[2]) / np.where(ln > 0, ln, 1)
-    factor = np.where(np.isfinite(cos) & (ln > 0), 0.62 + 0.38 * np.clip(cos, 0.0, 1.0), 1.0)
-    return to_rgb(rgb.astype(np.float32) * factor[:, None].astype(np.float32))
+    rgb = np.asarray(rgb)
+    out = np.empty((len(faces), 3), dtype=np.uint8)
+    for s in range(0, len(faces), FACE_BLOCK):
+        nx, ny, nz = _face_cross(verts, faces[s:s + FACE_BLOCK])
+        with np.errstate(invalid="ignore", over="ignore"):
+            ln = np.sqrt(nx * nx + ny * ny + nz * nz)
+            cos = (nx * LIGHT_DIR[0] + ny * LIGHT_DIR[1] + nz * LIGHT_DIR[2]) / np.where(
+                ln > 0, ln, 1)
+        factor = np.where(np.isfinite(cos) & (ln > 0), 0.62 + 0.38 * np.clip(cos, 0.0, 1.0), 1.0)
+        out[s:s + len(nx)] = to_rgb(rgb[s:s + FACE_BLOCK].astype(np.float32)
+                                    * factor[:, None].astype(np.float32))
+    return out
 
 
 def face_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -422,11 +450,31 @@ class SolidMesh:
     nu: np.ndarray
 
 
-def solids_mesh(s: Solids) -> SolidMesh:
-    """Tessellate a Solids batch (see ``Solids``); side walls face outward, caps face +-t."""
+def _runs(counts: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive [i0, i1) ranges of ``counts`` whose sums stay within ``limit`` (a range holds
+    at least one item, so a single item over the limit gets a range of its own)."""
+    n = len(counts)
+    cum = np.concatenate([[0], np.cumsum(counts)])
+    runs = []
+    i0 = 0
+    while i0 < n:
+        i1 = int(np.searchsorted(cum, cum[i0] + limit, side="right")) - 1
+        i1 = min(max(i1, i0 + 1), n)
+        runs.append((i0, i1))
+        i0 = i1
+    return runs
+
+
+def solids_mesh_parts(s: Solids, max_faces: int | None = None) -> Iterator[SolidMesh]:
+    """``solids_mesh(s)`` in consecutive pieces of ``max_faces`` (default FACE_BLOCK)
+    triangles or fewer (a single wall or cap over it comes whole): the side walls, then the caps
+    at s = 1, then those at s = 0, each piece's faces indexing its own vertices. Joined in order
+    (faces offset by the vertices before them) the pieces are exactly ``solids_mesh(s)``; a
+    generator that colours and stores each piece as it comes never holds the whole mesh's
+    int64 per-face arrays."""
     if len(s) == 0:
-        z = np.zeros(0, dtype=np.int64)
-        return SolidMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), z, z, z, z, z, z)
+        return
+    max_faces = FACE_BLOCK if max_faces is None else int(max_faces)
     se, j, pa, pb = _solid_edges(s)
     nu = _edge_columns(s, se, pa, pb)
 
@@ -436,42 +484,49 @@ def solids_mesh(s: Solids) -> SolidMesh:
 
     org = to3(pa, se, 0.0)
     u = to3(pb, se, 0.0) - org
-    wv, wf, pid, iu, iv = patch_grid(org, u, s.t[se], nu, s.nv[se])
-    verts, faces = [wv], [wf]
-    solid, kind, edge = [se[pid]], [np.zeros(len(wf), np.int64)], [j[pid]]
-    ius, ivs, nus = [iu], [iv], [nu[pid]]
-    nverts = len(wv)
+    for e0, e1 in _runs(2 * nu * s.nv[se], max_faces):
+        sl = slice(e0, e1)
+        wv, wf, pid, iu, iv = patch_grid(org[sl], u[sl], s.t[se[sl]], nu[sl], s.nv[se[sl]])
+        yield SolidMesh(wv, wf, se[e0 + pid], np.zeros(len(wf), np.int64), j[e0 + pid], iu, iv,
+                        nu[e0 + pid])
     start = s.start
     hand = np.einsum("ij,ij->i", np.cross(s.a, s.b), s.t)
     for cap_kind, mask, sweep, sign in ((1, s.cap1, 1.0, 1.0), (2, s.cap0, 0.0, -1.0)):
-        ids = np.flatnonzero(mask)
-        if len(ids) == 0:
-            continue
-        k = s.k[ids]
-        pidx = np.repeat(start[ids], k) + (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k))
-        cv = to3(s.pts[pidx], np.repeat(ids, k), sweep)
-        vbase = np.repeat(np.cumsum(k) - k, k - 2)  # first cap vertex of each fan triangle
-        ntri = k - 2
-        jj = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
-        tri = np.stack([vbase, vbase + jj, vbase + jj + 1], axis=1)
-        owner = np.repeat(ids, ntri)
-        p0, p1, p2 = (s.pts[pidx][tri[:, c]] for c in range(3))
-        c2 = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (
-            p2[:, 0] - p0[:, 0])
-        flip = c2 * hand[owner] * sign < 0
-        tri[flip] = tri[flip][:, ::-1]
-        verts.append(cv)
-        faces.append(tri + nverts)
-        nverts += len(cv)
-        solid.append(owner)
-        kind.append(np.full(len(tri), cap_kind, np.int64))
-        edge.append(np.full(len(tri), -1, np.int64))
-        ius.append(np.zeros(len(tri), np.int64))
-        ivs.append(np.zeros(len(tri), np.int64))
-        nus.append(np.ones(len(tri), np.int64))
-    return SolidMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(solid),
-                     np.concatenate(kind), np.concatenate(edge), np.concatenate(ius),
-                     np.concatenate(ivs), np.concatenate(nus))
+        all_ids = np.flatnonzero(mask)
+        for c0, c1 in _runs(s.k[all_ids] - 2, max_faces):
+            ids = all_ids[c0:c1]
+            k = s.k[ids]
+            pidx = np.repeat(start[ids], k) + (np.arange(int(k.sum()))
+                                               - np.repeat(np.cumsum(k) - k, k))
+            cv = to3(s.pts[pidx], np.repeat(ids, k), sweep)
+            vbase = np.repeat(np.cumsum(k) - k, k - 2)  # first cap vertex of each fan triangle
+            ntri = k - 2
+            jj = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+            tri = np.stack([vbase, vbase + jj, vbase + jj + 1], axis=1)
+            owner = np.repeat(ids, ntri)
+            p0, p1, p2 = (s.pts[pidx][tri[:, c]] for c in range(3))
+            c2 = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (
+                p2[:, 0] - p0[:, 0])
+            flip = c2 * hand[owner] * sign < 0
+            tri[flip] = tri[flip][:, ::-1]
+            m = len(tri)
+            yield SolidMesh(cv, tri, owner, np.full(m, cap_kind, np.int64),
+                            np.full(m, -1, np.int64), np.zeros(m, np.int64),
+                            np.zeros(m, np.int64), np.ones(m, np.int64))
+
+
+def solids_mesh(s: Solids) -> SolidMesh:
+    """Tessellate a Solids batch (see ``Solids``); side walls face outward, caps face +-t.
+    The pieces of ``solids_mesh_parts`` joined."""
+    parts = list(solids_mesh_parts(s))
+    if not parts:
+        z = np.zeros(0, dtype=np.int64)
+        return SolidMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), z, z, z, z, z, z)
+    offsets = np.cumsum([0] + [len(p.verts) for p in parts[:-1]])
+    return SolidMesh(np.concatenate([p.verts for p in parts]),
+                     np.concatenate([p.faces + o for p, o in zip(parts, offsets, strict=True)]),
+                     *(np.concatenate([getattr(p, name) for p in parts])
+                       for name in ("solid", "kind", "edge", "iu", "iv", "nu")))
 
 
 def solid_caps(s: Solids, ids: np.ndarray, tri: np.ndarray, at_end: bool):

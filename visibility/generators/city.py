@@ -20,7 +20,7 @@ from visibility.generators._mesh import (
     rect_profile,
     shade_by_normal,
     solids_count,
-    solids_mesh,
+    solids_mesh_parts,
     subdivide,
     vary,
 )
@@ -256,26 +256,28 @@ def generate(triangles: int | None = DEFAULT_TRIANGLES, seed: int = 0) -> Scene:
     base = np.where(street[:, None], ASPHALT, np.where(inside[:, None], PAVEMENT, GRASS))
     tile = np.where((gix + giz) % 2 == 0, 1.0, 0.94)[:, None]
     parts.add(gv, gf, 0, base * tile)
+    del gv, gf, gix, giz, cxz, ix, iz, inside, street, base, tile
 
-    # Buildings.
-    mesh = solids_mesh(solids)
+    # Buildings, coloured and stored piece by piece: the mesh's int64 per-face arrays and float
+    # colours never exist for the whole city at once.
     n_obj = int(solids.obj.max()) + 1 if len(solids) else 1
     wall_pick = rng.integers(0, len(WALL_COLORS), size=n_obj)
     wall_rgb = vary(np.ones(3), rng, n_obj, 0.1) * WALL_COLORS[wall_pick]
     glass = rng.random(n_obj) < 0.15
     window_rgb = vary(WINDOW_COLOR, rng, n_obj, 0.15)
     roof_rgb = vary(ROOF_COLOR, rng, n_obj, 0.15)
-    obj = solids.obj[mesh.solid]
-    tag = solids.tag[mesh.solid]
     rows2 = detail >= 1.8
-    window = (mesh.iu % 2 == 1) & ((mesh.iv % 2 == 1) if rows2 else True)
-    window |= glass[obj] & (mesh.iu % 3 != 0)
-    wall = mesh.kind == 0
-    rgb = np.where((wall & window)[:, None], window_rgb[obj], wall_rgb[obj])
-    rgb = np.where((mesh.kind != 0)[:, None], roof_rgb[obj], rgb)
-    plant_rgb = PLANT_COLOR * (0.9 + 0.2 * (mesh.kind == 0))[:, None]
-    rgb = np.where((tag == _TAG_PLANT)[:, None], plant_rgb, rgb)
-    parts.add(mesh.verts, mesh.faces, obj, rgb)
+    for mesh in solids_mesh_parts(solids):
+        obj = solids.obj[mesh.solid]
+        tag = solids.tag[mesh.solid]
+        window = (mesh.iu % 2 == 1) & ((mesh.iv % 2 == 1) if rows2 else True)
+        window |= glass[obj] & (mesh.iu % 3 != 0)
+        wall = mesh.kind == 0
+        rgb = np.where((wall & window)[:, None], window_rgb[obj], wall_rgb[obj])
+        rgb = np.where((mesh.kind != 0)[:, None], roof_rgb[obj], rgb)
+        plant_rgb = PLANT_COLOR * (0.9 + 0.2 * (mesh.kind == 0))[:, None]
+        rgb = np.where((tag == _TAG_PLANT)[:, None], plant_rgb, rgb)
+        parts.add(mesh.verts, mesh.faces, obj, rgb)
 
     verts, faces, object_ids, colors = parts.build()
     colors = shade_by_normal(verts, faces, colors)

@@ -25,7 +25,7 @@ from visibility.generators._mesh import (
     shade_by_normal,
     solid_caps,
     solids_count,
-    solids_mesh,
+    solids_mesh_parts,
     subdivide,
     vary,
 )
@@ -424,33 +424,36 @@ def generate(triangles: int | None = DEFAULT_TRIANGLES, seed: int = 0) -> Scene:
     tile = np.where((gix + giz) % 2 == 0, 1.0, 0.93)[:, None]
     parts.add(gv, gf, 0, np.where(on_street[:, None], COBBLE, GRASS) * tile)
 
-    # Houses, chimneys, trunks, arch sides.
+    del gv, gf, gix, giz, on_street, tile
+
+    # Houses, chimneys, trunks, arch sides, coloured and stored piece by piece (the whole
+    # mesh's int64 per-face arrays and float colours never exist at once).
     solids: Solids = plan["solids"]
-    mesh = solids_mesh(solids)
     n_obj = int(solids.obj.max()) + 1 if len(solids) else 1
     plaster = PLASTER[rng.integers(0, len(PLASTER), n_obj)] * vary(np.ones(3), rng, n_obj, 0.08)
     roof = ROOFS[rng.integers(0, len(ROOFS), n_obj)] * vary(np.ones(3), rng, n_obj, 0.1)
     timbered = rng.random(n_obj) < 0.4
     stone = vary(STONE, rng, n_obj, 0.1)
     bark = vary(BARK, rng, n_obj, 0.1)
-    obj = solids.obj[mesh.solid]
-    tag = solids.tag[mesh.solid]
-    wall = mesh.kind == 0
-    nv = solids.nv[mesh.solid]
-    window = wall & (mesh.iu % 2 == 1) & ((nv == 1) | (mesh.iv % 2 == 1))
-    beam = wall & timbered[obj] & ((mesh.iu % 3 == 0) | (mesh.iv % 2 == 0))
-    door = wall & (tag == _TAG_LOWER) & (mesh.iv == 0) & (mesh.iu == mesh.nu // 2)
-    rgb = plaster[obj]
-    rgb = np.where(((tag == _TAG_UPPER) & beam)[:, None], TIMBER, rgb)
-    rgb = np.where(((tag <= _TAG_UPPER) & window)[:, None], WINDOW, rgb)
-    rgb = np.where(((tag == _TAG_UPPER) & (mesh.kind == 2))[:, None], TIMBER, rgb)
-    rgb = np.where(door[:, None], DOOR, rgb)
-    rgb = np.where((tag == _TAG_ROOF)[:, None],
-                   roof[obj] * np.where(mesh.kind == 0, 1.0, 0.8)[:, None], rgb)
-    rgb = np.where((tag == _TAG_CHIMNEY)[:, None], 0.8 * roof[obj], rgb)
-    rgb = np.where((tag == _TAG_ARCH)[:, None], stone[obj], rgb)
-    rgb = np.where((tag == _TAG_TRUNK)[:, None], bark[obj], rgb)
-    parts.add(mesh.verts, mesh.faces, obj, rgb)
+    for mesh in solids_mesh_parts(solids):
+        obj = solids.obj[mesh.solid]
+        tag = solids.tag[mesh.solid]
+        wall = mesh.kind == 0
+        nv = solids.nv[mesh.solid]
+        window = wall & (mesh.iu % 2 == 1) & ((nv == 1) | (mesh.iv % 2 == 1))
+        beam = wall & timbered[obj] & ((mesh.iu % 3 == 0) | (mesh.iv % 2 == 0))
+        door = wall & (tag == _TAG_LOWER) & (mesh.iv == 0) & (mesh.iu == mesh.nu // 2)
+        rgb = plaster[obj]
+        rgb = np.where(((tag == _TAG_UPPER) & beam)[:, None], TIMBER, rgb)
+        rgb = np.where(((tag <= _TAG_UPPER) & window)[:, None], WINDOW, rgb)
+        rgb = np.where(((tag == _TAG_UPPER) & (mesh.kind == 2))[:, None], TIMBER, rgb)
+        rgb = np.where(door[:, None], DOOR, rgb)
+        rgb = np.where((tag == _TAG_ROOF)[:, None],
+                       roof[obj] * np.where(mesh.kind == 0, 1.0, 0.8)[:, None], rgb)
+        rgb = np.where((tag == _TAG_CHIMNEY)[:, None], 0.8 * roof[obj], rgb)
+        rgb = np.where((tag == _TAG_ARCH)[:, None], stone[obj], rgb)
+        rgb = np.where((tag == _TAG_TRUNK)[:, None], bark[obj], rgb)
+        parts.add(mesh.verts, mesh.faces, obj, rgb)
     for at_end in (False, True):
         cv, cf, owner = solid_caps(solids, plan["arch_ids"], plan["arch_tri"], at_end)
         parts.add(cv, cf, solids.obj[owner], stone[solids.obj[owner]])
