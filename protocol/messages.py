@@ -93,8 +93,8 @@ class ProtocolError(ValueError):
 
 #: What a cell's stream holds (``cell_begin.answer``): the session core's whole PVS, a cheap
 #: first answer, or what refines a first answer into the core's PVS.
-ANSWERS = ("full", "first", "refined")
-Answer = Literal["full", "first", "refined"]
+ANSWERS = ("full", "known", "first", "refined")
+Answer = Literal["full", "known", "first", "refined"]
 
 
 class _Message(BaseModel):
@@ -216,9 +216,11 @@ class CellBegin(_Message):
     #: "cubemap_cell"}`` (metres; ``center`` is the cubemap centre O, ``cubemap_cell`` the cell
     #: whose cubemap frame this cell composes with: cells of a block share one).
     near_far: dict[str, Any] | None = None
-    #: Which answer the stream brings (``ANSWERS``): "full", the session core's PVS; "first",
-    #: a cheap one (the welcome's ``features.progressive``) sent while that core computes;
-    #: "refined", the rest of the core's PVS for a cell that got a first answer.
+    #: Which answer the stream brings (``ANSWERS``): "full", the session core's PVS; "known",
+    #: a first answer that cost nothing: the union of the core's PVS already known for the
+    #: neighbouring cells; "first", a cheap computed one (the welcome's
+    #: ``features.progressive``), both sent while that core computes; "refined", the rest of
+    #: the core's PVS for a cell that got a first answer.
     answer: Answer = "full"
 
 

@@ -60,6 +60,9 @@ class Settings(BaseModel):
         (``first_core``) while the session's core computes, then only what that core adds
         (``cell_begin.answer``); clients may opt out in their hello. False: the walker waits
         for the session core's answer.
+    known_answers : with ``progressive``, a first answer that costs nothing where the core's
+        PVS of neighbouring cells is known (in memory or the shared cache): their union
+        (``cell_begin.answer`` "known"); a first answer is computed only where none is.
     first_core, first_params : the core and parameters of the first answer (default
         ``sampling``, 4 viewpoints at 128 px: tens of milliseconds on the 100k scenes). First
         answers run on a worker of their own, so computations of the session cores never
@@ -159,6 +162,7 @@ class Settings(BaseModel):
     prefetch: bool = True
     prefetch_ahead: float = Field(-0.2, ge=-1.0, le=1.0, allow_inf_nan=False)
     progressive: bool = True
+    known_answers: bool = True
     calibrate: bool = True
     auto_budget: float = Field(1.0, gt=0, le=3600, allow_inf_nan=False)
     calibration_seconds: float = Field(120.0, gt=0, le=86400, allow_inf_nan=False)
@@ -288,8 +292,8 @@ class Settings(BaseModel):
         PVS_HOST, PVS_PORT, PVS_SCENES_DIR, PVS_CELL_SIZE, PVS_CORE, PVS_CORE_PARAMS (a JSON
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_PREFETCH_AHEAD,
-        PVS_PROGRESSIVE, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object), PVS_CALIBRATE,
-        PVS_AUTO_BUDGET, PVS_CALIBRATION_SECONDS,
+        PVS_PROGRESSIVE, PVS_KNOWN_ANSWERS, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object),
+        PVS_CALIBRATE, PVS_AUTO_BUDGET, PVS_CALIBRATION_SECONDS,
         PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,
         PVS_NEAR_FAR_CACHE_BYTES, PVS_NEAR_FAR_BLOCK, PVS_MAX_BODY_BYTES,

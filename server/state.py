@@ -66,6 +66,8 @@ class Session(Protocol):
     #: Cells streamed with a first answer whose core computation goes on: (the compute
     #: service's future, the seq of the pose that asked for the cell).
     refining: dict[int, tuple[Any, int | None]]
+    #: Which first answer ("known" or "first") each refining cell holds.
+    provisional: dict[int, str]
     first_failed: bool
     send_all: bool
     cell: int | None

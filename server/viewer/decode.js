@@ -4,7 +4,7 @@
 // browser and under node (tests/viewer/decode_golden.mjs checks it on the Python encoder's
 // frames).
 
-export const PROTOCOL_VERSION = 2;
+export const PROTOCOL_VERSION = 3;
 export const FrameKind = Object.freeze({ GEOMETRY: 1, CUBEMAP: 2, KEYFRAMES: 3, SPHERES: 4 });
 const MAGIC = [0x50, 0x56, 0x53, 0x47]; // "PVSG"
 const UINT32_MAX = 2 ** 32 - 1;
@@ -390,7 +390,7 @@ const u32 = int(0, UINT32_MAX);
 const id32 = int(0, INT32_MAX);
 const count32 = int(0, INT32_MAX + 1);
 const nonneg = int(0);
-const ANSWER = literal("full", "first", "refined");
+const ANSWER = literal("full", "known", "first", "refined");
 const paramValue = (v) => v === null || bool(v) || num(v) || str(v)
   || (Array.isArray(v) && v.every((x) => x === null || bool(x) || num(x) || str(x)));
 const params = (v) => obj(v) && Object.values(v).every(paramValue);

@@ -84,6 +84,8 @@ class StreamSession:
         #: Cells streamed with a first answer whose core computation goes on: (the compute
         #: service's future, the seq of the pose that asked for the cell).
         self.refining: dict[int, tuple[Any, int | None]] = {}
+        #: Which first answer ("known" or "first") each refining cell holds.
+        self.provisional: dict[int, str] = {}
         self.first_failed = False
         self.send_all = False
         self.cell: int | None = None

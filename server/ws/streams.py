@@ -76,6 +76,7 @@ class Streamer:
         s = self.s
         for n in [n for n in s.refining if n != s.cell and n not in s.want_set]:
             cf, _ = s.refining.pop(n)
+            s.provisional.pop(n, None)
             s.state.compute.release(cf, "the walker left the cell before its refinement")
             s.inventory.done.discard(n)
             s.state.counters["refinements_dropped"] += 1
@@ -86,11 +87,13 @@ class Streamer:
         for cf, _ in s.refining.values():
             s.state.compute.release(cf, "the walker left")
         s.refining.clear()
+        s.provisional.clear()
 
     async def refine(self, cell: int, prefetch: bool) -> None:
         """Stream what the session core's answer adds to ``cell``'s first answer."""
         s = self.s
         cf, seq = s.refining.pop(cell)
+        s.provisional.pop(cell, None)
         if cf.cancelled():
             s.inventory.done.discard(cell)
             return
@@ -164,7 +167,9 @@ class Streamer:
         known = s.inventory.pvs_of.get(cell)
         if known is not None and cell in s.inventory.done:
             # A cell whose refinement is still under way holds its first answer.
-            return self._ready(cell, known), "first" if cell in s.refining else "full"
+            if cell in s.refining:
+                return self._ready(cell, known), s.provisional.get(cell, "first")
+            return self._ready(cell, known), "full"
         if s.send_all:
             return self._ready(
                 cell, np.flatnonzero(s.loaded.scene.valid_faces).astype(np.int32)), "full"
@@ -189,6 +194,15 @@ class Streamer:
         shared = s.progressive and compute.cache.shared_up
         if shared and not prefetch and not cf.done():
             await asyncio.wait({fut}, timeout=SHARED_CACHE_GRACE_S)
+        if not prefetch and s.progressive and not cf.done():
+            known = await self._known_answer(cell)
+            if known is not None and not cf.done():
+                # No first answer to compute: the core goes on, its answer refines this one.
+                s.refining[cell] = (cf, seq)
+                s.provisional[cell] = "known"
+                fut.add_done_callback(lambda f: s.wake.set())
+                s.state.counters["known_answers"] += 1
+                return known, "known"
         first = self._first_answer(cell, cf) if not prefetch else None
         if prefetch and s.progressive and not cf.done():
             # Should the walker get there before the core's answer, its first answer is
@@ -212,6 +226,7 @@ class Streamer:
                     if not first.cancelled() and first.exception() is None:
                         # The core goes on computing; its answer refines this one.
                         s.refining[cell] = (cf, seq)
+                        s.provisional[cell] = "first"
                         fut.add_done_callback(lambda f: s.wake.set())
                         s.state.counters["first_answers"] += 1
                         return first.result(), "first"
@@ -248,6 +263,38 @@ class Streamer:
             msg = f"PVS of cell {cell} failed: {type(exc).__name__}: {exc}"
         await self._job_failed(cell, prefetch, msg, seq, code)
         return None
+
+    async def _known_answer(self, cell: int) -> PVSResult | None:
+        """A first answer for ``cell`` that costs nothing: the union of the session core's PVS
+        of the neighbouring cells where it is known (this session's own streams, then the
+        cache's memory and shared tiers: ``TieredCache.peek_async``, never a computation);
+        None when none is known or ``settings.known_answers`` is off."""
+        s = self.s
+        if not s.settings.known_answers:
+            return None
+        nbrs = s.loaded.grid.neighbours(cell)
+        parts: list[PVS] = []
+        ask = []
+        for n in nbrs:
+            held = s.inventory.pvs_of.get(n)
+            if held is not None and n in s.inventory.done and n not in s.refining:
+                parts.append(PVS(held))
+            else:
+                ask.append(n)
+        if ask:
+            cache = s.state.compute.cache
+            n_tri = s.loaded.scene.n_triangles
+            found = await asyncio.gather(*(cache.peek_async(s.key_of(n), n_tri) for n in ask))
+            parts.extend(p for p in found if p is not None)
+        if not parts:
+            return None
+        ids = np.unique(np.concatenate([p.triangle_ids for p in parts])).astype(np.int32)
+        spheres = [p.sphere_ids for p in parts if p.sphere_ids is not None]
+        pvs = PVS(ids, sphere_ids=np.unique(np.concatenate(spheres)).astype(np.int32)
+                  if spheres else None,
+                  stats={"known_from": len(parts), "neighbours": len(nbrs)})
+        box = s.loaded.grid.boxes[cell].copy()
+        return PVSResult(s.loaded.name, cell, box, s.core.name, s.params, pvs, True)
 
     def _first_answer(self, cell: int, cf: Any) -> asyncio.Future | None:
         """The first answer's future for the walker's ``cell`` whose core future ``cf`` is not

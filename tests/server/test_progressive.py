@@ -204,3 +204,83 @@ def test_coming_back_before_the_refinement_is_announced_as_the_first_answer(sett
         wait_for(lambda: s.cells[0].begin.seq == 2, timeout=5)
         assert s.cells[0].begin.answer == "first" and s.cells[0].answer == "first"
         wait_for(lambda: s.cells[0].answer == "refined", timeout=15)
+
+
+@pytest.fixture()
+def fresh_server(settings):
+    """A progressive server of its own (an empty cache), known answers on."""
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True) as (url, app):
+        yield url, app, scene
+
+
+def _counter(app, name: str) -> int:
+    return int(app.state.server.counters[name])
+
+
+def test_known_answer_is_the_union_of_the_neighbours_pvs(fresh_server):
+    """A walker entering a cell whose PVS is not computed, next to cells whose PVS is, gets
+    their union at once ("known": no first answer computed), then what the core adds."""
+    url, app, scene = fresh_server
+    grid = app.state.server.catalog.get("tiny").grid
+    a = 0
+    b = grid.neighbours(a)[0]
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        _pose(s, scene, a, 0)
+        wait_for(lambda: a in s.cells and s.cells[a].answer == "refined")
+        firsts = _counter(app, "first_answers")
+        t0 = time.perf_counter()
+        _pose(s, scene, b, 1)
+        s.wait_cell(b, timeout=DELAY * 0.8)
+        assert time.perf_counter() - t0 < DELAY
+        known = s.cells[b]
+        held = set(s.store.ids.tolist())
+        assert known.answer == "known" and known.begin.answer == "known"
+        # The union of what is known around b: cell a's PVS (the core's), nothing computed.
+        a_pvs = set(near_ids(scene, grid.boxes[a], 5.0).tolist())
+        assert known.begin.triangles == len(a_pvs)
+        assert _counter(app, "known_answers") >= 1
+        assert _counter(app, "first_answers") == firsts
+        wait_for(lambda: s.cells[b].answer == "refined")
+        want = set(near_ids(scene, grid.boxes[b], 5.0).tolist())
+        assert s.cells[b].begin.triangles == len(want)
+        # Only what b's PVS adds to what the client held travelled.
+        assert s.cells[b].begin.new == len(want - held)
+        assert want <= set(s.store.ids.tolist())
+        assert not s.errors and not s.local_errors
+
+
+def test_known_answer_from_another_walkers_cells(fresh_server):
+    """The neighbours' PVS another walker had computed (the shared cache, not this session's
+    own streams) make the known answer."""
+    url, app, scene = fresh_server
+    grid = app.state.server.catalog.get("tiny").grid
+    a = 2
+    b = grid.neighbours(a)[-1]
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        _pose(s, scene, a, 0)
+        wait_for(lambda: a in s.cells and s.cells[a].answer == "refined")
+    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
+        _pose(s, scene, b, 0)
+        s.wait_cell(b, timeout=DELAY * 0.8)
+        assert s.cells[b].answer == "known"
+        assert set(_ids(s.cells[b])) == set(near_ids(scene, grid.boxes[a], 5.0).tolist())
+
+
+def test_no_known_answer_when_nothing_is_known_or_it_is_off(settings):
+    scene = make_tiny_scene()
+    with serving(settings, scenes={"tiny": scene}, progressive=True,
+                 known_answers=False) as (url, app):
+        grid = app.state.server.catalog.get("tiny").grid
+        a = 0
+        b = grid.neighbours(a)[0]
+        with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY},
+                                 prefetch=False) as s:
+            _pose(s, scene, a, 0)  # nothing known yet: a computed first answer
+            s.wait_cell(a, timeout=DELAY * 0.8)
+            assert s.cells[a].answer == "first"
+            wait_for(lambda: s.cells[a].answer == "refined")
+            _pose(s, scene, b, 1)  # known answers off: computed again
+            s.wait_cell(b, timeout=DELAY * 0.8)
+            assert s.cells[b].answer == "first"
+        assert _counter(app, "known_answers") == 0
