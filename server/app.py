@@ -25,9 +25,11 @@ from server.cors import add_cors
 from server.middleware import HttpGuard, RateLimit
 from server.openapi import install_openapi
 from server.resolve import Resolver
+from server.scene_builds import prepare_scene
 from server.settings import Settings
 from server.state import ServerState
 from server.viewer_files import install_viewer
+from visibility.scene_cache import set_store
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
 #: that oversized messages reach the session, which answers them with a named ``too_big`` error;
@@ -51,6 +53,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     ``app.state.server``. The worker pool stops when the application shuts down."""
     settings = settings or Settings()
     catalog = SceneCatalog(settings)
+    # Per-scene builds (the hierarchy, a core's kd-tree) start when a scene loads and are kept
+    # under the cache folder by the scene's content hash.
+    set_store(settings.cache_dir)
+    catalog.on_load = lambda loaded: prepare_scene(loaded, settings)
     state = ServerState(settings, catalog, ComputeService(catalog, settings), Resolver(settings))
     for key in COUNTERS:
         state.counters[key] = 0

@@ -18,6 +18,7 @@ import asyncio
 import logging
 import threading
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -30,6 +31,7 @@ from server.heap import release_freed_memory
 from server.settings import Settings
 from visibility.scene import FACE_BLOCK, Scene, scene_fingerprint
 from visibility.scene_analysis import scene_is_2_5d
+from visibility.scene_cache import per_scene
 from visibility.viewcells import ViewcellGrid
 
 if TYPE_CHECKING:
@@ -78,8 +80,9 @@ class LoadedScene:
 
     @cached_property
     def fingerprint(self) -> str:
-        """``visibility.scene.scene_fingerprint`` of the scene (hashed once, on first use)."""
-        return scene_fingerprint(self.scene)
+        """``visibility.scene.scene_fingerprint`` of the scene (hashed once per scene object,
+        shared with the per-scene builds' store)."""
+        return per_scene(self.scene, "fingerprint", scene_fingerprint)[0]
 
 
 @dataclass
@@ -114,6 +117,9 @@ class SceneCatalog:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
+        #: Called with each scene once it has loaded (outside the loading lock): the server
+        #: starts the scene's per-scene builds there (``ServerState.prepare_scene``).
+        self.on_load: Callable[[LoadedScene], None] | None = None
         self._lock = threading.Lock()
         self._entries: dict[str, _Entry] = {}
         for name, n in settings.generated.items():
@@ -217,16 +223,23 @@ class SceneCatalog:
         e = self._entry(name)
         if e.loaded is not None:
             return e.loaded
+        fresh = None
         with e.lock:
             if e.loaded is None:
                 try:
-                    e.loaded = self._load(e)
+                    e.loaded = fresh = self._load(e)
                     e.pending = None
                 finally:
                     # A load frees its temporaries (as much as the scene again, or more): give
                     # those pages back instead of keeping them resident in the heap.
                     release_freed_memory()
-            return e.loaded
+            loaded = e.loaded
+        if fresh is not None and self.on_load is not None:
+            try:
+                self.on_load(fresh)
+            except Exception:  # the scene is served whatever its preparation does
+                log.exception("preparing scene %r failed", e.name)
+        return loaded
 
     async def load(self, name: str) -> LoadedScene:
         """``get`` from the event loop: the one way the routes and sessions look a scene up by

@@ -70,6 +70,13 @@ def peek(scene: Scene, kind: str) -> Any | None:
     return hit[1] if hit is not None and hit[0] == sig else None
 
 
+def in_progress(scene: Scene, kind: str) -> bool:
+    """Whether a build of ``kind`` for ``scene`` is running now."""
+    with _LOCK:
+        lock = _BUILDING.get(scene, {}).get(kind)
+    return lock is not None and lock.locked()
+
+
 def per_scene(scene: Scene, kind: str, build: Callable[[Scene], T],
               persist: Persist[T] | None = None) -> tuple[T, bool]:
     """``build(scene)`` cached per scene object under ``kind`` (and on disk with ``persist``

@@ -30,6 +30,7 @@ import numpy as np
 from visibility.cancel import CancelToken, running_under
 from visibility.ids import unique_ids
 from visibility.scene import Scene
+from visibility.scene_cache import Build
 from visibility.viewcells import Viewcell
 
 log = logging.getLogger(__name__)
@@ -299,6 +300,12 @@ class Core(ABC):
     def supports(self, scene: Scene) -> tuple[bool, str]:
         """Whether this core can compute on the scene at all, and why not when it cannot."""
         return True, ""
+
+    def scene_builds(self, scene: Scene) -> list[Build]:
+        """The per-scene structures this core builds once per scene (``visibility.scene_cache
+        .Build``), so a server can build them in the background when the scene loads instead
+        of on a walker's first request. Default: none."""
+        return []
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         """(score, why) of choosing this core for ``scene`` at viewcells of ``cell_size``

@@ -28,7 +28,14 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.scene import Scene, moving_faces
-from visibility.scene_cache import Build, Persist, build_in_background, peek, per_scene
+from visibility.scene_cache import (
+    Build,
+    Persist,
+    build_in_background,
+    in_progress,
+    peek,
+    per_scene,
+)
 
 #: Triangles per leaf: smaller leaves cull tighter and cost more node tests.
 LEAF_SIZE = 16
@@ -300,7 +307,7 @@ def ready_hierarchy(scene: Scene, start: bool = True) -> Hierarchy | None:
     if h is not None or not start or scene.n_triangles < MIN_TRIANGLES:
         return h
     with _started_lock:
-        if scene in _started:
+        if scene in _started or in_progress(scene, KIND):
             return None
         _started.add(scene)
     build_in_background(scene, [BUILD])

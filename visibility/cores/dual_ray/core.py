@@ -34,7 +34,7 @@ from visibility.cores.dual_ray.dual_space import (
 from visibility.cores.dual_ray.fences import Fences, scene_fences
 from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
 from visibility.scene import Scene
-from visibility.scene_cache import per_scene
+from visibility.scene_cache import Build, per_scene
 from visibility.viewcells import Viewcell
 
 #: The paper's choice (Sec. 6): 128 x 128 for 100 m cells.
@@ -153,6 +153,13 @@ class DualRayCore(Core):
         peak = m * BYTES_PER_TRIANGLE + 64 * r * r
         return Cost(float(seconds), int(peak), {"triangles": m, "resolution": r,
                                                 "cell_size": size})
+
+    def scene_builds(self, scene: Scene) -> list[Build]:
+        """The kd-tree and the fences (``scene_kdtree``, ``scene_fences``)."""
+        from visibility.cores.dual_ray.fences import build_fences
+        from visibility.cores.dual_ray.kdtree import build_kdtree
+
+        return [Build("kdtree", build_kdtree), Build("fences", build_fences)]
 
     def _compute(
         self, scene: Scene, cell: Viewcell, params: CoreParams

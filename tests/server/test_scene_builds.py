@@ -1,0 +1,76 @@
+"""Per-scene builds start in the background when a scene loads (a real server): the
+hierarchy, and the kd-tree and fences of a dual_ray server; they are kept on disk by content
+hash, so a restart reads them; small scenes build nothing."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+
+from server.scene_builds import builds_for
+from tests.conftest import serving, wait_for
+from visibility.cores.base import choose_core, get_core
+from visibility.generators import make_scene
+from visibility.raster import hierarchy
+from visibility.scene_cache import peek
+
+
+def _load(url: str, name: str) -> dict:
+    r = httpx.get(f"{url}/scenes/{name}", timeout=60)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_hierarchy_built_after_load_and_read_back_after_a_restart(settings, tmp_path):
+    city = make_scene("city", 60_000, seed=0)
+    with serving(settings, scenes={"big": city}, cache_dir=tmp_path) as (url, app):
+        _load(url, "big")
+        scene = app.state.server.catalog.get("big").scene
+        wait_for(lambda: peek(scene, hierarchy.KIND) is not None, timeout=120)
+        built = peek(scene, hierarchy.KIND)
+        assert not built.stats.get("loaded")
+        wait_for(lambda: hierarchy.KIND in _load(url, "big").get("builds", {}), timeout=30)
+        assert list((tmp_path / "scenes").rglob("*.npz"))
+    # A restart: the same geometry in a new process state finds the build on disk.
+    again = make_scene("city", 60_000, seed=0)
+    with serving(settings, scenes={"big": again}, cache_dir=tmp_path) as (url, app):
+        _load(url, "big")
+        scene = app.state.server.catalog.get("big").scene
+        wait_for(lambda: peek(scene, hierarchy.KIND) is not None, timeout=120)
+        read = peek(scene, hierarchy.KIND)
+        assert read.stats.get("loaded")
+        assert np.array_equal(read.order, built.order)
+
+
+def test_dual_ray_server_builds_its_kdtree_before_any_request(settings):
+    city = make_scene("city", 20_000, seed=1)
+    with serving(settings, scenes={"town": city}, core="dual_ray") as (url, app):
+        info = _load(url, "town")
+        assert info["is_2_5d"]["value"]
+        scene = app.state.server.catalog.get("town").scene
+        # No PVS was asked for: the kd-tree and fences come from the load's builds.
+        wait_for(lambda: peek(scene, "kdtree") is not None and peek(scene, "fences")
+                 is not None, timeout=120)
+        assert app.state.server.compute.computed == 0
+
+
+def test_what_is_built(settings):
+    from server.catalog import SceneCatalog
+
+    catalog = SceneCatalog(settings)
+    small = make_scene("village", 3_000, seed=0)
+    catalog.register("small", small)
+    assert builds_for(catalog.get("small"), settings) == []
+    big = make_scene("city", 60_000, seed=0)
+    catalog.register("big", big)
+    kinds = [b.kind for b in builds_for(catalog.get("big"), settings)]
+    assert kinds == [hierarchy.KIND]
+    dual = settings.model_copy(update={"core": "dual_ray"})
+    assert [b.kind for b in builds_for(catalog.get("big"), dual)] == \
+        [hierarchy.KIND, "kdtree", "fences"]
+    # auto: the builds of the core its declared fits pick.
+    auto = settings.model_copy(update={"core": "auto"})
+    loaded = catalog.get("big")
+    chosen = get_core(choose_core(big, float(loaded.grid.cell_size))[0])
+    assert [b.kind for b in builds_for(loaded, auto)] == \
+        [hierarchy.KIND] + [b.kind for b in chosen.scene_builds(big)]
