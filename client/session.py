@@ -135,6 +135,9 @@ class Session:
         self.dropped = 0
         self.drops: list[Drop] = []
         self.triangles_received = 0
+        #: Triangles received by the answer of the stream that brought them
+        #: (``cell_begin.answer``).
+        self.triangles_by_answer: dict[str, int] = {}
         #: Far-field cubemaps by the cell they were baked for (``protocol.cubemap.CubemapFrame``;
         #: the anchor cell of a block that shares one), near-far streams.
         self.cubemaps: dict[int, Any] = {}
@@ -359,6 +362,9 @@ class Session:
         self.duplicates += int(np.count_nonzero(self._held[chunk.ids]))
         self._held[chunk.ids] = True
         self.triangles_received += len(chunk)
+        if cs is not None and cs.begin is not None:
+            a = cs.begin.answer
+            self.triangles_by_answer[a] = self.triangles_by_answer.get(a, 0) + len(chunk)
         if not in_stream:
             self.local_errors.append(f"chunk of cell {chunk.cell} outside its cell stream")
             return

@@ -69,6 +69,9 @@ def run_rows(r: dict) -> list[tuple[str, str]]:
         ("triangles per walker (mean / max)",
          _get(r, "triangles_per_walker_mean", lambda v: f"{v:.0f}") + " / "
          + _get(r, "triangles_per_walker_max", str)),
+        ("triangles per walker by answer (mean)",
+         ", ".join(f"{a} {v:.0f}" for a, v in
+                   (r.get("triangles_per_walker_by_answer") or {}).items()) or "-"),
         ("clients with stalls", f"{r['clients_with_stalls']}"),
         ("frame latency p50", ms("latency_p50_s")),
         ("frame latency p95", ms("latency_p95_s")),

@@ -80,6 +80,10 @@ def summarise(run: dict, stats: list[ClientStats], m: dict[str, float], peak_rss
         "triangles_per_walker": tris,
         "triangles_per_walker_mean": float(np.mean(tris)) if tris else 0.0,
         "triangles_per_walker_max": int(max(tris)) if tris else 0,
+        # Per answer source: the mean over walkers of the triangles its streams brought.
+        "triangles_per_walker_by_answer": {
+            a: float(np.mean([s.triangles_by_answer.get(a, 0) for s in stats]))
+            for a in sorted({a for s in stats for a in s.triangles_by_answer})},
         "triangles_held_per_walker_mean": float(np.mean(held)) if held else 0.0,
         "triangles_held_per_walker_max": int(max(held)) if held else 0,
         "bytes_received": sum(s.bytes for s in stats),

@@ -53,6 +53,8 @@ class ClientStats:
     #: Triangles the walker received (``Session.triangles_received``) and held at the end.
     triangles_received: int = 0
     triangles_held: int = 0
+    #: Triangles received by the answer of the stream that brought them.
+    triangles_by_answer: dict[str, int] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
     #: Frames by the answer their cell held when drawn (``STALLED`` when none in time).
     answers: dict[str, int] = field(default_factory=dict)
@@ -143,6 +145,7 @@ async def one_client(url: str, scene: str, core: str, params: dict, walk: Walkth
         stats.duplicates = s.duplicates
         stats.dropped = s.dropped
         stats.triangles_received = s.triangles_received
+        stats.triangles_by_answer = dict(s.triangles_by_answer)
         stats.triangles_held = s.held
         stats.errors += [f"{e.code}: {e.message}" for e in s.errors]
         stats.errors += s.local_errors

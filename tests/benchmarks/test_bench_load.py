@@ -42,6 +42,10 @@ def check_consistent(r: dict) -> None:
     if None not in lat:
         assert lat == sorted(lat) and lat[-1] <= r["latency_max_s"]
     assert 0 < r["triangles_per_walker_mean"] <= r["triangles_per_walker_max"] <= r["triangles"]
+    # Every triangle came with a stream of some answer.
+    assert set(r["triangles_per_walker_by_answer"]) <= set(ANSWERS)
+    assert sum(r["triangles_per_walker_by_answer"].values()) == pytest.approx(
+        r["triangles_per_walker_mean"], rel=1e-9)
     assert r["computations_per_second"] == pytest.approx(
         r["computations"] / r["wall_seconds"], rel=1e-12)
     assert r["server_rss_peak_bytes"] > 0 and r["server_cpu_seconds"] > 0

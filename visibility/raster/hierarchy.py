@@ -71,7 +71,19 @@ class Hierarchy:
     faces: np.ndarray
     vertices: np.ndarray
     seconds: float = 0.0
+    #: (k,) int64 indices into the scene's vertices (static ones) and (k, 3) their positions:
+    #: what a render checks its vertices against (``matches``).
+    probe_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    probe_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     stats: dict = field(default_factory=dict)
+
+    def matches(self, vertices: np.ndarray) -> bool:
+        """Whether ``vertices`` (n, 3) hold the positions it was built from, judged at a few
+        static vertices spread over the tree (exactly): another frame or scene fails."""
+        v = np.asarray(vertices)
+        if len(self.probe_ids) and (v.ndim != 2 or len(v) <= int(self.probe_ids.max())):
+            return False
+        return bool(np.array_equal(v[self.probe_ids], self.probe_xyz))
 
     @property
     def n_leaves(self) -> int:
@@ -118,9 +130,10 @@ class Hierarchy:
                 or len(order) > slots * leaf
                 or any(len(a) and (a.min() < 0 or a.max() >= n_faces) for a in (order, loose))):
             return None
-        lf, lv = _local_copy(np.ascontiguousarray(vertices, dtype=np.float64),
-                             np.ascontiguousarray(faces, dtype=np.int32), order)
-        return cls(order, boxes, leaf, n_faces, loose, lf, lv, 0.0, {"loaded": True})
+        v = np.ascontiguousarray(vertices, dtype=np.float64)
+        lf, lv, probes = _local_copy(v, np.ascontiguousarray(faces, dtype=np.int32), order)
+        return cls(order, boxes, leaf, n_faces, loose, lf, lv, seconds=0.0,
+                   stats={"loaded": True}, probe_ids=probes, probe_xyz=v[probes].copy())
 
 
 # --------------------------------------------------------------------------------- build
@@ -192,12 +205,19 @@ def _first_use(faces, order, n_vertices, local_faces, remap):  # pragma: no cove
     return used[:n]
 
 
-def _local_copy(v: np.ndarray, f: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(faces[order] renumbered, the vertices they use in first-use order)."""
+#: Vertices ``Hierarchy.matches`` checks.
+PROBES = 16
+
+
+def _local_copy(v: np.ndarray, f: np.ndarray, order: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(faces[order] renumbered, the vertices they use in first-use order, probe vertex ids:
+    ``PROBES`` of those spread over the order)."""
     local = np.empty((len(order), 3), dtype=np.int32)
     remap = np.full(len(v), -1, dtype=np.int32)
     used = _first_use(f, order, len(v), local, remap)
-    return local, np.ascontiguousarray(v[used])
+    probes = used[np.linspace(0, len(used) - 1, min(PROBES, len(used))).astype(np.int64)]
+    return local, np.ascontiguousarray(v[used]), probes.astype(np.int64)
 
 
 @njit(cache=True, nogil=True)
@@ -267,8 +287,10 @@ def build_hierarchy(vertices: np.ndarray, faces: np.ndarray,
     _leaf_boxes(v, f, order, leaf, slots, boxes)
     _inner_boxes(boxes, slots)
     order = order.astype(np.int32)
-    lf, lv = _local_copy(v, f, order)
-    return Hierarchy(order, boxes, leaf, len(f), loose, lf, lv, time.perf_counter() - t0)
+    lf, lv, probes = _local_copy(v, f, order)
+    return Hierarchy(order, boxes, leaf, len(f), loose, lf, lv,
+                     seconds=time.perf_counter() - t0, probe_ids=probes,
+                     probe_xyz=v[probes].copy())
 
 
 # --------------------------------------------------------------------------------- per scene

@@ -607,6 +607,9 @@ def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, 
     m = len(faces)
     if hierarchy.n_faces != m:
         raise ValueError(f"the hierarchy was built for {hierarchy.n_faces} faces, not {m}")
+    if not hierarchy.matches(v):
+        raise ValueError("the hierarchy was built for other vertex positions (another scene, "
+                         "or these are in another frame)")
     mask = np.ones(m, dtype=bool) if face_mask is None else np.asarray(face_mask, dtype=bool)
     loose = hierarchy.loose[mask[hierarchy.loose]] if len(hierarchy.loose) else None
     return render_views_culled(v, eye, faces, hierarchy, mask, ids, rots, base, width, height,

@@ -117,3 +117,14 @@ def test_wrong_hierarchy_is_refused():
     h = build_hierarchy(a.vertices, a.faces)
     with pytest.raises(ValueError, match="built for"):
         render_cubemap_ids(b.vertices, b.faces, np.zeros(3), 16, hierarchy=h)
+
+
+def test_vertices_in_another_frame_are_refused():
+    # A render in a frame centred elsewhere (as trim_regions draws) cannot use the scene's
+    # hierarchy: its boxes are in the scene's frame.
+    scene = make_scene("village", 3000, seed=0)
+    h = build_hierarchy(scene.vertices, scene.faces)
+    moved = scene.vertices - np.array([1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="other vertex positions"):
+        render_cubemap_ids(moved, scene.faces, np.zeros(3), 16, hierarchy=h)
+    assert h.matches(scene.vertices) and not h.matches(moved)

@@ -35,7 +35,6 @@ from visibility.cores.trim_regions.silhouettes import (
     silhouette_trims,
 )
 from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
-from visibility.raster.hierarchy import ready_hierarchy
 from visibility.raster.triangles import render_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -366,9 +365,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     """
     res = view.res
     ss = SUPERSAMPLE * res
-    hier = ready_hierarchy(scene)  # the same images, drawn through culling once it is built
     depth, ids = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan,
-                            view.tan, near=view.near, face_mask=static_mask, hierarchy=hier)
+                            view.tan, near=view.near, face_mask=static_mask)
     blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
     samples = blocks.transpose(0, 2, 1, 3).reshape(res * res, SUPERSAMPLE * SUPERSAMPLE)
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
@@ -384,7 +382,7 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     reach = view.tan * (c + s)
     n_rolled = int(np.ceil(ROLLED_SAMPLES * res * (c + s)))
     _, rolled = render_ids(verts, scene.faces, view.vstar, roll @ view.rot, n_rolled, n_rolled,
-                           reach, reach, near=view.near, face_mask=static_mask, hierarchy=hier)
+                           reach, reach, near=view.near, face_mask=static_mask)
     seen = np.unique(np.concatenate([ids[ids >= 0], rolled[rolled >= 0]])).astype(np.int64)
     return first, seen
 
