@@ -20,6 +20,7 @@ from numba import njit
 from visibility.cancel import checkpoint
 from visibility.raster import render_cubemap, render_cubemap_ids, render_ids
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotations
+from visibility.raster.culling import Coherence
 from visibility.raster.hierarchy import ready_hierarchy
 from visibility.raster.spheres import draw_spheres_cubemap
 from visibility.scene import Scene
@@ -251,6 +252,8 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
     # Culling draws the same images; until the scene's hierarchy is built (in the background,
     # never waited for) every face is drawn.
     hier = ready_hierarchy(scene)
+    # The points are close together: each view draws first what the last one saw.
+    seen_last = Coherence() if hier is not None else None
     seen = np.zeros(m + scene.n_spheres, dtype=bool)
     whole = _whole_cubemap(resolution, scene.n_spheres > 0)
     found = 0
@@ -267,13 +270,15 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
         verts = scene.vertices_at(t)
         if scene.n_spheres:
             depth, ids = render_cubemap(verts, scene.faces, points[k], resolution, rotations[k],
-                                        near=near, face_mask=mask, hierarchy=hier)
+                                        near=near, face_mask=mask, hierarchy=hier,
+                                        coherence=seen_last)
             draw_spheres_cubemap(scene.sphere_centers_at(t), scene.sphere_radii, points[k],
                                  depth, ids, rotations[k], near, base_id=m)
             _mark_seen(ids.reshape(-1), seen)
         elif whole:
             ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
-                                     near=near, face_mask=mask, hierarchy=hier)
+                                     near=near, face_mask=mask, hierarchy=hier,
+                                     coherence=seen_last)
             _mark_seen(ids.reshape(-1), seen)
         else:
             # The same six views as render_cubemap, one at a time: a sixth of the buffers.

@@ -215,11 +215,13 @@ def _pop(heap_key, heap_node, size):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: no cover - numba
+def _walk(tree, views, pyr, mask, done, front, size, out, budget,
+          counts):  # pragma: no cover - numba
     """Take nodes nearest first (``front``: a min-heap of (squared box distance, node) pairs of
     ``size`` entries) until ``budget`` triangles are listed in ``out`` or none is left; hidden
     nodes are dropped, a leaf's triangles (those ``mask`` keeps, by their positions in leaf
-    order) listed, an inner node's children queued. Returns (triangles listed, heap size).
+    order) listed unless ``done`` marks the leaf, an inner node's children queued. Returns
+    (triangles listed, heap size).
     ``counts``: nodes tested, nodes hidden, leaves drawn."""
     boxes, order = tree.boxes, tree.order
     heap_key, heap_node = front
@@ -233,6 +235,8 @@ def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: 
             counts[1] += 1
             continue
         if node >= tree.slots:
+            if done[node - tree.slots]:
+                continue  # drawn first, from the previous view's leaves (``Coherence``)
             counts[2] += 1
             s = (node - tree.slots) * tree.leaf
             for t in range(s, min(s + tree.leaf, n_tri)):
@@ -244,6 +248,46 @@ def _walk(tree, views, pyr, mask, front, size, out, budget, counts):  # pragma: 
             if boxes[ch, 0, 0] <= boxes[ch, 1, 0]:  # not an empty slot
                 size = _push(heap_key, heap_node, size, _box_distance2(boxes, ch, eye), ch)
     return n, size
+
+
+@njit(cache=True, nogil=True)
+def _leaf_positions(leaves, tree, mask, done, out):  # pragma: no cover - numba
+    """List in ``out`` the positions (leaf order) of the triangles of ``leaves`` that ``mask``
+    keeps, marking those leaves in ``done``; returns how many."""
+    n = 0
+    n_tri = tree.order.shape[0]
+    for j in leaves:
+        if j < 0 or j >= done.shape[0] or done[j]:
+            continue
+        done[j] = 1
+        s = j * tree.leaf
+        for t in range(s, min(s + tree.leaf, n_tri)):
+            if mask[tree.order[t]]:
+                out[n] = t
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _seen_leaves(idbuf, ids_to_leaf, mark):  # pragma: no cover - numba
+    """Mark the leaf of every face id in ``idbuf`` (flat)."""
+    for p in range(idbuf.shape[0]):
+        i = idbuf[p]
+        if i >= 0:
+            leaf = ids_to_leaf[i]
+            if leaf >= 0:
+                mark[leaf] = 1
+
+
+class Coherence:
+    """What the previous view of a run of nearby views saw (the leaves its image holds): the
+    next view draws those first, so its depth pyramid is nearly whole before the walk starts
+    and the walk skips most of the scene (two-pass occlusion culling: last frame's visible
+    set, then the rest tested against it). Eyes that see different things only lose the
+    head start. One per run of views of the same scene and hierarchy."""
+
+    def __init__(self) -> None:
+        self.leaves: np.ndarray | None = None
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -367,6 +411,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
                         rots: np.ndarray, base: np.ndarray | None, width: int, height: int,
                         tan_x: float, tan_y: float, near: float, stats: dict | None,
                         want_depth: bool = True, always: np.ndarray | None = None,
+                        coherence: Coherence | None = None,
                         ) -> tuple[np.ndarray | None, np.ndarray]:
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing ``eye``, drawing only
     what the hierarchy's culling keeps: identical to ``triangles._render_views`` on the
@@ -374,10 +419,12 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
 
     ``mask``: (m,) bool, faces to draw (checked inputs: ``triangles._check_inputs``);
     ``always``: int64 face ids drawn without culling (moving faces, which the hierarchy does not
-    hold), in the first batch. ``stats`` gains ``triangles`` (drawn), ``pixels``,
-    ``pixel_tests``, ``band_pairs`` as the full render reports them, and ``nodes_tested``,
-    ``nodes_hidden``, ``leaves_drawn``, ``triangles_hidden`` (in drawn leaves, hidden one by
-    one), ``batches``.
+    hold), in the first batch; ``coherence`` (ids must be the faces' rows): the leaves the
+    previous view saw go in the first batch too, and it gets this view's. ``stats`` gains
+    ``triangles`` (drawn), ``pixels``, ``pixel_tests``, ``band_pairs`` as the full render
+    reports them, and ``nodes_tested``, ``nodes_hidden``, ``leaves_drawn``,
+    ``triangles_hidden`` (in drawn leaves, hidden one by one), ``batches``, ``seeded``
+    (triangles drawn first from the previous view's leaves).
     """
     n_views = len(rots)
     rots = np.ascontiguousarray(rots, dtype=np.float64)
@@ -401,15 +448,28 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     if hierarchy.boxes[1, 0, 0] <= hierarchy.boxes[1, 1, 0]:
         sp = _push(front[0], front[1], 0, 0.0, 1)
     out = np.empty(MAX_BATCH + tree.leaf, dtype=np.int64)
-    budget, drawn, batches, hidden = FIRST_BATCH, 0, 0, 0
+    budget, drawn, batches, hidden, walk_seeded = FIRST_BATCH, 0, 0, 0, 0
     dirty = np.zeros((n_views, 4), dtype=np.int64)
     extra = np.zeros(0, np.int64) if always is None else np.asarray(always, np.int64)
     # The tree's triangles are drawn from its leaf-ordered copy; their ids are the rows of
     # the scene's faces they stand for.
     tree_ids = hierarchy.order if len(ids) == 0 else ids[hierarchy.order]
+    done = np.zeros(tree.slots, dtype=np.uint8)
+    if coherence is not None and coherence.leaves is not None and len(coherence.leaves):
+        seeded = np.empty(len(coherence.leaves) * tree.leaf, dtype=np.int64)
+        k = _leaf_positions(np.asarray(coherence.leaves, np.int64), tree, mask, done, seeded)
+        if k:
+            # Drawn before the walk, as one batch: a whole pyramid to test the rest against.
+            drawn += k
+            hidden += _draw(hierarchy.vertices, hierarchy.faces, seeded[:k], tree_ids, views,
+                            pyr, base, invd, idbuf, counts, n_workers, dirty)
+            update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
+            batches += 1
+            walk_seeded = k
     while sp > 0 or (batches == 0 and len(extra)):
-        n, sp = _walk(tree, views, pyr, mask, front, sp, out, budget, walk)
-        if batches == 0 and len(extra):
+        n, sp = _walk(tree, views, pyr, mask, done, front, sp, out, budget, walk)
+        first = batches == 0
+        if first and len(extra):
             drawn += len(extra)
             hidden += _draw(v, faces, extra, ids, views, pyr, base, invd, idbuf, counts,
                             n_workers, dirty)
@@ -417,10 +477,15 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
         if n:
             drawn += n
             hidden += _draw(hierarchy.vertices, hierarchy.faces, out[:n], tree_ids, views, pyr,
-                            base, invd, idbuf, counts, n_workers, dirty, merge=batches == 1)
-        if sp > 0 and (n or len(extra)):
+                            base, invd, idbuf, counts, n_workers, dirty,
+                            merge=first and len(extra) > 0)
+        if sp > 0 and (n or (first and len(extra))):
             update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
         budget = min(2 * budget, MAX_BATCH)
+    if coherence is not None and len(ids) == 0:
+        mark = np.zeros(tree.slots, dtype=np.uint8)
+        _seen_leaves(idbuf.reshape(-1), hierarchy.leaf_of, mark)
+        coherence.leaves = np.flatnonzero(mark)
     depth = None
     if want_depth:
         depth = np.empty((n_views, height, width), dtype=np.float32)
@@ -431,7 +496,8 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
                          ("pixel_tests", int(counts[:, 0].sum())),
                          ("band_pairs", int(counts[:, 1].sum())),
                          ("nodes_tested", int(walk[0])), ("nodes_hidden", int(walk[1])),
-                         ("leaves_drawn", int(walk[2])), ("batches", batches)):
+                         ("leaves_drawn", int(walk[2])), ("batches", batches),
+                         ("seeded", walk_seeded)):
             stats[key] = stats.get(key, 0) + int(val)
     return depth, idbuf
 

@@ -86,6 +86,16 @@ class Hierarchy:
         return bool(np.array_equal(v[self.probe_ids], self.probe_xyz))
 
     @property
+    def leaf_of(self) -> np.ndarray:
+        """(n_faces,) int32 leaf of each face (-1: not in the tree), made on first use."""
+        lo = self.stats.get("_leaf_of")
+        if lo is None:
+            lo = np.full(self.n_faces, -1, dtype=np.int32)
+            lo[self.order] = np.arange(len(self.order), dtype=np.int32) // self.leaf_size
+            self.stats["_leaf_of"] = lo
+        return lo
+
+    @property
     def n_leaves(self) -> int:
         return (len(self.order) + self.leaf_size - 1) // self.leaf_size
 
@@ -95,8 +105,9 @@ class Hierarchy:
 
     @property
     def nbytes(self) -> int:
+        lo = self.stats.get("_leaf_of")
         return int(self.order.nbytes + self.boxes.nbytes + self.loose.nbytes
-                   + self.faces.nbytes + self.vertices.nbytes)
+                   + self.faces.nbytes + self.vertices.nbytes + (0 if lo is None else lo.nbytes))
 
     def save(self, path: str | Path) -> None:
         """Write to ``path`` (``.npz``) through a temporary file renamed into place."""

@@ -36,6 +36,7 @@ Triangles go through in batches to bound memory; small jobs run on the calling t
 from __future__ import annotations
 
 import threading
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -43,6 +44,9 @@ from numba import njit, prange
 
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 from visibility.raster.hierarchy import Hierarchy
+
+if TYPE_CHECKING:
+    from visibility.raster.culling import Coherence
 
 #: log2 of the height in pixel rows of the screen bands dealt out to the raster workers.
 BAND_SHIFT = 3
@@ -576,12 +580,12 @@ def raster_workers(height: int) -> int:
 
 
 def _render_views(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
-                  stats, want_depth=True, hierarchy=None, face_mask=None):
+                  stats, want_depth=True, hierarchy=None, face_mask=None, coherence=None):
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing an eye: one view, or
     the six cube faces of ``base`` (then ``rots`` = ``cube_face_rotations(base)``)."""
     if hierarchy is not None:
         return _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near,
-                              stats, want_depth, hierarchy, face_mask)
+                              stats, want_depth, hierarchy, face_mask, coherence)
     n_views = len(rots)
     small = (len(sel) * n_views < PARALLEL_MIN_TRIANGLES
              and n_views * width * height < PARALLEL_MIN_PIXELS)
@@ -600,7 +604,7 @@ def _render_views(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan
 
 
 def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near, stats,
-                   want_depth, hierarchy, face_mask):
+                   want_depth, hierarchy, face_mask, coherence=None):
     """``_render_views`` through the hierarchy (``visibility.raster.culling``)."""
     from visibility.raster.culling import render_views_culled
 
@@ -612,8 +616,10 @@ def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, 
                          "or these are in another frame)")
     mask = np.ones(m, dtype=bool) if face_mask is None else np.asarray(face_mask, dtype=bool)
     loose = hierarchy.loose[mask[hierarchy.loose]] if len(hierarchy.loose) else None
+    if coherence is not None and len(ids):
+        raise ValueError("coherence needs the faces' rows as ids (face_ids None)")
     return render_views_culled(v, eye, faces, hierarchy, mask, ids, rots, base, width, height,
-                               tan_x, tan_y, near, stats, want_depth, loose)
+                               tan_x, tan_y, near, stats, want_depth, loose, coherence)
 
 
 def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
@@ -670,6 +676,7 @@ def render_ids(
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
     hierarchy: Hierarchy | None = None,
+    coherence: Coherence | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth and triangle-id buffers of one perspective view.
 
@@ -690,6 +697,9 @@ def render_ids(
     hierarchy : the faces' ``visibility.raster.hierarchy.Hierarchy``: draw through frustum and
         occlusion culling (``visibility.raster.culling``; the same image, at a cost that follows
         what the view sees). None draws every face.
+    coherence : with ``hierarchy``, a ``visibility.raster.culling.Coherence`` shared by a run
+        of views from nearby eyes: each draws first what the previous one saw (the same image;
+        less drawn). Needs ``face_ids`` None.
 
     Returns
     -------
@@ -700,7 +710,7 @@ def render_ids(
     e = _check_view(eye, width, height, tan_x, tan_y, near)
     r = _check_rotation(rotation)
     depth, out = _render_views(v, e, f, sel, ids, r[None], None, int(width), int(height), tan_x,
-                               tan_y, near, stats, True, hierarchy, face_mask)
+                               tan_y, near, stats, True, hierarchy, face_mask, coherence)
     return depth[0], out[0]
 
 
@@ -715,6 +725,7 @@ def render_cubemap(
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
     hierarchy: Hierarchy | None = None,
+    coherence: Coherence | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth and id buffers of the six cube faces around ``eye``.
 
@@ -727,7 +738,7 @@ def render_cubemap(
     depth : (6, R, R) float32 metres (+inf where empty); ids : (6, R, R) int32 (-1 where empty).
     """
     return _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids,
-                    stats, True, hierarchy)
+                    stats, True, hierarchy, coherence)
 
 
 def render_cubemap_ids(
@@ -741,14 +752,15 @@ def render_cubemap_ids(
     face_ids: np.ndarray | None = None,
     stats: dict | None = None,
     hierarchy: Hierarchy | None = None,
+    coherence: Coherence | None = None,
 ) -> np.ndarray:
     """(6, R, R) int32 id buffers of ``render_cubemap`` (identical), without the depth pass."""
     return _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids,
-                    stats, False, hierarchy)[1]
+                    stats, False, hierarchy, coherence)[1]
 
 
 def _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, face_ids, stats,
-             want_depth, hierarchy=None):
+             want_depth, hierarchy=None, coherence=None):
     v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids, hierarchy is None)
     e = _check_view(eye, resolution, resolution, 1.0, 1.0, near)
     base = np.eye(3) if base_rotation is None else _check_rotation(base_rotation)
@@ -756,4 +768,4 @@ def _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, f
     rots = _CUBE_FACES @ base
     res = int(resolution)
     return _render_views(v, e, f, sel, ids, rots, base, res, res, 1.0, 1.0, near, stats,
-                         want_depth, hierarchy, face_mask)
+                         want_depth, hierarchy, face_mask, coherence)

@@ -11,6 +11,7 @@ from tests.visibility.real_scenes import REAL, real_grid, real_scene
 from visibility.generators import make_scene
 from visibility.generators._mesh import box_mesh
 from visibility.raster.camera import look_rotation, random_rotation
+from visibility.raster.culling import Coherence
 from visibility.raster.hierarchy import build_hierarchy, scene_hierarchy
 from visibility.raster.triangles import render_cubemap, render_cubemap_ids, render_ids
 from visibility.scene import Scene, moving_faces
@@ -128,3 +129,37 @@ def test_vertices_in_another_frame_are_refused():
     with pytest.raises(ValueError, match="other vertex positions"):
         render_cubemap_ids(moved, scene.faces, np.zeros(3), 16, hierarchy=h)
     assert h.matches(scene.vertices) and not h.matches(moved)
+
+
+def test_coherent_views_identical_and_cheaper():
+    """A run of views from nearby eyes sharing a ``Coherence``: each draws the last one's
+    leaves first; the images stay those of the full render, and less is drawn."""
+    scene = make_scene("city", 200_000, seed=8)
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    h = scene_hierarchy(scene)
+    rng = np.random.default_rng(9)
+    lo, hi = grid.boxes[len(grid) // 2]
+    coh = Coherence()
+    alone, seeded = [], []
+    for k in range(6):
+        eye, rot = lo + (hi - lo) * rng.random(3), random_rotation(rng)
+        full = render_cubemap_ids(scene.vertices, scene.faces, eye, 128, rot,
+                                  face_mask=scene.valid_faces)
+        st0: dict = {}
+        render_cubemap_ids(scene.vertices, scene.faces, eye, 128, rot,
+                           face_mask=scene.valid_faces, hierarchy=h, stats=st0)
+        st1: dict = {}
+        got = render_cubemap_ids(scene.vertices, scene.faces, eye, 128, rot,
+                                 face_mask=scene.valid_faces, hierarchy=h, stats=st1,
+                                 coherence=coh)
+        assert np.array_equal(full, got), k
+        seen = np.unique(full[full >= 0])
+        assert np.array_equal(np.sort(coh.leaves), np.unique(h.leaf_of[seen]))
+        if k:
+            assert st1["seeded"] > 0
+            alone.append(st0["nodes_tested"])
+            seeded.append(st1["nodes_tested"])
+    assert sum(seeded) < sum(alone)
+    with pytest.raises(ValueError, match="face_ids None"):
+        render_cubemap_ids(scene.vertices, scene.faces, lo, 16, hierarchy=h, coherence=coh,
+                           face_ids=np.arange(scene.n_triangles))
