@@ -93,8 +93,11 @@ class _StateCollector:
                       pool.get("retried", 0))
         yield counter("pvs_worker_replacements", "dead workers replaced",
                       pool.get("replaced", 0))
-        yield counter("pvs_prefetch_skipped", "prefetch jobs dropped as no longer wanted",
-                      pool.get("skipped", 0))
+        # Dropped unrun either way: when a walker's move made it unwanted (only prefetch jobs
+        # have no caller waiting), or when a worker found it unwanted.
+        yield counter("pvs_prefetch_skipped", "prefetch jobs dropped unrun as no longer wanted",
+                      pool.get("skipped", 0)
+                      + stats["cancellations"]["unwanted"].get("queued", 0))
         yield gauge("pvs_queued_computations", "computations waiting for a worker",
                     pool.get("queued", 0))
         fam = CounterMetricFamily("pvs_reranks", "queued computations moved as walkers moved",
