@@ -258,8 +258,11 @@ class Streamer:
         exc = fut.exception()
         if exc is None:
             return fut.result(), "full"
-        if prefetch and isinstance(exc, ComputationCancelled) and not s.state.stopping:
-            return None  # no walker wanted it any more (``ComputeService.want``)
+        if prefetch and isinstance(exc, ComputationCancelled) and cell not in s.want_set:
+            # Cancelled as no walker wanted it any more (``ComputeService.want``): not a
+            # failure, so the cell is not skipped should the walker head for it again. (A
+            # wanted cell's cancellation, a deadline, is skipped below: never retried at once.)
+            return None
         code = error_code(exc)
         if code is not None:
             msg = error_message(exc)

@@ -32,7 +32,7 @@ SCENE = "strip"
 #: The walkers' parameters: their cells' computations take this long each.
 WALK = {"radius": 5.0, "delay": 0.4}
 #: The blocker's (another cache key): long enough for the walkers' jobs to queue behind it.
-BLOCK = {"radius": 5.5, "delay": 3.0}
+BLOCK = {"radius": 5.5, "delay": 5.0}
 SPEED = 1.4
 
 
