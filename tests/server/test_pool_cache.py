@@ -234,6 +234,47 @@ def test_a_rerank_wins_over_needed_and_promote_only_moves_sooner():
         pool.shutdown()
 
 
+def test_service_ranks_walkers_needs_and_http_callers_together(registered_test_cores):
+    """A walker's job runs at the walker's rank; an HTTP caller joining lifts it to 0 while it
+    waits; when the caller leaves it drops back to the walker's rank; when no walker wants it
+    and nobody waits it is cancelled unrun, while one a caller waits for goes on."""
+    settings = Settings(generated={}, workers=1)
+    cat = SceneCatalog(settings)
+    cat.register("tiny", make_tiny_scene())
+    svc = ComputeService(cat, settings)
+    core = NearCore()
+    walk = core.make_params(radius=3.0)
+    try:
+        blocker = svc.submit("tiny", core, core.make_params(radius=4.0, delay=2.0), cell=0)
+        wait_for(lambda: svc.stats()["pool"]["queued"] == 0)  # running: the rest queues
+        k1, k2 = (svc.key("tiny", core, walk, cell=c) for c in (1, 2))
+        svc.want("w", {k1: (2.0, 0.0), k2: (3.0, 0.0)})
+        f1 = svc.submit("tiny", core, walk, cell=1, priority=9.0, walker=True,
+                        wanted=lambda: True)
+        f2 = svc.submit("tiny", core, walk, cell=2, priority=9.0, walker=True,
+                        wanted=lambda: True)
+
+        def queue():
+            return [(j["what"].split()[2], j["priority"]) for j in svc.stats()["pool"]["queue"]]
+
+        assert queue() == [("1", 2.0), ("2", 3.0)]  # the walker's ranks, not the argument
+        http = svc.submit("tiny", core, walk, cell=2)  # an HTTP caller joins cell 2
+        assert http is f2 and queue() == [("2", 0.0), ("1", 2.0)]
+        assert not svc.release(http)  # it leaves; the walker still wants the cell
+        assert queue() == [("1", 2.0), ("2", 3.0)]
+        assert svc.stats()["pool"]["reranks"] == {"sooner": 1, "later": 1}
+        again = svc.submit("tiny", core, walk, cell=2)  # a caller waits for cell 2 again
+        assert svc.unwant("w") == 1  # the walker leaves: cell 1 goes, cell 2 stays
+        assert f1.cancelled() and not f2.done()
+        assert svc.stats()["cancellations"]["unwanted"] == {"queued": 1}
+        blocker.result(30)
+        np.testing.assert_array_equal(again.result(30).pvs.triangle_ids,
+                                      near_ids(make_tiny_scene(),
+                                               cat.get("tiny").grid.boxes[2], 3.0))
+    finally:
+        svc.shutdown()
+
+
 # --------------------------------------------------------------------------- cache
 def test_pinned_entries_survive_eviction():
     one = _pvs(100)
