@@ -8,6 +8,11 @@ tier. The in-flight entry of a request lives until its future is done, so a requ
 while a job is being retried after its worker died joins the retry instead of starting a second
 run. Which core and parameters a request runs is decided before it gets here
 (``server.resolve``).
+
+Walkers' work is ranked across sessions (``docs/scheduling.md``): each session states its needs
+(``want``: current cell 0, cells ahead their expected arrival seconds) in ``demand``
+(``server.demand``); a walker's job runs at its key's rank there, re-ranked sooner or later as
+walkers move, and a job no walker wants any more and no caller waits for is cancelled.
 """
 
 from __future__ import annotations
@@ -16,7 +21,8 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Callable, Hashable
+from collections import Counter
+from collections.abc import Callable, Hashable, Mapping
 from concurrent.futures import Future
 from typing import Any
 
@@ -25,6 +31,7 @@ import numpy as np
 from server.admission import Admission
 from server.cache import PVSKey, TieredCache
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
+from server.demand import Demand, Rank
 from server.executor import Executor, LocalExecutor, make_executor
 from server.pool import PriorityWorkerPool, WorkerPool
 from server.region import (
@@ -39,6 +46,9 @@ from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import Core, CoreParams, Cost
 
 log = logging.getLogger(__name__)
+
+#: Queued jobs listed in ``stats`` (the pool's queue, first to run first).
+QUEUE_LISTED = 50
 
 
 class ComputeService:
@@ -74,6 +84,11 @@ class ComputeService:
         self.cache = cache or TieredCache.from_settings(settings)
         self.still_wanted: Callable[[Hashable], bool] | None = None
         self.on_computed: Callable[[float], None] | None = None
+        #: What every walker wants and how soon (``want``): walkers' jobs run at its ranks.
+        self.demand = Demand()
+        #: Cancellations by (reason, "queued" or "running"): "unwanted" (no walker wants the
+        #: result any more, nobody waits), "released" (its last caller stopped waiting).
+        self.cancellations: Counter = Counter()
         # Re-entrant: a pool that runs work inline would re-enter from _run.
         self._lock = threading.RLock()
         self._inflight: dict[PVSKey, Future] = {}
@@ -81,6 +96,10 @@ class ComputeService:
         self._tokens: dict[Future, CancelToken] = {}
         #: Callers waiting on each queued or running computation (``release``).
         self._waiters: dict[Future, int] = {}
+        #: The best rank among a job's callers that are not walkers (HTTP), while they wait.
+        self._base: dict[Future, Rank] = {}
+        #: The pool each queued or running computation is on.
+        self._lanes: dict[Future, WorkerPool] = {}
         self.abandoned = 0
         self.cancelled = 0
         self.computed = 0
@@ -107,15 +126,19 @@ class ComputeService:
         deadline: float | None = None,
         client: Hashable | None = None,
         lane: str = "main",
+        since: float = 0.0,
+        walker: bool = False,
     ) -> Future:
         """A future of the ``PVSResult`` for a grid cell (``cell``), an ad-hoc ``box`` (2, 3) or
         a ``segment`` (2, 3) [p, q] (metres; ``Core.compute_segment``, exact for cores that
         solve segments natively).
 
-        ``priority``: lower runs first (0: a walker needs it now; prefetch uses larger values).
-        ``wanted``: for prefetch, asked when a worker is about to start the job; False cancels
-        it (the future is then cancelled). Joining an in-flight job with a lower priority
-        promotes it. ``deadline``: seconds this computation may take from now, capped by
+        ``priority``: lower runs first (0: a walker needs it now; prefetch uses larger values);
+        ``since`` breaks ties, lower first. ``walker``: a session's job, which runs at its key's
+        rank in ``demand`` (``want``; ``priority``/``since`` only while no walker states a
+        need for it). ``wanted``: for prefetch, asked when a worker is about to start the job;
+        False cancels it (the future is then cancelled). Joining an in-flight job with a lower
+        priority promotes it. ``deadline``: seconds this computation may take from now, capped by
         ``settings.compute_deadline``; past it the future raises ``ComputationCancelled``.
 
         Admission (``server.admission``) applies to new computations only (a cached answer or
@@ -141,14 +164,22 @@ class ComputeService:
                 self._inflight.pop(key, None)
                 fut = None
             if pvs is None and fut is None:
-                return self._start(key, loaded, region, core, params, priority, wanted,
-                                   deadline, client, lane)
+                rank = (float(priority), float(since))
+                if walker:
+                    rank = self.demand.rank(key) or rank
+                return self._start(key, loaded, region, core, params, rank, wanted,
+                                   deadline, client, lane, walker)
             if fut is not None:
                 self.shared += 1
                 if wanted is None:
                     self._waiters[fut] = self._waiters.get(fut, 0) + 1
-                    if isinstance(self.pool, PriorityWorkerPool):
-                        self.pool.promote(fut, priority)
+                    if not walker:
+                        mine = (float(priority), float(since))
+                        self._base[fut] = min(self._base.get(fut, mine), mine)
+                pool = self._lanes.get(fut)
+                rank = self._rank(key, fut)
+                if isinstance(pool, PriorityWorkerPool) and rank is not None:
+                    pool.rerank(fut, *rank, needed=wanted is None)
                 return fut
         done: Future = Future()
         done.set_result(PVSResult(scene, region.cell, region.box.copy(), core.name, params, pvs,
@@ -156,9 +187,11 @@ class ComputeService:
         return done
 
     def _start(self, key: PVSKey, loaded: LoadedScene, region: Region, core: Core,
-               params: CoreParams, priority: float, wanted: Callable[[], bool] | None,
-               deadline: float | None, client: Hashable | None, lane: str) -> Future:
-        """Admit and queue a new computation (``submit``; called with the lock held)."""
+               params: CoreParams, rank: Rank, wanted: Callable[[], bool] | None,
+               deadline: float | None, client: Hashable | None, lane: str,
+               walker: bool) -> Future:
+        """Admit and queue a new computation at ``rank`` (``submit``; lock held)."""
+        priority, since = rank
         limit = self.settings.compute_deadline
         budget = limit if deadline is None else min(limit, deadline)
         pool = self.first_pool if lane == "first" and self.first_pool else self.pool
@@ -169,8 +202,10 @@ class ComputeService:
         job: dict[str, Any] = {"priority": priority}
         args = (self._run, key, loaded, region, core, params, token, model, executor, job)
         if isinstance(pool, PriorityWorkerPool):
+            where = f"cell {region.cell}" if region.cell is not None else "region"
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
-                              heavy=cost.seconds > self.settings.heavy_seconds)
+                              heavy=cost.seconds > self.settings.heavy_seconds, since=since,
+                              label=f"{loaded.name} {where} {core.name}")
             # The executor reads the priority when the job starts: a promoted job (a walker
             # reached a prefetched cell) goes to a cluster at its new rank.
             job["pool_job"] = getattr(fut, "job", None)
@@ -182,6 +217,9 @@ class ComputeService:
             self._tokens[fut] = token
             if wanted is None:
                 self._waiters[fut] = 1
+                if not walker:
+                    self._base[fut] = rank
+            self._lanes[fut] = pool
             # Forgotten only when the caller's future is done: a job retried after its worker
             # died keeps this future, so identical requests keep joining it.
             self._inflight[key] = fut
@@ -227,18 +265,79 @@ class ComputeService:
                 self._waiters[fut] = n - 1
                 return False
             del self._waiters[fut]
+            self._base.pop(fut, None)
             if fut.done():
                 return False
             key = next((k for k, f in self._inflight.items() if f is fut), None)
-            token = self._tokens.get(fut)
-        if key is not None and self.still_wanted is not None and self.still_wanted(key):
+        if key is not None and self._walker_wants(key):
+            # It goes on at the rank the walkers give it (no longer its last caller's).
+            with self._lock:
+                rank = self._rank(key, fut)
+                pool = self._lanes.get(fut)
+                if isinstance(pool, PriorityWorkerPool) and rank is not None:
+                    pool.rerank(fut, *rank)
             return False
         with self._lock:
             self.abandoned += 1
-        log.info("PVS %s: cancelled, %s", key, reason)
-        if not fut.cancel() and token is not None:
-            token.cancel(reason)
+            if key is not None and self._inflight.get(key) is fut:
+                del self._inflight[key]  # a new request starts afresh, never joins it
+        self._cancel(key, fut, "released", reason)
         return True
+
+    def _walker_wants(self, key: PVSKey) -> bool:
+        return self.demand.wanted(key) or (self.still_wanted is not None
+                                           and self.still_wanted(key))
+
+    def _rank(self, key: PVSKey, fut: Future) -> Rank | None:
+        """The rank of ``fut``'s job: the best of its waiting non-walker callers' and of the
+        walkers' that want ``key``; None when neither wants it. Lock held."""
+        ranks = [r for r in (self._base.get(fut), self.demand.rank(key)) if r is not None]
+        return min(ranks) if ranks else None
+
+    def _cancel(self, key: PVSKey | None, fut: Future, reason: str, why: str) -> None:
+        """Cancel ``fut``'s computation: unstarted, it never runs; running, it stops at its
+        core's next checkpoint. Counted in ``cancellations`` under ``reason``."""
+        with self._lock:
+            token = self._tokens.get(fut)
+        state = "queued" if fut.cancel() else "running"
+        if state == "running" and token is not None:
+            token.cancel(why)
+        with self._lock:
+            self.cancellations[(reason, state)] += 1
+        log.info("PVS %s: cancelled (%s), %s", key, state, why)
+
+    def want(self, walker: Hashable, needs: Mapping[PVSKey, Rank]) -> int:
+        """Replace ``walker``'s needs: {cache key: (priority, since)} (``server.demand``: its
+        current cell (0, the instant it entered), the cells ahead (expected arrival seconds,
+        0)). The queued jobs of the keys whose rank changed move sooner or later; one that no
+        walker wants any more and no caller waits for is cancelled, queued or running.
+        Returns how many were cancelled."""
+        return self._apply(self.demand.update(walker, needs))
+
+    def unwant(self, walker: Hashable) -> int:
+        """``walker`` left: ``want`` with no needs."""
+        return self._apply(self.demand.remove(walker))
+
+    def _apply(self, changed: Mapping[Hashable, Rank | None]) -> int:
+        doomed = []
+        with self._lock:
+            for key in changed:
+                fut = self._inflight.get(key)
+                if fut is None or fut.done():
+                    continue
+                rank = self._rank(key, fut)
+                if rank is None:
+                    if self._waiters.get(fut):
+                        continue  # a caller still waits: its ``release`` decides
+                    del self._inflight[key]  # a new request starts afresh, never joins it
+                    doomed.append((key, fut))
+                    continue
+                pool = self._lanes.get(fut)
+                if isinstance(pool, PriorityWorkerPool):
+                    pool.rerank(fut, *rank)
+        for key, fut in doomed:
+            self._cancel(key, fut, "unwanted", "no walker wants it any more")
+        return len(doomed)
 
     def _admit(self, loaded: LoadedScene, core: Core, params: CoreParams, region: Region,
                deadline: float, priority: float, client: Hashable | None,
@@ -261,6 +360,8 @@ class ComputeService:
                 del self._inflight[key]
             self._tokens.pop(fut, None)
             self._waiters.pop(fut, None)
+            self._base.pop(fut, None)
+            self._lanes.pop(fut, None)
 
     def cancel_all(self, reason: str = "server shutting down") -> int:
         """Cancel every queued and running computation (each stops at its core's next
@@ -327,13 +428,23 @@ class ComputeService:
                "cancelled": self.cancelled, "abandoned": self.abandoned,
                "shared": self.shared, "inflight": inflight,
                "workers": getattr(self.pool, "workers", None),
-               "admission": self.admission.stats(), "executor": self.executor.state()}
+               "admission": self.admission.stats(), "executor": self.executor.state(),
+               "demand": self.demand.stats()}
+        with self._lock:
+            cancels: dict[str, dict[str, int]] = {"unwanted": {}, "released": {}}
+            for (reason, state), n in self.cancellations.items():
+                cancels.setdefault(reason, {})[state] = n
         if isinstance(self.pool, PriorityWorkerPool):
+            cancels["skipped"] = {"queued": self.pool.skipped}
             out["pool"] = {"retried": self.pool.retried, "replaced": self.pool.replaced,
                            "skipped": self.pool.skipped, "queued": self.pool.queued(),
                            "queued_seconds": round(self.pool.queued_seconds(), 3),
                            "heavy_running": self.pool.heavy_running(),
-                           "heavy_workers": self.pool.heavy_workers}
+                           "heavy_workers": self.pool.heavy_workers,
+                           "reranks": {"sooner": self.pool.reranks["sooner"],
+                                       "later": self.pool.reranks["later"]},
+                           "queue": self.pool.snapshot(QUEUE_LISTED)}
+        out["cancellations"] = cancels
         return out
 
     def shutdown(self) -> None:

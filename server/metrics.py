@@ -22,13 +22,19 @@ histogram observed by the compute service.
 | pvs_cells_prefetched_total          | counter   | complete prefetch streams                 |
 | pvs_slow_clients_total              | counter   | sessions closed for falling behind        |
 | pvs_worker_retries_total / pvs_worker_replacements_total | counter | pool fault handling  |
+| pvs_reranks_total{direction}        | counter   | queued jobs moved sooner / later (3)      |
+| pvs_cancellations_total{reason, state} | counter | computations cancelled (4)             |
+| pvs_queued_computations             | gauge     | computations waiting for a worker         |
 | pvs_cache_tier_hits_total etc.      | counter   | hits, misses, errors by tier, kind (1)    |
 | pvs_redis_up / pvs_redis_downs_total| gauge / counter | Redis answers (1/0) / went down (2) |
 | pvs_redis_skipped_total{kind}       | counter   | Redis calls skipped while it was down (2) |
 
 (1) ``pvs_cache_tier_{hits,misses,errors}_total{tier, kind}``: tier memory, disk or redis; kind
 pvs, near_far (the near-far memory LRU) or cubemap (shared cubemaps). (2) With a Redis cache
-(``PVS_CACHE=redis://…``) only.
+(``PVS_CACHE=redis://…``) only. (3) As walkers move (``docs/scheduling.md``). (4) reason
+unwanted (no walker wants the result any more and no caller waits), released (its last caller
+stopped waiting and no walker wants it) or skipped (found unwanted when a worker took it); state
+queued (never ran) or running (stopped at its core's next checkpoint).
 """
 
 from __future__ import annotations
@@ -87,8 +93,25 @@ class _StateCollector:
                       pool.get("retried", 0))
         yield counter("pvs_worker_replacements", "dead workers replaced",
                       pool.get("replaced", 0))
-        yield counter("pvs_prefetch_skipped", "prefetch jobs dropped as no longer wanted",
-                      pool.get("skipped", 0))
+        # Dropped unrun either way: when a walker's move made it unwanted (only prefetch jobs
+        # have no caller waiting), or when a worker found it unwanted.
+        yield counter("pvs_prefetch_skipped", "prefetch jobs dropped unrun as no longer wanted",
+                      pool.get("skipped", 0)
+                      + stats["cancellations"]["unwanted"].get("queued", 0))
+        yield gauge("pvs_queued_computations", "computations waiting for a worker",
+                    pool.get("queued", 0))
+        fam = CounterMetricFamily("pvs_reranks", "queued computations moved as walkers moved",
+                                  labels=["direction"])
+        for direction in ("sooner", "later"):
+            fam.add_metric([direction], float(pool.get("reranks", {}).get(direction, 0)))
+        yield fam
+        fam = CounterMetricFamily("pvs_cancellations", "computations cancelled, by reason and "
+                                  "by whether they had started", labels=["reason", "state"])
+        for reason, states in stats["cancellations"].items():
+            for state in ("queued", "running"):
+                if reason != "skipped" or state == "queued":
+                    fam.add_metric([reason, state], float(states.get(state, 0)))
+        yield fam
         yield counter("pvs_bytes_sent", "WebSocket payload bytes sent (frames and messages)",
                       c["frame_bytes_sent"] + c["text_bytes_sent"])
         yield counter("pvs_http_bytes_sent", "HTTP response body bytes sent (PVS answers and "

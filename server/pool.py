@@ -10,6 +10,12 @@ deterministic failure would only fail again. A worker that *dies* (the job raise
 ``BaseException`` such as ``WorkerDied`` or ``SystemExit``) is replaced by a fresh thread and its
 job runs once more; the caller's future is the same object throughout, so whoever waits on it
 (or joined it) gets the retry's answer.
+
+Order of ``PriorityWorkerPool``: (priority, since, seconds), lowest first, FIFO among equals. A
+queued job is re-keyed (``rerank``) either way as the walkers that want it move: the job gets a
+fresh heap entry under a new sequence number and the old entry, no longer the job's ``entry``,
+is skipped when it surfaces (lazy deletion); the heap is rebuilt once stale entries outnumber
+live ones, so it stays within a constant factor of the queue.
 """
 
 from __future__ import annotations
@@ -18,6 +24,8 @@ import heapq
 import logging
 import os
 import threading
+import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -80,20 +88,38 @@ class _Job:
     #: Estimated seconds (shortest first within a priority) and the lane.
     seconds: float = 0.0
     heavy: bool = False
+    #: Tie-break among equal priorities, lower first (a walker's cell-entry instant).
+    since: float = 0.0
+    #: What the job computes, for the queue's listing (``snapshot``).
+    label: str = ""
+    #: The sequence number of the job's live heap entry (others are stale).
+    entry: int = -1
+    #: The pool that queued it (``rerank`` ignores other pools' jobs).
+    owner: Any = None
+    queued_at: float = 0.0
+
+    def key(self) -> tuple[float, float, float]:
+        return (self.priority, self.since, self.seconds)
+
+
+#: Stale heap entries tolerated before the heap is rebuilt from its live ones.
+MIN_STALE_TO_COMPACT = 64
 
 
 class PriorityWorkerPool:
-    """``workers`` threads taking jobs lowest ``priority`` first, then shortest estimated
-    ``seconds`` first (FIFO among equals).
+    """``workers`` threads taking jobs lowest ``priority`` first, then lowest ``since``, then
+    shortest estimated ``seconds`` (FIFO among equals).
 
     Two lanes: ``heavy`` jobs may occupy at most ``heavy_workers`` threads at once (default:
     all), so with fewer heavy workers than workers a light job always finds one free.
 
     A job whose ``wanted()`` says False when a worker picks it is cancelled unrun (prefetch work
-    no walker is heading for any more); ``promote`` moves a queued job forward. A job's
+    no walker is heading for any more); ``rerank`` re-keys a queued job either way, ``promote``
+    moves one forward and makes it run wanted or not (a caller now waits for it). A job's
     ``Exception`` is its answer (never retried); a worker killed by a ``BaseException``
     (``WorkerDied``, ``SystemExit``...) is replaced by a fresh thread and its job retried once
-    (see the module docstring). ``retried``, ``replaced`` and ``skipped`` count those events.
+    (see the module docstring). ``retried``, ``replaced`` and ``skipped`` count those events,
+    ``reranks`` the re-keyings ("sooner", "later").
     """
 
     def __init__(self, workers: int, heavy_workers: int | None = None, nice: int = 0) -> None:
@@ -103,8 +129,10 @@ class PriorityWorkerPool:
         self.heavy_workers = self.workers if heavy_workers is None else max(1, int(heavy_workers))
         self._heavy_running = 0
         self._cv = threading.Condition()
-        self._heap: list[tuple[float, float, int, _Job]] = []
+        self._heap: list[tuple[float, float, float, int, _Job]] = []
         self._count = 0
+        self._stale = 0
+        self.reranks: Counter = Counter()
         self._stop = False
         self.retried = 0
         self.replaced = 0
@@ -121,46 +149,93 @@ class PriorityWorkerPool:
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, priority: float = 0.0,
                wanted: Callable[[], bool] | None = None, seconds: float = 0.0,
-               heavy: bool = False) -> Future:
-        """Queue ``fn(*args)``; its future (``job`` attribute: the handle for ``promote``).
-        ``seconds``: its estimated run time (shortest first within a priority); ``heavy``: it
-        runs in the heavy lane."""
+               heavy: bool = False, since: float = 0.0, label: str = "") -> Future:
+        """Queue ``fn(*args)``; its future (``job`` attribute: the handle for ``rerank`` and
+        ``promote``). ``seconds``: its estimated run time (shortest first within a priority and
+        ``since``); ``heavy``: it runs in the heavy lane; ``since``: the tie-break among equal
+        priorities, lower first; ``label``: what it computes (``snapshot``)."""
         fut: Future = Future()
         job = _Job(fn, args, fut, float(priority), wanted, seconds=float(seconds),
-                   heavy=bool(heavy))
+                   heavy=bool(heavy), since=float(since), label=str(label), owner=self,
+                   queued_at=time.monotonic())
         fut.job = job  # type: ignore[attr-defined]
         self._push(job)
         return fut
 
     def _push(self, job: _Job) -> None:
         with self._cv:
-            if self._stop:
-                job.future.cancel()
-                return
-            heapq.heappush(self._heap, (job.priority, job.seconds, self._count, job))
-            self._count += 1
+            stopped = self._stop
+            if not stopped:
+                self._enqueue(job)
+                self._cv.notify()
+        if stopped:  # outside the lock, as in ``_next``
+            job.future.cancel()
+
+    def _enqueue(self, job: _Job) -> None:
+        """Give ``job`` a fresh heap entry (its older ones go stale). Lock held."""
+        job.entry = self._count
+        heapq.heappush(self._heap, (*job.key(), self._count, job))
+        self._count += 1
+
+    @staticmethod
+    def _live(entry: tuple) -> bool:
+        job = entry[-1]
+        return job.entry == entry[-2] and not job.started and not job.future.done()
+
+    def rerank(self, future: Future, priority: float, since: float = 0.0, *,
+               needed: bool = False) -> bool:
+        """Re-key the still queued job of ``future`` to (``priority``, ``since``), sooner or
+        later; ``needed``: a caller now waits for it, so it runs even if unwanted. True when
+        its place in the queue changed (counted in ``reranks``)."""
+        job = getattr(future, "job", None)
+        if job is None or job.owner is not self:
+            return False
+        with self._cv:
+            if needed:
+                job.wanted = None
+            if job.started or job.future.done() or job.entry < 0:
+                return False
+            new = (float(priority), float(since))
+            old = (job.priority, job.since)
+            if new == old:
+                return False
+            self.reranks["sooner" if new < old else "later"] += 1
+            job.priority, job.since = new
+            self._stale += 1
+            self._enqueue(job)
+            if self._stale > max(MIN_STALE_TO_COMPACT, len(self._heap) // 2):
+                self._heap = [e for e in self._heap if self._live(e)]
+                heapq.heapify(self._heap)
+                self._stale = 0
             self._cv.notify()
+            return True
 
     def promote(self, future: Future, priority: float = 0.0) -> None:
-        """Run the (still queued) job of ``future`` at ``priority`` and run it even if unwanted."""
+        """Run the (still queued) job of ``future`` at ``priority`` at the latest, and run it
+        even if unwanted (a caller now waits for it)."""
         job = getattr(future, "job", None)
-        if job is None:
+        if job is None or job.owner is not self:
             return
         with self._cv:
             job.wanted = None
             if job.started or priority >= job.priority:
                 return
-            job.priority = priority
-            # The old heap entry stays; whichever entry comes first runs the job, the other is
-            # skipped because the job has started.
-            heapq.heappush(self._heap, (priority, job.seconds, self._count, job))
-            self._count += 1
-            self._cv.notify()
+        self.rerank(future, priority, job.since)
 
     def _waiting(self) -> list[_Job]:
-        # Unique jobs still waiting (a promoted job has two heap entries).
-        return list({id(j): j for *_, j in self._heap
-                     if not j.started and not j.future.done()}.values())
+        # Jobs still waiting, each once (a re-ranked job's older entries are stale).
+        return [e[-1] for e in self._heap if self._live(e)]
+
+    def snapshot(self, limit: int = 50) -> list[dict[str, Any]]:
+        """The first ``limit`` queued jobs in the order they would start (lane limits aside):
+        what (``label``), priority, since, estimated seconds, lane, seconds queued."""
+        now = time.monotonic()
+        with self._cv:
+            live = sorted((e for e in self._heap if self._live(e)), key=lambda e: e[:4])
+            return [{"what": j.label, "priority": round(j.priority, 3), "since": j.since,
+                     "seconds": round(j.seconds, 3), "heavy": j.heavy,
+                     "queued_s": round(now - j.queued_at, 3)}
+                    for *_, j in live[:max(0, int(limit))]]
 
     def queued(self) -> int:
         """Jobs waiting for a worker."""
@@ -178,30 +253,41 @@ class PriorityWorkerPool:
             return self._heavy_running
 
     def _next(self) -> _Job | None:
-        with self._cv:
-            while True:
+        while True:
+            unwanted: list[_Job] = []
+            with self._cv:
                 while not self._heap and not self._stop:
                     self._cv.wait()
                 if self._stop:
                     return None
-                job = self._pop_runnable()
-                if job is None:
+                job = self._pop_runnable(unwanted)
+                if job is None and not unwanted:
                     # Only heavy jobs wait and their lane is full: a heavy job's end wakes us.
                     self._cv.wait()
                     continue
-                job.started = True
-                if job.heavy:
-                    self._heavy_running += 1
+                if job is not None:
+                    job.started = True
+                    if job.heavy:
+                        self._heavy_running += 1
+            # Outside the lock: a future's callbacks may take their owner's lock, which may
+            # be held by a thread waiting for ours (``ComputeService``).
+            for j in unwanted:
+                j.future.cancel()
+            if job is not None:
                 return job
 
-    def _pop_runnable(self) -> _Job | None:
+    def _pop_runnable(self, unwanted: list[_Job]) -> _Job | None:
         """The first queued job a worker may start (its lane has room); unwanted jobs met on
-        the way are cancelled. Called with the lock held."""
+        the way are taken off the queue into ``unwanted`` (the caller cancels them). Called
+        with the lock held."""
         blocked = []
         found = None
         while self._heap:
             entry = heapq.heappop(self._heap)
             job = entry[-1]
+            if job.entry != entry[-2]:
+                self._stale = max(0, self._stale - 1)
+                continue
             if job.started or job.future.done():
                 continue
             if job.heavy and self._heavy_running >= self.heavy_workers:
@@ -209,7 +295,8 @@ class PriorityWorkerPool:
                 continue
             if job.wanted is not None and not job.wanted():
                 self.skipped += 1
-                job.future.cancel()
+                job.entry = -1  # off the queue: never re-ranked back onto it
+                unwanted.append(job)
                 continue
             found = job
             break
@@ -263,7 +350,11 @@ class PriorityWorkerPool:
                     getattr(job.fn, "__name__", job.fn), exc)
         # The caller's future stays the one it holds: the retry's outcome is chained into it.
         retry = _Job(job.fn, job.args, _ChainedFuture(job.future), job.priority, None,
-                     job.attempts + 1, seconds=job.seconds, heavy=job.heavy)
+                     job.attempts + 1, seconds=job.seconds, heavy=job.heavy, since=job.since,
+                     label=job.label, owner=self, queued_at=time.monotonic())
+        if isinstance(job.future, Future):
+            # Re-ranking the caller's future now moves the retry.
+            job.future.job = retry  # type: ignore[attr-defined]
         self._push(retry)
         return True
 
@@ -271,12 +362,12 @@ class PriorityWorkerPool:
         """Stop the workers (running jobs finish); ``cancel_futures`` cancels queued jobs."""
         with self._cv:
             self._stop = True
+            dropped = self._waiting() if cancel_futures else []
             if cancel_futures:
-                for *_, job in self._heap:
-                    if not job.started:
-                        job.future.cancel()
                 self._heap.clear()
             self._cv.notify_all()
+        for job in dropped:  # outside the lock, as in ``_next``
+            job.future.cancel()
         if wait:
             for t in list(self._threads):
                 t.join(timeout=30)

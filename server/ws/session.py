@@ -1,8 +1,10 @@
 """One WebSocket client: the walker's state, the reader, and the session's lifecycle.
 
 Three tasks per session: the reader (here) validates every client message; a pose updates the
-walker's cell, its predicted motion and the prefetch list (``server.prefetch``), and counts a
-*stall* when the walker stands in a cell whose stream the server has not finished. The streamer
+walker's cell, its predicted motion and the prefetch list (``server.prefetch``), states the
+walker's needs to the compute service (``ComputeService.want``: the current cell first, the
+cells ahead by expected arrival time; ``docs/scheduling.md``), and counts a *stall* when the
+walker stands in a cell whose stream the server has not finished. The streamer
 (``server.ws.streams``) and the sender (``server.ws.outbox``) do the rest.
 """
 
@@ -30,7 +32,7 @@ from protocol.messages import Bye, Error, Hello, Pose, ProtocolError, parse_clie
 from server.auth import release_session
 from server.cache import PVSKey
 from server.catalog import LoadedScene
-from server.prefetch import motion_direction, prefetch_order
+from server.prefetch import arrival_seconds, motion_direction, prefetch_order, walker_speed
 from server.region import cell_key
 from server.ws.dynamic import DynamicFrames
 from server.ws.handshake import handshake
@@ -48,6 +50,12 @@ log = logging.getLogger(__name__)
 
 #: Longest ``error.message`` sent (a core's message may quote a whole parameter).
 MAX_ERROR_MESSAGE = 2000
+#: Seconds between two re-rankings of a walker's needs while its cell and prefetch list stay
+#: the same (a change of either re-ranks at once): poses come tens of times a second, and an
+#: arrival time moves by about as much as the pose interval between them.
+RERANK_INTERVAL_S = 0.25
+#: The least priority of a cell ahead: the cell a walker stands in alone ranks 0.
+MIN_AHEAD_PRIORITY = 1e-3
 
 
 class StreamSession:
@@ -100,6 +108,10 @@ class StreamSession:
         self.stalls = 0
         self._stall_cell: int | None = None
         self._last_pos: np.ndarray | None = None
+        self._last_t: float | None = None
+        #: Expected seconds to the walker's arrival in each cell of ``want`` (its rank).
+        self.eta: dict[int, float] = {}
+        self._ranked_at = -np.inf
         self._pinned: PVSKey | None = None
         #: Cache keys of the cells' PVS with the session's core and parameters (``key_of``).
         self._keys: dict[int, PVSKey] = {}
@@ -150,6 +162,8 @@ class StreamSession:
             await self.close(int(close_code_for(ErrorCode.INTERNAL)), "internal")
         finally:
             self.state.sessions.pop(self.id, None)
+            # What only this walker wanted is cancelled; what others want goes on at theirs.
+            self.state.compute.unwant(self.id)
             release_session(self)
             self._unpin()
             self.streamer.release_refinements()
@@ -204,7 +218,8 @@ class StreamSession:
                                  f"position {list(pose.position)} is in no viewcell", pose.seq)
             return
         self._outside = False
-        if cell != self.cell:
+        moved = cell != self.cell
+        if moved:
             self.cell = cell
             self.cell_seq = pose.seq
             self.cell_t0 = time.perf_counter()
@@ -213,10 +228,23 @@ class StreamSession:
         if self.prefetch:
             vel = None if pose.velocity is None else np.asarray(pose.velocity)
             direction = motion_direction(vel, pos, self._last_pos)
-            self.want = prefetch_order(grid, cell, pos, direction, self.settings.prefetch_ahead)
-            self.want_set = frozenset(self.want)
+            want = prefetch_order(grid, cell, pos, direction, self.settings.prefetch_ahead)
+            moved = moved or frozenset(want) != self.want_set
+            if moved or time.perf_counter() - self._ranked_at >= RERANK_INTERVAL_S:
+                dt = None if self._last_t is None else pose.t - self._last_t
+                speed = walker_speed(vel, pos, self._last_pos, dt)
+                eta = arrival_seconds(grid.boxes[want], pos, direction, speed) if want else []
+                self.eta = {c: max(float(t), MIN_AHEAD_PRIORITY)
+                            for c, t in zip(want, eta, strict=True)}
+                # The walker's own streams go soonest arrival first too (ties: heading).
+                self.want = sorted(want, key=self.eta.__getitem__)
+                self.want_set = frozenset(want)
+                moved = True
         self._wanted_keys = frozenset(self.key_of(c) for c in (cell, *self.want))
+        if moved:
+            self._rank()
         self._last_pos = pos
+        self._last_t = pose.t
         if cell not in self.inventory.done:
             self.stalls += 1
             self.state.counters["stalls"] += 1
@@ -225,6 +253,29 @@ class StreamSession:
                 log.info("session %s: stall: pose %d in cell %d before its stream finished",
                          self.id, pose.seq, cell)
         self.wake.set()
+
+    # ----------------------------------------------------------------------------- ranking
+    def _rank(self) -> None:
+        """State the walker's needs to the compute service: its cell (0, the instant it
+        entered it), the cells ahead (expected arrival seconds)."""
+        self._ranked_at = time.perf_counter()
+        needs = {self.key_of(c): (self.eta[c], 0.0) for c in self.want if c in self.eta}
+        needs[self.key_of(self.cell)] = self.rank_of(self.cell)
+        self.state.compute.want(self.id, needs)
+
+    def rank_of(self, cell: int) -> tuple[float, float]:
+        """(priority, since) of the walker's job for ``cell`` (``server.demand``): (0, the
+        ``time.perf_counter()`` instant it entered) for its cell, (expected arrival seconds, 0)
+        for a cell ahead, (the walk to it at a slow pace, 0) for any other."""
+        if cell == self.cell:
+            return 0.0, self.cell_t0
+        eta = self.eta.get(cell)
+        if eta is None:
+            boxes = self.loaded.grid.boxes
+            pos = self._last_pos if self._last_pos is not None else boxes[cell].mean(axis=0)
+            eta = float(arrival_seconds(boxes[[cell]], pos, None,
+                                        walker_speed(None, pos, None, None))[0])
+        return max(eta, MIN_AHEAD_PRIORITY), 0.0
 
     # ----------------------------------------------------------------------------- shared state
     def key_of(self, cell: int) -> PVSKey:

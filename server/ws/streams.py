@@ -28,6 +28,7 @@ from server.errors import error_code, error_message
 from server.region import PVSResult
 from server.sendqueue import StreamTag
 from server.ws.transport import SessionOver
+from visibility.cancel import ComputationCancelled
 from visibility.cores.base import PVS
 
 if TYPE_CHECKING:
@@ -181,9 +182,11 @@ class Streamer:
         compute = s.state.compute
         key = s.key_of(cell)
         seq = s.cell_seq if not prefetch else None
+        # Ranked across walkers by expected arrival (``docs/scheduling.md``).
+        priority, since = s.rank_of(cell)
         try:
-            cf = compute.submit(name, s.core, s.params, cell=cell,
-                                priority=(1.0 + rank) if prefetch else 0.0,
+            cf = compute.submit(name, s.core, s.params, cell=cell, priority=priority,
+                                since=since, walker=True,
                                 wanted=(lambda: s.state.wanted(key)) if prefetch else None)
         except (LookupError, Refused) as exc:
             # Refused: over a server limit (the walker's cell) or a full queue (prefetch only).
@@ -211,7 +214,7 @@ class Streamer:
                 if cf.done():
                     return
                 try:
-                    self._submit_first(cell, priority=1.0 + rank)
+                    self._submit_first(cell, priority=priority)
                 except Exception:  # noqa: BLE001 - a warm-up only; ``_first_answer`` reports
                     pass
 
@@ -255,6 +258,11 @@ class Streamer:
         exc = fut.exception()
         if exc is None:
             return fut.result(), "full"
+        if prefetch and isinstance(exc, ComputationCancelled) and cell not in s.want_set:
+            # Cancelled as no walker wanted it any more (``ComputeService.want``): not a
+            # failure, so the cell is not skipped should the walker head for it again. (A
+            # wanted cell's cancellation, a deadline, is skipped below: never retried at once.)
+            return None
         code = error_code(exc)
         if code is not None:
             msg = error_message(exc)

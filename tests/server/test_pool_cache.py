@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from server.pool import PriorityWorkerPool, WorkerDied
 from server.region import cell_key
 from server.resolve import Resolver, choose_core, core_fits
 from server.settings import Settings
-from tests.conftest import NearCore, make_tiny_scene, near_ids
+from tests.conftest import NearCore, make_tiny_scene, near_ids, wait_for
 from visibility.cores.base import PVS
 
 
@@ -107,6 +108,171 @@ def test_dead_worker_is_replaced_and_job_retried():
 
 def _always_dies():
     raise WorkerDied("again")
+
+
+def _blocked_pool():
+    """A one-worker pool whose worker is busy until the returned event is set."""
+    pool = PriorityWorkerPool(1)
+    gate = threading.Event()
+    started = threading.Event()
+
+    def block():
+        started.set()
+        gate.wait(30)
+
+    blocker = pool.submit(block)
+    assert started.wait(10)
+    return pool, gate, blocker
+
+
+def test_rerank_moves_queued_jobs_both_ways():
+    pool, gate, blocker = _blocked_pool()
+    order = []
+    try:
+        futs = {n: pool.submit(order.append, n, priority=p) for n, p in
+                (("a", 1.0), ("b", 2.0), ("c", 3.0))}
+        assert [j["priority"] for j in pool.snapshot()] == [1.0, 2.0, 3.0]
+        assert pool.rerank(futs["a"], 5.0)  # later: the walker turned away
+        assert pool.rerank(futs["c"], 0.5)  # sooner: the walker is about to arrive
+        assert not pool.rerank(futs["b"], 2.0)  # no change, not counted
+        assert pool.reranks == {"sooner": 1, "later": 1}
+        assert [j["priority"] for j in pool.snapshot()] == [0.5, 2.0, 5.0]
+        assert pool.queued() == 3  # each job once, whatever its stale entries
+        gate.set()
+        for f in [blocker, *futs.values()]:
+            f.result(10)
+        assert order == ["c", "b", "a"]
+        # A started (here: finished) job is never re-ranked.
+        assert not pool.rerank(futs["a"], 0.0)
+        assert pool.reranks == {"sooner": 1, "later": 1}
+    finally:
+        gate.set()
+        pool.shutdown()
+
+
+def test_since_breaks_ties_before_the_estimate():
+    """Among priority 0 (walkers' current cells), the cell entered earliest goes first, even
+    when a later one is cheaper; equal ``since``: shortest estimate first."""
+    pool, gate, blocker = _blocked_pool()
+    order = []
+    try:
+        late = pool.submit(order.append, "entered at 2", since=2.0, seconds=0.1)
+        early = pool.submit(order.append, "entered at 1", since=1.0, seconds=9.0)
+        short = pool.submit(order.append, "entered at 1, short", since=1.0, seconds=1.0)
+        ahead = pool.submit(order.append, "ahead", priority=0.001, since=0.0)
+        gate.set()
+        for f in (blocker, late, early, short, ahead):
+            f.result(10)
+        assert order == ["entered at 1, short", "entered at 1", "entered at 2", "ahead"]
+    finally:
+        gate.set()
+        pool.shutdown()
+
+
+def test_many_reranks_keep_order_and_a_bounded_heap():
+    from server.pool import MIN_STALE_TO_COMPACT
+
+    rng = np.random.default_rng(1)
+    pool, gate, blocker = _blocked_pool()
+    order = []
+    try:
+        futs = [pool.submit(order.append, i, priority=float(i)) for i in range(20)]
+        final = {}
+        for _ in range(2000):
+            i = int(rng.integers(20))
+            final[i] = float(rng.uniform(0, 100))
+            pool.rerank(futs[i], final[i])
+            # Live entries plus at most the stale ones tolerated before a rebuild.
+            assert len(pool._heap) <= 20 + MIN_STALE_TO_COMPACT + 1
+        prio = [final.get(i, float(i)) for i in range(20)]
+        listed = [j["priority"] for j in pool.snapshot()]
+        assert listed == sorted(round(p, 3) for p in prio)
+        gate.set()
+        for f in [blocker, *futs]:
+            f.result(10)
+        assert order == sorted(range(20), key=lambda i: prio[i])
+        assert pool.reranks["sooner"] + pool.reranks["later"] > 1000
+    finally:
+        gate.set()
+        pool.shutdown()
+
+
+def test_rerank_leaves_other_pools_and_dropped_jobs_alone():
+    pool, gate, blocker = _blocked_pool()
+    other = PriorityWorkerPool(1)
+    try:
+        mine = pool.submit(lambda: 1, priority=1.0)
+        theirs = other.submit(lambda: 2, priority=1.0)
+        assert not pool.rerank(theirs, 0.0) and not pool.rerank(Future(), 0.0)
+        gone = pool.submit(lambda: 3, priority=0.5, wanted=lambda: False)
+        gate.set()
+        assert mine.result(10) == 1 and theirs.result(10) == 2
+        wait_for(gone.cancelled, 10)
+        assert not pool.rerank(gone, 0.0)  # skipped: never queued again
+        assert pool.skipped == 1 and pool.queued() == 0
+    finally:
+        gate.set()
+        pool.shutdown()
+        other.shutdown()
+
+
+def test_a_rerank_wins_over_needed_and_promote_only_moves_sooner():
+    pool, gate, blocker = _blocked_pool()
+    order = []
+    try:
+        x = pool.submit(order.append, "x", priority=3.0, wanted=lambda: False)
+        y = pool.submit(order.append, "y", priority=2.0)
+        pool.promote(x, 5.0)  # not sooner: stays at 3, but now runs wanted or not
+        assert pool.snapshot()[1]["priority"] == 3.0
+        pool.promote(x, 1.0)
+        gate.set()
+        for f in (blocker, x, y):
+            f.result(10)
+        assert order == ["x", "y"] and pool.skipped == 0
+    finally:
+        gate.set()
+        pool.shutdown()
+
+
+def test_service_ranks_walkers_needs_and_http_callers_together(registered_test_cores):
+    """A walker's job runs at the walker's rank; an HTTP caller joining lifts it to 0 while it
+    waits; when the caller leaves it drops back to the walker's rank; when no walker wants it
+    and nobody waits it is cancelled unrun, while one a caller waits for goes on."""
+    settings = Settings(generated={}, workers=1)
+    cat = SceneCatalog(settings)
+    cat.register("tiny", make_tiny_scene())
+    svc = ComputeService(cat, settings)
+    core = NearCore()
+    walk = core.make_params(radius=3.0)
+    try:
+        blocker = svc.submit("tiny", core, core.make_params(radius=4.0, delay=2.0), cell=0)
+        wait_for(lambda: svc.stats()["pool"]["queued"] == 0)  # running: the rest queues
+        k1, k2 = (svc.key("tiny", core, walk, cell=c) for c in (1, 2))
+        svc.want("w", {k1: (2.0, 0.0), k2: (3.0, 0.0)})
+        f1 = svc.submit("tiny", core, walk, cell=1, priority=9.0, walker=True,
+                        wanted=lambda: True)
+        f2 = svc.submit("tiny", core, walk, cell=2, priority=9.0, walker=True,
+                        wanted=lambda: True)
+
+        def queue():
+            return [(j["what"].split()[2], j["priority"]) for j in svc.stats()["pool"]["queue"]]
+
+        assert queue() == [("1", 2.0), ("2", 3.0)]  # the walker's ranks, not the argument
+        http = svc.submit("tiny", core, walk, cell=2)  # an HTTP caller joins cell 2
+        assert http is f2 and queue() == [("2", 0.0), ("1", 2.0)]
+        assert not svc.release(http)  # it leaves; the walker still wants the cell
+        assert queue() == [("1", 2.0), ("2", 3.0)]
+        assert svc.stats()["pool"]["reranks"] == {"sooner": 1, "later": 1}
+        again = svc.submit("tiny", core, walk, cell=2)  # a caller waits for cell 2 again
+        assert svc.unwant("w") == 1  # the walker leaves: cell 1 goes, cell 2 stays
+        assert f1.cancelled() and not f2.done()
+        assert svc.stats()["cancellations"]["unwanted"] == {"queued": 1}
+        blocker.result(30)
+        np.testing.assert_array_equal(again.result(30).pvs.triangle_ids,
+                                      near_ids(make_tiny_scene(),
+                                               cat.get("tiny").grid.boxes[2], 3.0))
+    finally:
+        svc.shutdown()
 
 
 # --------------------------------------------------------------------------- cache

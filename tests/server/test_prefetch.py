@@ -12,7 +12,17 @@ import pytest
 
 from client.session import Session
 from client.walkthrough import generate_walkthrough
-from server.prefetch import choose_drops, motion_direction, prefetch_order
+from server.demand import Demand
+from server.prefetch import (
+    MAX_SPEED,
+    SLOW_WALK,
+    TURN_SECONDS,
+    arrival_seconds,
+    choose_drops,
+    motion_direction,
+    prefetch_order,
+    walker_speed,
+)
 from tests.conftest import make_tiny_scene, near_ids
 from visibility.viewcells import ViewcellGrid
 
@@ -223,3 +233,75 @@ def test_choose_drops_prefers_far_and_unneeded():
     assert out.tolist() == [8, 4, 3, 2, 1, 6, 5]  # spare-last ones after all others
     assert len(choose_drops(held, 20, protect, spare, centroids, np.zeros(3))) == 7
     assert len(choose_drops(held, 0, protect, spare, centroids, np.zeros(3))) == 0
+
+
+def _grid3():
+    from visibility.scene import WalkArea
+
+    return ViewcellGrid(WalkArea(rects=np.array([[0.0, 0.0, 12.0, 12.0, 0.0]])), 4.0)
+
+
+def test_arrival_seconds_along_the_walkers_motion():
+    grid = _grid3()
+    at = np.array([6.0, 1.7, 5.0])  # middle cell, 1 m past its centre towards +z
+    cell = grid.cell_of(at)
+
+    def eta_of(p, direction, speed=1.0, turn=TURN_SECONDS):
+        return arrival_seconds(grid.boxes[[grid.cell_of(np.array(p))]], at, direction, speed,
+                               turn)[0]
+
+    plus_z = np.array([0.0, 1.0])
+    assert arrival_seconds(grid.boxes[[cell]], at, plus_z, 1.4)[0] == 0.0
+    ahead = eta_of([6, 0, 10], plus_z)
+    np.testing.assert_allclose(ahead, 3.0)  # 3 m to the box at 1 m/s, no turn
+    np.testing.assert_allclose(eta_of([6, 0, 10], plus_z, speed=2.0), 1.5)
+    side = eta_of([10, 0, 6], plus_z)
+    np.testing.assert_allclose(side, 2.0 + TURN_SECONDS / 2)  # 2 m, a quarter turn
+    behind = eta_of([6, 0, 2], plus_z)
+    np.testing.assert_allclose(behind, 1.0 + TURN_SECONDS)  # 1 m, a half turn
+    assert ahead < side < behind
+    # Heading the other way swaps ahead and behind.
+    assert eta_of([6, 0, 2], -plus_z) < eta_of([6, 0, 10], -plus_z)
+    # Standing still: the walk alone, whichever way.
+    np.testing.assert_allclose(eta_of([6, 0, 2], None), 1.0)
+    np.testing.assert_allclose(eta_of([6, 0, 10], None), 3.0)
+    # A box the walker all but touches is reached at once, but for the turn (towards its
+    # centre: the way to its nearest point is too short to tell).
+    edge = np.array([6.0, 1.7, 4.0005])
+    back = arrival_seconds(grid.boxes[[grid.cell_of(np.array([6.0, 0, 2.0]))]], edge, plus_z,
+                           1.0)
+    np.testing.assert_allclose(back, [0.0005 + TURN_SECONDS])
+    with pytest.raises(ValueError, match="speed"):
+        arrival_seconds(grid.boxes[:1], at, None, 0.0)
+
+
+def test_walker_speed_from_velocity_or_steps_with_a_floor_and_a_cap():
+    p = np.array([0.0, 1.7, 0.0])
+    assert walker_speed(np.array([0.0, 0.0, 1.4]), p, None, None) == pytest.approx(1.4)
+    # Vertical motion is not walking.
+    assert walker_speed(np.array([0.0, 3.0, 0.0]), p, None, None) == SLOW_WALK
+    assert walker_speed(None, np.array([0.3, 1.7, 0.4]), p, 0.25) == pytest.approx(2.0)
+    assert walker_speed(None, p, p, 0.1) == SLOW_WALK  # standing still
+    assert walker_speed(None, p, None, None) == SLOW_WALK  # the first pose
+    assert walker_speed(None, np.array([1.0, 0, 0]), p, 0.0) == SLOW_WALK  # clock stood still
+    assert walker_speed(np.array([500.0, 0, 0]), p, None, None) == MAX_SPEED
+    assert walker_speed(np.array([np.nan, 0, 0]), p, None, None) == SLOW_WALK
+
+
+def test_demand_ranks_a_key_by_its_most_urgent_walker():
+    d = Demand()
+    assert d.update("a", {"k1": (2.0, 0.0), "k2": (0.0, 5.0)}) == {"k1": (2.0, 0.0),
+                                                                   "k2": (0.0, 5.0)}
+    # b wants k1 sooner: k1's rank changes; k2 entered earlier by b: changes too.
+    assert d.update("b", {"k1": (1.0, 0.0), "k2": (0.0, 3.0)}) == {"k1": (1.0, 0.0),
+                                                                   "k2": (0.0, 3.0)}
+    # a heading elsewhere changes nothing another walker's rank decides...
+    assert d.update("a", {"k1": (4.0, 0.0), "k2": (0.0, 5.0)}) == {}
+    # ...and b turning away hands k1 back to a's later rank (a demotion).
+    assert d.update("b", {"k2": (0.0, 3.0)}) == {"k1": (4.0, 0.0)}
+    assert d.rank("k1") == (4.0, 0.0) and d.wanted("k1")
+    assert d.remove("b") == {"k2": (0.0, 5.0)}
+    assert d.remove("a") == {"k1": None, "k2": None}
+    assert not d.wanted("k1") and d.rank("k2") is None
+    assert d.stats() == {"walkers": 0, "keys": 0}
+    assert d.remove("nobody") == {}
