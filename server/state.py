@@ -91,6 +91,10 @@ class Session(Protocol):
     def cubemap_cell(self, cell: int | None) -> int | None:
         """The anchor cell whose cubemap ``cell`` shares."""
 
+    def rank_of(self, cell: int) -> tuple[float, float]:
+        """(priority, since) of ``cell``'s work for this walker: 0 and the time it entered
+        for its current cell, else the expected seconds until it arrives."""
+
 
 @dataclass
 class ServerState:
