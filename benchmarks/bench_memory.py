@@ -11,6 +11,9 @@ count against the next). The child does what the server does with a scene:
 ``server``   what the server derives per scene on first use: the fingerprint (disk and Redis
              keys), the wire origin (every geometry frame), the valid count (the handshake), and
              the triangle centroids a streaming session keeps (``server.app.ServerState``).
+``hierarchy`` the scene's spatial hierarchy (``visibility.raster.hierarchy.scene_hierarchy``),
+             which the server builds in the background as a scene loads and every
+             rasterizing path culls with.
 ``sampling`` one cell of ``get_core("sampling")`` at the server's default parameters
              (``--cells K``: K cells one after the other, a stage each).
 
@@ -45,9 +48,9 @@ RESULTS_DIR = Path(__file__).resolve().parent / "results"
 DEFAULT_SIZES = (1_000_000, 4_000_000)
 BIG_SIZE = 16_000_000
 MIB = 1 << 20
-#: The brief's targets: bytes per triangle of a loaded scene without the BVH, and the peak of
-#: the 16M city served.
-TARGET_BYTES_PER_TRIANGLE = 130
+#: The issue's targets: bytes per triangle of a loaded scene with its spatial hierarchy, and
+#: the peak of the 16M city served.
+TARGET_BYTES_PER_TRIANGLE = 150
 TARGET_PEAK_16M = 2.5e9
 
 
@@ -175,6 +178,7 @@ def measure(generator: str, triangles: int, file: Path | None = None,
     from server.settings import Settings
     from visibility.cores.base import get_core
     from visibility.generators import make_scene
+    from visibility.raster.hierarchy import scene_hierarchy
     from visibility.viewcells import ViewcellGrid, spread_evenly
 
     core = get_core("sampling")
@@ -203,6 +207,8 @@ def measure(generator: str, triangles: int, file: Path | None = None,
     holder = SimpleNamespace(_centroids={})
     centroids = ServerState.centroids(holder, loaded)
     stages.mark("server")
+    scene_hierarchy(scene)
+    stages.mark("hierarchy")
     picks = [len(grid) // 2] + [c for c in spread_evenly(np.arange(len(grid)), cells)
                                  if c != len(grid) // 2][:cells - 1]
     for i, cell in enumerate(picks):
@@ -298,8 +304,8 @@ def report(results: list[dict[str, Any]], argv: list[str], header: str) -> str:
             lines += ["", "(the kernel refused to reset VmHWM: each stage's peak is the "
                       "process's peak so far)"]
     big = [r for r in results if r["triangles"] >= 0.9 * BIG_SIZE]
-    lines += ["", f"Targets: kept arrays and loaded B/tri <= {TARGET_BYTES_PER_TRIANGLE} "
-              f"(the BVH not included); the {BIG_SIZE / 1e6:.0f}M city served with a peak <= "
+    lines += ["", f"Targets: kept arrays B/tri <= {TARGET_BYTES_PER_TRIANGLE} "
+              f"(the scene with its spatial hierarchy); the {BIG_SIZE / 1e6:.0f}M city served with a peak <= "
               f"{TARGET_PEAK_16M / 1e9:.1f} GB."]
     for r in big:
         ok = r["process_peak"] <= TARGET_PEAK_16M

@@ -75,6 +75,14 @@ class Hierarchy:
     #: what a render checks its vertices against (``matches``).
     probe_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     probe_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: (n_faces,) int32 leaf of each face (-1: not in the tree).
+    leaf_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+
+    def __post_init__(self) -> None:
+        if len(self.leaf_of) != self.n_faces:
+            lo = np.full(self.n_faces, -1, dtype=np.int32)
+            lo[self.order] = np.arange(len(self.order), dtype=np.int32) // self.leaf_size
+            object.__setattr__(self, "leaf_of", lo)
     stats: dict = field(default_factory=dict)
 
     def matches(self, vertices: np.ndarray) -> bool:
@@ -86,16 +94,6 @@ class Hierarchy:
         return bool(np.array_equal(v[self.probe_ids], self.probe_xyz))
 
     @property
-    def leaf_of(self) -> np.ndarray:
-        """(n_faces,) int32 leaf of each face (-1: not in the tree), made on first use."""
-        lo = self.stats.get("_leaf_of")
-        if lo is None:
-            lo = np.full(self.n_faces, -1, dtype=np.int32)
-            lo[self.order] = np.arange(len(self.order), dtype=np.int32) // self.leaf_size
-            self.stats["_leaf_of"] = lo
-        return lo
-
-    @property
     def n_leaves(self) -> int:
         return (len(self.order) + self.leaf_size - 1) // self.leaf_size
 
@@ -105,9 +103,8 @@ class Hierarchy:
 
     @property
     def nbytes(self) -> int:
-        lo = self.stats.get("_leaf_of")
         return int(self.order.nbytes + self.boxes.nbytes + self.loose.nbytes
-                   + self.faces.nbytes + self.vertices.nbytes + (0 if lo is None else lo.nbytes))
+                   + self.faces.nbytes + self.vertices.nbytes + self.leaf_of.nbytes)
 
     def save(self, path: str | Path) -> None:
         """Write to ``path`` (``.npz``) through a temporary file renamed into place."""
