@@ -305,8 +305,8 @@ def report(results: list[dict[str, Any]], argv: list[str], header: str) -> str:
                       "process's peak so far)"]
     big = [r for r in results if r["triangles"] >= 0.9 * BIG_SIZE]
     lines += ["", f"Targets: kept arrays B/tri <= {TARGET_BYTES_PER_TRIANGLE} "
-              f"(the scene with its spatial hierarchy); the {BIG_SIZE / 1e6:.0f}M city served with a peak <= "
-              f"{TARGET_PEAK_16M / 1e9:.1f} GB."]
+              f"(the scene with its spatial hierarchy); the {BIG_SIZE / 1e6:.0f}M city served "
+              f"with a peak <= {TARGET_PEAK_16M / 1e9:.1f} GB."]
     for r in big:
         ok = r["process_peak"] <= TARGET_PEAK_16M
         lines.append(f"{r['triangles']:,} triangles: process peak {r['process_peak'] / 1e9:.2f} "

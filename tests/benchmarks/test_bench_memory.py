@@ -25,8 +25,8 @@ def test_a_small_city_and_a_file_are_measured_stage_by_stage(tmp_path):
     assert "| box.obj 12 |" in text
     n, nv = res["triangles"], res["vertices"]
     assert abs(n - 20000) < 0.2 * 20000 and res["pvs"] > 0 and res["cells"] > 0
-    assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "hierarchy", "sampling",
-                                                   "sampling 2"]
+    assert [r["stage"] for r in res["stages"]] == ["runtime", "load", "server", "hierarchy",
+                                                   "sampling", "sampling 2"]
     assert len(set(res["cell"])) == 2
     for r in res["stages"]:
         # A stage's peak is at least what it left resident; resident = anon + file + shmem.
