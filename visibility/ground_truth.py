@@ -252,8 +252,9 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
     # Culling draws the same images; until the scene's hierarchy is built (in the background,
     # never waited for) every face is drawn.
     hier = ready_hierarchy(scene)
-    # The points are close together: each view draws first what the last one saw.
-    seen_last = Coherence() if hier is not None else None
+    # The points are close together: each view draws first what the last one saw, and the
+    # run stops culling where it does not pay.
+    seen_last = Coherence()
     seen = np.zeros(m + scene.n_spheres, dtype=bool)
     whole = _whole_cubemap(resolution, scene.n_spheres > 0)
     found = 0
@@ -270,14 +271,16 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
         verts = scene.vertices_at(t)
         if scene.n_spheres:
             depth, ids = render_cubemap(verts, scene.faces, points[k], resolution, rotations[k],
-                                        near=near, face_mask=mask, hierarchy=hier,
+                                        near=near, face_mask=mask,
+                                        hierarchy=seen_last.hierarchy_for(hier),
                                         coherence=seen_last)
             draw_spheres_cubemap(scene.sphere_centers_at(t), scene.sphere_radii, points[k],
                                  depth, ids, rotations[k], near, base_id=m)
             _mark_seen(ids.reshape(-1), seen)
         elif whole:
             ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
-                                     near=near, face_mask=mask, hierarchy=hier,
+                                     near=near, face_mask=mask,
+                                     hierarchy=seen_last.hierarchy_for(hier),
                                      coherence=seen_last)
             _mark_seen(ids.reshape(-1), seen)
         else:
@@ -286,7 +289,8 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
             for rot in cube_face_rotations(rotations[k]):
                 checkpoint()
                 ids = render_ids(verts, scene.faces, points[k], rot, resolution, resolution,
-                                 near=near, face_mask=mask, hierarchy=hier)[1]
+                                 near=near, face_mask=mask,
+                                 hierarchy=seen_last.hierarchy_for(hier))[1]
                 _mark_seen(ids.reshape(-1), seen)
                 del ids
         ids = depth = None

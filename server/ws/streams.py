@@ -13,6 +13,7 @@ and prefetched cells' PVS first, farthest first).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from typing import TYPE_CHECKING, Any
@@ -40,6 +41,10 @@ log = logging.getLogger(__name__)
 #: progressive first answer is started for it: a Redis hit lands in about a millisecond, and a
 #: first answer started for a cell Redis then answers is computed for nothing.
 SHARED_CACHE_GRACE_S = 0.02
+#: Known neighbours that make a known answer on their own (``Streamer._known_answer``): with
+#: fewer, the union misses much of what the cell itself sees close by (the benchmark's image
+#: error says how much: docs/streaming.md).
+KNOWN_MIN = 3
 
 
 class Streamer:
@@ -197,9 +202,10 @@ class Streamer:
         shared = s.progressive and compute.cache.shared_up
         if shared and not prefetch and not cf.done():
             await asyncio.wait({fut}, timeout=SHARED_CACHE_GRACE_S)
+        known = None
         if not prefetch and s.progressive and not cf.done():
             known = await self._known_answer(cell)
-            if known is not None and not cf.done():
+            if known is not None and known.pvs.stats["enough"] and not cf.done():
                 # No first answer to compute: the core goes on, its answer refines this one.
                 s.refining[cell] = (cf, seq)
                 s.provisional[cell] = "known"
@@ -232,7 +238,7 @@ class Streamer:
                         s.provisional[cell] = "first"
                         fut.add_done_callback(lambda f: s.wake.set())
                         s.state.counters["first_answers"] += 1
-                        return first.result(), "first"
+                        return self._with_known(first.result(), known), "first"
                     first = None  # no first answer: wait for the core's
                 s.wake.clear()
                 waker = asyncio.ensure_future(s.wake.wait())
@@ -272,11 +278,26 @@ class Streamer:
         await self._job_failed(cell, prefetch, msg, seq, code)
         return None
 
+    @staticmethod
+    def _with_known(first: PVSResult, known: PVSResult | None) -> PVSResult:
+        """The computed first answer joined by what is known around the cell (too little to
+        answer alone, but what the neighbours see is mostly what the walker holds already)."""
+        if known is None:
+            return first
+        ids = np.union1d(first.pvs.triangle_ids, known.pvs.triangle_ids).astype(np.int32)
+        sph = [p.sphere_ids for p in (first.pvs, known.pvs) if p.sphere_ids is not None]
+        pvs = PVS(ids, sphere_ids=np.unique(np.concatenate(sph)).astype(np.int32) if sph
+                  else None, stats={**first.pvs.stats, "known_from": known.pvs.stats["known_from"]})
+        return dataclasses.replace(first, pvs=pvs)
+
     async def _known_answer(self, cell: int) -> PVSResult | None:
-        """A first answer for ``cell`` that costs nothing: the union of the session core's PVS
-        of the neighbouring cells where it is known (this session's own streams, then the
-        cache's memory and shared tiers: ``TieredCache.peek_async``, never a computation);
-        None when none is known or ``settings.known_answers`` is off."""
+        """The union of the session core's PVS of the neighbouring cells where it is known
+        (this session's own streams, then the cache's memory and shared tiers:
+        ``TieredCache.peek_async``, never a computation); None when none is known or
+        ``settings.known_answers`` is off. Its ``stats["enough"]``: at least ``KNOWN_MIN`` of
+        the neighbours (all when there are fewer) are known, so it answers alone, costing
+        nothing; with fewer it misses much of what only the cell itself sees nearby, and joins
+        a computed first answer instead."""
         s = self.s
         if not s.settings.known_answers:
             return None
@@ -300,7 +321,8 @@ class Streamer:
         spheres = [p.sphere_ids for p in parts if p.sphere_ids is not None]
         pvs = PVS(ids, sphere_ids=np.unique(np.concatenate(spheres)).astype(np.int32)
                   if spheres else None,
-                  stats={"known_from": len(parts), "neighbours": len(nbrs)})
+                  stats={"known_from": len(parts), "neighbours": len(nbrs),
+                         "enough": len(parts) >= min(KNOWN_MIN, len(nbrs))})
         box = s.loaded.grid.boxes[cell].copy()
         return PVSResult(s.loaded.name, cell, box, s.core.name, s.params, pvs, True)
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from client.session import SyncSession
+from server.ws import streams
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from visibility.viewcells import ViewcellGrid
 
@@ -218,27 +219,43 @@ def _counter(app, name: str) -> int:
     return int(app.state.server.counters[name])
 
 
+def _compute_over_http(url: str, cells) -> None:
+    """The session core's PVS of ``cells`` (as ``test_slow`` computes it for sessions: the
+    same cache key), computed through the HTTP route, in parallel."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import httpx
+
+    def one(c):
+        r = httpx.get(f"{url}/scenes/tiny/cells/{c}/pvs",
+                      params={"core": "test_slow", "delay": DELAY}, timeout=60)
+        assert r.status_code == 200, r.text
+
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(one, cells))
+
+
 def test_known_answer_is_the_union_of_the_neighbours_pvs(fresh_server):
-    """A walker entering a cell whose PVS is not computed, next to cells whose PVS is, gets
-    their union at once ("known": no first answer computed), then what the core adds."""
+    """A walker entering a cell whose PVS is not computed, next to enough cells whose PVS is,
+    gets their union at once ("known": no first answer computed), then what the core adds."""
     url, app, scene = fresh_server
     grid = app.state.server.catalog.get("tiny").grid
-    a = 0
-    b = grid.neighbours(a)[0]
+    b = max(range(len(grid)), key=lambda c: len(grid.neighbours(c)))
+    nbrs = grid.neighbours(b)
+    known = nbrs[:streams.KNOWN_MIN]
+    _compute_over_http(url, known)
+    firsts = _counter(app, "first_answers")
     with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
-        _pose(s, scene, a, 0)
-        wait_for(lambda: a in s.cells and s.cells[a].answer == "refined")
-        firsts = _counter(app, "first_answers")
         t0 = time.perf_counter()
-        _pose(s, scene, b, 1)
+        _pose(s, scene, b, 0)
         s.wait_cell(b, timeout=DELAY * 0.8)
         assert time.perf_counter() - t0 < DELAY
-        known = s.cells[b]
+        got = s.cells[b]
         held = set(s.store.ids.tolist())
-        assert known.answer == "known" and known.begin.answer == "known"
-        # The union of what is known around b: cell a's PVS (the core's), nothing computed.
-        a_pvs = set(near_ids(scene, grid.boxes[a], 5.0).tolist())
-        assert known.begin.triangles == len(a_pvs)
+        assert got.answer == "known" and got.begin.answer == "known"
+        # The union of what is known around b, and nothing computed for it.
+        union = set().union(*(near_ids(scene, grid.boxes[c], 5.0).tolist() for c in known))
+        assert _ids(got) == union and held == union
         assert _counter(app, "known_answers") >= 1
         assert _counter(app, "first_answers") == firsts
         wait_for(lambda: s.cells[b].answer == "refined")
@@ -250,21 +267,24 @@ def test_known_answer_is_the_union_of_the_neighbours_pvs(fresh_server):
         assert not s.errors and not s.local_errors
 
 
-def test_known_answer_from_another_walkers_cells(fresh_server):
-    """The neighbours' PVS another walker had computed (the shared cache, not this session's
-    own streams) make the known answer."""
+def test_too_little_known_joins_a_computed_first_answer(fresh_server):
+    """With fewer known neighbours than ``KNOWN_MIN``, a first answer is computed, and what is
+    known joins it."""
     url, app, scene = fresh_server
     grid = app.state.server.catalog.get("tiny").grid
-    a = 2
-    b = grid.neighbours(a)[-1]
-    with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
-        _pose(s, scene, a, 0)
-        wait_for(lambda: a in s.cells and s.cells[a].answer == "refined")
+    b = max(range(len(grid)), key=lambda c: len(grid.neighbours(c)))
+    a = grid.neighbours(b)[-1]
+    assert len(grid.neighbours(b)) > 1
+    _compute_over_http(url, [a])
     with SyncSession.connect(url, "tiny", "test_slow", {"delay": DELAY}, prefetch=False) as s:
         _pose(s, scene, b, 0)
         s.wait_cell(b, timeout=DELAY * 0.8)
-        assert s.cells[b].answer == "known"
-        assert set(_ids(s.cells[b])) == set(near_ids(scene, grid.boxes[a], 5.0).tolist())
+        got = s.cells[b]
+        assert got.answer == "first"
+        first = app.state.server.resolver.first()
+        direct = first.core.compute(scene, grid.cell(b), first.params).triangle_ids
+        assert _ids(got) == set(direct.tolist()) | set(near_ids(scene, grid.boxes[a],
+                                                                 5.0).tolist())
 
 
 def test_no_known_answer_when_nothing_is_known_or_it_is_off(settings):

@@ -279,15 +279,50 @@ def _seen_leaves(idbuf, ids_to_leaf, mark):  # pragma: no cover - numba
                 mark[leaf] = 1
 
 
+#: Culling pays while a view draws at most this share of the tree's triangles: past it the
+#: walk and the per-triangle tests cost more than drawing every triangle does (where the
+#: crossing lies: ``python -m benchmarks.bench_culling``, docs/culling.md).
+PAYS_UP_TO = 0.08
+#: A scene whose runs found culling not paying still tries it on every this-many-th run.
+RETRY_EVERY = 8
+
+
 class Coherence:
-    """What the previous view of a run of nearby views saw (the leaves its image holds): the
-    next view draws those first, so its depth pyramid is nearly whole before the walk starts
-    and the walk skips most of the scene (two-pass occlusion culling: last frame's visible
-    set, then the rest tested against it). Eyes that see different things only lose the
-    head start. One per run of views of the same scene and hierarchy."""
+    """A run of views from nearby eyes (the cubemaps of one cell): what the previous view saw
+    (the leaves its image holds) is drawn first by the next, so its depth pyramid is nearly
+    whole before the walk starts and the walk skips most of the scene (two-pass occlusion
+    culling: last frame's visible set, then the rest tested against it).
+
+    It also decides whether culling pays for the run: ``hierarchy_for(h)`` gives ``h`` until
+    a view draws more than ``PAYS_UP_TO`` of the tree's triangles, then None (draw every
+    face: the same images, cheaper there). What runs on a scene found is remembered with the
+    hierarchy, so later runs on a scene where culling does not pay start without it (trying it
+    again every ``RETRY_EVERY`` runs)."""
 
     def __init__(self) -> None:
         self.leaves: np.ndarray | None = None
+        self.off = False
+        self._opened: Hierarchy | None = None
+
+    def hierarchy_for(self, hierarchy: Hierarchy | None) -> Hierarchy | None:
+        """``hierarchy`` while culling pays for this run, else None."""
+        if hierarchy is None or self.off:
+            return None
+        if self._opened is not hierarchy:
+            self._opened = hierarchy
+            st = hierarchy.stats
+            st["runs"] = st.get("runs", 0) + 1
+            if not st.get("pays", True) and st["runs"] % RETRY_EVERY:
+                self.off = True
+                return None
+        return hierarchy
+
+    def drew(self, hierarchy: Hierarchy, triangles: int) -> None:
+        """A view of the run drew ``triangles`` through ``hierarchy``."""
+        pays = triangles <= PAYS_UP_TO * max(len(hierarchy.order), 1)
+        hierarchy.stats["pays"] = pays
+        if not pays:
+            self.off = True
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -486,6 +521,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
         mark = np.zeros(tree.slots, dtype=np.uint8)
         _seen_leaves(idbuf.reshape(-1), hierarchy.leaf_of, mark)
         coherence.leaves = np.flatnonzero(mark)
+        coherence.drew(hierarchy, drawn - hidden)
     depth = None
     if want_depth:
         depth = np.empty((n_views, height, width), dtype=np.float32)

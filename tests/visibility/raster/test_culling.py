@@ -163,3 +163,38 @@ def test_coherent_views_identical_and_cheaper():
     with pytest.raises(ValueError, match="face_ids None"):
         render_cubemap_ids(scene.vertices, scene.faces, lo, 16, hierarchy=h, coherence=coh,
                            face_ids=np.arange(scene.n_triangles))
+
+
+def test_a_run_stops_culling_where_it_does_not_pay(monkeypatch):
+    from visibility.raster import culling
+
+    scene = make_scene("city", 60_000, seed=2)
+    h = build_hierarchy(scene.vertices, scene.faces)
+    coh = Coherence()
+    assert coh.hierarchy_for(h) is h and coh.hierarchy_for(None) is None
+    coh.drew(h, int(culling.PAYS_UP_TO * len(h.order)))  # at the limit: still pays
+    assert coh.hierarchy_for(h) is h and h.stats["pays"]
+    coh.drew(h, int(culling.PAYS_UP_TO * len(h.order)) + 1)
+    assert coh.hierarchy_for(h) is None and not h.stats["pays"]
+    # Later runs on that scene start without culling, but every RETRY_EVERY-th tries it.
+    tried = [Coherence().hierarchy_for(h) is h for _ in range(2 * culling.RETRY_EVERY)]
+    assert tried.count(True) == 2
+    # A view that culls well makes the scene's runs cull again.
+    c = Coherence()
+    while c.hierarchy_for(h) is None:
+        c = Coherence()
+    c.drew(h, 0)
+    assert Coherence().hierarchy_for(h) is h
+    # Through the sampled ground truth: a cell of an open scene where culling draws most of
+    # it gives up, and the answer is the same.
+    monkeypatch.setattr(culling, "PAYS_UP_TO", 0.0)
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    from visibility.ground_truth import sample_pvs
+    from visibility.raster.hierarchy import scene_hierarchy as sh
+
+    hs = sh(scene)
+    a = sample_pvs(scene, grid.cell(len(grid) // 2), n_points=4, resolution=64, seed=1)
+    assert hs.stats["pays"] is False
+    bare = Scene(scene.vertices, scene.faces)
+    b = sample_pvs(bare, grid.cell(len(grid) // 2), n_points=4, resolution=64, seed=1)
+    assert np.array_equal(a.triangle_ids, b.triangle_ids)
