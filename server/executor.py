@@ -10,6 +10,7 @@ imported only when a Dask executor is made: the default path never loads it.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -51,20 +52,32 @@ class Executor(Protocol):
         ...
 
 
+def kernel_threads(workers: int) -> int:
+    """Threads each of ``workers`` concurrent computations may give its parallel kernels: the
+    CPUs shared out, at least one. More would put more threads than CPUs on the machine, and
+    a parallel kernel then waits at its barriers for threads the others have descheduled."""
+    return max(1, (os.cpu_count() or 1) // max(1, int(workers)))
+
+
 class LocalExecutor:
     """Computes in the calling thread: the pool's threads are the workers (numba kernels
-    release the GIL)."""
+    release the GIL), each giving its kernels ``kernel_threads(workers)`` threads."""
 
     kind = LOCAL
 
     def __init__(self, workers: int = 1) -> None:
         self.workers = int(workers)
+        self.threads = kernel_threads(self.workers)
 
     def compute(self, loaded: LoadedScene, core: Core, params: CoreParams, *,
                 cell: Viewcell | None = None, segment: np.ndarray | None = None,
                 token: CancelToken | None = None, priority: float = 0.0) -> PVS:
         """``visibility.jobs.compute_region`` here and now (``priority`` is the pool's
         business)."""
+        import numba
+
+        # Per thread (numba's setting is thread-local): this worker's share of the CPUs.
+        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
         return compute_region(loaded.scene, core, params, cell, segment, token)
 
     def slots(self) -> int:

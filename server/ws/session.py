@@ -46,6 +46,10 @@ from visibility.cores.base import Core, CoreParams
 if TYPE_CHECKING:
     from server.state import ServerState
 
+#: Current cells rank by ``NEWEST_FIRST`` minus their entry time: the newest first, and all
+#: after an HTTP request's rank (0, 0), which waits for its answer whoever enters a cell.
+NEWEST_FIRST = 1e12
+
 log = logging.getLogger(__name__)
 
 #: Longest ``error.message`` sent (a core's message may quote a whole parameter).
@@ -256,19 +260,25 @@ class StreamSession:
 
     # ----------------------------------------------------------------------------- ranking
     def _rank(self) -> None:
-        """State the walker's needs to the compute service: its cell (0, the instant it
-        entered it), the cells ahead (expected arrival seconds)."""
+        """State the walker's needs to the compute service: its cell (0, newest entered
+        first: ``rank_of``), the cells ahead (expected arrival seconds)."""
         self._ranked_at = time.perf_counter()
         needs = {self.key_of(c): (self.eta[c], 0.0) for c in self.want if c in self.eta}
         needs[self.key_of(self.cell)] = self.rank_of(self.cell)
         self.state.compute.want(self.id, needs)
 
     def rank_of(self, cell: int) -> tuple[float, float]:
-        """(priority, since) of the walker's job for ``cell`` (``server.demand``): (0, the
-        ``time.perf_counter()`` instant it entered) for its cell, (expected arrival seconds, 0)
-        for a cell ahead, (the walk to it at a slow pace, 0) for any other."""
+        """(priority, since) of the walker's job for ``cell`` (``server.demand``): (0,
+        ``NEWEST_FIRST`` minus the ``time.perf_counter()`` instant it entered) for its cell,
+        (expected arrival seconds, 0) for a cell ahead, (the walk to it at a slow pace, 0) for
+        any other.
+
+        Among current cells the one entered last goes first: its walker stays longest, so its
+        answer serves the most frames, while the walker who entered first is about to leave
+        (when the workers cannot keep up, the cells entered first would be computed for
+        walkers who have gone)."""
         if cell == self.cell:
-            return 0.0, self.cell_t0
+            return 0.0, NEWEST_FIRST - self.cell_t0
         eta = self.eta.get(cell)
         if eta is None:
             boxes = self.loaded.grid.boxes

@@ -299,7 +299,8 @@ def test_a_running_computation_nobody_wants_stops(served):
 
 def test_a_current_cell_jumps_the_queue(served):
     """A walker's prefetch is queued; another walker enters a cell nobody computed: its cell
-    (priority 0) runs first. Two walkers' current cells run in the order they entered them."""
+    (priority 0) runs first. Two walkers' current cells run newest entered first: that walker
+    stays longest in its cell, so its answer serves the most frames."""
     url, app, grid = served
     _clear_cache(app)
     _reset()
@@ -319,14 +320,14 @@ def test_a_current_cell_jumps_the_queue(served):
         wait_for(lambda: len(_queue(url)) >= 3)
         queue = _queue(url)
         b_cell, c_cell = _at(grid, *first_in), _at(grid, *second_in)
-        assert [j["what"] for j in queue] == [_label(b_cell), _label(c_cell), _label(a_next)]
+        assert [j["what"] for j in queue] == [_label(c_cell), _label(b_cell), _label(a_next)]
         assert queue[0]["priority"] == queue[1]["priority"] == 0.0 < queue[2]["priority"]
         assert queue[0]["since"] < queue[1]["since"]
         blocker.join()
         wait_for(lambda: b.is_complete(b_cell) and c.is_complete(c_cell)
                  and a.is_complete(a_next))
         done = _cells(grid, OrderCore.finished)
-        assert done.index(b_cell) < done.index(c_cell) < done.index(a_next)
+        assert done.index(c_cell) < done.index(b_cell) < done.index(a_next)
         assert not b.errors and not c.errors
     finally:
         _close(a, b, c)
