@@ -30,14 +30,13 @@ from visibility.raster.triangles import (
     _REC,
     BAND_SHIFT,
     _centre_range,
-    _corner,
     _finish,
-    _pixel_box,
     _raster,
     _scratch,
     _setup,
     _split_views,
     raster_workers,
+    views_covered,
 )
 
 #: Relative depth margin of the occlusion test: a box must lie this much farther than what a
@@ -398,16 +397,7 @@ def _bin(v, faces, sel, views, pyr, cube, out, box):  # pragma: no cover - numba
                 box[t, 2] = py0
                 box[t, 3] = py1
             continue
-        bits = 0
-        for k in range(rots.shape[0]):
-            ax, ay, az = _corner(v, eye, i0, rots, k)
-            bx, by, bz = _corner(v, eye, i1, rots, k)
-            cx, cy, cz = _corner(v, eye, i2, rots, k)
-            px0, px1, py0, py1 = _pixel_box(ax, ay, -az, bx, by, -bz, cx, cy, -cz, width,
-                                            height, tan_x, tan_y, near)
-            if px0 <= px1:
-                bits |= 1 << k
-        out[t] = bits
+        out[t] = views_covered(v, eye, i0, i1, i2, rots, width, height, tan_x, tan_y, near)
     return hidden
 
 

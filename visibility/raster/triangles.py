@@ -194,6 +194,23 @@ def _home_views(v, eye, rots, base, cube, width, height, tan_x, tan_y, near, hom
             home[i] = -1
 
 
+@njit(cache=True, nogil=True)
+def views_covered(v, eye, i0, i1, i2, rots, width, height, tan_x, tan_y,
+                  near):  # pragma: no cover - numba
+    """Bit k set when the triangle of vertices i0, i1, i2 may cover a pixel centre of view k
+    (clipped and projected in each view: for triangles whose corners lie in different views)."""
+    bits = 0
+    for k in range(rots.shape[0]):
+        x0, y0, z0 = _corner(v, eye, i0, rots, k)
+        x1, y1, z1 = _corner(v, eye, i1, rots, k)
+        x2, y2, z2 = _corner(v, eye, i2, rots, k)
+        px0, px1, py0, py1 = _pixel_box(x0, y0, -z0, x1, y1, -z1, x2, y2, -z2, width,
+                                        height, tan_x, tan_y, near)
+        if px0 <= px1:
+            bits |= 1 << k
+    return bits
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _cull(v, eye, faces, sel, rots, home, sxy, width, height, tan_x, tan_y, near, out,
           box):  # pragma: no cover - numba
@@ -226,16 +243,7 @@ def _cull(v, eye, faces, sel, rots, home, sxy, width, height, tan_x, tan_y, near
                 box[t, 2] = py0
                 box[t, 3] = py1
             continue
-        bits = 0
-        for k in range(rots.shape[0]):
-            x0, y0, z0 = _corner(v, eye, i0, rots, k)
-            x1, y1, z1 = _corner(v, eye, i1, rots, k)
-            x2, y2, z2 = _corner(v, eye, i2, rots, k)
-            px0, px1, py0, py1 = _pixel_box(x0, y0, -z0, x1, y1, -z1, x2, y2, -z2, width,
-                                            height, tan_x, tan_y, near)
-            if px0 <= px1:
-                bits |= 1 << k
-        out[t] = bits
+        out[t] = views_covered(v, eye, i0, i1, i2, rots, width, height, tan_x, tan_y, near)
 
 
 @njit(cache=True, nogil=True)
