@@ -257,12 +257,12 @@ def test_dynamic_scene_against_sampled_ground_truth():
     scene = make_scene("swaying_grass", triangles=3000, seed=2, states=3)
     grid = ViewcellGrid.for_scene(scene)
     cell = grid.cell(0)
-    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=96, runs=2))
+    pvs = CORE.compute(scene, cell, CORE.make_params(resolution=64, runs=1))
     _check_pvs(pvs, scene)
     assert pvs.stats["state_intervals"] == 2
     gt = sample_pvs(scene, cell, n_points=24, resolution=96, seed=3)
     fn, _ = fn_fp_rates(pvs.triangle_ids, gt.triangle_ids)
-    assert fn <= 0.1
+    assert fn == 0.0  # nothing the sampled eyes see is missing (fixed seeds: deterministic)
 
 
 def test_compute_segment_is_exact_on_a_diagonal_segment():
