@@ -74,10 +74,12 @@ class ComputeService:
         jobs = max(settings.workers, self.executor.slots())
         heavy = jobs - (settings.workers - settings.heavy_lane_workers())
         self.pool = pool or PriorityWorkerPool(jobs, heavy, nice=settings.worker_nice)
-        #: First answers (``settings.progressive``) run here, on a worker of their own: they
+        #: First answers (``settings.progressive``) run here, on workers of their own: they
         #: take tens of milliseconds, and must not queue behind the session cores' work. They
         #: compute in this process whatever the executor: a cluster's round trip costs as much.
-        self.first_pool = PriorityWorkerPool(1) if settings.progressive else None
+        #: Warm-ups for cells ahead (priority > 0) take one of its two workers at most, so a
+        #: walker's own cell never waits behind one.
+        self.first_pool = PriorityWorkerPool(2, 1) if settings.progressive else None
         self._here = LocalExecutor(1)
         self.admission = Admission(settings)
         #: Memory, Redis, disk (``settings.cache_bytes``, ``cache``, ``cache_dir``).
@@ -203,8 +205,10 @@ class ComputeService:
         args = (self._run, key, loaded, region, core, params, token, model, executor, job)
         if isinstance(pool, PriorityWorkerPool):
             where = f"cell {region.cell}" if region.cell is not None else "region"
+            heavy = priority > 0 if pool is self.first_pool else \
+                cost.seconds > self.settings.heavy_seconds
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
-                              heavy=cost.seconds > self.settings.heavy_seconds, since=since,
+                              heavy=heavy, since=since,
                               label=f"{loaded.name} {where} {core.name}")
             # The executor reads the priority when the job starts: a promoted job (a walker
             # reached a prefetched cell) goes to a cluster at its new rank.

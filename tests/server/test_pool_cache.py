@@ -566,3 +566,35 @@ def test_pool_threads_run_nicer_than_the_process():
         assert svc.pool.nice == 3 and svc.first_pool.nice == 0
     finally:
         svc.shutdown()
+
+
+def test_first_answers_of_walkers_cells_never_wait_behind_warm_ups(settings):
+    """The first answers' pool has two workers, and warm-ups for cells ahead (priority > 0)
+    may take one of them at most: a walker's own cell (priority 0) starts at once."""
+    import threading
+
+    from server.catalog import SceneCatalog
+    from server.compute import ComputeService
+
+    on = settings.model_copy(update={"progressive": True})
+    svc = ComputeService(SceneCatalog(on), on)
+    try:
+        pool = svc.first_pool
+        assert pool.workers == 2 and pool.heavy_workers == 1
+        release = threading.Event()
+        started = []
+
+        def job(name):
+            started.append(name)
+            release.wait(10)
+            return name
+
+        warm = [pool.submit(job, f"ahead{i}", priority=1.0 + i, heavy=True) for i in range(3)]
+        wait_for(lambda: started == ["ahead0"])
+        own = pool.submit(job, "own", priority=0.0, heavy=False)
+        wait_for(lambda: "own" in started)
+        assert started == ["ahead0", "own"]  # the other warm-ups wait
+        release.set()
+        assert own.result(10) == "own" and [f.result(10) for f in warm]
+    finally:
+        svc.shutdown()
