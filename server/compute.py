@@ -21,7 +21,6 @@ import asyncio
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Hashable, Mapping
 from concurrent.futures import Future
 from typing import Any
@@ -33,6 +32,7 @@ from server.cache import PVSKey, TieredCache
 from server.catalog import LoadedScene, SceneCatalog, UnknownSceneError
 from server.demand import Demand, Rank
 from server.executor import Executor, LocalExecutor, make_executor
+from server.inflight import InFlight
 from server.pool import PriorityWorkerPool, WorkerPool
 from server.region import (
     PVSResult,
@@ -84,29 +84,25 @@ class ComputeService:
         self.admission = Admission(settings)
         #: Memory, Redis, disk (``settings.cache_bytes``, ``cache``, ``cache_dir``).
         self.cache = cache or TieredCache.from_settings(settings)
-        self.still_wanted: Callable[[Hashable], bool] | None = None
         self.on_computed: Callable[[float], None] | None = None
-        #: What every walker wants and how soon (``want``): walkers' jobs run at its ranks.
-        self.demand = Demand()
-        #: Cancellations by (reason, "queued" or "running"): "unwanted" (no walker wants the
-        #: result any more, nobody waits), "released" (its last caller stopped waiting).
-        self.cancellations: Counter = Counter()
         # Re-entrant: a pool that runs work inline would re-enter from _run.
         self._lock = threading.RLock()
-        self._inflight: dict[PVSKey, Future] = {}
-        #: The cancellation token of every queued or running computation, by future.
-        self._tokens: dict[Future, CancelToken] = {}
-        #: Callers waiting on each queued or running computation (``release``).
-        self._waiters: dict[Future, int] = {}
-        #: The best rank among a job's callers that are not walkers (HTTP), while they wait.
-        self._base: dict[Future, Rank] = {}
-        #: The pool each queued or running computation is on.
-        self._lanes: dict[Future, WorkerPool] = {}
-        self.abandoned = 0
+        #: What every walker wants and how soon (``want``): walkers' jobs run at its ranks.
+        self.demand = Demand()
+        #: The computations queued or running: their callers, ranks and cancellation.
+        self.inflight = InFlight(self.demand, self._lock)
         self.cancelled = 0
         self.computed = 0
         self.failed = 0
-        self.shared = 0
+
+    @property
+    def still_wanted(self) -> Callable[[Hashable], bool] | None:
+        """Hook asked before a computation nobody waits for is cancelled (``InFlight``)."""
+        return self.inflight.still_wanted
+
+    @still_wanted.setter
+    def still_wanted(self, hook: Callable[[Hashable], bool] | None) -> None:
+        self.inflight.still_wanted = hook
 
     def key(self, scene: str, core: Core, params: CoreParams, cell: int | None = None,
             box: np.ndarray | None = None, segment: np.ndarray | None = None) -> PVSKey:
@@ -161,27 +157,14 @@ class ComputeService:
         key = region.key(loaded.fingerprint, core, params)
         with self._lock:
             pvs = self.cache.get(key, upto="memory")
-            fut = None if pvs is not None else self._inflight.get(key)
-            if fut is not None and fut.cancelled():
-                self._inflight.pop(key, None)
-                fut = None
+            fut = None if pvs is not None else self.inflight.get(key)
+            mine = (float(priority), float(since))
             if pvs is None and fut is None:
-                rank = (float(priority), float(since))
-                if walker:
-                    rank = self.demand.rank(key) or rank
+                rank = (self.demand.rank(key) or mine) if walker else mine
                 return self._start(key, loaded, region, core, params, rank, wanted,
                                    deadline, client, lane, walker)
             if fut is not None:
-                self.shared += 1
-                if wanted is None:
-                    self._waiters[fut] = self._waiters.get(fut, 0) + 1
-                    if not walker:
-                        mine = (float(priority), float(since))
-                        self._base[fut] = min(self._base.get(fut, mine), mine)
-                pool = self._lanes.get(fut)
-                rank = self._rank(key, fut)
-                if isinstance(pool, PriorityWorkerPool) and rank is not None:
-                    pool.rerank(fut, *rank, needed=wanted is None)
+                self.inflight.join(key, fut, mine, wanted is None, walker)
                 return fut
         done: Future = Future()
         done.set_result(PVSResult(scene, region.cell, region.box.copy(), core.name, params, pvs,
@@ -217,17 +200,7 @@ class ComputeService:
             fut = pool.submit(*args)
         if client is not None:
             fut.add_done_callback(lambda f, c=client: self.admission.release(c))
-        if not fut.done():
-            self._tokens[fut] = token
-            if wanted is None:
-                self._waiters[fut] = 1
-                if not walker:
-                    self._base[fut] = rank
-            self._lanes[fut] = pool
-            # Forgotten only when the caller's future is done: a job retried after its worker
-            # died keeps this future, so identical requests keep joining it.
-            self._inflight[key] = fut
-            fut.add_done_callback(lambda f, k=key: self._forget(k, f))
+        self.inflight.add(key, fut, token, pool, rank, wanted is None, walker)
         return fut
 
     async def compute(
@@ -261,54 +234,7 @@ class ComputeService:
         no walker wants the result any more (``still_wanted``), the computation is cancelled:
         unstarted, it never runs; running, it stops at its core's next checkpoint. True when
         it was cancelled."""
-        with self._lock:
-            n = self._waiters.get(fut)
-            if n is None:
-                return False
-            if n > 1:
-                self._waiters[fut] = n - 1
-                return False
-            del self._waiters[fut]
-            self._base.pop(fut, None)
-            if fut.done():
-                return False
-            key = next((k for k, f in self._inflight.items() if f is fut), None)
-        if key is not None and self._walker_wants(key):
-            # It goes on at the rank the walkers give it (no longer its last caller's).
-            with self._lock:
-                rank = self._rank(key, fut)
-                pool = self._lanes.get(fut)
-                if isinstance(pool, PriorityWorkerPool) and rank is not None:
-                    pool.rerank(fut, *rank)
-            return False
-        with self._lock:
-            self.abandoned += 1
-            if key is not None and self._inflight.get(key) is fut:
-                del self._inflight[key]  # a new request starts afresh, never joins it
-        self._cancel(key, fut, "released", reason)
-        return True
-
-    def _walker_wants(self, key: PVSKey) -> bool:
-        return self.demand.wanted(key) or (self.still_wanted is not None
-                                           and self.still_wanted(key))
-
-    def _rank(self, key: PVSKey, fut: Future) -> Rank | None:
-        """The rank of ``fut``'s job: the best of its waiting non-walker callers' and of the
-        walkers' that want ``key``; None when neither wants it. Lock held."""
-        ranks = [r for r in (self._base.get(fut), self.demand.rank(key)) if r is not None]
-        return min(ranks) if ranks else None
-
-    def _cancel(self, key: PVSKey | None, fut: Future, reason: str, why: str) -> None:
-        """Cancel ``fut``'s computation: unstarted, it never runs; running, it stops at its
-        core's next checkpoint. Counted in ``cancellations`` under ``reason``."""
-        with self._lock:
-            token = self._tokens.get(fut)
-        state = "queued" if fut.cancel() else "running"
-        if state == "running" and token is not None:
-            token.cancel(why)
-        with self._lock:
-            self.cancellations[(reason, state)] += 1
-        log.info("PVS %s: cancelled (%s), %s", key, state, why)
+        return self.inflight.release(fut, reason)
 
     def want(self, walker: Hashable, needs: Mapping[PVSKey, Rank]) -> int:
         """Replace ``walker``'s needs: {cache key: (priority, since)} (``server.demand``: its
@@ -316,32 +242,11 @@ class ComputeService:
         0)). The queued jobs of the keys whose rank changed move sooner or later; one that no
         walker wants any more and no caller waits for is cancelled, queued or running.
         Returns how many were cancelled."""
-        return self._apply(self.demand.update(walker, needs))
+        return self.inflight.want(walker, needs)
 
     def unwant(self, walker: Hashable) -> int:
         """``walker`` left: ``want`` with no needs."""
-        return self._apply(self.demand.remove(walker))
-
-    def _apply(self, changed: Mapping[Hashable, Rank | None]) -> int:
-        doomed = []
-        with self._lock:
-            for key in changed:
-                fut = self._inflight.get(key)
-                if fut is None or fut.done():
-                    continue
-                rank = self._rank(key, fut)
-                if rank is None:
-                    if self._waiters.get(fut):
-                        continue  # a caller still waits: its ``release`` decides
-                    del self._inflight[key]  # a new request starts afresh, never joins it
-                    doomed.append((key, fut))
-                    continue
-                pool = self._lanes.get(fut)
-                if isinstance(pool, PriorityWorkerPool):
-                    pool.rerank(fut, *rank)
-        for key, fut in doomed:
-            self._cancel(key, fut, "unwanted", "no walker wants it any more")
-        return len(doomed)
+        return self.inflight.unwant(walker)
 
     def _admit(self, loaded: LoadedScene, core: Core, params: CoreParams, region: Region,
                deadline: float, priority: float, client: Hashable | None,
@@ -358,23 +263,10 @@ class ComputeService:
         adm.acquire(client, ahead)
         return cost
 
-    def _forget(self, key: PVSKey, fut: Future) -> None:
-        with self._lock:
-            if self._inflight.get(key) is fut:
-                del self._inflight[key]
-            self._tokens.pop(fut, None)
-            self._waiters.pop(fut, None)
-            self._base.pop(fut, None)
-            self._lanes.pop(fut, None)
-
     def cancel_all(self, reason: str = "server shutting down") -> int:
         """Cancel every queued and running computation (each stops at its core's next
         checkpoint); the number cancelled."""
-        with self._lock:
-            tokens = list(self._tokens.values())
-        for t in tokens:
-            t.cancel(reason)
-        return len(tokens)
+        return self.inflight.cancel_all(reason)
 
     def _run(self, key: PVSKey, loaded: LoadedScene, region: Region, core: Core,
              params: CoreParams, token: CancelToken | None = None, model_seconds: float = 0.0,
@@ -426,18 +318,14 @@ class ComputeService:
 
     def stats(self) -> dict[str, Any]:
         """Cache statistics per tier plus computations done, failed, shared and in flight."""
-        with self._lock:
-            inflight = len(self._inflight)
+        inflight = len(self.inflight)
         out = {**self.cache.stats(), "computed": self.computed, "failed": self.failed,
-               "cancelled": self.cancelled, "abandoned": self.abandoned,
-               "shared": self.shared, "inflight": inflight,
+               "cancelled": self.cancelled, "abandoned": self.inflight.abandoned,
+               "shared": self.inflight.shared, "inflight": inflight,
                "workers": getattr(self.pool, "workers", None),
                "admission": self.admission.stats(), "executor": self.executor.state(),
                "demand": self.demand.stats()}
-        with self._lock:
-            cancels: dict[str, dict[str, int]] = {"unwanted": {}, "released": {}}
-            for (reason, state), n in self.cancellations.items():
-                cancels.setdefault(reason, {})[state] = n
+        cancels = self.inflight.stats()
         if isinstance(self.pool, PriorityWorkerPool):
             cancels["skipped"] = {"queued": self.pool.skipped}
             out["pool"] = {"retried": self.pool.retried, "replaced": self.pool.replaced,
