@@ -334,6 +334,50 @@ def leaning_gap(origin=ROUND, lean_ny: float = LEAN_NY) -> Case:
                 n_aim=256)
 
 
+def leaning_corner_slit(origin=ROUND, lean_ny: float = LEAN_NY, width: float = 0.005) -> Case:
+    """2.5D: ``corner_slit`` with leaning walls. Two single-sided walls in front of a 1 m cell,
+    each split by a slit ``width`` wide (far below a pixel) between two separate quads (no
+    shared vertices); the nearer wall leans away from the cell and the farther one towards it,
+    both by the dual-ray core's wall limit (|n_y| = ``lean_ny``), and each slit's edges lean
+    along its wall by as much (the first towards +z, the second towards -z), so a wall
+    flattened onto its foot line would move its slit by up to 8 cm. The slits line up for
+    rays at the cell's mid-height (1.7 m) so that only the cell's corner (x = 1, z = 1) sees
+    through both: a row of targets behind, of which those in the beam are visible."""
+    s = Soup()
+    s.quad((-40, 0, -40), (-40, 0, 40), (40, 0, 40), (40, 0, -40))
+    h, y0 = 4.0, 1.7
+    tan = lean_ny / np.sqrt(1.0 - lean_ny ** 2)
+    aim = []
+    for xa, tx, tz in ((3.0, tan, tan), (6.0, -tan, -tan)):
+        # At height y the wall stands at x = xa + y tx and its slit's centre at z = zc + y tz;
+        # at y0 the centre lies on the line z = 1.92 - x through the cell's corner.
+        zc = 1.92 - (xa + y0 * tx) - y0 * tz
+        p, q = zc - width / 2, zc + width / 2
+        dx, dz = h * tx, h * tz
+        s.quad((xa, 0.0, -30.0), (xa + dx, h, -30.0), (xa + dx, h, p + dz), (xa, 0.0, p))
+        s.quad((xa, 0.0, q), (xa + dx, h, q + dz), (xa + dx, h, 30.0), (xa, 0.0, 30.0))
+        if xa == 3.0:
+            lo, hi = 1.2, 2.2
+            a0 = (xa + lo * tx, lo, p + lo * tz)
+            a1 = (xa + hi * tx, hi, p + hi * tz)
+            b1 = (xa + hi * tx, hi, q + hi * tz)
+            b0 = (xa + lo * tx, lo, q + lo * tz)
+            aim.append([a0, a1, b1])
+            aim.append([a0, b1, b0])
+    targets = []
+    for k in range(40):
+        z0 = -20.0 + k * 0.5
+        targets += s.quad((10.0, 0.0, z0), (10.0, 4.0, z0), (10.0, 4.0, z0 + 0.5),
+                          (10.0, 0.0, z0 + 0.5))
+    scene = s.scene("leaning_corner_slit", origin)
+    box = _at(origin, [[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]])
+    # The beam through both slits reaches x = 10 near z = 1.92 - 10 = -8.08 at y0.
+    seen = [t for t in targets if abs(s.tris[t][:, 2].mean() + 8.08) < 0.2]
+    return Case("leaning_corner_slit", scene, box, ("cos", "dual_ray"), aim=_place(aim, origin),
+                n_aim=256, eye_box=_at(origin, [[0.8, 1.5, 0.8], [1.0, 1.9, 1.0]]),
+                must_see=seen[:1])
+
+
 def leaning_city(seed: int = 49, lean_ny: float = LEAN_NY) -> Case:
     """2.5D: four rows of buildings around a street crossing, each wall leaning in or out by up
     to the dual-ray core's wall limit (or standing upright), with gaps of 1 cm to 1 m between
@@ -377,4 +421,4 @@ def all_cases() -> list[Case]:
     """Every case, in a fixed order."""
     return [tolerance_faces(ROUND), tolerance_faces(GEO), tolerance_street(ROUND),
             tolerance_street(GEO), near_walls(), near_fence(), corner_slit(), leaning_slits(),
-            leaning_facade(), leaning_gap(), leaning_city()]
+            leaning_facade(), leaning_gap(), leaning_corner_slit(), leaning_city()]
