@@ -2,7 +2,7 @@
 by dense random ray casting (``visibility.ray_reference``), never by our rasterizer.
 
 For each real scene in ``../shared/scenes/`` (lavaducts, denhaag, lyon_vilo3d, and the
-1M-triangle kitchen, where ``cos`` takes up to a minute a cell: ``--heavy-cells`` cells there)
+1M-triangle kitchen, whose ``cos`` cells cost the most: ``--heavy-cells`` cells there)
 and each cell size (0.3 m and 1 m cubes), ``--cells`` cubes are centred on cells of the
 scene's own viewcell grid (its walk area), drawn at random among those inside the scene's
 bounds, each kept only when most of its eyes are in open space (``open_cells``). The reference
@@ -46,7 +46,7 @@ from visibility.viewcells import Viewcell, ViewcellGrid  # noqa: E402
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 RESULTS = ROOT / "benchmarks" / "results"
 SCENES = ("lavaducts", "denhaag", "lyon_vilo3d", "kitchen")
-#: Scenes where a core takes up to a minute a cell: ``--heavy-cells`` cells each.
+#: Scenes whose cells cost a core far more than the others': ``--heavy-cells`` cells each.
 HEAVY = ("kitchen",)
 SIZES = (0.3, 1.0)
 CORES = ("cos", "dual_ray")

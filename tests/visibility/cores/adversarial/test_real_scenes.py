@@ -12,7 +12,8 @@ is float32); a confirmed one is a miss, and there must be none.
 
 ``dual_ray`` runs where its 2.5D analysis accepts the scene (denhaag, lyon_vilo3d) and must
 refuse the others (lavaducts, an interior; the kitchen) with the reason. ``cos`` on the
-1M-triangle kitchen takes about a minute a cell: those cells live in the benchmark only
+1M-triangle kitchen keeps most of it in a cell's PVS and costs far more than this suite can
+spend: those cells live in the benchmark only
 (``python -m benchmarks.bench_conservative --scenes kitchen``), outside this suite's budget.
 """
 
