@@ -120,7 +120,8 @@ def replay(opts: ReplayOptions, core: str | None, out: Path) -> dict:
         if len(grid) != welcome.grid.cells:
             raise ValueError(f"local grid has {len(grid)} cells, the server's {welcome.grid.cells}")
         walk = _walkthrough(opts, grid, out)
-        renderer = OffscreenRenderer(opts.width, opts.height)
+        # The near plane the server's answers assume: a farther one could show holes.
+        renderer = OffscreenRenderer(opts.width, opts.height, znear=welcome.near_plane)
         frames: list[dict] = []
         worst: list[tuple[float, int, Any]] = []
         startup = _start_up(session, grid, walk, opts)

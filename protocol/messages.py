@@ -53,6 +53,8 @@ FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 #: A 3-vector of finite floats, metres (or a unit direction).
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 Vec2 = tuple[FiniteFloat, FiniteFloat]
+#: A finite float > 0 (a distance that cannot be zero: the welcome's near plane, metres).
+PositiveFloat = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0.0)]
 #: A non-negative integer with no wire width (sizes in bytes, vertex counts: server to client).
 NonNegInt = Annotated[int, Field(strict=True, ge=0)]
 
@@ -182,7 +184,8 @@ class Limits(_Message):
 
 
 class Welcome(_Message):
-    """Answer to ``hello``: the session id, the scene and grid, the core's full parameters."""
+    """Answer to ``hello``: the session id, the scene and grid, the core's full parameters, and
+    the near plane its answers assume."""
 
     type: Literal["welcome"] = "welcome"
     version: UInt16 = PROTOCOL_VERSION
@@ -198,6 +201,10 @@ class Welcome(_Message):
     #: What the server leaves out for this scene and why, e.g. ``{"pvs": {"on": false, "why":
     #: ...}, "cubemap": {...}, "dynamic_updates": {...}, "cores": [...], "core_choice": {...}}``.
     features: dict[str, Any] = Field(default_factory=dict)
+    #: The near plane (metres, along the view axis) the answers assume the client draws with:
+    #: a conservative core keeps what such a client sees through a wall nearer than it, and a
+    #: client drawing with a farther near plane may see holes. Clients use it as their camera's.
+    near_plane: PositiveFloat
 
 
 class CellBegin(_Message):

@@ -7,13 +7,13 @@ fields are rejected), so in practice every schema change bumps it.
 
 History: 1, the first; 2, ``hello.progressive`` and ``cell_begin``/``cell_end.answer``
 (progressive PVS); 3, the answer ``"known"`` (a first answer assembled from the cached PVS of
-neighbouring cells).
+neighbouring cells); 4, ``welcome.near_plane`` (the near plane the answers assume).
 """
 
 from __future__ import annotations
 
 #: The version this code speaks, in ``hello``/``welcome`` and every binary frame header.
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 #: Versions a server built from this code accepts in ``hello``.
 SUPPORTED_VERSIONS: tuple[int, ...] = (PROTOCOL_VERSION,)

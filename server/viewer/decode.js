@@ -4,7 +4,7 @@
 // browser and under node (tests/viewer/decode_golden.mjs checks it on the Python encoder's
 // frames).
 
-export const PROTOCOL_VERSION = 3;
+export const PROTOCOL_VERSION = 4;
 export const FrameKind = Object.freeze({ GEOMETRY: 1, CUBEMAP: 2, KEYFRAMES: 3, SPHERES: 4 });
 const MAGIC = [0x50, 0x56, 0x53, 0x47]; // "PVSG"
 const UINT32_MAX = 2 ** 32 - 1;
@@ -430,7 +430,7 @@ const SERVER_SCHEMAS = {
     type: [any, true], version: [u16], session: [str, true], scene: [SCENE_INFO, true],
     grid: [GRID_INFO, true], core: [str, true], params: [params, true],
     budget: [nullable(int(1, UINT32_MAX))], limits: [LIMITS, true], prefetch: [bool],
-    features: [obj],
+    features: [obj], near_plane: [(v) => num(v) && v > 0, true],
   }),
   cell_begin: schema({
     type: [any, true], cell: [id32, true], seq: [u32, true], triangles: [count32, true],

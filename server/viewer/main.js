@@ -149,6 +149,7 @@ class Viewer {
 
   onWelcome(w) {
     this.welcome = w;
+    this.renderer.setNear(w.near_plane);
     this.store = new SceneStore({ triangles: w.scene.triangles, spheres: w.scene.spheres, budget: w.budget ?? this.budget });
     this.streams = new CellStreams(w, this.store);
     overlay.setCores(w.features.cores || [], params.get("core") || w.core);

@@ -147,6 +147,15 @@ export class ViewRenderer {
     return m;
   }
 
+  /** Draw with near plane `near` (metres, > 0): the welcome's `near_plane`, the one the
+   * server's answers assume; a farther one could show holes the PVS was not built for. */
+  setNear(near) {
+    if (!(Number.isFinite(near) && near > 0)) throw new Error(`near plane must be > 0 m, got ${near}`);
+    this.camera.near = near;
+    this.camera.updateProjectionMatrix();
+    if (this.cubeMesh) this.cubeMesh.material.uniforms.uNear.value = near;
+  }
+
   resize() {
     const [w, h] = this.fixed ?? [this.canvas.clientWidth || 1, this.canvas.clientHeight || 1];
     this.renderer.setSize(w, h, this.fixed !== null);
@@ -247,7 +256,7 @@ export class ViewRenderer {
         uRanges: { value: tex(ranges, THREE.RedFormat, THREE.FloatType) },
         uRes: { value: R }, uCamToWorld: { value: new THREE.Matrix3() },
         uFaceRot: { value: faceRotations() }, uTan: { value: new THREE.Vector2() },
-        uSize: { value: new THREE.Vector2() }, uNear: { value: NEAR }, uFar: { value: FAR },
+        uSize: { value: new THREE.Vector2() }, uNear: { value: this.camera.near }, uFar: { value: FAR },
         uMorph: { value: morph },
       },
     });

@@ -12,7 +12,8 @@ export const LIGHT_DIR = (() => {
 })();
 /** Share of the face colour a face lit edge-on gets. */
 export const AMBIENT = 0.45;
-/** Near plane (visibility.raster.camera.DEFAULT_NEAR) and the headless renderer's far plane. */
+/** Near plane until the welcome states the one the answers assume (`near_plane`;
+ * visibility.raster.camera.DEFAULT_NEAR), and the headless renderer's far plane. */
 export const NEAR = 0.05;
 export const FAR = 5000.0;
 

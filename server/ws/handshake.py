@@ -32,6 +32,7 @@ from server.ws.dynamic import DynamicFrames
 from server.ws.inventory import Inventory
 from server.ws.nearfar import NearFarStreams
 from visibility.cores.base import CoreParams
+from visibility.raster.camera import DEFAULT_NEAR
 
 if TYPE_CHECKING:
     from server.state import Session
@@ -65,6 +66,15 @@ def scene_info(loaded: LoadedScene) -> SceneInfo:
 def jsonable_params(params: CoreParams) -> dict[str, Any]:
     """Core parameters as JSON values (tuples as lists)."""
     return {k: list(v) if isinstance(v, tuple) else v for k, v in params.as_dict().items()}
+
+
+def near_plane(params: CoreParams) -> float:
+    """The near plane (metres, along the view axis) the session's answers assume: the core's
+    own ``near`` parameter where it has one (``from_segment``), else the clients' default the
+    cores are built for (``visibility.raster.camera.DEFAULT_NEAR``; the conservative cores'
+    ``visibility.topology.NEAR_CLEARANCE`` derives from it)."""
+    near = params.as_dict().get("near")
+    return DEFAULT_NEAR if near is None else float(near)
 
 
 async def read_hello(session: Session) -> Hello:
@@ -135,6 +145,7 @@ async def handshake(session: Session) -> None:
                       max_message_bytes=settings.max_message_bytes),
         prefetch=s.prefetch,
         features=features,
+        near_plane=near_plane(s.params),
     ))
     s.welcomed = True
 

@@ -202,7 +202,8 @@ def message_samples() -> dict[str, str]:
         grid=GridInfo(cell_size=4.0, origin_xz=(-10.0, -15.0), cells=30, levels=1,
                       eye_range=(1.5, 1.9), bounds=((-10, 1.5, -15), (10, 1.9, 15))),
         limits=Limits(max_frame_bytes=1 << 20, max_message_bytes=65536), prefetch=True,
-        features={"cores": ["from_segment", "sampling"], "cubemap": {"on": False}})
+        features={"cores": ["from_segment", "sampling"], "cubemap": {"on": False}},
+        near_plane=0.05)
     good = {
         "msg_welcome": dump_message(welcome),
         "msg_cell_begin": dump_message(CellBegin(cell=3, seq=7, triangles=100, new=40, chunks=2,

@@ -87,7 +87,7 @@ def _welcome() -> Welcome:
         grid=GridInfo(cell_size=4.0, origin_xz=(0, 0), cells=8, levels=1, eye_range=(1.5, 1.9),
                       bounds=((0, 1.5, 0), (16, 1.9, 8))),
         core="sampling", params={"resolution": 32, "granularity": "triangle"}, budget=None,
-        limits=Limits(max_frame_bytes=1 << 20, max_message_bytes=65536),
+        limits=Limits(max_frame_bytes=1 << 20, max_message_bytes=65536), near_plane=0.05,
     )
 
 
@@ -96,6 +96,17 @@ def test_welcome_round_trip_and_version():
     text = dump_message(w)
     assert json.loads(text)["version"] == PROTOCOL_VERSION
     assert parse_server_message(text) == w
+
+
+@pytest.mark.parametrize("near", [0, -0.05, "0.05", None, float("inf"), "missing"])
+def test_welcome_near_plane_is_a_required_positive_distance(near):
+    d = json.loads(dump_message(_welcome()))
+    if near == "missing":
+        del d["near_plane"]
+    else:
+        d["near_plane"] = near
+    with pytest.raises(ProtocolError, match="near_plane"):
+        parse_server_message(json.dumps(d).replace("Infinity", "1e999"))
 
 
 def test_bye_round_trip():

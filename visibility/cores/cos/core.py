@@ -24,15 +24,18 @@ from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
 from visibility.cores.cos.prims import (
+    TRIANGLE,
     Prims,
     build_prims,
     distance_order,
     inside_box,
     prim_bounds,
+    solid_mask,
 )
 from visibility.cores.cos.resolve import resolve_tiles
+from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene
-from visibility.topology import unseen_back_faces
+from visibility.topology import NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
 
 #: Default pixels across a 90 degree frustum.
@@ -182,6 +185,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
     inbox = inside_box(prims, half, bounds)
+    solid = solid_mask(prims, half)
     vis = inbox.astype(np.uint8)
     views = side_plane_views(box, resolution)
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
@@ -194,6 +198,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0,
         "unseen_back_faces": int(unseen.sum()),
+        "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
+        "near_triangles": int(np.count_nonzero((solid == 0) & (prims.kind == TRIANGLE))),
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
@@ -201,8 +207,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         worst = -1.0
         for view in views:
             tv, entries0 = time.perf_counter(), stats["list_entries"]
-            longest = _solve_view(prims, order, sel[view.face], gap, view, plane_tol, vis,
-                                  budget, stats)
+            longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
+                                  vis, budget, stats)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -254,11 +260,12 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
-def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarray, view: View,
-                plane_tol: float, vis: np.ndarray, budget: int, stats: dict[str, Any]) -> int:
+def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
+                gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
+                stats: dict[str, Any]) -> int:
     """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
-    plane can list); sets ``vis`` for what it finds visible, adds to ``stats`` and returns the
-    view's longest list."""
+    plane can list; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
+    visible, adds to ``stats`` and returns the view's longest list."""
     t0 = time.perf_counter()
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
@@ -304,7 +311,8 @@ def _solve_view(prims: Prims, order: np.ndarray, sel: np.ndarray, gap: np.ndarra
         longest = max(longest, int(pcount.max(initial=0)))
         stats["longest_list"] = max(stats["longest_list"], longest)
         tb = time.perf_counter()
-        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, gap, entries,
+        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
+                      entries,
                       pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
                       tiles_x, view.nx,
                       view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,

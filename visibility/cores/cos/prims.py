@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.scene import Scene
+from visibility.topology import NEAR_CLEARANCE
 
 #: Primitive kinds.
 TRIANGLE = 0
@@ -219,6 +220,34 @@ def inside_box(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None)
             bounds = prim_bounds(prims)
         _inside_box(prims.pts, prims.start, prims.npts, bounds,
                     np.asarray(half, dtype=np.float64), 64.0 * ulp, 16.0 * ulp, out)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _solid(pts, start, npts, grown, tol, out):  # pragma: no cover - numba
+    for p in prange(start.shape[0]):
+        s = start[p]
+        out[p] = npts[p] == 3 and not _tri_box_overlap(pts[s], pts[s + 1], pts[s + 2], grown,
+                                                        tol)
+
+
+def solid_mask(prims: Prims, half: np.ndarray, clearance: float = NEAR_CLEARANCE
+               ) -> np.ndarray:
+    """(n,) uint8: 1 for the triangles that may occlude, those farther than ``clearance``
+    metres from the cell box (centred, half sizes ``half`` (3,) metres) at every point.
+
+    A client draws with a near plane (``raster.camera.DEFAULT_NEAR``; at most sqrt(3) times
+    that along the ray in a 90 degree view, ``topology.NEAR_CLEARANCE``): an eye in the cell
+    standing closer than that to a wall has the wall cut away and sees what lies behind it. A
+    triangle meeting the box grown by ``clearance`` (a box, so a little more than the points
+    that near) is therefore an occludee only. Hulls never occlude (0)."""
+    out = np.zeros(len(prims), dtype=np.uint8)
+    if len(prims):
+        ulp = np.spacing(max(prims.scale, float(np.max(np.abs(half))), 1.0))
+        grown = np.asarray(half, dtype=np.float64) + float(clearance)
+        ok = np.zeros(len(prims), dtype=np.bool_)
+        _solid(prims.pts, prims.start, prims.npts, grown, 64.0 * ulp, ok)
+        out[ok] = 1
     return out
 
 

@@ -41,7 +41,9 @@ triangle that shares one of its edges (welded vertex ids), merging their groups.
 silhouette stays clear of the whole offset region and covers it is flagged *coverall* (ln
 44-45): later triangles skip straight to the depth test.
 Hulls (moving triangles, spheres) are occludees only; a triangle seen edge-on in the COS (no
-robust area) does not occlude.
+robust area) does not occlude, nor does one a client's near plane can cut (``solid`` false:
+it comes within ``prims.NEAR_CLEARANCE`` of the cell, and a client standing there sees through
+it).
 
 Cost (issue 13; dense clutter gives lists of 10^5 entries): nothing per entry scales with the
 number of groups or with a group's triangle count in the common cases.
@@ -458,11 +460,13 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, tile0, tile1,
-                  torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
+def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcount, tile0,
+                  tile1, torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
                   plane_tol, known, vis, counters, stop):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
-    p found visible. ``entries`` holds the lists of those tiles (``lists.fill_lists``: pixel
+    p found visible. Only triangles with ``solid[p]`` become occluders (``prims.solid_mask``:
+    the ones a client's near plane cannot cut). ``entries`` holds the lists of those tiles
+    (``lists.fill_lists``: pixel
     ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
     long), each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
     bounding box, metres), taken in the order ``torder`` (a permutation of [tile0, tile1) that
@@ -704,7 +708,7 @@ def resolve_tiles(pts, start, npts, kind, vid, gap, entries, pstart, pcount, til
                         else:
                             vis[p] = 1
                             tseen[p >> 3] |= np.uint8(1 << (p & 7))
-                if not tri:
+                if not tri or not solid[p]:
                     continue
                 # Become an occluder: counter-clockwise in the COS, robust area only.
                 ar = area2(qv)

@@ -31,8 +31,9 @@ from visibility.cores.dual_ray.dual_space import (
     leaf_piece_ids,
     nodes_visible,
 )
-from visibility.cores.dual_ray.fences import Fences, scene_fences
+from visibility.cores.dual_ray.fences import Fences, cell_fences, near_pieces, scene_fences
 from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
+from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene
 from visibility.scene_cache import Build, per_scene
 from visibility.viewcells import Viewcell
@@ -205,7 +206,9 @@ def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
     Returns
     -------
     triangle_ids : (k,) int64 visible triangle ids (any order).
-    stats : seconds per phase (``kdtree_seconds`` and ``fence_seconds``: 0 once cached,
+    stats : ``near_pieces`` (fence pieces within reach of a client's near plane from the
+        cell, which occlude nothing here), ``near_plane`` (the client near plane assumed,
+        metres), seconds per phase (``kdtree_seconds`` and ``fence_seconds``: 0 once cached,
         ``traversal_seconds``, ``refine_seconds``), ``nodes_visited``, ``nodes_culled``,
         ``leaves_visible``, ``leaf_triangles`` (their triangle entries), ``triangle_refine``
         (the mode used), ``triangle_tests``, ``triangles_culled``, ``occluders`` (fence
@@ -224,6 +227,12 @@ def dual_ray_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluding_segments": 0, "coarse_pixels_refined": 0, "resolution": int(resolution),
         "kd_nodes": tree.n_nodes, "kd_leaves": tree.n_leaves,
     }
+    # Walls a client's near plane can cut from inside the cell hide nothing from it.
+    near = near_pieces(fences, alo, ahi)
+    stats["near_pieces"] = int(near.sum())
+    stats["near_plane"] = DEFAULT_NEAR
+    if near.any():
+        fences = cell_fences(fences, near)
     t1 = time.perf_counter()
     leaves, decided = traverse(tree, fences, alo, ahi, resolution, coarse, stats)
     t2 = time.perf_counter()
@@ -260,8 +269,8 @@ def _test(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi
         out[s:s + BATCH] = nodes_visible(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
             np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.bot,
-            fences.vid, fences.grid_lo,
-            fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
+            fences.lean, fences.vid, fences.grid_lo, fences.grid_step, fences.grid_n,
+            fences.cell_start, fences.cell_items,
             int(resolution), int(coarse))
     return out
 
@@ -335,8 +344,9 @@ def refine_triangles(tree: KdTree, fences: Fences, leaves: np.ndarray, alo: np.n
     t_lists = time.perf_counter()
     start, ids, ok = leaf_piece_ids(alo, ahi, np.ascontiguousarray(tree.lo[leaves]),
                                     np.ascontiguousarray(tree.hi[leaves]), fences.seg,
-                                    fences.top, fences.bot, fences.grid_lo, fences.grid_step,
-                                    fences.grid_n, fences.cell_start, fences.cell_items)
+                                    fences.top, fences.bot, fences.lean, fences.grid_lo,
+                                    fences.grid_step, fences.grid_n, fences.cell_start,
+                                    fences.cell_items)
     t_tests = time.perf_counter()
     stats["occluder_list_seconds"] = t_tests - t_lists
     lists = (start, ids, ok)
@@ -384,7 +394,8 @@ def _test_among(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarra
         out[s:s + BATCH] = boxes_visible_among(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
             np.ascontiguousarray(bhi[s:s + BATCH]), np.ascontiguousarray(group[s:s + BATCH]),
-            start, ids, ok, fences.seg, fences.top, fences.bot, fences.vid, fences.grid_lo,
+            start, ids, ok, fences.seg, fences.top, fences.bot, fences.lean, fences.vid,
+            fences.grid_lo,
             fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
             int(resolution), int(coarse))
     return out

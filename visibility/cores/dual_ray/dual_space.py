@@ -151,13 +151,58 @@ def _outside_hull(frame, u0, u1, w0, w1, uA, span):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover - numba
+def _ray_slope(frame):  # pragma: no cover - numba
+    """Largest |height change per metre of XZ length| of a segment between the shaft's boxes:
+    their heights differ by at most the larger of top-to-bottom spans, over at least the gap."""
+    yA, yB, yAl, yBl = frame[10], frame[11], frame[14], frame[15]
+    return max(abs(yB - yAl), abs(yA - yBl)) / (frame[3] - frame[2])
+
+
+@njit(cache=True, nogil=True)
+def _lean_margin(frame, du, dw, lam, slope):  # pragma: no cover - numba
+    """How far (XZ metres along a ray of the shaft) the real wall of a leaning piece can be
+    from where the ray crosses the piece's strip, at most: ``lam / (s - slope g)``, with s the
+    smallest |sine| between the piece's XZ direction (du, dw, frame coordinates) and a ray's,
+    and g the rays' largest height slope (``_ray_slope``). Infinite when some ray runs along
+    the piece or climbs as fast as the wall leans (no bound: the piece must not occlude).
+
+    Why: a ray crossing the strip at height y, a distance s along it from there, has moved
+    s sin(theta) off the strip's plane, and the wall is off it by o(y + g s), |o| <= lam,
+    changing by ``slope`` per metre of height; they meet where s sin(theta) = o(y + g s),
+    within lam / (|sin(theta)| - slope |g|)."""
+    gap = frame[3] - frame[2]
+    length = np.hypot(du, dw)
+    if not length > 0.0:
+        return np.inf
+    # The rays' XZ directions are (1, m), m from (s2 - s1) / gap over the hull's sections.
+    m0 = (frame[8] - frame[7]) / gap
+    m1 = (frame[9] - frame[6]) / gap
+    f0 = dw - du * m0
+    f1 = dw - du * m1
+    if f0 * f1 <= 0.0:
+        return np.inf
+    # |sine| is smallest at an end of the range of directions (it has no zero inside).
+    s = min(abs(f0) / np.sqrt(1.0 + m0 * m0), abs(f1) / np.sqrt(1.0 + m1 * m1)) / length
+    den = s - slope * _ray_slope(frame)
+    if not den > 0.0:
+        return np.inf
+    return lam / den
+
+
+@njit(cache=True, nogil=True)
+def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out, lam=0.0,
+              slope=0.0):  # pragma: no cover - numba
     """The occluding segment of one fence piece in the shaft: the part of it over the open
     slab whose strip spans the shaft from floor to ceiling (bottom <= V, top >= T), as
     ``out = [d0, l0, d1, l1, kept0, kept1]`` (slab depth 0..1, lateral metres; kept: the end is
     the piece's own, not cut). Every segment between the
     boxes whose XZ projection crosses that part passes it between V and T: it hits the wall.
-    Returns False when none of it occludes inside the shaft's hull."""
+    Returns False when none of it occludes inside the shaft's hull.
+
+    A leaning piece (``lam`` > 0: its wall strays up to ``lam`` metres from the strip,
+    ``slope`` metres per metre of height, ``fences.Fences.lean``) is first shrunk by
+    ``_lean_margin``: a ray of the shaft that crosses the shrunk strip meets the real wall
+    within that distance, inside the strip's uncut part and the slab."""
     axis, sgn, uA, uB = int(frame[0]), frame[1], frame[2], frame[3]
     if axis == 0:
         pu, pw, qu, qw = sgn * px, pz, sgn * qx, qz
@@ -165,9 +210,25 @@ def cut_piece(frame, px, pz, qx, qz, tp, tq, bp, bq, out):  # pragma: no cover -
         pu, pw, qu, qw = sgn * pz, px, sgn * qz, qx
     t0, t1 = 0.0, 1.0
     du = qu - pu
+    margin = 0.0
+    if lam > 0.0 and frame[10] > -1e299:  # (a heightless frame keeps every piece)
+        margin = _lean_margin(frame, qu - pu, qw - pw, lam, slope)
+        if not margin < np.inf:
+            return False
+        length = np.hypot(qu - pu, qw - pw)
+        t0 = margin / length
+        t1 = 1.0 - margin / length
+        if t0 > t1:
+            return False
+        # Heights: the real crossing is up to margin away along the strip (its top and bottom
+        # change by their slopes) and along the ray (its height by the ray's slope).
+        g = _ray_slope(frame)
+        dt = (abs(tq - tp) / length + g) * margin
+        db = (abs(bq - bp) / length + g) * margin
+        tp, tq, bp, bq = tp - dt, tq - dt, bp + db, bq + db
     # Inside the open slab.
-    ua = uA + SLAB_TOL
-    ub = uB - SLAB_TOL
+    ua = uA + SLAB_TOL + margin
+    ub = uB - SLAB_TOL - margin
     if ua >= ub:
         return False
     if du == 0.0:
@@ -230,11 +291,11 @@ def region(frame, d0, l0, d1, l1, out):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def shaft_regions(frame, seg, top, bot, glo, step, gn, cell_start,
+def shaft_regions(frame, seg, top, bot, lean, glo, step, gn, cell_start,
                   cell_items):  # pragma: no cover - numba
     """Dual regions (n, 6) of every fence piece occluding inside the shaft ``frame`` (one per
     segment, for the exact test), the occluding segments (n, 6) and their pieces (n,)."""
-    segs, ids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+    segs, ids = _gather(frame, seg, top, bot, lean, glo, step, gn, cell_start, cell_items)
     regs = np.empty((segs.shape[0], 6))
     for i in range(segs.shape[0]):
         region(frame, segs[i, 0], segs[i, 1], segs[i, 2], segs[i, 3], regs[i])
@@ -406,7 +467,7 @@ def probe_free(frame, segs):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
+def node_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, cell_start,
                  cell_items, resolution, coarse_side, mark, stamp):  # pragma: no cover - numba
     """Whether box B may be seen from box A among the fences, and how it was decided: 0
     hidden, 1 visible by the raster, 2 visible by a probe ray no occluder blocks (``probe_free``),
@@ -415,8 +476,8 @@ def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_sta
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return 3, 0, 0
-    segs, ids = _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items,
-                               mark, stamp)
+    segs, ids = _gather_marked(frame, seg, top, bot, lean, glo, step, gn, cell_start,
+                               cell_items, mark, stamp)
     if probe_free(frame, segs):
         return 2, segs.shape[0], 0
     vf, vstart = occluders(frame, segs, ids, vid)
@@ -425,7 +486,7 @@ def node_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_sta
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_start,
+def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, cell_start,
                   cell_items, resolution, coarse_side):  # pragma: no cover - numba
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
@@ -439,7 +500,7 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, vid, glo, step, gn, cell_st
     for t in prange(runs):
         mark = np.full(seg.shape[0], -1, dtype=np.int64)
         for i in range(t * n // runs, (t + 1) * n // runs):
-            v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, vid, glo, step,
+            v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, lean, vid, glo, step,
                                    gn, cell_start, cell_items, resolution, coarse_side, mark,
                                    i)
             out[i, 0] = v
@@ -495,12 +556,12 @@ def _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items):  # pra
 
 
 @njit(cache=True, nogil=True)
-def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
+def shaft_piece_ids(frame, blo, bhi, seg, top, bot, lean, glo, step, gn, cell_start,
                     cell_items, mark, stamp):  # pragma: no cover - numba
     """Ids of the fence pieces over the slab of ``frame`` inside its hull, heights aside,
     and of those within box B's footprint: the occluders of the shaft of any box inside B
     that shares B's axis. ``mark``, ``stamp``: ``_gather_marked``."""
-    _, ids1 = _gather_marked(_heightless(frame), seg, top, bot, glo, step, gn, cell_start,
+    _, ids1 = _gather_marked(_heightless(frame), seg, top, bot, lean, glo, step, gn, cell_start,
                              cell_items, mark, stamp)
     ids2 = _box_piece_ids(blo, bhi, seg, glo, step, gn, cell_start, cell_items)
     out = np.empty(len(ids1) + len(ids2), dtype=np.int64)
@@ -510,16 +571,17 @@ def shaft_piece_ids(frame, blo, bhi, seg, top, bot, glo, step, gn, cell_start,
 
 
 @njit(cache=True, nogil=True)
-def _gather(frame, seg, top, bot, glo, step, gn, cell_start,
+def _gather(frame, seg, top, bot, lean, glo, step, gn, cell_start,
             cell_items):  # pragma: no cover - numba
     """The fence pieces occluding inside the shaft ``frame``: the occluding segments (n, 6)
     ``[d0, l0, d1, l1, kept0, kept1]`` (``cut_piece``) and the pieces' ids (n,)."""
     mark = np.full(seg.shape[0], -1, dtype=np.int64)
-    return _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items, mark, 0)
+    return _gather_marked(frame, seg, top, bot, lean, glo, step, gn, cell_start, cell_items,
+                          mark, 0)
 
 
 @njit(cache=True, nogil=True)
-def _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items, mark,
+def _gather_marked(frame, seg, top, bot, lean, glo, step, gn, cell_start, cell_items, mark,
                    stamp):  # pragma: no cover - numba
     """``_gather`` with the caller's ``mark`` (k,) int64 array: a piece listed in several cells
     of the shaft is taken once, where ``mark[p]`` is not yet ``stamp`` (then set to it). One
@@ -592,11 +654,11 @@ def _gather_marked(frame, seg, top, bot, glo, step, gn, cell_start, cell_items, 
                     mark[p] = stamp
                     cand[n] = p
                     n += 1
-    return segments_from(frame, cand[:n], seg, top, bot, False)
+    return segments_from(frame, cand[:n], seg, top, bot, lean, False)
 
 
 @njit(cache=True, nogil=True)
-def segments_from(frame, ids, seg, top, bot, by_top=True):  # pragma: no cover - numba
+def segments_from(frame, ids, seg, top, bot, lean, by_top=True):  # pragma: no cover - numba
     """The occluding segments (n, 6) of the pieces ``ids`` inside the shaft ``frame``, and
     the ids of those that occlude. With ``by_top`` the ``ids`` come sorted by their highest
     top, highest first (``leaf_piece_ids``): the scan stops at the first piece lower than the
@@ -610,7 +672,7 @@ def segments_from(frame, ids, seg, top, bot, by_top=True):  # pragma: no cover -
         if max(top[p, 0], top[p, 1]) < t_min:
             break
         if cut_piece(frame, seg[p, 0], seg[p, 1], seg[p, 2], seg[p, 3], top[p, 0], top[p, 1],
-                     bot[p, 0], bot[p, 1], segs[n]):
+                     bot[p, 0], bot[p, 1], segs[n], lean[p, 0], lean[p, 1]):
             out_ids[n] = p
             n += 1
     return segs[:n], out_ids[:n]
@@ -699,7 +761,7 @@ def occluders(frame, segs, ids, vid):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cell_start,
+def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, lean, glo, step, gn, cell_start,
                    cell_items):  # pragma: no cover - numba
     """Per leaf box (n, 3), the pieces of ``shaft_piece_ids`` for its shaft, as CSR
     (start (n + 1,), ids; each leaf's sorted by the pieces' highest top, highest first), and
@@ -716,7 +778,7 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
             if frame[13] != 0.0:
                 ok[i] = True
                 counts[i + 1] = len(shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top,
-                                                    bot, glo, step, gn, cell_start,
+                                                    bot, lean, glo, step, gn, cell_start,
                                                     cell_items, mark, 2 * i))
     start = np.cumsum(counts)
     ids = np.empty(start[-1], dtype=np.int64)
@@ -725,8 +787,8 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
         for i in range(t * n // runs, (t + 1) * n // runs):
             if ok[i]:
                 frame = shaft_frame(alo, ahi, leaf_lo[i], leaf_hi[i])
-                got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, glo, step,
-                                      gn, cell_start, cell_items, mark, 2 * i + 1)
+                got = shaft_piece_ids(frame, leaf_lo[i], leaf_hi[i], seg, top, bot, lean, glo,
+                                      step, gn, cell_start, cell_items, mark, 2 * i + 1)
                 # Highest top first: a test stops at the first piece under its ceiling.
                 key = np.empty(len(got))
                 for k in range(len(got)):
@@ -737,7 +799,8 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, glo, step, gn, cel
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, vid, glo,
+def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, lean, vid,
+                        glo,
                         step, gn, cell_start, cell_items, resolution,
                         coarse_side):  # pragma: no cover - numba
     """Like ``nodes_visible``, each box (n, 3) drawing its occluders from its group's pieces
@@ -752,9 +815,10 @@ def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot
             continue
         g = group[i]
         if ok[g]:
-            segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot)
+            segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot, lean)
         else:
-            segs, sids = _gather(frame, seg, top, bot, glo, step, gn, cell_start, cell_items)
+            segs, sids = _gather(frame, seg, top, bot, lean, glo, step, gn, cell_start,
+                                 cell_items)
         out[i, 1] = segs.shape[0]
         if probe_free(frame, segs):
             out[i, 0] = 1

@@ -9,6 +9,14 @@ gap between a convex bottom and a concave top is concave); pieces that continue 
 along a line with the same bottom and top merge (a facade's columns). So a city's facades
 become a few strips each, every one inside the walls it comes from.
 
+A wall that leans (its top is off its foot's vertical plane by more than ``JOIN``) is not
+flattened onto a vertical plane, which would move it, possibly across a slit next to it: its
+pieces are its section at mid-height, parametrized along the wall's horizontal direction, with
+``lean`` = (how far the real wall strays from that vertical plane over the piece's heights,
+metres; how fast it strays, metres per metre of height). They neither stack nor merge, and
+each shaft shrinks them (``dual_space.cut_piece``) by how far along a ray of that shaft the
+real wall can be from where the ray crosses the piece.
+
 What is not a wall (roofs, terrain, trees, street furniture), moving triangles and walls
 tilted past ``WALL_NY`` never occlude: they are occludees only.
 
@@ -18,6 +26,7 @@ each grid cell, for the shaft queries.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -26,6 +35,7 @@ from numba import njit
 
 from visibility.scene import Scene
 from visibility.scene_cache import per_scene
+from visibility.topology import NEAR_CLEARANCE
 
 #: A triangle is a wall, an occluder, when its normal is within this of horizontal (|n_y|; 0.02
 #: is 1.1 degrees). The 2.5D analysis takes walls up to 0.1; walls between the two are
@@ -50,6 +60,9 @@ class Fences:
     ----------
     seg : (k, 4) float64 XZ end points ``[px, pz, qx, qz]``, metres.
     top, bot : (k, 2) float64 the strip's top and bottom at p and at q, metres.
+    lean : (k, 2) float64 per piece: the most the real wall strays horizontally from the
+        piece's vertical plane at any height of the strip (metres), and its stray per metre of
+        height; (0, 0) for the walls taken as vertical.
     vid : (k, 2) int64 ids of p and q: equal ids, the same XZ point exactly (pieces that meet
         there join into one occluder in a shaft where both reach it, ``dual_space.occluders``).
     grid_lo : (2,) float64 XZ corner of the grid; ``grid_step`` its cell side; ``grid_n``
@@ -64,6 +77,7 @@ class Fences:
     seg: np.ndarray
     top: np.ndarray
     bot: np.ndarray
+    lean: np.ndarray
     vid: np.ndarray
     grid_lo: np.ndarray
     grid_step: float
@@ -103,31 +117,23 @@ def _span_at(us, ys, u):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _pieces(tri, out_seg, out_top, out_bot):  # pragma: no cover - numba
-    """Pieces of vertical triangles ``tri`` (t, 3, 3): over each of the two u-intervals
-    between its corners (u along the wall), the triangle's section is a strip whose bottom and
-    top are linear. Returns the count written."""
+def _pieces(tri, out_seg, out_top, out_bot, out_lean):  # pragma: no cover - numba
+    """Pieces of wall triangles ``tri`` (t, 3, 3): over each of the two u-intervals between
+    its corners (u along the wall), the triangle's section is a strip whose bottom and top are
+    linear. Returns the count written.
+
+    A vertical triangle (one that strays at most ``JOIN`` from a vertical plane) is taken on
+    the line through its two corners farthest apart in XZ, lean (0, 0). A leaning one is taken
+    in the frame of its plane: u along its horizontal direction, the piece on the vertical
+    plane through its section at mid-height; each (u, height) of the strip is a point of the
+    triangle, which lies within ``lean[0]`` of the strip horizontally (``_lean_frame``)."""
     k = 0
     us = np.empty(3)
     ys = np.empty(3)
     for t in range(tri.shape[0]):
-        # Horizontal direction of the wall: the longest XZ extent between two corners.
-        best = -1.0
-        ia, ib = 0, 1
-        for a in range(3):
-            for b in range(a + 1, 3):
-                dx = tri[t, b, 0] - tri[t, a, 0]
-                dz = tri[t, b, 2] - tri[t, a, 2]
-                d2 = dx * dx + dz * dz
-                if d2 > best:
-                    best = d2
-                    ia, ib = a, b
-        if best <= 0.0:
+        ok, ox, oz, ux, uz, lam, slope = _lean_frame(tri[t])
+        if not ok:
             continue
-        ln = np.sqrt(best)
-        ux = (tri[t, ib, 0] - tri[t, ia, 0]) / ln
-        uz = (tri[t, ib, 2] - tri[t, ia, 2]) / ln
-        ox, oz = tri[t, ia, 0], tri[t, ia, 2]
         for c in range(3):
             us[c] = (tri[t, c, 0] - ox) * ux + (tri[t, c, 2] - oz) * uz
             ys[c] = tri[t, c, 1]
@@ -148,8 +154,53 @@ def _pieces(tri, out_seg, out_top, out_bot):  # pragma: no cover - numba
             out_top[k, 1] = hi1
             out_bot[k, 0] = lo0
             out_bot[k, 1] = lo1
+            out_lean[k, 0] = lam
+            out_lean[k, 1] = slope
             k += 1
     return k
+
+
+@njit(cache=True, nogil=True)
+def _lean_frame(t):  # pragma: no cover - numba
+    """The frame of a wall triangle t (3, 3) for ``_pieces``: (ok, origin x, origin z, unit
+    direction x, z along the wall, lean in metres, lean per metre of height).
+
+    The plane n . p = d has, at height y, its horizontal section on the line
+    h . (x, z) = (d - n_y y) / |n_h| (h the unit horizontal normal): it moves by
+    |n_y| / |n_h| per metre of height. From the section at mid-height, the triangle strays at
+    most that times half its height."""
+    ex, ey, ez = t[1, 0] - t[0, 0], t[1, 1] - t[0, 1], t[1, 2] - t[0, 2]
+    fx, fy, fz = t[2, 0] - t[0, 0], t[2, 1] - t[0, 1], t[2, 2] - t[0, 2]
+    nx = ey * fz - ez * fy
+    ny = ez * fx - ex * fz
+    nz = ex * fy - ey * fx
+    nh = np.sqrt(nx * nx + nz * nz)
+    y0 = min(t[0, 1], t[1, 1], t[2, 1])
+    y1 = max(t[0, 1], t[1, 1], t[2, 1])
+    slope = abs(ny) / nh if nh > 0.0 else np.inf
+    lam = 0.5 * (y1 - y0) * slope
+    if not lam > JOIN:
+        # Vertical: the line through the two corners farthest apart in XZ.
+        best = -1.0
+        ia, ib = 0, 1
+        for a in range(3):
+            for b in range(a + 1, 3):
+                dx = t[b, 0] - t[a, 0]
+                dz = t[b, 2] - t[a, 2]
+                d2 = dx * dx + dz * dz
+                if d2 > best:
+                    best = d2
+                    ia, ib = a, b
+        if best <= 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        ln = np.sqrt(best)
+        return (True, t[ia, 0], t[ia, 2], (t[ib, 0] - t[ia, 0]) / ln,
+                (t[ib, 2] - t[ia, 2]) / ln, 0.0, 0.0)
+    hx, hz = nx / nh, nz / nh
+    # The section at mid-height: its offset along h from corner 0's.
+    ym = 0.5 * (y0 + y1)
+    shift = -(ny / nh) * (ym - t[0, 1])
+    return True, t[0, 0] + shift * hx, t[0, 2] + shift * hz, -hz, hx, lam, slope
 
 
 @njit(cache=True, nogil=True)
@@ -271,24 +322,29 @@ def build_fences(scene: Scene) -> Fences:
     seg = np.empty((2 * len(tri), 4))
     top = np.empty((2 * len(tri), 2))
     bot = np.empty((2 * len(tri), 2))
-    k = _pieces(tri, seg, top, bot) if len(tri) else 0
-    seg, top, bot = seg[:k], top[:k], bot[:k]
+    lean = np.empty((2 * len(tri), 2))
+    k = _pieces(tri, seg, top, bot, lean) if len(tri) else 0
+    seg, top, bot, lean = seg[:k], top[:k], bot[:k], lean[:k]
     length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
     ok = length >= MIN_LENGTH
-    seg, top, bot = seg[ok], top[ok], bot[ok]
+    seg, top, bot, lean = seg[ok], top[ok], bot[ok], lean[ok]
     _orient(seg, top, bot)
     if len(seg):
         # Pieces over one XZ segment (a facade's rows, a quad's two triangles) stack into one
         # strip where they are contiguous. Segments compare after rounding to SNAP; the
-        # stacked strip keeps the first piece's exact end points.
+        # stacked strip keeps the first piece's exact end points. Leaning pieces stay alone
+        # (each its own group and line): their strips are not where their walls are.
+        leaning = np.flatnonzero(lean[:, 0] > 0.0)
         q = np.round(seg / SNAP).astype(np.int64)
         _, grp = np.unique(q, axis=0, return_inverse=True)
         grp = grp.reshape(-1).astype(np.int64)
+        grp[leaning] = grp.max() + 1 + np.arange(len(leaning))
         order = np.lexsort((bot[:, 0] + bot[:, 1], grp)).astype(np.int64)
         keep = np.zeros(len(seg), dtype=bool)
         seg, top, bot = (np.ascontiguousarray(a) for a in (seg, top, bot))
         _stack(order, grp, top, bot, keep, JOIN)
-        seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
+        seg, top, bot, lean = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot, lean))
+        leaning = np.flatnonzero(lean[:, 0] > 0.0)
         # Runs along one line (a facade in columns): merge.
         d = seg[:, 2:] - seg[:, :2]
         ln = np.hypot(d[:, 0], d[:, 1])
@@ -297,10 +353,11 @@ def build_fences(scene: Scene) -> Fences:
         off = np.round((seg[:, 0] * nx + seg[:, 1] * nz) / SNAP).astype(np.int64)
         _, key_line = np.unique(np.stack([ang, off], axis=1), axis=0, return_inverse=True)
         key_line = key_line.reshape(-1).astype(np.int64)
+        key_line[leaning] = key_line.max() + 1 + np.arange(len(leaning))
         along = seg[:, 0] * (d[:, 0] / ln) + seg[:, 1] * (d[:, 1] / ln)
         order = np.lexsort((along, key_line)).astype(np.int64)
         keep = _merge_runs(seg, top, bot, order, key_line, JOIN)
-        seg, top, bot = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot))
+        seg, top, bot, lean = (np.ascontiguousarray(a[keep]) for a in (seg, top, bot, lean))
     grid = _grid(seg, top)
     if len(seg):
         ends = np.concatenate([seg[:, :2], seg[:, 2:]])
@@ -308,7 +365,7 @@ def build_fences(scene: Scene) -> Fences:
         vid = np.ascontiguousarray(inv.reshape(-1).reshape(2, -1).T).astype(np.int64)
     else:
         vid = np.zeros((0, 2), dtype=np.int64)
-    return Fences(seg, top, bot, vid, *grid, walls=len(walls),
+    return Fences(seg, top, bot, np.ascontiguousarray(lean), vid, *grid, walls=len(walls),
                   build_seconds=time.perf_counter() - t0)
 
 
@@ -367,3 +424,41 @@ def scene_fences(scene: Scene) -> tuple[Fences, float]:
     """
     fences, built = per_scene(scene, "fences", build_fences)
     return fences, (fences.build_seconds if built else 0.0)
+
+
+def near_pieces(fences: Fences, alo: np.ndarray, ahi: np.ndarray,
+                clearance: float = NEAR_CLEARANCE) -> np.ndarray:
+    """(k,) bool: the pieces that come within ``clearance`` metres of the cell box
+    [``alo``, ``ahi``] (each (3,) metres), tested against the box grown by it (a box, so a
+    little more than the points that near): a client in the cell standing that close to such
+    a wall has its near plane (``topology.NEAR_CLEARANCE``) cut it away and sees behind it.
+
+    Separating axes in XZ (x, z and the piece's normal) and the height ranges."""
+    if len(fences) == 0:
+        return np.zeros(0, dtype=bool)
+    c = float(clearance)
+    lo = np.asarray(alo, dtype=np.float64) - c
+    hi = np.asarray(ahi, dtype=np.float64) + c
+    seg = fences.seg
+    px, pz, qx, qz = seg[:, 0], seg[:, 1], seg[:, 2], seg[:, 3]
+    apart = (np.maximum(px, qx) < lo[0]) | (np.minimum(px, qx) > hi[0])
+    apart |= (np.maximum(pz, qz) < lo[2]) | (np.minimum(pz, qz) > hi[2])
+    apart |= (np.maximum(fences.top[:, 0], fences.top[:, 1]) < lo[1])
+    apart |= (np.minimum(fences.bot[:, 0], fences.bot[:, 1]) > hi[1])
+    # The piece's normal in XZ: the rectangle's corners all on one side of its line.
+    nx, nz = pz - qz, qx - px
+    d = nx * px + nz * pz
+    cx = np.stack([lo[0], hi[0], hi[0], lo[0]])
+    cz = np.stack([lo[2], lo[2], hi[2], hi[2]])
+    side = nx[:, None] * cx[None, :] + nz[:, None] * cz[None, :] - d[:, None]
+    apart |= np.all(side > 0.0, axis=1) | np.all(side < 0.0, axis=1)
+    return ~apart
+
+
+def cell_fences(fences: Fences, drop: np.ndarray) -> Fences:
+    """``fences`` with the pieces ``drop`` (k,) bool made unable to occlude: their bottoms
+    raised far above any shaft's floor, so ``dual_space.cut_piece`` keeps none of them (their
+    tops, and so the grid's highest-top-first order, stay as they are)."""
+    bot = fences.bot.copy()
+    bot[drop] = 1e300
+    return dataclasses.replace(fences, bot=bot)

@@ -104,7 +104,8 @@ def shaft_visible_exact(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: 
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return True
-    regs, _, _ = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.grid_lo,
+    regs, _, _ = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.lean,
+                               fences.grid_lo,
                                fences.grid_step, fences.grid_n, fences.cell_start,
                                fences.cell_items)
     return exact_visible(regs)
@@ -149,7 +150,7 @@ def overestimation(scene: Scene, box: np.ndarray, resolutions: list[int], coarse
             continue
         n += 1
         area = float((bhi[0] - blo[0]) * (bhi[2] - blo[2]))
-        regs, segs, ids = shaft_regions(frame, fences.seg, fences.top, fences.bot,
+        regs, segs, ids = shaft_regions(frame, fences.seg, fences.top, fences.bot, fences.lean,
                                         fences.grid_lo, fences.grid_step, fences.grid_n,
                                         fences.cell_start, fences.cell_items)
         vf, vstart = occluders(frame, segs, ids, fences.vid)
