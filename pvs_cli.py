@@ -139,6 +139,8 @@ def cmd_walk(args: argparse.Namespace) -> int:
         summaries = replay_cores(opts)
     except SessionError as exc:  # refused: no token, a bad one, a scene it may not use, ...
         raise SystemExit(f"pvs walk: the server refused the session: {exc}") from None
+    except (FileNotFoundError, ValueError) as exc:  # no local copy, or another one
+        raise SystemExit(f"pvs walk: {exc}") from None
     bad = [s for s in summaries if s.get("frames_rendered", 0) == 0]
     return 1 if bad else 0
 

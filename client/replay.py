@@ -83,12 +83,16 @@ def local_scene(info: Any, scenes_dir: Path | None) -> Scene:
             seed=source.get("seed", 0),
         )
     else:
+        # The frame metrics need the whole scene here: the server streams only what is seen.
+        need = (f"scene {info.name!r} is a file the server serves; the client renders the "
+                f"full scene for its ground truth, so it needs a copy: pass --scenes DIR, a "
+                f"folder holding {info.name}{{{','.join(SCENE_EXTENSIONS)}}}")
         if scenes_dir is None:
-            raise FileNotFoundError(f"scene {info.name!r} is a file scene: give --scenes DIR")
+            raise FileNotFoundError(need)
         files = [scenes_dir / f"{info.name}{ext}" for ext in SCENE_EXTENSIONS]
         found = [p for p in files if p.is_file()]
         if not found:
-            raise FileNotFoundError(f"no file for scene {info.name!r} in {scenes_dir}")
+            raise FileNotFoundError(f"{need} (none in {scenes_dir})")
         scene = load_scene(found[0])
     if scene.n_triangles != info.triangles:
         raise ValueError(

@@ -187,3 +187,17 @@ def test_serve_prints_the_viewer_url():
         proc.terminate()
         proc.wait(20)
     assert line.strip() == f"viewer: http://127.0.0.1:{port}/viewer/"
+
+
+def test_walk_on_a_file_scene_without_a_local_copy_says_what_to_pass(live_server, tmp_path,
+                                                                      capsys):
+    """The server serves ``box.obj``; the client has no copy: one line naming --scenes, no
+    traceback, nothing replayed."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SystemExit) as exc:
+        pvs_cli.main(["walk", "--server", live_server, "--scene", "box", "--scenes", str(empty),
+                      "--out", str(tmp_path / "out"), "--duration", "1", "--quiet"])
+    msg = str(exc.value.code)
+    assert msg.startswith("pvs walk: scene 'box' is a file the server serves")
+    assert "--scenes DIR" in msg and str(empty) in msg and "\n" not in msg
