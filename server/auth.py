@@ -15,9 +15,11 @@ Off unless tokens are configured (``tokens_file``, ``PVS_TOKENS``): then every r
   4401; ``over_quota``, 4429 past ``max_sessions``), a scene refusal the same right after
   ``hello`` (``forbidden``, 4403), before the scene is looked up.
 
-Open without a token: ``/health`` (liveness probes) and the API's description
+Open without a token: ``/health`` (liveness probes), the API's description
 (``/openapi.json``, ``/docs``, ``/redoc``: the same for everyone, no data, and the docs page's
-"Authorize" button is how a person tries the API with a token). ``/metrics`` needs a token:
+"Authorize" button is how a person tries the API with a token) and the browser viewer's page and
+static files (``VIEWER_FILES``: no data either, and a browser opening a page sends no
+``Authorization`` header; the page then sends its token on every data request). ``/metrics`` needs a token:
 Prometheus sends one (``authorization: {credentials_file: ...}``).
 """
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -48,6 +51,12 @@ log = logging.getLogger(__name__)
 
 #: Routes answered without a token.
 OPEN_PATHS = frozenset({"/health", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"})
+#: The viewer's page and files (``server.viewer_files``), GET or HEAD: ``/viewer``, ``/viewer/``
+#: and files of the served types below it. One pattern rather than a prefix, so that nothing
+#: else under ``/viewer`` opens: no segment starts with a dot (no ``..``, no hidden file) and
+#: none is empty.
+VIEWER_FILES = re.compile(r"/viewer(/|(/[A-Za-z0-9_~-][A-Za-z0-9_.~-]*)*"
+                          r"/[A-Za-z0-9_~-][A-Za-z0-9_.~-]*\.(html|js|mjs|css|png|svg|ico|map))?")
 #: Where a request's ``Verdict`` travels in its ASGI scope (absent: access control off).
 SCOPE_KEY = "pvs.access"
 #: Counters of refusals (``ServerState.counters``, ``/health``), present when access control is.
@@ -74,6 +83,16 @@ class Verdict:
     grant: Grant | None
     presented: bool = False
     why: str = ""
+
+
+def is_open(scope: Scope) -> bool:
+    """Whether an HTTP request is answered without a token: ``OPEN_PATHS``, or a GET or HEAD
+    of the viewer's files (``VIEWER_FILES``; the path as the router reads it, decoded)."""
+    path = scope["path"]
+    if path in OPEN_PATHS:
+        return True
+    return (scope.get("method") in ("GET", "HEAD")
+            and VIEWER_FILES.fullmatch(path) is not None)
 
 
 def presented_token(scope: Scope) -> tuple[bool, str | None]:
@@ -190,8 +209,7 @@ class AccessGuard:
                 return
             if access.book is not None:
                 scope[SCOPE_KEY] = access.verdict(scope)
-        elif (scope["type"] == "http" and access.book is not None
-              and scope["path"] not in OPEN_PATHS):
+        elif scope["type"] == "http" and access.book is not None and not is_open(scope):
             refused = await self._refused(scope, send)
             if refused:
                 return

@@ -155,6 +155,34 @@ def test_health_and_the_api_description_stay_open(url):
     assert "security" not in spec["paths"]["/health"]["get"]
 
 
+def test_the_viewer_page_and_its_files_are_open_and_nothing_else(url):
+    """A browser opening the viewer sends no token: the page and its modules answer without
+    one; the data they fetch, and whatever only looks like the viewer, still need one."""
+    page = httpx.get(url + "/viewer/", timeout=TIMEOUT)
+    assert page.status_code == 200 and "<title>PVS viewer</title>" in page.text
+    assert httpx.get(url + "/viewer?scene=tiny", timeout=TIMEOUT).status_code == 307
+    for path in ("/viewer/main.js", "/viewer/token.js", "/viewer/index.html"):
+        r = httpx.get(url + path, timeout=TIMEOUT)
+        assert r.status_code == 200, path
+    # three.js's build, or the JSON 404 saying how to install it: open either way.
+    assert httpx.get(url + "/viewer/vendor/three.module.js",
+                     timeout=TIMEOUT).status_code in (200, 404)
+    assert httpx.get(url + "/scenes", timeout=TIMEOUT).status_code == 401
+    # Traversal (percent-encoded, as a client that does not normalise sends it), look-alike
+    # prefixes, hidden files, other file types and other methods: not opened.
+    for raw in ("/viewer/%2e%2e/scenes", "/viewer/..%2fscenes", "/viewer/x/%2E%2E/%2e%2e/scenes",
+                "/viewer//scenes", "/viewerx/main.js", "/viewer.js", "/viewer/.hidden.js",
+                "/viewer/scenes", "/viewer/cells.json", "/viewer/main.js/scenes"):
+        with httpx.Client(timeout=TIMEOUT) as http:
+            r = http.send(http.build_request("GET", url + raw))
+        assert r.status_code == 401, (raw, r.status_code)
+    r = httpx.post(url + "/viewer/main.js", timeout=TIMEOUT)
+    assert r.status_code == 401
+    # A token is still welcome there (the page's own data requests carry one).
+    assert httpx.get(url + "/viewer/main.js", headers=bearer("not a token"),
+                     timeout=TIMEOUT).status_code == 200
+
+
 def test_scene_allow_list_is_403_and_filters_the_listing(url):
     h = bearer(TINY_ONLY)
     assert httpx.get(url + "/scenes/tiny", headers=h, timeout=TIMEOUT).status_code == 200
