@@ -13,13 +13,15 @@ const HELLO_TIMEOUT_MS = 15000;
 const BACKOFF_MS = [1000, 2000, 4000, 8000, 10000];
 /** Codes of a hello the server refuses for good (protocol/codes.py, fatal before welcome). */
 const FINAL = new Set(["unknown_scene", "unknown_core", "bad_params", "unsupported_scene",
-  "version_mismatch", "invalid_hello"]);
+  "version_mismatch", "invalid_hello", "unauthorized", "forbidden"]);
 
 export class Connection {
   /** `url`: the ws(s):// URL of /ws; `hello`: helloMessage's fields; handlers: onWelcome(w),
-   * onMessage(msg), onFrame(decoded), onStatus({text, level}), onReset(). */
-  constructor(url, hello, handlers) {
+   * onMessage(msg), onFrame(decoded), onStatus({text, level}), onReset(); `protocols`: the
+   * subprotocols to offer (token.js wsProtocols: how a browser presents a token). */
+  constructor(url, hello, handlers, protocols = []) {
     this.url = url;
+    this.protocols = protocols;
     this.hello = hello;
     this.h = handlers;
     this.ws = null;
@@ -40,7 +42,7 @@ export class Connection {
     this.h.onReset();
     this.connections += 1;
     this.h.onStatus({ text: `connecting to ${this.url}`, level: "info" });
-    const ws = new WebSocket(this.url);
+    const ws = new WebSocket(this.url, this.protocols);
     ws.binaryType = "arraybuffer";
     this.ws = ws;
     this.chain = Promise.resolve();

@@ -4,8 +4,9 @@
 // server, or auto; default the server's), walk (URL of a walkthrough JSON file to replay),
 // budget (most triangles held, declared in the hello), fov (vertical, degrees; default 70),
 // size (WxH drawing size in pixels; default the window), aa=0 (no antialiasing), morph=0
-// (conventional near-far compositing), ws (the WebSocket URL; default this server's /ws),
-// token (passed on to /ws and the HTTP calls).
+// (conventional near-far compositing), ws (the WebSocket URL; default this server's /ws).
+// A server with tokens: open the page as /viewer/#token=<token>, or type the token into the form
+// the page shows when the server asks for one (token.js: how it is kept and sent).
 
 import { enforceBudget } from "./budget.js";
 import { CellStreams } from "./cell_streams.js";
@@ -15,23 +16,29 @@ import { FrameKind } from "./decode.js";
 import { formatBytes, Overlay } from "./overlay.js";
 import { ViewRenderer } from "./render.js";
 import { SceneStore } from "./scene_store.js";
+import { askForToken, authorized, currentToken, forgetToken, takeToken, wsProtocols } from "./token.js";
 import { duration, parseWalkthrough, poseAt } from "./walk.js";
 
 const POSE_INTERVAL_S = 0.1; // free walking: a pose every 100 ms while moving
 const STALL_AFTER_S = 0.1; // a cell not complete this long after the eye entered it: a stall
 
 const params = new URLSearchParams(window.location.search);
+takeToken(); // before anything else: the fragment leaves the address bar at once
 const overlay = new Overlay();
 
-/** An HTTP URL of this server with the page's token, if any. */
+/** The server refused the request's token (HTTP 401). */
+class Unauthorized extends Error {}
+
+/** An HTTP URL of this server. */
 function api(path) {
-  const url = new URL(path, window.location.origin);
-  if (params.get("token")) url.searchParams.set("token", params.get("token"));
-  return url;
+  return new URL(path, window.location.origin);
 }
 
+/** GET a JSON document; the page's token goes along to this server only. */
 async function getJson(url) {
-  const r = await fetch(url);
+  const ours = url.origin === window.location.origin;
+  const r = await fetch(url, ours ? authorized() : {});
+  if (r.status === 401 && ours) throw new Unauthorized(`${url.pathname}: HTTP 401 ${await r.text()}`);
   if (!r.ok) throw new Error(`${url.pathname}: HTTP ${r.status} ${await r.text()}`);
   return r.json();
 }
@@ -39,8 +46,17 @@ async function getJson(url) {
 function wsUrl() {
   const url = new URL(params.get("ws") || "/ws", window.location.href);
   url.protocol = url.protocol === "https:" || url.protocol === "wss:" ? "wss:" : "ws:";
-  if (params.get("token")) url.searchParams.set("token", params.get("token"));
   return url.toString();
+}
+
+/** Say that the server wants a token (none held) or refused the one held, and ask for one. */
+function refused() {
+  const had = currentToken() !== null;
+  forgetToken();
+  const why = had ? "the server refused this token (401 unauthorized): enter another"
+    : "this server needs a token: enter it, or open the page as /viewer/#token=<token>";
+  overlay.setStatus({ text: why, level: "error" });
+  askForToken(why);
 }
 
 /** The grid's cell of a position (visibility.viewcells.ViewcellGrid.cell_of): the column by
@@ -327,6 +343,7 @@ async function main() {
   try {
     names = (await getJson(api("/scenes"))).scenes.map((s) => s.name);
   } catch (e) {
+    if (e instanceof Unauthorized) { refused(); return; }
     overlay.setStatus({ text: `cannot list the scenes: ${e.message}`, level: "error" });
   }
   const scene = params.get("scene") || (names.includes("rooms") ? "rooms" : names[0]);
@@ -346,6 +363,7 @@ async function main() {
   try {
     listing = await getJson(api(`/scenes/${encodeURIComponent(scene)}/cells`));
   } catch (e) {
+    if (e instanceof Unauthorized) { refused(); return; }
     overlay.setStatus({ text: `scene ${scene}: ${e.message}`, level: "error" });
     return;
   }
