@@ -31,16 +31,14 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from benchmarks.common import command_line, header_lines, machine, md_table
+from visibility.cores.cos.core import cos_pvs
+from visibility.ground_truth import sample_pvs
+from visibility.loaders import load_scene
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell, ViewcellGrid, spread_evenly
 
-from benchmarks.common import command_line, header_lines, machine, md_table  # noqa: E402
-from visibility.cores.cos.core import cos_pvs  # noqa: E402
-from visibility.ground_truth import sample_pvs  # noqa: E402
-from visibility.loaders import load_scene  # noqa: E402
-from visibility.scene import Scene  # noqa: E402
-from visibility.viewcells import Viewcell, ViewcellGrid, spread_evenly  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 RESULTS = ROOT / "benchmarks" / "results"
