@@ -128,3 +128,14 @@ def test_clear_pieces_keep_off_a_parallel_thin_wall():
     assert pieces[0][1][0] < 1.0 and pieces[1][0][0] > 2.0
     far = clear_pieces(np.array([0.0, 0, 0.5]), np.array([3.0, 0, 0.5]), wall, 0.1, 0.1)
     assert len(far) == 1 and far[0][1][0] == pytest.approx(3.0)
+
+
+def test_cost_estimate_uses_found_segments_without_casting():
+    scene, _ = _room()
+    core = get_core("from_segment")
+    cell = Viewcell(BOX + np.array([0.0, 0.0, 10.0]))  # a cell no other test has walked
+    params = core.make_params(resolution=64)
+    before = core.estimate_cost(scene, cell, params).detail["views"]
+    assert before == 12  # nothing cast yet: the rectangle's count
+    segs, how = view_segments(scene, cell.box, 3, "open")
+    assert core.estimate_cost(scene, cell, params).detail["views"] == len(segs)

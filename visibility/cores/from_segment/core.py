@@ -164,6 +164,17 @@ def view_segments(scene: Scene, box: np.ndarray, eye_levels: int = 3,
     return segs, how
 
 
+def cached_segments(scene: Scene, box: np.ndarray, eye_levels: int = 3,
+                    walk: str = "open") -> np.ndarray | None:
+    """The (k, 2, 3) segments ``view_segments`` already found for these arguments, else None
+    (computes nothing)."""
+    if walk != "open":
+        return None
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    hit = _SEGMENT_CACHE.get((id(scene), b.tobytes(), int(eye_levels)))
+    return hit[1] if hit is not None and hit[0] is scene else None
+
+
 def cell_segments(box: np.ndarray, eye_levels: int = 3) -> np.ndarray:
     """(k, 2, 3) view segments walking the sides of a cell box's XZ rectangle.
 
@@ -270,7 +281,10 @@ class FromSegmentCore(Core):
         """One pass per segment of the cell's sides, cube orientation and state interval, each
         priced by triangles and cubemap pixels (the ``SECONDS_PER_SEGMENT*`` constants)."""
         assert isinstance(params, FromSegmentParams)
-        segments = len(view_segments(scene, cell.box, params.eye_levels, params.walk)[0])
+        # Estimates must not cast rays: the open outline's segments when already found, else
+        # the rectangle's count (an open cell's outline is usually about as many).
+        known = cached_segments(scene, cell.box, params.eye_levels, params.walk)
+        segments = len(cell_segments(cell.box, params.eye_levels) if known is None else known)
         intervals = 1 if scene.states is None else max(1, scene.states.shape[0] - 1)
         passes = segments * int(params.runs) * intervals
         m, pixels = scene.n_triangles, 6 * int(params.resolution) ** 2
