@@ -139,3 +139,29 @@ def test_cost_estimate_uses_found_segments_without_casting():
     assert before == 12  # nothing cast yet: the rectangle's count
     segs, how = view_segments(scene, cell.box, 3, "open")
     assert core.estimate_cost(scene, cell, params).detail["views"] == len(segs)
+
+
+def test_pvs_holds_what_dense_rays_from_the_segments_hit():
+    # The promise, checked on the segments themselves: from points along every walked segment,
+    # rays in random directions hit only triangles of the PVS, and never the one in the wall.
+    from tests.visibility.segment_reference import ray_triangle_depths
+
+    scene, ids = _room()
+    core = get_core("from_segment")
+    cell = Viewcell(BOX)
+    pvs = set(core.compute(scene, cell, core.make_params(resolution=128)).triangle_ids.tolist())
+    segs, _ = view_segments(scene, BOX, 3, "open")
+    tris = scene.triangles().astype(np.float64)
+    rng = np.random.default_rng(11)
+    hit = set()
+    for a, b in segs:
+        for t in np.linspace(0.0, 1.0, 9):
+            eye = a + t * (b - a)
+            w = rng.normal(size=(4000, 3))
+            w /= np.abs(w).max(axis=1, keepdims=True)  # depth 1 per unit along the major axis
+            d = ray_triangle_depths(tris - eye, w, 0.0)
+            first = d.argmin(axis=1)
+            hit |= set(first[np.isfinite(d.min(axis=1))].tolist())
+    assert ids["inside"][0] not in hit
+    assert hit <= pvs, sorted(hit - pvs)
+    assert set(ids["wall"]) & hit and set(ids["table"]) & hit
