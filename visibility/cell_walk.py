@@ -187,7 +187,7 @@ def _outlines(walk: CellWalk) -> list[np.ndarray]:
             continue
         # Level 0.75 puts the outline a quarter step from the open samples toward the closed.
         # One sample in from the edge, where there is room, keeps the outline off the walls.
-        inner = ndimage.binary_erosion(region)
+        inner = ndimage.binary_erosion(region, border_value=1)  # not off the cell's own sides
         if inner.sum() * dx * dz >= MIN_REGION_AREA:
             region = inner
         img = np.pad(region.astype(np.float64), 1)
