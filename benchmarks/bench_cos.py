@@ -85,6 +85,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "early_z_cut": st.get("early_z_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0),
+           "occluder_triangles": st.get("occluder_triangles", 0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
            "costliest_view": st.get("costliest_view")}
     for k in PHASES + ("weld_seconds", "topology_seconds"):
@@ -317,15 +318,17 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "(PVS - true positives) / reference (the paper's 20-90 % measure).", "",
            "## Speed cells", "",
            "| cell | R | s | closed | sort | lists | resolve | unseen back faces | entries | "
-           "longest | mean list | edges walked | plane tests | PVS | ref | FN | FP | overest. | "
+           "longest | mean list | early z cut | occluders | edges walked | plane tests | "
+           "PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{r['topology_seconds']:.2f} | {r['sort_seconds']:.2f} | "
                    f"{r['list_seconds']:.2f} | {r['resolve_seconds']:.2f} | "
                    f"{r['unseen_back_faces']:,} | {r['list_entries']:,} | {r['longest_list']} | "
-                   f"{r['mean_list']:.1f} | {r.get('silhouette_edges', 0):,} | "
+                   f"{r['mean_list']:.1f} | {r.get('early_z_cut', 0):,} | "
+                   f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
                    f"{r.get('plane_tests', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
                    f"{r['fn_count']} | "
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "

@@ -42,6 +42,12 @@ from visibility.viewcells import Viewcell
 DEFAULT_RESOLUTION = 128
 
 
+#: Items (primitives whose footprint meets it) from which a tile takes the coarse pass: in
+#: clutter it repays itself, on 100k city and village cells it cost more than it saved
+#: (benchmarks/results/cos.md).
+COARSE_MIN_ITEMS = 8192
+
+
 @dataclass
 class CosParams(CoreParams):
     """Parameters of the COS core.
@@ -50,12 +56,20 @@ class CosParams(CoreParams):
         rows); the PVS stays conservative at any value, higher costs more and overestimates less.
     list_budget_mb : most memory (MiB) the per-pixel lists of one view may take at once; a view
         whose lists are longer is resolved in runs of screen tiles.
+    coarse_items : the coarse pass (``cos_pvs``): each screen tile of ``lists.TILE`` x ``TILE``
+        pixels whose footprints list at least this many primitives is first resolved as one
+        pixel of the tile's width, and what that finds hidden for the whole tile is left out
+        of the tile's per-pixel lists; 0 turns it off.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
                             help="pixels across each 90 degree frustum of a side plane")
     list_budget_mb: int = param(256, unit="MiB", ge=1, le=1 << 16,
                                 help="most memory the per-pixel lists of one view take at once")
+    coarse_items: int = param(COARSE_MIN_ITEMS, unit="primitives", ge=0, le=1 << 30,
+                              help="screen tiles meeting this many primitives are resolved as "
+                                   "one pixel first, and what that hides leaves their "
+                                   "per-pixel lists (0: never)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
@@ -141,11 +155,12 @@ class CosCore(Core):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, CosParams)
         return cos_pvs(scene, np.asarray(cell.box, dtype=np.float64), int(params.resolution),
-                       float(params.list_budget_mb))
+                       float(params.list_budget_mb), int(params.coarse_items))
 
 
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
-            list_budget_mb: float = 256.0) -> tuple[np.ndarray, dict[str, Any]]:
+            list_budget_mb: float = 256.0,
+            coarse_items: int = COARSE_MIN_ITEMS) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -154,6 +169,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     box : (2, 3) float64 [min, max], metres.
     resolution : pixels across a 90 degree frustum.
     list_budget_mb : list memory per run of tiles, MiB.
+    coarse_items : screen tiles whose footprints list at least this many primitives are
+        resolved as one pixel first (``_coarse_pass``), and what that hides for the whole tile
+        leaves the tile's per-pixel lists; 0: never.
 
     Returns
     -------
@@ -166,7 +184,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         occluder silhouette edges walked by the cover tests, occluder triangles put through
         the depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
-        ``pixels``, ``sphere_ids`` and ``costliest_view`` (the side plane and frustum that
+        ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
+        ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
+        per-pixel lists) and ``costliest_view`` (the side plane and frustum that
         took longest, its seconds, list entries and longest list).
     """
     t0 = time.perf_counter()
@@ -197,6 +217,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0,
+        "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
         "near_triangles": int(np.count_nonzero((solid == 0) & (prims.kind == TRIANGLE))),
@@ -208,7 +229,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         for view in views:
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
-                                  vis, budget, stats)
+                                  vis, budget, stats, coarse_items)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -223,7 +244,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
     stats["setup_seconds"] = time.perf_counter() - t0 - stats["list_seconds"] \
         - stats["resolve_seconds"] - stats["sort_seconds"] - stats["weld_seconds"] \
-        - stats["topology_seconds"]
+        - stats["topology_seconds"] - stats["coarse_seconds"]
     return ids[ids < m], stats
 
 
@@ -260,12 +281,55 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
+
+
+def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.ndarray,
+                 view: View, tile_off: np.ndarray, tile_items: np.ndarray,
+                 tiles: np.ndarray, known: np.ndarray, plane_tol: float,
+                 stats: dict[str, Any]) -> np.ndarray:
+    """Which of each tile's items (``tile_items``, ``bin_tiles``) are hidden for the whole
+    tile: (len(tile_items),) uint8, 1 where hidden.
+
+    Each tile is resolved as one pixel of the tile's width, over all its items (each of its
+    pixels' lists is a subset, in the same front-to-back order). A tile's directions hold
+    every direction of each of its pixels, so an item Alg. 1 finds hidden (or not seen) there
+    is hidden at every pixel of the tile, and leaving it out of their lists loses nothing
+    they would report. What it costs is tightness: a left-out item no longer occludes nor
+    closes silhouettes at the pixels, whose tests can only fail more often. What the coarse
+    pass finds visible is not the answer (its pixels are wide): it goes to a scratch array.
+    Only the ``tiles`` (n_tiles,) bool take part; items ``known`` visible are not tested
+    (they are in the answer already)."""
+    tiles_x = -(-view.nx // TILE)
+    tiles_y = -(-view.ny // TILE)
+    n_tiles = tiles_x * tiles_y
+    entries = order[tile_items].astype(np.int32)
+    pstart = tile_off[:-1].astype(np.int64)
+    pcount = np.diff(tile_off).astype(np.int64)
+    pcount[~tiles] = 0
+    hid = np.zeros(len(entries), dtype=np.uint8)
+    if not pcount.any():
+        return hid
+    counters = np.zeros((n_tiles, 6), dtype=np.int64)
+    scratch = np.zeros(len(prims.kind), dtype=np.uint8)
+    resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
+                  entries, pstart, pcount, 0, n_tiles,
+                  _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
+                  tiles_x, tiles_y, view.x_lo, view.y_lo, view.pw * TILE, view.origin,
+                  view.perm, view.sign, view.corners, plane_tol, known, scratch, hid,
+                  counters, stop_flag())
+    checkpoint()
+    stats["coarse_entries"] += int(pcount.sum())
+    stats["coarse_dropped"] += int(hid.sum())
+    return hid
+
+
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any]) -> int:
+                stats: dict[str, Any], coarse_items: int = COARSE_MIN_ITEMS) -> int:
     """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
     plane can list; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
-    visible, adds to ``stats`` and returns the view's longest list."""
+    visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
+    ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first."""
     t0 = time.perf_counter()
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
@@ -280,6 +344,16 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     npix = TILE * TILE
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
+    drop = np.empty(0, dtype=np.uint8)
+    busy = np.diff(tile_off) >= max(coarse_items, 1)
+    if coarse_items > 0 and busy.any():
+        # Clutter: the coarse pass on the tiles with that many items; their lists are then
+        # filled without what it found hidden for the whole tile.
+        tc = time.perf_counter()
+        drop = _coarse_pass(prims, solid, order, gap, view, tile_off, tile_items, busy, vis,
+                            plane_tol, stats)
+        stats["coarse_seconds"] += time.perf_counter() - tc
+        stats["coarse_tiles"] += int(busy.sum())
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     longest = 0
     stop = stop_flag()
@@ -305,8 +379,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
                    tile_items, t, t1, _balanced_order(bound[t:t1].astype(np.float64), t, t1),
-                   tiles_x, view.origin, view.perm, view.sign, view.corners,
-                   view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
+                   tiles_x, view.origin, view.perm, view.sign, view.corners, view.x_lo,
+                   view.y_lo, view.pw, drop, slot, entries, pstart, pcount)
         stats["list_entries"] += int(pcount.sum())
         longest = max(longest, int(pcount.max(initial=0)))
         stats["longest_list"] = max(stats["longest_list"], longest)
@@ -314,9 +388,10 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
                       entries,
                       pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
-                      tiles_x, view.nx,
+                      tiles_x, TILE, view.nx,
                       view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
-                      view.sign, view.corners, plane_tol, known, vis, counters, stop)
+                      view.sign, view.corners, plane_tol, known, vis,
+                      np.empty(0, dtype=np.uint8), counters, stop)
         checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb

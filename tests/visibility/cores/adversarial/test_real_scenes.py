@@ -53,6 +53,10 @@ def cells(name: str, size: float) -> list[tuple[int, np.ndarray, RaySample]]:
 
 CASES = [(name, size, k, core) for name in REAL for size in SIZES for k in range(CELLS)
          for core in ("cos", "dual_ray") if name not in BENCHMARK_ONLY.get(core, ())]
+#: ``cos`` with its coarse pass on every screen tile (by default only cluttered tiles take it):
+#: the first cell of each size.
+COARSE = [(name, size) for name in REAL for size in SIZES
+          if name not in BENCHMARK_ONLY["cos"]]
 
 
 def test_every_named_scene_is_there():
@@ -84,6 +88,19 @@ def test_no_confirmed_misses(name, size, k, core_name):
         f"{core_name} misses {len(sure)} of {len(ref.ids)} triangles the rays see from "
         f"{name}'s {size:g} m cell {box.tolist()} (float64-confirmed; {len(missed)} before "
         f"confirming):\n{describe(scene, ref, sure, box)}")
+
+
+@pytest.mark.parametrize("name,size", COARSE)
+def test_cos_coarse_pass_no_confirmed_misses(name, size):
+    scene = real_scene(name)
+    _, box, ref = cells(name, size)[0]
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(coarse_items=1))
+    assert pvs.stats["coarse_tiles"] > 0
+    sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
+    assert sure.tolist() == [], (
+        f"cos with the coarse pass misses {len(sure)} of {len(ref.ids)} triangles the rays see "
+        f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
 @pytest.mark.parametrize("name", [n for n in REAL if n in ("kitchen", "lavaducts")])
