@@ -57,7 +57,9 @@ class CosParams(CoreParams):
     list_budget_mb : most memory (MiB) the per-pixel lists of one view may take at once; a view
         whose lists are longer is resolved in runs of screen tiles.
     coarse_items : the coarse pass (``cos_pvs``): each screen tile of ``lists.TILE`` x ``TILE``
-        pixels whose footprints list at least this many primitives is first resolved as one
+        pixels whose footprints list at least this many primitives (at the default
+        resolution and above; scaled by the tile's solid angle below it) is first resolved
+        as one
         pixel of the tile's width, and what that finds hidden for the whole tile is left out
         of the tile's per-pixel lists; 0 turns it off.
     """
@@ -345,7 +347,11 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
     drop = np.empty(0, dtype=np.uint8)
-    busy = np.diff(tile_off) >= max(coarse_items, 1)
+    # The threshold holds for tiles at the default resolution; below it a tile spans more
+    # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
+    # pass on 100k city cells and cost more than they saved), so it grows with that angle.
+    need = max(coarse_items, 1) * max(1.0, (float(view.pw) * DEFAULT_RESOLUTION / 2.0) ** 2)
+    busy = np.diff(tile_off) >= need
     if coarse_items > 0 and busy.any():
         # Clutter: the coarse pass on the tiles with that many items; their lists are then
         # filled without what it found hidden for the whole tile.
