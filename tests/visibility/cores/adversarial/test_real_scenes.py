@@ -31,6 +31,9 @@ from visibility.cores.dual_ray.core import NotTwoPointFiveD
 from visibility.ray_reference import RaySample, confirm, describe
 from visibility.viewcells import Viewcell
 
+#: Real scenes: out of the fast lane (``-m "not slow"``), always in CI.
+pytestmark = pytest.mark.slow
+
 #: Cell sizes (cube sides, metres) and cells per scene and size.
 SIZES = (0.3, 1.0)
 CELLS = 2
