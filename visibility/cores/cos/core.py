@@ -21,6 +21,7 @@ import numpy as np
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.fusion import scene_welded_ids
+from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
 from visibility.cores.cos.prims import (
@@ -285,6 +286,17 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
 
 
 
+def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays:
+    """The kernels' view of the primitives."""
+    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
+
+
+def _screen(view: View, plane_tol: float) -> Screen:
+    """The kernels' view of a view's camera and pixel grid."""
+    return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
+                  float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol))
+
+
 def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.ndarray,
                  view: View, tile_off: np.ndarray, tile_items: np.ndarray,
                  tiles: np.ndarray, known: np.ndarray, plane_tol: float,
@@ -313,12 +325,13 @@ def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.nda
         return hid
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     scratch = np.zeros(len(prims.kind), dtype=np.uint8)
-    resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
-                  entries, pstart, pcount, 0, n_tiles,
-                  _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
-                  tiles_x, tiles_y, view.x_lo, view.y_lo, view.pw * TILE, view.origin,
-                  view.perm, view.sign, view.corners, plane_tol, known, scratch, hid,
-                  counters, stop_flag())
+    lists = TileLists(entries, pstart, pcount, 0, n_tiles,
+                      _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1)
+    # One pixel per tile, as wide as the tile.
+    screen = _screen(view, plane_tol)._replace(nx=tiles_x, ny=tiles_y,
+                                                pw=float(view.pw) * TILE)
+    resolve_tiles(_prim_arrays(prims, solid, gap), lists, screen,
+                  Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
     stats["coarse_dropped"] += int(hid.sum())
@@ -363,6 +376,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     longest = 0
     stop = stop_flag()
+    parrays = _prim_arrays(prims, solid, gap)
+    screen = _screen(view, plane_tol)
     t = 0
     while t < n_tiles:
         # A run of tiles whose list slots (bounded by their footprint pixels) fit the budget
@@ -383,21 +398,16 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         entries = np.empty(size, dtype=np.int32)
         pstart = np.empty((t1 - t) * npix, dtype=np.int64)
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
-        fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
-                   tile_items, t, t1, _balanced_order(bound[t:t1].astype(np.float64), t, t1),
-                   tiles_x, view.origin, view.perm, view.sign, view.corners, view.x_lo,
-                   view.y_lo, view.pw, drop, slot, entries, pstart, pcount)
+        lists = TileLists(entries, pstart, pcount, t, t1,
+                          _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE)
+        fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists)
         stats["list_entries"] += int(pcount.sum())
         longest = max(longest, int(pcount.max(initial=0)))
         stats["longest_list"] = max(stats["longest_list"], longest)
         tb = time.perf_counter()
-        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
-                      entries,
-                      pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
-                      tiles_x, TILE, view.nx,
-                      view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
-                      view.sign, view.corners, plane_tol, known, vis,
-                      np.empty(0, dtype=np.uint8), counters, stop)
+        lists = lists._replace(torder=_balanced_order(_tile_work(pcount, t1 - t), t, t1))
+        resolve_tiles(parrays, lists, screen,
+                      Marks(known, vis, np.empty(0, dtype=np.uint8), counters, stop))
         checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb

@@ -478,9 +478,7 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcount, tile0,
-                  tile1, torder, tiles_x, tsz, nx, ny, x_lo, y_lo, pw, origin, perm, sign,
-                  corners, plane_tol, known, vis, hid, counters, stop):  # pragma: no cover
+def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. Only triangles with ``solid[p]`` become occluders (``prims.solid_mask``:
     the ones a client's near plane cannot cut). ``entries`` holds the lists of those tiles
@@ -498,7 +496,14 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
     triangles put through the depth test: the last two are where dense clutter's time goes).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
-    caller's checkpoint raises."""
+    caller's checkpoint raises.
+
+    The arrays come in named groups (``groups``): ``prims`` (``PrimArrays``), ``lists``
+    (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
+    pts, start, npts, kind, vid, solid, gap = prims
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz = lists
+    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol = screen
+    known, vis, hid, counters, stop = marks
     h = 0.5 * pw
     npix = tsz * tsz
     mark = hid.shape[0] > 0
