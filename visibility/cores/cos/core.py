@@ -112,9 +112,9 @@ class CosCore(Core):
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(0.2-0.3 s for a 0.3 m cell of 100k); 4 m cells cost about a "
-                           "second (city) to 20 s (rooms), dense clutter a minute (the 1M "
-                           "kitchen's 0.3 m cell)")
+                           "(0.3-0.4 s for a 0.3 m cell of 100k); 4 m cells cost about a "
+                           "second (city) to 20 s (rooms), dense clutter half a minute (the "
+                           "1M kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
@@ -127,9 +127,9 @@ class CosCore(Core):
     fp_bound: ClassVar[float] = 0.5
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
-        # benchmarks/results/cos.md (2 cores): 0.26-0.27 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.2 s for 1 m cells of 20k ones, 0.73 s for a 4 m city cell but 16 s for a 4 m
-        # cell of 20k rooms, 55 s for a 0.3 m kitchen cell (1M triangles, clutter; 6.9 s at
+        # benchmarks/results/cos.md (2 cores): 0.36-0.39 s for 0.3 m cells of 100k scenes,
+        # 0.1-1.2 s for 1 m cells of 20k ones, 0.64 s for a 4 m city cell but 16 s for a 4 m
+        # cell of 20k rooms, 32 s for a 0.3 m kitchen cell (1M triangles, clutter; 8.7 s at
         # 5 cm): small cells of moderate scenes are worth picking automatically, the rest
         # only on request.
         small = cell_size is not None and cell_size <= 0.5
