@@ -35,6 +35,9 @@ from visibility.scene import Scene
 
 #: Lattice step inside a cell (metres).
 STEP = 0.2
+#: Most lattice points along a side: a larger cell gets a coarser lattice (a 1 km cell at 0.2 m
+#: would test 25M points where its cubemaps cost far less).
+MAX_LATTICE = 256
 #: How far below the lowest eye the body must be clear (metres): knees to eyes, so that table
 #: tops and counters block a standing place while seats and low kerbs do not.
 BODY = 1.0
@@ -154,6 +157,7 @@ def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP, body: float = B
     b = _check_box(box)
     if not step > 0 or not body >= 0:
         raise ValueError(f"step must be > 0 and body >= 0, got {step}, {body}")
+    step = lattice_step(b, step)
     nx = max(2, int(math.ceil((b[1, 0] - b[0, 0]) / step)) + 1)
     nz = max(2, int(math.ceil((b[1, 2] - b[0, 2]) / step)) + 1)
     xs = np.linspace(b[0, 0], b[1, 0], nx)
@@ -169,6 +173,13 @@ def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP, body: float = B
     else:
         ok = np.ones(gx.size, dtype=bool)
     return CellWalk(b, xs, zs, ok.reshape(nx, nz))
+
+
+def lattice_step(box: np.ndarray, step: float = STEP) -> float:
+    """The lattice step (metres) used for a cell box (2, 3): ``step``, or coarser so that no
+    side holds more than ``MAX_LATTICE`` points."""
+    side = float(max(box[1, 0] - box[0, 0], box[1, 2] - box[0, 2]))
+    return max(step, side / (MAX_LATTICE - 1))
 
 
 def _outlines(walk: CellWalk) -> list[np.ndarray]:
@@ -259,6 +270,7 @@ def walk_segments(scene: Scene, box: np.ndarray, heights: list[float], step: flo
     none meeting a triangle of the scene; (0, 2, 3) when the cell has no open part."""
     walk = cell_walk(scene, box, step, body)
     b = walk.box
+    step = lattice_step(b, step)
     tris = _near_triangles(scene, b, step + MARGIN + CLEARANCE, min(heights) - CLEARANCE)
     segs = []
     for xz in _outlines(walk):

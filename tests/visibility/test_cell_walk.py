@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from visibility.cell_walk import _hits_along, cell_walk, clear_pieces, walk_segments
+from visibility.cell_walk import (
+    MAX_LATTICE,
+    STEP,
+    _hits_along,
+    cell_walk,
+    clear_pieces,
+    lattice_step,
+    walk_segments,
+)
 from visibility.cores.base import get_core
 from visibility.cores.from_segment import view_segments
 from visibility.scene import Scene
@@ -165,3 +173,12 @@ def test_pvs_holds_what_dense_rays_from_the_segments_hit():
     assert ids["inside"][0] not in hit
     assert hit <= pvs, sorted(hit - pvs)
     assert set(ids["wall"]) & hit and set(ids["table"]) & hit
+
+
+def test_a_huge_cell_gets_a_coarser_lattice():
+    # A 1 km cell would hold 25M points at 0.2 m; it holds at most MAX_LATTICE a side.
+    box = np.array([[-500.0, -500.0, -500.0], [500.0, 500.0, 500.0]])
+    walk = cell_walk(_room()[0], box)
+    assert len(walk.xs) <= MAX_LATTICE and len(walk.zs) <= MAX_LATTICE
+    assert lattice_step(box) > STEP
+    assert lattice_step(np.array([[0.0, 0.0, 0.0], [4.0, 2.0, 4.0]])) == STEP
