@@ -46,7 +46,7 @@ for coverall, nor given a depth grid); once it fuses with a tested group, the me
 tested. Dormant triangles only close the silhouettes of the surfaces they border: without
 them a visible triangle whose neighbour across an edge is hidden keeps that edge on its
 silhouette, and the surface behind it leaks through (leaving hidden triangles out entirely,
-as the paper does, grew the PVS of 0.3 m city and village cells by a fifth to two fifths).
+as the paper does, loosens the answer far more than keeping them dormant: docs/cores/cos.md).
 
 Why this stays conservative. Hiding is decided only by ``_covers`` and ``_hides`` on some
 group, and both are sound for any set of listed triangles fused along shared edges with
