@@ -60,9 +60,8 @@ class CosParams(CoreParams):
     coarse_items : the coarse pass (``cos_pvs``): each screen tile of ``lists.TILE`` x ``TILE``
         pixels whose footprints list at least this many primitives (at the default
         resolution and above; scaled by the tile's solid angle below it) is first resolved
-        as one
-        pixel of the tile's width, and what that finds hidden for the whole tile is left out
-        of the tile's per-pixel lists; 0 turns it off.
+        as one pixel of the tile's width, and what that finds hidden for the whole tile is
+        left out of the tile's per-pixel lists; 0 turns it off.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -113,7 +112,7 @@ class CosCore(Core):
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
                            "(0.3-0.4 s for a 0.3 m cell of 100k); 4 m cells cost about a "
-                           "second (city) to 20 s (rooms), dense clutter half a minute (the "
+                           "second (city) to 12 s (rooms), dense clutter half a minute (the "
                            "1M kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
@@ -128,7 +127,7 @@ class CosCore(Core):
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # benchmarks/results/cos.md (2 cores): 0.36-0.39 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.2 s for 1 m cells of 20k ones, 0.64 s for a 4 m city cell but 16 s for a 4 m
+        # 0.1-1.2 s for 1 m cells of 20k ones, 0.64 s for a 4 m city cell but 12 s for a 4 m
         # cell of 20k rooms, 32 s for a 0.3 m kitchen cell (1M triangles, clutter; 8.7 s at
         # 5 cm): small cells of moderate scenes are worth picking automatically, the rest
         # only on request.
@@ -284,8 +283,6 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
-
-
 def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays:
     """The kernels' view of the primitives."""
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
@@ -297,10 +294,9 @@ def _screen(view: View, plane_tol: float) -> Screen:
                   float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol))
 
 
-def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.ndarray,
-                 view: View, tile_off: np.ndarray, tile_items: np.ndarray,
-                 tiles: np.ndarray, known: np.ndarray, plane_tol: float,
-                 stats: dict[str, Any]) -> np.ndarray:
+def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
+                 order: np.ndarray, tile_off: np.ndarray, tile_items: np.ndarray,
+                 tiles: np.ndarray, known: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
     """Which of each tile's items (``tile_items``, ``bin_tiles``) are hidden for the whole
     tile: (len(tile_items),) uint8, 1 where hidden.
 
@@ -311,10 +307,8 @@ def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.nda
     they would report. What it costs is tightness: a left-out item no longer occludes nor
     closes silhouettes at the pixels, whose tests can only fail more often. What the coarse
     pass finds visible is not the answer (its pixels are wide): it goes to a scratch array.
-    Only the ``tiles`` (n_tiles,) bool take part; items ``known`` visible are not tested
-    (they are in the answer already)."""
-    tiles_x = -(-view.nx // TILE)
-    tiles_y = -(-view.ny // TILE)
+    Only the ``tiles`` (tiles_x * tiles_y,) bool take part; items ``known`` visible are not
+    tested (they are in the answer already). ``screen`` is the view's pixel grid."""
     n_tiles = tiles_x * tiles_y
     entries = order[tile_items].astype(np.int32)
     pstart = tile_off[:-1].astype(np.int64)
@@ -324,14 +318,12 @@ def _coarse_pass(prims: Prims, solid: np.ndarray, order: np.ndarray, gap: np.nda
     if not pcount.any():
         return hid
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
-    scratch = np.zeros(len(prims.kind), dtype=np.uint8)
+    scratch = np.zeros_like(known)
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
                       _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1)
     # One pixel per tile, as wide as the tile.
-    screen = _screen(view, plane_tol)._replace(nx=tiles_x, ny=tiles_y,
-                                                pw=float(view.pw) * TILE)
-    resolve_tiles(_prim_arrays(prims, solid, gap), lists, screen,
-                  Marks(known, scratch, hid, counters, stop_flag()))
+    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE)
+    resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
     stats["coarse_dropped"] += int(hid.sum())
@@ -359,6 +351,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     npix = TILE * TILE
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
     stats["list_seconds"] += time.perf_counter() - t0
+    parrays = _prim_arrays(prims, solid, gap)
+    screen = _screen(view, plane_tol)
     drop = np.empty(0, dtype=np.uint8)
     # The threshold holds for tiles at the default resolution; below it a tile spans more
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
@@ -369,15 +363,13 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         # Clutter: the coarse pass on the tiles with that many items; their lists are then
         # filled without what it found hidden for the whole tile.
         tc = time.perf_counter()
-        drop = _coarse_pass(prims, solid, order, gap, view, tile_off, tile_items, busy, vis,
-                            plane_tol, stats)
+        drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, order, tile_off, tile_items,
+                            busy, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     longest = 0
     stop = stop_flag()
-    parrays = _prim_arrays(prims, solid, gap)
-    screen = _screen(view, plane_tol)
     t = 0
     while t < n_tiles:
         # A run of tiles whose list slots (bounded by their footprint pixels) fit the budget
