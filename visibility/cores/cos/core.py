@@ -20,6 +20,7 @@ import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
+from visibility.cores.cos.cull import Tree, cell_tree, view_planes, view_positions
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
@@ -35,6 +36,7 @@ from visibility.cores.cos.prims import (
 )
 from visibility.cores.cos.resolve import resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
+from visibility.raster.hierarchy import scene_hierarchy
 from visibility.scene import Scene
 from visibility.topology import NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
@@ -179,7 +181,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     -------
     triangle_ids : (k,) int64 visible triangle ids.
     stats : seconds per phase (``weld_seconds``, ``topology_seconds`` (closed surfaces: built
-        once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds``,
+        once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds`` (of
+        which ``footprint_seconds``, ``bin_seconds`` and ``fill_seconds``: each primitive's
+        pixel box per view, binning the boxes into tiles, filling the per-pixel lists),
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
         occluder's depth), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
@@ -206,6 +210,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     bounds = prim_bounds(prims)
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
+    # The scene's hierarchy (built once per scene) culls each view's primitives before their
+    # footprints are projected (``cull``).
+    tree = cell_tree(scene_hierarchy(scene), prims, order, scene.n_triangles, centre)
+    t2b = time.perf_counter()
     inbox = inside_box(prims, half, bounds)
     solid = solid_mask(prims, half)
     vis = inbox.astype(np.uint8)
@@ -213,7 +221,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
-        "list_seconds": 0.0,
+        "tree_seconds": t2b - t2, "culled": 0,
+        "list_seconds": 0.0, "footprint_seconds": 0.0, "bin_seconds": 0.0, "fill_seconds": 0.0,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
@@ -231,7 +240,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         for view in views:
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
-                                  vis, budget, stats, coarse_items)
+                                  vis, budget, stats, coarse_items, tree)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -246,14 +255,14 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
     stats["setup_seconds"] = time.perf_counter() - t0 - stats["list_seconds"] \
         - stats["resolve_seconds"] - stats["sort_seconds"] - stats["weld_seconds"] \
-        - stats["topology_seconds"] - stats["coarse_seconds"]
+        - stats["topology_seconds"] - stats["coarse_seconds"] - stats["tree_seconds"]
     return ids[ids < m], stats
 
 
 def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views: list[View],
                   plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
-    """Per side plane F, the positions t (into ``order``) of the primitives its views can
-    list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
+    """Per side plane F, (n,) bool over the positions t (into ``order``): the primitives its
+    views can list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
     it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
     the plane (what stays further behind projects to rows below the view)."""
     bo = bounds[order]
@@ -264,7 +273,7 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
                      for v in views if v.face == face)
         reach = bo[:, 1, axis] if sgn > 0 else -bo[:, 0, axis]
         keep = reach >= float(half[axis]) - margin - plane_tol
-        out[face] = np.flatnonzero(keep).astype(np.int64)
+        out[face] = keep
     return out
 
 
@@ -330,14 +339,20 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     return hid
 
 
-def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
+def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any], coarse_items: int = COARSE_MIN_ITEMS) -> int:
-    """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
-    plane can list; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
-    visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
-    ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first."""
+                stats: dict[str, Any], coarse_items: int, tree: Tree) -> int:
+    """Lists and resolution of one view (over the positions of ``order`` its side plane can
+    list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays;
+    only the ``solid`` primitives occlude); sets ``vis`` for what it finds visible, adds to
+    ``stats`` and returns the view's longest list. Tiles listing at least ``coarse_items``
+    primitives (0: none) take the coarse pass (``_coarse_pass``) first."""
     t0 = time.perf_counter()
+    planes = view_planes(view.corners, float(view.x_lo), float(view.y_lo), int(view.nx),
+                         int(view.ny), float(view.pw), 4.0 * plane_tol)
+    buf = np.empty(len(keep), dtype=np.int64)
+    sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
+    stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
     rng[:, 0] = 1
@@ -349,8 +364,12 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     tiles_y = -(-view.ny // TILE)
     n_tiles = tiles_x * tiles_y
     npix = TILE * TILE
+    t0b = time.perf_counter()
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
-    stats["list_seconds"] += time.perf_counter() - t0
+    t0c = time.perf_counter()
+    stats["footprint_seconds"] += t0b - t0
+    stats["bin_seconds"] += t0c - t0b
+    stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
     screen = _screen(view, plane_tol)
     drop = np.empty(0, dtype=np.uint8)
@@ -393,6 +412,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         lists = TileLists(entries, pstart, pcount, t, t1,
                           _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE)
         fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists)
+        stats["fill_seconds"] += time.perf_counter() - ta
         stats["list_entries"] += int(pcount.sum())
         longest = max(longest, int(pcount.max(initial=0)))
         stats["longest_list"] = max(stats["longest_list"], longest)
