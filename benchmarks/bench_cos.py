@@ -92,6 +92,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "coarse_dropped": st.get("coarse_dropped", 0),
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
+           "projected": st.get("projected", 0), "culled": st.get("culled", 0),
            "costliest_view": st.get("costliest_view")}
     for k in PHASES + ("weld_seconds", "topology_seconds"):
         row[k] = float(st[k])
@@ -236,6 +237,9 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 f"{r['resolve_seconds']:.2f} s "
                 f"({100 * r['resolve_seconds'] / s:.0f} % resolving), "
                 f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} x the paper's times; "
+                f"{r.get('projected', 0):,} footprints projected over the views, "
+                f"{r.get('culled', 0):,} more spared by the scene hierarchy (no ray of the "
+                "view meets them), "
                 f"{r['unseen_back_faces']:,} back faces of closed surfaces left out "
                 "(facing away from the whole cell), "
                 + (f"the coarse pass on {r['coarse_tiles']:,} screen tiles left "
@@ -333,17 +337,19 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "(PVS - true positives) / reference (the paper's 20-90 % measure).", "",
            "## Speed cells", "",
            "| cell | R | s | µs / px | closed | sort | lists | coarse | resolve | "
-           "unseen back faces | coarse tiles | left out by coarse | entries | "
+           "footprints | culled by tree | unseen back faces | coarse tiles | "
+           "left out by coarse | entries | "
            "longest | mean list | early z cut | occluders | edges walked | plane tests | "
            "PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|" + "---|" * 25]
+           "|" + "---|" * 27]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
                    f"{r['topology_seconds']:.2f} | {r['sort_seconds']:.2f} | "
                    f"{r['list_seconds']:.2f} | {r['coarse_seconds']:.2f} | "
-                   f"{r['resolve_seconds']:.2f} | {r['unseen_back_faces']:,} | "
+                   f"{r['resolve_seconds']:.2f} | {r.get('projected', 0):,} | "
+                   f"{r.get('culled', 0):,} | {r['unseen_back_faces']:,} | "
                    f"{r['coarse_tiles']:,} | {r['coarse_dropped']:,} | "
                    f"{r['list_entries']:,} | {r['longest_list']} | "
                    f"{r['mean_list']:.1f} | {r.get('early_z_cut', 0):,} | "

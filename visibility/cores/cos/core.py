@@ -113,9 +113,9 @@ class CosCore(Core):
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(0.3-0.4 s for a 0.3 m cell of 100k); 4 m cells cost about a "
-                           "second (city) to 12 s (rooms), dense clutter half a minute (the "
-                           "1M kitchen's 0.3 m cell)")
+                           "(0.3-0.4 s for a 0.3 m cell of 100k); 4 m cells cost 0.6 s "
+                           "(city) to 12 s (rooms), dense clutter half a minute (the 1M "
+                           "kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
@@ -128,11 +128,9 @@ class CosCore(Core):
     fp_bound: ClassVar[float] = 0.5
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
-        # benchmarks/results/cos.md (2 cores): 0.36-0.39 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.2 s for 1 m cells of 20k ones, 0.64 s for a 4 m city cell but 12 s for a 4 m
-        # cell of 20k rooms, 32 s for a 0.3 m kitchen cell (1M triangles, clutter; 8.7 s at
-        # 5 cm): small cells of moderate scenes are worth picking automatically, the rest
-        # only on request.
+        # benchmarks/results/cos.md (2 cores): small cells of moderate scenes cost a fraction
+        # of a second and are worth picking automatically; 4 m cells of interiors and dense
+        # clutter cost seconds to minutes, so only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
             return 5.0, ("small cells: conservative camera-offset-space visibility, no false "
@@ -193,7 +191,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
         per-pixel lists) and ``costliest_view`` (the side plane and frustum that
-        took longest, its seconds, list entries and longest list).
+        took longest, its seconds, list entries and longest list), ``tree_seconds`` (the scene
+        hierarchy, built once per scene, and where the cell's primitives sit in it),
+        ``projected`` and ``culled`` (footprints projected over the 30 views, and those the
+        hierarchy walk spared: primitives no ray of the view meets).
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -221,7 +222,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
-        "tree_seconds": t2b - t2, "culled": 0,
+        "tree_seconds": t2b - t2, "culled": 0, "projected": 0,
         "list_seconds": 0.0, "footprint_seconds": 0.0, "bin_seconds": 0.0, "fill_seconds": 0.0,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
@@ -353,6 +354,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
     buf = np.empty(len(keep), dtype=np.int64)
     sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
     stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
+    stats["projected"] += len(sel)
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
     rng[:, 0] = 1
