@@ -3,8 +3,9 @@
 Subcommands: ``serve`` (the edge server), ``walk`` (headless client over a walkthrough),
 ``query`` (a cell's PVS over HTTP), ``scenes`` (list or describe scenes), ``precompute`` (a
 scene's cell PVS into the on-disk cache a server starts with), ``demo`` (server + client end to
-end on a built-in scene). Packages stay independent of each other; only this
-module imports both the server and the client, each lazily inside its subcommand.
+end on a built-in scene), ``warmup`` (compile the kernels into the numba cache). Packages stay
+independent of each other; only this module imports both the server and the client, each lazily
+inside its subcommand.
 """
 
 from __future__ import annotations
@@ -432,6 +433,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(list(args.rest))
 
 
+def cmd_warmup(args: argparse.Namespace) -> int:
+    """``pvs warmup``: compile the kernels into the numba cache and print seconds per group."""
+    from visibility.warmup import warm_up
+
+    t0 = time.perf_counter()
+    for group, seconds in warm_up(args.processes).items():
+        print(f"{group:<40} {seconds:6.1f} s")
+    print(f"{'total (wall)':<40} {time.perf_counter() - t0:6.1f} s")
+    return 0
+
+
 EXECUTOR_HELP = ("where computations run: local (default) or dask://HOST:PORT, a Dask "
                  "scheduler; add ?scenes=load for workers that load the scenes themselves "
                  "(PVS_EXECUTOR)")
@@ -553,6 +565,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--executor", help=EXECUTOR_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_precompute, host=None, port=None)
+
+    p = sub.add_parser("warmup", help="compile every core's numba kernels into the cache "
+                                      "(NUMBA_CACHE_DIR) once, so first cells do not pay it")
+    p.add_argument("--processes", type=int, default=2, help="compiling processes (default 2)")
+    p.set_defaults(fn=cmd_warmup)
 
     # Every argument after "bench" goes to benchmarks.bench_matrix (its own parser and --help).
     p = sub.add_parser("bench", help="error against run time for every core (pvs bench --help)",

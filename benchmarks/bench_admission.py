@@ -28,14 +28,12 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from benchmarks.bench_matrix import SHARED_SCENES, measure_peak
+from visibility.cores.base import get_core
+from visibility.generators import make_scene
+from visibility.viewcells import ViewcellGrid
 
-from benchmarks.bench_matrix import SHARED_SCENES, measure_peak  # noqa: E402
-from visibility.cores.base import get_core  # noqa: E402
-from visibility.generators import make_scene  # noqa: E402
-from visibility.viewcells import ViewcellGrid  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULTS = ROOT / "benchmarks" / "results"
 #: (scene, core, resolutions) measured by the full run.

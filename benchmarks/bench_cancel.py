@@ -63,9 +63,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 RESULTS = ROOT / "benchmarks" / "results"
 #: Deadline of the live token of the overhead runs: far enough never to fire.
 NEVER = 3600.0

@@ -32,16 +32,14 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from benchmarks.common import command_line, header_lines, machine, md_table
+from visibility.cores.base import get_core
+from visibility.loaders import SCENE_EXTENSIONS, load_scene
+from visibility.ray_reference import RaySample, confirm, describe, ray_reference
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell, ViewcellGrid
 
-from benchmarks.common import command_line, header_lines, machine, md_table  # noqa: E402
-from visibility.cores.base import get_core  # noqa: E402
-from visibility.loaders import SCENE_EXTENSIONS, load_scene  # noqa: E402
-from visibility.ray_reference import RaySample, confirm, describe, ray_reference  # noqa: E402
-from visibility.scene import Scene  # noqa: E402
-from visibility.viewcells import Viewcell, ViewcellGrid  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 RESULTS = ROOT / "benchmarks" / "results"

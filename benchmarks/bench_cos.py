@@ -17,7 +17,7 @@ Two parts, printed and written to ``benchmarks/results/cos.md`` (+ ``cos.json``,
 
 The reference: every triangle seen from ``--points`` stratified eyes in the box plus its 26
 boundary points (corners, edge midpoints, face centres), random cube orientation each, 256 px
-per face (``tests/visibility/cores/cos/reference.py``). Usage:
+per face (``visibility.ground_truth.dense_reference``). Usage:
 ``python -m benchmarks.bench_cos`` (with the kitchen about 6 minutes on 2 cores,
 ``--skip-kitchen`` about 2), ``--quick`` for a smoke run. Times are the best of 2 runs after
 a warm-up compile.
@@ -38,15 +38,14 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import numpy as np  # noqa: E402
 
 from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
-from tests.visibility.cores.cos.reference import cell_around, dense_reference  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
-from visibility.ground_truth import fn_fp_rates  # noqa: E402
+from visibility.ground_truth import cell_around, dense_reference, fn_fp_rates  # noqa: E402
 from visibility.viewcells import Viewcell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PAPER_MS = (35.0, 220.0)
-PHASES = ("sort_seconds", "list_seconds", "resolve_seconds")
+PHASES = ("sort_seconds", "list_seconds", "coarse_seconds", "resolve_seconds")
 
 
 def _kitchen():
@@ -57,20 +56,22 @@ def _kitchen():
     return None
 
 
-def _run(scene, box, resolution: int, repeats: int = 2) -> Any:
+def _run(scene, box, resolution: int, repeats: int = 2, **params: Any) -> Any:
     core = get_core("cos")
     best = None
     for _ in range(repeats):
-        pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=resolution))
+        pvs = core.compute(scene, Viewcell(box),
+                           core.make_params(resolution=resolution, **params))
         if best is None or pvs.seconds < best.seconds:
             best = pvs
     return best
 
 
 def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
-         repeats: int = 2) -> dict[str, Any]:
-    """One measured cell; ``keep``, when given, gets the PVS ids under ``"ids"``."""
-    pvs = _run(scene, box, resolution, repeats)
+         repeats: int = 2, **params: Any) -> dict[str, Any]:
+    """One measured cell (``params``: core parameters besides the resolution); ``keep``,
+    when given, gets the PVS ids under ``"ids"``."""
+    pvs = _run(scene, box, resolution, repeats, **params)
     if keep is not None:
         keep["ids"] = pvs.triangle_ids
     fn, fp = fn_fp_rates(pvs.triangle_ids, ref)
@@ -85,7 +86,13 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "early_z_cut": st.get("early_z_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0),
+           "occluder_triangles": st.get("occluder_triangles", 0),
+           "coarse_tiles": st.get("coarse_tiles", 0),
+           "coarse_entries": st.get("coarse_entries", 0),
+           "coarse_dropped": st.get("coarse_dropped", 0),
+           "coarse_seconds": st.get("coarse_seconds", 0.0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
+           "projected": st.get("projected", 0), "culled": st.get("culled", 0),
            "costliest_view": st.get("costliest_view")}
     for k in PHASES + ("weld_seconds", "topology_seconds"):
         row[k] = float(st[k])
@@ -125,6 +132,10 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             rows.append(_row(label, sc, box, res, ref, keep))
             if sc is kitchen and res == DEFAULT_RESOLUTION and kitchen_rows is not None:
                 kitchen_rows.update(kitchen_part(sc, box, keep["ids"], rows[-1], points))
+        if sc is kitchen or label.endswith("4 m"):
+            # The coarse pass as a step: the same cell without it (one run).
+            rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
+                             repeats=1 if sc is kitchen else 2, coarse_items=0))
     return rows
 
 
@@ -190,7 +201,8 @@ def _plot(rows: list[dict[str, Any]], path: Path) -> None:
     for i, (ax, group) in enumerate(zip(axes[0], groups, strict=True)):
         labels = [f"{r['cell']}\nR={r['resolution']}" for r in group]
         left = np.zeros(len(group))
-        for k, colour in zip(PHASES, ("#8da0cb", "#66c2a5", "#fc8d62"), strict=True):
+        for k, colour in zip(PHASES, ("#8da0cb", "#66c2a5", "#e78ac3", "#fc8d62"),
+                                 strict=True):
             vals = np.array([r[k] for r in group])
             ax.barh(labels, vals, left=left, color=colour, label=k.replace("_seconds", ""))
             left += vals
@@ -221,11 +233,19 @@ def _reading(speed_rows, fp_rows) -> list[str]:
             out.append(
                 f"- {r['cell']}: {r['seconds']:.2f} s = closed surfaces "
                 f"{r['topology_seconds']:.2f} + sort {r['sort_seconds']:.2f} + lists "
-                f"{r['list_seconds']:.2f} + resolve {r['resolve_seconds']:.2f} s "
+                f"{r['list_seconds']:.2f} + coarse pass {r['coarse_seconds']:.2f} + resolve "
+                f"{r['resolve_seconds']:.2f} s "
                 f"({100 * r['resolve_seconds'] / s:.0f} % resolving), "
                 f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} x the paper's times; "
+                f"{r.get('projected', 0):,} footprints projected over the views, "
+                f"{r.get('culled', 0):,} more spared by the scene hierarchy (no ray of the "
+                "view meets them), "
                 f"{r['unseen_back_faces']:,} back faces of closed surfaces left out "
                 "(facing away from the whole cell), "
+                + (f"the coarse pass on {r['coarse_tiles']:,} screen tiles left "
+                   f"{r['coarse_dropped']:,} of their {r['coarse_entries']:,} items out of "
+                   "the pixels' lists, " if r.get("coarse_tiles") else "no tile took the "
+                   "coarse pass, ") +
                 f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}), "
                 f"{100 * r.get('early_z_cut', 0) / max(1, r['list_entries']):.0f} % of them "
                 "cut by early z behind surfaces covering a pixel's offsets"
@@ -316,16 +336,24 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "the PVS, FP is the share of the PVS the reference did not see, overestimation is "
            "(PVS - true positives) / reference (the paper's 20-90 % measure).", "",
            "## Speed cells", "",
-           "| cell | R | s | closed | sort | lists | resolve | unseen back faces | entries | "
-           "longest | mean list | edges walked | plane tests | PVS | ref | FN | FP | overest. | "
+           "| cell | R | s | µs / px | closed | sort | lists | coarse | resolve | "
+           "footprints | culled by tree | unseen back faces | coarse tiles | "
+           "left out by coarse | entries | "
+           "longest | mean list | early z cut | occluders | edges walked | plane tests | "
+           "PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|" + "---|" * 27]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
+                   f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
                    f"{r['topology_seconds']:.2f} | {r['sort_seconds']:.2f} | "
-                   f"{r['list_seconds']:.2f} | {r['resolve_seconds']:.2f} | "
-                   f"{r['unseen_back_faces']:,} | {r['list_entries']:,} | {r['longest_list']} | "
-                   f"{r['mean_list']:.1f} | {r.get('silhouette_edges', 0):,} | "
+                   f"{r['list_seconds']:.2f} | {r['coarse_seconds']:.2f} | "
+                   f"{r['resolve_seconds']:.2f} | {r.get('projected', 0):,} | "
+                   f"{r.get('culled', 0):,} | {r['unseen_back_faces']:,} | "
+                   f"{r['coarse_tiles']:,} | {r['coarse_dropped']:,} | "
+                   f"{r['list_entries']:,} | {r['longest_list']} | "
+                   f"{r['mean_list']:.1f} | {r.get('early_z_cut', 0):,} | "
+                   f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
                    f"{r.get('plane_tests', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
                    f"{r['fn_count']} | "
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "

@@ -35,13 +35,15 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import numpy as np  # noqa: E402
 
 from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
-from tests.visibility.cores.cos.reference import dense_reference  # noqa: E402
 from visibility.cores.dual_ray.core import dual_ray_pvs  # noqa: E402
 from visibility.cores.dual_ray.fences import build_fences  # noqa: E402
 from visibility.cores.dual_ray.kdtree import build_kdtree  # noqa: E402
 from visibility.cores.dual_ray.planar import overestimation  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
-from visibility.ground_truth import fn_fp_rates  # noqa: E402
+from visibility.ground_truth import (
+    dense_reference,
+    fn_fp_rates,  # noqa: E402
+)
 from visibility.viewcells import ViewcellGrid  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -21,7 +21,7 @@ import numpy as np
 
 from client.compose import compose_frame
 from client.discontinuity import discontinuity
-from client.metrics import frame_metrics
+from client.metrics import PSNR_CAP_DB, frame_metrics
 from client.render import OffscreenRenderer
 from client.walkthrough import generate_walkthrough
 from protocol.cubemap import encode_cubemap
@@ -83,7 +83,8 @@ def main() -> None:
                 f = compose_frame(r, tris, cols, cube, U, fwd, cfg.r1, cfg.r2, morph=morph)
                 d = discontinuity(f.points, U, fwd, r.tan_x, r.tan_y)
                 m = frame_metrics(f, gt)
-                rows[morph].append([d.mean_abs, m["epsilon"], min(m["psnr"], 100.0), m["ssim"]])
+                rows[morph].append([d.mean_abs, m["epsilon"], min(m["psnr"], PSNR_CAP_DB),
+                                    m["ssim"]])
         print(f"\n[{name}] r1={cfg.r1} r2={cfg.r2}, {len(idx)} frames, |U-O| "
               f"{min(offs):.1f}-{max(offs):.1f} m; {len(cubes)} cubemaps: bake "
               f"{np.mean(bake_s) * 1e3:.0f} ms mean (first {bake_s[0] * 1e3:.0f} ms), "

@@ -38,19 +38,17 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from benchmarks.bench_matrix import (  # noqa: E402
+from benchmarks.bench_matrix import (
     SHARED_SCENES,
     frame_summary,
     machine_description,
     view_set,
 )
-from benchmarks.peers import embree_views, from_point_pvs  # noqa: E402
-from visibility.ground_truth import sample_points  # noqa: E402
-from visibility.raster.camera import random_rotation  # noqa: E402
+from benchmarks.peers import embree_views, from_point_pvs
+from visibility.ground_truth import sample_points
+from visibility.raster.camera import random_rotation
+
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULTS = ROOT / "benchmarks" / "results"
 #: Reference: points per cell, rays per cube face side, first hits a triangle needs.

@@ -35,18 +35,16 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from benchmarks.bench_load import machine
+from benchmarks.redis_process import RedisProcess, available
+from server.cache.codec import decode_pvs, encode_pvs
+from server.catalog import SceneCatalog
+from server.compute import ComputeService
+from server.resolve import Resolver
+from server.settings import Settings
+from visibility.viewcells import spread_evenly
 
-from benchmarks.bench_load import machine  # noqa: E402
-from server.cache.codec import decode_pvs, encode_pvs  # noqa: E402
-from server.catalog import SceneCatalog  # noqa: E402
-from server.compute import ComputeService  # noqa: E402
-from server.resolve import Resolver  # noqa: E402
-from server.settings import Settings  # noqa: E402
-from tests.redis_process import RedisProcess, available  # noqa: E402
-from visibility.viewcells import spread_evenly  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def timed(fn: Callable[[], object]) -> float:

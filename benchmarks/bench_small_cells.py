@@ -28,19 +28,17 @@ from typing import Any
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+
+import numpy as np
+from tqdm import tqdm
+
+from benchmarks.bench_matrix import SHARED_SCENES, measure_peak
+from visibility.cores.base import get_core
+from visibility.generators import make_scene
+from visibility.ground_truth import cell_around, dense_reference, fn_fp_rates
+from visibility.viewcells import Viewcell
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from benchmarks.bench_matrix import SHARED_SCENES, measure_peak  # noqa: E402
-from tests.visibility.cores.cos.reference import cell_around, dense_reference  # noqa: E402
-from visibility.cores.base import get_core  # noqa: E402
-from visibility.generators import make_scene  # noqa: E402
-from visibility.ground_truth import fn_fp_rates  # noqa: E402
-from visibility.viewcells import Viewcell  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 SIZES = (0.05, 0.1, 0.2, 0.3)

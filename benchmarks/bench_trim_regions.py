@@ -32,20 +32,19 @@ from typing import Any
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+
+import numpy as np
+
+from benchmarks.bench_matrix import SHARED_SCENES
+from visibility.cores.base import get_core
+from visibility.cores.trim_regions.frustum import cover_box
+from visibility.cores.trim_regions.pipeline import PHASES
+from visibility.cores.trim_regions.quality import frame_errors
+from visibility.generators import make_scene
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell, ViewcellGrid
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-
-from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
-from visibility.cores.base import get_core  # noqa: E402
-from visibility.cores.trim_regions.frustum import cover_box  # noqa: E402
-from visibility.cores.trim_regions.pipeline import PHASES  # noqa: E402
-from visibility.cores.trim_regions.quality import frame_errors  # noqa: E402
-from visibility.generators import make_scene  # noqa: E402
-from visibility.scene import Scene  # noqa: E402
-from visibility.viewcells import Viewcell, ViewcellGrid  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 DELTAS = (0.05, 0.1, 0.2, 0.3)

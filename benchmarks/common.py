@@ -1,5 +1,5 @@
-"""Helpers the benchmarks share: a free loopback port, a process's RSS and CPU time, the
-machine line, the command line, markdown tables and Prometheus counters.
+"""Helpers the benchmarks share: a free loopback port, a process's RSS and CPU time, stopping a
+process, the machine line, the command line, markdown tables and Prometheus counters.
 
 Imports nothing of the project, so any benchmark (and its test) can use it.
 """
@@ -10,6 +10,7 @@ import os
 import platform
 import shlex
 import socket
+import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -42,6 +43,20 @@ def cpu_seconds(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return float("nan")
+
+
+def stop_process(proc: subprocess.Popen, kill: bool = False, timeout: float = 20.0) -> None:
+    """Stop ``proc``: SIGTERM (SIGKILL when ``kill``, a crash), then SIGKILL if it has not
+    exited within ``timeout`` seconds; closes its stderr pipe."""
+    if proc.poll() is None:
+        proc.kill() if kill else proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+    if proc.stderr is not None:
+        proc.stderr.close()
 
 
 def machine() -> str:

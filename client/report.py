@@ -4,7 +4,7 @@
 
     {"meta": {...}, "frames": [per-frame records], "epsilon": mean %, "psnr": mean dB,
      "ssim": mean, "stalls": number of frames with "stalled" true,
-     "psnr_cap_db": 100.0, "summary": {metric: {"mean", "min", "max", "count"}}}
+     "psnr_cap_db": 255.0, "summary": {metric: {"mean", "min", "max", "count"}}}
 
 A near-far run's frames also carry the composed frame's metrics (``epsilon_composed``,
 ``psnr_composed``, ``ssim_composed``, with ``_conventional`` twins for compositing without the

@@ -3,7 +3,7 @@
 Every message is a JSON object with a ``type`` field that picks its schema. Schemas are strict:
 unknown fields, unknown types, NaN/inf numbers, strings where numbers belong and vice versa are
 validation errors. Vectors are ``[x, y, z]`` in metres (Y-up, right-handed, see
-``visibility/camera.py``). Integers are bounded by the width the wire gives them
+``visibility/raster/camera.py``). Integers are bounded by the width the wire gives them
 (``protocol.ints``): ``seq`` is uint32, cell and triangle ids int32, so a number past them is a
 validation error of its message, not a failure of the frame encoder later.
 

@@ -57,20 +57,20 @@ fi
 stamp=.venv/.pvs-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[setup] installing the project into .venv"
-  .venv/bin/python -m pip install -q --upgrade pip
+  # uv resolves and installs in seconds where pip takes a minute; it goes into the venv itself.
+  .venv/bin/python -m pip install -q --upgrade pip uv
+  uvpip=(.venv/bin/python -m uv pip install -q --python .venv/bin/python)
   if [ "$RUNTIME" = 1 ]; then extras=""; else extras="[dev]"; fi
-  .venv/bin/python -m pip install -q -e ".$extras"
-  # pyrender pins PyOpenGL 3.1.0 whose OSMesa binding is broken; install the working one as a
-  # separate step (asking for both at once makes pip fall back to an ancient pyrender).
-  .venv/bin/python -m pip install -q "PyOpenGL==3.1.10"
+  # pyrender pins PyOpenGL 3.1.0 whose OSMesa binding is broken: the override takes the working
+  # one (scripts/overrides.txt).
+  "${uvpip[@]}" -e ".$extras" --override scripts/overrides.txt
   # The `bench` extra (embreex, the benchmark's ray-caster peer) has no wheel on some platforms;
   # the benchmark skips that peer without it (benchmarks.peers.available), so its failure must
-  # not fail the set-up. Installed by name, not as `.[bench]`, which would re-pin PyOpenGL.
+  # not fail the set-up.
   if [ "$RUNTIME" != 1 ]; then
-    mapfile -t bench < <(.venv/bin/python -c 'import tomllib
-print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["bench"]))')
-    if ! .venv/bin/python -m pip install -q "${bench[@]}" >.venv/bench-install.log 2>&1; then
-      echo "[setup] optional ${bench[*]} not installed (see .venv/bench-install.log); the benchmark skips its peer"
+    if ! "${uvpip[@]}" -e ".[bench]" --override scripts/overrides.txt \
+        >.venv/bench-install.log 2>&1; then
+      echo "[setup] optional bench extra not installed (see .venv/bench-install.log); the benchmark skips its peer"
     fi
   fi
   touch "$stamp"

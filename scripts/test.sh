@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
-# The test suite on a fresh machine: set up, lint, then pytest (real server on loopback, real
-# WebSocket clients, headless pyrender). Extra arguments go to pytest.
+# The test suite on a fresh machine: set up, lint, compile the kernels once, then pytest in
+# PVS_TEST_WORKERS processes (default 2; real server on loopback, real WebSocket clients,
+# headless pyrender). Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 source scripts/env.sh
 .venv/bin/ruff check .
-exec .venv/bin/python -m pytest -q -ra "$@"
+# Compiled once here, the kernels load from the numba cache in every test process; otherwise
+# each pytest worker compiles the ones it meets first, the same ones twice.
+.venv/bin/python -m pvs_cli warmup
+exec .venv/bin/python -m pytest -q -ra --durations=30 -n "${PVS_TEST_WORKERS:-2}" "$@"

@@ -81,11 +81,17 @@ class DegenerateReport:
 
 
 def _lerp_keyframes(frames: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
-    """Piecewise-linear interpolation of keyframes (k, ...) at ``times`` (k,), clamped."""
+    """Piecewise-linear interpolation of keyframes (k, ...) at ``times`` (k,), clamped.
+
+    Exact at the keyframes, and for values that do not change between two keyframes (static
+    vertices stay bit for bit where they are: the scene hierarchy recognises its vertices by
+    them)."""
     t = float(np.clip(t, times[0], times[-1]))
     i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
     w = (t - times[i]) / (times[i + 1] - times[i])
-    return (1.0 - w) * frames[i] + w * frames[i + 1]
+    if w >= 1.0:
+        return frames[i + 1].copy()
+    return frames[i] + w * (frames[i + 1] - frames[i])
 
 
 @dataclass(eq=False)

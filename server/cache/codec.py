@@ -16,8 +16,8 @@ and body, so a value copied under another key, truncated or of another format is
 
 - a PVS: ``PVS_HEADER``, the granularity, then the triangle ids (and the object and sphere ids
   when present) as sorted id arrays stored as little-endian int32 gaps, zlib level 1 over the
-  lot (the gaps of a sorted id set are small numbers: about 10x smaller than the raw ids for
-  tens of microseconds, ``benchmarks/bench_redis.py``); read back, the ids are checked as the
+  lot (the gaps of a sorted id set are small numbers, so they compress well at little cost;
+  figures: docs/deploying.md, ``benchmarks/bench_redis.py``); read back, the ids are checked as the
   on-disk cache checks them (sorted, unique, below the scene's triangle count);
 - a blob (an encoded cubemap frame): ``BLOB_HEADER`` then the bytes, zlib level 1 when that
   saves at least an eighth.

@@ -317,6 +317,8 @@ class Viewer {
       latency: s && s.lastLatency ? s.lastLatency.seconds : null,
       evicted: this.evicted,
       dropped: s ? s.dropped : 0,
+      // Geometry triangles received over the session (a re-sent one counts again).
+      received: s ? s.triangles : 0,
       serverErrors: s ? s.errors.map((e) => `${e.code}: ${e.message}`) : [],
       localErrors: s ? s.localErrors.slice() : [],
       replayDone: !!(this.walk && this.replayStart !== null && this.replayElapsed(performance.now()) >= duration(this.walk)),

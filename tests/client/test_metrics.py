@@ -14,7 +14,9 @@ from client.metrics import (
     epsilon_mask,
     frame_metrics,
     psnr,
+    psnr_summary,
     ssim,
+    ssim_uniform7,
 )
 from client.render import Frame
 
@@ -69,7 +71,7 @@ def test_psnr_known_value_and_ssim_drops():
     s = ssim(noisy, color)
     assert 0.0 < s < 0.7
     assert ssim(color, color) == 1.0
-    # Tiny images still work (smaller SSIM window), images below 3x3 are refused.
+    # Tiny images still work (uniform window that fits), images below 3x3 are refused.
     assert ssim(noisy[:5, :5], color[:5, :5]) < 1.0
     with pytest.raises(ValueError):
         ssim(noisy[:2, :2], color[:2, :2])
@@ -77,7 +79,7 @@ def test_psnr_known_value_and_ssim_drops():
 
 def test_capped_psnr():
     np.testing.assert_array_equal(
-        capped_psnr([30.0, math.inf, 120.0]), [30.0, PSNR_CAP_DB, PSNR_CAP_DB]
+        capped_psnr([30.0, math.inf, PSNR_CAP_DB + 20.0]), [30.0, PSNR_CAP_DB, PSNR_CAP_DB]
     )
 
 
@@ -95,3 +97,73 @@ def test_bad_input_raises():
         psnr(color.astype(np.float32), color)
     with pytest.raises(ValueError):
         epsilon(depth, depth, rel_tol=-1.0)
+
+
+def test_ssim_constant_images_known_value():
+    # Flat images: variances and covariance vanish, so SSIM is the luminance term alone,
+    # (2 mu_x mu_y + C1) / (mu_x^2 + mu_y^2 + C1) with C1 = (0.01 * 255)^2, for every window.
+    a = np.full((40, 40, 3), 100, np.uint8)
+    b = np.full((40, 40, 3), 110, np.uint8)
+    c1 = (0.01 * 255) ** 2
+    want = (2 * 100 * 110 + c1) / (100**2 + 110**2 + c1)
+    assert ssim(b, a) == pytest.approx(want, rel=1e-12)
+
+
+def _wang_ssim(x: np.ndarray, y: np.ndarray) -> float:
+    """Independent SSIM: Wang et al. 2004 eq. 13 with an 11x11 Gaussian (sigma 1.5) window
+    normalised to 1, population statistics, means over the valid (fully inside) windows."""
+    from scipy.signal import fftconvolve
+
+    r = np.arange(-5, 6)
+    g1 = np.exp(-(r**2) / (2 * 1.5**2))
+    w = np.outer(g1, g1)
+    w /= w.sum()
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    out = []
+    for ch in range(3):
+        a = x[..., ch].astype(np.float64)
+        b = y[..., ch].astype(np.float64)
+
+        def f(img):
+            return fftconvolve(img, w, mode="valid")
+
+        mx, my = f(a), f(b)
+        sxx, syy, sxy = f(a * a) - mx**2, f(b * b) - my**2, f(a * b) - mx * my
+        s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+        out.append(s.mean())
+    return float(np.mean(out))
+
+
+def test_ssim_is_wang_gaussian_window():
+    yy, xx = np.mgrid[0:48, 0:64]
+    color = np.stack([xx * 3, yy * 4, (xx + yy) * 2], axis=-1).astype(np.uint8)
+    rng = np.random.default_rng(7)
+    noisy = np.clip(color.astype(int) + rng.integers(-30, 31, color.shape), 0, 255)
+    noisy = noisy.astype(np.uint8)
+    got = ssim(noisy, color)
+    assert got == pytest.approx(_wang_ssim(color, noisy), rel=1e-6)
+    # The 7x7 uniform-window SSIM is a different number on the same images.
+    assert abs(ssim_uniform7(noisy, color) - got) > 1e-3
+    assert ssim_uniform7(color, color) == 1.0
+
+
+def test_psnr_summary_counts_identical_frames():
+    s = psnr_summary([30.0, math.inf, 40.0, math.inf])
+    assert s["mean"] == pytest.approx((30.0 + 40.0 + 2 * PSNR_CAP_DB) / 4)
+    assert s["min"] == 30.0
+    assert s["mean_differing"] == pytest.approx(35.0)
+    assert s["identical"] == 2 and s["frames"] == 4
+    flawless = psnr_summary([math.inf] * 3)
+    assert flawless["mean"] == PSNR_CAP_DB == flawless["min"]
+    assert math.isnan(flawless["mean_differing"])
+    with pytest.raises(ValueError):
+        psnr_summary([])
+    with pytest.raises(ValueError):
+        psnr_summary([30.0, math.nan])
+
+
+def test_ssim_small_images_fall_back_to_uniform_window():
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (9, 9, 3), dtype=np.uint8)
+    b = rng.integers(0, 256, (9, 9, 3), dtype=np.uint8)
+    assert ssim(a, b) == ssim_uniform7(a, b)

@@ -22,10 +22,10 @@ import httpx
 import pytest
 import yaml
 
+from benchmarks.common import stop_process
+from benchmarks.redis_process import RedisProcess, free_port
 from client.session import Session
 from pvs_cli import wait_until_healthy
-from tests.processes import stop_process
-from tests.redis_process import RedisProcess, free_port
 from visibility.generators import make_scene
 from visibility.viewcells import ViewcellGrid
 

@@ -28,7 +28,7 @@ def still_healthy(http: httpx.Client) -> Iterator[None]:
 def redis_server() -> Iterator:
     """A REAL ``redis-server`` on a free loopback port for the module (``tests.redis_process``);
     a missing binary fails (``scripts/setup.sh`` installs the Debian package redis-server)."""
-    from tests.redis_process import RedisProcess, available
+    from benchmarks.redis_process import RedisProcess, available
 
     assert available(), "redis-server is missing: scripts/setup.sh installs it"
     proc = RedisProcess().start()

@@ -22,6 +22,8 @@ import numpy as np
 import pytest
 
 import visibility.nearfar as nearfar
+from benchmarks.common import stop_process
+from benchmarks.redis_process import RedisProcess, available, free_port
 from client.session import Session
 from pvs_cli import build_parser, serve_settings, wait_until_healthy
 from server.cache import BadEntry, PVSKey
@@ -37,8 +39,6 @@ from server.cache.codec import (
 from server.cache.key import KEY_VERSION
 from server.settings import Settings
 from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
-from tests.processes import stop_process
-from tests.redis_process import RedisProcess, available, free_port
 from visibility.cores.base import PVS
 
 REPO = Path(__file__).resolve().parents[2]

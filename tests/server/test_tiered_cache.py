@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
+from benchmarks.redis_process import free_port
 from server.cache import DiskPVSCache, PVSCache, PVSKey, TieredCache
 from server.cache.shared import RedisLink, SharedCache
-from tests.redis_process import free_port
 from visibility.cores.base import PVS
 
 N = 1000

@@ -7,6 +7,9 @@ import trimesh
 from tests.visibility.real_scenes import REAL, SHARED_SCENES, discover, real_grid, real_scene
 from visibility.cores.base import get_core
 
+#: Real scenes: out of the fast lane (``-m "not slow"``), always in CI.
+pytestmark = pytest.mark.slow
+
 
 def test_real_scenes_are_listed_from_the_folder():
     # The four documented in ../shared/scenes/README.md; any other file there joins them.

@@ -27,6 +27,20 @@ def test_defaults_and_dtypes():
     assert not s.is_dynamic
 
 
+def test_static_vertices_stay_bit_for_bit_between_keyframes():
+    # The hierarchy of the static faces recognises its vertices exactly (Hierarchy.matches):
+    # a vertex that does not move keeps its value at every time, and keyframes are exact.
+    rng = np.random.default_rng(0)
+    v0 = rng.uniform(-1e3, 1e3, (50, 3))
+    moved = v0.copy()
+    moved[:10] += rng.normal(size=(10, 3))
+    s = Scene(v0, [[0, 1, 2]], states=np.stack([v0, moved, v0]), state_times=[0.0, 0.7, 3.1])
+    for t in rng.uniform(-1.0, 4.0, 40):
+        assert np.array_equal(s.vertices_at(t)[10:], v0[10:])
+    assert np.array_equal(s.vertices_at(0.7), moved)
+    assert np.array_equal(s.vertices_at(3.1), v0)
+
+
 def test_dynamic_states_interpolate_linearly():
     v0 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
     states = np.stack([v0, v0 + [0, 0, 2], v0 + [0, 0, 4]])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.visibility.cores.cos.reference import dense_reference
+from visibility.ground_truth import dense_reference
 from visibility.scene import Scene
 from visibility.topology import (
     build_closed_parts,

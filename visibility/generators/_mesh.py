@@ -1,8 +1,9 @@
 """Vectorized mesh building blocks shared by the scene generators.
 
 Everything here works on batches (many patches, swept solids, boxes or blobs at once) with no
-Python loop over triangles. Conventions follow visibility/camera.py: Y-up, right-handed, metres.
-A triangle (a, b, c) faces where ``(b - a) x (c - a)`` points; closed solids face outward.
+Python loop over triangles. Conventions follow visibility/raster/camera.py: Y-up,
+right-handed, metres. A triangle (a, b, c) faces where ``(b - a) x (c - a)`` points; closed
+solids face outward.
 """
 
 from __future__ import annotations

@@ -20,7 +20,9 @@ import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
+from visibility.cores.cos.cull import Tree, cell_tree, view_planes, view_positions
 from visibility.cores.cos.fusion import scene_welded_ids
+from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
 from visibility.cores.cos.prims import (
@@ -34,12 +36,19 @@ from visibility.cores.cos.prims import (
 )
 from visibility.cores.cos.resolve import resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
+from visibility.raster.hierarchy import scene_hierarchy
 from visibility.scene import Scene
 from visibility.topology import NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
 
 #: Default pixels across a 90 degree frustum.
 DEFAULT_RESOLUTION = 128
+
+
+#: Items (primitives whose footprint meets it) from which a tile takes the coarse pass: in
+#: clutter it repays itself, on 100k city and village cells it cost more than it saved
+#: (benchmarks/results/cos.md).
+COARSE_MIN_ITEMS = 8192
 
 
 @dataclass
@@ -50,12 +59,21 @@ class CosParams(CoreParams):
         rows); the PVS stays conservative at any value, higher costs more and overestimates less.
     list_budget_mb : most memory (MiB) the per-pixel lists of one view may take at once; a view
         whose lists are longer is resolved in runs of screen tiles.
+    coarse_items : the coarse pass (``cos_pvs``): each screen tile of ``lists.TILE`` x ``TILE``
+        pixels whose footprints list at least this many primitives (at the default
+        resolution and above; scaled by the tile's solid angle below it) is first resolved
+        as one pixel of the tile's width, and what that finds hidden for the whole tile is
+        left out of the tile's per-pixel lists; 0 turns it off.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
                             help="pixels across each 90 degree frustum of a side plane")
     list_budget_mb: int = param(256, unit="MiB", ge=1, le=1 << 16,
                                 help="most memory the per-pixel lists of one view take at once")
+    coarse_items: int = param(COARSE_MIN_ITEMS, unit="primitives", ge=0, le=1 << 30,
+                              help="screen tiles meeting this many primitives are resolved as "
+                                   "one pixel first, and what that hides leaves their "
+                                   "per-pixel lists (0: never)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
@@ -95,8 +113,8 @@ class CosCore(Core):
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(0.2-0.3 s for a 0.3 m cell of 100k); 4 m cells cost about a "
-                           "second (city) to 20 s (rooms), dense clutter a minute (the 1M "
+                           "(0.3-0.4 s for a 0.3 m cell of 100k); 4 m cells cost 0.6 s "
+                           "(city) to 12 s (rooms), dense clutter half a minute (the 1M "
                            "kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
@@ -110,11 +128,9 @@ class CosCore(Core):
     fp_bound: ClassVar[float] = 0.5
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
-        # benchmarks/results/cos.md (2 cores): 0.26-0.27 s for 0.3 m cells of 100k scenes,
-        # 0.1-1.2 s for 1 m cells of 20k ones, 0.73 s for a 4 m city cell but 16 s for a 4 m
-        # cell of 20k rooms, 55 s for a 0.3 m kitchen cell (1M triangles, clutter; 6.9 s at
-        # 5 cm): small cells of moderate scenes are worth picking automatically, the rest
-        # only on request.
+        # benchmarks/results/cos.md (2 cores): small cells of moderate scenes cost a fraction
+        # of a second and are worth picking automatically; 4 m cells of interiors and dense
+        # clutter cost seconds to minutes, so only on request.
         small = cell_size is not None and cell_size <= 0.5
         if small and scene.n_triangles <= 200_000:
             return 5.0, ("small cells: conservative camera-offset-space visibility, no false "
@@ -141,11 +157,12 @@ class CosCore(Core):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, CosParams)
         return cos_pvs(scene, np.asarray(cell.box, dtype=np.float64), int(params.resolution),
-                       float(params.list_budget_mb))
+                       float(params.list_budget_mb), int(params.coarse_items))
 
 
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
-            list_budget_mb: float = 256.0) -> tuple[np.ndarray, dict[str, Any]]:
+            list_budget_mb: float = 256.0,
+            coarse_items: int = COARSE_MIN_ITEMS) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -154,20 +171,30 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     box : (2, 3) float64 [min, max], metres.
     resolution : pixels across a 90 degree frustum.
     list_budget_mb : list memory per run of tiles, MiB.
+    coarse_items : screen tiles whose footprints list at least this many primitives are
+        resolved as one pixel first (``_coarse_pass``), and what that hides for the whole tile
+        leaves the tile's per-pixel lists; 0: never.
 
     Returns
     -------
     triangle_ids : (k,) int64 visible triangle ids.
     stats : seconds per phase (``weld_seconds``, ``topology_seconds`` (closed surfaces: built
-        once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds``,
+        once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds`` (of
+        which ``footprint_seconds``, ``bin_seconds`` and ``fill_seconds``: each primitive's
+        pixel box per view, binning the boxes into tiles, filling the per-pixel lists),
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
         occluder's depth), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
         occluder silhouette edges walked by the cover tests, occluder triangles put through
         the depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
-        ``pixels``, ``sphere_ids`` and ``costliest_view`` (the side plane and frustum that
-        took longest, its seconds, list entries and longest list).
+        ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
+        ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
+        per-pixel lists) and ``costliest_view`` (the side plane and frustum that
+        took longest, its seconds, list entries and longest list), ``tree_seconds`` (the scene
+        hierarchy, built once per scene, and where the cell's primitives sit in it),
+        ``projected`` and ``culled`` (footprints projected over the 30 views, and those the
+        hierarchy walk spared: primitives no ray of the view meets).
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -184,6 +211,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     bounds = prim_bounds(prims)
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
+    # The scene's hierarchy (built once per scene) culls each view's primitives before their
+    # footprints are projected (``cull``).
+    tree = cell_tree(scene_hierarchy(scene), prims, order, scene.n_triangles, centre)
+    t2b = time.perf_counter()
     inbox = inside_box(prims, half, bounds)
     solid = solid_mask(prims, half)
     vis = inbox.astype(np.uint8)
@@ -191,12 +222,14 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
-        "list_seconds": 0.0,
+        "tree_seconds": t2b - t2, "culled": 0, "projected": 0,
+        "list_seconds": 0.0, "footprint_seconds": 0.0, "bin_seconds": 0.0, "fill_seconds": 0.0,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0,
+        "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
         "near_triangles": int(np.count_nonzero((solid == 0) & (prims.kind == TRIANGLE))),
@@ -208,7 +241,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         for view in views:
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
-                                  vis, budget, stats)
+                                  vis, budget, stats, coarse_items, tree)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -223,14 +256,14 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats["sphere_ids"] = (ids[ids >= m] - m).astype(np.int32)
     stats["setup_seconds"] = time.perf_counter() - t0 - stats["list_seconds"] \
         - stats["resolve_seconds"] - stats["sort_seconds"] - stats["weld_seconds"] \
-        - stats["topology_seconds"]
+        - stats["topology_seconds"] - stats["coarse_seconds"] - stats["tree_seconds"]
     return ids[ids < m], stats
 
 
 def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views: list[View],
                   plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
-    """Per side plane F, the positions t (into ``order``) of the primitives its views can
-    list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
+    """Per side plane F, (n,) bool over the positions t (into ``order``): the primitives its
+    views can list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
     it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
     the plane (what stays further behind projects to rows below the view)."""
     bo = bounds[order]
@@ -241,7 +274,7 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
                      for v in views if v.face == face)
         reach = bo[:, 1, axis] if sgn > 0 else -bo[:, 0, axis]
         keep = reach >= float(half[axis]) - margin - plane_tol
-        out[face] = np.flatnonzero(keep).astype(np.int64)
+        out[face] = keep
     return out
 
 
@@ -260,13 +293,68 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
-def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
+def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays:
+    """The kernels' view of the primitives."""
+    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
+
+
+def _screen(view: View, plane_tol: float) -> Screen:
+    """The kernels' view of a view's camera and pixel grid."""
+    return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
+                  float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol))
+
+
+def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
+                 order: np.ndarray, tile_off: np.ndarray, tile_items: np.ndarray,
+                 tiles: np.ndarray, known: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
+    """Which of each tile's items (``tile_items``, ``bin_tiles``) are hidden for the whole
+    tile: (len(tile_items),) uint8, 1 where hidden.
+
+    Each tile is resolved as one pixel of the tile's width, over all its items (each of its
+    pixels' lists is a subset, in the same front-to-back order). A tile's directions hold
+    every direction of each of its pixels, so an item Alg. 1 finds hidden (or not seen) there
+    is hidden at every pixel of the tile, and leaving it out of their lists loses nothing
+    they would report. What it costs is tightness: a left-out item no longer occludes nor
+    closes silhouettes at the pixels, whose tests can only fail more often. What the coarse
+    pass finds visible is not the answer (its pixels are wide): it goes to a scratch array.
+    Only the ``tiles`` (tiles_x * tiles_y,) bool take part; items ``known`` visible are not
+    tested (they are in the answer already). ``screen`` is the view's pixel grid."""
+    n_tiles = tiles_x * tiles_y
+    entries = order[tile_items].astype(np.int32)
+    pstart = tile_off[:-1].astype(np.int64)
+    pcount = np.diff(tile_off).astype(np.int64)
+    pcount[~tiles] = 0
+    hid = np.zeros(len(entries), dtype=np.uint8)
+    if not pcount.any():
+        return hid
+    counters = np.zeros((n_tiles, 6), dtype=np.int64)
+    scratch = np.zeros_like(known)
+    lists = TileLists(entries, pstart, pcount, 0, n_tiles,
+                      _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1)
+    # One pixel per tile, as wide as the tile.
+    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE)
+    resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
+    checkpoint()
+    stats["coarse_entries"] += int(pcount.sum())
+    stats["coarse_dropped"] += int(hid.sum())
+    return hid
+
+
+def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any]) -> int:
-    """Lists and resolution of one view (over the positions ``sel`` of ``order`` its side
-    plane can list; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
-    visible, adds to ``stats`` and returns the view's longest list."""
+                stats: dict[str, Any], coarse_items: int, tree: Tree) -> int:
+    """Lists and resolution of one view (over the positions of ``order`` its side plane can
+    list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays;
+    only the ``solid`` primitives occlude); sets ``vis`` for what it finds visible, adds to
+    ``stats`` and returns the view's longest list. Tiles listing at least ``coarse_items``
+    primitives (0: none) take the coarse pass (``_coarse_pass``) first."""
     t0 = time.perf_counter()
+    planes = view_planes(view.corners, float(view.x_lo), float(view.y_lo), int(view.nx),
+                         int(view.ny), float(view.pw), 4.0 * plane_tol)
+    buf = np.empty(len(keep), dtype=np.int64)
+    sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
+    stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
+    stats["projected"] += len(sel)
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
     rng[:, 0] = 1
@@ -278,8 +366,28 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     tiles_y = -(-view.ny // TILE)
     n_tiles = tiles_x * tiles_y
     npix = TILE * TILE
+    t0b = time.perf_counter()
     tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
-    stats["list_seconds"] += time.perf_counter() - t0
+    t0c = time.perf_counter()
+    stats["footprint_seconds"] += t0b - t0
+    stats["bin_seconds"] += t0c - t0b
+    stats["list_seconds"] += t0c - t0
+    parrays = _prim_arrays(prims, solid, gap)
+    screen = _screen(view, plane_tol)
+    drop = np.empty(0, dtype=np.uint8)
+    # The threshold holds for tiles at the default resolution; below it a tile spans more
+    # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
+    # pass on 100k city cells and cost more than they saved), so it grows with that angle.
+    need = max(coarse_items, 1) * max(1.0, (float(view.pw) * DEFAULT_RESOLUTION / 2.0) ** 2)
+    busy = np.diff(tile_off) >= need
+    if coarse_items > 0 and busy.any():
+        # Clutter: the coarse pass on the tiles with that many items; their lists are then
+        # filled without what it found hidden for the whole tile.
+        tc = time.perf_counter()
+        drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, order, tile_off, tile_items,
+                            busy, known, stats)
+        stats["coarse_seconds"] += time.perf_counter() - tc
+        stats["coarse_tiles"] += int(busy.sum())
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     longest = 0
     stop = stop_flag()
@@ -303,20 +411,17 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         entries = np.empty(size, dtype=np.int32)
         pstart = np.empty((t1 - t) * npix, dtype=np.int64)
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
-        fill_lists(prims.pts, prims.start, prims.npts, prims.kind, order, rng, tile_off,
-                   tile_items, t, t1, _balanced_order(bound[t:t1].astype(np.float64), t, t1),
-                   tiles_x, view.origin, view.perm, view.sign, view.corners,
-                   view.x_lo, view.y_lo, view.pw, slot, entries, pstart, pcount)
+        lists = TileLists(entries, pstart, pcount, t, t1,
+                          _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE)
+        fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists)
+        stats["fill_seconds"] += time.perf_counter() - ta
         stats["list_entries"] += int(pcount.sum())
         longest = max(longest, int(pcount.max(initial=0)))
         stats["longest_list"] = max(stats["longest_list"], longest)
         tb = time.perf_counter()
-        resolve_tiles(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
-                      entries,
-                      pstart, pcount, t, t1, _balanced_order(_tile_work(pcount, t1 - t), t, t1),
-                      tiles_x, view.nx,
-                      view.ny, view.x_lo, view.y_lo, view.pw, view.origin, view.perm,
-                      view.sign, view.corners, plane_tol, known, vis, counters, stop)
+        lists = lists._replace(torder=_balanced_order(_tile_work(pcount, t1 - t), t, t1))
+        resolve_tiles(parrays, lists, screen,
+                      Marks(known, vis, np.empty(0, dtype=np.uint8), counters, stop))
         checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb

@@ -25,7 +25,7 @@ from numba import njit, prange
 from visibility.cores.cos.space import load_prim, overlaps, project
 
 #: Screen tile side in pixels.
-TILE = 16
+TILE = 8
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -192,14 +192,20 @@ def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, tile1, torder,
-               tiles_x, origin, perm, sign, corners, x_lo, y_lo, pw, slot, entries, pstart,
-               pcount):  # pragma: no cover - numba
+def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
+               lists):  # pragma: no cover - numba
     """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
     ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
     pixel, each in the order of ``order``; pixel ``loc`` of the tile (tile-major) starts at
     ``pstart[(tile - tile0) * TILE^2 + loc]`` and holds ``pcount[...]`` entries. Tiles are
-    taken in the order ``torder`` (a permutation of [tile0, tile1))."""
+    taken in the order ``torder`` (a permutation of [tile0, tile1)). Item k of ``tile_items``
+    is left out where ``drop[k]`` is set (``drop`` empty: none are): the coarse pass found it
+    hidden for the whole tile. ``prims`` (``groups.PrimArrays``), ``screen``
+    (``groups.Screen``) and ``lists`` (``groups.TileLists``, filled here) are named groups."""
+    pts, start, npts, kind = prims.pts, prims.start, prims.npts, prims.kind
+    origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
+    x_lo, y_lo, pw = screen.x_lo, screen.y_lo, screen.pw
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _ = lists
     h = 0.5 * pw
     npix = TILE * TILE
     for it in prange(tile1 - tile0):
@@ -217,7 +223,10 @@ def fill_lists(pts, start, npts, kind, order, rng, tile_off, tile_items, tile0, 
         rv = np.empty((4, 2))
         rr = np.empty(4)
         m = 0
+        skip = drop.shape[0] > 0
         for k in range(tile_off[tile], tile_off[tile + 1]):
+            if skip and drop[k]:
+                continue
             t = tile_items[k]
             p = order[t]
             i0 = max(rng[t, 0], ty * TILE)

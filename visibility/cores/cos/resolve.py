@@ -33,13 +33,31 @@ around a point of K cannot change while no silhouette edge comes near it, and fu
 are oriented consistently (both counter-clockwise in the COS, sharing the edge in opposite
 directions), so a winding number of one at delta = 0 means covered for every delta.
 
-Every listed triangle then becomes an occluder (ln 37-47), visible or not, unless a coverall
-occluder hides it: the depth test makes any triangle a sound occluder, and a hidden or unseen
-neighbour still closes the silhouette of the surface it belongs to (the paper keeps only
-visible ones). It is fused with every occluder
-triangle that shares one of its edges (welded vertex ids), merging their groups. A group whose
-silhouette stays clear of the whole offset region and covers it is flagged *coverall* (ln
-44-45): later triangles skip straight to the depth test.
+Only a triangle found visible (or known visible) becomes an occluder that later entries are
+tested against (ln 37-47). It is fused with every occluder triangle that shares one of its
+edges (welded vertex ids), merging their groups. A group whose silhouette stays clear of the
+whole offset region and covers it is flagged *coverall* (ln 44-45): later triangles skip
+straight to the depth test.
+
+A triangle hidden by a coverall group is dropped. One hidden by another group, or not seen at
+the pixel (K empty, ln 12), is kept *dormant*: it joins the edge hash and fuses with its
+neighbours, but a group made only of dormant triangles is never tested against (nor checked
+for coverall, nor given a depth grid); once it fuses with a tested group, the merged group is
+tested. Dormant triangles only close the silhouettes of the surfaces they border: without
+them a visible triangle whose neighbour across an edge is hidden keeps that edge on its
+silhouette, and the surface behind it leaks through (leaving hidden triangles out entirely,
+as the paper does, loosens the answer far more than keeping them dormant: docs/cores/cos.md).
+
+Why this stays conservative. Hiding is decided only by ``_covers`` and ``_hides`` on some
+group, and both are sound for any set of listed triangles fused along shared edges with
+consistent orientation: the winding-number argument below and the per-triangle depth test
+hold whatever triangles the group holds. Leaving a triangle out of every group, or leaving a
+group untested, can only make a later entry's test fail, never succeed wrongly. Nothing is
+lost in tightness either where the left-out triangle Q is hidden: for every offset and
+direction of the pixel that reaches Q, a group in front of Q is met first, so whatever Q
+would hide lies behind those groups too; what is lost is fusion (the cover test asks a single
+group to cover K, and Q may have joined two of them or closed a silhouette), which is why
+hidden triangles stay dormant rather than dropped.
 Hulls (moving triangles, spheres) are occludees only; a triangle seen edge-on in the COS (no
 robust area) does not occlude, nor does one a client's near plane can cut (``solid`` false:
 it comes within ``prims.NEAR_CLEARANCE`` of the cell, and a client standing there sees through
@@ -73,7 +91,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.cancel import flag_set
-from visibility.cores.cos.lists import TILE, region_at
+from visibility.cores.cos.lists import region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
     area2,
@@ -460,27 +478,35 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcount, tile0,
-                  tile1, torder, tiles_x, nx, ny, x_lo, y_lo, pw, origin, perm, sign, corners,
-                  plane_tol, known, vis, counters, stop):  # pragma: no cover - numba
+def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. Only triangles with ``solid[p]`` become occluders (``prims.solid_mask``:
     the ones a client's near plane cannot cut). ``entries`` holds the lists of those tiles
-    (``lists.fill_lists``: pixel
-    ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * TILE^2 + loc]``, ``pcount[...]``
-    long), each in nondecreasing ``gap`` (the distance from the cell box to the primitive's
-    bounding box, metres), taken in the order ``torder`` (a permutation of [tile0, tile1) that
+    (``lists.fill_lists``: pixel ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * tsz^2 +
+    loc]``, ``pcount[...]`` long; tiles of ``tsz`` x ``tsz`` pixels of width ``pw``), each in
+    nondecreasing ``gap`` (the distance from the cell box to the primitive's bounding box,
+    metres), taken in the order ``torder`` (a permutation of [tile0, tile1) that
     balances the threads' shares); ``known[p]`` marks primitives already known visible
     (tested no more, still occluders), as are those found visible at an earlier pixel of the
     same tile.
+    ``hid``, unless empty, gets 1 at each entry found hidden or not seen at its pixel (the
+    coarse pass: ``core``, one pixel per tile).
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
     triangles put through the depth test: the last two are where dense clutter's time goes).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
-    caller's checkpoint raises."""
+    caller's checkpoint raises.
+
+    The arrays come in named groups (``groups``): ``prims`` (``PrimArrays``), ``lists``
+    (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
+    pts, start, npts, kind, vid, solid, gap = prims
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz = lists
+    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol = screen
+    known, vis, hid, counters, stop = marks
     h = 0.5 * pw
-    npix = TILE * TILE
+    npix = tsz * tsz
+    mark = hid.shape[0] > 0
     # Largest camera depth of the view's camera rectangle (0 for a front frustum).
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
     for it in prange(tile1 - tile0):
@@ -539,6 +565,7 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
         gwhi = np.empty(lmax)
         gcov = np.empty(lmax, dtype=np.bool_)
         alive = np.empty(lmax, dtype=np.bool_)
+        gdorm = np.empty(lmax, dtype=np.bool_)
         gehead = np.empty(lmax, dtype=np.int64)
         getail = np.empty(lmax, dtype=np.int64)
         anext = np.empty(3 * lmax, dtype=np.int64)
@@ -582,8 +609,8 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
         for loc in range(npix):
             if flag_set(stop):
                 break
-            i = ty * TILE + loc // TILE
-            j = tx * TILE + loc % TILE
+            i = ty * tsz + loc // tsz
+            j = tx * tsz + loc % tsz
             if i >= ny or j >= nx:
                 continue
             a = pstart[pix0 + loc]
@@ -634,6 +661,8 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                     # The lists are sorted by gap: this entry and all later ones lie beyond
                     # zcut on every ray of the pixel.
                     cut += b - k
+                    if mark:
+                        hid[k:b] = 1
                     break
                 n = npts[p]
                 tri = kind[p] == 0
@@ -645,11 +674,14 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                     wref += cam[c, 2]
                 if wmin > zcut + plane_tol:
                     cut += 1
+                    if mark:
+                        hid[k] = 1
                     continue
                 # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
                 # by its depth difference to Q (the relative motion that matters).
                 wref /= n
                 project(cam, n, sx, sy, h, wref, qv, qr)
+                dorm = False
                 if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
                     region_at(corners, sx, sy, h, wref, rv, rr)
                     nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
@@ -657,6 +689,7 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                         tested += 1
                         _k_box(kx, ky, nk, kb)
                         occluded = False
+                        by_cov = False
                         if 2 * n_dead > n_live:
                             # Compact the live list (oldest groups first, as they came).
                             m = 0
@@ -673,7 +706,6 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                         # one that hid the last entry first (neighbours in the list are often
                         # hidden by the same surface), then the rest. (One loop, so the
                         # inlined tests are compiled once.)
-                        by_cov = False
                         for c in range(n_cov + 1 + n_live):
                             if c < n_cov:
                                 g = covl[c]
@@ -702,12 +734,23 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                             # nothing as an occluder, and keeping it would make long lists
                             # quadratic.
                             hidden += 1
+                            if mark:
+                                hid[k] = 1
                             continue
                         if occluded:
+                            # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
+                            # the surfaces it borders (the module docstring).
                             hidden += 1
+                            dorm = True
+                            if mark:
+                                hid[k] = 1
                         else:
                             vis[p] = 1
                             tseen[p >> 3] |= np.uint8(1 << (p & 7))
+                    else:
+                        dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
+                        if mark:
+                            hid[k] = 1
                 if not tri or not solid[p]:
                     continue
                 # Become an occluder: counter-clockwise in the COS, robust area only.
@@ -773,9 +816,13 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                 for e in range(3):
                     anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
                     aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
-                live[n_live] = q
-                lpos[q] = n_live
-                n_live += 1
+                gdorm[q] = dorm
+                if dorm:
+                    lpos[q] = -1
+                else:
+                    live[n_live] = q
+                    lpos[q] = n_live
+                    n_live += 1
                 cpos[q] = -1
                 gslot[q] = -1
                 # Fuse along shared edges: the neighbour holds the edge reversed. The first
@@ -808,6 +855,13 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                                 if lpos[gd] >= 0:
                                     lpos[gd] = -1
                                     n_dead += 1
+                                if gdorm[gs] and not gdorm[gd]:
+                                    # A dormant group joins a tested one: it is tested now.
+                                    gdorm[gs] = False
+                                    if not gcov[gs]:
+                                        live[n_live] = gs
+                                        lpos[gs] = n_live
+                                        n_live += 1
                                 n_cov = _list_drop(gd, cpos, covl, n_cov)
                                 if gcov[gs] and not (c1 if gs == g1 else c2):
                                     # The survivor takes the coverall flag of the other.
@@ -828,7 +882,7 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                                         _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
                                                   pool, pdep)
                                         r2 = nxt[r2]
-                                elif gsize[gs] >= GRID_MIN:
+                                elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
                                     if n_free > 0:
                                         n_free -= 1
                                         ss = fslot[n_free]
@@ -857,7 +911,7 @@ def resolve_tiles(pts, start, npts, kind, vid, solid, gap, entries, pstart, pcou
                         enext[hlast[slot]] = node
                     hlast[slot] = node
                 g = grp[q]
-                if not gcov[g]:
+                if not gcov[g] and not gdorm[g]:
                     # Coverall holds for every delta whatever frame proves it; the new
                     # triangle's depth is as good a frame as any.
                     region_at(corners, sx, sy, h, wref, rv, rr)

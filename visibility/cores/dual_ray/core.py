@@ -45,10 +45,9 @@ BATCH = 4096
 #: Triangles of a leaf tested together first (``refine_triangles``).
 GROUP = 8
 #: ``triangle_refine="auto"`` tests every triangle of the visible leaves when they hold at most
-#: this many (leaf-triangle entries), else only those of the leaves the raster decided. Testing
-#: them all costs about 7 us per entry on 2 cores (Lyon's far-seeing 40 m cell: 105k entries,
-#: 0.73 s; a 100 m cell of the 1M city: 600k entries, 3.3 s against 1.8 s for the marginal
-#: ones; ``python -m benchmarks.bench_dual_ray``), so this keeps the refinement near a second.
+#: this many (leaf-triangle entries), else only those of the leaves the raster decided. Every
+#: entry costs a triangle-against-shaft test, so the bound keeps the refinement near a second
+#: (``python -m benchmarks.bench_dual_ray``; figures in docs/cores/dual_ray.md).
 REFINE_ALL_MAX = 150_000
 #: Cells from this size up (metres, the larger horizontal side) are what the core is for.
 BIG_CELL = 10.0
@@ -86,10 +85,9 @@ class DualRayParams(CoreParams):
 #: 2-core development machine (benchmarks/results/dual_ray.md, load average about 1): the time
 #: grows about linearly with the scene's triangles and with the cell's side (a bigger cell sees
 #: more leaves and tests more triangles, each with a wider shaft), and barely with the
-#: resolution (16^2 to 256^2 within 25 %: the quadtree refines only along region boundaries).
-#: 100k city at 128^2: 0.12 s at 25 m, 0.46 s at 100 m, 1.2 s at 300 m (4-6e-8 s per
-#: triangle and metre); Lyon (183k) 40 m: 0.46-0.82 s; 1M city 100 m: 2.2-2.4 s. The model
-#: keeps 6e-8: an upper estimate, as admission wants. Bytes: tree, bounds
+#: resolution (the quadtree refines only along region boundaries). The per-triangle-metre
+#: rate is the largest the benchmark's cells showed (figures in docs/cores/dual_ray.md): an
+#: upper estimate, as admission wants. Bytes: tree, bounds
 #: and fences per triangle, and the raster's lists per pixel of the coarse square.
 SECONDS_BASE = 0.02
 SECONDS_PER_TRIANGLE_METRE = 6e-8

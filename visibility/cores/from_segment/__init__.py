@@ -4,12 +4,15 @@
 
 from visibility.cores.from_segment.core import (
     ORIENTATIONS,
+    WALKS,
     FromSegmentCore,
     FromSegmentParams,
     cell_segments,
     cube_rotations,
+    eye_heights,
     oblique_rotation,
+    view_segments,
 )
 
-__all__ = ["ORIENTATIONS", "FromSegmentCore", "FromSegmentParams", "cell_segments",
-           "cube_rotations", "oblique_rotation"]
+__all__ = ["ORIENTATIONS", "WALKS", "FromSegmentCore", "FromSegmentParams", "cell_segments",
+           "cube_rotations", "eye_heights", "oblique_rotation", "view_segments"]

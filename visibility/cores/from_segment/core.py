@@ -1,8 +1,10 @@
 """The ``from_segment`` core: continuous from-segment visibility (Popescu et al. 2024).
 
-A cell's PVS is the union of the segment visible sets (``kernels``) of the four
-sides of the cell's rectangle, at the box's mid height and, when the box has height, at its bottom
-and top (the eye-height range), each seen by a full cubemap (by default turned obliquely to the
+A cell's PVS is the union of the segment visible sets (``kernels``) of its view segments: by
+default the outline of the open floor in the cell (where a person can stand, through no wall or
+furniture; ``visibility.cell_walk``), or with ``walk="rectangle"`` the four sides of the cell's
+rectangle; at the box's mid height and, when the box has height, at its bottom and top (the
+eye-height range), each seen by a full cubemap (by default turned obliquely to the
 world axes; see ``FromSegmentParams``); ``runs - 1`` extra runs use randomly rotated cubemaps
 (the paper's jitter, deterministic for a seed). Dynamic scenes are solved per pair of
 consecutive states (vertices and sphere centres move linearly while the eye sweeps the
@@ -18,6 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from visibility.cancel import checkpoint
+from visibility.cell_walk import walk_segments
 from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.from_segment.kernels import (
     CLUSTER,
@@ -32,6 +35,8 @@ from visibility.viewcells import Viewcell
 
 #: Values of ``FromSegmentParams.first_orientation``.
 ORIENTATIONS = ("axis", "oblique")
+#: How a cell's view segments are chosen (``FromSegmentParams.walk``).
+WALKS = ("open", "rectangle")
 
 
 def oblique_rotation() -> np.ndarray:
@@ -70,8 +75,15 @@ class FromSegmentParams(CoreParams):
         centres, while jittered samples do not line up. Measured on the Lyon walk cells, 256 px:
         FN 5.4 / 6.9 % at centres, 0.31 / 0.71 % jittered, for 1.5x the time
         (benchmarks/results/real_cells.md).
-    eye_levels : heights at which the rectangle is walked: 1 = mid height, 2 = bottom and top of
-        the box, 3 = all three (a box without height always uses one).
+    eye_levels : heights at which the segments are walked: 1 = mid height, 2 = bottom and top
+        of the box, 3 = all three (a box without height always uses one).
+    walk : "open" walks the outline of the open floor inside the cell (``visibility.cell_walk``:
+        where a person can stand, found on a 0.2 m lattice), at the eye heights, split where it
+        would meet geometry: no segment passes through a wall or furniture. A cell with no open
+        part (the lattice finds nowhere to stand, e.g. a cell lying inside a thick wall or
+        solid) walks its rectangle's sides instead, as "rectangle" always does, and says so in
+        the stats (``walk``): the grid made it a cell someone may enter, so it gets the
+        conservative answer rather than an empty one.
     cuts : a side along which near geometry sweeps across much of the cube (pixel boxes adding
         up to more than ``kernels.SPLIT_AREA`` cubes) is solved as halves, up to this many times
         over; 0 never cuts. Same set, less time in clutter: the boxes shrink and occlusion bounds
@@ -92,12 +104,75 @@ class FromSegmentParams(CoreParams):
     jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
                           help="how far each pixel's sample lies off its centre (0 = centres)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
+    walk: str = param("open", choices=WALKS,
+                      help="segments: open (around where a person can stand in the cell, "
+                      "through no geometry) or rectangle (the cell's sides)")
     cuts: int = param(MAX_SPLIT_DEPTH, ge=0, le=16,
                       help="most times a side is halved where near geometry sweeps the cube")
     depth_knots: int = param(16, ge=1, le=1024,
                              help="depth of moving primitives interpolated between these knots")
     batch_triangles: int = param(DEFAULT_BATCH * CLUSTER, ge=1024, le=1 << 26, unit="triangles",
                                  help="triangles per batch of the box pass (bounds its memory)")
+
+
+def eye_heights(box: np.ndarray, eye_levels: int = 3) -> list[float]:
+    """Eye heights (metres) walked in a cell box (2, 3): mid (eye_levels 1), bottom and top (2)
+    or all three (3); the mid height alone when the box has no height."""
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    y0, y1 = float(b[0, 1]), float(b[1, 1])
+    ym = 0.5 * (y0 + y1)
+    if y1 <= y0:
+        return [ym]
+    return {1: [ym], 2: [y0, y1], 3: [y0, ym, y1]}[int(eye_levels)]
+
+
+#: Cached (scene, box, eye_levels) -> (segments, how) of ``view_segments``; scenes are held so
+#: that an id is never reused while its entry lives.
+_SEGMENT_CACHE: dict[tuple, tuple[Scene, np.ndarray, str]] = {}
+_SEGMENT_CACHE_MAX = 256
+
+
+def view_segments(scene: Scene, box: np.ndarray, eye_levels: int = 3,
+                  walk: str = "open") -> tuple[np.ndarray, str]:
+    """(k, 2, 3) view segments of a cell box (2, 3) and how they were chosen.
+
+    ``walk`` "rectangle": ``cell_segments``. "open": ``cell_walk.walk_segments`` at the
+    ``eye_heights``, i.e. the outline of where a person can stand, through no geometry; how is
+    "open". A cell with no open part falls back to the rectangle, how "rectangle (no open
+    floor in the cell)"; a box flat in X or Z (a line or point of eyes) always walks its
+    rectangle, how "rectangle (degenerate box)".
+    """
+    if walk not in WALKS:
+        raise ValueError(f"walk must be one of {WALKS}, got {walk!r}")
+    if walk == "rectangle":
+        return cell_segments(box, eye_levels), "rectangle"
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    if b[1, 0] <= b[0, 0] or b[1, 2] <= b[0, 2]:
+        # A line or point of eye positions: the caller named the segment itself.
+        return cell_segments(b, eye_levels), "rectangle (degenerate box)"
+    key = (id(scene), b.tobytes(), int(eye_levels))
+    hit = _SEGMENT_CACHE.get(key)
+    if hit is not None and hit[0] is scene:
+        return hit[1], hit[2]
+    segs = walk_segments(scene, b, eye_heights(b, eye_levels))
+    how = "open"
+    if len(segs) == 0:
+        segs, how = cell_segments(b, eye_levels), "rectangle (no open floor in the cell)"
+    if len(_SEGMENT_CACHE) >= _SEGMENT_CACHE_MAX:
+        _SEGMENT_CACHE.pop(next(iter(_SEGMENT_CACHE)))
+    _SEGMENT_CACHE[key] = (scene, segs, how)
+    return segs, how
+
+
+def cached_segments(scene: Scene, box: np.ndarray, eye_levels: int = 3,
+                    walk: str = "open") -> np.ndarray | None:
+    """The (k, 2, 3) segments ``view_segments`` already found for these arguments, else None
+    (computes nothing)."""
+    if walk != "open":
+        return None
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    hit = _SEGMENT_CACHE.get((id(scene), b.tobytes(), int(eye_levels)))
+    return hit[1] if hit is not None and hit[0] is scene else None
 
 
 def cell_segments(box: np.ndarray, eye_levels: int = 3) -> np.ndarray:
@@ -206,7 +281,10 @@ class FromSegmentCore(Core):
         """One pass per segment of the cell's sides, cube orientation and state interval, each
         priced by triangles and cubemap pixels (the ``SECONDS_PER_SEGMENT*`` constants)."""
         assert isinstance(params, FromSegmentParams)
-        segments = len(cell_segments(cell.box, params.eye_levels))
+        # Estimates must not cast rays: the open outline's segments when already found, else
+        # the rectangle's count (an open cell's outline is usually about as many).
+        known = cached_segments(scene, cell.box, params.eye_levels, params.walk)
+        segments = len(cell_segments(cell.box, params.eye_levels) if known is None else known)
         intervals = 1 if scene.states is None else max(1, scene.states.shape[0] - 1)
         passes = segments * int(params.runs) * intervals
         m, pixels = scene.n_triangles, 6 * int(params.resolution) ** 2
@@ -221,7 +299,10 @@ class FromSegmentCore(Core):
         self, scene: Scene, cell: Viewcell, params: CoreParams
     ) -> tuple[np.ndarray, dict[str, Any]]:
         assert isinstance(params, FromSegmentParams)
-        return self._run(scene, cell_segments(cell.box, params.eye_levels), params)
+        segs, how = view_segments(scene, cell.box, params.eye_levels, params.walk)
+        pvs, stats = self._run(scene, segs, params)
+        stats["walk"] = how
+        return pvs, stats
 
     def _compute_segment(
         self, scene: Scene, p: np.ndarray, q: np.ndarray, params: CoreParams

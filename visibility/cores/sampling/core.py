@@ -52,15 +52,12 @@ class SamplingCore(Core):
     knob_levels = (8, 32, 128)
     native_segments = True
     check_params: ClassVar[dict[str, Any]] = {"samples": 16}
-    #: Holds on the conformance scenes: FN measured 0.000 there (two rooms and a door, 16 and 32
-    #: samples at 128 and 256 px, 3 seeds each, against 128-point ground truths of 3 seeds).
-    #: Open scenes with many sub-pixel triangles are another matter: on the 100k-triangle city,
-    #: 5 cells, defaults against a 512-point ground truth at 256 px gave FN 0.09-0.32 (0.02-0.14
-    #: with 128 samples or with 32 samples at 512 px): what is missed is resolution-bound.
+    #: Holds on the conformance scenes (``check_core`` measures it there). Open scenes with many
+    #: sub-pixel triangles miss more, and more samples or pixels buy it back: what is missed is
+    #: resolution-bound (figures and their commands: docs/cores/sampling.md).
     fn_bound: ClassVar[float] = 0.05
-    #: It samples like the reference, so it reports little the reference does not see: FP
-    #: measured 0.000 on every conformance scene (two rooms, open ring, stiff cases at offsets
-    #: 0 and 1e5; 3 reference seeds) and at most 0.008 on 10k-triangle rooms/village/city cells.
+    #: It samples like the reference, so it reports little the reference does not see
+    #: (``check_core`` measures it on every conformance scene).
     fp_bound: ClassVar[float] = 0.05
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:

@@ -68,8 +68,8 @@ class TrimRegionsParams(CoreParams):
 SECONDS_PER_PIXEL = 1.5e-6
 SECONDS_PER_VIEW_TRIANGLE = 1.5e-7
 #: The eyes' gather, per pixel rendered (6 faces of SUPERSAMPLE x the resolution per eye):
-#: benchmarks/results/trim_regions.md, P4 grew by 0.35-0.37 s on the 100k village when the
-#: gather came (8 eyes at 1,024 px, 50M pixels), by 0.1-0.5 s on the 1M kitchen; rounded up.
+#: fitted to P4's growth when the gather came (``python -m benchmarks.bench_trim_regions``,
+#: benchmarks/results/trim_regions.md; figures in docs/cores/trim_regions.md), rounded up.
 SECONDS_PER_GATHER_PIXEL = 1e-8
 BYTES_PER_TRIANGLE = 160
 

@@ -21,8 +21,8 @@ from the centre (σ > 0) and narrows that of one lying towards it (σ < 0), down
 where v*'s frustum edge grazes the sphere. Where z <= R + Δ the silhouette may be beside an
 eye and the whole face is trimmed. ``TRIM_MARGIN_PX`` pixels are added for pixel-centre
 sampling: a pixel whose square meets the region has its centre within sqrt(2) / 2 px of it,
-so the quads are rasterized conservatively. (An earlier 1.5 px bought no pixel in 16
-measured cells of six scenes and cost 5-15 % of the PVS.)
+so the quads are rasterized conservatively. (A wider margin bought no fewer missed pixels
+and a larger PVS: docs/cores/trim_regions.md.)
 
 Each trim quad is drawn in the earliest layer of any leaf its 3D extent meets (the edge's box
 grown by the trim width at its depth), so a trim fragment is in the k-buffer no later than the

@@ -81,3 +81,17 @@ def test_no_misses(name, core_name):
     assert missed.tolist() == [], (
         f"{core_name} misses {len(missed)} of {len(ref.ids)} triangles the rays see in "
         f"{name}:\n{describe(case.scene, ref, missed, case.box)}")
+
+
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+def test_cos_coarse_pass_misses_nothing(name):
+    # Every screen tile takes the coarse pass (on these small scenes none would by default):
+    # what it leaves out of the per-pixel lists must be hidden for the whole tile.
+    case = CASES[name]
+    core = get_core("cos")
+    pvs = core.compute(case.scene, Viewcell(case.box), core.make_params(coarse_items=1))
+    assert pvs.stats["coarse_tiles"] > 0
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos with the coarse pass misses {len(missed)} triangles in {name}:\n"
+        f"{describe(case.scene, reference(name), missed, case.box)}")

@@ -31,9 +31,13 @@ from visibility.cores.dual_ray.core import NotTwoPointFiveD
 from visibility.ray_reference import RaySample, confirm, describe
 from visibility.viewcells import Viewcell
 
+#: Real scenes: out of the fast lane (``-m "not slow"``), always in CI.
+pytestmark = pytest.mark.slow
+
 #: Cell sizes (cube sides, metres) and cells per scene and size.
 SIZES = (0.3, 1.0)
-CELLS = 2
+#: One cell per scene and size here; the benchmark scores three (``bench_conservative``).
+CELLS = 1
 #: The reference per cell: random eyes (+ 8 corners), random directions per eye, seed.
 EYES = 96
 DIRS = 2048
@@ -53,6 +57,9 @@ def cells(name: str, size: float) -> list[tuple[int, np.ndarray, RaySample]]:
 
 CASES = [(name, size, k, core) for name in REAL for size in SIZES for k in range(CELLS)
          for core in ("cos", "dual_ray") if name not in BENCHMARK_ONLY.get(core, ())]
+#: ``cos`` with its coarse pass on every screen tile (by default only cluttered tiles take it):
+#: the 0.3 m cell.
+COARSE = [(name, 0.3) for name in REAL if name not in BENCHMARK_ONLY["cos"]]
 
 
 def test_every_named_scene_is_there():
@@ -84,6 +91,19 @@ def test_no_confirmed_misses(name, size, k, core_name):
         f"{core_name} misses {len(sure)} of {len(ref.ids)} triangles the rays see from "
         f"{name}'s {size:g} m cell {box.tolist()} (float64-confirmed; {len(missed)} before "
         f"confirming):\n{describe(scene, ref, sure, box)}")
+
+
+@pytest.mark.parametrize("name,size", COARSE)
+def test_cos_coarse_pass_no_confirmed_misses(name, size):
+    scene = real_scene(name)
+    _, box, ref = cells(name, size)[0]
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(coarse_items=1))
+    assert pvs.stats["coarse_tiles"] > 0
+    sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
+    assert sure.tolist() == [], (
+        f"cos with the coarse pass misses {len(sure)} of {len(ref.ids)} triangles the rays see "
+        f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
 @pytest.mark.parametrize("name", [n for n in REAL if n in ("kitchen", "lavaducts")])

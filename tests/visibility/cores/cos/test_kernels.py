@@ -278,8 +278,98 @@ def test_face_subsets_drop_only_empty_footprints():
                        v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
                        v.y_lo, v.pw, tol, full)
             listed = np.flatnonzero(full[:, 0] <= full[:, 1])
-            assert np.isin(listed, subsets[v.face]).all(), (v.face, v.kind)
-            assert len(subsets[v.face]) < len(order)
+            assert subsets[v.face][listed].all(), (v.face, v.kind)
+            assert not subsets[v.face].all()
+
+
+def _ray_hits(tri: np.ndarray, orig: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Rows of ``tri`` (k, 3, 3) that any ray (orig (r, 3), dirs (r, 3)) meets at t >= 0
+    (Moller-Trumbore, every hit, not only the first), in chunks of rays."""
+    hit = np.zeros(len(tri), dtype=bool)
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    for a in range(0, len(orig), 256):
+        o = orig[a:a + 256, None, :]
+        d = dirs[a:a + 256, None, :]
+        pv = np.cross(d, e2[None])
+        det = np.einsum("rkc,kc->rk", pv, e1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            tv = o - tri[None, :, 0]
+            u = np.einsum("rkc,rkc->rk", tv, pv) * inv
+            qv = np.cross(tv, e1[None])
+            v = np.einsum("rkc,rkc->rk", np.broadcast_to(d, qv.shape), qv) * inv
+            t = np.einsum("rkc,kc->rk", qv, e2) * inv
+            ok = (np.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0)
+        hit |= ok.any(axis=0)
+    return hit
+
+
+def test_the_tree_cull_keeps_what_the_views_rays_meet():
+    # The hierarchy walk (``cull``) keeps every primitive a ray of the view meets (rays from
+    # points of the camera rectangle through the image window, edges included, every hit
+    # along them) and every one whose footprint is a real pixel box (not the whole view of a
+    # primitive reaching the near box), and on the city drops most of the others: on a city
+    # cell, on a georeferenced copy of it (coordinates near 1e6 m) and on a box cell inside
+    # random triangles.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.cull import cell_tree, view_planes, view_positions
+    from visibility.cores.cos.lists import footprints
+    from visibility.cores.cos.prims import build_prims, distance_order
+    from visibility.generators import make_scene
+    from visibility.raster.hierarchy import build_hierarchy
+
+    city = make_scene("city", triangles=3000)
+    shift = np.array([6.0e5, 0.0, 5.2e6])
+    geo = Scene(city.vertices + shift, city.faces, name="geo")
+    rng_ = np.random.default_rng(5)
+    soup = rng_.uniform(-1.0, 1.0, (400, 3, 3)) + rng_.uniform(-0.3, 0.3, (400, 1, 3))
+    cases = [(city, cell_around(city, 1.0, 0)), (geo, cell_around(city, 1.0, 0) + shift),
+             (_scene(soup), np.array([[-0.2] * 3, [0.2] * 3]))]
+    g = np.linspace(0.0, 1.0, 3)
+    for scene, box in cases:
+        centre = box.mean(axis=0)
+        half = 0.5 * (box[1] - box[0])
+        prims = build_prims(scene, centre, weld_vertices(scene.vertices))
+        order, _ = distance_order(prims, half)
+        tree = cell_tree(build_hierarchy(scene.vertices, scene.faces, leaf_size=4), prims,
+                         order, scene.n_triangles, centre)
+        tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+        every = np.arange(len(order), dtype=np.int64)
+        keep = np.ones(len(order), dtype=bool)
+        tri_of = prims.out_id[order]  # triangle id at each position
+        cam_tri = (scene.vertices[scene.faces] - centre)
+        kept = 0
+        for v in side_plane_views(box, 32):
+            full = np.empty((len(order), 4), dtype=np.int32)
+            footprints(prims.pts, prims.start, prims.npts, prims.kind, order, every, v.origin,
+                       v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
+                       v.y_lo, v.pw, tol, full)
+            planes = view_planes(v.corners, v.x_lo, v.y_lo, v.nx, v.ny, v.pw, 4.0 * tol)
+            out = np.empty(len(order), dtype=np.int64)
+            sel = out[:view_positions(tree, keep, v.origin, v.perm, v.sign, planes, out)]
+            boxed = (full[:, 0] <= full[:, 1]) & ~((full[:, 0] == 0) & (full[:, 1] == v.ny - 1)
+                                                   & (full[:, 2] == 0) & (full[:, 3] == v.nx - 1))
+            assert np.isin(np.flatnonzero(boxed), sel).all(), (scene.name, v.face, v.kind)
+            # Rays in camera space, taken back to the cell's frame (x, y, w -> world axes).
+            c = v.corners
+            pts = np.array([c[0] + a * (c[1] - c[0]) + b * (c[3] - c[0]) for a in g for b in g])
+            tu = v.x_lo + np.linspace(0.0, 1.0, 9) * v.nx * v.pw
+            tv = v.y_lo + np.linspace(0.0, 1.0, 9) * v.ny * v.pw
+            dcam = np.array([[x, y, 1.0] for x in tu for y in tv])
+            orig = np.repeat(pts, len(dcam), axis=0)
+            dirs = np.tile(dcam, (len(pts), 1))
+            world_o = np.empty_like(orig)
+            world_d = np.empty_like(dirs)
+            for k in range(3):
+                world_o[:, v.perm[k]] = v.sign[k] * orig[:, k] + v.origin[v.perm[k]]
+                world_d[:, v.perm[k]] = v.sign[k] * dirs[:, k]
+            met = np.flatnonzero(_ray_hits(cam_tri, world_o, world_d))
+            pos_met = np.flatnonzero(np.isin(tri_of, met))
+            assert np.isin(pos_met, sel).all(), (scene.name, v.face, v.kind)
+            kept += len(sel)
+        if scene.name != "scene":  # the soup surrounds its cell: every view meets most of it
+            assert kept < 0.5 * 30 * len(order), scene.name
 
 
 def test_open_edge_share_counts_borders_and_t_junctions():

@@ -14,9 +14,9 @@ from functools import cache
 import numpy as np
 import pytest
 
-from tests.visibility.cores.cos.reference import dense_reference
 from visibility.cores.base import get_core
 from visibility.generators import make_scene
+from visibility.ground_truth import dense_reference
 from visibility.viewcells import Viewcell, ViewcellGrid
 
 CORE = get_core("dual_ray")

@@ -25,6 +25,9 @@ from visibility.loaders import load_scene
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 from visibility.viewcells import ViewcellGrid
 
+#: Real scenes: out of the fast lane (``-m "not slow"``), always in CI.
+pytestmark = pytest.mark.slow
+
 RES, JITTER, SEED, POINTS = 32, 0.5, 7, 48
 
 

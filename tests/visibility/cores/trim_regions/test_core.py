@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 
 import visibility.cores.trim_regions.pipeline as pipeline
-from tests.visibility.cores.cos.reference import cell_around
 from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import get_core
 from visibility.generators import make_scene
-from visibility.ground_truth import sample_pvs
+from visibility.ground_truth import cell_around, sample_pvs
 from visibility.scene import moving_faces
 from visibility.topology import unseen_back_faces
 from visibility.viewcells import Viewcell

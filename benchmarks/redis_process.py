@@ -8,12 +8,11 @@ the binary is here (tests fail with that reason when it is not: a broken set-up)
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import tempfile
 import time
 
-from tests.processes import stop_process
+from benchmarks.common import free_port, stop_process
 
 REDIS_SERVER = "redis-server"
 
@@ -21,13 +20,6 @@ REDIS_SERVER = "redis-server"
 def available() -> bool:
     """Whether ``redis-server`` is on PATH."""
     return shutil.which(REDIS_SERVER) is not None
-
-
-def free_port() -> int:
-    """A TCP port free on 127.0.0.1 now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class RedisProcess:

@@ -1,0 +1,184 @@
+"""Open floor inside a cell and the from_segment segments around it, on a built room."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from visibility.cell_walk import (
+    MAX_LATTICE,
+    STEP,
+    _hits_along,
+    cell_walk,
+    clear_pieces,
+    lattice_step,
+    walk_segments,
+)
+from visibility.cores.base import get_core
+from visibility.cores.from_segment import view_segments
+from visibility.scene import Scene
+from visibility.viewcells import Viewcell
+
+BOX = np.array([[0.0, 1.5, 0.0], [4.0, 1.9, 4.0]])  # a 4 m cell, eyes 1.5-1.9 m above y = 0
+
+
+def _solid(tris, lo, hi):
+    """A closed axis-aligned box, counter-clockwise seen from outside (outward normals)."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    c = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    for a, b, d, e in quads:
+        tris.append([c[a], c[b], c[d]])
+        tris.append([c[a], c[d], c[e]])
+
+
+def _room():
+    """Floor 20 x 20 m at y = 0; a closed 0.3 m thick wall across the cell at x 1.85-2.15
+    (z -10 to 10, 3 m high) hiding a small triangle inside it; a table 1.0-1.6 x 0.4-1.4 (top
+    0.75 m); the rest of the cell open. Returns the scene and the triangle ids."""
+    tris = []
+    tris.append([[-10, 0, -10], [-10, 0, 10], [10, 0, 10]])
+    tris.append([[-10, 0, -10], [10, 0, 10], [10, 0, -10]])
+    n0 = len(tris)
+    _solid(tris, (1.85, 0.0, -10.0), (2.15, 3.0, 10.0))
+    wall = list(range(n0, len(tris)))
+    n0 = len(tris)
+    _solid(tris, (1.0, 0.7, 0.4), (1.6, 0.75, 1.4))
+    table = list(range(n0, len(tris)))
+    # Inside the wall, facing +x: only an eye inside the wall can see it.
+    tris.append([[2.0, 1.6, 1.9], [2.0, 1.6, 2.1], [2.0, 1.8, 2.0]])
+    inside = [len(tris) - 1]
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    scene = Scene(v, np.arange(len(v)).reshape(-1, 3), name="walled-room")
+    return scene, {"wall": wall, "table": table, "inside": inside}
+
+
+def test_open_floor_excludes_wall_and_table():
+    scene, _ = _room()
+    w = cell_walk(scene, BOX, step=0.1)
+    gx, gz = np.meshgrid(w.xs, w.zs, indexing="ij")
+    in_wall = (gx > 1.85 + 1e-9) & (gx < 2.15 - 1e-9)
+    under_table = (gx > 1.0 + 1e-9) & (gx < 1.6 - 1e-9) & (gz > 0.4 + 1e-9) & (gz < 1.4 - 1e-9)
+    assert not w.open[in_wall].any()
+    assert not w.open[under_table].any()
+    e = 1e-6  # points on a solid's face may go either way
+    elsewhere = ~((gx >= 1.85 - e) & (gx <= 2.15 + e)) & ~(
+        (gx >= 1.0 - e) & (gx <= 1.6 + e) & (gz >= 0.4 - e) & (gz <= 1.4 + e))
+    assert w.open[elsewhere].all()
+    assert w.open_area == pytest.approx(w.open.sum() * 0.01)
+
+
+def _crossings(seg, tris):
+    buf = np.empty(64)
+    n, _ = _hits_along(np.asarray(seg[0], float), np.asarray(seg[1], float), tris, buf)
+    return n
+
+
+def test_no_segment_passes_through_geometry():
+    scene, _ = _room()
+    tris = scene.triangles().astype(np.float64)
+    old, how_old = view_segments(scene, BOX, 3, "rectangle")
+    assert how_old == "rectangle"
+    assert sum(_crossings(s, tris) for s in old) > 0  # the cell's sides cross the wall
+    segs, how = view_segments(scene, BOX, 3, "open")
+    assert how == "open" and len(segs) > 0
+    assert all(_crossings(s, tris) == 0 for s in segs)
+    # Dense check too: points along every segment lie outside the wall and the table.
+    t = np.linspace(0.0, 1.0, 101)[:, None]
+    pts = np.concatenate([s[0] + t * (s[1] - s[0]) for s in segs])
+    assert not ((pts[:, 0] > 1.85) & (pts[:, 0] < 2.15)).any()
+    # Both sides of the wall are walked, at every eye height.
+    assert (pts[:, 0] < 1.85).any() and (pts[:, 0] > 2.15).any()
+    assert set(np.round(segs[:, :, 1].ravel(), 6)) == {1.5, 1.7, 1.9}
+
+
+def test_clear_pieces_split_at_a_thin_wall():
+    tri = np.array([[[1.0, -5, -5], [1.0, 5, -5], [1.0, 0, 5]]], dtype=np.float64)
+    pieces = clear_pieces(np.array([0.0, 0, 0]), np.array([3.0, 0, 0]), tri, 0.1, margin=0.2)
+    assert len(pieces) == 2
+    assert 0.75 <= pieces[0][1][0] <= 0.8 and 1.2 <= pieces[1][0][0] <= 1.25
+    assert clear_pieces(np.zeros(3), np.zeros(3), tri) == []
+
+
+def test_pvs_drops_what_only_the_inside_of_the_wall_sees():
+    scene, ids = _room()
+    core = get_core("from_segment")
+    cell = Viewcell(BOX)
+    old = core.compute(scene, cell, core.make_params(resolution=128, walk="rectangle"))
+    new = core.compute(scene, cell, core.make_params(resolution=128))
+    assert set(ids["inside"]) <= set(old.triangle_ids.tolist())
+    assert not set(ids["inside"]) & set(new.triangle_ids.tolist())
+    assert set(ids["table"]) & set(new.triangle_ids.tolist())
+    assert new.stats["walk"] == "open"
+
+
+def test_cell_with_no_open_floor_walks_its_rectangle():
+    scene, _ = _room()
+    inside_wall = np.array([[1.9, 1.5, 0.0], [2.1, 1.9, 4.0]])
+    assert walk_segments(scene, inside_wall, [1.7]).shape == (0, 2, 3)
+    segs, how = view_segments(scene, inside_wall, 1, "open")
+    assert how == "rectangle (no open floor in the cell)" and len(segs) == 4
+    line = np.array([[0.0, 1.7, 1.0], [1.0, 1.7, 1.0]])
+    assert view_segments(scene, line, 1, "open")[1] == "rectangle (degenerate box)"
+    with pytest.raises(ValueError):
+        view_segments(scene, BOX, 1, "walls")
+    with pytest.raises(ValueError):
+        cell_walk(scene, BOX, step=0.0)
+
+
+def test_clear_pieces_keep_off_a_parallel_thin_wall():
+    # A wall 5 cm beside the middle metre of the segment, parallel to it: nearer than the
+    # cubemap's near-plane corners, so that stretch is dropped; the ends stay.
+    wall = np.array([[[1.0, -5, 0.05], [2.0, -5, 0.05], [2.0, 5, 0.05]],
+                     [[1.0, -5, 0.05], [2.0, 5, 0.05], [1.0, 5, 0.05]]], dtype=np.float64)
+    pieces = clear_pieces(np.array([0.0, 0, 0]), np.array([3.0, 0, 0]), wall, 0.1, 0.1)
+    assert len(pieces) == 2
+    assert pieces[0][1][0] < 1.0 and pieces[1][0][0] > 2.0
+    far = clear_pieces(np.array([0.0, 0, 0.5]), np.array([3.0, 0, 0.5]), wall, 0.1, 0.1)
+    assert len(far) == 1 and far[0][1][0] == pytest.approx(3.0)
+
+
+def test_cost_estimate_uses_found_segments_without_casting():
+    scene, _ = _room()
+    core = get_core("from_segment")
+    cell = Viewcell(BOX + np.array([0.0, 0.0, 10.0]))  # a cell no other test has walked
+    params = core.make_params(resolution=64)
+    before = core.estimate_cost(scene, cell, params).detail["views"]
+    assert before == 12  # nothing cast yet: the rectangle's count
+    segs, how = view_segments(scene, cell.box, 3, "open")
+    assert core.estimate_cost(scene, cell, params).detail["views"] == len(segs)
+
+
+def test_pvs_holds_what_dense_rays_from_the_segments_hit():
+    # The promise, checked on the segments themselves: from points along every walked segment,
+    # rays in random directions hit only triangles of the PVS, and never the one in the wall.
+    from tests.visibility.segment_reference import ray_triangle_depths
+
+    scene, ids = _room()
+    core = get_core("from_segment")
+    cell = Viewcell(BOX)
+    pvs = set(core.compute(scene, cell, core.make_params(resolution=128)).triangle_ids.tolist())
+    segs, _ = view_segments(scene, BOX, 3, "open")
+    tris = scene.triangles().astype(np.float64)
+    rng = np.random.default_rng(11)
+    hit = set()
+    for a, b in segs:
+        for t in np.linspace(0.0, 1.0, 9):
+            eye = a + t * (b - a)
+            w = rng.normal(size=(4000, 3))
+            w /= np.abs(w).max(axis=1, keepdims=True)  # depth 1 per unit along the major axis
+            d = ray_triangle_depths(tris - eye, w, 0.0)
+            first = d.argmin(axis=1)
+            hit |= set(first[np.isfinite(d.min(axis=1))].tolist())
+    assert ids["inside"][0] not in hit
+    assert hit <= pvs, sorted(hit - pvs)
+    assert set(ids["wall"]) & hit and set(ids["table"]) & hit
+
+
+def test_a_huge_cell_gets_a_coarser_lattice():
+    # A 1 km cell would hold 25M points at 0.2 m; it holds at most MAX_LATTICE a side.
+    box = np.array([[-500.0, -500.0, -500.0], [500.0, 500.0, 500.0]])
+    walk = cell_walk(_room()[0], box)
+    assert len(walk.xs) <= MAX_LATTICE and len(walk.zs) <= MAX_LATTICE
+    assert lattice_step(box) > STEP
+    assert lattice_step(np.array([[0.0, 0.0, 0.0], [4.0, 2.0, 4.0]])) == STEP

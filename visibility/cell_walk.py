@@ -1,0 +1,284 @@
+"""Where a person can walk inside one viewcell, at sub-cell resolution, and view segments there.
+
+``visibility.walkable`` finds walkable ground at cell resolution (a cell is walkable when most of
+its 3 x 3 samples agree on a floor). Inside such a cell there can still be walls, counters and
+closed solids: a viewcell's rectangle sides can run right through them, and an eye walking those
+sides sees what only the inside of a wall sees. This module samples a cell's XZ rectangle on a
+finer lattice (``step`` metres) and keeps the points where a standing person fits:
+
+- the vertical line from ``body`` metres below the cell's lowest eye up to its highest eye
+  crosses no triangle (no table top, shelf, ceiling or floor slab in the way), and
+- the point is not inside a closed solid: the first surface straight above faces up, i.e. the
+  line leaves a solid through its top (counter-clockwise winding unless
+  ``scene.meta["winding"] == "cw"``).
+
+A viewcell's box is one floor level (its Y range is the eye range above that floor), so the
+open part of each level a grid column holds comes from that level's own cell.
+
+``walk_segments`` turns the open part into view segments: the outline of each connected open
+region, one lattice step in from its edge where the region is large enough (marching squares,
+simplified), at the eye heights, cut wherever a segment comes within ``CLEARANCE`` of geometry
+to its side or meets it (a wall thinner than the lattice step), ``MARGIN`` short of it. No
+returned segment crosses a triangle of the scene.
+Conventions: Y-up, right-handed, metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.scene import Scene
+
+#: Lattice step inside a cell (metres).
+STEP = 0.2
+#: Most lattice points along a side: a larger cell gets a coarser lattice (a 1 km cell at 0.2 m
+#: would test 25M points where its cubemaps cost far less).
+MAX_LATTICE = 256
+#: How far below the lowest eye the body must be clear (metres): knees to eyes, so that table
+#: tops and counters block a standing place while seats and low kerbs do not.
+BODY = 1.0
+#: Segments stop this far short of a triangle they would meet (metres).
+MARGIN = 0.1
+#: Segments keep this far from geometry to either side (metres). The visibility cubemap's near
+#: plane is 0.05 m away, 0.087 m at its corners: an eye nearer a wall than that sees through it.
+CLEARANCE = 0.1
+#: Open regions smaller than this are dropped (square metres): gaps between chair legs.
+MIN_REGION_AREA = 0.25
+#: Most outline vertices per region and eye height: the outline is simplified (coarser
+#: tolerance) until it fits, since each segment costs a full cubemap pass.
+MAX_SIDES = 8
+
+
+@njit(cache=True)
+def _hits_along(p, q, tris, out_t):
+    """Parameters t in [0, 1] where segment p->q meets triangles (Moller-Trumbore, both faces);
+    returns how many were written to ``out_t`` and the normal-Y sign of the nearest hit."""
+    d = q - p
+    n = 0
+    best = np.inf
+    best_ny = 0.0
+    for i in range(tris.shape[0]):
+        a = tris[i, 0]
+        e1 = tris[i, 1] - a
+        e2 = tris[i, 2] - a
+        h0 = d[1] * e2[2] - d[2] * e2[1]
+        h1 = d[2] * e2[0] - d[0] * e2[2]
+        h2 = d[0] * e2[1] - d[1] * e2[0]
+        det = e1[0] * h0 + e1[1] * h1 + e1[2] * h2
+        if abs(det) < 1e-14:
+            continue
+        inv = 1.0 / det
+        s0, s1, s2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+        u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
+        if u < 0.0 or u > 1.0:
+            continue
+        c0 = s1 * e1[2] - s2 * e1[1]
+        c1 = s2 * e1[0] - s0 * e1[2]
+        c2 = s0 * e1[1] - s1 * e1[0]
+        v = (d[0] * c0 + d[1] * c1 + d[2] * c2) * inv
+        if v < 0.0 or u + v > 1.0:
+            continue
+        t = (e2[0] * c0 + e2[1] * c1 + e2[2] * c2) * inv
+        if t < 0.0 or t > 1.0:
+            continue
+        if n < out_t.shape[0]:
+            out_t[n] = t
+            n += 1
+        if t < best:
+            best = t
+            best_ny = e1[2] * e2[0] - e1[0] * e2[2]
+    return n, best_ny
+
+
+@njit(parallel=True, cache=True)
+def _open_points(px, pz, y_lo, y_hi, y_top, tris, sign):
+    """(n,) bool: the vertical line y_lo..y_hi at each point meets no triangle and the first
+    surface above y_hi (up to y_top) does not face down into the point (inside a solid)."""
+    n = px.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for s in prange(n):
+        buf = np.empty(1)
+        p = np.array([px[s], y_lo, pz[s]])
+        q = np.array([px[s], y_hi, pz[s]])
+        c, _ = _hits_along(p, q, tris, buf)
+        if c:
+            continue
+        r = np.array([px[s], y_top, pz[s]])
+        c, ny = _hits_along(q, r, tris, buf)
+        # Going up, leaving through a surface whose outward normal points up means inside.
+        out[s] = not (c and sign * ny > 0.0)
+    return out
+
+
+@dataclass(frozen=True)
+class CellWalk:
+    """The open part of a cell: ``open`` (nx, nz) bool on lattice points ``xs`` (nx,) and
+    ``zs`` (nz,) metres; ``box`` (2, 3) the cell box it was computed for."""
+
+    box: np.ndarray
+    xs: np.ndarray
+    zs: np.ndarray
+    open: np.ndarray
+
+    @property
+    def open_area(self) -> float:
+        """Open floor area in square metres (lattice points times the lattice cell area)."""
+        dx = self.xs[1] - self.xs[0] if len(self.xs) > 1 else 0.0
+        dz = self.zs[1] - self.zs[0] if len(self.zs) > 1 else 0.0
+        return float(self.open.sum() * dx * dz)
+
+
+def _near_triangles(scene: Scene, box: np.ndarray, pad: float, y_lo: float) -> np.ndarray:
+    """(m, 3, 3) float64 triangles whose bounds overlap the box's XZ rectangle (padded) and
+    reach above ``y_lo``."""
+    tris = scene.triangles().astype(np.float64)
+    lo = tris.min(axis=1)
+    hi = tris.max(axis=1)
+    keep = ((hi[:, 0] >= box[0, 0] - pad) & (lo[:, 0] <= box[1, 0] + pad)
+            & (hi[:, 2] >= box[0, 2] - pad) & (lo[:, 2] <= box[1, 2] + pad)
+            & (hi[:, 1] >= y_lo))
+    return np.ascontiguousarray(tris[keep])
+
+
+def _check_box(box: np.ndarray) -> np.ndarray:
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    if not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
+        raise ValueError(f"box must be finite with max >= min, got {b.tolist()}")
+    return b
+
+
+def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP, body: float = BODY) -> CellWalk:
+    """Open floor inside a cell box (2, 3) on a lattice of about ``step`` metres (see the
+    module docstring for what counts as open)."""
+    b = _check_box(box)
+    if not step > 0 or not body >= 0:
+        raise ValueError(f"step must be > 0 and body >= 0, got {step}, {body}")
+    step = lattice_step(b, step)
+    nx = max(2, int(math.ceil((b[1, 0] - b[0, 0]) / step)) + 1)
+    nz = max(2, int(math.ceil((b[1, 2] - b[0, 2]) / step)) + 1)
+    xs = np.linspace(b[0, 0], b[1, 0], nx)
+    zs = np.linspace(b[0, 2], b[1, 2], nz)
+    y_lo = b[0, 1] - body
+    tris = _near_triangles(scene, b, step, y_lo)
+    top = float(tris[:, :, 1].max()) + 1.0 if len(tris) else b[1, 1] + 1.0
+    gx, gz = np.meshgrid(xs, zs, indexing="ij")
+    sign = -1.0 if scene.meta.get("winding") == "cw" else 1.0
+    if len(tris):
+        ok = _open_points(gx.ravel(), gz.ravel(), y_lo, b[1, 1], max(top, b[1, 1] + 1e-6),
+                          tris, sign)
+    else:
+        ok = np.ones(gx.size, dtype=bool)
+    return CellWalk(b, xs, zs, ok.reshape(nx, nz))
+
+
+def lattice_step(box: np.ndarray, step: float = STEP) -> float:
+    """The lattice step (metres) used for a cell box (2, 3): ``step``, or coarser so that no
+    side holds more than ``MAX_LATTICE`` points."""
+    side = float(max(box[1, 0] - box[0, 0], box[1, 2] - box[0, 2]))
+    return max(step, side / (MAX_LATTICE - 1))
+
+
+def _outlines(walk: CellWalk) -> list[np.ndarray]:
+    """Closed XZ outlines (k, 2) of the open regions, each region's simplified to at most
+    MAX_SIDES vertices, in metres."""
+    from scipy import ndimage
+    from skimage.measure import approximate_polygon, find_contours
+
+    xs, zs = walk.xs, walk.zs
+    dx, dz = xs[1] - xs[0], zs[1] - zs[0]
+    labels, n = ndimage.label(walk.open)
+    out = []
+    for k in range(1, n + 1):
+        region = labels == k
+        if region.sum() * dx * dz < MIN_REGION_AREA:
+            continue
+        # Level 0.75 puts the outline a quarter step from the open samples toward the closed.
+        # One sample in from the edge, where there is room, keeps the outline off the walls.
+        inner = ndimage.binary_erosion(region, border_value=1)  # not off the cell's own sides
+        if inner.sum() * dx * dz >= MIN_REGION_AREA:
+            region = inner
+        img = np.pad(region.astype(np.float64), 1)
+        contours = find_contours(img, 0.75)
+        if not contours:
+            continue
+        c = max(contours, key=len) - 1.0  # the outer outline; holes are seen from it
+        tol = 0.5
+        poly = approximate_polygon(c, tol)
+        while len(poly) - 1 > MAX_SIDES and tol < max(img.shape):
+            tol *= 1.5
+            poly = approximate_polygon(c, tol)
+        xz = np.stack([xs[0] + poly[:, 0] * dx, zs[0] + poly[:, 1] * dz], axis=1)
+        xz[:, 0] = np.clip(xz[:, 0], xs[0], xs[-1])
+        xz[:, 1] = np.clip(xz[:, 1], zs[0], zs[-1])
+        out.append(xz)
+    return out
+
+
+def clear_pieces(p: np.ndarray, q: np.ndarray, tris: np.ndarray, clearance: float = CLEARANCE,
+                 margin: float = MARGIN) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pieces of segment p->q (3,) metres that keep ``clearance`` metres horizontally from every
+    triangle of ``tris`` (m, 3, 3) and stop ``margin`` metres short of one they would meet.
+
+    The segment is sampled every ``clearance / 2`` metres; a sample is kept when the horizontal
+    line across the segment through it, ``clearance`` to each side, meets no triangle and no
+    crossing of the segment itself lies within ``margin``; pieces join consecutive kept
+    samples.
+    """
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    d = q - p
+    length = float(np.linalg.norm(d))
+    if length == 0.0 or len(tris) == 0:
+        return [(p, q)] if length > 0.0 else []
+    buf = np.empty(4096)
+    n, _ = _hits_along(p, q, tris, buf)
+    cuts = np.sort(buf[:n])
+    side = np.array([-d[2], 0.0, d[0]])
+    side_len = float(np.linalg.norm(side))
+    side = side / side_len * clearance if side_len > 0 else np.array([clearance, 0.0, 0.0])
+    m = max(2, int(math.ceil(length / (0.5 * clearance))) + 1)
+    ts = np.linspace(0.0, 1.0, m)
+    keep = np.ones(m, dtype=bool)
+    if n:
+        keep &= np.abs(ts[:, None] - cuts[None, :]).min(axis=1) * length >= margin
+    one = np.empty(1)
+    for i in np.flatnonzero(keep):
+        c = p + ts[i] * d
+        keep[i] = _hits_along(c - side, c + side, tris, one)[0] == 0
+    out = []
+    i = 0
+    while i < m:
+        if not keep[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < m and keep[j + 1]:
+            j += 1
+        if j > i:
+            out.append((p + ts[i] * d, p + ts[j] * d))
+        i = j + 1
+    return out
+
+
+def walk_segments(scene: Scene, box: np.ndarray, heights: list[float], step: float = STEP,
+                  body: float = BODY) -> np.ndarray:
+    """(k, 2, 3) view segments around the open part of a cell at the given eye heights (metres),
+    none meeting a triangle of the scene; (0, 2, 3) when the cell has no open part."""
+    walk = cell_walk(scene, box, step, body)
+    b = walk.box
+    step = lattice_step(b, step)
+    tris = _near_triangles(scene, b, step + MARGIN + CLEARANCE, min(heights) - CLEARANCE)
+    segs = []
+    for xz in _outlines(walk):
+        for y in heights:
+            for i in range(len(xz) - 1):
+                p = np.array([xz[i, 0], y, xz[i, 1]])
+                q = np.array([xz[i + 1, 0], y, xz[i + 1, 1]])
+                segs.extend(clear_pieces(p, q, tris))
+    if not segs:
+        return np.zeros((0, 2, 3))
+    return np.array([[a, c] for a, c in segs])

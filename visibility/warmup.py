@@ -1,0 +1,84 @@
+"""Compile the numba kernels into their on-disk cache (``NUMBA_CACHE_DIR``) ahead of use.
+
+Every kernel is compiled at its first call in a process and cached; a fresh machine (a CI run, a
+new Docker image) pays that on its first cells instead of once. ``warm_up`` runs each core on
+the small inputs that reach its kernels (a static city, spheres, a keyframed scene) and the
+ground truth's rasterizer, split over a few processes, since numba compiles on one thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: The built-in work split in two groups of about equal compile time, one process each:
+#: cores by name, ``ground_truth`` (the sampled reference) and ``rays`` (the float64 caster).
+GROUPS: tuple[tuple[str, ...], ...] = (
+    ("cos", "sampling", "ground_truth", "dual_ray"),
+    ("from_segment", "trim_regions", "rays"),
+)
+
+
+def groups() -> list[tuple[str, ...]]:
+    """``GROUPS`` plus every other registered core (a plugin's), added to the first group."""
+    from visibility.cores.base import available_cores
+
+    known = {name for g in GROUPS for name in g}
+    extra = tuple(n for n in available_cores() if n not in known)
+    return [GROUPS[0] + extra, *GROUPS[1:]]
+
+
+def _scenes() -> list:
+    """Small scenes reaching every kernel path: static triangles, spheres, keyframed motion."""
+    from visibility.generators import make_scene
+
+    return [make_scene("city", triangles=2000), make_scene("spheres", triangles=1000),
+            make_scene("swaying_grass", triangles=1000)]
+
+
+def _warm(names: tuple[str, ...]) -> float:
+    """Run the named cores (and ``ground_truth``, ``rays``) once per small scene; seconds."""
+    from visibility.cores.base import get_core
+    from visibility.ground_truth import cell_around, sample_pvs
+    from visibility.viewcells import Viewcell
+
+    t0 = time.perf_counter()
+    for scene in _scenes():
+        box = cell_around(scene, 0.3, 0)
+        for name in names:
+            if name == "ground_truth":
+                sample_pvs(scene, Viewcell(box), n_points=2, resolution=16)
+            elif name == "rays":
+                from visibility.ray_reference import exact_first_hits
+
+                tri = np.asarray(scene.vertices[scene.faces[:4]], dtype=np.float64)
+                ids = np.full(1, -1, dtype=np.int64)
+                exact_first_hits(tri, tri.min(axis=1), tri.max(axis=1), np.zeros((1, 3)),
+                                 np.ones((1, 3)), np.zeros(1), ids, np.zeros(1))
+            else:
+                core = get_core(name)
+                # The kernels' types do not depend on the values: the cheapest level will do.
+                knob = {core.knob: min(core.knob_levels)} if core.knob else {}
+                try:
+                    core.compute(scene, Viewcell(box), core.make_params(**knob))
+                except (ValueError, NotImplementedError) as e:
+                    # A core that refuses an input (dual_ray and interiors) compiled what it met.
+                    log.debug("%s refused %s: %s", name, scene.name, e)
+    return time.perf_counter() - t0
+
+
+def warm_up(processes: int = 2) -> dict[str, float]:
+    """Compile every core's kernels into the numba cache; seconds per group of cores.
+
+    Returns {"cos+sampling+ground_truth+dual_ray": s, ...}; run once after install
+    (``pvs warmup``)."""
+    ctx = get_context("spawn")
+    with ProcessPoolExecutor(max(1, processes), mp_context=ctx) as pool:
+        futures = {"+".join(g): pool.submit(_warm, g) for g in groups()}
+        return {k: f.result() for k, f in futures.items()}
