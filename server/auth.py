@@ -19,8 +19,8 @@ Open without a token: ``/health`` (liveness probes), the API's description
 (``/openapi.json``, ``/docs``, ``/redoc``: the same for everyone, no data, and the docs page's
 "Authorize" button is how a person tries the API with a token) and the browser viewer's page and
 static files (``VIEWER_FILES``: no data either, and a browser opening a page sends no
-``Authorization`` header; the page then sends its token on every data request). ``/metrics`` needs a token:
-Prometheus sends one (``authorization: {credentials_file: ...}``).
+``Authorization`` header; the page then sends its token on every data request). ``/metrics``
+needs a token: Prometheus sends one (``authorization: {credentials_file: ...}``).
 """
 
 from __future__ import annotations

@@ -5,7 +5,9 @@
 // close, or no welcome within HELLO_TIMEOUT_MS end the connection with a message for the person
 // (onStatus) and a new connection after a back-off (1 s doubling to 10 s); the new session
 // starts from nothing (onReset), as the server's does. A refused hello (unknown scene or core,
-// bad parameters, another protocol version) is final: reconnecting cannot change the answer.
+// bad parameters, another protocol version, a token refused or not allowed the scene) is final:
+// reconnecting with the same token cannot change the answer (onRefused lets the page ask for
+// another).
 
 import { decodeFrame, helloMessage, parseServerMessage, poseMessage } from "./decode.js";
 
@@ -17,7 +19,8 @@ const FINAL = new Set(["unknown_scene", "unknown_core", "bad_params", "unsupport
 
 export class Connection {
   /** `url`: the ws(s):// URL of /ws; `hello`: helloMessage's fields; handlers: onWelcome(w),
-   * onMessage(msg), onFrame(decoded), onStatus({text, level}), onReset(); `protocols`: the
+   * onMessage(msg), onFrame(decoded), onStatus({text, level}), onReset(), onRefused(msg) (a
+   * final refusal of the hello, optional); `protocols`: the
    * subprotocols to offer (token.js wsProtocols: how a browser presents a token). */
   constructor(url, hello, handlers, protocols = []) {
     this.url = url;
@@ -79,6 +82,7 @@ export class Connection {
       this.h.onMessage(msg);
       if (final) {
         this.stop(`the server refused: ${msg.code}: ${msg.message}`);
+        if (this.h.onRefused) this.h.onRefused(msg);
         return;
       }
       this.fail(ws, `the server ended the session: ${msg.code}: ${msg.message}`);

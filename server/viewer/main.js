@@ -16,7 +16,9 @@ import { FrameKind } from "./decode.js";
 import { formatBytes, Overlay } from "./overlay.js";
 import { ViewRenderer } from "./render.js";
 import { SceneStore } from "./scene_store.js";
-import { askForToken, authorized, currentToken, forgetToken, takeToken, wsProtocols } from "./token.js";
+import {
+  askForToken, authorized, currentToken, forgetToken, takeToken, wsProtocols,
+} from "./token.js";
 import { duration, parseWalkthrough, poseAt } from "./walk.js";
 
 const POSE_INTERVAL_S = 0.1; // free walking: a pose every 100 ms while moving
@@ -125,7 +127,8 @@ class Viewer {
       onFrame: (f) => this.onFrame(f),
       onStatus: (s) => overlay.setStatus(s),
       onReset: () => this.reset(),
-    });
+      onRefused: (m) => { if (m.code === "unauthorized") refused(); },
+    }, wsProtocols(wsUrl()));
   }
 
   /** A new session: nothing held, nothing streamed; a replay keeps its place. */

@@ -21,31 +21,41 @@ export function isToken(text) { return TOKEN_CHARS.test(text); }
 /** Read a token from the URL fragment into storage and take it out of the address bar (the
  * rest of the fragment stays); the token held, or null. */
 export function takeToken() {
-  const hash = window.location.hash.replace(/^#/, "");
-  if (hash) {
-    const frag = new URLSearchParams(hash);
-    if (frag.has("token")) {
-      const token = frag.get("token").trim();
-      frag.delete("token");
-      const rest = frag.toString();
-      history.replaceState(history.state, "",
-        window.location.pathname + window.location.search + (rest ? `#${rest}` : ""));
-      if (token) setToken(token);
-    }
-  }
+  const parts = window.location.hash.replace(/^#/, "").split("&");
+  const found = parts.filter((p) => p.startsWith("token="));
+  if (!found.length) return currentToken();
+  // Not URLSearchParams: it reads "+" as a space, and "+" is one of a token's characters.
+  const token = decodeFragment(found[0].slice("token=".length)).trim();
+  const rest = parts.filter((p) => p && !p.startsWith("token=")).join("&");
+  history.replaceState(history.state, "",
+    window.location.pathname + window.location.search + (rest ? `#${rest}` : ""));
+  if (token) setToken(token);
   return currentToken();
 }
 
+/** A fragment's value percent-decoded ("+" kept), or as it is when it does not decode. */
+function decodeFragment(text) {
+  try { return decodeURIComponent(text); } catch { return text; }
+}
+
+// The token in memory too: with storage turned off (a browser setting) the page still works
+// until it is opened again.
+let held = null;
+
 /** The token held, or null. */
 export function currentToken() {
-  try { return sessionStorage.getItem(KEY); } catch { return null; }
+  try { return sessionStorage.getItem(KEY) ?? held; } catch { return held; }
 }
 
+/** Keep `token` for this tab (sessionStorage, and memory where storage is off). */
 export function setToken(token) {
-  try { sessionStorage.setItem(KEY, token); } catch { /* storage off: nothing kept */ }
+  held = token;
+  try { sessionStorage.setItem(KEY, token); } catch { /* storage off: memory only */ }
 }
 
+/** Drop the token held (the server refused it). */
 export function forgetToken() {
+  held = null;
   try { sessionStorage.removeItem(KEY); } catch { /* storage off */ }
 }
 

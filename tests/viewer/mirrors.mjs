@@ -3,6 +3,7 @@
 import { readFileSync } from "node:fs";
 import { chooseEvictions } from "../../server/viewer/budget.js";
 import { lookRotation, shadeInto, unitIcosphere } from "../../server/viewer/shading.js";
+import { isToken } from "../../server/viewer/token.js";
 import { parseWalkthrough, poseAt } from "../../server/viewer/walk.js";
 
 const input = JSON.parse(readFileSync(0, "utf8"));
@@ -20,4 +21,5 @@ out.evict = chooseEvictions(e.ids, (id, o) => { o.splice(0, 3, ...cents.get(id))
   new Set(e.protect), e.eye, e.budget);
 const walk = parseWalkthrough(input.walk.data);
 out.poses = input.walk.times.map((t) => { const p = poseAt(walk, t); return [p.position, p.forward]; });
+out.isToken = input.tokens.map(isToken);
 process.stdout.write(JSON.stringify(out));

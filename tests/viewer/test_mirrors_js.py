@@ -1,8 +1,9 @@
 """The viewer's JavaScript mirrors of the headless client, run by node on the same inputs as the
 Python they mirror: face shading (``visibility.raster.shading.shade_colors``), the camera basis
 (``look_rotation``), the sphere mesh (trimesh's icosphere, as ``client.render`` draws spheres),
-the budget's eviction order (``client.budget.choose_evictions``) and walkthrough poses
-(``client.walkthrough``)."""
+the budget's eviction order (``client.budget.choose_evictions``), walkthrough poses
+(``client.walkthrough``) and what a token is (``protocol.auth.is_token``, before the page sends
+one)."""
 
 from __future__ import annotations
 
@@ -16,10 +17,15 @@ import trimesh
 
 from client.budget import choose_evictions
 from client.walkthrough import walkthrough_from_dict
+from protocol.auth import is_token
 from visibility.raster.camera import look_rotation
 from visibility.raster.shading import shade_colors
 
 SCRIPT = Path(__file__).with_name("mirrors.mjs")
+#: Tokens and not-tokens: lengths 15, 16, 512 and 513, each allowed character, others.
+TOKENS = ["a" * 15, "a" * 16, "b" * 512, "c" * 513, "AZaz09-._~+AZaz09", "A" * 16 + " ",
+          "A" * 16 + "\n", "tok/en0123456789ab", "tok=en0123456789ab", "tok%en0123456789ab",
+          "é" * 16, ""]
 
 
 def test_js_mirrors_agree_with_python():
@@ -38,7 +44,7 @@ def test_js_mirrors_agree_with_python():
               "look": looks.tolist(),
               "evict": {"ids": ids.tolist(), "centroids": cents.tolist(),
                         "protect": ids[:120].tolist(), "eye": [1.0, 1.7, -2.0], "budget": 100},
-              "walk": {"data": walk, "times": times}}
+              "walk": {"data": walk, "times": times}, "tokens": TOKENS}
     node = shutil.which("node") or shutil.which("nodejs")
     assert node, "node is not installed (scripts/setup.sh installs nodejs)"
     run = subprocess.run([node, str(SCRIPT)], input=json.dumps(inputs), capture_output=True,
@@ -63,3 +69,5 @@ def test_js_mirrors_agree_with_python():
     for t, (pos, fwd) in zip(times, out["poses"], strict=True):
         p, f = w.pose_at(t)
         assert np.allclose(pos, p, atol=1e-12) and np.allclose(fwd, f, atol=1e-12)
+    assert out["isToken"] == [is_token(t) for t in TOKENS]
+    assert sum(out["isToken"]) == 3
