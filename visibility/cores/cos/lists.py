@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.cores.cos.space import load_prim, overlaps, project
+from visibility.cores.cos.space import load_prim, overlaps_share, project, region_share
 
 #: Screen tile side in pixels.
 TILE = 8
@@ -220,8 +220,16 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
         cam = np.empty((8, 3))
         qv = np.empty((8, 2))
         qr = np.empty(8)
-        rv = np.empty((4, 2))
-        rr = np.empty(4)
+        # The offset region of each of the tile's pixels, computed once for all its items.
+        prv = np.empty((npix, 4, 2))
+        prr = np.empty((npix, 4))
+        preg = np.empty((npix, 12))
+        for loc in range(npix):
+            i = ty * TILE + loc // TILE
+            j = tx * TILE + loc % TILE
+            region_at(corners, x_lo + (j + 0.5) * pw, y_lo + (i + 0.5) * pw, h, 0.0,
+                      prv[loc], prr[loc])
+            region_share(prv[loc], prr[loc], preg[loc])
         m = 0
         skip = drop.shape[0] > 0
         for k in range(tile_off[tile], tile_off[tile + 1]):
@@ -241,10 +249,9 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
                 for j in range(j0, j1 + 1):
                     sx = x_lo + (j + 0.5) * pw
                     project(cam, n, sx, sy, h, 0.0, qv, qr)
-                    region_at(corners, sx, sy, h, 0.0, rv, rr)
-                    if not overlaps(qv, qr, n, tri, rv, rr):
-                        continue
                     loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                    if not overlaps_share(qv, qr, n, tri, prv[loc], prr[loc], preg[loc]):
+                        continue
                     tmp[m] = p
                     tloc[m] = loc
                     cnt[loc] += 1

@@ -116,18 +116,52 @@ def edges_separate(pv, m, qv, qr, nq, rv, rr):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def region_share(rv, rr, reg):  # pragma: no cover - numba
+    """What every overlap test against the grown offset region (hull of the 4 squares (rv,
+    rr)) reuses, into ``reg`` (12,): its box (x0, x1, y0, y1), then per edge a of its quad the
+    region's own support (lo, hi) along that edge's normal."""
+    x0, x1, y0, y1 = bbox(rv, rr, 4)
+    reg[0] = x0
+    reg[1] = x1
+    reg[2] = y0
+    reg[3] = y1
+    for a in range(4):
+        b = (a + 1) % 4
+        lr, hr = support(rv, rr, 4, rv[b, 1] - rv[a, 1], rv[a, 0] - rv[b, 0])
+        reg[4 + 2 * a] = lr
+        reg[5 + 2 * a] = hr
+
+
+@njit(cache=True, nogil=True, inline="always")
+def overlaps_share(qv, qr, nq, tri, rv, rr, reg):  # pragma: no cover - numba
+    """``overlaps`` with the region's share already computed (``region_share``): the lists
+    test many occludees against one pixel's region."""
+    qx0, qx1, qy0, qy1 = bbox(qv, qr, nq)
+    if qx1 < reg[0] or reg[1] < qx0 or qy1 < reg[2] or reg[3] < qy0:
+        return False
+    if tri and edges_separate(qv, 3, qv, qr, nq, rv, rr):
+        return False
+    for a in range(4):
+        b = (a + 1) % 4
+        nx = rv[b, 1] - rv[a, 1]
+        ny = rv[a, 0] - rv[b, 0]
+        if nx == 0.0 and ny == 0.0:
+            continue
+        lq, hq = support(qv, qr, nq, nx, ny)
+        if hq < reg[4 + 2 * a] or reg[5 + 2 * a] < lq:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     """Whether the grown occludee (hull of squares (qv, qr), n = nq) may meet the grown offset
     region (hull of the 4 squares (rv, rr)): separating-axis test on the axes x, y, the
     triangle's edge normals (``tri``) and the region's edge normals. Conservative: True unless
     an axis separates them (the list-building test of Sec. 4.2 with the Sec. 4.5 half pixel)."""
-    qx0, qx1, qy0, qy1 = bbox(qv, qr, nq)
-    rx0, rx1, ry0, ry1 = bbox(rv, rr, 4)
-    if qx1 < rx0 or rx1 < qx0 or qy1 < ry0 or ry1 < qy0:
-        return False
-    if tri and edges_separate(qv, 3, qv, qr, nq, rv, rr):
-        return False
-    return not edges_separate(rv, 4, qv, qr, nq, rv, rr)
+    reg = np.empty(12)
+    region_share(rv, rr, reg)
+    return overlaps_share(qv, qr, nq, tri, rv, rr, reg)
 
 
 @njit(cache=True, nogil=True)
