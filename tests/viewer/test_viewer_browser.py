@@ -16,8 +16,7 @@ import pytest
 
 from client.metrics import ssim
 from client.render import OffscreenRenderer
-from client.walkthrough import generate_walkthrough
-from tests.conftest import SMALL_GENERATED_TRIANGLES, serving
+from tests.conftest import serving
 from tests.viewer.chromium import (
     console_errors,
     snapshot,
@@ -25,30 +24,18 @@ from tests.viewer.chromium import (
     wait_state,
     walk_data_url,
 )
-from visibility.generators import make_scene
+from tests.viewer.fixed_walk import SCENE, SIZE, fixed_walk, walk_scene
 from visibility.raster.shading import BACKGROUND
-from visibility.viewcells import ViewcellGrid
-
-SCENE = "rooms"
-SIZE = 256
-#: The walk: 4 s at 1.4 m/s from a fixed seed, through 3 cells of 4 m. (Seed 1's middle pose
-#: faces a wall whose coplanar faces z-fight, which the two rasterizers resolve differently:
-#: 2,190 pixels differ there, SSIM 0.954; at seed 4's poses 0-30 pixels differ.)
-WALK_SECONDS, WALK_SEED = 4.0, 4
 
 
 @pytest.fixture(scope="module")
 def rooms():
-    return make_scene(SCENE, triangles=SMALL_GENERATED_TRIANGLES, seed=0)
+    return walk_scene()
 
 
 @pytest.fixture(scope="module")
 def walk(rooms):
-    grid = ViewcellGrid.for_scene(rooms)
-    w = generate_walkthrough(grid, duration=WALK_SECONDS, fps=10, seed=WALK_SEED)
-    cells = [grid.cell_of(p) for p in w.positions]
-    assert None not in cells and len(set(cells)) >= 2, "the fixed walk must cross cells"
-    return w, cells
+    return fixed_walk(rooms)
 
 
 @pytest.fixture(scope="module")
