@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from visibility.cores.from_segment.kernels import sample_offset
+from visibility.cores.from_segment.raster import sample_offset
 from visibility.raster import render_cubemap
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, pixel_rays
 

@@ -1,6 +1,6 @@
 """The ``from_segment`` core: continuous from-segment visibility (Popescu et al. 2024).
 
-A cell's PVS is the union of the segment visible sets (``kernels``) of its view segments: by
+A cell's PVS is the union of the segment visible sets (``segment``) of its view segments: by
 default the outline of the open floor in the cell (where a person can stand, through no wall or
 furniture; ``visibility.cell_walk``), or with ``walk="rectangle"`` the four sides of the cell's
 rectangle; at the box's mid height and, when the box has height, at its bottom and top (the
@@ -22,13 +22,8 @@ import numpy as np
 from visibility.cancel import checkpoint
 from visibility.cell_walk import walk_segments
 from visibility.cores.base import Core, CoreParams, Cost, param, register
-from visibility.cores.from_segment.kernels import (
-    CLUSTER,
-    DEFAULT_BATCH,
-    MAX_SPLIT_DEPTH,
-    scene_geometries,
-    segment_visible,
-)
+from visibility.cores.from_segment.geometry import CLUSTER, scene_geometries
+from visibility.cores.from_segment.segment import DEFAULT_BATCH, MAX_SPLIT_DEPTH, segment_visible
 from visibility.raster.camera import DEFAULT_NEAR, random_rotation
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -69,7 +64,7 @@ class FromSegmentParams(CoreParams):
         more time (benchmarks/results/from_segment.md, "First orientation").
     near : near-plane distance of the visibility cameras, metres.
     jitter : each pixel is sampled at a fixed pseudo-random point up to ``jitter`` pixels off its
-        centre per axis (``kernels.sample_offset``), a new pattern per segment and run; 0 samples
+        centre per axis (``raster.sample_offset``), a new pattern per segment and run; 0 samples
         the centres (the paper). Sub-pixel triangles slide along a line on the cube as the eye
         walks a side; with centres on a regular grid that line can pass between every row of
         centres, while jittered samples do not line up. Measured on the Lyon walk cells, 256 px:
@@ -85,7 +80,7 @@ class FromSegmentParams(CoreParams):
         the stats (``walk``): the grid made it a cell someone may enter, so it gets the
         conservative answer rather than an empty one.
     cuts : a side along which near geometry sweeps across much of the cube (pixel boxes adding
-        up to more than ``kernels.SPLIT_AREA`` cubes) is solved as halves, up to this many times
+        up to more than ``segment.SPLIT_AREA`` cubes) is solved as halves, up to this many times
         over; 0 never cuts. Same set, less time in clutter: the boxes shrink and occlusion bounds
         come nearer (static scenes only).
     depth_knots : depth of moving triangles and spheres is interpolated between multiples of

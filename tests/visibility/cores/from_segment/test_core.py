@@ -14,7 +14,8 @@ from visibility.cores.from_segment import (
     cell_segments,
     cube_rotations,
 )
-from visibility.cores.from_segment.kernels import scene_geometries, segment_visible
+from visibility.cores.from_segment.geometry import scene_geometries
+from visibility.cores.from_segment.segment import segment_visible
 from visibility.generators import make_scene
 from visibility.ground_truth import fn_fp_rates, sample_pvs
 from visibility.scene import Scene

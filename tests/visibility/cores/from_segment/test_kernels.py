@@ -7,13 +7,10 @@ import pytest
 
 from tests.visibility.segment_reference import jittered_visible, sampled_visible, unwitnessed
 from visibility.cores.from_segment.dynamic import cubic_roots01, quadratic_roots
-from visibility.cores.from_segment.kernels import (
-    envelope_insert,
-    pixel_bound,
-    sample_offset,
-    scene_geometries,
-    segment_visible,
-)
+from visibility.cores.from_segment.envelope import envelope_insert, pixel_bound
+from visibility.cores.from_segment.geometry import scene_geometries
+from visibility.cores.from_segment.raster import sample_offset
+from visibility.cores.from_segment.segment import segment_visible
 from visibility.raster import render_cubemap
 from visibility.raster.camera import random_rotation
 from visibility.scene import Scene
@@ -193,17 +190,17 @@ def test_jittered_spheres_are_confirmed_at_their_samples():
 
 
 def test_a_segment_cut_into_pieces_sees_what_the_whole_sees(monkeypatch):
-    """Pieces (``kernels._piece``): forced to cut every piece (up to 2^6 of them), the segment's
+    """Pieces (``segment._piece``): forced to cut every piece (up to 2^6 of them), the segment's
     visible set is the same as solved whole, every witness time is a time of the whole segment
     confirmed by a brute-force ray cast, and ``stats["splits"]`` counts the cuts."""
-    from visibility.cores.from_segment import kernels
+    from visibility.cores.from_segment import segment
 
     v, f = _soup(500, seed=41, lo=0.5, hi=4.0)
     scene = Scene(v, f)
     a, b = np.array([-0.9, 0.1, 0.3]), np.array([1.1, -0.3, 0.2])
     geom = scene_geometries(scene)[0]
     whole = segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2)
-    monkeypatch.setattr(kernels, "SPLIT_AREA", 0)
+    monkeypatch.setattr(segment, "SPLIT_AREA", 0)
     stats = {}
     assert np.array_equal(whole, segment_visible(geom, a, b, resolution=24, jitter=0.5, seed=2,
                                                  max_cuts=0, stats=stats))
@@ -219,11 +216,11 @@ def test_a_segment_cut_into_pieces_sees_what_the_whole_sees(monkeypatch):
 
 
 def test_moving_geometry_is_never_cut(monkeypatch):
-    from visibility.cores.from_segment import kernels
+    from visibility.cores.from_segment import segment
 
     v0, f = _soup(100, seed=42)
     scene = Scene(v0, f, states=np.stack([v0, v0 + 0.3]))
-    monkeypatch.setattr(kernels, "SPLIT_AREA", 0)
+    monkeypatch.setattr(segment, "SPLIT_AREA", 0)
     stats = {}
     segment_visible(scene_geometries(scene)[0], np.zeros(3), np.ones(3), resolution=16,
                     stats=stats)

@@ -16,11 +16,9 @@ from benchmarks.bench_matrix import SHARED_SCENES
 from benchmarks.bench_real_cells import walk_cells
 from tests.visibility.segment_reference import nearest_at_pixel, unwitnessed
 from visibility.cores.from_segment.core import cell_segments, oblique_rotation
-from visibility.cores.from_segment.kernels import (
-    sample_offset,
-    scene_geometries,
-    segment_visible,
-)
+from visibility.cores.from_segment.geometry import scene_geometries
+from visibility.cores.from_segment.raster import sample_offset
+from visibility.cores.from_segment.segment import segment_visible
 from visibility.loaders import load_scene
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 from visibility.viewcells import ViewcellGrid

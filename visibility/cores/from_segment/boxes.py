@@ -1,0 +1,357 @@
+"""Screen boxes of the primitives of a view segment, per cube face, and their binning into tiles.
+
+Pixels a primitive can touch: its swept volume (the convex hull of its corners at both ends,
+relative to the eye) clipped at the near plane and projected: the paper's hull of six points,
+made safe for points behind the eye.
+
+Whole clusters (``_cluster_boxes``), the triangles of expanded clusters (``_expanded_boxes``) and
+spheres (``_sphere_boxes``) each get a pixel box, a smallest depth and flags (``FLAG_*``) per
+face; ``_sort_and_bin`` orders them front to back and lists them per TILE x TILE pixel tile.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.cores.from_segment.spheres import sphere_box
+from visibility.raster.camera import cube_face_rotations
+from visibility.raster.face_pixels import pixel_range
+
+#: Side of a square screen tile in pixels (unit of parallel work and of occlusion culling).
+TILE = 16
+#: A cluster whose box covers more tiles than this (or reaches the near plane) is expanded.
+EXPAND_TILES = 4
+#: Depth buckets of the front-to-back counting sort.
+N_BUCKETS = 2048
+
+FLAG_PRESENT = 1
+FLAG_MOVING = 2
+FLAG_SLOW = 4  # may reach the near plane: per-pixel near constraint (and clipping) needed
+FLAG_SPHERE = 8
+FLAG_CLUSTER = 16
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+_PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
+
+
+def _face_permutation() -> tuple[np.ndarray, np.ndarray]:
+    """(6, 3) axis index and sign such that face camera coords = sign * cube coords[axis]."""
+    rots = cube_face_rotations(None)
+    perm = np.abs(rots).argmax(axis=2).astype(np.int64)
+    sgn = np.take_along_axis(rots, perm[..., None], axis=2)[..., 0].copy()
+    return perm, sgn
+
+
+_PERM, _SGN = _face_permutation()
+
+
+
+@njit(**_JIT)
+def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
+    """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
+    the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
+    hull reaches the near plane)."""
+    ax = perm[f, 2]
+    ix = perm[f, 0]
+    iy = perm[f, 1]
+    sd = -sgn[f, 2]
+    sx = sgn[f, 0]
+    sy = sgn[f, 1]
+    out_r = True
+    out_l = True
+    out_t = True
+    out_b = True
+    out_n = True
+    for q in range(npts):
+        x = sx * cube[q, ix]
+        y = sy * cube[q, iy]
+        d = sd * cube[q, ax]
+        if x <= d:
+            out_r = False
+        if -x <= d:
+            out_l = False
+        if y <= d:
+            out_t = False
+        if -y <= d:
+            out_b = False
+        if d >= near:
+            out_n = False
+    if out_r or out_l or out_t or out_b or out_n:
+        return False, 0.0, False
+    umin = np.inf
+    umax = -np.inf
+    vmin = np.inf
+    vmax = -np.inf
+    zm = np.inf
+    slow = False
+    for q in range(npts):
+        d = sd * cube[q, ax]
+        if d >= near:
+            u = sx * cube[q, ix] / d
+            v = sy * cube[q, iy] / d
+            umin = min(umin, u)
+            umax = max(umax, u)
+            vmin = min(vmin, v)
+            vmax = max(vmax, v)
+            zm = min(zm, d)
+        else:
+            slow = True
+    if slow:
+        # The clipped hull's vertices on the near plane lie on segments between the points.
+        zm = near
+        for q1 in range(npts):
+            d1 = sd * cube[q1, ax]
+            for q2 in range(q1 + 1, npts):
+                d2 = sd * cube[q2, ax]
+                if (d1 >= near) != (d2 >= near):
+                    s = (near - d1) / (d2 - d1)
+                    u = sx * (cube[q1, ix] + s * (cube[q2, ix] - cube[q1, ix])) / near
+                    v = sy * (cube[q1, iy] + s * (cube[q2, iy] - cube[q1, iy])) / near
+                    umin = min(umin, u)
+                    umax = max(umax, u)
+                    vmin = min(vmin, v)
+                    vmax = max(vmax, v)
+    if not (umin <= umax and vmin <= vmax):
+        return False, 0.0, False
+    if not pixel_range(umin, umax, vmin, vmax, res, box, pad):
+        return False, 0.0, False
+    return True, zm, slow
+
+
+@njit(**_JIT)
+def _sole_face(cube, npts, near):
+    """The one cube face whose frustum strictly holds all points beyond the near plane (then the
+    hull touches no other face), or -1."""
+    ax = 0
+    big = abs(cube[0, 0])
+    if abs(cube[0, 1]) > big:
+        ax = 1
+        big = abs(cube[0, 1])
+    if abs(cube[0, 2]) > big:
+        ax = 2
+    sg = 1.0 if cube[0, ax] >= 0.0 else -1.0
+    i1 = (ax + 1) % 3
+    i2 = (ax + 2) % 3
+    for q in range(npts):
+        d = sg * cube[q, ax]
+        if not (d >= near and abs(cube[q, i1]) < d and abs(cube[q, i2]) < d):
+            return -1
+    return 2 * ax + (0 if sg > 0.0 else 1)
+
+
+@njit(**_JIT)
+def _to_cube(rb, x, y, z, cube, q):
+    for r in range(3):
+        cube[q, r] = rb[r, 0] * x + rb[r, 1] * y + rb[r, 2] * z
+
+
+@njit(**_JIT)
+def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
+                         out_flag, first, last):  # pragma: no cover - numba
+    """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
+    corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
+    cube = np.empty((16, 3))
+    bx = np.empty(4, dtype=np.int64)
+    for c in range(first, last):
+        for k in range(8):
+            x = (lo_c[c, 0] if k & 1 else hi_c[c, 0]) - v0[0]
+            y = (lo_c[c, 1] if k & 2 else hi_c[c, 1]) - v0[1]
+            z = (lo_c[c, 2] if k & 4 else hi_c[c, 2]) - v0[2]
+            _to_cube(rb, x, y, z, cube, k)
+            _to_cube(rb, x - dvec[0], y - dvec[1], z - dvec[2], cube, k + 8)
+        for f in range(6):
+            out_flag[c, f] = 0
+        sole = _sole_face(cube, 16, near)
+        f_lo = 0 if sole < 0 else sole
+        f_hi = 6 if sole < 0 else sole + 1
+        for f in range(f_lo, f_hi):
+            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad)
+            if ok:
+                for r in range(4):
+                    out_box[c, f, r] = bx[r]
+                out_z[c, f] = zm
+                out_flag[c, f] = FLAG_PRESENT | (FLAG_SLOW if slow else 0)
+
+
+@njit(**_PJIT)
+def _cluster_boxes(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
+                   out_flag):  # pragma: no cover - numba
+    n = lo_c.shape[0]
+    nch = min(n, 256)
+    for ch in prange(nch):
+        _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box, out_z,
+                             out_flag, ch * n // nch, (ch + 1) * n // nch)
+
+
+@njit(**_JIT)
+def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
+    """The six cube-space points of triangle t: corners at t = 0 and t = 1 relative to the eye."""
+    for c in range(3):
+        vi = faces[t, c]
+        _to_cube(rb, verts0[vi, 0] - v0[0], verts0[vi, 1] - v0[1], verts0[vi, 2] - v0[2], cube, c)
+        _to_cube(rb, verts1[vi, 0] - v0[0] - dvec[0], verts1[vi, 1] - v0[1] - dvec[1],
+                 verts1[vi, 2] - v0[2] - dvec[2], cube, c + 3)
+
+
+@njit(**_JIT)
+def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
+                          sgn, res, near, pad, out_box, out_z, out_flag, first,
+                          last):  # pragma: no cover - numba
+    cube = np.empty((6, 3))
+    bx = np.empty(4, dtype=np.int64)
+    for k in range(first, last):
+        t = exp_tri[k]
+        f = exp_face[k]
+        out_flag[k] = 0
+        _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
+        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad)
+        if ok:
+            for r in range(4):
+                out_box[k, r] = bx[r]
+            out_z[k] = zm
+            out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
+                FLAG_SLOW if slow else 0)
+
+
+@njit(**_PJIT)
+def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
+                    res, near, pad, out_box, out_z, out_flag):  # pragma: no cover - numba
+    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters."""
+    n = exp_tri.shape[0]
+    nch = min(n, 256)
+    for ch in prange(nch):
+        _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
+                              perm, sgn, res, near, pad, out_box, out_z, out_flag, ch * n // nch,
+                              (ch + 1) * n // nch)
+
+
+@njit(**_JIT)
+def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: no cover
+    """Cluster prims (kept whole) and the (triangle, face) list of the expanded ones.
+
+    Returns (keep_cluster, keep_face, keep_box, keep_z, keep_flag, exp_tri, exp_face); cluster
+    indices are offset by ``first`` (the batch start)."""
+    nc = cflag.shape[0]
+    n_keep = 0
+    n_exp = 0
+    for c in range(nc):
+        for f in range(6):
+            fl = cflag[c, f]
+            if fl == 0:
+                continue
+            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
+                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
+            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+                n_exp += cl_start[first + c + 1] - cl_start[first + c]
+            else:
+                n_keep += 1
+    keep_cluster = np.empty(n_keep, dtype=np.int32)
+    keep_face = np.empty(n_keep, dtype=np.int32)
+    keep_box = np.empty((n_keep, 4), dtype=np.int32)
+    keep_z = np.empty(n_keep)
+    keep_flag = np.empty(n_keep, dtype=np.uint8)
+    exp_tri = np.empty(n_exp, dtype=np.int64)
+    exp_face = np.empty(n_exp, dtype=np.int64)
+    a = 0
+    b = 0
+    for c in range(nc):
+        for f in range(6):
+            fl = cflag[c, f]
+            if fl == 0:
+                continue
+            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
+                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
+            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+                for k in range(cl_start[first + c], cl_start[first + c + 1]):
+                    exp_tri[b] = cl_tris[k]
+                    exp_face[b] = f
+                    b += 1
+            else:
+                keep_cluster[a] = first + c
+                keep_face[a] = f
+                for r in range(4):
+                    keep_box[a, r] = cbox[c, f, r]
+                keep_z[a] = cz[c, f]
+                keep_flag[a] = FLAG_PRESENT | FLAG_CLUSTER
+                a += 1
+    return keep_cluster, keep_face, keep_box, keep_z, keep_flag, exp_tri, exp_face
+
+
+@njit(**_JIT)
+def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, pad, out_box, out_z,
+                  out_flag):  # pragma: no cover - numba
+    """Per selected sphere and cube face: pixel box, smallest depth and flags (0 = absent)."""
+    p0 = np.empty(3)
+    p1 = np.empty(3)
+    bx = np.empty(4, dtype=np.int64)
+    for k in range(sel.shape[0]):
+        s = sel[k]
+        for f in range(6):
+            out_flag[k, f] = 0
+            for r in range(3):
+                p0[r] = 0.0
+                p1[r] = 0.0
+                for c in range(3):
+                    p0[r] += rots[f, r, c] * (c0[s, c] - v0[c])
+                    p1[r] += rots[f, r, c] * (c1[s, c] - v0[c] - dvec[c])
+            ok, zm, slow = sphere_box(p0, p1, radii[s], near, res, bx, pad)
+            if ok:
+                for r in range(4):
+                    out_box[k, f, r] = bx[r]
+                out_z[k, f] = zm
+                out_flag[k, f] = FLAG_PRESENT | FLAG_SPHERE | FLAG_MOVING | (
+                    FLAG_SLOW if slow else 0)
+
+
+@njit(**_JIT)
+def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover - numba
+    """Approximate front-to-back order (log-depth buckets) and per-tile CSR lists in that order.
+
+    Returns (zkey, tile_start, tile_items): zkey[p] <= prim_z[p] is non-decreasing along each
+    tile's list, so a tile can stop at the first primitive whose key is behind its bound."""
+    n = prim_z.shape[0]
+    zmax = near
+    for p in range(n):
+        zmax = max(zmax, prim_z[p])
+    span = np.log(zmax / near) + 1e-9
+    scale = (N_BUCKETS - 1) / span
+    bucket = np.empty(n, dtype=np.int64)
+    counts = np.zeros(N_BUCKETS + 1, dtype=np.int64)
+    zkey = np.empty(n)
+    for p in range(n):
+        z = max(prim_z[p], near)
+        b = min(int(np.log(z / near) * scale), N_BUCKETS - 1)
+        bucket[p] = b
+        counts[b + 1] += 1
+        # Lower edge of the bucket, nudged down against rounding.
+        zkey[p] = min(prim_z[p], near * np.exp(b / scale) * (1.0 - 1e-12))
+    for b in range(N_BUCKETS):
+        counts[b + 1] += counts[b]
+    order = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        b = bucket[p]
+        order[counts[b]] = p
+        counts[b] += 1
+    ntx = (res + TILE - 1) // TILE
+    per_face = ntx * ntx
+    ntiles = 6 * per_face
+    tile_start = np.zeros(ntiles + 1, dtype=np.int64)
+    for p in range(n):
+        base = prim_face[p] * per_face
+        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
+            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+                tile_start[base + ty * ntx + tx + 1] += 1
+    for i in range(ntiles):
+        tile_start[i + 1] += tile_start[i]
+    fill = tile_start[:-1].copy()
+    items = np.empty(tile_start[ntiles], dtype=np.int32)
+    for q in range(n):
+        p = order[q]
+        base = prim_face[p] * per_face
+        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
+            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+                tl = base + ty * ntx + tx
+                items[fill[tl]] = p
+                fill[tl] += 1
+    return zkey, tile_start, items

@@ -1,0 +1,350 @@
+"""Rasterization and resolution of a view segment's tiles: each pixel's sample
+(``sample_offset``), each primitive's coverage composited into the envelopes of the pixels of a
+tile (``_raster``), the tiles resolved in parallel with occlusion culling (``_resolve``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from visibility.cores.from_segment.boxes import (
+    FLAG_CLUSTER,
+    FLAG_MOVING,
+    FLAG_SLOW,
+    FLAG_SPHERE,
+    TILE,
+)
+from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
+from visibility.cores.from_segment.envelope import (
+    EPS_LEN,
+    MAX_CAP,
+    START_CAP,
+    _grow,
+    envelope_insert,
+    pixel_bound,
+)
+from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
+from visibility.cores.from_segment.static import static_cover, static_setup
+from visibility.raster.face_pixels import pixel_range
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+_PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
+
+
+# ------------------------------------------------------------------------------ samples
+_U64_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_U64_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_U64_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+@njit(**_JIT)
+def _unit_hash(key):
+    """A float in [0, 1) from a uint64 key (splitmix64's finaliser): decorrelated for
+    neighbouring keys, so neighbouring pixels get unrelated offsets."""
+    z = key + _U64_GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _U64_MIX1
+    z = (z ^ (z >> np.uint64(27))) * _U64_MIX2
+    z = z ^ (z >> np.uint64(31))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(**_JIT)
+def sample_offset(face: int, row: int, col: int, res: int, jitter: float,
+                  seed: int) -> tuple[float, float]:
+    """Offset (dx, dy), in pixels along +x (columns) and +y (up, i.e. against rows), of pixel
+    (face, row, col)'s sample from its centre: uniform in [-jitter, jitter]^2, a fixed hash of
+    the pixel and ``seed``. ``jitter = 0`` gives the pixel centre."""
+    if jitter == 0.0:
+        return 0.0, 0.0
+    key = ((np.uint64(seed) * np.uint64(6) + np.uint64(face)) * np.uint64(res)
+           + np.uint64(row)) * np.uint64(res) + np.uint64(col)
+    k2 = key + key
+    return (jitter * (2.0 * _unit_hash(k2) - 1.0),
+            jitter * (2.0 * _unit_hash(k2 + np.uint64(1)) - 1.0))
+
+
+# ------------------------------------------------------------------------------ tile resolution
+@njit(**_JIT)
+def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
+    """Camera-space corners P of triangle t at t = 0 (relative to the eye), their velocities U
+    relative to the moving eye, and the world corners W (for canonical edge order). One formula
+    for every caller, so shared edges stay bit-identical."""
+    for c in range(3):
+        vi = faces[t, c]
+        for r in range(3):
+            W[c, r] = verts0[vi, r]
+        x = verts0[vi, 0] - v0[0]
+        y = verts0[vi, 1] - v0[1]
+        z = verts0[vi, 2] - v0[2]
+        mx = verts1[vi, 0] - verts0[vi, 0]
+        my = verts1[vi, 1] - verts0[vi, 1]
+        mz = verts1[vi, 2] - verts0[vi, 2]
+        for r in range(3):
+            P[c, r] = R[r, 0] * x + R[r, 1] * y + R[r, 2] * z
+            U[c, r] = R[r, 0] * mx + R[r, 1] * my + R[r, 2] * mz - dc[r]
+
+
+@njit(**_JIT)
+def _front_box(P, U, res, box, pad):
+    """Pixel box and smallest depth of a triangle's six swept points, all known to be in front
+    of the near plane (a cluster that is not near the eye)."""
+    umin = np.inf
+    umax = -np.inf
+    vmin = np.inf
+    vmax = -np.inf
+    zm = np.inf
+    for c in range(3):
+        for e in range(2):
+            x = P[c, 0] + e * U[c, 0]
+            y = P[c, 1] + e * U[c, 1]
+            d = -(P[c, 2] + e * U[c, 2])
+            inv = 1.0 / d
+            umin = min(umin, x * inv)
+            umax = max(umax, x * inv)
+            vmin = min(vmin, y * inv)
+            vmax = max(vmax, y * inv)
+            zm = min(zm, d)
+    return pixel_range(umin, umax, vmin, vmax, res, box, pad), zm
+
+
+@njit(**_JIT)
+def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, knots, coef,
+            env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy):
+    """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere) into
+    the envelopes of the pixels [ia, ib] x [ja, jb] of the current tile, sampled at their
+    centres moved by (jx, jy)[pixel] NDC units (``sample_offset``). Returns (env, eid, T,
+    tid, pixels newly bounded, overflow, pairs, pieces, grows); the storage is reallocated
+    when it grows."""
+    closed = 0
+    pairs = 0
+    pieces = 0
+    grows = 0
+    for i in range(ia, ib + 1):
+        yc = 1.0 - (i + 0.5) * step
+        for j in range(ja, jb + 1):
+            px = (i - r0) * tw + (j - cl0)
+            bpx = bound[px]
+            if zpr >= bpx:
+                continue
+            x = (j + 0.5) * step - 1.0 + jx[px]
+            y = yc + jy[px]
+            pairs += 1
+            if kind == 0:
+                ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
+                if not ok or min(zs, zf) >= bpx:
+                    continue
+                pt0[0] = ts
+                pt1[0] = tf
+                pz0[0] = zs
+                pz1[0] = zf
+                npc = 1
+            elif kind == 1:
+                npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            else:
+                npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            for q in range(npc):
+                if min(pz0[q], pz1[q]) >= bound[px]:
+                    continue
+                pieces += 1
+                nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q], pz0[q],
+                                              pz1[q], pid, T, tid)
+                if nn < 0:
+                    # Deep envelope: grow this chunk's storage in place and retry.
+                    if 4 * env.shape[1] > MAX_CAP:
+                        return env, eid, T, tid, closed, True, pairs, pieces, grows
+                    env, eid, T, tid = _grow(env, eid, cnt, npx, 4 * env.shape[1])
+                    grows += 1
+                    nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
+                                                  pz0[q], pz1[q], pid, T, tid)
+                if changed:
+                    cnt[px] = nn
+                    zb = pixel_bound(env, px, nn)
+                    if zb < np.inf:
+                        if bound[px] == np.inf:
+                            closed += 1
+                        bound[px] = zb
+    return env, eid, T, tid, closed, False, pairs, pieces, grows
+
+
+@njit(**_PJIT)
+def _resolve(tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z, prim_zkey,
+             prim_flag, prim_face, verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1,
+             radii, n_tri, v0, dvec, rots, res, near, knots, jitter, seed, visible, overflow,
+             counters, witness):  # pragma: no cover - numba
+    """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
+    n_tri + sphere). A tile whose envelopes outgrow MAX_CAP sets ``overflow``, marks nothing.
+    Tiles are strided over chunks so that busy screen regions spread over the threads."""
+    for ch in prange(n_chunks):
+        _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
+                       prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
+                       cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
+                       seed, visible, overflow, counters, witness)
+
+
+@njit(**_JIT)
+def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
+                   prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
+                   cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
+                   seed, visible, overflow, counters, witness):  # pragma: no cover - numba
+    ntx = (res + TILE - 1) // TILE
+    per_face = ntx * ntx
+    npx_max = TILE * TILE
+    step = 2.0 / res
+    maxp = 8 * (knots + 2) + 8
+    want_witness = witness.shape[1] == visible.shape[0]
+    cap = START_CAP
+    env = np.empty((npx_max, cap, 4))
+    eid = np.empty((npx_max, cap), dtype=np.int32)
+    cnt = np.zeros(npx_max, dtype=np.int64)
+    bound = np.empty(npx_max)
+    T = np.empty((2 * cap + 8, 4))  # insertion scratch
+    tid = np.empty(2 * cap + 8, dtype=np.int32)
+    pt0 = np.empty(maxp)
+    pt1 = np.empty(maxp)
+    pz0 = np.empty(maxp)
+    pz1 = np.empty(maxp)
+    brk = np.empty(48)
+    stk = np.empty((64, 4))
+    coef = np.empty(40)
+    P = np.empty((3, 3))
+    U = np.empty((3, 3))
+    W = np.empty((3, 3))
+    dc = np.empty(3)
+    cen = np.empty(3)
+    vel = np.empty(3)
+    bx = np.empty(4, dtype=np.int64)
+    jx = np.zeros(npx_max)
+    jy = np.zeros(npx_max)
+    n_pairs = 0
+    n_pieces = 0
+    n_grows = 0
+    n_items = 0
+    n_culled = 0
+    n_final = 0
+    for qi in range(ch, tiles.shape[0], n_chunks):
+        tile = tiles[qi]
+        f = tile // per_face
+        rt = tile % per_face
+        r0 = (rt // ntx) * TILE
+        cl0 = (rt % ntx) * TILE
+        r1 = min(r0 + TILE, res)
+        cl1 = min(cl0 + TILE, res)
+        tw = cl1 - cl0
+        npx = (r1 - r0) * tw
+        for p in range(npx):
+            cnt[p] = 0
+            bound[p] = np.inf
+            if jitter > 0.0:
+                dx, dy = sample_offset(f, r0 + p // tw, cl0 + p % tw, res, jitter, seed)
+                jx[p] = dx * step
+                jy[p] = dy * step
+        open_px = npx
+        tbound = np.inf
+        since = 0
+        R = rots[f]
+        for r in range(3):
+            dc[r] = R[r, 0] * dvec[0] + R[r, 1] * dvec[1] + R[r, 2] * dvec[2]
+        ovf = False
+        end = tile_start[tile + 1]
+        for it in range(tile_start[tile], end):
+            pr = tile_items[it]
+            if prim_zkey[pr] >= tbound:
+                n_culled += end - it
+                break
+            if prim_z[pr] >= tbound:
+                n_culled += 1
+                continue
+            n_items += 1
+            src = prim_src[pr]
+            flag = prim_flag[pr]
+            slow = (flag & FLAG_SLOW) != 0
+            closed = 0
+            if flag & FLAG_CLUSTER:
+                for k in range(cl_start[src], cl_start[src + 1]):
+                    t = cl_tris[k]
+                    _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
+                    ok, zt = _front_box(P, U, res, bx, jitter)
+                    if not ok or zt >= tbound:
+                        continue
+                    ia = max(bx[0], r0)
+                    ib = min(bx[1], r1 - 1)
+                    ja = max(bx[2], cl0)
+                    jb = min(bx[3], cl1 - 1)
+                    if ia > ib or ja > jb:
+                        continue
+                    if moving[t]:
+                        moving_setup(P, U, W, coef)
+                        kind = 1
+                    else:
+                        static_setup(P, W, dc, coef)
+                        kind = 0
+                    env, eid, T, tid, nc, ovf, a0, a1, a2 = _raster(
+                        kind, t, False, zt, ia, ib, ja, jb, r0, cl0, tw, npx, step, near,
+                        knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk,
+                        jx, jy)
+                    closed += nc
+                    n_pairs += a0
+                    n_pieces += a1
+                    n_grows += a2
+                    if ovf:
+                        break
+            else:
+                if flag & FLAG_SPHERE:
+                    kind = 2
+                    s = src - n_tri
+                    for r in range(3):
+                        cen[r] = R[r, 0] * (c0[s, 0] - v0[0]) + R[r, 1] * (c0[s, 1] - v0[1]) \
+                            + R[r, 2] * (c0[s, 2] - v0[2])
+                        vel[r] = R[r, 0] * (c1[s, 0] - c0[s, 0]) + R[r, 1] * (
+                            c1[s, 1] - c0[s, 1]) + R[r, 2] * (c1[s, 2] - c0[s, 2]) - dc[r]
+                    sphere_setup(cen, vel, radii[s], coef)
+                else:
+                    _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
+                    if flag & FLAG_MOVING:
+                        kind = 1
+                        moving_setup(P, U, W, coef)
+                    else:
+                        kind = 0
+                        static_setup(P, W, dc, coef)
+                env, eid, T, tid, closed, ovf, a0, a1, a2 = _raster(
+                    kind, src, slow, prim_z[pr], max(prim_box[pr, 0], r0),
+                    min(prim_box[pr, 1], r1 - 1), max(prim_box[pr, 2], cl0),
+                    min(prim_box[pr, 3], cl1 - 1), r0, cl0, tw, npx, step, near, knots, coef,
+                    env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy)
+                n_pairs += a0
+                n_pieces += a1
+                n_grows += a2
+            if ovf:
+                break
+            open_px -= closed
+            since += 1
+            if open_px == 0 and (tbound == np.inf or since >= 8):
+                tb = 0.0
+                for p in range(npx):
+                    tb = max(tb, bound[p])
+                tbound = tb
+                since = 0
+        if ovf:
+            overflow[qi] = True
+            continue
+        for p in range(npx):
+            n_final += cnt[p]
+            for k in range(cnt[p]):
+                length = env[p, k, 1] - env[p, k, 0]
+                if length > EPS_LEN:
+                    pid = eid[p, k]
+                    visible[pid] = True
+                    if want_witness and length > witness[ch, pid, 0]:
+                        witness[ch, pid, 0] = length
+                        witness[ch, pid, 1] = 0.5 * (env[p, k, 0] + env[p, k, 1])
+                        witness[ch, pid, 2] = f
+                        witness[ch, pid, 3] = r0 + p // tw
+                        witness[ch, pid, 4] = cl0 + p % tw
+    counters[ch, 0] += n_pairs
+    counters[ch, 1] += n_pieces
+    counters[ch, 2] += n_items
+    counters[ch, 3] += n_culled
+    counters[ch, 4] += n_final
+    counters[ch, 5] += n_grows
+    counters[ch, 6] = max(counters[ch, 6], env.shape[1])

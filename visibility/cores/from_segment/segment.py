@@ -1,0 +1,274 @@
+"""Continuous from-segment visibility (Popescu et al. 2024, Alg. 1) on the six faces of a cubemap.
+
+For a view segment v0 -> v1 (t in [0, 1]) and a cube orientation, every pixel of every face gets a
+lower envelope over t of the depths of the primitives that cover its sample; the primitives owning
+a piece of some envelope form the segment's visible set. A pixel's sample is its centre (the
+paper) or, with ``jitter``, a fixed pseudo-random point of the pixel (``sample_offset``), so that
+sub-pixel triangles sliding between two rows of centres still meet samples. Conventions are
+``visibility.raster.camera``'s: a sample's ray is (ndc_x, ndc_y, -1) in camera space and depth is
+``-z_cam``.
+
+Static triangles (Eqs. 1-2) are in ``static``, moving triangles (Sec. 3.2) and spheres
+(Sec. 3.3) in ``dynamic`` / ``spheres``. This module is the driver: ``segment_visible`` runs the
+pipeline below over the parts, ``boxes`` (screen boxes, binning), ``envelope`` (per-pixel
+envelopes), ``raster`` (tile resolution) and ``geometry`` (the scene's cached clusters).
+
+Pipeline per segment (or per piece of it: ``_piece`` halves a segment along which near clutter
+sweeps across much of the cube), memory O(primitive-face pairs):
+(1) box pass: triangles are grouped once per scene into spatial clusters of CLUSTER triangles
+(Morton order); prange over clusters gives each cube face's pixel box of the cluster's swept
+bounding box and its smallest depth. Clusters that are large on screen or reach the near plane are
+expanded into their triangles (a box per triangle and face). (2) an approximate front-to-back
+counting sort (log-depth buckets) and binning into TILE x TILE pixel tiles (CSR, order kept).
+(3) prange over tiles: per pixel, the envelope of depth pieces. A pixel whose envelope covers
+all of [0, 1] has a bound (its greatest depth); once every pixel of a tile has one, primitives
+that cannot come nearer than the tile's bound are skipped, whole clusters at a time (hierarchical
+occlusion culling; exact because an envelope only ever decreases). Tiles never share pixels, so
+the result does not depend on thread scheduling.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numba
+import numpy as np
+
+from visibility.cancel import checkpoint
+from visibility.cores.from_segment.boxes import (
+    _PERM,
+    _SGN,
+    _cluster_boxes,
+    _expanded_boxes,
+    _sort_and_bin,
+    _sphere_boxes,
+    _split_clusters,
+)
+from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
+from visibility.cores.from_segment.geometry import SegmentGeometry
+from visibility.cores.from_segment.raster import _resolve
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
+
+#: A segment piece whose primitives' pixel boxes add up to more than this many times the cube's
+#: pixels is cut in two, at most MAX_SPLIT_DEPTH times over (``_piece``). Open scenes sit near 3
+#: (the real city tile at 4 m cells); a 4 m side through a 1M-triangle kitchen reaches 80000.
+#: On kitchen sides at 64 and 128 px, thresholds of 64 to 1024 came within about 20 % of each
+#: other (a piece's fixed costs against its sweep), 16 cut too often (twice the time) and no cut
+#: at all took two to three times as long.
+SPLIT_AREA = 64
+MAX_SPLIT_DEPTH = 6
+#: Default clusters per batch of the box pass (bounds its scratch memory, ~100 bytes each).
+DEFAULT_BATCH = 1 << 15
+#: Most groups of tiles the envelope pass of one segment is split into, with a cancellation
+#: checkpoint between groups (``visibility.cores.base.checkpoint``).
+TILE_GROUPS = 16
+
+
+def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
+    """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
+    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s)."""
+    parts = []
+    nc = len(geom.cl_start) - 1
+    kept = 0
+    expanded = 0
+    for first in range(0, nc, batch):
+        last = min(nc, first + batch)
+        k = last - first
+        cbox = np.empty((k, 6, 4), dtype=np.int32)
+        cz = np.empty((k, 6))
+        cflag = np.empty((k, 6), dtype=np.uint8)
+        _cluster_boxes(geom.cl_lo[first:last], geom.cl_hi[first:last], v0, dvec, rb, _PERM, _SGN,
+                       res, near, pad, cbox, cz, cflag)
+        kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
+                                                      cflag, first, res)
+        parts.append((kc, kf, kb, kz, kfl))
+        kept += len(kc)
+        if len(et):
+            ebox = np.empty((len(et), 4), dtype=np.int32)
+            ez = np.empty(len(et))
+            efl = np.empty(len(et), dtype=np.uint8)
+            _expanded_boxes(geom.verts0, geom.verts1, geom.faces, geom.moving, et, ef, v0, dvec,
+                            rb, _PERM, _SGN, res, near, pad, ebox, ez, efl)
+            keep = efl != 0
+            parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
+                          ez[keep], efl[keep]))
+            expanded += int(keep.sum())
+    if len(geom.sphere_sel):
+        k = len(geom.sphere_sel)
+        box = np.empty((k, 6, 4), dtype=np.int32)
+        z = np.empty((k, 6))
+        flag = np.empty((k, 6), dtype=np.uint8)
+        _sphere_boxes(geom.centers0, geom.centers1, geom.radii, geom.sphere_sel, v0, dvec, rots,
+                      res, near, pad, box, z, flag)
+        si, sf = np.nonzero(flag)
+        parts.append(((geom.sphere_sel[si] + geom.n_triangles).astype(np.int32),
+                      sf.astype(np.int32), box[si, sf], z[si, sf], flag[si, sf]))
+    if not parts:
+        parts.append((np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 4), np.int32),
+                      np.zeros(0), np.zeros(0, np.uint8)))
+    prim_src, prim_face, prim_box, prim_z, prim_flag = (
+        np.ascontiguousarray(np.concatenate([p[i] for p in parts])) for i in range(5))
+    stats["prims"] = stats.get("prims", 0) + len(prim_src)
+    stats["cluster_prims"] = stats.get("cluster_prims", 0) + kept
+    stats["triangle_prims"] = stats.get("triangle_prims", 0) + expanded
+    return prim_src, prim_face, prim_box, prim_z, prim_flag
+
+
+def segment_visible(
+    geom: SegmentGeometry,
+    v0: np.ndarray,
+    v1: np.ndarray,
+    base_rotation: np.ndarray | None = None,
+    resolution: int = 256,
+    near: float = DEFAULT_NEAR,
+    knots: int = 16,
+    batch: int = DEFAULT_BATCH,
+    visible: np.ndarray | None = None,
+    stats: dict | None = None,
+    witness: np.ndarray | None = None,
+    jitter: float = 0.0,
+    seed: int = 0,
+    max_cuts: int | None = None,
+) -> np.ndarray:
+    """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
+
+    Parameters
+    ----------
+    geom : the scene's geometry for one state interval (``scene_geometries``); vertices and
+        sphere centres move linearly over it while the eye moves from v0 to v1.
+    v0, v1 : (3,) segment end points, metres (equal points give from-point visibility).
+    base_rotation : (3, 3) world-to-cube rotation (``camera.cube_face_rotations``), None = axes.
+    resolution : face resolution in pixels (90-degree square faces).
+    near : near-plane distance, metres.
+    knots : moving triangles' and spheres' depth chords are at most 1 / knots long (in t).
+    batch : clusters per batch of the box pass.
+    visible : optional (geom.n_ids,) bool mask to OR into (triangles first, then spheres).
+    stats : optional dict; counters and per-phase seconds are added to it.
+    witness : optional (geom.n_ids, 5) float64 array (zeros to start): for each visible primitive,
+        its longest envelope piece seen so far as (length in t, mid t, face, row, col), i.e. a
+        time and pixel at which it is the nearest surface (for tests and debugging; the
+        pixel's sample is ``sample_offset(face, row, col, resolution, jitter, seed)`` off its
+        centre).
+    jitter : how far, in pixels (0 to 0.5), each pixel's sample lies off its centre, per axis:
+        a fixed pseudo-random point of the pixel (``sample_offset``), the same for the whole
+        segment. 0 samples pixel centres. A thin band sliding along itself between two pixel
+        rows covers no centre anywhere on the segment; jittered samples do not line up, so it
+        meets some.
+    seed : picks the jitter pattern (non-negative).
+
+    max_cuts : a segment along which near geometry sweeps across much of the cube is solved as
+        pieces, halved up to this many times over (``_piece``, ``stats["splits"]``; None =
+        ``MAX_SPLIT_DEPTH``, 0 = never), when nothing in the scene moves.
+
+    Returns
+    -------
+    (geom.n_ids,) bool mask of primitives visible from the segment (``visible`` if given).
+    """
+    v0 = np.asarray(v0, dtype=np.float64).reshape(3)
+    v1 = np.asarray(v1, dtype=np.float64).reshape(3)
+    if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
+        raise ValueError("segment end points must be finite")
+    res = int(resolution)
+    if not 1 <= res <= 1 << 14:
+        raise ValueError(f"resolution must be in [1, 16384], got {resolution}")
+    if not (np.isfinite(near) and near > 0):
+        raise ValueError(f"near must be a positive number of metres, got {near}")
+    if int(knots) < 1:
+        raise ValueError(f"knots must be >= 1, got {knots}")
+    jitter = float(jitter)
+    if not 0.0 <= jitter <= 0.5:
+        raise ValueError(f"jitter must be in [0, 0.5] pixels, got {jitter}")
+    if int(seed) < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    cuts = MAX_SPLIT_DEPTH if max_cuts is None else int(max_cuts)
+    if not 0 <= cuts <= 16:
+        raise ValueError(f"max_cuts must be in [0, 16], got {max_cuts}")
+    if visible is None:
+        visible = np.zeros(geom.n_ids, dtype=bool)
+    elif visible.shape != (geom.n_ids,) or visible.dtype != np.bool_:
+        raise ValueError(f"visible must be a ({geom.n_ids},) bool array")
+    if witness is not None and witness.shape != (geom.n_ids, 5):
+        raise ValueError(f"witness must be ({geom.n_ids}, 5), got {witness.shape}")
+    if stats is None:
+        stats = {}
+    rb = np.eye(3) if base_rotation is None else np.ascontiguousarray(base_rotation, np.float64)
+    rots = np.ascontiguousarray(cube_face_rotations(rb))
+    # Geometry that moves with t cannot be cut at a mid time without re-interpolating it.
+    splittable = geom.verts0 is geom.verts1 and geom.centers0 is geom.centers1
+    _piece(geom, v0, v1 - v0, 0.0, 1.0, cuts if splittable else 0, rb, rots, res,
+           float(near), int(knots), jitter, int(seed), max(1, int(batch)), visible, stats,
+           witness)
+    return visible
+
+
+def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, seed, batch,
+           visible, stats, witness):
+    """Visible set of the eye walking v0 -> v0 + dvec (times [ta, tb] of the whole segment).
+
+    A piece whose primitives' pixel boxes add up to more than ``SPLIT_AREA`` times the cube's
+    pixels is cut in two (up to ``depth`` more times): geometry close to a long segment sweeps
+    across much of the cube, so its boxes are huge and occlusion bounds (the farthest depth a
+    pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
+    the halves' sets is the set of the whole (exactness is per eye position)."""
+    t0 = time.perf_counter()
+    prim_src, prim_face, prim_box, prim_z, prim_flag = _collect_prims(
+        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
+    t1 = time.perf_counter()
+    if depth > 0 and len(prim_box):
+        area = int(np.sum((prim_box[:, 1] - prim_box[:, 0] + 1).astype(np.int64)
+                          * (prim_box[:, 3] - prim_box[:, 2] + 1)))
+        if area > SPLIT_AREA * 6 * res * res:
+            stats["box_seconds"] = stats.get("box_seconds", 0.0) + (t1 - t0)
+            stats["splits"] = stats.get("splits", 0) + 1
+            del prim_src, prim_face, prim_box, prim_z, prim_flag
+            half = 0.5 * dvec
+            tm = 0.5 * (ta + tb)
+            for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
+                checkpoint()
+                _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
+                       seed, batch, visible, stats, witness)
+            return
+    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, res, near)
+    t2 = time.perf_counter()
+    tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
+    # Tiles are strided over several chunks per thread so busy screen regions spread out.
+    nch = max(1, min(len(tiles), 8 * numba.get_num_threads()))
+    counters = np.zeros((nch, 7), dtype=np.int64)
+    counters[:, 6] = START_CAP
+    wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
+    overflow = np.zeros(len(tiles), dtype=bool)
+    # The envelope pass runs in groups of tiles with a checkpoint between them, so a cancelled
+    # or late computation stops within a fraction of one segment's time.
+    groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
+    for sel in np.array_split(np.arange(len(tiles)), groups):
+        if not len(sel):
+            continue
+        checkpoint()
+        group_overflow = np.zeros(len(sel), dtype=bool)
+        _resolve(tiles[sel], nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
+                 prim_face, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
+                 geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
+                 dvec, rots, res, near, knots, jitter, seed, visible,
+                 group_overflow, counters, wit)
+        overflow[sel] = group_overflow
+    if overflow.any():
+        raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "
+                           f"{int(overflow.sum())} tiles; lower the resolution")
+    t3 = time.perf_counter()
+    if witness is not None:
+        best = np.argmax(wit[:, :, 0], axis=0)
+        cand = wit[best, np.arange(geom.n_ids)]
+        # Piece times to segment times.
+        cand[:, 0] *= tb - ta
+        cand[:, 1] = ta + cand[:, 1] * (tb - ta)
+        better = cand[:, 0] > witness[:, 0]
+        witness[better] = cand[better]
+    stats["box_seconds"] = stats.get("box_seconds", 0.0) + (t1 - t0)
+    stats["bin_seconds"] = stats.get("bin_seconds", 0.0) + (t2 - t1)
+    stats["envelope_seconds"] = stats.get("envelope_seconds", 0.0) + (t3 - t2)
+    stats["tile_items"] = stats.get("tile_items", 0) + int(len(items))
+    for k, name in enumerate(("pairs", "pieces", "items_processed", "items_culled",
+                              "final_pieces", "envelope_grows")):
+        stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
+    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, 6].max()))
+    stats["face_runs"] = stats.get("face_runs", 0) + 6
