@@ -1,5 +1,5 @@
 """The scene and the fixed walk the browser tests share (``test_viewer_browser``,
-``test_viewer_tokens``): what their module-scoped fixtures build."""
+``test_viewer_tokens``), built by the fixtures of ``conftest``."""
 
 from __future__ import annotations
 

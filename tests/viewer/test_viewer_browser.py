@@ -24,18 +24,8 @@ from tests.viewer.chromium import (
     wait_state,
     walk_data_url,
 )
-from tests.viewer.fixed_walk import SCENE, SIZE, fixed_walk, walk_scene
+from tests.viewer.fixed_walk import SCENE, SIZE
 from visibility.raster.shading import BACKGROUND
-
-
-@pytest.fixture(scope="module")
-def rooms():
-    return walk_scene()
-
-
-@pytest.fixture(scope="module")
-def walk(rooms):
-    return fixed_walk(rooms)
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from tests.viewer.chromium import (
     wait_state,
     walk_data_url,
 )
-from tests.viewer.fixed_walk import SCENE, SIZE, fixed_walk, walk_scene
+from tests.viewer.fixed_walk import SCENE, SIZE
 from visibility.raster.shading import BACKGROUND
 
 #: The server's token: "+" and "~" too, which a careless reading of the fragment would mangle
@@ -76,16 +76,6 @@ def served(settings) -> Iterator[tuple[str, LogLines]]:
                 logger.removeHandler(log)
             for name, level in levels.items():
                 logging.getLogger(name).setLevel(level)
-
-
-@pytest.fixture(scope="module")
-def rooms():
-    return walk_scene()
-
-
-@pytest.fixture(scope="module")
-def walk(rooms):
-    return fixed_walk(rooms)
 
 
 @pytest.fixture

@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.cores.from_segment.static import _less
+
 #: Depth returned where a surface is seen exactly edge-on (the true depth diverges there).
 FAR_DEPTH = 1e30
 #: Relative depth error at a chord's midpoint below which it is not split further.
@@ -227,15 +229,6 @@ def _cross(ax, ay, az, bx, by, bz):
 def _det(ax, ay, az, bx, by, bz, cx, cy, cz):
     x, y, z = _cross(bx, by, bz, cx, cy, cz)
     return ax * x + ay * y + az * z
-
-
-@njit(**_JIT)
-def _less(ax, ay, az, bx, by, bz):
-    if ax != bx:
-        return ax < bx
-    if ay != by:
-        return ay < by
-    return az < bz
 
 
 @njit(**_JIT)
