@@ -227,6 +227,15 @@ def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, 
 
 
 @njit(**_JIT)
+def _expands(cbox, c, f, fl):  # pragma: no cover - numba
+    """Whether cluster c's primitive on face f (flags fl) is split into its triangles: it may
+    reach the near plane, or its box spans more than ``EXPAND_TILES`` tiles."""
+    span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
+        cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
+    return bool(fl & FLAG_SLOW) or span > EXPAND_TILES
+
+
+@njit(**_JIT)
 def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: no cover
     """Cluster prims (kept whole) and the (triangle, face) list of the expanded ones.
 
@@ -235,16 +244,18 @@ def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: 
     nc = cflag.shape[0]
     n_keep = 0
     n_exp = 0
+    # Per (cluster, face): 0 absent, 1 kept whole, 2 split into its triangles.
+    mode = np.zeros((nc, 6), dtype=np.int8)
     for c in range(nc):
         for f in range(6):
             fl = cflag[c, f]
             if fl == 0:
                 continue
-            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
-                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
-            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+            if _expands(cbox, c, f, fl):
+                mode[c, f] = 2
                 n_exp += cl_start[first + c + 1] - cl_start[first + c]
             else:
+                mode[c, f] = 1
                 n_keep += 1
     keep_cluster = np.empty(n_keep, dtype=np.int32)
     keep_face = np.empty(n_keep, dtype=np.int32)
@@ -257,17 +268,12 @@ def _split_clusters(cl_start, cl_tris, cbox, cz, cflag, first, res):  # pragma: 
     b = 0
     for c in range(nc):
         for f in range(6):
-            fl = cflag[c, f]
-            if fl == 0:
-                continue
-            span = (cbox[c, f, 1] // TILE - cbox[c, f, 0] // TILE + 1) * (
-                cbox[c, f, 3] // TILE - cbox[c, f, 2] // TILE + 1)
-            if (fl & FLAG_SLOW) or span > EXPAND_TILES:
+            if mode[c, f] == 2:
                 for k in range(cl_start[first + c], cl_start[first + c + 1]):
                     exp_tri[b] = cl_tris[k]
                     exp_face[b] = f
                     b += 1
-            else:
+            elif mode[c, f] == 1:
                 keep_cluster[a] = first + c
                 keep_face[a] = f
                 for r in range(4):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from visibility.cores.from_segment.static import _less
+from visibility.cores.from_segment.static import edge_order
 
 #: Depth returned where a surface is seen exactly edge-on (the true depth diverges there).
 FAR_DEPTH = 1e30
@@ -242,12 +242,7 @@ def moving_setup(P: np.ndarray, U: np.ndarray, W: np.ndarray, coef: np.ndarray) 
     value (9 per edge), then the cubic of det[A(t), B(t), C(t)].
     """
     for e in range(3):
-        i = e
-        j = (e + 1) % 3
-        sgn = 1.0
-        if _less(W[j, 0], W[j, 1], W[j, 2], W[i, 0], W[i, 1], W[i, 2]):
-            i, j = j, i
-            sgn = -1.0
+        i, j, sgn = edge_order(W, e)
         px, py, pz = P[i, 0], P[i, 1], P[i, 2]
         qx, qy, qz = P[j, 0], P[j, 1], P[j, 2]
         upx, upy, upz = U[i, 0], U[i, 1], U[i, 2]

@@ -30,6 +30,18 @@ def _less(ax, ay, az, bx, by, bz):
 
 
 @njit(**_JIT)
+def edge_order(W, e):  # pragma: no cover - numba
+    """Edge e of a triangle with world corners ``W`` (3, 3) in canonical order: (i, j, sign),
+    the corners from the lexicographically smaller, sign -1 where that reverses the edge (so
+    triangles sharing an edge compute it from the same corners, bit for bit)."""
+    i = e
+    j = (e + 1) % 3
+    if _less(W[j, 0], W[j, 1], W[j, 2], W[i, 0], W[i, 1], W[i, 2]):
+        return j, i, -1.0
+    return i, j, 1.0
+
+
+@njit(**_JIT)
 def static_setup(P: np.ndarray, W: np.ndarray, d: np.ndarray, coef: np.ndarray) -> None:
     """Coefficients of a static triangle for ``static_cover``.
 
@@ -39,12 +51,7 @@ def static_setup(P: np.ndarray, W: np.ndarray, d: np.ndarray, coef: np.ndarray) 
     (canonically oriented), then N, A . N, d . N and |N|^2.
     """
     for e in range(3):
-        i = e
-        j = (e + 1) % 3
-        sg = 1.0
-        if _less(W[j, 0], W[j, 1], W[j, 2], W[i, 0], W[i, 1], W[i, 2]):
-            i, j = j, i
-            sg = -1.0
+        i, j, sg = edge_order(W, e)
         px, py, pz = P[i, 0], P[i, 1], P[i, 2]
         qx, qy, qz = P[j, 0], P[j, 1], P[j, 2]
         ex, ey, ez = qx - px, qy - py, qz - pz
