@@ -11,6 +11,7 @@ from functools import cache
 from pathlib import Path
 
 from visibility.loaders import SCENE_EXTENSIONS, load_scene
+from visibility.raster.hierarchy import scene_hierarchy
 from visibility.scene import Scene
 from visibility.viewcells import ViewcellGrid
 
@@ -40,8 +41,12 @@ def real_path(name: str) -> Path:
 
 @cache
 def real_scene(name: str) -> Scene:
-    """The scene ``name`` from ../shared/scenes, in metres (its sidecar applied)."""
-    return load_scene(real_path(name))
+    """The scene ``name`` from ../shared/scenes, in metres (its sidecar applied), with its
+    spatial hierarchy built, as a server has it shortly after loading the scene (the paths
+    that cull then cull on every call, not only once a background build is done)."""
+    scene = load_scene(real_path(name))
+    scene_hierarchy(scene)
+    return scene
 
 
 @cache

@@ -36,7 +36,7 @@ from visibility.cores.cos.prims import (
 )
 from visibility.cores.cos.resolve import resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
-from visibility.raster.hierarchy import scene_hierarchy
+from visibility.raster.hierarchy import MIN_TRIANGLES, ready_hierarchy, scene_hierarchy
 from visibility.scene import Scene
 from visibility.topology import NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
@@ -191,10 +191,11 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
         per-pixel lists) and ``costliest_view`` (the side plane and frustum that
-        took longest, its seconds, list entries and longest list), ``tree_seconds`` (the scene
-        hierarchy, built once per scene, and where the cell's primitives sit in it),
-        ``projected`` and ``culled`` (footprints projected over the 30 views, and those the
-        hierarchy walk spared: primitives no ray of the view meets).
+        took longest, its seconds, list entries and longest list), ``tree`` (whether the
+        scene's hierarchy was there to cull with), ``tree_seconds`` (where the cell's
+        primitives sit in it; a small scene's hierarchy is built then, once), ``projected``
+        and ``culled`` (footprints projected over the 30 views, and those the hierarchy walk
+        spared: primitives no ray of the view meets).
     """
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -211,9 +212,14 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     bounds = prim_bounds(prims)
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
-    # The scene's hierarchy (built once per scene) culls each view's primitives before their
-    # footprints are projected (``cull``).
-    tree = cell_tree(scene_hierarchy(scene), prims, order, scene.n_triangles, centre)
+    # The scene's hierarchy culls each view's primitives before their footprints are projected
+    # (``cull``). Like every culling path it is never waited for: a large scene's is built in
+    # the background (as a server does when the scene loads), and until it is there every
+    # primitive is projected, for the same answer; a small scene's costs milliseconds.
+    hier = ready_hierarchy(scene)
+    if hier is None and scene.n_triangles < MIN_TRIANGLES:
+        hier = scene_hierarchy(scene)
+    tree = None if hier is None else cell_tree(hier, prims, order, scene.n_triangles, centre)
     t2b = time.perf_counter()
     inbox = inside_box(prims, half, bounds)
     solid = solid_mask(prims, half)
@@ -222,7 +228,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
-        "tree_seconds": t2b - t2, "culled": 0, "projected": 0,
+        "tree_seconds": t2b - t2, "culled": 0, "projected": 0, "tree": tree is not None,
         "list_seconds": 0.0, "footprint_seconds": 0.0, "bin_seconds": 0.0, "fill_seconds": 0.0,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
@@ -262,10 +268,11 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
 
 def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views: list[View],
                   plane_tol: float) -> dict[tuple[int, int], np.ndarray]:
-    """Per side plane F, (n,) bool over the positions t (into ``order``): the primitives its
-    views can list: those reaching beyond F's plane (a front frustum skips what lies wholly behind
-    it), or, for a side frustum, into its near box, which reaches ``-near_box[2]`` behind
-    the plane (what stays further behind projects to rows below the view)."""
+    """Per side plane F, (n,) bool over the positions t (into ``order``), True for the
+    primitives its views can list: those reaching beyond F's plane (a front frustum skips what
+    lies wholly behind it), or, for a side frustum, into its near box, which reaches
+    ``-near_box[2]`` behind the plane (what stays further behind projects to rows below the
+    view)."""
     bo = bounds[order]
     out: dict[tuple[int, int], np.ndarray] = {}
     for face in {v.face for v in views}:
@@ -342,18 +349,22 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any], coarse_items: int, tree: Tree) -> int:
+                stats: dict[str, Any], coarse_items: int, tree: Tree | None) -> int:
     """Lists and resolution of one view (over the positions of ``order`` its side plane can
-    list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays;
-    only the ``solid`` primitives occlude); sets ``vis`` for what it finds visible, adds to
-    ``stats`` and returns the view's longest list. Tiles listing at least ``coarse_items``
-    primitives (0: none) take the coarse pass (``_coarse_pass``) first."""
+    list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays,
+    all of them without a tree; only the ``solid`` primitives occlude); sets ``vis`` for what
+    it finds visible, adds to ``stats`` and returns the view's longest list. Tiles listing at
+    least ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``)
+    first."""
     t0 = time.perf_counter()
-    planes = view_planes(view.corners, float(view.x_lo), float(view.y_lo), int(view.nx),
-                         int(view.ny), float(view.pw), 4.0 * plane_tol)
-    buf = np.empty(len(keep), dtype=np.int64)
-    sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
-    stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
+    if tree is None:
+        sel = np.flatnonzero(keep)
+    else:
+        planes = view_planes(view.corners, float(view.x_lo), float(view.y_lo), int(view.nx),
+                             int(view.ny), float(view.pw), 4.0 * plane_tol)
+        buf = np.empty(len(keep), dtype=np.int64)
+        sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
+        stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
     stats["projected"] += len(sel)
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)

@@ -425,3 +425,22 @@ def test_cell_list_walk_stops_only_where_everything_left_lies_nearer():
     assert not _walk_hides([[0.5, 2.5], [0.6, 1.2]])
     # So does one reaching before the cameras.
     assert not _walk_hides([[-0.1, 1.0], [0.6, 1.2]])
+
+
+def test_without_the_hierarchy_every_primitive_is_projected_for_the_same_answer(monkeypatch):
+    # A large scene's hierarchy is built in the background and never waited for: until it is
+    # there, cos projects every primitive, and answers the same as with the cull.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos import core as cos_core
+    from visibility.generators import make_scene
+
+    scene = make_scene("city", triangles=3000)
+    box = cell_around(scene, 0.3, 0)
+    ids, st = cos_core.cos_pvs(scene, box, 32)
+    assert st["tree"] and st["culled"] > 0
+    monkeypatch.setattr(cos_core, "ready_hierarchy", lambda s: None)
+    monkeypatch.setattr(cos_core, "MIN_TRIANGLES", 0)
+    ids2, st2 = cos_core.cos_pvs(scene, box, 32)
+    assert not st2["tree"] and st2["culled"] == 0
+    assert st2["projected"] == st["projected"] + st["culled"]
+    np.testing.assert_array_equal(np.sort(ids), np.sort(ids2))
