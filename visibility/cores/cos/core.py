@@ -184,7 +184,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         pixel box per view, binning the boxes into tiles, filling the per-pixel lists),
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
-        occluder's depth), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
+        occluder's depth), ``fill_cut`` (pixels of primitives' boxes left out of the lists
+        while they are filled, behind a triangle that alone holds the pixel's offsets), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
         occluder silhouette edges walked by the cover tests, occluder triangles put through
         the depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
@@ -234,7 +235,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
-        "silhouette_edges": 0, "plane_tests": 0,
+        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
@@ -424,7 +425,10 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         lists = TileLists(entries, pstart, pcount, t, t1,
                           _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE)
-        fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists)
+        fill_cut = np.zeros(t1 - t, dtype=np.int64)
+        fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists,
+                   fill_cut)
+        stats["fill_cut"] += int(fill_cut.sum())
         stats["fill_seconds"] += time.perf_counter() - ta
         stats["list_entries"] += int(pcount.sum())
         longest = max(longest, int(pcount.max(initial=0)))

@@ -22,7 +22,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.cores.cos.space import load_prim, overlaps_share, project, region_share
+from visibility.cores.cos.space import (
+    load_prim,
+    overlaps_share,
+    project,
+    region_share,
+    triangle_holds,
+)
 
 #: Screen tile side in pixels.
 TILE = 8
@@ -192,8 +198,8 @@ def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
-               lists):  # pragma: no cover - numba
+def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, lists,
+               cut):  # pragma: no cover - numba
     """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
     ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
     pixel, each in the order of ``order``; pixel ``loc`` of the tile (tile-major) starts at
@@ -201,13 +207,23 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
     taken in the order ``torder`` (a permutation of [tile0, tile1)). Item k of ``tile_items``
     is left out where ``drop[k]`` is set (``drop`` empty: none are): the coarse pass found it
     hidden for the whole tile. ``prims`` (``groups.PrimArrays``), ``screen``
-    (``groups.Screen``) and ``lists`` (``groups.TileLists``, filled here) are named groups."""
+    (``groups.Screen``) and ``lists`` (``groups.TileLists``, filled here) are named groups.
+
+    Early z while the lists are built (paper Sec. 5): a solid triangle that alone holds a
+    pixel's whole offset region under every between-sample direction (``space.triangle_holds``),
+    and lies beyond every camera position, meets every ray of the pixel no deeper than its
+    deepest vertex z; an item whose distance from the box exceeds z |(s, 1)| lies wholly
+    beyond it on every ray (the argument of ``resolve``'s early z) and is not listed there.
+    Items come front to back, so the cut only drops entries after the triangle that set it.
+    ``cut[tile - tile0]`` gets the entries so dropped."""
     pts, start, npts, kind = prims.pts, prims.start, prims.npts, prims.kind
+    solid, gap = prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
-    x_lo, y_lo, pw = screen.x_lo, screen.y_lo, screen.pw
+    x_lo, y_lo, pw, plane_tol = screen.x_lo, screen.y_lo, screen.pw, screen.plane_tol
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, _ = lists
     h = 0.5 * pw
     npix = TILE * TILE
+    wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
     for it in prange(tile1 - tile0):
         tile = torder[it]
         ty = tile // tiles_x
@@ -224,19 +240,36 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
         prv = np.empty((npix, 4, 2))
         prr = np.empty((npix, 4))
         preg = np.empty((npix, 12))
+        # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
+        lray = np.empty(npix)
+        zgap = np.full(npix, np.inf)
         for loc in range(npix):
             i = ty * TILE + loc // TILE
             j = tx * TILE + loc % TILE
-            region_at(corners, x_lo + (j + 0.5) * pw, y_lo + (i + 0.5) * pw, h, 0.0,
-                      prv[loc], prr[loc])
+            sx = x_lo + (j + 0.5) * pw
+            sy = y_lo + (i + 0.5) * pw
+            region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])
             region_share(prv[loc], prr[loc], preg[loc])
+            lray[loc] = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
         m = 0
+        ncut = 0
+        zall = np.inf  # the largest zgap of the tile's pixels
         skip = drop.shape[0] > 0
         for k in range(tile_off[tile], tile_off[tile + 1]):
             if skip and drop[k]:
                 continue
             t = tile_items[k]
             p = order[t]
+            if gap[p] > zall:
+                # Hidden at every pixel of the tile, as is every later item.
+                for k2 in range(k, tile_off[tile + 1]):
+                    t2 = tile_items[k2]
+                    if not (skip and drop[k2]):
+                        ncut += ((min(rng[t2, 1], ty * TILE + TILE - 1)
+                                  - max(rng[t2, 0], ty * TILE) + 1)
+                                 * (min(rng[t2, 3], tx * TILE + TILE - 1)
+                                    - max(rng[t2, 2], tx * TILE) + 1))
+                break
             i0 = max(rng[t, 0], ty * TILE)
             i1 = min(rng[t, 1], ty * TILE + TILE - 1)
             j0 = max(rng[t, 2], tx * TILE)
@@ -244,18 +277,45 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot,
             n = npts[p]
             load_prim(pts, start[p], n, origin, perm, sign, cam)
             tri = kind[p] == 0
+            # A possible early-z occluder: solid, beyond every camera position.
+            occ = tri and solid[p] != 0
+            zmax = -np.inf
+            for c in range(n):
+                if not cam[c, 2] >= wcam + plane_tol:
+                    occ = False
+                zmax = max(zmax, cam[c, 2])
+            newz = False
             for i in range(i0, i1 + 1):
                 sy = y_lo + (i + 0.5) * pw
                 for j in range(j0, j1 + 1):
                     sx = x_lo + (j + 0.5) * pw
-                    project(cam, n, sx, sy, h, 0.0, qv, qr)
                     loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                    if gap[p] > zgap[loc]:
+                        ncut += 1
+                        continue
+                    project(cam, n, sx, sy, h, 0.0, qv, qr)
                     if not overlaps_share(qv, qr, n, tri, prv[loc], prr[loc], preg[loc]):
                         continue
                     tmp[m] = p
                     tloc[m] = loc
                     cnt[loc] += 1
                     m += 1
+                    if not occ or zmax * lray[loc] + plane_tol >= zgap[loc]:
+                        continue
+                    # The polygon's box is the region's (``preg``): most triangles stop here.
+                    if (min(qv[0, 0], qv[1, 0], qv[2, 0]) > preg[loc, 0]
+                            or max(qv[0, 0], qv[1, 0], qv[2, 0]) < preg[loc, 1]
+                            or min(qv[0, 1], qv[1, 1], qv[2, 1]) > preg[loc, 2]
+                            or max(qv[0, 1], qv[1, 1], qv[2, 1]) < preg[loc, 3]):
+                        continue
+                    if triangle_holds(qv, qr, prv[loc], prr[loc]):
+                        zgap[loc] = zmax * lray[loc] + plane_tol
+                        newz = True
+            if newz:
+                zall = -np.inf
+                for loc in range(npix):
+                    zall = max(zall, zgap[loc])
+        cut[tile - tile0] = ncut
         pix0 = (tile - tile0) * npix
         pos = base
         for loc in range(npix):

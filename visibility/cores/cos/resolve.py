@@ -653,6 +653,11 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             # Early z: every ray of the pixel (any camera position, any direction in it) meets
             # a coverall occluder at depth <= zcut, before anything wholly deeper.
             zcut = np.inf
+            # Occluders listed after the last entry still to be tested serve no test: the
+            # list ends there (the rest are primitives known visible).
+            while b > a and (known[entries[b - 1]] != 0
+                             or (tseen[entries[b - 1] >> 3] >> (entries[b - 1] & 7)) & 1):
+                b -= 1
             for k in range(a, b):
                 if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
                     break  # one pixel's list of 10^5 entries takes seconds in dense clutter

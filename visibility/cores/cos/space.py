@@ -323,3 +323,32 @@ def in_triangle(px, py, v):  # pragma: no cover - numba
         if c < 0.0:
             return False
     return True
+
+
+
+@njit(cache=True, nogil=True, inline="always")
+def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
+    """Whether the COS triangle v (3, 2) with motion radii r (3,) holds the grown offset
+    region (hull of the squares (rv (4, 2), rr (4,))) for every between-sample direction.
+
+    Every corner square lies inside each edge's line by more than that edge's motion (the
+    larger of its ends' radii, in the L1 support of the edge normal), so the region is inside
+    the triangle and meets no edge's capsule: then, as the directions move, the moving region
+    never meets the moving boundary and stays inside (the argument of ``resolve._covers``)."""
+    ar = area2(v)
+    e1 = np.hypot(v[1, 0] - v[0, 0], v[1, 1] - v[0, 1])
+    e2 = np.hypot(v[2, 0] - v[0, 0], v[2, 1] - v[0, 1])
+    if not abs(ar) > 1e-9 * e1 * e2:
+        return False
+    s = 1.0 if ar > 0.0 else -1.0
+    for a in range(3):
+        b = (a + 1) % 3
+        # Inward normal of the edge a -> b.
+        nx = -s * (v[b, 1] - v[a, 1])
+        ny = s * (v[b, 0] - v[a, 0])
+        l1 = abs(nx) + abs(ny)
+        c = nx * v[a, 0] + ny * v[a, 1] + max(r[a], r[b]) * l1
+        for k in range(4):
+            if not nx * rv[k, 0] + ny * rv[k, 1] - rr[k] * l1 > c:
+                return False
+    return True

@@ -8,7 +8,13 @@ import pytest
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import GRID, _hides, _in_front, _push
-from visibility.cores.cos.space import capsule_hits, overlaps, project, region_polygon
+from visibility.cores.cos.space import (
+    capsule_hits,
+    overlaps,
+    project,
+    region_polygon,
+    triangle_holds,
+)
 from visibility.scene import Scene
 from visibility.topology import weld_vertices
 
@@ -194,13 +200,15 @@ def test_early_z_cut_keeps_what_lies_in_front_of_the_coverall_depth():
     # from the box (6.3 m) than the wall's depth, yet in front of the wall: the lists are sorted
     # by distance to the box, so the cut must allow for the ray's slant (a point at distance g
     # is only at depth >= g / |(s, 1)|); cutting at distance > 5 m would drop it. Its twin
-    # behind the wall is hidden.
+    # behind the wall is hidden. Each of the wall's two triangles alone holds the offset
+    # region of the pixels away from its diagonal, so the cut happens while the lists are
+    # filled there (``fill_cut``) and at resolution elsewhere (``early_z_cut``).
     wall = _quad(-50, 50, -50, 50, -5.1)
     front = [[(2.9, 4.6, -5.0), (3.1, 4.6, -5.0), (3.0, 4.8, -5.0)]]
     behind = [[(2.9, 4.6, -6.0), (3.1, 4.6, -6.0), (3.0, 4.8, -6.0)]]
     ids, stats = cos_pvs(_scene(wall + front + behind), CELL, 64)
     assert set(ids.tolist()) == {0, 1, 2}
-    assert stats["early_z_cut"] > 0
+    assert stats["fill_cut"] > 0
 
 
 def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
@@ -444,3 +452,39 @@ def test_without_the_hierarchy_every_primitive_is_projected_for_the_same_answer(
     assert not st2["tree"] and st2["culled"] == 0
     assert st2["projected"] == st["projected"] + st["culled"]
     np.testing.assert_array_equal(np.sort(ids), np.sort(ids2))
+
+
+def test_triangle_holds_the_region_under_every_direction():
+    # Random COS triangles and offset regions (points at their own depths w, moving by -w d
+    # for a between-sample direction d in [-h, h]^2): whenever ``triangle_holds`` says yes,
+    # the moved region's corners lie inside the moved triangle for every d sampled, the
+    # square's corners included. And it says yes often enough to matter.
+    rng = np.random.default_rng(7)
+    h = 0.05
+    held = 0
+    for _ in range(4000):
+        tri = rng.uniform(-3.0, 3.0, (3, 2))
+        tw = rng.uniform(0.5, 6.0, 3)
+        reg = rng.uniform(-0.4, 0.4, (4, 2)) + rng.uniform(-1.0, 1.0, 2)
+        rw = rng.uniform(0.0, 0.6, 4)
+        if not triangle_holds(tri, tw * h, reg, rw * h):
+            continue
+        held += 1
+        ds = np.concatenate([rng.uniform(-h, h, (64, 2)),
+                             np.array([[-h, -h], [-h, h], [h, -h], [h, h]])])
+        for d in ds:
+            t = tri - tw[:, None] * d
+            r = reg - rw[:, None] * d
+            s = np.sign((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1])
+                        - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
+            for a in range(3):
+                b = (a + 1) % 3
+                cross = ((t[b, 0] - t[a, 0]) * (r[:, 1] - t[a, 1])
+                         - (t[b, 1] - t[a, 1]) * (r[:, 0] - t[a, 0]))
+                assert (s * cross > 0).all()
+    assert held > 100
+    # An edge that passes within its own motion of the region: not held.
+    tri = np.array([[-2.0, -2.0], [2.0, -2.0], [0.0, 0.11]])
+    reg = np.array([[-0.1, -0.1], [0.1, -0.1], [0.1, 0.0], [-0.1, 0.0]])
+    assert triangle_holds(tri, np.zeros(3), reg, np.zeros(4))
+    assert not triangle_holds(tri, np.full(3, 0.05), reg, np.zeros(4))
