@@ -185,9 +185,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
         occluder's depth), ``fill_cut`` (pixels of primitives' boxes left out of the lists
-        while they are filled, behind a triangle that alone holds the pixel's offsets), ``silhouette_edges`` and ``plane_tests`` (the resolution's work:
-        occluder silhouette edges walked by the cover tests, occluder triangles put through
-        the depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
+        while they are filled, behind a triangle that alone holds the pixel's offsets),
+        ``silhouette_edges`` and ``plane_tests`` (the resolution's work: occluder
+        silhouette edges walked by the cover tests, occluder triangles put through the
+        depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
@@ -367,6 +368,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
         sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
         stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
     stats["projected"] += len(sel)
+    stats["walk_seconds"] = stats.get("walk_seconds", 0.0) + time.perf_counter() - t0
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
     rng[:, 0] = 1

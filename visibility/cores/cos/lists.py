@@ -32,6 +32,8 @@ from visibility.cores.cos.space import (
 
 #: Screen tile side in pixels.
 TILE = 8
+#: Primitives per parallel chunk of ``footprints``.
+FOOTPRINT_CHUNK = 256
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -84,85 +86,89 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
                near_w, nx, ny, x_lo, y_lo, pw, plane_tol, rng):  # pragma: no cover - numba
     """Pixel box (rng[t] = i0, i1, j0, j1; i0 > i1 when empty) of primitive order[t], for the
     positions t in ``sel`` (the others are left as they are)."""
-    for s in prange(sel.shape[0]):
-        t = sel[s]
-        rng[t, 0] = 1
-        rng[t, 1] = 0
-        rng[t, 2] = 1
-        rng[t, 3] = 0
-        p = order[t]
-        n = npts[p]
+    # Chunks of primitives, each with its own scratch: an allocation per primitive cost as
+    # much as its projection.
+    n_sel = sel.shape[0]
+    for c0 in prange((n_sel + FOOTPRINT_CHUNK - 1) // FOOTPRINT_CHUNK):
         cam = np.empty((8, 3))
-        load_prim(pts, start[p], n, origin, perm, sign, cam)
         lo = np.empty(3)
         hi = np.empty(3)
-        for k in range(3):
-            lo[k] = np.inf
-            hi[k] = -np.inf
-            for i in range(n):
-                lo[k] = min(lo[k], cam[i, k])
-                hi[k] = max(hi[k], cam[i, k])
-        if not hi[2] > 0.0:
-            continue  # behind every camera position of the view
-        if kind[p] == 0 and _edge_on(cam, corners, plane_tol):
-            continue
-        if (lo[0] <= near_box[1] and hi[0] >= near_box[0] and lo[1] <= near_box[3]
-                and hi[1] >= near_box[2] and lo[2] <= near_box[5] and hi[2] >= near_box[4]):
-            rng[t, 0] = 0
-            rng[t, 1] = ny - 1
-            rng[t, 2] = 0
-            rng[t, 3] = nx - 1
-            continue
-        # Clip to w >= near_w: triangles by Sutherland-Hodgman, hulls (boxes) by their w range.
         clip = np.empty((8, 3))
-        m = 0
-        if kind[p] == 0:
-            for i in range(3):
-                j = (i + 1) % 3
-                wi = cam[i, 2]
-                wj = cam[j, 2]
-                if wi >= near_w:
-                    clip[m, 0] = cam[i, 0]
-                    clip[m, 1] = cam[i, 1]
-                    clip[m, 2] = wi
-                    m += 1
-                if (wi < near_w) != (wj < near_w):
-                    s = (near_w - wi) / (wj - wi)
-                    clip[m, 0] = cam[i, 0] + s * (cam[j, 0] - cam[i, 0])
-                    clip[m, 1] = cam[i, 1] + s * (cam[j, 1] - cam[i, 1])
-                    clip[m, 2] = near_w
-                    m += 1
-        else:
-            w0 = max(lo[2], near_w)
-            if w0 <= hi[2]:
-                for c in range(8):
-                    clip[m, 0] = hi[0] if c & 1 else lo[0]
-                    clip[m, 1] = hi[1] if c & 2 else lo[1]
-                    clip[m, 2] = hi[2] if c & 4 else w0
-                    m += 1
-        if m == 0:
-            continue
-        ux0 = np.inf
-        ux1 = -np.inf
-        uy0 = np.inf
-        uy1 = -np.inf
-        for i in range(m):
-            for k in range(4):
-                d = clip[i, 2] - corners[k, 2]
-                u = (clip[i, 0] - corners[k, 0]) / d
-                v = (clip[i, 1] - corners[k, 1]) / d
-                ux0 = min(ux0, u)
-                ux1 = max(ux1, u)
-                uy0 = min(uy0, v)
-                uy1 = max(uy1, v)
-        j0, j1 = _pixel_span(ux0, ux1, x_lo, pw, nx)
-        i0, i1 = _pixel_span(uy0, uy1, y_lo, pw, ny)
-        if j0 > j1 or i0 > i1:
-            continue
-        rng[t, 0] = i0
-        rng[t, 1] = i1
-        rng[t, 2] = j0
-        rng[t, 3] = j1
+        for s in range(c0 * FOOTPRINT_CHUNK, min(n_sel, (c0 + 1) * FOOTPRINT_CHUNK)):
+            t = sel[s]
+            rng[t, 0] = 1
+            rng[t, 1] = 0
+            rng[t, 2] = 1
+            rng[t, 3] = 0
+            p = order[t]
+            n = npts[p]
+            load_prim(pts, start[p], n, origin, perm, sign, cam)
+            for k in range(3):
+                lo[k] = np.inf
+                hi[k] = -np.inf
+                for i in range(n):
+                    lo[k] = min(lo[k], cam[i, k])
+                    hi[k] = max(hi[k], cam[i, k])
+            if not hi[2] > 0.0:
+                continue  # behind every camera position of the view
+            if kind[p] == 0 and _edge_on(cam, corners, plane_tol):
+                continue
+            if (lo[0] <= near_box[1] and hi[0] >= near_box[0] and lo[1] <= near_box[3]
+                    and hi[1] >= near_box[2] and lo[2] <= near_box[5] and hi[2] >= near_box[4]):
+                rng[t, 0] = 0
+                rng[t, 1] = ny - 1
+                rng[t, 2] = 0
+                rng[t, 3] = nx - 1
+                continue
+            # Clip to w >= near_w: triangles by Sutherland-Hodgman, hulls (boxes) by their w range.
+            m = 0
+            if kind[p] == 0:
+                for i in range(3):
+                    j = (i + 1) % 3
+                    wi = cam[i, 2]
+                    wj = cam[j, 2]
+                    if wi >= near_w:
+                        clip[m, 0] = cam[i, 0]
+                        clip[m, 1] = cam[i, 1]
+                        clip[m, 2] = wi
+                        m += 1
+                    if (wi < near_w) != (wj < near_w):
+                        s = (near_w - wi) / (wj - wi)
+                        clip[m, 0] = cam[i, 0] + s * (cam[j, 0] - cam[i, 0])
+                        clip[m, 1] = cam[i, 1] + s * (cam[j, 1] - cam[i, 1])
+                        clip[m, 2] = near_w
+                        m += 1
+            else:
+                w0 = max(lo[2], near_w)
+                if w0 <= hi[2]:
+                    for c in range(8):
+                        clip[m, 0] = hi[0] if c & 1 else lo[0]
+                        clip[m, 1] = hi[1] if c & 2 else lo[1]
+                        clip[m, 2] = hi[2] if c & 4 else w0
+                        m += 1
+            if m == 0:
+                continue
+            ux0 = np.inf
+            ux1 = -np.inf
+            uy0 = np.inf
+            uy1 = -np.inf
+            for i in range(m):
+                for k in range(4):
+                    d = clip[i, 2] - corners[k, 2]
+                    u = (clip[i, 0] - corners[k, 0]) / d
+                    v = (clip[i, 1] - corners[k, 1]) / d
+                    ux0 = min(ux0, u)
+                    ux1 = max(ux1, u)
+                    uy0 = min(uy0, v)
+                    uy1 = max(uy1, v)
+            j0, j1 = _pixel_span(ux0, ux1, x_lo, pw, nx)
+            i0, i1 = _pixel_span(uy0, uy1, y_lo, pw, ny)
+            if j0 > j1 or i0 > i1:
+                continue
+            rng[t, 0] = i0
+            rng[t, 1] = i1
+            rng[t, 2] = j0
+            rng[t, 3] = j1
 
 
 @njit(cache=True, nogil=True)
