@@ -181,7 +181,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats : seconds per phase (``weld_seconds``, ``topology_seconds`` (closed surfaces: built
         once per scene, then the per-cell test), ``sort_seconds``, ``list_seconds`` (of
         which ``footprint_seconds``, ``bin_seconds`` and ``fill_seconds``: each primitive's
-        pixel box per view, binning the boxes into tiles, filling the per-pixel lists),
+        pixel box per view (the hierarchy walk, ``walk_seconds``, included), binning the
+        boxes into tiles, filling the per-pixel lists),
         ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
         occluder's depth), ``fill_cut`` (pixels of primitives' boxes left out of the lists
@@ -231,7 +232,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
         "tree_seconds": t2b - t2, "culled": 0, "projected": 0, "tree": tree is not None,
-        "list_seconds": 0.0, "footprint_seconds": 0.0, "bin_seconds": 0.0, "fill_seconds": 0.0,
+        "list_seconds": 0.0, "footprint_seconds": 0.0, "walk_seconds": 0.0,
+        "bin_seconds": 0.0, "fill_seconds": 0.0,
         "resolve_seconds": 0.0, "list_entries": 0, "longest_list": 0, "tested": 0,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
@@ -339,7 +341,8 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     counters = np.zeros((n_tiles, 6), dtype=np.int64)
     scratch = np.zeros_like(known)
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
-                      _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1)
+                      _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
+                      numba.get_num_threads())
     # One pixel per tile, as wide as the tile.
     wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE)
     resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
@@ -368,7 +371,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
         sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
         stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
     stats["projected"] += len(sel)
-    stats["walk_seconds"] = stats.get("walk_seconds", 0.0) + time.perf_counter() - t0
+    stats["walk_seconds"] += time.perf_counter() - t0
     known = vis.copy()
     rng = np.empty((len(order), 4), dtype=np.int32)
     rng[:, 0] = 1
@@ -426,7 +429,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
         pstart = np.empty((t1 - t) * npix, dtype=np.int64)
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         lists = TileLists(entries, pstart, pcount, t, t1,
-                          _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE)
+                          _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE,
+                          numba.get_num_threads())
         fill_cut = np.zeros(t1 - t, dtype=np.int64)
         fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists,
                    fill_cut)

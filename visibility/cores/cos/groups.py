@@ -61,6 +61,8 @@ class TileLists(NamedTuple):
         ``entries[pstart[i]:pstart[i] + pcount[i]]``, i = (tile - tile0) tsz^2 + loc.
     torder : (tile1 - tile0,) int64 the order tiles are taken in (balances the threads).
     tiles_x : tiles across; tsz : pixels across a tile.
+    shares : how many threads ``torder`` was dealt to (``core._balanced_order``): its
+        contiguous shares, in that number, carry a like mix of costs.
     """
 
     entries: np.ndarray
@@ -71,6 +73,7 @@ class TileLists(NamedTuple):
     torder: np.ndarray
     tiles_x: int
     tsz: int
+    shares: int
 
 
 class Marks(NamedTuple):

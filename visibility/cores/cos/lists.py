@@ -226,7 +226,7 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     solid, gap = prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
     x_lo, y_lo, pw, plane_tol = screen.x_lo, screen.y_lo, screen.pw, screen.plane_tol
-    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _ = lists
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _ = lists
     h = 0.5 * pw
     npix = TILE * TILE
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
