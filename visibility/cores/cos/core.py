@@ -247,11 +247,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
+        # Pixel boxes by position; each view writes (and reads) only the rows it projects.
+        rng = np.empty((len(order), 4), dtype=np.int32)
         worst = -1.0
         for view in views:
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
-                                  vis, budget, stats, coarse_items, tree)
+                                  vis, budget, stats, coarse_items, tree, rng)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -354,13 +356,14 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any], coarse_items: int, tree: Tree | None) -> int:
+                stats: dict[str, Any], coarse_items: int, tree: Tree | None,
+                rng: np.ndarray) -> int:
     """Lists and resolution of one view (over the positions of ``order`` its side plane can
     list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays,
     all of them without a tree; only the ``solid`` primitives occlude); sets ``vis`` for what
     it finds visible, adds to ``stats`` and returns the view's longest list. Tiles listing at
     least ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``)
-    first."""
+    first. ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``)."""
     t0 = time.perf_counter()
     if tree is None:
         sel = np.flatnonzero(keep)
@@ -373,9 +376,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
     stats["projected"] += len(sel)
     stats["walk_seconds"] += time.perf_counter() - t0
     known = vis.copy()
-    rng = np.empty((len(order), 4), dtype=np.int32)
-    rng[:, 0] = 1
-    rng[:, 1] = 0
+    # The walk yields leaves in tree order; the lists need front-to-back order.
+    sel.sort()
     footprints(prims.pts, prims.start, prims.npts, prims.kind, order, sel, view.origin,
                view.perm, view.sign, view.corners, view.near_box, view.near_w, view.nx,
                view.ny, view.x_lo, view.y_lo, view.pw, plane_tol, rng)
@@ -384,7 +386,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.nda
     n_tiles = tiles_x * tiles_y
     npix = TILE * TILE
     t0b = time.perf_counter()
-    tile_off, tile_items, bound = bin_tiles(rng, tiles_x, tiles_y)
+    tile_off, tile_items, bound = bin_tiles(rng, sel, tiles_x, tiles_y)
     t0c = time.perf_counter()
     stats["footprint_seconds"] += t0b - t0
     stats["bin_seconds"] += t0c - t0b

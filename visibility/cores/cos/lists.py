@@ -172,14 +172,16 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
 
 
 @njit(cache=True, nogil=True)
-def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
-    """CSR (offsets (T + 1,), items) of the positions t whose pixel box meets each tile, in
-    increasing t (so in front-to-back order), and per tile the pixels of those boxes inside
-    it (T,): a bound on the tile's list entries."""
+def bin_tiles(rng, sel, tiles_x, tiles_y):  # pragma: no cover - numba
+    """CSR (offsets (T + 1,), items) of the positions t in ``sel`` (increasing; the rows of
+    ``rng`` ``footprints`` wrote) whose pixel box meets each tile, in increasing t (so in
+    front-to-back order), and per tile the pixels of those boxes inside it (T,): a bound on
+    the tile's list entries."""
     n_tiles = tiles_x * tiles_y
     counts = np.zeros(n_tiles + 1, dtype=np.int64)
     bound = np.zeros(n_tiles, dtype=np.int64)
-    for t in range(rng.shape[0]):
+    for s in range(sel.shape[0]):
+        t = sel[s]
         if rng[t, 0] > rng[t, 1]:
             continue
         for ty in range(rng[t, 0] // TILE, rng[t, 1] // TILE + 1):
@@ -192,7 +194,8 @@ def bin_tiles(rng, tiles_x, tiles_y):  # pragma: no cover - numba
         counts[k + 1] += counts[k]
     fill = counts[:-1].copy()
     items = np.empty(counts[n_tiles], dtype=np.int64)
-    for t in range(rng.shape[0]):
+    for s in range(sel.shape[0]):
+        t = sel[s]
         if rng[t, 0] > rng[t, 1]:
             continue
         for ty in range(rng[t, 0] // TILE, rng[t, 1] // TILE + 1):
