@@ -26,12 +26,16 @@ from visibility.cores.cos.space import (
     load_prim,
     overlaps_share,
     project,
+    quad_holds,
     region_share,
     triangle_holds,
 )
 
 #: Screen tile side in pixels.
 TILE = 8
+#: Recent triangles per pixel that the early z of ``fill_lists`` tries to pair with the next
+#: one along a shared edge.
+PAIR_CANDIDATES = 4
 #: Primitives per parallel chunk of ``footprints``.
 FOOTPRINT_CHUNK = 256
 
@@ -220,13 +224,15 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
 
     Early z while the lists are built (paper Sec. 5): a solid triangle that alone holds a
     pixel's whole offset region under every between-sample direction (``space.triangle_holds``),
-    and lies beyond every camera position, meets every ray of the pixel no deeper than its
-    deepest vertex z; an item whose distance from the box exceeds z |(s, 1)| lies wholly
-    beyond it on every ray (the argument of ``resolve``'s early z) and is not listed there.
+    or with one of the last ``PAIR_CANDIDATES`` such triangles listed there that shares an
+    edge with it (``space.quad_holds``), and lies beyond every camera position, meets every
+    ray of the pixel no deeper than its (their) deepest vertex z; an item whose distance
+    from the box exceeds z |(s, 1)| lies wholly beyond it on every ray (the argument of
+    ``resolve``'s early z) and is not listed there.
     Items come front to back, so the cut only drops entries after the triangle that set it.
     ``cut[tile - tile0]`` gets the entries so dropped."""
     pts, start, npts, kind = prims.pts, prims.start, prims.npts, prims.kind
-    solid, gap = prims.solid, prims.gap
+    vid, solid, gap = prims.vid, prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
     x_lo, y_lo, pw, plane_tol = screen.x_lo, screen.y_lo, screen.pw, screen.plane_tol
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _ = lists
@@ -252,6 +258,15 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
         # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
         lray = np.empty(npix)
         zgap = np.full(npix, np.inf)
+        # Early-z triangles that did not hold a pixel's region alone (a ring per pixel): the
+        # next one may, fused with one of them along a shared edge (a wall's quad).
+        cand = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
+        czmax = np.empty((npix, PAIR_CANDIDATES))
+        cbox = np.empty((npix, PAIR_CANDIDATES, 4))
+        cnext = np.zeros(npix, dtype=np.int64)
+        ccam = np.empty((3, 3))
+        cv = np.empty((3, 2))
+        cr = np.empty(3)
         for loc in range(npix):
             i = ty * TILE + loc // TILE
             j = tx * TILE + loc % TILE
@@ -311,15 +326,51 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
                     m += 1
                     if not occ or zmax * lray[loc] + plane_tol >= zgap[loc]:
                         continue
-                    # The polygon's box is the region's (``preg``): most triangles stop here.
-                    if (min(qv[0, 0], qv[1, 0], qv[2, 0]) > preg[loc, 0]
-                            or max(qv[0, 0], qv[1, 0], qv[2, 0]) < preg[loc, 1]
-                            or min(qv[0, 1], qv[1, 1], qv[2, 1]) > preg[loc, 2]
-                            or max(qv[0, 1], qv[1, 1], qv[2, 1]) < preg[loc, 3]):
-                        continue
-                    if triangle_holds(qv, qr, prv[loc], prr[loc]):
+                    # The region's box (``preg``) inside the triangle's: most stop here.
+                    if (min(qv[0, 0], qv[1, 0], qv[2, 0]) <= preg[loc, 0]
+                            and max(qv[0, 0], qv[1, 0], qv[2, 0]) >= preg[loc, 1]
+                            and min(qv[0, 1], qv[1, 1], qv[2, 1]) <= preg[loc, 2]
+                            and max(qv[0, 1], qv[1, 1], qv[2, 1]) >= preg[loc, 3]
+                            and triangle_holds(qv, qr, prv[loc], prr[loc])):
                         zgap[loc] = zmax * lray[loc] + plane_tol
                         newz = True
+                        continue
+                    bx0 = min(qv[0, 0], qv[1, 0], qv[2, 0])
+                    bx1 = max(qv[0, 0], qv[1, 0], qv[2, 0])
+                    by0 = min(qv[0, 1], qv[1, 1], qv[2, 1])
+                    by1 = max(qv[0, 1], qv[1, 1], qv[2, 1])
+                    for c in range(PAIR_CANDIDATES):
+                        pc = cand[loc, c]
+                        zq = max(zmax, czmax[loc, c])
+                        if pc < 0 or zq * lray[loc] + plane_tol >= zgap[loc]:
+                            continue
+                        # The pair's box must hold the region's, and they must share an edge.
+                        if (min(bx0, cbox[loc, c, 0]) > preg[loc, 0]
+                                or max(bx1, cbox[loc, c, 1]) < preg[loc, 1]
+                                or min(by0, cbox[loc, c, 2]) > preg[loc, 2]
+                                or max(by1, cbox[loc, c, 3]) < preg[loc, 3]):
+                            continue
+                        common = 0
+                        for a in range(3):
+                            for b in range(3):
+                                if vid[p, a] == vid[pc, b]:
+                                    common += 1
+                        if common < 2:
+                            continue
+                        load_prim(pts, start[pc], 3, origin, perm, sign, ccam)
+                        project(ccam, 3, sx, sy, h, 0.0, cv, cr)
+                        if quad_holds(qv, qr, vid[p], cv, cr, vid[pc], prv[loc], prr[loc]):
+                            zgap[loc] = zq * lray[loc] + plane_tol
+                            newz = True
+                            break
+                    c = cnext[loc]
+                    cand[loc, c] = p
+                    czmax[loc, c] = zmax
+                    cbox[loc, c, 0] = bx0
+                    cbox[loc, c, 1] = bx1
+                    cbox[loc, c, 2] = by0
+                    cbox[loc, c, 3] = by1
+                    cnext[loc] = (c + 1) % PAIR_CANDIDATES
             if newz:
                 zall = -np.inf
                 for loc in range(npix):

@@ -352,3 +352,82 @@ def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
             if not nx * rv[k, 0] + ny * rv[k, 1] - rr[k] * l1 > c:
                 return False
     return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _outside_edge(ax, ay, bx, by, rad, rv, rr):  # pragma: no cover - numba
+    """Whether some corner square of the region (rv (4, 2), rr (4,)) comes within ``rad`` of
+    the line of the counter-clockwise edge a -> b, or lies beyond it (L1 support of the
+    edge normal)."""
+    nx = ay - by
+    ny = bx - ax
+    l1 = abs(nx) + abs(ny)
+    c = nx * ax + ny * ay + rad * l1
+    for k in range(4):
+        if not nx * rv[k, 0] + ny * rv[k, 1] - rr[k] * l1 > c:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def quad_holds(tv, tr, tid, cv, cr, cid, rv, rr):  # pragma: no cover - numba
+    """Whether COS triangles T (tv (3, 2), motion radii tr (3,), welded vertex ids tid (3,))
+    and C (cv, cr, cid), fused along an edge they share (two ids in common, C on the far
+    side of it), together hold the grown offset region (rv, rr) for every between-sample
+    direction.
+
+    The region lies inside each of the pair's four outer edges by more than that edge's
+    motion: their capsules miss it and, at the pixel centre, it is inside the quad. Taken
+    counter-clockwise each, the two triangles traverse the shared edge in opposite
+    directions, so the winding number of the outer edges around a point is the number of
+    the two holding it; no outer edge comes near the region as the directions move, so it
+    stays 1 there: every point of the region is held by T or C (``resolve._covers``'
+    argument for a fused group)."""
+    su = -1
+    sv = -1
+    for a in range(3):
+        if tid[a] < 0 or cid[a] < 0:
+            return False
+        for b in range(3):
+            if tid[a] == cid[b]:
+                if su < 0:
+                    su = a
+                else:
+                    sv = a
+    if sv < 0:
+        return False
+    ar = area2(tv)
+    e1 = np.hypot(tv[1, 0] - tv[0, 0], tv[1, 1] - tv[0, 1])
+    e2 = np.hypot(tv[2, 0] - tv[0, 0], tv[2, 1] - tv[0, 1])
+    if not abs(ar) > 1e-9 * e1 * e2:
+        return False
+    ac = area2(cv)
+    f1 = np.hypot(cv[1, 0] - cv[0, 0], cv[1, 1] - cv[0, 1])
+    f2 = np.hypot(cv[2, 0] - cv[0, 0], cv[2, 1] - cv[0, 1])
+    if not abs(ac) > 1e-9 * f1 * f2:
+        return False
+    # T counter-clockwise: u -> v -> o with {u, v} the shared vertices.
+    o = 3 - su - sv
+    if ar > 0.0:
+        u, v = (su, sv) if (su + 1) % 3 == sv else (sv, su)
+    else:
+        u, v = (su, sv) if (su + 2) % 3 == sv else (sv, su)
+    # C's vertex off the shared edge, strictly on the right of u -> v.
+    co = 0
+    while co < 3 and (cid[co] == tid[u] or cid[co] == tid[v]):
+        co += 1
+    if co == 3:
+        return False
+    ux, uy = tv[u, 0], tv[u, 1]
+    vx, vy = tv[v, 0], tv[v, 1]
+    ox, oy = cv[co, 0], cv[co, 1]
+    if not (vx - ux) * (oy - uy) - (vy - uy) * (ox - ux) < 0.0:
+        return False
+    # The outer edges, counter-clockwise: u -> co -> v (C's), v -> o -> u (T's).
+    if _outside_edge(ux, uy, ox, oy, max(tr[u], cr[co]), rv, rr):
+        return False
+    if _outside_edge(ox, oy, vx, vy, max(cr[co], tr[v]), rv, rr):
+        return False
+    if _outside_edge(vx, vy, tv[o, 0], tv[o, 1], max(tr[v], tr[o]), rv, rr):
+        return False
+    return not _outside_edge(tv[o, 0], tv[o, 1], ux, uy, max(tr[o], tr[u]), rv, rr)
