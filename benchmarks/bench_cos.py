@@ -83,7 +83,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            / max(1, len(ref)), "list_entries": st["list_entries"],
            "longest_list": st["longest_list"], "mean_list": st["list_entries"] / st["pixels"],
            "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
-           "early_z_cut": st.get("early_z_cut", 0),
+           "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0),
            "occluder_triangles": st.get("occluder_triangles", 0),
@@ -248,7 +248,9 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                    "coarse pass, ") +
                 f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}), "
                 f"{100 * r.get('early_z_cut', 0) / max(1, r['list_entries']):.0f} % of them "
-                "cut by early z behind surfaces covering a pixel's offsets"
+                "cut by early z behind surfaces covering a pixel's offsets, "
+                f"{r.get('fill_cut', 0):,} (primitive, pixel) pairs never listed, behind a "
+                "triangle or a pair of them holding the pixel's offsets"
                 + (f", {r['silhouette_edges']:,} silhouette edges walked and "
                    f"{r['plane_tests']:,} occluder triangles depth-tested to resolve them"
                    if r.get("silhouette_edges") else "") + "; "
@@ -339,10 +341,10 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "| cell | R | s | µs / px | closed | sort | lists | coarse | resolve | "
            "footprints | culled by tree | unseen back faces | coarse tiles | "
            "left out by coarse | entries | "
-           "longest | mean list | early z cut | occluders | edges walked | plane tests | "
-           "PVS | ref | FN | FP | overest. | "
+           "longest | mean list | cut while filling | early z cut | occluders | "
+           "edges walked | plane tests | PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|" + "---|" * 27]
+           "|" + "---|" * 28]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
@@ -352,7 +354,8 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
                    f"{r.get('culled', 0):,} | {r['unseen_back_faces']:,} | "
                    f"{r['coarse_tiles']:,} | {r['coarse_dropped']:,} | "
                    f"{r['list_entries']:,} | {r['longest_list']} | "
-                   f"{r['mean_list']:.1f} | {r.get('early_z_cut', 0):,} | "
+                   f"{r['mean_list']:.1f} | {r.get('fill_cut', 0):,} | "
+                   f"{r.get('early_z_cut', 0):,} | "
                    f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
                    f"{r.get('plane_tests', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
                    f"{r['fn_count']} | "
