@@ -267,14 +267,8 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
         ccam = np.empty((3, 3))
         cv = np.empty((3, 2))
         cr = np.empty(3)
-        for loc in range(npix):
-            i = ty * TILE + loc // TILE
-            j = tx * TILE + loc % TILE
-            sx = x_lo + (j + 0.5) * pw
-            sy = y_lo + (i + 0.5) * pw
-            region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])
-            region_share(prv[loc], prr[loc], preg[loc])
-            lray[loc] = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
+        # Set up at a pixel's first item: open scenes leave many pixels of a tile empty.
+        ready = np.zeros(npix, dtype=np.bool_)
         m = 0
         ncut = 0
         zall = np.inf  # the largest zgap of the tile's pixels
@@ -314,6 +308,11 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
                 for j in range(j0, j1 + 1):
                     sx = x_lo + (j + 0.5) * pw
                     loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                    if not ready[loc]:
+                        ready[loc] = True
+                        region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])
+                        region_share(prv[loc], prr[loc], preg[loc])
+                        lray[loc] = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
                     if gap[p] > zgap[loc]:
                         ncut += 1
                         continue
