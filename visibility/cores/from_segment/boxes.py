@@ -7,6 +7,8 @@ made safe for points behind the eye.
 Whole clusters (``_cluster_boxes``), the triangles of expanded clusters (``_expanded_boxes``) and
 spheres (``_sphere_boxes``) each get a pixel box, a smallest depth and flags (``FLAG_*``) per
 face; ``_sort_and_bin`` orders them front to back and lists them per TILE x TILE pixel tile.
+Expanded triangles also keep their projected swept hull (``hull``), so that binning and the
+tiles' scan skip the parts of the box the hull does not reach.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.cores.from_segment.hull import HMAX, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_box
 from visibility.raster.camera import cube_face_rotations
 from visibility.raster.face_pixels import pixel_range
@@ -48,10 +51,11 @@ _PERM, _SGN = _face_permutation()
 
 
 @njit(**_JIT)
-def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
+def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
     """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
     the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
-    hull reaches the near plane)."""
+    hull reaches the near plane, n): ``uv[:n]`` (at least npts + npts^2 / 4 rows) are the NDC
+    points whose 2D hull is the clipped hull's projection."""
     ax = perm[f, 2]
     ix = perm[f, 0]
     iy = perm[f, 1]
@@ -78,13 +82,14 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
         if d >= near:
             out_n = False
     if out_r or out_l or out_t or out_b or out_n:
-        return False, 0.0, False
+        return False, 0.0, False, 0
     umin = np.inf
     umax = -np.inf
     vmin = np.inf
     vmax = -np.inf
     zm = np.inf
     slow = False
+    n = 0
     for q in range(npts):
         d = sd * cube[q, ax]
         if d >= near:
@@ -95,6 +100,9 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
             vmin = min(vmin, v)
             vmax = max(vmax, v)
             zm = min(zm, d)
+            uv[n, 0] = u
+            uv[n, 1] = v
+            n += 1
         else:
             slow = True
     if slow:
@@ -112,11 +120,14 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
                     umax = max(umax, u)
                     vmin = min(vmin, v)
                     vmax = max(vmax, v)
+                    uv[n, 0] = u
+                    uv[n, 1] = v
+                    n += 1
     if not (umin <= umax and vmin <= vmax):
-        return False, 0.0, False
+        return False, 0.0, False, 0
     if not pixel_range(umin, umax, vmin, vmax, res, box, pad):
-        return False, 0.0, False
-    return True, zm, slow
+        return False, 0.0, False, 0
+    return True, zm, slow, n
 
 
 @njit(**_JIT)
@@ -152,6 +163,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
     """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
     corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
     cube = np.empty((16, 3))
+    uv = np.empty((16 + 64, 2))
     bx = np.empty(4, dtype=np.int64)
     for c in range(first, last):
         for k in range(8):
@@ -166,7 +178,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
         f_lo = 0 if sole < 0 else sole
         f_hi = 6 if sole < 0 else sole + 1
         for f in range(f_lo, f_hi):
-            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad)
+            ok, zm, slow, _ = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad, uv)
             if ok:
                 for r in range(4):
                     out_box[c, f, r] = bx[r]
@@ -196,34 +208,42 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 
 @njit(**_JIT)
 def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
-                          sgn, res, near, pad, out_box, out_z, out_flag, first,
+                          sgn, res, near, pad, out_box, out_z, out_flag, out_hull, first,
                           last):  # pragma: no cover - numba
     cube = np.empty((6, 3))
+    uv = np.empty((HMAX, 2))
+    scratch = np.empty((3 * HMAX + 2, 2))
     bx = np.empty(4, dtype=np.int64)
     for k in range(first, last):
         t = exp_tri[k]
         f = exp_face[k]
         out_flag[k] = 0
+        out_hull.count[k] = 0
         _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
-        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad)
+        ok, zm, slow, n = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad, uv)
         if ok:
             for r in range(4):
                 out_box[k, r] = bx[r]
             out_z[k] = zm
+            # Both ends of a moving triangle's corners hold every position between them, so
+            # the same hull bounds its sweep.
+            out_hull.count[k] = store_hull(uv, n, res, scratch, out_hull.pts, k)
             out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
                 FLAG_SLOW if slow else 0)
 
 
 @njit(**_PJIT)
 def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
-                    res, near, pad, out_box, out_z, out_flag):  # pragma: no cover - numba
-    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters."""
+                    res, near, pad, out_box, out_z, out_flag, out_hull):  # pragma: no cover
+    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters,
+    and its projected swept hull: ``out_hull`` (``hull.Hulls``, index unused) gets
+    ``pts[k]`` and ``count[k]`` (0 = scan the box)."""
     n = exp_tri.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
         _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
-                              perm, sgn, res, near, pad, out_box, out_z, out_flag, ch * n // nch,
-                              (ch + 1) * n // nch)
+                              perm, sgn, res, near, pad, out_box, out_z, out_flag, out_hull,
+                              ch * n // nch, (ch + 1) * n // nch)
 
 
 @njit(**_JIT)
@@ -311,8 +331,27 @@ def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, pad, out_box, o
 
 
 @njit(**_JIT)
-def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover - numba
+def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
+    """Tile columns [tx0, tx1] of primitive p in tile row ty: those its hull reaches (when it
+    has one) within its box, else its box's."""
+    j0 = prim_box[p, 2]
+    j1 = prim_box[p, 3]
+    h = hulls.index[p]
+    if h >= 0 and hulls.count[h] > 0:
+        a, b = hull_cols(hulls.pts, h, hulls.count[h], max(ty * TILE, prim_box[p, 0]),
+                         min(ty * TILE + TILE - 1, prim_box[p, 1]), pad)
+        j0 = max(j0, a)
+        j1 = min(j1, b)
+        if j0 > j1:
+            return 1, 0
+    return j0 // TILE, j1 // TILE
+
+
+@njit(**_JIT)
+def _sort_and_bin(prim_face, prim_box, prim_z, hulls, res, near, pad):  # pragma: no cover
     """Approximate front-to-back order (log-depth buckets) and per-tile CSR lists in that order.
+    A primitive with a hull (``hull.Hulls``, samples up to ``pad`` pixels off centre) is
+    listed only in the tiles of its box that its hull reaches.
 
     Returns (zkey, tile_start, tile_items): zkey[p] <= prim_z[p] is non-decreasing along each
     tile's list, so a tile can stop at the first primitive whose key is behind its bound."""
@@ -346,7 +385,8 @@ def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover -
     for p in range(n):
         base = prim_face[p] * per_face
         for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
+            for tx in range(tx0, tx1 + 1):
                 tile_start[base + ty * ntx + tx + 1] += 1
     for i in range(ntiles):
         tile_start[i + 1] += tile_start[i]
@@ -356,7 +396,8 @@ def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover -
         p = order[q]
         base = prim_face[p] * per_face
         for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
+            for tx in range(tx0, tx1 + 1):
                 tl = base + ty * ntx + tx
                 items[fill[tl]] = p
                 fill[tl] += 1

@@ -24,6 +24,7 @@ from visibility.cores.from_segment.envelope import (
     envelope_insert,
     pixel_bound,
 )
+from visibility.cores.from_segment.hull import hull_cols
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.raster.face_pixels import pixel_range
@@ -65,6 +66,24 @@ def sample_offset(face: int, row: int, col: int, res: int, jitter: float,
 
 
 # ------------------------------------------------------------------------------ tile resolution
+@njit(**_JIT)
+def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
+    """Columns of primitive p to visit in tile rows [ia, ib] (clamped to [ja, jb]): where its
+    hull (``hull.Hulls``) can hold a sample up to ``pad`` pixels off centre, or all of [ja, jb]
+    when it has none. Writes span[i - r0] = (j0, j1), empty when j0 > j1."""
+    h = hulls.index[p]
+    m = hulls.count[h] if h >= 0 else 0
+    for i in range(ia, ib + 1):
+        j0 = ja
+        j1 = jb
+        if m > 0:
+            a, b = hull_cols(hulls.pts, h, m, i, i, pad)
+            j0 = max(j0, a)
+            j1 = min(j1, b)
+        span[i - r0, 0] = j0
+        span[i - r0, 1] = j1
+
+
 @njit(**_JIT)
 def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
     """Camera-space corners P of triangle t at t = 0 (relative to the eye), their velocities U
@@ -109,11 +128,12 @@ def _front_box(P, U, res, box, pad):
 
 
 @njit(**_JIT)
-def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, knots, coef,
+def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, knots, coef,
             env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy):
     """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere) into
-    the envelopes of the pixels [ia, ib] x [ja, jb] of the current tile, sampled at their
-    centres moved by (jx, jy)[pixel] NDC units (``sample_offset``). Returns (env, eid, T,
+    the envelopes of the pixels of rows [ia, ib] of the current tile, row i's columns
+    [span[i - r0, 0], span[i - r0, 1]] (``_row_spans``), sampled at their centres moved by
+    (jx, jy)[pixel] NDC units (``sample_offset``). Returns (env, eid, T,
     tid, pixels newly bounded, overflow, pairs, pieces, grows); the storage is reallocated
     when it grows."""
     closed = 0
@@ -122,7 +142,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, 
     grows = 0
     for i in range(ia, ib + 1):
         yc = 1.0 - (i + 0.5) * step
-        for j in range(ja, jb + 1):
+        for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
             px = (i - r0) * tw + (j - cl0)
             bpx = bound[px]
             if zpr >= bpx:
@@ -169,22 +189,24 @@ def _raster(kind, pid, slow, zpr, ia, ib, ja, jb, r0, cl0, tw, npx, step, near, 
 
 @njit(**_PJIT)
 def _resolve(tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z, prim_zkey,
-             prim_flag, prim_face, verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1,
+             prim_flag, prim_face, hulls, verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1,
              radii, n_tri, v0, dvec, rots, res, near, knots, jitter, seed, visible, overflow,
              counters, witness):  # pragma: no cover - numba
     """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
     n_tri + sphere). A tile whose envelopes outgrow MAX_CAP sets ``overflow``, marks nothing.
-    Tiles are strided over chunks so that busy screen regions spread over the threads."""
+    Tiles are strided over chunks so that busy screen regions spread over the threads. A
+    primitive with a hull (``hull.Hulls``) is scanned row by row over the columns its hull can
+    reach (Alg. 1 line 6), the others over their whole box."""
     for ch in prange(n_chunks):
         _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                       prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
-                       cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
-                       seed, visible, overflow, counters, witness)
+                       prim_zkey, prim_flag, prim_face, hulls, verts0, verts1, faces, moving,
+                       cl_start, cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots,
+                       jitter, seed, visible, overflow, counters, witness)
 
 
 @njit(**_JIT)
 def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                   prim_zkey, prim_flag, prim_face, verts0, verts1, faces, moving, cl_start,
+                   prim_zkey, prim_flag, prim_face, hulls, verts0, verts1, faces, moving, cl_start,
                    cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
                    seed, visible, overflow, counters, witness):  # pragma: no cover - numba
     ntx = (res + TILE - 1) // TILE
@@ -214,6 +236,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
     cen = np.empty(3)
     vel = np.empty(3)
     bx = np.empty(4, dtype=np.int64)
+    span = np.empty((TILE, 2), dtype=np.int64)
     jx = np.zeros(npx_max)
     jy = np.zeros(npx_max)
     n_pairs = 0
@@ -273,6 +296,9 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                     jb = min(bx[3], cl1 - 1)
                     if ia > ib or ja > jb:
                         continue
+                    for i in range(ia, ib + 1):
+                        span[i - r0, 0] = ja
+                        span[i - r0, 1] = jb
                     if moving[t]:
                         moving_setup(P, U, W, coef)
                         kind = 1
@@ -280,7 +306,7 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                         static_setup(P, W, dc, coef)
                         kind = 0
                     env, eid, T, tid, nc, ovf, a0, a1, a2 = _raster(
-                        kind, t, False, zt, ia, ib, ja, jb, r0, cl0, tw, npx, step, near,
+                        kind, t, False, zt, ia, ib, span, r0, cl0, tw, npx, step, near,
                         knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk,
                         jx, jy)
                     closed += nc
@@ -307,11 +333,14 @@ def _resolve_chunk(ch, tiles, n_chunks, tile_start, tile_items, prim_src, prim_b
                     else:
                         kind = 0
                         static_setup(P, W, dc, coef)
+                ia = max(prim_box[pr, 0], r0)
+                ib = min(prim_box[pr, 1], r1 - 1)
+                _row_spans(hulls, pr, ia, ib, max(prim_box[pr, 2], cl0),
+                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span)
                 env, eid, T, tid, closed, ovf, a0, a1, a2 = _raster(
-                    kind, src, slow, prim_z[pr], max(prim_box[pr, 0], r0),
-                    min(prim_box[pr, 1], r1 - 1), max(prim_box[pr, 2], cl0),
-                    min(prim_box[pr, 3], cl1 - 1), r0, cl0, tw, npx, step, near, knots, coef,
-                    env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy)
+                    kind, src, slow, prim_z[pr], ia, ib, span, r0, cl0, tw, npx, step, near,
+                    knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx,
+                    jy)
                 n_pairs += a0
                 n_pieces += a1
                 n_grows += a2
