@@ -25,6 +25,9 @@ from visibility.raster.face_pixels import pixel_range
 TILE = 16
 #: A cluster whose box covers more tiles than this (or reaches the near plane) is expanded.
 EXPAND_TILES = 4
+#: Expanded triangles whose box has fewer pixels than this scan it whole (no hull): below it,
+#: hulling costs more than the cover tests it saves.
+HULL_MIN_PIXELS = 16
 #: Depth buckets of the front-to-back counting sort.
 N_BUCKETS = 2048
 
@@ -226,8 +229,9 @@ def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, 
                 out_box[k, r] = bx[r]
             out_z[k] = zm
             # Both ends of a moving triangle's corners hold every position between them, so
-            # the same hull bounds its sweep.
-            out_hull.count[k] = store_hull(uv, n, res, scratch, out_hull.pts, k)
+            # the same hull bounds its sweep. A small box is cheaper to scan than to hull.
+            if (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) >= HULL_MIN_PIXELS:
+                out_hull.count[k] = store_hull(uv, n, res, scratch, out_hull.pts, k)
             out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
                 FLAG_SLOW if slow else 0)
 
@@ -337,7 +341,8 @@ def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
     j0 = prim_box[p, 2]
     j1 = prim_box[p, 3]
     h = hulls.index[p]
-    if h >= 0 and hulls.count[h] > 0:
+    # One column of tiles: a hull cannot drop any that its box's rows hold.
+    if h >= 0 and hulls.count[h] > 0 and j0 // TILE < j1 // TILE:
         a, b = hull_cols(hulls.pts, h, hulls.count[h], max(ty * TILE, prim_box[p, 0]),
                          min(ty * TILE + TILE - 1, prim_box[p, 1]), pad)
         j0 = max(j0, a)
