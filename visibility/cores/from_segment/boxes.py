@@ -352,11 +352,31 @@ def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
     return j0 // TILE, j1 // TILE
 
 
+@njit(**_PJIT)
+def _tile_ranges(prim_box, hulls, pad):  # pragma: no cover - numba
+    """Each primitive's tile columns per tile row of its box (``_tile_cols``), computed once for
+    the counting and the filling pass of ``_sort_and_bin``: (rstart (n + 1,) int64, cols
+    (rstart[n], 2) int32), primitive p's tile row ty at rstart[p] + ty - prim_box[p, 0] // TILE."""
+    n = prim_box.shape[0]
+    rstart = np.empty(n + 1, dtype=np.int64)
+    rstart[0] = 0
+    for p in range(n):
+        rstart[p + 1] = rstart[p] + prim_box[p, 1] // TILE - prim_box[p, 0] // TILE + 1
+    cols = np.empty((rstart[n], 2), dtype=np.int32)
+    for p in prange(n):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
+            cols[rstart[p] + ty - ty0, 0] = tx0
+            cols[rstart[p] + ty - ty0, 1] = tx1
+    return rstart, cols
+
+
 @njit(**_JIT)
-def _sort_and_bin(prim_face, prim_box, prim_z, hulls, res, near, pad):  # pragma: no cover
+def _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near):  # pragma: no cover
     """Approximate front-to-back order (log-depth buckets) and per-tile CSR lists in that order.
-    A primitive with a hull (``hull.Hulls``, samples up to ``pad`` pixels off centre) is
-    listed only in the tiles of its box that its hull reaches.
+    Primitive p is listed in the tiles ``_tile_ranges`` gives it (rstart, cols): those of its box
+    that its hull, if any, reaches.
 
     Returns (zkey, tile_start, tile_items): zkey[p] <= prim_z[p] is non-decreasing along each
     tile's list, so a tile can stop at the first primitive whose key is behind its bound."""
@@ -389,9 +409,10 @@ def _sort_and_bin(prim_face, prim_box, prim_z, hulls, res, near, pad):  # pragma
     tile_start = np.zeros(ntiles + 1, dtype=np.int64)
     for p in range(n):
         base = prim_face[p] * per_face
-        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
-            for tx in range(tx0, tx1 + 1):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            k = rstart[p] + ty - ty0
+            for tx in range(cols[k, 0], cols[k, 1] + 1):
                 tile_start[base + ty * ntx + tx + 1] += 1
     for i in range(ntiles):
         tile_start[i + 1] += tile_start[i]
@@ -400,9 +421,10 @@ def _sort_and_bin(prim_face, prim_box, prim_z, hulls, res, near, pad):  # pragma
     for q in range(n):
         p = order[q]
         base = prim_face[p] * per_face
-        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
-            for tx in range(tx0, tx1 + 1):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            k = rstart[p] + ty - ty0
+            for tx in range(cols[k, 0], cols[k, 1] + 1):
                 tl = base + ty * ntx + tx
                 items[fill[tl]] = p
                 fill[tl] += 1

@@ -43,6 +43,7 @@ from visibility.cores.from_segment.boxes import (
     _sort_and_bin,
     _sphere_boxes,
     _split_clusters,
+    _tile_ranges,
 )
 from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
@@ -243,8 +244,9 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
                 _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
                        seed, batch, visible, stats, witness)
             return
-    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, hulls, res, near,
-                                            jitter)
+    rstart, cols = _tile_ranges(prim_box, hulls, jitter)
+    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
+    del rstart, cols
     t2 = time.perf_counter()
     tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
     # Tiles are strided over several chunks per thread so busy screen regions spread out.
