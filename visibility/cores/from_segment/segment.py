@@ -48,7 +48,7 @@ from visibility.cores.from_segment.boxes import (
 from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
 from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
-from visibility.cores.from_segment.raster import _resolve
+from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 
 #: A segment piece whose primitives' pixel boxes add up to more than this many times the cube's
@@ -251,8 +251,9 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
     # Tiles are strided over several chunks per thread so busy screen regions spread out.
     nch = max(1, min(len(tiles), 8 * numba.get_num_threads()))
-    counters = np.zeros((nch, 7), dtype=np.int64)
-    counters[:, 6] = START_CAP
+    counters = np.zeros((nch, len(COUNTERS)), dtype=np.int64)
+    counters[:, C_MAX_CAP] = START_CAP
+    busiest = 0
     wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
     overflow = np.zeros(len(tiles), dtype=bool)
     # The envelope pass runs in groups of tiles with a checkpoint between them, so a cancelled
@@ -263,12 +264,16 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
             continue
         checkpoint()
         group_overflow = np.zeros(len(sel), dtype=bool)
-        _resolve(tiles[sel], nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
-                 prim_face, hulls, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
-                 geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
-                 dvec, rots, res, near, knots, jitter, seed, visible,
-                 group_overflow, counters, wit)
+        before = counters[:, C_CYCLES].copy()
+        _resolve(tiles[sel], nch, numba.get_num_threads(), tile_start, items, prim_src, prim_box,
+                 prim_z, zkey, prim_flag, prim_face, hulls, geom.verts0, geom.verts1, geom.faces,
+                 geom.moving, geom.cl_start, geom.cl_tris, geom.centers0, geom.centers1,
+                 geom.radii, geom.n_triangles, v0, dvec, rots, res, near, knots, jitter, seed,
+                 visible, group_overflow, counters, wit)
         overflow[sel] = group_overflow
+        # The busiest thread's cycles: against the mean, how well the chunks spread.
+        per = np.bincount(counters[:, C_THREAD], weights=counters[:, C_CYCLES] - before)
+        busiest += int(per.max())
     if overflow.any():
         raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "
                            f"{int(overflow.sum())} tiles; lower the resolution")
@@ -285,8 +290,9 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     stats["bin_seconds"] = stats.get("bin_seconds", 0.0) + (t2 - t1)
     stats["envelope_seconds"] = stats.get("envelope_seconds", 0.0) + (t3 - t2)
     stats["tile_items"] = stats.get("tile_items", 0) + int(len(items))
-    for k, name in enumerate(("pairs", "pieces", "items_processed", "items_culled",
-                              "final_pieces", "envelope_grows")):
-        stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
-    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, 6].max()))
+    for k, name in enumerate(COUNTERS):
+        if name not in ("max_cap", "thread"):
+            stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
+    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, C_MAX_CAP].max()))
+    stats["cycles_busiest_thread"] = stats.get("cycles_busiest_thread", 0) + busiest
     stats["face_runs"] = stats.get("face_runs", 0) + 6
