@@ -530,7 +530,10 @@ def part_city1m(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
             log(f"  city 1M cell {cid} (eye levels {levels}, {row['segments']} segments): "
                 f"{row['seconds']:.2f} s median of {len(secs)} (box {ph['box_seconds']:.2f}, "
                 f"bin {ph['bin_seconds']:.2f}, envelope {ph['envelope_seconds']:.2f}, setup "
-                f"{ph['setup_seconds']:.2f}); PVS {row['pvs_pct']:.2f} %; first run RSS rise "
+                f"{ph['setup_seconds']:.2f}); envelope pixel pairs "
+                f"{row['counters'].get('pairs', 0)}, tile items "
+                f"{row['counters'].get('tile_items', 0)}; PVS {len(pvs)} "
+                f"({row['pvs_pct']:.2f} %); first run RSS rise "
                 f"{'?' if peak is None else f'{peak:.0f}'} MiB, traced peak "
                 f"{'?' if traced is None else f'{traced:.0f}'} MiB")
     return rows

@@ -7,6 +7,8 @@ made safe for points behind the eye.
 Whole clusters (``_cluster_boxes``), the triangles of expanded clusters (``_expanded_boxes``) and
 spheres (``_sphere_boxes``) each get a pixel box, a smallest depth and flags (``FLAG_*``) per
 face; ``_sort_and_bin`` orders them front to back and lists them per TILE x TILE pixel tile.
+Expanded triangles also keep their projected swept hull (``hull``), so that binning and the
+tiles' scan skip the parts of the box the hull does not reach.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.cores.from_segment.hull import HMAX, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_box
 from visibility.raster.camera import cube_face_rotations
 from visibility.raster.face_pixels import pixel_range
@@ -22,6 +25,9 @@ from visibility.raster.face_pixels import pixel_range
 TILE = 16
 #: A cluster whose box covers more tiles than this (or reaches the near plane) is expanded.
 EXPAND_TILES = 4
+#: Expanded triangles whose box has fewer pixels than this scan it whole (no hull): below it,
+#: hulling costs more than the cover tests it saves.
+HULL_MIN_PIXELS = 16
 #: Depth buckets of the front-to-back counting sort.
 N_BUCKETS = 2048
 
@@ -48,10 +54,11 @@ _PERM, _SGN = _face_permutation()
 
 
 @njit(**_JIT)
-def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
+def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
     """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
     the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
-    hull reaches the near plane)."""
+    hull reaches the near plane, n): ``uv[:n]`` (at least npts + npts^2 / 4 rows) are the NDC
+    points whose 2D hull is the clipped hull's projection."""
     ax = perm[f, 2]
     ix = perm[f, 0]
     iy = perm[f, 1]
@@ -78,13 +85,14 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
         if d >= near:
             out_n = False
     if out_r or out_l or out_t or out_b or out_n:
-        return False, 0.0, False
+        return False, 0.0, False, 0
     umin = np.inf
     umax = -np.inf
     vmin = np.inf
     vmax = -np.inf
     zm = np.inf
     slow = False
+    n = 0
     for q in range(npts):
         d = sd * cube[q, ax]
         if d >= near:
@@ -95,6 +103,9 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
             vmin = min(vmin, v)
             vmax = max(vmax, v)
             zm = min(zm, d)
+            uv[n, 0] = u
+            uv[n, 1] = v
+            n += 1
         else:
             slow = True
     if slow:
@@ -112,11 +123,14 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad):
                     umax = max(umax, u)
                     vmin = min(vmin, v)
                     vmax = max(vmax, v)
+                    uv[n, 0] = u
+                    uv[n, 1] = v
+                    n += 1
     if not (umin <= umax and vmin <= vmax):
-        return False, 0.0, False
+        return False, 0.0, False, 0
     if not pixel_range(umin, umax, vmin, vmax, res, box, pad):
-        return False, 0.0, False
-    return True, zm, slow
+        return False, 0.0, False, 0
+    return True, zm, slow, n
 
 
 @njit(**_JIT)
@@ -152,6 +166,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
     """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
     corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
     cube = np.empty((16, 3))
+    uv = np.empty((16 + 64, 2))
     bx = np.empty(4, dtype=np.int64)
     for c in range(first, last):
         for k in range(8):
@@ -166,7 +181,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
         f_lo = 0 if sole < 0 else sole
         f_hi = 6 if sole < 0 else sole + 1
         for f in range(f_lo, f_hi):
-            ok, zm, slow = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad)
+            ok, zm, slow, _ = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad, uv)
             if ok:
                 for r in range(4):
                     out_box[c, f, r] = bx[r]
@@ -196,34 +211,43 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 
 @njit(**_JIT)
 def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
-                          sgn, res, near, pad, out_box, out_z, out_flag, first,
+                          sgn, res, near, pad, out_box, out_z, out_flag, out_hull, first,
                           last):  # pragma: no cover - numba
     cube = np.empty((6, 3))
+    uv = np.empty((HMAX, 2))
+    scratch = np.empty((3 * HMAX + 2, 2))
     bx = np.empty(4, dtype=np.int64)
     for k in range(first, last):
         t = exp_tri[k]
         f = exp_face[k]
         out_flag[k] = 0
+        out_hull.count[k] = 0
         _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
-        ok, zm, slow = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad)
+        ok, zm, slow, n = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad, uv)
         if ok:
             for r in range(4):
                 out_box[k, r] = bx[r]
             out_z[k] = zm
+            # Both ends of a moving triangle's corners hold every position between them, so
+            # the same hull bounds its sweep. A small box is cheaper to scan than to hull.
+            if (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) >= HULL_MIN_PIXELS:
+                out_hull.count[k] = store_hull(uv, n, res, scratch, out_hull.pts, k)
             out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
                 FLAG_SLOW if slow else 0)
 
 
 @njit(**_PJIT)
 def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
-                    res, near, pad, out_box, out_z, out_flag):  # pragma: no cover - numba
-    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters."""
+                    res, near, pad, out_box, out_z, out_flag, out_hull):  # pragma: no cover
+    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters,
+    and its projected swept hull: ``out_hull`` (``hull.Hulls``, index unused) gets
+    ``pts[k]`` and ``count[k]`` (0 = scan the box)."""
     n = exp_tri.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
         _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
-                              perm, sgn, res, near, pad, out_box, out_z, out_flag, ch * n // nch,
-                              (ch + 1) * n // nch)
+                              perm, sgn, res, near, pad, out_box, out_z, out_flag, out_hull,
+                              ch * n // nch, (ch + 1) * n // nch)
 
 
 @njit(**_JIT)
@@ -311,8 +335,48 @@ def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, pad, out_box, o
 
 
 @njit(**_JIT)
-def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover - numba
+def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
+    """Tile columns [tx0, tx1] of primitive p in tile row ty: those its hull reaches (when it
+    has one) within its box, else its box's."""
+    j0 = prim_box[p, 2]
+    j1 = prim_box[p, 3]
+    h = hulls.index[p]
+    # One column of tiles: a hull cannot drop any that its box's rows hold.
+    if h >= 0 and hulls.count[h] > 0 and j0 // TILE < j1 // TILE:
+        a, b = hull_cols(hulls.pts, h, hulls.count[h], max(ty * TILE, prim_box[p, 0]),
+                         min(ty * TILE + TILE - 1, prim_box[p, 1]), pad)
+        j0 = max(j0, a)
+        j1 = min(j1, b)
+        if j0 > j1:
+            return 1, 0
+    return j0 // TILE, j1 // TILE
+
+
+@njit(**_PJIT)
+def _tile_ranges(prim_box, hulls, pad):  # pragma: no cover - numba
+    """Each primitive's tile columns per tile row of its box (``_tile_cols``), computed once for
+    the counting and the filling pass of ``_sort_and_bin``: (rstart (n + 1,) int64, cols
+    (rstart[n], 2) int32), primitive p's tile row ty at rstart[p] + ty - prim_box[p, 0] // TILE."""
+    n = prim_box.shape[0]
+    rstart = np.empty(n + 1, dtype=np.int64)
+    rstart[0] = 0
+    for p in range(n):
+        rstart[p + 1] = rstart[p] + prim_box[p, 1] // TILE - prim_box[p, 0] // TILE + 1
+    cols = np.empty((rstart[n], 2), dtype=np.int32)
+    for p in prange(n):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
+            cols[rstart[p] + ty - ty0, 0] = tx0
+            cols[rstart[p] + ty - ty0, 1] = tx1
+    return rstart, cols
+
+
+@njit(**_JIT)
+def _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near):  # pragma: no cover
     """Approximate front-to-back order (log-depth buckets) and per-tile CSR lists in that order.
+    Primitive p is listed in the tiles ``_tile_ranges`` gives it (rstart, cols): those of its box
+    that its hull, if any, reaches.
 
     Returns (zkey, tile_start, tile_items): zkey[p] <= prim_z[p] is non-decreasing along each
     tile's list, so a tile can stop at the first primitive whose key is behind its bound."""
@@ -345,8 +409,10 @@ def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover -
     tile_start = np.zeros(ntiles + 1, dtype=np.int64)
     for p in range(n):
         base = prim_face[p] * per_face
-        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            k = rstart[p] + ty - ty0
+            for tx in range(cols[k, 0], cols[k, 1] + 1):
                 tile_start[base + ty * ntx + tx + 1] += 1
     for i in range(ntiles):
         tile_start[i + 1] += tile_start[i]
@@ -355,8 +421,10 @@ def _sort_and_bin(prim_face, prim_box, prim_z, res, near):  # pragma: no cover -
     for q in range(n):
         p = order[q]
         base = prim_face[p] * per_face
-        for ty in range(prim_box[p, 0] // TILE, prim_box[p, 1] // TILE + 1):
-            for tx in range(prim_box[p, 2] // TILE, prim_box[p, 3] // TILE + 1):
+        ty0 = prim_box[p, 0] // TILE
+        for ty in range(ty0, prim_box[p, 1] // TILE + 1):
+            k = rstart[p] + ty - ty0
+            for tx in range(cols[k, 0], cols[k, 1] + 1):
                 tl = base + ty * ntx + tx
                 items[fill[tl]] = p
                 fill[tl] += 1

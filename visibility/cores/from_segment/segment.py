@@ -43,10 +43,12 @@ from visibility.cores.from_segment.boxes import (
     _sort_and_bin,
     _sphere_boxes,
     _split_clusters,
+    _tile_ranges,
 )
 from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
-from visibility.cores.from_segment.raster import _resolve
+from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
+from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 
 #: A segment piece whose primitives' pixel boxes add up to more than this many times the cube's
@@ -66,8 +68,10 @@ TILE_GROUPS = 16
 
 def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
     """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
-    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s)."""
+    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s), and the
+    projected swept hulls of the triangles (``hull.Hulls``)."""
     parts = []
+    hull_parts = []
     nc = len(geom.cl_start) - 1
     kept = 0
     expanded = 0
@@ -87,11 +91,14 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
             ebox = np.empty((len(et), 4), dtype=np.int32)
             ez = np.empty(len(et))
             efl = np.empty(len(et), dtype=np.uint8)
+            ehull = Hulls(np.zeros(0, np.int32), np.empty((len(et), HMAX, 2), np.float32),
+                          np.empty(len(et), np.int8))
             _expanded_boxes(geom.verts0, geom.verts1, geom.faces, geom.moving, et, ef, v0, dvec,
-                            rb, _PERM, _SGN, res, near, pad, ebox, ez, efl)
+                            rb, _PERM, _SGN, res, near, pad, ebox, ez, efl, ehull)
             keep = efl != 0
             parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
                           ez[keep], efl[keep]))
+            hull_parts.append((len(parts) - 1, ehull.pts[keep], ehull.count[keep]))
             expanded += int(keep.sum())
     if len(geom.sphere_sel):
         k = len(geom.sphere_sel)
@@ -108,10 +115,19 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
                       np.zeros(0), np.zeros(0, np.uint8)))
     prim_src, prim_face, prim_box, prim_z, prim_flag = (
         np.ascontiguousarray(np.concatenate([p[i] for p in parts])) for i in range(5))
+    hulls = no_hulls(len(prim_src))
+    if hull_parts:
+        starts = np.cumsum([0] + [len(p[0]) for p in parts])
+        row = 0
+        for k, pts, _ in hull_parts:
+            hulls.index[starts[k]:starts[k + 1]] = np.arange(row, row + len(pts), dtype=np.int32)
+            row += len(pts)
+        hulls = Hulls(hulls.index, np.ascontiguousarray(np.concatenate([h[1] for h in hull_parts])),
+                      np.ascontiguousarray(np.concatenate([h[2] for h in hull_parts])))
     stats["prims"] = stats.get("prims", 0) + len(prim_src)
     stats["cluster_prims"] = stats.get("cluster_prims", 0) + kept
     stats["triangle_prims"] = stats.get("triangle_prims", 0) + expanded
-    return prim_src, prim_face, prim_box, prim_z, prim_flag
+    return prim_src, prim_face, prim_box, prim_z, prim_flag, hulls
 
 
 def segment_visible(
@@ -211,7 +227,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position)."""
     t0 = time.perf_counter()
-    prim_src, prim_face, prim_box, prim_z, prim_flag = _collect_prims(
+    prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
         geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
     t1 = time.perf_counter()
     if depth > 0 and len(prim_box):
@@ -220,7 +236,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
         if area > SPLIT_AREA * 6 * res * res:
             stats["box_seconds"] = stats.get("box_seconds", 0.0) + (t1 - t0)
             stats["splits"] = stats.get("splits", 0) + 1
-            del prim_src, prim_face, prim_box, prim_z, prim_flag
+            del prim_src, prim_face, prim_box, prim_z, prim_flag, hulls
             half = 0.5 * dvec
             tm = 0.5 * (ta + tb)
             for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
@@ -228,13 +244,16 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
                 _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
                        seed, batch, visible, stats, witness)
             return
-    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, res, near)
+    rstart, cols = _tile_ranges(prim_box, hulls, jitter)
+    zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
+    del rstart, cols
     t2 = time.perf_counter()
     tiles = np.flatnonzero(np.diff(tile_start) > 0).astype(np.int64)
     # Tiles are strided over several chunks per thread so busy screen regions spread out.
     nch = max(1, min(len(tiles), 8 * numba.get_num_threads()))
-    counters = np.zeros((nch, 7), dtype=np.int64)
-    counters[:, 6] = START_CAP
+    counters = np.zeros((nch, len(COUNTERS)), dtype=np.int64)
+    counters[:, C_MAX_CAP] = START_CAP
+    busiest = 0
     wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
     overflow = np.zeros(len(tiles), dtype=bool)
     # The envelope pass runs in groups of tiles with a checkpoint between them, so a cancelled
@@ -245,12 +264,16 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
             continue
         checkpoint()
         group_overflow = np.zeros(len(sel), dtype=bool)
-        _resolve(tiles[sel], nch, tile_start, items, prim_src, prim_box, prim_z, zkey, prim_flag,
-                 prim_face, geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
-                 geom.cl_tris, geom.centers0, geom.centers1, geom.radii, geom.n_triangles, v0,
-                 dvec, rots, res, near, knots, jitter, seed, visible,
-                 group_overflow, counters, wit)
+        before = counters[:, C_CYCLES].copy()
+        _resolve(tiles[sel], nch, numba.get_num_threads(), tile_start, items, prim_src, prim_box,
+                 prim_z, zkey, prim_flag, prim_face, hulls, geom.verts0, geom.verts1, geom.faces,
+                 geom.moving, geom.cl_start, geom.cl_tris, geom.centers0, geom.centers1,
+                 geom.radii, geom.n_triangles, v0, dvec, rots, res, near, knots, jitter, seed,
+                 visible, group_overflow, counters, wit)
         overflow[sel] = group_overflow
+        # The busiest thread's cycles: against the mean, how well the chunks spread.
+        per = np.bincount(counters[:, C_THREAD], weights=counters[:, C_CYCLES] - before)
+        busiest += int(per.max())
     if overflow.any():
         raise RuntimeError(f"more than {MAX_CAP} visibility events at one pixel centre in "
                            f"{int(overflow.sum())} tiles; lower the resolution")
@@ -267,8 +290,9 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     stats["bin_seconds"] = stats.get("bin_seconds", 0.0) + (t2 - t1)
     stats["envelope_seconds"] = stats.get("envelope_seconds", 0.0) + (t3 - t2)
     stats["tile_items"] = stats.get("tile_items", 0) + int(len(items))
-    for k, name in enumerate(("pairs", "pieces", "items_processed", "items_culled",
-                              "final_pieces", "envelope_grows")):
-        stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
-    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, 6].max()))
+    for k, name in enumerate(COUNTERS):
+        if name not in ("max_cap", "thread"):
+            stats[name] = stats.get(name, 0) + int(counters[:, k].sum())
+    stats["max_cap"] = max(stats.get("max_cap", 0), int(counters[:, C_MAX_CAP].max()))
+    stats["cycles_busiest_thread"] = stats.get("cycles_busiest_thread", 0) + busiest
     stats["face_runs"] = stats.get("face_runs", 0) + 6

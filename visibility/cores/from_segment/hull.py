@@ -1,0 +1,149 @@
+"""Scan conversion of a triangle's projected swept hull (the paper's Alg. 1 line 6).
+
+A triangle's swept volume (its corners at both segment ends, relative to the eye, clipped at the
+near plane) projects to a convex polygon on a cube face; ``boxes._expanded_boxes`` stores that
+polygon per (triangle, face) in a ``Hulls`` group, and the tiles visit per pixel row only the
+columns whose sample can fall inside it (``hull_cols``) instead of the polygon's whole bounding
+box: a thin diagonal sliver has a box far larger than its hull.
+
+Coordinates are pixel units: pixel (row i, column j) has its centre at (col, row) = (j, i), so
+NDC (u, v) is (col, row) = ((u + 1) res / 2 - 0.5, (1 - v) res / 2 - 0.5).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+#: Most vertices of a stored hull: a triangle's six swept corners clipped at the near plane give
+#: at most 12 candidate points (k corners behind: 6 - k in front, k (6 - k) crossing edges).
+HMAX = 12
+#: Absolute and relative (to the largest coordinate) widening of every span, in pixels: the
+#: hull is stored in float32 (2^-24 relative rounding) and computed from divisions that the
+#: cover tests do differently.
+EPS_ABS = 1e-6
+EPS_REL = 2e-7
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+class Hulls(NamedTuple):
+    """Projected swept hulls of some of a segment's primitives, as the kernels read them.
+
+    index : (n_prims,) int32 row of primitive p's hull, -1 = none (its box is scanned whole:
+        whole clusters, whose triangles get their own boxes per tile, and spheres, whose swept
+        capsule projects to no polygon of a few points).
+    pts : (m, HMAX, 2) float32 hull vertices (col, row) in pixel units, in order around it.
+    count : (m,) int8 vertices; 0 = no hull (scan the box).
+    """
+
+    index: np.ndarray
+    pts: np.ndarray
+    count: np.ndarray
+
+
+def no_hulls(n_prims: int) -> Hulls:
+    """A ``Hulls`` group in which no primitive has a hull (every box is scanned whole)."""
+    return Hulls(np.full(n_prims, -1, dtype=np.int32), np.zeros((0, HMAX, 2), np.float32),
+                 np.zeros(0, np.int8))
+
+
+@njit(**_JIT)
+def convex_hull(p: np.ndarray, n: int, h: np.ndarray) -> int:
+    """Convex hull of the points ``p[:n]`` (n, 2) by Andrew's monotone chain; sorts ``p[:n]``
+    in place and writes the hull's vertices in order into ``h`` (at least 2 n rows). Returns
+    their count (1 or 2 for a point or a segment, 0 for none). Collinear points are dropped:
+    they lie on the hull's edges."""
+    for a in range(1, n):
+        x = p[a, 0]
+        y = p[a, 1]
+        b = a - 1
+        while b >= 0 and (p[b, 0] > x or (p[b, 0] == x and p[b, 1] > y)):
+            p[b + 1, 0] = p[b, 0]
+            p[b + 1, 1] = p[b, 1]
+            b -= 1
+        p[b + 1, 0] = x
+        p[b + 1, 1] = y
+    if n <= 2:
+        for a in range(n):
+            h[a, 0] = p[a, 0]
+            h[a, 1] = p[a, 1]
+        return n
+    k = 0
+    for a in range(n):
+        while k >= 2 and ((h[k - 1, 0] - h[k - 2, 0]) * (p[a, 1] - h[k - 2, 1])
+                          - (h[k - 1, 1] - h[k - 2, 1]) * (p[a, 0] - h[k - 2, 0])) <= 0.0:
+            k -= 1
+        h[k, 0] = p[a, 0]
+        h[k, 1] = p[a, 1]
+        k += 1
+    lower = k + 1
+    for a in range(n - 2, -1, -1):
+        while k >= lower and ((h[k - 1, 0] - h[k - 2, 0]) * (p[a, 1] - h[k - 2, 1])
+                              - (h[k - 1, 1] - h[k - 2, 1]) * (p[a, 0] - h[k - 2, 0])) <= 0.0:
+            k -= 1
+        h[k, 0] = p[a, 0]
+        h[k, 1] = p[a, 1]
+        k += 1
+    return k - 1
+
+
+@njit(**_JIT)
+def store_hull(uv: np.ndarray, n: int, res: int, scratch: np.ndarray, out_pts: np.ndarray,
+               k: int) -> int:
+    """Hull of the NDC points ``uv[:n]`` (n, 2) in pixel units, written to ``out_pts[k]``
+    (float32). ``scratch`` (2 n + 2, 2) float64. Returns the vertex count, 0 when the hull
+    cannot be stored (too many vertices, or coordinates float32 cannot hold): scan the box."""
+    h = 0.5 * res
+    for q in range(n):
+        scratch[q, 0] = (uv[q, 0] + 1.0) * h - 0.5
+        scratch[q, 1] = (1.0 - uv[q, 1]) * h - 0.5
+        if not (abs(scratch[q, 0]) < 1e30 and abs(scratch[q, 1]) < 1e30):
+            return 0
+    m = convex_hull(scratch[:n], n, scratch[n:])
+    if m < 1 or m > HMAX:
+        return 0
+    for q in range(m):
+        out_pts[k, q, 0] = scratch[n + q, 0]
+        out_pts[k, q, 1] = scratch[n + q, 1]
+    return m
+
+
+@njit(**_JIT)
+def hull_cols(pts: np.ndarray, k: int, m: int, rlo: float, rhi: float,
+              pad: float) -> tuple[int, int]:
+    """Columns [j0, j1] (inclusive, unclamped; j0 > j1 when none) of the pixels in rows
+    [rlo, rhi] whose sample, up to ``pad`` pixels off its centre per axis, can fall inside the
+    stored hull ``pts[k, :m]``: the hull cut by the band of sample rows [rlo - pad, rhi + pad],
+    widened by ``pad`` (and by EPS_ABS / EPS_REL against rounding)."""
+    scale = 0.0
+    for q in range(m):
+        scale = max(scale, abs(float(pts[k, q, 0])), abs(float(pts[k, q, 1])))
+    eps = EPS_ABS + EPS_REL * scale
+    lo = rlo - pad - eps
+    hi = rhi + pad + eps
+    cmin = np.inf
+    cmax = -np.inf
+    for q in range(m):
+        ca = float(pts[k, q, 0])
+        ra = float(pts[k, q, 1])
+        nq = q + 1 if q + 1 < m else 0
+        cb = float(pts[k, nq, 0])
+        rb = float(pts[k, nq, 1])
+        if lo <= ra <= hi:
+            cmin = min(cmin, ca)
+            cmax = max(cmax, ca)
+        # Where the edge crosses the band's two lines (its other end is the next vertex).
+        for r in (lo, hi):
+            if (ra < r < rb) or (rb < r < ra):
+                c = ca + (r - ra) * (cb - ca) / (rb - ra)
+                cmin = min(cmin, c)
+                cmax = max(cmax, c)
+    if not cmin <= cmax:
+        return 1, 0
+    # Far beyond any face (points near the near plane): keep the ints in range.
+    cmin = max(cmin, -1e15)
+    cmax = min(cmax, 1e15)
+    return int(np.ceil(cmin - pad - eps)), int(np.floor(cmax + pad + eps))
