@@ -98,7 +98,11 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
             keep = efl != 0
             parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
                           ez[keep], efl[keep]))
-            hull_parts.append((len(parts) - 1, ehull.pts[keep], ehull.count[keep]))
+            # Only the hulls built are kept (most triangles' boxes are too small to get one):
+            # rows for all would cost ~100 B per expanded triangle and face.
+            has = ehull.count[keep] > 0
+            hull_parts.append((len(parts) - 1, ehull.pts[keep][has], ehull.count[keep][has],
+                               has))
             expanded += int(keep.sum())
     if len(geom.sphere_sel):
         k = len(geom.sphere_sel)
@@ -119,8 +123,10 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
     if hull_parts:
         starts = np.cumsum([0] + [len(p[0]) for p in parts])
         row = 0
-        for k, pts, _ in hull_parts:
-            hulls.index[starts[k]:starts[k + 1]] = np.arange(row, row + len(pts), dtype=np.int32)
+        for k, pts, _, has in hull_parts:
+            rows = np.full(len(has), -1, dtype=np.int32)
+            rows[has] = np.arange(row, row + len(pts), dtype=np.int32)
+            hulls.index[starts[k]:starts[k + 1]] = rows
             row += len(pts)
         hulls = Hulls(hulls.index, np.ascontiguousarray(np.concatenate([h[1] for h in hull_parts])),
                       np.ascontiguousarray(np.concatenate([h[2] for h in hull_parts])))
