@@ -96,15 +96,9 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
     for q in range(npts):
         d = sd * cube[q, ax]
         if d >= near:
-            u = sx * cube[q, ix] / d
-            v = sy * cube[q, iy] / d
-            umin = min(umin, u)
-            umax = max(umax, u)
-            vmin = min(vmin, v)
-            vmax = max(vmax, v)
+            uv[n, 0] = sx * cube[q, ix] / d
+            uv[n, 1] = sy * cube[q, iy] / d
             zm = min(zm, d)
-            uv[n, 0] = u
-            uv[n, 1] = v
             n += 1
         else:
             slow = True
@@ -117,15 +111,15 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
                 d2 = sd * cube[q2, ax]
                 if (d1 >= near) != (d2 >= near):
                     s = (near - d1) / (d2 - d1)
-                    u = sx * (cube[q1, ix] + s * (cube[q2, ix] - cube[q1, ix])) / near
-                    v = sy * (cube[q1, iy] + s * (cube[q2, iy] - cube[q1, iy])) / near
-                    umin = min(umin, u)
-                    umax = max(umax, u)
-                    vmin = min(vmin, v)
-                    vmax = max(vmax, v)
-                    uv[n, 0] = u
-                    uv[n, 1] = v
+                    uv[n, 0] = sx * (cube[q1, ix] + s * (cube[q2, ix] - cube[q1, ix])) / near
+                    uv[n, 1] = sy * (cube[q1, iy] + s * (cube[q2, iy] - cube[q1, iy])) / near
                     n += 1
+    # The box of the clipped hull's points.
+    for q in range(n):
+        umin = min(umin, uv[q, 0])
+        umax = max(umax, uv[q, 0])
+        vmin = min(vmin, uv[q, 1])
+        vmax = max(vmax, uv[q, 1])
     if not (umin <= umax and vmin <= vmax):
         return False, 0.0, False, 0
     if not pixel_range(umin, umax, vmin, vmax, res, box, pad):

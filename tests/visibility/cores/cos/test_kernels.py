@@ -455,6 +455,31 @@ def test_without_the_hierarchy_every_primitive_is_projected_for_the_same_answer(
     np.testing.assert_array_equal(np.sort(ids), np.sort(ids2))
 
 
+def _inside(t, pts):
+    """Whether each point (m, 2) lies strictly inside triangle t (3, 2), either winding."""
+    s = np.sign((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1])
+                - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
+    ok = np.ones(len(pts), dtype=bool)
+    for a in range(3):
+        b = (a + 1) % 3
+        ok &= s * ((t[b, 0] - t[a, 0]) * (pts[:, 1] - t[a, 1])
+                   - (t[b, 1] - t[a, 1]) * (pts[:, 0] - t[a, 0])) > 0
+    return ok
+
+
+
+def _region(rng):
+    """A random offset region: 4 corners (4, 2) and their depths (4,)."""
+    return (rng.uniform(-0.4, 0.4, (4, 2)) + rng.uniform(-1.0, 1.0, 2),
+            rng.uniform(0.0, 0.6, 4))
+
+
+def _directions(rng, h, n):
+    """n random between-sample directions in [-h, h]^2 and the square's four corners."""
+    return np.concatenate([rng.uniform(-h, h, (n, 2)),
+                           np.array([[-h, -h], [-h, h], [h, -h], [h, h]])])
+
+
 def test_triangle_holds_the_region_under_every_direction():
     # Random COS triangles and offset regions (points at their own depths w, moving by -w d
     # for a between-sample direction d in [-h, h]^2): whenever ``triangle_holds`` says yes,
@@ -466,41 +491,18 @@ def test_triangle_holds_the_region_under_every_direction():
     for _ in range(4000):
         tri = rng.uniform(-3.0, 3.0, (3, 2))
         tw = rng.uniform(0.5, 6.0, 3)
-        reg = rng.uniform(-0.4, 0.4, (4, 2)) + rng.uniform(-1.0, 1.0, 2)
-        rw = rng.uniform(0.0, 0.6, 4)
+        reg, rw = _region(rng)
         if not triangle_holds(tri, tw * h, reg, rw * h):
             continue
         held += 1
-        ds = np.concatenate([rng.uniform(-h, h, (64, 2)),
-                             np.array([[-h, -h], [-h, h], [h, -h], [h, h]])])
-        for d in ds:
-            t = tri - tw[:, None] * d
-            r = reg - rw[:, None] * d
-            s = np.sign((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1])
-                        - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
-            for a in range(3):
-                b = (a + 1) % 3
-                cross = ((t[b, 0] - t[a, 0]) * (r[:, 1] - t[a, 1])
-                         - (t[b, 1] - t[a, 1]) * (r[:, 0] - t[a, 0]))
-                assert (s * cross > 0).all()
+        for d in _directions(rng, h, 64):
+            assert _inside(tri - tw[:, None] * d, reg - rw[:, None] * d).all()
     assert held > 100
     # An edge that passes within its own motion of the region: not held.
     tri = np.array([[-2.0, -2.0], [2.0, -2.0], [0.0, 0.11]])
     reg = np.array([[-0.1, -0.1], [0.1, -0.1], [0.1, 0.0], [-0.1, 0.0]])
     assert triangle_holds(tri, np.zeros(3), reg, np.zeros(4))
     assert not triangle_holds(tri, np.full(3, 0.05), reg, np.zeros(4))
-
-
-def _inside(t, pts):
-    """Whether each point (m, 2) lies strictly inside triangle t (3, 2), either winding."""
-    s = np.sign((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1])
-                - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
-    ok = np.ones(len(pts), dtype=bool)
-    for a in range(3):
-        b = (a + 1) % 3
-        ok &= s * ((t[b, 0] - t[a, 0]) * (pts[:, 1] - t[a, 1])
-                   - (t[b, 1] - t[a, 1]) * (pts[:, 0] - t[a, 0])) > 0
-    return ok
 
 
 def test_quad_holds_the_region_under_every_direction():
@@ -516,16 +518,13 @@ def test_quad_holds_the_region_under_every_direction():
         # T = (0, 1, 2), C = (0, 2, 3) in some vertex order each; ids are the quad's corners.
         ti = rng.permutation([0, 1, 2])
         ci = rng.permutation([0, 2, 3])
-        reg = rng.uniform(-0.4, 0.4, (4, 2)) + rng.uniform(-1.0, 1.0, 2)
-        rw = rng.uniform(0.0, 0.6, 4)
+        reg, rw = _region(rng)
         if not quad_holds(quad[ti], w[ti] * h, ti.astype(np.int64), quad[ci], w[ci] * h,
                           ci.astype(np.int64), reg, rw * h):
             continue
         held += 1
         mix = rng.dirichlet(np.ones(4), 32)
-        ds = np.concatenate([rng.uniform(-h, h, (32, 2)),
-                             np.array([[-h, -h], [-h, h], [h, -h], [h, h]])])
-        for d in ds:
+        for d in _directions(rng, h, 32):
             q = quad - w[:, None] * d
             pts = mix @ (reg - rw[:, None] * d)
             pts = np.concatenate([pts, reg - rw[:, None] * d])
