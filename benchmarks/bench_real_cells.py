@@ -10,10 +10,12 @@ one-ray hit is as likely a numerical grazing as a sight). Each cell is then solv
 ``from_segment`` at its defaults, by ``sampling`` at its defaults, and by ``sampling`` given
 ``from_segment``'s time (equal time: viewpoints added until that time is spent,
 ``peers.from_point_pvs`` with our rasterizer). The table gives the share of the reference each
-missed, the PVS size, the seconds, and the frames: 4 fixed views in the cell
-(``bench_matrix.view_set``) drawn from the PVS against the full scene (ε, PSNR, SSIM), plus the
-size in pixels of what was missed (the median projected area, at the reference's resolution,
-of the missed triangles from the cell's centre).
+missed, the PVS size, the seconds, and the frames: ``FRAMES`` views from where a person can
+stand in the cell (``frame_views``: eyes on the cell's open floor, ``visibility.cell_walk``, at a
+random eye height, yaw and pitch), at ``from_segment``'s own resolution, drawn from the PVS
+against the full scene (ε, PSNR, SSIM; with 64 frames a 0 means that no pixel of any of them
+differs), plus the size in pixels of what was missed (the median projected area, at the
+reference's resolution, of the missed triangles from the cell's centre).
 
 Writes ``benchmarks/results/real_cells.md`` and ``.json``; prints as it goes.
 
@@ -42,7 +44,6 @@ from benchmarks.bench_matrix import (
     SHARED_SCENES,
     frame_summary,
     machine_description,
-    view_set,
 )
 from benchmarks.peers import embree_views, from_point_pvs
 from visibility.ground_truth import sample_points
@@ -57,6 +58,9 @@ RAYS = 183
 MIN_HITS = 3
 #: A core run stopped after this many seconds (its row says so).
 DEADLINE = 120.0
+#: Frames per cell, and the largest pitch of their forward direction (degrees).
+FRAMES = 64
+MAX_PITCH = 30.0
 
 
 def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarray, float]:
@@ -70,6 +74,32 @@ def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarra
     for eye in sample_points(cell.box, points, rng):
         hits += np.bincount(view(eye, random_rotation(rng)), minlength=scene.n_triangles)
     return np.flatnonzero(hits >= MIN_HITS).astype(np.int32), time.perf_counter() - t0
+
+
+def frame_views(scene, cell, n: int, seed: int) -> tuple[list[tuple[np.ndarray, np.ndarray]],
+                                                           bool]:
+    """``n`` (eye, forward) views where a person can stand in the cell: eyes at open lattice
+    points of its floor (``cell_walk``) at a uniform height in the box's eye range, forward at a
+    uniform yaw and a pitch within ``MAX_PITCH`` degrees. Returns the views and whether the cell
+    had open floor (without, eyes are drawn in the whole box, as the reference's are)."""
+    from visibility.cell_walk import cell_walk
+
+    rng = np.random.default_rng(seed)
+    box = np.asarray(cell.box, dtype=np.float64)
+    walk = cell_walk(scene, box)
+    ii, kk = np.nonzero(walk.open)
+    has_open = len(ii) > 0
+    if has_open:
+        pick = rng.integers(0, len(ii), size=n)
+        eyes = np.stack([walk.xs[ii[pick]], rng.uniform(box[0, 1], box[1, 1], n),
+                         walk.zs[kk[pick]]], axis=1)
+    else:
+        eyes = sample_points(box, n, rng)
+    yaw = rng.uniform(0.0, 2.0 * np.pi, n)
+    pitch = np.radians(rng.uniform(-MAX_PITCH, MAX_PITCH, n))
+    fwd = np.stack([np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)],
+                   axis=1)
+    return list(zip(eyes, fwd, strict=True)), has_open
 
 
 def parse_variant(text: str) -> dict[str, Any]:
@@ -118,7 +148,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     from visibility.loaders import load_scene
     from visibility.viewcells import ViewcellGrid
 
-    renderer = OffscreenRenderer(128, 128, yfov_deg=90.0)
+    renderer = OffscreenRenderer(cfg["frame_px"], cfg["frame_px"], yfov_deg=90.0)
     rows: list[dict[str, Any]] = []
     # Compile the kernels once, on a small scene: no real scene's first run pays for it.
     from visibility.generators import make_scene
@@ -134,7 +164,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
             for cell_id in walk_cells(scene, cfg["seed"], cfg["cells"]):
                 cell = grid.cell(cell_id)
                 ref, ref_s = reference(scene, cell, cfg["points"], cfg["rays"], cfg["seed"])
-                views = view_set(scene, cell, 4)
+                views, has_open = frame_views(scene, cell, cfg["frames"], cfg["seed"] + cell_id)
                 gt = [renderer.render_scene(scene, e, f) for e, f in views]
                 centre = np.asarray(cell.box).mean(axis=0)
                 log(f"[{scene.name}] cell {cell_id} ({grid.cell_size:g} m): reference "
@@ -142,7 +172,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                     f"rays in {ref_s:.1f} s")
                 base = {"scene": scene.name, "triangles": scene.n_triangles, "cell": cell_id,
                         "cell_size": grid.cell_size, "reference": int(len(ref)),
-                        "reference_seconds": ref_s}
+                        "reference_seconds": ref_s, "open_floor": has_open}
                 fs_seconds = None
                 runs = [("from_segment (defaults)", "from_segment", {}),
                         ("sampling (defaults)", "sampling", {})]
@@ -203,7 +233,10 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
              "`benchmarks/bench_real_cells.py`). FN = share of the reference missed; FP = share "
              "of the PVS the rays did not see; missed px = median projected size of the missed "
              "triangles from the cell centre, in pixels of a 90 degree face as wide as the "
-             "reference's; frames: 4 views at 128 px, PVS against the full scene.", "",
+             f"reference's; frames: {cfg['frames']} views from the cell's open floor (random "
+             f"eye height, yaw, pitch within {MAX_PITCH:g} degrees; * a cell with no open "
+             f"floor: eyes in its whole box) at {cfg['frame_px']} px, PVS against the full "
+             "scene.", "",
              "| scene | cell (m) | reference | method | s | PVS | FN % | missed px | FP % | "
              "ε mean % | ε worst % | PSNR dB | SSIM |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -213,11 +246,15 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
                          f" | {r['method']} | {r['error']} | | | | | | | | |")
             continue
         lines.append(
-            f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['reference']} | "
+            f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}){_star(r)} | {r['reference']} | "
             f"{r['method']} | {r['seconds']:.2f} | {r['pvs']} | {100 * r['fn']:.2f} | "
             f"{r['missed_median_px']:.2f} | {100 * r['fp']:.1f} | {r['eps_mean']:.3f} | "
             f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} |")
     return "\n".join(lines) + "\n"
+
+
+def _star(r: dict[str, Any]) -> str:
+    return "" if r.get("open_floor", True) else " *"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -228,14 +265,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one)")
     ap.add_argument("--fs-variants", nargs="*", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="from_segment also with these parameters, e.g. jitter=0 cuts=0")
+    ap.add_argument("--frames", type=int, default=FRAMES, help="frames per cell")
+    ap.add_argument("--frame-px", type=int, default=None,
+                    help="frame size in pixels (default: from_segment's resolution)")
     ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
     args = ap.parse_args(argv)
     scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
                     if not args.scenes or p.stem in args.scenes)
     cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
-           "rays": RAYS, "fs_variants": args.fs_variants}
+           "rays": RAYS, "fs_variants": args.fs_variants, "frames": args.frames,
+           "frame_px": args.frame_px or _from_segment_resolution()}
     if args.quick:
-        cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96)
+        cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96,
+                   frames=min(args.frames, 8))
     command = "python -m benchmarks.bench_real_cells " + " ".join(
         argv if argv is not None else sys.argv[1:])
     t0 = time.perf_counter()
@@ -246,6 +288,12 @@ def main(argv: list[str] | None = None) -> int:
                                                           "rows": rows}, indent=1))
     print(text)
     return 0
+
+
+def _from_segment_resolution() -> int:
+    from visibility.cores.base import get_core
+
+    return int(get_core("from_segment").make_params().resolution)
 
 
 if __name__ == "__main__":

@@ -53,3 +53,28 @@ def test_parse_variant_reads_numbers_and_words():
         "jitter": 0.25, "first_orientation": "axis"}
     with pytest.raises(SystemExit, match="NAME=VALUE"):
         bench_real_cells.parse_variant("jitter")
+
+
+def test_frame_views_stand_on_the_open_floor_and_look_level_enough():
+    from visibility.cell_walk import cell_walk
+    from visibility.viewcells import ViewcellGrid
+
+    scene = make_scene("rooms", triangles=5_000)
+    grid = ViewcellGrid.for_scene(scene)
+    cell = grid.cell(bench_real_cells.walk_cells(scene, seed=3, k=1)[0])
+    views, has_open = bench_real_cells.frame_views(scene, cell, 64, seed=5)
+    assert has_open and len(views) == 64
+    box = np.asarray(cell.box)
+    walk = cell_walk(scene, box)
+    open_xz = {(x, z) for i, x in enumerate(walk.xs) for k, z in enumerate(walk.zs)
+               if walk.open[i, k]}
+    for eye, fwd in views:
+        assert (eye[0], eye[2]) in open_xz
+        assert box[0, 1] <= eye[1] <= box[1, 1]
+        assert np.linalg.norm(fwd) == pytest.approx(1.0)
+        assert abs(np.degrees(np.arcsin(fwd[1]))) <= bench_real_cells.MAX_PITCH + 1e-9
+    again, _ = bench_real_cells.frame_views(scene, cell, 64, seed=5)
+    assert all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+               for a, b in zip(views, again, strict=True))
+    # Different views, not one repeated: the eyes spread over the open floor.
+    assert len({tuple(e) for e, _ in views}) > 32
