@@ -4,18 +4,20 @@ For each real scene in ``../shared/scenes/`` a seeded walk (``client.walkthrough
 generate_walkthrough``, the scene's own grid) picks the cells it stands in at a third and at
 two thirds of its length, as a user's walk would. The reference of a cell is independent of
 both cores' rasterizer: Intel Embree rays (``benchmarks.peers.embree_views``) through the pixel
-centres of randomly turned cubes from ``POINTS`` stratified points of the cell, ``RAYS`` rays per
-face side; a triangle counts as visible when at least ``MIN_HITS`` rays hit it first (a
-one-ray hit is as likely a numerical grazing as a sight). Each cell is then solved by
-``from_segment`` at its defaults, by ``sampling`` at its defaults, and by ``sampling`` given
+centres of randomly turned cubes from ``POINTS`` eyes where a person can stand in the cell
+(``cell_eyes``: its open floor, ``visibility.cell_walk``, at the eye heights, 0.1 m clear of
+geometry, as from_segment's segments are; the whole box for a cell with no open floor),
+``RAYS`` rays per face side; a triangle counts as visible when at least ``MIN_HITS`` rays hit
+it first (a one-ray hit is as likely a numerical grazing as a sight). Each cell is then solved
+by ``from_segment`` at its defaults, by ``sampling`` at its defaults, and by ``sampling`` given
 ``from_segment``'s time (equal time: viewpoints added until that time is spent,
 ``peers.from_point_pvs`` with our rasterizer). The table gives the share of the reference each
 missed, the PVS size, the seconds, and the frames: ``FRAMES`` views from where a person can
-stand in the cell (``frame_views``: eyes on the cell's open floor, ``visibility.cell_walk``, at a
-random eye height, yaw and pitch), at ``from_segment``'s own resolution, drawn from the PVS
-against the full scene (ε, PSNR, SSIM; with 64 frames a 0 means that no pixel of any of them
-differs), plus the size in pixels of what was missed (the median projected area, at the
-reference's resolution, of the missed triangles from the cell's centre).
+stand in the cell (``frame_views``: eyes as the reference's, a random yaw and pitch), at
+``from_segment``'s own resolution, drawn from the PVS against the full scene (ε, PSNR, SSIM;
+with 64 frames a 0 means that no pixel of any of them differs), plus the size in pixels of
+what was missed (the median projected area, at the reference's resolution, of the missed
+triangles from the cell's centre).
 
 Writes ``benchmarks/results/real_cells.md`` and ``.json``; prints as it goes.
 
@@ -63,38 +65,39 @@ FRAMES = 64
 MAX_PITCH = 30.0
 
 
+def cell_eyes(scene, cell, n: int, rng: np.random.Generator) -> tuple[np.ndarray, bool]:
+    """(n, 3) eyes where a person can stand in the cell (``cell_walk.open_eyes``: its open
+    floor, clear of geometry by the segments' clearance), repeated to n where fewer qualify;
+    a cell with no open floor gets ``n`` stratified points of its whole box instead. Returns
+    the eyes and whether they came from open floor."""
+    from visibility.cell_walk import open_eyes
+
+    eyes = open_eyes(scene, np.asarray(cell.box, dtype=np.float64), n, rng)
+    if not len(eyes):
+        return sample_points(cell.box, n, rng), False
+    return eyes[np.arange(n) % len(eyes)], True
+
+
 def reference(scene, cell, points: int, rays: int, seed: int) -> tuple[np.ndarray, float]:
-    """Triangle ids first-hit by at least ``MIN_HITS`` Embree rays (module docstring), and the
-    seconds it took."""
+    """Triangles first-hit by at least ``MIN_HITS`` Embree rays from ``points`` eyes where a
+    person can stand in the cell (``cell_eyes``; module docstring), and the seconds it took."""
     t0 = time.perf_counter()
     valid = np.flatnonzero(scene.valid_faces)
     view = embree_views(scene, valid, cell, rays)
     rng = np.random.default_rng(seed)
     hits = np.zeros(scene.n_triangles, dtype=np.int64)
-    for eye in sample_points(cell.box, points, rng):
+    for eye in cell_eyes(scene, cell, points, rng)[0]:
         hits += np.bincount(view(eye, random_rotation(rng)), minlength=scene.n_triangles)
     return np.flatnonzero(hits >= MIN_HITS).astype(np.int32), time.perf_counter() - t0
 
 
 def frame_views(scene, cell, n: int, seed: int) -> tuple[list[tuple[np.ndarray, np.ndarray]],
                                                            bool]:
-    """``n`` (eye, forward) views where a person can stand in the cell: eyes at open lattice
-    points of its floor (``cell_walk``) at a uniform height in the box's eye range, forward at a
-    uniform yaw and a pitch within ``MAX_PITCH`` degrees. Returns the views and whether the cell
-    had open floor (without, eyes are drawn in the whole box, as the reference's are)."""
-    from visibility.cell_walk import cell_walk
-
+    """``n`` (eye, forward) views where a person can stand in the cell (``cell_eyes``), forward
+    at a uniform yaw and a pitch within ``MAX_PITCH`` degrees. Returns the views and whether
+    the cell had open floor."""
     rng = np.random.default_rng(seed)
-    box = np.asarray(cell.box, dtype=np.float64)
-    walk = cell_walk(scene, box)
-    ii, kk = np.nonzero(walk.open)
-    has_open = len(ii) > 0
-    if has_open:
-        pick = rng.integers(0, len(ii), size=n)
-        eyes = np.stack([walk.xs[ii[pick]], rng.uniform(box[0, 1], box[1, 1], n),
-                         walk.zs[kk[pick]]], axis=1)
-    else:
-        eyes = sample_points(box, n, rng)
+    eyes, has_open = cell_eyes(scene, cell, n, rng)
     yaw = rng.uniform(0.0, 2.0 * np.pi, n)
     pitch = np.radians(rng.uniform(-MAX_PITCH, MAX_PITCH, n))
     fwd = np.stack([np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)],
@@ -229,13 +232,14 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
              f"Machine: {machine_description()}", "",
              f"Per scene, the cells a seeded walk (seed {cfg['seed']}) stands in; reference: "
              f"triangles first-hit by at least {MIN_HITS} Embree rays from {cfg['points']} "
-             f"points x 6 x {cfg['rays']}^2 rays (module docstring of "
-             "`benchmarks/bench_real_cells.py`). FN = share of the reference missed; FP = share "
+             f"eyes x 6 x {cfg['rays']}^2 rays, the eyes on the cell's open floor 0.1 m clear "
+             "of geometry (module docstring of `benchmarks/bench_real_cells.py`). FN = share of "
+             "the reference missed; FP = share "
              "of the PVS the rays did not see; missed px = median projected size of the missed "
              "triangles from the cell centre, in pixels of a 90 degree face as wide as the "
-             f"reference's; frames: {cfg['frames']} views from the cell's open floor (random "
-             f"eye height, yaw, pitch within {MAX_PITCH:g} degrees; * a cell with no open "
-             f"floor: eyes in its whole box) at {cfg['frame_px']} px, PVS against the full "
+             f"reference's; frames: {cfg['frames']} views from such eyes (random yaw, pitch "
+             f"within {MAX_PITCH:g} degrees; * a cell with no open floor: eyes in its whole "
+             f"box) at {cfg['frame_px']} px, PVS against the full "
              "scene.", "",
              "| scene | cell (m) | reference | method | s | PVS | FN % | missed px | FP % | "
              "ε mean % | ε worst % | PSNR dB | SSIM |",

@@ -175,6 +175,39 @@ def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP, body: float = B
     return CellWalk(b, xs, zs, ok.reshape(nx, nz))
 
 
+def open_eyes(scene: Scene, box: np.ndarray, n: int, rng: np.random.Generator,
+              clearance: float = CLEARANCE, step: float = STEP) -> np.ndarray:
+    """(k, 3) float64 eyes where a person can stand in a cell box (2, 3): open lattice points of
+    its floor (``cell_walk``) at a uniform height in the box's eye range, kept only when no
+    triangle lies within ``clearance`` metres (an eye nearer a wall than the clients' near
+    plane sees through it). ``n`` are drawn; k < n where fewer candidates qualify (k = 0 when
+    the cell has no open floor). Metres, Y-up."""
+    from trimesh.triangles import closest_point
+
+    b = _check_box(box)
+    walk = cell_walk(scene, b, step)
+    ii, kk = np.nonzero(walk.open)
+    if not len(ii) or n <= 0:
+        return np.zeros((0, 3))
+    # Twice the candidates asked for: some fall within the clearance of a wall or a solid.
+    m = 2 * int(n)
+    pick = rng.integers(0, len(ii), size=m)
+    eyes = np.stack([walk.xs[ii[pick]], rng.uniform(b[0, 1], b[1, 1], m), walk.zs[kk[pick]]],
+                    axis=1)
+    tris = _near_triangles(scene, b, clearance, b[0, 1] - clearance)
+    keep = np.ones(m, dtype=bool)
+    if len(tris):
+        lo = tris.min(axis=1)
+        hi = tris.max(axis=1)
+        for i, e in enumerate(eyes):
+            near = np.all((lo <= e + clearance) & (hi >= e - clearance), axis=1)
+            if near.any():
+                cand = tris[near]
+                cp = closest_point(cand, np.broadcast_to(e, (len(cand), 3)))
+                keep[i] = float(np.min(np.linalg.norm(cp - e, axis=1))) >= clearance
+    return eyes[keep][: int(n)]
+
+
 def lattice_step(box: np.ndarray, step: float = STEP) -> float:
     """The lattice step (metres) used for a cell box (2, 3): ``step``, or coarser so that no
     side holds more than ``MAX_LATTICE`` points."""

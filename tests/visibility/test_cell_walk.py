@@ -12,6 +12,7 @@ from visibility.cell_walk import (
     cell_walk,
     clear_pieces,
     lattice_step,
+    open_eyes,
     walk_segments,
 )
 from visibility.cores.base import get_core
@@ -182,3 +183,43 @@ def test_a_huge_cell_gets_a_coarser_lattice():
     assert len(walk.xs) <= MAX_LATTICE and len(walk.zs) <= MAX_LATTICE
     assert lattice_step(box) > STEP
     assert lattice_step(np.array([[0.0, 0.0, 0.0], [4.0, 2.0, 4.0]])) == STEP
+
+
+def _point_triangle_distance(p, tri):
+    """Exact: to the plane where p projects inside the triangle, else to the nearest edge."""
+    a, b, c = tri
+    n = np.cross(b - a, c - a)
+    n = n / np.linalg.norm(n)
+    q = p - np.dot(p - a, n) * n
+    inside = all(np.dot(np.cross(v1 - v0, q - v0), n) >= 0 for v0, v1 in ((a, b), (b, c), (c, a)))
+    if inside:
+        return abs(float(np.dot(p - a, n)))
+    best = np.inf
+    for v0, v1 in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.dot(p - v0, v1 - v0) / np.dot(v1 - v0, v1 - v0), 0.0, 1.0)
+        best = min(best, float(np.linalg.norm(p - (v0 + t * (v1 - v0)))))
+    return best
+
+
+def test_open_eyes_stand_on_open_floor_clear_of_every_triangle():
+    scene, _ = _room()
+    rng = np.random.default_rng(4)
+    eyes = open_eyes(scene, BOX, 200, rng, clearance=0.1, step=0.1)
+    w = cell_walk(scene, BOX, step=0.1)
+    open_xz = {(x, z) for i, x in enumerate(w.xs) for k, z in enumerate(w.zs) if w.open[i, k]}
+    assert 150 <= len(eyes) <= 200
+    tris = scene.triangles().astype(np.float64)
+    near_wall = 0
+    for e in eyes:
+        assert (e[0], e[2]) in open_xz
+        assert BOX[0, 1] <= e[1] <= BOX[1, 1]
+        # The wall's faces are at x 1.85 and 2.15: open lattice points 0.1 m from them exist,
+        # but an eye must be farther than the clearance from every triangle.
+        assert min(_point_triangle_distance(e, t) for t in tris) >= 0.1
+        near_wall += abs(e[0] - 1.85) < 0.15 or abs(e[0] - 2.15) < 0.15
+    assert near_wall > 0  # eyes do come near the wall, just not within the clearance
+    # Lattice points on the wall's faces are open (the vertical line clears it) but too near.
+    on_face = [(x, z) for (x, z) in open_xz if abs(x - 1.8) < 1e-9]
+    assert on_face and all(abs(e[0] - 1.8) > 1e-9 for e in eyes)
+    inside_wall = np.array([[1.9, 1.5, 0.0], [2.1, 1.9, 4.0]])
+    assert open_eyes(scene, inside_wall, 10, rng).shape == (0, 3)
