@@ -6,7 +6,7 @@ closed solids: a viewcell's rectangle sides can run right through them, and an e
 sides sees what only the inside of a wall sees. This module samples a cell's XZ rectangle on a
 finer lattice (``step`` metres) and keeps the points where a standing person fits:
 
-- the vertical line from ``body`` metres below the cell's lowest eye up to its highest eye
+- the vertical line from ``body_height`` below the cell's lowest eye up to its highest eye
   crosses no triangle (no table top, shelf, ceiling or floor slab in the way), and
 - the point is not inside a closed solid: the first surface straight above faces up, i.e. the
   line leaves a solid through its top (counter-clockwise winding unless
@@ -38,9 +38,14 @@ STEP = 0.2
 #: Most lattice points along a side: a larger cell gets a coarser lattice (a 1 km cell at 0.2 m
 #: would test 25M points where its cubemaps cost far less).
 MAX_LATTICE = 256
-#: How far below the lowest eye the body must be clear (metres): knees to eyes, so that table
-#: tops and counters block a standing place while seats and low kerbs do not.
-BODY = 1.0
+#: How far below the lowest eye the body must be clear, as a share of the scene's lowest eye
+#: height above its floor (``meta["eye_range"][0]``, 1.5 m unless a scene says otherwise):
+#: knees to eyes, 1 m at 1.5 m, so that table tops and counters block a standing place while
+#: seats and low kerbs do not. A share, not metres: in a scene whose eyes stand 1 m above the
+#: floor (a game level's units) a 1 m body reached the floor itself and found no open floor.
+BODY_SHARE = 2.0 / 3.0
+#: The lowest eye height above the floor when a scene does not give one (metres).
+EYE_LOW = 1.5
 #: Segments stop this far short of a triangle they would meet (metres).
 MARGIN = 0.1
 #: Segments keep this far from geometry to either side (metres). The visibility cubemap's near
@@ -151,10 +156,20 @@ def _check_box(box: np.ndarray) -> np.ndarray:
     return b
 
 
-def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP, body: float = BODY) -> CellWalk:
+def body_height(scene: Scene) -> float:
+    """Metres below the lowest eye that must be clear for a person to stand (``BODY_SHARE``
+    of the scene's lowest eye height above its floor)."""
+    eye_range = scene.meta.get("eye_range") or (EYE_LOW,)
+    return BODY_SHARE * float(eye_range[0])
+
+
+def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP,
+              body: float | None = None) -> CellWalk:
     """Open floor inside a cell box (2, 3) on a lattice of about ``step`` metres (see the
-    module docstring for what counts as open)."""
+    module docstring for what counts as open); ``body`` metres below the lowest eye must be
+    clear (default ``body_height``)."""
     b = _check_box(box)
+    body = body_height(scene) if body is None else float(body)
     if not step > 0 or not body >= 0:
         raise ValueError(f"step must be > 0 and body >= 0, got {step}, {body}")
     step = lattice_step(b, step)
@@ -298,7 +313,7 @@ def clear_pieces(p: np.ndarray, q: np.ndarray, tris: np.ndarray, clearance: floa
 
 
 def walk_segments(scene: Scene, box: np.ndarray, heights: list[float], step: float = STEP,
-                  body: float = BODY) -> np.ndarray:
+                  body: float | None = None) -> np.ndarray:
     """(k, 2, 3) view segments around the open part of a cell at the given eye heights (metres),
     none meeting a triangle of the scene; (0, 2, 3) when the cell has no open part."""
     walk = cell_walk(scene, box, step, body)

@@ -9,6 +9,7 @@ from visibility.cell_walk import (
     MAX_LATTICE,
     STEP,
     _hits_along,
+    body_height,
     cell_walk,
     clear_pieces,
     lattice_step,
@@ -223,3 +224,19 @@ def test_open_eyes_stand_on_open_floor_clear_of_every_triangle():
     assert on_face and all(abs(e[0] - 1.8) > 1e-9 for e in eyes)
     inside_wall = np.array([[1.9, 1.5, 0.0], [2.1, 1.9, 4.0]])
     assert open_eyes(scene, inside_wall, 10, rng).shape == (0, 3)
+
+
+def test_body_follows_the_scene_eye_height():
+    """Eyes 1.0-1.35 m above the floor (a game level's units): a body of two thirds of the
+    lowest eye height stays clear of the floor, where a fixed 1 m body touched it."""
+    scene, _ = _room()
+    low = np.array([[0.0, 1.0, 0.0], [1.6, 1.35, 4.0]])  # the room's floor at y = 0
+    scene.meta["eye_range"] = [1.0, 1.35]
+    assert body_height(scene) == pytest.approx(2.0 / 3.0)
+    assert cell_walk(scene, low, step=0.2).open.any()
+    assert not cell_walk(scene, low, step=0.2, body=1.0).open.any()
+    # The table (top 0.75 m, 0.25 m under these eyes) still blocks a standing place.
+    w = cell_walk(scene, low, step=0.1)
+    gx, gz = np.meshgrid(w.xs, w.zs, indexing="ij")
+    under_table = (gx > 1.0 + 1e-9) & (gx < 1.6 - 1e-9) & (gz > 0.4 + 1e-9) & (gz < 1.4 - 1e-9)
+    assert under_table.any() and not w.open[under_table].any()
