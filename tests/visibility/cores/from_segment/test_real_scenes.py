@@ -1,10 +1,13 @@
-"""from_segment's promise on a real scene: exact at its jittered pixel samples along a segment.
+"""from_segment's promise on the real scenes: exact at its jittered pixel samples along a segment.
 
-lavaducts (a Quake level from ``../shared/scenes``), one side of the cell a seeded walk stands
-in: every triangle that Embree rays through the same jittered samples hit first, at 48 points
-of the side, is in the segment's set (a hit the set lacks is re-cast in float64 before it counts,
-since Embree works in float32), and every triangle in the set is the nearest surface at its
-witness (time, pixel sample), by a float64 brute-force ray cast.
+lavaducts (a Quake level), Den Haag and Lyon (georeferenced city tiles) from
+``../shared/scenes``: the longest segment the core walks by default (the open floor's outline,
+``view_segments``) in the cell a seeded walk stands in, under the core's first (oblique) cube
+and a randomly turned one: every triangle that Embree rays through the same jittered samples
+hit first, at 48 points of the segment, is in the segment's set (a hit the set lacks is
+re-cast in float64 before it counts, since Embree works in float32), and every triangle in the
+set is the nearest surface at its witness (time, pixel sample), by a float64 brute-force ray
+cast. Not the kitchen: the brute-force casts over its 1M triangles would take minutes.
 """
 
 from __future__ import annotations
@@ -15,12 +18,12 @@ import pytest
 from benchmarks.bench_matrix import SHARED_SCENES
 from benchmarks.bench_real_cells import walk_cells
 from tests.visibility.segment_reference import nearest_at_pixel, unwitnessed
-from visibility.cores.from_segment.core import cell_segments, oblique_rotation
+from visibility.cores.from_segment.core import oblique_rotation, view_segments
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import sample_offset
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.loaders import load_scene
-from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
+from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations, random_rotation
 from visibility.viewcells import ViewcellGrid
 
 #: Real scenes: out of the fast lane (``-m "not slow"``), always in CI.
@@ -29,14 +32,18 @@ pytestmark = pytest.mark.slow
 RES, JITTER, SEED, POINTS = 32, 0.5, 7, 48
 
 
-@pytest.fixture(scope="module")
-def lavaducts():
-    path = SHARED_SCENES / "lavaducts.glb"
+@pytest.fixture(scope="module", params=["lavaducts", "denhaag", "lyon_vilo3d"])
+def walked(request):
+    """A real scene and the longest default segment of the cell a seeded walk stands in."""
+    path = SHARED_SCENES / f"{request.param}.glb"
     assert path.exists(), f"{path} is missing: the real scenes are part of the set-up"
     scene = load_scene(path)
     grid = ViewcellGrid.for_scene(scene)
     cell = grid.cell(walk_cells(scene, seed=1, k=1)[0])
-    return scene, cell
+    segs, how = view_segments(scene, cell.box, eye_levels=1)
+    assert how == "open"
+    a, b = max(segs, key=lambda s: float(np.linalg.norm(s[1] - s[0])))
+    return scene, cell, a, b
 
 
 def _sample_dirs(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,13 +61,13 @@ def _sample_dirs(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(dirs), np.concatenate(where)
 
 
-def test_exact_at_its_jittered_samples_on_lavaducts(lavaducts):
+@pytest.mark.parametrize("turn", ["oblique", "random"])
+def test_exact_at_its_jittered_samples_on_real_scenes(walked, turn):
     from trimesh import Trimesh
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-    scene, cell = lavaducts
-    a, b = cell_segments(cell.box, eye_levels=1)[0]
-    rot = oblique_rotation()
+    scene, cell, a, b = walked
+    rot = oblique_rotation() if turn == "oblique" else random_rotation(np.random.default_rng(3))
     geom = scene_geometries(scene)[0]
     wit = np.zeros((geom.n_ids, 5))
     vis = segment_visible(geom, a, b, rot, resolution=RES, witness=wit, jitter=JITTER,
@@ -74,8 +81,8 @@ def test_exact_at_its_jittered_samples_on_lavaducts(lavaducts):
     dirs, where = _sample_dirs(rot)
     rots = cube_face_rotations(rot)
     # The float64 references see the scene the core sees: faces the loader kept out of
-    # computation (807 zero-area ones here, which float rounding would still let rays hit)
-    # collapse to a point.
+    # computation (807 zero-area ones in lavaducts, which float rounding would still let rays
+    # hit) collapse to a point.
     faces = scene.faces.copy()
     faces[~scene.valid_faces] = 0
     seen = 0
