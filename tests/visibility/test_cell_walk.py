@@ -9,6 +9,7 @@ from visibility.cell_walk import (
     MAX_LATTICE,
     STEP,
     _hits_along,
+    _near_triangles,
     body_height,
     cell_walk,
     clear_pieces,
@@ -240,3 +241,20 @@ def test_body_follows_the_scene_eye_height():
     gx, gz = np.meshgrid(w.xs, w.zs, indexing="ij")
     under_table = (gx > 1.0 + 1e-9) & (gx < 1.6 - 1e-9) & (gz > 0.4 + 1e-9) & (gz < 1.4 - 1e-9)
     assert under_table.any() and not w.open[under_table].any()
+
+
+def test_near_triangles_are_the_same_with_and_without_the_hierarchy():
+    """The hierarchy only narrows the scan: the triangles near a cell, in face order, are
+    those of the full scan (a fresh scene object has no hierarchy until one is built)."""
+    from visibility.generators import make_scene
+    from visibility.raster.hierarchy import scene_hierarchy
+
+    a = make_scene("city", 6000, seed=3)
+    b = make_scene("city", 6000, seed=3)
+    scene_hierarchy(b)
+    box = np.array([[10.0, 1.5, 10.0], [14.0, 1.9, 14.0]])
+    full = _near_triangles(a, box, 0.3, 0.5)
+    tree = _near_triangles(b, box, 0.3, 0.5)
+    assert len(full) > 0 and np.array_equal(full, tree)
+    far = np.array([[1e4, 1.5, 1e4], [1e4 + 4.0, 1.9, 1e4 + 4.0]])
+    assert _near_triangles(b, far, 0.3, 0.5).shape == (0, 3, 3)

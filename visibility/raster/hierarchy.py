@@ -237,6 +237,46 @@ def _inner_boxes(boxes, slots):  # pragma: no cover - numba
             boxes[node, 1, a] = max(boxes[2 * node, 1, a], boxes[2 * node + 1, 1, a])
 
 
+@njit(cache=True, nogil=True)
+def _leaves_in_box(boxes, lo, hi, out):  # pragma: no cover - numba
+    """Leaves (0-based) whose node box meets the closed box [lo, hi] (3,) into ``out``;
+    returns their count. Empty nodes (min > max) meet nothing."""
+    slots = len(boxes) // 2
+    stack = np.empty(2 * 64 + 2, dtype=np.int64)
+    stack[0] = 1
+    top = 1
+    k = 0
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        if (boxes[node, 0, 0] > hi[0] or boxes[node, 1, 0] < lo[0]
+                or boxes[node, 0, 1] > hi[1] or boxes[node, 1, 1] < lo[1]
+                or boxes[node, 0, 2] > hi[2] or boxes[node, 1, 2] < lo[2]):
+            continue
+        if node >= slots:
+            out[k] = node - slots
+            k += 1
+        else:
+            stack[top] = 2 * node
+            stack[top + 1] = 2 * node + 1
+            top += 2
+    return k
+
+
+def candidates_in_box(h: Hierarchy, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(k,) int64 triangle ids that may meet the closed box [lo, hi] (3,) metres (infinite
+    bounds allowed): the tree's triangles in leaves whose box meets it, a superset of those
+    whose own bounds do, and every loose (moving) face. Work grows with the leaves met, not
+    with the scene."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    leaves = np.empty(max(h.n_leaves, 1), dtype=np.int64)
+    n = _leaves_in_box(h.boxes, lo, hi, leaves)
+    slots = (leaves[:n, None] * h.leaf_size + np.arange(h.leaf_size)).ravel()
+    ids = h.order[slots[slots < len(h.order)]].astype(np.int64)
+    return np.concatenate([ids, h.loose.astype(np.int64)]) if len(h.loose) else ids
+
+
 def drawable_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(m,) bool: faces the rasterizer may draw (indices in range, finite corners)."""
     v = np.asarray(vertices)

@@ -11,6 +11,7 @@ from visibility.raster.hierarchy import (
     FORMAT,
     Hierarchy,
     build_hierarchy,
+    candidates_in_box,
     drawable_faces,
     ready_hierarchy,
     scene_hierarchy,
@@ -119,3 +120,32 @@ def test_ready_hierarchy_never_waits_and_builds_in_the_background():
     assert h is not None and h.n_faces == scene.n_triangles
     small = Scene(np.eye(3), np.array([[0, 1, 2]]))
     assert ready_hierarchy(small) is None and peek(small, "raster/hierarchy") is None
+
+
+@pytest.mark.parametrize("name", ["city", "swaying_grass"])
+def test_candidates_in_box_hold_every_face_that_meets_it(name):
+    """Brute force over every face: each drawable one whose bounds meet a random box (some
+    unbounded upwards) is a candidate, and on a static city the candidates are far fewer
+    than the scene."""
+    scene = make_scene(name, 4000, seed=5)
+    h = scene_hierarchy(scene)
+    tri = scene.triangles().astype(np.float64)
+    tlo, thi = tri.min(axis=1), tri.max(axis=1)
+    drawable = drawable_faces(scene.vertices, scene.faces)
+    rng = np.random.default_rng(1)
+    slo, shi = scene.vertices.min(axis=0), scene.vertices.max(axis=0)
+    fewer = 0
+    for k in range(40):
+        c = rng.uniform(slo, shi)
+        half = rng.uniform(0.0, 0.1, 3) * (shi - slo)
+        lo, hi = c - half, c + half
+        if k % 2:
+            hi[1] = np.inf
+        meets = drawable & np.all((thi >= lo) & (tlo <= hi), axis=1)
+        cand = candidates_in_box(h, lo, hi)
+        assert len(np.unique(cand)) == len(cand)
+        assert set(np.flatnonzero(meets)) <= set(cand.tolist())
+        assert set(h.loose.tolist()) <= set(cand.tolist())
+        fewer += len(cand) < 0.5 * scene.n_triangles
+    # Swaying grass moves everywhere: every face is loose, a candidate of every box.
+    assert fewer >= 30 if name == "city" else fewer == 0
