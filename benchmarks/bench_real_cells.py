@@ -161,8 +161,8 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     for name in ("from_segment", "sampling"):
         get_core(name).compute(small, small_grid.cell(0))
     try:
-        for path in cfg["scenes"]:
-            scene = load_scene(path)
+        for spec in cfg["scenes"] + [f"generated:{g}" for g in cfg.get("generated", [])]:
+            scene, scene_label = _scene(spec, load_scene, make_scene)
             grid = ViewcellGrid.for_scene(scene)
             for cell_id in walk_cells(scene, cfg["seed"], cfg["cells"]):
                 cell = grid.cell(cell_id)
@@ -170,10 +170,10 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 views, has_open = frame_views(scene, cell, cfg["frames"], cfg["seed"] + cell_id)
                 gt = [renderer.render_scene(scene, e, f) for e, f in views]
                 centre = np.asarray(cell.box).mean(axis=0)
-                log(f"[{scene.name}] cell {cell_id} ({grid.cell_size:g} m): reference "
+                log(f"[{scene_label}] cell {cell_id} ({grid.cell_size:g} m): reference "
                     f"{len(ref)} triangles from {cfg['points']} points x 6 x {cfg['rays']}^2 "
                     f"rays in {ref_s:.1f} s")
-                base = {"scene": scene.name, "triangles": scene.n_triangles, "cell": cell_id,
+                base = {"scene": scene_label, "triangles": scene.n_triangles, "cell": cell_id,
                         "cell_size": grid.cell_size, "reference": int(len(ref)),
                         "reference_seconds": ref_s, "open_floor": has_open}
                 fs_seconds = None
@@ -206,6 +206,16 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     finally:
         renderer.close()
     return rows
+
+
+def _scene(spec: str, load_scene, make_scene):
+    """(scene, label): a scene file's path, or ``generated:NAME:TRIANGLES`` for a generated
+    scene (``visibility.generators.make_scene``, labelled with its size)."""
+    if not spec.startswith("generated:"):
+        scene = load_scene(spec)
+        return scene, scene.name
+    _, name, n = spec.split(":")
+    return make_scene(name, triangles=int(n)), f"{name} {int(n) // 1000}k (generated)"
 
 
 def _row(base, label, ids, seconds, ref, scene, renderer, views, gt, centre, cfg,
@@ -266,7 +276,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="lavaducts, 1 cell, lighter reference")
     ap.add_argument("--cells", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one)")
+    ap.add_argument("--scenes", nargs="*", help="real scene names (default: every one; the "
+                    "flag alone: none, for --generated only)")
+    ap.add_argument("--generated", nargs="*", default=[], metavar="NAME:TRIANGLES",
+                    help="generated scenes to add (visibility.generators), e.g. city:1000000")
     ap.add_argument("--fs-variants", nargs="*", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                     help="from_segment also with these parameters, e.g. jitter=0 cuts=0")
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames per cell")
@@ -276,8 +289,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
                     if not args.scenes or p.stem in args.scenes)
-    cfg = {"scenes": scenes, "cells": args.cells, "seed": args.seed, "points": POINTS,
-           "rays": RAYS, "fs_variants": args.fs_variants, "frames": args.frames,
+    if args.scenes is not None and not args.scenes:
+        scenes = []
+    for g in args.generated:
+        if len(g.split(":")) != 2 or not g.split(":")[1].isdigit():
+            ap.error(f"--generated takes NAME:TRIANGLES, got {g!r}")
+    cfg = {"scenes": scenes, "generated": args.generated, "cells": args.cells,
+           "seed": args.seed, "points": POINTS, "rays": RAYS, "fs_variants": args.fs_variants,
+           "frames": args.frames,
            "frame_px": args.frame_px or _from_segment_resolution()}
     if args.quick:
         cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96,

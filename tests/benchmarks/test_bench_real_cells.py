@@ -78,3 +78,14 @@ def test_frame_views_stand_on_the_open_floor_and_look_level_enough():
                for a, b in zip(views, again, strict=True))
     # Different views, not one repeated: the eyes spread over the open floor.
     assert len({tuple(e) for e, _ in views}) > 32
+
+
+def test_generated_scenes_are_labelled_with_their_size_and_bad_specs_refused(tmp_path):
+    from visibility.loaders import load_scene
+
+    scene, label = bench_real_cells._scene("generated:rooms:2000", load_scene, make_scene)
+    assert label == "rooms 2k (generated)"
+    assert scene.n_triangles == make_scene("rooms", triangles=2_000).n_triangles
+    with pytest.raises(SystemExit):
+        bench_real_cells.main(["--scenes", "--generated", "rooms", "--out",
+                               str(tmp_path / "x.md")])
