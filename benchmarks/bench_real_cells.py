@@ -161,8 +161,15 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     for name in ("from_segment", "sampling"):
         get_core(name).compute(small, small_grid.cell(0))
     try:
-        for spec in cfg["scenes"] + [f"generated:{g}" for g in cfg.get("generated", [])]:
-            scene, scene_label = _scene(spec, load_scene, make_scene)
+        sources = [(path, None) for path in cfg["scenes"]] + [
+            (name, int(n)) for name, n in cfg.get("generated", [])]
+        for source, n in sources:
+            if n is None:
+                scene = load_scene(source)
+                scene_label = scene.name
+            else:
+                scene = make_scene(source, triangles=n)
+                scene_label = f"{source} {n // 1000}k (generated)"
             grid = ViewcellGrid.for_scene(scene)
             for cell_id in walk_cells(scene, cfg["seed"], cfg["cells"]):
                 cell = grid.cell(cell_id)
@@ -208,14 +215,16 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     return rows
 
 
-def _scene(spec: str, load_scene, make_scene):
-    """(scene, label): a scene file's path, or ``generated:NAME:TRIANGLES`` for a generated
-    scene (``visibility.generators.make_scene``, labelled with its size)."""
-    if not spec.startswith("generated:"):
-        scene = load_scene(spec)
-        return scene, scene.name
-    _, name, n = spec.split(":")
-    return make_scene(name, triangles=int(n)), f"{name} {int(n) // 1000}k (generated)"
+def parse_generated(text: str) -> tuple[str, int]:
+    """``NAME:TRIANGLES`` of a generated scene (a key of ``visibility.generators.GENERATORS``)
+    as (name, triangles); a clear error otherwise."""
+    from visibility.generators import GENERATORS
+
+    name, _, n = text.partition(":")
+    if name not in GENERATORS or not n.isdigit() or int(n) <= 0:
+        raise SystemExit(f"--generated takes NAME:TRIANGLES with NAME one of "
+                         f"{sorted(GENERATORS)}, got {text!r}")
+    return name, int(n)
 
 
 def _row(base, label, ids, seconds, ref, scene, renderer, views, gt, centre, cfg,
@@ -291,10 +300,8 @@ def main(argv: list[str] | None = None) -> int:
                     if not args.scenes or p.stem in args.scenes)
     if args.scenes is not None and not args.scenes:
         scenes = []
-    for g in args.generated:
-        if len(g.split(":")) != 2 or not g.split(":")[1].isdigit():
-            ap.error(f"--generated takes NAME:TRIANGLES, got {g!r}")
-    cfg = {"scenes": scenes, "generated": args.generated, "cells": args.cells,
+    generated = [parse_generated(g) for g in args.generated]
+    cfg = {"scenes": scenes, "generated": generated, "cells": args.cells,
            "seed": args.seed, "points": POINTS, "rays": RAYS, "fs_variants": args.fs_variants,
            "frames": args.frames,
            "frame_px": args.frame_px or _from_segment_resolution()}

@@ -80,12 +80,12 @@ def test_frame_views_stand_on_the_open_floor_and_look_level_enough():
     assert len({tuple(e) for e, _ in views}) > 32
 
 
-def test_generated_scenes_are_labelled_with_their_size_and_bad_specs_refused(tmp_path):
-    from visibility.loaders import load_scene
-
-    scene, label = bench_real_cells._scene("generated:rooms:2000", load_scene, make_scene)
-    assert label == "rooms 2k (generated)"
-    assert scene.n_triangles == make_scene("rooms", triangles=2_000).n_triangles
-    with pytest.raises(SystemExit):
+def test_generated_specs_are_parsed_once_and_bad_ones_refused_with_the_names(tmp_path):
+    assert bench_real_cells.parse_generated("city:100000") == ("city", 100_000)
+    for bad in ("rooms", "rooms:x", "rooms:0", "nowhere:100"):
+        with pytest.raises(SystemExit, match="NAME:TRIANGLES.*city"):
+            bench_real_cells.parse_generated(bad)
+    with pytest.raises(SystemExit, match="NAME:TRIANGLES"):
         bench_real_cells.main(["--scenes", "--generated", "rooms", "--out",
                                str(tmp_path / "x.md")])
+    assert not (tmp_path / "x.md").exists()
