@@ -20,7 +20,7 @@ import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
-from visibility.cores.cos.cull import Tree, cell_tree, view_planes, view_positions
+from visibility.cores.cos.cull import Tree, cell_tree, view_planes, views_positions
 from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
@@ -249,11 +249,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         sel = _face_subsets(bounds, order, half, views, plane_tol)
         # Pixel boxes by position; each view writes (and reads) only the rows it projects.
         rng = np.empty((len(order), 4), dtype=np.int32)
+        positions = None if tree is None else _view_positions(tree, sel, views, plane_tol, stats)
         worst = -1.0
-        for view in views:
+        for k, view in enumerate(views):
             tv, entries0 = time.perf_counter(), stats["list_entries"]
-            longest = _solve_view(prims, solid, order, sel[view.face], gap, view, plane_tol,
-                                  vis, budget, stats, coarse_items, tree, rng)
+            listed = np.flatnonzero(sel[view.face]) if positions is None else positions[k]
+            longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
+                                  stats, coarse_items, rng)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -289,6 +291,32 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
         keep = reach >= float(half[axis]) - margin - plane_tol
         out[face] = keep
     return out
+
+
+def _view_positions(tree: Tree, keep: dict[tuple[int, int], np.ndarray], views: list[View],
+                    plane_tol: float, stats: dict[str, Any]) -> list[np.ndarray]:
+    """Per view, the positions t (increasing, int32) that its side plane can list (``keep``,
+    ``_face_subsets``) and that the ``tree`` walk finds among its rays. One parallel walk for
+    all the views: a walk per view, in turn, ran on one thread."""
+    t0 = time.perf_counter()
+    faces = sorted(keep)
+    keep_all = np.stack([keep[f] for f in faces])
+    keep_of = np.array([faces.index(v.face) for v in views], dtype=np.int64)
+    planes = np.stack([view_planes(v.corners, float(v.x_lo), float(v.y_lo), int(v.nx), int(v.ny),
+                                   float(v.pw), 4.0 * plane_tol) for v in views])
+    off = np.zeros(len(views) + 1, dtype=np.int64)
+    np.cumsum(np.count_nonzero(keep_all, axis=1)[keep_of], out=off[1:])
+    out = np.empty(int(off[-1]), dtype=np.int32)
+    counts = np.zeros(len(views), dtype=np.int64)
+    views_positions(tree, keep_all, keep_of, np.stack([v.origin for v in views]),
+                    np.stack([v.perm for v in views]), np.stack([v.sign for v in views]),
+                    planes, off, out, counts)
+    stats["culled"] += int(off[-1] - counts.sum())
+    seconds = time.perf_counter() - t0
+    stats["walk_seconds"] += seconds
+    stats["footprint_seconds"] += seconds
+    stats["list_seconds"] += seconds
+    return [out[off[v]:off[v] + counts[v]] for v in range(len(views))]
 
 
 def _tile_work(pcount: np.ndarray, n_tiles: int) -> np.ndarray:
@@ -354,30 +382,18 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     return hid
 
 
-def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, keep: np.ndarray,
+def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any], coarse_items: int, tree: Tree | None,
-                rng: np.ndarray) -> int:
-    """Lists and resolution of one view (over the positions of ``order`` its side plane can
-    list, ``keep`` (n,) bool, whose primitives the ``tree`` walk finds among the view's rays,
-    all of them without a tree; only the ``solid`` primitives occlude); sets ``vis`` for what
-    it finds visible, adds to ``stats`` and returns the view's longest list. Tiles listing at
-    least ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``)
-    first. ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``)."""
+                stats: dict[str, Any], coarse_items: int, rng: np.ndarray) -> int:
+    """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
+    plane can list, less those the hierarchy walk finds no ray of the view meets,
+    ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
+    visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
+    ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
+    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``)."""
     t0 = time.perf_counter()
-    if tree is None:
-        sel = np.flatnonzero(keep)
-    else:
-        planes = view_planes(view.corners, float(view.x_lo), float(view.y_lo), int(view.nx),
-                             int(view.ny), float(view.pw), 4.0 * plane_tol)
-        buf = np.empty(len(keep), dtype=np.int64)
-        sel = buf[:view_positions(tree, keep, view.origin, view.perm, view.sign, planes, buf)]
-        stats["culled"] += int(np.count_nonzero(keep)) - len(sel)
     stats["projected"] += len(sel)
-    stats["walk_seconds"] += time.perf_counter() - t0
     known = vis.copy()
-    # The walk yields leaves in tree order; the lists need front-to-back order.
-    sel.sort()
     footprints(prims.pts, prims.start, prims.npts, prims.kind, order, sel, view.origin,
                view.perm, view.sign, view.corners, view.near_box, view.near_w, view.nx,
                view.ny, view.x_lo, view.y_lo, view.pw, plane_tol, rng)

@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from visibility.cores.cos.prims import TRIANGLE, Prims
 from visibility.raster.hierarchy import Hierarchy
@@ -138,3 +138,19 @@ def view_positions(tree, keep, origin, perm, sign, planes, out):  # pragma: no c
             out[n] = t
             n += 1
     return n
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def views_positions(tree, keep, keep_of, origins, perms, signs, planes, off, out,
+                    counts):  # pragma: no cover - numba
+    """``view_positions`` for V views at once, in parallel: view v's positions, increasing,
+    go to ``out[off[v]:off[v] + counts[v]]``. keep (F, n) bool per side plane, keep_of (V,)
+    the plane of each view, origins (V, 3), perms (V, 3), signs (V, 3), planes (V, 5, 4);
+    off (V + 1,) prefix sums of each view's kept positions, out (off[V],) int32, counts (V,)."""
+    for v in prange(counts.shape[0]):
+        seg = out[off[v]:off[v + 1]]
+        k = view_positions(tree, keep[keep_of[v]], origins[v], perms[v], signs[v], planes[v],
+                           seg)
+        # The walk yields leaves in tree order; the lists need front-to-back order.
+        seg[:k].sort()
+        counts[v] = k

@@ -381,6 +381,44 @@ def test_the_tree_cull_keeps_what_the_views_rays_meet():
             assert kept < 0.5 * 30 * len(order), scene.name
 
 
+def test_all_views_walk_matches_one_walk_per_view():
+    # ``views_positions`` walks the 30 views in parallel into one flat array: each view's
+    # slice holds exactly what its own walk keeps (under its side plane's mask), increasing.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.cull import cell_tree, view_planes, view_positions, views_positions
+    from visibility.cores.cos.prims import build_prims, distance_order
+    from visibility.generators import make_scene
+    from visibility.raster.hierarchy import build_hierarchy
+
+    city = make_scene("city", triangles=3000)
+    box = cell_around(city, 1.0, 0)
+    centre = box.mean(axis=0)
+    prims = build_prims(city, centre, weld_vertices(city.vertices))
+    order, _ = distance_order(prims, 0.5 * (box[1] - box[0]))
+    tree = cell_tree(build_hierarchy(city.vertices, city.faces, leaf_size=4), prims, order,
+                     city.n_triangles, centre)
+    tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+    views = side_plane_views(box, 32)
+    faces = sorted({v.face for v in views})
+    keep = np.random.default_rng(2).random((len(faces), len(order))) < 0.7
+    keep_of = np.array([faces.index(v.face) for v in views], dtype=np.int64)
+    planes = np.stack([view_planes(v.corners, v.x_lo, v.y_lo, v.nx, v.ny, v.pw, 4.0 * tol)
+                       for v in views])
+    off = np.zeros(len(views) + 1, dtype=np.int64)
+    np.cumsum(keep.sum(axis=1)[keep_of], out=off[1:])
+    out = np.empty(int(off[-1]), dtype=np.int32)
+    counts = np.zeros(len(views), dtype=np.int64)
+    views_positions(tree, keep, keep_of, np.stack([v.origin for v in views]),
+                    np.stack([v.perm for v in views]), np.stack([v.sign for v in views]),
+                    planes, off, out, counts)
+    for k, v in enumerate(views):
+        one = np.empty(len(order), dtype=np.int64)
+        n = view_positions(tree, keep[keep_of[k]], v.origin, v.perm, v.sign, planes[k], one)
+        got = out[off[k]:off[k] + counts[k]]
+        assert np.array_equal(got, np.sort(one[:n])), (v.face, v.kind)
+    assert 0 < counts.sum() < off[-1]  # the walk culls, and keeps some
+
+
 def test_open_edge_share_counts_borders_and_t_junctions():
     from visibility.cores.cos.fusion import open_edge_share
 
