@@ -304,7 +304,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["silhouette_trims"] += len(trims)
     stats["layers"] += len(all_layers)
     stats["views"] += 1
-    held = np.zeros(res * res, dtype=bool)
+    held = np.zeros(res * res, dtype=np.uint8)
+    tally = np.zeros((n_bands, 2), dtype=np.int64)
     for lay in all_layers:
         checkpoint()
         ta = time.perf_counter()
@@ -321,17 +322,17 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                             kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil, kb.active,
                             kb.overflow, vis, stop)
         tb = time.perf_counter()
-        held |= kb.count > 0
+        tally[:] = 0
+        _resolve(kb, res, False, vis, counters, stop, data.closed, held, tally)
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
-                                          int(kb.count.sum()) * ENTRY_BYTES)
-        stats["pixel_resolves"] += int(kb.active.sum())
-        _resolve(kb, res, False, vis, counters, stop, data.closed)
+                                          int(tally[:, 0].sum()) * ENTRY_BYTES)
+        stats["pixel_resolves"] += int(tally[:, 1].sum())
         stats["p2_raster"] += tb - ta
         stats["p3_resolve"] += time.perf_counter() - tb
     checkpoint()
     tb = time.perf_counter()
     stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
-    _resolve(kb, res, True, vis, counters, stop, data.closed)
+    _resolve(kb, res, True, vis, counters, stop, data.closed, held, tally)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
@@ -388,10 +389,11 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
-             stop: np.ndarray, closed: np.ndarray) -> None:
+             stop: np.ndarray, closed: np.ndarray, held: np.ndarray,
+             tally: np.ndarray) -> None:
     resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
                   kb.n_spans, kb.first, kb.hid, closed, kb.stencil, kb.active, kb.overflow, res,
-                  final, vis, counters, stop)
+                  final, vis, counters, stop, held, tally)
 
 
 def _reset(kb: KBuffer) -> None:

@@ -209,6 +209,18 @@ def raster_surfaces(inst_row, inst_leaf, tri_ids, facing, poly, npoly, box, leaf
                         active[p] = 1
 
 
+@njit(cache=True, inline="always")
+def _affine_range(a, b, lo, hi):  # pragma: no cover - numba
+    """The u with lo <= a u + b <= hi, as (u0, u1) (u0 > u1: none), clamped to +-1e300."""
+    if a > 0.0:
+        return max(-1e300, (lo - b) / a), min(1e300, (hi - b) / a)
+    if a < 0.0:
+        return max(-1e300, (hi - b) / a), min(1e300, (lo - b) / a)
+    if lo <= b <= hi:
+        return -1e300, 1e300
+    return 1.0, -1.0
+
+
 @njit(cache=True, parallel=True)
 def raster_trims(trims, res, tan, margin, depth, kinds, idents, umbra, count, stencil,
                  overflow, vis, stop):  # pragma: no cover - numba
@@ -257,7 +269,21 @@ def raster_trims(trims, res, tan, margin, depth, kinds, idents, umbra, count, st
             lm = margin / el if el > 0 else 1e300
             for y in range(ya, yb):
                 v = (1.0 - (y + 0.5) / half) * tan
-                for x in range(xa, xb):
+                # Along the row, d and lam are affine in u: the columns where both can pass
+                # (d in [-margin, wmax], lam in [-lm, 1 + lm]), one pixel wider against
+                # rounding; the exact test below decides. A trim's box is mostly empty (a short
+                # edge near v* trims a strip across the whole view).
+                ua, ub = _affine_range(side * nx / nl, side * (ny * v - nz) / nl, -margin, wmax)
+                if el2 > 0:
+                    la, lb = _affine_range(ex / el2, ((v - v0) * ey - u0 * ex) / el2, -lm,
+                                           1.0 + lm)
+                    ua = max(ua, la)
+                    ub = min(ub, lb)
+                if not ua <= ub:
+                    continue
+                xs = max(xa, int(np.floor((ua / tan + 1.0) * half - 0.5)) - 1)
+                xe = min(xb, int(np.ceil((ub / tan + 1.0) * half - 0.5)) + 2)
+                for x in range(xs, xe):
                     p = y * res + x
                     if stencil[p] == SEALED:
                         continue

@@ -86,13 +86,21 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
     face seen.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
+    k = depth.shape[1]
+    return resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first,
+                        hid, closed, p, final, vis, stats, np.empty(k, dtype=np.int64),
+                        np.empty(k), np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
+                        np.empty(k))
+
+
+@njit(cache=True)
+def resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
+                 closed, p, final, vis, stats, order, sd, sk, si, su):  # pragma: no cover
+    """``resolve_pixel`` with its scratch passed in: ``order`` (K,) int64, ``sd`` (K,),
+    ``sk`` (K,) int8, ``si`` (K,) int32, ``su`` (K,) for a k-buffer of K entries per pixel
+    (one set per thread: an allocation per pixel resolve cost as much as a short sequence)."""
     n = count[p]
-    order = np.empty(n, dtype=np.int64)
     _sort(depth[p], kinds[p], idents[p], umbra[p], n, order)
-    sd = np.empty(n)
-    sk = np.empty(n, dtype=np.int8)
-    si = np.empty(n, dtype=np.int32)
-    su = np.empty(n)
     for q in range(n):
         sd[q] = depth[p, order[q]]
         sk[q] = kinds[p, order[q]]
@@ -235,20 +243,36 @@ def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
 
 @njit(cache=True, parallel=True)
 def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                  closed, stencil, active, overflow, res, final, vis, stats, stop):
+                  closed, stencil, active, overflow, res, final, vis, stats, stop, held,
+                  tally):
     """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
-    bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band."""
+    bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band.
+    On the way, before resolving: ``held`` (res * res,) gets 1 where a pixel holds entries,
+    ``tally`` (n_bands, 2) adds per band the entries held and the pixels marked active (the
+    view's statistics, without full-frame passes per layer)."""
     n_bands = (res + 7) // 8
+    k = depth.shape[1]
     for band in prange(n_bands):
         if flag_set(stop):
             continue
+        order = np.empty(k, dtype=np.int64)
+        sd = np.empty(k)
+        sk = np.empty(k, dtype=np.int8)
+        si = np.empty(k, dtype=np.int32)
+        su = np.empty(k)
         for p in range(band * 8 * res, min(res, band * 8 + 8) * res):
+            if count[p] > 0:
+                held[p] = 1
+                tally[band, 0] += count[p]
+            if active[p]:
+                tally[band, 1] += 1
             if overflow[p] or stencil[p] == SEALED or count[p] == 0:
                 active[p] = 0
                 continue
             if not (active[p] or final):
                 continue
             active[p] = 0
-            if resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
-                             first, hid, closed, p, final, vis, stats[band]):
+            if resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
+                            first, hid, closed, p, final, vis, stats[band], order, sd, sk, si,
+                            su):
                 stencil[p] = SEALED

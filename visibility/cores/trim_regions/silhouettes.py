@@ -43,6 +43,8 @@ TRIM_MARGIN_PX = 0.75
 TRIM_COLUMNS = 12
 #: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
 MAX_LOOKUP_CELLS = 4096
+#: Edges per parallel chunk of ``silhouette_trims`` (one set of scratch arrays each).
+EDGE_CHUNK = 1024
 
 
 @njit(cache=True, inline="always")
@@ -55,17 +57,22 @@ def _side(n, q):  # pragma: no cover - numba
 def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
     """Whether edge e's second opposite corner lies in the plane of its first triangle
     (relative tolerance 1e-9)."""
-    a = cam[ev[e, 0]]
-    b = cam[ev[e, 1]]
-    c = cam[eo[e, 0]]
-    d = cam[eo[e, 1]]
-    u = b - a
-    v = c - a
-    n = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
-                  u[0] * v[1] - u[1] * v[0]])
-    w = d - a
-    scale = np.sqrt(n @ n) * max(np.sqrt(w @ w), np.sqrt(u @ u))
-    return abs(n @ w) <= 1e-9 * scale
+    a = ev[e, 0]
+    ux = cam[ev[e, 1], 0] - cam[a, 0]
+    uy = cam[ev[e, 1], 1] - cam[a, 1]
+    uz = cam[ev[e, 1], 2] - cam[a, 2]
+    vx = cam[eo[e, 0], 0] - cam[a, 0]
+    vy = cam[eo[e, 0], 1] - cam[a, 1]
+    vz = cam[eo[e, 0], 2] - cam[a, 2]
+    wx = cam[eo[e, 1], 0] - cam[a, 0]
+    wy = cam[eo[e, 1], 1] - cam[a, 1]
+    wz = cam[eo[e, 1], 2] - cam[a, 2]
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    scale = (np.sqrt(nx * nx + ny * ny + nz * nz)
+             * max(np.sqrt(wx * wx + wy * wy + wz * wz), np.sqrt(ux * ux + uy * uy + uz * uz)))
+    return abs(nx * wx + ny * wy + nz * wz) <= 1e-9 * scale
 
 
 @njit(cache=True)
@@ -73,15 +80,24 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
     """Earliest layer of the leaves meeting the box of points pa, pb (camera frame's world
     positions, metres) grown by ``grow`` metres."""
     g = leaf_of_cell.shape[0]
-    lo = np.empty(3, dtype=np.int64)
-    hi = np.empty(3, dtype=np.int64)
+    lo = (0, 0, 0)
+    hi = (0, 0, 0)
     n = 1
     for a in range(3):
         mn = min(pa[a], pb[a]) - grow - grid_origin[a]
         mx = max(pa[a], pb[a]) + grow - grid_origin[a]
-        lo[a] = min(g - 1, max(0, int(np.floor(mn / cell))))
-        hi[a] = min(g - 1, max(0, int(np.floor(mx / cell))))
-        n *= hi[a] - lo[a] + 1
+        la = min(g - 1, max(0, int(np.floor(mn / cell))))
+        ha = min(g - 1, max(0, int(np.floor(mx / cell))))
+        if a == 0:
+            lo = (la, lo[1], lo[2])
+            hi = (ha, hi[1], hi[2])
+        elif a == 1:
+            lo = (lo[0], la, lo[2])
+            hi = (hi[0], ha, hi[2])
+        else:
+            lo = (lo[0], lo[1], la)
+            hi = (hi[0], hi[1], ha)
+        n *= ha - la + 1
     if n > MAX_LOOKUP_CELLS:
         return 0
     best = 1 << 62
@@ -96,10 +112,11 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
 
 @njit(cache=True)
 def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
-              out, sides, widths):  # pragma: no cover - numba
+              out, sides, widths, pts):  # pragma: no cover - numba
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
     part of the row (normal, ends, depths, the larger widths) is written to ``out``, the
-    widths at both ends of a trim into side +1 and side -1 to ``widths`` (2, 2)."""
+    widths at both ends of a trim into side +1 and side -1 to ``widths`` (2, 2). ``pts``
+    (3, 3) is scratch (the clipped ends and the normal)."""
     f0 = ef[e, 0]
     f1 = ef[e, 1]
     a0 = facing_of[f0]
@@ -113,8 +130,11 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
             return 0  # two triangles of one plane: no eye sees a silhouette between them
     elif a0 == 0:
         return 0
-    a = cam[ev[e, 0]].copy()
-    b = cam[ev[e, 1]].copy()
+    a = pts[0]
+    b = pts[1]
+    for k in range(3):
+        a[k] = cam[ev[e, 0], k]
+        b[k] = cam[ev[e, 1], k]
     za, zb = -a[2], -b[2]
     if za < near and zb < near:
         return 0
@@ -128,7 +148,7 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
             b[k] = a[k] + t * (b[k] - a[k])
     # Normal of the plane through v* (the origin) and the edge: its trace in the image is
     # the edge line, and the side of a point is the sign of n . (u, v, -1).
-    n = np.empty(3)
+    n = pts[2]
     n[0] = a[1] * b[2] - a[2] * b[1]
     n[1] = a[2] * b[0] - a[0] * b[2]
     n[2] = a[0] * b[1] - a[1] * b[0]
@@ -197,42 +217,49 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
     n_e = ev.shape[0]
     margin = margin_px * 2.0 * tan / res
     counts = np.zeros(n_e, dtype=np.int64)
-    for e in prange(n_e):
+    n_chunks = (n_e + EDGE_CHUNK - 1) // EDGE_CHUNK
+    # Scratch per chunk of edges: an allocation per edge cost more than most edges' test.
+    for c in prange(n_chunks):
         row = np.empty(TRIM_COLUMNS)
         sides = np.empty(2)
-        counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
-                              margin, row, sides, np.empty((2, 2)))
+        widths = np.empty((2, 2))
+        pts = np.empty((3, 3))
+        for e in range(c * EDGE_CHUNK, min(n_e, (c + 1) * EDGE_CHUNK)):
+            counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
+                                  margin, row, sides, widths, pts)
     start = np.zeros(n_e + 1, dtype=np.int64)
     for e in range(n_e):
         start[e + 1] = start[e] + counts[e]
     trims = np.empty((start[n_e], TRIM_COLUMNS))
     layer = np.empty(start[n_e], dtype=np.int64)
-    for e in prange(n_e):
-        if counts[e] == 0:
-            continue
+    for c in prange(n_chunks):
         row = np.empty(TRIM_COLUMNS)
         sides = np.empty(2)
         widths = np.empty((2, 2))
-        m = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
-                      row, sides, widths)
-        # World positions of the (clipped) ends: back from the image ends at their depths.
+        pts = np.empty((3, 3))
         pa = np.empty(3)
         pb = np.empty(3)
-        za = 1.0 / row[8]
-        zb = 1.0 / row[9]
-        ca = (row[4] * za, row[5] * za, -za)
-        cb = (row[6] * zb, row[7] * zb, -zb)
-        for k in range(3):
-            pa[k] = vstar[k] + rot[0, k] * ca[0] + rot[1, k] * ca[1] + rot[2, k] * ca[2]
-            pb[k] = vstar[k] + rot[0, k] * cb[0] + rot[1, k] * cb[1] + rot[2, k] * cb[2]
-        grow = max(row[10] * za, row[11] * zb)
-        lay = _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer)
-        for q in range(m):
-            w = start[e] + q
-            for c in range(TRIM_COLUMNS):
-                trims[w, c] = row[c]
-            trims[w, 3] = sides[q]
-            trims[w, 10] = widths[0 if sides[q] > 0 else 1, 0]
-            trims[w, 11] = widths[0 if sides[q] > 0 else 1, 1]
-            layer[w] = lay
+        for e in range(c * EDGE_CHUNK, min(n_e, (c + 1) * EDGE_CHUNK)):
+            if counts[e] == 0:
+                continue
+            m = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
+                          row, sides, widths, pts)
+            # World positions of the (clipped) ends: back from the image ends at their depths.
+            za = 1.0 / row[8]
+            zb = 1.0 / row[9]
+            ca = (row[4] * za, row[5] * za, -za)
+            cb = (row[6] * zb, row[7] * zb, -zb)
+            for k in range(3):
+                pa[k] = vstar[k] + rot[0, k] * ca[0] + rot[1, k] * ca[1] + rot[2, k] * ca[2]
+                pb[k] = vstar[k] + rot[0, k] * cb[0] + rot[1, k] * cb[1] + rot[2, k] * cb[2]
+            grow = max(row[10] * za, row[11] * zb)
+            lay = _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer)
+            for q in range(m):
+                w = start[e] + q
+                for k in range(TRIM_COLUMNS):
+                    trims[w, k] = row[k]
+                trims[w, 3] = sides[q]
+                trims[w, 10] = widths[0 if sides[q] > 0 else 1, 0]
+                trims[w, 11] = widths[0 if sides[q] > 0 else 1, 1]
+                layer[w] = lay
     return trims, layer
