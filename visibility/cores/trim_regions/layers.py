@@ -66,7 +66,9 @@ def by_layer(layer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     starts : (l + 1,) int64 offsets into ``order`` of each layer's items.
     """
     order = np.argsort(layer, kind="stable")
-    values, counts = np.unique(layer[order], return_counts=True)
-    starts = np.zeros(len(values) + 1, dtype=np.int64)
-    np.cumsum(counts, out=starts[1:])
-    return order.astype(np.int64), values.astype(np.int64), starts
+    ordered = layer[order]
+    # Sorted already: the layers start where the value changes (no second sort or hash).
+    first = np.flatnonzero(np.diff(ordered)) + 1
+    starts = np.concatenate([[0], first, [len(ordered)]]).astype(np.int64) if len(ordered) \
+        else np.zeros(1, dtype=np.int64)
+    return order.astype(np.int64), ordered[starts[:-1]].astype(np.int64), starts

@@ -11,6 +11,7 @@ import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.trim_regions.cache import SceneData
+from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box
 from visibility.cores.trim_regions.frustum import View, cover_box, sphere_views
 from visibility.cores.trim_regions.hulls import (
     BOX_FACES,
@@ -202,8 +203,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         vis[g.triangle_ids] = 1
         gathered_spheres = g.sphere_ids.astype(np.int32)
     seen = hull_ids[seen_hull != 0]
-    ids = _not_edge_on(scene, np.union1d(np.flatnonzero(vis), seen[seen < m]).astype(np.int64),
-                       box)
+    vis[seen[seen < m]] = 1
+    ids = _not_edge_on(scene, np.flatnonzero(vis).astype(np.int64), box)
     stats["sphere_ids"] = np.union1d((seen[seen >= m] - m).astype(np.int32),
                                      gathered_spheres).astype(np.int32)
     stats["p4_gather"] += time.perf_counter() - t
@@ -227,16 +228,11 @@ def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
     ids = data.static
     if not len(ids):
         return ids
-    t = scene.vertices[scene.faces[ids].astype(np.int64)]
-    close = np.zeros(len(ids), dtype=bool)
-    mid = t.mean(axis=1)
-    px = 0.5 * resolution  # pixels per radian at a face's centre, the fewest on the face
-    for c in centres:
-        off = np.abs(data.normals @ c - data.plane)
-        dist = np.maximum(np.linalg.norm(mid - c, axis=1), 1e-12)
-        d = np.maximum(np.linalg.norm(t - c, axis=2), 1e-12)
-        across = off * (1.0 / d.min(axis=1) - 1.0 / d.max(axis=1))
-        close |= (off <= delta) & ((off / dist * px < 1.0) | (across * px < 1.0))
+    close = np.zeros(len(ids), dtype=np.bool_)
+    # A face's centre has the fewest pixels per radian: 0.5 * resolution.
+    grazing_mask(scene.vertices, scene.faces, ids.astype(np.int64), data.normals, data.plane,
+                 np.ascontiguousarray(centres, dtype=np.float64), float(delta),
+                 0.5 * resolution, close)
     return ids[close]
 
 
@@ -245,13 +241,9 @@ def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
     any eye of the cell, only from the spheres' and v*'s extra eye positions."""
     if not len(ids):
         return ids
-    t = scene.vertices[scene.faces[ids].astype(np.int64)]
-    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    corners = np.array([[box[(c >> a) & 1, a] for a in range(3)] for c in range(8)])
-    dist = np.abs(np.einsum("ij,kij->ki", n, corners[:, None, :] - t[None, :, 0]))
-    scale = np.max(np.abs(t), axis=(1, 2)) + np.max(np.abs(box))
-    return ids[~np.all(dist <= 1e-12 * scale, axis=0)]
+    holds = np.zeros(len(ids), dtype=np.bool_)
+    plane_holds_box(scene.vertices, scene.faces, ids, np.asarray(box, dtype=np.float64), holds)
+    return ids[~holds]
 
 
 def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
@@ -384,8 +376,11 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     n_rolled = int(np.ceil(ROLLED_SAMPLES * res * (c + s)))
     _, rolled = render_ids(verts, scene.faces, view.vstar, roll @ view.rot, n_rolled, n_rolled,
                            reach, reach, near=view.near, face_mask=static_mask)
-    seen = np.unique(np.concatenate([ids[ids >= 0], rolled[rolled >= 0]])).astype(np.int64)
-    return first, seen
+    # Marks, not np.unique: a million samples per view, most of them repeats.
+    mark = np.zeros(scene.n_triangles, dtype=bool)
+    mark[ids[ids >= 0]] = True
+    mark[rolled[rolled >= 0]] = True
+    return first, np.flatnonzero(mark)
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,

@@ -18,6 +18,8 @@ from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRI
 
 #: Rows of pixels per band of the parallel rasterization.
 BAND_ROWS = 8
+#: Triangles per parallel chunk of ``setup_triangles`` (one scratch polygon each).
+SETUP_CHUNK = 512
 
 
 @njit(cache=True, parallel=True)
@@ -60,55 +62,58 @@ def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):
     box : (s, 4) int64 out, pixel range [x0, x1) x [y0, y1) of the corners (may be empty).
     """
     half = 0.5 * res
-    for i in prange(rows.shape[0]):
-        f = rows[i]
-        a = cam[faces[f, 0]]
-        b = cam[faces[f, 1]]
-        c = cam[faces[f, 2]]
-        e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
-        nx = e1y * e2z - e1z * e2y
-        ny = e1z * e2x - e1x * e2z
-        nz = e1x * e2y - e1y * e2x
-        s = -(nx * a[0] + ny * a[1] + nz * a[2])
-        facing[i] = 1 if s > 0 else (-1 if s < 0 else 0)
+    n_rows = rows.shape[0]
+    # Scratch per chunk of triangles: an allocation per triangle cost as much as its set-up.
+    for ch in prange((n_rows + SETUP_CHUNK - 1) // SETUP_CHUNK):
         pts = np.empty((4, 3))
-        m = 0
-        tri = (a, b, c)
-        for k in range(3):
-            p = tri[k]
-            q = tri[(k + 1) % 3]
-            pin = -p[2] >= near
-            qin = -q[2] >= near
-            if pin:
-                pts[m] = p
-                m += 1
-            if pin != qin:
-                _clip_near(p, q, near, pts[m])
-                m += 1
-        npoly[i] = m
-        if m == 0:
-            box[i, 0] = 0
-            box[i, 1] = 0
-            box[i, 2] = 0
-            box[i, 3] = 0
-            continue
-        x0, x1, y0, y1 = 1e300, -1e300, 1e300, -1e300
-        for k in range(m):
-            z = -pts[k, 2]
-            px = (pts[k, 0] / z / tan + 1.0) * half
-            py = (1.0 - pts[k, 1] / z / tan) * half
-            poly[i, k, 0] = px
-            poly[i, k, 1] = py
-            poly[i, k, 2] = 1.0 / z
-            x0 = min(x0, px)
-            x1 = max(x1, px)
-            y0 = min(y0, py)
-            y1 = max(y1, py)
-        box[i, 0] = max(0, int(np.floor(x0 - 0.5)))
-        box[i, 1] = min(res, int(np.ceil(x1 + 0.5)))
-        box[i, 2] = max(0, int(np.floor(y0 - 0.5)))
-        box[i, 3] = min(res, int(np.ceil(y1 + 0.5)))
+        for i in range(ch * SETUP_CHUNK, min(n_rows, (ch + 1) * SETUP_CHUNK)):
+            f = rows[i]
+            a = cam[faces[f, 0]]
+            b = cam[faces[f, 1]]
+            c = cam[faces[f, 2]]
+            e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+            e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+            nx = e1y * e2z - e1z * e2y
+            ny = e1z * e2x - e1x * e2z
+            nz = e1x * e2y - e1y * e2x
+            s = -(nx * a[0] + ny * a[1] + nz * a[2])
+            facing[i] = 1 if s > 0 else (-1 if s < 0 else 0)
+            m = 0
+            tri = (a, b, c)
+            for k in range(3):
+                p = tri[k]
+                q = tri[(k + 1) % 3]
+                pin = -p[2] >= near
+                qin = -q[2] >= near
+                if pin:
+                    pts[m] = p
+                    m += 1
+                if pin != qin:
+                    _clip_near(p, q, near, pts[m])
+                    m += 1
+            npoly[i] = m
+            if m == 0:
+                box[i, 0] = 0
+                box[i, 1] = 0
+                box[i, 2] = 0
+                box[i, 3] = 0
+                continue
+            x0, x1, y0, y1 = 1e300, -1e300, 1e300, -1e300
+            for k in range(m):
+                z = -pts[k, 2]
+                px = (pts[k, 0] / z / tan + 1.0) * half
+                py = (1.0 - pts[k, 1] / z / tan) * half
+                poly[i, k, 0] = px
+                poly[i, k, 1] = py
+                poly[i, k, 2] = 1.0 / z
+                x0 = min(x0, px)
+                x1 = max(x1, px)
+                y0 = min(y0, py)
+                y1 = max(y1, py)
+            box[i, 0] = max(0, int(np.floor(x0 - 0.5)))
+            box[i, 1] = min(res, int(np.ceil(x1 + 0.5)))
+            box[i, 2] = max(0, int(np.floor(y0 - 0.5)))
+            box[i, 3] = min(res, int(np.ceil(y1 + 0.5)))
 
 
 @njit(cache=True, inline="always")

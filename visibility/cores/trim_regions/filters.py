@@ -1,0 +1,87 @@
+"""Per-triangle geometric filters of the pipeline's set-up and answer, as numba kernels: which
+static triangles an eye of a sphere may see thinner than v* does (tested as hulls), and which
+triangles of an answer no eye of the cell sees with any area (their plane holds the cell).
+
+Both were numpy passes over every static triangle (or every triangle of the answer) with
+(n, 3, 3) temporaries: a large share of a cell's time on a 1M-triangle scene.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def grazing_mask(verts, faces, ids, normals, plane, centres, delta, px, out):  # pragma: no cover
+    """out[i] = True where static triangle ids[i] (rows of ``normals`` (s, 3) unit, ``plane``
+    (s,) offsets) has its plane within ``delta`` of some centre (k, 3) and is thin from it:
+    its plane's line within a pixel of the centre (``px`` pixels per radian), or its extent
+    across that line under a pixel. ``verts`` (n, 3) world metres, ``faces`` (m, 3)."""
+    for i in prange(ids.shape[0]):
+        f = ids[i]
+        a = verts[faces[f, 0]]
+        b = verts[faces[f, 1]]
+        c = verts[faces[f, 2]]
+        for k in range(centres.shape[0]):
+            q = centres[k]
+            off = abs(normals[i, 0] * q[0] + normals[i, 1] * q[1] + normals[i, 2] * q[2]
+                      - plane[i])
+            if not off <= delta:
+                continue
+            mx = (a[0] + b[0] + c[0]) / 3.0 - q[0]
+            my = (a[1] + b[1] + c[1]) / 3.0 - q[1]
+            mz = (a[2] + b[2] + c[2]) / 3.0 - q[2]
+            dist = max(np.sqrt(mx * mx + my * my + mz * mz), 1e-12)
+            dmin = np.inf
+            dmax = 0.0
+            for p in (a, b, c):
+                d = max(np.sqrt((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2),
+                        1e-12)
+                dmin = min(dmin, d)
+                dmax = max(dmax, d)
+            across = off * (1.0 / dmin - 1.0 / dmax)
+            if off / dist * px < 1.0 or across * px < 1.0:
+                out[i] = True
+                break
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def plane_holds_box(verts, faces, ids, box, out):  # pragma: no cover - numba
+    """out[i] = True where triangle ids[i]'s plane holds all 8 corners of ``box`` (2, 3)
+    (within 1e-12 of the larger of the triangle's and the box's coordinates): no eye of the
+    box sees it with any area. A triangle of no area holds nothing."""
+    scale_box = 0.0
+    for r in range(2):
+        for k in range(3):
+            scale_box = max(scale_box, abs(box[r, k]))
+    for i in prange(ids.shape[0]):
+        f = ids[i]
+        a = verts[faces[f, 0]]
+        b = verts[faces[f, 1]]
+        c = verts[faces[f, 2]]
+        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        vx, vy, vz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if not nn > 0.0:
+            continue
+        nx /= nn
+        ny /= nn
+        nz /= nn
+        scale = 0.0
+        for p in (a, b, c):
+            for k in range(3):
+                scale = max(scale, abs(p[k]))
+        tol = 1e-12 * (scale + scale_box)
+        holds = True
+        for corner in range(8):
+            dx = box[corner & 1, 0] - a[0]
+            dy = box[(corner >> 1) & 1, 1] - a[1]
+            dz = box[(corner >> 2) & 1, 2] - a[2]
+            if not abs(nx * dx + ny * dy + nz * dz) <= tol:
+                holds = False
+                break
+        out[i] = holds
