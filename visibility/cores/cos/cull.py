@@ -147,10 +147,22 @@ def views_positions(tree, keep, keep_of, origins, perms, signs, planes, off, out
     go to ``out[off[v]:off[v] + counts[v]]``. keep (F, n) bool per side plane, keep_of (V,)
     the plane of each view, origins (V, 3), perms (V, 3), signs (V, 3), planes (V, 5, 4);
     off (V + 1,) prefix sums of each view's kept positions, out (off[V],) int32, counts (V,)."""
+    n = keep.shape[1]
     for v in prange(counts.shape[0]):
         seg = out[off[v]:off[v + 1]]
         k = view_positions(tree, keep[keep_of[v]], origins[v], perms[v], signs[v], planes[v],
                            seg)
-        # The walk yields leaves in tree order; the lists need front-to-back order.
-        seg[:k].sort()
+        # The walk yields leaves in tree order; the lists need front-to-back order: a sort,
+        # or marks read back in order where that reads fewer items than the sort compares.
+        if k * np.log2(max(k, 2)) < n:
+            seg[:k].sort()
+        else:
+            mark = np.zeros(n, dtype=np.bool_)
+            for i in range(k):
+                mark[seg[i]] = True
+            j = 0
+            for t in range(n):
+                if mark[t]:
+                    seg[j] = t
+                    j += 1
         counts[v] = k

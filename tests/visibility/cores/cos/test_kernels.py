@@ -383,7 +383,8 @@ def test_the_tree_cull_keeps_what_the_views_rays_meet():
 
 def test_all_views_walk_matches_one_walk_per_view():
     # ``views_positions`` walks the 30 views in parallel into one flat array: each view's
-    # slice holds exactly what its own walk keeps (under its side plane's mask), increasing.
+    # slice holds exactly what its own walk keeps (under its side plane's mask), increasing
+    # (put in order by a sort for short slices, by marks for long ones: this cell has both).
     from tests.visibility.cores.cos.reference import cell_around
     from visibility.cores.cos.cull import cell_tree, view_planes, view_positions, views_positions
     from visibility.cores.cos.prims import build_prims, distance_order
