@@ -42,13 +42,17 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: envelope lengths: the cost of linear insertion); setups: triangle or sphere set-ups; items /
 #: items_culled: tile list entries processed / skipped by the tile's bound; final_pieces:
 #: envelope rows at the end; cycles*: CPU cycle counter, whole chunks and split into
-#: primitive set-up (and culling), rasterization (cover tests and inserts) and per-tile work.
+#: primitive set-up (and culling), rasterization (cover tests and inserts) and per-tile work;
+#: pairs_uncovered / pairs_behind: pairs whose pixel sample the primitive never covers along
+#: the segment / covers only behind the pixel's closed envelope (the pairs' waste, by cause:
+#: a loose span or a missing depth bound).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
-            "cycles_setup", "cycles_raster", "cycles_tile", "thread")
+            "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
+            "pairs_behind")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
- C_THREAD) = range(len(COUNTERS))
+ C_THREAD, C_UNCOVERED, C_BEHIND) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -179,6 +183,8 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
     reallocated when it grows."""
     closed = 0
     pairs = 0
+    uncovered = 0
+    behind = 0
     pieces = 0
     grows = 0
     scan = 0
@@ -195,7 +201,11 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
             pairs += 1
             if kind == 0:
                 ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
-                if not ok or min(zs, zf) >= bpx:
+                if not ok:
+                    uncovered += 1
+                    continue
+                if min(zs, zf) >= bpx:
+                    behind += 1
                     continue
                 pt0[0] = ts
                 pt1[0] = tf
@@ -206,6 +216,8 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
                 npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
             else:
                 npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            if npc == 0:
+                uncovered += 1
             for q in range(npc):
                 if min(pz0[q], pz1[q]) >= bound[px]:
                     continue
@@ -231,6 +243,8 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
                             closed += 1
                         bound[px] = zb
     work[C_PAIRS] += pairs
+    work[C_UNCOVERED] += uncovered
+    work[C_BEHIND] += behind
     work[C_PIECES] += pieces
     work[C_GROWS] += grows
     work[C_INSERTS] += ins

@@ -55,6 +55,11 @@ def test_counters_of_a_lone_quad():
     assert vis.all()
     assert st["pieces"] == st["inserts"] == st["final_pieces"] > 0
     assert st["insert_scan"] == 0
+    # Each pair either covers its sample (a piece: nothing is in front) or does not: the two
+    # triangles' boxes overlap along the diagonal, so some pairs do not.
+    assert st["pairs_behind"] == 0
+    assert st["pairs"] == st["pieces"] + st["pairs_uncovered"]
+    assert st["pairs_uncovered"] > 0
     # One cluster of two triangles, set up in each tile it reaches.
     assert st["setups"] == 2 * st["items_processed"] == 2 * st["tiles"]
     assert not set(COUNTERS) - set(st) - {"thread"}
@@ -72,3 +77,4 @@ def test_counters_of_a_hidden_quad_behind_a_near_one():
     assert st["inserts"] >= near_only["inserts"]
     assert st["insert_scan"] >= near_only["insert_scan"]
     assert st["pairs"] > near_only["pairs"]
+    assert st["pairs"] == st["pieces"] + st["pairs_uncovered"] + st["pairs_behind"]
