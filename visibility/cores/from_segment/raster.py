@@ -27,7 +27,7 @@ from visibility.cores.from_segment.envelope import (
     envelope_insert,
     pixel_bound,
 )
-from visibility.cores.from_segment.hull import hull_cols
+from visibility.cores.from_segment.hull import HMAX, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.raster.face_pixels import pixel_range
@@ -45,14 +45,15 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: primitive set-up (and culling), rasterization (cover tests and inserts) and per-tile work;
 #: pairs_uncovered / pairs_behind: pairs whose pixel sample the primitive never covers along
 #: the segment / covers only behind the pixel's closed envelope (the pairs' waste, by cause:
-#: a loose span or a missing depth bound).
+#: a loose span or a missing depth bound); cluster_pairs(_uncovered): those of cluster
+#: triangles, whose span is their box, not their swept hull.
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
-            "pairs_behind")
+            "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
- C_THREAD, C_UNCOVERED, C_BEHIND) = range(len(COUNTERS))
+ C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -123,6 +124,30 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
         j1 = jb
         if m > 0:
             a, b = hull_cols(hulls.pts, h, m, i, i, pad)
+            j0 = max(j0, a)
+            j1 = min(j1, b)
+        span[i - r0, 0] = j0
+        span[i - r0, 1] = j1
+
+
+@njit(**_JIT)
+def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
+    """``_row_spans`` for a triangle whose six swept points (``_cam_corners``' P, P + U) are
+    all in front of the near plane (``_front_box``): the projected triangle at every point of
+    the segment lies in the convex hull of their projections, so per row only the columns
+    that hull can reach are visited, not the whole box [ja, jb]. ``uv`` (6, 2), ``scratch``
+    (14, 2) and ``pts`` (1, HMAX, 2) float32 are scratch (``hull.store_hull``)."""
+    for c in range(3):
+        for e in range(2):
+            d = -(P[c, 2] + e * U[c, 2])
+            uv[2 * c + e, 0] = (P[c, 0] + e * U[c, 0]) / d
+            uv[2 * c + e, 1] = (P[c, 1] + e * U[c, 1]) / d
+    m = store_hull(uv, 6, res, scratch, pts, 0)
+    for i in range(ia, ib + 1):
+        j0 = ja
+        j1 = jb
+        if m > 0:
+            a, b = hull_cols(pts, 0, m, i, i, pad)
             j0 = max(j0, a)
             j1 = min(j1, b)
         span[i - r0, 0] = j0
@@ -298,6 +323,9 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
     bound = np.empty(npx_max)
     T = np.empty((2 * cap + 8, 4))  # insertion scratch
     tid = np.empty(2 * cap + 8, dtype=np.int32)
+    c_uv = np.empty((6, 2))  # a cluster triangle's swept hull (``_front_spans``)
+    c_scratch = np.empty((14, 2))
+    c_pts = np.empty((1, HMAX, 2), dtype=np.float32)
     pt0 = np.empty(maxp)
     pt1 = np.empty(maxp)
     pz0 = np.empty(maxp)
@@ -375,9 +403,8 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
                     jb = min(bx[3], cl1 - 1)
                     if ia > ib or ja > jb:
                         continue
-                    for i in range(ia, ib + 1):
-                        span[i - r0, 0] = ja
-                        span[i - r0, 1] = jb
+                    _front_spans(P, U, res, ia, ib, ja, jb, r0, jitter, span, c_uv,
+                                 c_scratch, c_pts)
                     if moving[t]:
                         moving_setup(P, U, W, coef)
                         kind = 1
@@ -386,11 +413,15 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
                         kind = 0
                     work[C_SETUPS] += 1
                     cs1 = _cycles()
+                    p0 = work[C_PAIRS]
+                    u0 = work[C_UNCOVERED]
                     env, eid, T, tid, nc, ovf = _raster(
                         kind, t, False, zt, ia, ib, span, r0, cl0, tw, npx, step, near,
                         knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk,
                         jx, jy, work)
                     cyc_raster += _cycles() - cs1
+                    work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
+                    work[C_CLUSTER_UNCOVERED] += work[C_UNCOVERED] - u0
                     closed += nc
                     if ovf:
                         break

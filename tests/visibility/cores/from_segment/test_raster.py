@@ -55,11 +55,14 @@ def test_counters_of_a_lone_quad():
     assert vis.all()
     assert st["pieces"] == st["inserts"] == st["final_pieces"] > 0
     assert st["insert_scan"] == 0
-    # Each pair either covers its sample (a piece: nothing is in front) or does not: the two
-    # triangles' boxes overlap along the diagonal, so some pairs do not.
-    assert st["pairs_behind"] == 0
-    assert st["pairs"] == st["pieces"] + st["pairs_uncovered"]
-    assert st["pairs_uncovered"] > 0
+    # Each pair covers its sample (a piece: nothing is in front): the cluster's triangles
+    # visit only the columns of their swept hulls, here the triangles themselves, not the
+    # boxes that overlap along the diagonal.
+    assert st["pairs"] == st["pieces"]
+    assert st["pairs_behind"] == st["pairs_uncovered"] == 0
+    # The quad is one cluster: all its pairs are a cluster's.
+    assert st["cluster_pairs"] == st["pairs"]
+    assert st["cluster_pairs_uncovered"] == st["pairs_uncovered"]
     # One cluster of two triangles, set up in each tile it reaches.
     assert st["setups"] == 2 * st["items_processed"] == 2 * st["tiles"]
     assert not set(COUNTERS) - set(st) - {"thread"}
