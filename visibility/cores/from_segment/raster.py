@@ -46,14 +46,16 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: pairs_uncovered / pairs_behind: pairs whose pixel sample the primitive never covers along
 #: the segment / covers only behind the pixel's closed envelope (the pairs' waste, by cause:
 #: a loose span or a missing depth bound); cluster_pairs(_uncovered): those of cluster
-#: triangles, whose span is their box, not their swept hull.
+#: triangles; insert_moved: rows after an insert's chord that a change of the envelope's
+#: length moved along its sorted array (the part of linear insertion a search cannot save).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
-            "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered")
+            "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
- C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED) = range(len(COUNTERS))
+ C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
+ C_INSERT_MOVED) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -128,6 +130,20 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
             j1 = min(j1, b)
         span[i - r0, 0] = j0
         span[i - r0, 1] = j1
+
+
+@njit(**_JIT)
+def _first_from(env, px, cnt, t):
+    """Index of the first of pixel px's ``cnt`` envelope rows starting at or after ``t``."""
+    lo = 0
+    hi = cnt
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if env[px, mid, 0] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(**_JIT)
@@ -210,6 +226,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
     pairs = 0
     uncovered = 0
     behind = 0
+    moved = 0
     pieces = 0
     grows = 0
     scan = 0
@@ -261,6 +278,8 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
                                                   pz0[q], pz1[q], pid, T, tid)
                 if changed:
                     ins += 1
+                    if nn != cnt[px]:
+                        moved += nn - _first_from(env, px, nn, pt1[q])
                     cnt[px] = nn
                     zb = pixel_bound(env, px, nn)
                     if zb < np.inf:
@@ -270,6 +289,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
     work[C_PAIRS] += pairs
     work[C_UNCOVERED] += uncovered
     work[C_BEHIND] += behind
+    work[C_INSERT_MOVED] += moved
     work[C_PIECES] += pieces
     work[C_GROWS] += grows
     work[C_INSERTS] += ins

@@ -54,7 +54,7 @@ def test_counters_of_a_lone_quad():
     vis, st = _stats(_quads([3.0]), np.zeros(3), np.zeros(3))
     assert vis.all()
     assert st["pieces"] == st["inserts"] == st["final_pieces"] > 0
-    assert st["insert_scan"] == 0
+    assert st["insert_scan"] == st["insert_moved"] == 0
     # Each pair covers its sample (a piece: nothing is in front): the cluster's triangles
     # visit only the columns of their swept hulls, here the triangles themselves, not the
     # boxes that overlap along the diagonal.
