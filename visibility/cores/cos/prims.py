@@ -108,19 +108,13 @@ def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
     c = np.asarray(centre, dtype=np.float64)
     m = scene.n_triangles
     st = _static_triangles(scene)
-    keep = slice(None) if drop is None else ~drop[st.ids]
-    stat = st.ids[keep]
-    sf = st.faces[keep]
-    tri_pts = (scene.vertices[sf].astype(np.float64) - c).reshape(-1, 3)
+    if drop is None:
+        stat, sf = st.ids, st.faces
+    else:
+        keep = ~drop[st.ids]
+        stat, sf = st.ids[keep], st.faces[keep]
     scale = max(float(np.max(np.abs(c))) if c.size else 0.0, st.scale)
-    parts = [tri_pts]
     n_stat = len(stat)
-    starts = [np.arange(n_stat, dtype=np.int64) * 3]
-    npts = [np.full(n_stat, 3, dtype=np.int64)]
-    kinds = [np.zeros(n_stat, dtype=np.int8)]
-    out = [stat]
-    vids = [welded[sf].astype(np.int64) if n_stat else np.zeros((0, 3), dtype=np.int64)]
-    base = len(tri_pts)
     hull_lo, hull_hi, hull_id = [], [], []
     mv = st.moving if drop is None else st.moving[~drop[st.moving]]
     if len(mv):
@@ -134,6 +128,7 @@ def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
         hull_lo.append(cen.min(axis=0) - r)
         hull_hi.append(cen.max(axis=0) + r)
         hull_id.append(m + np.arange(scene.n_spheres, dtype=np.int64))
+    k = 0
     if hull_lo:
         lo = np.concatenate(hull_lo)
         hi = np.concatenate(hull_hi)
@@ -142,15 +137,37 @@ def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
         k = len(lo)
         if k:
             scale = max(scale, float(np.max(np.abs(np.concatenate([lo, hi])))))
-        parts.append((_box_corners(lo, hi) - c).reshape(-1, 3))
-        starts.append(base + np.arange(k, dtype=np.int64) * 8)
-        npts.append(np.full(k, 8, dtype=np.int64))
-        kinds.append(np.ones(k, dtype=np.int8))
-        out.append(hid)
-        vids.append(np.full((k, 3), -1, dtype=np.int64))
-    return Prims(np.ascontiguousarray(np.concatenate(parts)), np.concatenate(starts),
-                 np.concatenate(npts), np.concatenate(kinds), np.concatenate(out),
-                 np.ascontiguousarray(np.concatenate(vids)), scale)
+    # One pass writes the triangles' corners (relative to the centre) and welded ids: the
+    # numpy gathers, casts and concatenations cost 11 ms a cell on a 100k scene.
+    base = 3 * n_stat
+    pts = np.empty((base + 8 * k, 3))
+    vids = np.empty((n_stat + k, 3), dtype=np.int64)
+    _gather_triangles(scene.vertices, sf, welded, c, pts, vids)
+    start = np.empty(n_stat + k, dtype=np.int64)
+    start[:n_stat] = np.arange(n_stat, dtype=np.int64) * 3
+    npts = np.full(n_stat + k, 3, dtype=np.int64)
+    kind = np.zeros(n_stat + k, dtype=np.int8)
+    out_id = stat
+    if hull_lo:
+        pts[base:] = (_box_corners(lo, hi) - c).reshape(-1, 3)
+        start[n_stat:] = base + np.arange(k, dtype=np.int64) * 8
+        npts[n_stat:] = 8
+        kind[n_stat:] = 1
+        vids[n_stat:] = -1
+        out_id = np.concatenate([stat, hid])
+    return Prims(pts, start, npts, kind, out_id, vids, scale)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _gather_triangles(vertices, faces, welded, c, pts, vids):  # pragma: no cover - numba
+    """pts[3 i + k] = vertices[faces[i, k]] - c and vids[i, k] = welded[faces[i, k]] for the
+    triangles i of ``faces`` (n, 3)."""
+    for i in prange(faces.shape[0]):
+        for k in range(3):
+            v = faces[i, k]
+            for a in range(3):
+                pts[3 * i + k, a] = np.float64(vertices[v, a]) - c[a]
+            vids[i, k] = welded[v]
 
 
 # ------------------------------------------------------------------------------ numba kernels
@@ -310,9 +327,19 @@ def box_gaps(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None) -
     primitive's bounding box (``bounds``: its ``prim_bounds``, computed when not given): no
     point of the primitive is nearer to the box."""
     b = prim_bounds(prims) if bounds is None else bounds
-    h = np.asarray(half, dtype=np.float64)
-    g = np.maximum(0.0, np.maximum(b[:, 0] - h, -h - b[:, 1]))
-    return np.sqrt((g * g).sum(axis=1))
+    out = np.empty(len(b))
+    _gaps(np.ascontiguousarray(b), np.asarray(half, dtype=np.float64), out)
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _gaps(b, h, out):  # pragma: no cover - numba
+    for p in prange(b.shape[0]):
+        s = 0.0
+        for k in range(3):
+            g = max(0.0, max(b[p, 0, k] - h[k], -h[k] - b[p, 1, k]))
+            s += g * g
+        out[p] = np.sqrt(s)
 
 
 def distance_order(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = None

@@ -582,3 +582,32 @@ def test_quad_holds_the_region_under_every_direction():
     assert not quad_holds(sq[t], still, ids[t], sq[c], still, ids[c] + 10, reg, np.zeros(4))
     assert not quad_holds(sq[t], np.full(3, 0.95), ids[t], sq[c], np.full(3, 0.95), ids[c],
                           reg, np.zeros(4))
+
+
+def test_primitives_gathered_in_one_pass_match_their_definition():
+    # ``build_prims`` writes the static triangles' corners and welded ids in one kernel and
+    # ``box_gaps`` the distances in another: against the numpy definitions, on a scene with
+    # moving triangles (hulls) and with some triangles dropped.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.prims import box_gaps, build_prims, prim_bounds
+    from visibility.generators import make_scene
+
+    scene = make_scene("swaying_grass", triangles=2000)
+    box = cell_around(scene, 1.0, 0)
+    c = box.mean(axis=0)
+    welded = weld_vertices(scene.vertices)
+    drop = np.zeros(scene.n_triangles, dtype=bool)
+    drop[::7] = True
+    prims = build_prims(scene, c, welded, drop)
+    tri = np.flatnonzero(prims.kind == 0)
+    ids = prims.out_id[tri]
+    assert not drop[ids].any() and (prims.kind == 1).any()
+    f = scene.faces[ids].astype(np.int64)
+    corners = prims.pts[prims.start[tri][:, None] + np.arange(3)]
+    assert np.array_equal(corners, scene.vertices[f] - c)
+    assert np.array_equal(prims.vid[tri], welded[f])
+    assert (prims.vid[prims.kind == 1] == -1).all()
+    b = prim_bounds(prims)
+    half = 0.5 * (box[1] - box[0])
+    g = np.maximum(0.0, np.maximum(b[:, 0] - half, -half - b[:, 1]))
+    assert np.array_equal(box_gaps(prims, half, b), np.sqrt((g * g).sum(axis=1)))
