@@ -120,12 +120,19 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
     hull (``hull.Hulls``) can hold a sample up to ``pad`` pixels off centre, or all of [ja, jb]
     when it has none. Writes span[i - r0] = (j0, j1), empty when j0 > j1."""
     h = hulls.index[p]
-    m = hulls.count[h] if h >= 0 else 0
+    _hull_spans(hulls.pts, h, hulls.count[h] if h >= 0 else 0, ia, ib, ja, jb, r0, pad, span)
+
+
+@njit(**_JIT)
+def _hull_spans(pts, h, m, ia, ib, ja, jb, r0, pad, span):
+    """span[i - r0] = the columns of [ja, jb] in tile row i (ia <= i <= ib) whose sample, up to
+    ``pad`` pixels off centre, can fall inside the stored hull ``pts[h, :m]`` (``hull_cols``);
+    all of [ja, jb] when m is 0 (no hull)."""
     for i in range(ia, ib + 1):
         j0 = ja
         j1 = jb
         if m > 0:
-            a, b = hull_cols(hulls.pts, h, m, i, i, pad)
+            a, b = hull_cols(pts, h, m, i, i, pad)
             j0 = max(j0, a)
             j1 = min(j1, b)
         span[i - r0, 0] = j0
@@ -158,16 +165,7 @@ def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
             d = -(P[c, 2] + e * U[c, 2])
             uv[2 * c + e, 0] = (P[c, 0] + e * U[c, 0]) / d
             uv[2 * c + e, 1] = (P[c, 1] + e * U[c, 1]) / d
-    m = store_hull(uv, 6, res, scratch, pts, 0)
-    for i in range(ia, ib + 1):
-        j0 = ja
-        j1 = jb
-        if m > 0:
-            a, b = hull_cols(pts, 0, m, i, i, pad)
-            j0 = max(j0, a)
-            j1 = min(j1, b)
-        span[i - r0, 0] = j0
-        span[i - r0, 1] = j1
+    _hull_spans(pts, 0, store_hull(uv, 6, res, scratch, pts, 0), ia, ib, ja, jb, r0, pad, span)
 
 
 @njit(**_JIT)
