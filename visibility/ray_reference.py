@@ -220,7 +220,7 @@ def exact_first_hits(tri, lo, hi, orig, dirs, tmin, out_id, out_t):  # pragma: n
         out_t[r] = best
 
 
-class _ExactCaster:
+class ExactCaster:
     """``exact_first_hits`` over a fixed triangle set (k, 3, 3), in the cell's frame."""
 
     def __init__(self, tri: np.ndarray) -> None:
@@ -243,7 +243,7 @@ class _ExactCaster:
         return out_id, out_t
 
 
-class _EmbreeCaster:
+class EmbreeCaster:
     """Embree first hits over a fixed triangle set (k, 3, 3) in the cell's frame, float32."""
 
     def __init__(self, tri: np.ndarray) -> None:
@@ -275,7 +275,7 @@ class _EmbreeCaster:
 
 
 # ------------------------------------------------------------------------------ reference
-def _frame_triangles(scene: Scene, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def frame_triangles(scene: Scene, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Valid triangles of a static scene relative to ``centre`` (float64, (k, 3, 3)) and their
     ids (k,)."""
     if scene.is_dynamic:
@@ -286,7 +286,7 @@ def _frame_triangles(scene: Scene, centre: np.ndarray) -> tuple[np.ndarray, np.n
     return np.ascontiguousarray(tri, dtype=np.float64), valid.astype(np.int64)
 
 
-def _normals(tri: np.ndarray, cw: bool) -> np.ndarray:
+def front_normals(tri: np.ndarray, cw: bool) -> np.ndarray:
     """(k, 3) front-face normals (not unit) of triangles (k, 3, 3)."""
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     return -n if cw else n
@@ -338,9 +338,9 @@ def ray_reference(
     centre = 0.5 * (b[0] + b[1])
     world_eyes = draw_eyes(b, n_eyes, rng, boundary_share) if eyes is None else \
         np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
-    tri, tri_ids = _frame_triangles(scene, centre)
-    normals = _normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
-    caster = _EmbreeCaster(tri) if engine == "embree" else _ExactCaster(tri)
+    tri, tri_ids = frame_triangles(scene, centre)
+    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
+    caster = EmbreeCaster(tri) if engine == "embree" else ExactCaster(tri)
     aim_local = None
     if aim is not None and int(n_aim) > 0:
         aim_local = np.asarray(aim, dtype=np.float64).reshape(-1, 3, 3) - centre
@@ -424,8 +424,8 @@ def confirm(scene: Scene, sample: RaySample, ids: np.ndarray) -> np.ndarray:
     pick = np.flatnonzero(np.isin(sample.witness_id, ids))
     if len(pick) == 0:
         return np.zeros(0, np.int64)
-    tri, tri_ids = _frame_triangles(scene, sample.centre)
-    caster = _ExactCaster(tri)
+    tri, tri_ids = frame_triangles(scene, sample.centre)
+    caster = ExactCaster(tri)
     orig = sample.witness_eye[pick] - sample.centre
     got, _ = caster.first_hits(orig, sample.witness_dir[pick], sample.witness_tmin[pick])
     same = (got >= 0) & (tri_ids[np.maximum(got, 0)] == sample.witness_id[pick])

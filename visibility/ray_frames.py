@@ -1,0 +1,177 @@
+"""Frames of independent rays: one ray per pixel of a randomly turned cube, from eyes in a cell.
+
+What a client at an eye of the cell shows in each pixel is the triangle its ray meets first.
+Aggressive cores promise a bound on the share of such pixels whose triangle their PVS lacks
+(the trim regions paper: 0.005 % of a frame), so that promise is judged here by rays cast
+independently of the project's rasterizer and of the cores:
+
+* eyes stratified in the box (``ground_truth.sample_points``), each with a random cube
+  orientation (``raster.camera.random_rotations``), so no eye or direction lies on a core's
+  grid; an eye inside geometry (most of its rays meet a back face first,
+  ``ray_reference.INSIDE_SHARE``) is dropped, as the cores promise what eyes in open space see;
+* per face ``resolution``² rays, each through a uniformly random point of its pixel;
+* Embree (``embreex``, float32, in a frame centred on the cell) finds the first hits, clipped
+  by the frame's near plane along the view axis of the ray's face;
+* every pixel a PVS would miss is cast again in float64 over every triangle
+  (``ray_reference.exact_first_hits``) before it counts, so float32 cracks between welded
+  triangles are not charged to the core.
+
+Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene.faces``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from visibility.ground_truth import sample_points
+from visibility.raster.camera import random_rotations
+from visibility.ray_reference import (
+    INSIDE_SHARE,
+    EmbreeCaster,
+    ExactCaster,
+    frame_triangles,
+    front_normals,
+    near_clip,
+)
+from visibility.scene import Scene
+
+#: Most missed pixels per frame cast again in float64 (each such ray tests every triangle of
+#: the scene); past it the rest count as missed unconfirmed, an upper bound. 26 times the
+#: trim regions paper's bound at 256 px (19.7 of 393,216 pixels): a frame past it fails
+#: whatever the rest would show.
+CONFIRM_PER_FRAME = 512
+
+
+@dataclass
+class RayFrames:
+    """First hits of the frames of one cell.
+
+    Attributes
+    ----------
+    ids : (f, 6 * resolution²) int64 triangle met first by each pixel's ray (-1: nothing).
+    eyes : (f, 3) float64 world eyes of the frames kept (in open space), metres.
+    cubes : (f, 3, 3) float64 their cube orientations (rows: the face axes).
+    dirs : (f, 6 * resolution², 3) float32 unit ray directions.
+    tmin : (f, 6 * resolution²) float32 where the near plane clips each ray, metres.
+    centre : (3,) float64 the cell centre (the casting frame's origin).
+    dropped : eyes dropped as inside geometry.
+    resolution : pixels across a face.
+    near : the frames' near plane, metres.
+    """
+
+    ids: np.ndarray
+    eyes: np.ndarray
+    cubes: np.ndarray
+    dirs: np.ndarray
+    tmin: np.ndarray
+    centre: np.ndarray
+    dropped: int
+    resolution: int
+    near: float
+
+    @property
+    def pixels(self) -> int:
+        """Pixels per frame (6 faces)."""
+        return int(self.ids.shape[1])
+
+
+def cube_directions(cube: np.ndarray, resolution: int, rng: np.random.Generator
+                    ) -> np.ndarray:
+    """(6 * resolution², 3) float64 unit directions, one through a uniformly random point of
+    each pixel of the six faces of a cube turned by ``cube`` (3, 3) (its rows: the face axes);
+    face k looks along ``(-1)^k`` times row ``k // 2``."""
+    r = int(resolution)
+    c = np.asarray(cube, dtype=np.float64)
+    jj, ii = np.meshgrid(np.arange(r), np.arange(r))
+    out = np.empty((6, r * r, 3))
+    for k in range(6):
+        a = k // 2
+        f = c[a] * (1.0 if k % 2 == 0 else -1.0)
+        right, up = c[(a + 1) % 3], c[(a + 2) % 3]
+        u = (jj.reshape(-1) + rng.random(r * r)) * (2.0 / r) - 1.0
+        v = (ii.reshape(-1) + rng.random(r * r)) * (2.0 / r) - 1.0
+        out[k] = f + u[:, None] * right + v[:, None] * up
+    out = out.reshape(-1, 3)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int = 256,
+               seed: int = 0, near: float = 1e-3) -> RayFrames:
+    """Frames of first hits from ``n_eyes`` eyes stratified in ``box`` (2, 3) [min, max]
+    metres, each a cube of ``resolution`` px per face in a random orientation, near plane
+    ``near`` metres (module docstring). ``seed`` seeds eyes, orientations and the points
+    in the pixels. Static scenes only."""
+    if int(resolution) < 1:
+        raise ValueError(f"resolution must be >= 1, got {resolution}")
+    if not (np.isfinite(near) and near >= 0.0):
+        raise ValueError(f"near must be a finite distance >= 0, got {near}")
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    rng = np.random.default_rng(seed)
+    eyes = sample_points(b, int(n_eyes), rng)
+    cubes = random_rotations(rng, len(eyes))
+    centre = 0.5 * (b[0] + b[1])
+    tri, tri_ids = frame_triangles(scene, centre)
+    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
+    caster = EmbreeCaster(tri)
+    n_pix = 6 * int(resolution) ** 2
+    ids = np.empty((len(eyes), n_pix), dtype=np.int64)
+    dirs = np.empty((len(eyes), n_pix, 3), dtype=np.float32)
+    tmin = np.empty((len(eyes), n_pix), dtype=np.float32)
+    kept = np.ones(len(eyes), dtype=bool)
+    for k in range(len(eyes)):
+        d = cube_directions(cubes[k], resolution, rng)
+        orig = np.broadcast_to(eyes[k] - centre, d.shape)
+        # Open space: from inside a solid nearly every ray meets a back face first.
+        hid, ht = caster.first_hits(orig, d, np.zeros(n_pix))
+        ok = hid >= 0
+        back = np.count_nonzero(np.einsum("ij,ij->i", d[ok], normals[hid[ok]]) > 0.0)
+        kept[k] = back < INSIDE_SHARE * n_pix
+        t0 = near_clip(d, cubes[k], near)
+        # Only rays whose first hit lies before the near plane are cast again from it.
+        got = hid.copy()
+        again = np.flatnonzero(ht < t0)
+        if len(again):
+            got[again] = caster.first_hits(orig[again], d[again], t0[again])[0]
+        ids[k] = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
+        dirs[k] = d
+        tmin[k] = t0
+    return RayFrames(ids[kept], eyes[kept], cubes[kept], dirs[kept], tmin[kept], centre,
+                     int((~kept).sum()), int(resolution), float(near))
+
+
+def missed_pixels(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray,
+                  confirm: bool = True) -> np.ndarray:
+    """(f,) int64 pixels per frame whose first-hit triangle the PVS ``pvs_ids`` lacks. With
+    ``confirm``, each is cast again in float64 over every valid triangle (up to
+    ``CONFIRM_PER_FRAME`` a frame; the rest count unconfirmed) and counts only when that
+    cast also meets a triangle outside the PVS."""
+    in_pvs = np.zeros(scene.n_triangles + 1, dtype=bool)
+    in_pvs[np.asarray(pvs_ids, dtype=np.int64)] = True
+    out = np.zeros(len(frames.ids), dtype=np.int64)
+    caster = None
+    tri_ids = None
+    for k, row in enumerate(frames.ids):
+        miss = np.flatnonzero((row >= 0) & ~in_pvs[np.maximum(row, 0)])
+        if not confirm or len(miss) == 0:
+            out[k] = len(miss)
+            continue
+        if caster is None:
+            tri, tri_ids = frame_triangles(scene, frames.centre)
+            caster = ExactCaster(tri)
+        check, rest = miss[:CONFIRM_PER_FRAME], len(miss) - min(len(miss), CONFIRM_PER_FRAME)
+        d = frames.dirs[k, check].astype(np.float64)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        orig = np.broadcast_to(frames.eyes[k] - frames.centre, d.shape)
+        got, _ = caster.first_hits(np.ascontiguousarray(orig), d,
+                                   frames.tmin[k, check].astype(np.float64))
+        hit = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
+        out[k] = int(np.count_nonzero((hit >= 0) & ~in_pvs[np.maximum(hit, 0)])) + rest
+    return out
+
+
+def seen_ids(frames: RayFrames) -> np.ndarray:
+    """Sorted int64 ids of every triangle some pixel of the frames shows."""
+    ids = np.unique(frames.ids)
+    return ids[ids >= 0]
