@@ -44,7 +44,7 @@ from visibility.cores.trim_regions.frustum import cover_box
 from visibility.cores.trim_regions.pipeline import PHASES
 from visibility.cores.trim_regions.quality import FRAME_NEAR, frame_errors
 from visibility.generators import make_scene
-from visibility.ray_frames import ray_frames
+from visibility.ray_frames import first_open_cell, ray_frames
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell, ViewcellGrid
 
@@ -67,9 +67,11 @@ def load(name: str, triangles: int | None = None) -> Scene:
 
 def sphere_cell(scene: Scene, delta: float, which: int) -> np.ndarray:
     """(2, 3) the cube whose circumscribed sphere has radius ``delta`` around the centre of a
-    grid cell of the scene (``which``: 0 the middle one, 1 one a third in)."""
+    grid cell of the scene (``which``: 0 the middle one, 1 one a third in; each the first
+    from there whose centre stands in open space, ``ray_frames.first_open_cell``)."""
     grid = ViewcellGrid.for_scene(scene)
-    c = grid.cell(len(grid) // 2 if which == 0 else len(grid) // 3).center
+    c = grid.cell(first_open_cell(scene, grid, len(grid) // 2 if which == 0
+                                  else len(grid) // 3)).center
     h = delta / np.sqrt(3.0)
     return np.stack([c - h, c + h])
 
@@ -171,7 +173,7 @@ def side_by_side(quick: bool, frames: int) -> list[dict[str, Any]]:
     for name, tri in cases:
         scene = load(name, tri)
         grid = ViewcellGrid.for_scene(scene)
-        c = grid.cell(len(grid) // 2).center
+        c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
         for size in sizes:
             box = np.stack([c - size / 2, c + size / 2])
             cast = ray_frames(scene, box, frames, 256, seed=2, near=FRAME_NEAR)

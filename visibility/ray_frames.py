@@ -34,8 +34,10 @@ from visibility.ray_reference import (
     frame_triangles,
     front_normals,
     near_clip,
+    random_directions,
 )
 from visibility.scene import Scene
+from visibility.viewcells import ViewcellGrid
 
 #: Most missed pixels per frame cast again in float64 (each such ray tests every triangle of
 #: the scene); past it the rest count as missed unconfirmed, an upper bound. 26 times the
@@ -169,6 +171,42 @@ def missed_pixels(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray,
         hit = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
         out[k] = int(np.count_nonzero((hit >= 0) & ~in_pvs[np.maximum(hit, 0)])) + rest
     return out
+
+
+def in_open_space(scene: Scene, points: np.ndarray, n_dirs: int = 256, seed: int = 0
+                  ) -> np.ndarray:
+    """(n,) bool: which world ``points`` (n, 3) metres stand in open space, by the test
+    ``ray_frames`` drops eyes with: fewer than ``INSIDE_SHARE`` of ``n_dirs`` random rays
+    meet a back face first (inside a solid nearly all do). Static scenes only."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0, dtype=bool)
+    centre = pts.mean(axis=0)
+    tri, _ = frame_triangles(scene, centre)
+    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
+    caster = EmbreeCaster(tri)
+    d = random_directions(int(n_dirs), np.random.default_rng(seed))
+    orig = np.repeat(pts - centre, len(d), axis=0)
+    dirs = np.tile(d, (len(pts), 1))
+    hid, _ = caster.first_hits(orig, dirs, np.zeros(len(dirs)))
+    ok = hid >= 0
+    back = np.zeros(len(dirs), dtype=bool)
+    back[ok] = np.einsum("ij,ij->i", dirs[ok], normals[hid[ok]]) > 0.0
+    return back.reshape(len(pts), -1).sum(axis=1) < INSIDE_SHARE * len(d)
+
+
+def first_open_cell(scene: Scene, grid: ViewcellGrid, start: int) -> int:
+    """Index of the first cell of ``grid`` from ``start`` on (wrapping round) whose centre
+    stands in open space (``in_open_space``): a cell to judge frames from, not one inside a
+    solid or in a level's void, where no eye stands. ValueError when there is none."""
+    n = len(grid)
+    order = [(start + k) % n for k in range(n)]
+    for k0 in range(0, n, 64):
+        idx = order[k0:k0 + 64]
+        ok = in_open_space(scene, np.stack([grid.cell(i).center for i in idx]))
+        if ok.any():
+            return int(idx[int(np.argmax(ok))])
+    raise ValueError(f"no cell of the grid has its centre in open space in {scene.name!r}")
 
 
 def seen_ids(frames: RayFrames) -> np.ndarray:

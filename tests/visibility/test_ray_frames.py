@@ -93,3 +93,13 @@ def test_bad_parameters_are_refused():
         ray_frames(scene, box, resolution=0)
     with pytest.raises(ValueError, match="near"):
         ray_frames(scene, box, near=-1.0)
+
+
+def test_open_space_is_outside_closed_solids():
+    from visibility.ray_frames import in_open_space
+
+    b = Builder()
+    b.box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0)
+    scene = b.scene("solid")
+    got = in_open_space(scene, np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 0.2], [3.0, 0.0, 0.0]]))
+    np.testing.assert_array_equal(got, [False, False, True])

@@ -124,7 +124,7 @@ def main_case(core: Core) -> tuple[Scene, Viewcell, dict[str, list[int]], Viewce
 
 
 @functools.cache
-def _reference(scene_name: str) -> np.ndarray:
+def designed_reference(scene_name: str) -> np.ndarray:
     """The ``REFERENCE`` ground truth of a designed scene's cell (ids), computed once."""
     from visibility.ground_truth import sample_pvs
 
@@ -280,7 +280,7 @@ def check_fn_fp_against_sampled_ground_truth(core: Core) -> None:
         if refused(core, scene, cell):
             continue
         pvs = core.compute(scene, cell, check_params(core))
-        fn, fp = fn_fp_rates(pvs.triangle_ids, _reference(name))
+        fn, fp = fn_fp_rates(pvs.triangle_ids, designed_reference(name))
         if fn_applies:
             assert fn <= core.fn_bound, f"{name}: FN rate {fn:.3f} > its bound {core.fn_bound}"
         assert fp <= core.fp_bound, f"{name}: FP rate {fp:.3f} > its bound {core.fp_bound}"
@@ -293,7 +293,7 @@ def check_fp_bound_can_fail(core: Core) -> None:
 
     name = "city_blocks" if core.requires_2_5d else "two_rooms_and_a_door"
     scene, _, _ = getattr(ds, name)()
-    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], _reference(name))
+    _, fp = fn_fp_rates(np.nonzero(scene.valid_faces)[0], designed_reference(name))
     assert fp > core.fp_bound, f"fp_bound {core.fp_bound} lets every triangle through ({fp:.3f})"
 
 

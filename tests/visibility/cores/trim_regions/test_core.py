@@ -102,3 +102,18 @@ def test_the_eyes_gather_adds_what_eyes_inside_the_cell_see():
                       near=FRAME_NEAR)
     seen = eyes.triangle_ids[~unseen_back_faces(scene, box)[eyes.triangle_ids]]
     assert not np.setdiff1d(seen, with_eyes.triangle_ids).size
+
+
+@pytest.mark.parametrize("name", ["two_rooms_and_a_door", "open_ring", "stiff_cases"])
+def test_the_method_alone_keeps_the_declared_bounds_on_the_designed_scenes(name):
+    # fn_bound and fp_bound are what the designed scenes measure in both modes, so the
+    # conformance suite (at the defaults) and this test (the method alone) fail on a
+    # regression of either.
+    from visibility.cores import designed_scenes as ds
+    from visibility.cores.checks import check_params, designed_reference
+    from visibility.ground_truth import fn_fp_rates
+
+    scene, cell, _ = getattr(ds, name)()
+    pvs = CORE.compute(scene, cell, check_params(CORE, gather_eyes=0))
+    fn, fp = fn_fp_rates(pvs.triangle_ids, designed_reference(name))
+    assert fn <= CORE.fn_bound and fp <= CORE.fp_bound, (fn, fp)
