@@ -27,7 +27,8 @@ from visibility.cores.from_segment.envelope import (
     envelope_insert,
     pixel_bound,
 )
-from visibility.cores.from_segment.hull import HMAX, hull_cols, store_hull
+from visibility.cores.from_segment.groups import PieceScratch, TilePixels
+from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.raster.face_pixels import pixel_range
@@ -212,14 +213,18 @@ def _front_box(P, U, res, box, pad):
 
 
 @njit(**_JIT)
-def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, knots, coef,
-            env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx, jy, work):
-    """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere) into
-    the envelopes of the pixels of rows [ia, ib] of the current tile, row i's columns
+def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
+            sc, work):
+    """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere,
+    its set-up ``coef``, nearest depth ``zpr``) into the envelopes (``env``, ``eid``) of the
+    pixels of rows [ia, ib] of the current tile (``groups.TilePixels``), row i's columns
     [span[i - r0, 0], span[i - r0, 1]] (``_row_spans``), sampled at their centres moved by
-    (jx, jy)[pixel] NDC units (``sample_offset``). Adds its work to ``work`` (``COUNTERS``
+    (jx, jy)[pixel] NDC units (``sample_offset``). ``T``, ``tid`` (insertion) and ``sc``
+    (``groups.PieceScratch``) are scratch. Adds its work to ``work`` (``COUNTERS``
     columns). Returns (env, eid, T, tid, pixels newly bounded, overflow); the storage is
     reallocated when it grows."""
+    r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
+    pt0, pt1, pz0, pz1, brk, stk = sc
     closed = 0
     pairs = 0
     uncovered = 0
@@ -296,38 +301,38 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, r0, cl0, tw, npx, step, near, kn
 
 
 @njit(**_PJIT)
-def _resolve(tiles, n_chunks, n_workers, tile_start, tile_items, prim_src, prim_box, prim_z,
-             prim_zkey, prim_flag, prim_face, hulls, verts0, verts1, faces, moving, cl_start,
-             cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter, seed, visible,
-             overflow, counters, witness):  # pragma: no cover - numba
-    """Envelopes of the listed tiles; marks visible primitives (global ids: triangles, then
-    n_tri + sphere). A tile whose envelopes outgrow MAX_CAP sets ``overflow``, marks nothing.
-    Tiles are strided over chunks so that busy screen regions spread over the threads. A
-    primitive with a hull (``hull.Hulls``) is scanned row by row over the columns its hull can
-    reach (Alg. 1 line 6), the others over their whole box.
+def _resolve(job, prims, geom, sweep, out):  # pragma: no cover - numba
+    """Envelopes of the tiles of ``job`` (``groups.TileWork``) over the rows ``prims``
+    (``groups.PrimRows``) of the geometry ``geom`` (``groups.GeometryArrays``) seen by the cube
+    moving along ``sweep`` (``groups.Sweep``); marks visible primitives in ``out``
+    (``groups.Results``; global ids: triangles, then n_tri + sphere). A tile whose envelopes
+    outgrow MAX_CAP sets ``out.overflow``, marks nothing. Tiles are strided over chunks so
+    that busy screen regions spread over the threads. A primitive with a hull
+    (``hull.Hulls``) is scanned row by row over the columns its hull can reach (Alg. 1 line
+    6), the others over their whole box.
 
     ``n_workers`` (the thread count) workers each take the next chunk as they finish one
     (``_take_next``): tiles differ in work by orders of magnitude, and prange's static split of
     the chunks left one thread 24-34 % busier than the mean on the city1m cells. A chunk's tiles
     are fixed, so the result does not depend on which thread runs it."""
     nxt = np.zeros(1, dtype=np.int64)
-    for w in prange(min(n_chunks, n_workers)):
+    for w in prange(min(job.n_chunks, job.n_workers)):
         while True:
             ch = _take_next(nxt)
-            if ch >= n_chunks:
+            if ch >= job.n_chunks:
                 break
-            _resolve_chunk(
-                ch, w, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                prim_zkey, prim_flag, prim_face, hulls, verts0, verts1, faces, moving,
-                cl_start, cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots,
-                jitter, seed, visible, overflow, counters, witness)
+            _resolve_chunk(ch, w, job, prims, geom, sweep, out)
 
 
 @njit(**_JIT)
-def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src, prim_box, prim_z,
-                   prim_zkey, prim_flag, prim_face, hulls, verts0, verts1, faces, moving, cl_start,
-                   cl_tris, c0, c1, radii, n_tri, v0, dvec, rots, res, near, knots, jitter,
-                   seed, visible, overflow, counters, witness):  # pragma: no cover - numba
+def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cover - numba
+    """Chunk ``ch`` of ``_resolve``, run by worker ``worker``."""
+    tiles, n_chunks, _, tile_start, tile_items = job
+    prim_src, prim_box, prim_z, prim_zkey, prim_flag, _, h_index, h_pts, h_count = prims
+    hulls = Hulls(h_index, h_pts, h_count)
+    verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri = geom
+    v0, dvec, rots, res, near, knots, jitter, seed = sweep
+    visible, overflow, counters, witness = out
     ntx = (res + TILE - 1) // TILE
     per_face = ntx * ntx
     npx_max = TILE * TILE
@@ -344,12 +349,8 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
     c_uv = np.empty((6, 2))  # a cluster triangle's swept hull (``_front_spans``)
     c_scratch = np.empty((14, 2))
     c_pts = np.empty((1, HMAX, 2), dtype=np.float32)
-    pt0 = np.empty(maxp)
-    pt1 = np.empty(maxp)
-    pz0 = np.empty(maxp)
-    pz1 = np.empty(maxp)
-    brk = np.empty(48)
-    stk = np.empty((64, 4))
+    sc = PieceScratch(np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(maxp),
+                      np.empty(48), np.empty((64, 4)))
     coef = np.empty(40)
     P = np.empty((3, 3))
     U = np.empty((3, 3))
@@ -392,6 +393,7 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
         for r in range(3):
             dc[r] = R[r, 0] * dvec[0] + R[r, 1] * dvec[1] + R[r, 2] * dvec[2]
         ovf = False
+        pix = TilePixels(r0, cl0, tw, npx, step, cnt, bound, jx, jy)
         cyc_tile += _cycles() - ct0
         end = tile_start[tile + 1]
         for it in range(tile_start[tile], end):
@@ -434,9 +436,8 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
                     p0 = work[C_PAIRS]
                     u0 = work[C_UNCOVERED]
                     env, eid, T, tid, nc, ovf = _raster(
-                        kind, t, False, zt, ia, ib, span, r0, cl0, tw, npx, step, near,
-                        knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk,
-                        jx, jy, work)
+                        kind, t, False, zt, ia, ib, span, coef, pix, near, knots, env, eid, T,
+                        tid, sc, work)
                     cyc_raster += _cycles() - cs1
                     work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
                     work[C_CLUSTER_UNCOVERED] += work[C_UNCOVERED] - u0
@@ -468,9 +469,8 @@ def _resolve_chunk(ch, worker, tiles, n_chunks, tile_start, tile_items, prim_src
                 work[C_SETUPS] += 1
                 cs1 = _cycles()
                 env, eid, T, tid, closed, ovf = _raster(
-                    kind, src, slow, prim_z[pr], ia, ib, span, r0, cl0, tw, npx, step, near,
-                    knots, coef, env, eid, cnt, bound, T, tid, pt0, pt1, pz0, pz1, brk, stk, jx,
-                    jy, work)
+                    kind, src, slow, prim_z[pr], ia, ib, span, coef, pix, near, knots, env, eid,
+                    T, tid, sc, work)
                 cyc_raster += _cycles() - cs1
             cyc_setup += _cycles() - cs0
             if ovf:

@@ -47,6 +47,7 @@ from visibility.cores.from_segment.boxes import (
 )
 from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
+from visibility.cores.from_segment.groups import GeometryArrays, PrimRows, Results, Sweep, TileWork
 from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
 from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
@@ -265,17 +266,19 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # The envelope pass runs in groups of tiles with a checkpoint between them, so a cancelled
     # or late computation stops within a fraction of one segment's time.
     groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
+    rows = PrimRows.of(prim_src, prim_box, prim_z, zkey, prim_flag, prim_face, hulls)
+    garrays = GeometryArrays(geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
+                             geom.cl_tris, geom.centers0, geom.centers1, geom.radii,
+                             geom.n_triangles)
+    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed)
     for sel in np.array_split(np.arange(len(tiles)), groups):
         if not len(sel):
             continue
         checkpoint()
         group_overflow = np.zeros(len(sel), dtype=bool)
         before = counters[:, C_CYCLES].copy()
-        _resolve(tiles[sel], nch, numba.get_num_threads(), tile_start, items, prim_src, prim_box,
-                 prim_z, zkey, prim_flag, prim_face, hulls, geom.verts0, geom.verts1, geom.faces,
-                 geom.moving, geom.cl_start, geom.cl_tris, geom.centers0, geom.centers1,
-                 geom.radii, geom.n_triangles, v0, dvec, rots, res, near, knots, jitter, seed,
-                 visible, group_overflow, counters, wit)
+        _resolve(TileWork(tiles[sel], nch, numba.get_num_threads(), tile_start, items), rows,
+                 garrays, sweep, Results(visible, group_overflow, counters, wit))
         overflow[sel] = group_overflow
         # The busiest thread's cycles: against the mean, how well the chunks spread.
         per = np.bincount(counters[:, C_THREAD], weights=counters[:, C_CYCLES] - before)
