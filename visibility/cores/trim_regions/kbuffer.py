@@ -13,7 +13,7 @@ new surface entries in the current layer.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,9 +33,9 @@ K = 48
 SPANS = 4
 
 
-@dataclass
-class KBuffer:
-    """The per-pixel state of one view of ``n`` pixels.
+class KBuffer(NamedTuple):
+    """The per-pixel state of one view of ``n`` pixels (a named group the kernels take
+    whole: ``resolve.resolve_layer``).
 
     Attributes
     ----------

@@ -24,6 +24,8 @@ from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
 from visibility.cores.trim_regions.quality import FRAME_NEAR
 from visibility.cores.trim_regions.raster import (
+    Camera,
+    SetUp,
     raster_surfaces,
     raster_trims,
     setup_triangles,
@@ -287,6 +289,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     trims = np.ascontiguousarray(trims[trim_order])
     all_layers = np.union1d(inst_layers, trim_layers)
     _reset(kb)
+    tris = SetUp(data.static, facing, poly, npoly, pbox)
+    camera = Camera(view.vstar, view.rot, float(view.tan), int(res))
     margin = margin_px * 2.0 * view.tan / res
     n_bands = (res + 7) // 8
     counters = np.zeros((n_bands, 4), dtype=np.int64)
@@ -303,16 +307,13 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         ta = time.perf_counter()
         k = np.searchsorted(trim_layers, lay)
         if k < len(trim_layers) and trim_layers[k] == lay:
-            raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin,
-                         kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil,
-                         kb.overflow, vis, stop)
+            raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin, kb,
+                         vis, stop)
         k = np.searchsorted(inst_layers, lay)
         if k < len(inst_layers) and inst_layers[k] == lay:
             sl = slice(inst_starts[k], inst_starts[k + 1])
-            raster_surfaces(inst_row[sl], inst_leaf[sl], data.static, facing, poly, npoly, pbox,
-                            frame.lo, frame.hi, view.vstar, view.rot, view.tan, res, kb.depth,
-                            kb.kind, kb.ident, kb.umbra, kb.count, kb.stencil, kb.active,
-                            kb.overflow, vis, stop)
+            raster_surfaces(inst_row[sl], inst_leaf[sl], tris, frame.lo, frame.hi, camera, kb,
+                            vis, stop)
         tb = time.perf_counter()
         tally[:] = 0
         _resolve(kb, res, False, vis, counters, stop, data.closed, held, tally)
@@ -386,9 +387,7 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
              stop: np.ndarray, closed: np.ndarray, held: np.ndarray,
              tally: np.ndarray) -> None:
-    resolve_layer(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal, kb.spans,
-                  kb.n_spans, kb.first, kb.hid, closed, kb.stencil, kb.active, kb.overflow, res,
-                  final, vis, counters, stop, held, tally)
+    resolve_layer(kb, closed, res, final, vis, counters, stop, held, tally)
 
 
 def _reset(kb: KBuffer) -> None:

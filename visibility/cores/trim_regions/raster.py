@@ -10,11 +10,36 @@ coordinates u = x / z, v = y / z in [-tan, tan]; pixel column (u / tan + 1) res 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
 from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
+
+
+class SetUp(NamedTuple):
+    """A view's set-up static triangles (``setup_triangles``), as ``raster_surfaces`` reads
+    them: ``tri_ids`` (m,) the triangle id of each row, ``facing`` (m,) > 0 for a front face
+    from v*, ``poly`` (m, P, 3) the near-clipped polygon (pixel x, y and 1 / depth),
+    ``npoly`` (m,) its corner count and ``box`` (m, 4) its pixel box (x0, x1, y0, y1)."""
+
+    tri_ids: np.ndarray
+    facing: np.ndarray
+    poly: np.ndarray
+    npoly: np.ndarray
+    box: np.ndarray
+
+
+class Camera(NamedTuple):
+    """A view from v*: ``vstar`` (3,) metres, world-to-camera ``rot`` (3, 3), ``tan`` the
+    widened face's half-angle tangent and ``res`` pixels across it."""
+
+    vstar: np.ndarray
+    rot: np.ndarray
+    tan: float
+    res: int
 
 #: Rows of pixels per band of the parallel rasterization.
 BAND_ROWS = 8
@@ -119,8 +144,9 @@ def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):
 @njit(cache=True, inline="always")
 def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, count, overflow,
             vis):  # pragma: no cover - numba
-    """Append an entry to pixel p's k-buffer; an overflowing pixel reports what it holds and
-    everything that comes later (no occlusion there any more)."""
+    """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``); an
+    overflowing pixel reports what it holds and everything that comes later (no occlusion
+    there any more)."""
     if overflow[p]:
         if kind != TRIM:
             vis[ident] = 1
@@ -143,17 +169,24 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, count, overflow,
 
 
 @njit(cache=True, parallel=True)
-def raster_surfaces(inst_row, inst_leaf, tri_ids, facing, poly, npoly, box, leaf_lo, leaf_hi,
-                    vstar, rot, tan, res, depth, kinds, idents, umbra, count, stencil, active,
-                    overflow, vis, stop):  # pragma: no cover - numba
-    """Rasterize one layer's (triangle, leaf) instances into the k-buffers (P2).
+def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
+                    stop):  # pragma: no cover - numba
+    """Rasterize one layer's (triangle, leaf) instances into the k-buffers ``kb``
+    (``kbuffer.KBuffer``) (P2).
 
-    ``inst_row`` (k,) rows into the set-up arrays, ``inst_leaf`` (k,) the leaf each instance
-    belongs to: a fragment whose 3D point lies outside that leaf's box (``leaf_lo``/``leaf_hi``
-    (L, 3), metres, same frame as ``vstar``) is dropped, so a triangle that crosses leaves
-    delivers each fragment once, in the layer of the leaf it lies in, and layers stay in depth
-    order along every ray. Sealed pixels take nothing (early ray termination).
+    ``inst_row`` (k,) rows into the set-up triangles ``tris`` (``SetUp``), ``inst_leaf`` (k,)
+    the leaf each instance belongs to: a fragment whose 3D point lies outside that leaf's box
+    (``leaf_lo``/``leaf_hi`` (L, 3), metres, same frame as the view ``cam``'s v*) is dropped,
+    so a triangle that crosses leaves delivers each fragment once, in the layer of the leaf it
+    lies in, and layers stay in depth order along every ray. Sealed pixels take nothing (early
+    ray termination).
     """
+    tri_ids, facing, poly, npoly, box = tris
+    vstar, rot, tan, res = cam
+    # Unpacked before the parallel loop: numba 0.68 loses writes made inside a prange body
+    # through a tuple's field (tests/visibility/cores/trim_regions/test_raster.py).
+    depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
+    stencil, active, overflow = kb.stencil, kb.active, kb.overflow
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):
@@ -227,9 +260,9 @@ def _affine_range(a, b, lo, hi):  # pragma: no cover - numba
 
 
 @njit(cache=True, parallel=True)
-def raster_trims(trims, res, tan, margin, depth, kinds, idents, umbra, count, stencil,
-                 overflow, vis, stop):  # pragma: no cover - numba
-    """Rasterize one layer's trim region quads (P2) with their umbrae.
+def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - numba
+    """Rasterize one layer's trim region quads (P2) with their umbrae into the k-buffers ``kb``
+    (``kbuffer.KBuffer``).
 
     ``trims`` (t, 12): plane normal of (v*, edge) in camera space (3), inner side sign, end
     points u0, v0, u1, v1 (tan units), 1 / depth at both ends, widths W0, W1 (tan units, the
@@ -240,6 +273,9 @@ def raster_trims(trims, res, tan, margin, depth, kinds, idents, umbra, count, st
     and the umbra depth t / (1 - d / W) (the depth up to which every eye of the sphere sees the
     ray blocked by the trimmed occluder: Sec. 3.3, Fig. 4).
     """
+    # Unpacked before the parallel loop (see ``raster_surfaces``).
+    depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
+    stencil, overflow = kb.stencil, kb.overflow
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):

@@ -29,6 +29,8 @@ from behind, as in lavaducts, where the whole level is one open part).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
@@ -38,6 +40,18 @@ from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
 #: validation: trimming more only adds false positives).
 DEPTH_TOL = 1e-3
+
+
+class SortScratch(NamedTuple):
+    """One thread's scratch for a pixel's sorted sequence of K entries: ``order`` (K,) int64
+    and the sorted depths ``sd`` (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32 and
+    umbrae ``su`` (K,)."""
+
+    order: np.ndarray
+    sd: np.ndarray
+    sk: np.ndarray
+    si: np.ndarray
+    su: np.ndarray
 
 
 @njit(cache=True)
@@ -76,29 +90,30 @@ def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def resolve_pixel(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                  closed, p, final, vis, stats):  # pragma: no cover - numba
-    """Resolve pixel p's trim sequence (see the module docstring); compacts the residual
-    sequence back into the k-buffer and records the hidden span of each validated interval in
-    ``spans`` / ``n_spans`` and the depth of its first surface in ``first``. Returns True when
-    the pixel got sealed. ``hid`` (n,) int64 remembers, across layers, the closed part
-    (1 + ``closed[id]``, 0 none) of the front face that hid in an umbra since the last front
-    face seen.
+def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
+    """Resolve pixel p's trim sequence in the k-buffers ``kb`` (``kbuffer.KBuffer``; see the
+    module docstring); compacts the residual sequence back into the k-buffer and records the
+    hidden span of each validated interval in ``spans`` / ``n_spans`` and the depth of its
+    first surface in ``first``. Returns True when the pixel got sealed. ``hid`` (n,) int64
+    remembers, across layers, the closed part (1 + ``closed[id]``, 0 none) of the front face
+    that hid in an umbra since the last front face seen.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
-    k = depth.shape[1]
-    return resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first,
-                        hid, closed, p, final, vis, stats, np.empty(k, dtype=np.int64),
-                        np.empty(k), np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
-                        np.empty(k))
+    k = kb.depth.shape[1]
+    return resolve_into(kb, closed, p, final, vis, stats,
+                        SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
+                                    np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
+                                    np.empty(k)))
 
 
 @njit(cache=True)
-def resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                 closed, p, final, vis, stats, order, sd, sk, si, su):  # pragma: no cover
-    """``resolve_pixel`` with its scratch passed in: ``order`` (K,) int64, ``sd`` (K,),
-    ``sk`` (K,) int8, ``si`` (K,) int32, ``su`` (K,) for a k-buffer of K entries per pixel
-    (one set per thread: an allocation per pixel resolve cost as much as a short sequence)."""
+def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover - numba
+    """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
+    allocation per pixel resolve cost as much as a short sequence)."""
+    depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
+    cover, seal, spans, n_spans, first, hid = (kb.cover, kb.seal, kb.spans, kb.n_spans,
+                                               kb.first, kb.hid)
+    order, sd, sk, si, su = scratch
     n = count[p]
     _sort(depth[p], kinds[p], idents[p], umbra[p], n, order)
     for q in range(n):
@@ -242,24 +257,22 @@ def resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans
 
 
 @njit(cache=True, parallel=True)
-def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans, first, hid,
-                  closed, stencil, active, overflow, res, final, vis, stats, stop, held,
-                  tally):
-    """Resolve every active pixel (all held pixels when ``final``) of one view, parallel over
-    bands of rows; ``stats`` (n_bands, 4) accumulates ``resolve_pixel``'s counters per band.
+def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pragma: no cover
+    """Resolve every active pixel (all held pixels when ``final``) of one view's k-buffers
+    ``kb`` (``kbuffer.KBuffer``), parallel over bands of rows; ``stats`` (n_bands, 4)
+    accumulates ``resolve_pixel``'s counters per band.
     On the way, before resolving: ``held`` (res * res,) gets 1 where a pixel holds entries,
     ``tally`` (n_bands, 2) adds per band the entries held and the pixels marked active (the
     view's statistics, without full-frame passes per layer)."""
     n_bands = (res + 7) // 8
-    k = depth.shape[1]
+    k = kb.depth.shape[1]
+    count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
     for band in prange(n_bands):
         if flag_set(stop):
             continue
-        order = np.empty(k, dtype=np.int64)
-        sd = np.empty(k)
-        sk = np.empty(k, dtype=np.int8)
-        si = np.empty(k, dtype=np.int32)
-        su = np.empty(k)
+        scratch = SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
+                              np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
+                              np.empty(k))
         for p in range(band * 8 * res, min(res, band * 8 + 8) * res):
             if count[p] > 0:
                 held[p] = 1
@@ -272,7 +285,5 @@ def resolve_layer(depth, kinds, idents, umbra, count, cover, seal, spans, n_span
             if not (active[p] or final):
                 continue
             active[p] = 0
-            if resolve_into(depth, kinds, idents, umbra, count, cover, seal, spans, n_spans,
-                            first, hid, closed, p, final, vis, stats[band], order, sd, sk, si,
-                            su):
+            if resolve_into(kb, closed, p, final, vis, stats[band], scratch):
                 stencil[p] = SEALED

@@ -77,8 +77,7 @@ def test_trim_rows_match_the_test_at_every_pixel():
     trims = _trims(np.random.default_rng(3), 60, tan)
     kb = KBuffer.empty(res * res)
     vis = np.zeros(1, dtype=np.uint8)
-    raster_trims(trims, res, tan, margin, kb.depth, kb.kind, kb.ident, kb.umbra, kb.count,
-                 kb.stencil, kb.overflow, vis, np.zeros(1, dtype=np.uint8))
+    raster_trims(trims, res, tan, margin, kb, vis, np.zeros(1, dtype=np.uint8))
     want = _every_pixel(trims, res, tan, margin)
     assert sum(len(w) for w in want) > 10 * res  # the strips cover much of the view
     for p in range(res * res):

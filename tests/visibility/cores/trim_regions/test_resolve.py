@@ -24,8 +24,7 @@ def _resolve(entries, final=True, cover=0.0, closed=None):
     part = np.full(16, -1, dtype=np.int64)
     for ident, label in (closed or {}).items():
         part[ident] = label
-    sealed = resolve_pixel(kb.depth, kb.kind, kb.ident, kb.umbra, kb.count, kb.cover, kb.seal,
-                           kb.spans, kb.n_spans, kb.first, kb.hid, part, 0, final, vis, stats)
+    sealed = resolve_pixel(kb, part, 0, final, vis, stats)
     return set(np.flatnonzero(vis).tolist()), sealed, kb.seal[0], kb.cover[0], int(kb.count[0])
 
 
