@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 from visibility.ground_truth import sample_points
 from visibility.raster.camera import random_rotations
@@ -33,7 +34,6 @@ from visibility.ray_reference import (
     ExactCaster,
     frame_triangles,
     front_normals,
-    near_clip,
     random_directions,
 )
 from visibility.scene import Scene
@@ -84,19 +84,43 @@ def cube_directions(cube: np.ndarray, resolution: int, rng: np.random.Generator
     """(6 * resolution², 3) float64 unit directions, one through a uniformly random point of
     each pixel of the six faces of a cube turned by ``cube`` (3, 3) (its rows: the face axes);
     face k looks along ``(-1)^k`` times row ``k // 2``."""
+    return _cube_rays(cube, resolution, rng)[0]
+
+
+def _cube_rays(cube: np.ndarray, resolution: int, rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``cube_directions`` and, per ray, 1 / (its component along its face's axis): the
+    distance along the ray to view depth 1."""
     r = int(resolution)
-    c = np.asarray(cube, dtype=np.float64)
-    jj, ii = np.meshgrid(np.arange(r), np.arange(r))
-    out = np.empty((6, r * r, 3))
-    for k in range(6):
+    jitter = rng.random((6, r * r, 2))
+    out = np.empty((6 * r * r, 3))
+    depth1 = np.empty(6 * r * r)
+    _fill_cube_rays(np.ascontiguousarray(cube, dtype=np.float64), r, jitter, out, depth1)
+    return out, depth1
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _fill_cube_rays(c, r, jitter, out, depth1):  # pragma: no cover - numba
+    for kr in prange(6 * r):
+        k = kr // r
+        i = kr - k * r
         a = k // 2
-        f = c[a] * (1.0 if k % 2 == 0 else -1.0)
-        right, up = c[(a + 1) % 3], c[(a + 2) % 3]
-        u = (jj.reshape(-1) + rng.random(r * r)) * (2.0 / r) - 1.0
-        v = (ii.reshape(-1) + rng.random(r * r)) * (2.0 / r) - 1.0
-        out[k] = f + u[:, None] * right + v[:, None] * up
-    out = out.reshape(-1, 3)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
+        s = 1.0 if k % 2 == 0 else -1.0
+        b1 = (a + 1) % 3
+        b2 = (a + 2) % 3
+        for j in range(r):
+            q = i * r + j
+            u = (j + jitter[k, q, 0]) * (2.0 / r) - 1.0
+            v = (i + jitter[k, q, 1]) * (2.0 / r) - 1.0
+            x = s * c[a, 0] + u * c[b1, 0] + v * c[b2, 0]
+            y = s * c[a, 1] + u * c[b1, 1] + v * c[b2, 1]
+            z = s * c[a, 2] + u * c[b1, 2] + v * c[b2, 2]
+            n = np.sqrt(x * x + y * y + z * z)
+            o = k * r * r + q
+            out[o, 0] = x / n
+            out[o, 1] = y / n
+            out[o, 2] = z / n
+            depth1[o] = n
 
 
 def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int = 256,
@@ -123,14 +147,15 @@ def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int 
     tmin = np.empty((len(eyes), n_pix), dtype=np.float32)
     kept = np.ones(len(eyes), dtype=bool)
     for k in range(len(eyes)):
-        d = cube_directions(cubes[k], resolution, rng)
+        d, depth1 = _cube_rays(cubes[k], resolution, rng)
         orig = np.broadcast_to(eyes[k] - centre, d.shape)
         # Open space: from inside a solid nearly every ray meets a back face first.
         hid, ht = caster.first_hits(orig, d, np.zeros(n_pix))
         ok = hid >= 0
         back = np.count_nonzero(np.einsum("ij,ij->i", d[ok], normals[hid[ok]]) > 0.0)
         kept[k] = back < INSIDE_SHARE * n_pix
-        t0 = near_clip(d, cubes[k], near)
+        # The near plane clips at view depth ``near`` along the face's axis.
+        t0 = near * depth1
         # Only rays whose first hit lies before the near plane are cast again from it.
         got = hid.copy()
         again = np.flatnonzero(ht < t0)

@@ -183,8 +183,8 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     """
     tri_ids, facing, poly, npoly, box = tris
     vstar, rot, tan, res = cam
-    # Unpacked before the parallel loop: numba 0.68 loses writes made inside a prange body
-    # through a tuple's field (tests/visibility/cores/trim_regions/test_raster.py).
+    # Unpacked before the parallel loop: numba loses writes made inside a prange body through
+    # a named tuple's field (numba issue #7135, open in 0.68; test_raster catches it).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
     stencil, active, overflow = kb.stencil, kb.active, kb.overflow
     n_bands = (res + 7) // 8
