@@ -61,6 +61,9 @@ def _warm(names: tuple[str, ...]) -> float:
                 ids = np.full(1, -1, dtype=np.int64)
                 exact_first_hits(tri, tri.min(axis=1), tri.max(axis=1), np.zeros((1, 3)),
                                  np.ones((1, 3)), np.zeros(1), ids, np.zeros(1))
+                from visibility.ray_frames import cube_directions
+
+                cube_directions(np.eye(3), 2, np.random.default_rng(0))
             else:
                 core = get_core(name)
                 # The kernels' types do not depend on the values: the cheapest level will do.

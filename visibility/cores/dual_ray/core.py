@@ -32,6 +32,7 @@ from visibility.cores.dual_ray.dual_space import (
     nodes_visible,
 )
 from visibility.cores.dual_ray.fences import Fences, cell_fences, near_pieces, scene_fences
+from visibility.cores.dual_ray.groups import GroupLists
 from visibility.cores.dual_ray.kdtree import KdTree, scene_kdtree
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene
@@ -266,9 +267,7 @@ def _test(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi
         checkpoint()
         out[s:s + BATCH] = nodes_visible(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
-            np.ascontiguousarray(bhi[s:s + BATCH]), fences.seg, fences.top, fences.bot,
-            fences.lean, fences.vid, fences.grid_lo, fences.grid_step, fences.grid_n,
-            fences.cell_start, fences.cell_items,
+            np.ascontiguousarray(bhi[s:s + BATCH]), fences.pieces, fences.grid,
             int(resolution), int(coarse))
     return out
 
@@ -391,9 +390,7 @@ def _test_among(fences: Fences, alo: np.ndarray, ahi: np.ndarray, blo: np.ndarra
         checkpoint()
         out[s:s + BATCH] = boxes_visible_among(
             alo, ahi, np.ascontiguousarray(blo[s:s + BATCH]),
-            np.ascontiguousarray(bhi[s:s + BATCH]), np.ascontiguousarray(group[s:s + BATCH]),
-            start, ids, ok, fences.seg, fences.top, fences.bot, fences.lean, fences.vid,
-            fences.grid_lo,
-            fences.grid_step, fences.grid_n, fences.cell_start, fences.cell_items,
-            int(resolution), int(coarse))
+            np.ascontiguousarray(bhi[s:s + BATCH]),
+            GroupLists(np.ascontiguousarray(group[s:s + BATCH]), start, ids, ok), fences.pieces,
+            fences.grid, int(resolution), int(coarse))
     return out

@@ -467,12 +467,15 @@ def probe_free(frame, segs):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def node_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, cell_start,
-                 cell_items, resolution, coarse_side, mark, stamp):  # pragma: no cover - numba
-    """Whether box B may be seen from box A among the fences, and how it was decided: 0
-    hidden, 1 visible by the raster, 2 visible by a probe ray no occluder blocks (``probe_free``),
-    3 visible since the footprints overlap; the number of occluding segments in the shaft and
+def node_visible(alo, ahi, blo, bhi, pieces, grid, resolution, coarse_side, mark,
+                 stamp):  # pragma: no cover - numba
+    """Whether box B may be seen from box A among the fence ``pieces`` (``groups.Pieces``,
+    found through ``grid``, ``groups.PieceGrid``), and how it was decided: 0 hidden, 1
+    visible by the raster, 2 visible by a probe ray no occluder blocks (``probe_free``), 3
+    visible since the footprints overlap; the number of occluding segments in the shaft and
     the coarse pixels refined. ``mark``, ``stamp``: ``_gather_marked``."""
+    seg, top, bot, lean, vid = pieces
+    glo, step, gn, cell_start, cell_items = grid
     frame = shaft_frame(alo, ahi, blo, bhi)
     if frame[13] == 0.0:
         return 3, 0, 0
@@ -486,8 +489,8 @@ def node_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, ce
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, cell_start,
-                  cell_items, resolution, coarse_side):  # pragma: no cover - numba
+def nodes_visible(alo, ahi, blo, bhi, pieces, grid, resolution,
+                  coarse_side):  # pragma: no cover - numba
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
     Returns (n, 3) int64: how it was decided (0: hidden, 1-3: visible, ``node_visible``),
@@ -497,12 +500,12 @@ def nodes_visible(alo, ahi, blo, bhi, seg, top, bot, lean, vid, glo, step, gn, c
     # Runs of boxes, one ``mark`` array each (``_gather_marked``), many more runs than threads
     # so uneven boxes even out.
     runs = min(n, 64)
+    k = pieces.seg.shape[0]
     for t in prange(runs):
-        mark = np.full(seg.shape[0], -1, dtype=np.int64)
+        mark = np.full(k, -1, dtype=np.int64)
         for i in range(t * n // runs, (t + 1) * n // runs):
-            v, s, r = node_visible(alo, ahi, blo[i], bhi[i], seg, top, bot, lean, vid, glo, step,
-                                   gn, cell_start, cell_items, resolution, coarse_side, mark,
-                                   i)
+            v, s, r = node_visible(alo, ahi, blo[i], bhi[i], pieces, grid, resolution,
+                                   coarse_side, mark, i)
             out[i, 0] = v
             out[i, 1] = s
             out[i, 2] = r
@@ -799,13 +802,15 @@ def leaf_piece_ids(alo, ahi, leaf_lo, leaf_hi, seg, top, bot, lean, glo, step, g
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def boxes_visible_among(alo, ahi, blo, bhi, group, start, ids, ok, seg, top, bot, lean, vid,
-                        glo,
-                        step, gn, cell_start, cell_items, resolution,
+def boxes_visible_among(alo, ahi, blo, bhi, lists, pieces, grid, resolution,
                         coarse_side):  # pragma: no cover - numba
     """Like ``nodes_visible``, each box (n, 3) drawing its occluders from its group's pieces
-    ``ids[start[g]:start[g + 1]]`` (a subset of its shaft's at most: still conservative), or
-    from the whole grid when its group has no list (``ok[g]`` False)."""
+    (``lists``, ``groups.GroupLists``: ``ids[start[g]:start[g + 1]]``, a subset of its shaft's
+    at most: still conservative), or from the whole grid when its group has no list
+    (``ok[g]`` False)."""
+    group, start, ids, ok = lists
+    seg, top, bot, lean, vid = pieces
+    glo, step, gn, cell_start, cell_items = grid
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
     for i in prange(n):

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from visibility.cores.dual_ray.groups import PieceGrid, Pieces
 from visibility.scene import Scene
 from visibility.scene_cache import per_scene
 from visibility.topology import NEAR_CLEARANCE
@@ -89,6 +90,17 @@ class Fences:
 
     def __len__(self) -> int:
         return int(len(self.seg))
+
+    @property
+    def pieces(self) -> Pieces:
+        """The pieces as the shaft kernels take them."""
+        return Pieces(self.seg, self.top, self.bot, self.lean, self.vid)
+
+    @property
+    def grid(self) -> PieceGrid:
+        """The grid as the shaft kernels take it."""
+        return PieceGrid(self.grid_lo, float(self.grid_step), self.grid_n, self.cell_start,
+                         self.cell_items)
 
 
 @njit(cache=True, nogil=True)

@@ -204,9 +204,11 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 
 
 @njit(**_JIT)
-def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm,
-                          sgn, res, near, pad, out_box, out_z, out_flag, out_hull, first,
-                          last):  # pragma: no cover - numba
+def _expanded_boxes_range(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag, out_hull,
+                          first, last):  # pragma: no cover - numba
+    """``_expanded_boxes`` for entries [first, last)."""
+    verts0, verts1, faces, moving = tris
+    v0, dvec, rb, perm, sgn, res, near, pad = frame
     cube = np.empty((6, 3))
     uv = np.empty((HMAX, 2))
     scratch = np.empty((3 * HMAX + 2, 2))
@@ -231,17 +233,17 @@ def _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, 
 
 
 @njit(**_PJIT)
-def _expanded_boxes(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb, perm, sgn,
-                    res, near, pad, out_box, out_z, out_flag, out_hull):  # pragma: no cover
-    """Pixel box, smallest depth and flags of each (triangle, face) of the expanded clusters,
-    and its projected swept hull: ``out_hull`` (``hull.Hulls``, index unused) gets
-    ``pts[k]`` and ``count[k]`` (0 = scan the box)."""
+def _expanded_boxes(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag,
+                    out_hull):  # pragma: no cover - numba
+    """Pixel box, smallest depth and flags of each (triangle ``exp_tri[k]``, face
+    ``exp_face[k]``) of the expanded clusters (``tris``, ``groups.Triangles``, seen in the
+    cube ``frame``, ``groups.CubeFrame``), and its projected swept hull: ``out_hull``
+    (``hull.Hulls``, index unused) gets ``pts[k]`` and ``count[k]`` (0 = scan the box)."""
     n = exp_tri.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
-        _expanded_boxes_range(verts0, verts1, faces, moving, exp_tri, exp_face, v0, dvec, rb,
-                              perm, sgn, res, near, pad, out_box, out_z, out_flag, out_hull,
-                              ch * n // nch, (ch + 1) * n // nch)
+        _expanded_boxes_range(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag,
+                              out_hull, ch * n // nch, (ch + 1) * n // nch)
 
 
 @njit(**_JIT)

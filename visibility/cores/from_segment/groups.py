@@ -14,6 +14,33 @@ import numpy as np
 from visibility.cores.from_segment.hull import Hulls
 
 
+class Triangles(NamedTuple):
+    """The scene's triangles as the box pass reads them (``geometry.SegmentGeometry``'s
+    arrays of the same names): ``verts0``, ``verts1`` (n, 3) vertex positions at both ends of
+    the interval, metres; ``faces`` (m, 3); ``moving`` (m,) bool."""
+
+    verts0: np.ndarray
+    verts1: np.ndarray
+    faces: np.ndarray
+    moving: np.ndarray
+
+
+class CubeFrame(NamedTuple):
+    """The cube the box pass projects into: the segment's start ``v0`` (3,) and displacement
+    ``dvec`` (3,), metres; the cube's base rotation ``rb`` (3, 3); per face the axis
+    permutation ``perm`` and signs ``sgn`` (``boxes._PERM``, ``boxes._SGN``); ``res`` pixels
+    across a face; the ``near`` plane, metres; ``pad`` pixels of sample offset to allow for."""
+
+    v0: np.ndarray
+    dvec: np.ndarray
+    rb: np.ndarray
+    perm: np.ndarray
+    sgn: np.ndarray
+    res: int
+    near: float
+    pad: float
+
+
 class TileWork(NamedTuple):
     """The tiles of one group of the envelope pass and their primitive lists.
 

@@ -47,7 +47,15 @@ from visibility.cores.from_segment.boxes import (
 )
 from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
-from visibility.cores.from_segment.groups import GeometryArrays, PrimRows, Results, Sweep, TileWork
+from visibility.cores.from_segment.groups import (
+    CubeFrame,
+    GeometryArrays,
+    PrimRows,
+    Results,
+    Sweep,
+    TileWork,
+    Triangles,
+)
 from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
 from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
@@ -94,8 +102,9 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
             efl = np.empty(len(et), dtype=np.uint8)
             ehull = Hulls(np.zeros(0, np.int32), np.empty((len(et), HMAX, 2), np.float32),
                           np.empty(len(et), np.int8))
-            _expanded_boxes(geom.verts0, geom.verts1, geom.faces, geom.moving, et, ef, v0, dvec,
-                            rb, _PERM, _SGN, res, near, pad, ebox, ez, efl, ehull)
+            _expanded_boxes(Triangles(geom.verts0, geom.verts1, geom.faces, geom.moving), et, ef,
+                            CubeFrame(v0, dvec, rb, _PERM, _SGN, int(res), float(near),
+                                      float(pad)), ebox, ez, efl, ehull)
             keep = efl != 0
             parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
                           ez[keep], efl[keep]))

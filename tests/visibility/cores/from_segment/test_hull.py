@@ -16,6 +16,7 @@ from visibility.cores.from_segment.boxes import (
 )
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.geometry import scene_geometries
+from visibility.cores.from_segment.groups import CubeFrame, Triangles
 from visibility.cores.from_segment.hull import HMAX, Hulls, convex_hull, hull_cols
 from visibility.cores.from_segment.raster import _cam_corners, _row_spans
 from visibility.cores.from_segment.segment import segment_visible
@@ -68,8 +69,9 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
     flag = np.zeros(6, np.uint8)
     hulls = Hulls(np.arange(6, dtype=np.int32), np.zeros((6, HMAX, 2), np.float32),
                   np.zeros(6, np.int8))
-    _expanded_boxes(verts0, verts1, faces, moving, np.zeros(6, np.int64), np.arange(6), v0, dvec,
-                    rb, _PERM, _SGN, RES, near, PAD, box, z, flag, hulls)
+    _expanded_boxes(Triangles(verts0, verts1, faces, moving), np.zeros(6, np.int64),
+                    np.arange(6), CubeFrame(v0, dvec, rb, _PERM, _SGN, RES, near, PAD), box, z,
+                    flag, hulls)
     rots = cube_face_rotations(rb)
     P, U, W = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     coef = np.empty(40)
@@ -186,8 +188,9 @@ def test_sliver_visits_fewer_pixels_than_its_box():
     flag = np.zeros(6, np.uint8)
     hulls = Hulls(np.arange(6, dtype=np.int32), np.zeros((6, HMAX, 2), np.float32),
                   np.zeros(6, np.int8))
-    _expanded_boxes(v, v, f, np.zeros(1, bool), np.zeros(6, np.int64), np.arange(6), a, b - a,
-                    np.eye(3), _PERM, _SGN, 128, 0.05, 0.5, box, np.zeros(6), flag, hulls)
+    _expanded_boxes(Triangles(v, v, f, np.zeros(1, bool)), np.zeros(6, np.int64), np.arange(6),
+                    CubeFrame(a, b - a, np.eye(3), _PERM, _SGN, 128, 0.05, 0.5), box,
+                    np.zeros(6), flag, hulls)
     box_pairs = sum(int((box[k, 1] - box[k, 0] + 1) * (box[k, 3] - box[k, 2] + 1))
                     for k in range(6) if flag[k])
     assert box_pairs > 5000
