@@ -7,8 +7,8 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
 - Speed: the 100k ``village`` and the 1M ``kitchen`` at the default resolution, one sphere of
   Δ in {0.05, 0.1, 0.2, 0.3} m at a walkable cell's centre: best of 2 runs after a warm-up (the
   per-scene octree is built once and reported apart), seconds per phase P0-P4.
-- Quality: generated scenes (20k rooms, village, city) and the real ones of ../shared/scenes
-  (the kitchen at one Δ), two cells each, at the defaults and by the method alone
+- Quality: generated scenes (20k rooms, village, city) and the real ones of ../shared/scenes,
+  two cells each at every Δ, at the defaults and by the method alone
   (``gather_eyes=0``): frames from ``--frames`` eyes with random cube orientations inside the
   sphere's cube cell, 256 px per face (``trim_regions.quality``).
 - Side by side: ``cos`` and ``sampling`` at their defaults on the same cube cells of the 20k
@@ -18,7 +18,7 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   those spheres sees them.
 
 Writes ``benchmarks/results/trim_regions.md`` (+ ``.json``, ``.png``). Usage:
-``python -m benchmarks.bench_trim_regions`` (about 4 minutes on 2 cores), ``--quick`` for a
+``python -m benchmarks.bench_trim_regions`` (about 9 minutes on 2 cores), ``--quick`` for a
 smoke run into ``--out``.
 """
 
@@ -126,7 +126,7 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
         (g, n, (0.05, 0.2) if quick else DELTAS) for g in ("rooms", "village", "city")]
     if not quick:
         cases += [(r, None, DELTAS) for r in ("lavaducts", "lyon_vilo3d", "denhaag")]
-        cases += [("kitchen", None, (0.2,))]
+        cases += [("kitchen", None, DELTAS)]
     rows = []
     for name, tri, deltas in cases:
         scene = load(name, tri)
