@@ -32,8 +32,10 @@ from visibility.ray_reference import (
     INSIDE_SHARE,
     EmbreeCaster,
     ExactCaster,
+    back_hits,
     frame_triangles,
     front_normals,
+    near_clip,
     random_directions,
 )
 from visibility.scene import Scene
@@ -55,8 +57,8 @@ class RayFrames:
     ids : (f, 6 * resolution²) int64 triangle met first by each pixel's ray (-1: nothing).
     eyes : (f, 3) float64 world eyes of the frames kept (in open space), metres.
     cubes : (f, 3, 3) float64 their cube orientations (rows: the face axes).
-    dirs : (f, 6 * resolution², 3) float32 unit ray directions.
-    tmin : (f, 6 * resolution²) float32 where the near plane clips each ray, metres.
+    dirs : (f, 6 * resolution², 3) float32 unit ray directions (kept for the float64
+        confirmation of missed pixels; the near clip follows from them and the cube).
     centre : (3,) float64 the cell centre (the casting frame's origin).
     dropped : eyes dropped as inside geometry.
     resolution : pixels across a face.
@@ -67,7 +69,6 @@ class RayFrames:
     eyes: np.ndarray
     cubes: np.ndarray
     dirs: np.ndarray
-    tmin: np.ndarray
     centre: np.ndarray
     dropped: int
     resolution: int
@@ -139,21 +140,18 @@ def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int 
     cubes = random_rotations(rng, len(eyes))
     centre = 0.5 * (b[0] + b[1])
     tri, tri_ids = frame_triangles(scene, centre)
-    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
+    normals = front_normals(tri, scene)
     caster = EmbreeCaster(tri)
     n_pix = 6 * int(resolution) ** 2
     ids = np.empty((len(eyes), n_pix), dtype=np.int64)
     dirs = np.empty((len(eyes), n_pix, 3), dtype=np.float32)
-    tmin = np.empty((len(eyes), n_pix), dtype=np.float32)
     kept = np.ones(len(eyes), dtype=bool)
     for k in range(len(eyes)):
         d, depth1 = _cube_rays(cubes[k], resolution, rng)
         orig = np.broadcast_to(eyes[k] - centre, d.shape)
         # Open space: from inside a solid nearly every ray meets a back face first.
         hid, ht = caster.first_hits(orig, d, np.zeros(n_pix))
-        ok = hid >= 0
-        back = np.count_nonzero(np.einsum("ij,ij->i", d[ok], normals[hid[ok]]) > 0.0)
-        kept[k] = back < INSIDE_SHARE * n_pix
+        kept[k] = np.count_nonzero(back_hits(d, hid, normals)) < INSIDE_SHARE * n_pix
         # The near plane clips at view depth ``near`` along the face's axis.
         t0 = near * depth1
         # Only rays whose first hit lies before the near plane are cast again from it.
@@ -163,8 +161,7 @@ def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int 
             got[again] = caster.first_hits(orig[again], d[again], t0[again])[0]
         ids[k] = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
         dirs[k] = d
-        tmin[k] = t0
-    return RayFrames(ids[kept], eyes[kept], cubes[kept], dirs[kept], tmin[kept], centre,
+    return RayFrames(ids[kept], eyes[kept], cubes[kept], dirs[kept], centre,
                      int((~kept).sum()), int(resolution), float(near))
 
 
@@ -192,7 +189,7 @@ def missed_pixels(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray,
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         orig = np.broadcast_to(frames.eyes[k] - frames.centre, d.shape)
         got, _ = caster.first_hits(np.ascontiguousarray(orig), d,
-                                   frames.tmin[k, check].astype(np.float64))
+                                   near_clip(d, frames.cubes[k], frames.near))
         hit = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
         out[k] = int(np.count_nonzero((hit >= 0) & ~in_pvs[np.maximum(hit, 0)])) + rest
     return out
@@ -208,15 +205,12 @@ def in_open_space(scene: Scene, points: np.ndarray, n_dirs: int = 256, seed: int
         return np.zeros(0, dtype=bool)
     centre = pts.mean(axis=0)
     tri, _ = frame_triangles(scene, centre)
-    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
-    caster = EmbreeCaster(tri)
+    normals = front_normals(tri, scene)
     d = random_directions(int(n_dirs), np.random.default_rng(seed))
-    orig = np.repeat(pts - centre, len(d), axis=0)
     dirs = np.tile(d, (len(pts), 1))
-    hid, _ = caster.first_hits(orig, dirs, np.zeros(len(dirs)))
-    ok = hid >= 0
-    back = np.zeros(len(dirs), dtype=bool)
-    back[ok] = np.einsum("ij,ij->i", dirs[ok], normals[hid[ok]]) > 0.0
+    hid, _ = EmbreeCaster(tri).first_hits(np.repeat(pts - centre, len(d), axis=0), dirs,
+                                          np.zeros(len(dirs)))
+    back = back_hits(dirs, hid, normals)
     return back.reshape(len(pts), -1).sum(axis=1) < INSIDE_SHARE * len(d)
 
 

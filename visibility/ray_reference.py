@@ -286,10 +286,21 @@ def frame_triangles(scene: Scene, centre: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.ascontiguousarray(tri, dtype=np.float64), valid.astype(np.int64)
 
 
-def front_normals(tri: np.ndarray, cw: bool) -> np.ndarray:
-    """(k, 3) front-face normals (not unit) of triangles (k, 3, 3)."""
+def front_normals(tri: np.ndarray, scene: Scene) -> np.ndarray:
+    """(k, 3) front-face normals (not unit) of triangles (k, 3, 3) of ``scene``
+    (counter-clockwise fronts, clockwise when its ``meta["winding"]`` is ``"cw"``)."""
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return -n if cw else n
+    return -n if str(scene.meta.get("winding", "ccw")).lower() == "cw" else n
+
+
+def back_hits(dirs: np.ndarray, hit: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n,) bool: rays (n, 3) whose first hit ``hit`` (n,) (-1: none) is the back of its
+    triangle (``normals``, ``front_normals``): the open-space test counts them, since from
+    inside a solid nearly every ray meets a back face first (``INSIDE_SHARE``)."""
+    back = np.zeros(len(dirs), dtype=bool)
+    ok = hit >= 0
+    back[ok] = np.einsum("ij,ij->i", dirs[ok], normals[hit[ok]]) > 0.0
+    return back
 
 
 def ray_reference(
@@ -339,7 +350,7 @@ def ray_reference(
     world_eyes = draw_eyes(b, n_eyes, rng, boundary_share) if eyes is None else \
         np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
     tri, tri_ids = frame_triangles(scene, centre)
-    normals = front_normals(tri, str(scene.meta.get("winding", "ccw")).lower() == "cw")
+    normals = front_normals(tri, scene)
     caster = EmbreeCaster(tri) if engine == "embree" else ExactCaster(tri)
     aim_local = None
     if aim is not None and int(n_aim) > 0:
@@ -368,10 +379,7 @@ def ray_reference(
         zero = np.zeros(len(flat))
         hid, ht = caster.first_hits(orig, flat, zero)
         rays += len(flat)
-        back = np.zeros(len(flat), dtype=bool)
-        ok = hid >= 0
-        back[ok] = np.einsum("ij,ij->i", flat[ok], normals[hid[ok]]) > 0.0
-        back = back.reshape(k, per_eye)[:, :n_dirs]
+        back = back_hits(flat, hid, normals).reshape(k, per_eye)[:, :n_dirs]
         inside = back.sum(axis=1) >= INSIDE_SHARE * n_dirs
         kept[g0:g1] = ~inside
         eye_of = np.repeat(np.arange(g0, g1), per_eye)

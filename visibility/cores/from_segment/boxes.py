@@ -204,10 +204,10 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 
 
 @njit(**_JIT)
-def _expanded_boxes_range(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag, out_hull,
+def _expanded_boxes_range(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag, out_hull,
                           first, last):  # pragma: no cover - numba
     """``_expanded_boxes`` for entries [first, last)."""
-    verts0, verts1, faces, moving = tris
+    verts0, verts1, faces, moving = geom.verts0, geom.verts1, geom.faces, geom.moving
     v0, dvec, rb, perm, sgn, res, near, pad = frame
     cube = np.empty((6, 3))
     uv = np.empty((HMAX, 2))
@@ -233,16 +233,16 @@ def _expanded_boxes_range(tris, exp_tri, exp_face, frame, out_box, out_z, out_fl
 
 
 @njit(**_PJIT)
-def _expanded_boxes(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag,
+def _expanded_boxes(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag,
                     out_hull):  # pragma: no cover - numba
     """Pixel box, smallest depth and flags of each (triangle ``exp_tri[k]``, face
-    ``exp_face[k]``) of the expanded clusters (``tris``, ``groups.Triangles``, seen in the
+    ``exp_face[k]``) of the expanded clusters (of ``geom``, ``groups.GeometryArrays``, seen in the
     cube ``frame``, ``groups.CubeFrame``), and its projected swept hull: ``out_hull``
     (``hull.Hulls``, index unused) gets ``pts[k]`` and ``count[k]`` (0 = scan the box)."""
     n = exp_tri.shape[0]
     nch = min(n, 256)
     for ch in prange(nch):
-        _expanded_boxes_range(tris, exp_tri, exp_face, frame, out_box, out_z, out_flag,
+        _expanded_boxes_range(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag,
                               out_hull, ch * n // nch, (ch + 1) * n // nch)
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from visibility.cores.from_segment.groups import GeometryArrays
 from visibility.scene import Scene
 
 #: Triangles per spatial cluster (unit of the box pass and of tile-level culling).
@@ -54,6 +55,12 @@ class SegmentGeometry:
     @property
     def n_triangles(self) -> int:
         return int(len(self.faces))
+
+    def arrays(self) -> GeometryArrays:
+        """The arrays the kernels read, as one named group."""
+        return GeometryArrays(self.verts0, self.verts1, self.faces, self.moving, self.cl_start,
+                              self.cl_tris, self.centers0, self.centers1, self.radii,
+                              self.n_triangles)
 
     @property
     def n_ids(self) -> int:

@@ -14,17 +14,6 @@ import numpy as np
 from visibility.cores.from_segment.hull import Hulls
 
 
-class Triangles(NamedTuple):
-    """The scene's triangles as the box pass reads them (``geometry.SegmentGeometry``'s
-    arrays of the same names): ``verts0``, ``verts1`` (n, 3) vertex positions at both ends of
-    the interval, metres; ``faces`` (m, 3); ``moving`` (m,) bool."""
-
-    verts0: np.ndarray
-    verts1: np.ndarray
-    faces: np.ndarray
-    moving: np.ndarray
-
-
 class CubeFrame(NamedTuple):
     """The cube the box pass projects into: the segment's start ``v0`` (3,) and displacement
     ``dvec`` (3,), metres; the cube's base rotation ``rb`` (3, 3); per face the axis
@@ -89,8 +78,9 @@ class PrimRows(NamedTuple):
 
 
 class GeometryArrays(NamedTuple):
-    """``geometry.SegmentGeometry`` as the kernels read it (its attributes of the same names;
-    ``c0``, ``c1``: the sphere centres; ``n_tri``: the face count)."""
+    """``geometry.SegmentGeometry`` as the kernels read it (``SegmentGeometry.arrays``: its
+    attributes of the same names; ``c0``, ``c1``: the sphere centres; ``n_tri``: the face
+    count)."""
 
     verts0: np.ndarray
     verts1: np.ndarray

@@ -49,12 +49,10 @@ from visibility.cores.from_segment.envelope import MAX_CAP, START_CAP
 from visibility.cores.from_segment.geometry import SegmentGeometry
 from visibility.cores.from_segment.groups import (
     CubeFrame,
-    GeometryArrays,
     PrimRows,
     Results,
     Sweep,
     TileWork,
-    Triangles,
 )
 from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
 from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
@@ -102,7 +100,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
             efl = np.empty(len(et), dtype=np.uint8)
             ehull = Hulls(np.zeros(0, np.int32), np.empty((len(et), HMAX, 2), np.float32),
                           np.empty(len(et), np.int8))
-            _expanded_boxes(Triangles(geom.verts0, geom.verts1, geom.faces, geom.moving), et, ef,
+            _expanded_boxes(geom.arrays(), et, ef,
                             CubeFrame(v0, dvec, rb, _PERM, _SGN, int(res), float(near),
                                       float(pad)), ebox, ez, efl, ehull)
             keep = efl != 0
@@ -276,10 +274,8 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # or late computation stops within a fraction of one segment's time.
     groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
     rows = PrimRows.of(prim_src, prim_box, prim_z, zkey, prim_flag, prim_face, hulls)
-    garrays = GeometryArrays(geom.verts0, geom.verts1, geom.faces, geom.moving, geom.cl_start,
-                             geom.cl_tris, geom.centers0, geom.centers1, geom.radii,
-                             geom.n_triangles)
     sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed)
+    garrays = geom.arrays()
     for sel in np.array_split(np.arange(len(tiles)), groups):
         if not len(sel):
             continue

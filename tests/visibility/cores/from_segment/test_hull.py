@@ -16,7 +16,7 @@ from visibility.cores.from_segment.boxes import (
 )
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.geometry import scene_geometries
-from visibility.cores.from_segment.groups import CubeFrame, Triangles
+from visibility.cores.from_segment.groups import CubeFrame, GeometryArrays
 from visibility.cores.from_segment.hull import HMAX, Hulls, convex_hull, hull_cols
 from visibility.cores.from_segment.raster import _cam_corners, _row_spans
 from visibility.cores.from_segment.segment import segment_visible
@@ -58,6 +58,13 @@ def _brute(kind, coef, res, near, slow, offs, knots, out):  # pragma: no cover -
                     break
 
 
+def _triangles(verts0, verts1, faces, moving) -> GeometryArrays:
+    """The kernels' geometry group for triangles alone (no clusters, no spheres)."""
+    return GeometryArrays(verts0, verts1, faces, moving, np.zeros(1, np.int64),
+                          np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                          np.zeros(0), len(faces))
+
+
 def _check_case(verts0, verts1, v0, v1, rb, near, tally):
     """Every pixel whose sample some exact cover test accepts lies in the triangle's box, its
     scan-converted row span and its binned tiles, on every face."""
@@ -69,7 +76,7 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
     flag = np.zeros(6, np.uint8)
     hulls = Hulls(np.arange(6, dtype=np.int32), np.zeros((6, HMAX, 2), np.float32),
                   np.zeros(6, np.int8))
-    _expanded_boxes(Triangles(verts0, verts1, faces, moving), np.zeros(6, np.int64),
+    _expanded_boxes(_triangles(verts0, verts1, faces, moving), np.zeros(6, np.int64),
                     np.arange(6), CubeFrame(v0, dvec, rb, _PERM, _SGN, RES, near, PAD), box, z,
                     flag, hulls)
     rots = cube_face_rotations(rb)
@@ -188,7 +195,7 @@ def test_sliver_visits_fewer_pixels_than_its_box():
     flag = np.zeros(6, np.uint8)
     hulls = Hulls(np.arange(6, dtype=np.int32), np.zeros((6, HMAX, 2), np.float32),
                   np.zeros(6, np.int8))
-    _expanded_boxes(Triangles(v, v, f, np.zeros(1, bool)), np.zeros(6, np.int64), np.arange(6),
+    _expanded_boxes(_triangles(v, v, f, np.zeros(1, bool)), np.zeros(6, np.int64), np.arange(6),
                     CubeFrame(a, b - a, np.eye(3), _PERM, _SGN, 128, 0.05, 0.5), box,
                     np.zeros(6), flag, hulls)
     box_pairs = sum(int((box[k, 1] - box[k, 0] + 1) * (box[k, 3] - box[k, 2] + 1))
