@@ -15,11 +15,14 @@ Two parts, printed and written to ``benchmarks/results/cos.md`` (+ ``cos.json``,
            how much of the measured overestimation is the reference missing sub-pixel
            triangles, and whether the PVS holds every triangle the denser references see.
 
-The reference: every triangle seen from ``--points`` stratified eyes in the box plus its 26
-boundary points (corners, edge midpoints, face centres), random cube orientation each, 256 px
-per face (``visibility.ground_truth.dense_reference``). Usage:
-``python -m benchmarks.bench_cos`` (with the kitchen about 6 minutes on 2 cores,
-``--skip-kitchen`` about 2), ``--quick`` for a smoke run. Times are the best of
+Tightness at the server's 4 m cells of the real scenes: ``benchmarks.bench_cos_tightness``.
+
+The reference (``visibility.ray_frames``, Embree, never our rasterizer): every triangle some
+pixel shows in frames of ``--points`` eyes stratified in the box's open space, a randomly turned
+cube of 256 px per face each, with the clients' near plane; a triangle the PVS lacks counts as
+missed only when the float64 cast of its pixel's ray confirms it. Usage:
+``python -m benchmarks.bench_cos`` (with the kitchen about 8 minutes on 2 cores,
+``--skip-kitchen`` about 3), ``--quick`` for a smoke run. Times are the best of
 ``FAST_REPEATS`` runs after a warm-up compile (of 2 on the kitchen).
 """
 
@@ -40,7 +43,9 @@ import numpy as np  # noqa: E402
 from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
-from visibility.ground_truth import cell_around, dense_reference, fn_fp_rates  # noqa: E402
+from visibility.ground_truth import cell_around, fn_fp_rates  # noqa: E402
+from visibility.raster.camera import DEFAULT_NEAR  # noqa: E402
+from visibility.ray_frames import missed_triangles, ray_frames, seen_ids  # noqa: E402
 from visibility.viewcells import Viewcell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -57,6 +62,21 @@ def _kitchen():
     if (SHARED_SCENES / "kitchen.glb").exists():
         return load_scene(SHARED_SCENES / "kitchen.glb")
     return None
+
+
+class Reference:
+    """Ray frames of a cell (``ray_frames``, the clients' near plane) and the triangles they
+    show; ``missed(ids)``: the confirmed ones a PVS lacks."""
+
+    def __init__(self, scene, box: np.ndarray, eyes: int, resolution: int = 256,
+                 seed: int = 0) -> None:
+        self.scene = scene
+        self.frames = ray_frames(scene, box, n_eyes=eyes, resolution=resolution, seed=seed,
+                                 near=DEFAULT_NEAR)
+        self.ids = seen_ids(self.frames)
+
+    def missed(self, pvs_ids: np.ndarray) -> np.ndarray:
+        return missed_triangles(self.scene, self.frames, pvs_ids)
 
 
 def _run(scene, box, resolution: int, repeats: int = 2, **params: Any) -> Any:
@@ -77,13 +97,15 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
     pvs = _run(scene, box, resolution, repeats, **params)
     if keep is not None:
         keep["ids"] = pvs.triangle_ids
-    fn, fp = fn_fp_rates(pvs.triangle_ids, ref)
-    missed = int(len(np.setdiff1d(ref, pvs.triangle_ids)))
+    missed = int(len(ref.missed(pvs.triangle_ids)))
+    fn = missed / max(1, len(ref.ids))
+    fp = fn_fp_rates(pvs.triangle_ids, ref.ids)[1]
     st = pvs.stats
     row = {"cell": label, "resolution": resolution, "triangles": scene.n_triangles,
-           "seconds": pvs.seconds, "pvs": len(pvs), "reference": int(len(ref)), "fn": fn,
-           "fn_count": missed, "fp": fp, "overestimation": (len(pvs) - len(ref) + missed)
-           / max(1, len(ref)), "list_entries": st["list_entries"],
+           "seconds": pvs.seconds, "pvs": len(pvs), "reference": int(len(ref.ids)), "fn": fn,
+           "fn_count": missed, "fp": fp,
+           "overestimation": (len(pvs) - len(ref.ids) + missed) / max(1, len(ref.ids)),
+           "list_entries": st["list_entries"],
            "longest_list": st["longest_list"], "mean_list": st["list_entries"] / st["pixels"],
            "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
@@ -103,7 +125,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
     print(f"{label:24s} R={resolution:4d} {pvs.seconds:7.3f}s  sort {row['sort_seconds']:.3f} "
           f"lists {row['list_seconds']:.3f} resolve {row['resolve_seconds']:.3f}  "
           f"entries {row['list_entries']:9d} longest {row['longest_list']:5d}  PVS {len(pvs):7d} "
-          f"ref {len(ref):7d} FN {missed} FP {fp:.2f}", flush=True)
+          f"ref {len(ref.ids):7d} FN {missed} FP {fp:.2f}", flush=True)
     return row
 
 
@@ -129,7 +151,7 @@ def speed(quick: bool, points: int, kitchen: bool = True,
     cells.append((f"city {n // 1000}k 4 m", city, cell_around(city, 4.0, 0)))
     rows = []
     for label, sc, box in cells:
-        ref = dense_reference(sc, box, n_points=points, resolution=256)
+        ref = Reference(sc, box, points)
         for res in sorted({64, DEFAULT_RESOLUTION}):
             keep: dict[str, Any] = {}
             rows.append(_row(label, sc, box, res, ref, keep,
@@ -156,25 +178,28 @@ def kitchen_part(scene, box: np.ndarray, pvs_ids: np.ndarray, row: dict[str, Any
     ``GROWTH_RESOLUTIONS``: triangles seen, and how many of them ``pvs_ids`` (the 0.3 m PVS)
     lacks."""
     from visibility.cores.cos.core import DEFAULT_RESOLUTION
-    from visibility.ground_truth import sample_pvs
-    from visibility.viewcells import Viewcell
 
     centre = 0.5 * (box[0] + box[1])
     sizes = []
     for size in KITCHEN_SIZES:
         b = np.stack([centre - 0.5 * size, centre + 0.5 * size])
-        ref = dense_reference(scene, b, n_points=points, resolution=256)
+        ref = Reference(scene, b, points)
         r = _row(f"kitchen 1M {100 * size:g} cm", scene, b, DEFAULT_RESOLUTION, ref, repeats=1)
         r.update(size=size)
         sizes.append(r)
     sizes.append(dict(row, size=float(box[1][0] - box[0][0])))
     growth = []
     for res in GROWTH_RESOLUTIONS:
-        gt = sample_pvs(scene, Viewcell(box), n_points=GROWTH_EYES, resolution=res, seed=0)
-        missed = int(len(np.setdiff1d(gt.triangle_ids, pvs_ids)))
-        growth.append({"resolution": res, "seen": int(len(gt.triangle_ids)), "missed": missed})
-        print(f"kitchen reference {GROWTH_EYES} eyes at {res} px: {len(gt.triangle_ids)} "
-              f"triangles, {missed} missing from the PVS", flush=True)
+        # One eye at a time: the frames of 16 eyes at 2048 px would take gigabytes.
+        seen: set[int] = set()
+        miss: set[int] = set()
+        for k in range(GROWTH_EYES):
+            ref = Reference(scene, box, 1, res, seed=1000 + k)
+            seen.update(ref.ids.tolist())
+            miss.update(ref.missed(pvs_ids).tolist())
+        growth.append({"resolution": res, "seen": len(seen), "missed": len(miss)})
+        print(f"kitchen reference {GROWTH_EYES} eyes at {res} px: {len(seen)} "
+              f"triangles, {len(miss)} missing from the PVS", flush=True)
     return {"sizes": sizes, "growth": growth, "pvs": int(len(pvs_ids)),
             "triangles": scene.n_triangles}
 
@@ -187,7 +212,7 @@ def fp_table(quick: bool, points: int) -> list[dict[str, Any]]:
         sc = make_scene(name, triangles=n)
         for size in sizes:
             box = cell_around(sc, size, 0)
-            ref = dense_reference(sc, box, n_points=points, resolution=256)
+            ref = Reference(sc, box, points)
             r = _row(f"{name} {n // 1000}k {size:g} m", sc, box, 128, ref)
             r.update(scene=name, size=size)
             rows.append(r)
@@ -336,10 +361,11 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            f"Command: `{cmd}`; {platform.machine()}, "
            f"{os.cpu_count()} CPU cores, {elapsed:.0f} s in all.{loadavg} Times: best of "
            f"{FAST_REPEATS} runs (of 2 on the kitchen) after a warm-up compile. "
-           "Reference: every triangle seen from "
-           f"{points} stratified eyes in the box plus its 26 boundary points (random cube "
-           "orientation each) at 256 px per face; FN counts reference triangles missing from "
-           "the PVS, FP is the share of the PVS the reference did not see, overestimation is "
+           "Reference: every triangle some pixel shows in Embree ray frames from "
+           f"{points} eyes stratified in the box's open space (a randomly turned cube of "
+           "256 px per face each, the clients' 5 cm near plane, `visibility/ray_frames.py`); "
+           "FN counts the triangles it shows that the PVS lacks, each confirmed by a float64 "
+           "cast, FP is the share of the PVS the reference did not see, overestimation is "
            "(PVS - true positives) / reference (the paper's 20-90 % measure).", "",
            "## Speed cells", "",
            "| cell | R | s | µs / px | closed | sort | lists | coarse | resolve | "
@@ -381,7 +407,8 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--points", type=int, default=256)
+    ap.add_argument("--points", type=int, default=64,
+                    help="reference eyes per cell (ray frames of 256 px per face)")
     ap.add_argument("--parts", nargs="+", default=["speed", "fp"])
     ap.add_argument("--skip-kitchen", action="store_true",
                     help="leave out the 1M-triangle kitchen cell (its dense clutter makes "

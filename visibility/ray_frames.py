@@ -171,27 +171,44 @@ def missed_pixels(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray,
     ``confirm``, each is cast again in float64 over every valid triangle (up to
     ``CONFIRM_PER_FRAME`` a frame; the rest count unconfirmed) and counts only when that
     cast also meets a triangle outside the PVS."""
+    return np.array([len(m) for m in _missed(scene, frames, pvs_ids, confirm)],
+                    dtype=np.int64)
+
+
+def missed_triangles(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray) -> np.ndarray:
+    """Sorted int64 ids of the triangles outside the PVS ``pvs_ids`` that some pixel of the
+    frames shows, each confirmed by the float64 cast of ``missed_pixels`` (past
+    ``CONFIRM_PER_FRAME`` a frame, the float32 hit counts unconfirmed): what a core that
+    promises no false negatives must never leave out."""
+    got = [m for m in _missed(scene, frames, pvs_ids, True) if len(m)]
+    return np.unique(np.concatenate(got)) if got else np.zeros(0, dtype=np.int64)
+
+
+def _missed(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray, confirm: bool
+            ) -> list[np.ndarray]:
+    """Per frame, the triangle outside the PVS that each missed pixel shows (``confirm``:
+    by the float64 cast where it was made), one entry per pixel."""
     in_pvs = np.zeros(scene.n_triangles + 1, dtype=bool)
     in_pvs[np.asarray(pvs_ids, dtype=np.int64)] = True
-    out = np.zeros(len(frames.ids), dtype=np.int64)
+    out: list[np.ndarray] = []
     caster = None
     tri_ids = None
     for k, row in enumerate(frames.ids):
         miss = np.flatnonzero((row >= 0) & ~in_pvs[np.maximum(row, 0)])
         if not confirm or len(miss) == 0:
-            out[k] = len(miss)
+            out.append(row[miss])
             continue
         if caster is None:
             tri, tri_ids = frame_triangles(scene, frames.centre)
             caster = ExactCaster(tri)
-        check, rest = miss[:CONFIRM_PER_FRAME], len(miss) - min(len(miss), CONFIRM_PER_FRAME)
+        check, rest = miss[:CONFIRM_PER_FRAME], miss[CONFIRM_PER_FRAME:]
         d = frames.dirs[k, check].astype(np.float64)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         orig = np.broadcast_to(frames.eyes[k] - frames.centre, d.shape)
         got, _ = caster.first_hits(np.ascontiguousarray(orig), d,
                                    near_clip(d, frames.cubes[k], frames.near))
         hit = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
-        out[k] = int(np.count_nonzero((hit >= 0) & ~in_pvs[np.maximum(hit, 0)])) + rest
+        out.append(np.concatenate([hit[(hit >= 0) & ~in_pvs[np.maximum(hit, 0)]], row[rest]]))
     return out
 
 

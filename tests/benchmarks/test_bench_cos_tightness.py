@@ -12,13 +12,17 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     results = json.loads((tmp_path / "cos_tightness.json").read_text())["results"]
     assert [r["scene"] for r in results] == ["lavaducts"]
     rows = results[0]["rows"]
-    assert [r["resolution"] for r in rows] == [16, 32]
-    ref = results[0]["reference"]["triangles"]
-    assert ref > 0
+    cos = [r for r in rows if r["core"] == "cos"]
+    assert [r["resolution"] for r in cos] == [16, 32, 32]
+    assert "sub-cells" in cos[2]["run"]
+    assert [r["core"] for r in rows].count("sampling") == 2
+    ref = results[0]["reference"]
+    assert ref["triangles"] > 0 and ref["eyes"] == 8 and len(ref["steps"]) == 2
     for r in rows:
-        # cos promises no false negatives: the reference's triangles are all in its PVS.
+        assert abs(r["ratio"] - r["pvs"] / ref["triangles"]) < 1e-12
+    for r in cos:
+        # cos promises no false negatives: nothing the rays show is missing, confirmed.
         assert r["missed"] == 0
-        assert r["pvs"] >= ref and abs(r["ratio"] - r["pvs"] / ref) < 1e-12
     md = (tmp_path / "cos_tightness.md").read_text()
-    assert "| lavaducts |" in md and "## Reading" in md
+    assert "| lavaducts |" in md and "## Reading" in md and "sub-cells" in md
     assert (tmp_path / "cos_tightness.png").stat().st_size > 0

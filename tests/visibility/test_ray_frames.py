@@ -10,7 +10,13 @@ import pytest
 
 from visibility.cores.designed_scenes import Builder
 from visibility.raster.camera import random_rotations
-from visibility.ray_frames import cube_directions, missed_pixels, ray_frames, seen_ids
+from visibility.ray_frames import (
+    cube_directions,
+    missed_pixels,
+    missed_triangles,
+    ray_frames,
+    seen_ids,
+)
 
 
 def _wall_and_back():
@@ -72,6 +78,12 @@ def test_a_miss_float64_contradicts_does_not_count():
     assert missed_pixels(scene, forged, pvs, confirm=False)[0] == honest[0] + 7
     # Cast again exactly, those rays meet the wall, which the PVS holds.
     assert missed_pixels(scene, forged, pvs)[0] == honest[0]
+    # The triangles missed: the back wall's second one where some pixel really shows it, and
+    # never on the forged pixels' word alone.
+    truly = np.isin(fr.ids, back[1]).any()
+    assert missed_triangles(scene, forged, pvs).tolist() == ([int(back[1])] if truly else [])
+    assert missed_triangles(scene, fr, wall).tolist() == sorted(back.tolist())
+    assert len(missed_triangles(scene, fr, np.concatenate([wall, back]))) == 0
 
 
 def test_eyes_inside_a_closed_solid_are_dropped():

@@ -106,6 +106,20 @@ def test_cos_coarse_pass_no_confirmed_misses(name, size):
         f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
+@pytest.mark.parametrize("name", [n for n in REAL if n not in BENCHMARK_ONLY["cos"]])
+def test_cos_sub_cells_no_confirmed_misses(name):
+    # The 1 m cell solved as 2 x 2 sub-cells, each passing what it found on as known.
+    scene = real_scene(name)
+    _, box, ref = cells(name, 1.0)[0]
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(subcells=2))
+    assert pvs.stats["subcells"] == 2
+    sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
+    assert sure.tolist() == [], (
+        f"cos in 2 x 2 sub-cells misses {len(sure)} of {len(ref.ids)} triangles the rays see "
+        f"from {name}'s 1 m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
+
+
 @pytest.mark.parametrize("name", [n for n in REAL if n in ("kitchen", "lavaducts")])
 def test_dual_ray_refuses_the_interiors_with_the_reason(name):
     # The interiors are not 2.5D: dual_ray says why instead of answering.
