@@ -21,8 +21,8 @@ The reference (``visibility.ray_frames``, Embree, never our rasterizer): every t
 pixel shows in frames of ``--points`` eyes stratified in the box's open space, a randomly turned
 cube of 256 px per face each, with the clients' near plane; a triangle the PVS lacks counts as
 missed only when the float64 cast of its pixel's ray confirms it. Usage:
-``python -m benchmarks.bench_cos`` (with the kitchen about 8 minutes on 2 cores,
-``--skip-kitchen`` about 3), ``--quick`` for a smoke run. Times are the best of
+``python -m benchmarks.bench_cos`` (with the kitchen about 10 minutes on 2 cores; or
+``--skip-kitchen``), ``--quick`` for a smoke run. Times are the best of
 ``FAST_REPEATS`` runs after a warm-up compile (of 2 on the kitchen).
 """
 
@@ -156,6 +156,8 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             keep: dict[str, Any] = {}
             rows.append(_row(label, sc, box, res, ref, keep,
                              repeats=2 if sc is kitchen else FAST_REPEATS))
+            if res == DEFAULT_RESOLUTION:
+                rows[-1]["sampling"] = _sampling(sc, box, ref)
             if sc is kitchen and res == DEFAULT_RESOLUTION and kitchen_rows is not None:
                 kitchen_rows.update(kitchen_part(sc, box, keep["ids"], rows[-1], points))
         if sc is kitchen or label.endswith("4 m"):
@@ -163,6 +165,21 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
                              repeats=1 if sc is kitchen else 2, coarse_items=0))
     return rows
+
+
+def _sampling(scene, box: np.ndarray, ref: Reference) -> dict[str, Any]:
+    """``sampling`` at its defaults on the same cell (best of 2): PVS size, seconds, and the
+    triangles the reference shows that it lacks (unconfirmed: the float64 confirmation of
+    thousands of misses over a 1M scene would cost more than the whole benchmark)."""
+    core = get_core("sampling")
+    best = None
+    for _ in range(2):
+        pvs = core.compute(scene, Viewcell(box), core.make_params())
+        best = pvs if best is None or pvs.seconds < best.seconds else best
+    missed = int(len(np.setdiff1d(ref.ids, best.triangle_ids)))
+    print(f"  sampling at its defaults: {best.seconds:.3f}s PVS {len(best)} missed {missed}",
+          flush=True)
+    return {"seconds": best.seconds, "pvs": len(best), "missed": missed}
 
 
 #: The kitchen part: smaller cells (same centre), and the sampled reference's resolutions.
@@ -392,6 +409,24 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "
                    f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} |")
     out += ["", "![time per phase](cos.png)", ""]
+    side = [r for r in speed_rows if r.get("sampling")]
+    if side:
+        out += ["## Beside `sampling`", "",
+                "The same cells and reference, `sampling` at its defaults (best of 2; its "
+                "missed triangles are not confirmed in float64, so a few may be float32 "
+                "noise).", "",
+                "| cell | cos s | cos PVS | cos FN | sampling s | sampling PVS | sampling "
+                "missed | ref |", "|---|---|---|---|---|---|---|---|"]
+        for r in side:
+            sm = r["sampling"]
+            out.append(f"| {r['cell']} | {r['seconds']:.2f} | {r['pvs']:,} | {r['fn_count']} | "
+                       f"{sm['seconds']:.2f} | {sm['pvs']:,} | {sm['missed']:,} | "
+                       f"{r['reference']:,} |")
+        out += ["", "Reading: " + "; ".join(
+            f"{r['cell']}: cos {r['seconds'] / max(r['sampling']['seconds'], 1e-9):.1f}x "
+            f"sampling's time for {r['pvs'] / max(1, r['sampling']['pvs']):.1f}x its PVS, "
+            f"missing {r['fn_count']} where sampling misses {r['sampling']['missed']:,} of "
+            f"{r['reference']:,}" for r in side) + ".", ""]
     out += _reading(speed_rows, fp_rows)
     out += _kitchen_md(kitchen or {})
     out += ["## FP per scene and cell size (R = 128)", "",

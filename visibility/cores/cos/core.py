@@ -117,8 +117,8 @@ class CosCore(Core):
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(0.15-0.2 s for a 0.3 m cell of 100k); 4 m cells cost 0.5 s "
-                           "(city) to 7.5 s (rooms), dense clutter half a minute (the 1M "
+                           "(0.12-0.17 s for a 0.3 m cell of 100k); 4 m cells cost 0.4-0.5 s "
+                           "(city) to 7.6 s (rooms), dense clutter half a minute (the 1M "
                            "kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
