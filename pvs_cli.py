@@ -291,6 +291,12 @@ def cmd_scenes(args: argparse.Namespace) -> int:
     flat, how = is_2_5d(scene)
     info["is_2_5d"] = {"value": flat, "source": how["source"], "why": how["reason"]}
     info["grid"] = ViewcellGrid.for_scene(scene).to_dict()
+    # Where cos can fuse occluders: edges of one triangle only after welding, and how many of
+    # those are T-junctions (continuous surfaces fusion cannot join).
+    from visibility.cores.cos.fusion import open_edge_share, t_junction_share
+
+    info["edges"] = {"open_share": round(open_edge_share(scene), 4),
+                     "t_junction_share_of_open": round(t_junction_share(scene), 4)}
     print(json.dumps(info, indent=2))
     return 0
 

@@ -23,6 +23,18 @@ def test_scenes_lists_generators_locally(capsys):
         assert name in out
 
 
+def test_scenes_describes_one_with_its_edges(tmp_path, capsys):
+    from tests.conftest import write_scene_files
+
+    write_scene_files(tmp_path / "scenes")
+    assert pvs_cli.main(["scenes", "box", "--scenes", str(tmp_path / "scenes")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    edges = info["edges"]
+    assert 0.0 <= edges["open_share"] <= 1.0
+    assert 0.0 <= edges["t_junction_share_of_open"] <= 1.0
+    assert info["grid"]["cells"] > 0
+
+
 def test_query_cell_segment_and_box(live_server, capsys):
     assert pvs_cli.main(["query", "--server", live_server, "--scene", "tiny", "--cell", "1",
                          "--core", "sampling", "--param", "samples=4", "--param",

@@ -25,3 +25,55 @@ def open_edge_share(scene: Scene) -> float:
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return float(np.mean(counts == 1))
+
+
+def t_junction_share(scene: Scene) -> float:
+    """Share of the scene's open edges (``open_edge_share``) that run along another open edge
+    held the opposite way, overlapping it on one line: T-junctions, where two triangles meet
+    with no gap but share no vertex pair, so occluder fusion (welded edges) cannot join them
+    and a silhouette stays across a continuous surface. Lines match when directions and feet
+    agree to 1e-6 (relative to the scene's size); 0.0 when no edge is open."""
+    ids, _ = scene_welded_ids(scene)
+    faces = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
+    if len(faces) == 0:
+        return 0.0
+    rep = np.zeros(int(ids.max()) + 1, dtype=np.int64)
+    rep[ids] = np.arange(len(ids))
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    _, inv, counts = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True,
+                               return_counts=True)
+    e = e[counts[inv.ravel()] == 1]
+    if len(e) == 0:
+        return 0.0
+    v = np.asarray(scene.vertices, dtype=np.float64)
+    a, b = v[rep[e[:, 0]]], v[rep[e[:, 1]]]
+    scale = max(float(np.abs(v).max()), 1.0)
+    d = b - a
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # One direction per line: the largest component positive; the edge's sign says which way
+    # it runs along it.
+    big = np.argmax(np.abs(d), axis=1)
+    sign = np.sign(d[np.arange(len(d)), big])
+    d *= sign[:, None]
+    ta = np.einsum("ij,ij->i", a, d)
+    tb = np.einsum("ij,ij->i", b, d)
+    foot = a - ta[:, None] * d
+    key = np.concatenate([np.round(d * 1e6), np.round(foot / scale * 1e6)], axis=1)
+    _, line = np.unique(key, axis=0, return_inverse=True)
+    line = line.ravel()
+    order = np.argsort(line, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(line[order]) != 0])
+    ends = np.r_[starts[1:], len(order)]
+    lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
+    eps = 1e-9 * scale
+    joined = np.zeros(len(e), dtype=bool)
+    for s, t in zip(starts, ends, strict=True):
+        if t - s < 2:
+            continue
+        m = order[s:t]
+        # Opposite ways and overlapping by more than rounding.
+        opp = sign[m][:, None] != sign[m][None, :]
+        over = (np.minimum(hi[m][:, None], hi[m][None, :])
+                - np.maximum(lo[m][:, None], lo[m][None, :])) > eps
+        joined[m] = (opp & over).any(axis=1)
+    return float(joined.mean())

@@ -436,6 +436,24 @@ def test_open_edge_share_counts_borders_and_t_junctions():
     assert open_edge_share(tj) == 1.0
 
 
+def test_t_junction_share_finds_edges_along_reversed_open_edges():
+    from visibility.cores.cos.fusion import t_junction_share
+
+    # The right triangle's edge (1, 1) -> (2, 0) runs back along the left one's hypotenuse:
+    # two of the six open edges meet at a T-junction.
+    t = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0], [1, 1, 0], [2, 0, 0]], float)
+    tj = Scene(t, np.array([[0, 1, 2], [5, 3, 4]]), name="tj")
+    assert t_junction_share(tj) == pytest.approx(2 / 6)
+    # Moved a millimetre off the hypotenuse, the vertex leaves a gap: no T-junction.
+    gap = t.copy()
+    gap[4] = [1.001, 1.001, 0]
+    assert t_junction_share(Scene(gap, tj.faces, name="gap")) == 0.0
+    # Welded shared edges are not open at all; a closed mesh has none.
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    closed = Scene(tet, np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]), name="tet")
+    assert t_junction_share(closed) == 0.0
+
+
 def _walk_hides(depths):
     """_hides on a group whose depth grid lists triangles of the given depth ranges (oldest
     first) in the cell under K, their plane test refused (ouse False) and the cells' depth
