@@ -64,6 +64,10 @@ class CosParams(CoreParams):
         resolution and above; scaled by the tile's solid angle below it) is first resolved
         as one pixel of the tile's width, and what that finds hidden for the whole tile is
         left out of the tile's per-pixel lists; 0 turns it off.
+    subcells : the cell is solved as ``subcells`` x ``subcells`` boxes splitting its x and z
+        sides (its height, the eye range, stays whole), and the PVS is their union
+        (``cos_subcells``): still conservative, tighter where the offsets of the whole cell
+        leave no single occluder covering what the sub-cells' do.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
