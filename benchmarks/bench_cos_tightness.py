@@ -85,12 +85,13 @@ def reference(scene: Scene, box: np.ndarray, judged: dict[str, np.ndarray], firs
                             near=DEFAULT_NEAR)
             cast += n
             kept += len(fr.ids)
-            seen = np.union1d(seen, seen_ids(fr))
+            shown = seen_ids(fr)
+            seen = np.union1d(seen, shown)
             for k, ids in judged.items():
                 if k in confirm:
                     missed[k].update(missed_triangles(scene, fr, ids).tolist())
                 else:
-                    missed[k].update(np.setdiff1d(seen_ids(fr), ids).tolist())
+                    missed[k].update(np.setdiff1d(shown, ids).tolist())
         steps.append({"eyes": cast, "kept": kept, "triangles": int(len(seen))})
         grow = ((steps[-1]["triangles"] - steps[-2]["triangles"]) / max(1, steps[-2]["triangles"])
                 if len(steps) > 1 else float("nan"))

@@ -14,17 +14,26 @@ from visibility.scene import Scene
 from visibility.topology import scene_welded_ids
 
 
+def _open_edges(scene: Scene) -> tuple[np.ndarray, np.ndarray, int]:
+    """The scene's edges as welded-id pairs (valid faces only, corner k -> k + 1, (3m, 2)),
+    which of them belong to one triangle only, and how many distinct edges there are."""
+    ids, _ = scene_welded_ids(scene)
+    f = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    if len(e) == 0:
+        return e, np.zeros(0, dtype=bool), 0
+    _, inv, counts = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True,
+                               return_counts=True)
+    return e, counts[inv.ravel()] == 1, len(counts)
+
+
 def open_edge_share(scene: Scene) -> float:
     """Share of the scene's edges (after welding, valid faces only) that belong to one triangle
     only: open borders and T-junctions, where occluders cannot fuse (a wall split at a
     T-junction keeps a silhouette across its face). 0 for a closed, welded mesh."""
-    ids, _ = scene_welded_ids(scene)
-    f = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
-    if len(f) == 0:
-        return 0.0
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
-    return float(np.mean(counts == 1))
+    _, one, distinct = _open_edges(scene)
+    # An open edge is used once, so its uses count the distinct open edges.
+    return float(one.sum() / distinct) if distinct else 0.0
 
 
 def t_junction_share(scene: Scene) -> float:
@@ -33,18 +42,13 @@ def t_junction_share(scene: Scene) -> float:
     with no gap but share no vertex pair, so occluder fusion (welded edges) cannot join them
     and a silhouette stays across a continuous surface. Lines match when directions and feet
     agree to 1e-6 (relative to the scene's size); 0.0 when no edge is open."""
-    ids, _ = scene_welded_ids(scene)
-    faces = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
-    if len(faces) == 0:
-        return 0.0
-    rep = np.zeros(int(ids.max()) + 1, dtype=np.int64)
-    rep[ids] = np.arange(len(ids))
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    _, inv, counts = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True,
-                               return_counts=True)
-    e = e[counts[inv.ravel()] == 1]
+    e, one, _ = _open_edges(scene)
+    e = e[one]
     if len(e) == 0:
         return 0.0
+    ids, _ = scene_welded_ids(scene)
+    rep = np.zeros(int(ids.max()) + 1, dtype=np.int64)
+    rep[ids] = np.arange(len(ids))
     v = np.asarray(scene.vertices, dtype=np.float64)
     a, b = v[rep[e[:, 0]]], v[rep[e[:, 1]]]
     scale = max(float(np.abs(v).max()), 1.0)
