@@ -1,0 +1,25 @@
+"""The cos excess benchmark runs end to end (``--quick``) and writes what it says it writes."""
+
+from __future__ import annotations
+
+import json
+
+from benchmarks.bench_cos_excess import main
+
+
+def test_quick_run_writes_the_tables_and_the_data(tmp_path):
+    main(["--quick", "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "cos_excess.json").read_text())["results"]
+    assert [r["scene"] for r in results] == ["lavaducts"]
+    res = results[0]
+    assert [r["subcells"] for r in res["rows"]] == [1, 2]
+    assert res["rows"][0]["pvs"] == res["pvs"]
+    a = res["aimed"]
+    assert [s["eyes"] for s in a["steps"]] == [4, min(8, a["eyes_in_open_space"])]
+    # The aimed rays see some of the PVS, and more eyes never see less.
+    assert 0 < a["steps"][0]["seen_in_pvs"] <= a["steps"][-1]["seen_in_pvs"] <= res["pvs"]
+    assert 0 < a["confirmed_in_pvs"] <= a["steps"][-1]["seen_in_pvs"]
+    # cos promises no false negatives: nothing the aimed rays show is missing, confirmed.
+    assert a["missed"] == 0
+    md = (tmp_path / "cos_excess.md").read_text()
+    assert "| lavaducts |" in md and "## Sub-cells" in md and "## Reading" in md
