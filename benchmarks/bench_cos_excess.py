@@ -29,7 +29,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -38,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_cos_tightness import SCENES, SHARED_SCENES, middle_cell
-from benchmarks.common import command_line, header_lines, machine, md_table
+from benchmarks.common import command_line, header_lines, machine, md_table, write_report
 from visibility.cores.cos.core import DEFAULT_RESOLUTION, cos_pvs, cos_subcells
 from visibility.ground_truth import sample_points
 from visibility.loaders import load_scene
@@ -190,13 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     results = [run_scene(s, args.size, args.resolution, subcells, args.eyes, args.most_eyes,
                          args.aims) for s in args.scenes]
     elapsed = time.perf_counter() - t0
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = "cos_excess"
-    (args.out / f"{stem}.json").write_text(json.dumps(
-        {"command": command_line("benchmarks.bench_cos_excess", argv), "machine": machine(),
-         "results": results}, indent=1))
-    (args.out / f"{stem}.md").write_text(_md(results, args, argv, elapsed))
-    print(f"wrote {args.out / stem}.md", flush=True)
+    write_report(args.out, "cos_excess", "benchmarks.bench_cos_excess", argv, results,
+                 _md(results, args, argv, elapsed))
 
 
 if __name__ == "__main__":

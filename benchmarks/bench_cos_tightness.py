@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import command_line, header_lines, machine, md_table
+from benchmarks.common import command_line, header_lines, machine, md_table, write_report
 from visibility.cores.base import get_core
 from visibility.cores.cos.core import DEFAULT_RESOLUTION, cos_pvs, cos_subcells
 from visibility.loaders import load_scene
@@ -264,13 +263,9 @@ def main(argv: list[str] | None = None) -> None:
                for s in args.scenes]
     elapsed = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "cos_tightness"
-    (args.out / f"{stem}.json").write_text(json.dumps(
-        {"command": command_line("benchmarks.bench_cos_tightness", argv), "machine": machine(),
-         "results": results}, indent=1))
-    _plot(results, args.out / f"{stem}.png")
-    (args.out / f"{stem}.md").write_text(_md(results, args, argv, elapsed))
-    print(f"wrote {args.out / stem}.md", flush=True)
+    _plot(results, args.out / "cos_tightness.png")
+    write_report(args.out, "cos_tightness", "benchmarks.bench_cos_tightness", argv, results,
+                 _md(results, args, argv, elapsed))
 
 
 if __name__ == "__main__":

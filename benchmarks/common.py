@@ -6,6 +6,7 @@ Imports nothing of the project, so any benchmark (and its test) can use it.
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import shlex
@@ -86,6 +87,18 @@ def command_line(module: str, argv: Sequence[str] | None = None) -> str:
 def header_lines(command: str, where: str) -> list[str]:
     """The command and machine lines a markdown report starts with (after its title)."""
     return [f"command: `{command}`", "", f"machine: {where}", ""]
+
+
+def write_report(out: Path, stem: str, module: str, argv: Sequence[str], results: Any,
+                 markdown: str) -> None:
+    """Write a benchmark's ``out/stem.json`` (its command, machine line and ``results``) and
+    ``out/stem.md`` (``markdown``), and say where."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(
+        {"command": command_line(module, argv), "machine": machine(), "results": results},
+        indent=1))
+    (out / f"{stem}.md").write_text(markdown)
+    print(f"wrote {out / stem}.md", flush=True)
 
 
 def md_table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
