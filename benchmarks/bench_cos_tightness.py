@@ -262,10 +262,9 @@ def main(argv: list[str] | None = None) -> None:
     results = [run_scene(s, args.size, resolutions, args.eyes, args.most_eyes, args.ref_res)
                for s in args.scenes]
     elapsed = time.perf_counter() - t0
-    args.out.mkdir(parents=True, exist_ok=True)
-    _plot(results, args.out / "cos_tightness.png")
     write_report(args.out, "cos_tightness", "benchmarks.bench_cos_tightness", argv, results,
                  _md(results, args, argv, elapsed))
+    _plot(results, args.out / "cos_tightness.png")
 
 
 if __name__ == "__main__":

@@ -11,12 +11,18 @@ from __future__ import annotations
 import numpy as np
 
 from visibility.scene import Scene
+from visibility.scene_cache import per_scene
 from visibility.topology import scene_welded_ids
 
 
 def _open_edges(scene: Scene) -> tuple[np.ndarray, np.ndarray, int]:
     """The scene's edges as welded-id pairs (valid faces only, corner k -> k + 1, (3m, 2)),
-    which of them belong to one triangle only, and how many distinct edges there are."""
+    which of them belong to one triangle only, and how many distinct edges there are; built
+    once per scene for both shares."""
+    return per_scene(scene, "cos/open_edges", _build_open_edges)[0]
+
+
+def _build_open_edges(scene: Scene) -> tuple[np.ndarray, np.ndarray, int]:
     ids, _ = scene_welded_ids(scene)
     f = ids[np.asarray(scene.faces)[np.asarray(scene.valid_faces)]]
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
@@ -71,10 +77,9 @@ def t_junction_share(scene: Scene) -> float:
     lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
     eps = 1e-9 * scale
     joined = np.zeros(len(e), dtype=bool)
-    for s, t in zip(starts, ends, strict=True):
-        if t - s < 2:
-            continue
-        m = order[s:t]
+    # Only lines holding two open edges or more can hold a T-junction.
+    for k in np.flatnonzero(ends - starts >= 2):
+        m = order[starts[k]:ends[k]]
         # Opposite ways and overlapping by more than rounding.
         opp = sign[m][:, None] != sign[m][None, :]
         over = (np.minimum(hi[m][:, None], hi[m][None, :])
