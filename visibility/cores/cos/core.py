@@ -50,6 +50,9 @@ DEFAULT_RESOLUTION = 128
 #: (benchmarks/results/cos.md).
 COARSE_MIN_ITEMS = 8192
 
+#: The cover tests (``CosParams.cover``).
+COVERS = ("strict", "relaxed")
+
 
 @dataclass
 class CosParams(CoreParams):
@@ -68,6 +71,12 @@ class CosParams(CoreParams):
         sides (its height, the eye range, stays whole), and the PVS is their union
         (``cos_subcells``): still conservative, tighter where the offsets of the whole cell
         leave no single occluder covering what the sub-cells' do.
+    cover : the cover test an occludee must pass behind an occluder group. ``strict`` (the
+        paper's): no silhouette edge of the group comes near the occludee's whole offset
+        region K. ``relaxed``: where the strict test hides it behind no group, edges that
+        meet K may still pass when they provably never cross the offsets whose rays meet the
+        occludee (``resolve._covers_q``); still conservative, tighter at large cells, dearer
+        (``docs/cores/cos.md``).
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -82,6 +91,9 @@ class CosParams(CoreParams):
                           help="solve the cell as n x n sub-cells across the ground (x, z) "
                                "and join their answers: tighter at large cells, for up to n² "
                                "the time")
+    cover: str = param("strict", choices=COVERS,
+                       help="the occluder cover test: strict (the paper's) or relaxed "
+                            "(tighter at large cells, for more time)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
@@ -169,9 +181,10 @@ class CosCore(Core):
         box = np.asarray(cell.box, dtype=np.float64)
         if int(params.subcells) > 1:
             return cos_subcells(scene, box, int(params.subcells), int(params.resolution),
-                                float(params.list_budget_mb), int(params.coarse_items))
+                                float(params.list_budget_mb), int(params.coarse_items),
+                                cover=str(params.cover))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
-                       int(params.coarse_items))
+                       int(params.coarse_items), cover=str(params.cover))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -191,8 +204,8 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
-                 list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS
-                 ) -> tuple[np.ndarray, dict[str, Any]]:
+                 list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
+                 cover: str = "strict") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
@@ -204,7 +217,8 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
     total: dict[str, Any] = {}
     sizes = []
     for b in sub_boxes(box, n):
-        ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known)
+        ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
+                          cover=cover)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -228,8 +242,8 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
-            coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None
-            ) -> tuple[np.ndarray, dict[str, Any]]:
+            coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
+            cover: str = "strict") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -243,6 +257,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         leaves the tile's per-pixel lists; 0: never.
     known : optional (n_triangles + n_spheres,) bool, ids already in the answer (another
         cell's PVS, ``cos_subcells``): reported, tested no more, still occluders.
+    cover : ``strict`` or ``relaxed``, the occluder cover test (``CosParams.cover``).
 
     Returns
     -------
@@ -269,6 +284,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         and ``culled`` (footprints projected over the 30 views, and those the hierarchy walk
         spared: primitives no ray of the view meets).
     """
+    if cover not in COVERS:
+        raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
     centre = 0.5 * (lo + hi)
@@ -326,7 +343,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             listed = np.flatnonzero(sel[view.face]) if positions is None else positions[k]
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
-                                  stats, coarse_items, rng)
+                                  stats, coarse_items, rng, cover)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -410,10 +427,11 @@ def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
 
 
-def _screen(view: View, plane_tol: float) -> Screen:
+def _screen(view: View, plane_tol: float, cover: str) -> Screen:
     """The kernels' view of a view's camera and pixel grid."""
     return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
-                  float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol))
+                  float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol),
+                  cover == "relaxed")
 
 
 def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
@@ -444,8 +462,9 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
                       _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
                       numba.get_num_threads())
-    # One pixel per tile, as wide as the tile.
-    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE)
+    # One pixel per tile, as wide as the tile; the strict cover test only: at a tile's width
+    # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
+    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE, relaxed=False)
     resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
@@ -455,13 +474,15 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
-                stats: dict[str, Any], coarse_items: int, rng: np.ndarray) -> int:
+                stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
+                cover: str = "strict") -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
     visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
     ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
-    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``)."""
+    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``); ``cover`` the
+    cover test (``CosParams.cover``)."""
     t0 = time.perf_counter()
     stats["projected"] += len(sel)
     known = vis.copy()
@@ -479,7 +500,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["bin_seconds"] += t0c - t0b
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
-    screen = _screen(view, plane_tol)
+    screen = _screen(view, plane_tol, cover)
     drop = np.empty(0, dtype=np.uint8)
     # The threshold holds for tiles at the default resolution; below it a tile spans more
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the

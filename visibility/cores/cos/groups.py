@@ -40,6 +40,8 @@ class Screen(NamedTuple):
     corners : (4, 3) the camera rectangle in the view's frame.
     nx, ny : pixels across and down; x_lo, y_lo : the grid's lower corner on the image plane;
     pw : pixel width (image-plane units); plane_tol : the plane tests' tolerance, metres.
+    relaxed : whether an occludee may take the relaxed cover test (``resolve._covers_q``)
+        where the strict one finds no group hiding it.
     """
 
     origin: np.ndarray
@@ -52,6 +54,7 @@ class Screen(NamedTuple):
     y_lo: float
     pw: float
     plane_tol: float
+    relaxed: bool
 
 
 class TileLists(NamedTuple):

@@ -97,6 +97,7 @@ from visibility.cores.cos.space import (
     area2,
     bbox,
     capsule_meets,
+    clip_halfplane,
     load_prim,
     polygon_axes,
     project,
@@ -182,11 +183,418 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
     return wn >= 1
 
 
+#: Layout of a test's Q context (``qctx``, float64): whether the relaxed edge tests may be
+#: used, Q's plane (camera coordinates: normal, offset, tolerance), the pixel centre, the frame
+#: of the region polygon, the witness state and point, Q's pixel-centre COS corners.
+QC_RELAX = 0
+QC_PLANE = 1
+QC_TOL = 5
+QC_SX = 6
+QC_SY = 7
+QC_FRAME = 8
+QC_WIT = 9
+QC_WX = 10
+QC_WY = 11
+QC_V = 12
+QC_DX = 18
+QC_DY = 19
+QC_SEEN = 20
+QC_W = 21
+QC_WREF = 24
+QC_CW = 25
+QC_CXY = 29
+QC_H = 37
+QC_SIZE = 38
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam, tol,
+               corners):  # pragma: no cover - numba
+    """Fill ``qctx`` (``QC_*``) for occludee Q (camera points ``cam``, pixel-centre COS
+    ``qv``): the relaxed tests need a triangle beyond every camera position with a plane."""
+    qctx[QC_RELAX] = 0.0
+    qctx[QC_WIT] = 0.0
+    qctx[QC_SX] = sx
+    qctx[QC_SY] = sy
+    qctx[QC_FRAME] = fr
+    if not tri:
+        return
+    ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
+    vx, vy, vz = cam[2, 0] - cam[0, 0], cam[2, 1] - cam[0, 1], cam[2, 2] - cam[0, 2]
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if not nn > 0.0:
+        return
+    qctx[QC_PLANE] = nx
+    qctx[QC_PLANE + 1] = ny
+    qctx[QC_PLANE + 2] = nz
+    qctx[QC_PLANE + 3] = nx * cam[0, 0] + ny * cam[0, 1] + nz * cam[0, 2]
+    qctx[QC_TOL] = tol * nn
+    for c in range(3):
+        qctx[QC_V + 2 * c] = qv[c, 0]
+        qctx[QC_V + 2 * c + 1] = qv[c, 1]
+        qctx[QC_W + c] = cam[c, 2]
+    qctx[QC_WREF] = (cam[0, 2] + cam[1, 2] + cam[2, 2]) / 3.0
+    for a in range(4):
+        qctx[QC_CW + a] = corners[a, 2]
+        qctx[QC_CXY + 2 * a] = corners[a, 0]
+        qctx[QC_CXY + 2 * a + 1] = corners[a, 1]
+    qctx[QC_H] = h
+    qctx[QC_SEEN] = -1.0
+    if wmin > wcam + tol:
+        qctx[QC_RELAX] = 1.0
+
+
+@njit(cache=True, nogil=True)
+def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
+    """The between-sample directions under which some camera position sees Q (Q beyond them
+    all): the directions from the rectangle's corners to Q's form a convex polygon (the image
+    of the convex set rectangle x Q under the perspective map), clipped to the pixel's square.
+    ``QC_SEEN`` 0 when it has no area (no ray of the pixel meets Q), else its centroid, a
+    delta at which S(delta) has an interior, goes to ``QC_DX``, ``QC_DY``."""
+    sx = qctx[QC_SX]
+    sy = qctx[QC_SY]
+    h = qctx[QC_H]
+    m = 0
+    for i in range(3):
+        wi = qctx[QC_W + i]
+        xi = qctx[QC_V + 2 * i] + wi * sx
+        yi = qctx[QC_V + 2 * i + 1] + wi * sy
+        for j in range(4):
+            dw = wi - qctx[QC_CW + j]
+            dx[m] = (xi - qctx[QC_CXY + 2 * j]) / dw - sx
+            dy[m] = (yi - qctx[QC_CXY + 2 * j + 1]) / dw - sy
+            m += 1
+    # Convex hull (gift wrapping over 12 points), counter-clockwise.
+    start = 0
+    for i in range(1, m):
+        if dx[i] < dx[start] or (dx[i] == dx[start] and dy[i] < dy[start]):
+            start = i
+    nh = 0
+    cur = start
+    while True:
+        tx[nh] = dx[cur]
+        ty[nh] = dy[cur]
+        nh += 1
+        nxt_ = (cur + 1) % m
+        for i in range(m):
+            cr = ((dx[nxt_] - dx[cur]) * (dy[i] - dy[cur])
+                  - (dy[nxt_] - dy[cur]) * (dx[i] - dx[cur]))
+            if cr < 0.0 or (cr == 0.0 and (dx[i] - dx[cur]) ** 2 + (dy[i] - dy[cur]) ** 2
+                            > (dx[nxt_] - dx[cur]) ** 2 + (dy[nxt_] - dy[cur]) ** 2):
+                nxt_ = i
+        cur = nxt_
+        if cur == start or nh >= m:
+            break
+    for i in range(nh):
+        dx[i] = tx[i]
+        dy[i] = ty[i]
+    # Clip to the pixel's square (grown by a rounding margin).
+    g = h * (1.0 + 1e-9) + 1e-15
+    nh = clip_halfplane(dx, dy, nh, 1.0, 0.0, g, tx, ty)
+    nh = clip_halfplane(tx, ty, nh, -1.0, 0.0, g, dx, dy)
+    nh = clip_halfplane(dx, dy, nh, 0.0, 1.0, g, tx, ty)
+    nh = clip_halfplane(tx, ty, nh, 0.0, -1.0, g, dx, dy)
+    qctx[QC_SEEN] = 0.0
+    if nh < 3:
+        return
+    ar = 0.0
+    cx = 0.0
+    cy = 0.0
+    for i in range(nh):
+        j = (i + 1) % nh
+        cr = dx[i] * dy[j] - dx[j] * dy[i]
+        ar += cr
+        cx += (dx[i] + dx[j]) * cr
+        cy += (dy[i] + dy[j]) * cr
+    if not abs(ar) > 1e-12 * h * h:
+        return
+    qctx[QC_SEEN] = 1.0
+    qctx[QC_DX] = cx / (3.0 * ar)
+    qctx[QC_DY] = cy / (3.0 * ar)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tri_off_q(r, ov, qctx):  # pragma: no cover - numba
+    """Whether occluder triangle r's pixel-centre COS triangle and Q's have disjoint interiors
+    (an edge normal of either separates them, touching allowed up to rounding)."""
+    scale = 1e-9 * (abs(ov[r, 0, 0]) + abs(ov[r, 0, 1]) + abs(qctx[QC_V]) + abs(qctx[QC_V + 1])
+                    + 1.0)
+    for e in range(6):
+        if e < 3:
+            ax = ov[r, e, 0]
+            ay = ov[r, e, 1]
+            bx = ov[r, (e + 1) % 3, 0]
+            by = ov[r, (e + 1) % 3, 1]
+        else:
+            ax = qctx[QC_V + 2 * (e - 3)]
+            ay = qctx[QC_V + 2 * (e - 3) + 1]
+            bx = qctx[QC_V + 2 * ((e - 2) % 3)]
+            by = qctx[QC_V + 2 * ((e - 2) % 3) + 1]
+        nx = by - ay
+        ny = ax - bx
+        ln = abs(nx) + abs(ny)
+        if ln == 0.0:
+            continue
+        tlo = np.inf
+        thi = -np.inf
+        qlo = np.inf
+        qhi = -np.inf
+        for c in range(3):
+            d = nx * ov[r, c, 0] + ny * ov[r, c, 1]
+            tlo = min(tlo, d)
+            thi = max(thi, d)
+            d = nx * qctx[QC_V + 2 * c] + ny * qctx[QC_V + 2 * c + 1]
+            qlo = min(qlo, d)
+            qhi = max(qhi, d)
+        tol = scale * ln
+        if thi <= qlo + tol or qhi <= tlo + tol:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _seg_off_triangle(ax, ay, bx, by, qctx):  # pragma: no cover - numba
+    """Whether segment ab stays off the interior of Q's pixel-centre COS triangle (it may touch
+    its boundary): some axis (Q's edge normals, the segment's normal) separates them, touching
+    allowed up to rounding."""
+    scale = 1e-9 * (abs(ax) + abs(ay) + abs(bx) + abs(by) + 1.0)
+    for e in range(4):
+        if e < 3:
+            i0 = QC_V + 2 * e
+            i1 = QC_V + 2 * ((e + 1) % 3)
+            nx = qctx[i1 + 1] - qctx[i0 + 1]
+            ny = qctx[i0] - qctx[i1]
+        else:
+            nx = by - ay
+            ny = ax - bx
+        ln = abs(nx) + abs(ny)
+        if ln == 0.0:
+            continue
+        qlo = np.inf
+        qhi = -np.inf
+        for c in range(3):
+            d = nx * qctx[QC_V + 2 * c] + ny * qctx[QC_V + 2 * c + 1]
+            qlo = min(qlo, d)
+            qhi = max(qhi, d)
+        da = nx * ax + ny * ay
+        db = nx * bx + ny * by
+        tol = scale * ln
+        if max(da, db) <= qlo + tol or min(da, db) >= qhi - tol:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_q_plane(x, y, w, qctx):  # pragma: no cover - numba
+    """Whether the camera-space point (x, y, w) lies in Q's plane (within its tolerance)."""
+    d = (qctx[QC_PLANE] * x + qctx[QC_PLANE + 1] * y + qctx[QC_PLANE + 2] * w
+         - qctx[QC_PLANE + 3])
+    return abs(d) <= qctx[QC_TOL]
+
+
+@njit(cache=True, nogil=True)
+def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
+    """A point inside S(delta0), the offsets whose ray in direction s + delta0 meets Q (Q's COS
+    triangle clipped to the camera rectangle's image, both moved to delta0 in the frame of
+    depth wref), kept in ``qctx`` (QC_WIT 1; -1 when it has no robust interior). delta0 is
+    ``_directions``' centroid."""
+    # S(delta0) in the frame of depth wref: every point at depth w moves by -(w - wref) delta0.
+    d0x = qctx[QC_DX]
+    d0y = qctx[QC_DY]
+    wr = qctx[QC_WREF]
+    for c in range(3):
+        wx[c] = qctx[QC_V + 2 * c] - (qctx[QC_W + c] - wr) * d0x
+        wy[c] = qctx[QC_V + 2 * c + 1] - (qctx[QC_W + c] - wr) * d0y
+    m = 3
+    rq = np.empty((4, 2))
+    for a in range(4):
+        rq[a, 0] = rv[a, 0] - (qctx[QC_CW + a] - wr) * d0x
+        rq[a, 1] = rv[a, 1] - (qctx[QC_CW + a] - wr) * d0y
+    s = 1.0 if area2_xy(rq) >= 0.0 else -1.0
+    for a in range(4):
+        b = (a + 1) % 4
+        nx = s * (rq[b, 1] - rq[a, 1])
+        ny = s * (rq[a, 0] - rq[b, 0])
+        if nx == 0.0 and ny == 0.0:
+            continue
+        m = clip_halfplane(wx, wy, m, nx, ny, nx * rq[a, 0] + ny * rq[a, 1], wtx, wty)
+        for i in range(m):
+            wx[i] = wtx[i]
+            wy[i] = wty[i]
+        if m == 0:
+            break
+    qctx[QC_WIT] = -1.0
+    if m < 3:
+        return
+    ar = 0.0
+    cx = 0.0
+    cy = 0.0
+    for i in range(m):
+        j = (i + 1) % m
+        cr = wx[i] * wy[j] - wx[j] * wy[i]
+        ar += cr
+        cx += (wx[i] + wx[j]) * cr
+        cy += (wy[i] + wy[j]) * cr
+    span = 0.0
+    for i in range(m):
+        span = max(span, abs(wx[i] - wx[0]) + abs(wy[i] - wy[0]))
+    if not abs(ar) > 1e-12 * span * span or span == 0.0:
+        return
+    qctx[QC_WIT] = 1.0
+    qctx[QC_WX] = cx / (3.0 * ar)
+    qctx[QC_WY] = cy / (3.0 * ar)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def area2_xy(v):  # pragma: no cover - numba
+    """Twice the signed area of the quadrilateral v (4, 2)."""
+    a = 0.0
+    for i in range(4):
+        j = (i + 1) % 4
+        a += v[i, 0] * v[j, 1] - v[j, 0] * v[i, 1]
+    return a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy):  # pragma: no cover - numba
+    """Whether (cx, cy) lies inside group g's silhouette at delta (d0x, d0y) in the frame of
+    depth wref (winding number >= 1; a point on an edge, up to rounding, is not inside)."""
+    wn = 0
+    node = gehead[g]
+    while node >= 0:
+        r = node // 3
+        f = node - 3 * r
+        b = (f + 1) % 3
+        ax = ov[r, f, 0] - (ow[r, f] - wref) * d0x
+        ay = ov[r, f, 1] - (ow[r, f] - wref) * d0y
+        bx = ov[r, b, 0] - (ow[r, b] - wref) * d0x
+        by = ov[r, b, 1] - (ow[r, b] - wref) * d0y
+        up = ay <= cy < by
+        down = by <= cy < ay
+        if up or down:
+            t1 = (bx - ax) * (cy - ay)
+            t2 = (cx - ax) * (by - ay)
+            side = t1 - t2
+            if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
+                return False
+            if up and side > 0.0:
+                wn += 1
+            elif down and side < 0.0:
+                wn -= 1
+        node = anext[node]
+    return wn >= 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
+              klo, khi, qctx, rpoly, nrp, rpb, rv, wsx, wsy, wtx, wty,
+              work):  # pragma: no cover - numba
+    """``_covers`` for the occludee Q itself, with two more ways for a silhouette edge to pass
+    when its capsule meets K (which is grown for the camera rectangle's motion in Q's frame,
+    so an edge near the rectangle's edge fails there however far it stays from it):
+
+    * the edge lies in Q's plane and off Q's interior: the parallel projection maps that plane
+      the same way for every offset and direction, so its image never crosses Q's;
+    * its capsule in a frame near the cameras (``QC_FRAME``) misses the camera rectangle's
+      grown image there (``rpoly``): it never crosses the offsets at all.
+
+    Either way the edge never crosses S(delta), the offsets whose ray in direction s + delta
+    meets Q; no silhouette does, so S(delta) lies wholly inside or outside the group for each
+    delta. The deltas where S(delta) has an interior form a convex set (the directions from
+    the camera rectangle to Q, beyond it), so one witness point of S(delta0) inside the group
+    at delta0 decides for all of them (``_directions``, ``_witness``; where no direction of
+    the pixel reaches Q, no ray does and Q is covered vacuously). With no relaxed edge, K's
+    centroid decides as in ``_covers``."""
+    if qctx[QC_RELAX] == 0.0:
+        if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
+            return False
+    else:
+        # K may reach past the group where no ray of the pixel does, so its box cannot reject;
+        # the witness can: outside the group's silhouette at delta0 (its box moved by delta0),
+        # S(delta0) is not inside the group.
+        if qctx[QC_SEEN] < 0.0:
+            _directions(qctx, wsx, wsy, wtx, wty)
+        if qctx[QC_SEEN] > 0.0:
+            if qctx[QC_WIT] == 0.0:
+                _witness(qctx, rv, wsx, wsy, wtx, wty)
+            if qctx[QC_WIT] > 0.0:
+                m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+                ex = m * abs(qctx[QC_DX])
+                ey = m * abs(qctx[QC_DY])
+                if (qctx[QC_WX] < gbb[g, 0] - ex or qctx[QC_WX] > gbb[g, 1] + ex
+                        or qctx[QC_WY] < gbb[g, 2] - ey or qctx[QC_WY] > gbb[g, 3] + ey):
+                    return False
+                # Nor inside its silhouette there (a walk of cheap tests before the capsules;
+                # where the strict test passes, the witness, inside K, is inside too).
+                if not _wind_in(g, gehead, anext, ov, ow, wref, qctx[QC_DX], qctx[QC_DY],
+                                qctx[QC_WX], qctx[QC_WY]):
+                    return False
+    if kb[6] == 0.0:
+        polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
+        kb[6] = 1.0
+    relaxed = False
+    node = gehead[g]
+    while node >= 0:
+        r = node // 3
+        f = node - 3 * r
+        b = (f + 1) % 3
+        ax = ov[r, f, 0]
+        ay = ov[r, f, 1]
+        bx = ov[r, b, 0]
+        by = ov[r, b, 1]
+        rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
+        work[0] += 1
+        if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
+            if qctx[QC_RELAX] == 0.0:
+                return False
+            sx = qctx[QC_SX]
+            sy = qctx[QC_SY]
+            wa = ow[r, f]
+            wb = ow[r, b]
+            if (_on_q_plane(ax + wa * sx, ay + wa * sy, wa, qctx)
+                    and _on_q_plane(bx + wb * sx, by + wb * sy, wb, qctx)
+                    and _seg_off_triangle(ax, ay, bx, by, qctx)):
+                relaxed = True
+            else:
+                fr = qctx[QC_FRAME]
+                rad0 = max(abs(wa - fr), abs(wb - fr)) * h
+                if nrp > 0 and not capsule_meets(ax, ay, bx, by, rad0, rpoly[:, 0], rpoly[:, 1],
+                                                 nrp, rpb, rpoly[:, 2], rpoly[:, 3],
+                                                 rpoly[:, 4], rpoly[:, 5]):
+                    relaxed = True
+                else:
+                    return False
+        node = anext[node]
+    d0x = 0.0
+    d0y = 0.0
+    if relaxed:
+        if qctx[QC_SEEN] < 0.0:
+            _directions(qctx, wsx, wsy, wtx, wty)
+        if qctx[QC_SEEN] == 0.0:
+            return True  # no ray of the pixel meets Q: covered, vacuously
+        d0x = qctx[QC_DX]
+        d0y = qctx[QC_DY]
+        if qctx[QC_WIT] == 0.0:
+            _witness(qctx, rv, wsx, wsy, wtx, wty)
+        if qctx[QC_WIT] < 0.0:
+            return False
+        cx = qctx[QC_WX]
+        cy = qctx[QC_WY]
+    else:
+        cx = kb[4]
+        cy = kb[5]
+    # The silhouette at the witness's delta (frame of depth wref).
+    return _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq, work):  # pragma: no cover - numba
-    """Whether occluder triangle r cannot reach K's box or is in front of all of Q
-    (``work[1]`` counts the calls)."""
+              nq, ov, qctx, work):  # pragma: no cover - numba
+    """Whether occluder triangle r cannot reach K's box or is in front of all of Q, or lies in
+    Q's plane without overlapping it (``_tri_off_q``) (``work[1]`` counts the calls)."""
     work[1] += 1
     grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
     if (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
@@ -204,16 +612,22 @@ def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
             return False
         if dist < -tol:
             behind = True
+    if not behind and nq == 3 and qctx[QC_RELAX] != 0.0:
+        # Q lies in T's plane: a ray meets that plane once, so where T and Q do not overlap
+        # no ray that meets Q meets T (beyond a set of no measure): T cannot be what hides Q,
+        # and the others must.
+        return _tri_off_q(r, ov, qctx)
     return behind
 
 
 @njit(cache=True, nogil=True)  # a call: inlined, its copies make the kernel slow to compile
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq, work):  # pragma: no cover - numba
+              nq, ov, qctx, work):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
-        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq, work):
+        if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq, ov,
+                         qctx, work):
             return False
         r = nxt[r]
     return True
@@ -308,7 +722,7 @@ def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool, pdep
 
 @njit(cache=True, nogil=True, inline="always")
 def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool, pdep,
-           dom, wcam, tol, wref, h, kb, qcam, nq, wq, work):  # pragma: no cover - numba
+           dom, wcam, tol, wref, h, kb, qcam, nq, wq, ov, qctx, work):  # pragma: no cover
     """Whether group g, which covers K (box ``kb``), hides Q (nearest depth wq).
 
     Every ray of the pixel that meets Q meets g, at a point of one of g's triangles whose
@@ -327,7 +741,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     slot = gslot[g]
     if slot < 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq, work)
+                         kb[3], qcam, nq, ov, qctx, work)
     grow = abs(wref - sfr[slot]) * h
     c0 = _cell(kb[0] - grow, dom[0], dom[4])
     c1 = _cell(kb[1] + grow, dom[0], dom[4])
@@ -343,7 +757,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         return True
     if shead[slot, GRID * GRID + 1] != 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq, work)
+                         kb[3], qcam, nq, ov, qctx, work)
     # The cells around K, then the list of wide triangles.
     wc = c1 - c0 + 1
     nc = (r1 - r0 + 1) * wc
@@ -354,7 +768,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
             if pdep[2 * k] + tol < wq and pdep[2 * k + 1] >= wcam + tol:
                 break
             if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
-                             kb[2], kb[3], qcam, nq, work):
+                             kb[2], kb[3], qcam, nq, ov, qctx, work):
                 return False
             k = pool[3 + 2 * k]
     return True
@@ -502,7 +916,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
     pts, start, npts, kind, vid, solid, gap = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
-    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol = screen
+    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed = screen
     known, vis, hid, counters, stop = marks
     h = 0.5 * pw
     npix = tsz * tsz
@@ -544,6 +958,15 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         ry = np.empty(MAX_POLY)
         # Geometry of Q's region K and of the whole offset region (``_k_box``).
         kb = np.empty(7)
+        # The occludee's context for ``_covers_q`` and the camera rectangle's image in the
+        # cameras' frame (``rpoly``: x, y, edge normal x, y, extent lo, hi per vertex).
+        qctx = np.zeros(QC_SIZE)
+        rpoly = np.empty((MAX_POLY, 6))
+        rpb = np.empty(7)
+        wsx = np.empty(MAX_POLY)
+        wsy = np.empty(MAX_POLY)
+        wtx = np.empty(MAX_POLY)
+        wty = np.empty(MAX_POLY)
         knx = np.empty(MAX_POLY)
         kny = np.empty(MAX_POLY)
         klo = np.empty(MAX_POLY)
@@ -585,6 +1008,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         live = np.empty(lmax, dtype=np.int64)
         lpos = np.empty(lmax, dtype=np.int64)
         covl = np.empty(lmax, dtype=np.int64)
+        cand = np.empty(lmax + 1, dtype=np.int64)
         cpos = np.empty(lmax, dtype=np.int64)
         # Depth grids of the groups of GRID_MIN triangles or more (slots of sg, shead in the
         # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
@@ -671,6 +1095,19 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                     dom[3] = max(dom[3], rv[c, 1] + rr[c])
                 dom[4] = GRID / (dom[1] - dom[0]) if dom[1] > dom[0] else 0.0
                 dom[5] = GRID / (dom[3] - dom[2]) if dom[3] > dom[2] else 0.0
+                # The camera rectangle's image in a frame that moves with the cameras' middle
+                # depth, where it barely grows (``_covers_q``).
+                fr = 0.5 * wcam
+                nrp = 0
+                if relaxed:
+                    region_at(corners, sx, sy, h, fr, rv, rr)
+                    nrp = region_polygon(rv, rr, 4, False, rv, rr, wsx, wsy, wtx, wty)
+                    for c in range(nrp):
+                        rpoly[c, 0] = wsx[c]
+                        rpoly[c, 1] = wsy[c]
+                    if nrp > 0:
+                        polygon_axes(rpoly[:, 0], rpoly[:, 1], nrp, rpb, rpoly[:, 2],
+                                     rpoly[:, 3], rpoly[:, 4], rpoly[:, 5])
                 # Early z: every ray of the pixel (any camera position, any direction in it) meets
                 # a coverall occluder at depth <= zcut, before anything wholly deeper.
                 zcut = np.inf
@@ -714,6 +1151,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                         if nk > 0:
                             tested += 1
                             _k_box(kx, ky, nk, kb)
+                            qctx[QC_RELAX] = 0.0
+                            if relaxed:
+                                _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam,
+                                           plane_tol, corners)
                             occluded = False
                             by_cov = False
                             if 2 * n_dead > n_live:
@@ -732,26 +1173,59 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             # one that hid the last entry first (neighbours in the list are often
                             # hidden by the same surface), then the rest. (One loop, so the
                             # inlined tests are compiled once.)
-                            for c in range(n_cov + 1 + n_live):
-                                if c < n_cov:
-                                    g = covl[c]
-                                else:
-                                    if c == n_cov:
-                                        g = last_g
-                                        if g < 0 or lpos[g] < 0:
-                                            continue
+                            # The strict cover test first for every group; the relaxed one
+                            # (dearer: a meeting edge does not end the walk, and K's box cannot
+                            # reject) only when the strict one hid Q behind none, and only for
+                            # the groups that came near K (``cand``; -1 - g for coverall ones).
+                            relax_ok = qctx[QC_RELAX]
+                            qctx[QC_RELAX] = 0.0
+                            nl = n_cov + 1 + n_live
+                            ncand = 0
+                            for cc in range(2 * nl):
+                                isc = False
+                                if cc < nl:
+                                    c = cc
+                                    if c < n_cov:
+                                        g = covl[c]
+                                        isc = True
                                     else:
-                                        g = live[c - n_cov - 1]
-                                        if lpos[g] != c - n_cov - 1 or g == last_g:
-                                            continue
-                                    if not _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx,
-                                                   ky, nk, kb, knx, kny, klo, khi, work):
+                                        if c == n_cov:
+                                            g = last_g
+                                            if g < 0 or lpos[g] < 0:
+                                                continue
+                                        else:
+                                            g = live[c - n_cov - 1]
+                                            if lpos[g] != c - n_cov - 1 or g == last_g:
+                                                continue
+                                    if relax_ok != 0.0:
+                                        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
+                                        if isc:
+                                            cand[ncand] = -1 - g
+                                            ncand += 1
+                                        elif not (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m
+                                                  or kb[3] < gbb[g, 2] - m
+                                                  or kb[2] > gbb[g, 3] + m):
+                                            cand[ncand] = g
+                                            ncand += 1
+                                else:
+                                    if relax_ok == 0.0 or cc - nl >= ncand:
+                                        break
+                                    qctx[QC_RELAX] = relax_ok
+                                    g = cand[cc - nl]
+                                    if g < 0:
+                                        g = -1 - g
+                                        isc = True
+                                if not isc:
+                                    if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                                     wref, h, kx, ky, nk, kb, knx, kny, klo,
+                                                     khi, qctx, rpoly, nrp, rpb, rv, wsx, wsy,
+                                                     wtx, wty, work):
                                         continue
                                 if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
                                           sg, sfr, shead, pool, pdep, dom, wcam, plane_tol, wref,
-                                          h, kb, cam, n, wmin, work):
+                                          h, kb, cam, n, wmin, ov, qctx, work):
                                     occluded = True
-                                    by_cov = c < n_cov
+                                    by_cov = isc
                                     if not by_cov:
                                         last_g = g
                                     break

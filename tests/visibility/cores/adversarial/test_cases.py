@@ -95,3 +95,19 @@ def test_cos_coarse_pass_misses_nothing(name):
     assert missed.tolist() == [], (
         f"cos with the coarse pass misses {len(missed)} triangles in {name}:\n"
         f"{describe(case.scene, reference(name), missed, case.box)}")
+
+
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("coarse_items", [None, 1])
+def test_cos_relaxed_cover_misses_nothing(name, coarse_items):
+    # The relaxed cover test lets silhouette edges that meet an occludee's offset region pass
+    # when they never cross the offsets whose rays meet it; alone, and with the coarse pass
+    # on every tile (where it runs at the tile's width).
+    case = CASES[name]
+    core = get_core("cos")
+    extra = {} if coarse_items is None else {"coarse_items": coarse_items}
+    pvs = core.compute(case.scene, Viewcell(case.box), core.make_params(cover="relaxed", **extra))
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos with the relaxed cover test (coarse_items={coarse_items}) misses {len(missed)} "
+        f"triangles in {name}:\n{describe(case.scene, reference(name), missed, case.box)}")

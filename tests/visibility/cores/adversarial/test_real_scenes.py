@@ -120,6 +120,20 @@ def test_cos_sub_cells_no_confirmed_misses(name):
         f"from {name}'s 1 m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
+@pytest.mark.parametrize("name,size", [(n, s) for n in REAL if n not in BENCHMARK_ONLY["cos"]
+                                       for s in SIZES])
+def test_cos_relaxed_cover_no_confirmed_misses(name, size):
+    scene = real_scene(name)
+    _, box, ref = cells(name, size)[0]
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(cover="relaxed"))
+    sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
+    assert sure.tolist() == [], (
+        f"cos with the relaxed cover test misses {len(sure)} of {len(ref.ids)} triangles the "
+        f"rays see from {name}'s {size:g} m cell {box.tolist()}:\n"
+        f"{describe(scene, ref, sure, box)}")
+
+
 @pytest.mark.parametrize("name", [n for n in REAL if n in ("kitchen", "lavaducts")])
 def test_dual_ray_refuses_the_interiors_with_the_reason(name):
     # The interiors are not 2.5D: dual_ray says why instead of answering.

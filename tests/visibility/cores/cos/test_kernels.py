@@ -7,7 +7,21 @@ import pytest
 
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.planes import side_plane_views
-from visibility.cores.cos.resolve import GRID, _hides, _in_front, _push
+from visibility.cores.cos.resolve import (
+    GRID,
+    QC_DX,
+    QC_DY,
+    QC_RELAX,
+    QC_SEEN,
+    QC_SIZE,
+    QC_V,
+    _hides,
+    _in_front,
+    _push,
+    _q_context,
+    _seg_off_triangle,
+)
+from visibility.cores.cos.resolve import _directions as pixel_directions
 from visibility.cores.cos.space import (
     capsule_hits,
     overlaps,
@@ -21,6 +35,9 @@ from visibility.topology import weld_vertices
 
 #: The kernels' work counters (silhouette edges walked, plane tests), unread here.
 WORK = np.zeros(2, dtype=np.int64)
+#: No occluder COS triangles and a strict context (``QC_RELAX`` 0): the depth tests as before.
+NO_OV = np.zeros((1, 3, 2))
+STRICT = np.zeros(QC_SIZE)
 
 
 def test_cos_of_a_point_is_the_offset_that_moves_the_sample_onto_it():
@@ -92,10 +109,70 @@ def test_depth_plane_test_orders_triangles_for_every_offset():
     touching = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 6.0]])
     coplanar = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
     args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0)
-    assert _in_front(*args, behind, 3, WORK)
-    assert not _in_front(*args, crossing, 3, WORK)
-    assert _in_front(*args, touching, 3, WORK)
-    assert not _in_front(*args, coplanar, 3, WORK)
+    assert _in_front(*args, behind, 3, NO_OV, STRICT, WORK)
+    assert not _in_front(*args, crossing, 3, NO_OV, STRICT, WORK)
+    assert _in_front(*args, touching, 3, NO_OV, STRICT, WORK)
+    assert not _in_front(*args, coplanar, 3, NO_OV, STRICT, WORK)
+
+
+def test_a_coplanar_occluder_is_no_obstacle_only_where_it_does_not_overlap_q():
+    # T: the lower-left half of the square at w = 2 (pixel centre s = 0, so COS = x, y). Q in
+    # its plane beyond its hypotenuse: no ray that meets Q meets T, so T does not stand in
+    # the way of the others hiding Q. Q in its plane over it (z-fighting): it does.
+    head, nxt = np.array([0]), np.array([-1])
+    obb = np.array([[-10.0, 10.0, -10.0, 10.0]])
+    owr = np.array([[2.0, 2.0]])
+    plane = np.array([[0.0, 0.0, -1.0, -2.0, 1e-9]])
+    ov = np.array([[[-10.0, -10.0], [10.0, -10.0], [-10.0, 10.0]]])
+    args = (0, head, nxt, obb, owr, np.array([True]), plane, 2.0, 0.0, -3.0, 3.0, -3.0, 3.0)
+
+    def relaxed(q):
+        ctx = np.zeros(QC_SIZE)
+        _q_context(ctx, q, 3, True, q[:, :2].copy(), 0.0, 0.0, 0.01, 0.0, 2.0, 0.0, 1e-9,
+                   np.zeros((4, 3)))
+        ctx[QC_RELAX] = 1.0
+        return ctx
+
+    off = np.array([[1.0, 1.0, 2.0], [2.0, 1.0, 2.0], [1.0, 2.0, 2.0]])
+    over = np.array([[-2.0, -2.0, 2.0], [-1.0, -2.0, 2.0], [-2.0, -1.0, 2.0]])
+    assert _in_front(*args, off, 3, ov, relaxed(off), WORK)
+    assert not _in_front(*args, over, 3, ov, relaxed(over), WORK)
+    assert not _in_front(*args, off, 3, ov, STRICT, WORK)  # the strict test refuses both
+
+
+def test_a_segment_in_q_plane_may_touch_q_but_not_cross_it():
+    ctx = np.zeros(QC_SIZE)
+    ctx[QC_V:QC_V + 6] = (0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+    assert _seg_off_triangle(-1.0, 0.0, 2.0, 0.0, ctx)      # along Q's edge
+    assert _seg_off_triangle(0.6, 0.6, 2.0, 2.0, ctx)       # off its hypotenuse
+    assert not _seg_off_triangle(-1.0, 0.2, 2.0, 0.2, ctx)  # through its interior
+    assert not _seg_off_triangle(0.1, 0.1, 0.2, 0.2, ctx)   # inside it
+
+
+def test_directions_reaching_q_within_the_pixel():
+    # Camera rectangle [-1, 1]^2 at w = 0; Q a small triangle at w = 10 around (0, 0). The
+    # directions from the rectangle to Q span about +-0.1 around the axis: a pixel centred
+    # there sees Q at its centre direction; one centred at 0.5 with half-width 0.05 never
+    # does; one centred at 0.14 sees it only under some between-sample directions, and the
+    # delta it picks lies inside the pixel and reaches Q.
+    corners = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    q = np.array([[-0.1, -0.1, 10.0], [0.1, -0.1, 10.0], [0.0, 0.1, 10.0]])
+    scratch = [np.empty(16) for _ in range(4)]
+
+    def seen(s, h):
+        ctx = np.zeros(QC_SIZE)
+        v = q[:, :2] - q[:, 2:] * s
+        _q_context(ctx, q, 3, True, v, s, s, h, 0.0, 10.0, 0.0, 1e-9, corners)
+        pixel_directions(ctx, *scratch)
+        return ctx
+
+    assert seen(0.0, 0.05)[QC_SEEN] == 1.0
+    assert seen(0.5, 0.05)[QC_SEEN] == 0.0
+    ctx = seen(0.14, 0.05)
+    assert ctx[QC_SEEN] == 1.0
+    d = ctx[[QC_DX, QC_DY]]
+    assert np.all(np.abs(d) <= 0.05)
+    assert np.all(0.14 + d <= 0.11 + 1e-12)  # at most (0.1 + 1) / 10 from the far corner
 
 
 # ----------------------------------------------------------------- Fig. 8 on hand-built scenes
@@ -149,6 +226,48 @@ def test_fusion_two_triangles_sharing_an_edge_hide_what_neither_hides_alone():
     # A hairline gap along the diagonal (no shared vertices) must not fuse: visible again.
     gap = [list(wall[0]), [tuple(np.add(p, (0, 1e-6, 0))) for p in wall[1]]]
     assert 2 in _visible(gap + q)
+
+
+def _wall_x(x, z0, z1, y0, y1):
+    return [[(x, y0, z0), (x, y0, z1), (x, y1, z1)], [(x, y0, z0), (x, y1, z1), (x, y1, z0)]]
+
+
+def _wall_z(z, x0, x1, y0, y1):
+    return [[(x0, y0, z), (x1, y0, z), (x1, y1, z)], [(x0, y0, z), (x1, y1, z), (x0, y1, z)]]
+
+
+def _floor(x0, x1, z0, z1):
+    return [[(x0, 0.0, z0), (x1, 0.0, z0), (x1, 0.0, z1)],
+            [(x0, 0.0, z0), (x1, 0.0, z1), (x0, 0.0, z1)]]
+
+
+def test_the_relaxed_cover_hides_a_floor_touching_the_walls_bottom_edge():
+    # A wall stands on the floor behind it; Q, a triangle of that floor, touches the wall's
+    # bottom edge. Every ray from the cell to Q passes through the wall first, so Q is hidden,
+    # but that edge is a silhouette edge whose capsule meets Q's grown region: the strict cover
+    # test keeps Q, the relaxed one knows the edge lies in Q's plane off Q's interior and never
+    # crosses the offsets whose rays meet Q.
+    walls = _wall_x(2.0, -10.0, 10.0, 0.0, 5.0)
+    floor = _floor(2.0, 10.0, -10.0, 10.0)
+    q = [[(2.0, 0.0, -0.5), (2.0, 0.0, 0.5), (2.5, 0.0, 0.0)]]
+    tris = walls + floor + q
+    strict = set(cos_pvs(_scene(tris), CELL, 64)[0].tolist())
+    relaxed = set(cos_pvs(_scene(tris), CELL, 64, cover="relaxed")[0].tolist())
+    assert len(tris) - 1 in strict
+    assert len(tris) - 1 not in relaxed
+    assert set(range(len(walls))) <= relaxed <= strict
+    # Independent rays agree: none of those aimed at Q from the cell's open space meets it.
+    from visibility.ray_reference import ray_reference
+
+    got = ray_reference(_scene(tris), CELL, n_eyes=64, n_dirs=64, aim=np.array(q),
+                        n_aim=256).ids
+    assert len(tris) - 1 not in set(got.tolist())
+    assert set(got.tolist()) <= relaxed
+
+
+def test_cover_must_be_one_of_the_named_tests():
+    with pytest.raises(ValueError, match="cover"):
+        cos_pvs(_scene(_quad(-1, 1, -1, 1, -3.0)), CELL, 16, cover="loose")
 
 
 def test_resolution_work_counts_silhouette_edges_and_plane_tests():
@@ -234,7 +353,7 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
 
     def hides(wcam, wq, grid=no_grid):
         return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
-                      2.0, 0.01, kb, qcam, 3, wq, WORK)
+                      2.0, 0.01, kb, qcam, 3, wq, NO_OV, STRICT, WORK)
 
     assert hides(0.0, 2.0)
     assert not hides(0.6, 2.0)  # part of the group lies before the camera positions
@@ -479,7 +598,7 @@ def _walk_hides(depths):
     return _hides(0, np.arange(k), np.append(np.arange(1, k), -1), obb, owr,
                   np.zeros(k, dtype=bool), np.zeros((k, 5)), np.array([0.5]),
                   np.array([3.0]), np.array([0]), sg, np.array([2.0]), shead, pool, pdep, dom,
-                  0.0, 1e-9, 2.0, 0.01, kb, qcam, 3, 2.0, WORK)
+                  0.0, 1e-9, 2.0, 0.01, kb, qcam, 3, 2.0, NO_OV, STRICT, WORK)
 
 
 def test_cell_list_walk_stops_only_where_everything_left_lies_nearer():
