@@ -28,6 +28,7 @@ from visibility.cores.cos.space import (
     project,
     quad_holds,
     region_share,
+    tri_normal,
     triangle_holds,
 )
 
@@ -56,12 +57,7 @@ def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
 def _edge_on(cam, corners, tol):  # pragma: no cover - numba
     """Whether every camera position of the view lies in the triangle's plane (within tol
     metres): then each sees it edge-on, as a segment of no area, and it covers no sample."""
-    ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
-    vx, vy, vz = cam[2, 0] - cam[0, 0], cam[2, 1] - cam[0, 1], cam[2, 2] - cam[0, 2]
-    nx = uy * vz - uz * vy
-    ny = uz * vx - ux * vz
-    nz = ux * vy - uy * vx
-    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz, nn = tri_normal(cam)
     if not nn > 0.0:
         return False
     for k in range(4):

@@ -102,6 +102,8 @@ from visibility.cores.cos.space import (
     polygon_axes,
     project,
     region_polygon,
+    tri_normal,
+    winding_step,
 )
 
 
@@ -167,18 +169,10 @@ def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, kl
         if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
             return False
         # Winding number (crossings of the ray from the centroid towards +x).
-        up = ay <= cy < by
-        down = by <= cy < ay
-        if up or down:
-            t1 = (bx - ax) * (cy - ay)
-            t2 = (cx - ax) * (by - ay)
-            side = t1 - t2
-            if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
-                return False
-            if up and side > 0.0:
-                wn += 1
-            elif down and side < 0.0:
-                wn -= 1
+        step = winding_step(ax, ay, bx, by, cx, cy)
+        if step == 2:
+            return False
+        wn += step
         node = anext[node]
     return wn >= 1
 
@@ -219,12 +213,7 @@ def _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam, tol,
     qctx[QC_FRAME] = fr
     if not tri:
         return
-    ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
-    vx, vy, vz = cam[2, 0] - cam[0, 0], cam[2, 1] - cam[0, 1], cam[2, 2] - cam[0, 2]
-    nx = uy * vz - uz * vy
-    ny = uz * vx - ux * vz
-    nz = ux * vy - uy * vx
-    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz, nn = tri_normal(cam)
     if not nn > 0.0:
         return
     qctx[QC_PLANE] = nx
@@ -472,18 +461,10 @@ def _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy):  # pragma: no co
         ay = ov[r, f, 1] - (ow[r, f] - wref) * d0y
         bx = ov[r, b, 0] - (ow[r, b] - wref) * d0x
         by = ov[r, b, 1] - (ow[r, b] - wref) * d0y
-        up = ay <= cy < by
-        down = by <= cy < ay
-        if up or down:
-            t1 = (bx - ax) * (cy - ay)
-            t2 = (cx - ax) * (by - ay)
-            side = t1 - t2
-            if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
-                return False
-            if up and side > 0.0:
-                wn += 1
-            elif down and side < 0.0:
-                wn -= 1
+        step = winding_step(ax, ay, bx, by, cx, cy)
+        if step == 2:
+            return False
+        wn += step
         node = anext[node]
     return wn >= 1
 
@@ -1273,13 +1254,9 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                         ow[q, c] = cam[src, 2]
                         oid[q, c] = vid[p, src]
                         oact[q, c] = True
-                    ux, uy, uz = cam[1, 0] - cam[0, 0], cam[1, 1] - cam[0, 1], cam[1, 2] - cam[0, 2]
-                    wx, wy, wz = cam[2, 0] - cam[0, 0], cam[2, 1] - cam[0, 1], cam[2, 2] - cam[0, 2]
-                    pnx = uy * wz - uz * wy
-                    pny = uz * wx - ux * wz
-                    pnz = ux * wy - uy * wx
+                    pnx, pny, pnz, pnn = tri_normal(cam)
                     pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
-                    tol = plane_tol * np.sqrt(pnx * pnx + pny * pny + pnz * pnz)
+                    tol = plane_tol * pnn
                     pos = 0
                     neg = 0
                     for c in range(4):

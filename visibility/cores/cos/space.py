@@ -78,6 +78,39 @@ def support(v, r, n, nx, ny):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def tri_normal(p):  # pragma: no cover - numba
+    """The (unnormalised) normal (p1 - p0) x (p2 - p0) of the triangle p (3, 3) and its
+    length."""
+    ux, uy, uz = p[1, 0] - p[0, 0], p[1, 1] - p[0, 1], p[1, 2] - p[0, 2]
+    vx, vy, vz = p[2, 0] - p[0, 0], p[2, 1] - p[0, 1], p[2, 2] - p[0, 2]
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    return nx, ny, nz, np.sqrt(nx * nx + ny * ny + nz * nz)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def winding_step(ax, ay, bx, by, cx, cy):  # pragma: no cover - numba
+    """Edge ab's share of the winding number of (cx, cy): +1 or -1 where it crosses the ray
+    from (cx, cy) towards +x upwards or downwards, 0 where it does not, 2 where (cx, cy) lies
+    on it up to rounding (inside cannot be decided)."""
+    up = ay <= cy < by
+    down = by <= cy < ay
+    if not (up or down):
+        return 0
+    t1 = (bx - ax) * (cy - ay)
+    t2 = (cx - ax) * (by - ay)
+    side = t1 - t2
+    if abs(side) <= 1e-12 * (abs(t1) + abs(t2)):
+        return 2
+    if up and side > 0.0:
+        return 1
+    if down and side < 0.0:
+        return -1
+    return 0
+
+
+@njit(cache=True, nogil=True, inline="always")
 def area2(v):  # pragma: no cover - numba
     """Twice the signed area of the COS triangle v[0..2]."""
     return ((v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1])
