@@ -48,7 +48,7 @@ them a visible triangle whose neighbour across an edge is hidden keeps that edge
 silhouette, and the surface behind it leaks through (leaving hidden triangles out entirely,
 as the paper does, loosens the answer far more than keeping them dormant: docs/cores/cos.md).
 
-Why this stays conservative. Hiding is decided only by ``_covers`` and ``_hides`` on some
+Why this stays conservative. Hiding is decided only by ``_covers_q`` and ``_hides`` on some
 group, and both are sound for any set of listed triangles fused along shared edges with
 consistent orientation: the winding-number argument below and the per-triangle depth test
 hold whatever triangles the group holds. Leaving a triangle out of every group, or leaving a
@@ -131,50 +131,6 @@ def _k_box(kx, ky, nk, kb):  # pragma: no cover - numba
     kb[4] = cx / nk
     kb[5] = cy / nk
     kb[6] = 0.0
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _covers(g, gehead, anext, ov, ow, gbb, wref, h, kx, ky, nk, kb, knx, kny, klo,
-            khi, work):  # pragma: no cover - numba
-    """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
-    every offset in it and every delta: K's box inside the group's, no active edge capsule
-    meeting K, and a winding number of at least one of the active edges (the silhouette)
-    around K's centroid.
-
-    The active edges are walked through the group's edge list (``gehead``, ``anext``: node
-    3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
-    group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
-    in opposite directions, so the active edges' winding number around a point is the number
-    of the group's triangles holding it; a crossing too close to call counts as not covered.
-    ``work[0]`` counts the silhouette edges walked."""
-    if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
-        return False
-    if kb[6] == 0.0:
-        polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
-        kb[6] = 1.0
-    cx = kb[4]
-    cy = kb[5]
-    wn = 0
-    node = gehead[g]
-    while node >= 0:
-        r = node // 3
-        f = node - 3 * r
-        b = (f + 1) % 3
-        ax = ov[r, f, 0]
-        ay = ov[r, f, 1]
-        bx = ov[r, b, 0]
-        by = ov[r, b, 1]
-        rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
-        work[0] += 1
-        if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
-            return False
-        # Winding number (crossings of the ray from the centroid towards +x).
-        step = winding_step(ax, ay, bx, by, cx, cy)
-        if step == 2:
-            return False
-        wn += step
-        node = anext[node]
-    return wn >= 1
 
 
 #: Layout of a test's Q context (``qctx``, float64): whether the relaxed edge tests may be
@@ -473,9 +429,22 @@ def _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy):  # pragma: no co
 def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
               klo, khi, qctx, rpoly, nrp, rpb, rv, wsx, wsy, wtx, wty,
               work):  # pragma: no cover - numba
-    """``_covers`` for the occludee Q itself, with two more ways for a silhouette edge to pass
-    when its capsule meets K (which is grown for the camera rectangle's motion in Q's frame,
-    so an edge near the rectangle's edge fails there however far it stays from it):
+    """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
+    every offset in it and every delta: K's box inside the group's, no active edge capsule
+    meeting K, and a winding number of at least one of the active edges (the silhouette)
+    around K's centroid.
+
+    The active edges are walked through the group's edge list (``gehead``, ``anext``: node
+    3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
+    group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
+    in opposite directions, so the active edges' winding number around a point is the number
+    of the group's triangles holding it; a crossing too close to call counts as not covered.
+    ``work[0]`` counts the silhouette edges walked.
+
+    With ``qctx[QC_RELAX]`` set (K is the region of an occludee Q, ``_q_context``), two more
+    ways for a silhouette edge to pass when its capsule meets K (which is grown for the camera
+    rectangle's motion in Q's frame, so an edge near the rectangle's edge fails there however
+    far it stays from it):
 
     * the edge lies in Q's plane and off Q's interior: the parallel projection maps that plane
       the same way for every offset and direction, so its image never crosses Q's;
@@ -488,7 +457,7 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     the camera rectangle to Q, beyond it), so one witness point of S(delta0) inside the group
     at delta0 decides for all of them (``_directions``, ``_witness``; where no direction of
     the pixel reaches Q, no ray does and Q is covered vacuously). With no relaxed edge, K's
-    centroid decides as in ``_covers``."""
+    centroid decides."""
     if qctx[QC_RELAX] == 0.0:
         if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
             return False
@@ -942,6 +911,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         # The occludee's context for ``_covers_q`` and the camera rectangle's image in the
         # cameras' frame (``rpoly``: x, y, edge normal x, y, extent lo, hi per vertex).
         qctx = np.zeros(QC_SIZE)
+        strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
         rpoly = np.empty((MAX_POLY, 6))
         rpb = np.empty(7)
         wsx = np.empty(MAX_POLY)
@@ -1407,8 +1377,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
                         if n_r > 0:
                             _k_box(rx, ry, n_r, rb)
-                        if n_r > 0 and _covers(g, gehead, anext, ov, ow, gbb, wref, h, rx, ry,
-                                               n_r, rb, rnx, rny, rlo, rhi, work):
+                        if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                                 wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
+                                                 strict, rpoly, 0, rpb, rv, wsx, wsy, wtx, wty,
+                                                 work):
                             gcov[g] = True
                             n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
                             zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,

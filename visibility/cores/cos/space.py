@@ -367,7 +367,7 @@ def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
     Every corner square lies inside each edge's line by more than that edge's motion (the
     larger of its ends' radii, in the L1 support of the edge normal), so the region is inside
     the triangle and meets no edge's capsule: then, as the directions move, the moving region
-    never meets the moving boundary and stays inside (the argument of ``resolve._covers``)."""
+    never meets the moving boundary and stays inside (the argument of ``resolve._covers_q``)."""
     ar = area2(v)
     e1 = np.hypot(v[1, 0] - v[0, 0], v[1, 1] - v[0, 1])
     e2 = np.hypot(v[2, 0] - v[0, 0], v[2, 1] - v[0, 1])
@@ -414,7 +414,7 @@ def quad_holds(tv, tr, tid, cv, cr, cid, rv, rr):  # pragma: no cover - numba
     counter-clockwise each, the two triangles traverse the shared edge in opposite
     directions, so the winding number of the outer edges around a point is the number of
     the two holding it; no outer edge comes near the region as the directions move, so it
-    stays 1 there: every point of the region is held by T or C (``resolve._covers``'
+    stays 1 there: every point of the region is held by T or C (``resolve._covers_q``'
     argument for a fused group)."""
     su = -1
     sv = -1
