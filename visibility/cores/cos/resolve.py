@@ -100,6 +100,7 @@ from visibility.cores.cos.space import (
     clip_halfplane,
     load_prim,
     polygon_axes,
+    polygon_centroid,
     project,
     region_polygon,
     tri_normal,
@@ -245,20 +246,12 @@ def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
     qctx[QC_SEEN] = 0.0
     if nh < 3:
         return
-    ar = 0.0
-    cx = 0.0
-    cy = 0.0
-    for i in range(nh):
-        j = (i + 1) % nh
-        cr = dx[i] * dy[j] - dx[j] * dy[i]
-        ar += cr
-        cx += (dx[i] + dx[j]) * cr
-        cy += (dy[i] + dy[j]) * cr
+    ar, cx, cy = polygon_centroid(dx, dy, nh)
     if not abs(ar) > 1e-12 * h * h:
         return
     qctx[QC_SEEN] = 1.0
-    qctx[QC_DX] = cx / (3.0 * ar)
-    qctx[QC_DY] = cy / (3.0 * ar)
+    qctx[QC_DX] = cx
+    qctx[QC_DY] = cy
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -374,23 +367,15 @@ def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
     qctx[QC_WIT] = -1.0
     if m < 3:
         return
-    ar = 0.0
-    cx = 0.0
-    cy = 0.0
-    for i in range(m):
-        j = (i + 1) % m
-        cr = wx[i] * wy[j] - wx[j] * wy[i]
-        ar += cr
-        cx += (wx[i] + wx[j]) * cr
-        cy += (wy[i] + wy[j]) * cr
+    ar, cx, cy = polygon_centroid(wx, wy, m)
     span = 0.0
     for i in range(m):
         span = max(span, abs(wx[i] - wx[0]) + abs(wy[i] - wy[0]))
     if not abs(ar) > 1e-12 * span * span or span == 0.0:
         return
     qctx[QC_WIT] = 1.0
-    qctx[QC_WX] = cx / (3.0 * ar)
-    qctx[QC_WY] = cy / (3.0 * ar)
+    qctx[QC_WX] = cx
+    qctx[QC_WY] = cy
 
 
 @njit(cache=True, nogil=True, inline="always")

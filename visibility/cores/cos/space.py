@@ -111,6 +111,24 @@ def winding_step(ax, ay, bx, by, cx, cy):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def polygon_centroid(px, py, n):  # pragma: no cover - numba
+    """Twice the signed area of the polygon (px, py)[:n] and its centroid (the centroid is
+    not finite where the area is zero)."""
+    ar = 0.0
+    cx = 0.0
+    cy = 0.0
+    for i in range(n):
+        j = (i + 1) % n
+        cr = px[i] * py[j] - px[j] * py[i]
+        ar += cr
+        cx += (px[i] + px[j]) * cr
+        cy += (py[i] + py[j]) * cr
+    if ar == 0.0:
+        return 0.0, np.nan, np.nan
+    return ar, cx / (3.0 * ar), cy / (3.0 * ar)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def area2(v):  # pragma: no cover - numba
     """Twice the signed area of the COS triangle v[0..2]."""
     return ((v[1, 0] - v[0, 0]) * (v[2, 1] - v[0, 1])
