@@ -255,6 +255,18 @@ def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _q_extent(nx, ny, qctx):  # pragma: no cover - numba
+    """The extent (lo, hi) of Q's pixel-centre COS triangle along the axis (nx, ny)."""
+    qlo = np.inf
+    qhi = -np.inf
+    for c in range(3):
+        d = nx * qctx[QC_V + 2 * c] + ny * qctx[QC_V + 2 * c + 1]
+        qlo = min(qlo, d)
+        qhi = max(qhi, d)
+    return qlo, qhi
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _tri_off_q(r, ov, qctx):  # pragma: no cover - numba
     """Whether occluder triangle r's pixel-centre COS triangle and Q's have disjoint interiors
     (an edge normal of either separates them, touching allowed up to rounding)."""
@@ -278,15 +290,11 @@ def _tri_off_q(r, ov, qctx):  # pragma: no cover - numba
             continue
         tlo = np.inf
         thi = -np.inf
-        qlo = np.inf
-        qhi = -np.inf
         for c in range(3):
             d = nx * ov[r, c, 0] + ny * ov[r, c, 1]
             tlo = min(tlo, d)
             thi = max(thi, d)
-            d = nx * qctx[QC_V + 2 * c] + ny * qctx[QC_V + 2 * c + 1]
-            qlo = min(qlo, d)
-            qhi = max(qhi, d)
+        qlo, qhi = _q_extent(nx, ny, qctx)
         tol = scale * ln
         if thi <= qlo + tol or qhi <= tlo + tol:
             return True
@@ -311,12 +319,7 @@ def _seg_off_triangle(ax, ay, bx, by, qctx):  # pragma: no cover - numba
         ln = abs(nx) + abs(ny)
         if ln == 0.0:
             continue
-        qlo = np.inf
-        qhi = -np.inf
-        for c in range(3):
-            d = nx * qctx[QC_V + 2 * c] + ny * qctx[QC_V + 2 * c + 1]
-            qlo = min(qlo, d)
-            qhi = max(qhi, d)
+        qlo, qhi = _q_extent(nx, ny, qctx)
         da = nx * ax + ny * ay
         db = nx * bx + ny * by
         tol = scale * ln
