@@ -267,7 +267,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         which ``footprint_seconds``, ``bin_seconds`` and ``fill_seconds``: each primitive's
         pixel box per view (the hierarchy walk, ``walk_seconds``, included), binning the
         boxes into tiles, filling the per-pixel lists),
-        ``resolve_seconds``), ``list_entries``, ``longest_list``, ``tested``, ``occluded``,
+        ``resolve_seconds``), ``list_entries``, ``tile_items`` (the (primitive, screen
+        tile) pairs the lists are filled from: ``list_entries / tile_items`` is how many
+        pixels of a tile list an item on average, what state shared across a tile's pixels
+        could save), ``longest_list``, ``tested``, ``occluded``,
         ``occluder_triangles``, ``early_z_cut`` (list entries skipped behind a coverall
         occluder's depth), ``fill_cut`` (pixels of primitives' boxes left out of the lists
         while they are filled, behind a triangle that alone holds the pixel's offsets),
@@ -328,6 +331,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
+        "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
         "near_triangles": int(np.count_nonzero((solid == 0) & (prims.kind == TRIANGLE))),
@@ -498,6 +502,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     t0c = time.perf_counter()
     stats["footprint_seconds"] += t0b - t0
     stats["bin_seconds"] += t0c - t0b
+    stats["tile_items"] += int(tile_off[-1])
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
     screen = _screen(view, plane_tol, cover)

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from visibility.cores.base import get_core
+from visibility.cores.cos.lists import TILE
 from visibility.generators import make_scene
 from visibility.ground_truth import cell_around, sample_pvs
 from visibility.raster.camera import DEFAULT_NEAR
@@ -119,6 +120,10 @@ def test_stats_report_the_phases_and_lists():
     assert pvs.stats["list_entries"] > 0
     assert 0 < pvs.stats["longest_list"] <= pvs.stats["list_entries"]
     assert pvs.stats["views"] == 30
+    # Each (item, tile) pair lists the item at one to TILE^2 pixels of the tile, or at none
+    # where filling cuts it: the lists hold at most TILE^2 entries per pair.
+    assert 0 < pvs.stats["tile_items"] and pvs.stats["list_entries"] <= (
+        TILE * TILE * pvs.stats["tile_items"])
 
 
 def test_a_small_list_budget_gives_the_same_answer():
