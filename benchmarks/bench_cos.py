@@ -105,7 +105,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "seconds": pvs.seconds, "pvs": len(pvs), "reference": int(len(ref.ids)), "fn": fn,
            "fn_count": missed, "fp": fp,
            "overestimation": (len(pvs) - len(ref.ids) + missed) / max(1, len(ref.ids)),
-           "list_entries": st["list_entries"],
+           "list_entries": st["list_entries"], "tile_items": st.get("tile_items", 0),
            "longest_list": st["longest_list"], "mean_list": st["list_entries"] / st["pixels"],
            "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
@@ -292,7 +292,10 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                    f"{r['coarse_dropped']:,} of their {r['coarse_entries']:,} items out of "
                    "the pixels' lists, " if r.get("coarse_tiles") else "no tile took the "
                    "coarse pass, ") +
-                f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}), "
+                f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}) from "
+                f"{r.get('tile_items', 0):,} (primitive, screen tile) pairs, "
+                f"{r['list_entries'] / max(1, r.get('tile_items', 0)):.1f} pixels of a tile "
+                "per pair, "
                 f"{100 * r.get('early_z_cut', 0) / max(1, r['list_entries']):.0f} % of them "
                 "cut by early z behind surfaces covering a pixel's offsets, "
                 f"{r.get('fill_cut', 0):,} (primitive, pixel) pairs never listed, behind a "
@@ -387,11 +390,11 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "## Speed cells", "",
            "| cell | R | s | µs / px | closed | sort | lists | coarse | resolve | "
            "footprints | culled by tree | unseen back faces | coarse tiles | "
-           "left out by coarse | entries | "
+           "left out by coarse | entries | tile items | "
            "longest | mean list | cut while filling | early z cut | occluders | "
            "edges walked | plane tests | PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|" + "---|" * 28]
+           "|" + "---|" * 29]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
@@ -400,7 +403,8 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
                    f"{r['resolve_seconds']:.2f} | {r.get('projected', 0):,} | "
                    f"{r.get('culled', 0):,} | {r['unseen_back_faces']:,} | "
                    f"{r['coarse_tiles']:,} | {r['coarse_dropped']:,} | "
-                   f"{r['list_entries']:,} | {r['longest_list']} | "
+                   f"{r['list_entries']:,} | {r.get('tile_items', 0):,} | "
+                   f"{r['longest_list']} | "
                    f"{r['mean_list']:.1f} | {r.get('fill_cut', 0):,} | "
                    f"{r.get('early_z_cut', 0):,} | "
                    f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
@@ -442,6 +446,7 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="folder the results go to")
     ap.add_argument("--points", type=int, default=64,
                     help="reference eyes per cell (ray frames of 256 px per face)")
     ap.add_argument("--parts", nargs="+", default=["speed", "fp"])
@@ -461,19 +466,20 @@ def main(argv: list[str] | None = None) -> None:
     fp_rows = fp_table(args.quick, args.points) if "fp" in args.parts else []
     elapsed = time.perf_counter() - t0
     load = (load0, os.getloadavg()[0])
-    RESULTS.mkdir(exist_ok=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     stem = "cos_quick" if args.quick else "cos"
-    (RESULTS / f"{stem}.json").write_text(json.dumps(
+    (out / f"{stem}.json").write_text(json.dumps(
         {"speed": speed_rows, "fp": fp_rows, "kitchen": kitchen, "points": args.points,
          "seconds": elapsed, "loadavg": load},
         indent=1))
     if speed_rows:
-        _plot(speed_rows, RESULTS / f"{stem}.png")
+        _plot(speed_rows, out / f"{stem}.png")
     import sys
 
     md = _md(speed_rows, fp_rows, args.points, elapsed, sys.argv[1:] if argv is None else argv,
              load, kitchen)
-    (RESULTS / f"{stem}.md").write_text(md.replace("(cos.png)", f"({stem}.png)"))
+    (out / f"{stem}.md").write_text(md.replace("(cos.png)", f"({stem}.png)"))
     print(md)
 
 
