@@ -354,7 +354,7 @@ def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
     for a in range(4):
         rq[a, 0] = rv[a, 0] - (qctx[QC_CW + a] - wr) * d0x
         rq[a, 1] = rv[a, 1] - (qctx[QC_CW + a] - wr) * d0y
-    s = 1.0 if area2_xy(rq) >= 0.0 else -1.0
+    s = 1.0 if polygon_centroid(rq[:, 0], rq[:, 1], 4)[0] >= 0.0 else -1.0
     for a in range(4):
         b = (a + 1) % 4
         nx = s * (rq[b, 1] - rq[a, 1])
@@ -379,16 +379,6 @@ def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
     qctx[QC_WIT] = 1.0
     qctx[QC_WX] = cx
     qctx[QC_WY] = cy
-
-
-@njit(cache=True, nogil=True, inline="always")
-def area2_xy(v):  # pragma: no cover - numba
-    """Twice the signed area of the quadrilateral v (4, 2)."""
-    a = 0.0
-    for i in range(4):
-        j = (i + 1) % 4
-        a += v[i, 0] * v[j, 1] - v[j, 0] * v[i, 1]
-    return a
 
 
 @njit(cache=True, nogil=True, inline="always")
