@@ -463,6 +463,12 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     if kb[6] == 0.0:
         polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
         kb[6] = 1.0
+    # The winding number around K's centroid is summed in the same walk: where no edge is
+    # relaxed, it decides (a second walk would cost as much again).
+    cx = kb[4]
+    cy = kb[5]
+    wn = 0
+    on_edge = False
     relaxed = False
     node = gehead[g]
     while node >= 0:
@@ -475,6 +481,13 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
         by = ov[r, b, 1]
         rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
         work[0] += 1
+        step = winding_step(ax, ay, bx, by, cx, cy)
+        if step == 2:
+            if qctx[QC_RELAX] == 0.0:
+                return False
+            on_edge = True
+        else:
+            wn += step
         if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
             if qctx[QC_RELAX] == 0.0:
                 return False
@@ -496,26 +509,19 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
                 else:
                     return False
         node = anext[node]
-    d0x = 0.0
-    d0y = 0.0
-    if relaxed:
-        if qctx[QC_SEEN] < 0.0:
-            _directions(qctx, wsx, wsy, wtx, wty)
-        if qctx[QC_SEEN] == 0.0:
-            return True  # no ray of the pixel meets Q: covered, vacuously
-        d0x = qctx[QC_DX]
-        d0y = qctx[QC_DY]
-        if qctx[QC_WIT] == 0.0:
-            _witness(qctx, rv, wsx, wsy, wtx, wty)
-        if qctx[QC_WIT] < 0.0:
-            return False
-        cx = qctx[QC_WX]
-        cy = qctx[QC_WY]
-    else:
-        cx = kb[4]
-        cy = kb[5]
+    if not relaxed:
+        return not on_edge and wn >= 1
+    if qctx[QC_SEEN] < 0.0:
+        _directions(qctx, wsx, wsy, wtx, wty)
+    if qctx[QC_SEEN] == 0.0:
+        return True  # no ray of the pixel meets Q: covered, vacuously
+    if qctx[QC_WIT] == 0.0:
+        _witness(qctx, rv, wsx, wsy, wtx, wty)
+    if qctx[QC_WIT] < 0.0:
+        return False
     # The silhouette at the witness's delta (frame of depth wref).
-    return _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy)
+    return _wind_in(g, gehead, anext, ov, ow, wref, qctx[QC_DX], qctx[QC_DY], qctx[QC_WX],
+                    qctx[QC_WY])
 
 
 @njit(cache=True, nogil=True, inline="always")
