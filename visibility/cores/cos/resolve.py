@@ -106,6 +106,7 @@ from visibility.cores.cos.space import (
     tri_normal,
     winding_step,
 )
+from visibility.planar import convex_hull
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -193,8 +194,14 @@ def _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam, tol,
         qctx[QC_RELAX] = 1.0
 
 
+#: Points whose hull bounds a pixel's between-sample directions (``_directions``): from each
+#: of the camera rectangle's 4 corners to each of Q's 3. Witness scratch ``wpt`` holds them and
+#: their hull: (3 DIR_PTS, 2).
+DIR_PTS = 12
+
+
 @njit(cache=True, nogil=True)
-def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
+def _directions(qctx, ws, wpt):  # pragma: no cover - numba
     """The between-sample directions under which some camera position sees Q (Q beyond them
     all): the directions from the rectangle's corners to Q's form a convex polygon (the image
     of the convex set rectangle x Q under the perspective map), clipped to the pixel's square.
@@ -203,6 +210,7 @@ def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
     sx = qctx[QC_SX]
     sy = qctx[QC_SY]
     h = qctx[QC_H]
+    pts = wpt[:DIR_PTS]
     m = 0
     for i in range(3):
         wi = qctx[QC_W + i]
@@ -210,33 +218,18 @@ def _directions(qctx, dx, dy, tx, ty):  # pragma: no cover - numba
         yi = qctx[QC_V + 2 * i + 1] + wi * sy
         for j in range(4):
             dw = wi - qctx[QC_CW + j]
-            dx[m] = (xi - qctx[QC_CXY + 2 * j]) / dw - sx
-            dy[m] = (yi - qctx[QC_CXY + 2 * j + 1]) / dw - sy
+            pts[m, 0] = (xi - qctx[QC_CXY + 2 * j]) / dw - sx
+            pts[m, 1] = (yi - qctx[QC_CXY + 2 * j + 1]) / dw - sy
             m += 1
-    # Convex hull (gift wrapping over 12 points), counter-clockwise.
-    start = 0
-    for i in range(1, m):
-        if dx[i] < dx[start] or (dx[i] == dx[start] and dy[i] < dy[start]):
-            start = i
-    nh = 0
-    cur = start
-    while True:
-        tx[nh] = dx[cur]
-        ty[nh] = dy[cur]
-        nh += 1
-        nxt_ = (cur + 1) % m
-        for i in range(m):
-            cr = ((dx[nxt_] - dx[cur]) * (dy[i] - dy[cur])
-                  - (dy[nxt_] - dy[cur]) * (dx[i] - dx[cur]))
-            if cr < 0.0 or (cr == 0.0 and (dx[i] - dx[cur]) ** 2 + (dy[i] - dy[cur]) ** 2
-                            > (dx[nxt_] - dx[cur]) ** 2 + (dy[nxt_] - dy[cur]) ** 2):
-                nxt_ = i
-        cur = nxt_
-        if cur == start or nh >= m:
-            break
+    hull = wpt[DIR_PTS:]
+    nh = convex_hull(pts, m, hull)
+    dx = ws[0]
+    dy = ws[1]
+    tx = ws[2]
+    ty = ws[3]
     for i in range(nh):
-        dx[i] = tx[i]
-        dy[i] = ty[i]
+        dx[i] = hull[i, 0]
+        dy[i] = hull[i, 1]
     # Clip to the pixel's square (grown by a rounding margin).
     g = h * (1.0 + 1e-9) + 1e-15
     nh = clip_halfplane(dx, dy, nh, 1.0, 0.0, g, tx, ty)
@@ -337,11 +330,15 @@ def _on_q_plane(x, y, w, qctx):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
+def _witness(qctx, rv, ws, wpt):  # pragma: no cover - numba
     """A point inside S(delta0), the offsets whose ray in direction s + delta0 meets Q (Q's COS
     triangle clipped to the camera rectangle's image, both moved to delta0 in the frame of
     depth wref), kept in ``qctx`` (QC_WIT 1; -1 when it has no robust interior). delta0 is
-    ``_directions``' centroid."""
+    ``_directions``' centroid; ``ws``, ``wpt``: scratch as there."""
+    wx = ws[0]
+    wy = ws[1]
+    wtx = ws[2]
+    wty = ws[3]
     # S(delta0) in the frame of depth wref: every point at depth w moves by -(w - wref) delta0.
     d0x = qctx[QC_DX]
     d0y = qctx[QC_DY]
@@ -350,7 +347,7 @@ def _witness(qctx, rv, wx, wy, wtx, wty):  # pragma: no cover - numba
         wx[c] = qctx[QC_V + 2 * c] - (qctx[QC_W + c] - wr) * d0x
         wy[c] = qctx[QC_V + 2 * c + 1] - (qctx[QC_W + c] - wr) * d0y
     m = 3
-    rq = np.empty((4, 2))
+    rq = wpt[:4]  # the camera rectangle moved to delta0 (``_directions``' points are spent)
     for a in range(4):
         rq[a, 0] = rv[a, 0] - (qctx[QC_CW + a] - wr) * d0x
         rq[a, 1] = rv[a, 1] - (qctx[QC_CW + a] - wr) * d0y
@@ -405,7 +402,7 @@ def _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy):  # pragma: no co
 
 @njit(cache=True, nogil=True, inline="always")
 def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
-              klo, khi, qctx, rpoly, nrp, rpb, rv, wsx, wsy, wtx, wty,
+              klo, khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
               work):  # pragma: no cover - numba
     """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
     every offset in it and every delta: K's box inside the group's, no active edge capsule
@@ -435,7 +432,8 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     the camera rectangle to Q, beyond it), so one witness point of S(delta0) inside the group
     at delta0 decides for all of them (``_directions``, ``_witness``; where no direction of
     the pixel reaches Q, no ray does and Q is covered vacuously). With no relaxed edge, K's
-    centroid decides."""
+    centroid decides. ``ws`` (4, MAX_POLY) and ``wpt`` (3 DIR_PTS, 2): the witness's
+    scratch."""
     if qctx[QC_RELAX] == 0.0:
         if kb[0] < gbb[g, 0] or kb[1] > gbb[g, 1] or kb[2] < gbb[g, 2] or kb[3] > gbb[g, 3]:
             return False
@@ -444,10 +442,10 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
         # the witness can: outside the group's silhouette at delta0 (its box moved by delta0),
         # S(delta0) is not inside the group.
         if qctx[QC_SEEN] < 0.0:
-            _directions(qctx, wsx, wsy, wtx, wty)
+            _directions(qctx, ws, wpt)
         if qctx[QC_SEEN] > 0.0:
             if qctx[QC_WIT] == 0.0:
-                _witness(qctx, rv, wsx, wsy, wtx, wty)
+                _witness(qctx, rv, ws, wpt)
             if qctx[QC_WIT] > 0.0:
                 m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
                 ex = m * abs(qctx[QC_DX])
@@ -512,11 +510,11 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     if not relaxed:
         return not on_edge and wn >= 1
     if qctx[QC_SEEN] < 0.0:
-        _directions(qctx, wsx, wsy, wtx, wty)
+        _directions(qctx, ws, wpt)
     if qctx[QC_SEEN] == 0.0:
         return True  # no ray of the pixel meets Q: covered, vacuously
     if qctx[QC_WIT] == 0.0:
-        _witness(qctx, rv, wsx, wsy, wtx, wty)
+        _witness(qctx, rv, ws, wpt)
     if qctx[QC_WIT] < 0.0:
         return False
     # The silhouette at the witness's delta (frame of depth wref).
@@ -898,10 +896,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
         rpoly = np.empty((MAX_POLY, 6))
         rpb = np.empty(7)
-        wsx = np.empty(MAX_POLY)
-        wsy = np.empty(MAX_POLY)
-        wtx = np.empty(MAX_POLY)
-        wty = np.empty(MAX_POLY)
+        ws = np.empty((4, MAX_POLY))
+        wpt = np.empty((3 * DIR_PTS, 2))
         knx = np.empty(MAX_POLY)
         kny = np.empty(MAX_POLY)
         klo = np.empty(MAX_POLY)
@@ -1036,10 +1032,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                 nrp = 0
                 if relaxed:
                     region_at(corners, sx, sy, h, fr, rv, rr)
-                    nrp = region_polygon(rv, rr, 4, False, rv, rr, wsx, wsy, wtx, wty)
+                    nrp = region_polygon(rv, rr, 4, False, rv, rr, ws[0], ws[1], ws[2], ws[3])
                     for c in range(nrp):
-                        rpoly[c, 0] = wsx[c]
-                        rpoly[c, 1] = wsy[c]
+                        rpoly[c, 0] = ws[0, c]
+                        rpoly[c, 1] = ws[1, c]
                     if nrp > 0:
                         polygon_axes(rpoly[:, 0], rpoly[:, 1], nrp, rpb, rpoly[:, 2],
                                      rpoly[:, 3], rpoly[:, 4], rpoly[:, 5])
@@ -1153,8 +1149,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                                 if not isc:
                                     if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
                                                      wref, h, kx, ky, nk, kb, knx, kny, klo,
-                                                     khi, qctx, rpoly, nrp, rpb, rv, wsx, wsy,
-                                                     wtx, wty, work):
+                                                     khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
+                                                     work):
                                         continue
                                 if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
                                           sg, sfr, shead, pool, pdep, dom, wcam, plane_tol, wref,
@@ -1363,7 +1359,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             _k_box(rx, ry, n_r, rb)
                         if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
                                                  wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
-                                                 strict, rpoly, 0, rpb, rv, wsx, wsy, wtx, wty,
+                                                 strict, rpoly, 0, rpb, rv, ws, wpt,
                                                  work):
                             gcov[g] = True
                             n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)

@@ -17,6 +17,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from visibility.planar import convex_hull
+
 #: Most vertices of a stored hull: a triangle's six swept corners clipped at the near plane give
 #: at most 12 candidate points (k corners behind: 6 - k in front, k (6 - k) crossing edges).
 HMAX = 12
@@ -48,46 +50,6 @@ def no_hulls(n_prims: int) -> Hulls:
     """A ``Hulls`` group in which no primitive has a hull (every box is scanned whole)."""
     return Hulls(np.full(n_prims, -1, dtype=np.int32), np.zeros((0, HMAX, 2), np.float32),
                  np.zeros(0, np.int8))
-
-
-@njit(**_JIT)
-def convex_hull(p: np.ndarray, n: int, h: np.ndarray) -> int:
-    """Convex hull of the points ``p[:n]`` (n, 2) by Andrew's monotone chain; sorts ``p[:n]``
-    in place and writes the hull's vertices in order into ``h`` (at least 2 n rows). Returns
-    their count (1 or 2 for a point or a segment, 0 for none). Collinear points are dropped:
-    they lie on the hull's edges."""
-    for a in range(1, n):
-        x = p[a, 0]
-        y = p[a, 1]
-        b = a - 1
-        while b >= 0 and (p[b, 0] > x or (p[b, 0] == x and p[b, 1] > y)):
-            p[b + 1, 0] = p[b, 0]
-            p[b + 1, 1] = p[b, 1]
-            b -= 1
-        p[b + 1, 0] = x
-        p[b + 1, 1] = y
-    if n <= 2:
-        for a in range(n):
-            h[a, 0] = p[a, 0]
-            h[a, 1] = p[a, 1]
-        return n
-    k = 0
-    for a in range(n):
-        while k >= 2 and ((h[k - 1, 0] - h[k - 2, 0]) * (p[a, 1] - h[k - 2, 1])
-                          - (h[k - 1, 1] - h[k - 2, 1]) * (p[a, 0] - h[k - 2, 0])) <= 0.0:
-            k -= 1
-        h[k, 0] = p[a, 0]
-        h[k, 1] = p[a, 1]
-        k += 1
-    lower = k + 1
-    for a in range(n - 2, -1, -1):
-        while k >= lower and ((h[k - 1, 0] - h[k - 2, 0]) * (p[a, 1] - h[k - 2, 1])
-                              - (h[k - 1, 1] - h[k - 2, 1]) * (p[a, 0] - h[k - 2, 0])) <= 0.0:
-            k -= 1
-        h[k, 0] = p[a, 0]
-        h[k, 1] = p[a, 1]
-        k += 1
-    return k - 1
 
 
 @njit(**_JIT)

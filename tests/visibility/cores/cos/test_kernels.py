@@ -8,6 +8,7 @@ import pytest
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import (
+    DIR_PTS,
     GRID,
     QC_DX,
     QC_DY,
@@ -157,7 +158,7 @@ def test_directions_reaching_q_within_the_pixel():
     # delta it picks lies inside the pixel and reaches Q.
     corners = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
     q = np.array([[-0.1, -0.1, 10.0], [0.1, -0.1, 10.0], [0.0, 0.1, 10.0]])
-    scratch = [np.empty(16) for _ in range(4)]
+    scratch = (np.empty((4, 16)), np.empty((3 * DIR_PTS, 2)))
 
     def seen(s, h):
         ctx = np.zeros(QC_SIZE)

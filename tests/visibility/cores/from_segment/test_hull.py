@@ -17,7 +17,7 @@ from visibility.cores.from_segment.boxes import (
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.groups import CubeFrame, GeometryArrays
-from visibility.cores.from_segment.hull import HMAX, Hulls, convex_hull, hull_cols
+from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols
 from visibility.cores.from_segment.raster import _cam_corners, _row_spans
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.cores.from_segment.static import static_cover, static_setup
@@ -114,19 +114,6 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
                 - max(b[2], hull_cols(hulls.pts, f, hulls.count[f], i, i, PAD)[0]) + 1)
             if hulls.count[f] else b[3] - b[2] + 1 for i in range(b[0], b[1] + 1))
         tally["box_px"] += (b[1] - b[0] + 1) * (b[3] - b[2] + 1)
-
-
-def test_convex_hull_of_points_segments_and_duplicates():
-    p = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.5, 0.5], [0.5, 0.0]])
-    h = np.empty((12, 2))
-    n = convex_hull(p.copy(), 6, h)
-    assert n == 4
-    assert {tuple(v) for v in h[:n]} == {(0, 0), (1, 0), (1, 1), (0, 1)}
-    # Collinear points: the segment's two ends; repeated points: one or two copies of it.
-    assert convex_hull(np.array([[0.0, 0.0], [2.0, 2.0], [1.0, 1.0]]), 3, h) == 2
-    assert {tuple(v) for v in h[:2]} == {(0, 0), (2, 2)}
-    n = convex_hull(np.array([[3.0, 1.0]] * 4), 4, h)
-    assert 1 <= n <= 2 and np.all(h[:n] == (3.0, 1.0))
 
 
 def test_hull_cols_of_a_diagonal_band():
