@@ -1,6 +1,6 @@
 """Shared-cache benchmark: a PVS hit from Redis against hits from memory and from disk.
 
-Starts its own ``redis-server`` on a free loopback port (``tests.redis_process``: no
+Starts its own ``redis-server`` on a free loopback port (``benchmarks.redis_process``: no
 persistence, 256 MB ``maxmemory``, LRU) and a ``ComputeService`` with all three tiers (memory,
 ``cache_dir`` in a temporary folder, ``cache=redis://…``), computes the PVS of ``--cells``
 cells spread evenly over the scene's grid (``viewcells.spread_evenly``), then measures, cell

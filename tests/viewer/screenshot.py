@@ -1,10 +1,11 @@
 """A screenshot of the browser viewer on a scene, as a person sees it (the README's).
 
 Starts the real server (``pvs serve``) on a free port, opens ``/viewer`` in headless Chromium
-(``tests/viewer/chromium.py``: Debian's chromium and chromium-driver, software WebGL), waits
-until the eye's cell has streamed and drawn, optionally moves the eye, and saves the window::
+(``tests/viewer/chromium.py``, the viewer tests' harness: Debian's chromium and
+chromium-driver, software WebGL), waits until the eye's cell has streamed and drawn, optionally
+moves the eye, and saves the window::
 
-    python scripts/viewer_screenshot.py --scene lavaducts --out docs/viewer_lavaducts.png \\
+    python -m tests.viewer.screenshot --scene lavaducts --out docs/viewer_lavaducts.png \\
         --eye 10.6,1.7,-7.1 --forward 1,-0.1,0.3
 """
 
@@ -16,11 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from pvs_cli import DEFAULT_SCENES_DIR, _free_port, wait_until_healthy
+from tests.viewer.chromium import console_errors, start_chromium, wait_state
 
-from pvs_cli import DEFAULT_SCENES_DIR, _free_port, wait_until_healthy  # noqa: E402
-from tests.viewer.chromium import console_errors, start_chromium, wait_state  # noqa: E402
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _vec(text: str) -> list[float]:
