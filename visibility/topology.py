@@ -12,11 +12,14 @@ consistently wound surface. ``closed_parts`` adds its orientation (the sign of i
 volume) and box, and ``unseen_back_faces`` uses them: from an eye outside a closed surface,
 a ray that meets one of its triangles from the inside has crossed the surface before, so a
 triangle whose outer side faces away from every eye of a cell is never seen from that cell.
+A closed part that passes through itself has no outer side for every triangle (it is inside
+out in places); there the winding number on each side of the triangles no other crosses
+(``winding.front_windings``) says which side is hidden: one where it is not 0.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -24,6 +27,7 @@ from numba import njit
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
 from visibility.scene_cache import per_scene
+from visibility.winding import UNDECIDED, front_windings
 
 
 def weld_vertices(vertices: np.ndarray) -> np.ndarray:
@@ -198,6 +202,10 @@ class ClosedParts:
     oriented : (k,) int64 the triangles with ``outward`` != 0 whose normal can be trusted (not
         needles, ``NEEDLE``): the candidates of ``unseen_back_faces``.
     normal : (k, 3) float64 their outer unit normals; ``offset`` (k,) normal . corner, metres.
+    wound : (j,) int64 triangles of parts that pass through themselves (no ``outward``), which
+        no other triangle crosses and whose front side's winding number ``wfront`` (j,) int32
+        is known (``winding.front_windings``; the back's is one more); ``wnormal`` (j, 3)
+        their right-hand unit normals and ``woffset`` (j,) normal . corner, metres.
     """
 
     edges: Edges
@@ -207,6 +215,10 @@ class ClosedParts:
     oriented: np.ndarray
     normal: np.ndarray
     offset: np.ndarray
+    wound: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    wfront: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    wnormal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    woffset: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 #: Triangles are shrunk towards their centroids by this share before the crossing test, so that
@@ -292,6 +304,24 @@ def _cross(a, b):  # pragma: no cover - numba
 
 
 @njit(cache=True)
+def _crossing_flags(tris, lo, hi, start, axis, parts, flag):  # pragma: no cover - numba
+    """flag[i] = True for every triangle i of the parts ``parts`` that another of its part
+    crosses (rows and boxes as ``_self_crossing``'s)."""
+    for k in parts:
+        ax = axis[k]
+        for i in range(start[k], start[k + 1]):
+            for j in range(i + 1, start[k + 1]):
+                if lo[j, ax] > hi[i, ax]:
+                    break
+                if (lo[j, 0] > hi[i, 0] or hi[j, 0] < lo[i, 0] or lo[j, 1] > hi[i, 1]
+                        or hi[j, 1] < lo[i, 1] or lo[j, 2] > hi[i, 2] or hi[j, 2] < lo[i, 2]):
+                    continue
+                if _cross(tris[i], tris[j]):
+                    flag[i] = True
+                    flag[j] = True
+
+
+@njit(cache=True)
 def _self_crossing(tris, lo, hi, start, axis, out):  # pragma: no cover - numba
     """out[k] = True when two triangles of part k cross. Part k holds rows start[k] to
     start[k + 1] of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound
@@ -312,17 +342,10 @@ def _self_crossing(tris, lo, hi, start, axis, out):  # pragma: no cover - numba
                 break
 
 
-def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarray:
-    """(p,) bool, True for the parts some two of whose triangles cross or overlap (beyond the
-    edges and corners they share).
-
-    Parameters
-    ----------
-    tris : (k, 3, 3) float64 triangles, metres; ``label`` (k,) int64 their part in [0, p).
-    """
-    out = np.zeros(p, dtype=bool)
-    if not len(tris):
-        return out
+def _sweep(tris: np.ndarray, label: np.ndarray, p: int) -> tuple:
+    """The crossing tests' layout: triangles shrunk (``SHRINK``), grouped by part and sorted
+    along each part's longest axis; (shrunk sorted triangles, their lo and hi (n, 3), part
+    start rows (p + 1,), axis per part (p,), the sort order)."""
     c = tris.mean(axis=1, keepdims=True)
     t = c + (tris - c) * (1.0 - SHRINK)
     lo = t.min(axis=1)
@@ -337,9 +360,57 @@ def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarr
     axis = np.argmax(ext, axis=1).astype(np.int64)
     order = np.lexsort((lo[np.arange(len(t)), axis[label]], label))
     start = np.searchsorted(label[order], np.arange(p + 1)).astype(np.int64)
-    _self_crossing(np.ascontiguousarray(t[order]), np.ascontiguousarray(lo[order]),
-                   np.ascontiguousarray(hi[order]), start, axis, out)
+    return (np.ascontiguousarray(t[order]), np.ascontiguousarray(lo[order]),
+            np.ascontiguousarray(hi[order]), start, axis, order)
+
+
+def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarray:
+    """(p,) bool, True for the parts some two of whose triangles cross or overlap (beyond the
+    edges and corners they share).
+
+    Parameters
+    ----------
+    tris : (k, 3, 3) float64 triangles, metres; ``label`` (k,) int64 their part in [0, p).
+    """
+    out = np.zeros(p, dtype=bool)
+    if not len(tris):
+        return out
+    t, lo, hi, start, axis, _ = _sweep(tris, label, p)
+    _self_crossing(t, lo, hi, start, axis, out)
     return out
+
+
+def crossed_triangles(tris: np.ndarray, label: np.ndarray, p: int,
+                      parts: np.ndarray) -> np.ndarray:
+    """(k,) bool, True for the triangles of the parts ``parts`` (int64 ids) that another
+    triangle of their part crosses or overlaps (as ``self_crossing_parts`` tests)."""
+    flag = np.zeros(len(tris), dtype=bool)
+    if not len(tris) or not len(parts):
+        return flag
+    t, lo, hi, start, axis, order = _sweep(tris, label, p)
+    _crossing_flags(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), flag)
+    out = np.zeros(len(tris), dtype=bool)
+    out[order] = flag
+    return out
+
+
+def _wound_sides(tri: np.ndarray, lab: np.ndarray, p: int, crossing: np.ndarray,
+                 needle: np.ndarray) -> tuple:
+    """Of the parts ``crossing`` (p,) bool (they pass through themselves), the triangles no
+    other crosses, not needles, whose front winding ``winding.front_windings`` can count:
+    (rows of ``tri``, front windings, right-hand unit normals, offsets)."""
+    rows = np.flatnonzero(crossing[lab])
+    if not len(rows):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros((0, 3)), \
+            np.zeros(0)
+    sub = tri[rows]
+    crossed = crossed_triangles(sub, lab[rows], p, np.flatnonzero(crossing))
+    todo = ~crossed & ~needle[rows]
+    wf = front_windings(sub, lab[rows], todo)
+    keep = todo & (wf != UNDECIDED)
+    n = np.cross(sub[keep, 1] - sub[keep, 0], sub[keep, 2] - sub[keep, 0])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    return rows[keep], wf[keep], n, np.einsum("ij,ij->i", n, sub[keep, 0])
 
 
 def build_closed_parts(scene: Scene) -> ClosedParts:
@@ -373,16 +444,22 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
     sign = np.where(np.abs(vol) > ORIENTED_SHARE * mag, np.sign(vol), 0.0).astype(np.int8)
     # A surface that passes through itself can be inside out in places (an inner piece
     # wound against the rest): its volume's sign says nothing there.
-    sign[self_crossing_parts(tri, lab, p)] = 0
+    crossing = self_crossing_parts(tri, lab, p)
+    sign[crossing] = 0
     outward[inpart] = sign[lab]
     # Outer unit normals of the oriented triangles; a needle's normal is rounding: left out.
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     long2 = np.max(np.sum((tri - np.roll(tri, 1, axis=1)) ** 2, axis=2), axis=1)
     norm = np.linalg.norm(n, axis=1)
-    keep = (outward[inpart] != 0) & (norm > NEEDLE * long2)
+    needle = ~(norm > NEEDLE * long2)
+    keep = (outward[inpart] != 0) & ~needle
     n = n[keep] * (outward[inpart][keep] / norm[keep])[:, None]
+    # Parts that pass through themselves have no outside for every triangle: the winding
+    # number on each side of those no other triangle crosses says which side is hidden.
+    wrows, wfront, wnormal, woffset = _wound_sides(tri, lab, p, crossing, needle)
     return ClosedParts(edges, label, outward, box, inpart[keep], n,
-                       np.einsum("ij,ij->i", n, tri[keep, 0]))
+                       np.einsum("ij,ij->i", n, tri[keep, 0]), inpart[wrows], wfront,
+                       wnormal, woffset)
 
 
 def closed_parts(scene: Scene) -> tuple[ClosedParts, bool]:
@@ -414,7 +491,7 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
     """
     parts, _ = closed_parts(scene)
     out = np.zeros(scene.n_triangles, dtype=bool)
-    if not len(parts.oriented):
+    if not len(parts.oriented) and not len(parts.wound):
         return out
     lo = np.asarray(box[0], dtype=np.float64)
     hi = np.asarray(box[1], dtype=np.float64)
@@ -429,4 +506,14 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
     far = np.where(n > 0.0, hi, lo)
     ahead = np.einsum("ij,ij->i", n, far) - parts.offset[sel]
     out[parts.oriented[sel][ahead < -tol]] = True
+    # Triangles of parts that pass through themselves: hidden on a side where the winding
+    # number is not 0, for an eye outside the part's box (where it is 0), so when the whole
+    # cell lies on that side.
+    selw = apart[parts.label[parts.wound]]
+    n = parts.wnormal[selw]
+    top = np.einsum("ij,ij->i", n, np.where(n > 0.0, hi, lo)) - parts.woffset[selw]
+    bot = np.einsum("ij,ij->i", n, np.where(n > 0.0, lo, hi)) - parts.woffset[selw]
+    wf = parts.wfront[selw]
+    hidden = ((top < -tol) & (wf + 1 != 0)) | ((bot > tol) & (wf != 0))
+    out[parts.wound[selw][hidden]] = True
     return out
