@@ -304,9 +304,12 @@ def _cross(a, b):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def _crossing_flags(tris, lo, hi, start, axis, parts, flag):  # pragma: no cover - numba
-    """flag[i] = True for every triangle i of the parts ``parts`` that another of its part
-    crosses (rows and boxes as ``_self_crossing``'s)."""
+def _crossings(tris, lo, hi, start, axis, parts, every, out, flag):  # pragma: no cover - numba
+    """Crossing triangles of the parts ``parts``. Part k holds rows start[k] to start[k + 1]
+    of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound along the part's
+    longest axis ``axis[k]``; ``lo``, ``hi`` (n, 3) their boxes. out[k] = True when two of
+    its triangles cross; with ``every``, flag[i] = True for each triangle another crosses
+    (else the part's sweep stops at its first crossing)."""
     for k in parts:
         ax = axis[k]
         for i in range(start[k], start[k + 1]):
@@ -317,28 +320,12 @@ def _crossing_flags(tris, lo, hi, start, axis, parts, flag):  # pragma: no cover
                         or hi[j, 1] < lo[i, 1] or lo[j, 2] > hi[i, 2] or hi[j, 2] < lo[i, 2]):
                     continue
                 if _cross(tris[i], tris[j]):
+                    out[k] = True
+                    if not every:
+                        break
                     flag[i] = True
                     flag[j] = True
-
-
-@njit(cache=True)
-def _self_crossing(tris, lo, hi, start, axis, out):  # pragma: no cover - numba
-    """out[k] = True when two triangles of part k cross. Part k holds rows start[k] to
-    start[k + 1] of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound
-    along the part's longest axis ``axis[k]``; ``lo``, ``hi`` (n, 3) their boxes."""
-    for k in range(len(start) - 1):
-        ax = axis[k]
-        for i in range(start[k], start[k + 1]):
-            for j in range(i + 1, start[k + 1]):
-                if lo[j, ax] > hi[i, ax]:
-                    break
-                if (lo[j, 0] > hi[i, 0] or hi[j, 0] < lo[i, 0] or lo[j, 1] > hi[i, 1]
-                        or hi[j, 1] < lo[i, 1] or lo[j, 2] > hi[i, 2] or hi[j, 2] < lo[i, 2]):
-                    continue
-                if _cross(tris[i], tris[j]):
-                    out[k] = True
-                    break
-            if out[k]:
+            if out[k] and not every:
                 break
 
 
@@ -376,7 +363,8 @@ def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarr
     if not len(tris):
         return out
     t, lo, hi, start, axis, _ = _sweep(tris, label, p)
-    _self_crossing(t, lo, hi, start, axis, out)
+    _crossings(t, lo, hi, start, axis, np.arange(p, dtype=np.int64), False, out,
+               np.zeros(0, dtype=np.bool_))
     return out
 
 
@@ -388,7 +376,8 @@ def crossed_triangles(tris: np.ndarray, label: np.ndarray, p: int,
     if not len(tris) or not len(parts):
         return flag
     t, lo, hi, start, axis, order = _sweep(tris, label, p)
-    _crossing_flags(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), flag)
+    _crossings(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), True,
+               np.zeros(p, dtype=np.bool_), flag)
     out = np.zeros(len(tris), dtype=bool)
     out[order] = flag
     return out
