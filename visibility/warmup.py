@@ -18,10 +18,11 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 #: The built-in work split in two groups of about equal compile time, one process each:
-#: cores by name, ``ground_truth`` (the sampled reference) and ``rays`` (the float64 caster).
+#: cores by name, ``ground_truth`` (the sampled reference), ``rays`` (the float64 caster) and
+#: ``topology`` (closed parts, self-crossing ones included: no small scene below has one).
 GROUPS: tuple[tuple[str, ...], ...] = (
     ("cos", "sampling", "ground_truth", "dual_ray"),
-    ("from_segment", "trim_regions", "rays"),
+    ("from_segment", "trim_regions", "rays", "topology"),
 )
 
 
@@ -64,6 +65,8 @@ def _warm(names: tuple[str, ...]) -> float:
                 from visibility.ray_frames import cube_directions
 
                 cube_directions(np.eye(3), 2, np.random.default_rng(0))
+            elif name == "topology":
+                _warm_topology()
             else:
                 core = get_core(name)
                 # The kernels' types do not depend on the values: the cheapest level will do.
@@ -74,6 +77,22 @@ def _warm(names: tuple[str, ...]) -> float:
                     # A core that refuses an input (dual_ray and interiors) compiled what it met.
                     log.debug("%s refused %s: %s", name, scene.name, e)
     return time.perf_counter() - t0
+
+
+def _warm_topology() -> None:
+    """Closed parts of a cube with a corner pulled through it (it passes through itself, so
+    the crossing sweep and the winding counts run too)."""
+    import trimesh
+
+    from visibility.scene import Scene
+    from visibility.topology import build_closed_parts
+
+    cube = trimesh.creation.box()
+    v = np.array(cube.vertices, dtype=np.float64)
+    v[np.argmax(v.sum(axis=1))] = (-1.5, -1.5, -1.5)
+    parts = build_closed_parts(Scene(v, np.asarray(cube.faces)))
+    if not len(parts.wound):
+        log.warning("warm-up: the cube with a corner pulled through counted no winding")
 
 
 def warm_up(processes: int = 2) -> dict[str, float]:
