@@ -359,47 +359,52 @@ def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarr
     ----------
     tris : (k, 3, 3) float64 triangles, metres; ``label`` (k,) int64 their part in [0, p).
     """
-    out = np.zeros(p, dtype=bool)
     if not len(tris):
-        return out
-    t, lo, hi, start, axis, _ = _sweep(tris, label, p)
+        return np.zeros(p, dtype=bool)
+    return _crossing_parts(_sweep(tris, label, p), p)
+
+
+def _crossing_parts(layout: tuple, p: int) -> np.ndarray:
+    """``self_crossing_parts`` on a ``_sweep`` layout."""
+    t, lo, hi, start, axis, _ = layout
+    out = np.zeros(p, dtype=bool)
     _crossings(t, lo, hi, start, axis, np.arange(p, dtype=np.int64), False, out,
                np.zeros(0, dtype=np.bool_))
     return out
 
 
-def crossed_triangles(tris: np.ndarray, label: np.ndarray, p: int,
-                      parts: np.ndarray) -> np.ndarray:
-    """(k,) bool, True for the triangles of the parts ``parts`` (int64 ids) that another
-    triangle of their part crosses or overlaps (as ``self_crossing_parts`` tests)."""
-    flag = np.zeros(len(tris), dtype=bool)
-    if not len(tris) or not len(parts):
-        return flag
-    t, lo, hi, start, axis, order = _sweep(tris, label, p)
-    _crossings(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), True,
-               np.zeros(p, dtype=np.bool_), flag)
-    out = np.zeros(len(tris), dtype=bool)
+def _crossed(layout: tuple, p: int, parts: np.ndarray) -> np.ndarray:
+    """(k,) bool in the triangles' own order: those of the parts ``parts`` (int64 ids) that
+    another triangle of their part crosses or overlaps, on a ``_sweep`` layout (as
+    ``self_crossing_parts`` tests)."""
+    t, lo, hi, start, axis, order = layout
+    flag = np.zeros(len(t), dtype=bool)
+    if len(parts):
+        _crossings(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), True,
+                   np.zeros(p, dtype=np.bool_), flag)
+    out = np.zeros(len(t), dtype=bool)
     out[order] = flag
     return out
 
 
-def _wound_sides(tri: np.ndarray, lab: np.ndarray, p: int, crossing: np.ndarray,
+def _wound_sides(tri: np.ndarray, lab: np.ndarray, p: int, layout: tuple,
+                 crossing: np.ndarray, n: np.ndarray, norm: np.ndarray,
                  needle: np.ndarray) -> tuple:
     """Of the parts ``crossing`` (p,) bool (they pass through themselves), the triangles no
     other crosses, not needles, whose front winding ``winding.front_windings`` can count:
-    (rows of ``tri``, front windings, right-hand unit normals, offsets)."""
-    rows = np.flatnonzero(crossing[lab])
-    if not len(rows):
+    (rows of ``tri``, front windings, right-hand unit normals, offsets). ``layout`` is the
+    parts' ``_sweep``; ``n``, ``norm`` the triangles' right-hand normals and their lengths."""
+    if not crossing.any():
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros((0, 3)), \
             np.zeros(0)
-    sub = tri[rows]
-    crossed = crossed_triangles(sub, lab[rows], p, np.flatnonzero(crossing))
-    todo = ~crossed & ~needle[rows]
-    wf = front_windings(sub, lab[rows], todo)
-    keep = todo & (wf != UNDECIDED)
-    n = np.cross(sub[keep, 1] - sub[keep, 0], sub[keep, 2] - sub[keep, 0])
-    n /= np.linalg.norm(n, axis=1)[:, None]
-    return rows[keep], wf[keep], n, np.einsum("ij,ij->i", n, sub[keep, 0])
+    # Every triangle of those parts blocks the rays; only the uncrossed ones are counted for.
+    rows = np.flatnonzero(crossing[lab])
+    todo = ~_crossed(layout, p, np.flatnonzero(crossing))[rows] & ~needle[rows]
+    wf = front_windings(tri[rows], lab[rows], todo)
+    ok = todo & (wf != UNDECIDED)
+    rows = rows[ok]
+    unit = n[rows] / norm[rows, None]
+    return rows, wf[ok], unit, np.einsum("ij,ij->i", unit, tri[rows, 0])
 
 
 def build_closed_parts(scene: Scene) -> ClosedParts:
@@ -433,7 +438,8 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
     sign = np.where(np.abs(vol) > ORIENTED_SHARE * mag, np.sign(vol), 0.0).astype(np.int8)
     # A surface that passes through itself can be inside out in places (an inner piece
     # wound against the rest): its volume's sign says nothing there.
-    crossing = self_crossing_parts(tri, lab, p)
+    layout = _sweep(tri, lab, p)
+    crossing = _crossing_parts(layout, p)
     sign[crossing] = 0
     outward[inpart] = sign[lab]
     # Outer unit normals of the oriented triangles; a needle's normal is rounding: left out.
@@ -442,10 +448,11 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
     norm = np.linalg.norm(n, axis=1)
     needle = ~(norm > NEEDLE * long2)
     keep = (outward[inpart] != 0) & ~needle
-    n = n[keep] * (outward[inpart][keep] / norm[keep])[:, None]
     # Parts that pass through themselves have no outside for every triangle: the winding
     # number on each side of those no other triangle crosses says which side is hidden.
-    wrows, wfront, wnormal, woffset = _wound_sides(tri, lab, p, crossing, needle)
+    wrows, wfront, wnormal, woffset = _wound_sides(tri, lab, p, layout, crossing, n, norm,
+                                                   needle)
+    n = n[keep] * (outward[inpart][keep] / norm[keep])[:, None]
     return ClosedParts(edges, label, outward, box, inpart[keep], n,
                        np.einsum("ij,ij->i", n, tri[keep, 0]), inpart[wrows], wfront,
                        wnormal, woffset)

@@ -59,7 +59,11 @@ RAYS_PER_PASS = 1 << 18
 
 
 @njit(cache=True, nogil=True)
-def _bin_triangles(tri_min, tri_max, origin, bin_size, nbx, nbz):
+def bin_triangles(tri_min, tri_max, origin, bin_size, nbx, nbz):  # pragma: no cover - numba
+    """Triangles binned by their 2-D boxes ``tri_min``, ``tri_max`` (m, 2) on a grid of
+    ``nbx`` x ``nbz`` square bins of ``bin_size`` from ``origin`` (2,) (boxes past the grid
+    go to its border bins): (starts (nbx nbz + 1,), items), bin i nbz + k holding
+    ``items[starts[b]:starts[b + 1]]``."""
     counts = np.zeros(nbx * nbz + 1, dtype=np.int64)
     m = tri_min.shape[0]
     for t in range(m):
@@ -269,7 +273,7 @@ def detect_walk_area(
     flat = np.abs(ny) > 1e-6
     tris_f, ny_f = np.ascontiguousarray(tris[flat]), np.ascontiguousarray(ny[flat])
     bin_size, nbx, nbz = _bins(xz_min[flat], xz_max[flat], origin, s, nx, nz)
-    starts, items = _bin_triangles(xz_min[flat], xz_max[flat], origin, bin_size, nbx, nbz)
+    starts, items = bin_triangles(xz_min[flat], xz_max[flat], origin, bin_size, nbx, nbz)
     ground = _local_ground(tris, origin, s, nx, nz).ravel()
     del n, xz_min, xz_max, flat
 

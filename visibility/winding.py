@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.walkable import bin_triangles
+
 #: ``front_windings``' value for a triangle whose rays it could not count (each passed too
 #: near an edge, or met a triangle too near its start): nothing may be concluded there.
 UNDECIDED = -32768
@@ -55,61 +57,38 @@ def front_windings(tris: np.ndarray, part: np.ndarray, todo: np.ndarray) -> np.n
     hi = tris.max(axis=1)
     n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     axis = np.argmax(np.abs(n), axis=1).astype(np.int64)
-    grids = [_grid(lo, hi, a) for a in range(3)]
     for a in range(3):
         sel = np.flatnonzero(todo & (axis == a)).astype(np.int64)
         if len(sel):
-            cstart, cells, box, g = grids[a]
+            cstart, cells, origin, size, nb = _grid(lo, hi, a)
             _count(tris, lo, hi, n, np.ascontiguousarray(part, dtype=np.int64), sel, a,
-                   cstart, cells, box, g, _STARTS, out)
+                   cstart, cells, origin, size, nb, _STARTS, out)
     return out
 
 
 def _grid(lo: np.ndarray, hi: np.ndarray, a: int) -> tuple:
-    """Triangles binned on a g x g grid over the plane across axis a (its other two axes in
-    order): (cell start (g*g + 1,), triangle per slot, the grid's box (4,), g)."""
+    """Triangles binned on a grid of square bins over the plane across axis a (its other two
+    axes in order, ``walkable.bin_triangles``): (bin starts, triangle per slot, the grid's
+    origin (2,), bin size, bins along each of the two axes)."""
     b, c = (a + 1) % 3, (a + 2) % 3
-    box = np.array([lo[:, b].min(), hi[:, b].max(), lo[:, c].min(), hi[:, c].max()])
-    g = int(np.clip(np.sqrt(len(lo)) / 2.0, 1, 1024))
-    sb = g / max(box[1] - box[0], 1e-300)
-    sc = g / max(box[3] - box[2], 1e-300)
-    i0 = np.clip(((lo[:, b] - box[0]) * sb).astype(np.int64), 0, g - 1)
-    i1 = np.clip(((hi[:, b] - box[0]) * sb).astype(np.int64), 0, g - 1)
-    j0 = np.clip(((lo[:, c] - box[2]) * sc).astype(np.int64), 0, g - 1)
-    j1 = np.clip(((hi[:, c] - box[2]) * sc).astype(np.int64), 0, g - 1)
-    per = (i1 - i0 + 1) * (j1 - j0 + 1)
-    cstart = np.zeros(g * g + 1, dtype=np.int64)
-    cells = np.empty(int(per.sum()), dtype=np.int64)
-    _bin(i0, i1, j0, j1, g, cstart, cells)
-    return cstart, cells, box, g
-
-
-@njit(cache=True)
-def _bin(i0, i1, j0, j1, g, cstart, cells):  # pragma: no cover - numba
-    """Fill the grid's slots (CSR: ``cstart`` counts, then offsets)."""
-    for t in range(len(i0)):
-        for i in range(i0[t], i1[t] + 1):
-            for j in range(j0[t], j1[t] + 1):
-                cstart[i * g + j + 1] += 1
-    for q in range(g * g):
-        cstart[q + 1] += cstart[q]
-    fill = cstart[:-1].copy()
-    for t in range(len(i0)):
-        for i in range(i0[t], i1[t] + 1):
-            for j in range(j0[t], j1[t] + 1):
-                cells[fill[i * g + j]] = t
-                fill[i * g + j] += 1
+    bmin = np.ascontiguousarray(lo[:, [b, c]])
+    bmax = np.ascontiguousarray(hi[:, [b, c]])
+    origin = bmin.min(axis=0)
+    ext = bmax.max(axis=0) - origin
+    size = max(float(ext.max()) / max(np.sqrt(len(lo)) / 2.0, 1.0), 1e-300)
+    nb = np.minimum(np.ceil(ext / size).astype(np.int64), 1024) + 1
+    starts, items = bin_triangles(bmin, bmax, origin, size, int(nb[0]), int(nb[1]))
+    return starts, items, origin, size, nb
 
 
 @njit(cache=True, parallel=True)
-def _count(tris, lo, hi, n, part, sel, a, cstart, cells, box, g, starts,
+def _count(tris, lo, hi, n, part, sel, a, cstart, cells, origin, size, nb, starts,
            out):  # pragma: no cover - numba
     """``front_windings`` for the triangles ``sel``, whose normals lie nearest axis a: rays
-    along +-a (towards the front) from the points ``starts`` of each."""
+    along +-a (towards the front) from the points ``starts`` of each, through the bins
+    (``_grid``) of the plane across a."""
     b = (a + 1) % 3
     c = (a + 2) % 3
-    sb = g / max(box[1] - box[0], 1e-300)
-    sc = g / max(box[3] - box[2], 1e-300)
     for q in prange(len(sel)):
         t = sel[q]
         s = 1.0 if n[t, a] > 0.0 else -1.0
@@ -120,11 +99,11 @@ def _count(tris, lo, hi, n, part, sel, a, cstart, cells, box, g, starts,
                 + starts[st, 2] * tris[t, 2, b]
             pc = starts[st, 0] * tris[t, 0, c] + starts[st, 1] * tris[t, 1, c] \
                 + starts[st, 2] * tris[t, 2, c]
-            i = min(max(int((pb - box[0]) * sb), 0), g - 1)
-            j = min(max(int((pc - box[2]) * sc), 0), g - 1)
+            i = min(max(int(np.floor((pb - origin[0]) / size)), 0), nb[0] - 1)
+            j = min(max(int(np.floor((pc - origin[1]) / size)), 0), nb[1] - 1)
             w = 0
             ok = True
-            for m in range(cstart[i * g + j], cstart[i * g + j + 1]):
+            for m in range(cstart[i * nb[1] + j], cstart[i * nb[1] + j + 1]):
                 u = cells[m]
                 if u == t or part[u] != part[t]:
                     continue
