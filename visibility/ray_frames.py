@@ -57,8 +57,8 @@ class RayFrames:
     ids : (f, 6 * resolution²) int64 triangle met first by each pixel's ray (-1: nothing).
     eyes : (f, 3) float64 world eyes of the frames kept (in open space), metres.
     cubes : (f, 3, 3) float64 their cube orientations (rows: the face axes).
-    dirs : (f, 6 * resolution², 3) float32 unit ray directions (kept for the float64
-        confirmation of missed pixels; the near clip follows from them and the cube).
+    states : per frame, the random generator's state its rays were drawn from
+        (``directions`` draws them again: storing 12 bytes a ray cost more than casting).
     centre : (3,) float64 the cell centre (the casting frame's origin).
     dropped : eyes dropped as inside geometry.
     resolution : pixels across a face.
@@ -68,7 +68,7 @@ class RayFrames:
     ids: np.ndarray
     eyes: np.ndarray
     cubes: np.ndarray
-    dirs: np.ndarray
+    states: list[dict]
     centre: np.ndarray
     dropped: int
     resolution: int
@@ -78,6 +78,14 @@ class RayFrames:
     def pixels(self) -> int:
         """Pixels per frame (6 faces)."""
         return int(self.ids.shape[1])
+
+    def directions(self, k: int, pixels: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 unit directions of frame ``k``'s rays at ``pixels`` (n,): the rays
+        Embree cast (their near clip follows from them and the cube)."""
+        rng = np.random.default_rng()
+        rng.bit_generator.state = self.states[k]
+        d, _ = _cube_rays(self.cubes[k], self.resolution, rng)
+        return d[np.asarray(pixels, dtype=np.int64)].astype(np.float32)
 
 
 def cube_directions(cube: np.ndarray, resolution: int, rng: np.random.Generator
@@ -144,25 +152,34 @@ def ray_frames(scene: Scene, box: np.ndarray, n_eyes: int = 24, resolution: int 
     caster = EmbreeCaster(tri)
     n_pix = 6 * int(resolution) ** 2
     ids = np.empty((len(eyes), n_pix), dtype=np.int64)
-    dirs = np.empty((len(eyes), n_pix, 3), dtype=np.float32)
     kept = np.ones(len(eyes), dtype=bool)
+    states = []
+    zero = np.zeros(n_pix)
     for k in range(len(eyes)):
+        states.append(rng.bit_generator.state)
         d, depth1 = _cube_rays(cubes[k], resolution, rng)
         orig = np.broadcast_to(eyes[k] - centre, d.shape)
         # Open space: from inside a solid nearly every ray meets a back face first.
-        hid, ht = caster.first_hits(orig, d, np.zeros(n_pix))
+        hid, ht = caster.first_hits(orig, d, zero)
         kept[k] = np.count_nonzero(back_hits(d, hid, normals)) < INSIDE_SHARE * n_pix
         # The near plane clips at view depth ``near`` along the face's axis.
         t0 = near * depth1
         # Only rays whose first hit lies before the near plane are cast again from it.
-        got = hid.copy()
         again = np.flatnonzero(ht < t0)
         if len(again):
-            got[again] = caster.first_hits(orig[again], d[again], t0[again])[0]
-        ids[k] = np.where(got >= 0, tri_ids[np.maximum(got, 0)], -1)
-        dirs[k] = d
-    return RayFrames(ids[kept], eyes[kept], cubes[kept], dirs[kept], centre,
-                     int((~kept).sum()), int(resolution), float(near))
+            hid[again] = caster.first_hits(orig[again], d[again], t0[again])[0]
+        _frame_ids(hid, tri_ids, ids[k])
+    if not kept.all():
+        ids = ids[kept]
+    return RayFrames(ids, eyes[kept], cubes[kept], [states[k] for k in np.flatnonzero(kept)],
+                     centre, int((~kept).sum()), int(resolution), float(near))
+
+
+@njit(cache=True, nogil=True)
+def _frame_ids(hit, tri_ids, out):  # pragma: no cover - numba
+    """Scene triangle ids of the caster's rows ``hit`` (-1: nothing) into ``out``."""
+    for r in range(hit.shape[0]):
+        out[r] = tri_ids[hit[r]] if hit[r] >= 0 else -1
 
 
 def missed_pixels(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray,
@@ -202,7 +219,7 @@ def _missed(scene: Scene, frames: RayFrames, pvs_ids: np.ndarray, confirm: bool
             tri, tri_ids = frame_triangles(scene, frames.centre)
             caster = ExactCaster(tri)
         check, rest = miss[:CONFIRM_PER_FRAME], miss[CONFIRM_PER_FRAME:]
-        d = frames.dirs[k, check].astype(np.float64)
+        d = frames.directions(k, check).astype(np.float64)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         orig = np.broadcast_to(frames.eyes[k] - frames.centre, d.shape)
         got, _ = caster.first_hits(np.ascontiguousarray(orig), d,

@@ -264,14 +264,36 @@ class EmbreeCaster:
         if self._n == 0 or n == 0:
             return np.full(n, -1, dtype=np.int64), np.full(n, np.inf)
         # Embree starts every ray at its origin (tnear 0): a clipped ray starts at its clip.
-        start = orig + tmin[:, None] * dirs
-        res = self._scene.run(np.ascontiguousarray(start, dtype=np.float32),
-                              np.ascontiguousarray(dirs, dtype=np.float32), output=1)
-        ids = res["primID"].astype(np.int64)
-        t = res["tfar"].astype(np.float64) + tmin
-        ids[res["geomID"] < 0] = -1
-        t[ids < 0] = np.inf
+        start = np.empty((n, 3), dtype=np.float32)
+        d32 = np.empty((n, 3), dtype=np.float32)
+        _ray_starts(orig, dirs, tmin, start, d32)
+        res = self._scene.run(start, d32, output=1)
+        ids = np.empty(n, dtype=np.int64)
+        t = np.empty(n)
+        _ray_hits(res["primID"], res["geomID"], res["tfar"], tmin, ids, t)
         return ids, t
+
+
+@njit(cache=True, nogil=True)
+def _ray_starts(orig, dirs, tmin, start, d32):  # pragma: no cover - numba
+    """Embree's float32 rays: origins moved to their clip distance ``tmin``, directions."""
+    for r in range(orig.shape[0]):
+        for c in range(3):
+            start[r, c] = orig[r, c] + tmin[r] * dirs[r, c]
+            d32[r, c] = dirs[r, c]
+
+
+@njit(cache=True, nogil=True)
+def _ray_hits(prim, geom, tfar, tmin, ids, t):  # pragma: no cover - numba
+    """Embree's answers as triangle rows (-1: none) and distances from the unclipped origin
+    (inf: none)."""
+    for r in range(prim.shape[0]):
+        if geom[r] < 0:
+            ids[r] = -1
+            t[r] = np.inf
+        else:
+            ids[r] = prim[r]
+            t[r] = tfar[r] + tmin[r]
 
 
 # ------------------------------------------------------------------------------ reference
@@ -297,10 +319,17 @@ def back_hits(dirs: np.ndarray, hit: np.ndarray, normals: np.ndarray) -> np.ndar
     """(n,) bool: rays (n, 3) whose first hit ``hit`` (n,) (-1: none) is the back of its
     triangle (``normals``, ``front_normals``): the open-space test counts them, since from
     inside a solid nearly every ray meets a back face first (``INSIDE_SHARE``)."""
-    back = np.zeros(len(dirs), dtype=bool)
-    ok = hit >= 0
-    back[ok] = np.einsum("ij,ij->i", dirs[ok], normals[hit[ok]]) > 0.0
+    back = np.empty(len(dirs), dtype=np.bool_)
+    _back_hits(np.asarray(dirs), np.asarray(hit), np.asarray(normals), back)
     return back
+
+
+@njit(cache=True, nogil=True)
+def _back_hits(dirs, hit, normals, back):  # pragma: no cover - numba
+    for r in range(hit.shape[0]):
+        h = hit[r]
+        back[r] = h >= 0 and (dirs[r, 0] * normals[h, 0] + dirs[r, 1] * normals[h, 1]
+                              + dirs[r, 2] * normals[h, 2]) > 0.0
 
 
 def ray_reference(

@@ -65,6 +65,8 @@ def _warm(names: tuple[str, ...]) -> float:
                 from visibility.ray_frames import cube_directions
 
                 cube_directions(np.eye(3), 2, np.random.default_rng(0))
+                if not scene.is_dynamic:
+                    _warm_ray_frames(scene, box)
             elif name == "topology":
                 continue  # once, below: it needs no scene
             else:
@@ -79,6 +81,21 @@ def _warm(names: tuple[str, ...]) -> float:
     if "topology" in names:
         _warm_topology()
     return time.perf_counter() - t0
+
+
+def _warm_ray_frames(scene, box: np.ndarray) -> None:
+    """The Embree reference's glue kernels (``ray_frames``, ``ray_reference``), where embreex
+    is installed (the ``bench`` extra; without it nothing uses them)."""
+    try:
+        import embreex  # noqa: F401
+    except ImportError:
+        return
+    from visibility.ray_frames import missed_pixels, ray_frames
+    from visibility.ray_reference import ray_reference
+
+    frames = ray_frames(scene, box, n_eyes=1, resolution=2)
+    missed_pixels(scene, frames, np.zeros(0, dtype=np.int64))
+    ray_reference(scene, box, n_eyes=1, n_dirs=4)
 
 
 def _warm_topology() -> None:
