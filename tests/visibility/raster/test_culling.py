@@ -13,7 +13,7 @@ from visibility.generators._mesh import box_mesh
 from visibility.raster.camera import look_rotation, random_rotation
 from visibility.raster.culling import Coherence
 from visibility.raster.hierarchy import build_hierarchy, scene_hierarchy
-from visibility.raster.triangles import render_cubemap, render_cubemap_ids, render_ids
+from visibility.raster.render import render_cubemap, render_cubemap_ids, render_ids
 from visibility.scene import Scene, moving_faces
 from visibility.viewcells import ViewcellGrid
 

@@ -14,7 +14,7 @@ from visibility.raster.camera import (
     pixel_rays,
     random_rotation,
 )
-from visibility.raster.triangles import render_cubemap, render_cubemap_ids, render_ids
+from visibility.raster.render import render_cubemap, render_cubemap_ids, render_ids
 
 I3 = np.eye(3)
 O3 = np.zeros(3)

@@ -38,7 +38,7 @@ from visibility.cores.trim_regions.silhouettes import (
     silhouette_trims,
 )
 from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
-from visibility.raster.triangles import render_ids
+from visibility.raster.render import render_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
 

@@ -11,7 +11,7 @@ from visibility.cores.trim_regions.cache import build_scene_data
 from visibility.cores.trim_regions.frustum import cover_box, sphere_views
 from visibility.cores.trim_regions.pipeline import trim_pvs
 from visibility.generators import make_scene
-from visibility.raster.triangles import render_ids
+from visibility.raster.render import render_ids
 from visibility.viewcells import ViewcellGrid
 
 
