@@ -111,6 +111,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0),
+           "cycles": {k: st.get(f"cycles_{k}", 0)
+                      for k in ("resolve", "test", "insert", "coverall")},
            "occluder_triangles": st.get("occluder_triangles", 0),
            "coarse_tiles": st.get("coarse_tiles", 0),
            "coarse_entries": st.get("coarse_entries", 0),
@@ -302,7 +304,7 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 "triangle or a pair of them holding the pixel's offsets"
                 + (f", {r['silhouette_edges']:,} silhouette edges walked and "
                    f"{r['plane_tests']:,} occluder triangles depth-tested to resolve them"
-                   if r.get("silhouette_edges") else "") + "; "
+                   if r.get("silhouette_edges") else "") + _cycle_split(r) + "; "
                 f"FN {r['fn_count']}, overestimation {100 * r['overestimation']:.0f} % "
                 "(paper: 20-90 %)." + _costliest(r))
         out.append("")
@@ -322,6 +324,20 @@ def _reading(speed_rows, fp_rows) -> list[str]:
             out.append(line)
         out.append("")
     return out
+
+
+def _cycle_split(r: dict) -> str:
+    """Where the resolution's CPU cycles went (``cos_pvs``'s ``cycles_*``), for a row that
+    spent some."""
+    c = r.get("cycles") or {}
+    tot = c.get("resolve", 0)
+    if not tot:
+        return ""
+    share = {k: 100.0 * c.get(k, 0) / tot for k in ("test", "insert", "coverall")}
+    return (f"; of the resolution's CPU cycles {share['test']:.0f} % went to testing entries, "
+            f"{share['insert']:.0f} % to making occluders of them (set-up, fusion along shared "
+            f"edges, merges), {share['coverall']:.0f} % to checking whether a group covers the "
+            f"whole pixel, {100 - sum(share.values()):.0f} % to projecting entries and early z")
 
 
 def _costliest(r: dict[str, Any]) -> str:

@@ -34,7 +34,7 @@ from visibility.cores.cos.prims import (
     prim_bounds,
     solid_mask,
 )
-from visibility.cores.cos.resolve import resolve_tiles
+from visibility.cores.cos.resolve import N_COUNTERS, resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import MIN_TRIANGLES, ready_hierarchy, scene_hierarchy
 from visibility.scene import Scene
@@ -276,7 +276,12 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         while they are filled, behind a triangle that alone holds the pixel's offsets),
         ``silhouette_edges`` and ``plane_tests`` (the resolution's work: occluder
         silhouette edges walked by the cover tests, occluder triangles put through the
-        depth test), ``unseen_back_faces`` (triangles of closed surfaces that face away
+        depth test), ``cycles_resolve`` (CPU cycles in the resolution's tiles, all threads)
+        and the parts of it spent testing entries (``cycles_test``: K, the cover and depth
+        tests), turning entries into occluders (``cycles_insert``: set-up, fusion along
+        shared edges, merges) and checking whether a group now covers the pixel
+        (``cycles_coverall``); the rest is each entry's projection and early z,
+        ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
@@ -330,6 +335,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
+        "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
@@ -461,7 +467,7 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     hid = np.zeros(len(entries), dtype=np.uint8)
     if not pcount.any():
         return hid
-    counters = np.zeros((n_tiles, 6), dtype=np.int64)
+    counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
     scratch = np.zeros_like(known)
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
                       _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
@@ -520,7 +526,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
                             busy, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
-    counters = np.zeros((n_tiles, 6), dtype=np.int64)
+    counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
     longest = 0
     stop = stop_flag()
     t = 0
@@ -568,4 +574,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["early_z_cut"] += int(counters[:, 3].sum())
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
+    for name, col in (("cycles_test", 6), ("cycles_insert", 7), ("cycles_coverall", 8),
+                      ("cycles_resolve", 9)):
+        stats[name] += int(counters[:, col].sum())
     return longest

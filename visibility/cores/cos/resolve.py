@@ -106,6 +106,7 @@ from visibility.cores.cos.space import (
     tri_normal,
     winding_step,
 )
+from visibility.cycles import cycles
 from visibility.planar import convex_hull
 
 
@@ -574,6 +575,10 @@ GRID = 16
 GRID_MIN = 32
 #: Entries of one pixel's list between two polls of the stop flag.
 STOP_EVERY = 256
+#: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
+#: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
+#: inserting occluders, checking coverall, and in the whole tile.
+N_COUNTERS = 10
 GRID_WIDE = 16
 
 
@@ -839,7 +844,9 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     coarse pass: ``core``, one pixel per tile).
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
-    triangles put through the depth test: the last two are where dense clutter's time goes).
+    triangles put through the depth test: the last two are where dense clutter's time goes;
+    then CPU cycles: testing entries, inserting occluders, checking coverall, the whole tile:
+    ``N_COUNTERS`` columns).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
     caller's checkpoint raises.
@@ -982,6 +989,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             hidden = 0
             occl = 0
             cut = 0
+            cyc_tile = cycles()
+            cyc_test = 0
+            cyc_insert = 0
+            cyc_cover = 0
             for loc in range(npix):
                 if flag_set(stop):
                     break
@@ -1077,6 +1088,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                     project(cam, n, sx, sy, h, wref, qv, qr)
                     dorm = False
                     if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
+                        c0 = cycles()
                         region_at(corners, sx, sy, h, wref, rv, rr)
                         nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
                         if nk > 0:
@@ -1167,6 +1179,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                                 hidden += 1
                                 if mark:
                                     hid[k] = 1
+                                cyc_test += cycles() - c0
                                 continue
                             if occluded:
                                 # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
@@ -1184,8 +1197,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
                             if mark:
                                 hid[k] = 1
+                        cyc_test += cycles() - c0
                     if not tri or not solid[p]:
                         continue
+                    c0 = cycles()
                     # Become an occluder: counter-clockwise in the COS, robust area only.
                     ar = area2(qv)
                     # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
@@ -1341,6 +1356,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                         else:
                             enext[hlast[slot]] = node
                         hlast[slot] = node
+                    c1 = cycles()
+                    cyc_insert += c1 - c0
                     g = grp[q]
                     if not gcov[g] and not gdorm[g]:
                         # Coverall holds for every delta whatever frame proves it; the new
@@ -1365,11 +1382,16 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
                             zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
                                                           h, rx, ry, n_r, wref))
+                    cyc_cover += cycles() - c1
             counters[tile, 0] = tested
             counters[tile, 1] = hidden
             counters[tile, 2] = occl
             counters[tile, 3] = cut
             counters[tile, 4] = work[0]
             counters[tile, 5] = work[1]
+            counters[tile, 6] = cyc_test
+            counters[tile, 7] = cyc_insert
+            counters[tile, 8] = cyc_cover
+            counters[tile, 9] = cycles() - cyc_tile
             for c in range(n_set):
                 tseen[tset[c] >> 3] = 0

@@ -6,7 +6,6 @@ tile (``_raster``), the tiles resolved in parallel with occlusion culling (``_re
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -31,6 +30,7 @@ from visibility.cores.from_segment.groups import PieceScratch, TilePixels
 from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
+from visibility.cycles import cycles as _cycles
 from visibility.raster.face_pixels import pixel_range
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -57,16 +57,6 @@ COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces"
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
  C_INSERT_MOVED) = range(len(COUNTERS))
-
-
-@intrinsic
-def _cycles(typingctx):
-    """The CPU's cycle counter (LLVM readcyclecounter): a few ns to read, for coarse timers."""
-    def codegen(context, builder, signature, args):
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(64), []),
-                                            "llvm.readcyclecounter")
-        return builder.call(fn, [])
-    return types.int64(), codegen
 
 
 @intrinsic
