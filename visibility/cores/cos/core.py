@@ -34,7 +34,7 @@ from visibility.cores.cos.prims import (
     prim_bounds,
     solid_mask,
 )
-from visibility.cores.cos.resolve import N_COUNTERS, resolve_tiles
+from visibility.cores.cos.resolve import N_COUNTERS, TIME_STRIDE, resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import MIN_TRIANGLES, ready_hierarchy, scene_hierarchy
 from visibility.scene import Scene
@@ -277,7 +277,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         ``silhouette_edges`` and ``plane_tests`` (the resolution's work: occluder
         silhouette edges walked by the cover tests, occluder triangles put through the
         depth test), ``cycles_resolve`` (CPU cycles in the resolution's tiles, all threads)
-        and the parts of it spent testing entries (``cycles_test``: K, the cover and depth
+        and estimates (one entry in ``TIME_STRIDE`` timed) of the parts of it spent testing
+        entries (``cycles_test``: K, the cover and depth
         tests), turning entries into occluders (``cycles_insert``: set-up, fusion along
         shared edges, merges) and checking whether a group now covers the pixel
         (``cycles_coverall``); the rest is each entry's projection and early z,
@@ -574,7 +575,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["early_z_cut"] += int(counters[:, 3].sum())
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
-    for name, col in (("cycles_test", 6), ("cycles_insert", 7), ("cycles_coverall", 8),
-                      ("cycles_resolve", 9)):
-        stats[name] += int(counters[:, col].sum())
+    # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
+    for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
+                             ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):
+        stats[name] += scale * int(counters[:, col].sum())
     return longest

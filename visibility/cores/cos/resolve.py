@@ -577,8 +577,10 @@ GRID_MIN = 32
 STOP_EVERY = 256
 #: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
-#: inserting occluders, checking coverall, and in the whole tile.
+#: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
+#: and in the whole tile.
 N_COUNTERS = 10
+TIME_STRIDE = 8
 GRID_WIDE = 16
 
 
@@ -1062,6 +1064,9 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                     if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
                         break  # one pixel's list of 10^5 entries takes seconds in dense clutter
                     p = entries[k]
+                    # One entry in TIME_STRIDE is timed by step (reading the counter at every
+                    # one cost a few percent of a short list's time).
+                    timed = (k - a) % TIME_STRIDE == 0
                     if gap[p] > zcut * lray + plane_tol:
                         # The lists are sorted by gap: this entry and all later ones lie beyond
                         # zcut on every ray of the pixel.
@@ -1088,7 +1093,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                     project(cam, n, sx, sy, h, wref, qv, qr)
                     dorm = False
                     if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
-                        c0 = cycles()
+                        c0 = cycles() if timed else 0
                         region_at(corners, sx, sy, h, wref, rv, rr)
                         nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
                         if nk > 0:
@@ -1179,7 +1184,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                                 hidden += 1
                                 if mark:
                                     hid[k] = 1
-                                cyc_test += cycles() - c0
+                                cyc_test += cycles() - c0 if timed else 0
                                 continue
                             if occluded:
                                 # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
@@ -1197,10 +1202,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
                             if mark:
                                 hid[k] = 1
-                        cyc_test += cycles() - c0
+                        cyc_test += cycles() - c0 if timed else 0
                     if not tri or not solid[p]:
                         continue
-                    c0 = cycles()
+                    c0 = cycles() if timed else 0
                     # Become an occluder: counter-clockwise in the COS, robust area only.
                     ar = area2(qv)
                     # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
@@ -1356,8 +1361,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                         else:
                             enext[hlast[slot]] = node
                         hlast[slot] = node
-                    c1 = cycles()
-                    cyc_insert += c1 - c0
+                    c1 = cycles() if timed else 0
+                    cyc_insert += c1 - c0 if timed else 0
                     g = grp[q]
                     if not gcov[g] and not gdorm[g]:
                         # Coverall holds for every delta whatever frame proves it; the new
@@ -1382,7 +1387,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
                             zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
                                                           h, rx, ry, n_r, wref))
-                    cyc_cover += cycles() - c1
+                    cyc_cover += cycles() - c1 if timed else 0
             counters[tile, 0] = tested
             counters[tile, 1] = hidden
             counters[tile, 2] = occl
