@@ -134,7 +134,7 @@ class CosCore(Core):
     native_segments: ClassVar[bool] = False
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
                            "(0.12-0.17 s for a 0.3 m cell of 100k); 4 m cells cost 0.4-0.5 s "
-                           "(city) to 7.8 s (rooms), dense clutter about 26 s (the 1M "
+                           "(city) to 7.4 s (rooms), dense clutter about 25 s (the 1M "
                            "kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
