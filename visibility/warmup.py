@@ -50,6 +50,7 @@ def _warm(names: tuple[str, ...]) -> float:
     from visibility.viewcells import Viewcell
 
     t0 = time.perf_counter()
+    frames_warm = False
     for scene in _scenes():
         box = cell_around(scene, 0.3, 0)
         for name in names:
@@ -65,8 +66,9 @@ def _warm(names: tuple[str, ...]) -> float:
                 from visibility.ray_frames import cube_directions
 
                 cube_directions(np.eye(3), 2, np.random.default_rng(0))
-                if not scene.is_dynamic:
-                    _warm_ray_frames(scene, box)
+                if not scene.is_dynamic and not frames_warm:
+                    # Its glue kernels' types do not depend on the scene: once will do.
+                    frames_warm = _warm_ray_frames(scene, box)
             elif name == "topology":
                 continue  # once, below: it needs no scene
             else:
@@ -83,19 +85,21 @@ def _warm(names: tuple[str, ...]) -> float:
     return time.perf_counter() - t0
 
 
-def _warm_ray_frames(scene, box: np.ndarray) -> None:
+def _warm_ray_frames(scene, box: np.ndarray) -> bool:
     """The Embree reference's glue kernels (``ray_frames``, ``ray_reference``), where embreex
-    is installed (the ``bench`` extra; without it nothing uses them)."""
+    is installed (the ``bench`` extra; without it nothing uses them). True: nothing left to
+    compile."""
     try:
         import embreex  # noqa: F401
     except ImportError:
-        return
+        return True
     from visibility.ray_frames import missed_pixels, ray_frames
     from visibility.ray_reference import ray_reference
 
     frames = ray_frames(scene, box, n_eyes=1, resolution=2)
     missed_pixels(scene, frames, np.zeros(0, dtype=np.int64))
     ray_reference(scene, box, n_eyes=1, n_dirs=4)
+    return True
 
 
 def _warm_topology() -> None:
