@@ -246,6 +246,29 @@ def _expanded_boxes(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag,
                               out_hull, ch * n // nch, (ch + 1) * n // nch)
 
 
+@njit(**_PJIT)
+def _expanded_area(geom, exp_tri, exp_face, frame):  # pragma: no cover - numba
+    """Sum of the pixel box areas ``_expanded_boxes`` would give the same entries (no hulls,
+    nothing stored): what a piece's split decision needs."""
+    verts0, verts1, faces = geom.verts0, geom.verts1, geom.faces
+    v0, dvec, rb, perm, sgn, res, near, pad = frame
+    n = exp_tri.shape[0]
+    nch = min(n, 256)
+    sums = np.zeros(max(nch, 1), dtype=np.int64)
+    for ch in prange(nch):
+        cube = np.empty((6, 3))
+        uv = np.empty((HMAX, 2))
+        bx = np.empty(4, dtype=np.int64)
+        acc = 0
+        for k in range(ch * n // nch, (ch + 1) * n // nch):
+            _tri_cube(verts0, verts1, faces, exp_tri[k], v0, dvec, rb, cube)
+            ok, _, _, _ = _hull_box(cube, 6, exp_face[k], perm, sgn, near, res, bx, pad, uv)
+            if ok:
+                acc += (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1)
+        sums[ch] = acc
+    return sums.sum()
+
+
 @njit(**_JIT)
 def _expands(cbox, c, f, fl):  # pragma: no cover - numba
     """Whether cluster c's primitive on face f (flags fl) is split into its triangles: it may

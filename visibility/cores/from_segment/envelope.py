@@ -38,20 +38,31 @@ def _emit(T, tid, n, a, b, za, m, pid):
 
 
 @njit(**_JIT)
-def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
+def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     """Depth-composite the chord [a, b] (depth za -> zb, primitive pid) into pixel ``px``'s
     envelope.
 
     The nearer surface wins; exact ties keep the existing piece; crossing chords are split at
     their intersection (the hinge of intersecting triangles). Only the pieces overlapping [a, b]
-    are rewritten, and nothing is when the chord is hidden. ``T`` (>= 2 cap + 4, 4) and ``tid``
-    are scratch. Returns (new count, or -1 when it would exceed the capacity; changed)."""
+    are rewritten, and nothing is when the chord is hidden; they are found by bisection, so a
+    chord costs the log of the envelope's length plus the rows it overlaps and the rows after
+    it moved along. ``T`` (>= 2 cap + 4, 4) and ``tid`` are scratch. ``zbound`` is the pixel's
+    current ``pixel_bound`` (inf while the envelope leaves gaps). Returns (new count, or -1 when
+    it would exceed the capacity; changed; whether the bound may have changed: a gap was
+    filled or a rewritten row reached ``zbound``; otherwise it stands, since a lower envelope
+    only comes nearer)."""
     if not (b > a):
-        return cnt, False
+        return cnt, False, False
     mn = (zb - za) / (b - a)
+    # Rows are sorted and disjoint, so their ends ascend: the first row ending after a.
     lo = 0
-    while lo < cnt and env[px, lo, 1] <= a:
-        lo += 1
+    top = cnt
+    while lo < top:
+        mid = (lo + top) >> 1
+        if env[px, mid, 1] <= a:
+            lo = mid + 1
+        else:
+            top = mid
     hi = lo
     while hi < cnt and env[px, hi, 0] < b:
         hi += 1
@@ -59,7 +70,7 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
     if lo == hi:
         # Falls in a gap: insert as is.
         if cnt + 1 > cap:
-            return -1, False
+            return -1, False, False
         for k in range(cnt - 1, hi - 1, -1):
             for r in range(4):
                 env[px, k + 1, r] = env[px, k, r]
@@ -69,7 +80,7 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
         env[px, lo, 2] = za
         env[px, lo, 3] = mn
         eid[px, lo] = pid
-        return cnt + 1, True
+        return cnt + 1, True, True
     # Hidden everywhere (no gap, behind at both ends of every overlap): nothing to do.
     cur = a
     hidden = True
@@ -86,19 +97,23 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
             break
         cur = o1
     if hidden and cur >= b:
-        return cnt, False
+        return cnt, False, False
     n = 0
     cur = a
     won = False
+    rebound = False
     for k in range(lo, hi):
         p0 = env[px, k, 0]
         p1 = env[px, k, 1]
         q0 = env[px, k, 2]
         mp = env[px, k, 3]
         qi = eid[px, k]
+        if max(q0, q0 + mp * (p1 - p0)) >= zbound:
+            rebound = True
         if p0 > cur:
             n = _emit(T, tid, n, cur, p0, za + mn * (cur - a), mn, pid)
             won = True
+            rebound = True
             cur = p0
         elif p0 < cur:
             n = _emit(T, tid, n, p0, cur, q0, mp, qi)
@@ -130,11 +145,12 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
     if cur < b:
         n = _emit(T, tid, n, cur, b, za + mn * (cur - a), mn, pid)
         won = True
+        rebound = True
     if not won:
-        return cnt, False
+        return cnt, False, False
     new_cnt = cnt - (hi - lo) + n
     if new_cnt > cap:
-        return -1, False
+        return -1, False, False
     shift = n - (hi - lo)
     if shift > 0:
         for k in range(cnt - 1, hi - 1, -1):
@@ -150,7 +166,7 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid):
         for r in range(4):
             env[px, lo + k, r] = T[k, r]
         eid[px, lo + k] = tid[k]
-    return new_cnt, True
+    return new_cnt, True, rebound
 
 
 @njit(**_JIT)
@@ -171,7 +187,7 @@ def _grow(env, eid, cnt, npx, cap):
 def pixel_bound(env, px, cnt):
     """Greatest depth of a pixel's envelope when it covers all of [0, 1] (gaps up to EPS_LEN),
     else +inf: no chord at or beyond it can change the envelope."""
-    if cnt == 0 or env[px, 0, 0] > EPS_LEN:
+    if cnt == 0 or env[px, 0, 0] > EPS_LEN or env[px, cnt - 1, 1] < 1.0 - EPS_LEN:
         return np.inf
     prev = 0.0
     zmax = 0.0

@@ -33,30 +33,39 @@ from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.cycles import cycles as _cycles
 from visibility.raster.face_pixels import pixel_range
 
+#: A tile whose entries not yet marked visible are at most one in KNOWN_SHARE resolves only
+#: the pixels those can reach (finding the pixels costs a pass over their spans).
+KNOWN_SHARE = 8
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 
 #: Columns of ``_resolve``'s counters (one row per chunk), summed into the segment's stats under
-#: these names except ``max_cap`` (a maximum) and ``thread`` (the worker, one per thread, that
-#: ran the chunk last). pairs: (pixel, primitive) cover tests; pieces: chords passed to the
-#: envelope; inserts: those that changed it; insert_scan: envelope rows they met (sum of the
-#: envelope lengths: the cost of linear insertion); setups: triangle or sphere set-ups; items /
-#: items_culled: tile list entries processed / skipped by the tile's bound; final_pieces:
-#: envelope rows at the end; cycles*: CPU cycle counter, whole chunks and split into
-#: primitive set-up (and culling), rasterization (cover tests and inserts) and per-tile work;
-#: pairs_uncovered / pairs_behind: pairs whose pixel sample the primitive never covers along
-#: the segment / covers only behind the pixel's closed envelope (the pairs' waste, by cause:
-#: a loose span or a missing depth bound); cluster_pairs(_uncovered): those of cluster
-#: triangles; insert_moved: rows after an insert's chord that a change of the envelope's
-#: length moved along its sorted array (the part of linear insertion a search cannot save).
+#: these names except ``max_cap`` (a maximum) and ``thread`` (the worker, one per thread, that ran
+#: the chunk last). pairs: (pixel, primitive) cover tests; pieces: chords passed to the envelope;
+#: inserts: those that changed it; insert_scan: the envelope's length at each chord (what a linear
+#: insertion would read; the bisection reads its log); setups: triangle or sphere set-ups; items /
+#: items_culled: tile list entries processed / skipped by the tile's bound; final_pieces: envelope
+#: rows at the end; cycles*: CPU cycle counter, whole chunks and split into primitive set-up (and
+#: culling), rasterization (cover tests and inserts) and per-tile work; pairs_uncovered /
+#: pairs_behind: pairs whose pixel sample the primitive never covers along the segment / covers only
+#: behind the pixel's closed envelope (the pairs' waste, by cause: a loose span or a missing depth
+#: bound); cluster_pairs(_uncovered): those of cluster triangles; insert_moved: rows after an
+#: insert's chord that a change of the envelope's length moved along its sorted array (the part of
+#: linear insertion a search cannot save); bound_scans: inserts after which the pixel's occlusion
+#: bound was read again (a gap filled, or a rewritten row as deep as the bound); tiles_known: tiles
+#: skipped because every primitive they list was already marked visible (their envelopes would add
+#: nothing to the answer); pixels_known: pixels of tiles listing few primitives not yet marked
+#: (``KNOWN_SHARE``) that none of those can reach, skipped for the same reason.
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
-            "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved")
+            "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
+            "bound_scans", "tiles_known", "pixels_known")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
- C_INSERT_MOVED) = range(len(COUNTERS))
+ C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -224,6 +233,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
     grows = 0
     scan = 0
     ins = 0
+    rescans = 0
     for i in range(ia, ib + 1):
         yc = 1.0 - (i + 0.5) * step
         for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
@@ -257,28 +267,31 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
                 if min(pz0[q], pz1[q]) >= bound[px]:
                     continue
                 pieces += 1
-                # Linear insertion reads about cnt[px] rows: the envelope's asymptotic cost.
+                # What a linear insertion would read (bisection reads its log).
                 scan += cnt[px]
-                nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q], pz0[q],
-                                              pz1[q], pid, T, tid)
+                nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
+                                                       pz0[q], pz1[q], pid, T, tid, bound[px])
                 if nn < 0:
                     # Deep envelope: grow this chunk's storage in place and retry.
                     if 4 * env.shape[1] > MAX_CAP:
                         return env, eid, T, tid, closed, True
                     env, eid, T, tid = _grow(env, eid, cnt, npx, 4 * env.shape[1])
                     grows += 1
-                    nn, changed = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
-                                                  pz0[q], pz1[q], pid, T, tid)
+                    nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q],
+                                                           pt1[q], pz0[q], pz1[q], pid, T, tid,
+                                                           bound[px])
                 if changed:
                     ins += 1
                     if nn != cnt[px]:
                         moved += nn - _first_from(env, px, nn, pt1[q])
                     cnt[px] = nn
-                    zb = pixel_bound(env, px, nn)
-                    if zb < np.inf:
-                        if bound[px] == np.inf:
-                            closed += 1
-                        bound[px] = zb
+                    if rebound:
+                        rescans += 1
+                        zb = pixel_bound(env, px, nn)
+                        if zb < np.inf:
+                            if bound[px] == np.inf:
+                                closed += 1
+                            bound[px] = zb
     work[C_PAIRS] += pairs
     work[C_UNCOVERED] += uncovered
     work[C_BEHIND] += behind
@@ -287,6 +300,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
     work[C_GROWS] += grows
     work[C_INSERTS] += ins
     work[C_INSERT_SCAN] += scan
+    work[C_BOUND_SCANS] += rescans
     return env, eid, T, tid, closed, False
 
 
@@ -312,6 +326,24 @@ def _resolve(job, prims, geom, sweep, out):  # pragma: no cover - numba
             if ch >= job.n_chunks:
                 break
             _resolve_chunk(ch, w, job, prims, geom, sweep, out)
+
+
+@njit(**_JIT)
+def _count_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible):
+    """How many of tile list entries [i0, i1) hold a primitive not yet marked visible (a
+    cluster: any of its triangles)."""
+    n = 0
+    for it in range(i0, i1):
+        pr = tile_items[it]
+        src = prim_src[pr]
+        if prim_flag[pr] & FLAG_CLUSTER:
+            for k in range(cl_start[src], cl_start[src + 1]):
+                if not visible[cl_tris[k]]:
+                    n += 1
+                    break
+        elif not visible[src]:
+            n += 1
+    return n
 
 
 @njit(**_JIT)
@@ -361,6 +393,16 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
         work[C_TILES] += 1
         ct0 = _cycles()
         tile = tiles[qi]
+        n_new = 0
+        if not want_witness:
+            n_new = _count_new(tile_start[tile], tile_start[tile + 1], tile_items, prim_src,
+                               prim_flag, cl_start, cl_tris, visible)
+            if n_new == 0:
+                # The tile can only mark primitives already marked (by an earlier segment, face
+                # or tile): its envelopes would change nothing in the answer.
+                work[C_KNOWN] += 1
+                cyc_tile += _cycles() - ct0
+                continue
         f = tile // per_face
         rt = tile % per_face
         r0 = (rt // ntx) * TILE
@@ -377,6 +419,28 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 jx[p] = dx * step
                 jy[p] = dy * step
         open_px = npx
+        if 0 < n_new and KNOWN_SHARE * n_new <= tile_start[tile + 1] - tile_start[tile]:
+            # Few primitives not yet marked: only the pixels they can reach are resolved, the
+            # others (bound -inf: every primitive passes them by) would mark nothing new.
+            for p in range(npx):
+                bound[p] = -np.inf
+            for it in range(tile_start[tile], tile_start[tile + 1]):
+                pr = tile_items[it]
+                if _count_new(it, it + 1, tile_items, prim_src, prim_flag, cl_start, cl_tris,
+                              visible) == 0:
+                    continue
+                ia = max(prim_box[pr, 0], r0)
+                ib = min(prim_box[pr, 1], r1 - 1)
+                _row_spans(hulls, pr, ia, ib, max(prim_box[pr, 2], cl0),
+                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span)
+                for i in range(ia, ib + 1):
+                    for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
+                        bound[(i - r0) * tw + (j - cl0)] = np.inf
+            open_px = 0
+            for p in range(npx):
+                if bound[p] == np.inf:
+                    open_px += 1
+            work[C_PX_KNOWN] += npx - open_px
         tbound = np.inf
         since = 0
         R = rots[f]

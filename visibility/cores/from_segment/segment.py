@@ -39,6 +39,7 @@ from visibility.cores.from_segment.boxes import (
     _PERM,
     _SGN,
     _cluster_boxes,
+    _expanded_area,
     _expanded_boxes,
     _sort_and_bin,
     _sphere_boxes,
@@ -73,11 +74,13 @@ DEFAULT_BATCH = 1 << 15
 TILE_GROUPS = 16
 
 
-def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
+def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_only=False):
     """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
     whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s), and the
-    projected swept hulls of the triangles (``hull.Hulls``)."""
+    projected swept hulls of the triangles (``hull.Hulls``). With ``area_only``, just the sum
+    of their pixel boxes' areas (int), at a fraction of the cost."""
     parts = []
+    area = 0
     hull_parts = []
     nc = len(geom.cl_start) - 1
     kept = 0
@@ -92,6 +95,13 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
                        res, near, pad, cbox, cz, cflag)
         kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
                                                       cflag, first, res)
+        if area_only:
+            area += int(np.sum((kb[:, 1] - kb[:, 0] + 1).astype(np.int64)
+                               * (kb[:, 3] - kb[:, 2] + 1)))
+            if len(et):
+                area += int(_expanded_area(geom.arrays(), et, ef, CubeFrame(
+                    v0, dvec, rb, _PERM, _SGN, int(res), float(near), float(pad))))
+            continue
         parts.append((kc, kf, kb, kz, kfl))
         kept += len(kc)
         if len(et):
@@ -107,10 +117,11 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
             parts.append((et[keep].astype(np.int32), ef[keep].astype(np.int32), ebox[keep],
                           ez[keep], efl[keep]))
             # Only the hulls built are kept (most triangles' boxes are too small to get one):
-            # rows for all would cost ~100 B per expanded triangle and face.
-            has = ehull.count[keep] > 0
-            hull_parts.append((len(parts) - 1, ehull.pts[keep][has], ehull.count[keep][has],
-                               has))
+            # rows for all would cost ~100 B per expanded triangle and face, and so would
+            # copying them all before picking.
+            built = keep & (ehull.count > 0)
+            hull_parts.append((len(parts) - 1, ehull.pts[built], ehull.count[built],
+                               built[keep]))
             expanded += int(keep.sum())
     if len(geom.sphere_sel):
         k = len(geom.sphere_sel)
@@ -120,8 +131,13 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats):
         _sphere_boxes(geom.centers0, geom.centers1, geom.radii, geom.sphere_sel, v0, dvec, rots,
                       res, near, pad, box, z, flag)
         si, sf = np.nonzero(flag)
+        if area_only:
+            sb = box[si, sf].astype(np.int64)
+            return area + int(np.sum((sb[:, 1] - sb[:, 0] + 1) * (sb[:, 3] - sb[:, 2] + 1)))
         parts.append(((geom.sphere_sel[si] + geom.n_triangles).astype(np.int32),
                       sf.astype(np.int32), box[si, sf], z[si, sf], flag[si, sf]))
+    if area_only:
+        return area
     if not parts:
         parts.append((np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 4), np.int32),
                       np.zeros(0), np.zeros(0, np.uint8)))
@@ -173,6 +189,10 @@ def segment_visible(
     knots : moving triangles' and spheres' depth chords are at most 1 / knots long (in t).
     batch : clusters per batch of the box pass.
     visible : optional (geom.n_ids,) bool mask to OR into (triangles first, then spheres).
+        Output-sensitive: a screen tile all of whose primitives are marked already (by earlier
+        segments of the cell, or earlier tiles) is not resolved, nor, where a tile lists few
+        unmarked ones, the pixels none of those can reach (``stats["tiles_known"]``,
+        ``["pixels_known"]``); the mask comes out the same. Not with ``witness``.
     stats : optional dict; counters and per-phase seconds are added to it.
     witness : optional (geom.n_ids, 5) float64 array (zeros to start): for each visible primitive,
         its longest envelope piece seen so far as (length in t, mid t, face, row, col), i.e. a
@@ -241,23 +261,21 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position)."""
     t0 = time.perf_counter()
+    # The decision needs only the boxes' areas: no hulls, nothing stored.
+    if depth > 0 and _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
+                                    area_only=True) > SPLIT_AREA * 6 * res * res:
+        stats["box_seconds"] = stats.get("box_seconds", 0.0) + (time.perf_counter() - t0)
+        stats["splits"] = stats.get("splits", 0) + 1
+        half = 0.5 * dvec
+        tm = 0.5 * (ta + tb)
+        for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
+            checkpoint()
+            _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
+                   seed, batch, visible, stats, witness)
+        return
     prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
         geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
     t1 = time.perf_counter()
-    if depth > 0 and len(prim_box):
-        area = int(np.sum((prim_box[:, 1] - prim_box[:, 0] + 1).astype(np.int64)
-                          * (prim_box[:, 3] - prim_box[:, 2] + 1)))
-        if area > SPLIT_AREA * 6 * res * res:
-            stats["box_seconds"] = stats.get("box_seconds", 0.0) + (t1 - t0)
-            stats["splits"] = stats.get("splits", 0) + 1
-            del prim_src, prim_face, prim_box, prim_z, prim_flag, hulls
-            half = 0.5 * dvec
-            tm = 0.5 * (ta + tb)
-            for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
-                checkpoint()
-                _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
-                       seed, batch, visible, stats, witness)
-            return
     rstart, cols = _tile_ranges(prim_box, hulls, jitter)
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
     del rstart, cols

@@ -62,40 +62,80 @@ def _pieces(env, eid, n):
     return [(round(env[0, k, 0], 9), round(env[0, k, 1], 9), int(eid[0, k])) for k in range(n)]
 
 
+def _ins(env, eid, n, a, b, za, zb, pid, T, tid):
+    """envelope_insert on pixel 0 of a pixel without a bound: (count, changed)."""
+    n, changed, _ = envelope_insert(env, eid, 0, n, a, b, za, zb, pid, T, tid, np.inf)
+    return n, changed
+
+
 def test_envelope_keeps_the_nearer_surface_and_splits_at_the_hinge():
     env, eid, T, tid = _env()
-    n, changed = envelope_insert(env, eid, 0, 0, 0.0, 1.0, 5.0, 5.0, 1, T, tid)
+    n, changed = _ins(env, eid, 0, 0.0, 1.0, 5.0, 5.0, 1, T, tid)
     assert (n, changed) == (1, True)
     # A surface crossing the first at t = 0.5 (depth 4 -> 6): nearer on [0, 0.5].
-    n, changed = envelope_insert(env, eid, 0, n, 0.0, 1.0, 4.0, 6.0, 2, T, tid)
+    n, changed = _ins(env, eid, n, 0.0, 1.0, 4.0, 6.0, 2, T, tid)
     assert changed and _pieces(env, eid, n) == [(0.0, 0.5, 2), (0.5, 1.0, 1)]
     # Entirely behind: nothing changes.
-    n2, changed = envelope_insert(env, eid, 0, n, 0.2, 0.9, 7.0, 8.0, 3, T, tid)
+    n2, changed = _ins(env, eid, n, 0.2, 0.9, 7.0, 8.0, 3, T, tid)
     assert not changed and n2 == n
     # An exact tie keeps the existing piece.
-    n2, changed = envelope_insert(env, eid, 0, n, 0.6, 0.8, 5.0, 5.0, 4, T, tid)
+    n2, changed = _ins(env, eid, n, 0.6, 0.8, 5.0, 5.0, 4, T, tid)
     assert not changed
     # A short nearer piece in the middle splits the far one in three.
-    n, changed = envelope_insert(env, eid, 0, n, 0.6, 0.7, 1.0, 1.0, 5, T, tid)
+    n, changed = _ins(env, eid, n, 0.6, 0.7, 1.0, 1.0, 5, T, tid)
     assert _pieces(env, eid, n) == [(0.0, 0.5, 2), (0.5, 0.6, 1), (0.6, 0.7, 5), (0.7, 1.0, 1)]
     assert pixel_bound(env, 0, n) == pytest.approx(5.0)
 
 
 def test_envelope_fills_gaps_and_reports_overflow():
     env, eid, T, tid = _env(cap=3)
-    n, _ = envelope_insert(env, eid, 0, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
-    n, _ = envelope_insert(env, eid, 0, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
+    n, _ = _ins(env, eid, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
+    n, _ = _ins(env, eid, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
     assert pixel_bound(env, 0, n) == np.inf  # gaps: not covered
-    n, _ = envelope_insert(env, eid, 0, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
+    n, _ = _ins(env, eid, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
     assert n == -1  # five pieces do not fit three
     env, eid, T, tid = _env(cap=8)
-    n, _ = envelope_insert(env, eid, 0, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
-    n, _ = envelope_insert(env, eid, 0, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
-    n, _ = envelope_insert(env, eid, 0, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
+    n, _ = _ins(env, eid, 0, 0.0, 0.2, 1.0, 1.0, 1, T, tid)
+    n, _ = _ins(env, eid, n, 0.5, 0.7, 1.0, 1.0, 2, T, tid)
+    n, _ = _ins(env, eid, n, 0.0, 1.0, 9.0, 9.0, 3, T, tid)
     assert _pieces(env, eid, n) == [(0.0, 0.2, 1), (0.2, 0.5, 3), (0.5, 0.7, 2), (0.7, 1.0, 3)]
     assert pixel_bound(env, 0, n) == pytest.approx(9.0)
     # Zero-length chords change nothing.
-    assert envelope_insert(env, eid, 0, n, 0.3, 0.3, 0.1, 0.1, 7, T, tid) == (n, False)
+    assert _ins(env, eid, n, 0.3, 0.3, 0.1, 0.1, 7, T, tid) == (n, False)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_envelope_is_the_lower_envelope_and_its_bound_is_kept_lazily(seed):
+    """Random chords: the envelope is the pointwise nearest chord at every t, and the bound the
+    raster keeps (read again only when ``envelope_insert`` says it may have changed) is always
+    what a full ``pixel_bound`` reads."""
+    rng = np.random.default_rng(seed)
+    env, eid, T, tid = _env(cap=1024)
+    n, bound, chords = 0, np.inf, []
+    for pid in range(300):
+        a, b = np.sort(rng.random(2))
+        if pid % 7 == 0:
+            a, b = 0.0, 1.0  # whole-segment chords close the pixel early
+        za, zb = rng.uniform(1.0, 10.0, 2)
+        n2, changed, rebound = envelope_insert(env, eid, 0, n, a, b, za, zb, pid, T, tid, bound)
+        assert n2 >= 0
+        if changed and rebound:
+            bound = pixel_bound(env, 0, n2)
+        n = n2
+        chords.append((a, b, za, zb))
+        assert bound == pixel_bound(env, 0, n)
+    rows = env[0, :n]
+    assert np.all(rows[1:, 0] >= rows[:-1, 1])  # sorted, disjoint
+    ts = rng.random(2000)
+    for t in ts:
+        near = min((za + (zb - za) * (t - a) / (b - a) for a, b, za, zb in chords
+                    if a <= t <= b and b > a), default=np.inf)
+        k = np.searchsorted(rows[:, 1], t)
+        if k < n and rows[k, 0] <= t:
+            z = rows[k, 2] + rows[k, 3] * (t - rows[k, 0])
+            assert z == pytest.approx(near, rel=1e-9, abs=1e-9)
+        else:
+            assert near == np.inf
 
 
 # ----------------------------------------------------------------------------- exactness
@@ -225,6 +265,29 @@ def test_moving_geometry_is_never_cut(monkeypatch):
     segment_visible(scene_geometries(scene)[0], np.zeros(3), np.ones(3), resolution=16,
                     stats=stats)
     assert "splits" not in stats
+
+
+def test_tiles_holding_only_marked_primitives_are_skipped_with_the_same_answer():
+    """Segments solved into one mask skip every tile whose primitives an earlier segment
+    already marked (``tiles_known``) and, in tiles listing few unmarked ones, the pixels none
+    of those reach (``pixels_known``); the union is the one found with every pixel resolved
+    (a witness array turns the skips off, since it records each primitive's samples)."""
+    v, f = _soup(400, seed=8, spread=0.3)
+    scene = Scene(v, f)
+    geom = scene_geometries(scene)[0]
+    segs = [(np.array([-0.5, 0.0, 0.0]), np.array([0.5, 0.0, 0.0])),
+            (np.array([0.5, 0.0, 0.0]), np.array([0.5, 0.0, 0.6])),
+            (np.array([0.5, 0.0, 0.6]), np.array([-0.5, 0.1, 0.6]))]
+    skipped, full = np.zeros(geom.n_ids, bool), np.zeros(geom.n_ids, bool)
+    stats = {}
+    for a, b in segs:
+        segment_visible(geom, a, b, resolution=32, jitter=0.5, visible=skipped, stats=stats)
+        segment_visible(geom, a, b, resolution=32, jitter=0.5, visible=full,
+                        witness=np.zeros((geom.n_ids, 5)))
+    # Whole tiles skipped, and pixels of tiles listing few primitives not yet marked.
+    assert stats["tiles_known"] > 0 and stats["pixels_known"] > 0
+    assert 50 < full.sum() < geom.n_ids
+    np.testing.assert_array_equal(skipped, full)
 
 
 def test_segment_equals_union_of_id_buffers_along_it():
