@@ -15,6 +15,9 @@ PNG plots and the raw numbers (``from_segment.json``):
 ``cell``    Sec. 4.5.2: from-segment with 1, 2, 4, 8 jittered runs on the cell's perimeter
             against from-point sampling at random points of the cell (random cube each), both
             against the cell's dense ground truth: equal time and equal completeness.
+``grass``   cells of ``grass`` at 100k triangles (everything visible) at the core's defaults and
+            other cut depths.
+``kitchen`` a 4 m cell of the 1M-triangle kitchen, the same way (one run each: minutes).
 ``city1m``  one 4 x 4 m cell of ``city`` at 1M triangles at 256^2 per face (what the server's
             prefetch budget depends on): median seconds, the phases, peak memory.
 
@@ -48,7 +51,7 @@ from benchmarks.bench_matrix import (  # noqa: E402
 from benchmarks.gt_cache import cached_ground_truth  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
-PARTS = ("scenes", "segment", "cell", "rect", "orient", "city1m")
+PARTS = ("scenes", "segment", "cell", "rect", "orient", "city1m", "grass", "kitchen")
 #: The issue's target for the segment experiment.
 TARGET_COMPLETENESS = 0.995
 TARGET_RATIO = 20.0
@@ -61,7 +64,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "cell_scenes": ["city:20000"], "cell_resolution": 64, "cell_runs": [1, 2],
         "cell_points": 64, "rect_scenes": ["city:20000"], "orient_scenes": ["city:20000"],
         "first_orientation": "axis", "city1m_triangles": 100_000,
-        "city1m_cells": 1, "repeats": 1,
+        "city1m_cells": 1, "repeats": 1, "grass_triangles": 10_000, "grass_cells": 1,
         "max_seconds": 20,
     },
     "standard": {
@@ -76,7 +79,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "rect_scenes": ["city:100000", "village:100000"],
         "orient_scenes": ["city:100000", "village:100000", "rooms:100000", "real"],
         "first_orientation": "axis", "city1m_triangles": 1_000_000,
-        "city1m_cells": 3, "repeats": 3, "max_seconds": 90,
+        "city1m_cells": 3, "repeats": 3, "max_seconds": 90, "grass_triangles": 100_000,
+        "grass_cells": 2,
     },
 }
 
@@ -493,29 +497,75 @@ def part_city1m(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     from visibility.generators import make_scene
     from visibility.viewcells import ViewcellGrid
 
-    core = _core()
     tri = int(cfg["city1m_triangles"])
     t0 = time.perf_counter()
     scene = make_scene("city", triangles=tri)
     log(f"  city {scene.n_triangles} triangles generated in {time.perf_counter() - t0:.1f} s")
     grid = ViewcellGrid.for_scene(scene, cell_size=4.0)
+    return _cell_rows(scene, grid, pick_cells(grid, cfg["city1m_cells"]),
+                      [{"eye_levels": 3}, {"eye_levels": 1}], cfg["repeats"], "city 1M", log)
+
+
+#: Cut depths measured beside the default on scenes with near clutter (``grass``, ``kitchen``).
+CUT_VARIANTS = [{}, {"cuts": 0}, {"cuts": 6}]
+
+
+def part_grass(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
+    """Seconds for cells of ``grass`` (everything visible: the envelopes are the answer) at the
+    core's defaults and other cut depths, and the phases."""
+    from visibility.generators import make_scene
+    from visibility.viewcells import ViewcellGrid
+
+    tri = int(cfg["grass_triangles"])
+    scene = make_scene("grass", triangles=tri)
+    grid = ViewcellGrid.for_scene(scene)
+    return _cell_rows(scene, grid, pick_cells(grid, cfg["grass_cells"], scene), CUT_VARIANTS,
+                      cfg["repeats"], f"grass {tri // 1000}k", log)
+
+
+def part_kitchen(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
+    """Seconds for a 4 m cell of the 1M-triangle kitchen (``../shared/scenes``) at the core's
+    defaults and other cut depths, one run each (minutes per run)."""
+    from benchmarks.bench_matrix import SHARED_SCENES
+    from visibility.loaders import load_scene
+    from visibility.viewcells import ViewcellGrid
+
+    path = SHARED_SCENES / "kitchen.glb"
+    if not path.is_file():
+        log(f"  no {path}: kitchen part skipped")
+        return []
+    scene = load_scene(path)
+    grid = ViewcellGrid.for_scene(scene)
+    return _cell_rows(scene, grid, pick_cells(grid, 1, scene), CUT_VARIANTS, 1, "kitchen", log,
+                      first_run=False)
+
+
+def _cell_rows(scene, grid, cells, variants, repeats, label, log,
+               first_run: bool = True) -> list[dict[str, Any]]:
+    """One row per cell and parameter variant (``variants``: overrides of the core's defaults;
+    256 px): median seconds of ``repeats`` runs, phases, counters, PVS size and, with
+    ``first_run``, the memory of an untimed first run."""
+    core = _core()
     rows = []
-    for cid in pick_cells(grid, cfg["city1m_cells"]):
+    for cid in cells:
         cell = grid.cell(cid)
-        for levels in (3, 1):
-            params = core.make_params(resolution=256, eye_levels=levels)
-            # Untimed first run: cluster build and first touch; it also measures memory
-            # (RSS rise, which sees numba's arrays, and tracemalloc's peak, which sees numpy's;
-            # the later runs reuse pages, so their RSS rise says nothing).
-            _, peak, traced = measure_peak(lambda c=cell, p=params: core.compute(scene, c, p))
+        for over in variants:
+            params = core.make_params(**{"resolution": 256, **over})
+            peak = traced = None
+            if first_run:
+                # Untimed first run: cluster build and first touch; it also measures memory
+                # (RSS rise, which sees numba's arrays, and tracemalloc's peak, which sees
+                # numpy's; the later runs reuse pages, so their RSS rise says nothing).
+                _, peak, traced = measure_peak(lambda c=cell, p=params: core.compute(scene, c, p))
             stats_all, secs = [], []
-            for _k in range(cfg["repeats"]):
+            for _k in range(repeats):
                 pvs = core.compute(scene, cell, params)
                 secs.append(pvs.seconds)
                 stats_all.append(pvs.stats)
             med = int(np.argsort(secs)[len(secs) // 2])
             st = stats_all[med]
-            row = {"cell": cid, "box": np.asarray(cell.box).tolist(), "eye_levels": levels,
+            row = {"cell": cid, "box": np.asarray(cell.box).tolist(),
+                   "eye_levels": params.eye_levels, "cuts": params.cuts,
                    "first_orientation": params.first_orientation,
                    "segments": st.get("segments"), "seconds": float(np.median(secs)),
                    "seconds_all": secs, "peak_mib": peak, "traced_mib": traced, "pvs": len(pvs),
@@ -527,12 +577,14 @@ def part_city1m(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                                 and not k.endswith("seconds")}}
             rows.append(row)
             ph = row["phases"]
-            log(f"  city 1M cell {cid} (eye levels {levels}, {row['segments']} segments): "
+            c = row["counters"]
+            log(f"  {label} cell {cid} (eye levels {params.eye_levels}, cuts {params.cuts}, "
+                f"{row['segments']} segments, {c.get('splits', 0)} splits): "
                 f"{row['seconds']:.2f} s median of {len(secs)} (box {ph['box_seconds']:.2f}, "
                 f"bin {ph['bin_seconds']:.2f}, envelope {ph['envelope_seconds']:.2f}, setup "
-                f"{ph['setup_seconds']:.2f}); envelope pixel pairs "
-                f"{row['counters'].get('pairs', 0)}, tile items "
-                f"{row['counters'].get('tile_items', 0)}; PVS {len(pvs)} "
+                f"{ph['setup_seconds']:.2f}); envelope pixel pairs {c.get('pairs', 0)}, tile "
+                f"items {c.get('tile_items', 0)}, tiles skipped as known "
+                f"{c.get('tiles_known', 0)} of {c.get('tiles', 0)}; PVS {len(pvs)} "
                 f"({row['pvs_pct']:.2f} %); first run RSS rise "
                 f"{'?' if peak is None else f'{peak:.0f}'} MiB, traced peak "
                 f"{'?' if traced is None else f'{traced:.0f}'} MiB")
@@ -577,6 +629,8 @@ def write_report(results: dict[str, Any], cfg: dict[str, Any], command: str, wal
           "default first cube is oblique (see 'First orientation'), and the 1M-city timing runs "
           "the core as the server does.\n"]
     writers = {"city1m": lambda rows, c: _md_city1m(rows, c),
+               "grass": lambda rows, c: _md_grass(rows, c),
+               "kitchen": lambda rows, c: _md_kitchen(rows, c),
                "segment": lambda rows, c: _md_segment(rows, out_dir, tag),
                "cell": lambda rows, c: _md_cell(rows, c, out_dir, tag),
                "rect": lambda rows, c: _md_cell(rows, c, out_dir, tag, flat=True),
@@ -607,28 +661,53 @@ def _jsonable(o: Any) -> Any:
 
 
 def _md_city1m(rows, cfg) -> str:
-    s = [f"## One 4 x 4 m cell of `city` at {cfg['city1m_triangles']:,} triangles, 256² per "
-         "face\n",
-         "The server's prefetch budget: at 1.4 m/s a walker crosses a 4 m cell in about 2.9 s. "
-         "Median of repeats after one untimed run (cluster build, first touch) that measures "
-         "memory: its RSS rise (numba's arrays included; pages already held do not count) and "
-         "tracemalloc's peak (numpy arrays and Python objects). Eye levels 3 is "
+    return _md_cells(
+        rows, f"One 4 x 4 m cell of `city` at {cfg['city1m_triangles']:,} triangles, 256² per "
+        "face",
+        "The server's prefetch budget: at 1.4 m/s a walker crosses a 4 m cell in about 2.9 s. ")
+
+
+def _md_grass(rows, cfg) -> str:
+    return _md_cells(
+        rows, f"Cells of `grass` at {cfg['grass_triangles']:,} triangles, 256² per face",
+        "A meadow where every blade is seen: the envelopes are the answer, and the segments "
+        "after the first find little new (`tiles_known`: screen tiles whose primitives were all "
+        "marked visible already, not resolved). ")
+
+
+def _md_kitchen(rows, cfg) -> str:
+    return _md_cells(
+        rows, "A 4 m cell of the 1M-triangle kitchen, 256² per face",
+        "Dense clutter along every side: the case `cuts` was made for. One run per row, no "
+        "first run (the rows take minutes); the scene's hierarchy and clusters are built before "
+        "the first. ")
+
+
+def _md_cells(rows, title, lead) -> str:
+    s = [f"## {title}\n",
+         lead + "Median of repeats after one untimed run (cluster build, first touch) that "
+         "measures memory: its RSS rise (numba's arrays included; pages already held do not "
+         "count) and tracemalloc's peak (numpy arrays and Python objects). Eye levels 3 is "
          "the default (sides at the bottom, middle and top of the eye-height range: 12 "
          "segments x 6 faces); 1 walks the sides at mid height only. The core's default "
          f"parameters otherwise (first cube "
          f"{rows[0].get('first_orientation', 'axis') if rows else '?'}), as the server runs "
          "it.\n",
-         "| cell | eye levels | segments | seconds median (all) | box | bin | envelope | setup "
-         "| PVS % | first-run RSS rise MiB | traced peak MiB |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| cell | eye levels | cuts (splits) | segments | seconds median (all) | box | bin "
+         "| envelope | setup | PVS | PVS % | pixel pairs | tiles skipped as known "
+         "| first-run RSS rise MiB | traced peak MiB |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ph = r["phases"]
-        s.append(f"| {r['cell']} | {r['eye_levels']} | {r['segments']} | {r['seconds']:.2f} "
+        c = r["counters"]
+        known = (f"{c['tiles_known']:,} of {c['tiles']:,}" if "tiles_known" in c else "–")
+        s.append(f"| {r['cell']} | {r['eye_levels']} | {r.get('cuts', '–')} "
+                 f"({c.get('splits', 0)}) | {r['segments']} | {r['seconds']:.2f} "
                  f"({', '.join(f'{x:.2f}' for x in r['seconds_all'])}) | "
                  f"{ph['box_seconds']:.2f} | {ph['bin_seconds']:.2f} | "
                  f"{ph['envelope_seconds']:.2f} | {ph['setup_seconds']:.2f} | "
-                 f"{r['pvs_pct']:.2f} | {_f(r['peak_mib'], '.0f')} | "
-                 f"{_f(r.get('traced_mib'), '.0f')} |")
+                 f"{r['pvs']:,} | {r['pvs_pct']:.2f} | {c.get('pairs', 0):,} | {known} | "
+                 f"{_f(r['peak_mib'], '.0f')} | {_f(r.get('traced_mib'), '.0f')} |")
     return "\n".join(s) + "\n"
 
 
@@ -824,8 +903,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     _warm_up()
     log = lambda s: print(s, flush=True)  # noqa: E731
-    runners = {"city1m": part_city1m, "segment": part_segment, "cell": part_cell,
-               "rect": part_rect, "orient": part_orient,
+    runners = {"city1m": part_city1m, "grass": part_grass, "kitchen": part_kitchen,
+               "segment": part_segment,
+               "cell": part_cell, "rect": part_rect, "orient": part_orient,
                "scenes": part_scenes}
     path = None
     for part in PARTS:

@@ -28,6 +28,15 @@ def test_curve_lookups():
     assert bs._reached_at_time(hits, secs, 0.05) == (0, 0)
 
 
+def test_kitchen_part_says_when_the_scene_is_missing(tmp_path, monkeypatch):
+    import benchmarks.bench_matrix as bm
+
+    monkeypatch.setattr(bm, "SHARED_SCENES", tmp_path)
+    logs: list[str] = []
+    assert bs.part_kitchen({}, logs.append) == []
+    assert "kitchen part skipped" in logs[0]
+
+
 def test_every_part_runs_and_reports(tmp_path):
     cfg = dict(bs.PRESETS["quick"], preset="smoke", load_start="0")
     cfg.update(scenes=["city:5000", "spheres:40"], resolutions=[16, 32], runs=[1, 2],
@@ -36,14 +45,15 @@ def test_every_part_runs_and_reports(tmp_path):
                cell_resolution=32, cell_runs=[1, 2], cell_points=16, rect_scenes=["city:5000"],
                orient_scenes=["city:5000"],
                city1m_triangles=5000,
-               city1m_cells=1, repeats=1, max_seconds=5)
+               city1m_cells=1, repeats=1, max_seconds=5, grass_triangles=2000, grass_cells=1)
     logs: list[str] = []
     results = {"scenes": bs.part_scenes(cfg, logs.append),
                "segment": bs.part_segment(cfg, logs.append),
                "cell": bs.part_cell(cfg, logs.append),
                "rect": bs.part_rect(cfg, logs.append),
                "orient": bs.part_orient(cfg, logs.append),
-               "city1m": bs.part_city1m(cfg, logs.append)}
+               "city1m": bs.part_city1m(cfg, logs.append),
+               "grass": bs.part_grass(cfg, logs.append)}
     scenes = [r for r in results["scenes"] if "skipped" not in r]
     assert {r["scene"] for r in scenes} >= {"city_5k"}
     for r in scenes:
@@ -73,11 +83,18 @@ def test_every_part_runs_and_reports(tmp_path):
     assert all(0 <= r["fn"] <= 1 for r in results["orient"])
 
     assert {r["eye_levels"] for r in results["city1m"]} == {1, 3}
+    # The default cut depth and the others beside it; a meadow is mostly seen, and later
+    # segments skip tiles they can add nothing to; cuts never change the answer by more than
+    # float residue at the seams.
+    grass = {r["cuts"]: r for r in results["grass"]}
+    assert set(grass) == {bs._core().make_params().cuts, 0, 6}
+    assert all(r["pvs_pct"] > 50 and r["counters"]["tiles_known"] > 0 for r in grass.values())
+    assert max(r["pvs"] for r in grass.values()) - min(r["pvs"] for r in grass.values()) <= 2
 
     md = bs.write_report(results, cfg, "smoke", 1.0, tmp_path)
     text = md.read_text()
     for heading in ("One segment", "A cell", "view rectangle", "First orientation", "Per scene",
-                    "One 4 x 4 m cell"):
+                    "One 4 x 4 m cell", "Cells of `grass`"):
         assert heading in text
     for png in ("segment", "cell", "rect", "scenes"):
         assert (tmp_path / f"from_segment_{png}_smoke.png").stat().st_size > 1000
@@ -88,7 +105,8 @@ def test_every_part_runs_and_reports(tmp_path):
     # A part rerun alone (e.g. the timing part on a quiet machine) replaces only itself.
     bs.write_report({"city1m": results["city1m"]}, cfg, "rerun", 2.0, tmp_path, merge=True)
     raw = json.loads((tmp_path / "from_segment_smoke.json").read_text())
-    assert set(raw["parts"]) == {"scenes", "segment", "cell", "rect", "orient", "city1m"}
+    assert set(raw["parts"]) == {"scenes", "segment", "cell", "rect", "orient", "city1m",
+                                 "grass"}
     assert raw["parts"]["city1m"]["meta"]["command"] == "rerun"
     assert raw["parts"]["segment"]["meta"]["command"] == "smoke"
     text = md.read_text()

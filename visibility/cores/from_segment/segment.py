@@ -64,9 +64,12 @@ from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 #: (the real city tile at 4 m cells); a 4 m side through a 1M-triangle kitchen reaches 80000.
 #: On kitchen sides at 64 and 128 px, thresholds of 64 to 1024 came within about 20 % of each
 #: other (a piece's fixed costs against its sweep), 16 cut too often (twice the time) and no cut
-#: at all took two to three times as long.
+#: at all took two to three times as long. Since tiles whose primitives are all marked are
+#: skipped, a piece's later halves cost less, and deep cuts repeat the set-up more than they
+#: save: 2 cuts (4 pieces at most) beat 6 on a 4 m kitchen cell and on grass
+#: (``docs/cores/from_segment.md``).
 SPLIT_AREA = 64
-MAX_SPLIT_DEPTH = 6
+MAX_SPLIT_DEPTH = 2
 #: Default clusters per batch of the box pass (bounds its scratch memory, ~100 bytes each).
 DEFAULT_BATCH = 1 << 15
 #: Most groups of tiles the envelope pass of one segment is split into, with a cancellation
