@@ -86,7 +86,9 @@ def test_every_part_runs_and_reports(tmp_path):
     # The default cut depth and the others beside it; a meadow is mostly seen, and later
     # segments skip tiles they can add nothing to; cuts never change the answer by more than
     # float residue at the seams.
-    grass = {r["cuts"]: r for r in results["grass"]}
+    grass = {r["cuts"]: r for r in results["grass"] if r["scene"] == "grass"}
+    (sway,) = [r for r in results["grass"] if r["scene"] == "swaying_grass"]
+    assert sway["pvs_pct"] > 50 and sway["counters"].get("splits", 0) == 0
     assert set(grass) == {bs._core().make_params().cuts, 0, 6}
     assert all(r["pvs_pct"] > 50 and r["counters"]["tiles_known"] > 0 for r in grass.values())
     assert max(r["pvs"] for r in grass.values()) - min(r["pvs"] for r in grass.values()) <= 2
