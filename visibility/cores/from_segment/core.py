@@ -267,8 +267,8 @@ class FromSegmentCore(Core):
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         if scene.states is not None:
-            # 869 s for a 100k-triangle swaying-grass cell (benchmarks/results/from_segment.md):
-            # below the sampling fallback for animated scenes.
+            # Seconds to minutes per cell of a 100k-triangle swaying meadow
+            # (benchmarks/results/from_segment.md): below the sampling fallback there.
             return 0.5, ("dynamic scene: from-segment's cost grows linearly with the keyframes")
         return 3.0, "static triangle scene: exact continuous from-segment visibility"
 
