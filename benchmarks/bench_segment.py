@@ -552,8 +552,12 @@ def _cell_rows(scene, grid, cells, variants, repeats, label, log,
                first_run: bool = True) -> list[dict[str, Any]]:
     """One row per cell and parameter variant (``variants``: overrides of the core's defaults;
     256 px): median seconds of ``repeats`` runs, phases, counters, PVS size and, with
-    ``first_run``, the memory of an untimed first run."""
+    ``first_run``, the memory of an untimed first run; then a row of ``sampling`` at its
+    defaults on the same cell (after an untimed run), for scale."""
+    from visibility.cores.base import get_core
+
     core = _core()
+    sampling = get_core("sampling")
     rows = []
     for cid in cells:
         cell = grid.cell(cid)
@@ -572,7 +576,8 @@ def _cell_rows(scene, grid, cells, variants, repeats, label, log,
                 stats_all.append(pvs.stats)
             med = int(np.argsort(secs)[len(secs) // 2])
             st = stats_all[med]
-            row = {"scene": label, "cell": cid, "box": np.asarray(cell.box).tolist(),
+            row = {"scene": label, "cell": cid, "core": "from_segment",
+                   "box": np.asarray(cell.box).tolist(),
                    "eye_levels": params.eye_levels, "cuts": params.cuts,
                    "first_orientation": params.first_orientation,
                    "segments": st.get("segments"), "seconds": float(np.median(secs)),
@@ -596,6 +601,17 @@ def _cell_rows(scene, grid, cells, variants, repeats, label, log,
                 f"({row['pvs_pct']:.2f} %); first run RSS rise "
                 f"{'?' if peak is None else f'{peak:.0f}'} MiB, traced peak "
                 f"{'?' if traced is None else f'{traced:.0f}'} MiB")
+        sp = sampling.make_params()
+        sampling.compute(scene, cell, sp)
+        runs = [sampling.compute(scene, cell, sp) for _k in range(repeats)]
+        secs = [r.seconds for r in runs]
+        pvs = runs[int(np.argsort(secs)[len(secs) // 2])]
+        rows.append({"scene": label, "cell": cid, "core": "sampling", "seconds_all": secs,
+                     "seconds": float(np.median(secs)), "pvs": len(pvs),
+                     "pvs_pct": 100.0 * len(pvs) / scene.n_triangles, "phases": {},
+                     "counters": {}, "peak_mib": None, "traced_mib": None})
+        log(f"  {label} cell {cid} sampling (defaults): {rows[-1]['seconds']:.2f} s median of "
+            f"{len(secs)}; PVS {len(pvs)} ({rows[-1]['pvs_pct']:.2f} %)")
     return rows
 
 
@@ -710,20 +726,24 @@ def _md_cells(rows, title, lead) -> str:
          lead + "The core's default parameters otherwise (first cube "
          f"{rows[0].get('first_orientation', 'axis') if rows else '?'}), as the server runs "
          "it.\n",
-         "| scene | cell | eye levels | cuts (splits) | segments | seconds median (all) | box "
-         "| bin | envelope | setup | PVS | PVS % | pixel pairs | tiles skipped as known "
+         "| scene | cell | core | eye levels | cuts (splits) | segments | seconds median (all) "
+         "| box | bin | envelope | setup | PVS | PVS % | pixel pairs | tiles skipped as known "
          "| first-run RSS rise MiB | traced peak MiB |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ph = r["phases"]
         c = r["counters"]
         known = (f"{c['tiles_known']:,} of {c['tiles']:,}" if "tiles_known" in c else "–")
-        s.append(f"| {r.get('scene', '–')} | {r['cell']} | {r['eye_levels']} | "
-                 f"{r.get('cuts', '–')} ({c.get('splits', 0)}) | {r['segments']} | "
+        cuts = f"{r['cuts']} ({c.get('splits', 0)})" if "cuts" in r else "–"
+        pairs = f"{c['pairs']:,}" if "pairs" in c else "–"
+        s.append(f"| {r.get('scene', '–')} | {r['cell']} | {r.get('core', 'from_segment')} | "
+                 f"{r.get('eye_levels', '–')} | {cuts} | {r.get('segments', '–')} | "
                  f"{r['seconds']:.2f} ({', '.join(f'{x:.2f}' for x in r['seconds_all'])}) | "
-                 f"{ph['box_seconds']:.2f} | {ph['bin_seconds']:.2f} | "
-                 f"{ph['envelope_seconds']:.2f} | {ph['setup_seconds']:.2f} | "
-                 f"{r['pvs']:,} | {r['pvs_pct']:.2f} | {c.get('pairs', 0):,} | {known} | "
+                 + " | ".join(_f(ph.get(k), ".2f") for k in
+                              ("box_seconds", "bin_seconds", "envelope_seconds",
+                               "setup_seconds"))
+                 + f" | {r['pvs']:,} | {r['pvs_pct']:.2f} | "
+                 f"{pairs} | {known} | "
                  f"{_f(r['peak_mib'], '.0f')} | {_f(r.get('traced_mib'), '.0f')} |")
     return "\n".join(s) + "\n"
 

@@ -82,12 +82,18 @@ def test_every_part_runs_and_reports(tmp_path):
         (1, "axis"), (1, "oblique"), (2, "axis"), (2, "oblique")}
     assert all(0 <= r["fn"] <= 1 for r in results["orient"])
 
-    assert {r["eye_levels"] for r in results["city1m"]} == {1, 3}
+    fs = [r for r in results["city1m"] if r["core"] == "from_segment"]
+    assert {r["eye_levels"] for r in fs} == {1, 3}
+    # Sampling at its defaults on the same cell, for scale.
+    (samp,) = [r for r in results["city1m"] if r["core"] == "sampling"]
+    assert samp["cell"] == fs[0]["cell"] and samp["pvs"] > 0
     # The default cut depth and the others beside it; a meadow is mostly seen, and later
     # segments skip tiles they can add nothing to; cuts never change the answer by more than
     # float residue at the seams.
-    grass = {r["cuts"]: r for r in results["grass"] if r["scene"] == "grass"}
-    (sway,) = [r for r in results["grass"] if r["scene"] == "swaying_grass"]
+    fs = [r for r in results["grass"] if r["core"] == "from_segment"]
+    grass = {r["cuts"]: r for r in fs if r["scene"] == "grass"}
+    (sway,) = [r for r in fs if r["scene"] == "swaying_grass"]
+    assert sum(r["core"] == "sampling" for r in results["grass"]) == 2
     assert sway["pvs_pct"] > 50 and sway["counters"].get("splits", 0) == 0
     assert set(grass) == {bs._core().make_params().cuts, 0, 6}
     assert all(r["pvs_pct"] > 50 and r["counters"]["tiles_known"] > 0 for r in grass.values())

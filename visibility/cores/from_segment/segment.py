@@ -77,6 +77,12 @@ DEFAULT_BATCH = 1 << 15
 TILE_GROUPS = 16
 
 
+def _box_area(box: np.ndarray) -> int:
+    """Sum of the areas, in pixels, of (k, 4) inclusive pixel boxes (row0, row1, col0, col1)."""
+    b = box.astype(np.int64)
+    return int(np.sum((b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)))
+
+
 def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_only=False):
     """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
     whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s), and the
@@ -99,8 +105,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_
         kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
                                                       cflag, first, res)
         if area_only:
-            area += int(np.sum((kb[:, 1] - kb[:, 0] + 1).astype(np.int64)
-                               * (kb[:, 3] - kb[:, 2] + 1)))
+            area += _box_area(kb)
             if len(et):
                 area += int(_expanded_area(geom.arrays(), et, ef, CubeFrame(
                     v0, dvec, rb, _PERM, _SGN, int(res), float(near), float(pad))))
@@ -135,8 +140,7 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_
                       res, near, pad, box, z, flag)
         si, sf = np.nonzero(flag)
         if area_only:
-            sb = box[si, sf].astype(np.int64)
-            return area + int(np.sum((sb[:, 1] - sb[:, 0] + 1) * (sb[:, 3] - sb[:, 2] + 1)))
+            return area + _box_area(box[si, sf])
         parts.append(((geom.sphere_sel[si] + geom.n_triangles).astype(np.int32),
                       sf.astype(np.int32), box[si, sf], z[si, sf], flag[si, sf]))
     if area_only:
@@ -264,11 +268,23 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position)."""
     t0 = time.perf_counter()
-    # The decision needs only the boxes' areas: no hulls, nothing stored.
-    if depth > 0 and _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
-                                    area_only=True) > SPLIT_AREA * 6 * res * res:
+    prims = None
+    split = False
+    if depth > 0:
+        limit = SPLIT_AREA * 6 * res * res
+        if ta == 0.0 and tb == 1.0:
+            # A whole segment: open scenes never cut it, so collect once and decide from that.
+            prims = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
+            split = _box_area(prims[2]) > limit
+        else:
+            # A half of a cut piece, likely cut again: the decision needs only the boxes'
+            # areas (no hulls, nothing stored).
+            split = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
+                                   area_only=True) > limit
+    if split:
         stats["box_seconds"] = stats.get("box_seconds", 0.0) + (time.perf_counter() - t0)
         stats["splits"] = stats.get("splits", 0) + 1
+        del prims
         half = 0.5 * dvec
         tm = 0.5 * (ta + tb)
         for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
@@ -276,8 +292,9 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
             _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
                    seed, batch, visible, stats, witness)
         return
-    prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
-        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
+    if prims is None:
+        prims = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
+    prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = prims
     t1 = time.perf_counter()
     rstart, cols = _tile_ranges(prim_box, hulls, jitter)
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
