@@ -268,23 +268,13 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position)."""
     t0 = time.perf_counter()
-    prims = None
-    split = False
-    if depth > 0:
-        limit = SPLIT_AREA * 6 * res * res
-        if ta == 0.0 and tb == 1.0:
-            # A whole segment: open scenes never cut it, so collect once and decide from that.
-            prims = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
-            split = _box_area(prims[2]) > limit
-        else:
-            # A half of a cut piece, likely cut again: the decision needs only the boxes'
-            # areas (no hulls, nothing stored).
-            split = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
-                                   area_only=True) > limit
-    if split:
+    # The decision needs only the boxes' areas (no hulls, nothing stored). Deciding whole
+    # segments from a full collection instead (open scenes never cut them) wasted far more on
+    # cluttered scenes, where they are cut, than it saved on open ones.
+    if depth > 0 and _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
+                                    area_only=True) > SPLIT_AREA * 6 * res * res:
         stats["box_seconds"] = stats.get("box_seconds", 0.0) + (time.perf_counter() - t0)
         stats["splits"] = stats.get("splits", 0) + 1
-        del prims
         half = 0.5 * dvec
         tm = 0.5 * (ta + tb)
         for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
@@ -292,9 +282,8 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
             _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
                    seed, batch, visible, stats, witness)
         return
-    if prims is None:
-        prims = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
-    prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = prims
+    prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
+        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
     t1 = time.perf_counter()
     rstart, cols = _tile_ranges(prim_box, hulls, jitter)
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
