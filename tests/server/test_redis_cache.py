@@ -415,7 +415,10 @@ def test_progressive_walker_gets_redis_answers_without_first_answers(
         first_core = app_b.state.server.resolver.first().core.name
         assert compute.computed == 0
         assert not [k for k in list(compute.cache.memory._data) if k.core == first_core]
-        assert redis_stats(url_b)["pvs"]["hits"] == 3
+        # Every cell came out of Redis: through a counted lookup, or through the uncounted
+        # peek the session makes while it waits (which of the two depends on timing, so a
+        # busy machine moves hits from one count to the other).
+        assert redis_stats(url_b)["pvs"]["hits"] + compute.cache.peek_hits >= 3
 
 
 def test_server_serves_with_redis_down_at_start(settings, registered_test_cores):
