@@ -4,8 +4,11 @@ Table 1).
 One buffer per view holds, per pixel, up to ``K`` entries of the pixel's trim sequence: front
 faces (depth, triangle id), back faces (depth, id) and trim fragments (depth of the silhouette,
 umbra depth). Entries stay from layer to layer until the pixel is resolved: the residual
-sequence of Sec. 4.3. A pixel whose sequence would overflow gives up occlusion for the rest of
-the view: what it holds and everything still to come there is reported (conservative).
+sequence of Sec. 4.3. A full buffer makes room by merging two trim fragments into one that
+spans both their depths with the nearer umbra (``raster._insert``): every interval either one
+validates, the merged one validates, hiding no deeper, so the merge only reveals more. A
+pixel whose buffer is full with fewer than two trim fragments gives up occlusion for the rest
+of the view: what it holds and everything still to come there is reported (conservative).
 
 The trim region stencil is UNTRIMMED, TRIMMED or SEALED; the active stencil marks pixels that got
 new surface entries in the current layer.
@@ -43,6 +46,8 @@ class KBuffer(NamedTuple):
     kind : (n, K) int8, FRONT, BACK or TRIM.
     ident : (n, K) int32, triangle id (FRONT, BACK) or -1.
     umbra : (n, K) float64, umbra depth of a TRIM entry, metres (inf: unbounded).
+    far : (n, K) float64, far end of a TRIM entry's depth range, metres: its own depth, or
+        the deepest of the fragments merged into it (``depth`` holds the nearest).
     count : (n,) int64 entries held.
     stencil : (n,) int8 trim region stencil.
     active : (n,) uint8, new surface entries this layer.
@@ -60,6 +65,7 @@ class KBuffer(NamedTuple):
     kind: np.ndarray
     ident: np.ndarray
     umbra: np.ndarray
+    far: np.ndarray
     count: np.ndarray
     stencil: np.ndarray
     active: np.ndarray
@@ -75,7 +81,7 @@ class KBuffer(NamedTuple):
     def empty(cls, n: int) -> KBuffer:
         """A cleared buffer of ``n`` pixels."""
         return cls(np.zeros((n, K)), np.zeros((n, K), dtype=np.int8),
-                   np.full((n, K), -1, dtype=np.int32), np.zeros((n, K)),
+                   np.full((n, K), -1, dtype=np.int32), np.zeros((n, K)), np.zeros((n, K)),
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
@@ -84,4 +90,5 @@ class KBuffer(NamedTuple):
     @property
     def allocated_bytes(self) -> int:
         """Bytes of the k-buffers (Table 2's allocated memory)."""
-        return int(self.depth.nbytes + self.kind.nbytes + self.ident.nbytes + self.umbra.nbytes)
+        return int(self.depth.nbytes + self.kind.nbytes + self.ident.nbytes + self.umbra.nbytes
+                   + self.far.nbytes)

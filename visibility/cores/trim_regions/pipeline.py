@@ -55,8 +55,8 @@ ROLLED_SAMPLES = 2
 #: the seed that places and turns them (fixed: the same cell gets the same answer).
 GATHER_EYES = 8
 GATHER_SEED = 104729
-#: Bytes of one k-buffer entry (depth, umbra float64; id int32; kind int8).
-ENTRY_BYTES = 21
+#: Bytes of one k-buffer entry (depth, umbra, far float64; id int32; kind int8).
+ENTRY_BYTES = 29
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
 
 

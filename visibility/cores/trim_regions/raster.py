@@ -142,30 +142,88 @@ def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):
 
 
 @njit(cache=True, inline="always")
-def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, count, overflow,
+def _gap(a0, a1, b0, b1):  # pragma: no cover - numba
+    """Depth between the ranges [a0, a1] and [b0, b1] (0 where they meet)."""
+    return max(0.0, max(b0 - a1, a0 - b1))
+
+
+@njit(cache=True)
+def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cover - numba
+    """Room in pixel p's full k-buffer (c entries) by merging trim fragments: an incoming
+    trim (``kind`` TRIM at depth d, umbra um) joins the held trim nearest in depth; for an
+    incoming surface, the two held trims nearest to each other merge. A merged trim spans
+    both depth ranges with the nearer umbra (``kbuffer`` docstring: it validates every
+    interval either one did and hides no deeper). Returns -2 when the incoming trim was
+    absorbed, the freed slot for a surface, or -1 when fewer than two trims leave no room."""
+    if kind == TRIM:
+        best = -1
+        gbest = np.inf
+        for q in range(c):
+            if kinds[p, q] == TRIM:
+                g = _gap(depth[p, q], far[p, q], d, d)
+                if g < gbest:
+                    gbest = g
+                    best = q
+        if best < 0:
+            return -1
+        depth[p, best] = min(depth[p, best], d)
+        far[p, best] = max(far[p, best], d)
+        umbra[p, best] = min(umbra[p, best], um)
+        return -2
+    a = -1
+    b = -1
+    gbest = np.inf
+    for q in range(c):
+        if kinds[p, q] != TRIM:
+            continue
+        for r in range(q + 1, c):
+            if kinds[p, r] == TRIM:
+                g = _gap(depth[p, q], far[p, q], depth[p, r], far[p, r])
+                if g < gbest:
+                    gbest = g
+                    a = q
+                    b = r
+    if a < 0:
+        return -1
+    depth[p, a] = min(depth[p, a], depth[p, b])
+    far[p, a] = max(far[p, a], far[p, b])
+    umbra[p, a] = min(umbra[p, a], umbra[p, b])
+    return b
+
+
+@njit(cache=True, inline="always")
+def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, overflow,
             vis):  # pragma: no cover - numba
-    """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``); an
-    overflowing pixel reports what it holds and everything that comes later (no occlusion
-    there any more)."""
+    """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``). A full
+    buffer merges trim fragments to make room (``_merge_trims``); one that cannot overflows:
+    it reports what it holds and everything that comes later (no occlusion there any
+    more)."""
     if overflow[p]:
         if kind != TRIM:
             vis[ident] = 1
         return
     c = count[p]
+    slot = c
     if c == K:
-        overflow[p] = 1
-        for q in range(c):
-            if kinds[p, q] != TRIM:
-                vis[idents[p, q]] = 1
-        count[p] = 0
-        if kind != TRIM:
-            vis[ident] = 1
-        return
-    depth[p, c] = d
-    kinds[p, c] = kind
-    idents[p, c] = ident
-    umbra[p, c] = um
-    count[p] = c + 1
+        slot = _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c)
+        if slot == -2:
+            return
+        if slot < 0:
+            overflow[p] = 1
+            for q in range(c):
+                if kinds[p, q] != TRIM:
+                    vis[idents[p, q]] = 1
+            count[p] = 0
+            if kind != TRIM:
+                vis[ident] = 1
+            return
+    depth[p, slot] = d
+    kinds[p, slot] = kind
+    idents[p, slot] = ident
+    umbra[p, slot] = um
+    far[p, slot] = d
+    if slot == c:
+        count[p] = c + 1
 
 
 @njit(cache=True, parallel=True)
@@ -186,7 +244,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     # Unpacked before the parallel loop: numba loses writes made inside a prange body through
     # a named tuple's field (numba issue #7135, open in 0.68; test_raster catches it).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
-    stencil, active, overflow = kb.stencil, kb.active, kb.overflow
+    far, stencil, active, overflow = kb.far, kb.stencil, kb.active, kb.overflow
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):
@@ -243,7 +301,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                         if not inside:
                             continue
                         _insert(p, z, kind, tri_ids[i], 0.0, depth, kinds, idents, umbra,
-                                count, overflow, vis)
+                                far, count, overflow, vis)
                         active[p] = 1
 
 
@@ -275,7 +333,7 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     """
     # Unpacked before the parallel loop (see ``raster_surfaces``).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
-    stencil, overflow = kb.stencil, kb.overflow
+    far, stencil, overflow = kb.far, kb.stencil, kb.overflow
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):
@@ -346,5 +404,5 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
                         um = t
                     if stencil[p] == 0:
                         stencil[p] = TRIMMED
-                    _insert(p, t, TRIM, -1, um, depth, kinds, idents, umbra, count, overflow,
-                            vis)
+                    _insert(p, t, TRIM, -1, um, depth, kinds, idents, umbra, far, count,
+                            overflow, vis)

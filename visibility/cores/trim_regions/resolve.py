@@ -44,14 +44,16 @@ DEPTH_TOL = 1e-3
 
 class SortScratch(NamedTuple):
     """One thread's scratch for a pixel's sorted sequence of K entries: ``order`` (K,) int64
-    and the sorted depths ``sd`` (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32 and
-    umbrae ``su`` (K,)."""
+    and the sorted depths ``sd`` (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32, umbrae
+    ``su`` (K,) and far ends of the trims' depth ranges ``sr`` (K,)."""
 
     order: np.ndarray
     sd: np.ndarray
     sk: np.ndarray
     si: np.ndarray
     su: np.ndarray
+    sr: np.ndarray
+
 
 
 @njit(cache=True)
@@ -73,11 +75,12 @@ def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
 
 
 @njit(cache=True)
-def _umbra_in(sd, sk, su, n, lo, hi):  # pragma: no cover - numba
-    """Smallest umbra depth of the trim entries with depth in [lo, hi]; -1 if none."""
+def _umbra_in(sd, sk, su, sr, n, lo, hi):  # pragma: no cover - numba
+    """Smallest umbra depth of the trim entries whose depth range [sd, sr] meets [lo, hi];
+    -1 if none."""
     best = -1.0
     for q in range(n):
-        if sk[q] == TRIM and sd[q] >= lo and sd[q] <= hi:
+        if sk[q] == TRIM and sr[q] >= lo and sd[q] <= hi:
             if best < 0 or su[q] < best:
                 best = su[q]
     return best
@@ -103,7 +106,7 @@ def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     return resolve_into(kb, closed, p, final, vis, stats,
                         SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
                                     np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
-                                    np.empty(k)))
+                                    np.empty(k), np.empty(k)))
 
 
 @njit(cache=True)
@@ -111,9 +114,10 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
+    far = kb.far
     cover, seal, spans, n_spans, first, hid = (kb.cover, kb.seal, kb.spans, kb.n_spans,
                                                kb.first, kb.hid)
-    order, sd, sk, si, su = scratch
+    order, sd, sk, si, su, sr = scratch
     n = count[p]
     _sort(depth[p], kinds[p], idents[p], umbra[p], n, order)
     for q in range(n):
@@ -121,6 +125,7 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
         sk[q] = kinds[p, order[q]]
         si[q] = idents[p, order[q]]
         su[q] = umbra[p, order[q]]
+        sr[q] = far[p, order[q]]
     cov = cover[p]
     i = 0
     keep_from = n  # first surface entry of the carried run (n: none)
@@ -174,7 +179,7 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
             if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
                 vis[si[i]] = 1
             # Up to the next surface, trims at its depth included (see the module docstring).
-            u = _umbra_in(sd, sk, su, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
+            u = _umbra_in(sd, sk, su, sr, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
             last = d
             if u >= 0:
                 stats[3] += 1
@@ -197,7 +202,7 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
             # the run is extended at the front as in the paper and validated by any trim
             # fragment inside it; its last face and the closing face then form the simple
             # interval whose own trims give the umbra, or which terminates the ray.
-            if _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b) < 0:
+            if _umbra_in(sd, sk, su, sr, n, d - tol, b + DEPTH_TOL * b) < 0:
                 stats[1] += 1
                 seal[p] = d
                 sealed = True
@@ -205,7 +210,7 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
             # The last face is not reported: it may lie inside what the first encloses.
             d = sd[end_first]
             tol = DEPTH_TOL * d
-        u = _umbra_in(sd, sk, su, n, d - tol, b + DEPTH_TOL * b)
+        u = _umbra_in(sd, sk, su, sr, n, d - tol, b + DEPTH_TOL * b)
         last = b
         if u >= 0:
             stats[0] += 1
@@ -246,11 +251,12 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
     else:
         lim = -1.0
     for q in range(n):
-        if (sk[q] == TRIM and sd[q] >= lim) or (sk[q] != TRIM and q >= keep_from):
+        if (sk[q] == TRIM and sr[q] >= lim) or (sk[q] != TRIM and q >= keep_from):
             depth[p, w] = sd[q]
             kinds[p, w] = sk[q]
             idents[p, w] = si[q]
             umbra[p, w] = su[q]
+            far[p, w] = sr[q]
             w += 1
     count[p] = w
     return False
@@ -272,7 +278,7 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
             continue
         scratch = SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
                               np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
-                              np.empty(k))
+                              np.empty(k), np.empty(k))
         for p in range(band * 8 * res, min(res, band * 8 + 8) * res):
             if count[p] > 0:
                 held[p] = 1

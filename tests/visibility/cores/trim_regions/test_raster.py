@@ -1,12 +1,14 @@
 """``raster_trims`` visits only the columns a row of a trim region can reach: the same entries,
-in the same order, as the region test tried at every pixel of the region's box."""
+in the same order, as the region test tried at every pixel of the region's box; a full
+k-buffer merges trim fragments rather than give up occlusion."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from visibility.cores.trim_regions.kbuffer import TRIM, K, KBuffer
-from visibility.cores.trim_regions.raster import _affine_range, raster_trims
+from visibility.cores.trim_regions.kbuffer import BACK, FRONT, TRIM, K, KBuffer
+from visibility.cores.trim_regions.raster import _affine_range, _insert, raster_trims
 
 
 def _every_pixel(trims: np.ndarray, res: int, tan: float, margin: float) -> list[list[tuple]]:
@@ -72,19 +74,70 @@ def test_affine_range_solves_the_row_inequalities():
     assert lo > hi
 
 
-def test_trim_rows_match_the_test_at_every_pixel():
+@pytest.mark.parametrize("n", [60, 800])
+def test_trim_rows_match_the_test_at_every_pixel(n):
+    # 800 trims put more than K fragments in most pixels: those merge.
     res, tan, margin = 32, 1.0, 0.75 * 2.0 / 32
-    trims = _trims(np.random.default_rng(3), 60, tan)
+    trims = _trims(np.random.default_rng(3), n, tan)
     kb = KBuffer.empty(res * res)
     vis = np.zeros(1, dtype=np.uint8)
     raster_trims(trims, res, tan, margin, kb, vis, np.zeros(1, dtype=np.uint8))
     want = _every_pixel(trims, res, tan, margin)
     assert sum(len(w) for w in want) > 10 * res  # the strips cover much of the view
+    merged = 0
     for p in range(res * res):
+        assert kb.overflow[p] == 0  # only trims: a full buffer merges them
         if len(want[p]) > K:
-            assert kb.overflow[p] == 1
+            # Every fragment lies in the depth range of a held entry whose umbra is no deeper.
+            merged += 1
+            assert kb.count[p] == K
+            lo, hi, um = kb.depth[p], kb.far[p], kb.umbra[p]
+            for t, u in want[p]:
+                e = 1e-12 * t
+                assert ((lo <= t + e) & (t - e <= hi) & (um <= u * (1 + 1e-12))).any(), (t, u)
             continue
         assert kb.count[p] == len(want[p])
         assert (kb.kind[p, :kb.count[p]] == TRIM).all()
         got = list(zip(kb.depth[p, :kb.count[p]], kb.umbra[p, :kb.count[p]], strict=True))
         assert np.allclose(got, want[p], rtol=1e-12) if want[p] else not got
+    assert (merged > 0) == (n > 60)
+
+
+def _fill(kb: KBuffer, entries: list[tuple[int, float, float]]) -> np.ndarray:
+    """Insert (kind, depth, umbra) entries into pixel 0 in order (ids 0, 1, ...); returns vis."""
+    vis = np.zeros(len(entries), dtype=np.uint8)
+    for i, (kind, d, um) in enumerate(entries):
+        _insert(0, d, kind, i if kind != TRIM else -1, um, kb.depth, kb.kind, kb.ident,
+                kb.umbra, kb.far, kb.count, kb.overflow, vis)
+    return vis
+
+
+def test_a_full_buffer_merges_the_two_trims_nearest_in_depth_for_a_surface():
+    kb = KBuffer.empty(1)
+    trims = [(TRIM, 1.0 + q, 10.0 + q) for q in range(K - 2)] + [(TRIM, 50.0, 60.0),
+                                                                  (TRIM, 50.5, 55.0)]
+    vis = _fill(kb, trims + [(FRONT, 7.25, 0.0)])
+    assert kb.overflow[0] == 0 and kb.count[0] == K and not vis.any()
+    n = kb.count[0]
+    k = int(np.flatnonzero(kb.kind[0, :n] == FRONT)[0])
+    assert kb.depth[0, k] == 7.25 and kb.ident[0, k] == K
+    # 50 and 50.5 were the nearest pair: one entry spans them with the nearer umbra.
+    j = int(np.flatnonzero((kb.kind[0, :n] == TRIM) & (kb.far[0, :n] > kb.depth[0, :n]))[0])
+    assert (kb.depth[0, j], kb.far[0, j], kb.umbra[0, j]) == (50.0, 50.5, 55.0)
+
+
+def test_a_trim_joins_the_held_trim_nearest_in_depth_when_the_buffer_is_full():
+    kb = KBuffer.empty(1)
+    _fill(kb, [(TRIM, 1.0 + q, 10.0 + q) for q in range(K)] + [(TRIM, 5.4, 7.0)])
+    n = kb.count[0]
+    assert kb.overflow[0] == 0 and n == K
+    j = int(np.flatnonzero(kb.depth[0, :n] == 5.0)[0])
+    assert (kb.far[0, j], kb.umbra[0, j]) == (5.4, 7.0)
+
+
+def test_a_full_buffer_without_two_trims_overflows_and_reports_its_surfaces():
+    kb = KBuffer.empty(1)
+    entries = [(FRONT if q % 2 == 0 else BACK, 1.0 + q, 0.0) for q in range(K)]
+    vis = _fill(kb, entries + [(TRIM, 3.5, 9.0), (FRONT, 99.0, 0.0)])
+    assert kb.overflow[0] == 1 and kb.count[0] == 0
+    assert vis[:K].all() and vis[K + 1]  # every surface held, and the one after, is reported

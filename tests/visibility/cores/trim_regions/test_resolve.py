@@ -17,6 +17,7 @@ def _resolve(entries, final=True, cover=0.0, closed=None):
     kb = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(entries):
         kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
+        kb.far[0, q] = d
     kb.count[0] = len(entries)
     kb.cover[0] = cover
     vis = np.zeros(16, dtype=np.uint8)
@@ -135,3 +136,31 @@ def test_the_back_of_a_closed_box_inside_a_trimmed_run_stays_hidden():
     assert 2 not in vis
     vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 4})
     assert 2 in vis
+
+
+def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
+    # A trim entry spanning [1.2, 3.5] (fragments merged on a full buffer) with umbra 4: the
+    # box [2, 2.5] holds no fragment's own depth, but the range meets it, so it is trimmed
+    # (its front seen, what lies in the umbra hidden) and the face at 5 is seen beyond.
+    kb = KBuffer.empty(1)
+    seq = [(FRONT, 2.0, 0, 0.0), (BACK, 2.5, 1, 0.0), (FRONT, 3.8, 2, 0.0), (BACK, 3.9, 3, 0.0),
+           (FRONT, 5.0, 4, 0.0), (BACK, 6.0, 5, 0.0), (TRIM, 1.2, -1, 4.0)]
+    for q, (kind, d, ident, um) in enumerate(seq):
+        kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
+        kb.far[0, q] = d
+    kb.far[0, len(seq) - 1] = 3.5
+    kb.count[0] = len(seq)
+    vis = np.zeros(16, dtype=np.uint8)
+    sealed = resolve_pixel(kb, np.full(16, -1, dtype=np.int64), 0, True, vis,
+                           np.zeros(4, dtype=np.int64))
+    assert set(np.flatnonzero(vis).tolist()) == {0, 4} and sealed and kb.seal[0] == 5.0
+    # Without the range (the trim at 1.2 only) the first box terminates the ray.
+    kb2 = KBuffer.empty(1)
+    for q, (kind, d, ident, um) in enumerate(seq):
+        kb2.depth[0, q], kb2.kind[0, q], kb2.ident[0, q], kb2.umbra[0, q] = d, kind, ident, um
+        kb2.far[0, q] = d
+    kb2.count[0] = len(seq)
+    vis2 = np.zeros(16, dtype=np.uint8)
+    resolve_pixel(kb2, np.full(16, -1, dtype=np.int64), 0, True, vis2,
+                  np.zeros(4, dtype=np.int64))
+    assert set(np.flatnonzero(vis2).tolist()) == {0} and kb2.seal[0] == 2.0
