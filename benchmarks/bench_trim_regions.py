@@ -8,8 +8,8 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   Δ in {0.05, 0.1, 0.2, 0.3} m at a walkable cell's centre: best of 2 runs after a warm-up (the
   per-scene octree is built once and reported apart), seconds per phase P0-P4.
 - Quality: generated scenes (20k rooms, village, city) and the real ones of ../shared/scenes,
-  two cells each at every Δ, at the defaults and by the method alone
-  (``gather_eyes=0``): frames from ``--frames`` eyes with random cube orientations inside the
+  two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
+  (``gather_eyes=8``): frames from ``--frames`` eyes with random cube orientations inside the
   sphere's cube cell, 256 px per face (``trim_regions.quality``).
 - Side by side: ``cos`` and ``sampling`` at their defaults on the same cube cells of the 20k
   scenes and lavaducts, and how much of trim_regions' answer is provably unseen: triangles
@@ -41,7 +41,7 @@ import numpy as np
 from benchmarks.bench_matrix import SHARED_SCENES
 from visibility.cores.base import get_core
 from visibility.cores.trim_regions.frustum import cover_box
-from visibility.cores.trim_regions.pipeline import PHASES
+from visibility.cores.trim_regions.pipeline import GATHER_EYES, PHASES
 from visibility.cores.trim_regions.quality import FRAME_NEAR, frame_errors
 from visibility.generators import make_scene
 from visibility.ray_frames import first_open_cell, ray_frames
@@ -119,7 +119,7 @@ def _build_seconds(core: Any, scene: Scene) -> float:
 
 def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
     """Each cell's frames cast once (``ray_frames``), scoring the core at its defaults and by
-    its method alone (``gather_eyes=0``: no eyes of the cell sampled into the answer)."""
+    with the sampling add-on (``gather_eyes``: eyes of the cell sampled into the answer)."""
     core = get_core("trim_regions")
     n = 5_000 if quick else 20_000
     cases: list[tuple[str, Any, tuple[float, ...]]] = [
@@ -134,11 +134,11 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
             for delta in deltas:
                 box = sphere_cell(scene, delta, which)
                 pvs = core.compute(scene, Viewcell(box), core.make_params(max_delta=delta))
-                alone = core.compute(scene, Viewcell(box),
-                                     core.make_params(max_delta=delta, gather_eyes=0))
+                gathered = core.compute(scene, Viewcell(box),
+                                     core.make_params(max_delta=delta, gather_eyes=GATHER_EYES))
                 cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
                 e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
-                e0 = frame_errors(scene, alone.triangle_ids, box, frames=cast)
+                e0 = frame_errors(scene, gathered.triangle_ids, box, frames=cast)
                 e.pop("missed")
                 rows.append({"scene": name, "cell": which, "delta": delta,
                              "triangles": scene.n_triangles, "seconds": pvs.seconds,
@@ -147,12 +147,12 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
                              "kbuffer_used_mb": pvs.stats["kbuffer_used_bytes"] / 2**20,
                              "overflow_pixels": pvs.stats["overflow_pixels"],
                              "dropped_eyes": cast.dropped, **e,
-                             "alone_seconds": alone.seconds, "alone_pvs": e0["pvs"],
-                             "alone_fn_pixels_max": e0["fn_pixels_max"],
-                             "alone_fn_pixel_rate_max": e0["fn_pixel_rate_max"],
-                             "alone_fn": e0["fn"]})
+                             "gather_seconds": gathered.seconds, "gather_pvs": e0["pvs"],
+                             "gather_fn_pixels_max": e0["fn_pixels_max"],
+                             "gather_fn_pixel_rate_max": e0["fn_pixel_rate_max"],
+                             "gather_fn": e0["fn"]})
                 print(f"quality {name} cell {which} Δ={delta}: FN px {e['fn_pixels_max']} "
-                      f"(alone {e0['fn_pixels_max']}), PVS/GT "
+                      f"(with the add-on {e0['fn_pixels_max']}), PVS/GT "
                       f"{e['pvs'] / max(e['gt'], 1):.2f}", flush=True)
     return rows
 
@@ -275,11 +275,12 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads) 
             "counts. FN px: the pixels of a frame whose nearest triangle is missing from the "
             "PVS (max and mean over frames). GT: every triangle the frames show. FN = "
             "missed / GT, FP = (PVS - GT) / GT as Table 3 and Fig. 15 define them; * without "
-            "unreliable triangles (an edge under one pixel from the cell's centre). Alone: "
-            "the same cell by the method alone (`gather_eyes=0`: no eye of the cell sampled "
-            "into the answer), scored on the same frames.", "",
+            "unreliable triangles (an edge under one pixel from the cell's centre). The "
+            "defaults are the method alone. Add-on: the same cell with the sampling add-on "
+            f"(`gather_eyes={GATHER_EYES}`: eyes stratified in the cell sampled into the "
+            "answer), scored on the same frames.", "",
             "| scene | cell | Δ m | s | PVS | GT | PVS / GT | FN px max | FN px mean | FN px % "
-            "max | FN | FN* | FP | FP* | active px | seq. length | overflow px | alone: s | "
+            "max | FN | FN* | FP | FP* | active px | seq. length | overflow px | add-on: s | "
             "PVS | FN px max | FN |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
             "---|"]
@@ -290,10 +291,10 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads) 
                    f"{100 * r['fn_pixel_rate_max']:.4f} | {r['fn']:.3f} | {r['fn_star']:.3f} | "
                    f"{r['fp']:.2f} | {r['fp_star']:.2f} | {r['active_pixels']:,} | "
                    f"{r['mean_sequence_length']:.1f} | {r['overflow_pixels']} | "
-                   f"{r['alone_seconds']:.2f} | {r['alone_pvs']:,} | "
-                   f"{r['alone_fn_pixels_max']} | {r['alone_fn']:.3f} |")
-    for key, mode in (("fn_pixel_rate_max", "at the defaults"),
-                      ("alone_fn_pixel_rate_max", "by the method alone")):
+                   f"{r['gather_seconds']:.2f} | {r['gather_pvs']:,} | "
+                   f"{r['gather_fn_pixels_max']} | {r['gather_fn']:.3f} |")
+    for key, mode in (("fn_pixel_rate_max", "at the defaults (the method alone)"),
+                      ("gather_fn_pixel_rate_max", "with the sampling add-on")):
         over = [r for r in quality_rows if r[key] > 5e-5]
         out += ["", f"Frames above the paper's 0.005 % {mode}: {len(over)} of "
                 f"{len(quality_rows)} cells: " + (", ".join(

@@ -51,8 +51,10 @@ OPEN_SAMPLES = 3
 ROLL = float(np.arctan(0.5))
 #: Samples per pixel side of that rolled grid.
 ROLLED_SAMPLES = 2
-#: Eyes inside the cell whose views (``SUPERSAMPLE``² samples per pixel) the gather adds, and
-#: the seed that places and turns them (fixed: the same cell gets the same answer).
+#: Eyes inside the cell whose views (``SUPERSAMPLE``² samples per pixel) the sampling add-on
+#: adds when asked for (``gather_eyes``; off by default: it is from-point sampling inside the
+#: answer, not the method), and the seed that places and turns them (fixed: the same cell gets
+#: the same answer).
 GATHER_EYES = 8
 GATHER_SEED = 104729
 #: Bytes of one k-buffer entry (depth, umbra, far float64; id int32; kind int8).
@@ -84,7 +86,7 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
              max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True,
-             gather_eyes: int = GATHER_EYES) -> tuple[np.ndarray, dict[str, Any]]:
+             gather_eyes: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
     Parameters
@@ -99,12 +101,13 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         per pixel or on a rolled grid (``_sample_from_vstar``), and every triangle whose pixel
         footprint (conservative) lies in front of the farthest surface sampled in that pixel
         (``hulls.touching_in_front``). False only for tests of pixel-centre visibility.
-    gather_eyes : with ``footprints``, also report every triangle and sphere seen from this
-        many eyes stratified in the box (random cube orientations, ``SUPERSAMPLE`` times the
-        resolution, ``ground_truth.sample_pvs``): v* stands outside the cell, and a triangle
-        it sees behind a trimmed occluder under no pixel centre (the clutter of the 1M
-        kitchen, each under a pixel or so) is often in plain view of an eye inside. 0: the
-        paper's gather from v* alone.
+    gather_eyes : a sampling add-on, off (0) by default: with ``footprints``, also report
+        every triangle and sphere seen from this many eyes stratified in the box (random cube
+        orientations, ``SUPERSAMPLE`` times the resolution, ``ground_truth.sample_pvs``;
+        ``GATHER_EYES`` is the count measured). v* stands outside the cell, and a triangle it
+        sees behind a trimmed occluder under no pixel centre (the clutter of the 1M kitchen,
+        each under a pixel or so) is often in plain view of an eye inside. 0: the paper's
+        gather from v* alone, the method.
 
     Returns
     -------

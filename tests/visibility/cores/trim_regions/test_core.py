@@ -85,15 +85,17 @@ def test_auto_considers_it_for_small_cells_only():
 
 
 def test_the_eyes_gather_adds_what_eyes_inside_the_cell_see():
-    # gather_eyes: the views of eyes stratified in the cell (the pipeline's seed, SUPERSAMPLE
-    # times the resolution) join the answer; 0 leaves the paper's gather from v* alone.
+    # gather_eyes, a sampling add-on: the views of eyes stratified in the cell (the pipeline's
+    # seed, SUPERSAMPLE times the resolution) join the answer; the default, 0, leaves the
+    # paper's gather from v* alone: the method.
     from visibility.cores.trim_regions.quality import FRAME_NEAR
 
+    assert CORE.make_params().gather_eyes == 0
     scene = make_scene("rooms", triangles=5000)
     box = cell_around(scene, 0.3, 2)
-    with_eyes = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
-    without = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64,
-                                                                  gather_eyes=0))
+    with_eyes = CORE.compute(scene, Viewcell(box),
+                             CORE.make_params(resolution=64, gather_eyes=pipeline.GATHER_EYES))
+    without = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
     assert with_eyes.stats["eye_gathered"] >= len(with_eyes) - len(without) >= 0
     assert without.stats["eye_gathered"] == 0
     assert set(without.triangle_ids.tolist()) <= set(with_eyes.triangle_ids.tolist())
@@ -105,15 +107,15 @@ def test_the_eyes_gather_adds_what_eyes_inside_the_cell_see():
 
 
 @pytest.mark.parametrize("name", ["two_rooms_and_a_door", "open_ring", "stiff_cases"])
-def test_the_method_alone_keeps_the_declared_bounds_on_the_designed_scenes(name):
+def test_the_sampling_add_on_keeps_the_declared_bounds_on_the_designed_scenes(name):
     # fn_bound and fp_bound are what the designed scenes measure in both modes, so the
-    # conformance suite (at the defaults) and this test (the method alone) fail on a
-    # regression of either.
+    # conformance suite (at the defaults: the method alone) and this test (with the eyes'
+    # gather) fail on a regression of either.
     from visibility.cores import designed_scenes as ds
     from visibility.cores.checks import check_params, designed_reference
     from visibility.ground_truth import fn_fp_rates
 
     scene, cell, _ = getattr(ds, name)()
-    pvs = CORE.compute(scene, cell, check_params(CORE, gather_eyes=0))
+    pvs = CORE.compute(scene, cell, check_params(CORE, gather_eyes=pipeline.GATHER_EYES))
     fn, fp = fn_fp_rates(pvs.triangle_ids, designed_reference(name))
     assert fn <= CORE.fn_bound and fp <= CORE.fp_bound, (fn, fp)

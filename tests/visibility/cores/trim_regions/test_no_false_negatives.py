@@ -1,9 +1,11 @@
 """False-negative pixels within the paper's bound (Sec. 6.4: at most 0.005 % of a frame's pixels)
-for Δ up to 0.2 m: frames from eyes with random cube orientations inside the cell, rendered
-from the full scene, must show no more than that share of pixels whose triangle the PVS lacks
-(``trim_regions.quality.frame_errors``). Generated scenes in the quick tests; the real scenes
-of ../shared/scenes (lavaducts, the Lyon tile, Den Haag and the kitchen) are ``slow`` and fail
-when missing."""
+for Δ up to 0.2 m, by the method alone (the defaults: no sampling add-on): frames from eyes
+with random cube orientations inside the cell, rendered from the full scene, must show no more
+than that share of pixels whose triangle the PVS lacks (``trim_regions.quality.frame_errors``).
+Generated scenes in the quick tests; the real scenes of ../shared/scenes (lavaducts, the Lyon
+tile, Den Haag and the kitchen) are ``slow`` and fail when missing. The kitchen's middle cell
+is over the bound by the method alone (an open bug, traced in docs/cores/trim_regions.md): it
+is held to its measured figure there, and to the bound with the sampling add-on."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from visibility.cores.base import get_core
+from visibility.cores.trim_regions.pipeline import GATHER_EYES
 from visibility.cores.trim_regions.quality import frame_errors
 from visibility.generators import make_scene
 from visibility.ray_frames import first_open_cell
@@ -28,13 +31,13 @@ def _scene(name: str, triangles: int):
     return make_scene(name, triangles=triangles)
 
 
-def _errors(scene, which: int, delta: float, frames: int = 8, seed: int = 3):
+def _errors(scene, which: int, delta: float, frames: int = 8, seed: int = 3, **params):
     grid = ViewcellGrid.for_scene(scene)
     c = grid.cell(first_open_cell(scene, grid, len(grid) // 2 if which == 0
                                   else len(grid) // 3)).center
     h = delta / np.sqrt(3.0)
     box = np.stack([c - h, c + h])
-    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=delta))
+    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=delta, **params))
     e = frame_errors(scene, pvs.triangle_ids, box, n_points=frames, resolution=256, seed=seed)
     # Judged from eyes in open space: a cell whose eyes all stand inside geometry proves
     # nothing.
@@ -82,12 +85,14 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
 @pytest.mark.slow
 def test_false_negative_pixels_in_the_kitchens_clutter():
     # The 1M kitchen's middle cell at Δ 0.2 m, as benchmarks/bench_trim_regions.py measures it
-    # (24 frames, seed 1): 127 pixels in the worst frame with the gather from v* alone, about
-    # a hundred triangles each under a pixel or so, hidden from v* behind trimmed occluders
-    # and met by no pixel centre; the eyes' gather (gather_eyes) sees them from inside the
-    # cell.
+    # (24 frames, seed 1). By the method alone: 117 pixels in the worst frame (the bound is
+    # 19.7), about a hundred triangles each under a pixel or so, hidden from v* behind
+    # trimmed occluders and met by no pixel centre: held to that figure so that it can only
+    # fall. The sampling add-on (gather_eyes) sees them from inside the cell: within the bound.
     from tests.visibility.real_scenes import REAL, real_scene
 
     assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
-    e = _errors(real_scene("kitchen"), 0, 0.2, frames=24, seed=1)
+    alone = _errors(real_scene("kitchen"), 0, 0.2, frames=24, seed=1)
+    assert alone["fn_pixels_max"] <= 117, (alone["fn_pixels_max"], alone["missed"][:20])
+    e = _errors(real_scene("kitchen"), 0, 0.2, frames=24, seed=1, gather_eyes=GATHER_EYES)
     assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])
