@@ -59,6 +59,12 @@ class KBuffer(NamedTuple):
     first : (n,) float64, depth of the first surface the pixel resolved (inf: none).
     hid : (n,) int64, 1 + the closed part (``SceneData.closed``) of the front face that hid in
         an umbra since the last front face seen, 0 for none or a face of no closed part.
+    queue : (n,) int64, the pixels marked active this layer, per band of 8 rows: band b's
+        list starts at its first pixel, b * 8 * res, and is ``queued[b]`` long (a layer
+        resolves those, not the whole frame).
+    queued : (bands,) int64, the length of each band's list.
+    held_entries : (bands,) int64, the entries each band holds (the k-buffers' use, without
+        a full-frame pass per layer).
     """
 
     depth: np.ndarray
@@ -76,16 +82,21 @@ class KBuffer(NamedTuple):
     n_spans: np.ndarray
     first: np.ndarray
     hid: np.ndarray
+    queue: np.ndarray
+    queued: np.ndarray
+    held_entries: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> KBuffer:
-        """A cleared buffer of ``n`` pixels."""
+        """A cleared buffer of ``n`` pixels (a square view: res * res)."""
+        bands = (int(round(np.sqrt(n))) + 7) // 8 + 1
         return cls(np.zeros((n, K)), np.zeros((n, K), dtype=np.int8),
                    np.full((n, K), -1, dtype=np.int32), np.zeros((n, K)), np.zeros((n, K)),
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
-                   np.full(n, np.inf), np.zeros(n, dtype=np.int64))
+                   np.full(n, np.inf), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
+                   np.zeros(bands, dtype=np.int64), np.zeros(bands, dtype=np.int64))
 
     @property
     def allocated_bytes(self) -> int:

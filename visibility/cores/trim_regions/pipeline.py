@@ -403,6 +403,8 @@ def _reset(kb: KBuffer) -> None:
     kb.n_spans[:] = 0
     kb.first[:] = np.inf
     kb.hid[:] = 0
+    kb.queued[:] = 0
+    kb.held_entries[:] = 0
 
 
 def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.ndarray,

@@ -245,6 +245,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     # a named tuple's field (numba issue #7135, open in 0.68; test_raster catches it).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
     far, stencil, active, overflow = kb.far, kb.stencil, kb.active, kb.overflow
+    queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):
@@ -300,9 +301,15 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                                 break
                         if not inside:
                             continue
+                        c0 = count[p]
                         _insert(p, z, kind, tri_ids[i], 0.0, depth, kinds, idents, umbra,
                                 far, count, overflow, vis)
-                        active[p] = 1
+                        held_entries[band] += count[p] - c0
+                        if not active[p]:
+                            # The band's list of pixels to resolve after this layer.
+                            active[p] = 1
+                            queue[r0 * res + queued[band]] = p
+                            queued[band] += 1
 
 
 @njit(cache=True, inline="always")
@@ -333,7 +340,7 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     """
     # Unpacked before the parallel loop (see ``raster_surfaces``).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
-    far, stencil, overflow = kb.far, kb.stencil, kb.overflow
+    far, stencil, overflow, held_entries = kb.far, kb.stencil, kb.overflow, kb.held_entries
     n_bands = (res + 7) // 8
     half = 0.5 * res
     for band in prange(n_bands):
@@ -404,5 +411,7 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
                         um = t
                     if stencil[p] == 0:
                         stencil[p] = TRIMMED
+                    c0 = count[p]
                     _insert(p, t, TRIM, -1, um, depth, kinds, idents, umbra, far, count,
                             overflow, vis)
+                    held_entries[band] += count[p] - c0

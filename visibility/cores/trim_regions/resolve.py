@@ -264,32 +264,39 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
 
 @njit(cache=True, parallel=True)
 def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pragma: no cover
-    """Resolve every active pixel (all held pixels when ``final``) of one view's k-buffers
-    ``kb`` (``kbuffer.KBuffer``), parallel over bands of rows; ``stats`` (n_bands, 4)
-    accumulates ``resolve_pixel``'s counters per band.
-    On the way, before resolving: ``held`` (res * res,) gets 1 where a pixel holds entries,
-    ``tally`` (n_bands, 2) adds per band the entries held and the pixels marked active (the
-    view's statistics, without full-frame passes per layer)."""
+    """Resolve the pixels marked active in this layer (each band's list in ``kb.queue``,
+    filled by ``raster.raster_surfaces``), or every pixel holding entries when ``final``, of
+    one view's k-buffers ``kb`` (``kbuffer.KBuffer``), parallel over bands of rows; ``stats``
+    (n_bands, 4) accumulates ``resolve_pixel``'s counters per band.
+    On the way: ``held`` (res * res,) gets 1 where a resolved pixel holds entries, ``tally``
+    (n_bands, 2) gets per band the entries held before resolving (``kb.held_entries``, kept
+    by the rasterizers) and adds the pixels resolved (the view's statistics, without a
+    full-frame pass per layer)."""
     n_bands = (res + 7) // 8
     k = kb.depth.shape[1]
     count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
+    queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
     for band in prange(n_bands):
         if flag_set(stop):
             continue
         scratch = SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
                               np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
                               np.empty(k), np.empty(k))
-        for p in range(band * 8 * res, min(res, band * 8 + 8) * res):
+        tally[band, 0] = held_entries[band]
+        base = band * 8 * res
+        n = min(res, band * 8 + 8) * res - base if final else queued[band]
+        for i in range(n):
+            p = base + i if final else queue[base + i]
             if count[p] > 0:
                 held[p] = 1
-                tally[band, 0] += count[p]
             if active[p]:
                 tally[band, 1] += 1
             if overflow[p] or stencil[p] == SEALED or count[p] == 0:
                 active[p] = 0
                 continue
-            if not (active[p] or final):
-                continue
             active[p] = 0
+            c0 = count[p]
             if resolve_into(kb, closed, p, final, vis, stats[band], scratch):
                 stencil[p] = SEALED
+            held_entries[band] += count[p] - c0
+        queued[band] = 0

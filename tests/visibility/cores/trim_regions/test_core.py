@@ -119,3 +119,29 @@ def test_the_sampling_add_on_keeps_the_declared_bounds_on_the_designed_scenes(na
     pvs = CORE.compute(scene, cell, check_params(CORE, gather_eyes=pipeline.GATHER_EYES))
     fn, fp = fn_fp_rates(pvs.triangle_ids, designed_reference(name))
     assert fn <= CORE.fn_bound and fp <= CORE.fp_bound, (fn, fp)
+
+
+def test_each_layer_resolves_the_pixels_it_marked_and_counts_entries_without_a_frame_pass(
+        monkeypatch):
+    # The rasterizers keep each band's list of active pixels and its entries held; before
+    # every resolve those must be exactly the active pixels and the k-buffers' total, and the
+    # lists are empty after it.
+    seen = {"layers": 0}
+    resolve = pipeline._resolve
+
+    def checked(kb, res, final, *args):
+        bands = (res + 7) // 8
+        queued = np.concatenate([kb.queue[b * 8 * res:b * 8 * res + kb.queued[b]]
+                                 for b in range(bands)])
+        assert np.array_equal(np.sort(queued), np.flatnonzero(kb.active))
+        assert kb.held_entries[:bands].sum() == kb.count.sum()
+        resolve(kb, res, final, *args)
+        assert not kb.queued.any() and not kb.active.any()
+        assert kb.held_entries[:bands].sum() == kb.count.sum()
+        seen["layers"] += 1
+
+    monkeypatch.setattr(pipeline, "_resolve", checked)
+    scene = make_scene("village", triangles=5000)
+    pvs = CORE.compute(scene, Viewcell(cell_around(scene, 0.3, 2)),
+                       CORE.make_params(resolution=64))
+    assert len(pvs) and seen["layers"] > 6
