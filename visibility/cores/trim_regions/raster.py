@@ -164,6 +164,8 @@ def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cov
                 if g < gbest:
                     gbest = g
                     best = q
+                    if g == 0.0:
+                        break  # a range holding d: none is nearer
         if best < 0:
             return -1
         depth[p, best] = min(depth[p, best], d)
