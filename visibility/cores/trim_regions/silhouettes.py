@@ -180,6 +180,12 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
                 w = min(big, max(0.0, w / den))
             widths[q, k] = w + margin
         out[10 + k] = max(widths[0, k], widths[1, k])
+    # Outside the view: the strip lies within its larger width (and the margin) of the edge,
+    # so an edge whose ends both lie that far beyond one side of the face trims no pixel.
+    reach = tan + max(out[10], out[11]) + margin
+    if ((out[4] > reach and out[6] > reach) or (out[4] < -reach and out[6] < -reach)
+            or (out[5] > reach and out[7] > reach) or (out[5] < -reach and out[7] < -reach)):
+        return 0
     m = 0
     if s0 == s1 and s0 != 0.0 and not many[e] and not either:
         sides[0] = s0

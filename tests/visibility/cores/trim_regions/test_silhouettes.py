@@ -42,6 +42,12 @@ def test_a_cube_seen_face_on_has_four_silhouette_edges():
     assert len(trims) == 4
 
 
+def test_a_cube_beside_the_face_trims_nothing_there():
+    # Seen from the +x face the cube lies 76 degrees and more off its axis, in front of v*:
+    # its silhouettes' strips reach no pixel of that face, so they make no trim rows.
+    assert len(_trims((0.0, 0.0, 0.0), face=0)[0]) == 0
+
+
 def test_a_cube_seen_from_off_a_corner_has_a_hexagon_of_silhouettes():
     trims, _ = _trims((3.0, 2.5, 0.0))
     assert len(trims) == 6
