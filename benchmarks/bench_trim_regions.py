@@ -11,6 +11,9 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
   (``gather_eyes=8``): frames from ``--frames`` eyes with random cube orientations inside the
   sphere's cube cell, 256 px per face (``trim_regions.quality``).
+- Leaf size: ``max_prims`` (most triangles per octree leaf) 256, 1024 and 4096 on a 0.2 m
+  sphere of the village, Lyon and the kitchen: layers peeled, time per phase and the PVS, to
+  see whether larger leaves (fewer layers, as the paper's 6-14) pay.
 - Side by side: ``cos`` and ``sampling`` at their defaults on the same cube cells of the 20k
   scenes and lavaducts, and how much of trim_regions' answer is provably unseen: triangles
   ``cos`` (conservative)
@@ -107,6 +110,31 @@ def speed(quick: bool) -> list[dict[str, Any]]:
                          "deterministic": bool(np.array_equal(first.triangle_ids,
                                                               pvs.triangle_ids))})
             print(f"speed {name} Δ={delta}: {pvs.seconds:.2f} s", flush=True)
+    return rows
+
+
+#: Leaf sizes the leaf-size table compares (``max_prims``; 256 is the default).
+LEAF_SIZES = (256, 1024, 4096)
+
+
+def leaf_sizes(quick: bool) -> list[dict[str, Any]]:
+    """Layers, seconds per phase and PVS at each of ``LEAF_SIZES`` on one 0.2 m sphere per
+    scene (best of 2 after a warm-up that builds that octree)."""
+    core = get_core("trim_regions")
+    cases = [("village", 20_000 if quick else 100_000)] + (
+        [] if quick else [("lyon_vilo3d", None), ("kitchen", None)])
+    rows = []
+    for name, n in cases:
+        scene = load(name, n)
+        box = sphere_cell(scene, 0.2, 0)
+        for mp in LEAF_SIZES:
+            pvs, _ = timed(core, scene, box, max_delta=0.2, max_prims=mp)
+            st = pvs.stats
+            rows.append({"scene": name, "max_prims": mp, "seconds": pvs.seconds,
+                         "layers": st["layers"], "pvs": len(pvs),
+                         **{k: st[k] for k in PHASES}})
+            print(f"leaves {name} max_prims={mp}: {pvs.seconds:.2f} s, {st['layers']} layers",
+                  flush=True)
     return rows
 
 
@@ -240,7 +268,8 @@ def _unseen_cell(r: dict[str, Any]) -> str:
     return f"{r['proven_unseen']:,} ({100 * r['proven_unseen'] / max(r['pvs'], 1):.0f} %)"
 
 
-def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads) -> str:
+def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
+             leaf_rows=()) -> str:
     cmd = " ".join(["python -m benchmarks.bench_trim_regions", *argv])
     out = ["# trim_regions: speed, memory and error against the paper", "",
            f"Command: `{cmd}`; {platform.processor() or platform.machine()}, {os.cpu_count()} "
@@ -265,6 +294,17 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads) 
                    f"{r['mean_sequence_length']:.1f} | {r['kbuffer_allocated_mb']:.0f} / "
                    f"{r['kbuffer_used_mb']:.1f} | {r['overflow_pixels']} | "
                    f"{r['octree_leaves']} / {r['octree_build_seconds']:.1f} |")
+    if leaf_rows:
+        out += ["", "## Leaf size", "",
+                "One sphere of Δ 0.2 m at the grid's middle cell, default resolution, best of 2 "
+                "after a warm-up that builds the octree; `max_prims` is the most triangles an "
+                "octree leaf holds (the default 256). Layers: summed over the 6 views.", "",
+                "| scene | max_prims | layers | s | P0 | P1 | P2 | P3 | P4 | PVS |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in leaf_rows:
+            out.append(f"| {r['scene']} | {r['max_prims']} | {r['layers']} | "
+                       f"{r['seconds']:.2f} | " + " | ".join(f"{r[p]:.2f}" for p in PHASES)
+                       + f" | {r['pvs']:,} |")
     out += ["", "## Error and tightness (Fig. 15-16, Table 3)", "",
             f"Two cells per scene (the grid's middle cell and one a third in), the cube whose "
             f"circumscribed sphere is Δ; frames: {frames} eyes stratified in the cube (those "
@@ -339,19 +379,21 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     frames = 4 if args.quick else args.frames
     speed_rows = speed(args.quick)
+    leaf_rows = leaf_sizes(args.quick)
     quality_rows = quality(args.quick, frames)
     side_rows = side_by_side(args.quick, frames)
     elapsed = time.perf_counter() - t0
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     (out / "trim_regions.json").write_text(json.dumps(
-        {"speed": speed_rows, "quality": quality_rows, "side_by_side": side_rows,
+        {"speed": speed_rows, "leaf_sizes": leaf_rows, "quality": quality_rows,
+         "side_by_side": side_rows,
          "frames": frames, "seconds": elapsed, "load": [load0, os.getloadavg()[0]]},
         indent=1))
     plot(speed_rows, quality_rows, out / "trim_regions.png")
     (out / "trim_regions.md").write_text(markdown(
         speed_rows, quality_rows, side_rows, frames, elapsed, argv,
-        (load0, os.getloadavg()[0])))
+        (load0, os.getloadavg()[0]), leaf_rows))
     print((out / "trim_regions.md").read_text())
     return 0
 
