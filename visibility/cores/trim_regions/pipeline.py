@@ -38,6 +38,7 @@ from visibility.cores.trim_regions.silhouettes import (
     silhouette_trims,
 )
 from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
+from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -168,6 +169,11 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # Static triangles whose plane passes through the box (tested per sphere below).
     through_box = (np.abs(data.normals @ centre - data.plane)
                    <= np.abs(data.normals) @ (0.5 * (box[1] - box[0])))
+    # v*'s renders (``_sample_from_vstar``) draw through the scene's hierarchy, frustum and
+    # occlusion culled, when it is there (a small scene's is built now, as cos does).
+    hier = ready_hierarchy(scene)
+    if hier is None and 0 < scene.n_triangles < MIN_TRIANGLES:
+        hier = scene_hierarchy(scene)
     kb = KBuffer.empty(int(resolution) ** 2)
     stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
     stats["near_eye"] = 0
@@ -190,7 +196,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
             _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
-                        stats, margin_px, footprints)
+                        stats, margin_px, footprints, (centre, hier))
             if len(hull_ids):
                 t = time.perf_counter()
                 _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
@@ -254,9 +260,12 @@ def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
 def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
                 ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
-                stats: dict[str, Any], margin_px: float, footprints: bool) -> None:
+                stats: dict[str, Any], margin_px: float, footprints: bool,
+                world: tuple[np.ndarray, Hierarchy | None] | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
-    to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``."""
+    to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
+    ``world``: the computation's centre (world, metres) and the scene's hierarchy, for v*'s
+    renders (``_sample_from_vstar``)."""
     stop = stop_flag()
     res = view.res
     faces = data.faces
@@ -333,7 +342,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
         tc = time.perf_counter()
-        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view)
+        centre, hier = world if world is not None else (None, None)
+        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view, centre, hier)
         vis[seen] = 1
         touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
         stats["p4_gather"] += time.perf_counter() - tc
@@ -348,9 +358,12 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
 
 
 def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
-                       view: View) -> tuple[np.ndarray, np.ndarray]:
+                       view: View, centre: np.ndarray | None = None,
+                       hierarchy: Hierarchy | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What v* sees between the pixel centres of a view (``visibility.raster.triangles
-    .render_ids``, static triangles only).
+    .render_ids``, static triangles only), in the frame of ``verts``; with the scene's
+    ``hierarchy`` and the frame's world ``centre``, drawn in the scene's own frame through
+    the hierarchy (frustum and occlusion culled: the same images, less drawn).
 
     Returns
     -------
@@ -362,8 +375,12 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     """
     res = view.res
     ss = SUPERSAMPLE * res
-    depth, ids = render_ids(verts, scene.faces, view.vstar, view.rot, ss, ss, view.tan,
-                            view.tan, near=view.near, face_mask=static_mask)
+    eye = view.vstar
+    if hierarchy is not None and centre is not None:
+        verts = scene.vertices
+        eye = view.vstar + centre
+    depth, ids = render_ids(verts, scene.faces, eye, view.rot, ss, ss, view.tan, view.tan,
+                            near=view.near, face_mask=static_mask, hierarchy=hierarchy)
     blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
     samples = blocks.transpose(0, 2, 1, 3).reshape(res * res, SUPERSAMPLE * SUPERSAMPLE)
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
@@ -378,8 +395,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     reach = view.tan * (c + s)
     n_rolled = int(np.ceil(ROLLED_SAMPLES * res * (c + s)))
-    _, rolled = render_ids(verts, scene.faces, view.vstar, roll @ view.rot, n_rolled, n_rolled,
-                           reach, reach, near=view.near, face_mask=static_mask)
+    _, rolled = render_ids(verts, scene.faces, eye, roll @ view.rot, n_rolled, n_rolled, reach,
+                           reach, near=view.near, face_mask=static_mask, hierarchy=hierarchy)
     # Marks, not np.unique: a million samples per view, most of them repeats.
     mark = np.zeros(scene.n_triangles, dtype=bool)
     mark[ids[ids >= 0]] = True

@@ -155,3 +155,23 @@ def test_a_sliver_along_the_grid_is_sampled_on_the_rolled_grid():
     _, seen = pipeline._sample_from_vstar(scene, np.ones(scene.n_triangles, bool),
                                           scene.vertices, view)
     assert sliver in seen
+
+
+def test_vstar_draws_the_same_through_the_scenes_hierarchy():
+    # v*'s renders in the computation's frame, or in the scene's own frame through its
+    # hierarchy (frustum and occlusion culled): the same nearest surfaces and triangles.
+    from visibility.raster.hierarchy import scene_hierarchy
+
+    scene = make_scene("village", triangles=20_000)
+    grid = ViewcellGrid.for_scene(scene)
+    centre = grid.cell(len(grid) // 2).center
+    verts = scene.vertices - centre
+    mask = np.ones(scene.n_triangles, bool)
+    hier = scene_hierarchy(scene)
+    drawn: dict = {}
+    for view in sphere_views(np.zeros(3), 0.2, 64):
+        first, seen = pipeline._sample_from_vstar(scene, mask, verts, view)
+        first_h, seen_h = pipeline._sample_from_vstar(scene, mask, verts, view, centre, hier)
+        assert np.allclose(first_h, first, rtol=1e-5) and np.array_equal(seen_h, seen)
+        drawn[view.face] = len(seen)
+    assert sum(drawn.values()) > 0
