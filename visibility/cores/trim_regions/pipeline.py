@@ -279,7 +279,13 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     poly = np.empty((s, 4, 3))
     npoly = np.zeros(s, dtype=np.int64)
     pbox = np.zeros((s, 4), dtype=np.int64)
-    setup_triangles(cam, faces, data.static, view.near, view.tan, res, facing, poly, npoly, pbox)
+    # Polygons only for the triangles of the leaves this view draws (the others lie outside
+    # its frustum); facing for every triangle, as silhouettes need it.
+    need = np.zeros(s, dtype=np.bool_)
+    rows = item_rows[drawn[frame.item_leaf]]
+    need[rows[rows >= 0]] = True
+    setup_triangles(cam, faces, data.static, need, view.near, view.tan, res, facing, poly, npoly,
+                    pbox)
     facing_of = np.zeros(len(vis), dtype=np.int8)
     facing_of[data.static] = facing
     # A triangle whose plane passes through the sphere faces some of its eyes and turns its
@@ -434,7 +440,8 @@ def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.nd
     poly = np.empty((n, 4, 3))
     npoly = np.zeros(n, dtype=np.int64)
     pbox = np.zeros((n, 4), dtype=np.int64)
-    setup_triangles(cam, faces, np.arange(n, dtype=np.int64), view.near, view.tan, view.res,
+    setup_triangles(cam, faces, np.arange(n, dtype=np.int64), np.ones(n, dtype=np.bool_),
+                    view.near, view.tan, view.res,
                     facing, poly, npoly, pbox)
     hulls_in_front(poly, npoly, pbox, owner, open_only, kb.seal, kb.spans, kb.n_spans,
                    kb.first, view.res, seen)

@@ -72,13 +72,16 @@ def _clip_near(a, b, near, out):  # pragma: no cover - numba
 
 
 @njit(cache=True, parallel=True)
-def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):  # pragma: no cover
+def setup_triangles(cam, faces, rows, need, near, tan, res, facing, poly, npoly,
+                    box):  # pragma: no cover
     """Clip triangles to the near plane and project them (P1).
 
     Parameters
     ----------
     cam : (n, 3) camera-space vertices; faces : (m, 3) int64 vertex rows; rows : (s,) int64
         the triangles (rows of ``faces``) to set up.
+    need : (s,) bool, the rows to clip and project (those of the leaves a view draws); every
+        row gets its ``facing`` (silhouettes need it), the others no polygon (``npoly`` 0).
     near, tan, res : near depth (m), half-angle tangent, pixels across.
     facing : (s,) int8 out, +1 front-facing (counter-clockwise towards v*), -1 back-facing,
         0 edge-on (geometric: also set for triangles wholly nearer than ``near``).
@@ -103,6 +106,13 @@ def setup_triangles(cam, faces, rows, near, tan, res, facing, poly, npoly, box):
             nz = e1x * e2y - e1y * e2x
             s = -(nx * a[0] + ny * a[1] + nz * a[2])
             facing[i] = 1 if s > 0 else (-1 if s < 0 else 0)
+            if not need[i]:
+                npoly[i] = 0
+                box[i, 0] = 0
+                box[i, 1] = 0
+                box[i, 2] = 0
+                box[i, 3] = 0
+                continue
             m = 0
             tri = (a, b, c)
             for k in range(3):

@@ -22,7 +22,8 @@ def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64, scene=None, ambiguous=
     cam = to_camera(scene.vertices, view.vstar, view.rot)
     s = len(data.static)
     facing = np.zeros(s, dtype=np.int8)
-    setup_triangles(cam, scene.faces.astype(np.int64), data.static, view.near, view.tan, res,
+    setup_triangles(cam, scene.faces.astype(np.int64), data.static, np.ones(s, dtype=bool),
+                    view.near, view.tan, res,
                     facing, np.empty((s, 4, 3)), np.zeros(s, dtype=np.int64),
                     np.zeros((s, 4), dtype=np.int64))
     facing_of = np.zeros(scene.n_triangles, dtype=np.int8)
