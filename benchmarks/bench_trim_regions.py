@@ -11,6 +11,7 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
   (``gather_eyes=8``): frames from ``--frames`` eyes with random cube orientations inside the
   sphere's cube cell, 256 px per face (``trim_regions.quality``).
+- Box cells: 1 m and 4 m cells of the 100k city at the defaults (many spheres each).
 - Leaf size: ``max_prims`` (most triangles per octree leaf) 256, 1024 and 4096 on a 0.2 m
   sphere of the village, Lyon and the kitchen: layers peeled, time per phase and the PVS, to
   see whether larger leaves (fewer layers, as the paper's 6-14) pay.
@@ -110,6 +111,34 @@ def speed(quick: bool) -> list[dict[str, Any]]:
                          "deterministic": bool(np.array_equal(first.triangle_ids,
                                                               pvs.triangle_ids))})
             print(f"speed {name} Δ={delta}: {pvs.seconds:.2f} s", flush=True)
+    return rows
+
+
+#: Box cells of the 100k city the cell table times at the defaults (metres on a side): the
+#: issue's 1 m aim and the server's 4 m cells, each covered by many spheres.
+CELL_SIDES = (1.0, 4.0)
+
+
+def box_cells(quick: bool) -> list[dict[str, Any]]:
+    """Seconds per phase, spheres, views and PVS of box cells of the 100k city (the grid's
+    middle cell in open space, ``CELL_SIDES``) at the defaults (one run after a warm-up)."""
+    if quick:
+        return []
+    core = get_core("trim_regions")
+    scene = load("city", 100_000)
+    grid = ViewcellGrid.for_scene(scene)
+    c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
+    rows = []
+    for side in CELL_SIDES:
+        box = np.stack([c - 0.5 * side, c + 0.5 * side])
+        p = core.make_params()
+        core.compute(scene, Viewcell(box), p)
+        pvs = core.compute(scene, Viewcell(box), p)
+        st = pvs.stats
+        rows.append({"scene": "city", "triangles": scene.n_triangles, "side": side,
+                     "seconds": pvs.seconds, "spheres": st["spheres"], "views": st["views"],
+                     "delta": st["delta"], "pvs": len(pvs), **{k: st[k] for k in PHASES}})
+        print(f"cell city {side} m: {pvs.seconds:.2f} s, {st['spheres']} spheres", flush=True)
     return rows
 
 
@@ -269,7 +298,7 @@ def _unseen_cell(r: dict[str, Any]) -> str:
 
 
 def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
-             leaf_rows=()) -> str:
+             leaf_rows=(), cell_rows=()) -> str:
     cmd = " ".join(["python -m benchmarks.bench_trim_regions", *argv])
     out = ["# trim_regions: speed, memory and error against the paper", "",
            f"Command: `{cmd}`; {platform.processor() or platform.machine()}, {os.cpu_count()} "
@@ -294,6 +323,17 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                    f"{r['mean_sequence_length']:.1f} | {r['kbuffer_allocated_mb']:.0f} / "
                    f"{r['kbuffer_used_mb']:.1f} | {r['overflow_pixels']} | "
                    f"{r['octree_leaves']} / {r['octree_build_seconds']:.1f} |")
+    if cell_rows:
+        out += ["", "## Box cells", "",
+                "Box cells of the 100k city at the grid's middle cell, the core at its defaults "
+                "(spheres of at most 0.3 m: more for a larger box, up to 27, then larger ones), "
+                "one run after a warm-up. The aim for the 1 m cell is 2 s.", "",
+                "| scene | side m | spheres | Δ m | views | s | P0 | P1 | P2 | P3 | P4 | PVS |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in cell_rows:
+            out.append(f"| {r['scene']} | {r['side']:g} | {r['spheres']} | {r['delta']:.2f} | "
+                       f"{r['views']} | {r['seconds']:.2f} | "
+                       + " | ".join(f"{r[p]:.2f}" for p in PHASES) + f" | {r['pvs']:,} |")
     if leaf_rows:
         out += ["", "## Leaf size", "",
                 "One sphere of Δ 0.2 m at the grid's middle cell, default resolution, best of 2 "
@@ -380,20 +420,22 @@ def main(argv: list[str] | None = None) -> int:
     frames = 4 if args.quick else args.frames
     speed_rows = speed(args.quick)
     leaf_rows = leaf_sizes(args.quick)
+    cell_rows = box_cells(args.quick)
     quality_rows = quality(args.quick, frames)
     side_rows = side_by_side(args.quick, frames)
     elapsed = time.perf_counter() - t0
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     (out / "trim_regions.json").write_text(json.dumps(
-        {"speed": speed_rows, "leaf_sizes": leaf_rows, "quality": quality_rows,
+        {"speed": speed_rows, "leaf_sizes": leaf_rows, "box_cells": cell_rows,
+         "quality": quality_rows,
          "side_by_side": side_rows,
          "frames": frames, "seconds": elapsed, "load": [load0, os.getloadavg()[0]]},
         indent=1))
     plot(speed_rows, quality_rows, out / "trim_regions.png")
     (out / "trim_regions.md").write_text(markdown(
         speed_rows, quality_rows, side_rows, frames, elapsed, argv,
-        (load0, os.getloadavg()[0]), leaf_rows))
+        (load0, os.getloadavg()[0]), leaf_rows, cell_rows))
     print((out / "trim_regions.md").read_text())
     return 0
 
