@@ -293,9 +293,13 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     # behind one wall of a corner sees past the other wall's end).
     facing_of[ambiguous] = AMBIGUOUS
     e = data.edges
+    # Silhouettes only where the view draws: an edge with a triangle in a drawn leaf.
+    drawn_id = np.zeros(len(vis), dtype=np.bool_)
+    drawn_id[data.static[need]] = True
+    edge_on = drawn_id[e.face[:, 0]] | ((e.face[:, 1] >= 0) & drawn_id[np.maximum(e.face[:, 1], 0)])
     trims, trim_layer = silhouette_trims(
-        cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan, res, view.delta,
-        view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
+        cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
+        view.delta, view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
         octree.leaf_of_cell, layer)
     keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0) & (near[data.octree.tri_items] == 0)
     inst = np.flatnonzero(keep)

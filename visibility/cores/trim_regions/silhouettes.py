@@ -198,8 +198,9 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
 
 
 @njit(cache=True, parallel=True)
-def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, back, margin_px,
-                     vstar, rot, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
+def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, delta, back,
+                     margin_px, vstar, rot, grid_origin, cell, leaf_of_cell,
+                     leaf_layer):  # pragma: no cover
     """Trim region rows of every silhouette edge of one view, and their layers.
 
     Parameters
@@ -210,6 +211,9 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
     facing_of : (m,) int8 facing of each triangle id (+1 front, -1 back, 0 edge-on,
         ``AMBIGUOUS`` when its plane passes through the eyes: every edge it shares with
         a triangle of another plane, and every border of it, trims both sides).
+    edge_on : (E,) bool, the edges to consider: those of the triangles in the leaves the view
+        draws (an edge of triangles wholly outside the frustum is in no eye's view of this
+        face, whatever its strip covers in v*'s image).
     near, tan, res, delta, back : the view (``frustum.View``); margin_px : trim margin, px.
     vstar, rot : viewpoint and rotation (to place the trims in the octree).
     grid_origin, cell, leaf_of_cell, leaf_layer : the octree's fine grid (origin in the
@@ -231,6 +235,8 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, near, tan, res, delta, ba
         widths = np.empty((2, 2))
         pts = np.empty((3, 3))
         for e in range(c * EDGE_CHUNK, min(n_e, (c + 1) * EDGE_CHUNK)):
+            if not edge_on[e]:
+                continue
             counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
                                   margin, row, sides, widths, pts)
     start = np.zeros(n_e + 1, dtype=np.int64)

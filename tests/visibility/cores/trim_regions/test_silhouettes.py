@@ -32,7 +32,8 @@ def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64, scene=None, ambiguous=
     frame = leaf_frame(data.octree, np.zeros(3))
     e = data.edges
     lay = np.zeros(len(data.octree), dtype=np.int64)
-    return silhouette_trims(cam, e.vert, e.face, e.opp, e.many, facing_of, view.near, view.tan,
+    return silhouette_trims(cam, e.vert, e.face, e.opp, e.many, facing_of,
+                            np.ones(len(e.vert), dtype=bool), view.near, view.tan,
                             res, view.delta, view.back, margin_px, view.vstar, view.rot,
                             frame.grid_origin, data.octree.cell, data.octree.leaf_of_cell,
                             lay)[0], view
