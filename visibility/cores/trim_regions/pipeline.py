@@ -196,7 +196,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         for view in sphere_views(v0, delta, int(resolution)):
             checkpoint()
             _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
-                        stats, margin_px, footprints, (centre, hier))
+                        stats, margin_px, footprints, centre, hier)
             if len(hull_ids):
                 t = time.perf_counter()
                 _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
@@ -261,11 +261,11 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
                 ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
-                world: tuple[np.ndarray, Hierarchy | None] | None = None) -> None:
+                centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
-    ``world``: the computation's centre (world, metres) and the scene's hierarchy, for v*'s
-    renders (``_sample_from_vstar``)."""
+    ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
+    v*'s renders (``_sample_from_vstar``)."""
     stop = stop_flag()
     res = view.res
     faces = data.faces
@@ -352,8 +352,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
         tc = time.perf_counter()
-        centre, hier = world if world is not None else (None, None)
-        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view, centre, hier)
+        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view, centre,
+                                         hierarchy)
         vis[seen] = 1
         touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
         stats["p4_gather"] += time.perf_counter() - tc

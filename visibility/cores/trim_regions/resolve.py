@@ -55,6 +55,12 @@ class SortScratch(NamedTuple):
     sr: np.ndarray
 
 
+@njit(cache=True)
+def _scratch(k):  # pragma: no cover - numba
+    """A ``SortScratch`` for k entries."""
+    return SortScratch(np.empty(k, dtype=np.int64), np.empty(k), np.empty(k, dtype=np.int8),
+                       np.empty(k, dtype=np.int32), np.empty(k), np.empty(k))
+
 
 @njit(cache=True)
 def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
@@ -103,10 +109,7 @@ def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
     k = kb.depth.shape[1]
-    return resolve_into(kb, closed, p, final, vis, stats,
-                        SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
-                                    np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
-                                    np.empty(k), np.empty(k)))
+    return resolve_into(kb, closed, p, final, vis, stats, _scratch(k))
 
 
 @njit(cache=True)
@@ -279,9 +282,7 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
     for band in prange(n_bands):
         if flag_set(stop):
             continue
-        scratch = SortScratch(np.empty(k, dtype=np.int64), np.empty(k),
-                              np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
-                              np.empty(k), np.empty(k))
+        scratch = _scratch(k)
         tally[band, 0] = held_entries[band]
         base = band * 8 * res
         n = min(res, band * 8 + 8) * res - base if final else queued[band]
