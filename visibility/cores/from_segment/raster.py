@@ -61,11 +61,11 @@ COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces"
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
-            "bound_scans", "tiles_known", "pixels_known")
+            "bound_scans", "tiles_known", "pixels_known", "items_behind_new")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
- C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN) = range(len(COUNTERS))
+ C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -347,6 +347,44 @@ def _count_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visib
 
 
 @njit(**_JIT)
+def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible, R, dc, geom,
+             v0, P, U, W):
+    """Greatest depth that a primitive of tile list entries [i0, i1) not yet marked visible
+    (a cluster: its triangles not yet marked) reaches anywhere along the segment: the depth of
+    a moving point is linear in t, so a triangle's greatest depth is at a corner at t = 0 or
+    1; a sphere's, its centre's plus its radius. A primitive that stays beyond it can hide
+    none of them, nor change what they own of an envelope."""
+    verts0, verts1, faces, _, _, _, c0, c1, radii, n_tri = geom
+    far = -np.inf
+    for it in range(i0, i1):
+        pr = tile_items[it]
+        src = prim_src[pr]
+        flag = prim_flag[pr]
+        if flag & FLAG_CLUSTER:
+            for k in range(cl_start[src], cl_start[src + 1]):
+                t = cl_tris[k]
+                if not visible[t]:
+                    _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
+                    for c in range(3):
+                        far = max(far, -P[c, 2], -(P[c, 2] + U[c, 2]))
+        elif visible[src]:
+            continue
+        elif flag & FLAG_SPHERE:
+            s = src - n_tri
+            z0 = 0.0
+            z1 = -dc[2]
+            for r in range(3):
+                z0 += R[2, r] * (c0[s, r] - v0[r])
+                z1 += R[2, r] * (c1[s, r] - v0[r])
+            far = max(far, -z0 + radii[s], -z1 + radii[s])
+        else:
+            _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
+            for c in range(3):
+                far = max(far, -P[c, 2], -(P[c, 2] + U[c, 2]))
+    return far
+
+
+@njit(**_JIT)
 def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cover - numba
     """Chunk ``ch`` of ``_resolve``, run by worker ``worker``."""
     tiles, n_chunks, _, tile_start, tile_items = job
@@ -446,6 +484,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
         R = rots[f]
         for r in range(3):
             dc[r] = R[r, 0] * dvec[0] + R[r, 1] * dvec[1] + R[r, 2] * dvec[2]
+        # With few primitives still to mark, what lies beyond all of them is not drawn.
+        zlim = np.inf
+        if 0 < n_new and KNOWN_SHARE * n_new <= tile_start[tile + 1] - tile_start[tile]:
+            zlim = _far_new(tile_start[tile], tile_start[tile + 1], tile_items, prim_src,
+                            prim_flag, cl_start, cl_tris, visible, R, dc, geom, v0, P, U, W)
         ovf = False
         pix = TilePixels(r0, cl0, tw, npx, step, cnt, bound, jx, jy)
         cyc_tile += _cycles() - ct0
@@ -455,8 +498,14 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             if prim_zkey[pr] >= tbound:
                 work[C_CULLED] += end - it
                 break
+            if prim_zkey[pr] > zlim:
+                work[C_BEHIND_NEW] += end - it
+                break
             if prim_z[pr] >= tbound:
                 work[C_CULLED] += 1
+                continue
+            if prim_z[pr] > zlim:
+                work[C_BEHIND_NEW] += 1
                 continue
             work[C_ITEMS] += 1
             src = prim_src[pr]

@@ -267,14 +267,30 @@ def test_moving_geometry_is_never_cut(monkeypatch):
     assert "splits" not in stats
 
 
-def test_tiles_holding_only_marked_primitives_are_skipped_with_the_same_answer():
-    """Segments solved into one mask skip every tile whose primitives an earlier segment
-    already marked (``tiles_known``) and, in tiles listing few unmarked ones, the pixels none
-    of those reach (``pixels_known``); the union is the one found with every pixel resolved
-    (a witness array turns the skips off, since it records each primitive's samples)."""
+def _skip_scene(kind):
     v, f = _soup(400, seed=8, spread=0.3)
-    scene = Scene(v, f)
-    geom = scene_geometries(scene)[0]
+    if kind == "static":
+        return Scene(v, f)
+    rng = np.random.default_rng(9)
+    c0 = rng.normal(size=(40, 3))
+    c0 = c0 / np.linalg.norm(c0, axis=1)[:, None] * rng.uniform(2.0, 8.0, (40, 1))
+    r = rng.uniform(0.1, 0.5, 40)
+    if kind == "spheres":
+        return Scene(v, f, sphere_centers=c0, sphere_radii=r)
+    v1 = v + np.repeat(rng.normal(0, 0.3, (400, 1, 3)), 3, axis=1).reshape(-1, 3)
+    return Scene(v, f, states=np.stack([v, v1]),
+                 sphere_centers=np.stack([c0, c0 + rng.normal(0, 0.5, (40, 3))]), sphere_radii=r)
+
+
+@pytest.mark.parametrize("kind", ["static", "spheres", "moving"])
+def test_tiles_holding_only_marked_primitives_are_skipped_with_the_same_answer(kind):
+    """Segments solved into one mask skip every tile whose primitives an earlier segment
+    already marked (``tiles_known``); in tiles listing few unmarked ones, the pixels none of
+    those reach (``pixels_known``) and the primitives beyond the farthest point any of them
+    reaches along the segment (``items_behind_new``); the union is the one found with every
+    pixel resolved (a witness array turns the skips off, since it records each primitive's
+    samples). Static and moving triangles and spheres each bound that depth their own way."""
+    geom = scene_geometries(_skip_scene(kind))[0]
     segs = [(np.array([-0.5, 0.0, 0.0]), np.array([0.5, 0.0, 0.0])),
             (np.array([0.5, 0.0, 0.0]), np.array([0.5, 0.0, 0.6])),
             (np.array([0.5, 0.0, 0.6]), np.array([-0.5, 0.1, 0.6]))]
@@ -286,6 +302,7 @@ def test_tiles_holding_only_marked_primitives_are_skipped_with_the_same_answer()
                         witness=np.zeros((geom.n_ids, 5)))
     # Whole tiles skipped, and pixels of tiles listing few primitives not yet marked.
     assert stats["tiles_known"] > 0 and stats["pixels_known"] > 0
+    assert stats["items_behind_new"] > 0
     assert 50 < full.sum() < geom.n_ids
     np.testing.assert_array_equal(skipped, full)
 
