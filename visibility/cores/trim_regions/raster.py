@@ -17,6 +17,7 @@ from numba import njit, prange
 
 from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
+from visibility.raster.pyramid import rect_min
 
 
 class SetUp(NamedTuple):
@@ -236,6 +237,23 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
     far[p, slot] = d
     if slot == c:
         count[p] = c + 1
+
+
+@njit(cache=True, parallel=True)
+def unsealed(inst_row, box, hz, heights, widths, offsets, keep):  # pragma: no cover - numba
+    """keep[q] = whether instance q's triangle (row ``inst_row[q]`` of the set-up ``box``
+    (s, 4) [x0, x1, y0, y1), pixels) has a pixel not yet sealed, read in the depth pyramid
+    ``hz`` (``visibility.raster.pyramid``: (1, size) over the seal depths' inverses, 0 where
+    not sealed). A sealed pixel takes no fragment (``raster_surfaces``), so an instance with
+    none is skipped with the same k-buffers; the pyramid may be older than the seals (fewer
+    skipped), never newer."""
+    for q in prange(inst_row.shape[0]):
+        i = inst_row[q]
+        if box[i, 1] <= box[i, 0] or box[i, 3] <= box[i, 2]:
+            keep[q] = False
+            continue
+        keep[q] = rect_min(hz, 0, heights, widths, offsets, box[i, 0], box[i, 1] - 1,
+                           box[i, 2], box[i, 3] - 1) <= 0.0
 
 
 @njit(cache=True, parallel=True)
