@@ -33,6 +33,7 @@ from visibility.cores.trim_regions.raster import (
     unsealed,
 )
 from visibility.cores.trim_regions.resolve import resolve_layer
+from visibility.cores.trim_regions.samples import mark_ids, open_depth
 from visibility.cores.trim_regions.silhouettes import (
     AMBIGUOUS,
     TRIM_MARGIN_PX,
@@ -412,13 +413,11 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
         eye = view.vstar + centre
     depth, ids = render_ids(verts, scene.faces, eye, view.rot, ss, ss, view.tan, view.tan,
                             near=view.near, face_mask=static_mask, hierarchy=hierarchy)
-    blocks = depth.astype(np.float64).reshape(res, SUPERSAMPLE, res, SUPERSAMPLE)
-    samples = blocks.transpose(0, 2, 1, 3).reshape(res * res, SUPERSAMPLE * SUPERSAMPLE)
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
     # of a mesh that is not watertight opens one or two samples onto the far side, and would
     # let everything behind the mesh through (the 1M kitchen: 80 % of the scene).
-    k = SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES
-    first = np.ascontiguousarray(np.partition(samples, k, axis=1)[:, k])
+    first = np.empty(res * res)
+    open_depth(depth, res, SUPERSAMPLE, SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES, first)
     # A sliver lying along a row or column of the face's grid (wall edges, cabinet bevels: the
     # scene's axes are often the cube's) can run between two rows of samples for its whole
     # length; on a rolled grid covering the same frustum it crosses them.
@@ -430,8 +429,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
                            reach, near=view.near, face_mask=static_mask, hierarchy=hierarchy)
     # Marks, not np.unique: a million samples per view, most of them repeats.
     mark = np.zeros(scene.n_triangles, dtype=bool)
-    mark[ids[ids >= 0]] = True
-    mark[rolled[rolled >= 0]] = True
+    mark_ids(ids, mark)
+    mark_ids(rolled, mark)
     return first, np.flatnonzero(mark)
 
 

@@ -1,0 +1,27 @@
+"""Reading v*'s supersampled renders: the open depth per pixel and the ids shown."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visibility.cores.trim_regions.samples import mark_ids, open_depth
+
+
+def test_open_depth_is_the_kth_smallest_sample_of_each_pixel():
+    rng = np.random.default_rng(3)
+    res, s = 7, 4
+    depth = rng.uniform(0.5, 9.0, (res * s, res * s)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = np.inf  # samples that see nothing
+    samples = depth.astype(np.float64).reshape(res, s, res, s).transpose(0, 2, 1, 3)
+    samples = samples.reshape(res * res, s * s)
+    for k in (0, 5, s * s - 3, s * s - 1):
+        out = np.empty(res * res)
+        open_depth(depth, res, s, k, out)
+        np.testing.assert_array_equal(out, np.sort(samples, axis=1)[:, k])
+
+
+def test_mark_ids_marks_every_id_shown_and_skips_empty_samples():
+    ids = np.array([[3, -1, 3], [0, 7, -1]], dtype=np.int32)
+    mark = np.zeros(9, dtype=bool)
+    mark_ids(ids, mark)
+    assert np.flatnonzero(mark).tolist() == [0, 3, 7]

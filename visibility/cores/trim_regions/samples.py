@@ -1,0 +1,39 @@
+"""Reading v*'s supersampled renders (phase P4): per pixel, the depth its samples leave open,
+and the triangles any sample shows."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, parallel=True)
+def open_depth(depth, res, s, k, out):  # pragma: no cover - numba
+    """out[i * res + j] = the k-th smallest (0-based) of the s x s samples of pixel (i, j) in
+    ``depth`` (res * s, res * s) (a render's depths, row-major: pixel (i, j) holds rows
+    [i s, (i + 1) s) and columns [j s, (j + 1) s)); ``out`` (res * res,) float64."""
+    for i in prange(res):
+        v = np.empty(s * s)
+        for j in range(res):
+            n = 0
+            for a in range(s):
+                for b in range(s):
+                    x = np.float64(depth[i * s + a, j * s + b])
+                    # Insertion into the sorted prefix: 16 samples, no call.
+                    m = n
+                    while m > 0 and v[m - 1] > x:
+                        v[m] = v[m - 1]
+                        m -= 1
+                    v[m] = x
+                    n += 1
+            out[i * res + j] = v[k]
+
+
+@njit(cache=True)
+def mark_ids(ids, mark):  # pragma: no cover - numba
+    """mark[t] = True for every id t >= 0 in ``ids`` (any shape, flattened)."""
+    flat = ids.ravel()
+    for q in range(flat.shape[0]):
+        t = flat[q]
+        if t >= 0:
+            mark[t] = True
