@@ -255,6 +255,40 @@ def test_a_segment_cut_into_pieces_sees_what_the_whole_sees(monkeypatch):
     assert times.min() < 0.125 and times.max() > 0.875  # spread over the whole segment
 
 
+def test_pieces_far_over_the_limit_are_cut_without_measuring_them(monkeypatch):
+    """A piece whose parent's boxes added up to more than four times the limit is cut with no
+    area pass of its own (a half keeps about a quarter of the area); one nearer the limit is
+    measured. The pieces and the answer are the same either way."""
+    from visibility.cores.from_segment import segment
+
+    v, f = _soup(300, seed=43, lo=0.5, hi=4.0)
+    geom = scene_geometries(Scene(v, f))[0]
+    a, b = np.array([-0.9, 0.1, 0.3]), np.array([1.1, -0.3, 0.2])
+    collect = segment._collect_prims
+    calls = []
+
+    def counted(*args, area_only=False, **kw):
+        out = collect(*args, area_only=area_only, **kw)
+        if area_only:
+            calls.append(out)
+        return out
+
+    monkeypatch.setattr(segment, "_collect_prims", counted)
+    whole = segment_visible(geom, a, b, resolution=24, max_cuts=0)
+    cube = 6 * 24 * 24
+    area = collect(geom, a, b - a, np.eye(3), segment.cube_face_rotations(np.eye(3)), 24,
+                   segment.DEFAULT_NEAR, 0.0, segment.DEFAULT_BATCH, {}, area_only=True)
+    for limit, measured in ((area / cube / 8, 1), (area / cube / 2, 3)):
+        monkeypatch.setattr(segment, "SPLIT_AREA", limit)
+        calls.clear()
+        stats = {}
+        cut = segment_visible(geom, a, b, resolution=24, max_cuts=2, stats=stats)
+        assert len(calls) == measured and calls[0] == area
+        halves = 2 if measured == 1 else sum(c > limit * cube for c in calls[1:])
+        assert stats["splits"] == 1 + halves
+        assert np.array_equal(whole, cut)
+
+
 def test_moving_geometry_is_never_cut(monkeypatch):
     from visibility.cores.from_segment import segment
 
