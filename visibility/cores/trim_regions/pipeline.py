@@ -122,6 +122,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
         resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
+        ``sealed_instances`` (triangle instances of a layer not drawn, every pixel of their box
+        sealed already),
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
         ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
         hulls), ``eye_gathered`` (triangles only the eyes' views added),
