@@ -56,7 +56,9 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: bound was read again (a gap filled, or a rewritten row as deep as the bound); tiles_known: tiles
 #: skipped because every primitive they list was already marked visible (their envelopes would add
 #: nothing to the answer); pixels_known: pixels of tiles listing few primitives not yet marked
-#: (``KNOWN_SHARE``) that none of those can reach, skipped for the same reason.
+#: (``KNOWN_SHARE``) that none of those can reach, skipped for the same reason; items_behind_new:
+#: list entries of such tiles not drawn, beyond the farthest point any of those reaches
+#: (``_far_new``).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
