@@ -30,7 +30,6 @@ from visibility.cores.trim_regions.raster import (
     raster_trims,
     setup_triangles,
     to_camera,
-    unsealed,
 )
 from visibility.cores.trim_regions.resolve import resolve_layer
 from visibility.cores.trim_regions.samples import mark_ids, open_depth
@@ -41,7 +40,6 @@ from visibility.cores.trim_regions.silhouettes import (
 )
 from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
-from visibility.raster.pyramid import PyramidLayout, build_pyramid
 from visibility.raster.render import render_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell
@@ -122,8 +120,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
         resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
-        ``sealed_instances`` (triangle instances of a layer not drawn, every pixel of their box
-        sealed already),
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
         ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
         hulls), ``eye_gathered`` (triangles only the eyes' views added),
@@ -140,7 +136,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                  active_pixels=0, trimmed_pixels=0, sealed_pixels=0, overflow_pixels=0,
                  silhouette_trims=0, validated_intervals=0, terminators=0,
                  single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
-                 sealed_instances=0,
                  kbuffer_used_bytes=0, resolution=int(resolution))
     hull_boxes, hull_ids = _hulls(scene, data, centre)
     graze = _grazing(scene, data, centres + centre, delta, int(resolution))
@@ -329,14 +324,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["layers"] += len(all_layers)
     stats["views"] += 1
     held = np.zeros(res * res, dtype=np.uint8)
-    tally = np.zeros((n_bands, 3), dtype=np.int64)
-    # The seals resolved so far, in the depth pyramid every culling core reads: a layer's
-    # triangles whose pixels are all sealed are not drawn. Rebuilt once enough new pixels
-    # are sealed to pay for it (an older pyramid skips less, never wrongly).
-    pyr = PyramidLayout.of(res, res)
-    hz = pyr.empty(1)
-    new_seals = 0
-    any_seal = False
+    tally = np.zeros((n_bands, 2), dtype=np.int64)
     for lay in all_layers:
         checkpoint()
         ta = time.perf_counter()
@@ -347,25 +335,14 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         k = np.searchsorted(inst_layers, lay)
         if k < len(inst_layers) and inst_layers[k] == lay:
             sl = slice(inst_starts[k], inst_starts[k + 1])
-            rows, leaves = inst_row[sl], inst_leaf[sl]
-            if new_seals >= res:
-                build_pyramid((1.0 / kb.seal).reshape(1, res, res), pyr.heights, pyr.widths,
-                              pyr.offsets, hz)
-                new_seals = 0
-                any_seal = True
-            if any_seal:
-                keep = np.empty(len(rows), dtype=np.bool_)
-                unsealed(rows, pbox, hz, pyr.heights, pyr.widths, pyr.offsets, keep)
-                stats["sealed_instances"] += len(rows) - int(np.count_nonzero(keep))
-                rows, leaves = rows[keep], leaves[keep]
-            raster_surfaces(rows, leaves, tris, frame.lo, frame.hi, camera, kb, vis, stop)
+            raster_surfaces(inst_row[sl], inst_leaf[sl], tris, frame.lo, frame.hi, camera, kb,
+                            vis, stop)
         tb = time.perf_counter()
         tally[:] = 0
         _resolve(kb, res, False, vis, counters, stop, data.closed, held, tally)
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
                                           int(tally[:, 0].sum()) * ENTRY_BYTES)
         stats["pixel_resolves"] += int(tally[:, 1].sum())
-        new_seals += int(tally[:, 2].sum())
         stats["p2_raster"] += tb - ta
         stats["p3_resolve"] += time.perf_counter() - tb
     checkpoint()

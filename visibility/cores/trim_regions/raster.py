@@ -17,7 +17,6 @@ from numba import njit, prange
 
 from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
-from visibility.raster.pyramid import rect_min
 
 
 class SetUp(NamedTuple):
@@ -240,23 +239,6 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
 
 
 @njit(cache=True, parallel=True)
-def unsealed(inst_row, box, hz, heights, widths, offsets, keep):  # pragma: no cover - numba
-    """keep[q] = whether instance q's triangle (row ``inst_row[q]`` of the set-up ``box``
-    (s, 4) [x0, x1, y0, y1), pixels) has a pixel not yet sealed, read in the depth pyramid
-    ``hz`` (``visibility.raster.pyramid``: (1, size) over the seal depths' inverses, 0 where
-    not sealed). A sealed pixel takes no fragment (``raster_surfaces``), so an instance with
-    none is skipped with the same k-buffers; the pyramid may be older than the seals (fewer
-    skipped), never newer."""
-    for q in prange(inst_row.shape[0]):
-        i = inst_row[q]
-        if box[i, 1] <= box[i, 0] or box[i, 3] <= box[i, 2]:
-            keep[q] = False
-            continue
-        keep[q] = rect_min(hz, 0, heights, widths, offsets, box[i, 0], box[i, 1] - 1,
-                           box[i, 2], box[i, 3] - 1) <= 0.0
-
-
-@njit(cache=True, parallel=True)
 def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                     stop):  # pragma: no cover - numba
     """Rasterize one layer's (triangle, leaf) instances into the k-buffers ``kb``
@@ -307,14 +289,16 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                 for y in range(ylo, yhi):
                     py = y + 0.5
                     for x in range(xa, xb):
+                        # Sealed first: behind the resolved layers most pixels are, and the
+                        # test is one read where the barycentrics are a dozen operations.
+                        p = y * res + x
+                        if stencil[p] == SEALED:
+                            continue
                         px = x + 0.5
                         w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) * inv
                         w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) * inv
                         w2 = 1.0 - w0 - w1
                         if w0 < -1e-9 or w1 < -1e-9 or w2 < -1e-9:
-                            continue
-                        p = y * res + x
-                        if stencil[p] == SEALED:
                             continue
                         iz = w0 * az + w1 * bz + w2 * cz
                         if iz <= 0.0:

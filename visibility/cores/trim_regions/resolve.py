@@ -272,9 +272,9 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
     one view's k-buffers ``kb`` (``kbuffer.KBuffer``), parallel over bands of rows; ``stats``
     (n_bands, 4) accumulates ``resolve_pixel``'s counters per band.
     On the way: ``held`` (res * res,) gets 1 where a resolved pixel holds entries, ``tally``
-    (n_bands, 3) gets per band the entries held before resolving (``kb.held_entries``, kept
-    by the rasterizers) and adds the pixels resolved and the pixels newly sealed (the view's
-    statistics, without a full-frame pass per layer)."""
+    (n_bands, 2) gets per band the entries held before resolving (``kb.held_entries``, kept
+    by the rasterizers) and adds the pixels resolved (the view's statistics, without a
+    full-frame pass per layer)."""
     n_bands = (res + 7) // 8
     k = kb.depth.shape[1]
     count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
@@ -299,6 +299,5 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
             c0 = count[p]
             if resolve_into(kb, closed, p, final, vis, stats[band], scratch):
                 stencil[p] = SEALED
-                tally[band, 2] += 1
             held_entries[band] += count[p] - c0
         queued[band] = 0

@@ -11,7 +11,6 @@ import pytest
 import visibility.cores.trim_regions.pipeline as pipeline
 from visibility.cancel import CancelToken, ComputationCancelled
 from visibility.cores.base import get_core
-from visibility.cores.trim_regions.kbuffer import SEALED
 from visibility.generators import make_scene
 from visibility.ground_truth import cell_around, sample_pvs
 from visibility.scene import moving_faces
@@ -132,15 +131,11 @@ def test_each_layer_resolves_the_pixels_it_marked_and_counts_entries_without_a_f
 
     def checked(kb, res, final, *args):
         bands = (res + 7) // 8
-        tally = args[-1]
-        sealed, newly = np.count_nonzero(kb.stencil == SEALED), tally[:, 2].sum()
         queued = np.concatenate([kb.queue[b * 8 * res:b * 8 * res + kb.queued[b]]
                                  for b in range(bands)])
         assert np.array_equal(np.sort(queued), np.flatnonzero(kb.active))
         assert kb.held_entries[:bands].sum() == kb.count.sum()
         resolve(kb, res, final, *args)
-        # The newly sealed pixels the tally counts (which rebuild the seals' pyramid).
-        assert tally[:, 2].sum() - newly == np.count_nonzero(kb.stencil == SEALED) - sealed
         assert not kb.queued.any() and not kb.active.any()
         assert kb.held_entries[:bands].sum() == kb.count.sum()
         seen["layers"] += 1
@@ -150,26 +145,3 @@ def test_each_layer_resolves_the_pixels_it_marked_and_counts_entries_without_a_f
     pvs = CORE.compute(scene, Viewcell(cell_around(scene, 0.3, 2)),
                        CORE.make_params(resolution=64))
     assert len(pvs) and seen["layers"] > 6
-
-
-def test_triangles_whose_pixels_are_all_sealed_are_not_drawn_with_the_same_answer(
-        monkeypatch):
-    # A layer's triangles are read against the pyramid of the seals resolved so far; those
-    # it finds sealed at every pixel of their box are skipped. A sealed pixel takes no
-    # fragment, so the k-buffers, the answer and every statistic stay the same.
-    scene = make_scene("village", triangles=20000)
-    cell = Viewcell(cell_around(scene, 0.3, 0))
-    params = CORE.make_params(resolution=128)
-    culled = CORE.compute(scene, cell, params)
-    assert culled.stats["sealed_instances"] > 0
-
-    def keep_all(rows, box, hz, heights, widths, offsets, keep):
-        keep[:] = True
-
-    monkeypatch.setattr(pipeline, "unsealed", keep_all)
-    drawn = CORE.compute(scene, cell, params)
-    assert drawn.stats["sealed_instances"] == 0
-    np.testing.assert_array_equal(np.sort(culled.triangle_ids), np.sort(drawn.triangle_ids))
-    for k in ("active_pixels", "sealed_pixels", "trimmed_pixels", "mean_sequence_length",
-              "kbuffer_used_bytes", "validated_intervals", "terminators"):
-        assert culled.stats[k] == drawn.stats[k], k
