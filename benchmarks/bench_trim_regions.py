@@ -11,7 +11,8 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
   (``gather_eyes=8``): frames from ``--frames`` eyes with random cube orientations inside the
   sphere's cube cell, 256 px per face (``trim_regions.quality``).
-- Box cells: 1 m and 4 m cells of the 100k city at the defaults (many spheres each).
+- Box cells: 1 m and 4 m cells of the 100k city and a 1 m cell of lavaducts, at the defaults
+  (many spheres each) and covered by fewer, larger spheres, scored by ray frames.
 - Leaf size: ``max_prims`` (most triangles per octree leaf) 256, 1024 and 4096 on a 0.2 m
   sphere of the village, Lyon and the kitchen: layers peeled, time per phase and the PVS, to
   see whether larger leaves (fewer layers, as the paper's 6-14) pay.
@@ -114,27 +115,35 @@ def speed(quick: bool) -> list[dict[str, Any]]:
     return rows
 
 
-#: Box cells of the 100k city the cell table times (metres on a side): the issue's 1 m aim
-#: and the server's 4 m cells, each covered by many spheres at the defaults.
-CELL_SIDES = (1.0, 4.0)
+#: Box cells the cell table times (scene, generated triangles or None for a real scene, metres
+#: on a side): the issue's 1 m aim and the server's 4 m cells on the 100k city, each covered by
+#: many spheres at the defaults, and a 1 m cell of lavaducts, where larger spheres miss more.
+CELL_CASES = (("city", 100_000, (1.0, 4.0)), ("lavaducts", None, (1.0,)))
 #: Spheres per axis the cell table tries beside the default cover (``max_delta``): 2 (eight
 #: spheres) and 1 (one sphere around the whole box).
 CELL_SPLITS = (2, 1)
 
 
 def box_cells(quick: bool, frames: int) -> list[dict[str, Any]]:
-    """Seconds per phase, spheres, views, PVS and false-negative pixels of box cells of the
-    100k city (the grid's middle cell in open space, ``CELL_SIDES``) at the defaults and
-    covered by fewer, larger spheres (``CELL_SPLITS``), one run after a warm-up each, scored
-    on the same ray frames (eyes in the box, ``ray_frames``)."""
+    """Seconds per phase, spheres, views, PVS and false-negative pixels of box cells
+    (``CELL_CASES``: the grid's middle cell in open space) at the defaults and covered by
+    fewer, larger spheres (``CELL_SPLITS``), one run after a warm-up each, scored on the same
+    ray frames (eyes in the box, ``ray_frames``)."""
     if quick:
         return []
     core = get_core("trim_regions")
-    scene = load("city", 100_000)
+    rows = []
+    for name, tri, sides in CELL_CASES:
+        rows += _box_cells(core, name, load(name, tri), sides, frames)
+    return rows
+
+
+def _box_cells(core: Any, name: str, scene: Scene, sides: tuple[float, ...],
+               frames: int) -> list[dict[str, Any]]:
     grid = ViewcellGrid.for_scene(scene)
     c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
     rows = []
-    for side in CELL_SIDES:
+    for side in sides:
         box = np.stack([c - 0.5 * side, c + 0.5 * side])
         cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
         # The radius of n x n x n spheres covering the box (nudged up against rounding).
@@ -149,14 +158,14 @@ def box_cells(quick: bool, frames: int) -> list[dict[str, Any]]:
             st = pvs.stats
             e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
             e.pop("missed")
-            rows.append({"scene": "city", "triangles": scene.n_triangles, "side": side,
+            rows.append({"scene": name, "triangles": scene.n_triangles, "side": side,
                          "cover": label, "seconds": pvs.seconds, "spheres": st["spheres"],
                          "views": st["views"], "delta": st["delta"], "pvs": len(pvs),
                          **{k: st[k] for k in PHASES}, "gt": e["gt"],
                          "fn_pixels_max": e["fn_pixels_max"],
                          "fn_pixel_rate_max": e["fn_pixel_rate_max"], "fn": e["fn"]})
-            print(f"cell city {side} m, {label}: {pvs.seconds:.2f} s, {st['spheres']} "
-                  f"spheres, FN px {e['fn_pixels_max']}", flush=True)
+            print(f"cell {name} {side} m, {label}: {pvs.seconds:.2f} s, {st['spheres']} "
+                  f"sphere(s), FN px {e['fn_pixels_max']}", flush=True)
     return rows
 
 
@@ -343,7 +352,8 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                    f"{r['octree_leaves']} / {r['octree_build_seconds']:.1f} |")
     if cell_rows:
         out += ["", "## Box cells", "",
-                "Box cells of the 100k city at the grid's middle cell: the core at its defaults "
+                "Box cells at the grid's middle cell (the 100k city; a 1 m cell of lavaducts): "
+                "the core at its defaults "
                 "(spheres of at most `max_delta` 0.3 m: more for a larger box, up to 27, then "
                 "larger ones) and covered by 8 and by 1 larger spheres (`max_delta` the half "
                 "diagonal of the box over 2 and 1), one run after a warm-up each. FN px: the "

@@ -226,7 +226,7 @@ def _check_sampling(n_points: int, batch: int, resolution: int) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _mark_seen(ids, seen):  # pragma: no cover - numba
+def mark_seen(ids, seen):  # pragma: no cover - numba
     """seen[i] = True for every id i >= 0 in the flat id buffer ``ids`` (no temporaries)."""
     for j in range(ids.shape[0]):
         i = ids[j]
@@ -281,13 +281,13 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
                                         coherence=seen_last)
             draw_spheres_cubemap(scene.sphere_centers_at(t), scene.sphere_radii, points[k],
                                  depth, ids, rotations[k], near, base_id=m)
-            _mark_seen(ids.reshape(-1), seen)
+            mark_seen(ids.reshape(-1), seen)
         elif whole:
             ids = render_cubemap_ids(verts, scene.faces, points[k], resolution, rotations[k],
                                      near=near, face_mask=mask,
                                      hierarchy=seen_last.hierarchy_for(hier),
                                      coherence=seen_last)
-            _mark_seen(ids.reshape(-1), seen)
+            mark_seen(ids.reshape(-1), seen)
         else:
             # The same six views as render_cubemap, one at a time: a sixth of the buffers.
             # Each face's buffers are dropped before the next face renders.
@@ -296,7 +296,7 @@ def _union_of_views(scene: Scene, points: np.ndarray, rng: np.random.Generator, 
                 ids = render_ids(verts, scene.faces, points[k], rot, resolution, resolution,
                                  near=near, face_mask=mask,
                                  hierarchy=seen_last.hierarchy_for(hier))[1]
-                _mark_seen(ids.reshape(-1), seen)
+                mark_seen(ids.reshape(-1), seen)
                 del ids
         ids = depth = None
         if bar is not None:

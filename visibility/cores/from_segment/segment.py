@@ -284,8 +284,8 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
         half = 0.5 * dvec
         tm = 0.5 * (ta + tb)
         # A half sweeps half as far in each image direction, so its boxes keep about a
-        # quarter of the area or more (0.27-0.31 on grass): far enough over, it is cut
-        # without measuring (the answer is the same either way; only the cost differs).
+        # quarter of the area or more: far enough over, it is cut without measuring (the
+        # answer is the same either way; only the cost differs).
         for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
             checkpoint()
             _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,

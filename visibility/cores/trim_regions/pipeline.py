@@ -32,13 +32,13 @@ from visibility.cores.trim_regions.raster import (
     to_camera,
 )
 from visibility.cores.trim_regions.resolve import resolve_layer
-from visibility.cores.trim_regions.samples import mark_ids, open_depth
+from visibility.cores.trim_regions.samples import open_depth
 from visibility.cores.trim_regions.silhouettes import (
     AMBIGUOUS,
     TRIM_MARGIN_PX,
     silhouette_trims,
 )
-from visibility.ground_truth import MAX_RESOLUTION, sample_pvs
+from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
 from visibility.scene import Scene
@@ -408,8 +408,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
                            reach, near=view.near, face_mask=static_mask, hierarchy=hierarchy)
     # Marks, not np.unique: a million samples per view, most of them repeats.
     mark = np.zeros(scene.n_triangles, dtype=bool)
-    mark_ids(ids, mark)
-    mark_ids(rolled, mark)
+    mark_seen(ids.reshape(-1), mark)
+    mark_seen(rolled.reshape(-1), mark)
     return first, np.flatnonzero(mark)
 
 

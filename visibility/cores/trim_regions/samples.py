@@ -1,5 +1,5 @@
-"""Reading v*'s supersampled renders (phase P4): per pixel, the depth its samples leave open,
-and the triangles any sample shows."""
+"""Reading v*'s supersampled renders (phase P4): per pixel, the depth its samples leave open
+(the triangles any sample shows are marked by ``ground_truth.mark_seen``)."""
 
 from __future__ import annotations
 
@@ -28,12 +28,3 @@ def open_depth(depth, res, s, k, out):  # pragma: no cover - numba
                     n += 1
             out[i * res + j] = v[k]
 
-
-@njit(cache=True)
-def mark_ids(ids, mark):  # pragma: no cover - numba
-    """mark[t] = True for every id t >= 0 in ``ids`` (any shape, flattened)."""
-    flat = ids.ravel()
-    for q in range(flat.shape[0]):
-        t = flat[q]
-        if t >= 0:
-            mark[t] = True

@@ -1,10 +1,10 @@
-"""Reading v*'s supersampled renders: the open depth per pixel and the ids shown."""
+"""Reading v*'s supersampled renders: the open depth per pixel."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from visibility.cores.trim_regions.samples import mark_ids, open_depth
+from visibility.cores.trim_regions.samples import open_depth
 
 
 def test_open_depth_is_the_kth_smallest_sample_of_each_pixel():
@@ -19,9 +19,3 @@ def test_open_depth_is_the_kth_smallest_sample_of_each_pixel():
         open_depth(depth, res, s, k, out)
         np.testing.assert_array_equal(out, np.sort(samples, axis=1)[:, k])
 
-
-def test_mark_ids_marks_every_id_shown_and_skips_empty_samples():
-    ids = np.array([[3, -1, 3], [0, 7, -1]], dtype=np.int32)
-    mark = np.zeros(9, dtype=bool)
-    mark_ids(ids, mark)
-    assert np.flatnonzero(mark).tolist() == [0, 3, 7]
