@@ -21,7 +21,7 @@ import numpy as np
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.cull import Tree, cell_tree, view_planes, views_positions
-from visibility.cores.cos.fusion import scene_welded_ids
+from visibility.cores.cos.fusion import face_neighbours, scene_welded_ids
 from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
@@ -306,7 +306,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     # pixel had to prove hidden) and can hide nothing their surface's front does not.
     unseen = unseen_back_faces(scene, box)
     t1b = time.perf_counter()
-    prims = build_prims(scene, centre, welded, unseen)
+    prims = build_prims(scene, centre, welded, unseen, face_neighbours(scene))
     bounds = prim_bounds(prims)
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
@@ -335,7 +335,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
-        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
+        "silhouette_edges": 0, "plane_tests": 0, "neighbour_occluders": 0, "fill_cut": 0,
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "tile_items": 0,
@@ -435,7 +435,8 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
 
 def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays:
     """The kernels' view of the primitives."""
-    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
+    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
+                      prims.adj)
 
 
 def _screen(view: View, plane_tol: float, cover: str) -> Screen:
@@ -575,6 +576,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["early_z_cut"] += int(counters[:, 3].sum())
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
+    stats["neighbour_occluders"] += int(counters[:, 10].sum())
     # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
     for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
                              ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):

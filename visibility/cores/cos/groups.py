@@ -22,6 +22,8 @@ class PrimArrays(NamedTuple):
     vid : (n, 3) int64 welded vertex ids (fusion along shared edges).
     solid : (n,) uint8, whether the primitive may occlude (``prims.solid_mask``).
     gap : (n,) float64 distance from the cell box to the primitive's bounding box, metres.
+    adj : (n, 3) int64 the triangle across each edge (corner k to k + 1) where exactly two
+        share it after welding, else -1 (``prims.Prims.adj``).
     """
 
     pts: np.ndarray
@@ -31,6 +33,7 @@ class PrimArrays(NamedTuple):
     vid: np.ndarray
     solid: np.ndarray
     gap: np.ndarray
+    adj: np.ndarray
 
 
 class Screen(NamedTuple):
