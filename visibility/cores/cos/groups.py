@@ -90,6 +90,11 @@ class Marks(NamedTuple):
     hid : (E,) uint8 set to 1 at each entry found hidden (the coarse pass), or (0,): not kept.
     counters : (tiles, 6) int64 work per tile (``resolve.resolve_tiles``).
     stop : (1,) uint8 the computation's stop flag (``visibility.cancel.stop_flag``).
+    stamps : (k, 2, n) int64 scratch, one pair of rows per thread share (k at least
+        ``TileLists.shares``), set to -1 once per cell: the last pixel that listed each
+        primitive and that took it as an occluder across an edge (``resolve``).
+    stamp0 : (1,) int64 the first pixel number of the next resolution; each one advances it
+        past its own, so numbers stay unique in ``stamps`` across the cell's resolutions.
     """
 
     known: np.ndarray
@@ -97,3 +102,5 @@ class Marks(NamedTuple):
     hid: np.ndarray
     counters: np.ndarray
     stop: np.ndarray
+    stamps: np.ndarray
+    stamp0: np.ndarray

@@ -104,10 +104,12 @@ from visibility.cores.cos.space import (
     capsule_meets,
     clip_halfplane,
     load_prim,
+    overlaps_share,
     polygon_axes,
     polygon_centroid,
     project,
     region_polygon,
+    region_share,
     tri_normal,
     winding_step,
 )
@@ -595,6 +597,10 @@ GRID_WIDE = 16
 #: occludes only through the group's tests, which hold for any scene triangles), takes the
 #: edge off the silhouette.
 NEIGHBOUR_RINGS = 1
+#: How far past the pixel (in half pixels, the listing's own reach being 1) a triangle across
+#: an occluder's edge may lie and still join it: the cover test's reach is about twice the
+#: listing's, and joining every neighbour doubled an open scene's insertions.
+NEIGHBOUR_REACH = 2.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -871,7 +877,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     pts, start, npts, kind, vid, solid, gap, adj = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
     origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed = screen
-    known, vis, hid, counters, stop = marks
+    known, vis, hid, counters, stop, stamps, stamp0 = marks
     h = 0.5 * pw
     npix = tsz * tsz
     mark = hid.shape[0] > 0
@@ -995,11 +1001,14 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         tseen = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
         tset = np.empty(tmax, dtype=np.int64)
         work = np.zeros(2, dtype=np.int64)
-        # Per primitive, the last pixel (a number unique in this share) that listed it, and
-        # that took it as an occluder across an edge; the queue of one entry's insertions.
-        pix_id = 0
-        lst = np.full(known.shape[0], -1, dtype=np.int64)
-        ostamp = np.full(known.shape[0], -1, dtype=np.int64)
+        # Per primitive, the last pixel that listed it, and that took it as an occluder
+        # across an edge (``Marks.stamps``: the share's own rows); the queue of one entry's
+        # insertions.
+        lst = stamps[share, 0]
+        nrv = np.empty((4, 2))
+        nrr = np.empty(4)
+        nreg = np.empty(12)
+        ostamp = stamps[share, 1]
         ins_p = np.empty(1 + 3 * 3 ** NEIGHBOUR_RINGS, dtype=np.int64)
         ins_r = np.empty(1 + 3 * 3 ** NEIGHBOUR_RINGS, dtype=np.int64)
         for it in range(it0, it1):
@@ -1036,8 +1045,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                 # from the box (so from every camera position, which lies on the box) is at depth
                 # at least g / lray on any ray of this pixel.
                 lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
-                pix_id += 1
+                pix_id = stamp0[0] + pix0 + loc
                 b0 = b
+                region_at(corners, sx, sy, NEIGHBOUR_REACH * h, 0.0, nrv, nrr)
+                region_share(nrv, nrr, nreg)
                 n_extra = 0  # neighbours queued at this pixel: at most one per entry
                 for k in range(a, b):
                     lst[entries[k]] = pix_id
@@ -1252,6 +1263,11 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                             dd = True
                             load_prim(pts, start[pp], 3, origin, perm, sign, cam)
                             if not min(cam[0, 2], cam[1, 2], cam[2, 2]) > wcam + plane_tol:
+                                continue
+                            # Only one that the pixel would list were it wider by
+                            # NEIGHBOUR_REACH: farther ones come near no K.
+                            project(cam, 3, sx, sy, NEIGHBOUR_REACH * h, 0.0, qv, qr)
+                            if not overlaps_share(qv, qr, 3, True, nrv, nrr, nreg):
                                 continue
                             project(cam, 3, sx, sy, h, wref, qv, qr)
                         c0 = cycles() if timed else 0
@@ -1468,3 +1484,5 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             counters[tile, 10] = nbr
             for c in range(n_set):
                 tseen[tset[c] >> 3] = 0
+    # The next resolution numbers its pixels past this one's (``Marks.stamp0``).
+    stamp0[0] += n_t * npix
