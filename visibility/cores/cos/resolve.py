@@ -1047,8 +1047,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                 lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
                 pix_id = stamp0[0] + pix0 + loc
                 b0 = b
-                region_at(corners, sx, sy, NEIGHBOUR_REACH * h, 0.0, nrv, nrr)
-                region_share(nrv, nrr, nreg)
+                near_ready = False  # the wider region of NEIGHBOUR_REACH, made on first use
                 n_extra = 0  # neighbours queued at this pixel: at most one per entry
                 for k in range(a, b):
                     lst[entries[k]] = pix_id
@@ -1266,6 +1265,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                                 continue
                             # Only one that the pixel would list were it wider by
                             # NEIGHBOUR_REACH: farther ones come near no K.
+                            if not near_ready:
+                                region_at(corners, sx, sy, NEIGHBOUR_REACH * h, 0.0, nrv, nrr)
+                                region_share(nrv, nrr, nreg)
+                                near_ready = True
                             project(cam, 3, sx, sy, NEIGHBOUR_REACH * h, 0.0, qv, qr)
                             if not overlaps_share(qv, qr, 3, True, nrv, nrr, nreg):
                                 continue
