@@ -111,7 +111,6 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0),
-           "neighbour_occluders": st.get("neighbour_occluders", 0),
            "cycles": {k: st.get(f"cycles_{k}", 0)
                       for k in ("resolve", "test", "insert", "coverall")},
            "occluder_triangles": st.get("occluder_triangles", 0),
@@ -305,9 +304,7 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 "triangle or a pair of them holding the pixel's offsets"
                 + (f", {r['silhouette_edges']:,} silhouette edges walked and "
                    f"{r['plane_tests']:,} occluder triangles depth-tested to resolve them"
-                   if r.get("silhouette_edges") else "")
-                + (f", {r.get('neighbour_occluders', 0):,} occluders taken across an edge "
-                   "from triangles the pixel does not list") + _cycle_split(r) + "; "
+                   if r.get("silhouette_edges") else "") + _cycle_split(r) + "; "
                 f"FN {r['fn_count']}, overestimation {100 * r['overestimation']:.0f} % "
                 "(paper: 20-90 %)." + _costliest(r))
         out.append("")
@@ -411,10 +408,9 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "footprints | culled by tree | unseen back faces | coarse tiles | "
            "left out by coarse | entries | tile items | "
            "longest | mean list | cut while filling | early z cut | occluders | "
-           "of them across an edge | "
            "edges walked | plane tests | PVS | ref | FN | FP | overest. | "
            "x paper (220 / 35 ms) |",
-           "|" + "---|" * 30]
+           "|" + "---|" * 29]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
@@ -427,8 +423,7 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
                    f"{r['longest_list']} | "
                    f"{r['mean_list']:.1f} | {r.get('fill_cut', 0):,} | "
                    f"{r.get('early_z_cut', 0):,} | "
-                   f"{r.get('occluder_triangles', 0):,} | "
-                   f"{r.get('neighbour_occluders', 0):,} | {r.get('silhouette_edges', 0):,} | "
+                   f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
                    f"{r.get('plane_tests', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
                    f"{r['fn_count']} | "
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "

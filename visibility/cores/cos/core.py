@@ -21,7 +21,7 @@ import numpy as np
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.base import Core, CoreParams, Cost, param, register
 from visibility.cores.cos.cull import Tree, cell_tree, view_planes, views_positions
-from visibility.cores.cos.fusion import face_neighbours, scene_welded_ids
+from visibility.cores.cos.fusion import scene_welded_ids
 from visibility.cores.cos.groups import Marks, PrimArrays, Screen, TileLists
 from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints
 from visibility.cores.cos.planes import View, side_plane_views
@@ -306,7 +306,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     # pixel had to prove hidden) and can hide nothing their surface's front does not.
     unseen = unseen_back_faces(scene, box)
     t1b = time.perf_counter()
-    prims = build_prims(scene, centre, welded, unseen, face_neighbours(scene))
+    prims = build_prims(scene, centre, welded, unseen)
     bounds = prim_bounds(prims)
     order, gap = distance_order(prims, half, bounds)
     t2 = time.perf_counter()
@@ -335,7 +335,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
-        "silhouette_edges": 0, "plane_tests": 0, "neighbour_occluders": 0, "fill_cut": 0,
+        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "tile_items": 0,
@@ -348,17 +348,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         sel = _face_subsets(bounds, order, half, views, plane_tol)
         # Pixel boxes by position; each view writes (and reads) only the rows it projects.
         rng = np.empty((len(order), 4), dtype=np.int32)
-        # Per-primitive stamps of the resolutions (``groups.Marks``), one pair of rows per
-        # thread, set once per cell: a full-size fill per call cost a small cell a third.
-        stamps = np.full((numba.get_num_threads(), 2, len(prims)), -1, dtype=np.int64)
-        stamp0 = np.zeros(1, dtype=np.int64)
         positions = None if tree is None else _view_positions(tree, sel, views, plane_tol, stats)
         worst = -1.0
         for k, view in enumerate(views):
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             listed = np.flatnonzero(sel[view.face]) if positions is None else positions[k]
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
-                                  stats, coarse_items, rng, stamps, stamp0, cover)
+                                  stats, coarse_items, rng, cover)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -439,8 +435,7 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
 
 def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays:
     """The kernels' view of the primitives."""
-    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
-                      prims.adj)
+    return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
 
 
 def _screen(view: View, plane_tol: float, cover: str) -> Screen:
@@ -452,8 +447,7 @@ def _screen(view: View, plane_tol: float, cover: str) -> Screen:
 
 def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
                  order: np.ndarray, tile_off: np.ndarray, tile_items: np.ndarray,
-                 tiles: np.ndarray, known: np.ndarray, stats: dict[str, Any],
-                 stamps: np.ndarray, stamp0: np.ndarray) -> np.ndarray:
+                 tiles: np.ndarray, known: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
     """Which of each tile's items (``tile_items``, ``bin_tiles``) are hidden for the whole
     tile: (len(tile_items),) uint8, 1 where hidden.
 
@@ -465,8 +459,7 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     closes silhouettes at the pixels, whose tests can only fail more often. What the coarse
     pass finds visible is not the answer (its pixels are wide): it goes to a scratch array.
     Only the ``tiles`` (tiles_x * tiles_y,) bool take part; items ``known`` visible are not
-    tested (they are in the answer already). ``screen`` is the view's pixel grid; ``stamps``
-    and ``stamp0`` the cell's scratch (``groups.Marks``)."""
+    tested (they are in the answer already). ``screen`` is the view's pixel grid."""
     n_tiles = tiles_x * tiles_y
     entries = order[tile_items].astype(np.int32)
     pstart = tile_off[:-1].astype(np.int64)
@@ -483,8 +476,7 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     # One pixel per tile, as wide as the tile; the strict cover test only: at a tile's width
     # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
     wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE, relaxed=False)
-    resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag(),
-                                              stamps, stamp0))
+    resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
     stats["coarse_dropped"] += int(hid.sum())
@@ -494,15 +486,14 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
-                stamps: np.ndarray, stamp0: np.ndarray, cover: str = "strict") -> int:
+                cover: str = "strict") -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
     visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
     ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
-    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``), ``stamps`` and
-    ``stamp0`` for the resolutions (``groups.Marks``); ``cover`` the cover test
-    (``CosParams.cover``)."""
+    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``); ``cover`` the
+    cover test (``CosParams.cover``)."""
     t0 = time.perf_counter()
     stats["projected"] += len(sel)
     known = vis.copy()
@@ -533,7 +524,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         # filled without what it found hidden for the whole tile.
         tc = time.perf_counter()
         drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, order, tile_off, tile_items,
-                            busy, known, stats, stamps, stamp0)
+                            busy, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
     counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
@@ -573,8 +564,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         tb = time.perf_counter()
         lists = lists._replace(torder=_balanced_order(_tile_work(pcount, t1 - t), t, t1))
         resolve_tiles(parrays, lists, screen,
-                      Marks(known, vis, np.empty(0, dtype=np.uint8), counters, stop, stamps,
-                            stamp0))
+                      Marks(known, vis, np.empty(0, dtype=np.uint8), counters, stop))
         checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb
@@ -585,7 +575,6 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["early_z_cut"] += int(counters[:, 3].sum())
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
-    stats["neighbour_occluders"] += int(counters[:, 10].sum())
     # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
     for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
                              ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):

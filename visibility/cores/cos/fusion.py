@@ -33,37 +33,6 @@ def _build_open_edges(scene: Scene) -> tuple[np.ndarray, np.ndarray, int]:
     return e, counts[inv.ravel()] == 1, len(counts)
 
 
-def face_neighbours(scene: Scene) -> np.ndarray:
-    """(m, 3) int64: for each triangle of ``scene`` and each of its edges (corner k to
-    k + 1), the triangle across it where exactly two valid triangles share that edge after
-    welding (``scene_welded_ids``), else -1 (an open, non-manifold or degenerate edge).
-    Built once per scene."""
-    return per_scene(scene, "cos/face_neighbours", _build_face_neighbours)[0]
-
-
-def _build_face_neighbours(scene: Scene) -> np.ndarray:
-    ids, _ = scene_welded_ids(scene)
-    faces = np.asarray(scene.faces)
-    m = len(faces)
-    out = np.full((m, 3), -1, dtype=np.int64)
-    valid = np.flatnonzero(np.asarray(scene.valid_faces))
-    if len(valid) == 0:
-        return out
-    f = ids[faces[valid]].astype(np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e.sort(axis=1)
-    use = np.concatenate([valid * 3, valid * 3 + 1, valid * 3 + 2])  # face * 3 + edge
-    _, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    pair = counts[inv] == 2
-    inv, use = inv[pair], use[pair]
-    order = np.argsort(inv, kind="stable")
-    a, b = use[order[0::2]], use[order[1::2]]
-    out.reshape(-1)[a] = b // 3
-    out.reshape(-1)[b] = a // 3
-    return out
-
-
 def open_edge_share(scene: Scene) -> float:
     """Share of the scene's edges (after welding, valid faces only) that belong to one triangle
     only: open borders and T-junctions, where occluders cannot fuse (a wall split at a

@@ -22,8 +22,6 @@ class PrimArrays(NamedTuple):
     vid : (n, 3) int64 welded vertex ids (fusion along shared edges).
     solid : (n,) uint8, whether the primitive may occlude (``prims.solid_mask``).
     gap : (n,) float64 distance from the cell box to the primitive's bounding box, metres.
-    adj : (n, 3) int64 the triangle across each edge (corner k to k + 1) where exactly two
-        share it after welding, else -1 (``prims.Prims.adj``).
     """
 
     pts: np.ndarray
@@ -33,7 +31,6 @@ class PrimArrays(NamedTuple):
     vid: np.ndarray
     solid: np.ndarray
     gap: np.ndarray
-    adj: np.ndarray
 
 
 class Screen(NamedTuple):
@@ -90,11 +87,6 @@ class Marks(NamedTuple):
     hid : (E,) uint8 set to 1 at each entry found hidden (the coarse pass), or (0,): not kept.
     counters : (tiles, 6) int64 work per tile (``resolve.resolve_tiles``).
     stop : (1,) uint8 the computation's stop flag (``visibility.cancel.stop_flag``).
-    stamps : (k, 2, n) int64 scratch, one pair of rows per thread share (k at least
-        ``TileLists.shares``), set to -1 once per cell: the last pixel that listed each
-        primitive and that took it as an occluder across an edge (``resolve``).
-    stamp0 : (1,) int64 the first pixel number of the next resolution; each one advances it
-        past its own, so numbers stay unique in ``stamps`` across the cell's resolutions.
     """
 
     known: np.ndarray
@@ -102,5 +94,3 @@ class Marks(NamedTuple):
     hid: np.ndarray
     counters: np.ndarray
     stop: np.ndarray
-    stamps: np.ndarray
-    stamp0: np.ndarray

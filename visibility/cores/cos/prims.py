@@ -36,8 +36,6 @@ class Prims:
     kind : (n,) int8, TRIANGLE or HULL.
     out_id : (n,) int64, the id reported: a triangle id, or ``n_triangles + sphere index``.
     vid : (n, 3) int64 welded vertex ids of a triangle's corners (-1 for hulls).
-    adj : (n, 3) int64 the primitive across each edge of a triangle (corner k to k + 1;
-        ``fusion.face_neighbours``), -1 where none is (or it is left out).
     scale : float, largest absolute world coordinate involved (rounding of the shift to the
         cell centre is a few ulps of it).
     """
@@ -49,7 +47,6 @@ class Prims:
     out_id: np.ndarray
     vid: np.ndarray
     scale: float
-    adj: np.ndarray
 
     def __len__(self) -> int:
         return int(len(self.start))
@@ -102,10 +99,8 @@ def _static_triangles(scene: Scene) -> _Static:
 
 
 def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
-                drop: np.ndarray | None = None, neighbours: np.ndarray | None = None) -> Prims:
-    """Primitives of ``scene`` around ``centre`` (3,) metres, with welded vertex ids (n_vertices,)
-    and, given the triangles' ``neighbours`` ((m, 3) triangle ids, ``fusion.face_neighbours``),
-    the primitives across their edges.
+                drop: np.ndarray | None = None) -> Prims:
+    """Primitives of ``scene`` around ``centre`` (3,) metres, with welded vertex ids (n_vertices,).
 
     Degenerate faces (``scene.valid_faces`` False) are left out, and so are the triangles
     ``drop`` (m,) bool marks (ones no eye of the cell can see, ``topology.unseen_back_faces``).
@@ -160,12 +155,7 @@ def build_prims(scene: Scene, centre: np.ndarray, welded: np.ndarray,
         kind[n_stat:] = 1
         vids[n_stat:] = -1
         out_id = np.concatenate([stat, hid])
-    adj = np.full((n_stat + k, 3), -1, dtype=np.int64)
-    if neighbours is not None and n_stat:
-        pos = np.full(m + 1, -1, dtype=np.int64)  # triangle id -> primitive; -1 -> -1
-        pos[stat] = np.arange(n_stat, dtype=np.int64)
-        adj[:n_stat] = pos[neighbours[stat]]
-    return Prims(pts, start, npts, kind, out_id, vids, scale, adj)
+    return Prims(pts, start, npts, kind, out_id, vids, scale)
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -39,11 +39,6 @@ edges (welded vertex ids), merging their groups. A group whose silhouette stays 
 whole offset region and covers it is flagged *coverall* (ln 44-45): later triangles skip
 straight to the depth test.
 
-A triangle that becomes an occluder also brings, dormant, each triangle across one of its
-edges (``NEIGHBOUR_RINGS``) that the pixel does not list because no ray of it meets that
-triangle: the cover test grows K for the pixel's directions and each edge for its motion,
-so such an edge can still come near K, and without its neighbour it stays on the silhouette.
-
 A triangle hidden by a coverall group is dropped. One hidden by another group, or not seen at
 the pixel (K empty, ln 12), is kept *dormant*: it joins the edge hash and fuses with its
 neighbours, but a group made only of dormant triangles is never tested against (nor checked
@@ -54,7 +49,7 @@ silhouette, and the surface behind it leaks through (leaving hidden triangles ou
 as the paper does, loosens the answer far more than keeping them dormant: docs/cores/cos.md).
 
 Why this stays conservative. Hiding is decided only by ``_covers_q`` and ``_hides`` on some
-group, and both are sound for any set of scene triangles fused along shared edges with
+group, and both are sound for any set of listed triangles fused along shared edges with
 consistent orientation: the winding-number argument below and the per-triangle depth test
 hold whatever triangles the group holds. Leaving a triangle out of every group, or leaving a
 group untested, can only make a later entry's test fail, never succeed wrongly. Nothing is
@@ -104,12 +99,10 @@ from visibility.cores.cos.space import (
     capsule_meets,
     clip_halfplane,
     load_prim,
-    overlaps_share,
     polygon_axes,
     polygon_centroid,
     project,
     region_polygon,
-    region_share,
     tri_normal,
     winding_step,
 )
@@ -585,22 +578,10 @@ STOP_EVERY = 256
 #: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
-#: and in the whole tile; then the occluders taken across an edge (``NEIGHBOUR_RINGS``).
-N_COUNTERS = 11
+#: and in the whole tile.
+N_COUNTERS = 10
 TIME_STRIDE = 8
 GRID_WIDE = 16
-#: Rings of triangles across an occluder's edges that join it although the pixel does not
-#: list them. A pixel lists only what some ray of it meets, but the cover test grows each
-#: occludee's region for the pixel's directions and each silhouette edge for its motion, so
-#: an edge whose neighbour no ray meets can still come near K and fail the test: a floor's
-#: diagonal over something seen past one of its halves. Such a neighbour, joined dormant (it
-#: occludes only through the group's tests, which hold for any scene triangles), takes the
-#: edge off the silhouette.
-NEIGHBOUR_RINGS = 1
-#: How far past the pixel (in half pixels, the listing's own reach being 1) a triangle across
-#: an occluder's edge may lie and still join it: the cover test's reach is about twice the
-#: listing's, and joining every neighbour doubled an open scene's insertions.
-NEIGHBOUR_REACH = 2.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -874,10 +855,10 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
 
     The arrays come in named groups (``groups``): ``prims`` (``PrimArrays``), ``lists``
     (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
-    pts, start, npts, kind, vid, solid, gap, adj = prims
+    pts, start, npts, kind, vid, solid, gap = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
     origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed = screen
-    known, vis, hid, counters, stop, stamps, stamp0 = marks
+    known, vis, hid, counters, stop = marks
     h = 0.5 * pw
     npix = tsz * tsz
     mark = hid.shape[0] > 0
@@ -935,82 +916,69 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
         rny = np.empty(MAX_POLY)
         rlo = np.empty(MAX_POLY)
         rhi = np.empty(MAX_POLY)
-        # Occluder slots: a pixel's entries, and as many triangles across their edges at most
-        # (``NEIGHBOUR_RINGS``).
-        omax = 2 * lmax
         # Occluder triangles q: COS corners (counter-clockwise), depths, welded ids, active
         # edges, plane, COS box.
-        ov = np.empty((omax, 3, 2))
-        ow = np.empty((omax, 3))
-        owr = np.empty((omax, 2))
-        oid = np.empty((omax, 3), dtype=np.int64)
-        oact = np.empty((omax, 3), dtype=np.bool_)
-        oplane = np.empty((omax, 5))
-        ouse = np.empty(omax, dtype=np.bool_)
-        obb = np.empty((omax, 4))
+        ov = np.empty((lmax, 3, 2))
+        ow = np.empty((lmax, 3))
+        owr = np.empty((lmax, 2))
+        oid = np.empty((lmax, 3), dtype=np.int64)
+        oact = np.empty((lmax, 3), dtype=np.bool_)
+        oplane = np.empty((lmax, 5))
+        ouse = np.empty(lmax, dtype=np.bool_)
+        obb = np.empty((lmax, 4))
         # Groups (id = their first triangle): members (head, tail, nxt, grp), size, COS box,
         # depth range, coverall flag, active edges (gehead, getail, anext, aprev over nodes
         # 3 q + e), the live list (groups not coverall, oldest first; dead entries have
         # lpos -1 until the list is compacted) and the unordered list of coverall groups.
-        grp = np.empty(omax, dtype=np.int64)
-        nxt = np.empty(omax, dtype=np.int64)
-        head = np.empty(omax, dtype=np.int64)
-        tail = np.empty(omax, dtype=np.int64)
-        gsize = np.empty(omax, dtype=np.int64)
-        gbb = np.empty((omax, 4))
-        gwlo = np.empty(omax)
-        gwhi = np.empty(omax)
-        gcov = np.empty(omax, dtype=np.bool_)
-        alive = np.empty(omax, dtype=np.bool_)
-        gdorm = np.empty(omax, dtype=np.bool_)
-        gehead = np.empty(omax, dtype=np.int64)
-        getail = np.empty(omax, dtype=np.int64)
-        anext = np.empty(3 * omax, dtype=np.int64)
-        aprev = np.empty(3 * omax, dtype=np.int64)
-        live = np.empty(omax, dtype=np.int64)
-        lpos = np.empty(omax, dtype=np.int64)
-        covl = np.empty(omax, dtype=np.int64)
-        cand = np.empty(omax + 1, dtype=np.int64)
-        cpos = np.empty(omax, dtype=np.int64)
+        grp = np.empty(lmax, dtype=np.int64)
+        nxt = np.empty(lmax, dtype=np.int64)
+        head = np.empty(lmax, dtype=np.int64)
+        tail = np.empty(lmax, dtype=np.int64)
+        gsize = np.empty(lmax, dtype=np.int64)
+        gbb = np.empty((lmax, 4))
+        gwlo = np.empty(lmax)
+        gwhi = np.empty(lmax)
+        gcov = np.empty(lmax, dtype=np.bool_)
+        alive = np.empty(lmax, dtype=np.bool_)
+        gdorm = np.empty(lmax, dtype=np.bool_)
+        gehead = np.empty(lmax, dtype=np.int64)
+        getail = np.empty(lmax, dtype=np.int64)
+        anext = np.empty(3 * lmax, dtype=np.int64)
+        aprev = np.empty(3 * lmax, dtype=np.int64)
+        live = np.empty(lmax, dtype=np.int64)
+        lpos = np.empty(lmax, dtype=np.int64)
+        covl = np.empty(lmax, dtype=np.int64)
+        cand = np.empty(lmax + 1, dtype=np.int64)
+        cpos = np.empty(lmax, dtype=np.int64)
         # Depth grids of the groups of GRID_MIN triangles or more (slots of sg, shead in the
         # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
         # y; nodes of the member lists in pool), free slots in fslot.
-        nslot = omax // GRID_MIN + 2
-        gslot = np.empty(omax, dtype=np.int64)
+        nslot = lmax // GRID_MIN + 2
+        gslot = np.empty(lmax, dtype=np.int64)
         sg = np.empty((nslot, 2, GRID * GRID))
         shead = np.empty((nslot, GRID * GRID + 2), dtype=np.int64)
-        pool = np.empty(2 + 2 * 8 * omax, dtype=np.int64)
-        pool[1] = 8 * omax
-        pdep = np.empty(2 * 8 * omax)
+        pool = np.empty(2 + 2 * 8 * lmax, dtype=np.int64)
+        pool[1] = 8 * lmax
+        pdep = np.empty(2 * 8 * lmax)
         fslot = np.empty(nslot, dtype=np.int64)
         sfr = np.empty(nslot)
         dom = np.empty(6)
         # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
         # it (hfirst), chained in insertion order through enext; at most a half full.
         hcap = 8
-        while hcap < 6 * omax:
+        while hcap < 6 * lmax:
             hcap *= 2
         hk0 = np.empty(hcap, dtype=np.int64)
         hk1 = np.empty(hcap, dtype=np.int64)
         hfirst = np.empty(hcap, dtype=np.int64)
         hlast = np.empty(hcap, dtype=np.int64)
-        enext = np.empty(3 * omax, dtype=np.int64)
+        enext = np.empty(3 * lmax, dtype=np.int64)
         # Primitives found visible at an earlier pixel of this tile (a bit each): tested no
         # more, like ``known`` (the pixels of a tile run in order, so this stays
         # deterministic); the ids set are listed in tset and cleared after the tile.
         tseen = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
         tset = np.empty(tmax, dtype=np.int64)
         work = np.zeros(2, dtype=np.int64)
-        # Per primitive, the last pixel that listed it, and that took it as an occluder
-        # across an edge (``Marks.stamps``: the share's own rows); the queue of one entry's
-        # insertions.
-        lst = stamps[share, 0]
-        nrv = np.empty((4, 2))
-        nrr = np.empty(4)
-        nreg = np.empty(12)
-        ostamp = stamps[share, 1]
-        ins_p = np.empty(1 + 3 * 3 ** NEIGHBOUR_RINGS, dtype=np.int64)
-        ins_r = np.empty(1 + 3 * 3 ** NEIGHBOUR_RINGS, dtype=np.int64)
         for it in range(it0, it1):
             tile = torder[it]
             ty = tile // tiles_x
@@ -1023,7 +991,6 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             hidden = 0
             occl = 0
             cut = 0
-            nbr = 0
             cyc_tile = cycles()
             cyc_test = 0
             cyc_insert = 0
@@ -1045,14 +1012,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                 # from the box (so from every camera position, which lies on the box) is at depth
                 # at least g / lray on any ray of this pixel.
                 lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
-                pix_id = stamp0[0] + pix0 + loc
-                b0 = b
-                near_ready = False  # the wider region of NEIGHBOUR_REACH, made on first use
-                n_extra = 0  # neighbours queued at this pixel: at most one per entry
-                for k in range(a, b):
-                    lst[entries[k]] = pix_id
                 hs = 8
-                while hs < 12 * (b - a):
+                while hs < 6 * (b - a):
                     hs *= 2
                 hmask = hs - 1
                 hk0[:hs] = -1
@@ -1244,236 +1205,189 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
                         cyc_test += cycles() - c0 if timed else 0
                     if not tri or not solid[p]:
                         continue
-                    # The entry becomes an occluder, then (one ring of) the triangles across
-                    # its edges that no ray of the pixel meets (not listed here): see
-                    # ``NEIGHBOUR_RINGS``.
-                    ins_p[0] = p
-                    ins_r[0] = 0
-                    n_ins = 1
-                    ii = 0
-                    while ii < n_ins:
-                        pp = ins_p[ii]
-                        ring = ins_r[ii]
-                        ii += 1
-                        dd = dorm
-                        if ring > 0:
-                            # Not seen at this pixel (no ray of it meets pp): dormant, and only
-                            # where it lies beyond every camera position.
-                            dd = True
-                            load_prim(pts, start[pp], 3, origin, perm, sign, cam)
-                            if not min(cam[0, 2], cam[1, 2], cam[2, 2]) > wcam + plane_tol:
-                                continue
-                            # Only one that the pixel would list were it wider by
-                            # NEIGHBOUR_REACH: farther ones come near no K.
-                            if not near_ready:
-                                region_at(corners, sx, sy, NEIGHBOUR_REACH * h, 0.0, nrv, nrr)
-                                region_share(nrv, nrr, nreg)
-                                near_ready = True
-                            project(cam, 3, sx, sy, NEIGHBOUR_REACH * h, 0.0, qv, qr)
-                            if not overlaps_share(qv, qr, 3, True, nrv, nrr, nreg):
-                                continue
-                            project(cam, 3, sx, sy, h, wref, qv, qr)
-                        c0 = cycles() if timed else 0
-                        # Become an occluder: counter-clockwise in the COS, robust area only.
-                        ar = area2(qv)
-                        # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
-                        # occluder passes through (they showed in the kitchen's profile).
-                        e1 = (qv[1, 0] - qv[0, 0]) ** 2 + (qv[1, 1] - qv[0, 1]) ** 2
-                        e2 = (qv[2, 0] - qv[0, 0]) ** 2 + (qv[2, 1] - qv[0, 1]) ** 2
-                        if not ar * ar > 1e-18 * e1 * e2:
+                    c0 = cycles() if timed else 0
+                    # Become an occluder: counter-clockwise in the COS, robust area only.
+                    ar = area2(qv)
+                    # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
+                    # occluder passes through (they showed in the kitchen's profile).
+                    e1 = (qv[1, 0] - qv[0, 0]) ** 2 + (qv[1, 1] - qv[0, 1]) ** 2
+                    e2 = (qv[2, 0] - qv[0, 0]) ** 2 + (qv[2, 1] - qv[0, 1]) ** 2
+                    if not ar * ar > 1e-18 * e1 * e2:
+                        continue
+                    q = n_polys
+                    n_polys += 1
+                    occl += 1
+                    for c in range(3):
+                        src = c if ar > 0.0 else (3 - c) % 3
+                        ov[q, c, 0] = qv[src, 0]
+                        ov[q, c, 1] = qv[src, 1]
+                        ow[q, c] = cam[src, 2]
+                        oid[q, c] = vid[p, src]
+                        oact[q, c] = True
+                    pnx, pny, pnz, pnn = tri_normal(cam)
+                    pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
+                    tol = plane_tol * pnn
+                    pos = 0
+                    neg = 0
+                    for c in range(4):
+                        dist = pnx * corners[c, 0] + pny * corners[c, 1] + pnz * corners[c, 2] - pd
+                        if dist > tol:
+                            pos += 1
+                        elif dist < -tol:
+                            neg += 1
+                    if neg == 4:
+                        pnx, pny, pnz, pd = -pnx, -pny, -pnz, -pd
+                    ouse[q] = (pos == 4 or neg == 4) and tol > 0.0
+                    oplane[q, 0] = pnx
+                    oplane[q, 1] = pny
+                    oplane[q, 2] = pnz
+                    oplane[q, 3] = pd
+                    oplane[q, 4] = tol
+                    obb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                    obb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                    obb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                    obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                    owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
+                    owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
+                    gbb[q, 0] = obb[q, 0]
+                    gbb[q, 1] = obb[q, 1]
+                    gbb[q, 2] = obb[q, 2]
+                    gbb[q, 3] = obb[q, 3]
+                    gwlo[q] = owr[q, 0]
+                    gwhi[q] = owr[q, 1]
+                    grp[q] = q
+                    head[q] = q
+                    tail[q] = q
+                    nxt[q] = -1
+                    gsize[q] = 1
+                    gcov[q] = False
+                    alive[q] = True
+                    gehead[q] = 3 * q
+                    getail[q] = 3 * q + 2
+                    for e in range(3):
+                        anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
+                        aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
+                    gdorm[q] = dorm
+                    if dorm:
+                        lpos[q] = -1
+                    else:
+                        live[n_live] = q
+                        lpos[q] = n_live
+                        n_live += 1
+                    cpos[q] = -1
+                    gslot[q] = -1
+                    # Fuse along shared edges: the neighbour holds the edge reversed. The first
+                    # active occluder edge (in the order they were added) that does is taken.
+                    for e in range(3):
+                        va = oid[q, e]
+                        vb = oid[q, (e + 1) % 3]
+                        if va < 0 or vb < 0:
                             continue
-                        q = n_polys
-                        n_polys += 1
-                        occl += 1
-                        for c in range(3):
-                            src = c if ar > 0.0 else (3 - c) % 3
-                            ov[q, c, 0] = qv[src, 0]
-                            ov[q, c, 1] = qv[src, 1]
-                            ow[q, c] = cam[src, 2]
-                            oid[q, c] = vid[pp, src]
-                            oact[q, c] = True
-                        pnx, pny, pnz, pnn = tri_normal(cam)
-                        pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
-                        tol = plane_tol * pnn
-                        pos = 0
-                        neg = 0
-                        for c in range(4):
-                            dist = (pnx * corners[c, 0] + pny * corners[c, 1] + pnz * corners[c, 2]
-                                    - pd)
-                            if dist > tol:
-                                pos += 1
-                            elif dist < -tol:
-                                neg += 1
-                        if neg == 4:
-                            pnx, pny, pnz, pd = -pnx, -pny, -pnz, -pd
-                        ouse[q] = (pos == 4 or neg == 4) and tol > 0.0
-                        oplane[q, 0] = pnx
-                        oplane[q, 1] = pny
-                        oplane[q, 2] = pnz
-                        oplane[q, 3] = pd
-                        oplane[q, 4] = tol
-                        obb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                        obb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                        obb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                        obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                        owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
-                        owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
-                        gbb[q, 0] = obb[q, 0]
-                        gbb[q, 1] = obb[q, 1]
-                        gbb[q, 2] = obb[q, 2]
-                        gbb[q, 3] = obb[q, 3]
-                        gwlo[q] = owr[q, 0]
-                        gwhi[q] = owr[q, 1]
-                        grp[q] = q
-                        head[q] = q
-                        tail[q] = q
-                        nxt[q] = -1
-                        gsize[q] = 1
-                        gcov[q] = False
-                        alive[q] = True
-                        gehead[q] = 3 * q
-                        getail[q] = 3 * q + 2
-                        for e in range(3):
-                            anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
-                            aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
-                        gdorm[q] = dd
-                        if dd:
-                            lpos[q] = -1
+                        slot = _edge_slot(hk0, hk1, hmask, vb, va)
+                        if hk0[slot] < 0:
+                            continue
+                        node = hfirst[slot]
+                        while node >= 0:
+                            r = node // 3
+                            f = node - 3 * r
+                            if oact[r, f]:
+                                oact[r, f] = False
+                                oact[q, e] = False
+                                _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
+                                _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
+                                g1 = grp[r]
+                                g2 = grp[q]
+                                if g1 != g2:
+                                    c1 = gcov[g1]
+                                    c2 = gcov[g2]
+                                    gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
+                                                gwhi, gcov, alive, gehead, getail, anext, aprev)
+                                    gd = g2 if gs == g1 else g1
+                                    if lpos[gd] >= 0:
+                                        lpos[gd] = -1
+                                        n_dead += 1
+                                    if gdorm[gs] and not gdorm[gd]:
+                                        # A dormant group joins a tested one: it is tested now.
+                                        gdorm[gs] = False
+                                        if not gcov[gs]:
+                                            live[n_live] = gs
+                                            lpos[gs] = n_live
+                                            n_live += 1
+                                    n_cov = _list_drop(gd, cpos, covl, n_cov)
+                                    if gcov[gs] and not (c1 if gs == g1 else c2):
+                                        # The survivor takes the coverall flag of the other.
+                                        n_cov, n_dead = _to_coverall(gs, lpos, covl, cpos, n_cov,
+                                                                     n_dead)
+                                    # Depth grids: every group of GRID_MIN or more has one.
+                                    sd = gslot[gd]
+                                    ss = gslot[gs]
+                                    if sd >= 0:
+                                        gslot[gd] = -1
+                                        fslot[n_free] = sd
+                                        n_free += 1
+                                    if ss >= 0:
+                                        # The other's triangles join the survivor's grid (the
+                                        # smaller group: O(n log n) in all).
+                                        r2 = head[gd]
+                                        while r2 >= 0:
+                                            _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
+                                                      pool, pdep)
+                                            r2 = nxt[r2]
+                                    elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
+                                        if n_free > 0:
+                                            n_free -= 1
+                                            ss = fslot[n_free]
+                                        else:
+                                            ss = n_slot
+                                            n_slot += 1
+                                        gslot[gs] = ss
+                                        _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
+                                                    shead, pool, pdep, 0.5 * (gwlo[gs] + gwhi[gs]))
+                                break
+                            node = enext[node]
+                    # Register q's edges still active (an inactive edge never fuses again).
+                    for e in range(3):
+                        va = oid[q, e]
+                        vb = oid[q, (e + 1) % 3]
+                        if va < 0 or vb < 0 or not oact[q, e]:
+                            continue
+                        slot = _edge_slot(hk0, hk1, hmask, va, vb)
+                        node = 3 * q + e
+                        enext[node] = -1
+                        if hk0[slot] < 0:
+                            hk0[slot] = va
+                            hk1[slot] = vb
+                            hfirst[slot] = node
                         else:
-                            live[n_live] = q
-                            lpos[q] = n_live
-                            n_live += 1
-                        cpos[q] = -1
-                        gslot[q] = -1
-                        # Fuse along shared edges: the neighbour holds the edge reversed. The first
-                        # active occluder edge (in the order they were added) that does is taken.
-                        for e in range(3):
-                            va = oid[q, e]
-                            vb = oid[q, (e + 1) % 3]
-                            if va < 0 or vb < 0:
-                                continue
-                            slot = _edge_slot(hk0, hk1, hmask, vb, va)
-                            if hk0[slot] < 0:
-                                continue
-                            node = hfirst[slot]
-                            while node >= 0:
-                                r = node // 3
-                                f = node - 3 * r
-                                if oact[r, f]:
-                                    oact[r, f] = False
-                                    oact[q, e] = False
-                                    _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
-                                    _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
-                                    g1 = grp[r]
-                                    g2 = grp[q]
-                                    if g1 != g2:
-                                        c1 = gcov[g1]
-                                        c2 = gcov[g2]
-                                        gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
-                                                    gwhi, gcov, alive, gehead, getail, anext, aprev)
-                                        gd = g2 if gs == g1 else g1
-                                        if lpos[gd] >= 0:
-                                            lpos[gd] = -1
-                                            n_dead += 1
-                                        if gdorm[gs] and not gdorm[gd]:
-                                            # A dormant group joins a tested one: it is tested now.
-                                            gdorm[gs] = False
-                                            if not gcov[gs]:
-                                                live[n_live] = gs
-                                                lpos[gs] = n_live
-                                                n_live += 1
-                                        n_cov = _list_drop(gd, cpos, covl, n_cov)
-                                        if gcov[gs] and not (c1 if gs == g1 else c2):
-                                            # The survivor takes the coverall flag of the other.
-                                            n_cov, n_dead = _to_coverall(gs, lpos, covl, cpos,
-                                                                         n_cov, n_dead)
-                                        # Depth grids: every group of GRID_MIN or more has one.
-                                        sd = gslot[gd]
-                                        ss = gslot[gs]
-                                        if sd >= 0:
-                                            gslot[gd] = -1
-                                            fslot[n_free] = sd
-                                            n_free += 1
-                                        if ss >= 0:
-                                            # The other's triangles join the survivor's grid (the
-                                            # smaller group: O(n log n) in all).
-                                            r2 = head[gd]
-                                            while r2 >= 0:
-                                                _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
-                                                          pool, pdep)
-                                                r2 = nxt[r2]
-                                        elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
-                                            if n_free > 0:
-                                                n_free -= 1
-                                                ss = fslot[n_free]
-                                            else:
-                                                ss = n_slot
-                                                n_slot += 1
-                                            gslot[gs] = ss
-                                            _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg,
-                                                        sfr, shead, pool, pdep,
-                                                        0.5 * (gwlo[gs] + gwhi[gs]))
-                                    break
-                                node = enext[node]
-                        # Register q's edges still active (an inactive edge never fuses again).
-                        for e in range(3):
-                            va = oid[q, e]
-                            vb = oid[q, (e + 1) % 3]
-                            if va < 0 or vb < 0 or not oact[q, e]:
-                                continue
-                            slot = _edge_slot(hk0, hk1, hmask, va, vb)
-                            node = 3 * q + e
-                            enext[node] = -1
-                            if hk0[slot] < 0:
-                                hk0[slot] = va
-                                hk1[slot] = vb
-                                hfirst[slot] = node
-                            else:
-                                enext[hlast[slot]] = node
-                            hlast[slot] = node
-                        c1 = cycles() if timed else 0
-                        cyc_insert += c1 - c0 if timed else 0
-                        g = grp[q]
-                        if not gcov[g] and not gdorm[g]:
-                            # Coverall holds for every delta whatever frame proves it; the new
-                            # triangle's depth is as good a frame as any.
-                            region_at(corners, sx, sy, h, wref, rv, rr)
-                            # The region polygon's box is the box of its corner squares, and a group
-                            # covers it only inside its own box: most insertions stop at this
-                            # comparison (in dense clutter, building the polygon for every one
-                            # took a sixth of the resolution).
-                            bx0, bx1, by0, by1 = bbox(rv, rr, 4)
-                            n_r = 0
-                            if (bx0 >= gbb[g, 0] and bx1 <= gbb[g, 1] and by0 >= gbb[g, 2]
-                                    and by1 <= gbb[g, 3]):
-                                n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
-                            if n_r > 0:
-                                _k_box(rx, ry, n_r, rb)
-                            if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
-                                                     wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
-                                                     strict, rpoly, 0, rpb, rv, ws, wpt,
-                                                     work):
-                                gcov[g] = True
-                                n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
-                                zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam,
-                                                              plane_tol, h, rx, ry, n_r, wref))
-                        cyc_cover += cycles() - c1 if timed else 0
-                        if ring > 0:
-                            nbr += 1
-                        if ring < NEIGHBOUR_RINGS:
-                            for e in range(3):
-                                if not oact[q, e]:
-                                    continue
-                                r = adj[pp, e if ar > 0.0 else 2 - e]
-                                if (r < 0 or lst[r] == pix_id or ostamp[r] == pix_id
-                                        or kind[r] != 0 or solid[r] == 0
-                                        or n_extra >= b0 - a):
-                                    continue
-                                ostamp[r] = pix_id
-                                n_extra += 1
-                                ins_p[n_ins] = r
-                                ins_r[n_ins] = ring + 1
-                                n_ins += 1
+                            enext[hlast[slot]] = node
+                        hlast[slot] = node
+                    c1 = cycles() if timed else 0
+                    cyc_insert += c1 - c0 if timed else 0
+                    g = grp[q]
+                    if not gcov[g] and not gdorm[g]:
+                        # Coverall holds for every delta whatever frame proves it; the new
+                        # triangle's depth is as good a frame as any.
+                        region_at(corners, sx, sy, h, wref, rv, rr)
+                        # The region polygon's box is the box of its corner squares, and a group
+                        # covers it only inside its own box: most insertions stop at this
+                        # comparison (in dense clutter, building the polygon for every one
+                        # took a sixth of the resolution).
+                        bx0, bx1, by0, by1 = bbox(rv, rr, 4)
+                        n_r = 0
+                        if (bx0 >= gbb[g, 0] and bx1 <= gbb[g, 1] and by0 >= gbb[g, 2]
+                                and by1 <= gbb[g, 3]):
+                            n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
+                        if n_r > 0:
+                            _k_box(rx, ry, n_r, rb)
+                        if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                                 wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
+                                                 strict, rpoly, 0, rpb, rv, ws, wpt,
+                                                 work):
+                            gcov[g] = True
+                            n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
+                            zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
+                                                          h, rx, ry, n_r, wref))
+                    cyc_cover += cycles() - c1 if timed else 0
             counters[tile, 0] = tested
             counters[tile, 1] = hidden
             counters[tile, 2] = occl
@@ -1484,8 +1398,5 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             counters[tile, 7] = cyc_insert
             counters[tile, 8] = cyc_cover
             counters[tile, 9] = cycles() - cyc_tile
-            counters[tile, 10] = nbr
             for c in range(n_set):
                 tseen[tset[c] >> 3] = 0
-    # The next resolution numbers its pixels past this one's (``Marks.stamp0``).
-    stamp0[0] += n_t * npix
