@@ -361,9 +361,7 @@ def test_sampled_pvs_same_with_the_scene_hierarchy(monkeypatch):
 
 
 def test_mark_seen_marks_every_id_shown_and_skips_empty_samples():
-    from visibility.ground_truth import mark_seen
-
     ids = np.array([[3, -1, 3], [0, 7, -1]], dtype=np.int32)
     seen = np.zeros(9, dtype=bool)
-    mark_seen(ids.reshape(-1), seen)
+    gt_module.mark_seen(ids.reshape(-1), seen)
     assert np.flatnonzero(seen).tolist() == [0, 3, 7]
