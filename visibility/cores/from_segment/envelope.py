@@ -46,12 +46,11 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     their intersection (the hinge of intersecting triangles). Only the pieces overlapping [a, b]
     are rewritten, and nothing is when the chord is hidden; they are found by bisection, so a
     chord costs the log of the envelope's length plus the rows it overlaps and the rows after
-    it moved along. ``T`` (>= 2 cap + 4, 4) and ``tid`` are scratch. ``zbound`` is the least
-    of the pixel's bounds (``bucket_bounds``) over the buckets [a, b] reaches. Returns (new
-    count, or -1 when it would exceed the capacity; changed; whether a bucket's bound may have
-    changed: a gap was
-    filled or a rewritten row reached ``zbound``; otherwise every bucket's bound stands, since
-    a lower envelope only comes nearer)."""
+    it moved along. ``T`` (>= 2 cap + 4, 4) and ``tid`` are scratch. ``zbound`` is the pixel's
+    current ``pixel_bound`` (inf while the envelope leaves gaps). Returns (new count, or -1 when
+    it would exceed the capacity; changed; whether the bound may have changed: a gap was
+    filled or a rewritten row reached ``zbound``; otherwise it stands, since a lower envelope
+    only comes nearer)."""
     if not (b > a):
         return cnt, False, False
     mn = (zb - za) / (b - a)
@@ -184,76 +183,21 @@ def _grow(env, eid, cnt, npx, cap):
     return env2, eid2, np.empty((2 * cap + 8, 4)), np.empty(2 * cap + 8, dtype=np.int32)
 
 
-#: Buckets of t a pixel's depth bound is kept in (``bucket_bounds``): a chord or primitive is
-#: behind a pixel's envelope when it is behind in every bucket it reaches, though the envelope
-#: may still leave gaps elsewhere on [0, 1] or reach far deeper in other buckets.
-T_BUCKETS = 8
-
-
 @njit(**_JIT)
-def bucket_of(t: float, nb: int) -> int:
-    """The bucket (of ``nb`` equal ones on [0, 1]) holding t, clamped to [0, nb - 1]."""
-    k = int(t * nb)
-    return min(max(k, 0), nb - 1)
-
-
-@njit(**_JIT)
-def bucket_bounds(env, px, cnt, bb, k0, k1):
-    """``bb[px, k]`` for k in [k0, k1]: the greatest depth of pixel ``px``'s envelope over bucket
-    k of t ([k / nb, (k + 1) / nb], nb = ``bb.shape[1]``) where the envelope covers all of it
-    (gaps up to EPS_LEN), else +inf. No chord at or beyond it anywhere in the bucket can change
-    the envelope there."""
-    nb = bb.shape[1]
-    inv = 1.0 / nb
-    lo = 0
-    top = cnt
-    s0 = k0 * inv
-    while lo < top:
-        mid = (lo + top) >> 1
-        if env[px, mid, 1] <= s0:
-            lo = mid + 1
-        else:
-            top = mid
-    r = lo
-    for k in range(k0, k1 + 1):
-        s = k * inv
-        e = 1.0 if k == nb - 1 else (k + 1) * inv
-        while r < cnt and env[px, r, 1] <= s:
-            r += 1
-        prev = s
-        zmax = 0.0
-        j = r
-        while j < cnt and env[px, j, 0] < e:
-            t0 = env[px, j, 0]
-            if t0 - prev > EPS_LEN:
-                break
-            t1 = env[px, j, 1]
-            z0 = env[px, j, 2]
-            m = env[px, j, 3]
-            a = max(t0, s)
-            b = min(t1, e)
-            zmax = max(zmax, max(z0 + m * (a - t0), z0 + m * (b - t0)))
-            prev = t1
-            j += 1
-        bb[px, k] = zmax if prev >= e - EPS_LEN else np.inf
-
-
-@njit(**_JIT)
-def chord_behind(bb, px, a, b, za, zb):
-    """Whether the chord [a, b] (depth za -> zb, linear in t) is at or beyond pixel ``px``'s
-    bucket bounds (``bucket_bounds``) in every bucket it reaches: then inserting it changes
-    nothing (exact ties keep the existing piece)."""
-    nb = bb.shape[1]
-    inv = 1.0 / nb
-    k0 = bucket_of(a, nb)
-    k1 = bucket_of(b, nb)
-    m = (zb - za) / (b - a) if b > a else 0.0
-    for k in range(k0, k1 + 1):
-        zk = bb[px, k]
-        if zk == np.inf:
-            return False
-        s = max(a, k * inv)
-        e = min(b, (k + 1) * inv)
-        if min(za + m * (s - a), za + m * (e - a)) < zk:
-            return False
-    return True
+def pixel_bound(env, px, cnt):
+    """Greatest depth of a pixel's envelope when it covers all of [0, 1] (gaps up to EPS_LEN),
+    else +inf: no chord at or beyond it can change the envelope."""
+    if cnt == 0 or env[px, 0, 0] > EPS_LEN or env[px, cnt - 1, 1] < 1.0 - EPS_LEN:
+        return np.inf
+    prev = 0.0
+    zmax = 0.0
+    for k in range(cnt):
+        t0 = env[px, k, 0]
+        if t0 - prev > EPS_LEN:
+            return np.inf
+        prev = env[px, k, 1]
+        z0 = env[px, k, 2]
+        zmax = max(zmax, max(z0, z0 + env[px, k, 3] * (prev - t0)))
+    if prev < 1.0 - EPS_LEN:
+        return np.inf
+    return zmax

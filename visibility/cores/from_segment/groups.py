@@ -145,10 +145,8 @@ class PieceScratch(NamedTuple):
 class TilePixels(NamedTuple):
     """The current tile's pixels: rows from ``r0`` and columns from ``cl0``, ``tw`` wide,
     ``npx`` in all (row-major), ``step`` NDC units a pixel; per pixel its envelope's piece
-    count ``cnt``, its bound ``bound`` (the envelope's greatest depth when it covers all of
-    [0, 1], else +inf), its bounds per bucket of t ``bb`` (npx, ``envelope.T_BUCKETS``;
-    ``envelope.bucket_bounds``) and its sample's offset (``jx``, ``jy``) NDC units from its
-    centre."""
+    count ``cnt`` and bound ``bound`` (``envelope.pixel_bound``) and its sample's offset
+    (``jx``, ``jy``) NDC units from its centre."""
 
     r0: int
     cl0: int
@@ -157,6 +155,5 @@ class TilePixels(NamedTuple):
     step: float
     cnt: np.ndarray
     bound: np.ndarray
-    bb: np.ndarray
     jx: np.ndarray
     jy: np.ndarray

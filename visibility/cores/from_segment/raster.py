@@ -22,12 +22,9 @@ from visibility.cores.from_segment.envelope import (
     EPS_LEN,
     MAX_CAP,
     START_CAP,
-    T_BUCKETS,
     _grow,
-    bucket_bounds,
-    bucket_of,
-    chord_behind,
     envelope_insert,
+    pixel_bound,
 )
 from visibility.cores.from_segment.groups import PieceScratch, TilePixels
 from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
@@ -61,23 +58,16 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: nothing to the answer); pixels_known: pixels of tiles listing few primitives not yet marked
 #: (``KNOWN_SHARE``) that none of those can reach, skipped for the same reason; items_behind_new:
 #: list entries of such tiles not drawn, beyond the farthest point any of those reaches
-#: (``_far_new``); pairs_buckets: pixels a primitive was not tested at because it lies beyond the
-#: pixel's envelope in every bucket of t (``envelope.bucket_bounds``) though not beyond its
-#: bound over all of t (counted in neither pairs nor pairs_behind); pieces_buckets: covered
-#: pieces not inserted for the same reason (counted in pairs_behind for static triangles);
-#: items_buckets: list entries (cluster triangles included) not set up because they lie
-#: beyond the tile's bucket bounds (``_behind_all``) though not beyond its bound.
+#: (``_far_new``).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
-            "bound_scans", "tiles_known", "pixels_known", "items_behind_new", "pairs_buckets",
-            "pieces_buckets", "items_buckets")
+            "bound_scans", "tiles_known", "pixels_known", "items_behind_new")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
- C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_PAIRS_BUCKETS,
- C_PIECES_BUCKETS, C_ITEMS_BUCKETS) = range(len(COUNTERS))
+ C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -224,53 +214,17 @@ def _front_box(P, U, res, box, pad):
 
 
 @njit(**_JIT)
-def _corner_buckets(P, U, zpr, zi):
-    """``zi[k]``: a lower bound on the depth of a triangle (camera-space corners ``P`` at
-    t = 0 relative to the eye, velocities ``U`` relative to the moving eye) over bucket k of t:
-    its corners' least depth at the bucket's ends (each corner's depth is linear in t), at
-    least ``zpr`` (its least depth over the segment, near plane included)."""
-    nb = zi.shape[0]
-    for k in range(nb):
-        s = k / nb
-        e = (k + 1) / nb
-        z = np.inf
-        for c in range(3):
-            z = min(z, -(P[c, 2] + s * U[c, 2]), -(P[c, 2] + e * U[c, 2]))
-        zi[k] = max(z, zpr)
-
-
-@njit(**_JIT)
-def _sphere_buckets(cen, vel, radius, zpr, zi):
-    """``_corner_buckets`` for a sphere: its centre's depth (linear in t) less its radius."""
-    nb = zi.shape[0]
-    for k in range(nb):
-        z = min(-(cen[2] + (k / nb) * vel[2]), -(cen[2] + ((k + 1) / nb) * vel[2])) - radius
-        zi[k] = max(z, zpr)
-
-
-@njit(**_JIT)
-def _behind_all(zi, bb):
-    """Whether the depth lower bounds ``zi`` (per bucket of t) are at or beyond the bounds
-    ``bb`` (per bucket; a pixel's, or a tile's) in every bucket."""
-    for k in range(zi.shape[0]):
-        if zi[k] < bb[k]:
-            return False
-    return True
-
-
-@njit(**_JIT)
-def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
+def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
             sc, work):
     """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere,
-    its set-up ``coef``, nearest depth ``zpr``, lower bounds of its depth per bucket of t
-    ``zi``) into the envelopes (``env``, ``eid``) of the
+    its set-up ``coef``, nearest depth ``zpr``) into the envelopes (``env``, ``eid``) of the
     pixels of rows [ia, ib] of the current tile (``groups.TilePixels``), row i's columns
     [span[i - r0, 0], span[i - r0, 1]] (``_row_spans``), sampled at their centres moved by
     (jx, jy)[pixel] NDC units (``sample_offset``). ``T``, ``tid`` (insertion) and ``sc``
     (``groups.PieceScratch``) are scratch. Adds its work to ``work`` (``COUNTERS``
     columns). Returns (env, eid, T, tid, pixels newly bounded, overflow); the storage is
     reallocated when it grows."""
-    r0, cl0, tw, npx, step, cnt, bound, bb, jx, jy = pix
+    r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
     pt0, pt1, pz0, pz1, brk, stk = sc
     closed = 0
     pairs = 0
@@ -282,17 +236,12 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
     scan = 0
     ins = 0
     rescans = 0
-    pairs_bk = 0
-    pieces_bk = 0
     for i in range(ia, ib + 1):
         yc = 1.0 - (i + 0.5) * step
         for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
             px = (i - r0) * tw + (j - cl0)
             bpx = bound[px]
             if zpr >= bpx:
-                continue
-            if _behind_all(zi, bb[px]):
-                pairs_bk += 1
                 continue
             x = (j + 0.5) * step - 1.0 + jx[px]
             y = yc + jy[px]
@@ -304,10 +253,6 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
                     continue
                 if min(zs, zf) >= bpx:
                     behind += 1
-                    continue
-                if chord_behind(bb, px, ts, tf, zs, zf):
-                    behind += 1
-                    pieces_bk += 1
                     continue
                 pt0[0] = ts
                 pt1[0] = tf
@@ -323,21 +268,11 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
             for q in range(npc):
                 if min(pz0[q], pz1[q]) >= bound[px]:
                     continue
-                if kind != 0 and chord_behind(bb, px, pt0[q], pt1[q], pz0[q], pz1[q]):
-                    pieces_bk += 1
-                    continue
                 pieces += 1
                 # What a linear insertion would read (bisection reads its log).
                 scan += cnt[px]
-                # The bounds of the buckets the chord reaches: a rewritten row as deep as the
-                # least of them may lower one (``envelope_insert``'s rebound).
-                k0 = bucket_of(pt0[q], T_BUCKETS)
-                k1 = bucket_of(pt1[q], T_BUCKETS)
-                zbk = np.inf
-                for k in range(k0, k1 + 1):
-                    zbk = min(zbk, bb[px, k])
                 nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
-                                                       pz0[q], pz1[q], pid, T, tid, zbk)
+                                                       pz0[q], pz1[q], pid, T, tid, bound[px])
                 if nn < 0:
                     # Deep envelope: grow this chunk's storage in place and retry.
                     if 4 * env.shape[1] > MAX_CAP:
@@ -346,7 +281,7 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
                     grows += 1
                     nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q],
                                                            pt1[q], pz0[q], pz1[q], pid, T, tid,
-                                                           zbk)
+                                                           bound[px])
                 if changed:
                     ins += 1
                     if nn != cnt[px]:
@@ -354,10 +289,7 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
                     cnt[px] = nn
                     if rebound:
                         rescans += 1
-                        bucket_bounds(env, px, nn, bb, k0, k1)
-                        zb = 0.0
-                        for k in range(T_BUCKETS):
-                            zb = max(zb, bb[px, k])
+                        zb = pixel_bound(env, px, nn)
                         if zb < np.inf:
                             if bound[px] == np.inf:
                                 closed += 1
@@ -371,8 +303,6 @@ def _raster(kind, pid, slow, zpr, zi, ia, ib, span, coef, pix, near, knots, env,
     work[C_INSERTS] += ins
     work[C_INSERT_SCAN] += scan
     work[C_BOUND_SCANS] += rescans
-    work[C_PAIRS_BUCKETS] += pairs_bk
-    work[C_PIECES_BUCKETS] += pieces_bk
     return env, eid, T, tid, closed, False
 
 
@@ -476,9 +406,6 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     eid = np.empty((npx_max, cap), dtype=np.int32)
     cnt = np.zeros(npx_max, dtype=np.int64)
     bound = np.empty(npx_max)
-    bb = np.empty((npx_max, T_BUCKETS))
-    tb = np.full(T_BUCKETS, np.inf)  # the tile's bounds per bucket: the greatest of its pixels'
-    zi = np.empty(T_BUCKETS)
     T = np.empty((2 * cap + 8, 4))  # insertion scratch
     tid = np.empty(2 * cap + 8, dtype=np.int32)
     c_uv = np.empty((6, 2))  # a cluster triangle's swept hull (``_front_spans``)
@@ -527,8 +454,6 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
         for p in range(npx):
             cnt[p] = 0
             bound[p] = np.inf
-            for k in range(T_BUCKETS):
-                bb[p, k] = np.inf
             if jitter > 0.0:
                 dx, dy = sample_offset(f, r0 + p // tw, cl0 + p % tw, res, jitter, seed)
                 jx[p] = dx * step
@@ -555,13 +480,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             for p in range(npx):
                 if bound[p] == np.inf:
                     open_px += 1
-                else:
-                    for k in range(T_BUCKETS):
-                        bb[p, k] = -np.inf
             work[C_PX_KNOWN] += npx - open_px
         tbound = np.inf
-        for k in range(T_BUCKETS):
-            tb[k] = np.inf
         since = 0
         R = rots[f]
         for r in range(3):
@@ -572,7 +492,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             zlim = _far_new(tile_start[tile], tile_start[tile + 1], tile_items, prim_src,
                             prim_flag, cl_start, cl_tris, visible, R, dc, geom, v0, P, U, W)
         ovf = False
-        pix = TilePixels(r0, cl0, tw, npx, step, cnt, bound, bb, jx, jy)
+        pix = TilePixels(r0, cl0, tw, npx, step, cnt, bound, jx, jy)
         cyc_tile += _cycles() - ct0
         end = tile_start[tile + 1]
         for it in range(tile_start[tile], end):
@@ -602,10 +522,6 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     ok, zt = _front_box(P, U, res, bx, jitter)
                     if not ok or zt >= tbound:
                         continue
-                    _corner_buckets(P, U, zt, zi)
-                    if tbound < np.inf and _behind_all(zi, tb):
-                        work[C_ITEMS_BUCKETS] += 1
-                        continue
                     ia = max(bx[0], r0)
                     ib = min(bx[1], r1 - 1)
                     ja = max(bx[2], cl0)
@@ -625,7 +541,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     p0 = work[C_PAIRS]
                     u0 = work[C_UNCOVERED]
                     env, eid, T, tid, nc, ovf = _raster(
-                        kind, t, False, zt, zi, ia, ib, span, coef, pix, near, knots, env, eid, T,
+                        kind, t, False, zt, ia, ib, span, coef, pix, near, knots, env, eid, T,
                         tid, sc, work)
                     cyc_raster += _cycles() - cs1
                     work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
@@ -642,19 +558,9 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                             + R[r, 2] * (c0[s, 2] - v0[2])
                         vel[r] = R[r, 0] * (c1[s, 0] - c0[s, 0]) + R[r, 1] * (
                             c1[s, 1] - c0[s, 1]) + R[r, 2] * (c1[s, 2] - c0[s, 2]) - dc[r]
-                    _sphere_buckets(cen, vel, radii[s], prim_z[pr], zi)
-                    if tbound < np.inf and _behind_all(zi, tb):
-                        work[C_ITEMS_BUCKETS] += 1
-                        cyc_setup += _cycles() - cs0
-                        continue
                     sphere_setup(cen, vel, radii[s], coef)
                 else:
                     _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
-                    _corner_buckets(P, U, prim_z[pr], zi)
-                    if tbound < np.inf and _behind_all(zi, tb):
-                        work[C_ITEMS_BUCKETS] += 1
-                        cyc_setup += _cycles() - cs0
-                        continue
                     if flag & FLAG_MOVING:
                         kind = 1
                         moving_setup(P, U, W, coef)
@@ -668,7 +574,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 work[C_SETUPS] += 1
                 cs1 = _cycles()
                 env, eid, T, tid, closed, ovf = _raster(
-                    kind, src, slow, prim_z[pr], zi, ia, ib, span, coef, pix, near, knots, env, eid,
+                    kind, src, slow, prim_z[pr], ia, ib, span, coef, pix, near, knots, env, eid,
                     T, tid, sc, work)
                 cyc_raster += _cycles() - cs1
             cyc_setup += _cycles() - cs0
@@ -677,13 +583,10 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             open_px -= closed
             since += 1
             if open_px == 0 and (tbound == np.inf or since >= 8):
-                tbound = 0.0
-                for k in range(T_BUCKETS):
-                    z = -np.inf
-                    for p in range(npx):
-                        z = max(z, bb[p, k])
-                    tb[k] = z
-                    tbound = max(tbound, z)
+                tb = 0.0
+                for p in range(npx):
+                    tb = max(tb, bound[p])
+                tbound = tb
                 since = 0
         if ovf:
             overflow[qi] = True

@@ -7,13 +7,7 @@ import pytest
 
 from tests.visibility.segment_reference import jittered_visible, sampled_visible, unwitnessed
 from visibility.cores.from_segment.dynamic import cubic_roots01, quadratic_roots
-from visibility.cores.from_segment.envelope import (
-    T_BUCKETS,
-    bucket_bounds,
-    bucket_of,
-    chord_behind,
-    envelope_insert,
-)
+from visibility.cores.from_segment.envelope import envelope_insert, pixel_bound
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import sample_offset
 from visibility.cores.from_segment.segment import segment_visible
@@ -68,13 +62,6 @@ def _pieces(env, eid, n):
     return [(round(env[0, k, 0], 9), round(env[0, k, 1], 9), int(eid[0, k])) for k in range(n)]
 
 
-def pixel_bound(env, px, n):
-    """The pixel's bound over all of t: the greatest of its bucket bounds."""
-    bb = np.empty((px + 1, T_BUCKETS))
-    bucket_bounds(env, px, n, bb, 0, T_BUCKETS - 1)
-    return float(bb[px].max())
-
-
 def _ins(env, eid, n, a, b, za, zb, pid, T, tid):
     """envelope_insert on pixel 0 of a pixel without a bound: (count, changed)."""
     n, changed, _ = envelope_insert(env, eid, 0, n, a, b, za, zb, pid, T, tid, np.inf)
@@ -119,32 +106,24 @@ def test_envelope_fills_gaps_and_reports_overflow():
 
 @pytest.mark.parametrize("seed", range(4))
 def test_envelope_is_the_lower_envelope_and_its_bound_is_kept_lazily(seed):
-    """Random chords: the envelope is the pointwise nearest chord at every t, and the bounds
-    per bucket of t the raster keeps (read again, for the buckets a chord reaches, only when
-    ``envelope_insert`` says one may have changed) are always what a full read gives."""
+    """Random chords: the envelope is the pointwise nearest chord at every t, and the bound the
+    raster keeps (read again only when ``envelope_insert`` says it may have changed) is always
+    what a full ``pixel_bound`` reads."""
     rng = np.random.default_rng(seed)
     env, eid, T, tid = _env(cap=1024)
-    n, chords = 0, []
-    bb = np.full((1, T_BUCKETS), np.inf)
-    full = np.empty((1, T_BUCKETS))
+    n, bound, chords = 0, np.inf, []
     for pid in range(300):
         a, b = np.sort(rng.random(2))
         if pid % 7 == 0:
             a, b = 0.0, 1.0  # whole-segment chords close the pixel early
         za, zb = rng.uniform(1.0, 10.0, 2)
-        k0, k1 = bucket_of(a, T_BUCKETS), bucket_of(b, T_BUCKETS)
-        zbk = bb[0, k0:k1 + 1].min()
-        n2, changed, rebound = envelope_insert(env, eid, 0, n, a, b, za, zb, pid, T, tid, zbk)
+        n2, changed, rebound = envelope_insert(env, eid, 0, n, a, b, za, zb, pid, T, tid, bound)
         assert n2 >= 0
         if changed and rebound:
-            bucket_bounds(env, 0, n2, bb, k0, k1)
+            bound = pixel_bound(env, 0, n2)
         n = n2
         chords.append((a, b, za, zb))
-        bucket_bounds(env, 0, n, full, 0, T_BUCKETS - 1)
-        # Equal up to rounding: a row rewritten without a change of depth (split, or resumed
-        # after a nearer piece) is evaluated at a bucket's end from a new start.
-        assert np.array_equal(np.isinf(bb), np.isinf(full))
-        np.testing.assert_allclose(bb, full, rtol=1e-13, atol=0.0)
+        assert bound == pixel_bound(env, 0, n)
     rows = env[0, :n]
     assert np.all(rows[1:, 0] >= rows[:-1, 1])  # sorted, disjoint
     ts = rng.random(2000)
@@ -508,59 +487,3 @@ def test_bad_segment_inputs_raise():
         segment_visible(geom, np.zeros(3), np.zeros(3), jitter=0.5, seed=-1)
     with pytest.raises(ValueError, match="max_cuts"):
         segment_visible(geom, np.zeros(3), np.zeros(3), max_cuts=-1)
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_bucket_bounds_are_the_greatest_depth_where_a_bucket_is_covered(seed):
-    """Against a dense read of the envelope: a bucket's bound is +inf where the envelope leaves
-    a gap in it, else the envelope's greatest depth over the bucket."""
-    rng = np.random.default_rng(100 + seed)
-    env, eid, T, tid = _env(cap=1024)
-    n = 0
-    bb = np.empty((1, T_BUCKETS))
-    for pid in range(rng.integers(3, 40)):
-        a, b = np.sort(rng.random(2))
-        n, _ = _ins(env, eid, n, a, b, *rng.uniform(1.0, 10.0, 2), pid, T, tid)
-    bucket_bounds(env, 0, n, bb, 0, T_BUCKETS - 1)
-    rows = env[0, :n]
-    for k in range(T_BUCKETS):
-        s, e = k / T_BUCKETS, (k + 1) / T_BUCKETS
-        ts = np.linspace(s, e, 4001)
-        idx = np.searchsorted(rows[:, 1], ts)
-        inside = (idx < n) & (rows[np.minimum(idx, n - 1), 0] <= ts)
-        if not inside.all():
-            assert bb[0, k] == np.inf
-            continue
-        r = rows[idx]
-        z = r[:, 2] + r[:, 3] * (ts - r[:, 0])
-        assert bb[0, k] >= z.max() - 1e-12
-        assert bb[0, k] <= z.max() + 10.0 * (e - s) / 4000 * np.abs(r[:, 3]).max() + 1e-12
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_a_chord_behind_the_bucket_bounds_changes_nothing(seed):
-    """``chord_behind`` says a chord is behind only where inserting it would change nothing,
-    and it says so for chords behind every bucket they reach though not behind the pixel's
-    bound over all of t."""
-    rng = np.random.default_rng(200 + seed)
-    env, eid, T, tid = _env(cap=1024)
-    n = 0
-    # A ramp from depth 1 to 9 over t, closed: the bounds grow bucket by bucket.
-    n, _ = _ins(env, eid, n, 0.0, 1.0, 1.0, 9.0, 0, T, tid)
-    for pid in range(1, 30):
-        a, b = np.sort(rng.random(2))
-        n, _ = _ins(env, eid, n, a, b, *rng.uniform(0.5, 9.5, 2), pid, T, tid)
-    bb = np.empty((1, T_BUCKETS))
-    bucket_bounds(env, 0, n, bb, 0, T_BUCKETS - 1)
-    said = below_bound = 0
-    for _ in range(2000):
-        a, b = np.sort(rng.random(2))
-        za, zb = rng.uniform(0.5, 10.0, 2)
-        if not chord_behind(bb, 0, a, b, za, zb):
-            continue
-        said += 1
-        below_bound += min(za, zb) < bb[0].max()
-        env2, eid2 = env.copy(), eid.copy()
-        n2, changed, _ = envelope_insert(env2, eid2, 0, n, a, b, za, zb, 99, T, tid, np.inf)
-        assert not changed and n2 == n
-    assert said > 50 and below_bound > 20
