@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.cores.from_segment.hull import HMAX, hull_cols, store_hull
+from visibility.borrow import borrow, keep_alive
+from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_box
 from visibility.raster.camera import cube_face_rotations
 from visibility.raster.face_pixels import pixel_range
@@ -159,9 +160,13 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
                          out_flag, first, last):  # pragma: no cover - numba
     """Per cluster and cube face: pixel box and smallest depth of the swept bounding box (its 8
     corners at t = 0 and t = 1, relative to the eye), flags (0 = absent)."""
-    cube = np.empty((16, 3))
-    uv = np.empty((16 + 64, 2))
-    bx = np.empty(4, dtype=np.int64)
+    # Borrowed (``visibility.borrow``): no reference counting at each helper's call, which on
+    # the shared arrays the threads would fight over.
+    lo_c, hi_c, v0, dvec, rb = borrow(lo_c), borrow(hi_c), borrow(v0), borrow(dvec), borrow(rb)
+    perm, sgn = borrow(perm), borrow(sgn)
+    out_box, out_z, out_flag = borrow(out_box), borrow(out_z), borrow(out_flag)
+    own = (np.empty((16, 3)), np.empty((16 + 64, 2)), np.empty(4, dtype=np.int64))
+    cube, uv, bx = borrow(own[0]), borrow(own[1]), borrow(own[2])
     for c in range(first, last):
         for k in range(8):
             x = (lo_c[c, 0] if k & 1 else hi_c[c, 0]) - v0[0]
@@ -181,6 +186,7 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
                     out_box[c, f, r] = bx[r]
                 out_z[c, f] = zm
                 out_flag[c, f] = FLAG_PRESENT | (FLAG_SLOW if slow else 0)
+    keep_alive(own)
 
 
 @njit(**_PJIT)
@@ -207,17 +213,21 @@ def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
 def _expanded_boxes_range(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag, out_hull,
                           first, last):  # pragma: no cover - numba
     """``_expanded_boxes`` for entries [first, last)."""
-    verts0, verts1, faces, moving = geom.verts0, geom.verts1, geom.faces, geom.moving
+    verts0, verts1 = borrow(geom.verts0), borrow(geom.verts1)
+    faces, moving = borrow(geom.faces), borrow(geom.moving)
     v0, dvec, rb, perm, sgn, res, near, pad = frame
-    cube = np.empty((6, 3))
-    uv = np.empty((HMAX, 2))
-    scratch = np.empty((3 * HMAX + 2, 2))
-    bx = np.empty(4, dtype=np.int64)
+    v0, dvec, rb, perm, sgn = borrow(v0), borrow(dvec), borrow(rb), borrow(perm), borrow(sgn)
+    exp_tri, exp_face = borrow(exp_tri), borrow(exp_face)
+    out_box, out_z, out_flag = borrow(out_box), borrow(out_z), borrow(out_flag)
+    hull_pts, hull_count = borrow(out_hull.pts), borrow(out_hull.count)
+    own = (np.empty((6, 3)), np.empty((HMAX, 2)), np.empty((3 * HMAX + 2, 2)),
+           np.empty(4, dtype=np.int64))
+    cube, uv, scratch, bx = borrow(own[0]), borrow(own[1]), borrow(own[2]), borrow(own[3])
     for k in range(first, last):
         t = exp_tri[k]
         f = exp_face[k]
         out_flag[k] = 0
-        out_hull.count[k] = 0
+        hull_count[k] = 0
         _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
         ok, zm, slow, n = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad, uv)
         if ok:
@@ -227,9 +237,10 @@ def _expanded_boxes_range(geom, exp_tri, exp_face, frame, out_box, out_z, out_fl
             # Both ends of a moving triangle's corners hold every position between them, so
             # the same hull bounds its sweep. A small box is cheaper to scan than to hull.
             if (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) >= HULL_MIN_PIXELS:
-                out_hull.count[k] = store_hull(uv, n, res, scratch, out_hull.pts, k)
+                hull_count[k] = store_hull(uv, n, res, scratch, hull_pts, k)
             out_flag[k] = FLAG_PRESENT | (FLAG_MOVING if moving[t] else 0) | (
                 FLAG_SLOW if slow else 0)
+    keep_alive(own)
 
 
 @njit(**_PJIT)
@@ -250,15 +261,16 @@ def _expanded_boxes(geom, exp_tri, exp_face, frame, out_box, out_z, out_flag,
 def _expanded_area(geom, exp_tri, exp_face, frame):  # pragma: no cover - numba
     """Sum of the pixel box areas ``_expanded_boxes`` would give the same entries (no hulls,
     nothing stored): what a piece's split decision needs."""
-    verts0, verts1, faces = geom.verts0, geom.verts1, geom.faces
+    verts0, verts1, faces = borrow(geom.verts0), borrow(geom.verts1), borrow(geom.faces)
     v0, dvec, rb, perm, sgn, res, near, pad = frame
+    v0, dvec, rb, perm, sgn = borrow(v0), borrow(dvec), borrow(rb), borrow(perm), borrow(sgn)
+    exp_tri, exp_face = borrow(exp_tri), borrow(exp_face)
     n = exp_tri.shape[0]
     nch = min(n, 256)
     sums = np.zeros(max(nch, 1), dtype=np.int64)
     for ch in prange(nch):
-        cube = np.empty((6, 3))
-        uv = np.empty((HMAX, 2))
-        bx = np.empty(4, dtype=np.int64)
+        own = (np.empty((6, 3)), np.empty((HMAX, 2)), np.empty(4, dtype=np.int64))
+        cube, uv, bx = borrow(own[0]), borrow(own[1]), borrow(own[2])
         acc = 0
         for k in range(ch * n // nch, (ch + 1) * n // nch):
             _tri_cube(verts0, verts1, faces, exp_tri[k], v0, dvec, rb, cube)
@@ -266,6 +278,7 @@ def _expanded_area(geom, exp_tri, exp_face, frame):  # pragma: no cover - numba
             if ok:
                 acc += (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1)
         sums[ch] = acc
+        keep_alive(own)
     return sums.sum()
 
 
@@ -382,6 +395,8 @@ def _tile_ranges(prim_box, hulls, pad):  # pragma: no cover - numba
     for p in range(n):
         rstart[p + 1] = rstart[p] + prim_box[p, 1] // TILE - prim_box[p, 0] // TILE + 1
     cols = np.empty((rstart[n], 2), dtype=np.int32)
+    prim_box = borrow(prim_box)
+    hulls = Hulls(borrow(hulls.index), borrow(hulls.pts), borrow(hulls.count))
     for p in prange(n):
         ty0 = prim_box[p, 0] // TILE
         for ty in range(ty0, prim_box[p, 1] // TILE + 1):

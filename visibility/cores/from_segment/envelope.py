@@ -18,9 +18,12 @@ START_CAP = 16
 MAX_CAP = 1 << 14
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Hot callees of the pixel loop: inlined, so that numba can drop the reference counting
+#: of their array arguments (atomic, at every call otherwise).
+_JIT_INLINE = dict(_JIT, inline="always")
 
 
-@njit(**_JIT)
+@njit(**_JIT_INLINE)
 def _emit(T, tid, n, a, b, za, m, pid):
     """Append piece [a, b] (depth za at a, slope m) to the scratch list, extending the previous
     piece instead when it is the same primitive's contiguous continuation on the same line."""
@@ -37,7 +40,7 @@ def _emit(T, tid, n, a, b, za, m, pid):
     return n + 1
 
 
-@njit(**_JIT)
+@njit(**_JIT_INLINE)
 def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     """Depth-composite the chord [a, b] (depth za -> zb, primitive pid) into pixel ``px``'s
     envelope.

@@ -103,6 +103,7 @@ class Sweep(NamedTuple):
     knots : moving primitives' depth chords are at most 1 / knots long in t.
     jitter : samples' offset from pixel centres, pixels (``raster.sample_offset``).
     seed : the jitter pattern.
+    cap : envelope rows per pixel to start with (grown x4 as needed, ``raster._grown``).
     """
 
     v0: np.ndarray
@@ -113,6 +114,7 @@ class Sweep(NamedTuple):
     knots: int
     jitter: float
     seed: int
+    cap: int
 
 
 class Results(NamedTuple):
@@ -132,7 +134,10 @@ class Results(NamedTuple):
 
 class PieceScratch(NamedTuple):
     """Scratch of one primitive's cover test at one pixel: its depth pieces (t0, t1, z0, z1)
-    and the moving and sphere covers' breakpoints and stack (``dynamic``, ``spheres``)."""
+    and the moving and sphere covers' breakpoints and stack (``dynamic``, ``spheres``); and
+    ``at`` (4,) int64: the row, column and piece where a draw stopped for want of envelope
+    room, and 1 in ``at[3]`` while the next draw of the primitive resumes there
+    (``raster._raster``)."""
 
     t0: np.ndarray
     t1: np.ndarray
@@ -140,6 +145,7 @@ class PieceScratch(NamedTuple):
     z1: np.ndarray
     brk: np.ndarray
     stk: np.ndarray
+    at: np.ndarray
 
 
 class TilePixels(NamedTuple):

@@ -10,6 +10,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from visibility.borrow import borrow, keep_alive
 from visibility.cores.from_segment.boxes import (
     FLAG_CLUSTER,
     FLAG_MOVING,
@@ -21,7 +22,6 @@ from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.envelope import (
     EPS_LEN,
     MAX_CAP,
-    START_CAP,
     _grow,
     envelope_insert,
     pixel_bound,
@@ -36,6 +36,9 @@ from visibility.raster.face_pixels import pixel_range
 #: A tile whose entries not yet marked visible are at most one in KNOWN_SHARE resolves only
 #: the pixels those can reach (finding the pixels costs a pass over their spans).
 KNOWN_SHARE = 8
+#: One pixel pair in TIME_STRIDE is timed by step (cover test, then the envelope's insertions):
+#: two counter reads at every pair would cost a fifth of a meadow's time.
+TIME_STRIDE = 16
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -58,16 +61,20 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: nothing to the answer); pixels_known: pixels of tiles listing few primitives not yet marked
 #: (``KNOWN_SHARE``) that none of those can reach, skipped for the same reason; items_behind_new:
 #: list entries of such tiles not drawn, beyond the farthest point any of those reaches
-#: (``_far_new``).
+#: (``_far_new``); cycles_cover / cycles_insert: the CPU cycles of the pairs' cover tests and of
+#: their chords' insertions into the envelopes (bound reads included), estimated from one pair
+#: in TIME_STRIDE (the chunk's running count of pairs), times TIME_STRIDE.
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
-            "bound_scans", "tiles_known", "pixels_known", "items_behind_new")
+            "bound_scans", "tiles_known", "pixels_known", "items_behind_new", "cycles_cover",
+            "cycles_insert")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
- C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW) = range(len(COUNTERS))
+ C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_CYCLES_COVER,
+ C_CYCLES_INSERT) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -222,32 +229,55 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
     [span[i - r0, 0], span[i - r0, 1]] (``_row_spans``), sampled at their centres moved by
     (jx, jy)[pixel] NDC units (``sample_offset``). ``T``, ``tid`` (insertion) and ``sc``
     (``groups.PieceScratch``) are scratch. Adds its work to ``work`` (``COUNTERS``
-    columns). Returns (env, eid, T, tid, pixels newly bounded, overflow); the storage is
-    reallocated when it grows."""
+    columns). Returns (pixels newly bounded, full): ``full`` when an envelope ran out of
+    room, the primitive drawn up to the pixel and piece kept in ``sc.at``; the caller grows
+    the storage (``_grown``) and calls again, which resumes there (so no chord is inserted
+    twice). The arrays are never rebound here, so numba counts no references at each
+    insertion."""
     r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
-    pt0, pt1, pz0, pz1, brk, stk = sc
+    pt0, pt1, pz0, pz1, brk, stk, at = sc
+    # Resuming a draw cut short: skip what it already drew.
+    ri = -1
+    rj = 0
+    rq = 0
+    if at[3] == 1:
+        ri = at[0]
+        rj = at[1]
+        rq = at[2]
+        at[3] = 0
     closed = 0
     pairs = 0
     uncovered = 0
     behind = 0
     moved = 0
     pieces = 0
-    grows = 0
     scan = 0
     ins = 0
     rescans = 0
-    for i in range(ia, ib + 1):
+    full = False
+    cyc_cover = 0
+    cyc_insert = 0
+    pairs_before = work[C_PAIRS]
+    for i in range(max(ia, ri), ib + 1):
         yc = 1.0 - (i + 0.5) * step
-        for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
+        j0 = span[i - r0, 0]
+        if i == ri:
+            j0 = rj
+        for j in range(j0, span[i - r0, 1] + 1):
+            q0 = rq if (i == ri and j == rj) else 0
             px = (i - r0) * tw + (j - cl0)
             bpx = bound[px]
             if zpr >= bpx:
                 continue
             x = (j + 0.5) * step - 1.0 + jx[px]
             y = yc + jy[px]
+            timed = (pairs_before + pairs) % TIME_STRIDE == 0
             pairs += 1
+            cc = _cycles() if timed else 0
             if kind == 0:
                 ok, ts, tf, zs, zf = static_cover(coef, x, y, near, slow)
+                if timed:
+                    cyc_cover += _cycles() - cc
                 if not ok:
                     uncovered += 1
                     continue
@@ -263,9 +293,14 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
                 npc = moving_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
             else:
                 npc = sphere_cover(coef, x, y, near, slow, knots, pt0, pt1, pz0, pz1, brk, stk)
+            if timed:
+                cc1 = _cycles()
+                if kind != 0:
+                    cyc_cover += cc1 - cc
+                cc = cc1
             if npc == 0:
                 uncovered += 1
-            for q in range(npc):
+            for q in range(q0, npc):
                 if min(pz0[q], pz1[q]) >= bound[px]:
                     continue
                 pieces += 1
@@ -274,14 +309,13 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
                 nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q], pt1[q],
                                                        pz0[q], pz1[q], pid, T, tid, bound[px])
                 if nn < 0:
-                    # Deep envelope: grow this chunk's storage in place and retry.
-                    if 4 * env.shape[1] > MAX_CAP:
-                        return env, eid, T, tid, closed, True
-                    env, eid, T, tid = _grow(env, eid, cnt, npx, 4 * env.shape[1])
-                    grows += 1
-                    nn, changed, rebound = envelope_insert(env, eid, px, cnt[px], pt0[q],
-                                                           pt1[q], pz0[q], pz1[q], pid, T, tid,
-                                                           bound[px])
+                    # Deep envelope: the caller grows the storage and resumes here.
+                    at[0] = i
+                    at[1] = j
+                    at[2] = q
+                    at[3] = 1
+                    full = True
+                    break
                 if changed:
                     ins += 1
                     if nn != cnt[px]:
@@ -294,16 +328,33 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
                             if bound[px] == np.inf:
                                 closed += 1
                             bound[px] = zb
+            if timed:
+                cyc_insert += _cycles() - cc
+            if full:
+                break
+        if full:
+            break
+    work[C_CYCLES_COVER] += TIME_STRIDE * cyc_cover
+    work[C_CYCLES_INSERT] += TIME_STRIDE * cyc_insert
     work[C_PAIRS] += pairs
     work[C_UNCOVERED] += uncovered
     work[C_BEHIND] += behind
     work[C_INSERT_MOVED] += moved
     work[C_PIECES] += pieces
-    work[C_GROWS] += grows
     work[C_INSERTS] += ins
     work[C_INSERT_SCAN] += scan
     work[C_BOUND_SCANS] += rescans
-    return env, eid, T, tid, closed, False
+    return closed, full
+
+
+@njit(**_JIT)
+def _grown(env, eid, T, tid, cnt, npx, work):
+    """The envelope storage grown x4 (``_grow``) and True, or the same and False at MAX_CAP."""
+    if 4 * env.shape[1] > MAX_CAP:
+        return env, eid, T, tid, False
+    env2, eid2, T2, tid2 = _grow(env, eid, cnt, npx, 4 * env.shape[1])
+    work[C_GROWS] += 1
+    return env2, eid2, T2, tid2, True
 
 
 @njit(**_PJIT)
@@ -387,44 +438,96 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
 
 
 @njit(**_JIT)
+def _chunk_scratch(npx_max, maxp):
+    """The scratch arrays of one chunk of ``_resolve`` (owners; ``_resolve_chunk`` borrows
+    them): per pixel of a tile its piece count, bound and sample offsets; one primitive's
+    set-up, corners, velocities, world corners, face rotation, eye motion, sphere centre and
+    velocity, pixel box, row spans, swept hull scratch; the cover tests' pieces."""
+    return (np.zeros(npx_max, dtype=np.int64), np.empty(npx_max), np.zeros(npx_max),
+            np.zeros(npx_max), np.empty(40), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3),
+            np.empty(4, dtype=np.int64), np.empty((TILE, 2), dtype=np.int64), np.empty((6, 2)),
+            np.empty((14, 2)), np.empty((1, HMAX, 2), dtype=np.float32), np.empty(maxp),
+            np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(48), np.empty((64, 4)),
+            np.zeros(4, dtype=np.int64))
+
+
+@njit(**_JIT)
 def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cover - numba
     """Chunk ``ch`` of ``_resolve``, run by worker ``worker``."""
+    # Everything the per-item and per-pixel helpers take is borrowed (``visibility.borrow``):
+    # numba counts no references for it at each call, which on shared arrays the two threads
+    # would fight over. The owners: the arguments, and the local ones kept alive at the end.
     tiles, n_chunks, _, tile_start, tile_items = job
+    tiles = borrow(tiles)
+    tile_start = borrow(tile_start)
+    tile_items = borrow(tile_items)
     prim_src, prim_box, prim_z, prim_zkey, prim_flag, _, h_index, h_pts, h_count = prims
-    hulls = Hulls(h_index, h_pts, h_count)
+    prim_src = borrow(prim_src)
+    prim_box = borrow(prim_box)
+    prim_z = borrow(prim_z)
+    prim_zkey = borrow(prim_zkey)
+    prim_flag = borrow(prim_flag)
+    hulls = Hulls(borrow(h_index), borrow(h_pts), borrow(h_count))
     verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri = geom
-    v0, dvec, rots, res, near, knots, jitter, seed = sweep
+    verts0 = borrow(verts0)
+    verts1 = borrow(verts1)
+    faces = borrow(faces)
+    moving = borrow(moving)
+    cl_start = borrow(cl_start)
+    cl_tris = borrow(cl_tris)
+    c0 = borrow(c0)
+    c1 = borrow(c1)
+    radii = borrow(radii)
+    geom = (verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri)
+    v0, dvec, rots, res, near, knots, jitter, seed, cap = sweep
+    v0 = borrow(v0)
+    dvec = borrow(dvec)
+    rots = borrow(rots)
     visible, overflow, counters, witness = out
+    visible = borrow(visible)
+    overflow = borrow(overflow)
+    witness = borrow(witness)
     ntx = (res + TILE - 1) // TILE
     per_face = ntx * ntx
     npx_max = TILE * TILE
     step = 2.0 / res
     maxp = 8 * (knots + 2) + 8
     want_witness = witness.shape[1] == visible.shape[0]
-    cap = START_CAP
-    env = np.empty((npx_max, cap, 4))
-    eid = np.empty((npx_max, cap), dtype=np.int32)
-    cnt = np.zeros(npx_max, dtype=np.int64)
-    bound = np.empty(npx_max)
-    T = np.empty((2 * cap + 8, 4))  # insertion scratch
-    tid = np.empty(2 * cap + 8, dtype=np.int32)
-    c_uv = np.empty((6, 2))  # a cluster triangle's swept hull (``_front_spans``)
-    c_scratch = np.empty((14, 2))
-    c_pts = np.empty((1, HMAX, 2), dtype=np.float32)
-    sc = PieceScratch(np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(maxp),
-                      np.empty(48), np.empty((64, 4)))
-    coef = np.empty(40)
-    P = np.empty((3, 3))
-    U = np.empty((3, 3))
-    W = np.empty((3, 3))
-    dc = np.empty(3)
-    cen = np.empty(3)
-    vel = np.empty(3)
-    bx = np.empty(4, dtype=np.int64)
-    span = np.empty((TILE, 2), dtype=np.int64)
-    jx = np.zeros(npx_max)
-    jy = np.zeros(npx_max)
-    work = counters[ch]
+    # The envelopes' storage, grown in place (``_grow``): owners and borrowed views.
+    env_o = np.empty((npx_max, cap, 4))
+    eid_o = np.empty((npx_max, cap), dtype=np.int32)
+    T_o = np.empty((2 * cap + 8, 4))  # insertion scratch
+    tid_o = np.empty(2 * cap + 8, dtype=np.int32)
+    env = borrow(env_o)
+    eid = borrow(eid_o)
+    T = borrow(T_o)
+    tid = borrow(tid_o)
+    own = _chunk_scratch(npx_max, maxp)
+    cnt = borrow(own[0])
+    bound = borrow(own[1])
+    jx = borrow(own[2])
+    jy = borrow(own[3])
+    coef = borrow(own[4])
+    P = borrow(own[5])
+    U = borrow(own[6])
+    W = borrow(own[7])
+    R = borrow(own[8])
+    dc = borrow(own[9])
+    cen = borrow(own[10])
+    vel = borrow(own[11])
+    bx = borrow(own[12])
+    span = borrow(own[13])
+    c_uv = borrow(own[14])  # a cluster triangle's swept hull (``_front_spans``)
+    c_scratch = borrow(own[15])
+    c_pts = borrow(own[16])
+    sc = PieceScratch(borrow(own[17]), borrow(own[18]), borrow(own[19]), borrow(own[20]),
+                      borrow(own[21]), borrow(own[22]), borrow(own[23]))
+    # A private row of counters, copied out at the end.
+    work_o = np.zeros(counters.shape[1], dtype=np.int64)
+    work = borrow(work_o)
+    for k in range(counters.shape[1]):
+        work[k] = counters[ch, k]
     cyc_setup = 0
     cyc_raster = 0
     cyc_tile = 0
@@ -483,7 +586,9 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             work[C_PX_KNOWN] += npx - open_px
         tbound = np.inf
         since = 0
-        R = rots[f]
+        for r in range(3):
+            for c in range(3):
+                R[r, c] = rots[f, r, c]
         for r in range(3):
             dc[r] = R[r, 0] * dvec[0] + R[r, 1] * dvec[1] + R[r, 2] * dvec[2]
         # With few primitives still to mark, what lies beyond all of them is not drawn.
@@ -540,9 +645,23 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     cs1 = _cycles()
                     p0 = work[C_PAIRS]
                     u0 = work[C_UNCOVERED]
-                    env, eid, T, tid, nc, ovf = _raster(
-                        kind, t, False, zt, ia, ib, span, coef, pix, near, knots, env, eid, T,
-                        tid, sc, work)
+                    nc = 0
+                    while True:
+                        more, full = _raster(kind, t, False, zt, ia, ib, span, coef, pix, near,
+                                             knots, env, eid, T, tid, sc, work)
+                        nc += more
+                        if not full:
+                            break
+                        # An envelope ran out of room: grow the storage, resume the draw.
+                        env_o, eid_o, T_o, tid_o, grown = _grown(env_o, eid_o, T_o, tid_o,
+                                                                 cnt, npx, work)
+                        if not grown:
+                            ovf = True
+                            break
+                        env = borrow(env_o)
+                        eid = borrow(eid_o)
+                        T = borrow(T_o)
+                        tid = borrow(tid_o)
                     cyc_raster += _cycles() - cs1
                     work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
                     work[C_CLUSTER_UNCOVERED] += work[C_UNCOVERED] - u0
@@ -573,9 +692,21 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                            min(prim_box[pr, 3], cl1 - 1), r0, jitter, span)
                 work[C_SETUPS] += 1
                 cs1 = _cycles()
-                env, eid, T, tid, closed, ovf = _raster(
-                    kind, src, slow, prim_z[pr], ia, ib, span, coef, pix, near, knots, env, eid,
-                    T, tid, sc, work)
+                while True:
+                    more, full = _raster(kind, src, slow, prim_z[pr], ia, ib, span, coef, pix,
+                                         near, knots, env, eid, T, tid, sc, work)
+                    closed += more
+                    if not full:
+                        break
+                    env_o, eid_o, T_o, tid_o, grown = _grown(env_o, eid_o, T_o, tid_o, cnt,
+                                                             npx, work)
+                    if not grown:
+                        ovf = True
+                        break
+                    env = borrow(env_o)
+                    eid = borrow(eid_o)
+                    T = borrow(T_o)
+                    tid = borrow(tid_o)
                 cyc_raster += _cycles() - cs1
             cyc_setup += _cycles() - cs0
             if ovf:
@@ -590,6 +721,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 since = 0
         if ovf:
             overflow[qi] = True
+            sc.at[3] = 0  # the draw cut short is not resumed
             continue
         ct0 = _cycles()
         for p in range(npx):
@@ -612,3 +744,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     work[C_CYCLES_RASTER] += cyc_raster
     work[C_CYCLES_TILE] += cyc_tile
     work[C_THREAD] = worker
+    for k in range(counters.shape[1]):
+        counters[ch, k] = work[k]
+    keep_alive(env_o)
+    keep_alive(eid_o)
+    keep_alive(T_o)
+    keep_alive(tid_o)
+    keep_alive(own)
+    keep_alive(work_o)

@@ -182,6 +182,7 @@ def segment_visible(
     jitter: float = 0.0,
     seed: int = 0,
     max_cuts: int | None = None,
+    envelope_cap: int = START_CAP,
 ) -> np.ndarray:
     """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
 
@@ -216,6 +217,8 @@ def segment_visible(
     max_cuts : a segment along which near geometry sweeps across much of the cube is solved as
         pieces, halved up to this many times over (``_piece``, ``stats["splits"]``; None =
         ``MAX_SPLIT_DEPTH``, 0 = never), when nothing in the scene moves.
+    envelope_cap : envelope rows per pixel to start with, grown x4 as a pixel needs more (up to
+        ``MAX_CAP``); the answer does not depend on it (a smaller one tests the growth).
 
     Returns
     -------
@@ -237,6 +240,9 @@ def segment_visible(
         raise ValueError(f"jitter must be in [0, 0.5] pixels, got {jitter}")
     if int(seed) < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
+    cap = int(envelope_cap)
+    if not 1 <= cap <= MAX_CAP:
+        raise ValueError(f"envelope_cap must be in [1, {MAX_CAP}], got {envelope_cap}")
     cuts = MAX_SPLIT_DEPTH if max_cuts is None else int(max_cuts)
     if not 0 <= cuts <= 16:
         raise ValueError(f"max_cuts must be in [0, 16], got {max_cuts}")
@@ -254,12 +260,12 @@ def segment_visible(
     splittable = geom.verts0 is geom.verts1 and geom.centers0 is geom.centers1
     _piece(geom, v0, v1 - v0, 0.0, 1.0, cuts if splittable else 0, rb, rots, res,
            float(near), int(knots), jitter, int(seed), max(1, int(batch)), visible, stats,
-           witness)
+           witness, cap=cap)
     return visible
 
 
 def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, seed, batch,
-           visible, stats, witness, est=0.0):
+           visible, stats, witness, est=0.0, cap=START_CAP):
     """Visible set of the eye walking v0 -> v0 + dvec (times [ta, tb] of the whole segment).
 
     A piece whose primitives' pixel boxes add up to more than ``SPLIT_AREA`` times the cube's
@@ -268,7 +274,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position). ``est``: an
     estimate of the piece's area from its parent's (0: none); over the limit, the piece is cut
-    without measuring."""
+    without measuring. ``cap``: envelope rows per pixel to start with."""
     t0 = time.perf_counter()
     limit = SPLIT_AREA * 6 * res * res
     # The decision needs only the boxes' areas (no hulls, nothing stored). Deciding whole
@@ -289,7 +295,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
         for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
             checkpoint()
             _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
-                   seed, batch, visible, stats, witness, 0.25 * area)
+                   seed, batch, visible, stats, witness, 0.25 * area, cap)
         return
     prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
         geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
@@ -302,7 +308,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # Tiles are strided over several chunks per thread so busy screen regions spread out.
     nch = max(1, min(len(tiles), 8 * numba.get_num_threads()))
     counters = np.zeros((nch, len(COUNTERS)), dtype=np.int64)
-    counters[:, C_MAX_CAP] = START_CAP
+    counters[:, C_MAX_CAP] = cap
     busiest = 0
     wit = np.zeros((nch, geom.n_ids, 5)) if witness is not None else np.zeros((1, 0, 5))
     overflow = np.zeros(len(tiles), dtype=bool)
@@ -310,7 +316,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # or late computation stops within a fraction of one segment's time.
     groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
     rows = PrimRows.of(prim_src, prim_box, prim_z, zkey, prim_flag, prim_face, hulls)
-    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed)
+    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed, cap)
     garrays = geom.arrays()
     for sel in np.array_split(np.arange(len(tiles)), groups):
         if not len(sel):

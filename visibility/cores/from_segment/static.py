@@ -18,6 +18,9 @@ import numpy as np
 from numba import njit
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Hot callees of the pixel loop: inlined, so that numba can drop the reference counting
+#: of their array arguments (atomic, at every call otherwise).
+_JIT_INLINE = dict(_JIT, inline="always")
 
 
 @njit(**_JIT)
@@ -76,7 +79,7 @@ def static_setup(P: np.ndarray, W: np.ndarray, d: np.ndarray, coef: np.ndarray) 
     coef[23] = nx * nx + ny * ny + nz * nz
 
 
-@njit(**_JIT)
+@njit(**_JIT_INLINE)
 def static_cover(coef: np.ndarray, x: float, y: float, near: float,
                  slow: bool) -> tuple[bool, float, float, float, float]:
     """Coverage interval and end depths of a static triangle at the pixel ray (x, y, -1).

@@ -1,0 +1,38 @@
+"""``visibility.borrow``: arrays without an owner inside numba kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from visibility.borrow import borrow, keep_alive
+
+
+@njit(cache=True, nogil=True)
+def _sum_rows(m):
+    out = np.zeros(m.shape[0])
+    for i in range(m.shape[0]):
+        for j in range(m.shape[1]):
+            out[i] += m[i, j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _through_borrowed(a):
+    """Writes through a borrowed view of ``a`` and of a local owner, reads slices of both."""
+    b = borrow(a)
+    b[0, 0] = 7.0
+    own = np.arange(6.0).reshape((2, 3))
+    c = borrow(own)
+    c[1, 2] = 10.0
+    s = _sum_rows(b)[0] + _sum_rows(c[1:])[0] + c.reshape(6)[5]
+    keep_alive(own)
+    return s
+
+
+def test_a_borrowed_array_is_the_same_memory():
+    a = np.ones((3, 4))
+    # b[0] sums to 7 + 3, c's second row to 3 + 4 + 10, and c's last item is 10.
+    assert _through_borrowed(a) == 10.0 + 17.0 + 10.0
+    assert a[0, 0] == 7.0 and a.sum() == 18.0
+
