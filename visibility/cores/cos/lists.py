@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.borrow import borrow, keep_alive
 from visibility.cores.cos.space import (
     load_prim,
     overlaps_share,
@@ -89,11 +90,28 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
     # Chunks of primitives, each with its own scratch: an allocation per primitive cost as
     # much as its projection.
     n_sel = sel.shape[0]
+    # Borrowed (``visibility.borrow``): no reference counting at the helpers' calls.
+    pts = borrow(pts)
+    start = borrow(start)
+    npts = borrow(npts)
+    kind = borrow(kind)
+    order = borrow(order)
+    sel = borrow(sel)
+    origin = borrow(origin)
+    perm = borrow(perm)
+    sign = borrow(sign)
+    corners = borrow(corners)
+    near_box = borrow(near_box)
+    rng = borrow(rng)
     for c0 in prange((n_sel + FOOTPRINT_CHUNK - 1) // FOOTPRINT_CHUNK):
-        cam = np.empty((8, 3))
-        lo = np.empty(3)
-        hi = np.empty(3)
-        clip = np.empty((8, 3))
+        cam_own = np.empty((8, 3))
+        cam = borrow(cam_own)
+        lo_own = np.empty(3)
+        lo = borrow(lo_own)
+        hi_own = np.empty(3)
+        hi = borrow(hi_own)
+        clip_own = np.empty((8, 3))
+        clip = borrow(clip_own)
         for s in range(c0 * FOOTPRINT_CHUNK, min(n_sel, (c0 + 1) * FOOTPRINT_CHUNK)):
             t = sel[s]
             rng[t, 0] = 1
@@ -169,6 +187,7 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
             rng[t, 1] = i1
             rng[t, 2] = j0
             rng[t, 3] = j1
+        keep_alive((cam_own, lo_own, hi_own, clip_own,))
 
 
 @njit(cache=True, nogil=True)
@@ -235,36 +254,78 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     h = 0.5 * pw
     npix = TILE * TILE
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
+    # Borrowed (``visibility.borrow``): no reference counting at the helpers' calls.
+    pts = borrow(pts)
+    start = borrow(start)
+    npts = borrow(npts)
+    kind = borrow(kind)
+    vid = borrow(vid)
+    solid = borrow(solid)
+    gap = borrow(gap)
+    origin = borrow(origin)
+    perm = borrow(perm)
+    sign = borrow(sign)
+    corners = borrow(corners)
+    entries = borrow(entries)
+    pstart = borrow(pstart)
+    pcount = borrow(pcount)
+    torder = borrow(torder)
+    order = borrow(order)
+    rng = borrow(rng)
+    tile_off = borrow(tile_off)
+    tile_items = borrow(tile_items)
+    drop = borrow(drop)
+    slot = borrow(slot)
+    cut = borrow(cut)
     for it in prange(tile1 - tile0):
         tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         base = slot[tile - tile0]
         size = slot[tile - tile0 + 1] - base
-        tmp = np.empty(size, dtype=np.int32)
-        tloc = np.empty(size, dtype=np.int16)
-        cnt = np.zeros(npix, dtype=np.int64)
-        cam = np.empty((8, 3))
-        qv = np.empty((8, 2))
-        qr = np.empty(8)
+        tmp_own = np.empty(size, dtype=np.int32)
+        tmp = borrow(tmp_own)
+        tloc_own = np.empty(size, dtype=np.int16)
+        tloc = borrow(tloc_own)
+        cnt_own = np.zeros(npix, dtype=np.int64)
+        cnt = borrow(cnt_own)
+        cam_own = np.empty((8, 3))
+        cam = borrow(cam_own)
+        qv_own = np.empty((8, 2))
+        qv = borrow(qv_own)
+        qr_own = np.empty(8)
+        qr = borrow(qr_own)
         # The offset region of each of the tile's pixels, computed once for all its items.
-        prv = np.empty((npix, 4, 2))
-        prr = np.empty((npix, 4))
-        preg = np.empty((npix, 12))
+        prv_own = np.empty((npix, 4, 2))
+        prv = borrow(prv_own)
+        prr_own = np.empty((npix, 4))
+        prr = borrow(prr_own)
+        preg_own = np.empty((npix, 12))
+        preg = borrow(preg_own)
         # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
-        lray = np.empty(npix)
-        zgap = np.full(npix, np.inf)
+        lray_own = np.empty(npix)
+        lray = borrow(lray_own)
+        zgap_own = np.full(npix, np.inf)
+        zgap = borrow(zgap_own)
         # Early-z triangles that did not hold a pixel's region alone (a ring per pixel): the
         # next one may, fused with one of them along a shared edge (a wall's quad).
-        cand = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
-        czmax = np.empty((npix, PAIR_CANDIDATES))
-        cbox = np.empty((npix, PAIR_CANDIDATES, 4))
-        cnext = np.zeros(npix, dtype=np.int64)
-        ccam = np.empty((3, 3))
-        cv = np.empty((3, 2))
-        cr = np.empty(3)
+        cand_own = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
+        cand = borrow(cand_own)
+        czmax_own = np.empty((npix, PAIR_CANDIDATES))
+        czmax = borrow(czmax_own)
+        cbox_own = np.empty((npix, PAIR_CANDIDATES, 4))
+        cbox = borrow(cbox_own)
+        cnext_own = np.zeros(npix, dtype=np.int64)
+        cnext = borrow(cnext_own)
+        ccam_own = np.empty((3, 3))
+        ccam = borrow(ccam_own)
+        cv_own = np.empty((3, 2))
+        cv = borrow(cv_own)
+        cr_own = np.empty(3)
+        cr = borrow(cr_own)
         # Set up at a pixel's first item: open scenes leave many pixels of a tile empty.
-        ready = np.zeros(npix, dtype=np.bool_)
+        ready_own = np.zeros(npix, dtype=np.bool_)
+        ready = borrow(ready_own)
         m = 0
         ncut = 0
         zall = np.inf  # the largest zgap of the tile's pixels
@@ -382,3 +443,7 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
             loc = tloc[e]
             entries[cnt[loc]] = tmp[e]
             cnt[loc] += 1
+        keep_alive((tmp_own, tloc_own, cnt_own, cam_own, qv_own, qr_own,))
+        keep_alive((prv_own, prr_own, preg_own, lray_own, zgap_own, cand_own,))
+        keep_alive((czmax_own, cbox_own, cnext_own, ccam_own, cv_own, cr_own,))
+        keep_alive((ready_own,))
