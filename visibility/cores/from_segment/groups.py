@@ -163,3 +163,39 @@ class TilePixels(NamedTuple):
     bound: np.ndarray
     jx: np.ndarray
     jy: np.ndarray
+
+
+class ChunkScratch(NamedTuple):
+    """The arrays one chunk of ``raster._resolve`` owns (``raster._chunk_scratch``), borrowed
+    by ``raster._resolve_chunk``: per pixel of a tile its piece count ``cnt`` (int64),
+    ``bound`` and sample offsets ``jx``, ``jy``; one primitive's set-up ``coef`` (40,),
+    camera-space corners ``P``, velocities ``U``, world corners ``W`` (3, 3), the face
+    rotation ``R`` (3, 3), the eye's motion ``dc`` (3,), a sphere's centre ``cen`` and velocity
+    ``vel`` (3,), a pixel box ``bx`` (4,) int64, row spans ``span`` (TILE, 2) int64, a cluster
+    triangle's swept hull scratch ``c_uv`` (6, 2), ``c_scratch`` (14, 2), ``c_pts`` (1, HMAX,
+    2) float32; and the fields of a ``PieceScratch`` (``t0`` ... ``at``)."""
+
+    cnt: np.ndarray
+    bound: np.ndarray
+    jx: np.ndarray
+    jy: np.ndarray
+    coef: np.ndarray
+    P: np.ndarray
+    U: np.ndarray
+    W: np.ndarray
+    R: np.ndarray
+    dc: np.ndarray
+    cen: np.ndarray
+    vel: np.ndarray
+    bx: np.ndarray
+    span: np.ndarray
+    c_uv: np.ndarray
+    c_scratch: np.ndarray
+    c_pts: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+    z0: np.ndarray
+    z1: np.ndarray
+    brk: np.ndarray
+    stk: np.ndarray
+    at: np.ndarray

@@ -26,7 +26,7 @@ from visibility.cores.from_segment.envelope import (
     envelope_insert,
     pixel_bound,
 )
-from visibility.cores.from_segment.groups import PieceScratch, TilePixels
+from visibility.cores.from_segment.groups import ChunkScratch, PieceScratch, TilePixels
 from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
@@ -439,17 +439,16 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
 
 @njit(**_JIT)
 def _chunk_scratch(npx_max, maxp):
-    """The scratch arrays of one chunk of ``_resolve`` (owners; ``_resolve_chunk`` borrows
-    them): per pixel of a tile its piece count, bound and sample offsets; one primitive's
-    set-up, corners, velocities, world corners, face rotation, eye motion, sphere centre and
-    velocity, pixel box, row spans, swept hull scratch; the cover tests' pieces."""
-    return (np.zeros(npx_max, dtype=np.int64), np.empty(npx_max), np.zeros(npx_max),
-            np.zeros(npx_max), np.empty(40), np.empty((3, 3)), np.empty((3, 3)),
-            np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3),
-            np.empty(4, dtype=np.int64), np.empty((TILE, 2), dtype=np.int64), np.empty((6, 2)),
-            np.empty((14, 2)), np.empty((1, HMAX, 2), dtype=np.float32), np.empty(maxp),
-            np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(48), np.empty((64, 4)),
-            np.zeros(4, dtype=np.int64))
+    """The scratch arrays of one chunk of ``_resolve`` (``groups.ChunkScratch``; owners,
+    which ``_resolve_chunk`` borrows)."""
+    return ChunkScratch(
+        np.zeros(npx_max, dtype=np.int64), np.empty(npx_max), np.zeros(npx_max),
+        np.zeros(npx_max), np.empty(40), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+        np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3), np.empty(4, dtype=np.int64),
+        np.empty((TILE, 2), dtype=np.int64), np.empty((6, 2)), np.empty((14, 2)),
+        np.empty((1, HMAX, 2), dtype=np.float32), np.empty(maxp), np.empty(maxp),
+        np.empty(maxp), np.empty(maxp), np.empty(48), np.empty((64, 4)),
+        np.zeros(4, dtype=np.int64))
 
 
 @njit(**_JIT)
@@ -504,25 +503,25 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     T = borrow(T_o)
     tid = borrow(tid_o)
     own = _chunk_scratch(npx_max, maxp)
-    cnt = borrow(own[0])
-    bound = borrow(own[1])
-    jx = borrow(own[2])
-    jy = borrow(own[3])
-    coef = borrow(own[4])
-    P = borrow(own[5])
-    U = borrow(own[6])
-    W = borrow(own[7])
-    R = borrow(own[8])
-    dc = borrow(own[9])
-    cen = borrow(own[10])
-    vel = borrow(own[11])
-    bx = borrow(own[12])
-    span = borrow(own[13])
-    c_uv = borrow(own[14])  # a cluster triangle's swept hull (``_front_spans``)
-    c_scratch = borrow(own[15])
-    c_pts = borrow(own[16])
-    sc = PieceScratch(borrow(own[17]), borrow(own[18]), borrow(own[19]), borrow(own[20]),
-                      borrow(own[21]), borrow(own[22]), borrow(own[23]))
+    cnt = borrow(own.cnt)
+    bound = borrow(own.bound)
+    jx = borrow(own.jx)
+    jy = borrow(own.jy)
+    coef = borrow(own.coef)
+    P = borrow(own.P)
+    U = borrow(own.U)
+    W = borrow(own.W)
+    R = borrow(own.R)
+    dc = borrow(own.dc)
+    cen = borrow(own.cen)
+    vel = borrow(own.vel)
+    bx = borrow(own.bx)
+    span = borrow(own.span)
+    c_uv = borrow(own.c_uv)  # a cluster triangle's swept hull (``_front_spans``)
+    c_scratch = borrow(own.c_scratch)
+    c_pts = borrow(own.c_pts)
+    sc = PieceScratch(borrow(own.t0), borrow(own.t1), borrow(own.z0), borrow(own.z1),
+                      borrow(own.brk), borrow(own.stk), borrow(own.at))
     # A private row of counters, copied out at the end.
     work_o = np.zeros(counters.shape[1], dtype=np.int64)
     work = borrow(work_o)
