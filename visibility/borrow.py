@@ -10,7 +10,10 @@ kernel's end, since numba frees an array after its variable's last use.
 
 Rules: borrow only arrays whose owner outlives every use of the borrowed one (a kernel's
 arguments, or a local owner passed to ``keep_alive`` after the last use); never return a
-borrowed array to Python or store it in one that outlives the owner.
+borrowed array to Python or store it in one that outlives the owner; and never write, inside
+a ``prange`` loop, to an array borrowed outside it: numba 0.68 can lose such writes (a
+borrowed argument filled in a ``prange`` loop came back untouched in a trial; arrays borrowed
+inside the loop's body, or written by a function it calls, are not affected).
 """
 
 from __future__ import annotations

@@ -102,7 +102,7 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
     sign = borrow(sign)
     corners = borrow(corners)
     near_box = borrow(near_box)
-    rng = borrow(rng)
+    # rng, which footprints writes in its parallel loop, stays owned (``visibility.borrow``).
     for c0 in prange((n_sel + FOOTPRINT_CHUNK - 1) // FOOTPRINT_CHUNK):
         cam_own = np.empty((8, 3))
         cam = borrow(cam_own)
@@ -266,17 +266,14 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     perm = borrow(perm)
     sign = borrow(sign)
     corners = borrow(corners)
-    entries = borrow(entries)
-    pstart = borrow(pstart)
-    pcount = borrow(pcount)
+    # entries, pstart, pcount and cut, which the parallel loop writes, stay owned
+    # (``visibility.borrow``).
     torder = borrow(torder)
     order = borrow(order)
-    rng = borrow(rng)
     tile_off = borrow(tile_off)
     tile_items = borrow(tile_items)
     drop = borrow(drop)
     slot = borrow(slot)
-    cut = borrow(cut)
     for it in prange(tile1 - tile0):
         tile = torder[it]
         ty = tile // tiles_x

@@ -867,7 +867,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     vid, solid, gap, entries = borrow(vid), borrow(solid), borrow(gap), borrow(entries)
     pstart, pcount, torder, origin = borrow(pstart), borrow(pcount), borrow(torder), borrow(origin)
     perm, sign, corners, known = borrow(perm), borrow(sign), borrow(corners), borrow(known)
-    vis, hid, counters, stop = borrow(vis), borrow(hid), borrow(counters), borrow(stop)
+    stop = borrow(stop)
+    # What the parallel loop writes (vis, hid, counters) stays owned: ``visibility.borrow``.
     h = 0.5 * pw
     npix = tsz * tsz
     mark = hid.shape[0] > 0
