@@ -11,9 +11,12 @@ kernel's end, since numba frees an array after its variable's last use.
 Rules: borrow only arrays whose owner outlives every use of the borrowed one (a kernel's
 arguments, or a local owner passed to ``keep_alive`` after the last use); never return a
 borrowed array to Python or store it in one that outlives the owner; and never write, inside
-a ``prange`` loop, to an array borrowed outside it: numba 0.68 can lose such writes (a
-borrowed argument filled in a ``prange`` loop came back untouched in a trial; arrays borrowed
-inside the loop's body, or written by a function it calls, are not affected).
+a ``prange`` loop, to an array borrowed outside it. numba's parfor pass does not know that a
+borrowed array aliases its owner, so when the borrowed name is not used after the loop it
+takes the loop's stores into it for dead and drops them: a 1D argument borrowed before a
+``prange`` loop that fills it comes back untouched (numba 0.68; with a read after the loop,
+or a 2D array, the stores stayed in a trial, but that is not a rule to lean on). Arrays
+borrowed inside the loop's body, or written by a function the loop calls, are not affected.
 """
 
 from __future__ import annotations
