@@ -3,7 +3,7 @@
 Every njit function that receives an array, and every variable numba may rebind, counts a
 reference to the array's memory on entry and releases it on exit: an atomic add each, on a
 cache line that two threads taking the same shared array fight over. In a kernel that calls a
-helper per pixel or per primitive these counts become a fifth of the run time. ``borrow``
+helper per pixel or per primitive these counts become a large share of the run time. ``borrow``
 returns the same array (same data, shape and strides) without an owner, so numba counts
 nothing for it or for anything sliced from it; ``keep_alive`` holds the owner until the
 kernel's end, since numba frees an array after its variable's last use.

@@ -37,7 +37,7 @@ from visibility.raster.face_pixels import pixel_range
 #: the pixels those can reach (finding the pixels costs a pass over their spans).
 KNOWN_SHARE = 8
 #: One pixel pair in TIME_STRIDE is timed by step (cover test, then the envelope's insertions):
-#: two counter reads at every pair would cost a fifth of a meadow's time.
+#: two counter reads at every pair would cost a sizeable share of a meadow's time.
 TIME_STRIDE = 16
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")

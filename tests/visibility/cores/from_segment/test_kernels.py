@@ -378,7 +378,7 @@ def _fence(layers=3, slats=40, width=0.02, pitch=0.05):
 
 def test_envelopes_that_outgrow_their_storage_are_grown_and_stay_exact():
     """A fence seen from an eye walking past it: envelopes outgrow the starting storage, the
-    primitive being drawn when one does is drawn again into the grown storage, and the answer
+    draw under way when one does resumes where it stopped in the grown storage, and the answer
     is still exact at the pixel centres both ways (nothing the id buffers see is missed, every
     reported triangle is confirmed by a ray cast at its witness)."""
     v, f = _fence()
@@ -533,3 +533,6 @@ def test_bad_segment_inputs_raise():
         segment_visible(geom, np.zeros(3), np.zeros(3), jitter=0.5, seed=-1)
     with pytest.raises(ValueError, match="max_cuts"):
         segment_visible(geom, np.zeros(3), np.zeros(3), max_cuts=-1)
+    for cap in (0, 1 << 20):
+        with pytest.raises(ValueError, match="envelope_cap"):
+            segment_visible(geom, np.zeros(3), np.zeros(3), envelope_cap=cap)
