@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.memmove import move_items
+
 #: Envelope pieces shorter than this (in t) do not make a primitive visible: they are float
 #: residue at seams, never seen by a sampling camera.
 EPS_LEN = 1e-9
@@ -41,6 +43,18 @@ def _emit(T, tid, n, a, b, za, m, pid):
 
 
 @njit(**_JIT_INLINE)
+def _shift(env, eid, px, k0, k1, by):
+    """Move pixel px's rows [k0, k1) by ``by`` places: one block move each for ``env`` and
+    ``eid`` (C-contiguous; the caller keeps the rows within the capacity). An element loop
+    moved a row at a time with its index arithmetic, and deep envelopes shift hundreds."""
+    if by == 0 or k1 <= k0:
+        return
+    cap = env.shape[1]
+    move_items(env, (px * cap + k0 + by) * 4, (px * cap + k0) * 4, (k1 - k0) * 4)
+    move_items(eid, px * cap + k0 + by, px * cap + k0, k1 - k0)
+
+
+@njit(**_JIT_INLINE)
 def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     """Depth-composite the chord [a, b] (depth za -> zb, primitive pid) into pixel ``px``'s
     envelope.
@@ -48,12 +62,12 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     The nearer surface wins; exact ties keep the existing piece; crossing chords are split at
     their intersection (the hinge of intersecting triangles). Only the pieces overlapping [a, b]
     are rewritten, and nothing is when the chord is hidden; they are found by bisection, so a
-    chord costs the log of the envelope's length plus the rows it overlaps and the rows after
-    it moved along. ``T`` (>= 2 cap + 4, 4) and ``tid`` are scratch. ``zbound`` is the pixel's
-    current ``pixel_bound`` (inf while the envelope leaves gaps). Returns (new count, or -1 when
-    it would exceed the capacity; changed; whether the bound may have changed: a gap was
-    filled or a rewritten row reached ``zbound``; otherwise it stands, since a lower envelope
-    only comes nearer)."""
+    chord costs the log of the envelope's length plus the rows it overlaps, and the rows after
+    it move in one block (``_shift``). ``T`` (>= 2 cap + 4, 4) and ``tid`` are scratch.
+    ``zbound`` is the pixel's current ``pixel_bound`` (inf while the envelope leaves gaps).
+    Returns (new count, or -1 when it would exceed the capacity; changed; whether the bound may
+    have changed: a gap was filled or a rewritten row reached ``zbound``; otherwise it stands,
+    since a lower envelope only comes nearer)."""
     if not (b > a):
         return cnt, False, False
     mn = (zb - za) / (b - a)
@@ -74,10 +88,7 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
         # Falls in a gap: insert as is.
         if cnt + 1 > cap:
             return -1, False, False
-        for k in range(cnt - 1, hi - 1, -1):
-            for r in range(4):
-                env[px, k + 1, r] = env[px, k, r]
-            eid[px, k + 1] = eid[px, k]
+        _shift(env, eid, px, hi, cnt, 1)
         env[px, lo, 0] = a
         env[px, lo, 1] = b
         env[px, lo, 2] = za
@@ -154,17 +165,7 @@ def envelope_insert(env, eid, px, cnt, a, b, za, zb, pid, T, tid, zbound):
     new_cnt = cnt - (hi - lo) + n
     if new_cnt > cap:
         return -1, False, False
-    shift = n - (hi - lo)
-    if shift > 0:
-        for k in range(cnt - 1, hi - 1, -1):
-            for r in range(4):
-                env[px, k + shift, r] = env[px, k, r]
-            eid[px, k + shift] = eid[px, k]
-    elif shift < 0:
-        for k in range(hi, cnt):
-            for r in range(4):
-                env[px, k + shift, r] = env[px, k, r]
-            eid[px, k + shift] = eid[px, k]
+    _shift(env, eid, px, hi, cnt, n - (hi - lo))
     for k in range(n):
         for r in range(4):
             env[px, lo + k, r] = T[k, r]
