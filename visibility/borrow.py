@@ -26,20 +26,34 @@ from numba.extending import intrinsic
 from numba.np.arrayobj import make_array, populate_array
 
 
+def _borrowed(context, builder, typ, value):
+    """LLVM value of array ``value`` (numba type ``typ``) with its owner left out."""
+    src = make_array(typ)(context, builder, value)
+    out = make_array(typ)(context, builder)
+    populate_array(out, data=src.data, shape=src.shape, strides=src.strides,
+                   itemsize=src.itemsize, meminfo=None)
+    return out._getvalue()
+
+
 @intrinsic
 def borrow(typingctx, arr):
-    """The array ``arr`` (numba array) without its owner: no reference counting."""
-    if not isinstance(arr, types.Array):
-        return None
+    """The array ``arr`` (numba array) without its owner: no reference counting. Given a
+    tuple or named tuple of arrays (a kernel's scratch), the same tuple of borrowed arrays:
+    unpack it into the names the kernel uses, and ``keep_alive`` the owning tuple."""
+    if isinstance(arr, types.Array):
+        def codegen(context, builder, signature, args):
+            return _borrowed(context, builder, signature.args[0], args[0])
 
-    def codegen(context, builder, signature, args):
-        src = make_array(signature.args[0])(context, builder, args[0])
-        out = make_array(signature.return_type)(context, builder)
-        populate_array(out, data=src.data, shape=src.shape, strides=src.strides,
-                       itemsize=src.itemsize, meminfo=None)
-        return out._getvalue()
+        return arr(arr), codegen
+    if isinstance(arr, types.BaseTuple) and all(isinstance(t, types.Array) for t in arr.types):
+        def codegen_tuple(context, builder, signature, args):
+            typ = signature.args[0]
+            vals = [_borrowed(context, builder, t, builder.extract_value(args[0], i))
+                    for i, t in enumerate(typ.types)]
+            return context.make_tuple(builder, signature.return_type, vals)
 
-    return arr(arr), codegen
+        return arr(arr), codegen_tuple
+    return None
 
 
 @intrinsic

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -36,3 +38,35 @@ def test_a_borrowed_array_is_the_same_memory():
     assert _through_borrowed(a) == 10.0 + 17.0 + 10.0
     assert a[0, 0] == 7.0 and a.sum() == 18.0
 
+
+
+class _Scratch(NamedTuple):
+    a: np.ndarray
+    b: np.ndarray
+
+
+@njit(cache=True, nogil=True)
+def _scratch(n):
+    return _Scratch(np.zeros(n), np.zeros((2, n), dtype=np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _through_borrowed_tuple(n):
+    """A named tuple of owners borrowed at once, written through its unpacked views."""
+    own = _scratch(n)
+    a, b = borrow(own)
+    t0, t1 = borrow((own.a, own.b))
+    for i in range(n):
+        a[i] = i
+        b[1, i] = 2 * i
+    t0[0] = 5.0
+    s = _sum_rows(b)[1] + own.a.sum() + t1[1, n - 1]
+    keep_alive(own)
+    return s, own.a.copy()
+
+
+def test_a_borrowed_tuple_is_the_same_memory():
+    s, a = _through_borrowed_tuple(4)
+    # b's second row sums to 2 (0 + 1 + 2 + 3) = 12; a to 5 + 1 + 2 + 3 = 11; b[1, 3] = 6.
+    assert s == 12 + 11 + 6
+    assert a.tolist() == [5.0, 1.0, 2.0, 3.0]

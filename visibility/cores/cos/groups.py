@@ -94,3 +94,108 @@ class Marks(NamedTuple):
     hid: np.ndarray
     counters: np.ndarray
     stop: np.ndarray
+
+
+class ShareScratch(NamedTuple):
+    """The scratch arrays of one share of ``resolve.resolve_tiles`` (``resolve._share_scratch``),
+    sized for the share's longest pixel list ``lmax`` and its longest tile ``tmax``.
+
+    cam : a primitive's points in the view's frame (``load_prim``); qv, qr: their projection
+        (``project``); rv, rr: the pixel's region of eye offsets (``lists.region_at``).
+    kx, ky : the occludee's region K (``region_polygon``); tx_, ty_: its scratch; rx, ry: the
+        pixel's whole offset region; kb, rb: their geometry (``_k_box``); knx, kny, klo, khi
+        and rnx, rny, rlo, rhi: their edge normals and extents.
+    qctx : the occludee's context for ``_covers_q``; rpoly (MAX_POLY, 6), rpb (7,): the camera
+        rectangle's image in the cameras' frame (x, y, edge normal x, y, extent lo, hi per
+        vertex) and its axes (``polygon_axes``); ws, wpt: the relaxed cover test's scratch.
+    ov, ow, owr, oid, oact, oplane, ouse, obb : occluder triangles (lmax rows): COS corners
+        (counter-clockwise), depths, depth range, welded ids, active edges, plane, whether the
+        whole camera rectangle lies on one side of that plane (the plane test applies), COS
+        box.
+    grp, nxt, head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm : groups (id = their first
+        triangle): members, size, COS box, depth range, coverall, alive, dormant (only hidden
+        triangles: never tested against).
+    gehead, getail, anext, aprev : active edges over nodes 3 q + e.
+    live, lpos, covl, cpos, cand : the live list (groups not coverall, oldest first; dead
+        entries have lpos -1 until it is compacted), the unordered list of coverall groups and
+        their positions, candidate groups.
+    gslot, sg, shead, pool, pdep, fslot, sfr, dom : depth grids of groups of ``GRID_MIN``
+        triangles or more (slots of sg, shead in the frame of depth sfr over the domain dom:
+        x0, x1, y0, y1, cells per metre in x and y; member list nodes in pool; free slots).
+    hk0, hk1, hfirst, hlast, enext : edge hash for fusion: directed edge (hk0, hk1) -> first
+        occluder edge 3 q + e holding it, chained in insertion order through enext.
+    tseen, tset : primitives found visible at an earlier pixel of the tile (a bit each), and
+        the ids set, cleared after the tile.
+    work : (2,) int64 per-tile counters the helpers add to.
+    """
+
+    cam: np.ndarray
+    qv: np.ndarray
+    qr: np.ndarray
+    rv: np.ndarray
+    rr: np.ndarray
+    kx: np.ndarray
+    ky: np.ndarray
+    tx_: np.ndarray
+    ty_: np.ndarray
+    rx: np.ndarray
+    ry: np.ndarray
+    kb: np.ndarray
+    qctx: np.ndarray
+    rpoly: np.ndarray
+    rpb: np.ndarray
+    ws: np.ndarray
+    wpt: np.ndarray
+    knx: np.ndarray
+    kny: np.ndarray
+    klo: np.ndarray
+    khi: np.ndarray
+    rb: np.ndarray
+    rnx: np.ndarray
+    rny: np.ndarray
+    rlo: np.ndarray
+    rhi: np.ndarray
+    ov: np.ndarray
+    ow: np.ndarray
+    owr: np.ndarray
+    oid: np.ndarray
+    oact: np.ndarray
+    oplane: np.ndarray
+    ouse: np.ndarray
+    obb: np.ndarray
+    grp: np.ndarray
+    nxt: np.ndarray
+    head: np.ndarray
+    tail: np.ndarray
+    gsize: np.ndarray
+    gbb: np.ndarray
+    gwlo: np.ndarray
+    gwhi: np.ndarray
+    gcov: np.ndarray
+    alive: np.ndarray
+    gdorm: np.ndarray
+    gehead: np.ndarray
+    getail: np.ndarray
+    anext: np.ndarray
+    aprev: np.ndarray
+    live: np.ndarray
+    lpos: np.ndarray
+    covl: np.ndarray
+    cand: np.ndarray
+    cpos: np.ndarray
+    gslot: np.ndarray
+    sg: np.ndarray
+    shead: np.ndarray
+    pool: np.ndarray
+    pdep: np.ndarray
+    fslot: np.ndarray
+    sfr: np.ndarray
+    dom: np.ndarray
+    hk0: np.ndarray
+    hk1: np.ndarray
+    hfirst: np.ndarray
+    hlast: np.ndarray
+    enext: np.ndarray
+    tseen: np.ndarray
+    tset: np.ndarray
+    work: np.ndarray

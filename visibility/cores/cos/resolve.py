@@ -92,6 +92,7 @@ from numba import njit, prange
 
 from visibility.borrow import borrow, keep_alive
 from visibility.cancel import flag_set
+from visibility.cores.cos.groups import ShareScratch
 from visibility.cores.cos.lists import region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
@@ -831,6 +832,48 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
     return g1
 
 
+@njit(cache=True, nogil=True)
+def _share_scratch(lmax, tmax, n_known):
+    """The scratch arrays of one share of ``resolve_tiles`` (``groups.ShareScratch``, owners),
+    for lists of at most ``lmax`` entries, tiles of at most ``tmax`` entries and
+    ``n_known`` primitives."""
+    nslot = lmax // GRID_MIN + 2
+    hcap = 8  # the edge hash at most half full
+    while hcap < 6 * lmax:
+        hcap *= 2
+    return ShareScratch(
+        cam=np.empty((8, 3)), qv=np.empty((8, 2)), qr=np.empty(8), rv=np.empty((4, 2)),
+        rr=np.empty(4), kx=np.empty(MAX_POLY), ky=np.empty(MAX_POLY), tx_=np.empty(MAX_POLY),
+        ty_=np.empty(MAX_POLY), rx=np.empty(MAX_POLY), ry=np.empty(MAX_POLY), kb=np.empty(7),
+        qctx=np.zeros(QC_SIZE), rpoly=np.empty((MAX_POLY, 6)), rpb=np.empty(7),
+        ws=np.empty((4, MAX_POLY)), wpt=np.empty((3 * DIR_PTS, 2)), knx=np.empty(MAX_POLY),
+        kny=np.empty(MAX_POLY), klo=np.empty(MAX_POLY), khi=np.empty(MAX_POLY), rb=np.empty(7),
+        rnx=np.empty(MAX_POLY), rny=np.empty(MAX_POLY), rlo=np.empty(MAX_POLY),
+        rhi=np.empty(MAX_POLY), ov=np.empty((lmax, 3, 2)), ow=np.empty((lmax, 3)),
+        owr=np.empty((lmax, 2)), oid=np.empty((lmax, 3), dtype=np.int64),
+        oact=np.empty((lmax, 3), dtype=np.bool_), oplane=np.empty((lmax, 5)),
+        ouse=np.empty(lmax, dtype=np.bool_), obb=np.empty((lmax, 4)),
+        grp=np.empty(lmax, dtype=np.int64), nxt=np.empty(lmax, dtype=np.int64),
+        head=np.empty(lmax, dtype=np.int64), tail=np.empty(lmax, dtype=np.int64),
+        gsize=np.empty(lmax, dtype=np.int64), gbb=np.empty((lmax, 4)), gwlo=np.empty(lmax),
+        gwhi=np.empty(lmax), gcov=np.empty(lmax, dtype=np.bool_),
+        alive=np.empty(lmax, dtype=np.bool_), gdorm=np.empty(lmax, dtype=np.bool_),
+        gehead=np.empty(lmax, dtype=np.int64), getail=np.empty(lmax, dtype=np.int64),
+        anext=np.empty(3 * lmax, dtype=np.int64), aprev=np.empty(3 * lmax, dtype=np.int64),
+        live=np.empty(lmax, dtype=np.int64), lpos=np.empty(lmax, dtype=np.int64),
+        covl=np.empty(lmax, dtype=np.int64), cand=np.empty(lmax + 1, dtype=np.int64),
+        cpos=np.empty(lmax, dtype=np.int64), gslot=np.empty(lmax, dtype=np.int64),
+        sg=np.empty((nslot, 2, GRID * GRID)),
+        shead=np.empty((nslot, GRID * GRID + 2), dtype=np.int64),
+        pool=np.empty(2 + 2 * 8 * lmax, dtype=np.int64), pdep=np.empty(2 * 8 * lmax),
+        fslot=np.empty(nslot, dtype=np.int64), sfr=np.empty(nslot), dom=np.empty(6),
+        hk0=np.empty(hcap, dtype=np.int64), hk1=np.empty(hcap, dtype=np.int64),
+        hfirst=np.empty(hcap, dtype=np.int64), hlast=np.empty(hcap, dtype=np.int64),
+        enext=np.empty(3 * lmax, dtype=np.int64),
+        tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
+        work=np.zeros(2, dtype=np.int64))
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
@@ -896,169 +939,16 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             tmax = max(tmax, tlen)
         if lmax == 0:
             continue
-        cam_own = np.empty((8, 3))
-        cam = borrow(cam_own)
-        qv_own = np.empty((8, 2))
-        qv = borrow(qv_own)
-        qr_own = np.empty(8)
-        qr = borrow(qr_own)
-        rv_own = np.empty((4, 2))
-        rv = borrow(rv_own)
-        rr_own = np.empty(4)
-        rr = borrow(rr_own)
-        kx_own = np.empty(MAX_POLY)
-        kx = borrow(kx_own)
-        ky_own = np.empty(MAX_POLY)
-        ky = borrow(ky_own)
-        tx__own = np.empty(MAX_POLY)
-        tx_ = borrow(tx__own)
-        ty__own = np.empty(MAX_POLY)
-        ty_ = borrow(ty__own)
-        rx_own = np.empty(MAX_POLY)
-        rx = borrow(rx_own)
-        ry_own = np.empty(MAX_POLY)
-        ry = borrow(ry_own)
-        # Geometry of Q's region K and of the whole offset region (``_k_box``).
-        kb_own = np.empty(7)
-        kb = borrow(kb_own)
-        # The occludee's context for ``_covers_q`` and the camera rectangle's image in the
-        # cameras' frame (``rpoly``: x, y, edge normal x, y, extent lo, hi per vertex).
-        qctx_own = np.zeros(QC_SIZE)
-        qctx = borrow(qctx_own)
+        # Per share scratch (``groups.ShareScratch``), sized for its longest list; owned by
+        # ``own`` until the share is done, borrowed for the helpers.
+        own = _share_scratch(lmax, tmax, known.shape[0])
+        (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
+         klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
+         head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, gehead, getail, anext, aprev,
+         live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
+         hfirst, hlast, enext, tseen, tset, work) = borrow(own)
         strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
-        rpoly_own = np.empty((MAX_POLY, 6))
-        rpoly = borrow(rpoly_own)
-        rpb_own = np.empty(7)
-        rpb = borrow(rpb_own)
-        ws_own = np.empty((4, MAX_POLY))
-        ws = borrow(ws_own)
-        wpt_own = np.empty((3 * DIR_PTS, 2))
-        wpt = borrow(wpt_own)
-        knx_own = np.empty(MAX_POLY)
-        knx = borrow(knx_own)
-        kny_own = np.empty(MAX_POLY)
-        kny = borrow(kny_own)
-        klo_own = np.empty(MAX_POLY)
-        klo = borrow(klo_own)
-        khi_own = np.empty(MAX_POLY)
-        khi = borrow(khi_own)
-        rb_own = np.empty(7)
-        rb = borrow(rb_own)
-        rnx_own = np.empty(MAX_POLY)
-        rnx = borrow(rnx_own)
-        rny_own = np.empty(MAX_POLY)
-        rny = borrow(rny_own)
-        rlo_own = np.empty(MAX_POLY)
-        rlo = borrow(rlo_own)
-        rhi_own = np.empty(MAX_POLY)
-        rhi = borrow(rhi_own)
-        # Occluder triangles q: COS corners (counter-clockwise), depths, welded ids, active
-        # edges, plane, COS box.
-        ov_own = np.empty((lmax, 3, 2))
-        ov = borrow(ov_own)
-        ow_own = np.empty((lmax, 3))
-        ow = borrow(ow_own)
-        owr_own = np.empty((lmax, 2))
-        owr = borrow(owr_own)
-        oid_own = np.empty((lmax, 3), dtype=np.int64)
-        oid = borrow(oid_own)
-        oact_own = np.empty((lmax, 3), dtype=np.bool_)
-        oact = borrow(oact_own)
-        oplane_own = np.empty((lmax, 5))
-        oplane = borrow(oplane_own)
-        ouse_own = np.empty(lmax, dtype=np.bool_)
-        ouse = borrow(ouse_own)
-        obb_own = np.empty((lmax, 4))
-        obb = borrow(obb_own)
-        # Groups (id = their first triangle): members (head, tail, nxt, grp), size, COS box,
-        # depth range, coverall flag, active edges (gehead, getail, anext, aprev over nodes
-        # 3 q + e), the live list (groups not coverall, oldest first; dead entries have
-        # lpos -1 until the list is compacted) and the unordered list of coverall groups.
-        grp_own = np.empty(lmax, dtype=np.int64)
-        grp = borrow(grp_own)
-        nxt_own = np.empty(lmax, dtype=np.int64)
-        nxt = borrow(nxt_own)
-        head_own = np.empty(lmax, dtype=np.int64)
-        head = borrow(head_own)
-        tail_own = np.empty(lmax, dtype=np.int64)
-        tail = borrow(tail_own)
-        gsize_own = np.empty(lmax, dtype=np.int64)
-        gsize = borrow(gsize_own)
-        gbb_own = np.empty((lmax, 4))
-        gbb = borrow(gbb_own)
-        gwlo_own = np.empty(lmax)
-        gwlo = borrow(gwlo_own)
-        gwhi_own = np.empty(lmax)
-        gwhi = borrow(gwhi_own)
-        gcov_own = np.empty(lmax, dtype=np.bool_)
-        gcov = borrow(gcov_own)
-        alive_own = np.empty(lmax, dtype=np.bool_)
-        alive = borrow(alive_own)
-        gdorm_own = np.empty(lmax, dtype=np.bool_)
-        gdorm = borrow(gdorm_own)
-        gehead_own = np.empty(lmax, dtype=np.int64)
-        gehead = borrow(gehead_own)
-        getail_own = np.empty(lmax, dtype=np.int64)
-        getail = borrow(getail_own)
-        anext_own = np.empty(3 * lmax, dtype=np.int64)
-        anext = borrow(anext_own)
-        aprev_own = np.empty(3 * lmax, dtype=np.int64)
-        aprev = borrow(aprev_own)
-        live_own = np.empty(lmax, dtype=np.int64)
-        live = borrow(live_own)
-        lpos_own = np.empty(lmax, dtype=np.int64)
-        lpos = borrow(lpos_own)
-        covl_own = np.empty(lmax, dtype=np.int64)
-        covl = borrow(covl_own)
-        cand_own = np.empty(lmax + 1, dtype=np.int64)
-        cand = borrow(cand_own)
-        cpos_own = np.empty(lmax, dtype=np.int64)
-        cpos = borrow(cpos_own)
-        # Depth grids of the groups of GRID_MIN triangles or more (slots of sg, shead in the
-        # frame of depth sfr, over the domain dom: x0, x1, y0, y1, cells per metre in x and
-        # y; nodes of the member lists in pool), free slots in fslot.
-        nslot = lmax // GRID_MIN + 2
-        gslot_own = np.empty(lmax, dtype=np.int64)
-        gslot = borrow(gslot_own)
-        sg_own = np.empty((nslot, 2, GRID * GRID))
-        sg = borrow(sg_own)
-        shead_own = np.empty((nslot, GRID * GRID + 2), dtype=np.int64)
-        shead = borrow(shead_own)
-        pool_own = np.empty(2 + 2 * 8 * lmax, dtype=np.int64)
-        pool = borrow(pool_own)
         pool[1] = 8 * lmax
-        pdep_own = np.empty(2 * 8 * lmax)
-        pdep = borrow(pdep_own)
-        fslot_own = np.empty(nslot, dtype=np.int64)
-        fslot = borrow(fslot_own)
-        sfr_own = np.empty(nslot)
-        sfr = borrow(sfr_own)
-        dom_own = np.empty(6)
-        dom = borrow(dom_own)
-        # Edge hash (fusion): directed edge (hk0, hk1) -> first occluder edge q * 3 + e holding
-        # it (hfirst), chained in insertion order through enext; at most a half full.
-        hcap = 8
-        while hcap < 6 * lmax:
-            hcap *= 2
-        hk0_own = np.empty(hcap, dtype=np.int64)
-        hk0 = borrow(hk0_own)
-        hk1_own = np.empty(hcap, dtype=np.int64)
-        hk1 = borrow(hk1_own)
-        hfirst_own = np.empty(hcap, dtype=np.int64)
-        hfirst = borrow(hfirst_own)
-        hlast_own = np.empty(hcap, dtype=np.int64)
-        hlast = borrow(hlast_own)
-        enext_own = np.empty(3 * lmax, dtype=np.int64)
-        enext = borrow(enext_own)
-        # Primitives found visible at an earlier pixel of this tile (a bit each): tested no
-        # more, like ``known`` (the pixels of a tile run in order, so this stays
-        # deterministic); the ids set are listed in tset and cleared after the tile.
-        tseen_own = np.zeros((known.shape[0] + 7) // 8, dtype=np.uint8)
-        tseen = borrow(tseen_own)
-        tset_own = np.empty(tmax, dtype=np.int64)
-        tset = borrow(tset_own)
-        work_own = np.zeros(2, dtype=np.int64)
-        work = borrow(work_own)
         for it in range(it0, it1):
             tile = torder[it]
             ty = tile // tiles_x
@@ -1480,16 +1370,4 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
             counters[tile, 9] = cycles() - cyc_tile
             for c in range(n_set):
                 tseen[tset[c] >> 3] = 0
-        # The scratch owners live until the share is done.
-        keep_alive((cam_own, qv_own, qr_own, rv_own, rr_own, kx_own,))
-        keep_alive((ky_own, tx__own, ty__own, rx_own, ry_own, kb_own,))
-        keep_alive((qctx_own, rpoly_own, rpb_own, ws_own, wpt_own, knx_own,))
-        keep_alive((kny_own, klo_own, khi_own, rb_own, rnx_own, rny_own,))
-        keep_alive((rlo_own, rhi_own, ov_own, ow_own, owr_own, oid_own,))
-        keep_alive((oact_own, oplane_own, ouse_own, obb_own, grp_own, nxt_own,))
-        keep_alive((head_own, tail_own, gsize_own, gbb_own, gwlo_own, gwhi_own,))
-        keep_alive((gcov_own, alive_own, gdorm_own, gehead_own, getail_own, anext_own,))
-        keep_alive((aprev_own, live_own, lpos_own, covl_own, cand_own, cpos_own,))
-        keep_alive((gslot_own, sg_own, shead_own, pool_own, pdep_own, fslot_own,))
-        keep_alive((sfr_own, dom_own, hk0_own, hk1_own, hfirst_own, hlast_own,))
-        keep_alive((enext_own, tseen_own, tset_own, work_own,))
+        keep_alive(own)
