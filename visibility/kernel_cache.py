@@ -13,6 +13,7 @@ last stay, older ones are removed.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -24,6 +25,7 @@ PACKAGES = ("visibility", "client")
 _PREFIX = "src-"
 
 _keyed: str | None = None
+log = logging.getLogger(__name__)
 
 
 def source_digest(root: Path | None = None) -> str:
@@ -52,8 +54,13 @@ def key_numba_cache() -> str | None:
         import numba
 
         folder = Path(base) / f"{_PREFIX}{source_digest()}"
-        folder.mkdir(parents=True, exist_ok=True)
-        os.utime(folder)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            os.utime(folder)
+        except OSError:
+            # A read-only cache (a mounted image layer) still serves what it holds; where numba
+            # cannot write it falls back to its own locations.
+            log.warning("numba cache %s is not writable", folder)
         numba.config.CACHE_DIR = str(folder)
         _keyed = str(folder)
         _prune(Path(base))
