@@ -56,6 +56,14 @@ def borrow(typingctx, arr):
     return None
 
 
+#: njit option for helpers that allocate nothing: compiled without numba's runtime, so they
+#: hold no reference counts at all, not even the calls that find a borrowed array's owner
+#: missing, which a helper called per primitive and tile still pays at every entry and exit.
+#: An allocation in such a function fails to compile (a TypingError), so nothing leaks.
+#: ``_nrt`` is numba's own flag (not in its public options; numba 0.60-0.68 take it).
+NO_REFCOUNT = {"_nrt": False}
+
+
 @intrinsic
 def keep_alive(typingctx, arr):
     """A use of ``arr`` that does nothing: numba keeps its reference until here."""

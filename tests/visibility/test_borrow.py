@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import pytest
 from numba import njit
+from numba.core.errors import TypingError
 
-from visibility.borrow import borrow, keep_alive
+from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 
 
 @njit(cache=True, nogil=True)
@@ -70,3 +72,45 @@ def test_a_borrowed_tuple_is_the_same_memory():
     # b's second row sums to 2 (0 + 1 + 2 + 3) = 12; a to 5 + 1 + 2 + 3 = 11; b[1, 3] = 6.
     assert s == 12 + 11 + 6
     assert a.tolist() == [5.0, 1.0, 2.0, 3.0]
+
+
+def _incref_sites(fn) -> int:
+    import re
+
+    return sum(len(re.findall(r"call void @NRT_incref", fn.inspect_llvm(sig)))
+               for sig in fn.overloads)
+
+
+@njit(cache=False)
+def _term(a, b, i):
+    return a[i] * b[i % b.shape[0]]
+
+
+def _walk(pair, k):
+    """A helper called per item with arrays unpacked from a tuple, and an early exit: the
+    shape of the kernels' per-primitive helpers, where numba keeps its reference counts."""
+    a, b = pair
+    s = 0.0
+    for i in range(k, a.shape[0]):
+        if a[i] < 0:
+            break
+        s += _term(a, b, i)
+    return s
+
+
+_walk_counted = njit(cache=False)(_walk)
+_walk_free = njit(cache=False, **NO_REFCOUNT)(_walk)
+
+
+def test_no_refcount_leaves_no_reference_counts_and_refuses_allocation():
+    a, b = np.arange(6.0), np.ones(2)
+    assert _walk_counted((a, b), 1) == _walk_free((a, b), 1) == 15.0
+    assert _incref_sites(_walk_counted) > 0  # what the option removes
+    assert _incref_sites(_walk_free) == 0
+
+    @njit(cache=False, **NO_REFCOUNT)
+    def alloc(n):
+        return np.zeros(n).sum()
+
+    with pytest.raises(TypingError):
+        alloc(3)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.borrow import borrow, keep_alive
+from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
 from visibility.cores.from_segment.spheres import sphere_box
 from visibility.raster.camera import cube_face_rotations
@@ -39,6 +39,8 @@ FLAG_SPHERE = 8
 FLAG_CLUSTER = 16
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
+_JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 
 
@@ -54,7 +56,7 @@ _PERM, _SGN = _face_permutation()
 
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
     """Pixel box on cube face f of the convex hull of ``cube[:npts]`` (cube space, relative to
     the eye) clipped to depth >= near. Returns (non-empty, smallest depth of the clipped hull,
@@ -128,7 +130,7 @@ def _hull_box(cube, npts, f, perm, sgn, near, res, box, pad, uv):
     return True, zm, slow, n
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _sole_face(cube, npts, near):
     """The one cube face whose frustum strictly holds all points beyond the near plane (then the
     hull touches no other face), or -1."""
@@ -149,7 +151,7 @@ def _sole_face(cube, npts, near):
     return 2 * ax + (0 if sg > 0.0 else 1)
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _to_cube(rb, x, y, z, cube, q):
     for r in range(3):
         cube[q, r] = rb[r, 0] * x + rb[r, 1] * y + rb[r, 2] * z
@@ -199,7 +201,7 @@ def _cluster_boxes(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, out_box,
                              out_flag, ch * n // nch, (ch + 1) * n // nch)
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube):
     """The six cube-space points of triangle t: corners at t = 0 and t = 1 relative to the eye."""
     for c in range(3):
@@ -282,7 +284,7 @@ def _expanded_area(geom, exp_tri, exp_face, frame):  # pragma: no cover - numba
     return sums.sum()
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _expands(cbox, c, f, fl):  # pragma: no cover - numba
     """Whether cluster c's primitive on face f (flags fl) is split into its triangles: it may
     reach the near plane, or its box spans more than ``EXPAND_TILES`` tiles."""
@@ -366,7 +368,7 @@ def _sphere_boxes(c0, c1, radii, sel, v0, dvec, rots, res, near, pad, out_box, o
                     FLAG_SLOW if slow else 0)
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
     """Tile columns [tx0, tx1] of primitive p in tile row ty: those its hull reaches (when it
     has one) within its box, else its box's."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.borrow import NO_REFCOUNT
 from visibility.cores.from_segment.static import edge_order
 
 #: Depth returned where a surface is seen exactly edge-on (the true depth diverges there).
@@ -27,6 +28,8 @@ CHORD_TOL = 1e-4
 _BISECT_STEPS = 60
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
+_JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 
 
 @njit(**_JIT)
@@ -231,7 +234,7 @@ def _det(ax, ay, az, bx, by, bz, cx, cy, cz):
     return ax * x + ay * y + az * z
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def moving_setup(P: np.ndarray, U: np.ndarray, W: np.ndarray, coef: np.ndarray) -> None:
     """Coefficients of a moving triangle for ``moving_cover``.
 

@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from visibility.borrow import NO_REFCOUNT
 from visibility.planar import convex_hull
 
 #: Most vertices of a stored hull: a triangle's six swept corners clipped at the near plane give
@@ -29,6 +30,8 @@ EPS_ABS = 1e-6
 EPS_REL = 2e-7
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
+_JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 
 
 class Hulls(NamedTuple):
@@ -52,7 +55,7 @@ def no_hulls(n_prims: int) -> Hulls:
                  np.zeros(0, np.int8))
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def store_hull(uv: np.ndarray, n: int, res: int, scratch: np.ndarray, out_pts: np.ndarray,
                k: int) -> int:
     """Hull of the NDC points ``uv[:n]`` (n, 2) in pixel units, written to ``out_pts[k]``
@@ -73,7 +76,7 @@ def store_hull(uv: np.ndarray, n: int, res: int, scratch: np.ndarray, out_pts: n
     return m
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def hull_cols(pts: np.ndarray, k: int, m: int, rlo: float, rhi: float,
               pad: float) -> tuple[int, int]:
     """Columns [j0, j1] (inclusive, unclamped; j0 > j1 when none) of the pixels in rows

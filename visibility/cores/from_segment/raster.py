@@ -10,7 +10,7 @@ from numba import njit, prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from visibility.borrow import borrow, keep_alive
+from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cores.from_segment.boxes import (
     FLAG_CLUSTER,
     FLAG_MOVING,
@@ -41,6 +41,8 @@ KNOWN_SHARE = 8
 TIME_STRIDE = 16
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
+_JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 
 #: Columns of ``_resolve``'s counters (one row per chunk), summed into the segment's stats under
@@ -123,7 +125,7 @@ def sample_offset(face: int, row: int, col: int, res: int, jitter: float,
 
 
 # ------------------------------------------------------------------------------ tile resolution
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
     """Columns of primitive p to visit in tile rows [ia, ib] (clamped to [ja, jb]): where its
     hull (``hull.Hulls``) can hold a sample up to ``pad`` pixels off centre, or all of [ja, jb]
@@ -132,7 +134,7 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
     _hull_spans(hulls.pts, h, hulls.count[h] if h >= 0 else 0, ia, ib, ja, jb, r0, pad, span)
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _hull_spans(pts, h, m, ia, ib, ja, jb, r0, pad, span):
     """span[i - r0] = the columns of [ja, jb] in tile row i (ia <= i <= ib) whose sample, up to
     ``pad`` pixels off centre, can fall inside the stored hull ``pts[h, :m]`` (``hull_cols``);
@@ -162,7 +164,7 @@ def _first_from(env, px, cnt, t):
     return lo
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
     """``_row_spans`` for a triangle whose six swept points (``_cam_corners``' P, P + U) are
     all in front of the near plane (``_front_box``): the projected triangle at every point of
@@ -177,7 +179,7 @@ def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
     _hull_spans(pts, 0, store_hull(uv, 6, res, scratch, pts, 0), ia, ib, ja, jb, r0, pad, span)
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
     """Camera-space corners P of triangle t at t = 0 (relative to the eye), their velocities U
     relative to the moving eye, and the world corners W (for canonical edge order). One formula
@@ -197,7 +199,7 @@ def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
             U[c, r] = R[r, 0] * mx + R[r, 1] * my + R[r, 2] * mz - dc[r]
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _front_box(P, U, res, box, pad):
     """Pixel box and smallest depth of a triangle's six swept points, all known to be in front
     of the near plane (a cluster that is not near the eye)."""
@@ -220,7 +222,7 @@ def _front_box(P, U, res, box, pad):
     return pixel_range(umin, umax, vmin, vmax, res, box, pad), zm
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
             sc, work):
     """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere,

@@ -17,7 +17,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.borrow import NO_REFCOUNT
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+#: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
+_JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 #: Hot callees of the pixel loop, inlined into it (numba IR inlining): the configuration the
 #: published bench_segment runs measured; the arrays they take are borrowed by the caller.
 _JIT_INLINE = dict(_JIT, inline="always")
@@ -44,7 +48,7 @@ def edge_order(W, e):  # pragma: no cover - numba
     return i, j, 1.0
 
 
-@njit(**_JIT)
+@njit(**_JIT_NO_NRT)
 def static_setup(P: np.ndarray, W: np.ndarray, d: np.ndarray, coef: np.ndarray) -> None:
     """Coefficients of a static triangle for ``static_cover``.
 
