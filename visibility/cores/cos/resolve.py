@@ -90,7 +90,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from visibility.borrow import borrow, keep_alive
+from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cancel import flag_set
 from visibility.cores.cos.groups import ShareScratch
 from visibility.cores.cos.lists import region_at
@@ -203,7 +203,7 @@ def _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam, tol,
 DIR_PTS = 12
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _directions(qctx, ws, wpt):  # pragma: no cover - numba
     """The between-sample directions under which some camera position sees Q (Q beyond them
     all): the directions from the rectangle's corners to Q's form a convex polygon (the image
@@ -332,7 +332,7 @@ def _on_q_plane(x, y, w, qctx):  # pragma: no cover - numba
     return abs(d) <= qctx[QC_TOL]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _witness(qctx, rv, ws, wpt):  # pragma: no cover - numba
     """A point inside S(delta0), the offsets whose ray in direction s + delta0 meets Q (Q's COS
     triangle clipped to the camera rectangle's image, both moved to delta0 in the frame of
@@ -555,7 +555,8 @@ def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
     return behind
 
 
-@njit(cache=True, nogil=True)  # a call: inlined, its copies make the kernel slow to compile
+# A call: inlined, its copies make the kernel slow to compile.
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
               nq, ov, qctx, work):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
@@ -646,7 +647,7 @@ def _push(slot, c, r, shead, pool, pdep, owr):  # pragma: no cover - numba
     shead[slot, c] = k
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool, pdep,
                 frame):  # pragma: no cover - numba
     """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
@@ -715,7 +716,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _cover_depth(g, head, nxt, obb, owr, wcam, tol, h, kx, ky, nk, wref):  # pragma: no cover
     """Depth (camera w) by which every ray of the pixel meets coverall group g, or inf.
 
@@ -799,7 +800,7 @@ def _edge_unlink(node, g, gehead, getail, anext, aprev):  # pragma: no cover - n
         getail[g] = a
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, gehead, getail,
            anext, aprev):  # pragma: no cover - numba
     """Merge groups g1 and g2 (the smaller into the larger); returns the survivor."""

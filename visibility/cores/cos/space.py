@@ -31,6 +31,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from visibility.borrow import NO_REFCOUNT
+
 #: Largest vertex count of a clipped polygon (4 box sides + 3 triangle + 4 region half-planes).
 MAX_POLY = 16
 
@@ -215,7 +217,7 @@ def overlaps(qv, qr, nq, tri, rv, rr):  # pragma: no cover - numba
     return overlaps_share(qv, qr, nq, tri, rv, rr, reg)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def clip_halfplane(px, py, n, nx, ny, c, ox, oy):  # pragma: no cover - numba
     """Clip polygon (px, py)[:n] to nx x + ny y <= c, writing into (ox, oy); returns the count."""
     m = 0
@@ -237,7 +239,7 @@ def clip_halfplane(px, py, n, nx, ny, c, ox, oy):  # pragma: no cover - numba
     return m
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover - numba
     """A convex polygon K (kx, ky) holding (grown occludee) n (grown offset region): their
     bounding-box overlap clipped by the occludee's edge half-planes and the region's, each
@@ -260,7 +262,7 @@ def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover
     return clip_by_grown_edges(kx, ky, n, rv, rr, 4, tx, ty)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def clip_by_grown_edges(kx, ky, n, pv, pr, m, tx, ty):  # pragma: no cover - numba
     """Clip the convex polygon (kx, ky) of ``n`` vertices, in place, by the edge half-planes
     of the convex polygon ``pv`` (its first ``m`` rows, in either winding) grown by ``pr``,
@@ -284,7 +286,7 @@ def clip_by_grown_edges(kx, ky, n, pv, pr, m, tx, ty):  # pragma: no cover - num
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def polygon_axes(kx, ky, nk, kbox, knx, kny, klo, khi):  # pragma: no cover - numba
     """Precompute polygon K's box (kbox (4,): x0, x1, y0, y1) and, per edge e, its normal
     (knx, kny) and K's extent (klo, khi) along it, for ``capsule_meets``."""
@@ -420,7 +422,7 @@ def _outside_edge(ax, ay, bx, by, rad, rv, rr):  # pragma: no cover - numba
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def quad_holds(tv, tr, tid, cv, cr, cid, rv, rr):  # pragma: no cover - numba
     """Whether COS triangles T (tv (3, 2), motion radii tr (3,), welded vertex ids tid (3,))
     and C (cv, cr, cid), fused along an edge they share (two ids in common, C on the far
