@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from visibility.borrow import NO_REFCOUNT
 from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
 
@@ -157,7 +158,7 @@ def _gap(a0, a1, b0, b1):  # pragma: no cover - numba
     return max(0.0, max(b0 - a1, a0 - b1))
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_REFCOUNT)
 def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cover - numba
     """Room in pixel p's full k-buffer (c entries) by merging trim fragments: an incoming
     trim (``kind`` TRIM at depth d, umbra um) joins the held trim nearest in depth; for an

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from visibility.borrow import NO_REFCOUNT
 from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM
 
@@ -112,7 +113,7 @@ def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     return resolve_into(kb, closed, p, final, vis, stats, _scratch(k))
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_REFCOUNT)
 def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover - numba
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""

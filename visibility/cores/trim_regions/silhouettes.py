@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.borrow import NO_REFCOUNT
+
 #: ``facing_of`` code of a triangle whose plane passes through the sphere: it faces some eyes
 #: and turns its back on others, so every edge it has is taken as a silhouette.
 AMBIGUOUS = 2
@@ -75,7 +77,7 @@ def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
     return abs(nx * wx + ny * wy + nz * wz) <= 1e-9 * scale
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_REFCOUNT)
 def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
     """Earliest layer of the leaves meeting the box of points pa, pb (camera frame's world
     positions, metres) grown by ``grow`` metres."""
@@ -110,7 +112,7 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
     return 0 if best == 1 << 62 else best
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_REFCOUNT)
 def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
               out, sides, widths, pts):  # pragma: no cover - numba
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
