@@ -35,25 +35,35 @@ def _borrowed(context, builder, typ, value):
     return out._getvalue()
 
 
+def _borrowable(typ) -> bool:
+    """An array, or a (named) tuple of borrowable members."""
+    if isinstance(typ, types.Array):
+        return True
+    return isinstance(typ, types.BaseTuple) and all(_borrowable(t) for t in typ.types)
+
+
+def _borrowed_value(context, builder, typ, value):
+    """``_borrowed`` for an array, member by member for a tuple."""
+    if isinstance(typ, types.Array):
+        return _borrowed(context, builder, typ, value)
+    vals = [_borrowed_value(context, builder, t, builder.extract_value(value, i))
+            for i, t in enumerate(typ.types)]
+    return context.make_tuple(builder, typ, vals)
+
+
 @intrinsic
 def borrow(typingctx, arr):
     """The array ``arr`` (numba array) without its owner: no reference counting. Given a
-    tuple or named tuple of arrays (a kernel's scratch), the same tuple of borrowed arrays:
-    unpack it into the names the kernel uses, and ``keep_alive`` the owning tuple."""
-    if isinstance(arr, types.Array):
-        def codegen(context, builder, signature, args):
-            return _borrowed(context, builder, signature.args[0], args[0])
+    tuple or named tuple of arrays, nested ones included (a kernel's scratch), the same tuple
+    of borrowed arrays: unpack it into the names the kernel uses, and ``keep_alive`` the owning
+    tuple."""
+    if not _borrowable(arr):
+        return None
 
-        return arr(arr), codegen
-    if isinstance(arr, types.BaseTuple) and all(isinstance(t, types.Array) for t in arr.types):
-        def codegen_tuple(context, builder, signature, args):
-            typ = signature.args[0]
-            vals = [_borrowed(context, builder, t, builder.extract_value(args[0], i))
-                    for i, t in enumerate(typ.types)]
-            return context.make_tuple(builder, signature.return_type, vals)
+    def codegen(context, builder, signature, args):
+        return _borrowed_value(context, builder, signature.args[0], args[0])
 
-        return arr(arr), codegen_tuple
-    return None
+    return arr(arr), codegen
 
 
 #: njit option for helpers that allocate nothing: compiled without numba's runtime, so they

@@ -57,7 +57,7 @@ def _through_borrowed_tuple(n):
     """A named tuple of owners borrowed at once, written through its unpacked views."""
     own = _scratch(n)
     a, b = borrow(own)
-    t0, t1 = borrow((own.a, own.b))
+    t0, (t1,) = borrow((own.a, (own.b,)))  # nested tuples too
     for i in range(n):
         a[i] = i
         b[1, i] = 2 * i

@@ -173,7 +173,7 @@ class ChunkScratch(NamedTuple):
     rotation ``R`` (3, 3), the eye's motion ``dc`` (3,), a sphere's centre ``cen`` and velocity
     ``vel`` (3,), a pixel box ``bx`` (4,) int64, row spans ``span`` (TILE, 2) int64, a cluster
     triangle's swept hull scratch ``c_uv`` (6, 2), ``c_scratch`` (14, 2), ``c_pts`` (1, HMAX,
-    2) float32; and the fields of a ``PieceScratch`` (``t0`` ... ``at``)."""
+    2) float32; and the cover test's ``piece`` (``PieceScratch``)."""
 
     cnt: np.ndarray
     bound: np.ndarray
@@ -192,10 +192,4 @@ class ChunkScratch(NamedTuple):
     c_uv: np.ndarray
     c_scratch: np.ndarray
     c_pts: np.ndarray
-    t0: np.ndarray
-    t1: np.ndarray
-    z0: np.ndarray
-    z1: np.ndarray
-    brk: np.ndarray
-    stk: np.ndarray
-    at: np.ndarray
+    piece: PieceScratch

@@ -448,9 +448,9 @@ def _chunk_scratch(npx_max, maxp):
         np.zeros(npx_max), np.empty(40), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
         np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3), np.empty(4, dtype=np.int64),
         np.empty((TILE, 2), dtype=np.int64), np.empty((6, 2)), np.empty((14, 2)),
-        np.empty((1, HMAX, 2), dtype=np.float32), np.empty(maxp), np.empty(maxp),
-        np.empty(maxp), np.empty(maxp), np.empty(48), np.empty((64, 4)),
-        np.zeros(4, dtype=np.int64))
+        np.empty((1, HMAX, 2), dtype=np.float32),
+        PieceScratch(np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(maxp),
+                     np.empty(48), np.empty((64, 4)), np.zeros(4, dtype=np.int64)))
 
 
 @njit(**_JIT)
@@ -500,30 +500,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     eid_o = np.empty((npx_max, cap), dtype=np.int32)
     T_o = np.empty((2 * cap + 8, 4))  # insertion scratch
     tid_o = np.empty(2 * cap + 8, dtype=np.int32)
-    env = borrow(env_o)
-    eid = borrow(eid_o)
-    T = borrow(T_o)
-    tid = borrow(tid_o)
+    env, eid, T, tid = borrow((env_o, eid_o, T_o, tid_o))
     own = _chunk_scratch(npx_max, maxp)
-    cnt = borrow(own.cnt)
-    bound = borrow(own.bound)
-    jx = borrow(own.jx)
-    jy = borrow(own.jy)
-    coef = borrow(own.coef)
-    P = borrow(own.P)
-    U = borrow(own.U)
-    W = borrow(own.W)
-    R = borrow(own.R)
-    dc = borrow(own.dc)
-    cen = borrow(own.cen)
-    vel = borrow(own.vel)
-    bx = borrow(own.bx)
-    span = borrow(own.span)
-    c_uv = borrow(own.c_uv)  # a cluster triangle's swept hull (``_front_spans``)
-    c_scratch = borrow(own.c_scratch)
-    c_pts = borrow(own.c_pts)
-    sc = PieceScratch(borrow(own.t0), borrow(own.t1), borrow(own.z0), borrow(own.z1),
-                      borrow(own.brk), borrow(own.stk), borrow(own.at))
+    # c_uv, c_scratch, c_pts: a cluster triangle's swept hull (``_front_spans``).
+    (cnt, bound, jx, jy, coef, P, U, W, R, dc, cen, vel, bx, span, c_uv, c_scratch, c_pts,
+     sc) = borrow(own)
     # A private row of counters, copied out at the end.
     work_o = np.zeros(counters.shape[1], dtype=np.int64)
     work = borrow(work_o)
@@ -659,10 +640,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         if not grown:
                             ovf = True
                             break
-                        env = borrow(env_o)
-                        eid = borrow(eid_o)
-                        T = borrow(T_o)
-                        tid = borrow(tid_o)
+                        env, eid, T, tid = borrow((env_o, eid_o, T_o, tid_o))
                     cyc_raster += _cycles() - cs1
                     work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
                     work[C_CLUSTER_UNCOVERED] += work[C_UNCOVERED] - u0
@@ -704,10 +682,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     if not grown:
                         ovf = True
                         break
-                    env = borrow(env_o)
-                    eid = borrow(eid_o)
-                    T = borrow(T_o)
-                    tid = borrow(tid_o)
+                    env, eid, T, tid = borrow((env_o, eid_o, T_o, tid_o))
                 cyc_raster += _cycles() - cs1
             cyc_setup += _cycles() - cs0
             if ovf:
