@@ -153,8 +153,9 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     n = int(np.clip(round(n0 * runs[f"cos {base} px"]["seconds"] / max(pvs.seconds, 1e-3)),
                     1, 4096))
     pvs, _ = _timed(sampling.compute, scene, cell, sampling.make_params(samples=n))
-    runs[f"sampling, {n} viewpoints"] = {"core": "sampling", "ids": pvs.triangle_ids,
-                                         "seconds": pvs.seconds}
+    # Its own row even when cos's time buys exactly the default viewpoints.
+    label = f"sampling, {n} viewpoints" + (" (cos's time)" if n == n0 else "")
+    runs[label] = {"core": "sampling", "ids": pvs.triangle_ids, "seconds": pvs.seconds}
     for k, run in runs.items():
         print(f"  {k}: {len(run['ids'])} triangles, {run['seconds']:.2f} s", flush=True)
     ref = reference(scene, box, {k: v["ids"] for k, v in runs.items()}, eyes, most, ref_res,
