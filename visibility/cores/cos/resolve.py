@@ -900,6 +900,19 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
 
     The arrays come in named groups (``groups``): ``prims`` (``PrimArrays``), ``lists``
     (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
+    n_t = lists.tile1 - lists.tile0
+    k_sh = max(1, min(lists.shares, n_t))
+    # The loop's body is a function of its own: numba's parallel passes analyse everything
+    # in a prange body, and with the whole resolution in it this kernel took minutes to
+    # compile. (The index is cast: the parallel loop's own is unsigned, and the body would be
+    # compiled a second time for it.)
+    for share in prange(k_sh):
+        _resolve_share(prims, lists, screen, marks, np.int64(share), k_sh)
+
+
+@njit(cache=True, nogil=True)
+def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cover - numba
+    """Share ``share`` of the ``k_sh`` shares of ``resolve_tiles``'s tiles (its arguments)."""
     pts, start, npts, kind, vid, solid, gap = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
     origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed = screen
@@ -923,452 +936,450 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     # arrays sized for its longest list: allocating them per tile cost as much as the
     # resolution of an open scene's short lists.
     n_t = tile1 - tile0
-    k_sh = max(1, min(shares, n_t))
-    for share in prange(k_sh):
-        it0 = 0
-        for b in range(share):
-            it0 += (n_t - b + k_sh - 1) // k_sh
-        it1 = it0 + (n_t - share + k_sh - 1) // k_sh
-        lmax = 0
-        tmax = 0
-        for it in range(it0, it1):
-            pix0 = (torder[it] - tile0) * npix
-            tlen = 0
-            for loc in range(npix):
-                lmax = max(lmax, pcount[pix0 + loc])
-                tlen += pcount[pix0 + loc]
-            tmax = max(tmax, tlen)
-        if lmax == 0:
-            continue
-        # Per share scratch (``groups.ShareScratch``), sized for its longest list; owned by
-        # ``own`` until the share is done, borrowed for the helpers.
-        own = _share_scratch(lmax, tmax, known.shape[0])
-        (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
-         klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
-         head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, gehead, getail, anext, aprev,
-         live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
-         hfirst, hlast, enext, tseen, tset, work) = borrow(own)
-        strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
-        pool[1] = 8 * lmax
-        for it in range(it0, it1):
-            tile = torder[it]
-            ty = tile // tiles_x
-            tx = tile - ty * tiles_x
-            pix0 = (tile - tile0) * npix
-            n_set = 0
-            work[0] = 0
-            work[1] = 0
-            tested = 0
-            hidden = 0
-            occl = 0
-            cut = 0
-            cyc_tile = cycles()
-            cyc_test = 0
-            cyc_insert = 0
-            cyc_cover = 0
-            for loc in range(npix):
-                if flag_set(stop):
+    it0 = 0
+    for b in range(share):
+        it0 += (n_t - b + k_sh - 1) // k_sh
+    it1 = it0 + (n_t - share + k_sh - 1) // k_sh
+    lmax = 0
+    tmax = 0
+    for it in range(it0, it1):
+        pix0 = (torder[it] - tile0) * npix
+        tlen = 0
+        for loc in range(npix):
+            lmax = max(lmax, pcount[pix0 + loc])
+            tlen += pcount[pix0 + loc]
+        tmax = max(tmax, tlen)
+    if lmax == 0:
+        return
+    # Per share scratch (``groups.ShareScratch``), sized for its longest list; owned by
+    # ``own`` until the share is done, borrowed for the helpers.
+    own = _share_scratch(lmax, tmax, known.shape[0])
+    (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
+     klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
+     head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, gehead, getail, anext, aprev,
+     live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
+     hfirst, hlast, enext, tseen, tset, work) = borrow(own)
+    strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
+    pool[1] = 8 * lmax
+    for it in range(it0, it1):
+        tile = torder[it]
+        ty = tile // tiles_x
+        tx = tile - ty * tiles_x
+        pix0 = (tile - tile0) * npix
+        n_set = 0
+        work[0] = 0
+        work[1] = 0
+        tested = 0
+        hidden = 0
+        occl = 0
+        cut = 0
+        cyc_tile = cycles()
+        cyc_test = 0
+        cyc_insert = 0
+        cyc_cover = 0
+        for loc in range(npix):
+            if flag_set(stop):
+                break
+            i = ty * tsz + loc // tsz
+            j = tx * tsz + loc % tsz
+            if i >= ny or j >= nx:
+                continue
+            a = pstart[pix0 + loc]
+            b = a + pcount[pix0 + loc]
+            if a == b:
+                continue
+            sx = x_lo + (j + 0.5) * pw
+            sy = y_lo + (i + 0.5) * pw
+            # Longest ray per unit of depth over the pixel's directions: a point at distance g
+            # from the box (so from every camera position, which lies on the box) is at depth
+            # at least g / lray on any ray of this pixel.
+            lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
+            hs = 8
+            while hs < 6 * (b - a):
+                hs *= 2
+            hmask = hs - 1
+            hk0[:hs] = -1
+            n_polys = 0
+            n_live = 0
+            n_dead = 0
+            last_g = -1
+            n_cov = 0
+            n_slot = 0
+            n_free = 0
+            pool[0] = 0
+            # The depth grids' domain: the offset region's frame-0 box (what lies outside
+            # falls in the border cells).
+            region_at(corners, sx, sy, h, 0.0, rv, rr)
+            dom[0] = np.inf
+            dom[1] = -np.inf
+            dom[2] = np.inf
+            dom[3] = -np.inf
+            for c in range(4):
+                dom[0] = min(dom[0], rv[c, 0] - rr[c])
+                dom[1] = max(dom[1], rv[c, 0] + rr[c])
+                dom[2] = min(dom[2], rv[c, 1] - rr[c])
+                dom[3] = max(dom[3], rv[c, 1] + rr[c])
+            dom[4] = GRID / (dom[1] - dom[0]) if dom[1] > dom[0] else 0.0
+            dom[5] = GRID / (dom[3] - dom[2]) if dom[3] > dom[2] else 0.0
+            # The camera rectangle's image in a frame that moves with the cameras' middle
+            # depth, where it barely grows (``_covers_q``).
+            fr = 0.5 * wcam
+            nrp = 0
+            if relaxed:
+                region_at(corners, sx, sy, h, fr, rv, rr)
+                nrp = region_polygon(rv, rr, 4, False, rv, rr, ws[0], ws[1], ws[2], ws[3])
+                for c in range(nrp):
+                    rpoly[c, 0] = ws[0, c]
+                    rpoly[c, 1] = ws[1, c]
+                if nrp > 0:
+                    polygon_axes(rpoly[:, 0], rpoly[:, 1], nrp, rpb, rpoly[:, 2],
+                                 rpoly[:, 3], rpoly[:, 4], rpoly[:, 5])
+            # Early z: every ray of the pixel (any camera position, any direction in it) meets
+            # a coverall occluder at depth <= zcut, before anything wholly deeper.
+            zcut = np.inf
+            # Occluders listed after the last entry still to be tested serve no test: the
+            # list ends there (the rest are primitives known visible).
+            while b > a and (known[entries[b - 1]] != 0
+                             or (tseen[entries[b - 1] >> 3] >> (entries[b - 1] & 7)) & 1):
+                b -= 1
+            for k in range(a, b):
+                if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
+                    break  # one pixel's list of 10^5 entries takes seconds in dense clutter
+                p = entries[k]
+                # One entry in TIME_STRIDE is timed by step: four counter reads at every
+                # entry would weigh on short lists, whose entries are cheap.
+                timed = (k - a) % TIME_STRIDE == 0
+                if gap[p] > zcut * lray + plane_tol:
+                    # The lists are sorted by gap: this entry and all later ones lie beyond
+                    # zcut on every ray of the pixel.
+                    cut += b - k
+                    if mark:
+                        hid[k:b] = 1
                     break
-                i = ty * tsz + loc // tsz
-                j = tx * tsz + loc % tsz
-                if i >= ny or j >= nx:
+                n = npts[p]
+                tri = kind[p] == 0
+                load_prim(pts, start[p], n, origin, perm, sign, cam)
+                wmin = cam[0, 2]
+                wref = cam[0, 2]
+                for c in range(1, n):
+                    wmin = min(wmin, cam[c, 2])
+                    wref += cam[c, 2]
+                if wmin > zcut + plane_tol:
+                    cut += 1
+                    if mark:
+                        hid[k] = 1
                     continue
-                a = pstart[pix0 + loc]
-                b = a + pcount[pix0 + loc]
-                if a == b:
-                    continue
-                sx = x_lo + (j + 0.5) * pw
-                sy = y_lo + (i + 0.5) * pw
-                # Longest ray per unit of depth over the pixel's directions: a point at distance g
-                # from the box (so from every camera position, which lies on the box) is at depth
-                # at least g / lray on any ray of this pixel.
-                lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
-                hs = 8
-                while hs < 6 * (b - a):
-                    hs *= 2
-                hmask = hs - 1
-                hk0[:hs] = -1
-                n_polys = 0
-                n_live = 0
-                n_dead = 0
-                last_g = -1
-                n_cov = 0
-                n_slot = 0
-                n_free = 0
-                pool[0] = 0
-                # The depth grids' domain: the offset region's frame-0 box (what lies outside
-                # falls in the border cells).
-                region_at(corners, sx, sy, h, 0.0, rv, rr)
-                dom[0] = np.inf
-                dom[1] = -np.inf
-                dom[2] = np.inf
-                dom[3] = -np.inf
-                for c in range(4):
-                    dom[0] = min(dom[0], rv[c, 0] - rr[c])
-                    dom[1] = max(dom[1], rv[c, 0] + rr[c])
-                    dom[2] = min(dom[2], rv[c, 1] - rr[c])
-                    dom[3] = max(dom[3], rv[c, 1] + rr[c])
-                dom[4] = GRID / (dom[1] - dom[0]) if dom[1] > dom[0] else 0.0
-                dom[5] = GRID / (dom[3] - dom[2]) if dom[3] > dom[2] else 0.0
-                # The camera rectangle's image in a frame that moves with the cameras' middle
-                # depth, where it barely grows (``_covers_q``).
-                fr = 0.5 * wcam
-                nrp = 0
-                if relaxed:
-                    region_at(corners, sx, sy, h, fr, rv, rr)
-                    nrp = region_polygon(rv, rr, 4, False, rv, rr, ws[0], ws[1], ws[2], ws[3])
-                    for c in range(nrp):
-                        rpoly[c, 0] = ws[0, c]
-                        rpoly[c, 1] = ws[1, c]
-                    if nrp > 0:
-                        polygon_axes(rpoly[:, 0], rpoly[:, 1], nrp, rpb, rpoly[:, 2],
-                                     rpoly[:, 3], rpoly[:, 4], rpoly[:, 5])
-                # Early z: every ray of the pixel (any camera position, any direction in it) meets
-                # a coverall occluder at depth <= zcut, before anything wholly deeper.
-                zcut = np.inf
-                # Occluders listed after the last entry still to be tested serve no test: the
-                # list ends there (the rest are primitives known visible).
-                while b > a and (known[entries[b - 1]] != 0
-                                 or (tseen[entries[b - 1] >> 3] >> (entries[b - 1] & 7)) & 1):
-                    b -= 1
-                for k in range(a, b):
-                    if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
-                        break  # one pixel's list of 10^5 entries takes seconds in dense clutter
-                    p = entries[k]
-                    # One entry in TIME_STRIDE is timed by step: four counter reads at every
-                    # entry would weigh on short lists, whose entries are cheap.
-                    timed = (k - a) % TIME_STRIDE == 0
-                    if gap[p] > zcut * lray + plane_tol:
-                        # The lists are sorted by gap: this entry and all later ones lie beyond
-                        # zcut on every ray of the pixel.
-                        cut += b - k
-                        if mark:
-                            hid[k:b] = 1
-                        break
-                    n = npts[p]
-                    tri = kind[p] == 0
-                    load_prim(pts, start[p], n, origin, perm, sign, cam)
-                    wmin = cam[0, 2]
-                    wref = cam[0, 2]
-                    for c in range(1, n):
-                        wmin = min(wmin, cam[c, 2])
-                        wref += cam[c, 2]
-                    if wmin > zcut + plane_tol:
-                        cut += 1
-                        if mark:
-                            hid[k] = 1
-                        continue
-                    # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
-                    # by its depth difference to Q (the relative motion that matters).
-                    wref /= n
-                    project(cam, n, sx, sy, h, wref, qv, qr)
-                    dorm = False
-                    if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
-                        c0 = cycles() if timed else 0
-                        region_at(corners, sx, sy, h, wref, rv, rr)
-                        nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
-                        if nk > 0:
-                            tested += 1
-                            _k_box(kx, ky, nk, kb)
-                            qctx[QC_RELAX] = 0.0
-                            if relaxed:
-                                _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam,
-                                           plane_tol, corners)
-                            occluded = False
-                            by_cov = False
-                            if 2 * n_dead > n_live:
-                                # Compact the live list (oldest groups first, as they came).
-                                m = 0
-                                for c in range(n_live):
-                                    g = live[c]
-                                    if lpos[g] >= 0:
-                                        live[m] = g
-                                        lpos[g] = m
-                                        m += 1
-                                n_live = m
-                                n_dead = 0
-                            # Coverall occluders first (the paper's early discard): they need
-                            # only the depth test. Then the live groups, which must cover K: the
-                            # one that hid the last entry first (neighbours in the list are often
-                            # hidden by the same surface), then the rest. (One loop, so the
-                            # inlined tests are compiled once.)
-                            # The strict cover test first for every group; the relaxed one
-                            # (dearer: a meeting edge does not end the walk, and K's box cannot
-                            # reject) only when the strict one hid Q behind none, and only for
-                            # the groups that came near K (``cand``; -1 - g for coverall ones).
-                            relax_ok = qctx[QC_RELAX]
-                            qctx[QC_RELAX] = 0.0
-                            nl = n_cov + 1 + n_live
-                            ncand = 0
-                            for cc in range(2 * nl):
-                                isc = False
-                                if cc < nl:
-                                    c = cc
-                                    if c < n_cov:
-                                        g = covl[c]
-                                        isc = True
-                                    else:
-                                        if c == n_cov:
-                                            g = last_g
-                                            if g < 0 or lpos[g] < 0:
-                                                continue
-                                        else:
-                                            g = live[c - n_cov - 1]
-                                            if lpos[g] != c - n_cov - 1 or g == last_g:
-                                                continue
-                                    if relax_ok != 0.0:
-                                        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
-                                        if isc:
-                                            cand[ncand] = -1 - g
-                                            ncand += 1
-                                        elif not (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m
-                                                  or kb[3] < gbb[g, 2] - m
-                                                  or kb[2] > gbb[g, 3] + m):
-                                            cand[ncand] = g
-                                            ncand += 1
+                # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
+                # by its depth difference to Q (the relative motion that matters).
+                wref /= n
+                project(cam, n, sx, sy, h, wref, qv, qr)
+                dorm = False
+                if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
+                    c0 = cycles() if timed else 0
+                    region_at(corners, sx, sy, h, wref, rv, rr)
+                    nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
+                    if nk > 0:
+                        tested += 1
+                        _k_box(kx, ky, nk, kb)
+                        qctx[QC_RELAX] = 0.0
+                        if relaxed:
+                            _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam,
+                                       plane_tol, corners)
+                        occluded = False
+                        by_cov = False
+                        if 2 * n_dead > n_live:
+                            # Compact the live list (oldest groups first, as they came).
+                            m = 0
+                            for c in range(n_live):
+                                g = live[c]
+                                if lpos[g] >= 0:
+                                    live[m] = g
+                                    lpos[g] = m
+                                    m += 1
+                            n_live = m
+                            n_dead = 0
+                        # Coverall occluders first (the paper's early discard): they need
+                        # only the depth test. Then the live groups, which must cover K: the
+                        # one that hid the last entry first (neighbours in the list are often
+                        # hidden by the same surface), then the rest. (One loop, so the
+                        # inlined tests are compiled once.)
+                        # The strict cover test first for every group; the relaxed one
+                        # (dearer: a meeting edge does not end the walk, and K's box cannot
+                        # reject) only when the strict one hid Q behind none, and only for
+                        # the groups that came near K (``cand``; -1 - g for coverall ones).
+                        relax_ok = qctx[QC_RELAX]
+                        qctx[QC_RELAX] = 0.0
+                        nl = n_cov + 1 + n_live
+                        ncand = 0
+                        for cc in range(2 * nl):
+                            isc = False
+                            if cc < nl:
+                                c = cc
+                                if c < n_cov:
+                                    g = covl[c]
+                                    isc = True
                                 else:
-                                    if relax_ok == 0.0 or cc - nl >= ncand:
-                                        break
-                                    qctx[QC_RELAX] = relax_ok
-                                    g = cand[cc - nl]
-                                    if g < 0:
-                                        g = -1 - g
-                                        isc = True
-                                if not isc:
-                                    if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
-                                                     wref, h, kx, ky, nk, kb, knx, kny, klo,
-                                                     khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
-                                                     work):
-                                        continue
-                                if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
-                                          sg, sfr, shead, pool, pdep, dom, wcam, plane_tol, wref,
-                                          h, kb, cam, n, wmin, ov, qctx, work):
-                                    occluded = True
-                                    by_cov = isc
-                                    if not by_cov:
-                                        last_g = g
-                                    break
-                            if by_cov:
-                                # Hidden behind a surface that covers every offset: it adds
-                                # nothing as an occluder, and keeping it would make long lists
-                                # quadratic.
-                                hidden += 1
-                                if mark:
-                                    hid[k] = 1
-                                cyc_test += cycles() - c0 if timed else 0
-                                continue
-                            if occluded:
-                                # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
-                                # the surfaces it borders (the module docstring).
-                                hidden += 1
-                                dorm = True
-                                if mark:
-                                    hid[k] = 1
+                                    if c == n_cov:
+                                        g = last_g
+                                        if g < 0 or lpos[g] < 0:
+                                            continue
+                                    else:
+                                        g = live[c - n_cov - 1]
+                                        if lpos[g] != c - n_cov - 1 or g == last_g:
+                                            continue
+                                if relax_ok != 0.0:
+                                    m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
+                                    if isc:
+                                        cand[ncand] = -1 - g
+                                        ncand += 1
+                                    elif not (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m
+                                              or kb[3] < gbb[g, 2] - m
+                                              or kb[2] > gbb[g, 3] + m):
+                                        cand[ncand] = g
+                                        ncand += 1
                             else:
-                                vis[p] = 1
-                                tseen[p >> 3] |= np.uint8(1 << (p & 7))
-                            tset[n_set] = p
-                            n_set += 1
-                        else:
-                            dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
+                                if relax_ok == 0.0 or cc - nl >= ncand:
+                                    break
+                                qctx[QC_RELAX] = relax_ok
+                                g = cand[cc - nl]
+                                if g < 0:
+                                    g = -1 - g
+                                    isc = True
+                            if not isc:
+                                if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                                 wref, h, kx, ky, nk, kb, knx, kny, klo,
+                                                 khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
+                                                 work):
+                                    continue
+                            if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot,
+                                      sg, sfr, shead, pool, pdep, dom, wcam, plane_tol, wref,
+                                      h, kb, cam, n, wmin, ov, qctx, work):
+                                occluded = True
+                                by_cov = isc
+                                if not by_cov:
+                                    last_g = g
+                                break
+                        if by_cov:
+                            # Hidden behind a surface that covers every offset: it adds
+                            # nothing as an occluder, and keeping it would make long lists
+                            # quadratic.
+                            hidden += 1
                             if mark:
                                 hid[k] = 1
-                        cyc_test += cycles() - c0 if timed else 0
-                    if not tri or not solid[p]:
-                        continue
-                    c0 = cycles() if timed else 0
-                    # Become an occluder: counter-clockwise in the COS, robust area only.
-                    ar = area2(qv)
-                    # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
-                    # occluder passes through (they showed in the kitchen's profile).
-                    e1 = (qv[1, 0] - qv[0, 0]) ** 2 + (qv[1, 1] - qv[0, 1]) ** 2
-                    e2 = (qv[2, 0] - qv[0, 0]) ** 2 + (qv[2, 1] - qv[0, 1]) ** 2
-                    if not ar * ar > 1e-18 * e1 * e2:
-                        continue
-                    q = n_polys
-                    n_polys += 1
-                    occl += 1
-                    for c in range(3):
-                        src = c if ar > 0.0 else (3 - c) % 3
-                        ov[q, c, 0] = qv[src, 0]
-                        ov[q, c, 1] = qv[src, 1]
-                        ow[q, c] = cam[src, 2]
-                        oid[q, c] = vid[p, src]
-                        oact[q, c] = True
-                    pnx, pny, pnz, pnn = tri_normal(cam)
-                    pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
-                    tol = plane_tol * pnn
-                    pos = 0
-                    neg = 0
-                    for c in range(4):
-                        dist = pnx * corners[c, 0] + pny * corners[c, 1] + pnz * corners[c, 2] - pd
-                        if dist > tol:
-                            pos += 1
-                        elif dist < -tol:
-                            neg += 1
-                    if neg == 4:
-                        pnx, pny, pnz, pd = -pnx, -pny, -pnz, -pd
-                    ouse[q] = (pos == 4 or neg == 4) and tol > 0.0
-                    oplane[q, 0] = pnx
-                    oplane[q, 1] = pny
-                    oplane[q, 2] = pnz
-                    oplane[q, 3] = pd
-                    oplane[q, 4] = tol
-                    obb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                    obb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
-                    obb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                    obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
-                    owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
-                    owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
-                    gbb[q, 0] = obb[q, 0]
-                    gbb[q, 1] = obb[q, 1]
-                    gbb[q, 2] = obb[q, 2]
-                    gbb[q, 3] = obb[q, 3]
-                    gwlo[q] = owr[q, 0]
-                    gwhi[q] = owr[q, 1]
-                    grp[q] = q
-                    head[q] = q
-                    tail[q] = q
-                    nxt[q] = -1
-                    gsize[q] = 1
-                    gcov[q] = False
-                    alive[q] = True
-                    gehead[q] = 3 * q
-                    getail[q] = 3 * q + 2
-                    for e in range(3):
-                        anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
-                        aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
-                    gdorm[q] = dorm
-                    if dorm:
-                        lpos[q] = -1
-                    else:
-                        live[n_live] = q
-                        lpos[q] = n_live
-                        n_live += 1
-                    cpos[q] = -1
-                    gslot[q] = -1
-                    # Fuse along shared edges: the neighbour holds the edge reversed. The first
-                    # active occluder edge (in the order they were added) that does is taken.
-                    for e in range(3):
-                        va = oid[q, e]
-                        vb = oid[q, (e + 1) % 3]
-                        if va < 0 or vb < 0:
+                            cyc_test += cycles() - c0 if timed else 0
                             continue
-                        slot = _edge_slot(hk0, hk1, hmask, vb, va)
-                        if hk0[slot] < 0:
-                            continue
-                        node = hfirst[slot]
-                        while node >= 0:
-                            r = node // 3
-                            f = node - 3 * r
-                            if oact[r, f]:
-                                oact[r, f] = False
-                                oact[q, e] = False
-                                _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
-                                _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
-                                g1 = grp[r]
-                                g2 = grp[q]
-                                if g1 != g2:
-                                    c1 = gcov[g1]
-                                    c2 = gcov[g2]
-                                    gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
-                                                gwhi, gcov, alive, gehead, getail, anext, aprev)
-                                    gd = g2 if gs == g1 else g1
-                                    if lpos[gd] >= 0:
-                                        lpos[gd] = -1
-                                        n_dead += 1
-                                    if gdorm[gs] and not gdorm[gd]:
-                                        # A dormant group joins a tested one: it is tested now.
-                                        gdorm[gs] = False
-                                        if not gcov[gs]:
-                                            live[n_live] = gs
-                                            lpos[gs] = n_live
-                                            n_live += 1
-                                    n_cov = _list_drop(gd, cpos, covl, n_cov)
-                                    if gcov[gs] and not (c1 if gs == g1 else c2):
-                                        # The survivor takes the coverall flag of the other.
-                                        n_cov, n_dead = _to_coverall(gs, lpos, covl, cpos, n_cov,
-                                                                     n_dead)
-                                    # Depth grids: every group of GRID_MIN or more has one.
-                                    sd = gslot[gd]
-                                    ss = gslot[gs]
-                                    if sd >= 0:
-                                        gslot[gd] = -1
-                                        fslot[n_free] = sd
-                                        n_free += 1
-                                    if ss >= 0:
-                                        # The other's triangles join the survivor's grid (the
-                                        # smaller group: O(n log n) in all).
-                                        r2 = head[gd]
-                                        while r2 >= 0:
-                                            _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
-                                                      pool, pdep)
-                                            r2 = nxt[r2]
-                                    elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
-                                        if n_free > 0:
-                                            n_free -= 1
-                                            ss = fslot[n_free]
-                                        else:
-                                            ss = n_slot
-                                            n_slot += 1
-                                        gslot[gs] = ss
-                                        _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
-                                                    shead, pool, pdep, 0.5 * (gwlo[gs] + gwhi[gs]))
-                                break
-                            node = enext[node]
-                    # Register q's edges still active (an inactive edge never fuses again).
-                    for e in range(3):
-                        va = oid[q, e]
-                        vb = oid[q, (e + 1) % 3]
-                        if va < 0 or vb < 0 or not oact[q, e]:
-                            continue
-                        slot = _edge_slot(hk0, hk1, hmask, va, vb)
-                        node = 3 * q + e
-                        enext[node] = -1
-                        if hk0[slot] < 0:
-                            hk0[slot] = va
-                            hk1[slot] = vb
-                            hfirst[slot] = node
+                        if occluded:
+                            # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
+                            # the surfaces it borders (the module docstring).
+                            hidden += 1
+                            dorm = True
+                            if mark:
+                                hid[k] = 1
                         else:
-                            enext[hlast[slot]] = node
-                        hlast[slot] = node
-                    c1 = cycles() if timed else 0
-                    cyc_insert += c1 - c0 if timed else 0
-                    g = grp[q]
-                    if not gcov[g] and not gdorm[g]:
-                        # Coverall holds for every delta whatever frame proves it; the new
-                        # triangle's depth is as good a frame as any.
-                        region_at(corners, sx, sy, h, wref, rv, rr)
-                        # The region polygon's box is the box of its corner squares, and a group
-                        # covers it only inside its own box: most insertions stop at this
-                        # comparison (in dense clutter, building the polygon for every one
-                        # took a sixth of the resolution).
-                        bx0, bx1, by0, by1 = bbox(rv, rr, 4)
-                        n_r = 0
-                        if (bx0 >= gbb[g, 0] and bx1 <= gbb[g, 1] and by0 >= gbb[g, 2]
-                                and by1 <= gbb[g, 3]):
-                            n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
-                        if n_r > 0:
-                            _k_box(rx, ry, n_r, rb)
-                        if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
-                                                 wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
-                                                 strict, rpoly, 0, rpb, rv, ws, wpt,
-                                                 work):
-                            gcov[g] = True
-                            n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
-                            zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
-                                                          h, rx, ry, n_r, wref))
-                    cyc_cover += cycles() - c1 if timed else 0
-            counters[tile, 0] = tested
-            counters[tile, 1] = hidden
-            counters[tile, 2] = occl
-            counters[tile, 3] = cut
-            counters[tile, 4] = work[0]
-            counters[tile, 5] = work[1]
-            counters[tile, 6] = cyc_test
-            counters[tile, 7] = cyc_insert
-            counters[tile, 8] = cyc_cover
-            counters[tile, 9] = cycles() - cyc_tile
-            for c in range(n_set):
-                tseen[tset[c] >> 3] = 0
-        keep_alive(own)
+                            vis[p] = 1
+                            tseen[p >> 3] |= np.uint8(1 << (p & 7))
+                        tset[n_set] = p
+                        n_set += 1
+                    else:
+                        dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
+                        if mark:
+                            hid[k] = 1
+                    cyc_test += cycles() - c0 if timed else 0
+                if not tri or not solid[p]:
+                    continue
+                c0 = cycles() if timed else 0
+                # Become an occluder: counter-clockwise in the COS, robust area only.
+                ar = area2(qv)
+                # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
+                # occluder passes through (they showed in the kitchen's profile).
+                e1 = (qv[1, 0] - qv[0, 0]) ** 2 + (qv[1, 1] - qv[0, 1]) ** 2
+                e2 = (qv[2, 0] - qv[0, 0]) ** 2 + (qv[2, 1] - qv[0, 1]) ** 2
+                if not ar * ar > 1e-18 * e1 * e2:
+                    continue
+                q = n_polys
+                n_polys += 1
+                occl += 1
+                for c in range(3):
+                    src = c if ar > 0.0 else (3 - c) % 3
+                    ov[q, c, 0] = qv[src, 0]
+                    ov[q, c, 1] = qv[src, 1]
+                    ow[q, c] = cam[src, 2]
+                    oid[q, c] = vid[p, src]
+                    oact[q, c] = True
+                pnx, pny, pnz, pnn = tri_normal(cam)
+                pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
+                tol = plane_tol * pnn
+                pos = 0
+                neg = 0
+                for c in range(4):
+                    dist = pnx * corners[c, 0] + pny * corners[c, 1] + pnz * corners[c, 2] - pd
+                    if dist > tol:
+                        pos += 1
+                    elif dist < -tol:
+                        neg += 1
+                if neg == 4:
+                    pnx, pny, pnz, pd = -pnx, -pny, -pnz, -pd
+                ouse[q] = (pos == 4 or neg == 4) and tol > 0.0
+                oplane[q, 0] = pnx
+                oplane[q, 1] = pny
+                oplane[q, 2] = pnz
+                oplane[q, 3] = pd
+                oplane[q, 4] = tol
+                obb[q, 0] = min(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                obb[q, 1] = max(ov[q, 0, 0], ov[q, 1, 0], ov[q, 2, 0])
+                obb[q, 2] = min(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                obb[q, 3] = max(ov[q, 0, 1], ov[q, 1, 1], ov[q, 2, 1])
+                owr[q, 0] = min(ow[q, 0], ow[q, 1], ow[q, 2])
+                owr[q, 1] = max(ow[q, 0], ow[q, 1], ow[q, 2])
+                gbb[q, 0] = obb[q, 0]
+                gbb[q, 1] = obb[q, 1]
+                gbb[q, 2] = obb[q, 2]
+                gbb[q, 3] = obb[q, 3]
+                gwlo[q] = owr[q, 0]
+                gwhi[q] = owr[q, 1]
+                grp[q] = q
+                head[q] = q
+                tail[q] = q
+                nxt[q] = -1
+                gsize[q] = 1
+                gcov[q] = False
+                alive[q] = True
+                gehead[q] = 3 * q
+                getail[q] = 3 * q + 2
+                for e in range(3):
+                    anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
+                    aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
+                gdorm[q] = dorm
+                if dorm:
+                    lpos[q] = -1
+                else:
+                    live[n_live] = q
+                    lpos[q] = n_live
+                    n_live += 1
+                cpos[q] = -1
+                gslot[q] = -1
+                # Fuse along shared edges: the neighbour holds the edge reversed. The first
+                # active occluder edge (in the order they were added) that does is taken.
+                for e in range(3):
+                    va = oid[q, e]
+                    vb = oid[q, (e + 1) % 3]
+                    if va < 0 or vb < 0:
+                        continue
+                    slot = _edge_slot(hk0, hk1, hmask, vb, va)
+                    if hk0[slot] < 0:
+                        continue
+                    node = hfirst[slot]
+                    while node >= 0:
+                        r = node // 3
+                        f = node - 3 * r
+                        if oact[r, f]:
+                            oact[r, f] = False
+                            oact[q, e] = False
+                            _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
+                            _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
+                            g1 = grp[r]
+                            g2 = grp[q]
+                            if g1 != g2:
+                                c1 = gcov[g1]
+                                c2 = gcov[g2]
+                                gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
+                                            gwhi, gcov, alive, gehead, getail, anext, aprev)
+                                gd = g2 if gs == g1 else g1
+                                if lpos[gd] >= 0:
+                                    lpos[gd] = -1
+                                    n_dead += 1
+                                if gdorm[gs] and not gdorm[gd]:
+                                    # A dormant group joins a tested one: it is tested now.
+                                    gdorm[gs] = False
+                                    if not gcov[gs]:
+                                        live[n_live] = gs
+                                        lpos[gs] = n_live
+                                        n_live += 1
+                                n_cov = _list_drop(gd, cpos, covl, n_cov)
+                                if gcov[gs] and not (c1 if gs == g1 else c2):
+                                    # The survivor takes the coverall flag of the other.
+                                    n_cov, n_dead = _to_coverall(gs, lpos, covl, cpos, n_cov,
+                                                                 n_dead)
+                                # Depth grids: every group of GRID_MIN or more has one.
+                                sd = gslot[gd]
+                                ss = gslot[gs]
+                                if sd >= 0:
+                                    gslot[gd] = -1
+                                    fslot[n_free] = sd
+                                    n_free += 1
+                                if ss >= 0:
+                                    # The other's triangles join the survivor's grid (the
+                                    # smaller group: O(n log n) in all).
+                                    r2 = head[gd]
+                                    while r2 >= 0:
+                                        _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
+                                                  pool, pdep)
+                                        r2 = nxt[r2]
+                                elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
+                                    if n_free > 0:
+                                        n_free -= 1
+                                        ss = fslot[n_free]
+                                    else:
+                                        ss = n_slot
+                                        n_slot += 1
+                                    gslot[gs] = ss
+                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
+                                                shead, pool, pdep, 0.5 * (gwlo[gs] + gwhi[gs]))
+                            break
+                        node = enext[node]
+                # Register q's edges still active (an inactive edge never fuses again).
+                for e in range(3):
+                    va = oid[q, e]
+                    vb = oid[q, (e + 1) % 3]
+                    if va < 0 or vb < 0 or not oact[q, e]:
+                        continue
+                    slot = _edge_slot(hk0, hk1, hmask, va, vb)
+                    node = 3 * q + e
+                    enext[node] = -1
+                    if hk0[slot] < 0:
+                        hk0[slot] = va
+                        hk1[slot] = vb
+                        hfirst[slot] = node
+                    else:
+                        enext[hlast[slot]] = node
+                    hlast[slot] = node
+                c1 = cycles() if timed else 0
+                cyc_insert += c1 - c0 if timed else 0
+                g = grp[q]
+                if not gcov[g] and not gdorm[g]:
+                    # Coverall holds for every delta whatever frame proves it; the new
+                    # triangle's depth is as good a frame as any.
+                    region_at(corners, sx, sy, h, wref, rv, rr)
+                    # The region polygon's box is the box of its corner squares, and a group
+                    # covers it only inside its own box: most insertions stop at this
+                    # comparison (in dense clutter, building the polygon for every one
+                    # took a sixth of the resolution).
+                    bx0, bx1, by0, by1 = bbox(rv, rr, 4)
+                    n_r = 0
+                    if (bx0 >= gbb[g, 0] and bx1 <= gbb[g, 1] and by0 >= gbb[g, 2]
+                            and by1 <= gbb[g, 3]):
+                        n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
+                    if n_r > 0:
+                        _k_box(rx, ry, n_r, rb)
+                    if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                             wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
+                                             strict, rpoly, 0, rpb, rv, ws, wpt,
+                                             work):
+                        gcov[g] = True
+                        n_cov, n_dead = _to_coverall(g, lpos, covl, cpos, n_cov, n_dead)
+                        zcut = min(zcut, _cover_depth(g, head, nxt, obb, owr, wcam, plane_tol,
+                                                      h, rx, ry, n_r, wref))
+                cyc_cover += cycles() - c1 if timed else 0
+        counters[tile, 0] = tested
+        counters[tile, 1] = hidden
+        counters[tile, 2] = occl
+        counters[tile, 3] = cut
+        counters[tile, 4] = work[0]
+        counters[tile, 5] = work[1]
+        counters[tile, 6] = cyc_test
+        counters[tile, 7] = cyc_insert
+        counters[tile, 8] = cyc_cover
+        counters[tile, 9] = cycles() - cyc_tile
+        for c in range(n_set):
+            tseen[tset[c] >> 3] = 0
+    keep_alive(own)
