@@ -21,8 +21,8 @@ log = logging.getLogger(__name__)
 #: cores by name, ``ground_truth`` (the sampled reference), ``rays`` (the float64 caster) and
 #: ``topology`` (closed parts, self-crossing ones included: no small scene below has one).
 GROUPS: tuple[tuple[str, ...], ...] = (
-    ("cos", "sampling", "ground_truth", "dual_ray"),
-    ("from_segment", "trim_regions", "rays", "topology"),
+    ("cos", "dual_ray"),
+    ("from_segment", "trim_regions", "sampling", "ground_truth", "rays", "topology"),
 )
 
 
@@ -121,7 +121,7 @@ def _warm_topology() -> None:
 def warm_up(processes: int = 2) -> dict[str, float]:
     """Compile every core's kernels into the numba cache; seconds per group of cores.
 
-    Returns {"cos+sampling+ground_truth+dual_ray": s, ...}; run once after install
+    Returns {"cos+dual_ray": s, ...}; run once after install
     (``pvs warmup``)."""
     ctx = get_context("spawn")
     with ProcessPoolExecutor(max(1, processes), mp_context=ctx) as pool:

@@ -380,7 +380,8 @@ def _resolve(job, prims, geom, sweep, out):  # pragma: no cover - numba
             ch = _take_next(nxt)
             if ch >= job.n_chunks:
                 break
-            _resolve_chunk(ch, w, job, prims, geom, sweep, out)
+            # The loop's index is unsigned: cast, or the chunk is compiled twice.
+            _resolve_chunk(ch, np.int64(w), job, prims, geom, sweep, out)
 
 
 @njit(**_JIT)
