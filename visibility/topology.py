@@ -19,14 +19,16 @@ out in places); there the winding number on each side of the triangles no other 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import zipfile
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 from numba import njit
 
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
-from visibility.scene_cache import per_scene
+from visibility.scene_cache import Build, Persist, per_scene
 from visibility.winding import UNDECIDED, front_windings
 
 
@@ -458,9 +460,66 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
                        wnormal, woffset)
 
 
+#: The per-scene cache's name for the closed parts (``visibility.scene_cache``).
+CLOSED_KIND = "topology/closed_parts"
+#: Their format on disk: a file of another format is built again, never read.
+CLOSED_FORMAT = "closed-parts-1"
+#: Index arrays of ``ClosedParts`` and ``Edges`` and the ids each holds, checked on load:
+#: "t" triangle ids (-1 allowed where an edge or a triangle has none), "v" vertex rows.
+_INDEX = {"edges_vert": "v", "edges_face": "t", "edges_opp": "v", "oriented": "t",
+          "wound": "t"}
+
+
+def save_closed_parts(parts: ClosedParts, path: str | Path) -> None:
+    """Write ``parts`` to ``path`` (``.npz``) through a temporary file renamed into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    arrays = {f"edges_{f.name}": getattr(parts.edges, f.name) for f in fields(Edges)}
+    arrays.update({f.name: getattr(parts, f.name) for f in fields(ClosedParts)
+                   if f.name != "edges"})
+    with open(tmp, "wb") as fh:
+        np.savez(fh, format=np.array(CLOSED_FORMAT), **arrays)
+    tmp.replace(path)
+
+
+def load_closed_parts(path: str | Path, scene: Scene) -> ClosedParts | None:
+    """The closed parts saved at ``path`` for ``scene``; None when missing, of another format,
+    of another triangle count, or holding ids outside the scene's arrays."""
+    m, n = scene.n_triangles, scene.n_vertices
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["format"]) != CLOSED_FORMAT:
+                return None
+            a = {k: np.ascontiguousarray(z[k]) for k in z.files if k != "format"}
+        edges = Edges(**{f.name: a.pop(f"edges_{f.name}") for f in fields(Edges)})
+        parts = ClosedParts(edges=edges, **a)
+    except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile):
+        return None
+    if len(parts.label) != m or len(parts.outward) != m:
+        return None
+    for key, what in _INDEX.items():
+        ids = getattr(edges, key[6:]) if key.startswith("edges_") else getattr(parts, key)
+        top = m if what == "t" else n
+        if len(ids) and (ids.min() < -1 or ids.max() >= top):
+            return None
+    if len(parts.label) and parts.label.max() >= len(parts.box):
+        return None
+    return parts
+
+
+#: The closed parts on disk, by the scene's content hash (``scene_cache.set_store``): on the
+#: 1M-triangle kitchen they take seconds to build, a restart reads them instead.
+CLOSED_PERSIST: Persist[ClosedParts] = Persist(save=save_closed_parts, load=load_closed_parts,
+                                               version=CLOSED_FORMAT)
+#: The closed parts as one of a scene's background builds (``Core.scene_builds``).
+CLOSED_BUILD = Build(CLOSED_KIND, build_closed_parts, CLOSED_PERSIST)
+
+
 def closed_parts(scene: Scene) -> tuple[ClosedParts, bool]:
-    """The cached ``ClosedParts`` of ``scene`` and whether this call built them."""
-    return per_scene(scene, "topology/closed_parts", build_closed_parts)
+    """The cached ``ClosedParts`` of ``scene`` (read from the store when kept there) and
+    whether this call built them."""
+    return per_scene(scene, CLOSED_KIND, build_closed_parts, CLOSED_PERSIST)
 
 
 def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Per-scene builds start in the background when a scene loads (a real server): the
-hierarchy, and the kd-tree and fences of a dual_ray server; they are kept on disk by content
-hash, so a restart reads them; small scenes build nothing."""
+hierarchy, the kd-tree and fences of a dual_ray server, the closed parts of a cos server;
+they are kept on disk by content hash, so a restart reads them; small scenes build nothing."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from visibility.cores.base import choose_core, get_core
 from visibility.generators import make_scene
 from visibility.raster import hierarchy
 from visibility.scene_cache import peek
+from visibility.topology import CLOSED_KIND
 
 
 def _load(url: str, name: str) -> dict:
@@ -54,6 +55,18 @@ def test_dual_ray_server_builds_its_kdtree_before_any_request(settings):
         assert app.state.server.compute.computed == 0
 
 
+def test_cos_server_builds_the_closed_parts_before_any_request(settings, tmp_path):
+    # cos leaves the back faces of closed surfaces out: their parts are a per-scene build.
+    city = make_scene("city", 20_000, seed=2)
+    with serving(settings, scenes={"town": city}, core="cos", cache_dir=tmp_path) as (url, app):
+        _load(url, "town")
+        scene = app.state.server.catalog.get("town").scene
+        wait_for(lambda: peek(scene, CLOSED_KIND) is not None, timeout=120)
+        assert app.state.server.compute.computed == 0
+        wait_for(lambda: CLOSED_KIND in _load(url, "town").get("builds", {}), timeout=30)
+        assert list((tmp_path / "scenes").rglob("*closed_parts*.npz"))
+
+
 def test_what_is_built(settings):
     from server.catalog import SceneCatalog
 
@@ -68,6 +81,8 @@ def test_what_is_built(settings):
     dual = settings.model_copy(update={"core": "dual_ray"})
     assert [b.kind for b in builds_for(catalog.get("big"), dual)] == \
         [hierarchy.KIND, "kdtree", "fences"]
+    cos = settings.model_copy(update={"core": "cos"})
+    assert [b.kind for b in builds_for(catalog.get("big"), cos)] == [hierarchy.KIND, CLOSED_KIND]
     # auto: the builds of the core its declared fits pick.
     auto = settings.model_copy(update={"core": "auto"})
     loaded = catalog.get("big")

@@ -281,3 +281,73 @@ def test_no_triangle_rays_see_in_the_kitchen_is_taken_for_unseen():
         frames = ray_frames(scene, cell, n_eyes=32, resolution=256, seed=idx, near=DEFAULT_NEAR)
         missed = missed_triangles(scene, frames, np.flatnonzero(~unseen))
         assert len(missed) == 0, missed
+
+
+def _parts_equal(a, b) -> bool:
+    from dataclasses import fields
+
+    from visibility.topology import ClosedParts, Edges
+
+    return all(np.array_equal(getattr(a.edges, f.name), getattr(b.edges, f.name))
+               for f in fields(Edges)) and all(
+        np.array_equal(getattr(a, f.name), getattr(b, f.name))
+        for f in fields(ClosedParts) if f.name != "edges")
+
+
+def _wound_scene() -> Scene:
+    """Two cubes, one with a corner pulled through itself (wound triangles), and a sheet."""
+    cube = _cube()
+    v = cube.vertices.copy()
+    v[np.argmax(v.sum(axis=1))] = (-1.5, -1.5, -1.5)
+    sheet = trimesh.Trimesh([[5, 0, 0], [6, 0, 0], [6, 1, 0], [5, 1, 0]],
+                            [[0, 1, 2], [0, 2, 3]], process=False)
+    return _scene([trimesh.Trimesh(v, cube.faces, process=False), _cube((3, 0, 0)), sheet])
+
+
+def test_closed_parts_read_back_from_disk_as_built(tmp_path):
+    from visibility.topology import CLOSED_FORMAT, load_closed_parts, save_closed_parts
+
+    sc = _wound_scene()
+    parts = build_closed_parts(sc)
+    assert len(parts.oriented) and len(parts.wound)  # every field holds something
+    save_closed_parts(parts, tmp_path / "p.npz")
+    assert _parts_equal(load_closed_parts(tmp_path / "p.npz", sc), parts)
+    # Another scene (another triangle count), another format, a damaged or missing file:
+    # None, so the parts are built again, never trusted.
+    other = _scene([_cube()])
+    assert load_closed_parts(tmp_path / "p.npz", other) is None
+    z = dict(np.load(tmp_path / "p.npz"))
+    np.savez(tmp_path / "old.npz", **{**z, "format": np.array("closed-parts-0")})
+    assert CLOSED_FORMAT != "closed-parts-0"
+    assert load_closed_parts(tmp_path / "old.npz", sc) is None
+    bad = z["oriented"].copy()
+    bad[0] = sc.n_triangles
+    np.savez(tmp_path / "bad.npz", **{**z, "oriented": bad})
+    assert load_closed_parts(tmp_path / "bad.npz", sc) is None
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "p.npz").read_bytes()[:100])
+    assert load_closed_parts(tmp_path / "cut.npz", sc) is None
+    assert load_closed_parts(tmp_path / "none.npz", sc) is None
+
+
+def test_closed_parts_kept_on_disk_by_content_hash(tmp_path):
+    from visibility.scene_cache import set_store
+
+    set_store(tmp_path)
+    try:
+        a, built = closed_parts(_wound_scene())
+        assert built
+        assert len(list((tmp_path / "scenes").rglob("*closed_parts*.npz"))) == 1
+        # The same geometry in a new scene object (a restart) reads the file: not built.
+        b, built = closed_parts(_wound_scene())
+        assert not built and _parts_equal(a, b)
+    finally:
+        set_store(None)
+
+
+def test_the_cores_that_leave_back_faces_out_build_closed_parts_with_the_scene():
+    from visibility.cores.base import get_core
+    from visibility.topology import CLOSED_BUILD
+
+    sc = _wound_scene()
+    for name in ("cos", "trim_regions"):
+        assert CLOSED_BUILD in get_core(name).scene_builds(sc), name

@@ -21,6 +21,7 @@ from __future__ import annotations
 import threading
 import time
 import weakref
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -131,7 +132,7 @@ class Hierarchy:
                 boxes = np.ascontiguousarray(z["boxes"], dtype=np.float64)
                 loose = np.ascontiguousarray(z["loose"], dtype=np.int32)
                 leaf = int(z["leaf_size"])
-        except (OSError, KeyError, ValueError):
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile):
             return None
         slots = len(boxes) // 2
         if (boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or slots & (slots - 1) or leaf < 1

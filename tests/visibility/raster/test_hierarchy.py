@@ -149,3 +149,10 @@ def test_candidates_in_box_hold_every_face_that_meets_it(name):
         fewer += len(cand) < 0.5 * scene.n_triangles
     # Swaying grass moves everywhere: every face is loose, a candidate of every box.
     assert fewer >= 30 if name == "city" else fewer == 0
+
+
+def test_a_damaged_file_is_not_read(tmp_path):
+    scene = make_scene("village", 3000, seed=3)
+    scene_hierarchy(scene).save(tmp_path / "h.npz")
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "h.npz").read_bytes()[:100])
+    assert Hierarchy.load(tmp_path / "cut.npz", scene.vertices, scene.faces) is None

@@ -38,7 +38,8 @@ from visibility.cores.cos.resolve import N_COUNTERS, TIME_STRIDE, resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import MIN_TRIANGLES, ready_hierarchy, scene_hierarchy
 from visibility.scene import Scene
-from visibility.topology import NEAR_CLEARANCE, unseen_back_faces
+from visibility.scene_cache import Build
+from visibility.topology import CLOSED_BUILD, NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
 
 #: Default pixels across a 90 degree frustum.
@@ -146,6 +147,10 @@ class CosCore(Core):
     #: 1e6-aspect sliver pair the reference cannot sample, the closed room's hidden faces). FN
     #: 0.000 everywhere. Bound = the worst measured, rounded up.
     fp_bound: ClassVar[float] = 0.5
+
+    def scene_builds(self, scene: Scene) -> list[Build]:
+        """The closed parts (``topology.CLOSED_BUILD``) whose back faces it leaves out."""
+        return [CLOSED_BUILD]
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         # benchmarks/results/cos.md (2 cores): small cells of moderate scenes cost a fraction

@@ -34,7 +34,8 @@ from visibility.cores.trim_regions.pipeline import (
     trim_pvs,
 )
 from visibility.scene import Scene
-from visibility.topology import unseen_back_faces
+from visibility.scene_cache import Build
+from visibility.topology import CLOSED_BUILD, unseen_back_faces
 from visibility.viewcells import Viewcell
 
 #: Default pixels across each cube face.
@@ -107,6 +108,10 @@ class TrimRegionsCore(Core):
     #: scenes).
     fn_bound: ClassVar[float] = 0.0
     fp_bound: ClassVar[float] = 0.44
+
+    def scene_builds(self, scene: Scene) -> list[Build]:
+        """The closed parts (``topology.CLOSED_BUILD``) whose back faces it leaves out."""
+        return [CLOSED_BUILD]
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         small = cell_size is not None and cell_size <= 0.5
