@@ -246,6 +246,19 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     ``resolve``'s early z) and is not listed there.
     Items come front to back, so the cut only drops entries after the triangle that set it.
     ``cut[tile - tile0]`` gets the entries so dropped."""
+    n_tiles = lists.tile1 - lists.tile0
+    # One tile per call of a function of its own: numba's parallel passes analyse everything
+    # in a prange body, and compiling them over this one took seconds more (the index is
+    # cast: the loop's own is unsigned, and the body would be compiled for it again).
+    for it in prange(n_tiles):
+        _fill_tile(np.int64(it), prims, screen, order, rng, tile_off, tile_items, drop, slot,
+                   lists, cut)
+
+
+@njit(cache=True, nogil=True)
+def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, lists,
+               cut):  # pragma: no cover - numba
+    """The lists of the tile ``lists.torder[it]`` (``fill_lists``, its arguments)."""
     pts, start, npts, kind = prims.pts, prims.start, prims.npts, prims.kind
     vid, solid, gap = prims.vid, prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
@@ -274,173 +287,172 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     tile_items = borrow(tile_items)
     drop = borrow(drop)
     slot = borrow(slot)
-    for it in prange(tile1 - tile0):
-        tile = torder[it]
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
-        base = slot[tile - tile0]
-        size = slot[tile - tile0 + 1] - base
-        tmp_own = np.empty(size, dtype=np.int32)
-        tmp = borrow(tmp_own)
-        tloc_own = np.empty(size, dtype=np.int16)
-        tloc = borrow(tloc_own)
-        cnt_own = np.zeros(npix, dtype=np.int64)
-        cnt = borrow(cnt_own)
-        cam_own = np.empty((8, 3))
-        cam = borrow(cam_own)
-        qv_own = np.empty((8, 2))
-        qv = borrow(qv_own)
-        qr_own = np.empty(8)
-        qr = borrow(qr_own)
-        # The offset region of each of the tile's pixels, computed once for all its items.
-        prv_own = np.empty((npix, 4, 2))
-        prv = borrow(prv_own)
-        prr_own = np.empty((npix, 4))
-        prr = borrow(prr_own)
-        preg_own = np.empty((npix, 12))
-        preg = borrow(preg_own)
-        # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
-        lray_own = np.empty(npix)
-        lray = borrow(lray_own)
-        zgap_own = np.full(npix, np.inf)
-        zgap = borrow(zgap_own)
-        # Early-z triangles that did not hold a pixel's region alone (a ring per pixel): the
-        # next one may, fused with one of them along a shared edge (a wall's quad).
-        cand_own = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
-        cand = borrow(cand_own)
-        czmax_own = np.empty((npix, PAIR_CANDIDATES))
-        czmax = borrow(czmax_own)
-        cbox_own = np.empty((npix, PAIR_CANDIDATES, 4))
-        cbox = borrow(cbox_own)
-        cnext_own = np.zeros(npix, dtype=np.int64)
-        cnext = borrow(cnext_own)
-        ccam_own = np.empty((3, 3))
-        ccam = borrow(ccam_own)
-        cv_own = np.empty((3, 2))
-        cv = borrow(cv_own)
-        cr_own = np.empty(3)
-        cr = borrow(cr_own)
-        # Set up at a pixel's first item: open scenes leave many pixels of a tile empty.
-        ready_own = np.zeros(npix, dtype=np.bool_)
-        ready = borrow(ready_own)
-        m = 0
-        ncut = 0
-        zall = np.inf  # the largest zgap of the tile's pixels
-        skip = drop.shape[0] > 0
-        for k in range(tile_off[tile], tile_off[tile + 1]):
-            if skip and drop[k]:
-                continue
-            t = tile_items[k]
-            p = order[t]
-            if gap[p] > zall:
-                # Hidden at every pixel of the tile, as is every later item.
-                for k2 in range(k, tile_off[tile + 1]):
-                    t2 = tile_items[k2]
-                    if not (skip and drop[k2]):
-                        ncut += ((min(rng[t2, 1], ty * TILE + TILE - 1)
-                                  - max(rng[t2, 0], ty * TILE) + 1)
-                                 * (min(rng[t2, 3], tx * TILE + TILE - 1)
-                                    - max(rng[t2, 2], tx * TILE) + 1))
-                break
-            i0 = max(rng[t, 0], ty * TILE)
-            i1 = min(rng[t, 1], ty * TILE + TILE - 1)
-            j0 = max(rng[t, 2], tx * TILE)
-            j1 = min(rng[t, 3], tx * TILE + TILE - 1)
-            n = npts[p]
-            load_prim(pts, start[p], n, origin, perm, sign, cam)
-            tri = kind[p] == 0
-            # A possible early-z occluder: solid, beyond every camera position.
-            occ = tri and solid[p] != 0
-            zmax = -np.inf
-            for c in range(n):
-                if not cam[c, 2] >= wcam + plane_tol:
-                    occ = False
-                zmax = max(zmax, cam[c, 2])
-            newz = False
-            for i in range(i0, i1 + 1):
-                sy = y_lo + (i + 0.5) * pw
-                for j in range(j0, j1 + 1):
-                    sx = x_lo + (j + 0.5) * pw
-                    loc = (i - ty * TILE) * TILE + (j - tx * TILE)
-                    if not ready[loc]:
-                        ready[loc] = True
-                        region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])
-                        region_share(prv[loc], prr[loc], preg[loc])
-                        lray[loc] = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
-                    if gap[p] > zgap[loc]:
-                        ncut += 1
+    tile = torder[it]
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    base = slot[tile - tile0]
+    size = slot[tile - tile0 + 1] - base
+    tmp_own = np.empty(size, dtype=np.int32)
+    tmp = borrow(tmp_own)
+    tloc_own = np.empty(size, dtype=np.int16)
+    tloc = borrow(tloc_own)
+    cnt_own = np.zeros(npix, dtype=np.int64)
+    cnt = borrow(cnt_own)
+    cam_own = np.empty((8, 3))
+    cam = borrow(cam_own)
+    qv_own = np.empty((8, 2))
+    qv = borrow(qv_own)
+    qr_own = np.empty(8)
+    qr = borrow(qr_own)
+    # The offset region of each of the tile's pixels, computed once for all its items.
+    prv_own = np.empty((npix, 4, 2))
+    prv = borrow(prv_own)
+    prr_own = np.empty((npix, 4))
+    prr = borrow(prr_own)
+    preg_own = np.empty((npix, 12))
+    preg = borrow(preg_own)
+    # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
+    lray_own = np.empty(npix)
+    lray = borrow(lray_own)
+    zgap_own = np.full(npix, np.inf)
+    zgap = borrow(zgap_own)
+    # Early-z triangles that did not hold a pixel's region alone (a ring per pixel): the
+    # next one may, fused with one of them along a shared edge (a wall's quad).
+    cand_own = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
+    cand = borrow(cand_own)
+    czmax_own = np.empty((npix, PAIR_CANDIDATES))
+    czmax = borrow(czmax_own)
+    cbox_own = np.empty((npix, PAIR_CANDIDATES, 4))
+    cbox = borrow(cbox_own)
+    cnext_own = np.zeros(npix, dtype=np.int64)
+    cnext = borrow(cnext_own)
+    ccam_own = np.empty((3, 3))
+    ccam = borrow(ccam_own)
+    cv_own = np.empty((3, 2))
+    cv = borrow(cv_own)
+    cr_own = np.empty(3)
+    cr = borrow(cr_own)
+    # Set up at a pixel's first item: open scenes leave many pixels of a tile empty.
+    ready_own = np.zeros(npix, dtype=np.bool_)
+    ready = borrow(ready_own)
+    m = 0
+    ncut = 0
+    zall = np.inf  # the largest zgap of the tile's pixels
+    skip = drop.shape[0] > 0
+    for k in range(tile_off[tile], tile_off[tile + 1]):
+        if skip and drop[k]:
+            continue
+        t = tile_items[k]
+        p = order[t]
+        if gap[p] > zall:
+            # Hidden at every pixel of the tile, as is every later item.
+            for k2 in range(k, tile_off[tile + 1]):
+                t2 = tile_items[k2]
+                if not (skip and drop[k2]):
+                    ncut += ((min(rng[t2, 1], ty * TILE + TILE - 1)
+                              - max(rng[t2, 0], ty * TILE) + 1)
+                             * (min(rng[t2, 3], tx * TILE + TILE - 1)
+                                - max(rng[t2, 2], tx * TILE) + 1))
+            break
+        i0 = max(rng[t, 0], ty * TILE)
+        i1 = min(rng[t, 1], ty * TILE + TILE - 1)
+        j0 = max(rng[t, 2], tx * TILE)
+        j1 = min(rng[t, 3], tx * TILE + TILE - 1)
+        n = npts[p]
+        load_prim(pts, start[p], n, origin, perm, sign, cam)
+        tri = kind[p] == 0
+        # A possible early-z occluder: solid, beyond every camera position.
+        occ = tri and solid[p] != 0
+        zmax = -np.inf
+        for c in range(n):
+            if not cam[c, 2] >= wcam + plane_tol:
+                occ = False
+            zmax = max(zmax, cam[c, 2])
+        newz = False
+        for i in range(i0, i1 + 1):
+            sy = y_lo + (i + 0.5) * pw
+            for j in range(j0, j1 + 1):
+                sx = x_lo + (j + 0.5) * pw
+                loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                if not ready[loc]:
+                    ready[loc] = True
+                    region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])
+                    region_share(prv[loc], prr[loc], preg[loc])
+                    lray[loc] = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
+                if gap[p] > zgap[loc]:
+                    ncut += 1
+                    continue
+                project(cam, n, sx, sy, h, 0.0, qv, qr)
+                if not overlaps_share(qv, qr, n, tri, prv[loc], prr[loc], preg[loc]):
+                    continue
+                tmp[m] = p
+                tloc[m] = loc
+                cnt[loc] += 1
+                m += 1
+                if not occ or zmax * lray[loc] + plane_tol >= zgap[loc]:
+                    continue
+                # The region's box (``preg``) inside the triangle's: most stop here.
+                if (min(qv[0, 0], qv[1, 0], qv[2, 0]) <= preg[loc, 0]
+                        and max(qv[0, 0], qv[1, 0], qv[2, 0]) >= preg[loc, 1]
+                        and min(qv[0, 1], qv[1, 1], qv[2, 1]) <= preg[loc, 2]
+                        and max(qv[0, 1], qv[1, 1], qv[2, 1]) >= preg[loc, 3]
+                        and triangle_holds(qv, qr, prv[loc], prr[loc])):
+                    zgap[loc] = zmax * lray[loc] + plane_tol
+                    newz = True
+                    continue
+                bx0 = min(qv[0, 0], qv[1, 0], qv[2, 0])
+                bx1 = max(qv[0, 0], qv[1, 0], qv[2, 0])
+                by0 = min(qv[0, 1], qv[1, 1], qv[2, 1])
+                by1 = max(qv[0, 1], qv[1, 1], qv[2, 1])
+                for c in range(PAIR_CANDIDATES):
+                    pc = cand[loc, c]
+                    zq = max(zmax, czmax[loc, c])
+                    if pc < 0 or zq * lray[loc] + plane_tol >= zgap[loc]:
                         continue
-                    project(cam, n, sx, sy, h, 0.0, qv, qr)
-                    if not overlaps_share(qv, qr, n, tri, prv[loc], prr[loc], preg[loc]):
+                    # The pair's box must hold the region's, and they must share an edge.
+                    if (min(bx0, cbox[loc, c, 0]) > preg[loc, 0]
+                            or max(bx1, cbox[loc, c, 1]) < preg[loc, 1]
+                            or min(by0, cbox[loc, c, 2]) > preg[loc, 2]
+                            or max(by1, cbox[loc, c, 3]) < preg[loc, 3]):
                         continue
-                    tmp[m] = p
-                    tloc[m] = loc
-                    cnt[loc] += 1
-                    m += 1
-                    if not occ or zmax * lray[loc] + plane_tol >= zgap[loc]:
+                    common = 0
+                    for a in range(3):
+                        for b in range(3):
+                            if vid[p, a] == vid[pc, b]:
+                                common += 1
+                    if common < 2:
                         continue
-                    # The region's box (``preg``) inside the triangle's: most stop here.
-                    if (min(qv[0, 0], qv[1, 0], qv[2, 0]) <= preg[loc, 0]
-                            and max(qv[0, 0], qv[1, 0], qv[2, 0]) >= preg[loc, 1]
-                            and min(qv[0, 1], qv[1, 1], qv[2, 1]) <= preg[loc, 2]
-                            and max(qv[0, 1], qv[1, 1], qv[2, 1]) >= preg[loc, 3]
-                            and triangle_holds(qv, qr, prv[loc], prr[loc])):
-                        zgap[loc] = zmax * lray[loc] + plane_tol
+                    load_prim(pts, start[pc], 3, origin, perm, sign, ccam)
+                    project(ccam, 3, sx, sy, h, 0.0, cv, cr)
+                    if quad_holds(qv, qr, vid[p], cv, cr, vid[pc], prv[loc], prr[loc]):
+                        zgap[loc] = zq * lray[loc] + plane_tol
                         newz = True
-                        continue
-                    bx0 = min(qv[0, 0], qv[1, 0], qv[2, 0])
-                    bx1 = max(qv[0, 0], qv[1, 0], qv[2, 0])
-                    by0 = min(qv[0, 1], qv[1, 1], qv[2, 1])
-                    by1 = max(qv[0, 1], qv[1, 1], qv[2, 1])
-                    for c in range(PAIR_CANDIDATES):
-                        pc = cand[loc, c]
-                        zq = max(zmax, czmax[loc, c])
-                        if pc < 0 or zq * lray[loc] + plane_tol >= zgap[loc]:
-                            continue
-                        # The pair's box must hold the region's, and they must share an edge.
-                        if (min(bx0, cbox[loc, c, 0]) > preg[loc, 0]
-                                or max(bx1, cbox[loc, c, 1]) < preg[loc, 1]
-                                or min(by0, cbox[loc, c, 2]) > preg[loc, 2]
-                                or max(by1, cbox[loc, c, 3]) < preg[loc, 3]):
-                            continue
-                        common = 0
-                        for a in range(3):
-                            for b in range(3):
-                                if vid[p, a] == vid[pc, b]:
-                                    common += 1
-                        if common < 2:
-                            continue
-                        load_prim(pts, start[pc], 3, origin, perm, sign, ccam)
-                        project(ccam, 3, sx, sy, h, 0.0, cv, cr)
-                        if quad_holds(qv, qr, vid[p], cv, cr, vid[pc], prv[loc], prr[loc]):
-                            zgap[loc] = zq * lray[loc] + plane_tol
-                            newz = True
-                            break
-                    c = cnext[loc]
-                    cand[loc, c] = p
-                    czmax[loc, c] = zmax
-                    cbox[loc, c, 0] = bx0
-                    cbox[loc, c, 1] = bx1
-                    cbox[loc, c, 2] = by0
-                    cbox[loc, c, 3] = by1
-                    cnext[loc] = (c + 1) % PAIR_CANDIDATES
-            if newz:
-                zall = -np.inf
-                for loc in range(npix):
-                    zall = max(zall, zgap[loc])
-        cut[tile - tile0] = ncut
-        pix0 = (tile - tile0) * npix
-        pos = base
-        for loc in range(npix):
-            pstart[pix0 + loc] = pos
-            pcount[pix0 + loc] = cnt[loc]
-            cnt[loc] = pos
-            pos += pcount[pix0 + loc]
-        for e in range(m):
-            loc = tloc[e]
-            entries[cnt[loc]] = tmp[e]
-            cnt[loc] += 1
-        keep_alive((tmp_own, tloc_own, cnt_own, cam_own, qv_own, qr_own,))
-        keep_alive((prv_own, prr_own, preg_own, lray_own, zgap_own, cand_own,))
-        keep_alive((czmax_own, cbox_own, cnext_own, ccam_own, cv_own, cr_own,))
-        keep_alive((ready_own,))
+                        break
+                c = cnext[loc]
+                cand[loc, c] = p
+                czmax[loc, c] = zmax
+                cbox[loc, c, 0] = bx0
+                cbox[loc, c, 1] = bx1
+                cbox[loc, c, 2] = by0
+                cbox[loc, c, 3] = by1
+                cnext[loc] = (c + 1) % PAIR_CANDIDATES
+        if newz:
+            zall = -np.inf
+            for loc in range(npix):
+                zall = max(zall, zgap[loc])
+    cut[tile - tile0] = ncut
+    pix0 = (tile - tile0) * npix
+    pos = base
+    for loc in range(npix):
+        pstart[pix0 + loc] = pos
+        pcount[pix0 + loc] = cnt[loc]
+        cnt[loc] = pos
+        pos += pcount[pix0 + loc]
+    for e in range(m):
+        loc = tloc[e]
+        entries[cnt[loc]] = tmp[e]
+        cnt[loc] += 1
+    keep_alive((tmp_own, tloc_own, cnt_own, cam_own, qv_own, qr_own,))
+    keep_alive((prv_own, prr_own, preg_own, lray_own, zgap_own, cand_own,))
+    keep_alive((czmax_own, cbox_own, cnext_own, ccam_own, cv_own, cr_own,))
+    keep_alive((ready_own,))
