@@ -292,49 +292,24 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
     tx = tile - ty * tiles_x
     base = slot[tile - tile0]
     size = slot[tile - tile0 + 1] - base
-    tmp_own = np.empty(size, dtype=np.int32)
-    tmp = borrow(tmp_own)
-    tloc_own = np.empty(size, dtype=np.int16)
-    tloc = borrow(tloc_own)
-    cnt_own = np.zeros(npix, dtype=np.int64)
-    cnt = borrow(cnt_own)
-    cam_own = np.empty((8, 3))
-    cam = borrow(cam_own)
-    qv_own = np.empty((8, 2))
-    qv = borrow(qv_own)
-    qr_own = np.empty(8)
-    qr = borrow(qr_own)
-    # The offset region of each of the tile's pixels, computed once for all its items.
-    prv_own = np.empty((npix, 4, 2))
-    prv = borrow(prv_own)
-    prr_own = np.empty((npix, 4))
-    prr = borrow(prr_own)
-    preg_own = np.empty((npix, 12))
-    preg = borrow(preg_own)
-    # The early-z cut: an item farther than zgap from the box is hidden at the pixel.
-    lray_own = np.empty(npix)
-    lray = borrow(lray_own)
-    zgap_own = np.full(npix, np.inf)
-    zgap = borrow(zgap_own)
-    # Early-z triangles that did not hold a pixel's region alone (a ring per pixel): the
-    # next one may, fused with one of them along a shared edge (a wall's quad).
-    cand_own = np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64)
-    cand = borrow(cand_own)
-    czmax_own = np.empty((npix, PAIR_CANDIDATES))
-    czmax = borrow(czmax_own)
-    cbox_own = np.empty((npix, PAIR_CANDIDATES, 4))
-    cbox = borrow(cbox_own)
-    cnext_own = np.zeros(npix, dtype=np.int64)
-    cnext = borrow(cnext_own)
-    ccam_own = np.empty((3, 3))
-    ccam = borrow(ccam_own)
-    cv_own = np.empty((3, 2))
-    cv = borrow(cv_own)
-    cr_own = np.empty(3)
-    cr = borrow(cr_own)
-    # Set up at a pixel's first item: open scenes leave many pixels of a tile empty.
-    ready_own = np.zeros(npix, dtype=np.bool_)
-    ready = borrow(ready_own)
+    # The tile's scratch, owned by ``own`` to the tile's end and borrowed for the helpers:
+    # the items' entries and pixels (tmp, tloc, cnt), an item's camera-space corners and
+    # projection (cam, qv, qr); the offset region of each of the tile's pixels, computed once
+    # for all its items (prv, prr, preg); the early-z cut (an item farther than zgap from the
+    # box is hidden at the pixel; lray its rays' longest slope); early-z triangles that did
+    # not hold a pixel's region alone, a ring per pixel (cand, czmax, cbox, cnext): the next
+    # one may, fused with one of them along a shared edge (a wall's quad), and their scratch
+    # (ccam, cv, cr); and whether a pixel is set up, at its first item (ready: open scenes
+    # leave many pixels of a tile empty).
+    own = (np.empty(size, dtype=np.int32), np.empty(size, dtype=np.int16),
+           np.zeros(npix, dtype=np.int64), np.empty((8, 3)), np.empty((8, 2)), np.empty(8),
+           np.empty((npix, 4, 2)), np.empty((npix, 4)), np.empty((npix, 12)), np.empty(npix),
+           np.full(npix, np.inf), np.full((npix, PAIR_CANDIDATES), -1, dtype=np.int64),
+           np.empty((npix, PAIR_CANDIDATES)), np.empty((npix, PAIR_CANDIDATES, 4)),
+           np.zeros(npix, dtype=np.int64), np.empty((3, 3)), np.empty((3, 2)), np.empty(3),
+           np.zeros(npix, dtype=np.bool_))
+    (tmp, tloc, cnt, cam, qv, qr, prv, prr, preg, lray, zgap, cand, czmax, cbox, cnext, ccam,
+     cv, cr, ready) = borrow(own)
     m = 0
     ncut = 0
     zall = np.inf  # the largest zgap of the tile's pixels
@@ -452,7 +427,4 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
         loc = tloc[e]
         entries[cnt[loc]] = tmp[e]
         cnt[loc] += 1
-    keep_alive((tmp_own, tloc_own, cnt_own, cam_own, qv_own, qr_own,))
-    keep_alive((prv_own, prr_own, preg_own, lray_own, zgap_own, cand_own,))
-    keep_alive((czmax_own, cbox_own, cnext_own, ccam_own, cv_own, cr_own,))
-    keep_alive((ready_own,))
+    keep_alive(own)
