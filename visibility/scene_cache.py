@@ -47,6 +47,19 @@ class Persist(Generic[T]):
     version: str
 
 
+def save_npz(path: str | os.PathLike, **arrays: Any) -> None:
+    """Write ``arrays`` to ``path`` (``.npz``) through a temporary file renamed into place, so
+    a reader (a restart, another process) never meets half a file; makes the folder."""
+    import numpy as np
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    tmp.replace(path)
+
+
 def set_store(folder: str | os.PathLike | None) -> None:
     """Keep persistent per-scene builds under ``folder`` (None: in memory only)."""
     global _STORE

@@ -28,7 +28,7 @@ from numba import njit
 
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
-from visibility.scene_cache import Build, Persist, per_scene
+from visibility.scene_cache import Build, Persist, per_scene, save_npz
 from visibility.winding import UNDECIDED, front_windings
 
 
@@ -464,23 +464,14 @@ def build_closed_parts(scene: Scene) -> ClosedParts:
 CLOSED_KIND = "topology/closed_parts"
 #: Their format on disk: a file of another format is built again, never read.
 CLOSED_FORMAT = "closed-parts-1"
-#: Index arrays of ``ClosedParts`` and ``Edges`` and the ids each holds, checked on load:
-#: "t" triangle ids (-1 allowed where an edge or a triangle has none), "v" vertex rows.
-_INDEX = {"edges_vert": "v", "edges_face": "t", "edges_opp": "v", "oriented": "t",
-          "wound": "t"}
 
 
 def save_closed_parts(parts: ClosedParts, path: str | Path) -> None:
-    """Write ``parts`` to ``path`` (``.npz``) through a temporary file renamed into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    """Write ``parts`` to ``path`` (``.npz``, ``scene_cache.save_npz``)."""
     arrays = {f"edges_{f.name}": getattr(parts.edges, f.name) for f in fields(Edges)}
     arrays.update({f.name: getattr(parts, f.name) for f in fields(ClosedParts)
                    if f.name != "edges"})
-    with open(tmp, "wb") as fh:
-        np.savez(fh, format=np.array(CLOSED_FORMAT), **arrays)
-    tmp.replace(path)
+    save_npz(path, format=np.array(CLOSED_FORMAT), **arrays)
 
 
 def load_closed_parts(path: str | Path, scene: Scene) -> ClosedParts | None:
@@ -498,9 +489,9 @@ def load_closed_parts(path: str | Path, scene: Scene) -> ClosedParts | None:
         return None
     if len(parts.label) != m or len(parts.outward) != m:
         return None
-    for key, what in _INDEX.items():
-        ids = getattr(edges, key[6:]) if key.startswith("edges_") else getattr(parts, key)
-        top = m if what == "t" else n
+    # Vertex rows and triangle ids (-1 where an edge or a triangle has none) in range.
+    for ids, top in ((edges.vert, n), (edges.opp, n), (edges.face, m), (parts.oriented, m),
+                     (parts.wound, m)):
         if len(ids) and (ids.min() < -1 or ids.max() >= top):
             return None
     if len(parts.label) and parts.label.max() >= len(parts.box):

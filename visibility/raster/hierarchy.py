@@ -36,6 +36,7 @@ from visibility.scene_cache import (
     in_progress,
     peek,
     per_scene,
+    save_npz,
 )
 
 #: Triangles per leaf: smaller leaves cull tighter and cost more node tests.
@@ -108,15 +109,10 @@ class Hierarchy:
                    + self.faces.nbytes + self.vertices.nbytes + self.leaf_of.nbytes)
 
     def save(self, path: str | Path) -> None:
-        """Write to ``path`` (``.npz``) through a temporary file renamed into place."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, format=np.array(FORMAT), order=self.order, boxes=self.boxes,
-                     leaf_size=np.array(self.leaf_size), n_faces=np.array(self.n_faces),
-                     loose=self.loose)
-        tmp.replace(path)
+        """Write to ``path`` (``.npz``, ``scene_cache.save_npz``)."""
+        save_npz(path, format=np.array(FORMAT), order=self.order, boxes=self.boxes,
+                 leaf_size=np.array(self.leaf_size), n_faces=np.array(self.n_faces),
+                 loose=self.loose)
 
     @classmethod
     def load(cls, path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> Hierarchy | None:
