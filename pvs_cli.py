@@ -136,12 +136,16 @@ def cmd_walk(args: argparse.Namespace) -> int:
         budget=args.budget,
         token=_token(args),
     )
+    from websockets.exceptions import InvalidHandshake, InvalidURI
+
     try:
         summaries = replay_cores(opts)
     except SessionError as exc:  # refused: no token, a bad one, a scene it may not use, ...
         raise SystemExit(f"pvs walk: the server refused the session: {exc}") from None
     except (FileNotFoundError, ValueError) as exc:  # no local copy, or another one
         raise SystemExit(f"pvs walk: {exc}") from None
+    except (OSError, InvalidHandshake, InvalidURI) as exc:
+        raise SystemExit(_unreachable("walk", args.server, exc)) from None
     bad = [s for s in summaries if s.get("frames_rendered", 0) == 0]
     return 1 if bad else 0
 
@@ -156,7 +160,27 @@ def _six_floats(text: str) -> list[float]:
     return vals
 
 
+def _unreachable(cmd: str, server: str, exc: BaseException) -> str:
+    """The one line a command prints when ``server`` cannot be reached or is no PVS server."""
+    why = str(exc) or type(exc).__name__
+    return (f"pvs {cmd}: no PVS server answered at {server} ({why}); start one with "
+            f"`pvs serve` or pass --server URL")
+
+
 def cmd_query(args: argparse.Namespace) -> int:
+    import httpx
+
+    try:
+        return _query(args)
+    except httpx.HTTPError as exc:
+        raise SystemExit(_unreachable("query", args.server, exc)) from None
+    except json.JSONDecodeError:
+        raise SystemExit(_unreachable("query", args.server,
+                                      ValueError("the answer is not JSON"))) from None
+
+
+def _query(args: argparse.Namespace) -> int:
+    """``cmd_query``'s request and printout."""
     import httpx
 
     params = parse_params(args.param)

@@ -213,3 +213,54 @@ def test_walk_on_a_file_scene_without_a_local_copy_says_what_to_pass(live_server
     msg = str(exc.value.code)
     assert msg.startswith("pvs walk: scene 'box' is a file the server serves")
     assert "--scenes DIR" in msg and str(empty) in msg and "\n" not in msg
+
+
+@pytest.fixture
+def closed_port() -> str:
+    """A loopback URL nothing listens on (a port bound and released)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return f"http://127.0.0.1:{port}"
+
+
+@pytest.fixture
+def not_pvs() -> str:
+    """A real HTTP server on loopback that is no PVS server: every path answers 404 in HTML."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class NotFound(BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 - the stdlib's name
+            self.send_response(404)
+            self.send_header("Content-Type", "text/html")
+            self.end_headers()
+            self.wfile.write(b"<html>not here</html>")
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), NotFound)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    httpd.shutdown()
+    httpd.server_close()
+
+
+@pytest.mark.parametrize("server", ["closed_port", "not_pvs"])
+@pytest.mark.parametrize("cmd", [["walk", "--duration", "1", "--quiet"], ["query", "--cell", "0"]])
+def test_no_server_there_is_one_line_not_a_traceback(cmd, server, request, tmp_path):
+    """Nothing listening, or an HTTP server that is not ours: the command stops with one line
+    naming the URL and what to do."""
+    url = request.getfixturevalue(server)
+    argv = [cmd[0], "--server", url, "--scene", "village", *cmd[1:]]
+    if cmd[0] == "walk":
+        argv += ["--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit) as exc:
+        pvs_cli.main(argv)
+    msg = str(exc.value.code)
+    assert msg.startswith(f"pvs {cmd[0]}: no PVS server answered at {url} (")
+    assert msg.endswith("start one with `pvs serve` or pass --server URL")
+    assert "\n" not in msg
