@@ -216,17 +216,44 @@ def _scene_files(scenes: str | None) -> dict[str, Path]:
 
     folder = Path(scenes) if scenes else DEFAULT_SCENES_DIR
     if not folder.is_dir():
+        if scenes:  # named by the user: a typo should not look like an empty folder
+            raise SystemExit(f"pvs: --scenes {scenes}: no such folder")
         return {}
     return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix in SCENE_EXTENSIONS}
 
 
 def _local_scene(name: str, scenes: str | None):
     """The scene file ``name`` in ``scenes``, else the generated scene of that name."""
-    from visibility.generators import make_scene
+    from visibility.generators import available_generators, make_scene
     from visibility.loaders import load_scene
 
     files = _scene_files(scenes)
-    return load_scene(files[name]) if name in files else make_scene(name)
+    if name in files:
+        return load_scene(files[name])
+    if name not in available_generators():
+        folder = scenes or DEFAULT_SCENES_DIR
+        raise SystemExit(f"pvs: unknown scene {name!r}: no scene file of that name in {folder} "
+                         f"(--scenes DIR) and no generator of it "
+                         f"({', '.join(available_generators())})")
+    return make_scene(name)
+
+
+def _server_json(cmd: str, server: str, path: str, args: argparse.Namespace,
+                 params: dict | None = None) -> int:
+    """Print a running server's JSON answer to GET ``path``: 0 when it is 200, else 1; one
+    line, not a traceback, when no PVS server answers."""
+    import httpx
+
+    try:
+        r = httpx.get(server.rstrip("/") + path, params=params or {}, timeout=600,
+                      headers=_auth_headers(args))
+        body = r.json()
+    except httpx.HTTPError as exc:
+        raise SystemExit(_unreachable(cmd, server, exc)) from None
+    except json.JSONDecodeError:
+        raise SystemExit(_unreachable(cmd, server, ValueError("the answer is not JSON"))) from None
+    print(json.dumps(body, indent=2))
+    return 0 if r.status_code == 200 else 1
 
 
 def cores_help() -> str:
@@ -245,13 +272,8 @@ def cores_help() -> str:
 def cmd_cores(args: argparse.Namespace) -> int:
     """List the cores (the local registry, or a running server's ``GET /cores``)."""
     if args.server:
-        import httpx
-
-        query = {"scene": args.scene} if args.scene else {}
-        r = httpx.get(args.server.rstrip("/") + "/cores", params=query, timeout=600,
-                      headers=_auth_headers(args))
-        print(json.dumps(r.json(), indent=2))
-        return 0 if r.status_code == 200 else 1
+        return _server_json("cores", args.server, "/cores", args,
+                            {"scene": args.scene} if args.scene else None)
     if args.scene:
         from server.calibration import decide_auto, fit_report
         from visibility.calibration import (
@@ -292,13 +314,8 @@ def cmd_cores(args: argparse.Namespace) -> int:
 
 def cmd_scenes(args: argparse.Namespace) -> int:
     if args.server:
-        import httpx
-
-        base = args.server.rstrip("/")
-        path = f"/scenes/{args.name}" if args.name else "/scenes"
-        r = httpx.get(base + path, timeout=600, headers=_auth_headers(args))
-        print(json.dumps(r.json(), indent=2))
-        return 0 if r.status_code == 200 else 1
+        return _server_json("scenes", args.server,
+                            f"/scenes/{args.name}" if args.name else "/scenes", args)
     from visibility.generators import DEFAULT_TRIANGLES, available_generators
     from visibility.scene_analysis import is_2_5d
     from visibility.viewcells import ViewcellGrid

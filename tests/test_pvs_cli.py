@@ -264,3 +264,27 @@ def test_no_server_there_is_one_line_not_a_traceback(cmd, server, request, tmp_p
     assert msg.startswith(f"pvs {cmd[0]}: no PVS server answered at {url} (")
     assert msg.endswith("start one with `pvs serve` or pass --server URL")
     assert "\n" not in msg
+
+
+@pytest.mark.parametrize("cmd", ["cores", "scenes"])
+def test_server_listings_without_a_server_are_one_line(cmd, closed_port):
+    with pytest.raises(SystemExit) as exc:
+        pvs_cli.main([cmd, "--server", closed_port])
+    msg = str(exc.value.code)
+    assert msg.startswith(f"pvs {cmd}: no PVS server answered at {closed_port} (")
+    assert "\n" not in msg
+
+
+@pytest.mark.parametrize("argv", [["scenes", "nosuch"], ["cores", "--scene", "nosuch"]])
+def test_an_unknown_local_scene_names_where_it_looked(argv, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        pvs_cli.main([*argv, "--scenes", str(tmp_path)])
+    msg = str(exc.value.code)
+    assert msg.startswith("pvs: unknown scene 'nosuch': no scene file of that name in "
+                          f"{tmp_path} (--scenes DIR) and no generator of it (")
+    assert "village" in msg
+
+
+def test_a_scenes_folder_that_is_not_there_is_said(tmp_path):
+    with pytest.raises(SystemExit, match=r"^pvs: --scenes .*/missing: no such folder$"):
+        pvs_cli.main(["scenes", "--scenes", str(tmp_path / "missing")])
