@@ -55,12 +55,25 @@ def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _edge_on(cam, corners, tol):  # pragma: no cover - numba
-    """Whether every camera position of the view lies in the triangle's plane (within tol
-    metres): then each sees it edge-on, as a segment of no area, and it covers no sample."""
+def _edge_on(cam, corners):  # pragma: no cover - numba
+    """Whether every camera position of the view lies in the triangle's plane: then each sees
+    it edge-on, as a segment of no area, and it covers no sample.
+
+    Up to rounding only (64 ulps of the largest coordinate involved), never the plane tests'
+    tolerance: a triangle parallel to the camera rectangle a nanometre in front of it is seen
+    face-on from every camera position, and with that tolerance (1e-9 m) it was skipped here
+    and missed (a patch 1e-9 m beyond a cell face, within its outline)."""
     nx, ny, nz, nn = tri_normal(cam)
     if not nn > 0.0:
         return False
+    scale = 0.0
+    for i in range(3):
+        for c in range(3):
+            scale = max(scale, abs(cam[i, c]))
+    for k in range(4):
+        for c in range(3):
+            scale = max(scale, abs(corners[k, c]))
+    tol = 64.0 * np.finfo(np.float64).eps * scale
     for k in range(4):
         d = (nx * (corners[k, 0] - cam[0, 0]) + ny * (corners[k, 1] - cam[0, 1])
              + nz * (corners[k, 2] - cam[0, 2]))
@@ -129,7 +142,7 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
                     hi[k] = max(hi[k], cam[i, k])
             if not hi[2] > 0.0:
                 continue  # behind every camera position of the view
-            if kind[p] == 0 and _edge_on(cam, corners, plane_tol):
+            if kind[p] == 0 and _edge_on(cam, corners):
                 continue
             if (lo[0] <= near_box[1] and hi[0] >= near_box[0] and lo[1] <= near_box[3]
                     and hi[1] >= near_box[2] and lo[2] <= near_box[5] and hi[2] >= near_box[4]):

@@ -753,3 +753,31 @@ def test_primitives_gathered_in_one_pass_match_their_definition():
     half = 0.5 * (box[1] - box[0])
     g = np.maximum(0.0, np.maximum(b[:, 0] - half, -half - b[:, 1]))
     assert np.array_equal(box_gaps(prims, half, b), np.sqrt((g * g).sum(axis=1)))
+
+
+@pytest.mark.parametrize("gap", [0.0, 1e-13, 1e-11, 1e-9, 1e-8])
+def test_only_a_triangle_in_the_rectangles_plane_is_edge_on(gap):
+    # A triangle parallel to a front view's camera rectangle, ``gap`` metres in front of it
+    # and within its outline, is seen face-on by every camera position (at depth ``gap``) and
+    # must be listed; only one lying in the plane itself is edge-on and skipped. The plane
+    # tests' tolerance (1e-9 m) once counted the 1e-9 m patch as edge-on: a miss.
+    from visibility.cores.cos.lists import footprints
+    from visibility.cores.cos.prims import build_prims, distance_order
+
+    box = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]) + [42.69204494131881, -6.47913704213088,
+                                                          -29.511553935979627]
+    y = box[1, 1] + gap
+    tri = np.array([[[box[0, 0] + 0.3, y, box[0, 2] + 0.3], [box[0, 0] + 0.4, y, box[0, 2] + 0.3],
+                     [box[0, 0] + 0.4, y, box[0, 2] + 0.4]]])
+    scene = _scene(tri)
+    centre = box.mean(axis=0)
+    prims = build_prims(scene, centre, weld_vertices(scene.vertices))
+    order, _ = distance_order(prims, 0.5 * (box[1] - box[0]))
+    (view,) = [v for v in side_plane_views(box, 32) if v.face == (1, 1) and v.kind == "front"]
+    tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+    rng = np.empty((1, 4), dtype=np.int32)
+    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, np.zeros(1, np.int64),
+               view.origin, view.perm, view.sign, view.corners, view.near_box, view.near_w,
+               view.nx, view.ny, view.x_lo, view.y_lo, view.pw, tol, rng)
+    listed = rng[0, 0] <= rng[0, 1] and rng[0, 2] <= rng[0, 3]
+    assert listed == (gap > 0.0)
