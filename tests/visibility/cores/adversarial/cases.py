@@ -428,3 +428,43 @@ def all_cases() -> list[Case]:
             tolerance_street(ROUND),
             tolerance_street(GEO), near_walls(), near_fence(), corner_slit(), leaning_slits(),
             leaning_facade(), leaning_gap(), leaning_corner_slit(), leaning_city()]
+
+
+def random_variants(seed: int, n: int) -> list[Case]:
+    """``n`` cases drawn from the builders above with random parameters (seeded): origins near
+    the origin or at random georeferenced offsets (up to 6e6 m), cube cells of 5 cm to 4 m,
+    slit widths of 0.5-20 mm, leans up to the limit, city seeds. The fixed cases hold what
+    was found; these look where nobody has (the 1 m cell of ``OFFSET`` came from such a
+    draw). Names are ``variant<i>_<case>``."""
+    rng = np.random.default_rng(seed)
+
+    def origin():
+        if rng.random() < 0.5:
+            return tuple(float(x) for x in rng.uniform(-50.0, 50.0, 3))
+        return (float(rng.uniform(-3e6, 3e6)), float(rng.uniform(-100.0, 500.0)),
+                float(rng.uniform(-6e6, 6e6)))
+
+    def lean():
+        return float(rng.uniform(0.0, LEAN_NY))
+
+    def width():
+        return float(rng.uniform(0.0005, 0.02))
+
+    makers = [
+        lambda: tolerance_faces(origin(), float(rng.choice([0.05, 0.3, 1.0, 4.0]))),
+        lambda: tolerance_street(origin()),
+        lambda: near_walls(origin()),
+        lambda: near_fence(origin()),
+        lambda: corner_slit(origin(), width()),
+        lambda: leaning_slits(origin(), lean()),
+        lambda: leaning_facade(origin(), lean()),
+        lambda: leaning_gap(origin(), lean()),
+        lambda: leaning_corner_slit(origin(), lean(), width()),
+        lambda: leaning_city(int(rng.integers(0, 10 ** 6)), lean()),
+    ]
+    out = []
+    for i in range(n):
+        case = makers[int(rng.integers(len(makers)))]()
+        case.name = f"variant{i}_{case.name}"
+        out.append(case)
+    return out
