@@ -56,9 +56,9 @@ PEER_LEVELS: list[int] = [8, 32, 128]
 
 #: Every generator except ``stress`` (a test scene: a few hundred stiff-case triangles plus random
 #: clutter, whose known answers ``visibility.cores.checks`` checks), at two sizes.
-#: For ``spheres`` the size is the sphere count. Meadows and moving scenes are smaller: at 64 px
-#: ``from_segment`` needed 11 s for a 20k-triangle meadow cell (everything visible), 13 s for
-#: 200 bouncing spheres and 75 s for 5000 swaying triangles (25 and 10 keyframes).
+#: For ``spheres`` the size is the sphere count. Meadows and moving scenes are smaller: there
+#: everything is visible and ``from_segment`` resolves every triangle at every pixel it
+#: sweeps, per keyframe interval (BENCHMARKS.md has its times).
 GENERATOR_SCENES_MEDIUM = [
     "city:20000", "city:100000", "village:20000", "village:100000", "rooms:20000",
     "rooms:100000", "grass:2000", "grass:10000", "swaying_grass:1000", "swaying_grass:2000",

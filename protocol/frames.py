@@ -191,7 +191,7 @@ def encode_geometry(
         raise ValueError("triangles must be finite")
     if origin is None:
         flat = tris.reshape(-1, 3)
-        # Per column: numpy's axis-0 reduction over rows of 3 is ~10x slower.
+        # Per column: numpy's axis-0 reduction over rows of 3 is far slower.
         origin = np.array([(flat[:, k].min() + flat[:, k].max()) / 2 for k in range(3)]) \
             if n else np.zeros(3)
     origin = np.asarray(origin, dtype=np.float64).reshape(3)

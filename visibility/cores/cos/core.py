@@ -97,22 +97,21 @@ class CosParams(CoreParams):
                             "(tighter at large cells, for more time)")
 
 
-#: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane. Timed
-#: on the 2-core development machine (load about 1): a least-squares fit over 4 m cells of a
-#: 20k village and a 100k city at 64, 128 and 256 px gives 2.0e-6 s per pixel (the
-#: per-triangle term fits near zero there), and the 0.3 m cell of the 100k city at 64 px
-#: (mostly the per-triangle sort and footprints) bounds the per-triangle term.
-#: ``python -m benchmarks.bench_admission`` (benchmarks/results/admission.md) checks it on
-#: 4 m cells: measured / estimated 1.2-2.1. 0.3 m cells cost less than this says
-#: (benchmarks/results/cos.md). List lengths, and so the resolution's true cost, depend on the
+#: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane: a
+#: least-squares fit of the time per pixel over 4 m cells of a 20k village and a 100k city at
+#: 64, 128 and 256 px (the per-triangle term fits near zero there), the per-triangle term
+#: bounded by a 0.3 m cell of the 100k city at 64 px (mostly the per-triangle sort and
+#: footprints). ``python -m benchmarks.bench_admission`` (benchmarks/results/admission.md)
+#: checks it on 4 m cells; 0.3 m cells cost less than this says (benchmarks/results/cos.md).
+#: List lengths, and so the resolution's true cost, depend on the
 #: depth complexity around the cell, which no cheap estimate sees: dense clutter costs far
 #: more (the 1M kitchen, 20k rooms at 4 m: benchmarks/results/cos.md), and the deadline
 #: stops what the estimate lets through. Bytes: per triangle (the primitives, their order,
-#: box distance, bounds, face subsets, footprints and tile bins, about 320 B at the peak), per
+#: box distance, bounds, face subsets, footprints and tile bins, at the peak), per
 #: pixel (list starts and counts of a run), and the lists themselves up to ``list_budget_mb``
-#: (a cap, so the estimate is an upper bound: the benchmark measures a few per cent of it).
+#: (a cap, so the estimate is an upper bound; the benchmark measures how loose).
 #: Not counted: each thread's working set for its current tile, which grows with the longest
-#: list there (about 1 KB per entry of it).
+#: list there (``resolve._share_scratch``).
 SECONDS_PER_PIXEL = 2e-6
 SECONDS_PER_PLANE_TRIANGLE = 1e-7
 BYTES_PER_TRIANGLE = 320
@@ -139,13 +138,12 @@ class CosCore(Core):
                            "kitchen's 0.3 m cell)")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
-    #: Measured on the designed scenes (tests/visibility/cores/designed_scenes.py) against the
-    #: conformance reference (128 points, 128 px, seed 11) at resolutions 64, 128 and 256: FP
-    #: 0.469 on two rooms and a door at every resolution (30 of 64: the hidden faces of the
-    #: dividing-wall slabs and the box, flush against floor, ceiling and walls, whose edges lie
-    #: on the occluders' silhouettes), 0.000 on the open ring, 0.367 on the stiff cases (the
-    #: 1e6-aspect sliver pair the reference cannot sample, the closed room's hidden faces). FN
-    #: 0.000 everywhere. Bound = the worst measured, rounded up.
+    #: The worst FP ``checks.check_fn_fp_against_sampled_ground_truth`` measures on the
+    #: designed scenes (tests/visibility/cores/designed_scenes.py) at 64, 128 and 256 px,
+    #: rounded up (its failure message prints the rate): on two rooms and a door, the hidden
+    #: faces of the dividing-wall slabs and the box, flush against floor, ceiling and walls,
+    #: whose edges lie on the occluders' silhouettes; on the stiff cases the 1e6-aspect sliver
+    #: pair the reference cannot sample and the closed room's hidden faces.
     fp_bound: ClassVar[float] = 0.5
 
     def scene_builds(self, scene: Scene) -> list[Build]:

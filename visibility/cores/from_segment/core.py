@@ -58,18 +58,15 @@ class FromSegmentParams(CoreParams):
         (ledges, kerbs, roof lines) project to bands that slide along themselves as the eye
         moves; with an axis-aligned cube on an axis-aligned scene such a band lies between two
         pixel rows and covers no pixel centre along the whole segment, while an oblique band
-        crosses some.
-        Measured at 256 px, one run, 3 eye levels: FN 10.5 % oblique against 22.7 % axis-aligned
-        on a 100k city cell, 2.0 against 7.1 % on village, 0 against 1.6 % on rooms, for 10-25 %
-        more time (benchmarks/results/from_segment.md, "First orientation").
+        crosses some. The oblique cube misses less for a little more time (figures:
+        benchmarks/results/from_segment.md, "First orientation").
     near : near-plane distance of the visibility cameras, metres.
     jitter : each pixel is sampled at a fixed pseudo-random point up to ``jitter`` pixels off its
         centre per axis (``raster.sample_offset``), a new pattern per segment and run; 0 samples
         the centres (the paper). Sub-pixel triangles slide along a line on the cube as the eye
         walks a side; with centres on a regular grid that line can pass between every row of
-        centres, while jittered samples do not line up. Measured on the Lyon walk cells, 256 px:
-        FN 5.4 / 6.9 % at centres, 0.31 / 0.71 % jittered, for 1.5x the time
-        (benchmarks/results/real_cells.md).
+        centres, while jittered samples do not line up: far fewer misses on sub-pixel clutter,
+        for more time (figures: docs/cores/from_segment.md, benchmarks/results/real_cells.md).
     eye_levels : heights at which the segments are walked: 1 = mid height, 2 = bottom and top
         of the box, 3 = all three (a box without height always uses one).
     walk : "open" walks the outline of the open floor inside the cell (``visibility.cell_walk``:
@@ -226,14 +223,13 @@ def cube_rotations(runs: int, seed: int = 0, first: str = "axis") -> np.ndarray:
 #: (village 20k and city 100k cells, 128 to 1024 px, 12 segments each): a fixed cost, a cost
 #: per triangle of the scene and one per cubemap pixel (6 R^2); the pixel term dominates from
 #: 256 px on. ``python -m benchmarks.bench_admission`` (benchmarks/results/admission.md) checks
-#: it: measured / estimated seconds 0.5-0.8 on 4 m cells of those scenes, but 40 on the 1M
-#: kitchen at 64 px (81 s): in dense clutter every triangle is binned into many tiles, which
-#: the server learns per scene (``server.admission``).
+#: it: close on open scenes, far under on dense clutter, where every triangle is binned into
+#: many tiles; the server learns that per scene (``server.admission``).
 #: Bytes: the tile bins hold every triangle once per 16 px tile it may cover, which grows with
 #: the square of the resolution, so ``BYTES_PER_TRIANGLE`` per triangle at 128 px, times
 #: (R / 128)^2 above, plus ``BYTES_PER_PIXEL`` per cubemap pixel (the envelope buffers of the
-#: tile groups). An upper bound: the same benchmark measures 0.3 times it on the kitchen and
-#: a few per cent of it on open scenes, whose triangles are mostly small on screen.
+#: tile groups). An upper bound, loosest on open scenes, whose triangles are mostly small on
+#: screen (the same benchmark measures how loose).
 SECONDS_PER_SEGMENT = 5e-3
 SECONDS_PER_SEGMENT_TRIANGLE = 1.5e-7
 SECONDS_PER_SEGMENT_PIXEL = 3.7e-7
@@ -259,10 +255,11 @@ class FromSegmentCore(Core):
     native_segments = True
     check_params: ClassVar[dict[str, Any]] = {"runs": 1}
     fn_bound = 0.05
-    #: FP measured 0.000 on two rooms and the open ring; 0.05-0.10 on the stiff cases (the
-    #: 1e6-aspect sliver pair: truly visible, found exactly, but thinner than a pixel so the
-    #: sampled reference misses it; 20 triangles, so each is 0.05); up to 0.11 on 10k-triangle
-    #: rooms cells at 128 px (grazing views from the cell's sides that interior samples miss).
+    #: The worst FP ``checks.check_fn_fp_against_sampled_ground_truth`` measures, rounded up
+    #: (its failure message prints the rate): on the stiff cases the 1e6-aspect sliver pair is
+    #: truly visible and found exactly but thinner than a pixel, so the sampled reference
+    #: misses it; on rooms cells, grazing views from the cell's sides that interior samples
+    #: miss.
     fp_bound = 0.15
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:

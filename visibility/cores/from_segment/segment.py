@@ -60,14 +60,12 @@ from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, 
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 
 #: A segment piece whose primitives' pixel boxes add up to more than this many times the cube's
-#: pixels is cut in two, at most MAX_SPLIT_DEPTH times over (``_piece``). Open scenes sit near 3
-#: (the real city tile at 4 m cells); a 4 m side through a 1M-triangle kitchen reaches 80000.
-#: On kitchen sides at 64 and 128 px, thresholds of 64 to 1024 came within about 20 % of each
-#: other (a piece's fixed costs against its sweep), 16 cut too often (twice the time) and no cut
-#: at all took two to three times as long. Since tiles whose primitives are all marked are
-#: skipped, a piece's later halves cost less, and deep cuts repeat the set-up more than they
-#: save: 2 cuts (4 pieces at most) beat 6 on a 4 m kitchen cell and on grass
-#: (``docs/cores/from_segment.md``).
+#: pixels is cut in two, at most MAX_SPLIT_DEPTH times over (``_piece``). Open scenes sit far
+#: below the threshold; a 4 m side through dense clutter far above it. Near the threshold a
+#: piece's fixed costs weigh against its sweep, so the value matters little; far smaller cuts
+#: too often. Since tiles whose primitives are all marked are skipped, a piece's later halves
+#: cost less, and deep cuts repeat the set-up more than they save, hence few cuts by default
+#: (figures: ``docs/cores/from_segment.md``).
 SPLIT_AREA = 64
 MAX_SPLIT_DEPTH = 2
 #: Default clusters per batch of the box pass (bounds its scratch memory, ~100 bytes each).

@@ -98,12 +98,11 @@ class TrimRegionsCore(Core):
                            "tight PVS at the price of rare pixel-level misses, more in clutter "
                            "of sub-pixel triangles (up to 0.04 % of a frame on the 1M kitchen)")
     check_params: ClassVar[dict[str, Any]] = {}
-    #: Measured on the designed scenes against the conformance reference (128 points, 128 px,
-    #: seed 11) at 64, 128 and 256 px, at the defaults (the method alone) and with the
-    #: sampling add-on (``gather_eyes=8``), the same in both: FN 0.000 everywhere; FP 0.433
-    #: on two rooms and a door (hidden faces of the wall slabs and boxes flush against floor
-    #: and walls, the trims' price), 0.000 on the open ring, 0.050-0.296 on the stiff cases.
-    #: The bounds are those figures (FP rounded up), so a regression fails; the method stays
+    #: What ``checks.check_fn_fp_against_sampled_ground_truth`` measures on the designed
+    #: scenes at 64, 128 and 256 px, by the method alone and with the sampling add-on alike
+    #: (its failure message prints the rates; docs/cores/trim_regions.md): no FN, and the worst
+    #: FP (two rooms and a door: hidden faces of the wall slabs and boxes flush against floor
+    #: and walls, the trims' price) rounded up, so a regression fails; the method stays
     #: aggressive elsewhere (benchmarks/results/trim_regions.md: pixel-level misses on real
     #: scenes).
     fn_bound: ClassVar[float] = 0.0

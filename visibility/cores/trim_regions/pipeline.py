@@ -394,7 +394,7 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
                             near=view.near, face_mask=static_mask, hierarchy=hierarchy)
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
     # of a mesh that is not watertight opens one or two samples onto the far side, and would
-    # let everything behind the mesh through (the 1M kitchen: 80 % of the scene).
+    # let everything behind the mesh through (most of the 1M kitchen).
     first = np.empty(res * res)
     open_depth(depth, res, SUPERSAMPLE, SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES, first)
     # A sliver lying along a row or column of the face's grid (wall edges, cabinet bevels: the
