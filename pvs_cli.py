@@ -20,6 +20,7 @@ import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 #: Where the real third-party scenes live when the repository sits beside ``shared/``.
 DEFAULT_SCENES_DIR = Path(__file__).resolve().parent.parent / "shared" / "scenes"
@@ -160,45 +161,45 @@ def _six_floats(text: str) -> list[float]:
     return vals
 
 
-def _unreachable(cmd: str, server: str, exc: BaseException) -> str:
+def _unreachable(cmd: str, server: str, why: object) -> str:
     """The one line a command prints when ``server`` cannot be reached or is no PVS server."""
-    why = str(exc) or type(exc).__name__
+    why = str(why) or type(why).__name__
     return (f"pvs {cmd}: no PVS server answered at {server} ({why}); start one with "
             f"`pvs serve` or pass --server URL")
 
 
-def cmd_query(args: argparse.Namespace) -> int:
+def _call(cmd: str, args: argparse.Namespace, method: str, path: str,
+          timeout: float = 600.0, **kw) -> tuple[int, Any]:
+    """(status, JSON body) of ``method`` ``path`` on ``args.server`` with the user's token;
+    one line, not a traceback, when no PVS server answers there (``_unreachable``)."""
     import httpx
 
     try:
-        return _query(args)
+        r = httpx.request(method, args.server.rstrip("/") + path, timeout=timeout,
+                          headers=_auth_headers(args), **kw)
+        return r.status_code, r.json()
     except httpx.HTTPError as exc:
-        raise SystemExit(_unreachable("query", args.server, exc)) from None
+        raise SystemExit(_unreachable(cmd, args.server, exc)) from None
     except json.JSONDecodeError:
-        raise SystemExit(_unreachable("query", args.server,
-                                      ValueError("the answer is not JSON"))) from None
+        raise SystemExit(_unreachable(cmd, args.server, "the answer is not JSON")) from None
 
 
-def _query(args: argparse.Namespace) -> int:
-    """``cmd_query``'s request and printout."""
-    import httpx
-
+def cmd_query(args: argparse.Namespace) -> int:
     params = parse_params(args.param)
-    base = f"{args.server.rstrip('/')}/scenes/{args.scene}"
+    base = f"/scenes/{args.scene}"
     region = args.segment or args.box
     if region is not None:
         p, q = region[:3], region[3:]
         req: dict = {"segment" if args.segment else "box": [p, q], "params": params}
         if args.core:
             req["core"] = args.core
-        r = httpx.post(f"{base}/pvs", json=req, timeout=args.timeout, headers=_auth_headers(args))
+        status, body = _call("query", args, "POST", f"{base}/pvs", args.timeout, json=req)
     else:
         if args.core:
             params["core"] = args.core
-        r = httpx.get(f"{base}/cells/{args.cell}/pvs", params=params, timeout=args.timeout,
-                      headers=_auth_headers(args))
-    body = r.json()
-    if r.status_code != 200:
+        status, body = _call("query", args, "GET", f"{base}/cells/{args.cell}/pvs",
+                             args.timeout, params=params)
+    if status != 200:
         print(json.dumps(body, indent=2), file=sys.stderr)
         return 1
     if args.ids:
@@ -238,22 +239,12 @@ def _local_scene(name: str, scenes: str | None):
     return make_scene(name)
 
 
-def _server_json(cmd: str, server: str, path: str, args: argparse.Namespace,
+def _server_json(cmd: str, args: argparse.Namespace, path: str,
                  params: dict | None = None) -> int:
-    """Print a running server's JSON answer to GET ``path``: 0 when it is 200, else 1; one
-    line, not a traceback, when no PVS server answers."""
-    import httpx
-
-    try:
-        r = httpx.get(server.rstrip("/") + path, params=params or {}, timeout=600,
-                      headers=_auth_headers(args))
-        body = r.json()
-    except httpx.HTTPError as exc:
-        raise SystemExit(_unreachable(cmd, server, exc)) from None
-    except json.JSONDecodeError:
-        raise SystemExit(_unreachable(cmd, server, ValueError("the answer is not JSON"))) from None
+    """Print a running server's JSON answer to GET ``path``: 0 when it is 200, else 1."""
+    status, body = _call(cmd, args, "GET", path, params=params or {})
     print(json.dumps(body, indent=2))
-    return 0 if r.status_code == 200 else 1
+    return 0 if status == 200 else 1
 
 
 def cores_help() -> str:
@@ -272,8 +263,7 @@ def cores_help() -> str:
 def cmd_cores(args: argparse.Namespace) -> int:
     """List the cores (the local registry, or a running server's ``GET /cores``)."""
     if args.server:
-        return _server_json("cores", args.server, "/cores", args,
-                            {"scene": args.scene} if args.scene else None)
+        return _server_json("cores", args, "/cores", {"scene": args.scene} if args.scene else None)
     if args.scene:
         from server.calibration import decide_auto, fit_report
         from visibility.calibration import (
@@ -314,8 +304,7 @@ def cmd_cores(args: argparse.Namespace) -> int:
 
 def cmd_scenes(args: argparse.Namespace) -> int:
     if args.server:
-        return _server_json("scenes", args.server,
-                            f"/scenes/{args.name}" if args.name else "/scenes", args)
+        return _server_json("scenes", args, f"/scenes/{args.name}" if args.name else "/scenes")
     from visibility.generators import DEFAULT_TRIANGLES, available_generators
     from visibility.scene_analysis import is_2_5d
     from visibility.viewcells import ViewcellGrid

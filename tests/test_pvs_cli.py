@@ -104,7 +104,10 @@ def test_cores_calibrate_prints_the_trials_and_autos_pick(tmp_path, capsys):
     assert pvs_cli.main(["cores", "--scene", "box", "--scenes", str(tmp_path / "scenes"),
                          "--calibrate", "--budget", "0.5"]) == 0
     out = capsys.readouterr().out
-    assert re.search(r"sampling \(samples=8\) +[0-9.]+ s/cell +FN", out)
+    # Measured, or stopped at the trial's deadline where another job slows the machine: the
+    # trial ran and is reported either way.
+    assert re.search(r"sampling \(samples=8\) +([0-9.]+ s/cell +FN|stopped at the [0-9.]+ s "
+                     r"deadline)", out), out
     assert "auto: " in out and "calibrated on" in out
 
 

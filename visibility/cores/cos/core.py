@@ -328,7 +328,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     if known is not None:
         vis[np.asarray(known, dtype=bool)[prims.out_id]] = 1
     views = side_plane_views(box, resolution)
-    plane_tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+    plane_tol = prims.plane_tol
     stats: dict[str, Any] = {
         "weld_seconds": weld_s, "topology_seconds": t1b - t1, "sort_seconds": t2 - t1b,
         "tree_seconds": t2b - t2, "culled": 0, "projected": 0, "tree": tree is not None,

@@ -51,6 +51,12 @@ class Prims:
     def __len__(self) -> int:
         return int(len(self.start))
 
+    @property
+    def plane_tol(self) -> float:
+        """Distance (metres) within which the plane tests cannot tell a side: 1 nm plus 64
+        ulps of ``scale``, the rounding of the shift to the cell centre."""
+        return 1e-9 + 64.0 * float(np.spacing(max(self.scale, 1.0)))
+
 
 def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(k, 8, 3) corners of k boxes."""

@@ -402,7 +402,7 @@ def test_face_subsets_drop_only_empty_footprints():
         prims = build_prims(scene, centre, weld_vertices(scene.vertices))
         order, _ = distance_order(prims, half)
         views = side_plane_views(box, 32)
-        tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+        tol = prims.plane_tol
         subsets = _face_subsets(prim_bounds(prims), order, half, views, tol)
         every = np.arange(len(order), dtype=np.int64)
         for v in views:
@@ -467,7 +467,7 @@ def test_the_tree_cull_keeps_what_the_views_rays_meet():
         order, _ = distance_order(prims, half)
         tree = cell_tree(build_hierarchy(scene.vertices, scene.faces, leaf_size=4), prims,
                          order, scene.n_triangles, centre)
-        tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+        tol = prims.plane_tol
         every = np.arange(len(order), dtype=np.int64)
         keep = np.ones(len(order), dtype=bool)
         tri_of = prims.out_id[order]  # triangle id at each position
@@ -522,7 +522,7 @@ def test_all_views_walk_matches_one_walk_per_view():
     order, _ = distance_order(prims, 0.5 * (box[1] - box[0]))
     tree = cell_tree(build_hierarchy(city.vertices, city.faces, leaf_size=4), prims, order,
                      city.n_triangles, centre)
-    tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+    tol = prims.plane_tol
     views = side_plane_views(box, 32)
     faces = sorted({v.face for v in views})
     keep = np.random.default_rng(2).random((len(faces), len(order))) < 0.7
@@ -774,7 +774,7 @@ def test_only_a_triangle_in_the_rectangles_plane_is_edge_on(gap):
     prims = build_prims(scene, centre, weld_vertices(scene.vertices))
     order, _ = distance_order(prims, 0.5 * (box[1] - box[0]))
     (view,) = [v for v in side_plane_views(box, 32) if v.face == (1, 1) and v.kind == "front"]
-    tol = 1e-9 + 64.0 * float(np.spacing(max(prims.scale, 1.0)))
+    tol = prims.plane_tol
     rng = np.empty((1, 4), dtype=np.int32)
     footprints(prims.pts, prims.start, prims.npts, prims.kind, order, np.zeros(1, np.int64),
                view.origin, view.perm, view.sign, view.corners, view.near_box, view.near_w,
