@@ -101,24 +101,61 @@ def ray_triangle_depths(tri: np.ndarray, w: np.ndarray, near: float) -> np.ndarr
     return np.where(ok, s, np.inf)
 
 
+def prepare(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                np.ndarray]:
+    """(m, 3, 3) float64 corners of the ``faces`` and their boxes' (m, 3) lows and highs."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    return tri, tri.min(axis=1), tri.max(axis=1)
+
+
+def _box_candidates(lo: np.ndarray, hi: np.ndarray, eye: np.ndarray, w: np.ndarray,
+                    near: float) -> np.ndarray:
+    """Indices of the boxes (``lo``, ``hi`` (m, 3)) that the ray ``eye + s w``, s >= ``near``,
+    may meet: every triangle ``ray_triangle_depths`` can hit, since its hit point lies in the
+    triangle's box, padded here for the rounding of both computations. A slab test only
+    prunes: the exact cast still decides."""
+    pad = 1e-9 * (np.abs(lo).max(axis=1) + np.abs(hi).max(axis=1) + np.abs(eye).max()
+                  + 1.0)
+    s0 = np.full(len(lo), -np.inf)
+    s1 = np.full(len(lo), np.inf)
+    ok = np.ones(len(lo), dtype=bool)
+    for a in range(3):
+        lo_a = lo[:, a] - pad - eye[a]
+        hi_a = hi[:, a] + pad - eye[a]
+        if w[a] == 0.0:
+            ok &= (lo_a <= 0.0) & (hi_a >= 0.0)
+            continue
+        t0, t1 = lo_a / w[a], hi_a / w[a]
+        s0 = np.maximum(s0, np.minimum(t0, t1))
+        s1 = np.minimum(s1, np.maximum(t0, t1))
+    # Depths a hair short of ``near`` still count: the exact cast applies ``near`` itself.
+    ok &= s1 >= np.maximum(s0, near * (1.0 - 1e-9) - 1e-12)
+    return np.flatnonzero(ok)
+
+
 def nearest_at_pixel(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray,
                      rotation: np.ndarray, resolution: int, row: int, col: int,
                      centers: np.ndarray | None = None, radii: np.ndarray | None = None,
                      near: float = DEFAULT_NEAR,
-                     offset: tuple[float, float] = (0.0, 0.0)) -> tuple[int, float]:
+                     offset: tuple[float, float] = (0.0, 0.0),
+                     prepared: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                     ) -> tuple[int, float]:
     """Brute-force ray cast of one pixel's sample of a 90-degree face (its centre moved by
     ``offset`` pixels, x right and y up): (id of the nearest primitive (triangles first, spheres
-    after them; -1 for none), its depth)."""
+    after them; -1 for none), its depth). ``prepared``: ``prepare(vertices, faces)``, for many
+    casts into one static scene."""
     x = (col + 0.5 + offset[0]) * (2.0 / resolution) - 1.0
     y = 1.0 - (row + 0.5 - offset[1]) * (2.0 / resolution)
     w = np.asarray(rotation).T @ np.array([x, y, -1.0])  # world direction, depth 1 per unit
-    tri = np.asarray(vertices)[np.asarray(faces)] - eye  # (m, 3, 3)
+    tri, lo, hi = prepared if prepared is not None else prepare(vertices, faces)
     best, best_id = np.inf, -1
     if len(tri):
-        depth = ray_triangle_depths(tri, w[None], near)[0]
-        k = int(np.argmin(depth))
-        if np.isfinite(depth[k]):
-            best, best_id = float(depth[k]), k
+        cand = _box_candidates(lo, hi, eye, w, near)
+        if len(cand):
+            depth = ray_triangle_depths(tri[cand] - eye, w[None], near)[0]
+            k = int(np.argmin(depth))
+            if np.isfinite(depth[k]):
+                best, best_id = float(depth[k]), int(cand[k])
     if radii is not None and len(radii):
         o = np.asarray(centers) - eye
         ww = w @ w
@@ -145,6 +182,7 @@ def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
     ``jitter``, the pixel's sample is where ``segment_visible`` put it (``sample_offset``)."""
     rots = cube_face_rotations(base_rotation)
     bad = []
+    static = prepare(vertices0, faces) if vertices0 is vertices1 else None
     for pid in np.flatnonzero(visible):
         _, t, f, row, col = witness[pid]
         eye = v0 + t * (v1 - v0)
@@ -152,7 +190,7 @@ def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
         c = None if radii is None else (1 - t) * centers0 + t * centers1
         off = sample_offset(int(f), int(row), int(col), resolution, jitter, seed)
         got, _ = nearest_at_pixel(verts, faces, eye, rots[int(f)], resolution, int(row),
-                                  int(col), c, radii, near, off)
+                                  int(col), c, radii, near, off, static)
         if got != pid:
             bad.append(int(pid))
     return bad

@@ -261,6 +261,7 @@ def test_no_triangle_dense_sampling_sees_beside_self_crossing_parts_is_unseen():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("kitchen")
 def test_no_triangle_rays_see_in_the_kitchen_is_taken_for_unseen():
     # The kitchen's art has closed parts that pass through themselves (wall sockets, the
     # extractor hood, inside out in places): without the crossing test six triangles the

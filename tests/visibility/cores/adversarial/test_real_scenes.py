@@ -55,11 +55,18 @@ def cells(name: str, size: float) -> list[tuple[int, np.ndarray, RaySample]]:
     return open_cells(real_scene(name), size, CELLS, EYES, DIRS, SEED)
 
 
-CASES = [(name, size, k, core) for name in REAL for size in SIZES for k in range(CELLS)
-         for core in ("cos", "dual_ray") if name not in BENCHMARK_ONLY.get(core, ())]
+def _on_one_worker(name: str, *args: object) -> object:
+    """A case of scene ``name``, run by the worker that runs the scene's other cases (``bash
+    scripts/test.sh`` distributes by ``xdist_group``), so its reference cells are cast once."""
+    return pytest.param(name, *args, marks=pytest.mark.xdist_group(name))
+
+
+CASES = [_on_one_worker(name, size, k, core) for name in REAL for size in SIZES
+         for k in range(CELLS) for core in ("cos", "dual_ray")
+         if name not in BENCHMARK_ONLY.get(core, ())]
 #: ``cos`` with its coarse pass on every screen tile (by default only cluttered tiles take it):
 #: the 0.3 m cell.
-COARSE = [(name, 0.3) for name in REAL if name not in BENCHMARK_ONLY["cos"]]
+COARSE = [_on_one_worker(name, 0.3) for name in REAL if name not in BENCHMARK_ONLY["cos"]]
 
 
 def test_every_named_scene_is_there():
@@ -106,7 +113,8 @@ def test_cos_coarse_pass_no_confirmed_misses(name, size):
         f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in REAL if n not in BENCHMARK_ONLY["cos"]])
+@pytest.mark.parametrize("name", [_on_one_worker(n) for n in REAL
+                                  if n not in BENCHMARK_ONLY["cos"]])
 def test_cos_sub_cells_no_confirmed_misses(name):
     # The 1 m cell solved as 2 x 2 sub-cells, each passing what it found on as known.
     scene = real_scene(name)
@@ -120,8 +128,8 @@ def test_cos_sub_cells_no_confirmed_misses(name):
         f"from {name}'s 1 m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
-@pytest.mark.parametrize("name,size", [(n, s) for n in REAL if n not in BENCHMARK_ONLY["cos"]
-                                       for s in SIZES])
+@pytest.mark.parametrize("name,size", [_on_one_worker(n, s) for n in REAL
+                                       if n not in BENCHMARK_ONLY["cos"] for s in SIZES])
 def test_cos_relaxed_cover_no_confirmed_misses(name, size):
     scene = real_scene(name)
     _, box, ref = cells(name, size)[0]

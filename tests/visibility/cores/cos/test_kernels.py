@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -415,26 +416,33 @@ def test_face_subsets_drop_only_empty_footprints():
             assert not subsets[v.face].all()
 
 
+@numba.njit(cache=True)
 def _ray_hits(tri: np.ndarray, orig: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Rows of ``tri`` (k, 3, 3) that any ray (orig (r, 3), dirs (r, 3)) meets at t >= 0
-    (Moller-Trumbore, every hit, not only the first), in chunks of rays."""
-    hit = np.zeros(len(tri), dtype=bool)
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    for a in range(0, len(orig), 256):
-        o = orig[a:a + 256, None, :]
-        d = dirs[a:a + 256, None, :]
-        pv = np.cross(d, e2[None])
-        det = np.einsum("rkc,kc->rk", pv, e1)
-        with np.errstate(divide="ignore", invalid="ignore"):
+    (Moller-Trumbore in float64, every hit, not only the first)."""
+    hit = np.zeros(len(tri), dtype=np.bool_)
+    for k in range(len(tri)):
+        ax, ay, az = tri[k, 0, 0], tri[k, 0, 1], tri[k, 0, 2]
+        e1x, e1y, e1z = tri[k, 1, 0] - ax, tri[k, 1, 1] - ay, tri[k, 1, 2] - az
+        e2x, e2y, e2z = tri[k, 2, 0] - ax, tri[k, 2, 1] - ay, tri[k, 2, 2] - az
+        for r in range(len(orig)):
+            dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = px * e1x + py * e1y + pz * e1z
+            if abs(det) <= 1e-15:
+                continue
             inv = 1.0 / det
-            tv = o - tri[None, :, 0]
-            u = np.einsum("rkc,rkc->rk", tv, pv) * inv
-            qv = np.cross(tv, e1[None])
-            v = np.einsum("rkc,rkc->rk", np.broadcast_to(d, qv.shape), qv) * inv
-            t = np.einsum("rkc,kc->rk", qv, e2) * inv
-            ok = (np.abs(det) > 1e-15) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0)
-        hit |= ok.any(axis=0)
+            tx, ty, tz = orig[r, 0] - ax, orig[r, 1] - ay, orig[r, 2] - az
+            u = (tx * px + ty * py + tz * pz) * inv
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = ty * e1z - tz * e1y, tz * e1x - tx * e1z, tx * e1y - ty * e1x
+            v = (dx * qx + dy * qy + dz * qz) * inv
+            if v < 0.0 or u + v > 1.0:
+                continue
+            if (qx * e2x + qy * e2y + qz * e2z) * inv >= 0.0:
+                hit[k] = True
+                break
     return hit
 
 

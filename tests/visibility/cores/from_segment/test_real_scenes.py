@@ -17,7 +17,7 @@ import pytest
 
 from benchmarks.bench_matrix import SHARED_SCENES
 from benchmarks.bench_real_cells import walk_cells
-from tests.visibility.segment_reference import nearest_at_pixel, unwitnessed
+from tests.visibility.segment_reference import nearest_at_pixel, prepare, unwitnessed
 from visibility.cores.from_segment.core import oblique_rotation, view_segments
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import sample_offset
@@ -85,6 +85,7 @@ def test_exact_at_its_jittered_samples_on_real_scenes(walked, turn):
     # hit) collapse to a point.
     faces = scene.faces.copy()
     faces[~scene.valid_faces] = 0
+    prepared = prepare(scene.vertices, faces)
     seen = 0
     for t in np.linspace(0.0, 1.0, POINTS):
         eye = a + t * (b - a)
@@ -97,7 +98,7 @@ def test_exact_at_its_jittered_samples_on_real_scenes(walked, turn):
             f, row, col = where[k]
             off = sample_offset(int(f), int(row), int(col), RES, JITTER, SEED)
             got, _ = nearest_at_pixel(scene.vertices, faces, eye, rots[f], RES, int(row),
-                                      int(col), offset=off)
+                                      int(col), offset=off, prepared=prepared)
             assert got < 0 or vis[got], (t, f, row, col, got)
     assert seen > 0
     v = scene.vertices

@@ -90,6 +90,7 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("kitchen")
 def test_false_negative_pixels_in_the_kitchens_clutter():
     # The 1M kitchen's middle cell at Δ 0.2 m, as benchmarks/bench_trim_regions.py measures it
     # (24 frames, seed 1). By the method alone: 117 pixels in the worst frame (the bound is
