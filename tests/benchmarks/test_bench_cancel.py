@@ -10,6 +10,9 @@ import pytest
 
 from benchmarks import bench_cancel
 
+#: One worker runs this module, so its costly module fixtures run once, not once per worker.
+pytestmark = pytest.mark.xdist_group("bench_cancel")
+
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):

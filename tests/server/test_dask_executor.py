@@ -38,6 +38,9 @@ from tests.conftest import make_tiny_scene, near_ids, serving, wait_for
 from visibility.cores import checks
 from visibility.cores.base import available_cores, get_core
 
+#: One worker runs this module, so its costly module fixtures run once, not once per worker.
+pytestmark = pytest.mark.xdist_group("dask_executor")
+
 FAST = {"samples": 4, "resolution": 32}
 TINY = make_tiny_scene()
 

@@ -29,6 +29,9 @@ from server.settings import Settings
 from tests.conftest import serving
 from tests.visibility.real_scenes import real_path
 
+#: One worker runs this module, so its costly module fixtures run once, not once per worker.
+pytestmark = pytest.mark.xdist_group("robustness")
+
 ROOT = Path(__file__).resolve().parents[2]
 TINY_BOX = {"box": [[0, 0, 0], [1e-300, 1e-300, 1e-300]]}
 #: What the review sent: the kitchen at 4096 px with 100000 viewpoints.
