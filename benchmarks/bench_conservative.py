@@ -37,7 +37,7 @@ from visibility.cores.base import get_core
 from visibility.loaders import SCENE_EXTENSIONS, load_scene
 from visibility.ray_reference import RaySample, confirm, describe, ray_reference
 from visibility.scene import Scene
-from visibility.viewcells import MIN_EXTENT, MIN_EXTENT_ULPS, Viewcell, ViewcellGrid
+from visibility.viewcells import Viewcell, ViewcellGrid
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,12 +64,7 @@ def candidate_cells(scene: Scene, size: float, seed: int) -> list[tuple[int, np.
     lo, hi = scene.vertices[valid].reshape(-1, 3).min(axis=0), \
         scene.vertices[valid].reshape(-1, 3).max(axis=0)
     order = np.random.default_rng(seed).permutation(len(grid))
-    # ``grid.cell(i).center`` for every cell at once (a Viewcell per cell took seconds on a
-    # city tile's 278k cells): the box with its thin axes collapsed, as ``Viewcell`` does.
-    b = np.asarray(grid.boxes, dtype=np.float64)[order]
-    floor = np.maximum(MIN_EXTENT, MIN_EXTENT_ULPS * np.spacing(np.abs(b).max(axis=1)))
-    top = np.where(b[:, 1] - b[:, 0] < floor, b[:, 0], b[:, 1])
-    c = (b[:, 0] + top) / 2.0
+    c = grid.centers()[order]
     boxes = np.stack([c - 0.5 * size, c + 0.5 * size], axis=1)
     inside = np.all(boxes[:, 0] >= lo, axis=1) & np.all(boxes[:, 1] <= hi, axis=1)
     return [(int(order[k]), boxes[k]) for k in np.flatnonzero(inside)]

@@ -10,6 +10,7 @@ source scripts/env.sh
 # Compiled once here, the kernels load from the numba cache in every test process; otherwise
 # each pytest worker compiles the ones it meets first, the same ones twice.
 .venv/bin/python -m pvs_cli warmup
-# loadgroup: tests marked xdist_group("kitchen") share one worker, so the 1M-triangle kitchen
-# is loaded and its closed parts built once.
+# loadgroup: tests marked with one xdist_group (a real scene's, a module's) share one worker,
+# so what they build once per process (the kitchen, a scene's references, a server) is built
+# once per run.
 exec .venv/bin/python -m pytest -q -ra --durations=30 -n "${PVS_TEST_WORKERS:-2}" --dist loadgroup "$@"

@@ -40,27 +40,30 @@ MIN_EXTENT_ULPS = 64
 
 
 def collapse_thin_axes(box: np.ndarray) -> np.ndarray:
-    """``box`` (2, 3) [min, max], metres, with every axis thinner than ``min_extent(box)``
-    collapsed to its min (max = min): a copy, float64.
+    """``box`` (2, 3) [min, max], metres, or a stack of them (c, 2, 3), with every axis
+    thinner than ``min_extent`` collapsed to its min (max = min): a copy, float64.
 
     Parameters
     ----------
-    box : (2, 3) float64, finite, max >= min.
+    box : (2, 3) or (c, 2, 3) float64, finite, max >= min.
 
     Returns
     -------
-    (2, 3) float64 [min, max] metres.
+    The same shape, [min, max] metres.
     """
-    out = np.array(box, dtype=np.float64).reshape(2, 3)
-    thin = (out[1] - out[0]) < min_extent(out)
-    out[1, thin] = out[0, thin]
+    out = np.array(box, dtype=np.float64)
+    if out.ndim != 3:
+        out = out.reshape(2, 3)
+    thin = (out[..., 1, :] - out[..., 0, :]) < min_extent(out)
+    out[..., 1, :] = np.where(thin, out[..., 0, :], out[..., 1, :])
     return out
 
 
 def min_extent(box: np.ndarray) -> np.ndarray:
-    """(3,) metres: the smallest extent each axis of ``box`` (2, 3) keeps, the larger of
-    ``MIN_EXTENT`` and ``MIN_EXTENT_ULPS`` float64 steps at the axis's largest magnitude."""
-    magnitude = np.abs(np.asarray(box, dtype=np.float64)).max(axis=0)
+    """(3,) metres (or (c, 3) for a stack of boxes): the smallest extent each axis of ``box``
+    (2, 3) keeps, the larger of ``MIN_EXTENT`` and ``MIN_EXTENT_ULPS`` float64 steps at the
+    axis's largest magnitude."""
+    magnitude = np.abs(np.asarray(box, dtype=np.float64)).max(axis=-2)
     return np.maximum(MIN_EXTENT, MIN_EXTENT_ULPS * np.spacing(magnitude))
 
 
@@ -217,6 +220,10 @@ class ViewcellGrid:
         if not 0 <= cid < len(self):
             raise IndexError(f"cell {cell_id} out of range [0, {len(self)})")
         return Viewcell(self.boxes[cid], cid)
+
+    def centers(self) -> np.ndarray:
+        """(c, 3) centre of every cell, metres: ``cell(i).center`` for all i at once."""
+        return collapse_thin_axes(self.boxes).mean(axis=1)
 
     def walk_point(self, cell_id: int) -> np.ndarray:
         """(3,) a point of cell ``cell_id`` where one may walk, metres: the box centre when the

@@ -81,7 +81,7 @@ def server(settings, scenes, registered_test_cores):
         # walker stands in is: during a flood it must come back at once, whichever of this
         # module's tests runs first on this worker. (A computation it would need could be
         # refused 503 with the rest while hostile clients fill the queue.)
-        seconds, r = run(normal_request(url))
+        _, r = run(normal_request(url))
         assert r.status_code == 200, r.text
         yield url, app
 

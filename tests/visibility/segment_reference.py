@@ -186,7 +186,7 @@ def unwitnessed(witness: np.ndarray, visible: np.ndarray, vertices0: np.ndarray,
     for pid in np.flatnonzero(visible):
         _, t, f, row, col = witness[pid]
         eye = v0 + t * (v1 - v0)
-        verts = (1 - t) * vertices0 + t * vertices1
+        verts = vertices0 if static is not None else (1 - t) * vertices0 + t * vertices1
         c = None if radii is None else (1 - t) * centers0 + t * centers1
         off = sample_offset(int(f), int(row), int(col), resolution, jitter, seed)
         got, _ = nearest_at_pixel(verts, faces, eye, rots[int(f)], resolution, int(row),

@@ -128,3 +128,25 @@ def test_a_cell_over_a_thin_street_walks_on_the_street():
     # A cell whose centre is walkable keeps its centre.
     g4 = ViewcellGrid(WalkArea([[0, 0, 10, 10, 0.0]]), 5.0)
     assert np.allclose(g4.walk_point(0), g4.boxes[0].mean(axis=0))
+
+
+def test_a_stack_of_boxes_collapses_as_each_box_alone():
+    from visibility.viewcells import collapse_thin_axes
+
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(-1e7, 1e7, (64, 3))
+    # Extents from zero through sub-micron to metres, some below the far boxes' ulp floor.
+    size = rng.choice([0.0, 1e-9, 1e-7, 5e-6, 1e-3, 1.0], (64, 3))
+    boxes = np.stack([lo, lo + size], axis=1)
+    stacked = collapse_thin_axes(boxes)
+    one_by_one = np.stack([collapse_thin_axes(b) for b in boxes])
+    np.testing.assert_array_equal(stacked, one_by_one)
+    assert (stacked[:, 1] == stacked[:, 0]).any() and (stacked[:, 1] > stacked[:, 0]).any()
+
+
+def test_grid_centers_are_the_cells_centres():
+    from visibility.generators import make_scene
+
+    grid = ViewcellGrid.for_scene(make_scene("rooms", triangles=5000))
+    expected = np.stack([grid.cell(i).center for i in range(len(grid))])
+    np.testing.assert_array_equal(grid.centers(), expected)
