@@ -132,10 +132,11 @@ class CosCore(Core):
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     native_segments: ClassVar[bool] = False
+    # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(0.12-0.17 s for a 0.3 m cell of 100k); 4 m cells cost 0.4-0.5 s "
-                           "(city) to 7.4 s (rooms), dense clutter about 25 s (the 1M "
-                           "kitchen's 0.3 m cell)")
+                           "(a 0.3 m cell in a tenth of a second); 4 m cells under a second "
+                           "(a city) to several (interiors), a 0.3 m cell of dense clutter "
+                           "(a 1M-triangle kitchen) tens of seconds: docs/cores/cos.md")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: The worst FP ``checks.check_fn_fp_against_sampled_ground_truth`` measures on the
