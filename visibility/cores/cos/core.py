@@ -135,7 +135,7 @@ class CosCore(Core):
     # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
                            "(a 0.3 m cell in a tenth of a second); 4 m cells under a second "
-                           "(a city) to several (interiors), a 0.3 m cell of dense clutter "
+                           "(a city) to several seconds (interiors), a 0.3 m cell of clutter "
                            "(a 1M-triangle kitchen) tens of seconds: docs/cores/cos.md")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
