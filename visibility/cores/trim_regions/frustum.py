@@ -101,7 +101,7 @@ def sphere_views(v0: np.ndarray, delta: float, res: int) -> list[View]:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def layers(leaf_lo, leaf_hi, nbr_start, nbr_items, nbr_face, vstar):  # pragma: no cover
     """Layer of every leaf as seen from ``vstar`` (paper Sec. 5.2).
 
@@ -163,7 +163,7 @@ def layers(leaf_lo, leaf_hi, nbr_start, nbr_items, nbr_face, vstar):  # pragma: 
     return layer
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def in_frustum(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
     """True when the box [lo, hi] (metres) may meet the frustum (v*, rot, tan, near): no side
     plane or the near plane has all eight corners outside."""

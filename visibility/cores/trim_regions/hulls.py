@@ -22,7 +22,7 @@ BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0,
                      dtype=np.int64)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _closest_on_triangle(p, a, b, c):  # pragma: no cover - numba
     """Squared distance from p to triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
     ab = b - a
@@ -59,7 +59,7 @@ def _closest_on_triangle(p, a, b, c):  # pragma: no cover - numba
     return r @ r
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def near_sphere(verts, faces, rows, centre, radius, vis):  # pragma: no cover - numba
     """Set ``vis[f] = 1`` for each triangle f of ``rows`` within ``radius`` (metres) of
     ``centre`` (3,) (vertices (n, 3) in the same frame)."""
@@ -90,7 +90,7 @@ def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
     """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the
     sign of its area): each edge function, oriented inwards, grown by the square's reach
@@ -112,7 +112,7 @@ def _nearest_depth(poly, npoly, i):  # pragma: no cover - numba
     return z
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
                    seen):  # pragma: no cover - numba
     """Set ``seen[owner[i]] = 1`` when set-up triangle i (``raster.setup_triangles`` arrays)
@@ -153,7 +153,7 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
             seen[owner[i]] = 1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
     """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
     arrays) that touches some pixel (its square, not only its centre: conservative

@@ -39,7 +39,7 @@ def leaf_frame(octree: Octree, centre: np.ndarray) -> LeafFrame:
                      np.repeat(np.arange(len(octree), dtype=np.int64), counts))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _cull(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
     n = lo.shape[0]
     out = np.zeros(n, dtype=np.bool_)

@@ -163,7 +163,7 @@ def _balance(leaves: list, rlo: np.ndarray, rhi: np.ndarray, cell: float,
         leaves = out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _leaf_grid(leaf_cells, g):  # pragma: no cover - numba
     loc = np.full((g, g, g), -1, dtype=np.int32)
     for k in range(leaf_cells.shape[0]):
@@ -172,7 +172,7 @@ def _leaf_grid(leaf_cells, g):  # pragma: no cover - numba
     return loc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _face_nbrs(leaf_cells, loc, k, face, out):  # pragma: no cover - numba
     """Distinct leaves across one face of leaf k, written to ``out``; returns their count."""
     g = loc.shape[0]
@@ -206,7 +206,7 @@ def _face_nbrs(leaf_cells, loc, k, face, out):  # pragma: no cover - numba
     return n
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _neighbours(leaf_cells, loc):  # pragma: no cover - numba
     n = leaf_cells.shape[0]
     counts = np.zeros(n, dtype=np.int64)

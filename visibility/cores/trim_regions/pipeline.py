@@ -4,9 +4,14 @@ into the k-buffers (P2), per-pixel resolve (P3) and the gather (P4) (paper Fig. 
 
 from __future__ import annotations
 
+import contextvars
+import queue
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+import numba
 import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
@@ -114,7 +119,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     Returns
     -------
     ids : (k,) int64 triangle ids found potentially visible (any order).
-    stats : seconds per phase (``p0_layers`` ... ``p4_gather``), ``spheres``, ``delta``,
+    stats : seconds per phase (``p0_layers`` ... ``p4_gather``; summed over the views, which
+        run ``view_workers`` at a time on their own threads, so they can add up to more than
+        the wall time), ``view_workers``, ``spheres``, ``delta``,
         ``views``, ``layers`` (drawn, summed over views), ``kbuffer_allocated_bytes``,
         ``kbuffer_used_bytes`` (most entries held at once), ``active_pixels`` (pixels that
         held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
@@ -175,34 +182,66 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     hier = ready_hierarchy(scene)
     if hier is None and 0 < scene.n_triangles < MIN_TRIANGLES:
         hier = scene_hierarchy(scene)
-    kb = KBuffer.empty(int(resolution) ** 2)
-    stats["kbuffer_allocated_bytes"] = kb.allocated_bytes
+    workers = _view_workers()
+    free: queue.SimpleQueue[KBuffer] = queue.SimpleQueue()
+    kbs = [KBuffer.empty(int(resolution) ** 2) for _ in range(workers)]
+    for kb in kbs:
+        free.put(kb)
+    stats["kbuffer_allocated_bytes"] = sum(kb.allocated_bytes for kb in kbs)
     stats["near_eye"] = 0
+    stats["view_workers"] = workers
     stats["p1_geometry"] += time.perf_counter() - t0
-    for v0 in centres:
-        t = time.perf_counter()
-        # What passes through the sphere is beside some eye and in front of others: reported,
-        # and never an occluder for this sphere (the erosion theorem needs occluders outside
-        # the viewcell).
-        near = np.zeros(m, dtype=np.uint8)
-        near_sphere(verts, data.faces, data.static, v0, delta, near)
-        vis |= near
-        stats["near_eye"] += int(near.sum())
-        # Planes through the eyes this sphere answers for: those of the sphere in the box.
-        ambiguous = data.static[through_box
-                                & (np.abs(data.normals @ (v0 + centre) - data.plane) <= delta)]
-        hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta), axis=1)
-        seen_hull[hit] = 1
-        stats["p1_geometry"] += time.perf_counter() - t
-        for view in sphere_views(v0, delta, int(resolution)):
-            checkpoint()
-            _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
-                        stats, margin_px, footprints, centre, hier)
-            if len(hull_ids):
-                t = time.perf_counter()
-                _test_hulls(view, hull_corners, hull_faces, hull_owner, open_only, kb,
-                            seen_hull)
-                stats["p4_gather"] += time.perf_counter() - t
+    # Views run ``workers`` at a time, each thread with its own k-buffer and one numba thread
+    # (the per-layer kernels are too short to keep two threads busy): the views only add to
+    # ``vis`` and ``seen_hull`` (writes of 1, in any order), so the answer does not depend on
+    # the order they finish in. What lies near a sphere joins ``vis`` once no view runs.
+    near_all = np.zeros(m, dtype=np.uint8)
+    hulls = (hull_corners, hull_faces, hull_owner, open_only, seen_hull) if len(hull_ids) \
+        else None
+    shared = (scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier)
+    pool = ThreadPoolExecutor(workers, initializer=numba.set_num_threads, initargs=(1,)) \
+        if workers > 1 else None
+    in_flight: deque[list[Future[dict[str, Any]]]] = deque()
+    try:
+        for v0 in centres:
+            t = time.perf_counter()
+            # What passes through the sphere is beside some eye and in front of others:
+            # reported, and never an occluder for this sphere (the erosion theorem needs
+            # occluders outside the viewcell).
+            near = np.zeros(m, dtype=np.uint8)
+            near_sphere(verts, data.faces, data.static, v0, delta, near)
+            near_all |= near
+            stats["near_eye"] += int(near.sum())
+            # Planes through the eyes this sphere answers for: those of the sphere in the box.
+            ambiguous = data.static[through_box
+                                    & (np.abs(data.normals @ (v0 + centre) - data.plane)
+                                       <= delta)]
+            hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta),
+                         axis=1)
+            seen_hull[hit] = 1
+            stats["p1_geometry"] += time.perf_counter() - t
+            views = sphere_views(v0, delta, int(resolution))
+            if pool is None:
+                for view in views:
+                    checkpoint()
+                    _merge(stats, _view_task(view, near, ambiguous, shared, hulls, free))
+                continue
+            # Two spheres in flight at most: each holds its ``near`` marks (one byte per
+            # triangle) until its views are done.
+            while len(in_flight) >= 2:
+                for f in in_flight.popleft():
+                    _merge(stats, f.result())
+            in_flight.append([pool.submit(contextvars.copy_context().run, _view_task, view,
+                                          near, ambiguous, shared, hulls, free)
+                              for view in views])
+        while in_flight:
+            for f in in_flight.popleft():
+                _merge(stats, f.result())
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    checkpoint()
+    vis |= near_all
     t = time.perf_counter()
     gathered_spheres = np.zeros(0, dtype=np.int32)
     stats["eye_gathered"] = 0
@@ -223,6 +262,47 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     n = max(stats.pop("pixel_resolves"), 1)
     stats["mean_sequence_length"] = float(stats.pop("entries_resolved") / n)
     return ids, stats
+
+
+#: Stats a view adds to (``_view_task``); ``kbuffer_used_bytes`` is a maximum, the rest sums.
+VIEW_STATS = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather",
+              "silhouette_trims", "layers", "views", "kbuffer_used_bytes", "pixel_resolves",
+              "validated_intervals", "terminators", "entries_resolved", "single_sided_trims",
+              "active_pixels", "trimmed_pixels", "sealed_pixels", "overflow_pixels")
+
+
+def _view_workers() -> int:
+    """Views solved at once: the numba threads this computation may use (a pool worker
+    limited to one thread solves them in turn)."""
+    return max(1, int(numba.get_num_threads()))
+
+
+def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tuple,
+               hulls: tuple | None, free: queue.SimpleQueue) -> dict[str, Any]:
+    """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
+    stats it adds (``VIEW_STATS``)."""
+    scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier = shared
+    st: dict[str, Any] = dict.fromkeys(VIEW_STATS, 0)
+    for k in PHASES:
+        st[k] = 0.0
+    kb = free.get()
+    try:
+        checkpoint()
+        _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
+                    margin_px, footprints, centre, hier)
+        if hulls is not None:
+            t = time.perf_counter()
+            _test_hulls(view, *hulls[:4], kb, hulls[4])
+            st["p4_gather"] += time.perf_counter() - t
+    finally:
+        free.put(kb)
+    return st
+
+
+def _merge(stats: dict[str, Any], part: dict[str, Any]) -> None:
+    """Add one view's stats (``_view_task``) into the computation's."""
+    for k, v in part.items():
+        stats[k] = max(stats[k], v) if k == "kbuffer_used_bytes" else stats[k] + v
 
 
 def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,

@@ -48,7 +48,7 @@ BAND_ROWS = 8
 SETUP_CHUNK = 512
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def to_camera(verts, vstar, rot):  # pragma: no cover - numba
     """(n, 3) camera-space positions of ``verts`` (n, 3) metres for viewpoint and rotation."""
     n = verts.shape[0]
@@ -62,7 +62,7 @@ def to_camera(verts, vstar, rot):  # pragma: no cover - numba
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _clip_near(a, b, near, out):  # pragma: no cover - numba
     """Point where segment a-b (camera space) crosses depth ``near``, written to ``out``."""
     za = -a[2]
@@ -72,7 +72,7 @@ def _clip_near(a, b, near, out):  # pragma: no cover - numba
         out[k] = a[k] + t * (b[k] - a[k])
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def setup_triangles(cam, faces, rows, need, near, tan, res, facing, poly, npoly,
                     box):  # pragma: no cover
     """Clip triangles to the near plane and project them (P1).
@@ -152,13 +152,13 @@ def setup_triangles(cam, faces, rows, need, near, tan, res, facing, poly, npoly,
             box[i, 3] = min(res, int(np.ceil(y1 + 0.5)))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _gap(a0, a1, b0, b1):  # pragma: no cover - numba
     """Depth between the ranges [a0, a1] and [b0, b1] (0 where they meet)."""
     return max(0.0, max(b0 - a1, a0 - b1))
 
 
-@njit(cache=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cover - numba
     """Room in pixel p's full k-buffer (c entries) by merging trim fragments: an incoming
     trim (``kind`` TRIM at depth d, umbra um) joins the held trim nearest in depth; for an
@@ -204,7 +204,7 @@ def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cov
     return b
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, overflow,
             vis):  # pragma: no cover - numba
     """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``). A full
@@ -239,7 +239,7 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
         count[p] = c + 1
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                     stop):  # pragma: no cover - numba
     """Rasterize one layer's (triangle, leaf) instances into the k-buffers ``kb``
@@ -327,7 +327,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                             queued[band] += 1
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _affine_range(a, b, lo, hi):  # pragma: no cover - numba
     """The u with lo <= a u + b <= hi, as (u0, u1) (u0 > u1: none), clamped to +-1e300."""
     if a > 0.0:
@@ -339,7 +339,7 @@ def _affine_range(a, b, lo, hi):  # pragma: no cover - numba
     return 1.0, -1.0
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - numba
     """Rasterize one layer's trim region quads (P2) with their umbrae into the k-buffers ``kb``
     (``kbuffer.KBuffer``).

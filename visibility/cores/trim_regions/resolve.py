@@ -56,14 +56,14 @@ class SortScratch(NamedTuple):
     sr: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _scratch(k):  # pragma: no cover - numba
     """A ``SortScratch`` for k entries."""
     return SortScratch(np.empty(k, dtype=np.int64), np.empty(k), np.empty(k, dtype=np.int8),
                        np.empty(k, dtype=np.int32), np.empty(k), np.empty(k))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
     """Insertion sort of the first n entries by (depth, kind) into ``order``."""
     for i in range(n):
@@ -81,7 +81,7 @@ def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
                 break
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _umbra_in(sd, sk, su, sr, n, lo, hi):  # pragma: no cover - numba
     """Smallest umbra depth of the trim entries whose depth range [sd, sr] meets [lo, hi];
     -1 if none."""
@@ -93,13 +93,13 @@ def _umbra_in(sd, sk, su, sr, n, lo, hi):  # pragma: no cover - numba
     return best
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
     """Whether back face ``ident`` belongs to the closed part h - 1 whose front face hid."""
     return h > 0 and closed[ident] + 1 == h
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     """Resolve pixel p's trim sequence in the k-buffers ``kb`` (``kbuffer.KBuffer``; see the
     module docstring); compacts the residual sequence back into the k-buffer and records the
@@ -113,7 +113,7 @@ def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     return resolve_into(kb, closed, p, final, vis, stats, _scratch(k))
 
 
-@njit(cache=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover - numba
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""
@@ -266,7 +266,7 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
     return False
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pragma: no cover
     """Resolve the pixels marked active in this layer (each band's list in ``kb.queue``,
     filled by ``raster.raster_surfaces``), or every pixel holding entries when ``final``, of

@@ -7,7 +7,7 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def open_depth(depth, res, s, k, out):  # pragma: no cover - numba
     """out[i * res + j] = the k-th smallest (0-based) of the s x s samples of pixel (i, j) in
     ``depth`` (res * s, res * s) (a render's depths, row-major: pixel (i, j) holds rows

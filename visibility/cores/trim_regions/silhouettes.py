@@ -49,13 +49,13 @@ MAX_LOOKUP_CELLS = 4096
 EDGE_CHUNK = 1024
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _side(n, q):  # pragma: no cover - numba
     s = n[0] * q[0] + n[1] * q[1] + n[2] * q[2]
     return 1.0 if s > 0 else (-1.0 if s < 0 else 0.0)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
     """Whether edge e's second opposite corner lies in the plane of its first triangle
     (relative tolerance 1e-9)."""
@@ -77,7 +77,7 @@ def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
     return abs(nx * wx + ny * wy + nz * wz) <= 1e-9 * scale
 
 
-@njit(cache=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
     """Earliest layer of the leaves meeting the box of points pa, pb (camera frame's world
     positions, metres) grown by ``grow`` metres."""
@@ -112,7 +112,7 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
     return 0 if best == 1 << 62 else best
 
 
-@njit(cache=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
               out, sides, widths, pts):  # pragma: no cover - numba
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
@@ -199,7 +199,7 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
     return m
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, delta, back,
                      margin_px, vstar, rot, grid_origin, cell, leaf_of_cell,
                      leaf_layer):  # pragma: no cover

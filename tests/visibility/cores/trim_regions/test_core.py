@@ -4,6 +4,8 @@ granularity, determinism and cancellation."""
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -76,6 +78,49 @@ def test_a_cancelled_computation_stops_between_layers():
     token.cancel("test")
     with pytest.raises(ComputationCancelled):
         CORE.compute(scene, cell, CORE.make_params(), token=token)
+
+
+def _box(scene, side):
+    c = cell_around(scene, 0.3, 0).mean(axis=0)
+    return np.stack([c - 0.5 * side, c + 0.5 * side])
+
+
+def test_views_solved_two_at_a_time_give_the_answer_of_one_at_a_time(monkeypatch):
+    # A 0.6 m box: 8 spheres, 48 views, with two spheres' views in flight at once.
+    scene = make_scene("village", triangles=5000)
+    box = _box(scene, 0.6)
+    runs = {}
+    for w in (1, 2):
+        monkeypatch.setattr(pipeline, "_view_workers", lambda w=w: w)
+        runs[w] = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
+    one, two = runs[1], runs[2]
+    assert one.stats["spheres"] == 8
+    np.testing.assert_array_equal(one.triangle_ids, two.triangle_ids)
+    for k in ("views", "layers", "silhouette_trims", "active_pixels", "trimmed_pixels",
+              "sealed_pixels", "near_eye", "mean_sequence_length", "kbuffer_used_bytes"):
+        assert one.stats[k] == two.stats[k], k
+    assert (one.stats["view_workers"], two.stats["view_workers"]) == (1, 2)
+    assert two.stats["kbuffer_allocated_bytes"] == 2 * one.stats["kbuffer_allocated_bytes"]
+
+
+def test_a_cancel_while_views_run_in_threads_stops_them_all(monkeypatch):
+    monkeypatch.setattr(pipeline, "_view_workers", lambda: 2)
+    scene = make_scene("village", triangles=5000)
+    cell = Viewcell(_box(scene, 1.0))
+    before = threading.active_count()
+    token = CancelToken()
+    timer = threading.Timer(0.2, token.cancel, args=("test",))
+    timer.start()
+    t0 = time.perf_counter()
+    with pytest.raises(ComputationCancelled):
+        CORE.compute(scene, cell, CORE.make_params(), token=token)
+    stopped = time.perf_counter() - t0
+    timer.join()
+    # The whole cell takes seconds; a cancel ends it within about one view's time, and no
+    # view thread outlives the computation.
+    full = CORE.compute(scene, cell, CORE.make_params()).seconds
+    assert stopped < full
+    assert threading.active_count() == before
 
 
 def test_auto_considers_it_for_small_cells_only():
