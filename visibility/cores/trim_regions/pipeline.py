@@ -43,6 +43,7 @@ from visibility.cores.trim_regions.silhouettes import (
     TRIM_MARGIN_PX,
     silhouette_trims,
 )
+from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_rows
 from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
@@ -356,28 +357,25 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     t1 = time.perf_counter()
     cam = to_camera(verts, view.vstar, view.rot)
     s = len(data.static)
-    facing = np.zeros(s, dtype=np.int8)
+    # setup_triangles writes every row of these (no polygon outside the drawn leaves).
+    facing = np.empty(s, dtype=np.int8)
     poly = np.empty((s, 4, 3))
-    npoly = np.zeros(s, dtype=np.int64)
-    pbox = np.zeros((s, 4), dtype=np.int64)
+    npoly = np.empty(s, dtype=np.int64)
+    pbox = np.empty((s, 4), dtype=np.int64)
     # Polygons only for the triangles of the leaves this view draws (the others lie outside
     # its frustum); facing for every triangle, as silhouettes need it.
-    need = np.zeros(s, dtype=np.bool_)
-    rows = item_rows[drawn[frame.item_leaf]]
-    need[rows[rows >= 0]] = True
+    need = np.empty(s, dtype=np.bool_)
+    drawn_rows(drawn, frame.item_leaf, item_rows, need)
     setup_triangles(cam, faces, data.static, need, view.near, view.tan, res, facing, poly, npoly,
                     pbox)
-    facing_of = np.zeros(len(vis), dtype=np.int8)
-    facing_of[data.static] = facing
+    e = data.edges
     # A triangle whose plane passes through the sphere faces some of its eyes and turns its
     # back on others: its edges may be silhouettes for them though not for v* (an eye
-    # behind one wall of a corner sees past the other wall's end).
-    facing_of[ambiguous] = AMBIGUOUS
-    e = data.edges
-    # Silhouettes only where the view draws: an edge with a triangle in a drawn leaf.
-    drawn_id = np.zeros(len(vis), dtype=np.bool_)
-    drawn_id[data.static[need]] = True
-    edge_on = drawn_id[e.face[:, 0]] | ((e.face[:, 1] >= 0) & drawn_id[np.maximum(e.face[:, 1], 0)])
+    # behind one wall of a corner sees past the other wall's end). Silhouettes only where
+    # the view draws: an edge with a triangle in a drawn leaf.
+    facing_of = np.empty(len(vis), dtype=np.int8)
+    edge_on = np.empty(len(e.face), dtype=np.bool_)
+    drawn_edges(data.static, need, facing, ambiguous, AMBIGUOUS, e.face, facing_of, edge_on)
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
         view.delta, view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
