@@ -224,7 +224,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
             views = sphere_views(v0, delta, int(resolution))
             if pool is None:
                 for view in views:
-                    checkpoint()
                     _merge(stats, _view_task(view, near, ambiguous, shared, hulls, free))
                 continue
             # Two spheres in flight at most: each holds its ``near`` marks (one byte per
@@ -283,9 +282,7 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
     stats it adds (``VIEW_STATS``)."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier = shared
-    st: dict[str, Any] = dict.fromkeys(VIEW_STATS, 0)
-    for k in PHASES:
-        st[k] = 0.0
+    st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb = free.get()
     try:
         checkpoint()
