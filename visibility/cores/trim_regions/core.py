@@ -30,6 +30,7 @@ from visibility.cores.trim_regions.kbuffer import K
 from visibility.cores.trim_regions.pipeline import (
     ENTRY_BYTES,
     GATHER_EYES,
+    SMALL_RASTERS,
     SUPERSAMPLE,
     trim_pvs,
 )
@@ -54,6 +55,10 @@ class TrimRegionsParams(CoreParams):
         supersampled views join the answer (from-point sampling, not the method; 8 is the
         count measured). They catch the small triangles v*, outside the cell, sees under no
         pixel centre behind trimmed occluders.
+    small : how those triangles are found by the method itself (``pipeline.SMALL_RASTERS``):
+        ``centres`` (the paper's pixel centres: not at all) or ``conservative`` (every small
+        or thin triangle touching a pixel whose centre would have found it visible; holds the
+        paper's pixel bound where centres do not, for a larger PVS).
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -64,6 +69,10 @@ class TrimRegionsParams(CoreParams):
     gather_eyes: int = param(0, ge=0, le=256,
                              help="sampling add-on (off: 0): eyes in the cell whose "
                                   f"supersampled views join the answer ({GATHER_EYES} measured)")
+    small: str = param("centres", choices=SMALL_RASTERS,
+                       help="triangles behind trimmed occluders that cover no pixel centre: "
+                            "centres (the paper: not found) or conservative (every small or "
+                            "thin one touching a pixel its centre leaves open; a larger PVS)")
 
 
 #: Cost model (``estimate_cost``), fitted on the 2-core development machine with
@@ -141,7 +150,8 @@ class TrimRegionsCore(Core):
         data, built = scene_data(scene, int(params.max_prims))
         box = np.asarray(cell.box, dtype=np.float64)
         ids, stats = trim_pvs(scene, data, box, int(params.resolution),
-                              float(params.max_delta), gather_eyes=int(params.gather_eyes))
+                              float(params.max_delta), gather_eyes=int(params.gather_eyes),
+                              small=str(params.small))
         # Back faces of closed surfaces facing away from the whole cell are never seen from
         # it: what the interval rules let through of them leaves the answer.
         unseen = unseen_back_faces(scene, box)[ids]

@@ -112,6 +112,152 @@ def _nearest_depth(poly, npoly, i):  # pragma: no cover - numba
     return z
 
 
+#: Relative depth by which a small triangle may lie behind the samples around it and still
+#: count as touching their surface: a triangle coplanar with it (a decal, a face drawn twice)
+#: is seen by some eyes, whichever of the two the samples show.
+COPLANAR_TOL = 1e-3
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def touching_samples(poly, npoly, box, tri_ids, depth, far, res, s, most,
+                     vis):  # pragma: no cover - numba
+    """Set ``vis[tri_ids[i]] = 1`` for each small set-up triangle i (``raster.setup_triangles``
+    arrays; a pixel box at most ``most`` pixels wide and high) that touches a sample's square
+    of v*'s supersampled render ``depth`` (res * s, res * s), conservative rasterization at the
+    samples, with its nearest point over that square in front of the farthest depth among the
+    sample and its eight neighbours (or within ``COPLANAR_TOL`` of it). For a surface the
+    depth over a sample's square lies within its neighbours' depths, so a triangle v* sees
+    between the samples (on the surface, or in a gap narrower than a sample) passes; a crack
+    one sample wide lets through only what touches the samples around it. ``far``
+    (res * res,): the farthest sample depth of each pixel (``samples.open_depth``), a first
+    test per pixel."""
+    n_s = res * s
+    for i in prange(npoly.shape[0]):
+        if npoly[i] < 3 or vis[tri_ids[i]]:
+            continue
+        if box[i, 1] - box[i, 0] > most or box[i, 3] - box[i, 2] > most:
+            continue
+        zmin = _nearest_depth(poly, npoly, i)
+        x0 = max(0, box[i, 0] - 1)
+        x1 = min(res, box[i, 1] + 1)
+        y0 = max(0, box[i, 2] - 1)
+        y1 = min(res, box[i, 3] + 1)
+        near_enough = False
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                if zmin < far[y * res + x] * (1.0 + COPLANAR_TOL):
+                    near_enough = True
+        if not near_enough:
+            continue
+        hit = False
+        for t in range(1, npoly[i] - 1):
+            if hit:
+                break
+            # In sample units: a sample's square is the unit square around (u + 0.5, v + 0.5).
+            ax, ay, az = s * poly[i, 0, 0], s * poly[i, 0, 1], poly[i, 0, 2]
+            bx, by, bz = s * poly[i, t, 0], s * poly[i, t, 1], poly[i, t, 2]
+            cx, cy, cz = s * poly[i, t + 1, 0], s * poly[i, t + 1, 1], poly[i, t + 1, 2]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            if area == 0.0:
+                continue
+            sg = 1.0 if area >= 0 else -1.0
+            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
+            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
+            izmax = max(az, max(bz, cz))
+            u0 = max(0, int(np.floor(min(ax, min(bx, cx)))) - 1)
+            u1 = min(n_s, int(np.ceil(max(ax, max(bx, cx)))) + 1)
+            v0 = max(0, int(np.floor(min(ay, min(by, cy)))) - 1)
+            v1 = min(n_s, int(np.ceil(max(ay, max(by, cy)))) + 1)
+            for v in range(v0, v1):
+                if hit:
+                    break
+                for u in range(u0, u1):
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, u + 0.5, v + 0.5):
+                        continue
+                    iz = az + gx * (u + 0.5 - ax) + gy * (v + 0.5 - ay) \
+                        + 0.5 * (abs(gx) + abs(gy))
+                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    deepest = 0.0
+                    for dv in range(max(0, v - 1), min(n_s, v + 2)):
+                        for du in range(max(0, u - 1), min(n_s, u + 2)):
+                            deepest = max(deepest, np.float64(depth[dv, du]))
+                    if z < deepest * (1.0 + COPLANAR_TOL):
+                        hit = True
+                        break
+        if hit:
+            vis[tri_ids[i]] = 1
+
+
+@njit(cache=True, nogil=True)
+def _width(poly, npoly, i):  # pragma: no cover - numba
+    """Width (pixels) of set-up polygon i: twice its area over its longest edge."""
+    a = 0.0
+    e = 0.0
+    n = npoly[i]
+    for k in range(n):
+        x0, y0 = poly[i, k, 0], poly[i, k, 1]
+        x1, y1 = poly[i, (k + 1) % n, 0], poly[i, (k + 1) % n, 1]
+        a += x0 * y1 - x1 * y0
+        e = max(e, (x1 - x0) ** 2 + (y1 - y0) ** 2)
+    return abs(a) / np.sqrt(e) if e > 0.0 else 0.0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, most, thin, tol,
+                   vis):  # pragma: no cover - numba
+    """Set ``vis[tri_ids[i]] = 1`` for each small or thin set-up triangle i (a pixel box at
+    most ``most`` pixels wide and high, or at most ``thin`` pixels across, ``_width``) that
+    touches a pixel square (conservative rasterization) with its nearest point over the square
+    in front of the pixel's seal depth and outside the hidden spans of its validated intervals
+    (``kbuffer.KBuffer.spans``), a span's front taken ``tol`` (relative) deeper (the surface
+    that opened it varies in depth over the square): what the pixel's centre would have found
+    visible had the triangle covered it. A triangle behind a trimmed occluder that covers no
+    pixel centre (clutter under a pixel, a sliver seen edge-on from v*) is otherwise never
+    tested, though the eyes of the sphere see it where the trims reveal it."""
+    for i in prange(npoly.shape[0]):
+        if npoly[i] < 3 or vis[tri_ids[i]]:
+            continue
+        if (box[i, 1] - box[i, 0] > most or box[i, 3] - box[i, 2] > most) \
+                and _width(poly, npoly, i) > thin:
+            continue
+        zmin = _nearest_depth(poly, npoly, i)
+        hit = False
+        for t in range(1, npoly[i] - 1):
+            if hit:
+                break
+            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
+            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
+            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            if area == 0.0:
+                continue
+            sg = 1.0 if area >= 0 else -1.0
+            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
+            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
+            izmax = max(az, max(bz, cz))
+            for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
+                if hit:
+                    break
+                for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
+                    if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
+                        continue
+                    iz = az + gx * (x + 0.5 - ax) + gy * (y + 0.5 - ay) \
+                        + 0.5 * (abs(gx) + abs(gy))
+                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    p = y * res + x
+                    if z >= seal[p]:
+                        continue
+                    hidden = False
+                    for q in range(n_spans[p]):
+                        if spans[p, q, 0] * (1.0 + tol) < z <= spans[p, q, 1]:
+                            hidden = True
+                    if not hidden:
+                        hit = True
+                        break
+        if hit:
+            vis[tri_ids[i]] = 1
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, first, res,
                    seen):  # pragma: no cover - numba

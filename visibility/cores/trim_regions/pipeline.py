@@ -23,7 +23,9 @@ from visibility.cores.trim_regions.hulls import (
     box_corners,
     hulls_in_front,
     near_sphere,
+    small_in_front,
     touching_in_front,
+    touching_samples,
 )
 from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
@@ -36,7 +38,7 @@ from visibility.cores.trim_regions.raster import (
     setup_triangles,
     to_camera,
 )
-from visibility.cores.trim_regions.resolve import resolve_layer
+from visibility.cores.trim_regions.resolve import DEPTH_TOL, resolve_layer
 from visibility.cores.trim_regions.samples import open_depth
 from visibility.cores.trim_regions.silhouettes import (
     AMBIGUOUS,
@@ -54,6 +56,16 @@ from visibility.viewcells import Viewcell
 SUPERSAMPLE = 4
 #: How many of a pixel's samples must see a depth for the occludee test to use it.
 OPEN_SAMPLES = 3
+#: Widest pixel box (pixels) of the triangles also tested against v*'s samples one by one
+#: (``hulls.touching_samples``): a larger triangle meets the samples themselves.
+SMALL_BOX_PX = 8
+#: How small triangles behind trimmed occluders are rasterized (``small`` of ``trim_pvs``):
+#: at pixel centres (the paper) or conservatively, at every pixel they touch.
+SMALL_RASTERS = ("centres", "conservative")
+#: With ``small="conservative"``: the widest pixel box, and the width (pixels) below which a
+#: longer triangle counts as a sliver (``hulls.small_in_front``).
+BEHIND_BOX_PX = 4
+THIN_PX = 1.0
 #: Roll of the second grid the gather samples from v*, radians (atan 1/2: no scene axis of a
 #: cube face lies along its rows or columns or their diagonals).
 ROLL = float(np.arctan(0.5))
@@ -94,7 +106,7 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
              max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True,
-             gather_eyes: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
+             gather_eyes: int = 0, small: str = "centres") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
     Parameters
@@ -108,7 +120,10 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     footprints : also report what pixel centres miss: every triangle v* sees at 16 samples
         per pixel or on a rolled grid (``_sample_from_vstar``), and every triangle whose pixel
         footprint (conservative) lies in front of the farthest surface sampled in that pixel
-        (``hulls.touching_in_front``). False only for tests of pixel-centre visibility.
+        (``hulls.touching_in_front``), or whose footprint touches a sample of that render
+        with its nearest point in front of the samples around it (``hulls.touching_samples``:
+        small triangles v* sees between its samples). False only for tests of pixel-centre
+        visibility.
     gather_eyes : a sampling add-on, off (0) by default: with ``footprints``, also report
         every triangle and sphere seen from this many eyes stratified in the box (random cube
         orientations, ``SUPERSAMPLE`` times the resolution, ``ground_truth.sample_pvs``;
@@ -116,6 +131,11 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         sees behind a trimmed occluder under no pixel centre (the clutter of the 1M kitchen,
         each under a pixel or so) is often in plain view of an eye inside. 0: the paper's
         gather from v* alone, the method.
+    small : how triangles behind trimmed occluders that cover no pixel centre are found
+        (``SMALL_RASTERS``; with ``footprints``): ``"centres"``, never (the paper's pixel
+        centres), or ``"conservative"``: every small or thin triangle touching a pixel in
+        front of its seal and outside its hidden spans (``hulls.small_in_front``), what the
+        pixel's centre would have found had the triangle covered it.
 
     Returns
     -------
@@ -133,6 +153,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         hulls), ``eye_gathered`` (triangles only the eyes' views added),
         ``sphere_ids`` (the spheres of the scene found visible).
     """
+    if small not in SMALL_RASTERS:
+        raise ValueError(f"small must be one of {list(SMALL_RASTERS)}, got {small!r}")
     box = np.asarray(box, dtype=np.float64)
     centre = 0.5 * (box[0] + box[1])
     centres, delta = cover_box(box, max_delta)
@@ -199,7 +221,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     near_all = np.zeros(m, dtype=np.uint8)
     hulls = (hull_corners, hull_faces, hull_owner, open_only, seen_hull) if len(hull_ids) \
         else None
-    shared = (scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier)
+    shared = (scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier,
+              small)
     pool = ThreadPoolExecutor(workers, initializer=numba.set_num_threads, initargs=(1,)) \
         if workers > 1 else None
     in_flight: deque[list[Future[dict[str, Any]]]] = deque()
@@ -281,13 +304,13 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
                hulls: tuple | None, free: queue.SimpleQueue) -> dict[str, Any]:
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
     stats it adds (``VIEW_STATS``)."""
-    scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier = shared
+    scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb = free.get()
     try:
         checkpoint()
         _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
-                    margin_px, footprints, centre, hier)
+                    margin_px, footprints, centre, hier, small)
         if hulls is not None:
             t = time.perf_counter()
             _test_hulls(view, *hulls[:4], kb, hulls[4])
@@ -340,7 +363,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
                 ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
-                centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None) -> None:
+                centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
+                small: str = "centres") -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
@@ -428,10 +452,17 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
         tc = time.perf_counter()
-        first, seen = _sample_from_vstar(scene, data.static_mask, verts, view, centre,
-                                         hierarchy)
+        first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
+                                                     centre, hierarchy)
         vis[seen] = 1
         touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
+        # Small triangles v* sees between the samples, which the pixels' open depth (above)
+        # can hide: tested against the samples around them.
+        touching_samples(poly, npoly, pbox, data.static, depth, far, res, SUPERSAMPLE,
+                         SMALL_BOX_PX, vis)
+        if small == "conservative":
+            small_in_front(poly, npoly, pbox, data.static, kb.seal, kb.spans, kb.n_spans, res,
+                           BEHIND_BOX_PX, THIN_PX, DEPTH_TOL, vis)
         stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
@@ -445,7 +476,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
 
 def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
                        view: View, centre: np.ndarray | None = None,
-                       hierarchy: Hierarchy | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       hierarchy: Hierarchy | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What v* sees between the pixel centres of a view (``visibility.raster.triangles
     .render_ids``, static triangles only), in the frame of ``verts``; with the scene's
     ``hierarchy`` and the frame's world ``centre``, drawn in the scene's own frame through
@@ -458,6 +490,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
         crosses a pixel, the part of the square it leaves open shows here.
     seen : (k,) int64 ids of the triangles nearest at any of those samples or at the samples
         of a second grid, rolled by ``ROLL`` with ``ROLLED_SAMPLES`` per pixel side.
+    depth : (res * SUPERSAMPLE, res * SUPERSAMPLE) the supersampled render's depths.
+    far : (res * res,) the farthest of each pixel's ``SUPERSAMPLE``² sample depths.
     """
     res = view.res
     ss = SUPERSAMPLE * res
@@ -471,7 +505,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     # of a mesh that is not watertight opens one or two samples onto the far side, and would
     # let everything behind the mesh through (most of the 1M kitchen).
     first = np.empty(res * res)
-    open_depth(depth, res, SUPERSAMPLE, SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES, first)
+    far = np.empty(res * res)
+    open_depth(depth, res, SUPERSAMPLE, SUPERSAMPLE * SUPERSAMPLE - OPEN_SAMPLES, first, far)
     # A sliver lying along a row or column of the face's grid (wall edges, cabinet bevels: the
     # scene's axes are often the cube's) can run between two rows of samples for its whole
     # length; on a rolled grid covering the same frustum it crosses them.
@@ -485,7 +520,7 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     mark = np.zeros(scene.n_triangles, dtype=bool)
     mark_seen(ids.reshape(-1), mark)
     mark_seen(rolled.reshape(-1), mark)
-    return first, np.flatnonzero(mark)
+    return first, np.flatnonzero(mark), depth, far
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,

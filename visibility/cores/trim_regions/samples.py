@@ -8,10 +8,11 @@ from numba import njit, prange
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def open_depth(depth, res, s, k, out):  # pragma: no cover - numba
+def open_depth(depth, res, s, k, out, far):  # pragma: no cover - numba
     """out[i * res + j] = the k-th smallest (0-based) of the s x s samples of pixel (i, j) in
     ``depth`` (res * s, res * s) (a render's depths, row-major: pixel (i, j) holds rows
-    [i s, (i + 1) s) and columns [j s, (j + 1) s)); ``out`` (res * res,) float64."""
+    [i s, (i + 1) s) and columns [j s, (j + 1) s)); ``out`` (res * res,) float64. ``far``
+    (res * res,) gets the largest in the same pass, unless it is empty."""
     for i in prange(res):
         v = np.empty(s * s)
         for j in range(res):
@@ -27,4 +28,6 @@ def open_depth(depth, res, s, k, out):  # pragma: no cover - numba
                     v[m] = x
                     n += 1
             out[i * res + j] = v[k]
+            if far.shape[0] > 0:
+                far[i * res + j] = v[s * s - 1]
 

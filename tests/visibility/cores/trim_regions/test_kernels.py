@@ -152,7 +152,7 @@ def test_a_sliver_along_the_grid_is_sampled_on_the_rolled_grid():
     _, ids = render_ids(scene.vertices, scene.faces, view.vstar, view.rot, ss, ss, view.tan,
                         view.tan, near=view.near)
     assert not (ids == sliver).any()
-    _, seen = pipeline._sample_from_vstar(scene, np.ones(scene.n_triangles, bool),
+    _, seen, _, _ = pipeline._sample_from_vstar(scene, np.ones(scene.n_triangles, bool),
                                           scene.vertices, view)
     assert sliver in seen
 
@@ -170,8 +170,8 @@ def test_vstar_draws_the_same_through_the_scenes_hierarchy():
     hier = scene_hierarchy(scene)
     drawn: dict = {}
     for view in sphere_views(np.zeros(3), 0.2, 64):
-        first, seen = pipeline._sample_from_vstar(scene, mask, verts, view)
-        first_h, seen_h = pipeline._sample_from_vstar(scene, mask, verts, view, centre, hier)
+        first, seen, _, _ = pipeline._sample_from_vstar(scene, mask, verts, view)
+        first_h, seen_h, _, _ = pipeline._sample_from_vstar(scene, mask, verts, view, centre, hier)
         assert np.allclose(first_h, first, rtol=1e-5) and np.array_equal(seen_h, seen)
         drawn[view.face] = len(seen)
     assert sum(drawn.values()) > 0

@@ -16,6 +16,18 @@ def test_open_depth_is_the_kth_smallest_sample_of_each_pixel():
     samples = samples.reshape(res * res, s * s)
     for k in (0, 5, s * s - 3, s * s - 1):
         out = np.empty(res * res)
-        open_depth(depth, res, s, k, out)
+        open_depth(depth, res, s, k, out, np.empty(0))
         np.testing.assert_array_equal(out, np.sort(samples, axis=1)[:, k])
 
+
+
+def test_open_depth_gives_the_farthest_sample_in_the_same_pass():
+    rng = np.random.default_rng(4)
+    res, s = 5, 4
+    depth = rng.uniform(0.5, 9.0, (res * s, res * s))
+    out = np.empty(res * res)
+    far = np.empty(res * res)
+    open_depth(depth, res, s, 2, out, far)
+    blocks = depth.reshape(res, s, res, s).transpose(0, 2, 1, 3).reshape(res * res, s * s)
+    np.testing.assert_array_equal(far, blocks.max(axis=1))
+    np.testing.assert_array_equal(out, np.sort(blocks, axis=1)[:, 2])
