@@ -103,6 +103,50 @@ def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
             and e2 >= -0.5 * (abs(ax - cx) + abs(ay - cy)))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _in_span(spans, n_spans, p, z, tol):  # pragma: no cover - numba
+    """Whether depth z lies in one of pixel p's hidden spans (``kbuffer.KBuffer.spans``), each
+    span's front taken ``tol`` (relative) deeper."""
+    for q in range(n_spans[p]):
+        if spans[p, q, 0] * (1.0 + tol) < z <= spans[p, q, 1]:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _grown_box(box, i, res):  # pragma: no cover - numba
+    """Pixel ranges [x0, x1), [y0, y1) of set-up triangle i's box grown by a pixel on every
+    side (a pixel square it touches may lie there), clipped to the view."""
+    return (max(0, box[i, 0] - 1), min(res, box[i, 1] + 1), max(0, box[i, 2] - 1),
+            min(res, box[i, 3] + 1))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fan(poly, i, t, scale):  # pragma: no cover - numba
+    """Triangle t of set-up polygon i's fan (corners 0, t, t + 1), x and y times ``scale``:
+    (ax, ay, bx, by, cx, cy) in pixels (or samples), the sign of its area (0 for none), and
+    for 1 / depth, linear in the image: its value at a, its gradient (gx, gy) and its
+    largest value over the triangle."""
+    ax, ay, az = scale * poly[i, 0, 0], scale * poly[i, 0, 1], poly[i, 0, 2]
+    bx, by, bz = scale * poly[i, t, 0], scale * poly[i, t, 1], poly[i, t, 2]
+    cx, cy, cz = scale * poly[i, t + 1, 0], scale * poly[i, t + 1, 1], poly[i, t + 1, 2]
+    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    if area == 0.0:
+        return ax, ay, bx, by, cx, cy, 0.0, az, 0.0, 0.0, az
+    sg = 1.0 if area > 0 else -1.0
+    gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
+    gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
+    return ax, ay, bx, by, cx, cy, sg, az, gx, gy, max(az, max(bz, cz))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_in_square(ax, ay, az, gx, gy, izmax, zmin, px, py):  # pragma: no cover - numba
+    """Nearest depth (metres) of a fan triangle's plane (``_fan``) over the unit square
+    centred at (px, py), clamped to the triangle's own range (``zmin`` its nearest depth)."""
+    iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
+    return max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+
+
 @njit(cache=True, nogil=True)
 def _nearest_depth(poly, npoly, i):  # pragma: no cover - numba
     """Nearest depth (metres) of set-up polygon i, whose vertices carry 1 / depth."""
@@ -138,10 +182,7 @@ def touching_samples(poly, npoly, box, tri_ids, depth, far, res, s, most,
         if box[i, 1] - box[i, 0] > most or box[i, 3] - box[i, 2] > most:
             continue
         zmin = _nearest_depth(poly, npoly, i)
-        x0 = max(0, box[i, 0] - 1)
-        x1 = min(res, box[i, 1] + 1)
-        y0 = max(0, box[i, 2] - 1)
-        y1 = min(res, box[i, 3] + 1)
+        x0, x1, y0, y1 = _grown_box(box, i, res)
         near_enough = False
         for y in range(y0, y1):
             for x in range(x0, x1):
@@ -154,16 +195,9 @@ def touching_samples(poly, npoly, box, tri_ids, depth, far, res, s, most,
             if hit:
                 break
             # In sample units: a sample's square is the unit square around (u + 0.5, v + 0.5).
-            ax, ay, az = s * poly[i, 0, 0], s * poly[i, 0, 1], poly[i, 0, 2]
-            bx, by, bz = s * poly[i, t, 0], s * poly[i, t, 1], poly[i, t, 2]
-            cx, cy, cz = s * poly[i, t + 1, 0], s * poly[i, t + 1, 1], poly[i, t + 1, 2]
-            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-            if area == 0.0:
+            ax, ay, bx, by, cx, cy, sg, az, gx, gy, izmax = _fan(poly, i, t, float(s))
+            if sg == 0.0:
                 continue
-            sg = 1.0 if area >= 0 else -1.0
-            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
-            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
-            izmax = max(az, max(bz, cz))
             u0 = max(0, int(np.floor(min(ax, min(bx, cx)))) - 1)
             u1 = min(n_s, int(np.ceil(max(ax, max(bx, cx)))) + 1)
             v0 = max(0, int(np.floor(min(ay, min(by, cy)))) - 1)
@@ -174,9 +208,7 @@ def touching_samples(poly, npoly, box, tri_ids, depth, far, res, s, most,
                 for u in range(u0, u1):
                     if not _touches(ax, ay, bx, by, cx, cy, sg, u + 0.5, v + 0.5):
                         continue
-                    iz = az + gx * (u + 0.5 - ax) + gy * (v + 0.5 - ay) \
-                        + 0.5 * (abs(gx) + abs(gy))
-                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    z = _nearest_in_square(ax, ay, az, gx, gy, izmax, zmin, u + 0.5, v + 0.5)
                     deepest = 0.0
                     for dv in range(max(0, v - 1), min(n_s, v + 2)):
                         for du in range(max(0, u - 1), min(n_s, u + 2)):
@@ -225,33 +257,20 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, most, t
         for t in range(1, npoly[i] - 1):
             if hit:
                 break
-            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
-            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
-            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
-            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-            if area == 0.0:
+            ax, ay, bx, by, cx, cy, sg, az, gx, gy, izmax = _fan(poly, i, t, 1.0)
+            if sg == 0.0:
                 continue
-            sg = 1.0 if area >= 0 else -1.0
-            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
-            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
-            izmax = max(az, max(bz, cz))
             for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
                 if hit:
                     break
                 for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
                     if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
                         continue
-                    iz = az + gx * (x + 0.5 - ax) + gy * (y + 0.5 - ay) \
-                        + 0.5 * (abs(gx) + abs(gy))
-                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
+                    z = _nearest_in_square(ax, ay, az, gx, gy, izmax, zmin, x + 0.5, y + 0.5)
                     p = y * res + x
                     if z >= seal[p]:
                         continue
-                    hidden = False
-                    for q in range(n_spans[p]):
-                        if spans[p, q, 0] * (1.0 + tol) < z <= spans[p, q, 1]:
-                            hidden = True
-                    if not hidden:
+                    if not _in_span(spans, n_spans, p, z, tol):
                         hit = True
                         break
         if hit:
@@ -288,60 +307,21 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
                     p = y * res + x
                     if z >= seal[p] or (open_only[owner[i]] and z >= first[p]):
                         continue
-                    hidden = False
-                    for q in range(n_spans[p]):
-                        if spans[p, q, 0] < z <= spans[p, q, 1]:
-                            hidden = True
-                    if not hidden:
+                    if not _in_span(spans, n_spans, p, z, 0.0):
                         hit = True
                         break
         if hit:
             seen[owner[i]] = 1
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def touching_in_front(poly, npoly, box, tri_ids, first, res, vis):  # pragma: no cover
+def touching_in_front(poly: np.ndarray, npoly: np.ndarray, box: np.ndarray,
+                      tri_ids: np.ndarray, first: np.ndarray, res: int, vis: np.ndarray) -> None:
     """Set ``vis[tri_ids[i]] = 1`` for each set-up triangle i (``raster.setup_triangles``
     arrays) that touches some pixel (its square, not only its centre: conservative
     rasterization) with its nearest point over the pixel in front of its ``first`` depth
     (res * res,): the thin and small triangles that pixel centres miss, in front of everything
     the view samples. They are occludees only here, never occluders."""
-    for i in prange(npoly.shape[0]):
-        if npoly[i] < 3 or vis[tri_ids[i]]:
-            continue
-        zmin = _nearest_depth(poly, npoly, i)
-        x0 = max(0, box[i, 0] - 1)
-        x1 = min(res, box[i, 1] + 1)
-        y0 = max(0, box[i, 2] - 1)
-        y1 = min(res, box[i, 3] + 1)
-        hit = False
-        for t in range(1, npoly[i] - 1):
-            if hit:
-                break
-            ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
-            bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
-            cx, cy, cz = poly[i, t + 1, 0], poly[i, t + 1, 1], poly[i, t + 1, 2]
-            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-            sg = 1.0 if area >= 0 else -1.0
-            if area == 0.0:
-                continue
-            # 1 / depth is linear in the image: its gradient gives the nearest point of the
-            # triangle's plane over a pixel square (clamped to the triangle's own range).
-            gx = ((by - cy) * az + (cy - ay) * bz + (ay - by) * cz) / area
-            gy = ((cx - bx) * az + (ax - cx) * bz + (bx - ax) * cz) / area
-            izmax = max(az, max(bz, cz))
-            for y in range(y0, y1):
-                if hit:
-                    break
-                py = y + 0.5
-                for x in range(x0, x1):
-                    px = x + 0.5
-                    if not _touches(ax, ay, bx, by, cx, cy, sg, px, py):
-                        continue
-                    iz = az + gx * (px - ax) + gy * (py - ay) + 0.5 * (abs(gx) + abs(gy))
-                    z = max(zmin, 1.0 / min(iz, izmax)) if iz > 0.0 else zmin
-                    if z < first[y * res + x]:
-                        hit = True
-                        break
-        if hit:
-            vis[tri_ids[i]] = 1
+    # ``small_in_front`` with the first surface for the seal, no hidden spans and every
+    # triangle, however large.
+    small_in_front(poly, npoly, box, tri_ids, first, np.zeros((1, 1, 2)),
+                   np.zeros(res * res, dtype=np.int64), res, res + 2, np.inf, 0.0, vis)
