@@ -235,12 +235,12 @@ def _width(poly, npoly, i):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, most, thin, tol,
+def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, tol,
                    vis):  # pragma: no cover - numba
-    """Set ``vis[tri_ids[i]] = 1`` for each small or thin set-up triangle i (a pixel box at
-    most ``most`` pixels wide and high, or at most ``thin`` pixels across, ``_width``) that
-    touches a pixel square (conservative rasterization) with its nearest point over the square
-    in front of the pixel's seal depth and outside the hidden spans of its validated intervals
+    """Set ``vis[tri_ids[i]] = 1`` for each thin set-up triangle i (at most ``thin`` pixels
+    across, ``_width``: small ones and slivers alike) that touches a pixel square
+    (conservative rasterization) with its nearest point over the square in front of the
+    pixel's seal depth and outside the hidden spans of its validated intervals
     (``kbuffer.KBuffer.spans``), a span's front taken ``tol`` (relative) deeper (the surface
     that opened it varies in depth over the square): what the pixel's centre would have found
     visible had the triangle covered it. A triangle behind a trimmed occluder that covers no
@@ -249,8 +249,7 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, most, t
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
-        if (box[i, 1] - box[i, 0] > most or box[i, 3] - box[i, 2] > most) \
-                and _width(poly, npoly, i) > thin:
+        if _width(poly, npoly, i) > thin:
             continue
         zmin = _nearest_depth(poly, npoly, i)
         hit = False
@@ -324,4 +323,4 @@ def touching_in_front(poly: np.ndarray, npoly: np.ndarray, box: np.ndarray,
     # ``small_in_front`` with the first surface for the seal, no hidden spans and every
     # triangle, however large.
     small_in_front(poly, npoly, box, tri_ids, first, np.zeros((1, 1, 2)),
-                   np.zeros(res * res, dtype=np.int64), res, res + 2, np.inf, 0.0, vis)
+                   np.zeros(res * res, dtype=np.int64), res, np.inf, 0.0, vis)

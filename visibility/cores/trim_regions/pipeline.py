@@ -62,9 +62,9 @@ SMALL_BOX_PX = 8
 #: How small triangles behind trimmed occluders are rasterized (``small`` of ``trim_pvs``):
 #: at pixel centres (the paper) or conservatively, at every pixel they touch.
 SMALL_RASTERS = ("centres", "conservative")
-#: With ``small="conservative"``: the widest pixel box, and the width (pixels) below which a
-#: longer triangle counts as a sliver (``hulls.small_in_front``).
-BEHIND_BOX_PX = 4
+#: With ``small="conservative"``: the width (pixels, twice the area over the longest edge)
+#: up to which a triangle is tested at every pixel it touches (``hulls.small_in_front``);
+#: a wider one meets pixel centres.
 THIN_PX = 1.0
 #: Roll of the second grid the gather samples from v*, radians (atan 1/2: no scene axis of a
 #: cube face lies along its rows or columns or their diagonals).
@@ -133,9 +133,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         gather from v* alone, the method.
     small : how triangles behind trimmed occluders that cover no pixel centre are found
         (``SMALL_RASTERS``; with ``footprints``): ``"centres"``, never (the paper's pixel
-        centres), or ``"conservative"``: every small or thin triangle touching a pixel in
-        front of its seal and outside its hidden spans (``hulls.small_in_front``), what the
-        pixel's centre would have found had the triangle covered it.
+        centres), or ``"conservative"``: every triangle under ``THIN_PX`` wide touching a
+        pixel in front of its seal and outside its hidden spans (``hulls.small_in_front``),
+        what the pixel's centre would have found had the triangle covered it.
 
     Returns
     -------
@@ -462,7 +462,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                          SMALL_BOX_PX, vis)
         if small == "conservative":
             small_in_front(poly, npoly, pbox, data.static, kb.seal, kb.spans, kb.n_spans, res,
-                           BEHIND_BOX_PX, THIN_PX, DEPTH_TOL, vis)
+                           THIN_PX, DEPTH_TOL, vis)
         stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())

@@ -80,7 +80,7 @@ def _kb_state(seal: float, spans: list[tuple[float, float]]):
 def _behind(poly, npoly, box, seal, spans, tol=1e-3):
     vis = np.zeros(1, dtype=np.uint8)
     small_in_front(poly, npoly, box, np.zeros(1, dtype=np.int64), *_kb_state(seal, spans), RES,
-                   4, 1.0, tol, vis)
+                   1.0, tol, vis)
     return int(vis[0])
 
 
@@ -97,7 +97,7 @@ def test_a_small_triangle_past_an_umbra_is_found_where_no_pixel_centre_meets_it(
     assert _behind(*_setup(TINY, 2.001), np.inf, [(2.0, 3.0)], tol=0.0) == 0
 
 
-def test_a_sliver_counts_as_small_a_large_triangle_does_not():
+def test_a_sliver_counts_as_thin_a_wide_triangle_does_not():
     sliver = [(1.0, 7.0), (14.0, 7.02), (1.0, 7.04)]  # 13 px long, 0.04 px across
     assert _behind(*_setup(sliver, 3.5), np.inf, [(2.0, 3.0)]) == 1
     large = [(1.0, 1.0), (14.0, 1.0), (1.0, 14.0)]  # meets pixel centres itself
