@@ -249,9 +249,11 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
-        if _width(poly, npoly, i) > thin:
+        # (No width to work out when every triangle is tested: ``touching_in_front``.)
+        if thin < np.inf and _width(poly, npoly, i) > thin:
             continue
         zmin = _nearest_depth(poly, npoly, i)
+        x0, x1, y0, y1 = _grown_box(box, i, res)
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:
@@ -259,10 +261,10 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
             ax, ay, bx, by, cx, cy, sg, az, gx, gy, izmax = _fan(poly, i, t, 1.0)
             if sg == 0.0:
                 continue
-            for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
+            for y in range(y0, y1):
                 if hit:
                     break
-                for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
+                for x in range(x0, x1):
                     if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
                         continue
                     z = _nearest_in_square(ax, ay, az, gx, gy, izmax, zmin, x + 0.5, y + 0.5)

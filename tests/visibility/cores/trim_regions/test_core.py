@@ -190,3 +190,14 @@ def test_each_layer_resolves_the_pixels_it_marked_and_counts_entries_without_a_f
     pvs = CORE.compute(scene, Viewcell(cell_around(scene, 0.3, 2)),
                        CORE.make_params(resolution=64))
     assert len(pvs) and seen["layers"] > 6
+
+
+def test_an_unknown_small_raster_is_refused_by_name():
+    from visibility.cores.trim_regions.cache import build_scene_data
+
+    with pytest.raises(ValueError, match="small"):
+        CORE.make_params(small="everywhere")
+    scene = make_scene("rooms", triangles=2_000)
+    with pytest.raises(ValueError, match="small"):
+        pipeline.trim_pvs(scene, build_scene_data(scene), cell_around(scene, 0.3, 0), 32, 0.3,
+                 small="everywhere")
