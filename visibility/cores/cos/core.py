@@ -53,6 +53,10 @@ COARSE_MIN_ITEMS = 8192
 
 #: The cover tests (``CosParams.cover``).
 COVERS = ("strict", "relaxed")
+#: How occluders join to hide (``CosParams.fusion``).
+FUSIONS = ("auto", "edges", "groups")
+#: ``fusion="auto"`` fuses separate groups on cells at least this wide (x or z, metres).
+FUSE_FROM = 1.0
 
 
 @dataclass
@@ -78,6 +82,13 @@ class CosParams(CoreParams):
         meet K may still pass when they provably never cross the offsets whose rays meet the
         occludee (``resolve._covers_q``); still conservative, tighter at large cells, dearer
         (``docs/cores/cos.md``).
+    fusion : how occluders join to hide an occludee. ``edges`` (the paper's): only triangles
+        sharing edges, so one group must cover its whole offset region. ``groups``: where no
+        group does alone, separate groups each in front of it may cover the region together
+        (``resolve._fused_hide``: two walls one behind the other, buildings side by side).
+        ``auto``: ``groups`` on cells ``FUSE_FROM`` metres wide or more, where that is most
+        occlusion, ``edges`` on smaller ones, where it costs dense clutter more than it finds
+        (``docs/cores/cos.md``).
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -95,6 +106,10 @@ class CosParams(CoreParams):
     cover: str = param("strict", choices=COVERS,
                        help="the occluder cover test: strict (the paper's) or relaxed "
                             "(tighter at large cells, for more time)")
+    fusion: str = param("auto", choices=FUSIONS,
+                        help="occluders that hide together: edges (the paper's: triangles "
+                             "sharing edges), groups (separate surfaces too), auto (groups "
+                             "on cells of 1 m and more)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane: a
@@ -186,9 +201,10 @@ class CosCore(Core):
         if int(params.subcells) > 1:
             return cos_subcells(scene, box, int(params.subcells), int(params.resolution),
                                 float(params.list_budget_mb), int(params.coarse_items),
-                                cover=str(params.cover))
+                                cover=str(params.cover), fusion=str(params.fusion))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
-                       int(params.coarse_items), cover=str(params.cover))
+                       int(params.coarse_items), cover=str(params.cover),
+                       fusion=str(params.fusion))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -209,20 +225,24 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                  list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
-                 cover: str = "strict") -> tuple[np.ndarray, dict[str, Any]]:
+                 cover: str = "strict", fusion: str = "auto"
+                 ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
     tested no more, still an occluder), which changes the time, not the answer. Stats: each
     count and time summed over the sub-cells (``longest_list``: the longest), ``subcells``
-    n, ``union_sizes`` the answer's size after each sub-cell."""
+    n, ``union_sizes`` the answer's size after each sub-cell. ``fusion="auto"`` is decided
+    on the whole cell's width, so the sub-cells fuse as the cell would."""
+    if fusion == "auto":
+        fusion = fusion_for(box)
     m = scene.n_triangles
     known = np.zeros(m + scene.n_spheres, dtype=bool)
     total: dict[str, Any] = {}
     sizes = []
     for b in sub_boxes(box, n):
         ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
-                          cover=cover)
+                          cover=cover, fusion=fusion)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -247,7 +267,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
             coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
-            cover: str = "strict") -> tuple[np.ndarray, dict[str, Any]]:
+            cover: str = "strict", fusion: str = "auto") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -262,6 +282,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     known : optional (n_triangles + n_spheres,) bool, ids already in the answer (another
         cell's PVS, ``cos_subcells``): reported, tested no more, still occluders.
     cover : ``strict`` or ``relaxed``, the occluder cover test (``CosParams.cover``).
+    fusion : ``auto``, ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
 
     Returns
     -------
@@ -299,6 +320,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     """
     if cover not in COVERS:
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
+    if fusion not in FUSIONS:
+        raise ValueError(f"fusion must be one of {FUSIONS}, not {fusion!r}")
+    fuse = (fusion_for(box) if fusion == "auto" else fusion) == "groups"
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
     centre = 0.5 * (lo + hi)
@@ -339,7 +363,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
-        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0,
+        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0,
+        "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
         "tile_items": 0,
@@ -358,7 +383,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             tv, entries0 = time.perf_counter(), stats["list_entries"]
             listed = np.flatnonzero(sel[view.face]) if positions is None else positions[k]
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
-                                  stats, coarse_items, rng, cover)
+                                  stats, coarse_items, rng, cover, fuse)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -442,11 +467,18 @@ def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
 
 
-def _screen(view: View, plane_tol: float, cover: str) -> Screen:
+def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False) -> Screen:
     """The kernels' view of a view's camera and pixel grid."""
     return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
                   float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol),
-                  cover == "relaxed")
+                  cover == "relaxed", bool(fuse))
+
+
+def fusion_for(box: np.ndarray) -> str:
+    """``fusion="auto"``'s choice for a cell ``box`` (2, 3) [min, max] metres: ``groups`` when
+    its x or z side is ``FUSE_FROM`` metres or more, else ``edges``."""
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    return "groups" if float(max(b[1, 0] - b[0, 0], b[1, 2] - b[0, 2])) >= FUSE_FROM else "edges"
 
 
 def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
@@ -479,7 +511,9 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
                       numba.get_num_threads())
     # One pixel per tile, as wide as the tile; the strict cover test only: at a tile's width
     # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
-    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE, relaxed=False)
+    # Nor separate groups together: in clutter that costs the pass more than it drops.
+    wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE, relaxed=False,
+                           fuse=False)
     resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
@@ -490,14 +524,14 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
-                cover: str = "strict") -> int:
+                cover: str = "strict", fuse: bool = False) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
     visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
     ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
     ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``); ``cover`` the
-    cover test (``CosParams.cover``)."""
+    cover test (``CosParams.cover``); ``fuse`` whether separate groups hide together."""
     t0 = time.perf_counter()
     stats["projected"] += len(sel)
     known = vis.copy()
@@ -516,7 +550,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["tile_items"] += int(tile_off[-1])
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
-    screen = _screen(view, plane_tol, cover)
+    screen = _screen(view, plane_tol, cover, fuse)
     drop = np.empty(0, dtype=np.uint8)
     # The threshold holds for tiles at the default resolution; below it a tile spans more
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
@@ -579,6 +613,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["early_z_cut"] += int(counters[:, 3].sum())
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
+    stats["fused"] += int(counters[:, 10].sum())
     # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
     for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
                              ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):

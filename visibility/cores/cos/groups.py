@@ -42,6 +42,8 @@ class Screen(NamedTuple):
     pw : pixel width (image-plane units); plane_tol : the plane tests' tolerance, metres.
     relaxed : whether an occludee may take the relaxed cover test (``resolve._covers_q``)
         where the strict one finds no group hiding it.
+    fuse : whether separate groups may hide an occludee together where none does alone
+        (``resolve._fused_hide``).
     """
 
     origin: np.ndarray
@@ -55,6 +57,7 @@ class Screen(NamedTuple):
     pw: float
     plane_tol: float
     relaxed: bool
+    fuse: bool
 
 
 class TileLists(NamedTuple):

@@ -582,7 +582,7 @@ STOP_EVERY = 256
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
 #: and in the whole tile.
-N_COUNTERS = 10
+N_COUNTERS = 11
 TIME_STRIDE = 8
 GRID_WIDE = 16
 
@@ -714,6 +714,119 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
                 return False
             k = pool[3 + 2 * k]
     return True
+
+
+#: Separate occluders (``_fused_hide``): at most this many groups, each in front of Q over K,
+#: are tried together, and K's box is split into quarters down to this depth.
+FUSE_GROUPS = 64
+FUSE_DEPTH = 6
+#: Cells of K's box one test may visit, at most (then Q is not found hidden).
+FUSE_CELLS = 256
+#: Cells of ``_fused_hide``'s depth-first walk waiting at once (3 per level, and the root).
+FUSE_STACK = 3 * FUSE_DEPTH + 2
+#: Room for K clipped to a cell: each of the cell's four sides adds at most one corner.
+FUSE_POLY = MAX_POLY + 4
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head, nxt, obb,
+                owr, ouse, oplane, gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol, wref, h,
+                kx, ky, nk, kb, qcam, nq, wmin, qctx, rpoly, rpb, rv, ws, wpt, work,
+                fuse):  # pragma: no cover - numba
+    """Whether several separate groups hide Q together where none does alone.
+
+    The paper fuses only triangles that share edges, so two walls one behind the other, or
+    two buildings side by side, each covering part of K, hide nothing; from a cell metres
+    wide that is most occlusion. Here the groups whose triangles that can reach K's box all
+    lie in front of Q (``_hides``, the depth test each group passes alone) are taken
+    together, at most ``FUSE_GROUPS``; then K's box is split into quarters, depth first, down
+    to ``FUSE_DEPTH`` levels (``FUSE_CELLS`` cells in all), and each cell's part of K must be
+    covered by one of them
+    (``_covers_q``, strict: no silhouette capsule meets the part, a winding number of at
+    least one inside it). Every ray of the pixel that meets Q passes through some point of
+    K, which lies in a covered part, so for every delta that ray meets a group whose
+    triangles there lie in front of Q: Q is hidden. A part no group covers at the last level
+    ends the test (Q is not found hidden). ``fuse`` holds the scratch: candidate ids (int64
+    (FUSE_GROUPS,)), the cell stack (FUSE_STACK, 5), the clipped polygon and its axes (8,
+    FUSE_POLY) and its box (7,)."""
+    cand, stack, poly, pb = fuse
+    relax = qctx[QC_RELAX]
+    nc = 0
+    for c in range(n_live):
+        g = live[c]
+        if lpos[g] != c:
+            continue
+        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
+        if (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m or kb[3] < gbb[g, 2] - m
+                or kb[2] > gbb[g, 3] + m):
+            continue
+        if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead,
+                  pool, pdep, dom, wcam, tol, wref, h, kb, qcam, nq, wmin, ov, qctx, work):
+            cand[nc] = g
+            nc += 1
+            if nc == FUSE_GROUPS:
+                break
+    if nc < 2:
+        return False
+    qctx[QC_RELAX] = 0.0
+    px = poly[0]
+    py = poly[1]
+    tx = poly[2]
+    ty = poly[3]
+    top = 1
+    stack[0, 0] = kb[0]
+    stack[0, 1] = kb[1]
+    stack[0, 2] = kb[2]
+    stack[0, 3] = kb[3]
+    stack[0, 4] = 0.0
+    ok = True
+    cells = 0
+    while top > 0:
+        top -= 1
+        cells += 1
+        if cells > FUSE_CELLS:
+            ok = False
+            break
+        x0 = stack[top, 0]
+        x1 = stack[top, 1]
+        y0 = stack[top, 2]
+        y1 = stack[top, 3]
+        lev = stack[top, 4]
+        # K's part in the cell.
+        m = nk
+        for i in range(nk):
+            px[i] = kx[i]
+            py[i] = ky[i]
+        m = clip_halfplane(px, py, m, -1.0, 0.0, -x0, tx, ty)
+        m = clip_halfplane(tx, ty, m, 1.0, 0.0, x1, px, py)
+        m = clip_halfplane(px, py, m, 0.0, -1.0, -y0, tx, ty)
+        m = clip_halfplane(tx, ty, m, 0.0, 1.0, y1, px, py)
+        if m < 3:
+            continue  # no part of K of any area here
+        _k_box(px, py, m, pb)
+        covered = False
+        for c in range(nc):
+            if _covers_q(cand[c], gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, px, py, m,
+                         pb, poly[4], poly[5], poly[6], poly[7], qctx, rpoly, 0, rpb, rv, ws,
+                         wpt, work):
+                covered = True
+                break
+        if covered:
+            continue
+        if lev >= FUSE_DEPTH:
+            ok = False
+            break
+        xm = 0.5 * (x0 + x1)
+        ym = 0.5 * (y0 + y1)
+        for q in range(4):
+            stack[top, 0] = x0 if q & 1 == 0 else xm
+            stack[top, 1] = xm if q & 1 == 0 else x1
+            stack[top, 2] = y0 if q & 2 == 0 else ym
+            stack[top, 3] = ym if q & 2 == 0 else y1
+            stack[top, 4] = lev + 1.0
+            top += 1
+    qctx[QC_RELAX] = relax
+    return ok
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
@@ -915,7 +1028,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     """Share ``share`` of the ``k_sh`` shares of ``resolve_tiles``'s tiles (its arguments)."""
     pts, start, npts, kind, vid, solid, gap = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
-    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed = screen
+    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on = screen
     known, vis, hid, counters, stop = marks
     # Borrowed (``visibility.borrow``): the helpers called per entry and per pixel count no
     # references to them, which the threads would otherwise fight over (shared arrays) or
@@ -960,6 +1073,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
      live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
      hfirst, hlast, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
+    fuse = (np.empty(FUSE_GROUPS, dtype=np.int64), np.empty((FUSE_STACK, 5)),
+            np.empty((8, FUSE_POLY)), np.empty(7))
     pool[1] = 8 * lmax
     for it in range(it0, it1):
         tile = torder[it]
@@ -971,6 +1086,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         work[1] = 0
         tested = 0
         hidden = 0
+        fused = 0
         occl = 0
         cut = 0
         cyc_tile = cycles()
@@ -1159,6 +1275,15 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 if not by_cov:
                                     last_g = g
                                 break
+                        by_fuse = False
+                        if not occluded and fuse_on and n_live - n_dead >= 2:
+                            by_fuse = _fused_hide(
+                                live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow,
+                                head, nxt, obb, owr, ouse, oplane, gslot, sg, sfr, shead, pool,
+                                pdep, dom, wcam, plane_tol, wref, h, kx, ky, nk, kb, cam, n,
+                                wmin, qctx, rpoly, rpb, rv, ws, wpt, work, fuse)
+                            occluded = by_fuse
+                            fused += 1 if by_fuse else 0
                         if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
                             # nothing as an occluder, and keeping it would make long lists
@@ -1172,7 +1297,10 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             # Hidden (Alg. 1 ln 37): kept only to close the silhouettes of
                             # the surfaces it borders (the module docstring).
                             hidden += 1
-                            dorm = True
+                            # Hidden by separate groups together: it occludes as a visible
+                            # one would (any listed triangle may), since no single group
+                            # stands for it in later single-group tests.
+                            dorm = not by_fuse
                             if mark:
                                 hid[k] = 1
                         else:
@@ -1380,6 +1508,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 7] = cyc_insert
         counters[tile, 8] = cyc_cover
         counters[tile, 9] = cycles() - cyc_tile
+        counters[tile, 10] = fused
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
     keep_alive(own)

@@ -261,6 +261,34 @@ def corner_slit(origin=ROUND, width: float = 0.005) -> Case:
                 must_see=seen[:1])
 
 
+def staggered_walls(origin=ROUND, width: float = 0.02) -> Case:
+    """2.5D: two separate walls one behind the other in front of a 2 m cell, a near one
+    (x = 4) ending at z = 1 and a far one (x = 6) starting at z = ``width``: together they
+    hide everything behind them but a channel between the near wall's end and the far one's
+    start, which only the cell's corner (x = 2, z = 2) looks along. Neither wall alone hides
+    the row of targets behind; a core that fuses separate occluders must keep the targets
+    in the channel's beam."""
+    s = Soup()
+    s.quad((-40, 0, -40), (-40, 0, 40), (40, 0, 40), (40, 0, -40))
+    s.quad((4.0, 0.0, -30.0), (4.0, 4.0, -30.0), (4.0, 4.0, 1.0), (4.0, 0.0, 1.0))
+    s.quad((6.0, 0.0, width), (6.0, 4.0, width), (6.0, 4.0, 30.0), (6.0, 0.0, 30.0))
+    # The channel's line runs through (2, 2), (4, 1) and (6, 0), reaching x = 10 at z = -2
+    # (a little above with the width).
+    aim = [[(5.0, 0.5, 0.45), (5.0, 3.5, 0.45), (5.0, 3.5, 0.55)],
+           [(5.0, 0.5, 0.45), (5.0, 3.5, 0.55), (5.0, 0.5, 0.55)]]
+    targets = []
+    for k in range(40):
+        z0 = -20.0 + k * 0.5
+        targets += s.quad((10.0, 0.0, z0), (10.0, 4.0, z0), (10.0, 4.0, z0 + 0.5),
+                          (10.0, 0.0, z0 + 0.5))
+    scene = s.scene("staggered_walls", origin)
+    box = _at(origin, [[0.0, 1.5, 0.0], [2.0, 1.9, 2.0]])
+    seen = [t for t in targets if -2.0 <= s.tris[t][:, 2].min() < -1.9]
+    return Case("staggered_walls", scene, box, ("cos", "dual_ray"), aim=_place(aim, origin),
+                n_aim=256, eye_box=_at(origin, [[1.9, 1.5, 1.9], [2.0, 1.9, 2.0]]),
+                targets=seen, targets_seen=0.5)
+
+
 # ------------------------------------------------------------------------ leaning walls
 def leaning_slits(origin=ROUND, lean_ny: float = LEAN_NY) -> Case:
     """2.5D: a row of buildings in front of a 1 m cell whose end walls lean outwards by the
@@ -426,7 +454,8 @@ def all_cases() -> list[Case]:
     """Every case, in a fixed order."""
     return [tolerance_faces(ROUND), tolerance_faces(GEO), tolerance_faces(OFFSET, 1.0),
             tolerance_street(ROUND),
-            tolerance_street(GEO), near_walls(), near_fence(), corner_slit(), leaning_slits(),
+            tolerance_street(GEO), near_walls(), near_fence(), corner_slit(), staggered_walls(),
+            leaning_slits(),
             leaning_facade(), leaning_gap(), leaning_corner_slit(), leaning_city()]
 
 

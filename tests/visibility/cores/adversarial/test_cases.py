@@ -118,6 +118,22 @@ def test_cos_relaxed_cover_misses_nothing(name, coarse_items):
         f"triangles in {name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("cover", ["strict", "relaxed"])
+def test_cos_fused_groups_miss_nothing(name, cover):
+    # Separate occluder groups hiding together (``fusion="groups"``), on every case whatever
+    # its cell's size (``auto`` fuses only from 1 m): each part of an occludee's offset region
+    # covered by some group in front of it.
+    case = CASES[name]
+    core = get_core("cos")
+    pvs = core.compute(case.scene, Viewcell(case.box),
+                       core.make_params(fusion="groups", cover=cover))
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos fusing separate groups ({cover} cover) misses {len(missed)} triangles in "
+        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
+
+
 @pytest.mark.parametrize("name", list(VARIANTS))
 def test_no_misses_on_random_variants(name):
     # Both cores where they take the scene (dual_ray refuses what is not 2.5D).

@@ -267,6 +267,69 @@ def test_the_relaxed_cover_hides_a_floor_touching_the_walls_bottom_edge():
     assert set(got.tolist()) <= relaxed
 
 
+#: A cell 1 m wide, where ``fusion="auto"`` fuses separate groups.
+WIDE = np.array([[-0.5, 1.6, -0.5], [0.5, 1.8, 0.5]])
+
+
+def _staggered(far_from: float):
+    """A near wall (z = -3) left of x = 0.25 and a separate far wall (z = -6) right of
+    ``far_from``, then a small target (z = -12, |x| <= 0.1) behind the line between them."""
+    near = _wall_z(-3.0, -20.0, 0.25, -5.0, 15.0)
+    far = _wall_z(-6.0, far_from, 20.0, -5.0, 15.0)
+    q = [[(-0.1, 1.6, -12.0), (0.1, 1.6, -12.0), (0.0, 1.8, -12.0)]]
+    return near + far + q
+
+
+def test_separate_walls_hide_together_what_neither_hides_alone():
+    # A line from the cell (|x| <= 0.5 at z = 0) to the target passing z = -6 left of x = 0
+    # (missing the far wall) passes z = -3 at x = 1.5 x6 - 0.5 x12 < 0.05: the near wall. So
+    # every ray meets one of them, while each alone lets some through (from x = 0.5 past the
+    # near wall's end at 0.4; from x = -0.5 past the far wall's at -0.3). No shared edge joins
+    # them: the paper's fusion keeps the target, ``groups`` hides it.
+    tris = _staggered(0.0)
+    q = len(tris) - 1
+    edges = set(cos_pvs(_scene(tris), WIDE, 256, fusion="edges")[0].tolist())
+    groups, st = cos_pvs(_scene(tris), WIDE, 256, fusion="groups")
+    groups = set(groups.tolist())
+    assert q in edges and q not in groups
+    assert st["fused"] > 0 and st["fusion"] == "groups"
+    assert set(range(q)) <= groups <= edges
+    # ``auto`` fuses on this 1 m cell and not on a 0.2 m one.
+    assert set(cos_pvs(_scene(tris), WIDE, 256)[0].tolist()) == groups
+    assert cos_pvs(_scene(tris), CELL, 64)[1]["fusion"] == "edges"
+    # Independent rays agree that nothing reaches the target, and that each wall alone
+    # lets rays through to it.
+    from visibility.ray_reference import ray_reference
+
+    def seen(tt):
+        got = ray_reference(_scene(tt), WIDE, n_eyes=64, n_dirs=64, aim=np.array(q_tri),
+                            n_aim=256).ids
+        return len(tt) - 1 in set(got.tolist())
+
+    q_tri = tris[q:]
+    assert not seen(tris)
+    assert seen(tris[:2] + q_tri) and seen(tris[2:4] + q_tri)
+
+
+def test_separate_walls_with_a_gap_between_them_hide_nothing_behind_it():
+    # The far wall starts at x = 0.6: the line from (0.5, 0) to the target's (0.1, -12)
+    # passes the near wall's end (x = 0.4 at z = -3) and then the far wall's (0.3 at -6).
+    tris = _staggered(0.6)
+    q = len(tris) - 1
+    from visibility.ray_reference import ray_reference
+
+    got = ray_reference(_scene(tris), WIDE, n_eyes=64, n_dirs=64, aim=np.array(tris[q:]),
+                        n_aim=256).ids
+    assert q in set(got.tolist())
+    for res in (64, 256):
+        assert q in set(cos_pvs(_scene(tris), WIDE, res, fusion="groups")[0].tolist())
+
+
+def test_fusion_must_be_one_of_the_named_ways():
+    with pytest.raises(ValueError, match="fusion"):
+        cos_pvs(_scene(_quad(-1, 1, -1, 1, -3.0)), CELL, 16, fusion="all")
+
+
 def test_cover_must_be_one_of_the_named_tests():
     with pytest.raises(ValueError, match="cover"):
         cos_pvs(_scene(_quad(-1, 1, -1, 1, -3.0)), CELL, 16, cover="loose")
