@@ -737,20 +737,22 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
 
     The paper fuses only triangles that share edges, so two walls one behind the other, or
     two buildings side by side, each covering part of K, hide nothing; from a cell metres
-    wide that is most occlusion. Here the groups whose triangles that can reach K's box all
-    lie in front of Q (``_hides``, the depth test each group passes alone) are taken
-    together, at most ``FUSE_GROUPS``; then K's box is split into quarters, depth first, down
-    to ``FUSE_DEPTH`` levels (``FUSE_CELLS`` cells in all), and each cell's part of K must be
-    covered by one of them
-    (``_covers_q``, strict: no silhouette capsule meets the part, a winding number of at
-    least one inside it). Every ray of the pixel that meets Q passes through some point of
-    K, which lies in a covered part, so for every delta that ray meets a group whose
-    triangles there lie in front of Q: Q is hidden. A part no group covers at the last level
-    ends the test (Q is not found hidden). ``fuse`` holds the scratch: candidate ids (int64
-    (FUSE_GROUPS,)), the cell stack (FUSE_STACK, 5), the clipped polygon and its axes (8,
-    FUSE_POLY) and its box (7,)."""
+    wide that is most occlusion. Here the live groups whose boxes come near K's, at most
+    ``FUSE_GROUPS``, are taken together: K's box is split into quarters, depth first, down to
+    ``FUSE_DEPTH`` levels (``FUSE_CELLS`` cells in all), and each cell's part of K must be
+    covered by one of them (``_covers_q``, strict: no silhouette capsule meets the part, a
+    winding number of at least one inside it) that also passes the depth test a group
+    passes alone (``_hides``: its triangles that can reach K's box all lie in front of Q; run
+    once per group, when it first covers a part). Every ray of the pixel that meets Q passes
+    through some point of K, which lies in a covered part, so for every delta that ray meets
+    a group whose triangles there lie in front of Q: Q is hidden. A part no group covers at
+    the last level ends the test (Q is not found hidden). ``fuse`` holds the scratch:
+    candidate ids and depth verdicts (int64 (2, FUSE_GROUPS)), the cell stack (FUSE_STACK,
+    5), the clipped polygon and its axes (8, FUSE_POLY) and its box (7,)."""
     cand, stack, poly, pb = fuse
     relax = qctx[QC_RELAX]
+    # Groups near K, each with its depth test's verdict (0 not yet run, 1 in front of Q,
+    # -1 not): run only for a group that covers some part, since most near K never do.
     nc = 0
     for c in range(n_live):
         g = live[c]
@@ -760,12 +762,11 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
         if (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m or kb[3] < gbb[g, 2] - m
                 or kb[2] > gbb[g, 3] + m):
             continue
-        if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead,
-                  pool, pdep, dom, wcam, tol, wref, h, kb, qcam, nq, wmin, ov, qctx, work):
-            cand[nc] = g
-            nc += 1
-            if nc == FUSE_GROUPS:
-                break
+        cand[0, nc] = g
+        cand[1, nc] = 0
+        nc += 1
+        if nc == FUSE_GROUPS:
+            break
     if nc < 2:
         return False
     qctx[QC_RELAX] = 0.0
@@ -806,9 +807,21 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
         _k_box(px, py, m, pb)
         covered = False
         for c in range(nc):
-            if _covers_q(cand[c], gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, px, py, m,
-                         pb, poly[4], poly[5], poly[6], poly[7], qctx, rpoly, 0, rpb, rv, ws,
-                         wpt, work):
+            if cand[1, c] < 0:
+                continue
+            g = cand[0, c]
+            if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, px, py, m,
+                             pb, poly[4], poly[5], poly[6], poly[7], qctx, rpoly, 0, rpb, rv,
+                             ws, wpt, work):
+                continue
+            if cand[1, c] == 0:
+                qctx[QC_RELAX] = relax
+                cand[1, c] = 1 if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
+                                         gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol,
+                                         wref, h, kb, qcam, nq, wmin, ov, qctx,
+                                         work) else -1
+                qctx[QC_RELAX] = 0.0
+            if cand[1, c] > 0:
                 covered = True
                 break
         if covered:
@@ -1073,7 +1086,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
      live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
      hfirst, hlast, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
-    fuse = (np.empty(FUSE_GROUPS, dtype=np.int64), np.empty((FUSE_STACK, 5)),
+    fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((8, FUSE_POLY)), np.empty(7))
     pool[1] = 8 * lmax
     for it in range(it0, it1):
