@@ -110,7 +110,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "pixels": st["pixels"], "tested": st["tested"], "occluded": st["occluded"],
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
-           "plane_tests": st.get("plane_tests", 0),
+           "plane_tests": st.get("plane_tests", 0), "fusion": st.get("fusion", ""),
+           "fused": st.get("fused", 0),
            "cycles": {k: st.get(f"cycles_{k}", 0)
                       for k in ("resolve", "test", "insert", "coverall")},
            "occluder_triangles": st.get("occluder_triangles", 0),
@@ -135,7 +136,7 @@ def speed(quick: bool, points: int, kitchen: bool = True,
           kitchen_rows: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The speed cells; with the kitchen, ``kitchen_rows`` (when given) gets the kitchen
     part (``kitchen_part``)."""
-    from visibility.cores.cos.core import DEFAULT_RESOLUTION
+    from visibility.cores.cos.core import DEFAULT_RESOLUTION, fusion_for
 
     n = 20_000 if quick else 100_000
     cells = []
@@ -166,6 +167,10 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             # The coarse pass as a step: the same cell without it (one run).
             rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
                              repeats=1 if sc is kitchen else 2, coarse_items=0))
+        # Separate groups hiding together as a step: the fusion ``auto`` did not pick.
+        other = "edges" if fusion_for(box) == "groups" else "groups"
+        rows.append(_row(f"{label}, fusion {other}", sc, box, DEFAULT_RESOLUTION, ref,
+                         repeats=1 if sc is kitchen else 2, fusion=other))
     return rows
 
 
@@ -304,9 +309,11 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 "triangle or a pair of them holding the pixel's offsets"
                 + (f", {r['silhouette_edges']:,} silhouette edges walked and "
                    f"{r['plane_tests']:,} occluder triangles depth-tested to resolve them"
-                   if r.get("silhouette_edges") else "") + _cycle_split(r) + "; "
-                f"FN {r['fn_count']}, overestimation {100 * r['overestimation']:.0f} % "
-                "(paper: 20-90 %)." + _costliest(r))
+                   if r.get("silhouette_edges") else "") + _cycle_split(r)
+                + (f"; {r['fused']:,} entries hidden by separate groups together"
+                   if r.get("fusion") == "groups" else "; the paper's fusion (edges only)")
+                + f"; FN {r['fn_count']}, overestimation "
+                f"{100 * r['overestimation']:.0f} % (paper: 20-90 %)." + _costliest(r))
         out.append("")
     if fp_rows:
         out.append("Overestimation against the dense reference, per scene (paper: 20-90 %):")
@@ -408,9 +415,9 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
            "footprints | culled by tree | unseen back faces | coarse tiles | "
            "left out by coarse | entries | tile items | "
            "longest | mean list | cut while filling | early z cut | occluders | "
-           "edges walked | plane tests | PVS | ref | FN | FP | overest. | "
-           "x paper (220 / 35 ms) |",
-           "|" + "---|" * 29]
+           "edges walked | plane tests | fusion | hidden by separate groups | PVS | ref | "
+           "FN | FP | overest. | x paper (220 / 35 ms) |",
+           "|" + "---|" * 31]
     for r in speed_rows:
         out.append(f"| {r['cell']} | {r['resolution']} | {r['seconds']:.2f} | "
                    f"{1e6 * r['seconds'] / max(1, r['pixels']):.1f} | "
@@ -424,7 +431,8 @@ def _md(speed_rows, fp_rows, points, elapsed, argv, load=None, kitchen=None) -> 
                    f"{r['mean_list']:.1f} | {r.get('fill_cut', 0):,} | "
                    f"{r.get('early_z_cut', 0):,} | "
                    f"{r.get('occluder_triangles', 0):,} | {r.get('silhouette_edges', 0):,} | "
-                   f"{r.get('plane_tests', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
+                   f"{r.get('plane_tests', 0):,} | {r.get('fusion', '')} | "
+                   f"{r.get('fused', 0):,} | {r['pvs']:,} | {r['reference']:,} | "
                    f"{r['fn_count']} | "
                    f"{r['fp']:.2f} | {100 * r['overestimation']:.0f} % | "
                    f"{r['gpu_ratio'][0]:.1f}-{r['gpu_ratio'][1]:.1f} |")
