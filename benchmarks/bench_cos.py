@@ -136,7 +136,7 @@ def speed(quick: bool, points: int, kitchen: bool = True,
           kitchen_rows: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The speed cells; with the kitchen, ``kitchen_rows`` (when given) gets the kitchen
     part (``kitchen_part``)."""
-    from visibility.cores.cos.core import DEFAULT_RESOLUTION, fusion_for
+    from visibility.cores.cos.core import DEFAULT_RESOLUTION
 
     n = 20_000 if quick else 100_000
     cells = []
@@ -167,10 +167,9 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             # The coarse pass as a step: the same cell without it (one run).
             rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
                              repeats=1 if sc is kitchen else 2, coarse_items=0))
-        # Separate groups hiding together as a step: the fusion ``auto`` did not pick.
-        other = "edges" if fusion_for(box) == "groups" else "groups"
-        rows.append(_row(f"{label}, fusion {other}", sc, box, DEFAULT_RESOLUTION, ref,
-                         repeats=1 if sc is kitchen else 2, fusion=other))
+        # Separate groups hiding together (``fusion="groups"``) as a step.
+        rows.append(_row(f"{label}, fusion groups", sc, box, DEFAULT_RESOLUTION, ref,
+                         repeats=1 if sc is kitchen else 2, fusion="groups"))
     return rows
 
 

@@ -54,9 +54,7 @@ COARSE_MIN_ITEMS = 8192
 #: The cover tests (``CosParams.cover``).
 COVERS = ("strict", "relaxed")
 #: How occluders join to hide (``CosParams.fusion``).
-FUSIONS = ("auto", "edges", "groups")
-#: ``fusion="auto"`` fuses separate groups on cells at least this wide (x or z, metres).
-FUSE_FROM = 1.0
+FUSIONS = ("edges", "groups")
 
 
 @dataclass
@@ -85,10 +83,8 @@ class CosParams(CoreParams):
     fusion : how occluders join to hide an occludee. ``edges`` (the paper's): only triangles
         sharing edges, so one group must cover its whole offset region. ``groups``: where no
         group does alone, separate groups each in front of it may cover the region together
-        (``resolve._fused_hide``: two walls one behind the other, buildings side by side).
-        ``auto``: ``groups`` on cells ``FUSE_FROM`` metres wide or more, where that is most
-        occlusion, ``edges`` on smaller ones, where it costs dense clutter more than it finds
-        (``docs/cores/cos.md``).
+        (``resolve._fused_hide``: two walls one behind the other, buildings side by side);
+        still conservative, tighter at large cells, dearer (``docs/cores/cos.md``).
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -106,10 +102,10 @@ class CosParams(CoreParams):
     cover: str = param("strict", choices=COVERS,
                        help="the occluder cover test: strict (the paper's) or relaxed "
                             "(tighter at large cells, for more time)")
-    fusion: str = param("auto", choices=FUSIONS,
+    fusion: str = param("edges", choices=FUSIONS,
                         help="occluders that hide together: edges (the paper's: triangles "
-                             "sharing edges), groups (separate surfaces too), auto (groups "
-                             "on cells of 1 m and more)")
+                             "sharing edges) or groups (separate surfaces too: tighter at "
+                             "large cells, for more time)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane: a
@@ -225,17 +221,14 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                  list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
-                 cover: str = "strict", fusion: str = "auto"
+                 cover: str = "strict", fusion: str = "edges"
                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
     tested no more, still an occluder), which changes the time, not the answer. Stats: each
     count and time summed over the sub-cells (``longest_list``: the longest), ``subcells``
-    n, ``union_sizes`` the answer's size after each sub-cell. ``fusion="auto"`` is decided
-    on the whole cell's width, so the sub-cells fuse as the cell would."""
-    if fusion == "auto":
-        fusion = fusion_for(box)
+    n, ``union_sizes`` the answer's size after each sub-cell."""
     m = scene.n_triangles
     known = np.zeros(m + scene.n_spheres, dtype=bool)
     total: dict[str, Any] = {}
@@ -267,7 +260,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
             coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
-            cover: str = "strict", fusion: str = "auto") -> tuple[np.ndarray, dict[str, Any]]:
+            cover: str = "strict", fusion: str = "edges") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -282,7 +275,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     known : optional (n_triangles + n_spheres,) bool, ids already in the answer (another
         cell's PVS, ``cos_subcells``): reported, tested no more, still occluders.
     cover : ``strict`` or ``relaxed``, the occluder cover test (``CosParams.cover``).
-    fusion : ``auto``, ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
+    fusion : ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
 
     Returns
     -------
@@ -322,7 +315,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
     if fusion not in FUSIONS:
         raise ValueError(f"fusion must be one of {FUSIONS}, not {fusion!r}")
-    fuse = (fusion_for(box) if fusion == "auto" else fusion) == "groups"
+    fuse = fusion == "groups"
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
     centre = 0.5 * (lo + hi)
@@ -473,12 +466,6 @@ def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False) -> Scr
                   float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol),
                   cover == "relaxed", bool(fuse))
 
-
-def fusion_for(box: np.ndarray) -> str:
-    """``fusion="auto"``'s choice for a cell ``box`` (2, 3) [min, max] metres: ``groups`` when
-    its x or z side is ``FUSE_FROM`` metres or more, else ``edges``."""
-    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
-    return "groups" if float(max(b[1, 0] - b[0, 0], b[1, 2] - b[0, 2])) >= FUSE_FROM else "edges"
 
 
 def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,

@@ -769,6 +769,27 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
             break
     if nc < 2:
         return False
+    # A point of K that lies inside no group (at delta 0) lies in no covered part, so Q is
+    # not hidden: K's corners against the groups' boxes, then its centroid against their
+    # silhouettes, before any split.
+    for i in range(nk):
+        inside = False
+        for c in range(nc):
+            g = cand[0, c]
+            if gbb[g, 0] <= kx[i] <= gbb[g, 1] and gbb[g, 2] <= ky[i] <= gbb[g, 3]:
+                inside = True
+                break
+        if not inside:
+            return False
+    inside = False
+    for c in range(nc):
+        g = cand[0, c]
+        if (gbb[g, 0] <= kb[4] <= gbb[g, 1] and gbb[g, 2] <= kb[5] <= gbb[g, 3]
+                and _wind_in(g, gehead, anext, ov, ow, wref, 0.0, 0.0, kb[4], kb[5])):
+            inside = True
+            break
+    if not inside:
+        return False
     qctx[QC_RELAX] = 0.0
     px = poly[0]
     py = poly[1]

@@ -121,9 +121,8 @@ def test_cos_relaxed_cover_misses_nothing(name, coarse_items):
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
 @pytest.mark.parametrize("cover", ["strict", "relaxed"])
 def test_cos_fused_groups_miss_nothing(name, cover):
-    # Separate occluder groups hiding together (``fusion="groups"``), on every case whatever
-    # its cell's size (``auto`` fuses only from 1 m): each part of an occludee's offset region
-    # covered by some group in front of it.
+    # Separate occluder groups hiding together (``fusion="groups"``) on every case: each part
+    # of an occludee's offset region covered by some group in front of it.
     case = CASES[name]
     core = get_core("cos")
     pvs = core.compute(case.scene, Viewcell(case.box),

@@ -150,17 +150,16 @@ def test_dual_ray_refuses_the_interiors_with_the_reason(name):
     assert "2.5D" in fit.why and len(fit.why) > len("needs a 2.5D scene")
 
 
-@pytest.mark.parametrize("name", [_on_one_worker(n) for n in REAL
-                                  if n not in BENCHMARK_ONLY["cos"]])
-def test_cos_fused_groups_no_confirmed_misses(name):
-    # Separate groups hiding together on the 0.3 m cell too (``auto`` fuses from 1 m, which
-    # ``test_no_confirmed_misses`` judges at its defaults).
+@pytest.mark.parametrize("name,size", [_on_one_worker(n, s) for n in REAL
+                                       if n not in BENCHMARK_ONLY["cos"] for s in SIZES])
+def test_cos_fused_groups_no_confirmed_misses(name, size):
+    # Separate groups hiding together (``fusion="groups"``).
     scene = real_scene(name)
-    _, box, ref = cells(name, 0.3)[0]
+    _, box, ref = cells(name, size)[0]
     core = get_core("cos")
     pvs = core.compute(scene, Viewcell(box), core.make_params(fusion="groups"))
     assert pvs.stats["fusion"] == "groups"
     sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
     assert sure.tolist() == [], (
         f"cos fusing separate groups misses {len(sure)} of {len(ref.ids)} triangles the rays "
-        f"see from {name}'s 0.3 m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
+        f"see from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")

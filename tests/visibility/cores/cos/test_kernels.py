@@ -267,7 +267,7 @@ def test_the_relaxed_cover_hides_a_floor_touching_the_walls_bottom_edge():
     assert set(got.tolist()) <= relaxed
 
 
-#: A cell 1 m wide, where ``fusion="auto"`` fuses separate groups.
+#: A cell 1 m wide.
 WIDE = np.array([[-0.5, 1.6, -0.5], [0.5, 1.8, 0.5]])
 
 
@@ -294,9 +294,8 @@ def test_separate_walls_hide_together_what_neither_hides_alone():
     assert q in edges and q not in groups
     assert st["fused"] > 0 and st["fusion"] == "groups"
     assert set(range(q)) <= groups <= edges
-    # ``auto`` fuses on this 1 m cell and not on a 0.2 m one.
-    assert set(cos_pvs(_scene(tris), WIDE, 256)[0].tolist()) == groups
-    assert cos_pvs(_scene(tris), CELL, 64)[1]["fusion"] == "edges"
+    # The paper's fusion is the default.
+    assert cos_pvs(_scene(tris), WIDE, 64)[1]["fusion"] == "edges"
     # Independent rays agree that nothing reaches the target, and that each wall alone
     # lets rays through to it.
     from visibility.ray_reference import ray_reference

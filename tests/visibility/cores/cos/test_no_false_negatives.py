@@ -60,6 +60,22 @@ def test_no_false_negatives_on_generated_scenes(name, size, index, resolution):
     assert len(pvs) >= len(ref)
 
 
+@pytest.mark.parametrize("name,size,index", [
+    ("rooms", 1.0, 1), ("rooms", 4.0, 0), ("village", 4.0, 0), ("city", 1.0, 1),
+    ("city", 4.0, 3),
+])
+def test_no_false_negatives_with_separate_groups_fused(name, size, index):
+    # ``fusion="groups"``: separate occluder groups hiding together, at the large cells where
+    # it finds most.
+    scene = _scene(name, 10_000)
+    box = cell_around(scene, size, index)
+    core = get_core("cos")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=64, fusion="groups"))
+    missed = missed_triangles(scene, _frames(scene, box, 64), pvs.triangle_ids)
+    assert len(missed) == 0, f"{name} {size} m: missed {missed[:20].tolist()}"
+    assert pvs.stats["fused"] > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("size", [0.3, 1.0])
 @pytest.mark.parametrize("name", ["rooms", "village", "city"])
