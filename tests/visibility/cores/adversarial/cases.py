@@ -93,6 +93,16 @@ class Soup:
                 ids += self.tri(*a)
         return ids
 
+    def target_row(self, x: float, z0: float, n: int, height: float) -> list[int]:
+        """``n`` upright quads 0.5 m wide side by side along z from ``z0`` at ``x``, ``height``
+        tall: targets behind slits and gaps. Returns their triangle ids."""
+        ids = []
+        for k in range(n):
+            z = z0 + k * 0.5
+            ids += self.quad((x, 0.0, z), (x, height, z), (x, height, z + 0.5),
+                             (x, 0.0, z + 0.5))
+        return ids
+
     def box(self, lo, hi) -> list[int]:
         """An axis-aligned closed box, wound outwards."""
         (x0, y0, z0), (x1, y1, z1) = lo, hi
@@ -247,11 +257,7 @@ def corner_slit(origin=ROUND, width: float = 0.005) -> Case:
         if xa == 3.0:
             aim.append([(xa, 0.5, p), (xa, 3.5, p), (xa, 3.5, q)])
             aim.append([(xa, 0.5, p), (xa, 3.5, q), (xa, 0.5, q)])
-    targets = []
-    for k in range(40):
-        z0 = -20.0 + k * 0.5
-        targets += s.quad((10.0, 0.0, z0), (10.0, 4.0, z0), (10.0, 4.0, z0 + 0.5),
-                          (10.0, 0.0, z0 + 0.5))
+    targets = s.target_row(10.0, -20.0, 40, 4.0)
     scene = s.scene("corner_slit", origin)
     box = _at(origin, [[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]])
     # The beam through both slits reaches x = 10 at z = 1.92 - 10 = -8.08.
@@ -276,11 +282,7 @@ def staggered_walls(origin=ROUND, width: float = 0.02) -> Case:
     # (a little above with the width).
     aim = [[(5.0, 0.5, 0.45), (5.0, 3.5, 0.45), (5.0, 3.5, 0.55)],
            [(5.0, 0.5, 0.45), (5.0, 3.5, 0.55), (5.0, 0.5, 0.55)]]
-    targets = []
-    for k in range(40):
-        z0 = -20.0 + k * 0.5
-        targets += s.quad((10.0, 0.0, z0), (10.0, 4.0, z0), (10.0, 4.0, z0 + 0.5),
-                          (10.0, 0.0, z0 + 0.5))
+    targets = s.target_row(10.0, -20.0, 40, 4.0)
     scene = s.scene("staggered_walls", origin)
     box = _at(origin, [[0.0, 1.5, 0.0], [2.0, 1.9, 2.0]])
     seen = [t for t in targets if -2.0 <= s.tris[t][:, 2].min() < -1.9]
@@ -311,11 +313,7 @@ def leaning_slits(origin=ROUND, lean_ny: float = LEAN_NY) -> Case:
             aim.append([(3.0, 0.2, z1), (3.0, 2.5, z1), (3.0, 2.5, z1 + w)])
             aim.append([(3.0, 0.2, z1), (3.0, 2.5, z1 + w), (3.0, 0.2, z1 + w)])
         z = z1 + w
-    targets = []
-    for k in range(30):
-        z0 = -7.5 + k * 0.5
-        targets += s.quad((12.0, 0.0, z0), (12.0, 3.0, z0), (12.0, 3.0, z0 + 0.5),
-                          (12.0, 0.0, z0 + 0.5))
+    s.target_row(12.0, -7.5, 30, 3.0)  # targets behind the slits
     scene = s.scene("leaning_slits", origin)
     box = _at(origin, [[0.0, 1.5, -1.5], [1.0, 1.9, 1.5]])
     return Case("leaning_slits", scene, box, ("cos", "dual_ray"), aim=_place(aim, origin),
@@ -397,11 +395,7 @@ def leaning_corner_slit(origin=ROUND, lean_ny: float = LEAN_NY, width: float = 0
             b0 = (xa + lo * tx, lo, q + lo * tz)
             aim.append([a0, a1, b1])
             aim.append([a0, b1, b0])
-    targets = []
-    for k in range(40):
-        z0 = -20.0 + k * 0.5
-        targets += s.quad((10.0, 0.0, z0), (10.0, 4.0, z0), (10.0, 4.0, z0 + 0.5),
-                          (10.0, 0.0, z0 + 0.5))
+    targets = s.target_row(10.0, -20.0, 40, 4.0)
     scene = s.scene("leaning_corner_slit", origin)
     box = _at(origin, [[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]])
     # The beam through both slits reaches x = 10 near z = 1.92 - 10 = -8.08 at y0.

@@ -128,18 +128,22 @@ def test_cos_sub_cells_no_confirmed_misses(name):
         f"from {name}'s 1 m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
+#: ``cos``'s options that change how occludees are proven hidden, each judged on every cell.
+OPTIONS = {"relaxed cover": {"cover": "relaxed"}, "separate groups": {"fusion": "groups"}}
+
+
+@pytest.mark.parametrize("option", list(OPTIONS))
 @pytest.mark.parametrize("name,size", [_on_one_worker(n, s) for n in REAL
                                        if n not in BENCHMARK_ONLY["cos"] for s in SIZES])
-def test_cos_relaxed_cover_no_confirmed_misses(name, size):
+def test_cos_options_no_confirmed_misses(name, size, option):
     scene = real_scene(name)
     _, box, ref = cells(name, size)[0]
     core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(cover="relaxed"))
+    pvs = core.compute(scene, Viewcell(box), core.make_params(**OPTIONS[option]))
     sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
     assert sure.tolist() == [], (
-        f"cos with the relaxed cover test misses {len(sure)} of {len(ref.ids)} triangles the "
-        f"rays see from {name}'s {size:g} m cell {box.tolist()}:\n"
-        f"{describe(scene, ref, sure, box)}")
+        f"cos with the {option} misses {len(sure)} of {len(ref.ids)} triangles the rays see "
+        f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
 @pytest.mark.parametrize("name", [n for n in REAL if n in ("kitchen", "lavaducts")])
@@ -149,17 +153,3 @@ def test_dual_ray_refuses_the_interiors_with_the_reason(name):
     assert not fit.ok
     assert "2.5D" in fit.why and len(fit.why) > len("needs a 2.5D scene")
 
-
-@pytest.mark.parametrize("name,size", [_on_one_worker(n, s) for n in REAL
-                                       if n not in BENCHMARK_ONLY["cos"] for s in SIZES])
-def test_cos_fused_groups_no_confirmed_misses(name, size):
-    # Separate groups hiding together (``fusion="groups"``).
-    scene = real_scene(name)
-    _, box, ref = cells(name, size)[0]
-    core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(fusion="groups"))
-    assert pvs.stats["fusion"] == "groups"
-    sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
-    assert sure.tolist() == [], (
-        f"cos fusing separate groups misses {len(sure)} of {len(ref.ids)} triangles the rays "
-        f"see from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
