@@ -309,7 +309,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         scene's hierarchy was there to cull with), ``tree_seconds`` (where the cell's
         primitives sit in it; a small scene's hierarchy is built then, once), ``projected``
         and ``culled`` (footprints projected over the 30 views, and those the hierarchy walk
-        spared: primitives no ray of the view meets).
+        spared: primitives no ray of the view meets), ``fusion`` (the one used) and
+        ``fused`` (entries hidden by separate groups together, ``fusion="groups"``).
     """
     if cover not in COVERS:
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")

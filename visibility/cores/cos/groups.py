@@ -88,7 +88,7 @@ class Marks(NamedTuple):
     known : (n,) uint8 primitives already known visible (tested no more, still occluders).
     vis : (n,) uint8 set to 1 for each primitive found visible.
     hid : (E,) uint8 set to 1 at each entry found hidden (the coarse pass), or (0,): not kept.
-    counters : (tiles, 6) int64 work per tile (``resolve.resolve_tiles``).
+    counters : (tiles, N_COUNTERS) int64 work per tile (``resolve.resolve_tiles``).
     stop : (1,) uint8 the computation's stop flag (``visibility.cancel.stop_flag``).
     """
 

@@ -581,7 +581,7 @@ STOP_EVERY = 256
 #: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
-#: and in the whole tile.
+#: and in the whole tile, then entries hidden by separate groups together.
 N_COUNTERS = 11
 TIME_STRIDE = 8
 GRID_WIDE = 16
@@ -1039,7 +1039,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     ``counters[tile]`` gets (entries tested, entries found occluded, occluder triangles,
     entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
     triangles put through the depth test: the last two are where dense clutter's time goes;
-    then CPU cycles: testing entries, inserting occluders, checking coverall, the whole tile:
+    then CPU cycles: testing entries, inserting occluders, checking coverall, the whole tile;
+    then entries hidden by separate groups together (``screen.fuse``, ``_fused_hide``):
     ``N_COUNTERS`` columns).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
