@@ -299,10 +299,11 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
             cx, cy = poly[i, t + 1, 0], poly[i, t + 1, 1]
             area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
             sg = 1.0 if area >= 0 else -1.0
-            for y in range(max(0, box[i, 2] - 1), min(res, box[i, 3] + 1)):
+            x0, x1, y0, y1 = _grown_box(box, i, res)
+            for y in range(y0, y1):
                 if hit:
                     break
-                for x in range(max(0, box[i, 0] - 1), min(res, box[i, 1] + 1)):
+                for x in range(x0, x1):
                     if not _touches(ax, ay, bx, by, cx, cy, sg, x + 0.5, y + 0.5):
                         continue
                     p = y * res + x
