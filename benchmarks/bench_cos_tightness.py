@@ -2,8 +2,10 @@
 
 For each real scene in ``../shared/scenes/`` one cell of the scene's own viewcell grid (the
 middle one of ``spread_evenly``; ``--size`` metres, 4 m by default, the eye-height range tall)
-is solved by ``cos`` at several resolutions, in 2 x 2 sub-cells (``subcells``) and with the
-relaxed cover test (``cover``, alone and in sub-cells) at the default resolution, beside
+is solved by ``cos`` at several resolutions, in 2 x 2 sub-cells (``subcells``), with the
+relaxed cover test (``cover``, alone and in sub-cells) and with separate groups hiding together
+(``fusion``, alone, with the relaxed cover and with both in 2 x 2 and 4 x 4 sub-cells: the
+tightest answers and what they cost) at the default resolution, beside
 ``sampling`` at its defaults and given the time ``cos`` takes at its default resolution. The
 reference is independent ray casting (``visibility.ray_frames``, Embree, the clients' near
 plane): every triangle some pixel shows in frames of eyes stratified in the cell's open space,
@@ -151,6 +153,8 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     cos_run(f"cos {base} px, separate groups, relaxed cover", base, "relaxed", 1, "groups")
     cos_run(f"cos {base} px, separate groups, relaxed cover, 2 x 2 sub-cells", base,
             "relaxed", 2, "groups")
+    cos_run(f"cos {base} px, separate groups, relaxed cover, 4 x 4 sub-cells", base,
+            "relaxed", 4, "groups")
     sampling = get_core("sampling")
     cell = Viewcell(box)
     pvs, seconds = _timed(sampling.compute, scene, cell, sampling.make_params())

@@ -16,7 +16,7 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     assert [(r["resolution"], r["cover"], r["subcells"], r["fusion"]) for r in cos] == [
         (16, "strict", 1, "edges"), (32, "strict", 1, "edges"), (32, "strict", 1, "groups"),
         (32, "strict", 2, "edges"), (32, "relaxed", 1, "edges"), (32, "relaxed", 2, "edges"),
-        (32, "relaxed", 1, "groups"), (32, "relaxed", 2, "groups")]
+        (32, "relaxed", 1, "groups"), (32, "relaxed", 2, "groups"), (32, "relaxed", 4, "groups")]
     # Separate groups hiding together can only hide more than the paper's fusion.
     assert cos[2]["pvs"] <= cos[1]["pvs"] and cos[1]["fused"] == 0
     assert [r["core"] for r in rows].count("sampling") == 2
