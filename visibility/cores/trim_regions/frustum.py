@@ -167,7 +167,9 @@ def layers(leaf_lo, leaf_hi, nbr_start, nbr_items, nbr_face, vstar):  # pragma: 
 def in_frustum(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
     """True when the box [lo, hi] (metres) may meet the frustum (v*, rot, tan, near): no side
     plane or the near plane has all eight corners outside."""
-    out = np.zeros(5, dtype=np.int64)
+    # Corners outside each plane: near, right, left, top, bottom (no array: this runs per
+    # octree leaf and per hull, for every view).
+    o0 = o1 = o2 = o3 = o4 = 0
     for c in range(8):
         p0 = (hi[0] if c & 1 else lo[0]) - vstar[0]
         p1 = (hi[1] if c & 2 else lo[1]) - vstar[1]
@@ -176,16 +178,13 @@ def in_frustum(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
         y = rot[1, 0] * p0 + rot[1, 1] * p1 + rot[1, 2] * p2
         z = -(rot[2, 0] * p0 + rot[2, 1] * p1 + rot[2, 2] * p2)
         if z < near:
-            out[0] += 1
+            o0 += 1
         if x > tan * z:
-            out[1] += 1
+            o1 += 1
         if x < -tan * z:
-            out[2] += 1
+            o2 += 1
         if y > tan * z:
-            out[3] += 1
+            o3 += 1
         if y < -tan * z:
-            out[4] += 1
-    for k in range(5):
-        if out[k] == 8:
-            return False
-    return True
+            o4 += 1
+    return not (o0 == 8 or o1 == 8 or o2 == 8 or o3 == 8 or o4 == 8)

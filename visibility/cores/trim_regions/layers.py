@@ -40,7 +40,9 @@ def leaf_frame(octree: Octree, centre: np.ndarray) -> LeafFrame:
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _cull(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
+def in_view(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
+    """(k,) bool: whether each box [lo, hi] (k, 3) metres may meet the frustum at v*
+    (``frustum.in_frustum``)."""
     n = lo.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     for k in prange(n):
@@ -53,7 +55,7 @@ def leaf_layers(octree: Octree, frame: LeafFrame, view: View) -> tuple[np.ndarra
     dependency queue at v*, drawn where the leaf meets the frustum at v*."""
     lay = layers(frame.lo, frame.hi, octree.nbr_start, octree.nbr_items, octree.nbr_face,
                  view.vstar)
-    return lay, _cull(frame.lo, frame.hi, view.vstar, view.rot, view.tan, view.near)
+    return lay, in_view(frame.lo, frame.hi, view.vstar, view.rot, view.tan, view.near)
 
 
 def by_layer(layer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

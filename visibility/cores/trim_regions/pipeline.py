@@ -16,6 +16,7 @@ import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.trim_regions.cache import SceneData
+from visibility.cores.trim_regions.crew import Crew
 from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box
 from visibility.cores.trim_regions.frustum import View, cover_box, sphere_views
 from visibility.cores.trim_regions.hulls import (
@@ -28,7 +29,13 @@ from visibility.cores.trim_regions.hulls import (
     touching_samples,
 )
 from visibility.cores.trim_regions.kbuffer import K, KBuffer
-from visibility.cores.trim_regions.layers import LeafFrame, by_layer, leaf_frame, leaf_layers
+from visibility.cores.trim_regions.layers import (
+    LeafFrame,
+    by_layer,
+    in_view,
+    leaf_frame,
+    leaf_layers,
+)
 from visibility.cores.trim_regions.quality import FRAME_NEAR
 from visibility.cores.trim_regions.raster import (
     Camera,
@@ -192,8 +199,6 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     item_rows = row_of[data.octree.tri_items]
     hull_corners = box_corners(hull_boxes[:, 0], hull_boxes[:, 1]).reshape(-1, 3) \
         if len(hull_ids) else np.zeros((0, 3))
-    hull_faces = (np.arange(len(hull_ids))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
-    hull_owner = np.repeat(np.arange(len(hull_ids), dtype=np.int64), len(BOX_FACES))
     # Grazing triangles are static: they count only where they lie in front of the first
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
@@ -219,12 +224,14 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # ``vis`` and ``seen_hull`` (writes of 1, in any order), so the answer does not depend on
     # the order they finish in. What lies near a sphere joins ``vis`` once no view runs.
     near_all = np.zeros(m, dtype=np.uint8)
-    hulls = (hull_corners, hull_faces, hull_owner, open_only, seen_hull) if len(hull_ids) \
-        else None
+    hulls = (hull_corners, open_only, seen_hull, np.ascontiguousarray(hull_boxes[:, 0]),
+             np.ascontiguousarray(hull_boxes[:, 1])) if len(hull_ids) else None
     shared = (scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier,
               small)
     pool = ThreadPoolExecutor(workers, initializer=numba.set_num_threads, initargs=(1,)) \
         if workers > 1 else None
+    crew = Crew(workers) if pool is not None else None
+    counts = np.diff(data.octree.tri_start)
     in_flight: deque[list[Future[dict[str, Any]]]] = deque()
     try:
         for v0 in centres:
@@ -249,13 +256,18 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                 for view in views:
                     _merge(stats, _view_task(view, near, ambiguous, shared, hulls, free))
                 continue
+            # The views with most to draw first: the last to finish then gets the threads
+            # of the workers that ran out of views (``crew``).
+            views = sorted(views, key=lambda v: -int(counts[in_view(
+                frame.lo, frame.hi, v.vstar, v.rot, v.tan, v.near)].sum()))
+            crew.queue(len(views))
             # Two spheres in flight at most: each holds its ``near`` marks (one byte per
             # triangle) until its views are done.
             while len(in_flight) >= 2:
                 for f in in_flight.popleft():
                     _merge(stats, f.result())
             in_flight.append([pool.submit(contextvars.copy_context().run, _view_task, view,
-                                          near, ambiguous, shared, hulls, free)
+                                          near, ambiguous, shared, hulls, free, crew)
                               for view in views])
         while in_flight:
             for f in in_flight.popleft():
@@ -301,21 +313,27 @@ def _view_workers() -> int:
 
 
 def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tuple,
-               hulls: tuple | None, free: queue.SimpleQueue) -> dict[str, Any]:
+               hulls: tuple | None, free: queue.SimpleQueue,
+               crew: Crew | None = None) -> dict[str, Any]:
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
-    stats it adds (``VIEW_STATS``)."""
+    stats it adds (``VIEW_STATS``). With a ``crew`` (views on worker threads), the view
+    takes the numba threads it lends between layers."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb = free.get()
+    if crew is not None:
+        crew.start()
     try:
         checkpoint()
         _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
-                    margin_px, footprints, centre, hier, small)
+                    margin_px, footprints, centre, hier, small, crew)
         if hulls is not None:
             t = time.perf_counter()
-            _test_hulls(view, *hulls[:4], kb, hulls[4])
+            _test_hulls(view, *hulls, kb)
             st["p4_gather"] += time.perf_counter() - t
     finally:
+        if crew is not None:
+            crew.finish()
         free.put(kb)
     return st
 
@@ -364,7 +382,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
                 centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
-                small: str = "centres") -> None:
+                small: str = "centres", crew: Crew | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
@@ -426,6 +444,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     tally = np.zeros((n_bands, 2), dtype=np.int64)
     for lay in all_layers:
         checkpoint()
+        if crew is not None:
+            crew.lend()
         ta = time.perf_counter()
         k = np.searchsorted(trim_layers, lay)
         if k < len(trim_layers) and trim_layers[k] == lay:
@@ -451,6 +471,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
+        if crew is not None:
+            crew.lend()
         tc = time.perf_counter()
         first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
                                                      centre, hierarchy)
@@ -543,11 +565,19 @@ def _reset(kb: KBuffer) -> None:
     kb.held_entries[:] = 0
 
 
-def _test_hulls(view: View, corners: np.ndarray, faces: np.ndarray, owner: np.ndarray,
-                open_only: np.ndarray, kb: KBuffer, seen: np.ndarray) -> None:
-    """Mark the hulls with a pixel in front of the view's seal depths and outside its hidden
-    spans."""
-    cam = to_camera(corners, view.vstar, view.rot)
+def _test_hulls(view: View, corners: np.ndarray, open_only: np.ndarray, seen: np.ndarray,
+                lo: np.ndarray, hi: np.ndarray, kb: KBuffer) -> None:
+    """Mark in ``seen`` the hulls (boxes [lo, hi] (k, 3), their ``corners`` (8 k, 3)) not yet
+    seen that meet the view's frustum and have a pixel in front of its seal depths and outside
+    its hidden spans."""
+    sel = np.flatnonzero(in_view(lo, hi, view.vstar, view.rot, view.tan, view.near)
+                         & (seen == 0))
+    if not len(sel):
+        return
+    cam = to_camera(np.ascontiguousarray(corners.reshape(-1, 8, 3)[sel].reshape(-1, 3)),
+                    view.vstar, view.rot)
+    faces = (np.arange(len(sel))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
+    owner = np.repeat(sel, len(BOX_FACES))
     n = len(faces)
     facing = np.zeros(n, dtype=np.int8)
     poly = np.empty((n, 4, 3))

@@ -204,6 +204,12 @@ def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cov
     return b
 
 
+#: How many of a pixel's last entries an incoming trim fragment may join (``_insert``), and
+#: the relative depth tolerance within which it joins one.
+JOIN_LAST = 4
+JOIN_TOL = 1e-3
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, overflow,
             vis):  # pragma: no cover - numba
@@ -216,6 +222,17 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
             vis[ident] = 1
         return
     c = count[p]
+    if kind == TRIM:
+        # A trim at the depth of one of the last few held (the next edges of one silhouette
+        # chain, drawn one after another) joins it: the same merge as a full buffer's, within
+        # a depth tolerance, so a pixel crossed by many strips of one object holds one entry.
+        for q in range(c - 1, max(c - JOIN_LAST, 0) - 1, -1):
+            if (kinds[p, q] == TRIM and depth[p, q] * (1.0 - JOIN_TOL) <= d
+                    and d <= far[p, q] * (1.0 + JOIN_TOL)):
+                depth[p, q] = min(depth[p, q], d)
+                far[p, q] = max(far[p, q], d)
+                umbra[p, q] = min(umbra[p, q], um)
+                return
     slot = c
     if c == K:
         slot = _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c)

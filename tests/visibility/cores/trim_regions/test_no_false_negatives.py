@@ -103,10 +103,11 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
 @pytest.mark.xdist_group("kitchen")
 def test_false_negative_pixels_in_the_kitchens_clutter():
     # The 1M kitchen's middle cell at Δ 0.2 m, as benchmarks/bench_trim_regions.py measures it
-    # (24 frames, seed 1). By the method at its defaults (pixel centres): 98 pixels in the
+    # (24 frames, seed 1). By the method at its defaults (pixel centres): 99 pixels in the
     # worst frame (the bound is 19.7), triangles behind trimmed occluders under no pixel
     # centre, many of them slivers seen edge-on from v*: held to that figure so that it can
-    # only fall. The method rasterizing them conservatively (small="conservative") holds the
+    # only fall. (98 before trims at one depth joined in the k-buffer: its pixels no longer
+    # fill up and merge distant trims into one wide range, which had validated more.) The method rasterizing them conservatively (small="conservative") holds the
     # bound, as does the sampling add-on (gather_eyes), which sees them from inside the cell.
     from tests.visibility.real_scenes import REAL, real_scene
 
@@ -115,7 +116,7 @@ def test_false_negative_pixels_in_the_kitchens_clutter():
     # All three answers judged by the same frames, cast once.
     cast = ray_frames(scene, _box(scene, 0, 0.2), 24, 256, 1, FRAME_NEAR)
     alone = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast)
-    assert alone["fn_pixels_max"] <= 98, (alone["fn_pixels_max"], alone["missed"][:20])
+    assert alone["fn_pixels_max"] <= 99, (alone["fn_pixels_max"], alone["missed"][:20])
     cons = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast, small="conservative")
     assert cons["fn_pixel_rate_max"] <= BOUND, (cons["fn_pixels_max"], cons["missed"][:20])
     assert alone["pvs"] < cons["pvs"] < scene.n_triangles

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from visibility.cores.trim_regions.kbuffer import BACK, FRONT, TRIM, K, KBuffer
-from visibility.cores.trim_regions.raster import _affine_range, _insert, raster_trims
+from visibility.cores.trim_regions.raster import (
+    JOIN_LAST,
+    JOIN_TOL,
+    _affine_range,
+    _insert,
+    raster_trims,
+)
 
 
 def _every_pixel(trims: np.ndarray, res: int, tan: float, margin: float) -> list[list[tuple]]:
@@ -85,9 +91,12 @@ def test_trim_rows_match_the_test_at_every_pixel(n):
     want = _every_pixel(trims, res, tan, margin)
     assert sum(len(w) for w in want) > 10 * res  # the strips cover much of the view
     merged = 0
+    joined = 0
     for p in range(res * res):
         assert kb.overflow[p] == 0  # only trims: a full buffer merges them
-        if len(want[p]) > K:
+        held = _joined(want[p])
+        joined += len(want[p]) - len(held)
+        if len(held) > K:
             # Every fragment lies in the depth range of a held entry whose umbra is no deeper.
             merged += 1
             assert kb.count[p] == K
@@ -96,11 +105,28 @@ def test_trim_rows_match_the_test_at_every_pixel(n):
                 e = 1e-12 * t
                 assert ((lo <= t + e) & (t - e <= hi) & (um <= u * (1 + 1e-12))).any(), (t, u)
             continue
-        assert kb.count[p] == len(want[p])
+        assert kb.count[p] == len(held)
         assert (kb.kind[p, :kb.count[p]] == TRIM).all()
-        got = list(zip(kb.depth[p, :kb.count[p]], kb.umbra[p, :kb.count[p]], strict=True))
-        assert np.allclose(got, want[p], rtol=1e-12) if want[p] else not got
+        got = list(zip(kb.depth[p, :kb.count[p]], kb.far[p, :kb.count[p]],
+                       kb.umbra[p, :kb.count[p]], strict=True))
+        assert np.allclose(got, held, rtol=1e-12) if held else not got
     assert (merged > 0) == (n > 60)
+    assert joined > 0  # strips of edges sharing an end point meet at one depth there
+
+
+def _joined(entries: list[tuple]) -> list[tuple]:
+    """(depth, far, umbra) entries a pixel holds after ``entries`` (depth, umbra) arrive in
+    order, each joining one of the last ``JOIN_LAST`` held whose range it meets within
+    ``JOIN_TOL`` (``raster._insert``), before any buffer is full."""
+    held: list[list[float]] = []
+    for t, u in entries:
+        for e in reversed(held[-JOIN_LAST:]):
+            if e[0] * (1.0 - JOIN_TOL) <= t <= e[1] * (1.0 + JOIN_TOL):
+                e[0], e[1], e[2] = min(e[0], t), max(e[1], t), min(e[2], u)
+                break
+        else:
+            held.append([t, t, u])
+    return [tuple(e) for e in held]
 
 
 def _fill(kb: KBuffer, entries: list[tuple[int, float, float]]) -> np.ndarray:
@@ -124,6 +150,25 @@ def test_a_full_buffer_merges_the_two_trims_nearest_in_depth_for_a_surface():
     # 50 and 50.5 were the nearest pair: one entry spans them with the nearer umbra.
     j = int(np.flatnonzero((kb.kind[0, :n] == TRIM) & (kb.far[0, :n] > kb.depth[0, :n]))[0])
     assert (kb.depth[0, j], kb.far[0, j], kb.umbra[0, j]) == (50.0, 50.5, 55.0)
+
+
+def test_a_trim_at_the_depth_of_a_recent_one_joins_it():
+    # Strips of one silhouette chain cross a pixel at one depth: one entry holds them, its
+    # range both depths and its umbra the nearer (what a full buffer's merge keeps).
+    kb = KBuffer.empty(1)
+    _fill(kb, [(TRIM, 2.0, 9.0), (TRIM, 2.0 * (1 + 0.5 * JOIN_TOL), 4.0), (TRIM, 2.5, 8.0)])
+    assert kb.count[0] == 2
+    assert (kb.depth[0, 0], kb.far[0, 0], kb.umbra[0, 0]) == (2.0, 2.0 * (1 + 0.5 * JOIN_TOL),
+                                                              4.0)
+    # Only the last JOIN_LAST entries are looked at: an older one at that depth is not joined.
+    kb = KBuffer.empty(1)
+    _fill(kb, [(TRIM, 2.0, 9.0)] + [(TRIM, 3.0 + q, 9.0) for q in range(JOIN_LAST)]
+          + [(TRIM, 2.0, 5.0)])
+    assert kb.count[0] == JOIN_LAST + 2
+    # A surface never joins, nor does a trim join a surface.
+    kb = KBuffer.empty(1)
+    _fill(kb, [(FRONT, 2.0, 0.0), (TRIM, 2.0, 5.0), (BACK, 2.0, 0.0)])
+    assert kb.count[0] == 3
 
 
 def test_a_trim_joins_the_held_trim_nearest_in_depth_when_the_buffer_is_full():
