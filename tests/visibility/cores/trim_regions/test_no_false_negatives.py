@@ -107,8 +107,9 @@ def test_false_negative_pixels_in_the_kitchens_clutter():
     # worst frame (the bound is 19.7), triangles behind trimmed occluders under no pixel
     # centre, many of them slivers seen edge-on from v*: held to that figure so that it can
     # only fall. (98 before trims at one depth joined in the k-buffer: its pixels no longer
-    # fill up and merge distant trims into one wide range, which had validated more.) The method rasterizing them conservatively (small="conservative") holds the
-    # bound, as does the sampling add-on (gather_eyes), which sees them from inside the cell.
+    # fill up and merge distant trims into one wide range, which had validated more.) The
+    # method rasterizing them conservatively (small="conservative") holds the bound, as does
+    # the sampling add-on (gather_eyes), which sees them from inside the cell.
     from tests.visibility.real_scenes import REAL, real_scene
 
     assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
