@@ -67,10 +67,38 @@ def by_layer(layer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     values : (l,) int64 distinct layers, ascending.
     starts : (l + 1,) int64 offsets into ``order`` of each layer's items.
     """
-    order = np.argsort(layer, kind="stable")
-    ordered = layer[order]
-    # Sorted already: the layers start where the value changes (no second sort or hash).
-    first = np.flatnonzero(np.diff(ordered)) + 1
-    starts = np.concatenate([[0], first, [len(ordered)]]).astype(np.int64) if len(ordered) \
-        else np.zeros(1, dtype=np.int64)
-    return order.astype(np.int64), ordered[starts[:-1]].astype(np.int64), starts
+    layer = np.ascontiguousarray(layer, dtype=np.int64)
+    if not len(layer):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), \
+            np.zeros(1, dtype=np.int64)
+    lo = int(layer.min())
+    # A counting sort: a view's layers are a few hundred at most, its items a million.
+    return _count_sort(layer, lo, int(layer.max()) - lo + 1)
+
+
+@njit(cache=True, nogil=True)
+def _count_sort(layer, lo, span):  # pragma: no cover - numba
+    """``by_layer`` for layers in [lo, lo + span)."""
+    count = np.zeros(span + 1, dtype=np.int64)
+    for i in range(layer.shape[0]):
+        count[layer[i] - lo + 1] += 1
+    n_values = 0
+    for v in range(span):
+        if count[v + 1] > 0:
+            n_values += 1
+        count[v + 1] += count[v]
+    values = np.empty(n_values, dtype=np.int64)
+    starts = np.empty(n_values + 1, dtype=np.int64)
+    j = 0
+    for v in range(span):
+        if count[v + 1] > count[v]:
+            values[j] = lo + v
+            starts[j] = count[v]
+            j += 1
+    starts[n_values] = layer.shape[0]
+    order = np.empty(layer.shape[0], dtype=np.int64)
+    for i in range(layer.shape[0]):
+        k = layer[i] - lo
+        order[count[k]] = i
+        count[k] += 1
+    return order, values, starts

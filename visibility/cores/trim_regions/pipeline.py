@@ -89,6 +89,34 @@ ENTRY_BYTES = 29
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
 
 
+class Scratch:
+    """Arrays a view fills before it reads them, kept for the next view that takes the same
+    k-buffer: a view of a 1M-triangle scene sets up ~140 MB of them, and fresh pages cost a
+    fault and a clear each time."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def empty(self, name: str, shape: tuple[int, ...], dtype: Any = np.float64) -> np.ndarray:
+        """An uninitialized array ``name`` of ``shape`` and ``dtype`` (the kept one when they
+        match)."""
+        a = self._arrays.get(name)
+        if a is None or a.shape != shape or a.dtype != np.dtype(dtype):
+            a = np.empty(shape, dtype=dtype)
+            self._arrays[name] = a
+        return a
+
+    def rows(self, name: str, n: int, tail: tuple[int, ...] = (),
+             dtype: Any = np.float64) -> np.ndarray:
+        """The first ``n`` rows of a kept uninitialized array ``name`` of rows ``tail`` (grown,
+        never shrunk, for sizes that vary from view to view)."""
+        a = self._arrays.get(name)
+        if a is None or len(a) < n or a.shape[1:] != tail or a.dtype != np.dtype(dtype):
+            a = np.empty((n, *tail), dtype=dtype)
+            self._arrays[name] = a
+        return a[:n]
+
+
 def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Boxes (k, 2, 3) (relative to ``centre``) of the moving triangles and spheres over the
     keyframes, and the id each reports (a triangle id, or ``n_triangles + sphere index``)."""
@@ -211,10 +239,10 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     if hier is None and 0 < scene.n_triangles < MIN_TRIANGLES:
         hier = scene_hierarchy(scene)
     workers = _view_workers()
-    free: queue.SimpleQueue[KBuffer] = queue.SimpleQueue()
+    free: queue.SimpleQueue[tuple[KBuffer, Scratch]] = queue.SimpleQueue()
     kbs = [KBuffer.empty(int(resolution) ** 2) for _ in range(workers)]
     for kb in kbs:
-        free.put(kb)
+        free.put((kb, Scratch()))
     stats["kbuffer_allocated_bytes"] = sum(kb.allocated_bytes for kb in kbs)
     stats["near_eye"] = 0
     stats["view_workers"] = workers
@@ -320,21 +348,21 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
     takes the numba threads it lends between layers."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
-    kb = free.get()
+    kb, scratch = free.get()
     if crew is not None:
         crew.start()
     try:
         checkpoint()
         _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
-                    margin_px, footprints, centre, hier, small, crew)
+                    margin_px, footprints, centre, hier, small, crew, scratch)
         if hulls is not None:
             t = time.perf_counter()
-            _test_hulls(view, *hulls, kb)
+            _test_hulls(view, *hulls, kb, scratch)
             st["p4_gather"] += time.perf_counter() - t
     finally:
         if crew is not None:
             crew.finish()
-        free.put(kb)
+        free.put((kb, scratch))
     return st
 
 
@@ -382,7 +410,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
                 centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
-                small: str = "centres", crew: Crew | None = None) -> None:
+                small: str = "centres", crew: Crew | None = None,
+                scratch: Scratch | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
@@ -397,13 +426,14 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     cam = to_camera(verts, view.vstar, view.rot)
     s = len(data.static)
     # setup_triangles writes every row of these (no polygon outside the drawn leaves).
-    facing = np.empty(s, dtype=np.int8)
-    poly = np.empty((s, 4, 3))
-    npoly = np.empty(s, dtype=np.int64)
-    pbox = np.empty((s, 4), dtype=np.int64)
+    scratch = Scratch() if scratch is None else scratch
+    facing = scratch.empty("facing", (s,), np.int8)
+    poly = scratch.empty("poly", (s, 4, 3))
+    npoly = scratch.empty("npoly", (s,), np.int64)
+    pbox = scratch.empty("pbox", (s, 4), np.int64)
     # Polygons only for the triangles of the leaves this view draws (the others lie outside
     # its frustum); facing for every triangle, as silhouettes need it.
-    need = np.empty(s, dtype=np.bool_)
+    need = scratch.empty("need", (s,), np.bool_)
     drawn_rows(drawn, frame.item_leaf, item_rows, need)
     setup_triangles(cam, faces, data.static, need, view.near, view.tan, res, facing, poly, npoly,
                     pbox)
@@ -412,8 +442,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     # back on others: its edges may be silhouettes for them though not for v* (an eye
     # behind one wall of a corner sees past the other wall's end). Silhouettes only where
     # the view draws: an edge with a triangle in a drawn leaf.
-    facing_of = np.empty(len(vis), dtype=np.int8)
-    edge_on = np.empty(len(e.face), dtype=np.bool_)
+    facing_of = scratch.empty("facing_of", (len(vis),), np.int8)
+    edge_on = scratch.empty("edge_on", (len(e.face),), np.bool_)
     drawn_edges(data.static, need, facing, ambiguous, AMBIGUOUS, e.face, facing_of, edge_on)
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
@@ -440,7 +470,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["silhouette_trims"] += len(trims)
     stats["layers"] += len(all_layers)
     stats["views"] += 1
-    held = np.zeros(res * res, dtype=np.uint8)
+    held = scratch.empty("held", (res * res,), np.uint8)
+    held[:] = 0
     tally = np.zeros((n_bands, 2), dtype=np.int64)
     for lay in all_layers:
         checkpoint()
@@ -566,7 +597,8 @@ def _reset(kb: KBuffer) -> None:
 
 
 def _test_hulls(view: View, corners: np.ndarray, open_only: np.ndarray, seen: np.ndarray,
-                lo: np.ndarray, hi: np.ndarray, kb: KBuffer) -> None:
+                lo: np.ndarray, hi: np.ndarray, kb: KBuffer,
+                scratch: Scratch | None = None) -> None:
     """Mark in ``seen`` the hulls (boxes [lo, hi] (k, 3), their ``corners`` (8 k, 3)) not yet
     seen that meet the view's frustum and have a pixel in front of its seal depths and outside
     its hidden spans."""
@@ -579,10 +611,12 @@ def _test_hulls(view: View, corners: np.ndarray, open_only: np.ndarray, seen: np
     faces = (np.arange(len(sel))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
     owner = np.repeat(sel, len(BOX_FACES))
     n = len(faces)
-    facing = np.zeros(n, dtype=np.int8)
-    poly = np.empty((n, 4, 3))
-    npoly = np.zeros(n, dtype=np.int64)
-    pbox = np.zeros((n, 4), dtype=np.int64)
+    # The set-up writes every row it is given.
+    scratch = Scratch() if scratch is None else scratch
+    facing = scratch.rows("hull_facing", n, (), np.int8)
+    poly = scratch.rows("hull_poly", n, (4, 3))
+    npoly = scratch.rows("hull_npoly", n, (), np.int64)
+    pbox = scratch.rows("hull_pbox", n, (4,), np.int64)
     setup_triangles(cam, faces, np.arange(n, dtype=np.int64), np.ones(n, dtype=np.bool_),
                     view.near, view.tan, view.res,
                     facing, poly, npoly, pbox)
