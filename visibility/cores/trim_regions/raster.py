@@ -63,13 +63,26 @@ def to_camera(verts, vstar, rot):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _clip_near(a, b, near, out):  # pragma: no cover - numba
-    """Point where segment a-b (camera space) crosses depth ``near``, written to ``out``."""
-    za = -a[2]
-    zb = -b[2]
-    t = (za - near) / (za - zb)
-    for k in range(3):
-        out[k] = a[k] + t * (b[k] - a[k])
+def _clip_edge(px, py, pz, qx, qy, qz, near, pts, m):  # pragma: no cover - numba
+    """Append to ``pts`` (4, 3) from row m the corners edge p-q (camera space) gives a polygon
+    clipped to depth ``near``: p when it is in front, and the crossing when p and q lie on
+    either side. Returns the new count. Scalars, not array views: a view per corner counted a
+    reference to ``cam`` on the cache line the other threads count theirs on."""
+    zp = -pz
+    zq = -qz
+    pin = zp >= near
+    if pin:
+        pts[m, 0] = px
+        pts[m, 1] = py
+        pts[m, 2] = pz
+        m += 1
+    if pin != (zq >= near):
+        t = (zp - near) / (zp - zq)
+        pts[m, 0] = px + t * (qx - px)
+        pts[m, 1] = py + t * (qy - py)
+        pts[m, 2] = pz + t * (qz - pz)
+        m += 1
+    return m
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -97,16 +110,17 @@ def setup_triangles(cam, faces, rows, need, near, tan, res, facing, poly, npoly,
         pts = np.empty((4, 3))
         for i in range(ch * SETUP_CHUNK, min(n_rows, (ch + 1) * SETUP_CHUNK)):
             f = rows[i]
-            a = cam[faces[f, 0]]
-            b = cam[faces[f, 1]]
-            c = cam[faces[f, 2]]
-            e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-            e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = cam[i0, 0], cam[i0, 1], cam[i0, 2]
+            bx, by, bz = cam[i1, 0], cam[i1, 1], cam[i1, 2]
+            cx, cy, cz = cam[i2, 0], cam[i2, 1], cam[i2, 2]
+            e1x, e1y, e1z = bx - ax, by - ay, bz - az
+            e2x, e2y, e2z = cx - ax, cy - ay, cz - az
             nx = e1y * e2z - e1z * e2y
             ny = e1z * e2x - e1x * e2z
             nz = e1x * e2y - e1y * e2x
-            s = -(nx * a[0] + ny * a[1] + nz * a[2])
-            facing[i] = 1 if s > 0 else (-1 if s < 0 else 0)
+            sd = -(nx * ax + ny * ay + nz * az)
+            facing[i] = 1 if sd > 0 else (-1 if sd < 0 else 0)
             if not need[i]:
                 npoly[i] = 0
                 box[i, 0] = 0
@@ -114,19 +128,9 @@ def setup_triangles(cam, faces, rows, need, near, tan, res, facing, poly, npoly,
                 box[i, 2] = 0
                 box[i, 3] = 0
                 continue
-            m = 0
-            tri = (a, b, c)
-            for k in range(3):
-                p = tri[k]
-                q = tri[(k + 1) % 3]
-                pin = -p[2] >= near
-                qin = -q[2] >= near
-                if pin:
-                    pts[m] = p
-                    m += 1
-                if pin != qin:
-                    _clip_near(p, q, near, pts[m])
-                    m += 1
+            m = _clip_edge(ax, ay, az, bx, by, bz, near, pts, 0)
+            m = _clip_edge(bx, by, bz, cx, cy, cz, near, pts, m)
+            m = _clip_edge(cx, cy, cz, ax, ay, az, near, pts, m)
             npoly[i] = m
             if m == 0:
                 box[i, 0] = 0
