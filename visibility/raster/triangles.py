@@ -45,6 +45,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from visibility.scratch import Scratch
+
 #: log2 of the height in pixel rows of the screen bands dealt out to the raster workers.
 BAND_SHIFT = 3
 #: Raster workers per numba thread (more than one evens out the load).
@@ -486,24 +488,17 @@ _SCRATCH_KEEP = 32 << 20
 def release_scratch() -> None:
     """Drop this thread's kept scratch buffers (``_scratch``): their memory goes back, and the
     next render allocates afresh."""
-    _SCRATCH.pool = {}
+    _SCRATCH.pool = Scratch(_SCRATCH_KEEP)
 
 
 def _scratch(name, shape, dtype):
     """An uninitialised array of ``shape`` from this thread's buffer ``name``, kept between
-    calls: on these machines first-touch page faults of fresh buffers cost as much as the
-    rasterizing itself."""
-    dtype = np.dtype(dtype)
-    n = int(np.prod(shape))
+    calls (``visibility.scratch``: first-touch page faults of fresh buffers cost as much as
+    the rasterizing itself)."""
     pool = getattr(_SCRATCH, "pool", None)
     if pool is None:
-        pool = _SCRATCH.pool = {}
-    buf = pool.get(name)
-    if buf is None or buf.dtype != dtype or len(buf) < n:
-        buf = np.empty(n, dtype=dtype)
-        if buf.nbytes <= _SCRATCH_KEEP:
-            pool[name] = buf
-    return buf[:n].reshape(shape)
+        pool = _SCRATCH.pool = Scratch(_SCRATCH_KEEP)
+    return pool.array(name, shape, dtype)
 
 
 def raster_workers(height: int) -> int:

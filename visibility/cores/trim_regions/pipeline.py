@@ -57,6 +57,7 @@ from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
 from visibility.scene import Scene
+from visibility.scratch import Scratch
 from visibility.viewcells import Viewcell
 
 #: Sample points per pixel side of the depth the conservative occludee test compares with.
@@ -87,34 +88,6 @@ GATHER_SEED = 104729
 #: Bytes of one k-buffer entry (depth, umbra, far float64; id int32; kind int8).
 ENTRY_BYTES = 29
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
-
-
-class Scratch:
-    """Arrays a view fills before it reads them, kept for the next view that takes the same
-    k-buffer: a view of a 1M-triangle scene sets up ~140 MB of them, and fresh pages cost a
-    fault and a clear each time."""
-
-    def __init__(self) -> None:
-        self._arrays: dict[str, np.ndarray] = {}
-
-    def empty(self, name: str, shape: tuple[int, ...], dtype: Any = np.float64) -> np.ndarray:
-        """An uninitialized array ``name`` of ``shape`` and ``dtype`` (the kept one when they
-        match)."""
-        a = self._arrays.get(name)
-        if a is None or a.shape != shape or a.dtype != np.dtype(dtype):
-            a = np.empty(shape, dtype=dtype)
-            self._arrays[name] = a
-        return a
-
-    def rows(self, name: str, n: int, tail: tuple[int, ...] = (),
-             dtype: Any = np.float64) -> np.ndarray:
-        """The first ``n`` rows of a kept uninitialized array ``name`` of rows ``tail`` (grown,
-        never shrunk, for sizes that vary from view to view)."""
-        a = self._arrays.get(name)
-        if a is None or len(a) < n or a.shape[1:] != tail or a.dtype != np.dtype(dtype):
-            a = np.empty((n, *tail), dtype=dtype)
-            self._arrays[name] = a
-        return a[:n]
 
 
 def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -427,13 +400,13 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     s = len(data.static)
     # setup_triangles writes every row of these (no polygon outside the drawn leaves).
     scratch = Scratch() if scratch is None else scratch
-    facing = scratch.empty("facing", (s,), np.int8)
-    poly = scratch.empty("poly", (s, 4, 3))
-    npoly = scratch.empty("npoly", (s,), np.int64)
-    pbox = scratch.empty("pbox", (s, 4), np.int64)
+    facing = scratch.array("facing", s, np.int8)
+    poly = scratch.array("poly", (s, 4, 3))
+    npoly = scratch.array("npoly", s, np.int64)
+    pbox = scratch.array("pbox", (s, 4), np.int64)
     # Polygons only for the triangles of the leaves this view draws (the others lie outside
     # its frustum); facing for every triangle, as silhouettes need it.
-    need = scratch.empty("need", (s,), np.bool_)
+    need = scratch.array("need", s, np.bool_)
     drawn_rows(drawn, frame.item_leaf, item_rows, need)
     setup_triangles(cam, faces, data.static, need, view.near, view.tan, res, facing, poly, npoly,
                     pbox)
@@ -442,8 +415,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     # back on others: its edges may be silhouettes for them though not for v* (an eye
     # behind one wall of a corner sees past the other wall's end). Silhouettes only where
     # the view draws: an edge with a triangle in a drawn leaf.
-    facing_of = scratch.empty("facing_of", (len(vis),), np.int8)
-    edge_on = scratch.empty("edge_on", (len(e.face),), np.bool_)
+    facing_of = scratch.array("facing_of", len(vis), np.int8)
+    edge_on = scratch.array("edge_on", len(e.face), np.bool_)
     drawn_edges(data.static, need, facing, ambiguous, AMBIGUOUS, e.face, facing_of, edge_on)
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
@@ -470,7 +443,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["silhouette_trims"] += len(trims)
     stats["layers"] += len(all_layers)
     stats["views"] += 1
-    held = scratch.empty("held", (res * res,), np.uint8)
+    held = scratch.array("held", res * res, np.uint8)
     held[:] = 0
     tally = np.zeros((n_bands, 2), dtype=np.int64)
     for lay in all_layers:
@@ -613,10 +586,10 @@ def _test_hulls(view: View, corners: np.ndarray, open_only: np.ndarray, seen: np
     n = len(faces)
     # The set-up writes every row it is given.
     scratch = Scratch() if scratch is None else scratch
-    facing = scratch.rows("hull_facing", n, (), np.int8)
-    poly = scratch.rows("hull_poly", n, (4, 3))
-    npoly = scratch.rows("hull_npoly", n, (), np.int64)
-    pbox = scratch.rows("hull_pbox", n, (4,), np.int64)
+    facing = scratch.array("hull_facing", n, np.int8)
+    poly = scratch.array("hull_poly", (n, 4, 3))
+    npoly = scratch.array("hull_npoly", n, np.int64)
+    pbox = scratch.array("hull_pbox", (n, 4), np.int64)
     setup_triangles(cam, faces, np.arange(n, dtype=np.int64), np.ones(n, dtype=np.bool_),
                     view.near, view.tan, view.res,
                     facing, poly, npoly, pbox)
