@@ -16,9 +16,11 @@ new surface entries in the current layer.
 
 from __future__ import annotations
 
+from math import gcd
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 #: Entry kinds, in the order ties in depth are sorted (a front face before a trim fragment at
 #: its own depth before a back face).
@@ -34,6 +36,21 @@ K = 48
 #: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the hull
 #: test (more are dropped: a dropped span only makes hulls more visible).
 SPANS = 4
+
+
+@njit(cache=True, nogil=True)
+def band_stride(n_bands: int) -> int:
+    """A stride coprime with ``n_bands`` near ``n_bands`` / golden ratio squared: the kernels
+    that run over bands of rows visit band ``(j * stride) % n_bands`` at step ``j``.
+
+    Numba splits a ``prange`` into one contiguous run of steps per thread, and a view's work
+    lies in a few rows (the floor and clutter below the horizon); a contiguous run of steps
+    spread this way over the frame gives each thread a share of every part of it.
+    """
+    s = max(1, int(round(n_bands * 0.381966)))
+    while gcd(s, n_bands) != 1:
+        s += 1
+    return s
 
 
 class KBuffer(NamedTuple):

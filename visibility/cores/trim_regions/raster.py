@@ -17,7 +17,15 @@ from numba import njit, prange
 
 from visibility.borrow import NO_REFCOUNT
 from visibility.cancel import flag_set
-from visibility.cores.trim_regions.kbuffer import BACK, FRONT, SEALED, TRIM, TRIMMED, K
+from visibility.cores.trim_regions.kbuffer import (
+    BACK,
+    FRONT,
+    SEALED,
+    TRIM,
+    TRIMMED,
+    K,
+    band_stride,
+)
 
 
 class SetUp(NamedTuple):
@@ -282,7 +290,9 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
     n_bands = (res + 7) // 8
     half = 0.5 * res
-    for band in prange(n_bands):
+    stride = band_stride(n_bands)
+    for j in prange(n_bands):
+        band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         r0 = band * 8
@@ -379,7 +389,9 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     far, stencil, overflow, held_entries = kb.far, kb.stencil, kb.overflow, kb.held_entries
     n_bands = (res + 7) // 8
     half = 0.5 * res
-    for band in prange(n_bands):
+    stride = band_stride(n_bands)
+    for j in prange(n_bands):
+        band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         r0 = band * 8

@@ -36,7 +36,7 @@ from numba import njit, prange
 
 from visibility.borrow import NO_REFCOUNT
 from visibility.cancel import flag_set
-from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM
+from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM, band_stride
 
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
 #: validation: trimming more only adds false positives).
@@ -280,7 +280,9 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
     k = kb.depth.shape[1]
     count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
     queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
-    for band in prange(n_bands):
+    stride = band_stride(n_bands)
+    for j in prange(n_bands):
+        band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         scratch = _scratch(k)
