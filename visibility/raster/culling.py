@@ -32,6 +32,7 @@ from visibility.raster.triangles import (
     _centre_range,
     _finish,
     _raster,
+    _render_views_on,
     _scratch,
     _setup,
     _split_views,
@@ -431,6 +432,13 @@ def _draw(v, faces, sel, ids, views, pyr, base, invd, idbuf, counts, n_workers, 
     return hidden
 
 
+def _leaves_seen(idbuf: np.ndarray, hierarchy: Hierarchy) -> np.ndarray:
+    """The hierarchy's leaves holding a face of ``idbuf`` (face rows; -1 empty), sorted."""
+    mark = np.zeros(hierarchy.n_leaf_slots, dtype=np.uint8)
+    _seen_leaves(idbuf.reshape(-1), hierarchy.leaf_of, mark)
+    return np.flatnonzero(mark)
+
+
 def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
                         hierarchy: Hierarchy, mask: np.ndarray, ids: np.ndarray,
                         rots: np.ndarray, base: np.ndarray | None, width: int, height: int,
@@ -441,6 +449,11 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing ``eye``, drawing only
     what the hierarchy's culling keeps: identical to ``triangles._render_views`` on the
     faces of ``mask``.
+
+    A render that has drawn more than ``PAYS_UP_TO`` of the tree's triangles and has more
+    to walk gives culling up and draws every face of ``mask`` (the same images: a view into
+    clutter sees most of what its frustum holds, and each batch's walk, binning and pyramid
+    then cost more than the drawing they spare); ``stats`` gains ``gave_up``.
 
     ``mask``: (m,) bool, faces to draw (checked inputs: ``triangles._check_inputs``);
     ``always``: int64 face ids drawn without culling (moving faces, which the hierarchy does not
@@ -480,6 +493,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     # the scene's faces they stand for.
     tree_ids = hierarchy.order if len(ids) == 0 else ids[hierarchy.order]
     done = np.zeros(tree.slots, dtype=np.uint8)
+    n_tree = len(hierarchy.order)
     if coherence is not None and coherence.leaves is not None and len(coherence.leaves):
         seeded = np.empty(len(coherence.leaves) * tree.leaf, dtype=np.int64)
         k = _leaf_positions(np.asarray(coherence.leaves, np.int64), tree, mask, done, seeded)
@@ -504,13 +518,27 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
             hidden += _draw(hierarchy.vertices, hierarchy.faces, out[:n], tree_ids, views, pyr,
                             base, invd, idbuf, counts, n_workers, dirty,
                             merge=first and len(extra) > 0)
+        if sp > 0 and drawn - hidden > PAYS_UP_TO * n_tree:
+            # Culling no longer pays (``PAYS_UP_TO``): a view into clutter draws most of what
+            # its frustum holds, and batch after batch the walk, the binning and the pyramid
+            # cost more than drawing every face of the mask once does: the same images.
+            if stats is not None:
+                for key, val in (("nodes_tested", int(walk[0])), ("nodes_hidden", int(walk[1])),
+                                 ("leaves_drawn", int(walk[2])), ("batches", batches),
+                                 ("seeded", walk_seeded), ("gave_up", 1)):
+                    stats[key] = stats.get(key, 0) + int(val)
+            sel = np.flatnonzero(mask).astype(np.int64)
+            depth, idbuf = _render_views_on(v, eye, faces, sel, ids, rots, base, width, height,
+                                            tan_x, tan_y, near, stats, want_depth)
+            if coherence is not None and len(ids) == 0:
+                coherence.leaves = _leaves_seen(idbuf, hierarchy)
+                coherence.drew(hierarchy, drawn - hidden)
+            return depth, idbuf
         if sp > 0 and (n or (first and len(extra))):
             update_pyramid(invd, pyr.heights, pyr.widths, pyr.offsets, pyr.hz, dirty)
         budget = min(2 * budget, MAX_BATCH)
     if coherence is not None and len(ids) == 0:
-        mark = np.zeros(tree.slots, dtype=np.uint8)
-        _seen_leaves(idbuf.reshape(-1), hierarchy.leaf_of, mark)
-        coherence.leaves = np.flatnonzero(mark)
+        coherence.leaves = _leaves_seen(idbuf, hierarchy)
         coherence.drew(hierarchy, drawn - hidden)
     depth = None
     if want_depth:

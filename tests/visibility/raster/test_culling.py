@@ -97,9 +97,14 @@ def test_moving_faces_drawn_at_every_time():
               mask=scene.valid_faces, t=t)
 
 
-def test_eye_inside_a_box_and_behind_the_near_plane():
+def test_eye_inside_a_box_and_behind_the_near_plane(monkeypatch):
     # A closed box around the eye, and a large scene outside it: nothing outside is drawn,
     # and the box's own faces, some nearer than the near plane, are all where they should be.
+    # Culled to the end: where the near plane cuts the floor the city shows through, more
+    # than culling pays for, and the render would give culling up.
+    from visibility.raster import culling
+
+    monkeypatch.setattr(culling, "PAYS_UP_TO", 1.0)
     city = make_scene("city", 20_000, seed=6)
     v, f, _, _ = box_mesh(np.array([-0.5, 1.0, -0.5]), np.array([0.5, 2.0, 0.5]))
     verts = np.concatenate([city.vertices, v])
@@ -163,6 +168,43 @@ def test_coherent_views_identical_and_cheaper():
     with pytest.raises(ValueError, match="face_ids None"):
         render_cubemap_ids(scene.vertices, scene.faces, lo, 16, hierarchy=h, coherence=coh,
                            face_ids=np.arange(scene.n_triangles))
+
+
+def _confetti(n, rng):
+    """``n`` small triangles scattered over a shell 5-20 m around the origin, facing it: from
+    the origin nearly all of them are seen, so culling hides almost nothing."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centres = d * rng.uniform(5.0, 20.0, size=(n, 1))
+    a = np.cross(d, rng.normal(size=(n, 3)))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(d, a)
+    s = 0.02
+    v = np.concatenate([centres + s * a, centres - s * a + s * b, centres - s * a - s * b])
+    f = np.stack([np.arange(n), np.arange(n, 2 * n), np.arange(2 * n, 3 * n)], axis=1)
+    return Scene(v, f)
+
+
+def test_a_render_gives_culling_up_where_it_does_not_pay(monkeypatch):
+    """A view that sees most of the scene stops culling once it has drawn more than
+    ``PAYS_UP_TO`` of the tree and draws every face: the same images; with a limit it never
+    reaches, it culls to the end, the same images again."""
+    from visibility.raster import culling
+
+    scene = _confetti(60_000, np.random.default_rng(3))
+    h = build_hierarchy(scene.vertices, scene.faces)
+    eye = np.zeros(3)
+    st = _same(scene, h, eye, np.eye(3), 128)
+    assert st["gave_up"] == 1
+    monkeypatch.setattr(culling, "PAYS_UP_TO", 1.0)
+    st = _same(scene, h, eye, np.eye(3), 128)
+    assert st.get("gave_up", 0) == 0
+    assert st["triangles"] > 0.5 * scene.n_triangles  # what made it give up before
+    # A run sharing a Coherence learns it from the render that gave up.
+    monkeypatch.setattr(culling, "PAYS_UP_TO", 0.08)
+    coh = Coherence()
+    render_cubemap_ids(scene.vertices, scene.faces, eye, 64, hierarchy=h, coherence=coh)
+    assert h.stats["pays"] is False and coh.hierarchy_for(h) is None
 
 
 def test_a_run_stops_culling_where_it_does_not_pay(monkeypatch):
