@@ -33,6 +33,11 @@ TRIMMED = 1
 SEALED = 2
 #: Entries per pixel.
 K = 48
+#: A pixel's entries lie in blocks of ``LANES`` (``KBuffer``): entry q of pixel p at
+#: [q >> LANE_BITS, p, q & LANE_MASK].
+LANE_BITS = 3
+LANES = 1 << LANE_BITS
+LANE_MASK = LANES - 1
 #: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the hull
 #: test (more are dropped: a dropped span only makes hulls more visible).
 SPANS = 4
@@ -57,14 +62,23 @@ class KBuffer(NamedTuple):
     """The per-pixel state of one view of ``n`` pixels (a named group the kernels take
     whole: ``resolve.resolve_layer``).
 
+    The entries are stored in blocks: entry q of pixel p lies at [q >> LANE_BITS, p,
+    q & LANE_MASK] of the (K / LANES, n, LANES) arrays below. A pixel's first ``LANES``
+    entries share a cache line per field, as in a (n, K) layout, but the planes of later
+    blocks are touched only where some pixel holds that many: most pixels hold a few entries,
+    so most of the buffer's pages are never faulted in (in a (n, K) layout every page holds
+    the first entry of some pixel).
+
     Attributes
     ----------
-    depth : (n, K) float64, depth from v* along the view axis, metres.
-    kind : (n, K) int8, FRONT, BACK or TRIM.
-    ident : (n, K) int32, triangle id (FRONT, BACK) or -1.
-    umbra : (n, K) float64, umbra depth of a TRIM entry, metres (inf: unbounded).
-    far : (n, K) float64, far end of a TRIM entry's depth range, metres: its own depth, or
-        the deepest of the fragments merged into it (``depth`` holds the nearest).
+    depth : (K / LANES, n, LANES) float64, depth from v* along the view axis, metres.
+    kind : (K / LANES, n, LANES) int8, FRONT, BACK or TRIM.
+    ident : (K / LANES, n, LANES) int32, triangle id (FRONT, BACK) or -1.
+    umbra : (K / LANES, n, LANES) float64, umbra depth of a TRIM entry, metres (inf:
+        unbounded).
+    far : (K / LANES, n, LANES) float64, far end of a TRIM entry's depth range, metres: its
+        own depth, or the deepest of the fragments merged into it (``depth`` holds the
+        nearest).
     count : (n,) int64 entries held.
     stencil : (n,) int8 trim region stencil.
     active : (n,) uint8, new surface entries this layer.
@@ -107,13 +121,32 @@ class KBuffer(NamedTuple):
     def empty(cls, n: int) -> KBuffer:
         """A cleared buffer of ``n`` pixels (a square view: res * res)."""
         bands = (int(round(np.sqrt(n))) + 7) // 8 + 1
-        return cls(np.zeros((n, K)), np.zeros((n, K), dtype=np.int8),
-                   np.full((n, K), -1, dtype=np.int32), np.zeros((n, K)), np.zeros((n, K)),
+        # Zeroed, not filled: untouched pages stay unmapped (an entry beyond ``count`` is
+        # never read).
+        shape = (K // LANES, n, LANES)
+        return cls(np.zeros(shape), np.zeros(shape, dtype=np.int8),
+                   np.zeros(shape, dtype=np.int32), np.zeros(shape), np.zeros(shape),
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),
                    np.full(n, np.inf), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
                    np.zeros(bands, dtype=np.int64), np.zeros(bands, dtype=np.int64))
+
+    def entries(self, p: int) -> tuple[np.ndarray, ...]:
+        """Pixel p's held entries as (kind, depth, ident, umbra, far), each (count,) (copies,
+        in slot order)."""
+        c = int(self.count[p])
+        return tuple(np.asarray(a[:, p, :]).reshape(-1)[:c].copy()
+                     for a in (self.kind, self.depth, self.ident, self.umbra, self.far))
+
+    def put(self, p: int, q: int, kind: int, depth: float, ident: int, umbra: float,
+            far: float | None = None) -> None:
+        """Write entry q of pixel p (``far`` defaults to ``depth``); ``count`` is the
+        caller's."""
+        i, j = q >> LANE_BITS, q & LANE_MASK
+        self.kind[i, p, j], self.depth[i, p, j], self.ident[i, p, j] = kind, depth, ident
+        self.umbra[i, p, j] = umbra
+        self.far[i, p, j] = depth if far is None else far
 
     @property
     def allocated_bytes(self) -> int:

@@ -20,6 +20,8 @@ from visibility.cancel import flag_set
 from visibility.cores.trim_regions.kbuffer import (
     BACK,
     FRONT,
+    LANE_BITS,
+    LANE_MASK,
     SEALED,
     TRIM,
     TRIMMED,
@@ -172,18 +174,20 @@ def _gap(a0, a1, b0, b1):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cover - numba
-    """Room in pixel p's full k-buffer (c entries) by merging trim fragments: an incoming
-    trim (``kind`` TRIM at depth d, umbra um) joins the held trim nearest in depth; for an
-    incoming surface, the two held trims nearest to each other merge. A merged trim spans
-    both depth ranges with the nearer umbra (``kbuffer`` docstring: it validates every
-    interval either one did and hides no deeper). Returns -2 when the incoming trim was
-    absorbed, the freed slot for a surface, or -1 when fewer than two trims leave no room."""
+    """Room in pixel p's full k-buffer (c entries; entry q at [q >> LANE_BITS, p,
+    q & LANE_MASK], ``kbuffer.KBuffer``) by merging trim fragments: an incoming trim (``kind``
+    TRIM at depth d, umbra um) joins the held trim nearest in depth; for an incoming surface,
+    the two held trims nearest to each other merge. A merged trim spans both depth ranges with
+    the nearer umbra (``kbuffer`` docstring: it validates every interval either one did and
+    hides no deeper). Returns -2 when the incoming trim was absorbed, the freed slot for a
+    surface, or -1 when fewer than two trims leave no room."""
     if kind == TRIM:
         best = -1
         gbest = np.inf
         for q in range(c):
-            if kinds[p, q] == TRIM:
-                g = _gap(depth[p, q], far[p, q], d, d)
+            i, j = q >> LANE_BITS, q & LANE_MASK
+            if kinds[i, p, j] == TRIM:
+                g = _gap(depth[i, p, j], far[i, p, j], d, d)
                 if g < gbest:
                     gbest = g
                     best = q
@@ -191,28 +195,33 @@ def _merge_trims(p, d, kind, um, depth, kinds, umbra, far, c):  # pragma: no cov
                         break  # a range holding d: none is nearer
         if best < 0:
             return -1
-        depth[p, best] = min(depth[p, best], d)
-        far[p, best] = max(far[p, best], d)
-        umbra[p, best] = min(umbra[p, best], um)
+        i, j = best >> LANE_BITS, best & LANE_MASK
+        depth[i, p, j] = min(depth[i, p, j], d)
+        far[i, p, j] = max(far[i, p, j], d)
+        umbra[i, p, j] = min(umbra[i, p, j], um)
         return -2
     a = -1
     b = -1
     gbest = np.inf
     for q in range(c):
-        if kinds[p, q] != TRIM:
+        i, j = q >> LANE_BITS, q & LANE_MASK
+        if kinds[i, p, j] != TRIM:
             continue
         for r in range(q + 1, c):
-            if kinds[p, r] == TRIM:
-                g = _gap(depth[p, q], far[p, q], depth[p, r], far[p, r])
+            k, m = r >> LANE_BITS, r & LANE_MASK
+            if kinds[k, p, m] == TRIM:
+                g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
                 if g < gbest:
                     gbest = g
                     a = q
                     b = r
     if a < 0:
         return -1
-    depth[p, a] = min(depth[p, a], depth[p, b])
-    far[p, a] = max(far[p, a], far[p, b])
-    umbra[p, a] = min(umbra[p, a], umbra[p, b])
+    i, j = a >> LANE_BITS, a & LANE_MASK
+    k, m = b >> LANE_BITS, b & LANE_MASK
+    depth[i, p, j] = min(depth[i, p, j], depth[k, p, m])
+    far[i, p, j] = max(far[i, p, j], far[k, p, m])
+    umbra[i, p, j] = min(umbra[i, p, j], umbra[k, p, m])
     return b
 
 
@@ -225,10 +234,10 @@ JOIN_TOL = 1e-3
 @njit(cache=True, nogil=True, inline="always")
 def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, overflow,
             vis):  # pragma: no cover - numba
-    """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``). A full
-    buffer merges trim fragments to make room (``_merge_trims``); one that cannot overflows:
-    it reports what it holds and everything that comes later (no occlusion there any
-    more)."""
+    """Append an entry to pixel p's k-buffer (the arrays of ``kbuffer.KBuffer``, entry q at
+    [q >> LANE_BITS, p, q & LANE_MASK]). A full buffer merges trim fragments to make room
+    (``_merge_trims``); one that cannot overflows: it reports what it holds and everything
+    that comes later (no occlusion there any more)."""
     if overflow[p]:
         if kind != TRIM:
             vis[ident] = 1
@@ -239,11 +248,12 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
         # chain, drawn one after another) joins it: the same merge as a full buffer's, within
         # a depth tolerance, so a pixel crossed by many strips of one object holds one entry.
         for q in range(c - 1, max(c - JOIN_LAST, 0) - 1, -1):
-            if (kinds[p, q] == TRIM and depth[p, q] * (1.0 - JOIN_TOL) <= d
-                    and d <= far[p, q] * (1.0 + JOIN_TOL)):
-                depth[p, q] = min(depth[p, q], d)
-                far[p, q] = max(far[p, q], d)
-                umbra[p, q] = min(umbra[p, q], um)
+            i, j = q >> LANE_BITS, q & LANE_MASK
+            if (kinds[i, p, j] == TRIM and depth[i, p, j] * (1.0 - JOIN_TOL) <= d
+                    and d <= far[i, p, j] * (1.0 + JOIN_TOL)):
+                depth[i, p, j] = min(depth[i, p, j], d)
+                far[i, p, j] = max(far[i, p, j], d)
+                umbra[i, p, j] = min(umbra[i, p, j], um)
                 return
     slot = c
     if c == K:
@@ -253,17 +263,19 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
         if slot < 0:
             overflow[p] = 1
             for q in range(c):
-                if kinds[p, q] != TRIM:
-                    vis[idents[p, q]] = 1
+                i, j = q >> LANE_BITS, q & LANE_MASK
+                if kinds[i, p, j] != TRIM:
+                    vis[idents[i, p, j]] = 1
             count[p] = 0
             if kind != TRIM:
                 vis[ident] = 1
             return
-    depth[p, slot] = d
-    kinds[p, slot] = kind
-    idents[p, slot] = ident
-    umbra[p, slot] = um
-    far[p, slot] = d
+    i, j = slot >> LANE_BITS, slot & LANE_MASK
+    depth[i, p, j] = d
+    kinds[i, p, j] = kind
+    idents[i, p, j] = ident
+    umbra[i, p, j] = um
+    far[i, p, j] = d
     if slot == c:
         count[p] = c + 1
 

@@ -36,7 +36,15 @@ from numba import njit, prange
 
 from visibility.borrow import NO_REFCOUNT
 from visibility.cancel import flag_set
-from visibility.cores.trim_regions.kbuffer import BACK, SEALED, TRIM, band_stride
+from visibility.cores.trim_regions.kbuffer import (
+    BACK,
+    LANE_BITS,
+    LANE_MASK,
+    SEALED,
+    TRIM,
+    K,
+    band_stride,
+)
 
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
 #: validation: trimming more only adds false positives).
@@ -44,11 +52,10 @@ DEPTH_TOL = 1e-3
 
 
 class SortScratch(NamedTuple):
-    """One thread's scratch for a pixel's sorted sequence of K entries: ``order`` (K,) int64
-    and the sorted depths ``sd`` (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32, umbrae
-    ``su`` (K,) and far ends of the trims' depth ranges ``sr`` (K,)."""
+    """One thread's scratch for a pixel's sorted sequence of K entries: the depths ``sd``
+    (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32, umbrae ``su`` (K,) and far ends of
+    the trims' depth ranges ``sr`` (K,)."""
 
-    order: np.ndarray
     sd: np.ndarray
     sk: np.ndarray
     si: np.ndarray
@@ -59,26 +66,21 @@ class SortScratch(NamedTuple):
 @njit(cache=True, nogil=True)
 def _scratch(k):  # pragma: no cover - numba
     """A ``SortScratch`` for k entries."""
-    return SortScratch(np.empty(k, dtype=np.int64), np.empty(k), np.empty(k, dtype=np.int8),
-                       np.empty(k, dtype=np.int32), np.empty(k), np.empty(k))
+    return SortScratch(np.empty(k), np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
+                       np.empty(k), np.empty(k))
 
 
 @njit(cache=True, nogil=True)
-def _sort(depth, kinds, idents, umbra, n, order):  # pragma: no cover - numba
-    """Insertion sort of the first n entries by (depth, kind) into ``order``."""
-    for i in range(n):
-        order[i] = i
+def _sort(sd, sk, si, su, sr, n):  # pragma: no cover - numba
+    """Stable insertion sort of the first n entries of the five arrays by (depth, kind)."""
     for i in range(1, n):
+        d, kd, ident, um, fr = sd[i], sk[i], si[i], su[i], sr[i]
         j = i
-        while j > 0:
-            a = order[j - 1]
-            b = order[j]
-            if depth[a] > depth[b] or (depth[a] == depth[b] and kinds[a] > kinds[b]):
-                order[j - 1] = b
-                order[j] = a
-                j -= 1
-            else:
-                break
+        while j > 0 and (sd[j - 1] > d or (sd[j - 1] == d and sk[j - 1] > kd)):
+            sd[j], sk[j], si[j], su[j], sr[j] = sd[j - 1], sk[j - 1], si[j - 1], su[j - 1], \
+                sr[j - 1]
+            j -= 1
+        sd[j], sk[j], si[j], su[j], sr[j] = d, kd, ident, um, fr
 
 
 @njit(cache=True, nogil=True)
@@ -109,8 +111,7 @@ def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
     that hid in an umbra since the last front face seen.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
-    k = kb.depth.shape[1]
-    return resolve_into(kb, closed, p, final, vis, stats, _scratch(k))
+    return resolve_into(kb, closed, p, final, vis, stats, _scratch(K))
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
@@ -121,15 +122,16 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
     far = kb.far
     cover, seal, spans, n_spans, first, hid = (kb.cover, kb.seal, kb.spans, kb.n_spans,
                                                kb.first, kb.hid)
-    order, sd, sk, si, su, sr = scratch
+    sd, sk, si, su, sr = scratch
     n = count[p]
-    _sort(depth[p], kinds[p], idents[p], umbra[p], n, order)
     for q in range(n):
-        sd[q] = depth[p, order[q]]
-        sk[q] = kinds[p, order[q]]
-        si[q] = idents[p, order[q]]
-        su[q] = umbra[p, order[q]]
-        sr[q] = far[p, order[q]]
+        i, j = q >> LANE_BITS, q & LANE_MASK
+        sd[q] = depth[i, p, j]
+        sk[q] = kinds[i, p, j]
+        si[q] = idents[i, p, j]
+        su[q] = umbra[i, p, j]
+        sr[q] = far[i, p, j]
+    _sort(sd, sk, si, su, sr, n)
     cov = cover[p]
     i = 0
     keep_from = n  # first surface entry of the carried run (n: none)
@@ -256,11 +258,12 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
         lim = -1.0
     for q in range(n):
         if (sk[q] == TRIM and sr[q] >= lim) or (sk[q] != TRIM and q >= keep_from):
-            depth[p, w] = sd[q]
-            kinds[p, w] = sk[q]
-            idents[p, w] = si[q]
-            umbra[p, w] = su[q]
-            far[p, w] = sr[q]
+            i, j = w >> LANE_BITS, w & LANE_MASK
+            depth[i, p, j] = sd[q]
+            kinds[i, p, j] = sk[q]
+            idents[i, p, j] = si[q]
+            umbra[i, p, j] = su[q]
+            far[i, p, j] = sr[q]
             w += 1
     count[p] = w
     return False
@@ -277,7 +280,6 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
     by the rasterizers) and adds the pixels resolved (the view's statistics, without a
     full-frame pass per layer)."""
     n_bands = (res + 7) // 8
-    k = kb.depth.shape[1]
     count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
     queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
     stride = band_stride(n_bands)
@@ -285,7 +287,7 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
         band = (j * stride) % n_bands
         if flag_set(stop):
             continue
-        scratch = _scratch(k)
+        scratch = _scratch(K)
         tally[band, 0] = held_entries[band]
         base = band * 8 * res
         n = min(res, band * 8 + 8) * res - base if final else queued[band]

@@ -100,15 +100,15 @@ def test_trim_rows_match_the_test_at_every_pixel(n):
             # Every fragment lies in the depth range of a held entry whose umbra is no deeper.
             merged += 1
             assert kb.count[p] == K
-            lo, hi, um = kb.depth[p], kb.far[p], kb.umbra[p]
+            _, lo, _, um, hi = kb.entries(p)
             for t, u in want[p]:
                 e = 1e-12 * t
                 assert ((lo <= t + e) & (t - e <= hi) & (um <= u * (1 + 1e-12))).any(), (t, u)
             continue
         assert kb.count[p] == len(held)
-        assert (kb.kind[p, :kb.count[p]] == TRIM).all()
-        got = list(zip(kb.depth[p, :kb.count[p]], kb.far[p, :kb.count[p]],
-                       kb.umbra[p, :kb.count[p]], strict=True))
+        kind, depth, _, umbra, far = kb.entries(p)
+        assert (kind == TRIM).all()
+        got = list(zip(depth, far, umbra, strict=True))
         assert np.allclose(got, held, rtol=1e-12) if held else not got
     assert (merged > 0) == (n > 60)
     assert joined > 0  # strips of edges sharing an end point meet at one depth there
@@ -144,12 +144,12 @@ def test_a_full_buffer_merges_the_two_trims_nearest_in_depth_for_a_surface():
                                                                   (TRIM, 50.5, 55.0)]
     vis = _fill(kb, trims + [(FRONT, 7.25, 0.0)])
     assert kb.overflow[0] == 0 and kb.count[0] == K and not vis.any()
-    n = kb.count[0]
-    k = int(np.flatnonzero(kb.kind[0, :n] == FRONT)[0])
-    assert kb.depth[0, k] == 7.25 and kb.ident[0, k] == K
+    kind, depth, ident, umbra, far = kb.entries(0)
+    k = int(np.flatnonzero(kind == FRONT)[0])
+    assert depth[k] == 7.25 and ident[k] == K
     # 50 and 50.5 were the nearest pair: one entry spans them with the nearer umbra.
-    j = int(np.flatnonzero((kb.kind[0, :n] == TRIM) & (kb.far[0, :n] > kb.depth[0, :n]))[0])
-    assert (kb.depth[0, j], kb.far[0, j], kb.umbra[0, j]) == (50.0, 50.5, 55.0)
+    j = int(np.flatnonzero((kind == TRIM) & (far > depth))[0])
+    assert (depth[j], far[j], umbra[j]) == (50.0, 50.5, 55.0)
 
 
 def test_a_trim_at_the_depth_of_a_recent_one_joins_it():
@@ -158,8 +158,8 @@ def test_a_trim_at_the_depth_of_a_recent_one_joins_it():
     kb = KBuffer.empty(1)
     _fill(kb, [(TRIM, 2.0, 9.0), (TRIM, 2.0 * (1 + 0.5 * JOIN_TOL), 4.0), (TRIM, 2.5, 8.0)])
     assert kb.count[0] == 2
-    assert (kb.depth[0, 0], kb.far[0, 0], kb.umbra[0, 0]) == (2.0, 2.0 * (1 + 0.5 * JOIN_TOL),
-                                                              4.0)
+    _, depth, _, umbra, far = kb.entries(0)
+    assert (depth[0], far[0], umbra[0]) == (2.0, 2.0 * (1 + 0.5 * JOIN_TOL), 4.0)
     # Only the last JOIN_LAST entries are looked at: an older one at that depth is not joined.
     kb = KBuffer.empty(1)
     _fill(kb, [(TRIM, 2.0, 9.0)] + [(TRIM, 3.0 + q, 9.0) for q in range(JOIN_LAST)]
@@ -174,10 +174,10 @@ def test_a_trim_at_the_depth_of_a_recent_one_joins_it():
 def test_a_trim_joins_the_held_trim_nearest_in_depth_when_the_buffer_is_full():
     kb = KBuffer.empty(1)
     _fill(kb, [(TRIM, 1.0 + q, 10.0 + q) for q in range(K)] + [(TRIM, 5.4, 7.0)])
-    n = kb.count[0]
-    assert kb.overflow[0] == 0 and n == K
-    j = int(np.flatnonzero(kb.depth[0, :n] == 5.0)[0])
-    assert (kb.far[0, j], kb.umbra[0, j]) == (5.4, 7.0)
+    assert kb.overflow[0] == 0 and kb.count[0] == K
+    _, depth, _, umbra, far = kb.entries(0)
+    j = int(np.flatnonzero(depth == 5.0)[0])
+    assert (far[j], umbra[j]) == (5.4, 7.0)
 
 
 def test_a_full_buffer_without_two_trims_overflows_and_reports_its_surfaces():

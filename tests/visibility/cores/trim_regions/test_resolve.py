@@ -16,8 +16,7 @@ def _resolve(entries, final=True, cover=0.0, closed=None):
     seal depth, cover after, entries left)."""
     kb = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(entries):
-        kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
-        kb.far[0, q] = d
+        kb.put(0, q, kind, d, ident, um)
     kb.count[0] = len(entries)
     kb.cover[0] = cover
     vis = np.zeros(16, dtype=np.uint8)
@@ -146,9 +145,7 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
     seq = [(FRONT, 2.0, 0, 0.0), (BACK, 2.5, 1, 0.0), (FRONT, 3.8, 2, 0.0), (BACK, 3.9, 3, 0.0),
            (FRONT, 5.0, 4, 0.0), (BACK, 6.0, 5, 0.0), (TRIM, 1.2, -1, 4.0)]
     for q, (kind, d, ident, um) in enumerate(seq):
-        kb.depth[0, q], kb.kind[0, q], kb.ident[0, q], kb.umbra[0, q] = d, kind, ident, um
-        kb.far[0, q] = d
-    kb.far[0, len(seq) - 1] = 3.5
+        kb.put(0, q, kind, d, ident, um, 3.5 if q == len(seq) - 1 else None)
     kb.count[0] = len(seq)
     vis = np.zeros(16, dtype=np.uint8)
     sealed = resolve_pixel(kb, np.full(16, -1, dtype=np.int64), 0, True, vis,
@@ -157,8 +154,7 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
     # Without the range (the trim at 1.2 only) the first box terminates the ray.
     kb2 = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(seq):
-        kb2.depth[0, q], kb2.kind[0, q], kb2.ident[0, q], kb2.umbra[0, q] = d, kind, ident, um
-        kb2.far[0, q] = d
+        kb2.put(0, q, kind, d, ident, um)
     kb2.count[0] = len(seq)
     vis2 = np.zeros(16, dtype=np.uint8)
     resolve_pixel(kb2, np.full(16, -1, dtype=np.int64), 0, True, vis2,
