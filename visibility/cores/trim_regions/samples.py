@@ -13,21 +13,28 @@ def open_depth(depth, res, s, k, out, far):  # pragma: no cover - numba
     ``depth`` (res * s, res * s) (a render's depths, row-major: pixel (i, j) holds rows
     [i s, (i + 1) s) and columns [j s, (j + 1) s)); ``out`` (res * res,) float64. ``far``
     (res * res,) gets the largest in the same pass, unless it is empty."""
+    # The k-th smallest of n samples is the (n - k)-th largest: only the n - k largest are
+    # kept, in descending order (three of sixteen at the pipeline's k), so most samples cost
+    # one comparison.
+    t = s * s - k
     for i in prange(res):
-        v = np.empty(s * s)
+        top = np.empty(t)
         for j in range(res):
             n = 0
             for a in range(s):
                 for b in range(s):
                     x = np.float64(depth[i * s + a, j * s + b])
-                    # Insertion into the sorted prefix: 16 samples, no call.
-                    m = n
-                    while m > 0 and v[m - 1] > x:
-                        v[m] = v[m - 1]
+                    if n < t:
+                        m = n
+                        n += 1
+                    elif x > top[t - 1]:
+                        m = t - 1
+                    else:
+                        continue
+                    while m > 0 and top[m - 1] < x:
+                        top[m] = top[m - 1]
                         m -= 1
-                    v[m] = x
-                    n += 1
-            out[i * res + j] = v[k]
+                    top[m] = x
+            out[i * res + j] = top[t - 1]
             if far.shape[0] > 0:
-                far[i * res + j] = v[s * s - 1]
-
+                far[i * res + j] = top[0]
