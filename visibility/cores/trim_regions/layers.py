@@ -50,12 +50,19 @@ def in_view(lo, hi, vstar, rot, tan, near):  # pragma: no cover - numba
     return out
 
 
-def leaf_layers(octree: Octree, frame: LeafFrame, view: View) -> tuple[np.ndarray, np.ndarray]:
+def drawn_leaves(frame: LeafFrame, view: View) -> np.ndarray:
+    """(L,) bool: the leaves that meet the frustum at v* (those ``view`` draws)."""
+    return in_view(frame.lo, frame.hi, view.vstar, view.rot, view.tan, view.near)
+
+
+def leaf_layers(octree: Octree, frame: LeafFrame, view: View,
+                drawn: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(layer (L,) int64, drawn (L,) bool) of every leaf for ``view``: layers from the
-    dependency queue at v*, drawn where the leaf meets the frustum at v*."""
+    dependency queue at v*, drawn where the leaf meets the frustum at v* (``drawn_leaves``,
+    unless the caller has it already)."""
     lay = layers(frame.lo, frame.hi, octree.nbr_start, octree.nbr_items, octree.nbr_face,
                  view.vstar)
-    return lay, in_view(frame.lo, frame.hi, view.vstar, view.rot, view.tan, view.near)
+    return lay, drawn_leaves(frame, view) if drawn is None else drawn
 
 
 def by_layer(layer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

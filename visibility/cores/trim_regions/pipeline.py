@@ -32,6 +32,7 @@ from visibility.cores.trim_regions.kbuffer import K, KBuffer
 from visibility.cores.trim_regions.layers import (
     LeafFrame,
     by_layer,
+    drawn_leaves,
     in_view,
     leaf_frame,
     leaf_layers,
@@ -259,17 +260,18 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                 continue
             # The views with most to draw first: the last to finish then gets the threads
             # of the workers that ran out of views (``crew``).
-            views = sorted(views, key=lambda v: -int(counts[in_view(
-                frame.lo, frame.hi, v.vstar, v.rot, v.tan, v.near)].sum()))
+            drawn = [drawn_leaves(frame, v) for v in views]
+            order = sorted(range(len(views)), key=lambda k: -int(counts[drawn[k]].sum()))
             crew.queue(len(views))
             # Two spheres in flight at most: each holds its ``near`` marks (one byte per
             # triangle) until its views are done.
             while len(in_flight) >= 2:
                 for f in in_flight.popleft():
                     _merge(stats, f.result())
-            in_flight.append([pool.submit(contextvars.copy_context().run, _view_task, view,
-                                          near, ambiguous, shared, hulls, free, crew)
-                              for view in views])
+            in_flight.append([pool.submit(contextvars.copy_context().run, _view_task,
+                                          views[k], near, ambiguous, shared, hulls, free, crew,
+                                          drawn[k])
+                              for k in order])
         while in_flight:
             for f in in_flight.popleft():
                 _merge(stats, f.result())
@@ -315,10 +317,11 @@ def _view_workers() -> int:
 
 def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tuple,
                hulls: tuple | None, free: queue.SimpleQueue,
-               crew: Crew | None = None) -> dict[str, Any]:
+               crew: Crew | None = None, drawn: np.ndarray | None = None) -> dict[str, Any]:
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
     stats it adds (``VIEW_STATS``). With a ``crew`` (views on worker threads), the view
-    takes the numba threads it lends between layers."""
+    takes the numba threads it lends between layers; ``drawn``: its leaves in the frustum
+    (``layers.drawn_leaves``), when the caller has them."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb, scratch = free.get()
@@ -327,7 +330,7 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
     try:
         checkpoint()
         _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
-                    margin_px, footprints, centre, hier, small, crew, scratch)
+                    margin_px, footprints, centre, hier, small, crew, scratch, drawn)
         if hulls is not None:
             t = time.perf_counter()
             _test_hulls(view, *hulls, kb, scratch)
@@ -384,7 +387,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
                 centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
                 small: str = "centres", crew: Crew | None = None,
-                scratch: Scratch | None = None) -> None:
+                scratch: Scratch | None = None, drawn: np.ndarray | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
@@ -394,7 +397,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     faces = data.faces
     t0 = time.perf_counter()
     octree = data.octree
-    layer, drawn = leaf_layers(octree, frame, view)
+    layer, drawn = leaf_layers(octree, frame, view, drawn)
     t1 = time.perf_counter()
     cam = to_camera(verts, view.vstar, view.rot)
     s = len(data.static)

@@ -12,7 +12,7 @@ def open_depth(depth, res, s, k, out, far):  # pragma: no cover - numba
     """out[i * res + j] = the k-th smallest (0-based) of the s x s samples of pixel (i, j) in
     ``depth`` (res * s, res * s) (a render's depths, row-major: pixel (i, j) holds rows
     [i s, (i + 1) s) and columns [j s, (j + 1) s)); ``out`` (res * res,) float64. ``far``
-    (res * res,) gets the largest in the same pass, unless it is empty."""
+    (res * res,) gets the largest in the same pass, unless it is empty. 0 <= k < s * s."""
     # The k-th smallest of n samples is the (n - k)-th largest: only the n - k largest are
     # kept, in descending order (three of sixteen at the pipeline's k), so most samples cost
     # one comparison.
