@@ -65,8 +65,9 @@ def _as_permutations(rots: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np
     if not np.array_equal(signs[..., None] * base[axes], rots):
         raise ValueError("every view must be a signed permutation of the base rotation")
     return axes.astype(np.int64), signs.astype(np.float64)
-#: A depth pyramid: flat storage (F, size) and its level layout.
-Pyramid = namedtuple("Pyramid", "hz heights widths offsets")
+#: A depth pyramid: level 0, the views' inverse depths (F, H, W); the levels above in flat
+#: storage (F, size); their layout.
+Pyramid = namedtuple("Pyramid", "invd hz heights widths offsets")
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -159,7 +160,8 @@ def _box_hidden(boxes, node, views, pyr):  # pragma: no cover - numba
         py0, py1 = _centre_range(sy0, sy1, views.height)
         if px0 > px1 or py0 > py1:
             continue  # between pixel centres: covers none
-        m = rect_min(pyr.hz, k, pyr.heights, pyr.widths, pyr.offsets, px0, px1, py0, py1)
+        m = rect_min(pyr.invd, pyr.hz, k, pyr.heights, pyr.widths, pyr.offsets, px0, px1,
+                     py0, py1)
         if not m > (1.0 / zmin) * (1.0 + DEPTH_MARGIN):
             return False
     return True
@@ -387,8 +389,8 @@ def _bin(v, faces, sel, views, pyr, cube, out, box):  # pragma: no cover - numba
             py0, py1 = _centre_range(min(y0, y1, y2), max(y0, y1, y2), height)
             if px0 <= px1 and py0 <= py1:
                 # Depth is affine over the triangle: its nearest point is a corner.
-                m = rect_min(pyr.hz, h0, pyr.heights, pyr.widths, pyr.offsets, px0, px1,
-                             py0, py1)
+                m = rect_min(pyr.invd, pyr.hz, h0, pyr.heights, pyr.widths, pyr.offsets, px0,
+                             px1, py0, py1)
                 if m > (1.0 / min(w0, w1, w2)) * (1.0 + DEPTH_MARGIN):
                     hidden += 1
                     continue
@@ -473,9 +475,9 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     tree = Tree(hierarchy.boxes, hierarchy.order, int(hierarchy.leaf_size),
                 int(hierarchy.n_leaf_slots))
     layout = PyramidLayout.of(height, width)
-    pyr = Pyramid(layout.empty(n_views), layout.heights, layout.widths, layout.offsets)
     invd = _scratch("cull_invd", (n_views, height, width), np.float64)
     invd.fill(0.0)
+    pyr = Pyramid(invd, layout.empty(n_views), layout.heights, layout.widths, layout.offsets)
     idbuf = np.full((n_views, height, width), -1, dtype=np.int32)
     n_workers = raster_workers(height)
     counts = np.zeros((n_workers, 2), dtype=np.int64)
