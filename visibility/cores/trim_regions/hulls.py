@@ -234,6 +234,35 @@ def _width(poly, npoly, i):  # pragma: no cover - numba
     return abs(a) / np.sqrt(e) if e > 0.0 else 0.0
 
 
+#: Side of the tiles (pixels, as a shift) over which ``small_in_front`` keeps the farthest seal.
+TILE_SHIFT = 3
+
+
+@njit(cache=True, nogil=True)
+def _tile_farthest(seal, res):  # pragma: no cover - numba
+    """(tiles, tiles) the farthest ``seal`` (res * res,) depth in each tile of
+    2 ** ``TILE_SHIFT`` pixels a side."""
+    nt = (res + (1 << TILE_SHIFT) - 1) >> TILE_SHIFT
+    out = np.full((nt, nt), -np.inf)
+    for y in range(res):
+        ty = y >> TILE_SHIFT
+        for x in range(res):
+            tx = x >> TILE_SHIFT
+            out[ty, tx] = max(out[ty, tx], seal[y * res + x])
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box_farthest(farthest, x0, x1, y0, y1):  # pragma: no cover - numba
+    """The farthest seal over pixels [x0, x1) x [y0, y1) (non-empty), read per tile (so
+    never nearer than the exact one)."""
+    m = -np.inf
+    for ty in range(y0 >> TILE_SHIFT, ((y1 - 1) >> TILE_SHIFT) + 1):
+        for tx in range(x0 >> TILE_SHIFT, ((x1 - 1) >> TILE_SHIFT) + 1):
+            m = max(m, farthest[ty, tx])
+    return m
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, tol,
                    vis):  # pragma: no cover - numba
@@ -246,6 +275,7 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
     visible had the triangle covered it. A triangle behind a trimmed occluder that covers no
     pixel centre (clutter under a pixel, a sliver seen edge-on from v*) is otherwise never
     tested, though the eyes of the sphere see it where the trims reveal it."""
+    farthest = _tile_farthest(seal, res)
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
@@ -254,6 +284,10 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
             continue
         zmin = _nearest_depth(poly, npoly, i)
         x0, x1, y0, y1 = _grown_box(box, i, res)
+        # Behind the seal at every pixel of its box: no square can pass (a hidden wall's
+        # triangle would otherwise test each pixel it spans).
+        if x0 >= x1 or y0 >= y1 or zmin >= _box_farthest(farthest, x0, x1, y0, y1):
+            continue
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:

@@ -9,6 +9,7 @@ import numpy as np
 from visibility.cores.trim_regions.hulls import (
     COPLANAR_TOL,
     small_in_front,
+    touching_in_front,
     touching_samples,
 )
 from visibility.cores.trim_regions.kbuffer import SPANS
@@ -102,3 +103,23 @@ def test_a_sliver_counts_as_thin_a_wide_triangle_does_not():
     assert _behind(*_setup(sliver, 3.5), np.inf, [(2.0, 3.0)]) == 1
     large = [(1.0, 1.0), (14.0, 1.0), (1.0, 14.0)]  # meets pixel centres itself
     assert _behind(*_setup(large, 3.5), np.inf, [(2.0, 3.0)]) == 0
+
+
+def _in_front(poly, npoly, box, first):
+    vis = np.zeros(1, dtype=np.uint8)
+    touching_in_front(poly, npoly, box, np.zeros(1, dtype=np.int64), first.reshape(-1), RES,
+                      vis)
+    return int(vis[0])
+
+
+def test_a_large_triangle_is_found_through_one_open_pixel_of_its_box_and_only_there():
+    # The per-tile farthest seal spares the pixel tests of a triangle hidden over its whole
+    # box; one pixel that opens past it, in the tile at the far corner of the box, or just
+    # outside the triangle but within the pixel its square touches, must still find it.
+    large = [(0.6, 0.6), (15.4, 0.6), (0.6, 15.4)]
+    first = np.full((RES, RES), 2.0)
+    assert _in_front(*_setup(large, 3.0), first) == 0
+    for y, x, seen in ((14, 1, 1), (1, 14, 1), (7, 7, 1), (9, 9, 0), (15, 15, 0)):
+        opened = first.copy()
+        opened[y, x] = np.inf
+        assert _in_front(*_setup(large, 3.0), opened) == seen, (y, x)
