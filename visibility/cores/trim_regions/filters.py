@@ -85,3 +85,15 @@ def plane_holds_box(verts, faces, ids, box, out):  # pragma: no cover - numba
                 holds = False
                 break
         out[i] = holds
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def planes_near(normals, plane, q, half, radius, out):  # pragma: no cover - numba
+    """out[i] = True where the plane of row i (``normals`` (s, 3) unit, ``plane`` (s,)
+    offsets: n . x = plane) passes within the box of half sides ``half`` (3,) around ``q``
+    (3,) grown by ``radius`` metres: |n . q - plane| <= |n| . half + radius. (No BLAS: a
+    threaded matrix-vector product leaves its threads spinning beside the view workers.)"""
+    for i in prange(normals.shape[0]):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        off = abs(nx * q[0] + ny * q[1] + nz * q[2] - plane[i])
+        out[i] = off <= abs(nx) * half[0] + abs(ny) * half[1] + abs(nz) * half[2] + radius

@@ -17,7 +17,7 @@ import numpy as np
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.trim_regions.cache import SceneData
 from visibility.cores.trim_regions.crew import Crew
-from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box
+from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box, planes_near
 from visibility.cores.trim_regions.frustum import View, cover_box, sphere_views
 from visibility.cores.trim_regions.hulls import (
     BOX_FACES,
@@ -205,8 +205,9 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     # surface a pixel sees (moving hulls are tested against seals and hidden spans).
     open_only = (hull_ids < m) & ~np.isin(hull_ids, data.moving)
     # Static triangles whose plane passes through the box (tested per sphere below).
-    through_box = (np.abs(data.normals @ centre - data.plane)
-                   <= np.abs(data.normals) @ (0.5 * (box[1] - box[0])))
+    through_box = np.empty(len(data.plane), dtype=np.bool_)
+    planes_near(data.normals, data.plane, centre, 0.5 * (box[1] - box[0]), 0.0, through_box)
+    near_plane = np.empty_like(through_box)
     # v*'s renders (``_sample_from_vstar``) draw through the scene's hierarchy, frustum and
     # occlusion culled, when it is there (a small scene's is built now, as cos does).
     hier = ready_hierarchy(scene)
@@ -246,9 +247,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
             near_all |= near
             stats["near_eye"] += int(near.sum())
             # Planes through the eyes this sphere answers for: those of the sphere in the box.
-            ambiguous = data.static[through_box
-                                    & (np.abs(data.normals @ (v0 + centre) - data.plane)
-                                       <= delta)]
+            planes_near(data.normals, data.plane, v0 + centre, np.zeros(3), delta, near_plane)
+            ambiguous = data.static[through_box & near_plane]
             hit = np.all((hull_boxes[:, 0] <= v0 + delta) & (hull_boxes[:, 1] >= v0 - delta),
                          axis=1)
             seen_hull[hit] = 1

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box
+from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box, planes_near
 
 
 def _grazing_numpy(t, normals, plane, centres, delta, px):
@@ -60,3 +60,18 @@ def test_plane_holds_box_drops_only_planes_through_the_whole_cell():
     assert not out.any()
     plane_holds_box(verts, faces, ids, flat, out)
     assert out.tolist() == [True, False, False]
+
+
+def test_planes_near_matches_its_definition_for_boxes_and_spheres():
+    gen = np.random.default_rng(7)
+    normals = gen.normal(size=(2000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    plane = gen.uniform(-2.0, 2.0, 2000)
+    q, half = gen.uniform(-1.0, 1.0, 3), np.array([0.3, 0.1, 0.5])
+    out = np.empty(2000, dtype=bool)
+    planes_near(normals, plane, q, half, 0.0, out)
+    box = np.abs(normals @ q - plane) <= np.abs(normals) @ half
+    assert np.array_equal(out, box) and 0 < box.sum() < 2000
+    planes_near(normals, plane, q, np.zeros(3), 0.4, out)
+    sphere = np.abs(normals @ q - plane) <= 0.4
+    assert np.array_equal(out, sphere) and 0 < sphere.sum() < 2000
