@@ -54,6 +54,7 @@ from visibility.cores.trim_regions.silhouettes import (
     silhouette_trims,
 )
 from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_rows
+from visibility.cores.trim_regions.warm import WARM
 from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
@@ -152,7 +153,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     stats : seconds per phase (``p0_layers`` ... ``p4_gather``; summed over the views, which
         run ``view_workers`` at a time on their own threads, so they can add up to more than
         the wall time), ``view_workers``, ``spheres``, ``delta``,
-        ``views``, ``layers`` (drawn, summed over views), ``kbuffer_allocated_bytes``,
+        ``views``, ``layers`` (drawn, summed over views), ``buffers_reused`` (view workers
+        that took the buffers a computation before left, ``warm``), ``kbuffer_allocated_bytes``,
         ``kbuffer_used_bytes`` (most entries held at once), ``active_pixels`` (pixels that
         held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
         resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
@@ -215,10 +217,12 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         hier = scene_hierarchy(scene)
     workers = _view_workers()
     free: queue.SimpleQueue[tuple[KBuffer, Scratch]] = queue.SimpleQueue()
-    kbs = [KBuffer.empty(int(resolution) ** 2) for _ in range(workers)]
-    for kb in kbs:
-        free.put((kb, Scratch()))
-    stats["kbuffer_allocated_bytes"] = sum(kb.allocated_bytes for kb in kbs)
+    # Buffers of the previous computation when it ended moments ago (``warm``): fresh ones
+    # cost their first-touch page faults.
+    pairs, stats["buffers_reused"] = WARM.take(int(resolution) ** 2, workers)
+    for pair in pairs:
+        free.put(pair)
+    stats["kbuffer_allocated_bytes"] = sum(kb.allocated_bytes for kb, _ in pairs)
     stats["near_eye"] = 0
     stats["view_workers"] = workers
     stats["p1_geometry"] += time.perf_counter() - t0
@@ -278,6 +282,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+        WARM.give(pairs)
     checkpoint()
     vis |= near_all
     t = time.perf_counter()

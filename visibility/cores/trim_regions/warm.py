@@ -1,0 +1,76 @@
+"""Per-view buffers kept warm between computations for a few seconds.
+
+A view worker holds a k-buffer (``kbuffer.KBuffer``) and the set-up scratch of its views
+(``visibility.scratch.Scratch``: a polygon, a box and a facing flag per static triangle, over
+a hundred megabytes on a million-triangle scene). Fresh ones cost their first-touch page
+faults at every computation: the kernel zeroes each page the views write, which on the 1M
+kitchen took as much CPU as the surface rasterization. A server computing a walker's cells
+runs computations back to back, so the buffers of one that ends are kept for the next, and
+released once no computation has taken them for ``KEEP_SECONDS``: memory held while the
+core is in use, given back when it is idle.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from visibility.cores.trim_regions.kbuffer import KBuffer
+from visibility.scratch import Scratch
+
+#: Seconds the buffers of a finished computation wait for the next one before they go.
+KEEP_SECONDS = 5.0
+#: Most buffer pairs kept (two computations of two workers side by side).
+MAX_KEPT = 4
+
+
+class WarmBuffers:
+    """(k-buffer, scratch) pairs handed to computations and kept after them (see the module
+    docstring). Thread-safe: computations running side by side each take their own pairs."""
+
+    def __init__(self, keep_seconds: float = KEEP_SECONDS, max_kept: int = MAX_KEPT) -> None:
+        self.keep_seconds = float(keep_seconds)
+        self.max_kept = int(max_kept)
+        self._lock = threading.Lock()
+        self._kept: list[tuple[KBuffer, Scratch]] = []
+        self._timer: threading.Timer | None = None
+
+    def take(self, pixels: int, count: int) -> tuple[list[tuple[KBuffer, Scratch]], int]:
+        """``count`` pairs for views of ``pixels`` pixels: kept ones first (those of another
+        size are dropped), fresh ones for the rest. Returns (pairs, how many were kept)."""
+        with self._lock:
+            self._kept = [p for p in self._kept if len(p[0].count) == pixels]
+            reused = self._kept[:count]
+            del self._kept[:count]
+        fresh = [(KBuffer.empty(pixels), Scratch()) for _ in range(count - len(reused))]
+        return reused + fresh, len(reused)
+
+    def give(self, pairs: list[tuple[KBuffer, Scratch]]) -> None:
+        """Keep ``pairs`` (up to ``max_kept`` in all) for the next computation, and release
+        them all once ``keep_seconds`` pass with no other call of ``give``."""
+        if self.keep_seconds <= 0.0:
+            return
+        with self._lock:
+            self._kept = (list(pairs) + self._kept)[:self.max_kept]
+            if self._timer is not None:
+                self._timer.cancel()
+            self._timer = threading.Timer(self.keep_seconds, self.release)
+            self._timer.daemon = True
+            self._timer.start()
+
+    def release(self) -> None:
+        """Drop every kept pair: their memory goes back."""
+        with self._lock:
+            self._kept = []
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+
+    @property
+    def kept(self) -> int:
+        """Pairs held now."""
+        with self._lock:
+            return len(self._kept)
+
+
+#: The buffers every trim_regions computation of this process shares.
+WARM = WarmBuffers()
