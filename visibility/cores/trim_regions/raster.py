@@ -280,6 +280,29 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
         count[p] = c + 1
 
 
+@njit(cache=True, nogil=True)
+def band_lists(ylo, yhi, n_bands):  # pragma: no cover - numba
+    """The items each band of 8 pixel rows meets, as lists: item q spans rows [ylo[q],
+    yhi[q]) (empty when yhi <= ylo). Returns (start (n_bands + 1,), items): band b's items,
+    in increasing q, are items[start[b]:start[b + 1]]. The rasterizers' bands then visit
+    only what reaches them, where each visited every item of the layer."""
+    start = np.zeros(n_bands + 1, dtype=np.int64)
+    for q in range(ylo.shape[0]):
+        if yhi[q] > ylo[q]:
+            for b in range(ylo[q] >> 3, ((yhi[q] - 1) >> 3) + 1):
+                start[b + 1] += 1
+    for b in range(n_bands):
+        start[b + 1] += start[b]
+    items = np.empty(start[n_bands], dtype=np.int64)
+    fill = start[:n_bands].copy()
+    for q in range(ylo.shape[0]):
+        if yhi[q] > ylo[q]:
+            for b in range(ylo[q] >> 3, ((yhi[q] - 1) >> 3) + 1):
+                items[fill[b]] = q
+                fill[b] += 1
+    return start, items
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                     stop):  # pragma: no cover - numba
@@ -303,16 +326,23 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     n_bands = (res + 7) // 8
     half = 0.5 * res
     stride = band_stride(n_bands)
+    n_inst = inst_row.shape[0]
+    ylo = np.empty(n_inst, dtype=np.int64)
+    yhi = np.empty(n_inst, dtype=np.int64)
+    for q in range(n_inst):
+        i = inst_row[q]
+        ylo[q] = max(0, box[i, 2])
+        yhi[q] = min(res, box[i, 3]) if box[i, 1] > box[i, 0] else ylo[q]
+    start, items = band_lists(ylo, yhi, n_bands)
     for j in prange(n_bands):
         band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         r0 = band * 8
         r1 = min(res, r0 + 8)
-        for q in range(inst_row.shape[0]):
+        for k in range(start[band], start[band + 1]):
+            q = items[k]
             i = inst_row[q]
-            if box[i, 3] <= r0 or box[i, 2] >= r1 or box[i, 1] <= box[i, 0]:
-                continue
             kind = FRONT if facing[i] > 0 else BACK
             leaf = inst_leaf[q]
             tol = 1e-6 * (leaf_hi[leaf, 0] - leaf_lo[leaf, 0])
@@ -402,30 +432,40 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     n_bands = (res + 7) // 8
     half = 0.5 * res
     stride = band_stride(n_bands)
+    # Pixel box of each region: the edge widened by the larger width on every side.
+    n_trims = trims.shape[0]
+    ylo = np.empty(n_trims, dtype=np.int64)
+    yhi = np.empty(n_trims, dtype=np.int64)
+    xlo = np.empty(n_trims, dtype=np.int64)
+    xhi = np.empty(n_trims, dtype=np.int64)
+    for q in range(n_trims):
+        u0, v0, u1, v1 = trims[q, 4], trims[q, 5], trims[q, 6], trims[q, 7]
+        wmax = max(trims[q, 10], trims[q, 11])
+        vlo = min(v0, v1) - wmax - margin
+        vhi = max(v0, v1) + wmax + margin
+        ylo[q] = max(0, int(np.floor((1.0 - vhi / tan) * half)))
+        yhi[q] = min(res, int(np.ceil((1.0 - vlo / tan) * half)) + 1)
+        xlo[q] = max(0, int(np.floor(((min(u0, u1) - wmax - margin) / tan + 1.0) * half)))
+        xhi[q] = min(res, int(np.ceil(((max(u0, u1) + wmax + margin) / tan + 1.0) * half)) + 1)
+        if xlo[q] >= xhi[q]:
+            yhi[q] = ylo[q]
+    start, items = band_lists(ylo, yhi, n_bands)
     for j in prange(n_bands):
         band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         r0 = band * 8
         r1 = min(res, r0 + 8)
-        for q in range(trims.shape[0]):
+        for k in range(start[band], start[band + 1]):
+            q = items[k]
             nx, ny, nz, side = trims[q, 0], trims[q, 1], trims[q, 2], trims[q, 3]
             u0, v0, u1, v1 = trims[q, 4], trims[q, 5], trims[q, 6], trims[q, 7]
             iz0, iz1, w0, w1 = trims[q, 8], trims[q, 9], trims[q, 10], trims[q, 11]
             wmax = max(w0, w1)
-            # Pixel box of the region: the edge widened by the larger width on every side.
-            ulo = min(u0, u1) - wmax - margin
-            uhi = max(u0, u1) + wmax + margin
-            vlo = min(v0, v1) - wmax - margin
-            vhi = max(v0, v1) + wmax + margin
-            ya = max(r0, int(np.floor((1.0 - vhi / tan) * half)))
-            yb = min(r1, int(np.ceil((1.0 - vlo / tan) * half)) + 1)
-            if ya >= yb:
-                continue
-            xa = max(0, int(np.floor((ulo / tan + 1.0) * half)))
-            xb = min(res, int(np.ceil((uhi / tan + 1.0) * half)) + 1)
-            if xa >= xb:
-                continue
+            ya = max(r0, ylo[q])
+            yb = min(r1, yhi[q])
+            xa = xlo[q]
+            xb = xhi[q]
             nl = np.sqrt(nx * nx + ny * ny)
             if nl == 0.0:
                 continue

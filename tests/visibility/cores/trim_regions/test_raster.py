@@ -13,6 +13,7 @@ from visibility.cores.trim_regions.raster import (
     JOIN_TOL,
     _affine_range,
     _insert,
+    band_lists,
     raster_trims,
 )
 
@@ -186,3 +187,17 @@ def test_a_full_buffer_without_two_trims_overflows_and_reports_its_surfaces():
     vis = _fill(kb, entries + [(TRIM, 3.5, 9.0), (FRONT, 99.0, 0.0)])
     assert kb.overflow[0] == 1 and kb.count[0] == 0
     assert vis[:K].all() and vis[K + 1]  # every surface held, and the one after, is reported
+
+
+def test_band_lists_hold_each_item_in_every_band_its_rows_meet_in_order():
+    rng = np.random.default_rng(3)
+    n_bands = 9
+    ylo = rng.integers(-3, 72, 400)
+    yhi = ylo + rng.integers(-2, 30, 400)
+    ylo, yhi = np.clip(ylo, 0, 72), np.clip(yhi, 0, 72)
+    start, items = band_lists(ylo, yhi, n_bands)
+    for b in range(n_bands):
+        want = [q for q in range(400) if yhi[q] > ylo[q] and ylo[q] < 8 * b + 8
+                and yhi[q] > 8 * b]
+        assert items[start[b]:start[b + 1]].tolist() == want
+    assert start[-1] == len(items)
