@@ -83,11 +83,11 @@ def near_sphere(verts, faces, rows, centre, radius, vis):  # pragma: no cover - 
 
 def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(k, 8, 3) corners of k boxes [lo, hi] (k, 3) each."""
-    out = np.empty((len(lo), 8, 3))
-    for c in range(8):
-        for a in range(3):
-            out[:, c, a] = hi[:, a] if (c >> a) & 1 else lo[:, a]
-    return out
+    return np.where(_CORNER_BITS, hi[:, None, :], lo[:, None, :])
+
+
+#: (8, 3) whether corner c takes the box's high end along axis a: bit a of c.
+_CORNER_BITS = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1 == 1
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -53,7 +53,7 @@ from visibility.cores.trim_regions.silhouettes import (
     TRIM_MARGIN_PX,
     silhouette_trims,
 )
-from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_rows
+from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_instances, drawn_rows
 from visibility.cores.trim_regions.warm import WARM
 from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
@@ -430,10 +430,12 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
         view.delta, view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
         octree.leaf_of_cell, layer)
-    keep = drawn[frame.item_leaf] & (npoly[item_rows] > 0) & (near[data.octree.tri_items] == 0)
-    inst = np.flatnonzero(keep)
-    inst_order, inst_layers, inst_starts = by_layer(layer[frame.item_leaf[inst]])
-    inst = inst[inst_order]
+    inst = scratch.array("inst", len(item_rows), np.int64)
+    inst_layer = scratch.array("inst_layer", len(item_rows), np.int64)
+    k = drawn_instances(drawn, frame.item_leaf, item_rows, data.octree.tri_items, npoly, near,
+                        layer, inst, inst_layer)
+    inst_order, inst_layers, inst_starts = by_layer(inst_layer[:k])
+    inst = inst[:k][inst_order]
     inst_row = np.ascontiguousarray(item_rows[inst])
     inst_leaf = np.ascontiguousarray(frame.item_leaf[inst])
     trim_order, trim_layers, trim_starts = by_layer(trim_layer)

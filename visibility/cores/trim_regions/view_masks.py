@@ -41,3 +41,22 @@ def drawn_edges(static, need, facing, ambiguous, ambiguous_code, edge_face, faci
         f0 = edge_face[k, 0]
         f1 = edge_face[k, 1]
         edge_on[k] = (f0 >= 0 and drawn_id[f0]) or (f1 >= 0 and drawn_id[f1])
+
+
+@njit(cache=True, nogil=True)
+def drawn_instances(drawn, item_leaf, item_rows, tri_items, npoly, near, layer, out_item,
+                    out_layer):  # pragma: no cover - numba
+    """The octree items a view rasterizes, in one pass: those whose leaf is ``drawn``, whose
+    static row ``item_rows`` has a polygon (``npoly`` > 0 after the near clip) and whose
+    triangle ``tri_items`` is not ``near`` the sphere (never an occluder for it). Writes their
+    indices (ascending) to ``out_item`` and their leaves' ``layer`` to ``out_layer``, both
+    (k,) int64; returns how many."""
+    n = 0
+    for j in range(item_leaf.shape[0]):
+        leaf = item_leaf[j]
+        r = item_rows[j]
+        if drawn[leaf] and r >= 0 and npoly[r] > 0 and near[tri_items[j]] == 0:
+            out_item[n] = j
+            out_layer[n] = layer[leaf]
+            n += 1
+    return n

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from visibility.cores.trim_regions.silhouettes import AMBIGUOUS
-from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_rows
+from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_instances, drawn_rows
 
 
 def test_masks_match_their_numpy_definitions():
@@ -41,3 +41,23 @@ def test_masks_match_their_numpy_definitions():
         (f[:, 1] >= 0) & drawn_id[np.maximum(f[:, 1], 0)])
     np.testing.assert_array_equal(edge_on, want_on)
     assert 0 < edge_on.sum() < n_edges
+
+
+def test_drawn_instances_match_their_numpy_definition():
+    rng = np.random.default_rng(5)
+    leaves, rows, items = 40, 300, 900
+    drawn = rng.random(leaves) < 0.5
+    item_leaf = rng.integers(0, leaves, items)
+    item_rows = rng.integers(0, rows, items)
+    tri_items = item_rows * 2  # the triangle ids of the rows
+    npoly = rng.integers(0, 4, rows) * (rng.random(rows) < 0.7)
+    near = (rng.random(2 * rows) < 0.1).astype(np.uint8)
+    layer = rng.integers(0, 9, leaves)
+    out_item = np.empty(items, dtype=np.int64)
+    out_layer = np.empty(items, dtype=np.int64)
+    k = drawn_instances(drawn, item_leaf, item_rows, tri_items, npoly, near, layer, out_item,
+                        out_layer)
+    want = np.flatnonzero(drawn[item_leaf] & (npoly[item_rows] > 0) & (near[tri_items] == 0))
+    assert 0 < k < items
+    assert np.array_equal(out_item[:k], want)
+    assert np.array_equal(out_layer[:k], layer[item_leaf[want]])
