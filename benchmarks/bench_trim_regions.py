@@ -89,9 +89,9 @@ def sphere_cell(scene: Scene, delta: float, which: int) -> np.ndarray:
 def timed(core: Any, scene: Scene, box: np.ndarray,
           **params: Any) -> tuple[Any, Any, float]:
     """(best of 2 runs, the first run that built the octree and compiled, cold seconds).
-    The 2 runs
-    follow another at once, as a walker's cells do, so they find the per-view buffers warm
-    (``trim_regions.warm``); ``cold_seconds`` times one run after they were released."""
+    The 2 runs follow one another at once, as a walker's cells do, so they find the per-view
+    buffers warm (``trim_regions.warm``); the cold seconds time one run after they were
+    released."""
     p = core.make_params(**params)
     first = core.compute(scene, Viewcell(box), p)
     runs = [core.compute(scene, Viewcell(box), p) for _ in range(2)]
@@ -102,6 +102,7 @@ def timed(core: Any, scene: Scene, box: np.ndarray,
 
 def speed(quick: bool) -> list[dict[str, Any]]:
     core = get_core("trim_regions")
+    sampling = get_core("sampling")
     rows = []
     cases = [("village", 20_000 if quick else 100_000)] + ([] if quick else [("kitchen", None)])
     for name, n in cases:
@@ -109,9 +110,12 @@ def speed(quick: bool) -> list[dict[str, Any]]:
         for delta in SPEED_DELTAS:
             box = sphere_cell(scene, delta, 0)
             pvs, first, cold = timed(core, scene, box, max_delta=delta)
+            # ``sampling`` at its defaults on the same cube, for scale (best of 2 likewise).
+            beside, _, _ = timed(sampling, scene, box)
             st = pvs.stats
             rows.append({"scene": name, "triangles": scene.n_triangles, "delta": delta,
                          "seconds": pvs.seconds, "cold_seconds": cold,
+                         "sampling_seconds": beside.seconds, "sampling_pvs": len(beside),
                          **{k: st[k] for k in PHASES},
                          "layers": st["layers"], "pvs": len(pvs),
                          "octree_leaves": st["octree_leaves"],
@@ -372,16 +376,18 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
            "RTX 4090. The timed runs follow one another, as a walker's cells do, and reuse "
            "the per-view buffers the run before left (kept 5 s, `trim_regions.warm`); cold s: "
            "one run after they were released (the first cell after a pause pays their page "
-           "faults).", "",
+           "faults). Sampling: the `sampling` core at its defaults on the same cube in the same "
+           "run (best of 2 after a warm-up), its seconds and PVS, for scale.", "",
            "| scene | triangles | Δ m | s | cold s | P0 | P1 | P2 | P3 | P4 | × paper | layers "
-           "| PVS | active px | seq. length | k-buffer MB alloc / used | overflow px | octree "
-           "leaves / build s |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "| PVS | sampling s | sampling PVS | active px | seq. length | k-buffer MB alloc / "
+           "used | overflow px | octree leaves / build s |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in speed_rows:
         ratio = f"{1000 * r['seconds'] / PAPER_MS[1]:.0f}-{1000 * r['seconds'] / PAPER_MS[0]:.0f}"
         out.append(f"| {r['scene']} | {r['triangles']:,} | {r['delta']} | {r['seconds']:.2f} | "
                    f"{r['cold_seconds']:.2f} | " + " | ".join(f"{v:.2f}" for v in wall_phases(r))
-                   + f" | {ratio} | {r['layers']} | {r['pvs']:,} | {r['active_pixels']:,} | "
+                   + f" | {ratio} | {r['layers']} | {r['pvs']:,} | {r['sampling_seconds']:.2f} | "
+                   f"{r['sampling_pvs']:,} | {r['active_pixels']:,} | "
                    f"{r['mean_sequence_length']:.1f} | {r['kbuffer_allocated_mb']:.0f} / "
                    f"{r['kbuffer_used_mb']:.1f} | {r['overflow_pixels']} | "
                    f"{r['octree_leaves']} / {r['octree_build_seconds']:.1f} |")

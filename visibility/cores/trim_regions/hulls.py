@@ -16,6 +16,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from visibility.raster.culling import Pyramid
+from visibility.raster.pyramid import PyramidLayout, build_pyramid, rect_min
+
 #: Triangles of a box's faces, as corner indices (corner c has bit a set for max along axis a).
 BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
@@ -81,13 +84,14 @@ def near_sphere(verts, faces, rows, centre, radius, vis):  # pragma: no cover - 
             vis[f] = 1
 
 
+#: (8, 3) whether corner c takes the box's high end along axis a: bit a of c.
+_CORNER_BITS = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1 == 1
+
+
 def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(k, 8, 3) corners of k boxes [lo, hi] (k, 3) each."""
     return np.where(_CORNER_BITS, hi[:, None, :], lo[:, None, :])
 
-
-#: (8, 3) whether corner c takes the box's high end along axis a: bit a of c.
-_CORNER_BITS = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1 == 1
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -234,38 +238,9 @@ def _width(poly, npoly, i):  # pragma: no cover - numba
     return abs(a) / np.sqrt(e) if e > 0.0 else 0.0
 
 
-#: Side of the tiles (pixels, as a shift) over which ``small_in_front`` keeps the farthest seal.
-TILE_SHIFT = 3
-
-
-@njit(cache=True, nogil=True)
-def _tile_farthest(seal, res):  # pragma: no cover - numba
-    """(tiles, tiles) the farthest ``seal`` (res * res,) depth in each tile of
-    2 ** ``TILE_SHIFT`` pixels a side."""
-    nt = (res + (1 << TILE_SHIFT) - 1) >> TILE_SHIFT
-    out = np.full((nt, nt), -np.inf)
-    for y in range(res):
-        ty = y >> TILE_SHIFT
-        for x in range(res):
-            tx = x >> TILE_SHIFT
-            out[ty, tx] = max(out[ty, tx], seal[y * res + x])
-    return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _box_farthest(farthest, x0, x1, y0, y1):  # pragma: no cover - numba
-    """The farthest seal over pixels [x0, x1) x [y0, y1) (non-empty), read per tile (so
-    never nearer than the exact one)."""
-    m = -np.inf
-    for ty in range(y0 >> TILE_SHIFT, ((y1 - 1) >> TILE_SHIFT) + 1):
-        for tx in range(x0 >> TILE_SHIFT, ((x1 - 1) >> TILE_SHIFT) + 1):
-            m = max(m, farthest[ty, tx])
-    return m
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, tol,
-                   vis):  # pragma: no cover - numba
+def small_in_front(poly: np.ndarray, npoly: np.ndarray, box: np.ndarray, tri_ids: np.ndarray,
+                   seal: np.ndarray, spans: np.ndarray, n_spans: np.ndarray, res: int,
+                   thin: float, tol: float, vis: np.ndarray) -> None:
     """Set ``vis[tri_ids[i]] = 1`` for each thin set-up triangle i (at most ``thin`` pixels
     across, ``_width``: small ones and slivers alike) that touches a pixel square
     (conservative rasterization) with its nearest point over the square in front of the
@@ -275,7 +250,21 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
     visible had the triangle covered it. A triangle behind a trimmed occluder that covers no
     pixel centre (clutter under a pixel, a sliver seen edge-on from v*) is otherwise never
     tested, though the eyes of the sphere see it where the trims reveal it."""
-    farthest = _tile_farthest(seal, res)
+    # The seals' depth pyramid (``visibility.raster.pyramid``, level 0 the inverse seal
+    # depths, 0 where unsealed) rejects a triangle behind the seal at every pixel of its box
+    # with a few reads, where a hidden wall's triangle would test each pixel it spans.
+    invd = np.reciprocal(np.asarray(seal, dtype=np.float64)).reshape(1, res, res)
+    lay = PyramidLayout.of(res, res)
+    hz = lay.empty(1)
+    build_pyramid(invd, lay.heights, lay.widths, lay.offsets, hz)
+    _small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, tol, vis,
+                    Pyramid(invd, hz, lay.heights, lay.widths, lay.offsets))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, tol, vis,
+                    pyr):  # pragma: no cover - numba
+    """``small_in_front`` with the seals' pyramid ``pyr`` (``culling.Pyramid``)."""
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
@@ -284,9 +273,13 @@ def small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, t
             continue
         zmin = _nearest_depth(poly, npoly, i)
         x0, x1, y0, y1 = _grown_box(box, i, res)
-        # Behind the seal at every pixel of its box: no square can pass (a hidden wall's
-        # triangle would otherwise test each pixel it spans).
-        if x0 >= x1 or y0 >= y1 or zmin >= _box_farthest(farthest, x0, x1, y0, y1):
+        if x0 >= x1 or y0 >= y1:
+            continue
+        # Behind the seal at every pixel of its box (rect_min never exceeds the nearest
+        # seal's inverse; the margin covers the reciprocals' rounding): no square can pass.
+        m = rect_min(pyr.invd, pyr.hz, 0, pyr.heights, pyr.widths, pyr.offsets, x0, x1 - 1, y0,
+                     y1 - 1)
+        if (1.0 / zmin) * (1.0 + 1e-9) <= m:
             continue
         hit = False
         for t in range(1, npoly[i] - 1):

@@ -113,9 +113,9 @@ def _in_front(poly, npoly, box, first):
 
 
 def test_a_large_triangle_is_found_through_one_open_pixel_of_its_box_and_only_there():
-    # The per-tile farthest seal spares the pixel tests of a triangle hidden over its whole
-    # box; one pixel that opens past it, in the tile at the far corner of the box, or just
-    # outside the triangle but within the pixel its square touches, must still find it.
+    # The seals' depth pyramid spares the pixel tests of a triangle hidden over its whole
+    # box; one pixel that opens past it, in a far corner of the box, or just outside the
+    # triangle but within the pixel its square touches, must still find it.
     large = [(0.6, 0.6), (15.4, 0.6), (0.6, 15.4)]
     first = np.full((RES, RES), 2.0)
     assert _in_front(*_setup(large, 3.0), first) == 0
