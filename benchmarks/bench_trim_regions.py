@@ -12,8 +12,9 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   (``gather_eyes=8``) and with ``small="conservative"``: frames from ``--frames`` eyes with
   random cube orientations inside the sphere's cube cell, 256 px per face
   (``trim_regions.quality``).
-- Box cells: 1 m and 4 m cells of the 100k city and a 1 m cell of lavaducts, at the defaults
-  (many spheres each) and covered by fewer, larger spheres, scored by ray frames.
+- Box cells: 1 m and 4 m cells of the 100k city and a 1 m cell of lavaducts, as cubes and as
+  the server's cells (the grid's eye range high), at the defaults (many spheres each) and the
+  cubes covered by fewer, larger spheres, scored by ray frames.
 - Leaf size: ``max_prims`` (most triangles per octree leaf) 256, 1024 and 4096 on a 0.2 m
   sphere of the village, Lyon and the kitchen: layers peeled, time per phase and the PVS, to
   see whether larger leaves (fewer layers, as the paper's 6-14) pay.
@@ -157,31 +158,37 @@ def box_cells(quick: bool, frames: int) -> list[dict[str, Any]]:
 def _box_cells(core: Any, name: str, scene: Scene, sides: tuple[float, ...],
                frames: int) -> list[dict[str, Any]]:
     grid = ViewcellGrid.for_scene(scene)
-    c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
+    cell = grid.cell(first_open_cell(scene, grid, len(grid) // 2))
+    c = cell.center
+    # The server's cells of that side: the side across the ground, the grid's eye range high.
+    eye_range = float(cell.box[1][1] - cell.box[0][1])
     rows = []
     for side in sides:
-        box = np.stack([c - 0.5 * side, c + 0.5 * side])
-        cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
-        # The radius of n x n x n spheres covering the box (nudged up against rounding).
-        half_diag = 0.5 * float(np.linalg.norm(box[1] - box[0]))
-        variants = [("default", {})] + [(f"{n ** 3} sphere" + ("s" if n > 1 else ""),
-                                         {"max_delta": half_diag / n * (1 + 1e-9)})
-                                        for n in CELL_SPLITS]
-        for label, kw in variants:
-            p = core.make_params(**kw)
-            core.compute(scene, Viewcell(box), p)
-            pvs = core.compute(scene, Viewcell(box), p)
-            st = pvs.stats
-            e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
-            e.pop("missed")
-            rows.append({"scene": name, "triangles": scene.n_triangles, "side": side,
-                         "cover": label, "seconds": pvs.seconds, "spheres": st["spheres"],
-                         "views": st["views"], "delta": st["delta"], "pvs": len(pvs),
-                         **{k: st[k] for k in PHASES}, "gt": e["gt"],
-                         "fn_pixels_max": e["fn_pixels_max"],
-                         "fn_pixel_rate_max": e["fn_pixel_rate_max"], "fn": e["fn"]})
-            print(f"cell {name} {side} m, {label}: {pvs.seconds:.2f} s, {st['spheres']} "
-                  f"sphere(s), FN px {e['fn_pixels_max']}", flush=True)
+        for shape, height in (("cube", side), ("cell", eye_range)):
+            half = 0.5 * np.array([side, height, side])
+            box = np.stack([c - half, c + half])
+            cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
+            # The radius of n x n x n spheres covering the cube (nudged up against rounding).
+            half_diag = 0.5 * float(np.linalg.norm(box[1] - box[0]))
+            variants = [("default", {})] + ([] if shape == "cell" else [
+                (f"{n ** 3} sphere" + ("s" if n > 1 else ""),
+                 {"max_delta": half_diag / n * (1 + 1e-9)}) for n in CELL_SPLITS])
+            for label, kw in variants:
+                p = core.make_params(**kw)
+                core.compute(scene, Viewcell(box), p)
+                pvs = core.compute(scene, Viewcell(box), p)
+                st = pvs.stats
+                e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
+                e.pop("missed")
+                rows.append({"scene": name, "triangles": scene.n_triangles, "side": side,
+                             "height": height, "shape": shape,
+                             "cover": label, "seconds": pvs.seconds, "spheres": st["spheres"],
+                             "views": st["views"], "delta": st["delta"], "pvs": len(pvs),
+                             **{k: st[k] for k in PHASES}, "gt": e["gt"],
+                             "fn_pixels_max": e["fn_pixels_max"],
+                             "fn_pixel_rate_max": e["fn_pixel_rate_max"], "fn": e["fn"]})
+                print(f"cell {name} {side} x {height:g} m, {label}: {pvs.seconds:.2f} s, "
+                      f"{st['spheres']} sphere(s), FN px {e['fn_pixels_max']}", flush=True)
     return rows
 
 
@@ -393,19 +400,21 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                    f"{r['octree_leaves']} / {r['octree_build_seconds']:.1f} |")
     if cell_rows:
         out += ["", "## Box cells", "",
-                "Box cells at the grid's middle cell (the 100k city; a 1 m cell of lavaducts): "
-                "the core at its defaults "
-                "(spheres of at most `max_delta` 0.3 m: more for a larger box, up to 27, then "
-                "larger ones) and covered by 8 and by 1 larger spheres (`max_delta` the half "
+                "Box cells at the grid's middle cell (the 100k city; a 1 m cell of lavaducts), "
+                "each side as a cube and as the server's cell (the side across the ground, the "
+                "grid's eye range high): the core at its defaults (the fewest spheres of at "
+                "most `max_delta` 0.3 m: more for a larger box, up to 27, then larger ones) and "
+                "the cubes covered by 8 and by 1 larger spheres (`max_delta` the half "
                 "diagonal of the box over 2 and 1), one run after a warm-up each. FN px: the "
                 f"most pixels of a frame showing a triangle the PVS lacks, over {frames} frames "
                 "from eyes in the box (as the quality table below; the paper's bound is 19.7 "
                 "px); FN: missed / GT triangles. The aim for the 1 m cell is 2 s.", "",
-                "| scene | side m | cover | spheres | Δ m | views | s | P0 | P1 | P2 | P3 | P4 "
+                "| scene | cell m | cover | spheres | Δ m | views | s | P0 | P1 | P2 | P3 | P4 "
                 "| PVS | GT | FN px max | FN px % max | FN |",
                 "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in cell_rows:
-            out.append(f"| {r['scene']} | {r['side']:g} | {r['cover']} | {r['spheres']} | "
+            dims = f"{r['side']:g} x {r.get('height', r['side']):g} x {r['side']:g}"
+            out.append(f"| {r['scene']} | {dims} | {r['cover']} | {r['spheres']} | "
                        f"{r['delta']:.2f} | {r['views']} | {r['seconds']:.2f} | "
                        + " | ".join(f"{v:.2f}" for v in wall_phases(r))
                        + f" | {r['pvs']:,} | {r['gt']:,} | {r['fn_pixels_max']} | "

@@ -1,10 +1,10 @@
 """Viewcells, adapted frusta and octree layers (paper Secs. 3.4 and 5.2).
 
 A server cell is a box; the method's viewcell is a sphere of radius Δ around v0. The box is
-covered by spheres (``cover_box``): split into equal sub-boxes whose circumscribed sphere has a
-radius of at most ``max_delta``; every eye of the box lies in one of those spheres, so the union
-of their PVS is a PVS of the box (the sphere only adds eye positions, which can only add to a
-PVS).
+covered by spheres (``cover_box``): split into the fewest equal sub-boxes whose circumscribed
+sphere has a radius of at most ``max_delta``; every eye of the box lies in one of those
+spheres, so the union of their PVS is a PVS of the box (the sphere only adds eye positions,
+which can only add to a PVS).
 
 Every direction is covered by the six cube faces, each widened by a margin of pixels so their
 seams overlap. For face f the viewpoint moves back to v* = v0 - R f with R = Δ sqrt(1 + 1/T²),
@@ -58,7 +58,9 @@ class View:
 
 
 def cover_box(box: np.ndarray, max_delta: float) -> tuple[np.ndarray, float]:
-    """Spheres covering a box cell.
+    """Spheres covering a box cell: the fewest equal sub-boxes (n_x x n_y x n_z) whose
+    circumscribed sphere has a radius of at most ``max_delta``, the smallest radius among
+    those (``sphere_counts``).
 
     Parameters
     ----------
@@ -72,9 +74,7 @@ def cover_box(box: np.ndarray, max_delta: float) -> tuple[np.ndarray, float]:
     """
     lo, hi = np.asarray(box[0], float), np.asarray(box[1], float)
     size = np.maximum(hi - lo, 0.0)
-    # A cube of side 2Δ/√3 has a circumscribed radius of Δ.
-    side = 2.0 * float(max_delta) / np.sqrt(3.0)
-    n = np.maximum(1, np.ceil(size / side - 1e-9)).astype(np.int64)
+    n = sphere_counts(size, float(max_delta))
     if int(np.prod(n.astype(float))) > MAX_SPHERES:
         # Too many: larger sub-boxes, at most cbrt(MAX_SPHERES) along every axis.
         per_axis = int(round(MAX_SPHERES ** (1.0 / 3.0)))
@@ -85,6 +85,37 @@ def cover_box(box: np.ndarray, max_delta: float) -> tuple[np.ndarray, float]:
     grids = [lo[a] + (np.arange(n[a]) + 0.5) * sub[a] for a in range(3)]
     cx, cy, cz = np.meshgrid(*grids, indexing="ij")
     return np.stack([cx.ravel(), cy.ravel(), cz.ravel()], axis=1), delta
+
+
+def sphere_counts(size: np.ndarray, max_delta: float) -> np.ndarray:
+    """Sub-boxes per axis (3,) int64 splitting a box of ``size`` (3,) metres into the fewest
+    equal sub-boxes of half diagonal at most ``max_delta`` metres; among as few, the smallest
+    half diagonal. A server cell is flat (its height is the eye range, 0.4 m by default): a
+    lattice of cubes would split that height too (1 x 0.4 x 1 m at Δ 0.3: 3 x 2 x 3 = 18
+    spheres) where 4 x 1 x 3 = 12 sub-boxes already have a half diagonal under Δ."""
+    size = np.maximum(np.asarray(size, float), 0.0)
+    # A lattice of cubes of side 2Δ/√3 (circumscribed radius Δ) always fits: it bounds the
+    # count, and so every axis' share of it.
+    side = 2.0 * max_delta / np.sqrt(3.0)
+    best = np.maximum(1, np.ceil(size / side - 1e-9)).astype(np.int64)
+    best_key = (float(np.prod(best.astype(float))), float(np.sum((size / best) ** 2)))
+    reach = (2.0 * max_delta) ** 2 * (1.0 + 1e-12)
+    # Only splits up to MAX_SPHERES are searched: a box needing more gets larger spheres
+    # (``cover_box``) whatever the split.
+    most = int(min(best_key[0], MAX_SPHERES))
+    for nx in range(1, most + 1):
+        rx = (size[0] / nx) ** 2
+        if rx > reach:
+            continue
+        for ny in range(1, most // nx + 1):
+            rest = reach - rx - (size[1] / ny) ** 2
+            if rest < 0.0:
+                continue
+            nz = max(1, int(np.ceil(size[2] / np.sqrt(rest) - 1e-9))) if size[2] > 0 else 1
+            key = (float(nx * ny * nz), rx + (size[1] / ny) ** 2 + (size[2] / nz) ** 2)
+            if key < best_key:
+                best, best_key = np.array([nx, ny, nz], dtype=np.int64), key
+    return best
 
 
 def sphere_views(v0: np.ndarray, delta: float, res: int) -> list[View]:

@@ -8,7 +8,7 @@ import numpy as np
 import visibility.cores.trim_regions.pipeline as pipeline
 from visibility.cores.designed_scenes import Builder
 from visibility.cores.trim_regions.cache import build_scene_data
-from visibility.cores.trim_regions.frustum import cover_box, sphere_views
+from visibility.cores.trim_regions.frustum import cover_box, sphere_counts, sphere_views
 from visibility.cores.trim_regions.pipeline import trim_pvs
 from visibility.generators import make_scene
 from visibility.raster.render import render_ids
@@ -96,6 +96,22 @@ def test_a_larger_cell_is_covered_by_more_spheres():
     corners = np.array([[x, y, z] for x in (0, 1) for y in (1.5, 1.9) for z in (0, 1)])
     d = np.linalg.norm(corners[:, None] - centres[None], axis=2).min(axis=1)
     assert np.all(d <= delta + 1e-12)
+
+
+def test_sphere_counts_are_the_fewest_that_fit():
+    """Against a brute force over every split of up to 40 sub-boxes: no fewer fit, and the
+    server's flat 1 m cell (0.4 m of eye range) takes 12 spheres where cubes took 18."""
+    for size in ([1.0, 0.4, 1.0], [1.0, 1.0, 1.0], [0.5, 0.4, 0.5], [0.9, 0.4, 1.3],
+                 [0.3, 0.3, 0.3], [0.0, 0.4, 1.0], [1.0, 2.0, 0.2]):
+        size = np.array(size)
+        n = sphere_counts(size, 0.3)
+        assert 0.5 * np.linalg.norm(size / n) <= 0.3 * (1 + 1e-9)
+        fits = [(a * b * c) for a in range(1, 41) for b in range(1, 41) for c in range(1, 41)
+                if 0.5 * np.linalg.norm(size / [a, b, c]) <= 0.3 and a * b * c <= 40]
+        assert int(np.prod(n)) == min(fits)
+    assert int(np.prod(sphere_counts(np.array([1.0, 0.4, 1.0]), 0.3))) == 12
+    centres, delta = cover_box(np.array([[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]]), 0.3)
+    assert len(centres) == 12 and delta <= 0.3
 
 
 def _jamb_scene():
