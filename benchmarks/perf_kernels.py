@@ -87,7 +87,9 @@ def _cell(args: argparse.Namespace) -> tuple[Any, Any]:
     scene = load(args.scene, args.triangles)
     grid = ViewcellGrid.for_scene(scene)
     c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
-    return scene, Viewcell(np.stack([c - 0.5 * args.side, c + 0.5 * args.side]))
+    height = args.side if args.height is None else args.height
+    half = 0.5 * np.array([args.side, height, args.side])
+    return scene, Viewcell(np.stack([c - half, c + half]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,7 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="village", help="a generated scene or one of "
                     "../shared/scenes (benchmarks.bench_trim_regions.load)")
     ap.add_argument("--triangles", type=int, default=None, help="generated scenes: size")
-    ap.add_argument("--side", type=float, default=0.3, help="the cube cell's side, metres")
+    ap.add_argument("--side", type=float, default=0.3, help="the cell's side, metres")
+    ap.add_argument("--height", type=float, default=None,
+                    help="the cell's height, metres (default: the side, a cube; the server's "
+                         "cells are the eye range high, 0.4 m)")
     ap.add_argument("--runs", type=int, default=8, help="computations sampled")
     ap.add_argument("--top", type=int, default=30, help="symbols printed")
     ap.add_argument("--param", action="append", default=[], help="core parameter k=v")
