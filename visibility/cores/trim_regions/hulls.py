@@ -93,7 +93,6 @@ def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(_CORNER_BITS, hi[:, None, :], lo[:, None, :])
 
 
-
 @njit(cache=True, nogil=True, inline="always")
 def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
     """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the
