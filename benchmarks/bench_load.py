@@ -78,7 +78,14 @@ from benchmarks.load.report import (
     write_outputs,
 )
 from benchmarks.load.scenes import BenchScene, WalkPlan, load_bench_scene, plan_walks, warm_cells
-from benchmarks.load.servers import COUNTERS, REDIS_HITS, Served, serving, warm_up
+from benchmarks.load.servers import (
+    COUNTERS,
+    REDIS_HITS,
+    Served,
+    compile_kernels,
+    serving,
+    warm_up,
+)
 from benchmarks.load.summary import latency_summary, summarise
 from benchmarks.load.walkers import run_clients
 from server.settings import Settings
@@ -192,6 +199,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--name", default="load",
                     help="file stem of the outputs (e.g. load_lyon for another scene)")
     ap.add_argument("--no-files", action="store_true", help="print only")
+    ap.add_argument("--no-warmup", action="store_true",
+                    help="do not compile the kernels before the runs (known compiled: the "
+                         "first cells of a run pay what is missing)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke: the first walker count (at most 5), 6 s walks, cold cache, "
                          "the first worker count")
@@ -260,6 +270,11 @@ def main(argv: list[str] | None = None) -> int:
     where = machine()
     print("command: " + command)
     print("machine: " + where)
+    # Kernels missing from the numba cache compile inside the server at its first cells, so
+    # they are compiled first: the runs measure serving, not compiling.
+    where += ("; kernels not compiled before the runs (--no-warmup)" if args.no_warmup else
+              f"; kernels compiled before the runs (`pvs warmup`): {compile_kernels():.0f} s")
+    print(where.rsplit("; ", 1)[1])
     bs = load_bench_scene(args.scene, args.triangles, args.scenes, args.cell_size)
     plan = plan_walks(bs, max(args.counts), args.duration, args.speed, args.fps, args.seed)
     walks = plan.summary(max(args.counts))

@@ -29,6 +29,7 @@ from server.scene_builds import prepare_scene
 from server.settings import Settings
 from server.state import ServerState
 from server.viewer_files import install_viewer
+from visibility.kernel_cache import cached_kernels, key_numba_cache
 from visibility.scene_cache import set_store
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
@@ -65,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        warn_cold_kernels()
         yield
         state.compute.shutdown()
 
@@ -93,6 +95,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if state.access is not None and state.access.book is not None:
         auth.document(app)
     return app
+
+
+def warn_cold_kernels() -> bool:
+    """Log a warning when the numba kernel cache holds no kernel (a fresh install, or the
+    kernels' sources edited since ``pvs warmup``): each kernel then compiles at its first use,
+    on the thread serving cells and holding the GIL, which stalls every walker for seconds at a
+    time over the first minutes. True when it warned."""
+    n = cached_kernels()
+    if n != 0:
+        return False
+    log.warning("the numba kernel cache %s is empty: the kernels compile at the first cells "
+                "(minutes on 2 cores, walkers stall meanwhile); run `pvs warmup` before "
+                "serving", key_numba_cache())
+    return True
 
 
 def uvicorn_config(app: FastAPI, settings: Settings, **overrides: Any) -> uvicorn.Config:

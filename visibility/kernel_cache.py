@@ -67,6 +67,20 @@ def key_numba_cache() -> str | None:
     return _keyed
 
 
+def cached_kernels(folder: str | Path | None = None) -> int | None:
+    """How many kernels the keyed cache folder (``folder``, by default this process's) holds
+    (numba's index files), or None when numba caches beside the sources (no
+    ``NUMBA_CACHE_DIR``). 0 after an edit to the kernels' sources until ``pvs warmup`` or
+    first use compiles them."""
+    folder = folder if folder is not None else key_numba_cache()
+    if folder is None:
+        return None
+    try:
+        return sum(1 for _ in Path(folder).rglob("*.nbi"))
+    except OSError:
+        return 0
+
+
 def _prune(base: Path) -> None:
     """Remove digest folders under ``base`` beyond the ``KEEP`` most recently used."""
     try:

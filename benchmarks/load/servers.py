@@ -95,14 +95,38 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait(10)
 
 
+def server_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment the servers run in: this one, with ``extra`` and the project's numba
+    cache (``.numba_cache``) unless ``NUMBA_CACHE_DIR`` names another."""
+    env = {**os.environ, **(extra or {})}
+    env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
+    return env
+
+
+def compile_kernels() -> float:
+    """Compile every core's kernels into the servers' numba cache (``pvs warmup``, in its own
+    processes) before any server starts; seconds (a few when nothing changed since).
+
+    A server compiles a kernel missing from the cache at its first use, on the thread that
+    serves the walkers' cells, holding the GIL: a cold run would then measure compilation
+    (seconds of stalls, no core answer in a 20 s walk), not the serving of cells."""
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "pvs_cli", "warmup"], cwd=ROOT,
+                          env=server_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    if proc.returncode:
+        raise RuntimeError("pvs warmup failed: "
+                           + proc.stderr.decode(errors="replace")[-3000:])
+    return time.perf_counter() - t
+
+
 @contextlib.contextmanager
 def _serve_one(bs: BenchScene, core: str, workers: int,
                extra_env: dict[str, str] | None = None) -> Iterator[tuple[str, subprocess.Popen]]:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, **bs.env, "PVS_CORE": core, "PVS_WORKERS": str(workers),
-           "PVS_LOG_LEVEL": "warning", "PVS_WS_PING_INTERVAL": "none", **(extra_env or {})}
-    env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
+    env = server_env({**bs.env, "PVS_CORE": core, "PVS_WORKERS": str(workers),
+                      "PVS_LOG_LEVEL": "warning", "PVS_WS_PING_INTERVAL": "none",
+                      **(extra_env or {})})
     cmd = [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1", "--port", str(port),
            "--scenes", str(bs.scenes_dir or ROOT / "nonexistent-scenes-dir")]
     with tempfile.TemporaryFile() as log:

@@ -85,6 +85,7 @@ def test_generated_scene_one_run_per_worker_count(tmp_path, capsys):
         assert s["triangles_per_walker_max"] == max(s["triangles_per_walker"])
     md = (tmp_path / "load.md").read_text()
     assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
+    assert "kernels compiled before the runs (`pvs warmup`): " in md
     for section in ("## Capacity", "## Frames by answer", "## Image error by answer"):
         assert section in md
     assert "- 1 worker, cold cache:" in md and "- 2 workers, cold cache:" in md
@@ -103,7 +104,8 @@ def test_file_scene_served_from_the_scenes_folder(tmp_path, capsys):
     assert (DEFAULT_SCENES_DIR / "lavaducts.glb").is_file(), "../shared/scenes is missing"
     rc = bench_load.main(["--scene", "lavaducts", "--scenes", str(DEFAULT_SCENES_DIR),
                           "--clients", "2", "--workers", "2", "--duration", "3",
-                          "--params", CHEAP, "--cache", "cold", "--out", str(tmp_path)])
+                          "--params", CHEAP, "--cache", "cold", "--no-warmup",
+                          "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 0
     (r,) = json.loads((tmp_path / "load.json").read_text())["runs"]
@@ -129,7 +131,7 @@ def test_warm_cache_serves_the_walks_without_computing(tmp_path, capsys):
     mismatch would show as computations here)."""
     rc = bench_load.main(["--clients", "1,2", "--workers", "2", "--duration", "2",
                           "--triangles", "5000", "--params", CHEAP, "--cache", "warm",
-                          "--out", str(tmp_path)])
+                          "--no-warmup", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 0
     runs = json_runs(out)
@@ -294,7 +296,7 @@ def test_abuse_mode_runs_each_row_without_and_with_the_hostile_client(tmp_path, 
     rc = bench_load.main(["--hostile", "--quick", "--clients", "2", "--workers", "2",
                           "--duration", "3", "--triangles", "5000", "--params", CHEAP,
                           "--hostile-params", '{"resolution": 128, "samples": 32}',
-                          "--hostile-concurrency", "3", "--out", str(tmp_path)])
+                          "--hostile-concurrency", "3", "--no-warmup", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 0
     runs = json_runs(out)

@@ -68,3 +68,14 @@ def test_without_numba_cache_dir_numba_keeps_its_default(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, check=True,
                          capture_output=True, text=True, timeout=120)
     assert out.stdout.strip() == "''"
+
+
+def test_cached_kernels_counts_numba_index_files(tmp_path):
+    folder = tmp_path / "src-0000000000000000"
+    folder.mkdir()
+    assert kernel_cache.cached_kernels(folder) == 0
+    (folder / "core_abc").mkdir()
+    (folder / "core_abc" / "raster.f-12.py311.nbi").write_bytes(b"")
+    (folder / "core_abc" / "raster.f-12.py311.1.nbc").write_bytes(b"")
+    assert kernel_cache.cached_kernels(folder) == 1
+    assert kernel_cache.cached_kernels(tmp_path / "missing") == 0
