@@ -42,6 +42,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np  # noqa: E402
 
+from client.metrics import PSNR_CAP_DB  # noqa: E402
 from visibility.cancel import CancelToken  # noqa: E402
 from visibility.viewcells import spread_evenly  # noqa: E402
 
@@ -857,7 +858,8 @@ def method_paragraph(cfg: dict[str, Any]) -> str:
         f"cell, each looking the horizontal way (pitched {VIEW_PITCH:g} rad) that shows the most "
         f"distinct triangles, the best {cfg['views']} of {VIEW_CANDIDATES * cfg['views']} "
         "candidate eyes; PVS subset (its spheres included) against the full scene at rest "
-        "(`client.metrics.frame_metrics`; PSNR capped at 100 dB). Peer `embree_rays`: Embree "
+        "(`client.metrics.frame_metrics`; an identical frame's PSNR counts as "
+        f"{PSNR_CAP_DB:g} dB). Peer `embree_rays`: Embree "
         "(embreex via trimesh) rays through cube pixel centres from the same stratified points "
         "as `sampling` (neither peer draws spheres). "
         f"Peers against `{cfg.get('reference')}` at its most accurate level: both from-point "

@@ -15,6 +15,7 @@ import numpy as np
 from benchmarks.common import header_lines, md_table
 from benchmarks.load.hostile import HOSTILE_STATUSES, hostile_answers_text
 from benchmarks.load.summary import CORE_ANSWERS, answer_keys, capacity, latency_summary
+from client.metrics import PSNR_CAP_DB
 
 
 def _get(r: dict, key: str, f: Callable[[Any], str], missing: str = "-") -> str:
@@ -364,8 +365,9 @@ def markdown(name: str, command: str, where: str, runs: list[dict]) -> list[str]
            f"included) drawn from the triangles the walker held, {_frame_size(runs)} px, "
            "against the whole scene: ε is the share of pixels where the walker sees something "
            "farther than it should. Each walker's frames of an answer are averaged, then the "
-           "walkers: mean over walkers and the worst walker. PSNR (capped at 100 dB) and SSIM "
-           "are averaged the same way.", "", *eps_table(runs), "",
+           "walkers: mean over walkers and the worst walker. PSNR (an identical frame counts "
+           f"as {PSNR_CAP_DB:g} dB, `client.metrics.PSNR_CAP_DB`) and SSIM are averaged the "
+           "same way.", "", *eps_table(runs), "",
            f"![latency and stalls]({name}.png)", "", "## Each run", "", *details]
     return md
 
