@@ -59,65 +59,193 @@ MIN_REGION_AREA = 0.25
 MAX_SIDES = 8
 
 
-@njit(cache=True)
-def _hits_along(p, q, tris, out_t):
+@njit(cache=True, nogil=True, inline="always")
+def _meet(px, py, pz, dx, dy, dz, tris, i):  # pragma: no cover - numba
+    """Parameter t of segment p + t d, t in [0, 1], where it meets triangle ``i`` of ``tris``
+    (m, 3, 3) (Moller-Trumbore, both faces), or -1.0 where it does not."""
+    ax, ay, az = tris[i, 0, 0], tris[i, 0, 1], tris[i, 0, 2]
+    e1x, e1y, e1z = tris[i, 1, 0] - ax, tris[i, 1, 1] - ay, tris[i, 1, 2] - az
+    e2x, e2y, e2z = tris[i, 2, 0] - ax, tris[i, 2, 1] - ay, tris[i, 2, 2] - az
+    h0 = dy * e2z - dz * e2y
+    h1 = dz * e2x - dx * e2z
+    h2 = dx * e2y - dy * e2x
+    det = e1x * h0 + e1y * h1 + e1z * h2
+    if abs(det) < 1e-14:
+        return -1.0
+    inv = 1.0 / det
+    s0, s1, s2 = px - ax, py - ay, pz - az
+    u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
+    if u < 0.0 or u > 1.0:
+        return -1.0
+    c0 = s1 * e1z - s2 * e1y
+    c1 = s2 * e1x - s0 * e1z
+    c2 = s0 * e1y - s1 * e1x
+    v = (dx * c0 + dy * c1 + dz * c2) * inv
+    if v < 0.0 or u + v > 1.0:
+        return -1.0
+    t = (e2x * c0 + e2y * c1 + e2z * c2) * inv
+    if t < 0.0 or t > 1.0:
+        return -1.0
+    return t
+
+
+@njit(cache=True, nogil=True)
+def _hits_along(p, q, tris, out_t):  # pragma: no cover - numba
     """Parameters t in [0, 1] where segment p->q meets triangles (Moller-Trumbore, both faces);
     returns how many were written to ``out_t`` and the normal-Y sign of the nearest hit."""
-    d = q - p
     n = 0
     best = np.inf
     best_ny = 0.0
     for i in range(tris.shape[0]):
-        a = tris[i, 0]
-        e1 = tris[i, 1] - a
-        e2 = tris[i, 2] - a
-        h0 = d[1] * e2[2] - d[2] * e2[1]
-        h1 = d[2] * e2[0] - d[0] * e2[2]
-        h2 = d[0] * e2[1] - d[1] * e2[0]
-        det = e1[0] * h0 + e1[1] * h1 + e1[2] * h2
-        if abs(det) < 1e-14:
-            continue
-        inv = 1.0 / det
-        s0, s1, s2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
-        u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
-        if u < 0.0 or u > 1.0:
-            continue
-        c0 = s1 * e1[2] - s2 * e1[1]
-        c1 = s2 * e1[0] - s0 * e1[2]
-        c2 = s0 * e1[1] - s1 * e1[0]
-        v = (d[0] * c0 + d[1] * c1 + d[2] * c2) * inv
-        if v < 0.0 or u + v > 1.0:
-            continue
-        t = (e2[0] * c0 + e2[1] * c1 + e2[2] * c2) * inv
-        if t < 0.0 or t > 1.0:
+        t = _meet(p[0], p[1], p[2], q[0] - p[0], q[1] - p[1], q[2] - p[2], tris, i)
+        if t < 0.0:
             continue
         if n < out_t.shape[0]:
             out_t[n] = t
             n += 1
         if t < best:
             best = t
-            best_ny = e1[2] * e2[0] - e1[0] * e2[2]
+            best_ny = _normal_y(tris, i)
     return n, best_ny
 
 
-@njit(parallel=True, cache=True)
-def _open_points(px, pz, y_lo, y_hi, y_top, tris, sign):
+@njit(cache=True, nogil=True, inline="always")
+def _normal_y(tris, i):  # pragma: no cover - numba
+    """Y of triangle ``i``'s (unnormalised) normal (e1 x e2)."""
+    e1x, e1z = tris[i, 1, 0] - tris[i, 0, 0], tris[i, 1, 2] - tris[i, 0, 2]
+    e2x, e2z = tris[i, 2, 0] - tris[i, 0, 0], tris[i, 2, 2] - tris[i, 0, 2]
+    return e1z * e2x - e1x * e2z
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bin(x, origin, size, n):  # pragma: no cover - numba
+    """Grid column of coordinate ``x``, clamped to [0, n - 1]."""
+    k = int(np.floor((x - origin) / size))
+    return min(n - 1, max(0, k))
+
+
+@njit(cache=True, nogil=True)
+def _xz_grid(tris, x0, z0, size, nx, nz):  # pragma: no cover - numba
+    """Triangles of ``tris`` (m, 3, 3) by the cells of an XZ grid (origin x0, z0, square
+    cells of ``size`` metres, nx x nz, outer cells open-ended) their XZ bounds overlap:
+    (start (nx nz + 1,), items) int64, CSR. A point or a horizontal line meets only the
+    triangles of the cells its XZ bounds reach."""
+    m = tris.shape[0]
+    lo = np.empty((m, 4), dtype=np.int64)
+    count = np.zeros(nx * nz + 1, dtype=np.int64)
+    for i in range(m):
+        xa = min(tris[i, 0, 0], min(tris[i, 1, 0], tris[i, 2, 0]))
+        xb = max(tris[i, 0, 0], max(tris[i, 1, 0], tris[i, 2, 0]))
+        za = min(tris[i, 0, 2], min(tris[i, 1, 2], tris[i, 2, 2]))
+        zb = max(tris[i, 0, 2], max(tris[i, 1, 2], tris[i, 2, 2]))
+        # A hair wider than the bounds: a point on a triangle's edge must find it.
+        pad = 1e-9 * (1.0 + max(abs(xa), abs(xb), abs(za), abs(zb)))
+        lo[i, 0] = _bin(xa - pad, x0, size, nx)
+        lo[i, 1] = _bin(xb + pad, x0, size, nx)
+        lo[i, 2] = _bin(za - pad, z0, size, nz)
+        lo[i, 3] = _bin(zb + pad, z0, size, nz)
+        for a in range(lo[i, 0], lo[i, 1] + 1):
+            for b in range(lo[i, 2], lo[i, 3] + 1):
+                count[a * nz + b + 1] += 1
+    for k in range(nx * nz):
+        count[k + 1] += count[k]
+    items = np.empty(count[nx * nz], dtype=np.int64)
+    fill = count[:-1].copy()
+    for i in range(m):
+        for a in range(lo[i, 0], lo[i, 1] + 1):
+            for b in range(lo[i, 2], lo[i, 3] + 1):
+                items[fill[a * nz + b]] = i
+                fill[a * nz + b] += 1
+    return count, items
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _open_points(px, pz, y_lo, y_hi, y_top, tris, sign, grid, x0, z0, size, nx,
+                 nz):  # pragma: no cover - numba
     """(n,) bool: the vertical line y_lo..y_hi at each point meets no triangle and the first
-    surface above y_hi (up to y_top) does not face down into the point (inside a solid)."""
+    surface above y_hi (up to y_top) does not face down into the point (inside a solid).
+    ``grid`` (start, items): ``tris`` by XZ cell (``_xz_grid`` with x0, z0, size, nx, nz); a
+    point tests only its cell's triangles, in ascending order as a full scan would."""
+    start, items = grid
     n = px.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     for s in prange(n):
-        buf = np.empty(1)
-        p = np.array([px[s], y_lo, pz[s]])
-        q = np.array([px[s], y_hi, pz[s]])
-        c, _ = _hits_along(p, q, tris, buf)
-        if c:
+        x, z = px[s], pz[s]
+        cell = _bin(x, x0, size, nx) * nz + _bin(z, z0, size, nz)
+        blocked = False
+        best = np.inf
+        best_ny = 0.0
+        hits = 0
+        for k in range(start[cell], start[cell + 1]):
+            i = items[k]
+            if _meet(x, y_lo, z, 0.0, y_hi - y_lo, 0.0, tris, i) >= 0.0:
+                blocked = True
+                break
+            t = _meet(x, y_hi, z, 0.0, y_top - y_hi, 0.0, tris, i)
+            if t >= 0.0:
+                hits += 1
+                if t < best:
+                    best = t
+                    best_ny = _normal_y(tris, i)
+        if blocked:
             continue
-        r = np.array([px[s], y_top, pz[s]])
-        c, ny = _hits_along(q, r, tris, buf)
         # Going up, leaving through a surface whose outward normal points up means inside.
-        out[s] = not (c and sign * ny > 0.0)
+        out[s] = not (hits > 0 and sign * best_ny > 0.0)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _clear_samples(p, d, ts, keep, side, tris, grid, x0, z0, size, nx,
+                   nz):  # pragma: no cover - numba
+    """Clear ``keep[i]`` where the horizontal line through p + ts[i] d from -``side`` to
+    +``side`` (3,) meets a triangle of ``tris``; ``grid`` as for ``_open_points``."""
+    start, items = grid
+    for j in range(ts.shape[0]):
+        if not keep[j]:
+            continue
+        cx = p[0] + ts[j] * d[0]
+        cy = p[1] + ts[j] * d[1]
+        cz = p[2] + ts[j] * d[2]
+        ax, az = cx - side[0], cz - side[2]
+        bx, bz = cx + side[0], cz + side[2]
+        a0, a1 = _bin(min(ax, bx), x0, size, nx), _bin(max(ax, bx), x0, size, nx)
+        b0, b1 = _bin(min(az, bz), z0, size, nz), _bin(max(az, bz), z0, size, nz)
+        hit = False
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                cell = a * nz + b
+                for k in range(start[cell], start[cell + 1]):
+                    if _meet(ax, cy - side[1], az, 2.0 * side[0], 2.0 * side[1], 2.0 * side[2],
+                             tris, items[k]) >= 0.0:
+                        hit = True
+                        break
+                if hit:
+                    break
+            if hit:
+                break
+        if hit:
+            keep[j] = False
+
+
+class XZGrid:
+    """Triangles (m, 3, 3) binned by the cells of an XZ grid over a box (2, 3), about
+    ``size`` metres square (at most ``MAX_LATTICE`` a side): point and line queries read only
+    the triangles whose XZ bounds reach their cells, so a cell's walk costs what lies near
+    each query, not every triangle near the cell times every query."""
+
+    def __init__(self, tris: np.ndarray, box: np.ndarray, size: float) -> None:
+        span = float(max(box[1, 0] - box[0, 0], box[1, 2] - box[0, 2], size))
+        self.size = max(float(size), span / MAX_LATTICE)
+        self.x0 = float(box[0, 0])
+        self.z0 = float(box[0, 2])
+        self.nx = max(1, int(math.ceil((box[1, 0] - box[0, 0]) / self.size)))
+        self.nz = max(1, int(math.ceil((box[1, 2] - box[0, 2]) / self.size)))
+        self.tris = tris
+        self.csr = _xz_grid(tris, self.x0, self.z0, self.size, self.nx, self.nz)
+
+    def args(self) -> tuple:
+        """What the kernels take after ``tris``: (grid, x0, z0, size, nx, nz)."""
+        return self.csr, self.x0, self.z0, self.size, self.nx, self.nz
 
 
 @dataclass(frozen=True)
@@ -216,8 +344,9 @@ def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP,
     gx, gz = np.meshgrid(xs, zs, indexing="ij")
     sign = -1.0 if scene.meta.get("winding") == "cw" else 1.0
     if len(tris):
+        grid = XZGrid(tris, b, step)
         ok = _open_points(gx.ravel(), gz.ravel(), y_lo, b[1, 1], max(top, b[1, 1] + 1e-6),
-                          tris, sign)
+                          tris, sign, *grid.args())
     else:
         ok = np.ones(gx.size, dtype=bool)
     return CellWalk(b, xs, zs, ok.reshape(nx, nz))
@@ -300,14 +429,16 @@ def _outlines(walk: CellWalk) -> list[np.ndarray]:
 
 
 def clear_pieces(p: np.ndarray, q: np.ndarray, tris: np.ndarray, clearance: float = CLEARANCE,
-                 margin: float = MARGIN) -> list[tuple[np.ndarray, np.ndarray]]:
+                 margin: float = MARGIN, grid: XZGrid | None = None
+                 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Pieces of segment p->q (3,) metres that keep ``clearance`` metres horizontally from every
     triangle of ``tris`` (m, 3, 3) and stop ``margin`` metres short of one they would meet.
 
     The segment is sampled every ``clearance / 2`` metres; a sample is kept when the horizontal
     line across the segment through it, ``clearance`` to each side, meets no triangle and no
     crossing of the segment itself lies within ``margin``; pieces join consecutive kept
-    samples.
+    samples. ``grid``: ``tris`` binned (``XZGrid``) when the caller has them so, for many
+    segments.
     """
     p = np.asarray(p, np.float64)
     q = np.asarray(q, np.float64)
@@ -326,10 +457,10 @@ def clear_pieces(p: np.ndarray, q: np.ndarray, tris: np.ndarray, clearance: floa
     keep = np.ones(m, dtype=bool)
     if n:
         keep &= np.abs(ts[:, None] - cuts[None, :]).min(axis=1) * length >= margin
-    one = np.empty(1)
-    for i in np.flatnonzero(keep):
-        c = p + ts[i] * d
-        keep[i] = _hits_along(c - side, c + side, tris, one)[0] == 0
+    if grid is None:
+        both = np.stack([np.minimum(p, q), np.maximum(p, q)])
+        grid = XZGrid(tris, both, max(clearance, length / (MAX_LATTICE - 1)))
+    _clear_samples(p, d, ts, keep, side, tris, *grid.args())
     out = []
     i = 0
     while i < m:
@@ -353,13 +484,14 @@ def walk_segments(scene: Scene, box: np.ndarray, heights: list[float], step: flo
     b = walk.box
     step = lattice_step(b, step)
     tris = _near_triangles(scene, b, step + MARGIN + CLEARANCE, min(heights) - CLEARANCE)
+    grid = XZGrid(tris, b, max(4.0 * CLEARANCE, step))
     segs = []
     for xz in _outlines(walk):
         for y in heights:
             for i in range(len(xz) - 1):
                 p = np.array([xz[i, 0], y, xz[i, 1]])
                 q = np.array([xz[i + 1, 0], y, xz[i + 1, 1]])
-                segs.extend(clear_pieces(p, q, tris))
+                segs.extend(clear_pieces(p, q, tris, grid=grid))
     if not segs:
         return np.zeros((0, 2, 3))
     return np.array([[a, c] for a, c in segs])

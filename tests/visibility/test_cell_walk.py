@@ -258,3 +258,66 @@ def test_near_triangles_are_the_same_with_and_without_the_hierarchy():
     assert len(full) > 0 and np.array_equal(full, tree)
     far = np.array([[1e4, 1.5, 1e4], [1e4 + 4.0, 1.9, 1e4 + 4.0]])
     assert _near_triangles(b, far, 0.3, 0.5).shape == (0, 3, 3)
+
+
+def _clutter(rng, n=600):
+    """A floor, closed boxes and random triangles of 1 cm to 2 m (some vertical, some lying
+    on lattice lines) over a 6 m square: a soup on which the binned queries must agree with
+    testing every triangle."""
+    tris = [[[-1, 0, -1], [-1, 0, 7], [7, 0, 7]], [[-1, 0, -1], [7, 0, 7], [7, 0, -1]]]
+    for _ in range(12):
+        lo = rng.uniform([0, 0, 0], [5, 1.5, 5])
+        _solid(tris, lo, lo + rng.uniform([0.05, 0.05, 0.05], [1.5, 2.0, 1.5]))
+    for _ in range(n):
+        c = rng.uniform([0, 0, 0], [6, 3, 6])
+        tri = c + rng.normal(size=(3, 3)) * rng.choice([0.01, 0.2, 1.0])
+        if rng.random() < 0.2:
+            tri[:, 0] = c[0]  # a vertical triangle in the plane x = const
+        if rng.random() < 0.1:
+            tri[:, 2] = np.round(c[2] / STEP) * STEP  # in the plane of a lattice line
+        tris.append(tri)
+    return np.asarray(tris, dtype=np.float64)
+
+
+def _open_brute(px, pz, y_lo, y_hi, y_top, tris, sign):
+    """``cell_walk``'s per-point test against every triangle (the reference for the grid)."""
+    out = np.zeros(len(px), dtype=bool)
+    buf = np.empty(1)
+    for s, (x, z) in enumerate(zip(px, pz, strict=True)):
+        if _hits_along(np.array([x, y_lo, z]), np.array([x, y_hi, z]), tris, buf)[0]:
+            continue
+        c, ny = _hits_along(np.array([x, y_hi, z]), np.array([x, y_top, z]), tris, buf)
+        out[s] = not (c and sign * ny > 0.0)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_binned_open_points_and_clear_pieces_match_testing_every_triangle(seed):
+    """The XZ grid only skips triangles a query cannot meet: the open lattice and the clear
+    pieces are those a scan of every triangle gives."""
+    from visibility.cell_walk import XZGrid, _open_points
+
+    rng = np.random.default_rng(seed)
+    tris = _clutter(rng)
+    box = np.array([[0.0, 1.5, 0.0], [6.0, 1.9, 6.0]])
+    xs = np.linspace(0.0, 6.0, 31)
+    gx, gz = (a.ravel() for a in np.meshgrid(xs, xs, indexing="ij"))
+    grid = XZGrid(tris, box, STEP)
+    got = _open_points(gx, gz, 0.5, 1.9, 4.0, tris, 1.0, *grid.args())
+    want = _open_brute(gx, gz, 0.5, 1.9, 4.0, tris, 1.0)
+    assert 0 < want.sum() < len(want)  # both open and closed points are tried
+    np.testing.assert_array_equal(got, want)
+    for _ in range(20):
+        p, q = (np.r_[rng.uniform(0, 6), 1.7, rng.uniform(0, 6)] for _ in range(2))
+        binned = clear_pieces(p, q, tris, grid=grid)
+        alone = clear_pieces(p, q, tris)  # its own grid over the segment
+        # Every sample's cross line against every triangle: the pieces' ends are kept samples.
+        for a, b in binned:
+            for end in (a, b):
+                side = np.array([-(q - p)[2], 0.0, (q - p)[0]])
+                side = side / np.linalg.norm(side) * 0.1
+                assert _hits_along(end - side, end + side, tris, np.empty(1))[0] == 0
+        assert len(binned) == len(alone)
+        for (a, b), (c, d) in zip(binned, alone, strict=True):
+            np.testing.assert_array_equal(a, c)
+            np.testing.assert_array_equal(b, d)
