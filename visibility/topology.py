@@ -233,7 +233,7 @@ def _orient2(ax, ay, bx, by, cx, cy):  # pragma: no cover - numba
     return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _coplanar_meets(p, q, t, n):  # pragma: no cover - numba
     """Whether segment [p, q], lying in the plane of triangle t (normal n), meets it: in 2D,
     dropping the normal's largest axis. Touching counts as meeting."""
@@ -305,7 +305,7 @@ def _cross(a, b):  # pragma: no cover - numba
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _crossings(tris, lo, hi, start, axis, parts, every, out, flag):  # pragma: no cover - numba
     """Crossing triangles of the parts ``parts``. Part k holds rows start[k] to start[k + 1]
     of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound along the part's

@@ -81,7 +81,7 @@ def _grid(lo: np.ndarray, hi: np.ndarray, a: int) -> tuple:
     return starts, items, origin, size, nb
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _count(tris, lo, hi, n, part, sel, a, cstart, cells, origin, size, nb, starts,
            out):  # pragma: no cover - numba
     """``front_windings`` for the triangles ``sel``, whose normals lie nearest axis a: rays
