@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.raster.hierarchy import candidates_in_box, ready_hierarchy
+from visibility.ray_reference import ray_triangle
 from visibility.scene import Scene
 
 #: Lattice step inside a cell (metres).
@@ -62,31 +63,9 @@ MAX_SIDES = 8
 @njit(cache=True, nogil=True, inline="always")
 def _meet(px, py, pz, dx, dy, dz, tris, i):  # pragma: no cover - numba
     """Parameter t of segment p + t d, t in [0, 1], where it meets triangle ``i`` of ``tris``
-    (m, 3, 3) (Moller-Trumbore, both faces), or -1.0 where it does not."""
-    ax, ay, az = tris[i, 0, 0], tris[i, 0, 1], tris[i, 0, 2]
-    e1x, e1y, e1z = tris[i, 1, 0] - ax, tris[i, 1, 1] - ay, tris[i, 1, 2] - az
-    e2x, e2y, e2z = tris[i, 2, 0] - ax, tris[i, 2, 1] - ay, tris[i, 2, 2] - az
-    h0 = dy * e2z - dz * e2y
-    h1 = dz * e2x - dx * e2z
-    h2 = dx * e2y - dy * e2x
-    det = e1x * h0 + e1y * h1 + e1z * h2
-    if abs(det) < 1e-14:
-        return -1.0
-    inv = 1.0 / det
-    s0, s1, s2 = px - ax, py - ay, pz - az
-    u = (s0 * h0 + s1 * h1 + s2 * h2) * inv
-    if u < 0.0 or u > 1.0:
-        return -1.0
-    c0 = s1 * e1z - s2 * e1y
-    c1 = s2 * e1x - s0 * e1z
-    c2 = s0 * e1y - s1 * e1x
-    v = (dx * c0 + dy * c1 + dz * c2) * inv
-    if v < 0.0 or u + v > 1.0:
-        return -1.0
-    t = (e2x * c0 + e2y * c1 + e2z * c2) * inv
-    if t < 0.0 or t > 1.0:
-        return -1.0
-    return t
+    (m, 3, 3) (Moller-Trumbore, both faces: ``ray_reference``'s), or -1.0 where it does not."""
+    t = ray_triangle(tris, i, px, py, pz, dx, dy, dz)
+    return t if 0.0 <= t <= 1.0 else -1.0
 
 
 @njit(cache=True, nogil=True)

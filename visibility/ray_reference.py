@@ -147,7 +147,7 @@ def near_clip(dirs: np.ndarray, cube: np.ndarray, near: float) -> np.ndarray:
 
 # ------------------------------------------------------------------------------ exact caster
 @njit(cache=True, nogil=True, inline="always")
-def _hit(tri, i, ox, oy, oz, dx, dy, dz):  # pragma: no cover - numba
+def ray_triangle(tri, i, ox, oy, oz, dx, dy, dz):  # pragma: no cover - numba
     """Distance along the ray to triangle i of ``tri`` (k, 3, 3), or inf: Moller-Trumbore in
     float64, closed triangle, any facing."""
     ax, ay, az = tri[i, 0, 0], tri[i, 0, 1], tri[i, 0, 2]
@@ -212,7 +212,7 @@ def exact_first_hits(tri, lo, hi, orig, dirs, tmin, out_id, out_t):  # pragma: n
             slack = 1e-9 * (abs(a0) + abs(a1)) + 1e-300
             if a0 > a1 + slack or a1 < t0 - slack or a0 > best + slack:
                 continue
-            t = _hit(tri, i, ox, oy, oz, dx, dy, dz)
+            t = ray_triangle(tri, i, ox, oy, oz, dx, dy, dz)
             if t >= t0 and t < best:
                 best = t
                 bid = i

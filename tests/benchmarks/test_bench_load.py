@@ -64,7 +64,11 @@ def check_consistent(r: dict) -> None:
         assert 0.0 <= e["ssim_mean"] <= 1.0 and e["psnr_mean"] <= PSNR_CAP_DB
 
 
-def test_generated_scene_one_run_per_worker_count(tmp_path, capsys):
+def test_generated_scene_one_run_per_worker_count(tmp_path, capsys, monkeypatch):
+    # `pvs warmup` itself is tested in tests/visibility/test_warmup.py; here, that the runs
+    # come after it and the report says so.
+    calls = []
+    monkeypatch.setattr(bench_load, "compile_kernels", lambda: calls.append(1) or 1.6)
     rc = bench_load.main(["--clients", "3", "--workers", "1,2", "--duration", "3",
                           "--triangles", "5000", "--params", CHEAP, "--cache", "cold",
                           "--out", str(tmp_path)])
@@ -85,7 +89,7 @@ def test_generated_scene_one_run_per_worker_count(tmp_path, capsys):
         assert s["triangles_per_walker_max"] == max(s["triangles_per_walker"])
     md = (tmp_path / "load.md").read_text()
     assert "command: `python -m benchmarks.bench_load" in md and "machine:" in md
-    assert "kernels compiled before the runs (`pvs warmup`): " in md
+    assert "kernels compiled before the runs (`pvs warmup`): 2 s" in md and calls == [1]
     for section in ("## Capacity", "## Frames by answer", "## Image error by answer"):
         assert section in md
     assert "- 1 worker, cold cache:" in md and "- 2 workers, cold cache:" in md
