@@ -34,6 +34,7 @@ from numba import njit, prange
 from visibility.raster.hierarchy import candidates_in_box, ready_hierarchy
 from visibility.ray_reference import ray_triangle
 from visibility.scene import Scene
+from visibility.walkable import bin_of, bin_triangles
 
 #: Lattice step inside a cell (metres).
 STEP = 0.2
@@ -96,61 +97,19 @@ def _normal_y(tris, i):  # pragma: no cover - numba
     return e1z * e2x - e1x * e2z
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _bin(x, origin, size, n):  # pragma: no cover - numba
-    """Grid column of coordinate ``x``, clamped to [0, n - 1]."""
-    k = int(np.floor((x - origin) / size))
-    return min(n - 1, max(0, k))
-
-
-@njit(cache=True, nogil=True)
-def _xz_grid(tris, x0, z0, size, nx, nz):  # pragma: no cover - numba
-    """Triangles of ``tris`` (m, 3, 3) by the cells of an XZ grid (origin x0, z0, square
-    cells of ``size`` metres, nx x nz, outer cells open-ended) their XZ bounds overlap:
-    (start (nx nz + 1,), items) int64, CSR. A point or a horizontal line meets only the
-    triangles of the cells its XZ bounds reach."""
-    m = tris.shape[0]
-    lo = np.empty((m, 4), dtype=np.int64)
-    count = np.zeros(nx * nz + 1, dtype=np.int64)
-    for i in range(m):
-        xa = min(tris[i, 0, 0], min(tris[i, 1, 0], tris[i, 2, 0]))
-        xb = max(tris[i, 0, 0], max(tris[i, 1, 0], tris[i, 2, 0]))
-        za = min(tris[i, 0, 2], min(tris[i, 1, 2], tris[i, 2, 2]))
-        zb = max(tris[i, 0, 2], max(tris[i, 1, 2], tris[i, 2, 2]))
-        # A hair wider than the bounds: a point on a triangle's edge must find it.
-        pad = 1e-9 * (1.0 + max(abs(xa), abs(xb), abs(za), abs(zb)))
-        lo[i, 0] = _bin(xa - pad, x0, size, nx)
-        lo[i, 1] = _bin(xb + pad, x0, size, nx)
-        lo[i, 2] = _bin(za - pad, z0, size, nz)
-        lo[i, 3] = _bin(zb + pad, z0, size, nz)
-        for a in range(lo[i, 0], lo[i, 1] + 1):
-            for b in range(lo[i, 2], lo[i, 3] + 1):
-                count[a * nz + b + 1] += 1
-    for k in range(nx * nz):
-        count[k + 1] += count[k]
-    items = np.empty(count[nx * nz], dtype=np.int64)
-    fill = count[:-1].copy()
-    for i in range(m):
-        for a in range(lo[i, 0], lo[i, 1] + 1):
-            for b in range(lo[i, 2], lo[i, 3] + 1):
-                items[fill[a * nz + b]] = i
-                fill[a * nz + b] += 1
-    return count, items
-
-
 @njit(parallel=True, cache=True, nogil=True)
 def _open_points(px, pz, y_lo, y_hi, y_top, tris, sign, grid, x0, z0, size, nx,
                  nz):  # pragma: no cover - numba
     """(n,) bool: the vertical line y_lo..y_hi at each point meets no triangle and the first
     surface above y_hi (up to y_top) does not face down into the point (inside a solid).
-    ``grid`` (start, items): ``tris`` by XZ cell (``_xz_grid`` with x0, z0, size, nx, nz); a
+    ``grid`` (start, items): ``tris`` by XZ cell (``XZGrid``: x0, z0, size, nx, nz); a
     point tests only its cell's triangles, in ascending order as a full scan would."""
     start, items = grid
     n = px.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     for s in prange(n):
         x, z = px[s], pz[s]
-        cell = _bin(x, x0, size, nx) * nz + _bin(z, z0, size, nz)
+        cell = bin_of(x, x0, size, nx) * nz + bin_of(z, z0, size, nz)
         blocked = False
         best = np.inf
         best_ny = 0.0
@@ -187,8 +146,8 @@ def _clear_samples(p, d, ts, keep, side, tris, grid, x0, z0, size, nx,
         cz = p[2] + ts[j] * d[2]
         ax, az = cx - side[0], cz - side[2]
         bx, bz = cx + side[0], cz + side[2]
-        a0, a1 = _bin(min(ax, bx), x0, size, nx), _bin(max(ax, bx), x0, size, nx)
-        b0, b1 = _bin(min(az, bz), z0, size, nz), _bin(max(az, bz), z0, size, nz)
+        a0, a1 = bin_of(min(ax, bx), x0, size, nx), bin_of(max(ax, bx), x0, size, nx)
+        b0, b1 = bin_of(min(az, bz), z0, size, nz), bin_of(max(az, bz), z0, size, nz)
         hit = False
         for a in range(a0, a1 + 1):
             for b in range(b0, b1 + 1):
@@ -219,8 +178,12 @@ class XZGrid:
         self.z0 = float(box[0, 2])
         self.nx = max(1, int(math.ceil((box[1, 0] - box[0, 0]) / self.size)))
         self.nz = max(1, int(math.ceil((box[1, 2] - box[0, 2]) / self.size)))
-        self.tris = tris
-        self.csr = _xz_grid(tris, self.x0, self.z0, self.size, self.nx, self.nz)
+        xz = tris[:, :, [0, 2]]
+        # A hair wider than the bounds: a point on a triangle's edge must find it.
+        pad = 1e-9 * (1.0 + np.abs(xz).max(axis=(1, 2)))[:, None] if len(tris) else 0.0
+        self.csr = bin_triangles(np.ascontiguousarray(xz.min(axis=1) - pad),
+                                 np.ascontiguousarray(xz.max(axis=1) + pad),
+                                 np.array([self.x0, self.z0]), self.size, self.nx, self.nz)
 
     def args(self) -> tuple:
         """What the kernels take after ``tris``: (grid, x0, z0, size, nx, nz)."""

@@ -61,16 +61,14 @@ RAYS_PER_PASS = 1 << 18
 @njit(cache=True, nogil=True)
 def bin_triangles(tri_min, tri_max, origin, bin_size, nbx, nbz):  # pragma: no cover - numba
     """Triangles binned by their 2-D boxes ``tri_min``, ``tri_max`` (m, 2) on a grid of
-    ``nbx`` x ``nbz`` square bins of ``bin_size`` from ``origin`` (2,) (boxes past the grid
-    go to its border bins): (starts (nbx nbz + 1,), items), bin i nbz + k holding
-    ``items[starts[b]:starts[b + 1]]``."""
+    ``nbx`` x ``nbz`` square bins of ``bin_size`` from ``origin`` (2,) (boxes past the grid,
+    wholly or in part, go to its border bins, so a query clamped to the grid finds them):
+    (starts (nbx nbz + 1,), items), bin i nbz + k holding ``items[starts[b]:starts[b + 1]]``,
+    each bin's triangles in ascending order."""
     counts = np.zeros(nbx * nbz + 1, dtype=np.int64)
     m = tri_min.shape[0]
     for t in range(m):
-        i0 = max(0, int(np.floor((tri_min[t, 0] - origin[0]) / bin_size)))
-        i1 = min(nbx - 1, int(np.floor((tri_max[t, 0] - origin[0]) / bin_size)))
-        k0 = max(0, int(np.floor((tri_min[t, 1] - origin[1]) / bin_size)))
-        k1 = min(nbz - 1, int(np.floor((tri_max[t, 1] - origin[1]) / bin_size)))
+        i0, i1, k0, k1 = _bin_range(tri_min, tri_max, t, origin, bin_size, nbx, nbz)
         for i in range(i0, i1 + 1):
             for k in range(k0, k1 + 1):
                 counts[i * nbz + k + 1] += 1
@@ -78,16 +76,28 @@ def bin_triangles(tri_min, tri_max, origin, bin_size, nbx, nbz):  # pragma: no c
     fill = starts[:-1].copy()
     items = np.empty(starts[-1], dtype=np.int64)
     for t in range(m):
-        i0 = max(0, int(np.floor((tri_min[t, 0] - origin[0]) / bin_size)))
-        i1 = min(nbx - 1, int(np.floor((tri_max[t, 0] - origin[0]) / bin_size)))
-        k0 = max(0, int(np.floor((tri_min[t, 1] - origin[1]) / bin_size)))
-        k1 = min(nbz - 1, int(np.floor((tri_max[t, 1] - origin[1]) / bin_size)))
+        i0, i1, k0, k1 = _bin_range(tri_min, tri_max, t, origin, bin_size, nbx, nbz)
         for i in range(i0, i1 + 1):
             for k in range(k0, k1 + 1):
                 b = i * nbz + k
                 items[fill[b]] = t
                 fill[b] += 1
     return starts, items
+
+
+@njit(cache=True, nogil=True, inline="always")
+def bin_of(x, origin, bin_size, n):  # pragma: no cover - numba
+    """The bin along one axis holding coordinate ``x``, clamped to [0, n - 1]."""
+    return min(n - 1, max(0, int(np.floor((x - origin) / bin_size))))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bin_range(tri_min, tri_max, t, origin, bin_size, nbx, nbz):  # pragma: no cover - numba
+    """Bins (i0, i1, k0, k1), inclusive, that triangle t's box reaches."""
+    return (bin_of(tri_min[t, 0], origin[0], bin_size, nbx),
+            bin_of(tri_max[t, 0], origin[0], bin_size, nbx),
+            bin_of(tri_min[t, 1], origin[1], bin_size, nbz),
+            bin_of(tri_max[t, 1], origin[1], bin_size, nbz))
 
 
 @njit(cache=True, nogil=True, parallel=True)

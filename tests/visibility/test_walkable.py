@@ -184,3 +184,25 @@ def test_scene_wide_triangles_grow_the_bins_within_their_cap(monkeypatch):
     coarse = walkable.detect_walk_area(scene, 4.0)
     np.testing.assert_array_equal(fine.rects, coarse.rects)
     assert len(fine.rects) > 1000
+
+
+def test_bin_triangles_puts_boxes_past_the_grid_in_its_border_bins():
+    """Each box is in every bin it reaches and a box wholly outside the grid in the border
+    bins a clamped query reads (``cell_walk.XZGrid`` pads its grid's box so), each bin's
+    triangles ascending."""
+    from visibility.walkable import bin_of, bin_triangles
+
+    lo = np.array([[0.5, 0.5], [-9.0, 1.5], [1.5, 7.0], [-3.0, -3.0], [0.2, 0.2]])
+    hi = np.array([[1.5, 0.7], [-8.0, 1.7], [1.7, 9.0], [9.0, 9.0], [0.3, 0.3]])
+    starts, items = bin_triangles(lo, hi, np.zeros(2), 1.0, 3, 3)
+    bins = [set(items[starts[b]:starts[b + 1]].tolist()) for b in range(9)]
+    want = [set() for _ in range(9)]
+    for t in range(len(lo)):
+        for i in range(bin_of(lo[t, 0], 0.0, 1.0, 3), bin_of(hi[t, 0], 0.0, 1.0, 3) + 1):
+            for k in range(bin_of(lo[t, 1], 0.0, 1.0, 3), bin_of(hi[t, 1], 0.0, 1.0, 3) + 1):
+                want[i * 3 + k].add(t)
+    assert bins == want
+    assert 1 in bins[0 * 3 + 1] and 2 in bins[1 * 3 + 2]  # left of the grid; beyond its top
+    assert all(3 in bins[b] for b in range(9))  # the box over the whole grid
+    for b in range(9):
+        assert list(items[starts[b]:starts[b + 1]]) == sorted(items[starts[b]:starts[b + 1]])
