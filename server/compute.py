@@ -13,6 +13,13 @@ Walkers' work is ranked across sessions (``docs/scheduling.md``): each session s
 (``want``: current cell 0, cells ahead their expected arrival seconds) in ``demand``
 (``server.demand``); a walker's job runs at its key's rank there, re-ranked sooner or later as
 walkers move, and a job no walker wants any more and no caller waits for is cancelled.
+
+With progressive streams, a walker's first answer for the cell it stands in comes before any
+refinement: while one is queued or running, the session cores' computations computing here wait
+at their next checkpoint (``FIRST_ANSWER_HOLD_S`` at most per checkpoint, so a steady stream of
+first answers slows them without stopping them). They share the CPUs, and the Python between
+a computation's kernels shares the GIL: a first answer of tens of milliseconds took three
+times as long beside two refinements.
 """
 
 from __future__ import annotations
@@ -49,6 +56,9 @@ log = logging.getLogger(__name__)
 
 #: Queued jobs listed in ``stats`` (the pool's queue, first to run first).
 QUEUE_LISTED = 50
+#: The longest a session core's computation waits at one checkpoint for walkers' first
+#: answers (``ComputeService.hold_for_first_answers``).
+FIRST_ANSWER_HOLD_S = 0.5
 
 
 class ComputeService:
@@ -94,6 +104,13 @@ class ComputeService:
         self.cancelled = 0
         self.computed = 0
         self.failed = 0
+        #: Walkers' first answers (priority 0, first answers' lane) queued or running, and
+        #: what ``hold_for_first_answers`` waits on.
+        self._first_pending = 0
+        self._first_cv = threading.Condition()
+        #: Checkpoints at which a computation waited for first answers, and seconds waited.
+        self.holds = 0
+        self.held_seconds = 0.0
 
     @property
     def still_wanted(self) -> Callable[[Hashable], bool] | None:
@@ -184,6 +201,9 @@ class ComputeService:
         token = CancelToken.after(budget)
         model = float(cost.detail.get("model_seconds", cost.seconds))
         executor = self._here if pool is self.first_pool else self.executor
+        first_now = pool is self.first_pool and priority <= 0
+        if self.first_pool is not None and pool is not self.first_pool:
+            token.hold = self.hold_for_first_answers
         job: dict[str, Any] = {"priority": priority}
         args = (self._run, key, loaded, region, core, params, token, model, executor, job)
         if isinstance(pool, PriorityWorkerPool):
@@ -200,6 +220,11 @@ class ComputeService:
             fut = pool.submit(*args)
         if client is not None:
             fut.add_done_callback(lambda f, c=client: self.admission.release(c))
+        if first_now:
+            # Counted once queued; the callback runs at once if it is already done.
+            with self._first_cv:
+                self._first_pending += 1
+            fut.add_done_callback(lambda f: self._first_done())
         self.inflight.add(key, fut, token, pool, rank, wanted is None, walker)
         return fut
 
@@ -316,11 +341,32 @@ class ComputeService:
                 self.failed += 1
             raise
 
+    def _first_done(self) -> None:
+        with self._first_cv:
+            self._first_pending -= 1
+            if self._first_pending <= 0:
+                self._first_cv.notify_all()
+
+    def hold_for_first_answers(self) -> None:
+        """Wait while a walker's first answer (priority 0) is queued or running, up to
+        ``FIRST_ANSWER_HOLD_S``: the ``hold`` of the session cores' computations (module
+        docstring), called at their checkpoints in the computing thread."""
+        with self._first_cv:
+            if self._first_pending <= 0:
+                return
+            t0 = time.perf_counter()
+            self._first_cv.wait_for(lambda: self._first_pending <= 0, FIRST_ANSWER_HOLD_S)
+            self.holds += 1
+            self.held_seconds += time.perf_counter() - t0
+
     def stats(self) -> dict[str, Any]:
-        """Cache statistics per tier plus computations done, failed, shared and in flight."""
+        """Cache statistics per tier plus computations done, failed, shared and in flight, and
+        the checkpoints at which computations waited for first answers (``holds``,
+        ``held_seconds``)."""
         inflight = len(self.inflight)
         out = {**self.cache.stats(), "computed": self.computed, "failed": self.failed,
                "cancelled": self.cancelled, "abandoned": self.inflight.abandoned,
+               "holds": self.holds, "held_seconds": round(self.held_seconds, 3),
                "shared": self.inflight.shared, "inflight": inflight,
                "workers": getattr(self.pool, "workers", None),
                "admission": self.admission.stats(), "executor": self.executor.state(),

@@ -25,6 +25,8 @@ histogram observed by the compute service.
 | pvs_reranks_total{direction}        | counter   | queued jobs moved sooner / later (3)      |
 | pvs_cancellations_total{reason, state} | counter | computations cancelled (4)             |
 | pvs_queued_computations             | gauge     | computations waiting for a worker         |
+| pvs_first_answer_holds_total        | counter   | checkpoints where a computation waited (5) |
+| pvs_first_answer_held_seconds_total | counter   | seconds computations waited there (5)     |
 | pvs_cache_tier_hits_total etc.      | counter   | hits, misses, errors by tier, kind (1)    |
 | pvs_redis_up / pvs_redis_downs_total| gauge / counter | Redis answers (1/0) / went down (2) |
 | pvs_redis_skipped_total{kind}       | counter   | Redis calls skipped while it was down (2) |
@@ -34,7 +36,9 @@ pvs, near_far (the near-far memory LRU) or cubemap (shared cubemaps). (2) With a
 (``PVS_CACHE=redis://…``) only. (3) As walkers move (``docs/scheduling.md``). (4) reason
 unwanted (no walker wants the result any more and no caller waits), released (its last caller
 stopped waiting and no walker wants it) or skipped (found unwanted when a worker took it); state
-queued (never ran) or running (stopped at its core's next checkpoint).
+queued (never ran) or running (stopped at its core's next checkpoint). (5) Session cores'
+computations wait at their checkpoints while a walker's first answer is queued or running
+(``server.compute``, progressive streams).
 """
 
 from __future__ import annotations
@@ -88,6 +92,10 @@ class _StateCollector:
                       disk["hits"] if disk else 0)
         yield gauge("pvs_computations_inflight", "PVS computations queued or running",
                     stats["inflight"])
+        yield counter("pvs_first_answer_holds", "checkpoints at which a computation waited for "
+                      "walkers' first answers", stats["holds"])
+        yield counter("pvs_first_answer_held_seconds", "seconds computations waited for "
+                      "walkers' first answers", stats["held_seconds"])
         pool = stats.get("pool", {})
         yield counter("pvs_worker_retries", "jobs retried after a failure",
                       pool.get("retried", 0))

@@ -7,7 +7,11 @@ A kernel whose single call may run for seconds (a cos view in dense clutter) pol
 started by ``running_under``, at its deadline; the kernel reads it with ``flag_set`` (an atomic
 load: a plain read of an array the loop never writes is hoisted out of the loop by the
 compiler and never seen to change). The kernel returns early and the caller's next
-``checkpoint()`` raises, so a partial result is never used."""
+``checkpoint()`` raises, so a partial result is never used.
+
+A token may also carry a ``hold``: called by ``checkpoint()`` before its checks, it lets a
+scheduler pause a computation between chunks while more urgent work runs on the same CPUs (the
+server holds a session core's refinement while a walker waits for its first answer)."""
 
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ import contextlib
 import contextvars
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from numba import types
@@ -41,6 +45,9 @@ class CancelToken:
         self.reason = ""
         #: 1 once cancelled (or late, see ``running_under``): what kernels poll.
         self.flag = np.zeros(1, dtype=np.uint8)
+        #: Called by ``checkpoint()`` in the computing thread before its checks (None:
+        #: nothing); it may block, and should for a bounded time only.
+        self.hold: Callable[[], None] | None = None
 
     @classmethod
     def after(cls, seconds: float | None) -> CancelToken:
@@ -80,9 +87,11 @@ _TOKEN: contextvars.ContextVar[CancelToken | None] = contextvars.ContextVar("pvs
 def checkpoint() -> None:
     """Raise ``ComputationCancelled`` if the computation running in this context was cancelled
     or passed its deadline; a no-op outside ``Core.compute`` with a token. Cores call it
-    between chunks of work."""
+    between chunks of work. A token's ``hold`` runs first (a scheduler's pause)."""
     token = _TOKEN.get()
     if token is not None:
+        if token.hold is not None:
+            token.hold()
         token.check()
 
 

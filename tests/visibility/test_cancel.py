@@ -67,3 +67,21 @@ def test_the_timer_is_gone_after_the_computation():
         pass
     time.sleep(0.4)
     assert not token.cancelled and token.flag[0] == 0
+
+
+def test_a_hold_runs_at_each_checkpoint_before_the_checks():
+    token = CancelToken()
+    seen = []
+
+    def hold():
+        seen.append((threading.get_ident(), token.cancelled))
+        token.cancel("cancelled while held")
+
+    token.hold = hold
+    with pytest.raises(ComputationCancelled, match="cancelled while held"):
+        with running_under(token):  # its first checkpoint runs the hold, then raises
+            pass
+    # In the computing thread, before the cancel check: what the hold did is seen at once.
+    assert seen == [(threading.get_ident(), False)]
+    checkpoint()  # outside the computation: no token, no hold
+    assert len(seen) == 1
