@@ -18,8 +18,8 @@ With progressive streams, a walker's first answer for the cell it stands in come
 refinement: while one is queued or running, the session cores' computations computing here wait
 at their next checkpoint (``FIRST_ANSWER_HOLD_S`` at most per checkpoint, so a steady stream of
 first answers slows them without stopping them). They share the CPUs, and the Python between
-a computation's kernels shares the GIL: a first answer of tens of milliseconds took three
-times as long beside two refinements.
+a computation's kernels shares the GIL: beside refinements, first answers slowed down and
+queued (``docs/scheduling.md``).
 """
 
 from __future__ import annotations
