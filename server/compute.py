@@ -59,6 +59,9 @@ QUEUE_LISTED = 50
 #: The longest a session core's computation waits at one checkpoint for walkers' first
 #: answers (``ComputeService.hold_for_first_answers``).
 FIRST_ANSWER_HOLD_S = 0.5
+#: How often a held computation looks whether it was cancelled meanwhile (a cancel sets the
+#: token, which the hold's condition does not hear).
+HOLD_CANCEL_POLL_S = 0.01
 
 
 class ComputeService:
@@ -347,15 +350,21 @@ class ComputeService:
             if self._first_pending <= 0:
                 self._first_cv.notify_all()
 
-    def hold_for_first_answers(self) -> None:
+    def hold_for_first_answers(self, token: CancelToken) -> None:
         """Wait while a walker's first answer (priority 0) is queued or running, up to
-        ``FIRST_ANSWER_HOLD_S``: the ``hold`` of the session cores' computations (module
-        docstring), called at their checkpoints in the computing thread."""
+        ``FIRST_ANSWER_HOLD_S`` and no longer than ``token`` stays uncancelled: the ``hold`` of
+        the session cores' computations (module docstring), called at their checkpoints in
+        the computing thread."""
         with self._first_cv:
             if self._first_pending <= 0:
                 return
             t0 = time.perf_counter()
-            self._first_cv.wait_for(lambda: self._first_pending <= 0, FIRST_ANSWER_HOLD_S)
+            end = t0 + FIRST_ANSWER_HOLD_S
+            while self._first_pending > 0 and not token.cancelled:
+                left = end - time.perf_counter()
+                if left <= 0:
+                    break
+                self._first_cv.wait(min(left, HOLD_CANCEL_POLL_S))
             self.holds += 1
             self.held_seconds += time.perf_counter() - t0
 

@@ -45,9 +45,10 @@ class CancelToken:
         self.reason = ""
         #: 1 once cancelled (or late, see ``running_under``): what kernels poll.
         self.flag = np.zeros(1, dtype=np.uint8)
-        #: Called by ``checkpoint()`` in the computing thread before its checks (None:
-        #: nothing); it may block, and should for a bounded time only.
-        self.hold: Callable[[], None] | None = None
+        #: Called with the token by ``checkpoint()`` in the computing thread before its checks
+        #: (None: nothing); it may block, for a bounded time, and should end early once the
+        #: token is cancelled.
+        self.hold: Callable[[CancelToken], None] | None = None
 
     @classmethod
     def after(cls, seconds: float | None) -> CancelToken:
@@ -91,7 +92,7 @@ def checkpoint() -> None:
     token = _TOKEN.get()
     if token is not None:
         if token.hold is not None:
-            token.hold()
+            token.hold(token)
         token.check()
 
 

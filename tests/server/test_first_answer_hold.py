@@ -14,10 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+import server.compute as compute_module
 from server.catalog import SceneCatalog
 from server.compute import FIRST_ANSWER_HOLD_S, ComputeService
 from server.settings import Settings
-from visibility.cancel import checkpoint
+from visibility.cancel import ComputationCancelled, checkpoint
 from visibility.cores import base as core_base
 from visibility.cores.base import Core, CoreParams
 
@@ -33,19 +34,24 @@ class StandInParams(CoreParams):
 
 
 class StandInCore(Core):
-    """Records when a refinement passed each checkpoint (``passed``) and when a first answer
-    ran (``ran``)."""
+    """Records when a refinement passed each checkpoint (``passed``) or stopped there
+    (``stopped``), and when a first answer ran (``ran``)."""
 
     name = "test_stand_in"
     Params = StandInParams
     passed: list[float] = []
     ran: tuple[float, float] = (0.0, 0.0)
+    stopped = 0.0
 
     def _compute(self, scene, cell, params):
         t0 = time.monotonic()
         for _ in range(params.ticks):
             time.sleep(TICK)
-            checkpoint()
+            try:
+                checkpoint()
+            except ComputationCancelled:
+                StandInCore.stopped = time.monotonic()
+                raise
             StandInCore.passed.append(time.monotonic())
         if not params.ticks:
             time.sleep(params.seconds)
@@ -61,8 +67,8 @@ def cores() -> Iterator[None]:
 
 
 @contextmanager
-def _service(progressive: bool = True) -> Iterator[ComputeService]:
-    settings = Settings(generated={"village": 2000}, workers=2, progressive=progressive)
+def _service(progressive: bool = True, workers: int = 2) -> Iterator[ComputeService]:
+    settings = Settings(generated={"village": 2000}, workers=workers, progressive=progressive)
     svc = ComputeService(SceneCatalog(settings), settings)
     try:
         yield svc
@@ -110,3 +116,20 @@ def test_nothing_holds_but_a_walkers_first_answer(cores, progressive, priority):
     with _service(progressive) as svc:
         assert len(_run(svc, 0.8, priority)) > 10
         assert svc.stats()["holds"] == 0
+
+
+def test_a_held_refinement_stops_soon_after_it_is_cancelled(cores, monkeypatch):
+    # Holds as long as the first answer runs: a hold that missed the cancel would keep the
+    # refinement, and its worker, until the first answer is done.
+    monkeypatch.setattr(compute_module, "FIRST_ANSWER_HOLD_S", 10.0)
+    core = core_base.get_core(StandInCore.name)
+    with _service() as svc:
+        StandInCore.stopped = 0.0
+        main = svc.submit("village", core, core.make_params(ticks=2000), 0)
+        time.sleep(0.2)
+        first = svc.submit("village", core, core.make_params(seconds=2.0), 1, lane="first")
+        time.sleep(0.3)  # the refinement is held now
+        t0 = time.monotonic()
+        assert svc.release(main)
+        first.result(timeout=10)
+        assert 0 < StandInCore.stopped - t0 < 0.5

@@ -73,8 +73,8 @@ def test_a_hold_runs_at_each_checkpoint_before_the_checks():
     token = CancelToken()
     seen = []
 
-    def hold():
-        seen.append((threading.get_ident(), token.cancelled))
+    def hold(held: CancelToken):
+        seen.append((threading.get_ident(), held is token, token.cancelled))
         token.cancel("cancelled while held")
 
     token.hold = hold
@@ -82,6 +82,6 @@ def test_a_hold_runs_at_each_checkpoint_before_the_checks():
         with running_under(token):  # its first checkpoint runs the hold, then raises
             pass
     # In the computing thread, before the cancel check: what the hold did is seen at once.
-    assert seen == [(threading.get_ident(), False)]
+    assert seen == [(threading.get_ident(), True, False)]
     checkpoint()  # outside the computation: no token, no hold
     assert len(seen) == 1
