@@ -91,8 +91,10 @@ class ComputeService:
         #: take tens of milliseconds, and must not queue behind the session cores' work. They
         #: compute in this process whatever the executor: a cluster's round trip costs as much.
         #: Warm-ups for cells ahead (priority > 0) take one of its two workers at most, so a
-        #: walker's own cell never waits behind one.
-        self.first_pool = PriorityWorkerPool(2, 1) if settings.progressive else None
+        #: walker's own cell never waits behind one; a warm-up promoted to a walker's cell
+        #: (priority 0) leaves that lane.
+        self.first_pool = (PriorityWorkerPool(2, 1, heavy_above=0.0) if settings.progressive
+                           else None)
         self._here = LocalExecutor(1)
         self.admission = Admission(settings)
         #: Memory, Redis, disk (``settings.cache_bytes``, ``cache``, ``cache_dir``).
@@ -107,10 +109,6 @@ class ComputeService:
         self.cancelled = 0
         self.computed = 0
         self.failed = 0
-        #: Walkers' first answers (priority 0, first answers' lane) queued or running, and
-        #: what ``hold_for_first_answers`` waits on.
-        self._first_pending = 0
-        self._first_cv = threading.Condition()
         #: Checkpoints at which a computation waited for first answers, and seconds waited.
         self.holds = 0
         self.held_seconds = 0.0
@@ -204,15 +202,14 @@ class ComputeService:
         token = CancelToken.after(budget)
         model = float(cost.detail.get("model_seconds", cost.seconds))
         executor = self._here if pool is self.first_pool else self.executor
-        first_now = pool is self.first_pool and priority <= 0
         if self.first_pool is not None and pool is not self.first_pool:
             token.hold = self.hold_for_first_answers
         job: dict[str, Any] = {"priority": priority}
         args = (self._run, key, loaded, region, core, params, token, model, executor, job)
         if isinstance(pool, PriorityWorkerPool):
             where = f"cell {region.cell}" if region.cell is not None else "region"
-            heavy = priority > 0 if pool is self.first_pool else \
-                cost.seconds > self.settings.heavy_seconds
+            # The first pool's lane follows the rank (``heavy_above``).
+            heavy = cost.seconds > self.settings.heavy_seconds
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
                               heavy=heavy, since=since,
                               label=f"{loaded.name} {where} {core.name}")
@@ -223,11 +220,6 @@ class ComputeService:
             fut = pool.submit(*args)
         if client is not None:
             fut.add_done_callback(lambda f, c=client: self.admission.release(c))
-        if first_now:
-            # Counted once queued; the callback runs at once if it is already done.
-            with self._first_cv:
-                self._first_pending += 1
-            fut.add_done_callback(lambda f: self._first_done())
         self.inflight.add(key, fut, token, pool, rank, wanted is None, walker)
         return fut
 
@@ -344,27 +336,22 @@ class ComputeService:
                 self.failed += 1
             raise
 
-    def _first_done(self) -> None:
-        with self._first_cv:
-            self._first_pending -= 1
-            if self._first_pending <= 0:
-                self._first_cv.notify_all()
-
     def hold_for_first_answers(self, token: CancelToken) -> None:
-        """Wait while a walker's first answer (priority 0) is queued or running, up to
-        ``FIRST_ANSWER_HOLD_S`` and no longer than ``token`` stays uncancelled: the ``hold`` of
-        the session cores' computations (module docstring), called at their checkpoints in
-        the computing thread."""
-        with self._first_cv:
-            if self._first_pending <= 0:
-                return
-            t0 = time.perf_counter()
-            end = t0 + FIRST_ANSWER_HOLD_S
-            while self._first_pending > 0 and not token.cancelled:
-                left = end - time.perf_counter()
-                if left <= 0:
-                    break
-                self._first_cv.wait(min(left, HOLD_CANCEL_POLL_S))
+        """Wait while a walker's first answer (priority 0 on the first answers' pool, a
+        promoted warm-up included) is queued or running, up to ``FIRST_ANSWER_HOLD_S`` and no
+        longer than ``token`` stays uncancelled: the ``hold`` of the session cores'
+        computations (module docstring), called at their checkpoints in the computing
+        thread."""
+        pool = self.first_pool
+        if pool is None or pool.pending(0.0) == 0:
+            return
+        t0 = time.perf_counter()
+        end = t0 + FIRST_ANSWER_HOLD_S
+        while not token.cancelled:
+            left = end - time.perf_counter()
+            if left <= 0 or pool.wait_clear(0.0, min(left, HOLD_CANCEL_POLL_S)):
+                break
+        with self._lock:
             self.holds += 1
             self.held_seconds += time.perf_counter() - t0
 

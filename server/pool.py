@@ -111,7 +111,10 @@ class PriorityWorkerPool:
     shortest estimated ``seconds`` (FIFO among equals).
 
     Two lanes: ``heavy`` jobs may occupy at most ``heavy_workers`` threads at once (default:
-    all), so with fewer heavy workers than workers a light job always finds one free.
+    all), so with fewer heavy workers than workers a light job always finds one free. With
+    ``heavy_above`` set, a job's lane follows its rank instead: heavy while its priority is
+    above ``heavy_above``, light from the moment ``rerank`` or ``promote`` brings it there (a
+    warm-up a walker now waits for must not queue behind the other warm-ups).
 
     A job whose ``wanted()`` says False when a worker picks it is cancelled unrun (prefetch work
     no walker is heading for any more); ``rerank`` re-keys a queued job either way, ``promote``
@@ -122,13 +125,20 @@ class PriorityWorkerPool:
     ``reranks`` the re-keyings ("sooner", "later").
     """
 
-    def __init__(self, workers: int, heavy_workers: int | None = None, nice: int = 0) -> None:
+    def __init__(self, workers: int, heavy_workers: int | None = None, nice: int = 0,
+                 heavy_above: float | None = None) -> None:
         self.workers = int(workers)
         #: How much nicer (lower CPU priority) its threads run (``lower_priority``).
         self.nice = max(0, int(nice))
         self.heavy_workers = self.workers if heavy_workers is None else max(1, int(heavy_workers))
+        self.heavy_above = None if heavy_above is None else float(heavy_above)
         self._heavy_running = 0
-        self._cv = threading.Condition()
+        lock = threading.Lock()
+        self._cv = threading.Condition(lock)
+        #: Notified when a job ends (``wait_clear``); on the same lock, so a waiter never takes
+        #: a wake-up meant for a worker.
+        self._ended = threading.Condition(lock)
+        self._running: set[_Job] = set()
         self._heap: list[tuple[float, float, float, int, _Job]] = []
         self._count = 0
         self._stale = 0
@@ -155,6 +165,8 @@ class PriorityWorkerPool:
         ``since``); ``heavy``: it runs in the heavy lane; ``since``: the tie-break among equal
         priorities, lower first; ``label``: what it computes (``snapshot``)."""
         fut: Future = Future()
+        if self.heavy_above is not None:
+            heavy = float(priority) > self.heavy_above
         job = _Job(fn, args, fut, float(priority), wanted, seconds=float(seconds),
                    heavy=bool(heavy), since=float(since), label=str(label), owner=self,
                    queued_at=time.monotonic())
@@ -185,22 +197,29 @@ class PriorityWorkerPool:
     def rerank(self, future: Future, priority: float, since: float = 0.0, *,
                needed: bool = False) -> bool:
         """Re-key the still queued job of ``future`` to (``priority``, ``since``), sooner or
-        later; ``needed``: a caller now waits for it, so it runs even if unwanted. True when
-        its place in the queue changed (counted in ``reranks``)."""
+        later (a running one keeps its lane but is counted at its new rank by ``pending``);
+        ``needed``: a caller now waits for it, so it runs even if unwanted. True when its
+        place in the queue changed (counted in ``reranks``)."""
         job = getattr(future, "job", None)
         if job is None or job.owner is not self:
             return False
         with self._cv:
             if needed:
                 job.wanted = None
-            if job.started or job.future.done() or job.entry < 0:
+            if job.future.done() or job.entry < 0:
                 return False
             new = (float(priority), float(since))
+            if job.started:
+                # Running: its lane is fixed, but whom it serves now counts (``pending``).
+                job.priority, job.since = new
+                return False
             old = (job.priority, job.since)
             if new == old:
                 return False
             self.reranks["sooner" if new < old else "later"] += 1
             job.priority, job.since = new
+            if self.heavy_above is not None:
+                job.heavy = job.priority > self.heavy_above
             self._stale += 1
             self._enqueue(job)
             if self._stale > max(MIN_STALE_TO_COMPACT, len(self._heap) // 2):
@@ -247,6 +266,28 @@ class PriorityWorkerPool:
         with self._cv:
             return float(sum(j.seconds for j in self._waiting()))
 
+    def pending(self, at_most: float) -> int:
+        """Jobs queued or running whose priority is at most ``at_most``."""
+        with self._cv:
+            return self._pending(at_most)
+
+    def _pending(self, at_most: float) -> int:
+        waiting = sum(1 for j in self._waiting() if j.priority <= at_most)
+        return waiting + sum(1 for j in self._running if j.priority <= at_most)
+
+    def wait_clear(self, at_most: float, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds until no job of priority at most ``at_most`` is
+        queued or running; True when none is. Woken when a job ends; a queued job cancelled
+        meanwhile is seen at the timeout."""
+        end = time.monotonic() + max(0.0, timeout)
+        with self._cv:
+            while self._pending(at_most) > 0:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._ended.wait(left)
+            return True
+
     def heavy_running(self) -> int:
         """Heavy-lane jobs running now."""
         with self._cv:
@@ -267,6 +308,7 @@ class PriorityWorkerPool:
                     continue
                 if job is not None:
                     job.started = True
+                    self._running.add(job)
                     if job.heavy:
                         self._heavy_running += 1
             # Outside the lock: a future's callbacks may take their owner's lock, which may
@@ -305,10 +347,12 @@ class PriorityWorkerPool:
         return found
 
     def _finished(self, job: _Job) -> None:
-        if job.heavy:
-            with self._cv:
+        with self._cv:
+            self._running.discard(job)
+            if job.heavy:
                 self._heavy_running -= 1
                 self._cv.notify_all()
+            self._ended.notify_all()
 
     def _worker(self) -> None:
         if self.nice:

@@ -133,3 +133,24 @@ def test_a_held_refinement_stops_soon_after_it_is_cancelled(cores, monkeypatch):
         assert svc.release(main)
         first.result(timeout=10)
         assert 0 < StandInCore.stopped - t0 < 0.5
+
+
+def test_a_warm_up_a_walker_reached_holds_refinements(cores):
+    """A first answer queued as a warm-up for a cell ahead (priority 1: no hold) and promoted
+    when the walker gets there holds refinements like one asked for at priority 0."""
+    core = core_base.get_core(StandInCore.name)
+    with _service() as svc:
+        StandInCore.passed = []
+        main = svc.submit("village", core, core.make_params(ticks=int(1.3 / TICK)), 0)
+        time.sleep(0.2)
+        params = core.make_params(seconds=0.8)
+        warm = svc.submit("village", core, params, 1, priority=1.0, lane="first")
+        time.sleep(0.05)
+        assert svc.stats()["holds"] == 0
+        assert svc.submit("village", core, params, 1, priority=0.0, lane="first") is warm
+        warm.result(timeout=30)
+        main.result(timeout=60)
+        t0, t1 = StandInCore.ran
+        inside = [t for t in StandInCore.passed if t0 + 0.1 < t < t1]
+        assert len(inside) <= 1 + int(np.ceil(0.8 / FIRST_ANSWER_HOLD_S))
+        assert svc.stats()["holds"] >= 1

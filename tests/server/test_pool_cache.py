@@ -598,3 +598,38 @@ def test_first_answers_of_walkers_cells_never_wait_behind_warm_ups(settings):
         assert own.result(10) == "own" and [f.result(10) for f in warm]
     finally:
         svc.shutdown()
+
+
+def test_a_warm_up_promoted_to_a_walkers_cell_leaves_the_warm_up_lane(settings):
+    """A warm-up for a cell ahead that a walker reached (promoted to priority 0) is then a
+    walker's first answer: it starts on the free worker instead of waiting for the warm-up
+    lane, and it counts as pending at priority 0 (what refinements are held for)."""
+    import threading
+
+    from server.catalog import SceneCatalog
+    from server.compute import ComputeService
+
+    on = settings.model_copy(update={"progressive": True})
+    svc = ComputeService(SceneCatalog(on), on)
+    try:
+        pool = svc.first_pool
+        release = threading.Event()
+        started = []
+
+        def job(name):
+            started.append(name)
+            release.wait(10)
+            return name
+
+        warm = [pool.submit(job, f"ahead{i}", priority=1.0 + i) for i in range(3)]
+        wait_for(lambda: started == ["ahead0"])
+        assert pool.pending(0.0) == 0
+        pool.promote(warm[2], 0.0)
+        wait_for(lambda: "ahead2" in started)
+        assert started == ["ahead0", "ahead2"] and pool.pending(0.0) == 1
+        assert not pool.wait_clear(0.0, 0.05)
+        release.set()
+        assert pool.wait_clear(0.0, 10) and pool.pending(0.0) == 0
+        assert [f.result(10) for f in warm] == ["ahead0", "ahead1", "ahead2"]
+    finally:
+        svc.shutdown()
