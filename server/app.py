@@ -8,8 +8,10 @@ and ``serve`` share it); ``serve(settings)`` runs the server until interrupted.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import socket
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -29,8 +31,10 @@ from server.scene_builds import prepare_scene
 from server.settings import Settings
 from server.state import ServerState
 from server.viewer_files import install_viewer
+from visibility.cores.base import AUTO_CORE, available_cores
 from visibility.kernel_cache import cached_kernels, key_numba_cache
 from visibility.scene_cache import set_store
+from visibility.warmup import load_kernels
 
 #: uvicorn's own cap on an incoming WebSocket message. Kept well above ``max_message_bytes`` so
 #: that oversized messages reach the session, which answers them with a named ``too_big`` error;
@@ -67,6 +71,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         warn_cold_kernels()
+        if settings.preload_kernels:
+            await asyncio.to_thread(preload_kernels, settings)
         yield
         state.compute.shutdown()
 
@@ -109,6 +115,36 @@ def warn_cold_kernels() -> bool:
                 "(minutes on 2 cores, walkers stall meanwhile); run `pvs warmup` before "
                 "serving", key_numba_cache())
     return True
+
+
+def preload_cores(settings: Settings) -> list[str]:
+    """The cores whose kernels a server loads before it serves (``preload_kernels``): the
+    default core (``auto``: every registered core, any of which it may pick) and the first
+    answers' core."""
+    if settings.core == AUTO_CORE:
+        names = available_cores()
+    else:
+        names = [settings.core]
+    return list(dict.fromkeys([*names, settings.first_core]))
+
+
+def preload_kernels(settings: Settings) -> float:
+    """Load the kernels of ``preload_cores`` into this process (``visibility.warmup``): a
+    kernel loads at its first call, a second or two per core with the GIL taken in slices
+    of up to a few hundred milliseconds, and a server that did it at its first cells stalled
+    every walker meanwhile. Seconds taken; a core that fails to load is logged, never
+    fatal."""
+    names = preload_cores(settings)
+    log.info("loading the kernels of %s before serving", ", ".join(names))
+    t0 = time.perf_counter()
+    for name in names:
+        try:
+            load_kernels([name])
+        except Exception:  # noqa: BLE001 - it loads at its first call instead
+            log.exception("could not load the kernels of core %r ahead of use", name)
+    seconds = time.perf_counter() - t0
+    log.info("kernels of %s loaded in %.1f s", ", ".join(names), seconds)
+    return seconds
 
 
 def uvicorn_config(app: FastAPI, settings: Settings, **overrides: Any) -> uvicorn.Config:

@@ -67,6 +67,10 @@ class Settings(BaseModel):
         ``sampling``, 4 viewpoints at 128 px: tens of milliseconds on the 100k scenes). First
         answers run on a worker of their own, so computations of the session cores never
         hold them up.
+    preload_kernels : load the kernels of the default core (``auto``: of every core) and of
+        ``first_core`` before serving (``server.app.preload_kernels``): a kernel loads at its
+        first call in a process, a second or two per core during which every walker stalls.
+        Kernels of moving scenes and of cores clients name load at their first use.
     calibrate : ``auto`` picks by a calibration (``visibility.calibration``): each fitting
         core's time and misses on a few cells of the scene, measured once per scene and cell
         size in the background (kept in ``cache_dir`` across restarts); until it is done, the
@@ -167,6 +171,7 @@ class Settings(BaseModel):
     auto_budget: float = Field(1.0, gt=0, le=3600, allow_inf_nan=False)
     calibration_seconds: float = Field(120.0, gt=0, le=86400, allow_inf_nan=False)
     first_core: str = "sampling"
+    preload_kernels: bool = True
     first_params: dict[str, Any] = Field(
         default_factory=lambda: {"samples": 4, "batch": 4, "resolution": 128})
     send_queue_frames: int = Field(16, ge=1, le=4096)
@@ -293,6 +298,7 @@ class Settings(BaseModel):
         object), PVS_WORKERS, PVS_CACHE_BYTES, PVS_MAX_FRAME_BYTES, PVS_MAX_MESSAGE_BYTES,
         PVS_HELLO_TIMEOUT, PVS_CACHE_DIR, PVS_PREFETCH, PVS_PREFETCH_AHEAD,
         PVS_PROGRESSIVE, PVS_KNOWN_ANSWERS, PVS_FIRST_CORE, PVS_FIRST_PARAMS (a JSON object),
+        PVS_PRELOAD_KERNELS,
         PVS_CALIBRATE, PVS_AUTO_BUDGET, PVS_CALIBRATION_SECONDS,
         PVS_SEND_QUEUE_FRAMES, PVS_SEND_TIMEOUT,
         PVS_NEAR_FAR, PVS_NEAR_FAR_R1, PVS_NEAR_FAR_R2, PVS_NEAR_FAR_RESOLUTION,

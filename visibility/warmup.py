@@ -4,12 +4,18 @@ Every kernel is compiled at its first call in a process and cached; a fresh mach
 new Docker image) pays that on its first cells instead of once. ``warm_up`` runs each core on
 the small inputs that reach its kernels (a static city, spheres, a keyframed scene) and the
 ground truth's rasterizer, split over a few processes, since numba compiles on one thread.
+
+A process still loads each kernel from that cache at its first call, a second or two per core
+with the GIL taken in slices of up to a few hundred milliseconds: ``load_kernels`` does it
+ahead of use in a serving process (``server.app``), so no walker waits on it.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 
@@ -35,23 +41,48 @@ def groups() -> list[tuple[str, ...]]:
     return [GROUPS[0] + extra, *GROUPS[1:]]
 
 
-def _scenes() -> list:
-    """Small scenes reaching every kernel path: static triangles, spheres, keyframed motion."""
+def _scenes(dynamic: bool = True) -> list:
+    """Small scenes reaching every kernel path: static triangles, then (``dynamic``) spheres
+    and keyframed motion."""
     from visibility.generators import make_scene
 
-    return [make_scene("city", triangles=2000), make_scene("spheres", triangles=1000),
+    static = [make_scene("city", triangles=2000)]
+    if not dynamic:
+        return static
+    return [*static, make_scene("spheres", triangles=1000),
             make_scene("swaying_grass", triangles=1000)]
 
 
-def _warm(names: tuple[str, ...]) -> float:
-    """Run the named cores (and ``ground_truth``, ``rays``) once per small scene; seconds."""
+#: (core name, dynamic) pairs whose kernels this process has loaded (``load_kernels``).
+_loaded: set[tuple[str, bool]] = set()
+_loading = threading.Lock()
+
+
+def load_kernels(names: Iterable[str], dynamic: bool = False) -> float:
+    """Load the named cores' kernels into this process (from the numba cache, compiling what
+    it lacks) by running each once on a small static scene, and on moving ones too with
+    ``dynamic``; names this process loaded before are skipped. Seconds taken."""
+    with _loading:
+        todo = tuple(dict.fromkeys(n for n in names if (n, dynamic) not in _loaded))
+        if not todo:
+            return 0.0
+        seconds = _warm(todo, _scenes(dynamic))
+        _loaded.update((n, dynamic) for n in todo)
+        if dynamic:
+            _loaded.update((n, False) for n in todo)
+        return seconds
+
+
+def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
+    """Run the named cores (and ``ground_truth``, ``rays``) once per small scene (default
+    ``_scenes()``); seconds."""
     from visibility.cores.base import get_core
     from visibility.ground_truth import cell_around, sample_pvs
     from visibility.viewcells import Viewcell
 
     t0 = time.perf_counter()
     frames_warm = False
-    for scene in _scenes():
+    for scene in _scenes() if scenes is None else scenes:
         box = cell_around(scene, 0.3, 0)
         for name in names:
             if name == "ground_truth":
