@@ -2,11 +2,13 @@
 
 Every kernel is compiled at its first call in a process and cached; a fresh machine (a CI run, a
 new Docker image) pays that on its first cells instead of once. ``warm_up`` runs each core on
-the small inputs that reach its kernels (a static city, spheres, a keyframed scene) and the
-ground truth's rasterizer, split over a few processes, since numba compiles on one thread.
+the inputs that reach its kernels (a small static city, rooms of ``BIG_TRIANGLES``, spheres,
+a keyframed scene; ``Core.warm_params``) and the ground truth's rasterizer, split over a few
+processes, since numba compiles on one thread. A kernel specialization no warm-up input reaches
+(other array types, a path only large scenes take) compiles at its first real use instead.
 
 A process still loads each kernel from that cache at its first call, a second or two per core
-with the GIL taken in slices of up to a few hundred milliseconds: ``load_kernels`` does it
+with the GIL taken in long slices: ``load_kernels`` does it
 ahead of use in a serving process (``server.app``), so no walker waits on it.
 """
 
@@ -41,16 +43,39 @@ def groups() -> list[tuple[str, ...]]:
     return [GROUPS[0] + extra, *GROUPS[1:]]
 
 
-def _scenes(dynamic: bool = True) -> list:
-    """Small scenes reaching every kernel path: static triangles, then (``dynamic``) spheres
-    and keyframed motion."""
-    from visibility.generators import make_scene
+#: Triangles of the warm-up's large scene: at least ``raster.hierarchy.MIN_TRIANGLES``, from
+#: which scenes take other kernels (the scene hierarchy, parallel rasterization).
+BIG_TRIANGLES = 60_000
 
-    static = [make_scene("city", triangles=2000)]
-    if not dynamic:
-        return static
-    return [*static, make_scene("spheres", triangles=1000),
-            make_scene("swaying_grass", triangles=1000)]
+
+def _scenes(dynamic: bool = True) -> list[tuple]:
+    """(scene, cell box) pairs reaching every kernel path: small static triangles, a large
+    scene (hierarchy, walk-area detection, a cell with furniture on its floor), then (``dynamic``)
+    spheres and keyframed motion."""
+    from visibility.generators import make_scene
+    from visibility.ground_truth import cell_around
+
+    city = make_scene("city", triangles=2000)
+    # Rooms: furniture and walls beside the cell, so a walk of its open floor meets them.
+    big = make_scene("rooms", triangles=BIG_TRIANGLES)
+    out = [(city, cell_around(city, 0.3, 0)), (big, cell_around(big, 1.0, 0))]
+    if dynamic:
+        for kind in ("spheres", "swaying_grass"):
+            scene = make_scene(kind, triangles=1000)
+            out.append((scene, cell_around(scene, 0.3, 0)))
+    return out
+
+
+def _warm_large(scene) -> None:
+    """What a large scene reaches before any core runs: its hierarchy (built in the
+    background when a server loads it) and, for a scene with no walk area of its own (a
+    loaded file), the walk area's detection."""
+    from visibility.raster.hierarchy import scene_hierarchy
+    from visibility.scene import Scene
+    from visibility.walkable import detect_walk_area
+
+    scene_hierarchy(scene)
+    detect_walk_area(Scene(scene.vertices, scene.faces), 4.0, 1.7, (1.5, 1.9))
 
 
 #: (core name, dynamic) pairs whose kernels this process has loaded (``load_kernels``).
@@ -60,8 +85,9 @@ _loading = threading.Lock()
 
 def load_kernels(names: Iterable[str], dynamic: bool = False) -> float:
     """Load the named cores' kernels into this process (from the numba cache, compiling what
-    it lacks) by running each once on a small static scene, and on moving ones too with
-    ``dynamic``; names this process loaded before are skipped. Seconds taken."""
+    it lacks) by running each once on the static warm-up scenes (``_scenes``), and on moving
+    ones too with ``dynamic``; names this process loaded before are skipped. Seconds
+    taken."""
     with _loading:
         todo = tuple(dict.fromkeys(n for n in names if (n, dynamic) not in _loaded))
         if not todo:
@@ -74,16 +100,18 @@ def load_kernels(names: Iterable[str], dynamic: bool = False) -> float:
 
 
 def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
-    """Run the named cores (and ``ground_truth``, ``rays``) once per small scene (default
-    ``_scenes()``); seconds."""
+    """Run the named cores (and ``ground_truth``, ``rays``) once per (scene, box) of
+    ``scenes`` (default ``_scenes()``); seconds."""
     from visibility.cores.base import get_core
-    from visibility.ground_truth import cell_around, sample_pvs
+    from visibility.ground_truth import sample_pvs
+    from visibility.raster.hierarchy import MIN_TRIANGLES
     from visibility.viewcells import Viewcell
 
     t0 = time.perf_counter()
     frames_warm = False
-    for scene in _scenes() if scenes is None else scenes:
-        box = cell_around(scene, 0.3, 0)
+    for scene, box in _scenes() if scenes is None else scenes:
+        if scene.n_triangles >= MIN_TRIANGLES:
+            _warm_large(scene)
         for name in names:
             if name == "ground_truth":
                 sample_pvs(scene, Viewcell(box), n_points=2, resolution=16)
@@ -106,11 +134,13 @@ def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
                 core = get_core(name)
                 # The kernels' types do not depend on the values: the cheapest level will do.
                 knob = {core.knob: min(core.knob_levels)} if core.knob else {}
-                try:
-                    core.compute(scene, Viewcell(box), core.make_params(**knob))
-                except (ValueError, NotImplementedError) as e:
-                    # A core that refuses an input (dual_ray and interiors) compiled what it met.
-                    log.debug("%s refused %s: %s", name, scene.name, e)
+                for extra in ({}, *core.warm_params):
+                    try:
+                        core.compute(scene, Viewcell(box), core.make_params(**knob, **extra))
+                    except (ValueError, NotImplementedError) as e:
+                        # A core that refuses an input (dual_ray and interiors) compiled what
+                        # it met.
+                        log.debug("%s refused %s: %s", name, scene.name, e)
     if "topology" in names:
         _warm_topology()
     return time.perf_counter() - t0

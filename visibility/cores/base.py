@@ -265,6 +265,10 @@ class Core(ABC):
     #: The parameter that trades error for time, and its levels in ascending cost (``pvs bench``).
     knob: ClassVar[str | None] = None
     knob_levels: ClassVar[tuple[Any, ...]] = ()
+    #: Parameter sets besides the cheapest knob level that ``visibility.warmup`` runs too:
+    #: code paths the small warm-up scenes reach only with them (each kernel specialization
+    #: compiles at its first call, holding the GIL, and a server would stall on it).
+    warm_params: ClassVar[tuple[dict[str, Any], ...]] = ()
     #: True when ``_compute_segment`` solves arbitrary segments, not only boxes.
     native_segments: ClassVar[bool] = False
     #: True when the core only fits 2.5D scenes (heightfield-like occluders).

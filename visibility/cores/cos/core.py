@@ -142,6 +142,8 @@ class CosCore(Core):
     promise: ClassVar[str] = "conservative"
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
+    # The coarse pass: only clutter reaches it at the default threshold.
+    warm_params: ClassVar[tuple[dict[str, Any], ...]] = ({"coarse_items": 1},)
     native_segments: ClassVar[bool] = False
     # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
@@ -375,7 +377,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         worst = -1.0
         for k, view in enumerate(views):
             tv, entries0 = time.perf_counter(), stats["list_entries"]
-            listed = np.flatnonzero(sel[view.face]) if positions is None else positions[k]
+            # int32 either way: one kernel specialization, whether the hierarchy was ready.
+            listed = (np.flatnonzero(sel[view.face]).astype(np.int32) if positions is None
+                      else positions[k])
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
                                   stats, coarse_items, rng, cover, fuse)
             seconds = time.perf_counter() - tv
