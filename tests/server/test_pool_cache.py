@@ -7,6 +7,7 @@ import os
 import threading
 import time
 from concurrent.futures import Future
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -568,27 +569,32 @@ def test_pool_threads_run_nicer_than_the_process():
         svc.shutdown()
 
 
+@contextmanager
+def _first_pool(settings):
+    """The first answers' pool of a progressive ``ComputeService``, a job ``job(name)`` that
+    records its start in ``started`` and holds its worker until ``release`` is set."""
+    on = settings.model_copy(update={"progressive": True})
+    svc = ComputeService(SceneCatalog(on), on)
+    release = threading.Event()
+    started: list[str] = []
+
+    def job(name):
+        started.append(name)
+        release.wait(10)
+        return name
+
+    try:
+        yield svc.first_pool, job, started, release
+    finally:
+        release.set()
+        svc.shutdown()
+
+
 def test_first_answers_of_walkers_cells_never_wait_behind_warm_ups(settings):
     """The first answers' pool has two workers, and warm-ups for cells ahead (priority > 0)
     may take one of them at most: a walker's own cell (priority 0) starts at once."""
-    import threading
-
-    from server.catalog import SceneCatalog
-    from server.compute import ComputeService
-
-    on = settings.model_copy(update={"progressive": True})
-    svc = ComputeService(SceneCatalog(on), on)
-    try:
-        pool = svc.first_pool
+    with _first_pool(settings) as (pool, job, started, release):
         assert pool.workers == 2 and pool.heavy_workers == 1
-        release = threading.Event()
-        started = []
-
-        def job(name):
-            started.append(name)
-            release.wait(10)
-            return name
-
         warm = [pool.submit(job, f"ahead{i}", priority=1.0 + i, heavy=True) for i in range(3)]
         wait_for(lambda: started == ["ahead0"])
         own = pool.submit(job, "own", priority=0.0, heavy=False)
@@ -596,31 +602,13 @@ def test_first_answers_of_walkers_cells_never_wait_behind_warm_ups(settings):
         assert started == ["ahead0", "own"]  # the other warm-ups wait
         release.set()
         assert own.result(10) == "own" and [f.result(10) for f in warm]
-    finally:
-        svc.shutdown()
 
 
 def test_a_warm_up_promoted_to_a_walkers_cell_leaves_the_warm_up_lane(settings):
     """A warm-up for a cell ahead that a walker reached (promoted to priority 0) is then a
     walker's first answer: it starts on the free worker instead of waiting for the warm-up
     lane, and it counts as pending at priority 0 (what refinements are held for)."""
-    import threading
-
-    from server.catalog import SceneCatalog
-    from server.compute import ComputeService
-
-    on = settings.model_copy(update={"progressive": True})
-    svc = ComputeService(SceneCatalog(on), on)
-    try:
-        pool = svc.first_pool
-        release = threading.Event()
-        started = []
-
-        def job(name):
-            started.append(name)
-            release.wait(10)
-            return name
-
+    with _first_pool(settings) as (pool, job, started, release):
         warm = [pool.submit(job, f"ahead{i}", priority=1.0 + i) for i in range(3)]
         wait_for(lambda: started == ["ahead0"])
         assert pool.pending(0.0) == 0
@@ -631,5 +619,3 @@ def test_a_warm_up_promoted_to_a_walkers_cell_leaves_the_warm_up_lane(settings):
         release.set()
         assert pool.wait_clear(0.0, 10) and pool.pending(0.0) == 0
         assert [f.result(10) for f in warm] == ["ahead0", "ahead1", "ahead2"]
-    finally:
-        svc.shutdown()
