@@ -131,8 +131,8 @@ def preload_cores(settings: Settings) -> list[str]:
 def preload_kernels(settings: Settings) -> float:
     """Load the kernels of ``preload_cores`` into this process (``visibility.warmup``): a
     kernel loads at its first call, a second or two per core with the GIL taken in long
-    slices, and a server that did it at its first cells stalled every walker meanwhile. Seconds taken; a core that fails to load is logged, never
-    fatal."""
+    slices, and a server that did it at its first cells stalled every walker meanwhile.
+    Seconds taken; a core that fails to load is logged, never fatal."""
     names = preload_cores(settings)
     log.info("loading the kernels of %s before serving", ", ".join(names))
     t0 = time.perf_counter()
