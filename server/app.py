@@ -136,11 +136,8 @@ def preload_kernels(settings: Settings) -> float:
     names = preload_cores(settings)
     log.info("loading the kernels of %s before serving", ", ".join(names))
     t0 = time.perf_counter()
-    for name in names:
-        try:
-            load_kernels([name])
-        except Exception:  # noqa: BLE001 - it loads at its first call instead
-            log.exception("could not load the kernels of core %r ahead of use", name)
+    for name, exc in load_kernels(names).items():
+        log.error("could not load the kernels of core %r ahead of use: %s", name, exc)
     seconds = time.perf_counter() - t0
     log.info("kernels of %s loaded in %.1f s", ", ".join(names), seconds)
     return seconds

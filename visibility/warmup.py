@@ -83,20 +83,28 @@ _loaded: set[tuple[str, bool]] = set()
 _loading = threading.Lock()
 
 
-def load_kernels(names: Iterable[str], dynamic: bool = False) -> float:
+def load_kernels(names: Iterable[str], dynamic: bool = False) -> dict[str, Exception]:
     """Load the named cores' kernels into this process (from the numba cache, compiling what
-    it lacks) by running each once on the static warm-up scenes (``_scenes``), and on moving
-    ones too with ``dynamic``; names this process loaded before are skipped. Seconds
-    taken."""
+    it lacks) by running each once on the static warm-up scenes (``_scenes``, made once per
+    call), and on moving ones too with ``dynamic``; names this process loaded before are
+    skipped. Returns the names that failed, with their error: their kernels load at their
+    first use instead."""
     with _loading:
         todo = tuple(dict.fromkeys(n for n in names if (n, dynamic) not in _loaded))
         if not todo:
-            return 0.0
-        seconds = _warm(todo, _scenes(dynamic))
-        _loaded.update((n, dynamic) for n in todo)
-        if dynamic:
-            _loaded.update((n, False) for n in todo)
-        return seconds
+            return {}
+        scenes = _scenes(dynamic)
+        failed: dict[str, Exception] = {}
+        for name in todo:
+            try:
+                _warm((name,), scenes)
+            except Exception as exc:  # noqa: BLE001 - reported to the caller, never fatal
+                failed[name] = exc
+                continue
+            _loaded.add((name, dynamic))
+            if dynamic:
+                _loaded.add((name, False))
+        return failed
 
 
 def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
