@@ -50,14 +50,15 @@ BIG_TRIANGLES = 60_000
 
 def _scenes(dynamic: bool = True) -> list[tuple]:
     """(scene, cell box) pairs reaching every kernel path: small static triangles, a large
-    scene (hierarchy, walk-area detection, a cell with furniture on its floor), then (``dynamic``)
-    spheres and keyframed motion."""
+    scene (its hierarchy and walk-area detection run here, ``_warm_large``; a cell with
+    furniture on its floor), then (``dynamic``) spheres and keyframed motion."""
     from visibility.generators import make_scene
     from visibility.ground_truth import cell_around
 
     city = make_scene("city", triangles=2000)
     # Rooms: furniture and walls beside the cell, so a walk of its open floor meets them.
     big = make_scene("rooms", triangles=BIG_TRIANGLES)
+    _warm_large(big)
     out = [(city, cell_around(city, 0.3, 0)), (big, cell_around(big, 1.0, 0))]
     if dynamic:
         for kind in ("spheres", "swaying_grass"):
@@ -68,32 +69,32 @@ def _scenes(dynamic: bool = True) -> list[tuple]:
 
 def _warm_large(scene) -> None:
     """What a large scene reaches before any core runs: its hierarchy (built in the
-    background when a server loads it) and, for a scene with no walk area of its own (a
-    loaded file), the walk area's detection."""
+    background when a server loads it) and the grid of a scene with no walk area of its own
+    (a loaded file: the walk area is detected)."""
     from visibility.raster.hierarchy import scene_hierarchy
     from visibility.scene import Scene
-    from visibility.walkable import detect_walk_area
+    from visibility.viewcells import ViewcellGrid
 
     scene_hierarchy(scene)
-    detect_walk_area(Scene(scene.vertices, scene.faces), 4.0, 1.7, (1.5, 1.9))
+    ViewcellGrid.for_scene(Scene(scene.vertices, scene.faces))
 
 
-#: (core name, dynamic) pairs whose kernels this process has loaded (``load_kernels``).
-_loaded: set[tuple[str, bool]] = set()
+#: Cores whose kernels this process has loaded (``load_kernels``).
+_loaded: set[str] = set()
 _loading = threading.Lock()
 
 
-def load_kernels(names: Iterable[str], dynamic: bool = False) -> dict[str, Exception]:
+def load_kernels(names: Iterable[str]) -> dict[str, Exception]:
     """Load the named cores' kernels into this process (from the numba cache, compiling what
     it lacks) by running each once on the static warm-up scenes (``_scenes``, made once per
-    call), and on moving ones too with ``dynamic``; names this process loaded before are
-    skipped. Returns the names that failed, with their error: their kernels load at their
+    call; moving scenes' kernels load at their first use); names this process loaded before
+    are skipped. Returns the names that failed, with their error: their kernels load at their
     first use instead."""
     with _loading:
-        todo = tuple(dict.fromkeys(n for n in names if (n, dynamic) not in _loaded))
+        todo = tuple(dict.fromkeys(n for n in names if n not in _loaded))
         if not todo:
             return {}
-        scenes = _scenes(dynamic)
+        scenes = _scenes(dynamic=False)
         failed: dict[str, Exception] = {}
         for name in todo:
             try:
@@ -101,9 +102,7 @@ def load_kernels(names: Iterable[str], dynamic: bool = False) -> dict[str, Excep
             except Exception as exc:  # noqa: BLE001 - reported to the caller, never fatal
                 failed[name] = exc
                 continue
-            _loaded.add((name, dynamic))
-            if dynamic:
-                _loaded.add((name, False))
+            _loaded.add(name)
         return failed
 
 
@@ -112,14 +111,11 @@ def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
     ``scenes`` (default ``_scenes()``); seconds."""
     from visibility.cores.base import get_core
     from visibility.ground_truth import sample_pvs
-    from visibility.raster.hierarchy import MIN_TRIANGLES
     from visibility.viewcells import Viewcell
 
     t0 = time.perf_counter()
     frames_warm = False
     for scene, box in _scenes() if scenes is None else scenes:
-        if scene.n_triangles >= MIN_TRIANGLES:
-            _warm_large(scene)
         for name in names:
             if name == "ground_truth":
                 sample_pvs(scene, Viewcell(box), n_points=2, resolution=16)
