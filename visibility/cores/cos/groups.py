@@ -99,6 +99,30 @@ class Marks(NamedTuple):
     stop: np.ndarray
 
 
+class EdgePool(NamedTuple):
+    """The active (silhouette) edges of a pixel's occluder groups (``resolve.resolve_tiles``),
+    each group's in one contiguous block, so that the cover tests, which walk a group's
+    silhouette, read memory in order rather than chasing a list.
+
+    geo : (room, 6) float64 per record: the edge's COS end points (ax, ay, bx, by) and their
+        depths (wa, wb), copied from the occluder triangle (its own arrays are read at random).
+    node : (room,) int64 the edge's node 3 q + e (edge e of occluder triangle q); -1 in a record
+        no block holds (left behind when a block moved, or by an edge fused away).
+    pos : (3 lmax,) int64 the record of node.
+    start, length, cap : (lmax,) int64 per group: its block's first record, records used (its
+        active edges, in any order), records reserved.
+    top : (1,) int64 the first free record.
+    """
+
+    geo: np.ndarray
+    node: np.ndarray
+    pos: np.ndarray
+    start: np.ndarray
+    length: np.ndarray
+    cap: np.ndarray
+    top: np.ndarray
+
+
 class ShareScratch(NamedTuple):
     """The scratch arrays of one share of ``resolve.resolve_tiles`` (``resolve._share_scratch``),
     sized for the share's longest pixel list ``lmax`` and its longest tile ``tmax``.
@@ -118,7 +142,7 @@ class ShareScratch(NamedTuple):
     grp, nxt, head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm : groups (id = their first
         triangle): members, size, COS box, depth range, coverall, alive, dormant (only hidden
         triangles: never tested against).
-    gehead, getail, anext, aprev : active edges over nodes 3 q + e.
+    edges : the groups' active edges (``EdgePool``).
     live, lpos, covl, cpos, cand : the live list (groups not coverall, oldest first; dead
         entries have lpos -1 until it is compacted), the unordered list of coverall groups and
         their positions, candidate groups.
@@ -177,10 +201,7 @@ class ShareScratch(NamedTuple):
     gcov: np.ndarray
     alive: np.ndarray
     gdorm: np.ndarray
-    gehead: np.ndarray
-    getail: np.ndarray
-    anext: np.ndarray
-    aprev: np.ndarray
+    edges: EdgePool
     live: np.ndarray
     lpos: np.ndarray
     covl: np.ndarray

@@ -67,8 +67,9 @@ Cost (issue 13; dense clutter gives lists of 10^5 entries): nothing per entry sc
 number of groups or with a group's triangle count in the common cases.
 
 * Fusion finds the neighbour across an edge in a per-pixel hash of active directed edges;
-  groups merge smaller into larger; each keeps its active edges in a linked list, so the cover
-  test walks the silhouette, not the triangles.
+  groups merge smaller into larger; each keeps its active edges in one block of an edge pool
+  (``groups.EdgePool``), so the cover test walks the silhouette, not the triangles, in memory
+  order (chasing a linked list through the pixel's occluders stalled on every edge).
 * Only live groups (not coverall, not merged away) are tried, oldest first.
 * Early z (paper Sec. 5): when a group becomes coverall, every ray of the pixel meets it no
   deeper than zcut, the deepest vertex of its triangles that can reach the offset region (valid
@@ -92,7 +93,7 @@ from numba import njit, prange
 
 from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cancel import flag_set
-from visibility.cores.cos.groups import ShareScratch
+from visibility.cores.cos.groups import EdgePool, ShareScratch
 from visibility.cores.cos.lists import region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
@@ -382,29 +383,27 @@ def _witness(qctx, rv, ws, wpt):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _wind_in(g, gehead, anext, ov, ow, wref, d0x, d0y, cx, cy):  # pragma: no cover - numba
-    """Whether (cx, cy) lies inside group g's silhouette at delta (d0x, d0y) in the frame of
-    depth wref (winding number >= 1; a point on an edge, up to rounding, is not inside)."""
+def _wind_in(g, edges, wref, d0x, d0y, cx, cy):  # pragma: no cover - numba
+    """Whether (cx, cy) lies inside group g's silhouette (``edges``, ``groups.EdgePool``) at
+    delta (d0x, d0y) in the frame of depth wref (winding number >= 1; a point on an edge, up
+    to rounding, is not inside)."""
+    geo = edges.geo
     wn = 0
-    node = gehead[g]
-    while node >= 0:
-        r = node // 3
-        f = node - 3 * r
-        b = (f + 1) % 3
-        ax = ov[r, f, 0] - (ow[r, f] - wref) * d0x
-        ay = ov[r, f, 1] - (ow[r, f] - wref) * d0y
-        bx = ov[r, b, 0] - (ow[r, b] - wref) * d0x
-        by = ov[r, b, 1] - (ow[r, b] - wref) * d0y
+    i0 = edges.start[g]
+    for i in range(i0, i0 + edges.length[g]):
+        ax = geo[i, 0] - (geo[i, 4] - wref) * d0x
+        ay = geo[i, 1] - (geo[i, 4] - wref) * d0y
+        bx = geo[i, 2] - (geo[i, 5] - wref) * d0x
+        by = geo[i, 3] - (geo[i, 5] - wref) * d0y
         step = winding_step(ax, ay, bx, by, cx, cy)
         if step == 2:
             return False
         wn += step
-        node = anext[node]
     return wn >= 1
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
+def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
               klo, khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
               work):  # pragma: no cover - numba
     """Whether group g covers polygon K (frame of depth wref; ``_k_box`` geometry) under
@@ -412,11 +411,11 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     meeting K, and a winding number of at least one of the active edges (the silhouette)
     around K's centroid.
 
-    The active edges are walked through the group's edge list (``gehead``, ``anext``: node
-    3 r + f is edge f of occluder triangle r), so the cost is the silhouette's length, not the
-    group's triangle count. Fused triangles are counter-clockwise and hold their shared edges
-    in opposite directions, so the active edges' winding number around a point is the number
-    of the group's triangles holding it; a crossing too close to call counts as not covered.
+    The active edges are walked in the group's block of ``edges`` (``groups.EdgePool``), in
+    memory order, so the cost is the silhouette's length, not the group's triangle count.
+    Fused triangles are counter-clockwise and hold their shared edges in opposite
+    directions, so the active edges' winding number around a point is the number of the
+    group's triangles holding it; a crossing too close to call counts as not covered.
     ``work[0]`` counts the silhouette edges walked.
 
     With ``qctx[QC_RELAX]`` set (K is the region of an occludee Q, ``_q_context``), two more
@@ -458,8 +457,8 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
                     return False
                 # Nor inside its silhouette there (a walk of cheap tests before the capsules;
                 # where the strict test passes, the witness, inside K, is inside too).
-                if not _wind_in(g, gehead, anext, ov, ow, wref, qctx[QC_DX], qctx[QC_DY],
-                                qctx[QC_WX], qctx[QC_WY]):
+                if not _wind_in(g, edges, wref, qctx[QC_DX], qctx[QC_DY], qctx[QC_WX],
+                                qctx[QC_WY]):
                     return False
     if kb[6] == 0.0:
         polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
@@ -471,16 +470,16 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     wn = 0
     on_edge = False
     relaxed = False
-    node = gehead[g]
-    while node >= 0:
-        r = node // 3
-        f = node - 3 * r
-        b = (f + 1) % 3
-        ax = ov[r, f, 0]
-        ay = ov[r, f, 1]
-        bx = ov[r, b, 0]
-        by = ov[r, b, 1]
-        rad = max(abs(ow[r, f] - wref), abs(ow[r, b] - wref)) * h
+    geo = edges.geo
+    i0 = edges.start[g]
+    for i in range(i0, i0 + edges.length[g]):
+        ax = geo[i, 0]
+        ay = geo[i, 1]
+        bx = geo[i, 2]
+        by = geo[i, 3]
+        wa = geo[i, 4]
+        wb = geo[i, 5]
+        rad = max(abs(wa - wref), abs(wb - wref)) * h
         work[0] += 1
         step = winding_step(ax, ay, bx, by, cx, cy)
         if step == 2:
@@ -494,8 +493,6 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
                 return False
             sx = qctx[QC_SX]
             sy = qctx[QC_SY]
-            wa = ow[r, f]
-            wb = ow[r, b]
             if (_on_q_plane(ax + wa * sx, ay + wa * sy, wa, qctx)
                     and _on_q_plane(bx + wb * sx, by + wb * sy, wb, qctx)
                     and _seg_off_triangle(ax, ay, bx, by, qctx)):
@@ -509,7 +506,6 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
                     relaxed = True
                 else:
                     return False
-        node = anext[node]
     if not relaxed:
         return not on_edge and wn >= 1
     if qctx[QC_SEEN] < 0.0:
@@ -521,8 +517,7 @@ def _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb
     if qctx[QC_WIT] < 0.0:
         return False
     # The silhouette at the witness's delta (frame of depth wref).
-    return _wind_in(g, gehead, anext, ov, ow, wref, qctx[QC_DX], qctx[QC_DY], qctx[QC_WX],
-                    qctx[QC_WY])
+    return _wind_in(g, edges, wref, qctx[QC_DX], qctx[QC_DY], qctx[QC_WX], qctx[QC_WY])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -585,6 +580,10 @@ STOP_EVERY = 256
 N_COUNTERS = 11
 TIME_STRIDE = 8
 GRID_WIDE = 16
+#: Records of the edge pool (``groups.EdgePool``) per entry of the longest list: a pixel's
+#: active edges take at most 3 per occluder, a block that grows takes twice its size anew,
+#: so 9 always fit once the pool is compacted; the rest spares compactions.
+EDGE_ROOM = 12
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -729,7 +728,7 @@ FUSE_POLY = MAX_POLY + 4
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head, nxt, obb,
+def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
                 owr, ouse, oplane, gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol, wref, h,
                 kx, ky, nk, kb, qcam, nq, wmin, qctx, rpoly, rpb, rv, ws, wpt, work,
                 fuse):  # pragma: no cover - numba
@@ -785,7 +784,7 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
     for c in range(nc):
         g = cand[0, c]
         if (gbb[g, 0] <= kb[4] <= gbb[g, 1] and gbb[g, 2] <= kb[5] <= gbb[g, 3]
-                and _wind_in(g, gehead, anext, ov, ow, wref, 0.0, 0.0, kb[4], kb[5])):
+                and _wind_in(g, edges, wref, 0.0, 0.0, kb[4], kb[5])):
             inside = True
             break
     if not inside:
@@ -831,7 +830,7 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow, head
             if cand[1, c] < 0:
                 continue
             g = cand[0, c]
-            if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi, wref, h, px, py, m,
+            if not _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, px, py, m,
                              pb, poly[4], poly[5], poly[6], poly[7], qctx, rpoly, 0, rpb, rv,
                              ws, wpt, work):
                 continue
@@ -933,28 +932,136 @@ def _list_drop(g, pos, lst, n):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _edge_unlink(node, g, gehead, getail, anext, aprev):  # pragma: no cover - numba
-    """Take active edge ``node`` out of group g's edge list."""
-    a = aprev[node]
-    b = anext[node]
-    if a >= 0:
-        anext[a] = b
-    else:
-        gehead[g] = b
-    if b >= 0:
-        aprev[b] = a
-    else:
-        getail[g] = a
+def _edge_kill(node, g, edges):  # pragma: no cover - numba
+    """Active edge ``node`` of group g is active no more (``groups.EdgePool``): the block's
+    last record takes its place, so blocks hold active edges only."""
+    geo, enode, pos = edges.geo, edges.node, edges.pos
+    p = pos[node]
+    last = edges.start[g] + edges.length[g] - 1
+    if p != last:
+        for c in range(6):
+            geo[p, c] = geo[last, c]
+        enode[p] = enode[last]
+        pos[enode[p]] = p
+    enode[last] = -1
+    edges.length[g] -= 1
+    if edges.length[g] == 0:
+        # A closed surface: no silhouette, and no block (a compaction moves only live ones).
+        edges.cap[g] = 0
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, gehead, getail,
-           anext, aprev):  # pragma: no cover - numba
+def _edges_gc(grp, edges):  # pragma: no cover - numba
+    """Slide every block's records down to the pool's start, in order, dropping the copies
+    left behind by blocks that moved; each group's block then holds exactly its edges."""
+    geo, enode, pos, start, length = edges.geo, edges.node, edges.pos, edges.start, edges.length
+    j = 0
+    for i in range(edges.top[0]):
+        nd = enode[i]
+        if nd < 0 or pos[nd] != i:
+            continue
+        g = grp[nd // 3]
+        if start[g] + length[g] != j:
+            # The group's first record in this sweep (its records are contiguous, and were
+            # at j or beyond).
+            start[g] = j
+            length[g] = 0
+        length[g] += 1
+        edges.cap[g] = length[g]
+        for c in range(6):
+            geo[j, c] = geo[i, c]
+        enode[j] = nd
+        pos[nd] = j
+        j += 1
+    edges.top[0] = j
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _edges_grow(g, need, grp, edges):  # pragma: no cover - numba
+    """Room for ``need`` more records at the end of group g's block: the last block grows
+    where it is, any other moves to the pool's end with twice the room it needs (the pool
+    compacted first when full: ``_edges_gc``)."""
+    geo, enode, pos, start, length, cap = (edges.geo, edges.node, edges.pos, edges.start,
+                                           edges.length, edges.cap)
+    want = max(8, 2 * (length[g] + need))
+    top = edges.top[0]
+    s = start[g]
+    if s + cap[g] == top and s + want <= geo.shape[0]:
+        edges.top[0] = s + want
+        cap[g] = want
+        return
+    if top + want > geo.shape[0]:
+        _edges_gc(grp, edges)
+        top = edges.top[0]
+        s = start[g]
+    for i in range(length[g]):
+        for c in range(6):
+            geo[top + i, c] = geo[s + i, c]
+        nd = enode[s + i]
+        enode[top + i] = nd
+        pos[nd] = top + i
+        enode[s + i] = -1
+    start[g] = top
+    cap[g] = want
+    edges.top[0] = top + want
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edges_join(g1, g2, grp, edges):  # pragma: no cover - numba
+    """Append group g2's edges to g1's block (g2 keeps none)."""
+    n2 = edges.length[g2]
+    if n2 > 0:
+        if edges.length[g1] + n2 > edges.cap[g1]:
+            _edges_grow(g1, n2, grp, edges)
+        geo, enode, pos = edges.geo, edges.node, edges.pos
+        j = edges.start[g1] + edges.length[g1]
+        s = edges.start[g2]
+        for i in range(s, s + n2):
+            for c in range(6):
+                geo[j, c] = geo[i, c]
+            nd = enode[i]
+            enode[j] = nd
+            pos[nd] = j
+            enode[i] = -1
+            j += 1
+        edges.length[g1] += n2
+    edges.length[g2] = 0
+    edges.cap[g2] = 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edges_new(q, ov, ow, grp, edges):  # pragma: no cover - numba
+    """Occluder triangle q's three edges, all active, as a new block (group q)."""
+    if edges.top[0] + 3 > edges.geo.shape[0]:
+        _edges_gc(grp, edges)
+    t = edges.top[0]
+    geo = edges.geo
+    for e in range(3):
+        b = (e + 1) % 3
+        geo[t + e, 0] = ov[q, e, 0]
+        geo[t + e, 1] = ov[q, e, 1]
+        geo[t + e, 2] = ov[q, b, 0]
+        geo[t + e, 3] = ov[q, b, 1]
+        geo[t + e, 4] = ow[q, e]
+        geo[t + e, 5] = ow[q, b]
+        edges.node[t + e] = 3 * q + e
+        edges.pos[3 * q + e] = t + e
+    edges.start[q] = t
+    edges.length[q] = 3
+    edges.cap[q] = 3
+    edges.top[0] = t + 3
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive,
+           edges):  # pragma: no cover - numba
     """Merge groups g1 and g2 (the smaller into the larger); returns the survivor."""
     if g1 == g2:
         return g1
     if gsize[g1] < gsize[g2]:
         g1, g2 = g2, g1
+    # The edges first: a compaction on the way finds each record's group through grp.
+    _edges_join(g1, g2, grp, edges)
     r = head[g2]
     while r >= 0:
         grp[r] = g1
@@ -962,13 +1069,6 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive, ge
     nxt[tail[g1]] = head[g2]
     tail[g1] = tail[g2]
     gsize[g1] += gsize[g2]
-    if gehead[g2] >= 0:
-        if gehead[g1] < 0:
-            gehead[g1] = gehead[g2]
-        else:
-            anext[getail[g1]] = gehead[g2]
-            aprev[gehead[g2]] = getail[g1]
-        getail[g1] = getail[g2]
     gbb[g1, 0] = min(gbb[g1, 0], gbb[g2, 0])
     gbb[g1, 1] = max(gbb[g1, 1], gbb[g2, 1])
     gbb[g1, 2] = min(gbb[g1, 2], gbb[g2, 2])
@@ -1006,8 +1106,11 @@ def _share_scratch(lmax, tmax, n_known):
         gsize=np.empty(lmax, dtype=np.int64), gbb=np.empty((lmax, 4)), gwlo=np.empty(lmax),
         gwhi=np.empty(lmax), gcov=np.empty(lmax, dtype=np.bool_),
         alive=np.empty(lmax, dtype=np.bool_), gdorm=np.empty(lmax, dtype=np.bool_),
-        gehead=np.empty(lmax, dtype=np.int64), getail=np.empty(lmax, dtype=np.int64),
-        anext=np.empty(3 * lmax, dtype=np.int64), aprev=np.empty(3 * lmax, dtype=np.int64),
+        edges=EdgePool(geo=np.empty((EDGE_ROOM * lmax + 64, 6)),
+                       node=np.empty(EDGE_ROOM * lmax + 64, dtype=np.int64),
+                       pos=np.empty(3 * lmax, dtype=np.int64),
+                       start=np.empty(lmax, dtype=np.int64), length=np.empty(lmax, dtype=np.int64),
+                       cap=np.empty(lmax, dtype=np.int64), top=np.zeros(1, dtype=np.int64)),
         live=np.empty(lmax, dtype=np.int64), lpos=np.empty(lmax, dtype=np.int64),
         covl=np.empty(lmax, dtype=np.int64), cand=np.empty(lmax + 1, dtype=np.int64),
         cpos=np.empty(lmax, dtype=np.int64), gslot=np.empty(lmax, dtype=np.int64),
@@ -1104,7 +1207,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     own = _share_scratch(lmax, tmax, known.shape[0])
     (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
      klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
-     head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, gehead, getail, anext, aprev,
+     head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, edges,
      live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
      hfirst, hlast, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
@@ -1158,6 +1261,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             n_slot = 0
             n_free = 0
             pool[0] = 0
+            edges.top[0] = 0
             # The depth grids' domain: the offset region's frame-0 box (what lies outside
             # falls in the border cells).
             region_at(corners, sx, sy, h, 0.0, rv, rr)
@@ -1297,7 +1401,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                     g = -1 - g
                                     isc = True
                             if not isc:
-                                if not _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                                if not _covers_q(g, edges, gbb, gwlo, gwhi,
                                                  wref, h, kx, ky, nk, kb, knx, kny, klo,
                                                  khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
                                                  work):
@@ -1313,7 +1417,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         by_fuse = False
                         if not occluded and fuse_on and n_live - n_dead >= 2:
                             by_fuse = _fused_hide(
-                                live, lpos, n_live, gbb, gwlo, gwhi, gehead, anext, ov, ow,
+                                live, lpos, n_live, gbb, gwlo, gwhi, edges, ov,
                                 head, nxt, obb, owr, ouse, oplane, gslot, sg, sfr, shead, pool,
                                 pdep, dom, wcam, plane_tol, wref, h, kx, ky, nk, kb, cam, n,
                                 wmin, qctx, rpoly, rpb, rv, ws, wpt, work, fuse)
@@ -1407,11 +1511,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                 gsize[q] = 1
                 gcov[q] = False
                 alive[q] = True
-                gehead[q] = 3 * q
-                getail[q] = 3 * q + 2
-                for e in range(3):
-                    anext[3 * q + e] = 3 * q + e + 1 if e < 2 else -1
-                    aprev[3 * q + e] = 3 * q + e - 1 if e > 0 else -1
+                _edges_new(q, ov, ow, grp, edges)
                 gdorm[q] = dorm
                 if dorm:
                     lpos[q] = -1
@@ -1438,15 +1538,15 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         if oact[r, f]:
                             oact[r, f] = False
                             oact[q, e] = False
-                            _edge_unlink(node, grp[r], gehead, getail, anext, aprev)
-                            _edge_unlink(3 * q + e, grp[q], gehead, getail, anext, aprev)
+                            _edge_kill(node, grp[r], edges)
+                            _edge_kill(3 * q + e, grp[q], edges)
                             g1 = grp[r]
                             g2 = grp[q]
                             if g1 != g2:
                                 c1 = gcov[g1]
                                 c2 = gcov[g2]
                                 gs = _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo,
-                                            gwhi, gcov, alive, gehead, getail, anext, aprev)
+                                            gwhi, gcov, alive, edges)
                                 gd = g2 if gs == g1 else g1
                                 if lpos[gd] >= 0:
                                     lpos[gd] = -1
@@ -1524,7 +1624,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
                     if n_r > 0:
                         _k_box(rx, ry, n_r, rb)
-                    if n_r > 0 and _covers_q(g, gehead, anext, ov, ow, gbb, gwlo, gwhi,
+                    if n_r > 0 and _covers_q(g, edges, gbb, gwlo, gwhi,
                                              wref, h, rx, ry, n_r, rb, rnx, rny, rlo, rhi,
                                              strict, rpoly, 0, rpb, rv, ws, wpt,
                                              work):
