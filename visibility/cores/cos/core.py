@@ -474,7 +474,7 @@ def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False) -> Scr
 
 
 def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int,
-                 order: np.ndarray, tile_off: np.ndarray, tile_items: np.ndarray,
+                 items: np.ndarray, tile_off: np.ndarray, tile_items: np.ndarray,
                  tiles: np.ndarray, known: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
     """Which of each tile's items (``tile_items``, ``bin_tiles``) are hidden for the whole
     tile: (len(tile_items),) uint8, 1 where hidden.
@@ -487,11 +487,14 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     closes silhouettes at the pixels, whose tests can only fail more often. What the coarse
     pass finds visible is not the answer (its pixels are wide): it goes to a scratch array.
     Only the ``tiles`` (tiles_x * tiles_y,) bool take part; items ``known`` visible are not
-    tested (they are in the answer already). ``screen`` is the view's pixel grid."""
+    tested (they are in the answer already). ``screen`` is the view's pixel grid; ``items``
+    the primitive ids of ``tile_items`` (``TileLists.items``)."""
     n_tiles = tiles_x * tiles_y
-    entries = order[tile_items].astype(np.int32)
     pstart = tile_off[:-1].astype(np.int64)
     pcount = np.diff(tile_off).astype(np.int64)
+    # Each tile's one list holds all its items, in order.
+    entries = (np.arange(len(tile_items), dtype=np.int64)
+               - np.repeat(pstart, pcount)).astype(np.int32)
     pcount[~tiles] = 0
     hid = np.zeros(len(entries), dtype=np.uint8)
     if not pcount.any():
@@ -500,7 +503,7 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     scratch = np.zeros_like(known)
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
                       _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
-                      numba.get_num_threads())
+                      numba.get_num_threads(), items, tile_off)
     # One pixel per tile, as wide as the tile; the strict cover test only: at a tile's width
     # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
     # Nor separate groups together: in clutter that costs the pass more than it drops.
@@ -543,6 +546,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
     screen = _screen(view, plane_tol, cover, fuse)
+    # The tiles' items as primitive ids: lists name them by their place in their tile.
+    items = order[tile_items].astype(np.int32)
     drop = np.empty(0, dtype=np.uint8)
     # The threshold holds for tiles at the default resolution; below it a tile spans more
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
@@ -553,7 +558,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         # Clutter: the coarse pass on the tiles with that many items; their lists are then
         # filled without what it found hidden for the whole tile.
         tc = time.perf_counter()
-        drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, order, tile_off, tile_items,
+        drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, items, tile_off, tile_items,
                             busy, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
@@ -582,7 +587,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         lists = TileLists(entries, pstart, pcount, t, t1,
                           _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE,
-                          numba.get_num_threads())
+                          numba.get_num_threads(), items, tile_off)
         fill_cut = np.zeros(t1 - t, dtype=np.int64)
         fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists,
                    fill_cut)

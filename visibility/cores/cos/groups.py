@@ -63,12 +63,17 @@ class Screen(NamedTuple):
 class TileLists(NamedTuple):
     """Per-pixel lists of a run of screen tiles [tile0, tile1).
 
-    entries : (E,) int32 primitive ids; pixel ``loc`` of tile ``tile`` holds
-        ``entries[pstart[i]:pstart[i] + pcount[i]]``, i = (tile - tile0) tsz^2 + loc.
+    entries : (E,) int32 items of their tile (indices into its part of ``items``); pixel
+        ``loc`` of tile ``tile`` holds ``entries[pstart[i]:pstart[i] + pcount[i]]``,
+        i = (tile - tile0) tsz^2 + loc.
     torder : (tile1 - tile0,) int64 the order tiles are taken in (balances the threads).
     tiles_x : tiles across; tsz : pixels across a tile.
     shares : how many threads ``torder`` was dealt to (``core._balanced_order``): its
         contiguous shares, in that number, carry a like mix of costs.
+    items, ioff : (I,) int32 primitive ids of the tiles' items, tile ``tile``'s at
+        ``items[ioff[tile]:ioff[tile + 1]]`` (``ioff`` indexed by tile, over all tiles of the
+        view), in front-to-back order: the entries name items of their tile, so that what
+        the tile's pixels share (the items' edge adjacency) is worked out once per tile.
     """
 
     entries: np.ndarray
@@ -80,6 +85,8 @@ class TileLists(NamedTuple):
     tiles_x: int
     tsz: int
     shares: int
+    items: np.ndarray
+    ioff: np.ndarray
 
 
 class Marks(NamedTuple):
@@ -149,8 +156,10 @@ class ShareScratch(NamedTuple):
     gslot, sg, shead, pool, pdep, fslot, sfr, dom : depth grids of groups of ``GRID_MIN``
         triangles or more (slots of sg, shead in the frame of depth sfr over the domain dom:
         x0, x1, y0, y1, cells per metre in x and y; member list nodes in pool; free slots).
-    hk0, hk1, hfirst, hlast, enext : edge hash for fusion: directed edge (hk0, hk1) -> first
-        occluder edge 3 q + e holding it, chained in insertion order through enext.
+    thash, eslot, sstate, enext : fusion along shared edges: the tile's hash of undirected
+        welded edges (tile stamp, lower id, higher id, edge slot), each item's three edge
+        slots (-1: none), per edge slot the pixel's stamp and its newest occluder edge 3 q +
+        e, chained newest first through enext.
     tseen, tset : primitives found visible at an earlier pixel of the tile (a bit each), and
         the ids set, cleared after the tile.
     work : (2,) int64 per-tile counters the helpers add to.
@@ -215,10 +224,9 @@ class ShareScratch(NamedTuple):
     fslot: np.ndarray
     sfr: np.ndarray
     dom: np.ndarray
-    hk0: np.ndarray
-    hk1: np.ndarray
-    hfirst: np.ndarray
-    hlast: np.ndarray
+    thash: np.ndarray
+    eslot: np.ndarray
+    sstate: np.ndarray
     enext: np.ndarray
     tseen: np.ndarray
     tset: np.ndarray

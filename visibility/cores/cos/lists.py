@@ -243,7 +243,9 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
                cut):  # pragma: no cover - numba
     """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
     ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
-    pixel, each in the order of ``order``; pixel ``loc`` of the tile (tile-major) starts at
+    pixel, each in the order of ``order``, an entry naming its item by its place k -
+    ``tile_off[tile]`` among the tile's (``groups.TileLists.items``); pixel ``loc`` of the
+    tile (tile-major) starts at
     ``pstart[(tile - tile0) * TILE^2 + loc]`` and holds ``pcount[...]`` entries. Tiles are
     taken in the order ``torder`` (a permutation of [tile0, tile1)). Item k of ``tile_items``
     is left out where ``drop[k]`` is set (``drop`` empty: none are): the coarse pass found it
@@ -276,7 +278,7 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
     vid, solid, gap = prims.vid, prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
     x_lo, y_lo, pw, plane_tol = screen.x_lo, screen.y_lo, screen.pw, screen.plane_tol
-    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _ = lists
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _, _, _ = lists
     h = 0.5 * pw
     npix = TILE * TILE
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
@@ -373,7 +375,7 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
                 project(cam, n, sx, sy, h, 0.0, qv, qr)
                 if not overlaps_share(qv, qr, n, tri, prv[loc], prr[loc], preg[loc]):
                     continue
-                tmp[m] = p
+                tmp[m] = k - tile_off[tile]  # the item, within its tile
                 tloc[m] = loc
                 cnt[loc] += 1
                 m += 1

@@ -66,10 +66,13 @@ it).
 Cost (issue 13; dense clutter gives lists of 10^5 entries): nothing per entry scales with the
 number of groups or with a group's triangle count in the common cases.
 
-* Fusion finds the neighbour across an edge in a per-pixel hash of active directed edges;
-  groups merge smaller into larger; each keeps its active edges in one block of an edge pool
-  (``groups.EdgePool``), so the cover test walks the silhouette, not the triangles, in memory
-  order (chasing a linked list through the pixel's occluders stalled on every edge).
+* Fusion finds the neighbour across an edge through the tile's edge slots: each undirected
+  welded edge of the tile's items gets one, once per tile (a hash per pixel over its list,
+  as before, cost more than the rest of an insertion: its tables left the cache), and a
+  pixel chains its occluder edges per slot; groups merge smaller into larger; each keeps its
+  active edges in one block of an edge pool (``groups.EdgePool``), so the cover test walks
+  the silhouette, not the triangles, in memory order (chasing a linked list through the
+  pixel's occluders stalled on every edge).
 * Only live groups (not coverall, not merged away) are tried, oldest first.
 * Early z (paper Sec. 5): when a group becomes coverall, every ray of the pixel meets it no
   deeper than zcut, the deepest vertex of its triangles that can reach the offset region (valid
@@ -894,13 +897,14 @@ def _cover_depth(g, head, nxt, obb, owr, wcam, tol, h, kx, ky, nk, wref):  # pra
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _edge_slot(hk0, hk1, mask, va, vb):  # pragma: no cover - numba
-    """Slot of directed edge (va, vb) in the open-addressing table (hk0, hk1) of ``mask + 1``
-    slots: the slot holding it, or the empty one (hk0 == -1) where it would go."""
+def _edge_slot(thash, mask, stamp, va, vb):  # pragma: no cover - numba
+    """Row of edge (va, vb), va < vb, in the open-addressing table ``thash`` (rows: stamp, va,
+    vb, edge slot) of ``mask + 1`` rows: the row holding it, or the empty one (a stamp other
+    than ``stamp``, the tile's) where it would go."""
     x = va * 0x9E3779B1 + vb * 0x85EBCA77  # may wrap for huge ids: only spreads the bits
     x ^= x >> 17
     k = x & mask
-    while hk0[k] >= 0 and (hk0[k] != va or hk1[k] != vb):
+    while thash[k, 0] == stamp and (thash[k, 1] != va or thash[k, 2] != vb):
         k = (k + 1) & mask
     return k
 
@@ -1081,13 +1085,13 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive,
 
 
 @njit(cache=True, nogil=True)
-def _share_scratch(lmax, tmax, n_known):
+def _share_scratch(lmax, tmax, imax, n_known):
     """The scratch arrays of one share of ``resolve_tiles`` (``groups.ShareScratch``, owners),
-    for lists of at most ``lmax`` entries, tiles of at most ``tmax`` entries and
-    ``n_known`` primitives."""
+    for lists of at most ``lmax`` entries, tiles of at most ``tmax`` entries and ``imax``
+    items, and ``n_known`` primitives."""
     nslot = lmax // GRID_MIN + 2
     hcap = 8  # the edge hash at most half full
-    while hcap < 6 * lmax:
+    while hcap < 6 * imax:
         hcap *= 2
     return ShareScratch(
         cam=np.empty((8, 3)), qv=np.empty((8, 2)), qr=np.empty(8), rv=np.empty((4, 2)),
@@ -1118,8 +1122,8 @@ def _share_scratch(lmax, tmax, n_known):
         shead=np.empty((nslot, GRID * GRID + 2), dtype=np.int64),
         pool=np.empty(2 + 2 * 8 * lmax, dtype=np.int64), pdep=np.empty(2 * 8 * lmax),
         fslot=np.empty(nslot, dtype=np.int64), sfr=np.empty(nslot), dom=np.empty(6),
-        hk0=np.empty(hcap, dtype=np.int64), hk1=np.empty(hcap, dtype=np.int64),
-        hfirst=np.empty(hcap, dtype=np.int64), hlast=np.empty(hcap, dtype=np.int64),
+        thash=np.full((hcap, 4), -1, dtype=np.int64), eslot=np.empty(3 * imax, dtype=np.int64),
+        sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
         work=np.zeros(2, dtype=np.int64))
@@ -1131,7 +1135,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     p found visible. Only triangles with ``solid[p]`` become occluders (``prims.solid_mask``:
     the ones a client's near plane cannot cut). ``entries`` holds the lists of those tiles
     (``lists.fill_lists``: pixel ``loc`` of tile ``tile`` at ``pstart[(tile - tile0) * tsz^2 +
-    loc]``, ``pcount[...]`` long; tiles of ``tsz`` x ``tsz`` pixels of width ``pw``), each in
+    loc]``, ``pcount[...]`` long, naming the tile's items ``items[ioff[tile]:]`` by place;
+    tiles of ``tsz`` x ``tsz`` pixels of width ``pw``), each in
     nondecreasing ``gap`` (the distance from the cell box to the primitive's bounding box,
     metres), taken in the order ``torder`` (a permutation of [tile0, tile1) whose
     ``shares`` contiguous shares, one per thread, carry a like mix of costs); ``known[p]``
@@ -1165,7 +1170,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
 def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cover - numba
     """Share ``share`` of the ``k_sh`` shares of ``resolve_tiles``'s tiles (its arguments)."""
     pts, start, npts, kind, vid, solid, gap = prims
-    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares = lists
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff = lists
     origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on = screen
     known, vis, hid, counters, stop = marks
     # Borrowed (``visibility.borrow``): the helpers called per entry and per pixel count no
@@ -1175,7 +1180,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     vid, solid, gap, entries = borrow(vid), borrow(solid), borrow(gap), borrow(entries)
     pstart, pcount, torder, origin = borrow(pstart), borrow(pcount), borrow(torder), borrow(origin)
     perm, sign, corners, known = borrow(perm), borrow(sign), borrow(corners), borrow(known)
-    stop = borrow(stop)
+    stop, items, ioff = borrow(stop), borrow(items), borrow(ioff)
     # What the parallel loop writes (vis, hid, counters) stays owned: ``visibility.borrow``.
     h = 0.5 * pw
     npix = tsz * tsz
@@ -1193,8 +1198,10 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     it1 = it0 + (n_t - share + k_sh - 1) // k_sh
     lmax = 0
     tmax = 0
+    imax = 0
     for it in range(it0, it1):
         pix0 = (torder[it] - tile0) * npix
+        imax = max(imax, ioff[torder[it] + 1] - ioff[torder[it]])
         tlen = 0
         for loc in range(npix):
             lmax = max(lmax, pcount[pix0 + loc])
@@ -1204,21 +1211,46 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         return
     # Per share scratch (``groups.ShareScratch``), sized for its longest list; owned by
     # ``own`` until the share is done, borrowed for the helpers.
-    own = _share_scratch(lmax, tmax, known.shape[0])
+    own = _share_scratch(lmax, tmax, imax, known.shape[0])
     (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
      klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
      head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, edges,
-     live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, hk0, hk1,
-     hfirst, hlast, enext, tseen, tset, work) = borrow(own)
+     live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, thash, eslot,
+     sstate, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((8, FUSE_POLY)), np.empty(7))
     pool[1] = 8 * lmax
+    hmask = thash.shape[0] - 1
+    pstamp = 0  # the pixel's, in sstate
     for it in range(it0, it1):
         tile = torder[it]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         pix0 = (tile - tile0) * npix
+        # The tile's items and their edges, once for all its pixels: each undirected welded
+        # edge gets a slot (eslot: three per item, -1 for none), where a pixel chains the
+        # occluder edges it has along it.
+        i0 = ioff[tile]
+        n_it = ioff[tile + 1] - i0
+        n_slots = 0
+        for i in range(n_it):
+            p = items[i0 + i]
+            for e in range(3):
+                va = vid[p, e]
+                vb = vid[p, (e + 1) % 3]
+                if kind[p] != 0 or va < 0 or vb < 0:
+                    eslot[3 * i + e] = -1
+                    continue
+                lo_, hi_ = min(va, vb), max(va, vb)
+                row = _edge_slot(thash, hmask, tile, lo_, hi_)
+                if thash[row, 0] != tile:
+                    thash[row, 0] = tile
+                    thash[row, 1] = lo_
+                    thash[row, 2] = hi_
+                    thash[row, 3] = n_slots
+                    n_slots += 1
+                eslot[3 * i + e] = thash[row, 3]
         n_set = 0
         work[0] = 0
         work[1] = 0
@@ -1248,11 +1280,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             # from the box (so from every camera position, which lies on the box) is at depth
             # at least g / lray on any ray of this pixel.
             lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
-            hs = 8
-            while hs < 6 * (b - a):
-                hs *= 2
-            hmask = hs - 1
-            hk0[:hs] = -1
+            pstamp += 1
             n_polys = 0
             n_live = 0
             n_dead = 0
@@ -1294,13 +1322,15 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             zcut = np.inf
             # Occluders listed after the last entry still to be tested serve no test: the
             # list ends there (the rest are primitives known visible).
-            while b > a and (known[entries[b - 1]] != 0
-                             or (tseen[entries[b - 1] >> 3] >> (entries[b - 1] & 7)) & 1):
+            while b > a and (known[items[i0 + entries[b - 1]]] != 0
+                             or (tseen[items[i0 + entries[b - 1]] >> 3]
+                                 >> (items[i0 + entries[b - 1]] & 7)) & 1):
                 b -= 1
             for k in range(a, b):
                 if (k - a) % STOP_EVERY == STOP_EVERY - 1 and flag_set(stop):
                     break  # one pixel's list of 10^5 entries takes seconds in dense clutter
-                p = entries[k]
+                it_k = entries[k]
+                p = items[i0 + it_k]
                 # One entry in TIME_STRIDE is timed by step: four counter reads at every
                 # entry would weigh on short lists, whose entries are cheap.
                 timed = (k - a) % TIME_STRIDE == 0
@@ -1528,10 +1558,18 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     vb = oid[q, (e + 1) % 3]
                     if va < 0 or vb < 0:
                         continue
-                    slot = _edge_slot(hk0, hk1, hmask, vb, va)
-                    if hk0[slot] < 0:
+                    # q's edge e is its item's edge e, or 2 - e where q was turned round.
+                    sid = eslot[3 * it_k + (e if ar > 0.0 else 2 - e)]
+                    if sid < 0 or sstate[sid, 0] != pstamp:
                         continue
-                    node = hfirst[slot]
+                    # The edge's chain runs newest first: the oldest active edge held the
+                    # other way is taken.
+                    node = -1
+                    nd = sstate[sid, 1]
+                    while nd >= 0:
+                        if oact[nd // 3, nd % 3] and oid[nd // 3, nd % 3] == vb:
+                            node = nd
+                        nd = enext[nd]
                     while node >= 0:
                         r = node // 3
                         f = node - 3 * r
@@ -1596,16 +1634,16 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     vb = oid[q, (e + 1) % 3]
                     if va < 0 or vb < 0 or not oact[q, e]:
                         continue
-                    slot = _edge_slot(hk0, hk1, hmask, va, vb)
+                    sid = eslot[3 * it_k + (e if ar > 0.0 else 2 - e)]
+                    if sid < 0:
+                        continue
                     node = 3 * q + e
-                    enext[node] = -1
-                    if hk0[slot] < 0:
-                        hk0[slot] = va
-                        hk1[slot] = vb
-                        hfirst[slot] = node
+                    if sstate[sid, 0] != pstamp:
+                        sstate[sid, 0] = pstamp
+                        enext[node] = -1
                     else:
-                        enext[hlast[slot]] = node
-                    hlast[slot] = node
+                        enext[node] = sstate[sid, 1]
+                    sstate[sid, 1] = node
                 c1 = cycles() if timed else 0
                 cyc_insert += c1 - c0 if timed else 0
                 g = grp[q]
