@@ -132,7 +132,8 @@ class EdgePool(NamedTuple):
 
 class ShareScratch(NamedTuple):
     """The scratch arrays of one share of ``resolve.resolve_tiles`` (``resolve._share_scratch``),
-    sized for the share's longest pixel list ``lmax`` and its longest tile ``tmax``.
+    sized for the share's longest pixel list ``lmax``, its longest tile ``tmax`` (entries) and
+    its tile of most items ``imax``.
 
     cam : a primitive's points in the view's frame (``load_prim``); qv, qr: their projection
         (``project``); rv, rr: the pixel's region of eye offsets (``lists.region_at``).
