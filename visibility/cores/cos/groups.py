@@ -157,10 +157,11 @@ class ShareScratch(NamedTuple):
     gslot, sg, shead, pool, pdep, fslot, sfr, dom : depth grids of groups of ``GRID_MIN``
         triangles or more (slots of sg, shead in the frame of depth sfr over the domain dom:
         x0, x1, y0, y1, cells per metre in x and y; member list nodes in pool; free slots).
-    thash, eslot, sstate, enext : fusion along shared edges: the tile's hash of undirected
-        welded edges (tile stamp, lower id, higher id, edge slot), each item's three edge
-        slots (-1: none), per edge slot the pixel's stamp and its newest occluder edge 3 q +
-        e, chained newest first through enext.
+    thash, eslot, eready, sstate, enext : fusion along shared edges: the tile's hash of
+        undirected welded edges (tile stamp, lower id, higher id, edge slot), each item's three
+        edge slots (-1: none) and the tile they were made for (at its first insertion there),
+        per edge slot the pixel's stamp and its newest occluder edge 3 q + e, chained newest
+        first through enext.
     tseen, tset : primitives found visible at an earlier pixel of the tile (a bit each), and
         the ids set, cleared after the tile.
     work : (2,) int64 per-tile counters the helpers add to.
@@ -227,6 +228,7 @@ class ShareScratch(NamedTuple):
     dom: np.ndarray
     thash: np.ndarray
     eslot: np.ndarray
+    eready: np.ndarray
     sstate: np.ndarray
     enext: np.ndarray
     tseen: np.ndarray

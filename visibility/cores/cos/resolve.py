@@ -1123,6 +1123,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         pool=np.empty(2 + 2 * 8 * lmax, dtype=np.int64), pdep=np.empty(2 * 8 * lmax),
         fslot=np.empty(nslot, dtype=np.int64), sfr=np.empty(nslot), dom=np.empty(6),
         thash=np.full((hcap, 4), -1, dtype=np.int64), eslot=np.empty(3 * imax, dtype=np.int64),
+        eready=np.full(imax, -1, dtype=np.int64),
         sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
@@ -1216,7 +1217,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
      klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
      head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, edges,
      live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, thash, eslot,
-     sstate, enext, tseen, tset, work) = borrow(own)
+     eready, sstate, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((8, FUSE_POLY)), np.empty(7))
@@ -1228,29 +1229,13 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         pix0 = (tile - tile0) * npix
-        # The tile's items and their edges, once for all its pixels: each undirected welded
-        # edge gets a slot (eslot: three per item, -1 for none), where a pixel chains the
-        # occluder edges it has along it.
+        # The tile's items name its entries; each undirected welded edge of the tile gets a
+        # slot (eslot: three per item, -1 for none), where a pixel chains the occluder edges
+        # it has along it: made at an item's first insertion in the tile, once for all its
+        # pixels (made for every item, they cost open scenes more than they saved, an item
+        # being listed at about one pixel there).
         i0 = ioff[tile]
-        n_it = ioff[tile + 1] - i0
         n_slots = 0
-        for i in range(n_it):
-            p = items[i0 + i]
-            for e in range(3):
-                va = vid[p, e]
-                vb = vid[p, (e + 1) % 3]
-                if kind[p] != 0 or va < 0 or vb < 0:
-                    eslot[3 * i + e] = -1
-                    continue
-                lo_, hi_ = min(va, vb), max(va, vb)
-                row = _edge_slot(thash, hmask, tile, lo_, hi_)
-                if thash[row, 0] != tile:
-                    thash[row, 0] = tile
-                    thash[row, 1] = lo_
-                    thash[row, 2] = hi_
-                    thash[row, 3] = n_slots
-                    n_slots += 1
-                eslot[3 * i + e] = thash[row, 3]
         n_set = 0
         work[0] = 0
         work[1] = 0
@@ -1551,6 +1536,23 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     n_live += 1
                 cpos[q] = -1
                 gslot[q] = -1
+                if eready[it_k] != tile:
+                    eready[it_k] = tile
+                    for e in range(3):
+                        va = vid[p, e]
+                        vb = vid[p, (e + 1) % 3]
+                        if va < 0 or vb < 0:
+                            eslot[3 * it_k + e] = -1
+                            continue
+                        lo_, hi_ = min(va, vb), max(va, vb)
+                        row = _edge_slot(thash, hmask, tile, lo_, hi_)
+                        if thash[row, 0] != tile:
+                            thash[row, 0] = tile
+                            thash[row, 1] = lo_
+                            thash[row, 2] = hi_
+                            thash[row, 3] = n_slots
+                            n_slots += 1
+                        eslot[3 * it_k + e] = thash[row, 3]
                 # Fuse along shared edges: the neighbour holds the edge reversed. The first
                 # active occluder edge (in the order they were added) that does is taken.
                 for e in range(3):
