@@ -9,6 +9,7 @@ import queue
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+from functools import partial
 from typing import Any
 
 import numba
@@ -37,6 +38,7 @@ from visibility.cores.trim_regions.layers import (
     leaf_frame,
     leaf_layers,
 )
+from visibility.cores.trim_regions.once import Once
 from visibility.cores.trim_regions.quality import FRAME_NEAR
 from visibility.cores.trim_regions.raster import (
     Camera,
@@ -266,16 +268,27 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
             # of the workers that ran out of views (``crew``).
             drawn = [drawn_leaves(frame, v) for v in views]
             order = sorted(range(len(views)), key=lambda k: -int(counts[drawn[k]].sum()))
-            crew.queue(len(views))
+            # Each view's renders from v* (P4) as a task of their own, queued right behind
+            # the view: a worker with no view left makes them while the view rasterizes,
+            # and a view that reaches them first makes them itself (``once``).
+            renders = [Once(partial(_sample_from_vstar, scene, data.static_mask, verts,
+                                    views[k], centre, hier)) if footprints else None
+                       for k in range(len(views))]
+            crew.queue(len(views) + (len(views) if footprints else 0))
             # Two spheres in flight at most: each holds its ``near`` marks (one byte per
             # triangle) until its views are done.
             while len(in_flight) >= 2:
                 for f in in_flight.popleft():
                     _merge(stats, f.result())
-            in_flight.append([pool.submit(contextvars.copy_context().run, _view_task,
-                                          views[k], near, ambiguous, shared, hulls, free, crew,
-                                          drawn[k])
-                              for k in order])
+            tasks = []
+            for k in order:
+                tasks.append(pool.submit(contextvars.copy_context().run, _view_task,
+                                         views[k], near, ambiguous, shared, hulls, free, crew,
+                                         drawn[k], renders[k]))
+                if renders[k] is not None:
+                    tasks.append(pool.submit(contextvars.copy_context().run, _render_task,
+                                             renders[k], crew))
+            in_flight.append(tasks)
         while in_flight:
             for f in in_flight.popleft():
                 _merge(stats, f.result())
@@ -322,11 +335,13 @@ def _view_workers() -> int:
 
 def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tuple,
                hulls: tuple | None, free: queue.SimpleQueue,
-               crew: Crew | None = None, drawn: np.ndarray | None = None) -> dict[str, Any]:
+               crew: Crew | None = None, drawn: np.ndarray | None = None,
+               render: Once | None = None) -> dict[str, Any]:
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
     stats it adds (``VIEW_STATS``). With a ``crew`` (views on worker threads), the view
     takes the numba threads it lends between layers; ``drawn``: its leaves in the frustum
-    (``layers.drawn_leaves``), when the caller has them."""
+    (``layers.drawn_leaves``), when the caller has them; ``render``: its renders from v*
+    (``_sample_from_vstar``), which another worker may make (``_render_task``)."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb, scratch = free.get()
@@ -335,7 +350,7 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
     try:
         checkpoint()
         _solve_view(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis, st,
-                    margin_px, footprints, centre, hier, small, crew, scratch, drawn)
+                    margin_px, footprints, centre, hier, small, crew, scratch, drawn, render)
         if hulls is not None:
             t = time.perf_counter()
             _test_hulls(view, *hulls, kb, scratch)
@@ -345,6 +360,16 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
             crew.finish()
         free.put((kb, scratch))
     return st
+
+
+def _render_task(render: Once, crew: Crew) -> dict[str, Any]:
+    """Make a view's renders from v* on this worker unless the view has begun them itself;
+    returns the stats it adds (``p4_gather``, its seconds, when it made them)."""
+    crew.start()
+    try:
+        return {"p4_gather": render.seconds} if render.run() else {}
+    finally:
+        crew.finish()
 
 
 def _merge(stats: dict[str, Any], part: dict[str, Any]) -> None:
@@ -392,11 +417,12 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 stats: dict[str, Any], margin_px: float, footprints: bool,
                 centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
                 small: str = "centres", crew: Crew | None = None,
-                scratch: Scratch | None = None, drawn: np.ndarray | None = None) -> None:
+                scratch: Scratch | None = None, drawn: np.ndarray | None = None,
+                render: Once | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
-    v*'s renders (``_sample_from_vstar``)."""
+    v*'s renders (``_sample_from_vstar``), made here or taken from ``render``."""
     stop = stop_flag()
     res = view.res
     faces = data.faces
@@ -488,8 +514,15 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         if crew is not None:
             crew.lend()
         tc = time.perf_counter()
-        first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
-                                                     centre, hierarchy)
+        if render is None:
+            first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
+                                                         centre, hierarchy)
+        else:
+            made_here = render.run()
+            first, seen, depth, far = render.get()
+            if not made_here:
+                # Made by another worker, which counts its seconds; waiting is no work.
+                tc = time.perf_counter()
         vis[seen] = 1
         touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
         # Small triangles v* sees between the samples, which the pixels' open depth (above)
