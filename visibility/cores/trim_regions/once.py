@@ -48,6 +48,18 @@ class Once(Generic[T]):
             self._done.set()
         return True
 
+    def close(self) -> None:
+        """Never compute from now on: claim it unclaimed (``get`` then raises), or wait for
+        the thread computing it. What ``fn`` reads may then be released."""
+        with self._lock:
+            if not self._claimed:
+                self._claimed = True
+                self._error = RuntimeError("closed before it was computed")
+                self._fn = None  # type: ignore[assignment]
+                self._done.set()
+                return
+        self._done.wait()
+
     def get(self) -> T:
         """The value, computed here if no thread has started it, else waited for."""
         self.run()

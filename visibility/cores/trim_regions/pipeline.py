@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import contextvars
 import queue
+import threading
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from functools import partial
 from typing import Any
 
 import numba
@@ -89,6 +89,9 @@ ROLLED_SAMPLES = 2
 #: the same answer).
 GATHER_EYES = 8
 GATHER_SEED = 104729
+#: Share of a sphere's drawn items above which its leading view's gather from v* is made
+#: aside, by a worker with no view left (``_Gather``).
+ASIDE_SHARE = 0.5
 #: Bytes of one k-buffer entry (depth, umbra, far float64; id int32; kind int8).
 ENTRY_BYTES = 29
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
@@ -163,7 +166,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
         ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
-        hulls), ``eye_gathered`` (triangles only the eyes' views added),
+        hulls), ``gathers_aside`` (views whose gather from v* another worker made,
+        ``ASIDE_SHARE``), ``eye_gathered`` (triangles only the eyes' views added),
         ``sphere_ids`` (the spheres of the scene found visible).
     """
     if small not in SMALL_RASTERS:
@@ -179,7 +183,7 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                  active_pixels=0, trimmed_pixels=0, sealed_pixels=0, overflow_pixels=0,
                  silhouette_trims=0, validated_intervals=0, terminators=0,
                  single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
-                 kbuffer_used_bytes=0, resolution=int(resolution))
+                 kbuffer_used_bytes=0, resolution=int(resolution), gathers_aside=0)
     hull_boxes, hull_ids = _hulls(scene, data, centre)
     graze = _grazing(scene, data, centres + centre, delta, int(resolution))
     if len(graze):
@@ -267,14 +271,18 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
             # The views with most to draw first: the last to finish then gets the threads
             # of the workers that ran out of views (``crew``).
             drawn = [drawn_leaves(frame, v) for v in views]
-            order = sorted(range(len(views)), key=lambda k: -int(counts[drawn[k]].sum()))
-            # Each view's renders from v* (P4) as a task of their own, queued right behind
-            # the view: a worker with no view left makes them while the view rasterizes,
-            # and a view that reaches them first makes them itself (``once``).
-            renders = [Once(partial(_sample_from_vstar, scene, data.static_mask, verts,
-                                    views[k], centre, hier)) if footprints else None
-                       for k in range(len(views))]
-            crew.queue(len(views) + (len(views) if footprints else 0))
+            load = [int(counts[d].sum()) for d in drawn]
+            order = sorted(range(len(views)), key=lambda k: -load[k])
+            # A view that draws most of the sphere's items (the one into a dense room) has
+            # its gather from v* (P4) made aside, as a task queued right behind it: a worker
+            # with no view left makes it while the view rasterizes, and the view makes it
+            # itself if it gets there first (``_Gather``). Where the views weigh alike
+            # (open scenes) the task only cost time.
+            renders: list[_Gather | None] = [None] * len(views)
+            lead = order[0]
+            if footprints and load[lead] > ASIDE_SHARE * sum(load):
+                renders[lead] = _Gather(scene, data, verts, views[lead], centre, hier, vis)
+            crew.queue(len(views) + sum(r is not None for r in renders))
             # Two spheres in flight at most: each holds its ``near`` marks (one byte per
             # triangle) until its views are done.
             while len(in_flight) >= 2:
@@ -336,12 +344,12 @@ def _view_workers() -> int:
 def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tuple,
                hulls: tuple | None, free: queue.SimpleQueue,
                crew: Crew | None = None, drawn: np.ndarray | None = None,
-               render: Once | None = None) -> dict[str, Any]:
+               render: _Gather | None = None) -> dict[str, Any]:
     """Solve one view with a k-buffer taken from ``free`` (and given back); returns the
     stats it adds (``VIEW_STATS``). With a ``crew`` (views on worker threads), the view
     takes the numba threads it lends between layers; ``drawn``: its leaves in the frustum
-    (``layers.drawn_leaves``), when the caller has them; ``render``: its renders from v*
-    (``_sample_from_vstar``), which another worker may make (``_render_task``)."""
+    (``layers.drawn_leaves``), when the caller has them; ``render``: its gather from v*
+    (``_Gather``), which another worker may make (``_render_task``)."""
     scene, verts, data, frame, item_rows, vis, margin_px, footprints, centre, hier, small = shared
     st: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
     kb, scratch = free.get()
@@ -356,20 +364,72 @@ def _view_task(view: View, near: np.ndarray, ambiguous: np.ndarray, shared: tupl
             _test_hulls(view, *hulls, kb, scratch)
             st["p4_gather"] += time.perf_counter() - t
     finally:
+        if render is not None:
+            # Also when the view never began (a cancel): its gather must not wait for it.
+            render.end()
         if crew is not None:
             crew.finish()
         free.put((kb, scratch))
     return st
 
 
-def _render_task(render: Once, crew: Crew) -> dict[str, Any]:
-    """Make a view's renders from v* on this worker unless the view has begun them itself;
-    returns the stats it adds (``p4_gather``, its seconds, when it made them)."""
+def _render_task(render: _Gather, crew: Crew) -> dict[str, Any]:
+    """Make a view's gather from v* on this worker unless the view has begun it itself;
+    returns the stats it adds (``p4_gather``, its seconds, when it made it)."""
     crew.start()
     try:
-        return {"p4_gather": render.seconds} if render.run() else {}
+        if render.once.run():
+            return {"p4_gather": render.seconds, "gathers_aside": 1}
+        return {}
     finally:
         crew.finish()
+
+
+class _Gather:
+    """A view's gather from v* (P4 but what needs its seals): the renders
+    (``_sample_from_vstar``) and the footprint tests against them
+    (``hulls.touching_in_front``, ``hulls.touching_samples``), which need only the view's
+    set-up polygons (``set_up``), not its layers; run once (``once``) by the worker that
+    claims it first. ``seconds``: its work, waiting left out."""
+
+    def __init__(self, scene: Scene, data: SceneData, verts: np.ndarray, view: View,
+                 centre: np.ndarray | None, hierarchy: Hierarchy | None,
+                 vis: np.ndarray) -> None:
+        self._args = (scene, data, verts, view, centre, hierarchy, vis)
+        self._ready = threading.Event()
+        self._polys: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.seconds = 0.0
+        self.once: Once[None] = Once(self._run)
+
+    def set_up(self, poly: np.ndarray, npoly: np.ndarray, pbox: np.ndarray) -> None:
+        """The view's set-up polygons are ready (``raster.setup_triangles``)."""
+        self._polys = (poly, npoly, pbox)
+        self._ready.set()
+
+    def end(self) -> None:
+        """The view is done (or failed): a gather not begun never runs, one running is
+        waited for, so the view may hand its polygons on."""
+        self._ready.set()
+        self.once.close()
+
+    def _run(self) -> None:
+        scene, data, verts, view, centre, hierarchy, vis = self._args
+        t = time.perf_counter()
+        first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
+                                                     centre, hierarchy)
+        work = time.perf_counter() - t
+        self._ready.wait()
+        if self._polys is not None:
+            t = time.perf_counter()
+            poly, npoly, pbox = self._polys
+            vis[seen] = 1
+            touching_in_front(poly, npoly, pbox, data.static, first, view.res, vis)
+            # Small triangles v* sees between the samples, which the pixels' open depth
+            # (above) can hide: tested against the samples around them.
+            touching_samples(poly, npoly, pbox, data.static, depth, far, view.res, SUPERSAMPLE,
+                             SMALL_BOX_PX, vis)
+            work += time.perf_counter() - t
+        self.seconds = work
 
 
 def _merge(stats: dict[str, Any], part: dict[str, Any]) -> None:
@@ -418,11 +478,29 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                 centre: np.ndarray | None = None, hierarchy: Hierarchy | None = None,
                 small: str = "centres", crew: Crew | None = None,
                 scratch: Scratch | None = None, drawn: np.ndarray | None = None,
-                render: Once | None = None) -> None:
+                render: _Gather | None = None) -> None:
     """Layers, geometry, rasterization and resolve of one adapted frustum; adds what it finds
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
-    v*'s renders (``_sample_from_vstar``), made here or taken from ``render``."""
+    v*'s renders (``_sample_from_vstar``); ``render``, the view's gather from v*
+    (``_Gather``), may be made by another worker (one is made here when not given)."""
+    if footprints and render is None:
+        render = _Gather(scene, data, verts, view, centre, hierarchy, vis)
+    try:
+        _solve_view_in(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
+                       stats, margin_px, footprints, small, crew, scratch, drawn, render)
+    finally:
+        if render is not None:
+            render.end()
+
+
+def _solve_view_in(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
+                   frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
+                   ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
+                   stats: dict[str, Any], margin_px: float, footprints: bool, small: str,
+                   crew: Crew | None, scratch: Scratch | None, drawn: np.ndarray | None,
+                   render: _Gather | None) -> None:
+    """``_solve_view``'s work, ``render`` given with ``footprints``."""
     stop = stop_flag()
     res = view.res
     faces = data.faces
@@ -444,6 +522,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     drawn_rows(drawn, frame.item_leaf, item_rows, need)
     setup_triangles(cam, faces, data.static, need, view.near, view.tan, res, facing, poly, npoly,
                     pbox)
+    if render is not None:
+        render.set_up(poly, npoly, pbox)
     e = data.edges
     # A triangle whose plane passes through the sphere faces some of its eyes and turns its
     # back on others: its edges may be silhouettes for them though not for v* (an eye
@@ -513,26 +593,16 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     if footprints:
         if crew is not None:
             crew.lend()
-        tc = time.perf_counter()
-        if render is None:
-            first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
-                                                         centre, hierarchy)
-        else:
-            made_here = render.run()
-            first, seen, depth, far = render.get()
-            if not made_here:
-                # Made by another worker, which counts its seconds; waiting is no work.
-                tc = time.perf_counter()
-        vis[seen] = 1
-        touching_in_front(poly, npoly, pbox, data.static, first, res, vis)
-        # Small triangles v* sees between the samples, which the pixels' open depth (above)
-        # can hide: tested against the samples around them.
-        touching_samples(poly, npoly, pbox, data.static, depth, far, res, SUPERSAMPLE,
-                         SMALL_BOX_PX, vis)
+        assert render is not None
+        if render.once.run():
+            stats["p4_gather"] += render.seconds
+        # Made here or by another worker (which counts its seconds): waited for.
+        render.once.get()
         if small == "conservative":
+            tc = time.perf_counter()
             small_in_front(poly, npoly, pbox, data.static, kb.seal, kb.spans, kb.n_spans, res,
                            THIN_PX, DEPTH_TOL, vis)
-        stats["p4_gather"] += time.perf_counter() - tc
+            stats["p4_gather"] += time.perf_counter() - tc
     stats["validated_intervals"] += int(counters[:, 0].sum())
     stats["terminators"] += int(counters[:, 1].sum())
     stats["entries_resolved"] += int(counters[:, 2].sum())

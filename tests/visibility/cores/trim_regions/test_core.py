@@ -103,6 +103,22 @@ def test_views_solved_two_at_a_time_give_the_answer_of_one_at_a_time(monkeypatch
     assert two.stats["kbuffer_allocated_bytes"] == 2 * one.stats["kbuffer_allocated_bytes"]
 
 
+def test_gathers_made_aside_by_another_worker_give_the_same_answer(monkeypatch):
+    # Every sphere's leading view has its gather from v* queued aside (ASIDE_SHARE 0), and
+    # a worker with no view left makes it while that view rasterizes.
+    scene = make_scene("village", triangles=5000)
+    box = _box(scene, 0.6)
+    monkeypatch.setattr(pipeline, "_view_workers", lambda: 1)
+    one = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
+    monkeypatch.setattr(pipeline, "_view_workers", lambda: 2)
+    monkeypatch.setattr(pipeline, "ASIDE_SHARE", 0.0)
+    aside = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
+    np.testing.assert_array_equal(one.triangle_ids, aside.triangle_ids)
+    assert one.stats["gathers_aside"] == 0
+    # The other worker is free when a leading view starts, so some gathers are made aside.
+    assert 0 < aside.stats["gathers_aside"] <= aside.stats["spheres"]
+
+
 def test_a_cancel_while_views_run_in_threads_stops_them_all(monkeypatch):
     monkeypatch.setattr(pipeline, "_view_workers", lambda: 2)
     scene = make_scene("village", triangles=5000)

@@ -70,3 +70,35 @@ def test_an_error_reaches_every_caller():
         once.run()
     with pytest.raises(ValueError, match="render failed"):
         once.get()
+
+
+def test_closed_before_it_began_it_never_runs():
+    calls = []
+    once = Once(lambda: calls.append(1))
+    once.close()
+    assert once.run() is False
+    with pytest.raises(RuntimeError, match="closed"):
+        once.get()
+    assert calls == []
+
+
+def test_close_waits_for_the_thread_computing_it():
+    # What the computation reads may be released once close returns.
+    started = threading.Event()
+    release = threading.Event()
+    state = {"reading": False}
+
+    def work():
+        state["reading"] = True
+        started.set()
+        release.wait(5)
+        state["reading"] = False
+
+    once = Once(work)
+    worker = threading.Thread(target=once.run)
+    worker.start()
+    assert started.wait(5)
+    threading.Timer(0.05, release.set).start()
+    once.close()
+    assert state["reading"] is False
+    worker.join(5)
