@@ -1,16 +1,15 @@
 """A computation that runs once, on whichever thread claims it first.
 
-A view's renders from v* (the gather, P4) do not depend on its layers, so a worker with no view
-left can make them while the view that needs them still rasterizes (the one looking into a
-dense room holds most of a cell's work). Whoever asks first computes; a later caller waits
-only for a computation already running on another thread, never for one still queued, so
-views and render tasks sharing a pool of workers cannot deadlock.
+A view's gather from v* (P4: the renders and the footprint tests against them) does not depend
+on its layers, so a worker with no view left can make it while the view that needs it still
+rasterizes (the one looking into a dense room holds most of a cell's work). Whoever asks first
+computes; a later caller waits only for a computation already running on another thread, never
+for one still queued, so views and gather tasks sharing a pool of workers cannot deadlock.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
@@ -18,7 +17,7 @@ T = TypeVar("T")
 
 
 class Once(Generic[T]):
-    """``fn()`` computed once (see the module docstring); ``seconds`` is its run time."""
+    """``fn()`` computed once (see the module docstring)."""
 
     def __init__(self, fn: Callable[[], T]) -> None:
         self._fn = fn
@@ -27,7 +26,6 @@ class Once(Generic[T]):
         self._done = threading.Event()
         self._value: T | None = None
         self._error: BaseException | None = None
-        self.seconds = 0.0
 
     def run(self) -> bool:
         """Compute here unless some thread has claimed it; True when this call computed it.
@@ -36,14 +34,12 @@ class Once(Generic[T]):
             if self._claimed:
                 return False
             self._claimed = True
-        t = time.perf_counter()
         try:
             self._value = self._fn()
         except BaseException as exc:
             self._error = exc
             raise
         finally:
-            self.seconds = time.perf_counter() - t
             self._fn = None  # type: ignore[assignment]  # its arguments are not kept alive
             self._done.set()
         return True

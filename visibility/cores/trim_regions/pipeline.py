@@ -483,24 +483,10 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     to ``vis`` and its counters to ``stats``; leaves the seal depths in ``kb.seal``.
     ``centre`` (the computation's centre, world metres) and the scene's ``hierarchy`` serve
     v*'s renders (``_sample_from_vstar``); ``render``, the view's gather from v*
-    (``_Gather``), may be made by another worker (one is made here when not given)."""
+    (``_Gather``), may be made by another worker (one only this view sees is made here when
+    not given; the caller ends a shared one, ``_Gather.end``)."""
     if footprints and render is None:
         render = _Gather(scene, data, verts, view, centre, hierarchy, vis)
-    try:
-        _solve_view_in(scene, view, verts, data, frame, item_rows, near, ambiguous, kb, vis,
-                       stats, margin_px, footprints, small, crew, scratch, drawn, render)
-    finally:
-        if render is not None:
-            render.end()
-
-
-def _solve_view_in(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
-                   frame: LeafFrame, item_rows: np.ndarray, near: np.ndarray,
-                   ambiguous: np.ndarray, kb: KBuffer, vis: np.ndarray,
-                   stats: dict[str, Any], margin_px: float, footprints: bool, small: str,
-                   crew: Crew | None, scratch: Scratch | None, drawn: np.ndarray | None,
-                   render: _Gather | None) -> None:
-    """``_solve_view``'s work, ``render`` given with ``footprints``."""
     stop = stop_flag()
     res = view.res
     faces = data.faces

@@ -27,7 +27,6 @@ def test_many_threads_asking_at_once_compute_it_once_and_all_get_its_value():
         values = [f.result(10) for f in futures]
     assert values == [42] * 8
     assert len(calls) == 1
-    assert once.seconds > 0.0
 
 
 def test_run_says_whether_this_call_computed_it():
