@@ -521,7 +521,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
         view.delta, view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,
-        octree.leaf_of_cell, layer)
+        octree.leaf_of_cell, layer, data.piece)
     inst = scratch.array("inst", len(item_rows), np.int64)
     inst_layer = scratch.array("inst_layer", len(item_rows), np.int64)
     k = drawn_instances(drawn, frame.item_leaf, item_rows, data.octree.tri_items, npoly, near,
@@ -564,7 +564,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                             vis, stop)
         tb = time.perf_counter()
         tally[:] = 0
-        _resolve(kb, res, False, vis, counters, stop, data.closed, held, tally)
+        _resolve(kb, res, False, vis, counters, stop, data, held, tally)
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
                                           int(tally[:, 0].sum()) * ENTRY_BYTES)
         stats["pixel_resolves"] += int(tally[:, 1].sum())
@@ -573,7 +573,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     checkpoint()
     tb = time.perf_counter()
     stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
-    _resolve(kb, res, True, vis, counters, stop, data.closed, held, tally)
+    _resolve(kb, res, True, vis, counters, stop, data, held, tally)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
@@ -649,9 +649,9 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
-             stop: np.ndarray, closed: np.ndarray, held: np.ndarray,
+             stop: np.ndarray, data: SceneData, held: np.ndarray,
              tally: np.ndarray) -> None:
-    resolve_layer(kb, closed, res, final, vis, counters, stop, held, tally)
+    resolve_layer(kb, data.closed, data.piece, res, final, vis, counters, stop, held, tally)
 
 
 def _reset(kb: KBuffer) -> None:

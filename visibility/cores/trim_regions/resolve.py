@@ -2,24 +2,31 @@
 what each pixel found visible (P4).
 
 Per active pixel the trim sequence (its k-buffer) is sorted by depth. Surface entries hidden by
-the umbra of an interval validated earlier (``cover``) are skipped. The first open front face
-starts an occlusion interval: the run of front faces, closed by the next back face. An
-interval is validated when a trim fragment lies inside it (depth tolerance ``DEPTH_TOL``): its
-first face goes to the PVS and the umbra replaces its back face, i.e. everything up to the
-(smallest) umbra depth of those trim fragments is hidden, and the walk goes on behind. A run of
-several front faces is validated as a whole (the paper's extension at the front), but the
-umbra comes from the trims of its last face and the closing face (the simple interval), and
-without such trims that face terminates the ray: the trim of a small surface in front must not
-lend its umbra to an untrimmed wall. An interval that is not validated is a terminator: its
-first face goes to the PVS and the pixel is sealed. A run with nothing after it yet is carried
-to the next layer (its closing face may lie in a later octree node).
+the umbra of an interval validated earlier (``cover``) are skipped. An open front face directly
+followed by a back face is a simple occlusion interval [f, b]. It is validated when a trim
+fragment of it lies inside it (depth tolerance ``DEPTH_TOL``): its face goes to the PVS and the
+umbra replaces its back face, i.e. everything up to the (smallest) umbra depth of those trim
+fragments is hidden, and the walk goes on behind. An interval that is not validated is a
+terminator: its face goes to the PVS and the pixel is sealed. A run with nothing after it yet
+is carried to the next layer (its closing face may lie in a later octree node).
 
-A back face met first, and after the last layer a carried run, read as single-sided surfaces:
-each face in turn is seen, and trimmed (validated) when a trim fragment lies between it and the
-next surface, that surface's depth included, else it terminates the pixel. (A trim at the next
-surface's depth is often that surface's rim, but it may be this face's own: the edge a single-
-sided or inward-wound face shares with the face the ray leaves by, as in the Quake level
-lavaducts; letting it validate only ever reveals more.)
+A trim fragment is *of* an interval when its silhouette edge lies on the same connected piece
+(``cache.connected_pieces``: triangles joined through corners at one position) as one of the
+interval's faces; fragments of different pieces merged into one entry count for any. The
+paper validates by depth alone: a trim region is part of its occluder, and the rim trims of
+small clutter, wider than the clutter itself, then opened whatever lay in front of it at that
+depth range (a window pane of the 1M kitchen, seen through by a cell outside it).
+
+Several front faces before the closing one (soups, intersecting or nested objects) are not one
+interval extended at the front as in the paper: each but the last is read as a single-sided
+surface; and a front face and the back face after it that cannot bound one solid (one of them
+on a closed part the other is not on, ``topology.closed_components``) read so too.
+
+A back face met first, those faces, and after the last layer a carried run read as
+single-sided surfaces: each face in turn is seen, and trimmed (validated) when a trim fragment
+of its piece lies between it and the next surface, that surface's depth included (a trim at
+the next surface's depth may be the face's own: the edge an inward-wound face shares with the
+face the ray leaves by, as in the Quake level lavaducts), else it terminates the pixel.
 
 A back face is not reported when a front face of the same closed, consistently wound part
 (``topology.closed_components``) hid in an umbra before it: it is that part's back, never seen
@@ -84,12 +91,13 @@ def _sort(sd, sk, si, su, sr, n):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _umbra_in(sd, sk, su, sr, n, lo, hi):  # pragma: no cover - numba
-    """Smallest umbra depth of the trim entries whose depth range [sd, sr] meets [lo, hi];
-    -1 if none."""
+def _umbra_in(sd, sk, si, su, sr, n, lo, hi, pa, pb):  # pragma: no cover - numba
+    """Smallest umbra depth of the trim entries of piece ``pa`` or ``pb`` (or of any, ident
+    -1) whose depth range [sd, sr] meets [lo, hi]; -1 if none."""
     best = -1.0
     for q in range(n):
-        if sk[q] == TRIM and sr[q] >= lo and sd[q] <= hi:
+        if (sk[q] == TRIM and sr[q] >= lo and sd[q] <= hi
+                and (si[q] < 0 or si[q] == pa or si[q] == pb)):
             if best < 0 or su[q] < best:
                 best = su[q]
     return best
@@ -101,21 +109,31 @@ def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
     return h > 0 and closed[ident] + 1 == h
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _apart(closed, front, back):  # pragma: no cover - numba
+    """Whether faces ``front`` and ``back`` cannot bound one solid: one of them belongs to a
+    closed part (``topology.closed_components``) the other does not belong to."""
+    a, b = closed[front], closed[back]
+    return a != b and (a >= 0 or b >= 0)
+
+
 @njit(cache=True, nogil=True)
-def resolve_pixel(kb, closed, p, final, vis, stats):  # pragma: no cover - numba
+def resolve_pixel(kb, closed, piece, p, final, vis, stats):  # pragma: no cover - numba
     """Resolve pixel p's trim sequence in the k-buffers ``kb`` (``kbuffer.KBuffer``; see the
     module docstring); compacts the residual sequence back into the k-buffer and records the
     hidden span of each validated interval in ``spans`` / ``n_spans`` and the depth of its
     first surface in ``first``. Returns True when the pixel got sealed. ``hid`` (n,) int64
     remembers, across layers, the closed part (1 + ``closed[id]``, 0 none) of the front face
-    that hid in an umbra since the last front face seen.
+    that hid in an umbra since the last front face seen. ``closed`` (m,) and ``piece`` (m,)
+    int64: each triangle id's closed part (``topology.closed_components``) and connected
+    piece (``cache.connected_pieces``).
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
-    return resolve_into(kb, closed, p, final, vis, stats, _scratch(K))
+    return resolve_into(kb, closed, piece, p, final, vis, stats, _scratch(K))
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover - numba
+def resolve_into(kb, closed, piece, p, final, vis, stats, scratch):  # pragma: no cover
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
@@ -170,13 +188,15 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
             j += 1
         if first[p] == np.inf:
             first[p] = d
-        if end_second < 0 or k0 == BACK:
+        if end_second < 0 or k0 == BACK or end_first > i or _apart(closed, si[i],
+                                                                      si[end_second]):
             if end_second < 0 and not final:
                 keep_from = i
                 break
             # Single-sided reading: this face, up to the next surface. A back face always reads
             # so (nothing closes it: single-sided geometry seen from behind, or the back of
-            # something whose front lies in an umbra).
+            # something whose front lies in an umbra), and so do each front face but the last
+            # of a run and a front face apart from its back face (module docstring).
             nxt = 1e300
             for q in range(i + 1, n):
                 if sk[q] != TRIM:
@@ -184,11 +204,19 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
                     break
             if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
                 vis[si[i]] = 1
+            if k0 != BACK:
+                hid[p] = 0
             # Up to the next surface, trims at its depth included (see the module docstring).
-            u = _umbra_in(sd, sk, su, sr, n, d - tol, nxt + DEPTH_TOL * min(nxt, 1e290))
+            hi = nxt + DEPTH_TOL * min(nxt, 1e290)
+            own = piece[si[i]]
+            u = _umbra_in(sd, sk, si, su, sr, n, d - tol, hi, own, own)
             last = d
             if u >= 0:
                 stats[3] += 1
+                if u > d and n_spans[p] < spans.shape[1]:
+                    spans[p, n_spans[p], 0] = d
+                    spans[p, n_spans[p], 1] = u
+                    n_spans[p] += 1
                 if u > cov:
                     cov = u
                 i += 1
@@ -203,20 +231,8 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
         if k0 != BACK:
             # A front face seen opens a new stretch of the ray.
             hid[p] = 0
-        if end_first > i:
-            # Several faces before the closing one (soups, intersecting or nested objects):
-            # the run is extended at the front as in the paper and validated by any trim
-            # fragment inside it; its last face and the closing face then form the simple
-            # interval whose own trims give the umbra, or which terminates the ray.
-            if _umbra_in(sd, sk, su, sr, n, d - tol, b + DEPTH_TOL * b) < 0:
-                stats[1] += 1
-                seal[p] = d
-                sealed = True
-                break
-            # The last face is not reported: it may lie inside what the first encloses.
-            d = sd[end_first]
-            tol = DEPTH_TOL * d
-        u = _umbra_in(sd, sk, su, sr, n, d - tol, b + DEPTH_TOL * b)
+        u = _umbra_in(sd, sk, si, su, sr, n, d - tol, b + DEPTH_TOL * b, piece[si[i]],
+                      piece[si[end_second]])
         last = b
         if u >= 0:
             stats[0] += 1
@@ -270,7 +286,8 @@ def resolve_into(kb, closed, p, final, vis, stats, scratch):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pragma: no cover
+def resolve_layer(kb, closed, piece, res, final, vis, stats, stop, held,
+                  tally):  # pragma: no cover
     """Resolve the pixels marked active in this layer (each band's list in ``kb.queue``,
     filled by ``raster.raster_surfaces``), or every pixel holding entries when ``final``, of
     one view's k-buffers ``kb`` (``kbuffer.KBuffer``), parallel over bands of rows; ``stats``
@@ -302,7 +319,7 @@ def resolve_layer(kb, closed, res, final, vis, stats, stop, held, tally):  # pra
                 continue
             active[p] = 0
             c0 = count[p]
-            if resolve_into(kb, closed, p, final, vis, stats[band], scratch):
+            if resolve_into(kb, closed, piece, p, final, vis, stats[band], scratch):
                 stencil[p] = SEALED
             held_entries[band] += count[p] - c0
         queued[band] = 0

@@ -42,7 +42,9 @@ AMBIGUOUS = 2
 #: Pixels added to every trim width (and around the quad's ends): sqrt(2) / 2, rounded up.
 TRIM_MARGIN_PX = 0.75
 #: Columns of a trim row (see ``raster.raster_trims``).
-TRIM_COLUMNS = 12
+TRIM_COLUMNS = 13
+#: The column holding the connected piece of the trim's edge (``cache.connected_pieces``).
+PIECE_COLUMN = 12
 #: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
 MAX_LOOKUP_CELLS = 4096
 #: Edges per parallel chunk of ``silhouette_trims`` (one set of scratch arrays each).
@@ -202,7 +204,7 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
 @njit(cache=True, nogil=True, parallel=True)
 def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, delta, back,
                      margin_px, vstar, rot, grid_origin, cell, leaf_of_cell,
-                     leaf_layer):  # pragma: no cover
+                     leaf_layer, piece):  # pragma: no cover
     """Trim region rows of every silhouette edge of one view, and their layers.
 
     Parameters
@@ -220,6 +222,8 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
     vstar, rot : viewpoint and rotation (to place the trims in the octree).
     grid_origin, cell, leaf_of_cell, leaf_layer : the octree's fine grid (origin in the
         view's frame, metres) and the layer of each leaf in this view.
+    piece : (m,) int64 connected piece of each triangle id (``cache.connected_pieces``),
+        written to each row's ``PIECE_COLUMN``.
 
     Returns
     -------
@@ -275,5 +279,6 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
                 trims[w, 3] = sides[q]
                 trims[w, 10] = widths[0 if sides[q] > 0 else 1, 0]
                 trims[w, 11] = widths[0 if sides[q] > 0 else 1, 1]
+                trims[w, PIECE_COLUMN] = piece[ef[e, 0]]
                 layer[w] = lay
     return trims, layer

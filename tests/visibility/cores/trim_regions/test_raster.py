@@ -24,7 +24,7 @@ def _every_pixel(trims: np.ndarray, res: int, tan: float, margin: float) -> list
     half = 0.5 * res
     out: list[list[tuple]] = [[] for _ in range(res * res)]
     for q in range(len(trims)):
-        nx, ny, nz, side, u0, v0, u1, v1, iz0, iz1, w0, w1 = trims[q]
+        nx, ny, nz, side, u0, v0, u1, v1, iz0, iz1, w0, w1 = trims[q, :12]
         nl = np.hypot(nx, ny)
         if nl == 0.0:
             continue
@@ -59,7 +59,7 @@ def _trims(gen: np.random.Generator, n: int, tan: float) -> np.ndarray:
     """Random trim rows: edges anywhere near the view (some short, some long, one pointing at
     v*: a point in the image, its plane's normal only rounding residue), widths from a sliver
     to four times the view (a silhouette beside an eye)."""
-    rows = np.empty((n, 12))
+    rows = np.full((n, 13), -1.0)
     for q in range(n):
         a = gen.uniform(-1.5 * tan, 1.5 * tan, 2)
         b = a + gen.normal(0.0, [0.02, 0.5, 1.5][q % 3] * tan, 2) if q else a.copy()
@@ -130,13 +130,42 @@ def _joined(entries: list[tuple]) -> list[tuple]:
     return [tuple(e) for e in held]
 
 
-def _fill(kb: KBuffer, entries: list[tuple[int, float, float]]) -> np.ndarray:
-    """Insert (kind, depth, umbra) entries into pixel 0 in order (ids 0, 1, ...); returns vis."""
+def _fill(kb: KBuffer, entries: list[tuple], pieces: list[int] | None = None) -> np.ndarray:
+    """Insert (kind, depth, umbra) entries into pixel 0 in order (ids 0, 1, ...; a trim's
+    piece from ``pieces``, else -1); returns vis."""
     vis = np.zeros(len(entries), dtype=np.uint8)
     for i, (kind, d, um) in enumerate(entries):
-        _insert(0, d, kind, i if kind != TRIM else -1, um, kb.depth, kb.kind, kb.ident,
-                kb.umbra, kb.far, kb.count, kb.overflow, vis)
+        ident = i if kind != TRIM else (-1 if pieces is None else pieces[i])
+        _insert(0, d, kind, ident, um, kb.depth, kb.kind, kb.ident, kb.umbra, kb.far,
+                kb.count, kb.overflow, vis)
     return vis
+
+
+def test_trims_keep_their_piece_and_merge_within_it_first():
+    # A trim of one piece validates only intervals of its piece (``resolve``). Strips of one
+    # piece crossing a pixel at one depth join and keep it; a strip of another piece joining
+    # them makes the entry one of any piece (-1).
+    kb = KBuffer.empty(1)
+    _fill(kb, [(TRIM, 2.0, 9.0), (TRIM, 2.0, 5.0)], pieces=[1, 1])
+    _, _, ident, umbra, _ = kb.entries(0)
+    assert ident.tolist() == [1] and umbra.tolist() == [5.0]
+    _fill(kb, [(TRIM, 2.0, 4.0)], pieces=[2])
+    _, _, ident, umbra, _ = kb.entries(0)
+    assert ident.tolist() == [-1] and umbra.tolist() == [4.0]
+    # A full buffer merges the nearest pair of one piece, farther apart than a pair of two.
+    kb = KBuffer.empty(1)
+    entries = [(TRIM, 1.0 + q, 10.0 + q) for q in range(K)]
+    pieces = list(range(K))
+    pieces[3] = pieces[9] = 77
+    _fill(kb, entries + [(FRONT, 99.0, 0.0)], pieces=pieces + [-1])
+    kind, depth, ident, umbra, far = kb.entries(0)
+    j = int(np.flatnonzero((kind == TRIM) & (far > depth))[0])
+    assert (depth[j], far[j], umbra[j], ident[j]) == (4.0, 10.0, 13.0, 77)
+    # Only trims of different pieces left: they merge into a trim of any piece (-1).
+    kb = KBuffer.empty(1)
+    _fill(kb, entries + [(FRONT, 99.0, 0.0)], pieces=list(range(K)) + [-1])
+    kind, depth, ident, _, far = kb.entries(0)
+    assert ident[int(np.flatnonzero((kind == TRIM) & (far > depth))[0])] == -1
 
 
 def test_a_full_buffer_merges_the_two_trims_nearest_in_depth_for_a_surface():

@@ -10,9 +10,10 @@ from visibility.cores.trim_regions.resolve import resolve_pixel
 INF = np.inf
 
 
-def _resolve(entries, final=True, cover=0.0, closed=None):
+def _resolve(entries, final=True, cover=0.0, closed=None, piece=None):
     """Resolve one pixel holding ``entries`` [(kind, depth, id, umbra)], triangle ids below 16
-    (``closed``: {id: closed part}, the rest of no closed part); returns (visible ids, sealed,
+    (``closed``: {id: closed part}, the rest of no closed part; ``piece``: (16,) each id's
+    connected piece, a trim's id its piece, -1 any); returns (visible ids, sealed,
     seal depth, cover after, entries left)."""
     kb = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(entries):
@@ -24,7 +25,8 @@ def _resolve(entries, final=True, cover=0.0, closed=None):
     part = np.full(16, -1, dtype=np.int64)
     for ident, label in (closed or {}).items():
         part[ident] = label
-    sealed = resolve_pixel(kb, part, 0, final, vis, stats)
+    sealed = resolve_pixel(kb, part, np.full(16, -1, dtype=np.int64) if piece is None
+                           else np.asarray(piece, dtype=np.int64), 0, final, vis, stats)
     return set(np.flatnonzero(vis).tolist()), sealed, kb.seal[0], kb.cover[0], int(kb.count[0])
 
 
@@ -96,13 +98,57 @@ def test_an_inward_wound_corner_is_trimmed_by_the_edge_it_shares_with_its_exit_f
     assert {0, 2} <= vis and cover == 1.415 and seal == 7.3
 
 
-def test_the_umbra_of_a_run_comes_from_its_closing_interval():
+def test_each_front_face_of_a_run_but_the_last_reads_single_sided():
     # A small single-sided face with its own trim in front of an untrimmed closed wall: the
-    # small face is seen, the wall terminates (the small trim's umbra does not open it).
+    # small face is seen and trimmed, so the wall behind it is seen past it, and terminates
+    # (the small trim's umbra does not open it).
     seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.2, -1, 1.3), (FRONT, 4.0, 1, 0), (BACK, 4.4, 2, 0),
            (FRONT, 6.0, 3, 0), (BACK, 7.0, 4, 0)]
     vis, sealed, seal, _, _ = _resolve(seq)
-    assert vis == {0} and sealed and seal == 4.0
+    assert vis == {0, 1} and sealed and seal == 4.0
+    # Untrimmed, the small face terminates: the trims of what lies behind it (inside the
+    # paper's run extended at the front) do not open it.
+    seq = [(FRONT, 1.0, 0, 0), (FRONT, 4.0, 1, 0), (TRIM, 4.2, -1, 9.0), (BACK, 4.4, 2, 0),
+           (FRONT, 6.0, 3, 0), (BACK, 7.0, 4, 0)]
+    vis, sealed, seal, _, _ = _resolve(seq)
+    assert vis == {0} and sealed and seal == 1.0
+
+
+# The kitchen's window (1M kitchen, a cell outside it): a pane (id 0, piece 0) 1.9 m from v*,
+# clutter behind it whose rim trims (piece 2), wider than the clutter, reach pixels its faces
+# do not cover, and a wall seen from behind (id 1, piece 1) 7.7 m off.
+PANE = [(FRONT, 1.9, 0, 0), (TRIM, 7.3, 2, 7.3), (TRIM, 7.4, 2, 9.4), (BACK, 7.7, 1, 0),
+        (FRONT, 9.0, 3, 0), (BACK, 9.5, 4, 0)]
+PIECES = [0, 1, 2, 3, 3] + [9] * 11
+
+
+def test_trims_of_another_piece_do_not_validate_an_interval():
+    vis, sealed, seal, _, _ = _resolve(PANE, piece=PIECES)
+    assert vis == {0} and sealed and seal == 1.9
+    # Merged trims (-1) count for any piece, as the paper's depth test does.
+    anyone = [(k, d, -1 if k == TRIM else i, u) for k, d, i, u in PANE]
+    vis, sealed, seal, cover, _ = _resolve(anyone, piece=PIECES)
+    assert vis == {0, 1, 3} and seal == 9.0 and cover == 7.3
+    # A trim of the pane itself (its own rim) or of the wall that closes the interval does.
+    for own in (0, 1):
+        mine = [(k, d, own if k == TRIM else i, u) for k, d, i, u in PANE]
+        vis, _, _, _, _ = _resolve(mine, piece=PIECES)
+        assert {0, 3} <= vis
+
+
+def test_a_front_face_apart_from_its_back_face_reads_single_sided():
+    # The pane (no closed part) before the back face of a closed box (part 5) whose front lies
+    # elsewhere: no solid between them. Trims of the box's piece between the two do not open
+    # the pane; read on its own it terminates.
+    box = [(FRONT, 1.9, 0, 0), (TRIM, 7.3, 1, 9.4), (BACK, 7.7, 1, 0), (FRONT, 9.0, 3, 0),
+           (BACK, 9.5, 4, 0)]
+    vis, sealed, seal, _, _ = _resolve(box, closed={1: 5}, piece=PIECES)
+    assert vis == {0} and sealed and seal == 1.9
+    # Both faces on no closed part (a soup: a building of unwelded walls): the paper's
+    # interval, validated by the trim of the back face's piece: hidden up to its umbra (the
+    # box's front at 9.0), the back face at 9.5 seen past it.
+    vis, _, _, cover, _ = _resolve(box, piece=PIECES)
+    assert vis == {0, 4} and cover == 9.4
 
 
 def test_entries_in_a_carried_umbra_are_hidden():
@@ -148,8 +194,8 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
         kb.put(0, q, kind, d, ident, um, 3.5 if q == len(seq) - 1 else None)
     kb.count[0] = len(seq)
     vis = np.zeros(16, dtype=np.uint8)
-    sealed = resolve_pixel(kb, np.full(16, -1, dtype=np.int64), 0, True, vis,
-                           np.zeros(4, dtype=np.int64))
+    none = np.full(16, -1, dtype=np.int64)
+    sealed = resolve_pixel(kb, none, none, 0, True, vis, np.zeros(4, dtype=np.int64))
     assert set(np.flatnonzero(vis).tolist()) == {0, 4} and sealed and kb.seal[0] == 5.0
     # Without the range (the trim at 1.2 only) the first box terminates the ray.
     kb2 = KBuffer.empty(1)
@@ -157,6 +203,5 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
         kb2.put(0, q, kind, d, ident, um)
     kb2.count[0] = len(seq)
     vis2 = np.zeros(16, dtype=np.uint8)
-    resolve_pixel(kb2, np.full(16, -1, dtype=np.int64), 0, True, vis2,
-                  np.zeros(4, dtype=np.int64))
+    resolve_pixel(kb2, none, none, 0, True, vis2, np.zeros(4, dtype=np.int64))
     assert set(np.flatnonzero(vis2).tolist()) == {0} and kb2.seal[0] == 2.0

@@ -36,7 +36,7 @@ def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64, scene=None, ambiguous=
                             np.ones(len(e.vert), dtype=bool), view.near, view.tan,
                             res, view.delta, view.back, margin_px, view.vstar, view.rot,
                             frame.grid_origin, data.octree.cell, data.octree.leaf_of_cell,
-                            lay)[0], view
+                            lay, data.piece)[0], view
 
 
 def test_a_cube_seen_face_on_has_four_silhouette_edges():
