@@ -176,6 +176,29 @@ def closed_components(edges: Edges, n_triangles: int) -> np.ndarray:
     return label
 
 
+def connected_pieces(faces: np.ndarray, ids: np.ndarray, weld: np.ndarray,
+                     n_triangles: int) -> np.ndarray:
+    """(n_triangles,) int64 label of the connected piece of each triangle of ``ids`` (rows of
+    ``faces`` (m, 3)): triangles joined through corners at one position (``weld``: welded
+    vertex ids, ``weld_vertices``); -1 for the triangles not in ``ids``. Looser than a closed
+    part: any shared corner joins, whatever the edges (trim_regions' trims validate only the
+    intervals of their own edge's piece)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    label = np.full(n_triangles, -1, dtype=np.int64)
+    if not len(ids):
+        return label
+    w = weld[faces[ids].astype(np.int64)]
+    n = int(weld.max()) + 1
+    a = np.concatenate([w[:, 0], w[:, 1]])
+    b = np.concatenate([w[:, 1], w[:, 2]])
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    label[ids] = comp[w[:, 0]]
+    return label
+
+
 #: A closed part's orientation is trusted when its signed volume (about its box centre) is at
 #: least this share of the volume its triangles' cones enclose unsigned: a zero-volume part (a
 #: sheet closed by a reversed copy of itself) has no outside to speak of.

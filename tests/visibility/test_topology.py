@@ -16,6 +16,7 @@ from visibility.topology import (
     build_edges,
     closed_components,
     closed_parts,
+    connected_pieces,
     self_crossing_parts,
     unseen_back_faces,
     weld_vertices,
@@ -352,3 +353,15 @@ def test_the_cores_that_leave_back_faces_out_build_closed_parts_with_the_scene()
     sc = _wound_scene()
     for name in ("cos", "trim_regions"):
         assert CLOSED_BUILD in get_core(name).scene_builds(sc), name
+
+
+def test_triangles_meeting_at_a_corner_position_are_one_piece():
+    # Triangles 0 and 1 share a corner by position only (rows 2 and 3, unwelded); 2 stands
+    # apart; 3 is not among the ids asked for.
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0], [1, 1, 0], [0, 2, 0],
+                  [5, 5, 5], [6, 5, 5], [5, 6, 5], [9, 9, 9], [9, 8, 9], [8, 9, 9]], float)
+    f = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11]])
+    label = connected_pieces(f, np.array([0, 1, 2]), weld_vertices(v), 4)
+    assert label[0] == label[1] != label[2] and label[3] == -1
+    assert connected_pieces(f, np.zeros(0, dtype=np.int64), weld_vertices(v), 4).tolist() \
+        == [-1] * 4

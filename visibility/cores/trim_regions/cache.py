@@ -11,7 +11,7 @@ import numpy as np
 from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
 from visibility.scene import Scene, moving_faces
 from visibility.scene_cache import per_scene
-from visibility.topology import Edges, closed_parts, scene_welded_ids
+from visibility.topology import Edges, closed_parts, connected_pieces, scene_welded_ids
 
 
 @dataclass
@@ -28,7 +28,8 @@ class SceneData:
     edges : the static triangles' edges.
     closed : (m,) int64 label of the closed, consistently wound part each triangle belongs to,
         -1 for the rest (``topology.closed_components``).
-    piece : (m,) int64 the connected piece of each static triangle (``connected_pieces``),
+    piece : (m,) int64 the connected piece of each static triangle
+        (``topology.connected_pieces``),
         -1 for the rest: a trim validates only intervals of its own edge's piece.
     octree : the static triangles' octree.
     normals : (s, 3) float64 unit normals of the static triangles (rows follow ``static``).
@@ -47,27 +48,6 @@ class SceneData:
     normals: np.ndarray
     plane: np.ndarray
     build_seconds: float
-
-
-def connected_pieces(faces: np.ndarray, ids: np.ndarray, weld: np.ndarray,
-                     n_triangles: int) -> np.ndarray:
-    """(n_triangles,) int64 label of the connected piece of each triangle of ``ids``: triangles
-    joined through corners at one position (``weld``: welded vertex ids,
-    ``topology.weld_vertices``); -1 for the triangles not in ``ids``."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    label = np.full(n_triangles, -1, dtype=np.int64)
-    if not len(ids):
-        return label
-    w = weld[faces[ids].astype(np.int64)]
-    n = int(weld.max()) + 1
-    a = np.concatenate([w[:, 0], w[:, 1]])
-    b = np.concatenate([w[:, 1], w[:, 2]])
-    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
-    label[ids] = comp[w[:, 0]]
-    return label
 
 
 def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:

@@ -74,7 +74,7 @@ class KBuffer(NamedTuple):
     depth : (K / LANES, n, LANES) float64, depth from v* along the view axis, metres.
     kind : (K / LANES, n, LANES) int8, FRONT, BACK or TRIM.
     ident : (K / LANES, n, LANES) int32, triangle id (FRONT, BACK); of a TRIM entry, the
-        connected piece of its edge (``cache.connected_pieces``), -1 for any (merged).
+        connected piece of its edge (``topology.connected_pieces``), -1 for any (merged).
     umbra : (K / LANES, n, LANES) float64, umbra depth of a TRIM entry, metres (inf:
         unbounded).
     far : (K / LANES, n, LANES) float64, far end of a TRIM entry's depth range, metres: its

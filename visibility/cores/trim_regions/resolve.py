@@ -11,7 +11,7 @@ terminator: its face goes to the PVS and the pixel is sealed. A run with nothing
 is carried to the next layer (its closing face may lie in a later octree node).
 
 A trim fragment is *of* an interval when its silhouette edge lies on the same connected piece
-(``cache.connected_pieces``: triangles joined through corners at one position) as one of the
+(``topology.connected_pieces``: triangles joined through corners at one position) as one of the
 interval's faces; fragments of different pieces merged into one entry count for any. The
 paper validates by depth alone: a trim region is part of its occluder, and the rim trims of
 small clutter, wider than the clutter itself, then opened whatever lay in front of it at that
@@ -126,7 +126,7 @@ def resolve_pixel(kb, closed, piece, p, final, vis, stats):  # pragma: no cover 
     remembers, across layers, the closed part (1 + ``closed[id]``, 0 none) of the front face
     that hid in an umbra since the last front face seen. ``closed`` (m,) and ``piece`` (m,)
     int64: each triangle id's closed part (``topology.closed_components``) and connected
-    piece (``cache.connected_pieces``).
+    piece (``topology.connected_pieces``).
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
     return resolve_into(kb, closed, piece, p, final, vis, stats, _scratch(K))

@@ -43,7 +43,7 @@ AMBIGUOUS = 2
 TRIM_MARGIN_PX = 0.75
 #: Columns of a trim row (see ``raster.raster_trims``).
 TRIM_COLUMNS = 13
-#: The column holding the connected piece of the trim's edge (``cache.connected_pieces``).
+#: The column holding the connected piece of the trim's edge (``topology.connected_pieces``).
 PIECE_COLUMN = 12
 #: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
 MAX_LOOKUP_CELLS = 4096
@@ -222,7 +222,7 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
     vstar, rot : viewpoint and rotation (to place the trims in the octree).
     grid_origin, cell, leaf_of_cell, leaf_layer : the octree's fine grid (origin in the
         view's frame, metres) and the layer of each leaf in this view.
-    piece : (m,) int64 connected piece of each triangle id (``cache.connected_pieces``),
+    piece : (m,) int64 connected piece of each triangle id (``topology.connected_pieces``),
         written to each row's ``PIECE_COLUMN``.
 
     Returns
