@@ -751,8 +751,10 @@ def write_outputs(rows, cfg, command: str, wall: float, out_md: Path, results_di
         "# Benchmarks: error against run time, every core on the same cells\n",
         ("Command: " if len(runs) == 1 else "Commands (the later runs' rows merged into the "
          "first's tables with `--merge`): ") + "; ".join(run_lines) + f".  \nPreset `{tag}`.  \n"
-        f"Machine: {machine_description()}. Other jobs shared the cores: times are wall times "
-        "under that load.\n",
+        + (f"Machine: {machine_description()}" if len(runs) == 1 else
+         f"Machine of the last run: {machine_description()} (the earlier runs' machines are "
+         "not recorded and may differ)") + ". Other jobs shared the cores: times are wall "
+        "times under that load.\n",
         method_paragraph(cfg),
         *([f"Scenes NOT measured (they failed to load): {'; '.join(cfg['load_errors'])}.\n"]
           if cfg.get("load_errors") else []),
@@ -859,7 +861,9 @@ def method_paragraph(cfg: dict[str, Any]) -> str:
         f"distinct triangles, the best {cfg['views']} of {VIEW_CANDIDATES * cfg['views']} "
         "candidate eyes; PVS subset (its spheres included) against the full scene at rest "
         "(`client.metrics.frame_metrics`; an identical frame's PSNR counts as "
-        f"{PSNR_CAP_DB:g} dB). Peer `embree_rays`: Embree "
+        f"{PSNR_CAP_DB:g} dB"
+        + ("; rows of merged runs made before that rule show 100 dB, the cap then"
+           if len(cfg.get("runs") or []) > 1 else "") + "). Peer `embree_rays`: Embree "
         "(embreex via trimesh) rays through cube pixel centres from the same stratified points "
         "as `sampling` (neither peer draws spheres). "
         f"Peers against `{cfg.get('reference')}` at its most accurate level: both from-point "

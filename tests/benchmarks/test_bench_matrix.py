@@ -280,6 +280,8 @@ def test_merged_report_names_every_run_and_a_point_deadline_is_a_row(tmp_path):
     assert all("deadline" in r["error"] for r in data["rows"] if r["core"] == "cos")
     text = (tmp_path / "B.md").read_text()
     assert "--cores sampling" in text and "--cores cos --merge" in text
+    # Only the last run's machine is known: the report says so.
+    assert "Machine of the last run: " in text and "may differ" in text
     (tmp_path / "B.md").unlink()
     assert bench_matrix.main(argv + ["--report-only"]) == 0  # rewritten from the JSON alone
     assert (tmp_path / "B.md").read_text() == text
