@@ -9,8 +9,8 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   per-scene octree is built once and reported apart), seconds per phase P0-P4.
 - Quality: generated scenes (20k rooms, village, city) and the real ones of ../shared/scenes,
   two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
-  (``gather_eyes=8``) and with ``small="conservative"``: frames from ``--frames`` eyes with
-  random cube orientations inside the sphere's cube cell, 256 px per face
+  (``gather_eyes=8``) and with ``small="centres"`` (the paper's pixel centres): frames from
+  ``--frames`` eyes with random cube orientations inside the sphere's cube cell, 256 px per face
   (``trim_regions.quality``).
 - Box cells: 1 m and 4 m cells of the 100k city and a 1 m cell of lavaducts, as cubes and as
   the server's cells (the grid's eye range high), at the defaults (many spheres each) and the
@@ -243,12 +243,12 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
                 pvs = core.compute(scene, Viewcell(box), core.make_params(max_delta=delta))
                 gathered = core.compute(scene, Viewcell(box),
                                      core.make_params(max_delta=delta, gather_eyes=GATHER_EYES))
-                cons = core.compute(scene, Viewcell(box),
-                                    core.make_params(max_delta=delta, small="conservative"))
+                centres = core.compute(scene, Viewcell(box),
+                                       core.make_params(max_delta=delta, small="centres"))
                 cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
                 e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
                 e0 = frame_errors(scene, gathered.triangle_ids, box, frames=cast)
-                e1 = frame_errors(scene, cons.triangle_ids, box, frames=cast)
+                e1 = frame_errors(scene, centres.triangle_ids, box, frames=cast)
                 e.pop("missed")
                 rows.append({"scene": name, "cell": which, "delta": delta,
                              "triangles": scene.n_triangles, "seconds": pvs.seconds,
@@ -261,12 +261,12 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
                              "gather_fn_pixels_max": e0["fn_pixels_max"],
                              "gather_fn_pixel_rate_max": e0["fn_pixel_rate_max"],
                              "gather_fn": e0["fn"],
-                             "conservative_seconds": cons.seconds, "conservative_pvs": e1["pvs"],
-                             "conservative_fn_pixels_max": e1["fn_pixels_max"],
-                             "conservative_fn_pixel_rate_max": e1["fn_pixel_rate_max"],
-                             "conservative_fn": e1["fn"]})
+                             "centres_seconds": centres.seconds, "centres_pvs": e1["pvs"],
+                             "centres_fn_pixels_max": e1["fn_pixels_max"],
+                             "centres_fn_pixel_rate_max": e1["fn_pixel_rate_max"],
+                             "centres_fn": e1["fn"]})
                 print(f"quality {name} cell {which} Δ={delta}: FN px {e['fn_pixels_max']} "
-                      f"(with the add-on {e0['fn_pixels_max']}, conservative "
+                      f"(with the add-on {e0['fn_pixels_max']}, centres "
                       f"{e1['fn_pixels_max']}), PVS/GT "
                       f"{e['pvs'] / max(e['gt'], 1):.2f}", flush=True)
     return rows
@@ -442,15 +442,15 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
             "PVS (max and mean over frames). GT: every triangle the frames show. FN = "
             "missed / GT, FP = (PVS - GT) / GT as Table 3 and Fig. 15 define them; * without "
             "unreliable triangles (an edge under one pixel from the cell's centre). The "
-            "defaults are the method alone. Add-on: the same cell with the sampling add-on "
-            f"(`gather_eyes={GATHER_EYES}`: eyes stratified in the cell sampled into the "
-            "answer), scored on the same frames. Conservative: the method with "
-            "`small=\"conservative\"` (small and thin triangles behind trimmed occluders "
-            "tested at every pixel they touch, not only at pixel centres), on the same "
-            "frames.", "",
+            "defaults are the method alone, small and thin triangles behind trimmed occluders "
+            "tested at every pixel they touch (`small=\"conservative\"`). Add-on: the same "
+            f"cell with the sampling add-on (`gather_eyes={GATHER_EYES}`: eyes stratified in "
+            "the cell sampled into the answer), scored on the same frames. Centres: the "
+            "method with `small=\"centres\"` (the paper: those triangles tested at pixel "
+            "centres only), on the same frames.", "",
             "| scene | cell | Δ m | s | PVS | GT | PVS / GT | FN px max | FN px mean | FN px % "
             "max | FN | FN* | FP | FP* | active px | seq. length | overflow px | add-on: s | "
-            "PVS | FN px max | FN | conservative: s | PVS | FN px max | FN |",
+            "PVS | FN px max | FN | centres: s | PVS | FN px max | FN |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
             "---|---|---|---|---|"]
     for r in quality_rows:
@@ -462,11 +462,11 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                    f"{r['mean_sequence_length']:.1f} | {r['overflow_pixels']} | "
                    f"{r['gather_seconds']:.2f} | {r['gather_pvs']:,} | "
                    f"{r['gather_fn_pixels_max']} | {r['gather_fn']:.3f} | "
-                   f"{r['conservative_seconds']:.2f} | {r['conservative_pvs']:,} | "
-                   f"{r['conservative_fn_pixels_max']} | {r['conservative_fn']:.3f} |")
+                   f"{r['centres_seconds']:.2f} | {r['centres_pvs']:,} | "
+                   f"{r['centres_fn_pixels_max']} | {r['centres_fn']:.3f} |")
     for key, mode in (("fn_pixel_rate_max", "at the defaults (the method alone)"),
                       ("gather_fn_pixel_rate_max", "with the sampling add-on"),
-                      ("conservative_fn_pixel_rate_max", "with `small=\"conservative\"`")):
+                      ("centres_fn_pixel_rate_max", "with `small=\"centres\"`")):
         over = [r for r in quality_rows if r[key] > 5e-5]
         out += ["", f"Frames above the paper's 0.005 % {mode}: {len(over)} of "
                 f"{len(quality_rows)} cells: " + (", ".join(

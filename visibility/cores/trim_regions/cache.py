@@ -34,6 +34,8 @@ class SceneData:
     octree : the static triangles' octree.
     normals : (s, 3) float64 unit normals of the static triangles (rows follow ``static``).
     plane : (s,) float64 their planes' offsets, normal . corner, metres (world frame).
+    normal_of : (m, 3) float64 the unit normal of each triangle id (zero but for the static
+        ones).
     build_seconds : time the build took, seconds.
     """
 
@@ -47,6 +49,7 @@ class SceneData:
     octree: Octree
     normals: np.ndarray
     plane: np.ndarray
+    normal_of: np.ndarray
     build_seconds: float
 
 
@@ -71,9 +74,11 @@ def build_scene_data(scene: Scene, max_prims: int = 256) -> SceneData:
         else np.zeros((0, 3))
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     plane = np.einsum("ij,ij->i", normals, tris[:, 0]) if len(static) else np.zeros(0)
+    normal_of = np.zeros((scene.n_triangles, 3))
+    normal_of[static] = normals
     return SceneData(static, np.flatnonzero(moving).astype(np.int64), mask,
                      np.ascontiguousarray(scene.faces.astype(np.int64)), parts.edges,
-                     parts.label, piece, octree, normals, plane,
+                     parts.label, piece, octree, normals, plane, normal_of,
                      time.perf_counter() - t0)
 
 

@@ -96,8 +96,13 @@ def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True, inline="always")
 def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
     """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the
-    sign of its area): each edge function, oriented inwards, grown by the square's reach
-    along the edge normal."""
+    sign of its area): the square overlaps the triangle's bounding box, and each edge
+    function, oriented inwards, grown by the square's reach along the edge normal, passes.
+    The grown edges alone let a sliver reach far past its tip, where the square misses it
+    (a box's face seen edge-on was found beside a wall's bottom edge it lay above)."""
+    if (px + 0.5 < min(ax, bx, cx) or px - 0.5 > max(ax, bx, cx)
+            or py + 0.5 < min(ay, by, cy) or py - 0.5 > max(ay, by, cy)):
+        return False
     e0 = sg * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
     e1 = sg * ((cx - bx) * (py - by) - (cy - by) * (px - bx))
     e2 = sg * ((ax - cx) * (py - cy) - (ay - cy) * (px - cx))

@@ -6,7 +6,8 @@ faces (depth, triangle id), back faces (depth, id) and trim fragments (depth of 
 umbra depth). Entries stay from layer to layer until the pixel is resolved: the residual
 sequence of Sec. 4.3. A full buffer makes room by merging two trim fragments into one that
 spans both their depths with the nearer umbra (``raster._insert``): every interval either one
-validates, the merged one validates, hiding no deeper, so the merge only reveals more. A
+validates, the merged one validates, hiding no deeper, so the merge only reveals more; trims
+of different pieces merge into one that carries the set of their pieces (``piece_bits``). A
 pixel whose buffer is full with fewer than two trim fragments gives up occlusion for the rest
 of the view: what it holds and everything still to come there is reported (conservative).
 
@@ -41,6 +42,48 @@ LANE_MASK = LANES - 1
 #: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the hull
 #: test (more are dropped: a dropped span only makes hulls more visible).
 SPANS = 4
+#: Bits of the piece set a merged trim fragment carries (``piece_bits``), and that set with
+#: every bit: a trim of any piece.
+PIECE_SET_BITS = 62
+ANY_PIECE = -((1 << PIECE_SET_BITS) - 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def piece_bits(piece: int) -> int:
+    """The bits that stand for connected piece ``piece`` in a merged trim fragment's piece
+    set: two of ``PIECE_SET_BITS`` picked by an integer hash (a Bloom filter: a set
+    holding the piece has both; a set of others has both only by chance, and then the trim
+    counts for the piece, which only reveals more). 0 for no piece (``piece`` < 0): every
+    set holds it."""
+    if piece < 0:
+        return 0
+    # A 32-bit integer mix (consecutive pieces, as labelling gives neighbours, spread).
+    h = piece + 1
+    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
+    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
+    h ^= h >> 16
+    return (1 << (h % PIECE_SET_BITS)) | (1 << ((h // PIECE_SET_BITS) % PIECE_SET_BITS))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def trim_holds(ident: int, piece: int) -> bool:
+    """Whether a trim entry's ``ident`` (a piece >= 0, or minus a merged piece set) may hold
+    connected piece ``piece`` (``piece_bits``)."""
+    if ident >= 0:
+        return ident == piece
+    m = piece_bits(piece)
+    return (-ident) & m == m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def joined_pieces(a: int, b: int) -> int:
+    """The ``ident`` of a trim merged from trims of idents a and b: the piece when both are
+    of one, else minus the union of their piece sets (``piece_bits``)."""
+    if a == b:
+        return a
+    ma = -a if a < 0 else piece_bits(a)
+    mb = -b if b < 0 else piece_bits(b)
+    return -(ma | mb)
 
 
 @njit(cache=True, nogil=True)
@@ -73,8 +116,9 @@ class KBuffer(NamedTuple):
     ----------
     depth : (K / LANES, n, LANES) float64, depth from v* along the view axis, metres.
     kind : (K / LANES, n, LANES) int8, FRONT, BACK or TRIM.
-    ident : (K / LANES, n, LANES) int32, triangle id (FRONT, BACK); of a TRIM entry, the
-        connected piece of its edge (``topology.connected_pieces``), -1 for any (merged).
+    ident : (K / LANES, n, LANES) int64, triangle id (FRONT, BACK); of a TRIM entry, the
+        connected piece of its edge (``topology.connected_pieces``), or of a trim merged
+        from several pieces minus their piece set (``piece_bits``; ``ANY_PIECE``: all).
     umbra : (K / LANES, n, LANES) float64, umbra depth of a TRIM entry, metres (inf:
         unbounded).
     far : (K / LANES, n, LANES) float64, far end of a TRIM entry's depth range, metres: its
@@ -126,7 +170,7 @@ class KBuffer(NamedTuple):
         # never read).
         shape = (K // LANES, n, LANES)
         return cls(np.zeros(shape), np.zeros(shape, dtype=np.int8),
-                   np.zeros(shape, dtype=np.int32), np.zeros(shape), np.zeros(shape),
+                   np.zeros(shape, dtype=np.int64), np.zeros(shape), np.zeros(shape),
                    np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int8),
                    np.zeros(n, dtype=np.uint8), np.zeros(n, dtype=np.uint8), np.zeros(n),
                    np.full(n, np.inf), np.zeros((n, SPANS, 2)), np.zeros(n, dtype=np.int64),

@@ -48,7 +48,7 @@ from visibility.cores.trim_regions.raster import (
     setup_triangles,
     to_camera,
 )
-from visibility.cores.trim_regions.resolve import DEPTH_TOL, resolve_layer
+from visibility.cores.trim_regions.resolve import DEPTH_TOL, Reach, resolve_layer
 from visibility.cores.trim_regions.samples import open_depth
 from visibility.cores.trim_regions.silhouettes import (
     AMBIGUOUS,
@@ -92,8 +92,8 @@ GATHER_SEED = 104729
 #: Share of a sphere's drawn items above which its leading view's gather from v* is made
 #: aside, by a worker with no view left (``_Gather``).
 ASIDE_SHARE = 0.5
-#: Bytes of one k-buffer entry (depth, umbra, far float64; id int32; kind int8).
-ENTRY_BYTES = 29
+#: Bytes of one k-buffer entry (depth, umbra, far float64; id int64; kind int8).
+ENTRY_BYTES = 33
 PHASES = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather")
 
 
@@ -121,7 +121,8 @@ def _hulls(scene: Scene, data: SceneData, centre: np.ndarray) -> tuple[np.ndarra
 
 def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
              max_delta: float, margin_px: float = TRIM_MARGIN_PX, footprints: bool = True,
-             gather_eyes: int = 0, small: str = "centres") -> tuple[np.ndarray, dict[str, Any]]:
+             gather_eyes: int = 0,
+             small: str = "conservative") -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell by trim regions.
 
     Parameters
@@ -147,10 +148,10 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         each under a pixel or so) is often in plain view of an eye inside. 0: the paper's
         gather from v* alone, the method.
     small : how triangles behind trimmed occluders that cover no pixel centre are found
-        (``SMALL_RASTERS``; with ``footprints``): ``"centres"``, never (the paper's pixel
-        centres), or ``"conservative"``: every triangle under ``THIN_PX`` wide touching a
-        pixel in front of its seal and outside its hidden spans (``hulls.small_in_front``),
-        what the pixel's centre would have found had the triangle covered it.
+        (``SMALL_RASTERS``; with ``footprints``): ``"conservative"`` (the default), every
+        triangle under ``THIN_PX`` wide touching a pixel in front of its seal and outside its
+        hidden spans (``hulls.small_in_front``), what the pixel's centre would have found had
+        the triangle covered it, or ``"centres"``, never (the paper's pixel centres).
 
     Returns
     -------
@@ -495,6 +496,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     layer, drawn = leaf_layers(octree, frame, view, drawn)
     t1 = time.perf_counter()
     cam = to_camera(verts, view.vstar, view.rot)
+    reach = Reach(data.normal_of, np.ascontiguousarray(view.rot, dtype=np.float64),
+                  float(view.tan), int(res), float(view.delta + view.back))
     s = len(data.static)
     # setup_triangles writes every row of these (no polygon outside the drawn leaves).
     scratch = Scratch() if scratch is None else scratch
@@ -564,7 +567,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
                             vis, stop)
         tb = time.perf_counter()
         tally[:] = 0
-        _resolve(kb, res, False, vis, counters, stop, data, held, tally)
+        _resolve(kb, res, False, vis, counters, stop, data, reach, held, tally)
         stats["kbuffer_used_bytes"] = max(stats["kbuffer_used_bytes"],
                                           int(tally[:, 0].sum()) * ENTRY_BYTES)
         stats["pixel_resolves"] += int(tally[:, 1].sum())
@@ -573,7 +576,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     checkpoint()
     tb = time.perf_counter()
     stats["pixel_resolves"] += int(np.count_nonzero((kb.count > 0) & (kb.stencil != 2)))
-    _resolve(kb, res, True, vis, counters, stop, data, held, tally)
+    _resolve(kb, res, True, vis, counters, stop, data, reach, held, tally)
     checkpoint()
     stats["p3_resolve"] += time.perf_counter() - tb
     if footprints:
@@ -649,9 +652,10 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
 
 
 def _resolve(kb: KBuffer, res: int, final: bool, vis: np.ndarray, counters: np.ndarray,
-             stop: np.ndarray, data: SceneData, held: np.ndarray,
+             stop: np.ndarray, data: SceneData, reach: Reach, held: np.ndarray,
              tally: np.ndarray) -> None:
-    resolve_layer(kb, data.closed, data.piece, res, final, vis, counters, stop, held, tally)
+    resolve_layer(kb, data.closed, data.piece, reach, res, final, vis, counters, stop, held,
+                  tally)
 
 
 def _reset(kb: KBuffer) -> None:

@@ -27,6 +27,8 @@ from visibility.cores.trim_regions.kbuffer import (
     TRIMMED,
     K,
     band_stride,
+    joined_pieces,
+    trim_holds,
 )
 from visibility.cores.trim_regions.silhouettes import PIECE_COLUMN
 
@@ -173,44 +175,22 @@ def _gap(a0, a1, b0, b1):  # pragma: no cover - numba
     return max(0.0, max(b0 - a1, a0 - b1))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _join(p, a, b, depth, idents, umbra, far):  # pragma: no cover - numba
+    """Merge held trim b of pixel p into held trim a (slot b is then free)."""
+    i, j = a >> LANE_BITS, a & LANE_MASK
+    k, m = b >> LANE_BITS, b & LANE_MASK
+    depth[i, p, j] = min(depth[i, p, j], depth[k, p, m])
+    far[i, p, j] = max(far[i, p, j], far[k, p, m])
+    umbra[i, p, j] = min(umbra[i, p, j], umbra[k, p, m])
+    idents[i, p, j] = joined_pieces(idents[i, p, j], idents[k, p, m])
+
+
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
-                 c):  # pragma: no cover - numba
-    """Room in pixel p's full k-buffer (c entries; entry q at [q >> LANE_BITS, p,
-    q & LANE_MASK], ``kbuffer.KBuffer``) by merging trim fragments: an incoming trim (``kind``
-    TRIM at depth d, umbra um, of piece ``ident``) joins the held trim nearest in depth, one of
-    its own piece if there is one; for an incoming surface, the two held trims nearest to each
-    other merge, two of one piece if there are. A merged trim spans both depth ranges with the
-    nearer umbra (``kbuffer`` docstring: it validates every interval either one did and hides
-    no deeper); trims of two pieces merge into one of any piece (-1), which validates more.
-    Returns -2 when the incoming trim was absorbed, the freed slot for a surface, or -1 when
-    fewer than two trims leave no room."""
-    if kind == TRIM:
-        best = -1
-        gbest = np.inf
-        same = False
-        for q in range(c):
-            i, j = q >> LANE_BITS, q & LANE_MASK
-            if kinds[i, p, j] == TRIM:
-                s = idents[i, p, j] == ident
-                if same and not s:
-                    continue
-                g = _gap(depth[i, p, j], far[i, p, j], d, d)
-                if g < gbest or (s and not same):
-                    gbest = g
-                    best = q
-                    same = s
-                    if g == 0.0 and s:
-                        break  # a range of its piece holding d: none is nearer
-        if best < 0:
-            return -1
-        i, j = best >> LANE_BITS, best & LANE_MASK
-        depth[i, p, j] = min(depth[i, p, j], d)
-        far[i, p, j] = max(far[i, p, j], d)
-        umbra[i, p, j] = min(umbra[i, p, j], um)
-        if not same:
-            idents[i, p, j] = -1
-        return -2
+def _nearest_pair(p, depth, kinds, idents, far, c, same_only):  # pragma: no cover - numba
+    """The two held trims of pixel p (c entries, ``kbuffer.KBuffer`` layout) nearest to each
+    other in depth, two of one piece (or one piece set) if there are: (a, b, same), a = -1
+    when there is no such pair (with ``same_only``, no pair of one piece)."""
     a = -1
     b = -1
     gbest = np.inf
@@ -223,7 +203,7 @@ def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
             k, m = r >> LANE_BITS, r & LANE_MASK
             if kinds[k, p, m] == TRIM:
                 s = idents[i, p, j] == idents[k, p, m]
-                if same and not s:
+                if (same or same_only) and not s:
                     continue
                 g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
                 if g < gbest or (s and not same):
@@ -231,15 +211,59 @@ def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
                     a = q
                     b = r
                     same = s
+    return a, b, same
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
+                 c):  # pragma: no cover - numba
+    """Room in pixel p's full k-buffer (c entries; entry q at [q >> LANE_BITS, p,
+    q & LANE_MASK], ``kbuffer.KBuffer``) by merging trim fragments. A merged trim spans both
+    depth ranges with the nearer umbra (``kbuffer`` docstring: it validates every interval
+    either one did and hides no deeper); trims of two pieces merge into one of both (a piece
+    set, ``kbuffer.piece_bits``), which validates more, so pieces are kept apart while they
+    can be. An incoming trim (``kind`` TRIM at depth d, umbra um, of piece ``ident``) joins
+    the nearest held trim of its piece; with none, the two nearest held trims of one piece
+    merge and it takes the freed slot; with no such pair either, it joins the nearest held
+    trim. For an incoming surface the two held trims nearest to each other merge, two of one
+    piece if there are. Returns -2 when the incoming trim was absorbed, the freed slot, or -1
+    when fewer than two trims leave no room."""
+    if kind == TRIM:
+        best = -1
+        gbest = np.inf
+        for q in range(c):
+            i, j = q >> LANE_BITS, q & LANE_MASK
+            if kinds[i, p, j] == TRIM and trim_holds(idents[i, p, j], ident):
+                g = _gap(depth[i, p, j], far[i, p, j], d, d)
+                if g < gbest:
+                    gbest = g
+                    best = q
+                    if g == 0.0:
+                        break  # a range of its piece holding d: none is nearer
+        if best < 0:
+            a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, True)
+            if a >= 0:
+                _join(p, a, b, depth, idents, umbra, far)
+                return b
+            for q in range(c):
+                i, j = q >> LANE_BITS, q & LANE_MASK
+                if kinds[i, p, j] == TRIM:
+                    g = _gap(depth[i, p, j], far[i, p, j], d, d)
+                    if g < gbest:
+                        gbest = g
+                        best = q
+        if best < 0:
+            return -1
+        i, j = best >> LANE_BITS, best & LANE_MASK
+        depth[i, p, j] = min(depth[i, p, j], d)
+        far[i, p, j] = max(far[i, p, j], d)
+        umbra[i, p, j] = min(umbra[i, p, j], um)
+        idents[i, p, j] = joined_pieces(idents[i, p, j], ident)
+        return -2
+    a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, False)
     if a < 0:
         return -1
-    i, j = a >> LANE_BITS, a & LANE_MASK
-    k, m = b >> LANE_BITS, b & LANE_MASK
-    depth[i, p, j] = min(depth[i, p, j], depth[k, p, m])
-    far[i, p, j] = max(far[i, p, j], far[k, p, m])
-    umbra[i, p, j] = min(umbra[i, p, j], umbra[k, p, m])
-    if not same:
-        idents[i, p, j] = -1
+    _join(p, a, b, depth, idents, umbra, far)
     return b
 
 
@@ -265,7 +289,7 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
         # A trim at the depth of one of the last few held (the next edges of one silhouette
         # chain, drawn one after another) joins it: the same merge as a full buffer's, within
         # a depth tolerance, so a pixel crossed by many strips of one object holds one entry
-        # (one of any piece where two pieces meet: keeping them apart filled the buffers of
+        # (one holding both pieces where two meet: keeping them apart filled the buffers of
         # the kitchen's clutter, and its merges cost a fifth of the raster time).
         for q in range(c - 1, max(c - JOIN_LAST, 0) - 1, -1):
             i, j = q >> LANE_BITS, q & LANE_MASK
@@ -274,8 +298,7 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
                 depth[i, p, j] = min(depth[i, p, j], d)
                 far[i, p, j] = max(far[i, p, j], d)
                 umbra[i, p, j] = min(umbra[i, p, j], um)
-                if idents[i, p, j] != ident:
-                    idents[i, p, j] = -1
+                idents[i, p, j] = joined_pieces(idents[i, p, j], ident)
                 return
     slot = c
     if c == K:

@@ -12,10 +12,11 @@ is carried to the next layer (its closing face may lie in a later octree node).
 
 A trim fragment is *of* an interval when its silhouette edge lies on the same connected piece
 (``topology.connected_pieces``: triangles joined through corners at one position) as one of the
-interval's faces; fragments of different pieces merged into one entry count for any. The
-paper validates by depth alone: a trim region is part of its occluder, and the rim trims of
-small clutter, wider than the clutter itself, then opened whatever lay in front of it at that
-depth range (a window pane of the 1M kitchen, seen through by a cell outside it).
+interval's faces; fragments of different pieces merged into one entry count for each of them
+(a piece set: ``kbuffer.piece_bits``). The paper validates by depth alone: a trim region is
+part of its occluder, and the rim trims of small clutter, wider than the clutter itself, then
+opened whatever lay in front of it at that depth range (the wall of the 1M kitchen's room,
+seen from a cell outside it).
 
 Several front faces before the closing one (soups, intersecting or nested objects) are not one
 interval extended at the front as in the paper: each but the last is read as a single-sided
@@ -26,7 +27,15 @@ A back face met first, those faces, and after the last layer a carried run read 
 single-sided surfaces: each face in turn is seen, and trimmed (validated) when a trim fragment
 of its piece lies between it and the next surface, that surface's depth included (a trim at
 the next surface's depth may be the face's own: the edge an inward-wound face shares with the
-face the ray leaves by, as in the Quake level lavaducts), else it terminates the pixel.
+face the ray leaves by, as in the Quake level lavaducts), else it terminates the pixel. A front
+face read so takes only trims as deep as an eye of the sphere can pass its rim
+(``_front_reach``): a room's wall is one connected piece with the rims inside the room behind
+it, which no eye outside sees past the wall.
+
+A validated interval's hidden span (``KBuffer.spans``, what the footprint tests of small
+triangles take as hidden) starts where its face lies deepest over the pixel's square
+(``_deepest_over_pixel``), not at the pixel's centre: a sliver just behind an oblique face at
+the centre lies in front of it elsewhere in the pixel.
 
 A back face is not reported when a front face of the same closed, consistently wound part
 (``topology.closed_components``) hid in an umbra before it: it is that part's back, never seen
@@ -51,6 +60,7 @@ from visibility.cores.trim_regions.kbuffer import (
     TRIM,
     K,
     band_stride,
+    trim_holds,
 )
 
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
@@ -58,9 +68,89 @@ from visibility.cores.trim_regions.kbuffer import (
 DEPTH_TOL = 1e-3
 
 
+class Reach(NamedTuple):
+    """The view as the resolve needs it of a face: how deep a single-sided front face's trims
+    may lie (``_front_reach``) and where a hidden span starts over a pixel
+    (``_deepest_over_pixel``). A named group the kernels take whole (``resolve_into``).
+
+    Attributes
+    ----------
+    normal : (m, 3) float64 unit normal of each triangle id (world frame; zero for none).
+    rot : (3, 3) the view's world-to-camera rotation (looking along -z).
+    tan : tangent of the view's half field of view.
+    res : pixels across the view.
+    lateral : how far from v* an eye of the sphere may lie, Δ + R, metres (inf: no bound).
+    """
+
+    normal: np.ndarray
+    rot: np.ndarray
+    tan: float
+    res: int
+    lateral: float
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ray_and_normal(reach, ident, p):  # pragma: no cover - numba
+    """Pixel p's ray (rx, ry, -1) and face ``ident``'s normal (nx, ny, nz), in camera space."""
+    half = 0.5 * reach.res
+    rx = ((p % reach.res + 0.5) / half - 1.0) * reach.tan
+    ry = (1.0 - (p // reach.res + 0.5) / half) * reach.tan
+    n = reach.normal[ident]
+    rot = reach.rot
+    nx = n[0] * rot[0, 0] + n[1] * rot[0, 1] + n[2] * rot[0, 2]
+    ny = n[0] * rot[1, 0] + n[1] * rot[1, 1] + n[2] * rot[1, 2]
+    nz = n[0] * rot[2, 0] + n[1] * rot[2, 1] + n[2] * rot[2, 2]
+    return rx, ry, nx, ny, nz
+
+
+@njit(cache=True, nogil=True)
+def _front_reach(reach, ident, p, d):  # pragma: no cover - numba
+    """The deepest a trim fragment of the rim that lets an eye of the sphere see past
+    single-sided front face ``ident``, met at depth d in pixel p, can lie (inf: no bound).
+
+    An eye at most ``lateral`` from v* that sees past the face along pixel p's ray crosses
+    the face's plane beside the face within ``lateral`` of the ray, so past a rim point of the
+    plane no deeper than d + lateral * tan(angle between the normal and the ray); the trim
+    fragment lies at the depth of the rim point nearest the pixel in the image, so twice that
+    reach is allowed. A trim deeper than that belongs to what lies behind the face (the rims
+    inside a room seen from outside its wall, one connected piece with it)."""
+    if not reach.lateral < np.inf:
+        return np.inf
+    rx, ry, nx, ny, nz = _ray_and_normal(reach, ident, p)
+    c = abs(nx * rx + ny * ry - nz) / np.sqrt(rx * rx + ry * ry + 1.0)
+    if c < 1e-6:
+        return np.inf
+    return d + 2.0 * reach.lateral * np.sqrt(max(0.0, 1.0 - c * c)) / c
+
+
+@njit(cache=True, nogil=True)
+def _deepest_over_pixel(reach, ident, p, d):  # pragma: no cover - numba
+    """The farthest depth of face ``ident``'s plane over pixel p's square, given its depth d
+    at the pixel's centre (d itself for a face of no normal; inf where the plane turns
+    edge-on within the square). A hidden span starts there: what lies in front of the face
+    somewhere in the square is not hidden by it (a sliver just behind an oblique face at the
+    centre lies in front of it elsewhere in the pixel, where v* sees it)."""
+    rx, ry, nx, ny, nz = _ray_and_normal(reach, ident, p)
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:
+        return d
+    h = reach.tan / reach.res
+    # The plane holds the centre's point d * (rx, ry, -1).
+    k = d * (nx * rx + ny * ry - nz)
+    deepest = d
+    for su in (-1.0, 1.0):
+        for sv in (-1.0, 1.0):
+            den = nx * (rx + su * h) + ny * (ry + sv * h) - nz
+            t = k / den if den != 0.0 else np.inf
+            if not t > 0.0:
+                return np.inf
+            if t > deepest:
+                deepest = t
+    return deepest
+
+
 class SortScratch(NamedTuple):
     """One thread's scratch for a pixel's sorted sequence of K entries: the depths ``sd``
-    (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int32, umbrae ``su`` (K,) and far ends of
+    (K,), kinds ``sk`` (K,) int8, ids ``si`` (K,) int64, umbrae ``su`` (K,) and far ends of
     the trims' depth ranges ``sr`` (K,)."""
 
     sd: np.ndarray
@@ -73,7 +163,7 @@ class SortScratch(NamedTuple):
 @njit(cache=True, nogil=True)
 def _scratch(k):  # pragma: no cover - numba
     """A ``SortScratch`` for k entries."""
-    return SortScratch(np.empty(k), np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int32),
+    return SortScratch(np.empty(k), np.empty(k, dtype=np.int8), np.empty(k, dtype=np.int64),
                        np.empty(k), np.empty(k))
 
 
@@ -92,12 +182,13 @@ def _sort(sd, sk, si, su, sr, n):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True)
 def _umbra_in(sd, sk, si, su, sr, n, lo, hi, pa, pb):  # pragma: no cover - numba
-    """Smallest umbra depth of the trim entries of piece ``pa`` or ``pb`` (or of any, ident
-    -1) whose depth range [sd, sr] meets [lo, hi]; -1 if none."""
+    """Smallest umbra depth of the trim entries of piece ``pa`` or ``pb`` (or of a merged
+    piece set that may hold one, ``kbuffer.trim_holds``) whose depth range [sd, sr] meets
+    [lo, hi]; -1 if none."""
     best = -1.0
     for q in range(n):
         if (sk[q] == TRIM and sr[q] >= lo and sd[q] <= hi
-                and (si[q] < 0 or si[q] == pa or si[q] == pb)):
+                and (trim_holds(si[q], pa) or trim_holds(si[q], pb))):
             if best < 0 or su[q] < best:
                 best = su[q]
     return best
@@ -118,7 +209,7 @@ def _apart(closed, front, back):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def resolve_pixel(kb, closed, piece, p, final, vis, stats):  # pragma: no cover - numba
+def resolve_pixel(kb, closed, piece, reach, p, final, vis, stats):  # pragma: no cover
     """Resolve pixel p's trim sequence in the k-buffers ``kb`` (``kbuffer.KBuffer``; see the
     module docstring); compacts the residual sequence back into the k-buffer and records the
     hidden span of each validated interval in ``spans`` / ``n_spans`` and the depth of its
@@ -126,14 +217,15 @@ def resolve_pixel(kb, closed, piece, p, final, vis, stats):  # pragma: no cover 
     remembers, across layers, the closed part (1 + ``closed[id]``, 0 none) of the front face
     that hid in an umbra since the last front face seen. ``closed`` (m,) and ``piece`` (m,)
     int64: each triangle id's closed part (``topology.closed_components``) and connected
-    piece (``topology.connected_pieces``).
+    piece (``topology.connected_pieces``); ``reach`` (``Reach``): the view, for how deep a
+    single-sided front face's trims may lie.
     ``stats`` (4,): validated intervals, terminators, entries resolved, single-sided trims.
     """
-    return resolve_into(kb, closed, piece, p, final, vis, stats, _scratch(K))
+    return resolve_into(kb, closed, piece, reach, p, final, vis, stats, _scratch(K))
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def resolve_into(kb, closed, piece, p, final, vis, stats, scratch):  # pragma: no cover
+def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pragma: no cover
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
@@ -208,13 +300,15 @@ def resolve_into(kb, closed, piece, p, final, vis, stats, scratch):  # pragma: n
                 hid[p] = 0
             # Up to the next surface, trims at its depth included (see the module docstring).
             hi = nxt + DEPTH_TOL * min(nxt, 1e290)
+            if k0 != BACK:
+                hi = min(hi, _front_reach(reach, si[i], p, d) + tol)
             own = piece[si[i]]
             u = _umbra_in(sd, sk, si, su, sr, n, d - tol, hi, own, own)
             last = d
             if u >= 0:
                 stats[3] += 1
                 if u > d and n_spans[p] < spans.shape[1]:
-                    spans[p, n_spans[p], 0] = d
+                    spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, d)
                     spans[p, n_spans[p], 1] = u
                     n_spans[p] += 1
                 if u > cov:
@@ -241,14 +335,14 @@ def resolve_into(kb, closed, piece, p, final, vis, stats, scratch):  # pragma: n
             # other back face beyond the umbra (a single-sided wall seen from behind, as in
             # lavaducts) may be seen past the occluder's silhouette: reported, and the walk
             # goes on behind it as before.
-            reach = max(u, b)
+            upto = max(u, b)
             part = closed[si[end_second]]
             if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
                 vis[si[end_second]] = 1
-                reach = u
+                upto = u
             if n_spans[p] < spans.shape[1]:
-                spans[p, n_spans[p], 0] = sd[i]
-                spans[p, n_spans[p], 1] = reach
+                spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, sd[i])
+                spans[p, n_spans[p], 1] = upto
                 n_spans[p] += 1
             if u > cov:
                 cov = u
@@ -286,7 +380,7 @@ def resolve_into(kb, closed, piece, p, final, vis, stats, scratch):  # pragma: n
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def resolve_layer(kb, closed, piece, res, final, vis, stats, stop, held,
+def resolve_layer(kb, closed, piece, reach, res, final, vis, stats, stop, held,
                   tally):  # pragma: no cover
     """Resolve the pixels marked active in this layer (each band's list in ``kb.queue``,
     filled by ``raster.raster_surfaces``), or every pixel holding entries when ``final``, of
@@ -319,7 +413,7 @@ def resolve_layer(kb, closed, piece, res, final, vis, stats, stop, held,
                 continue
             active[p] = 0
             c0 = count[p]
-            if resolve_into(kb, closed, piece, p, final, vis, stats[band], scratch):
+            if resolve_into(kb, closed, piece, reach, p, final, vis, stats[band], scratch):
                 stencil[p] = SEALED
             held_entries[band] += count[p] - c0
         queued[band] = 0

@@ -123,3 +123,17 @@ def test_a_large_triangle_is_found_through_one_open_pixel_of_its_box_and_only_th
         opened = first.copy()
         opened[y, x] = np.inf
         assert _in_front(*_setup(large, 3.0), opened) == seen, (y, x)
+
+
+def test_a_pixel_square_beyond_a_slivers_tip_does_not_touch_it():
+    from visibility.cores.trim_regions.hulls import _touches
+
+    # A sliver 10 px long and 0.05 px thick: its edges grown by a square's reach pass for
+    # squares up to several pixels beyond its tip at (0, 0), which it never reaches.
+    a, b, c = (0.0, 0.0), (10.0, 0.05), (10.0, 0.0)
+    sg = 1.0 if (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) > 0 else -1.0
+    for px in (-0.7, -1.5, -3.0):
+        assert not _touches(*a, *b, *c, sg, px, 0.01), px
+    for px in (-0.4, 0.3, 5.0, 10.4):
+        assert _touches(*a, *b, *c, sg, px, 0.01), px
+    assert not _touches(*a, *b, *c, sg, 5.0, 0.6) and _touches(*a, *b, *c, sg, 5.0, 0.5)

@@ -46,3 +46,30 @@ def test_entries_lie_in_blocks_and_read_back_in_slot_order():
     # and a pixel holding fewer entries never reaches a later block.
     assert kb.depth[1, 2, 0] == 1.0 + LANES and not kb.depth[:, [1, 3]].any()
     assert not kb.depth[2:].any()
+
+
+def test_a_merged_trims_piece_set_holds_its_pieces_and_few_others():
+    from visibility.cores.trim_regions.kbuffer import (
+        ANY_PIECE,
+        PIECE_SET_BITS,
+        joined_pieces,
+        piece_bits,
+        trim_holds,
+    )
+
+    assert joined_pieces(7, 7) == 7 and trim_holds(7, 7) and not trim_holds(7, 8)
+    assert all(trim_holds(ANY_PIECE, q) for q in range(1000))
+    assert all(piece_bits(q) > 0 for q in range(1000)) and piece_bits(-1) == 0
+    gen = np.random.default_rng(0)
+    false_holds = 0
+    for _ in range(5000):
+        # Neighbouring labels, as pieces met in one pixel often are.
+        pieces = int(gen.integers(0, 100_000)) + np.arange(5) * int(gen.integers(1, 4))
+        s = int(pieces[0])
+        for q in pieces[1:4]:
+            s = joined_pieces(s, int(q))
+        assert s < 0 and all(trim_holds(s, int(q)) for q in pieces[:4])
+        false_holds += trim_holds(s, int(pieces[4]))
+    # A set of four holds a fifth piece no more often than a two-bit Bloom filter of
+    # PIECE_SET_BITS bits would: (1 - exp(-8 / 62))^2 = 1.5 %.
+    assert false_holds / 5000 < (1.0 - np.exp(-8.0 / PIECE_SET_BITS)) ** 2

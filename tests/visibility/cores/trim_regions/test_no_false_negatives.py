@@ -103,13 +103,14 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
 @pytest.mark.xdist_group("kitchen")
 def test_false_negative_pixels_in_the_kitchens_clutter():
     # The 1M kitchen's middle cell at Δ 0.2 m, as benchmarks/bench_trim_regions.py measures it
-    # (24 frames, seed 1). By the method at its defaults (pixel centres): 99 pixels in the
-    # worst frame (the bound is 19.7), triangles behind trimmed occluders under no pixel
-    # centre, many of them slivers seen edge-on from v*: held to that figure so that it can
-    # only fall. (98 before trims at one depth joined in the k-buffer: its pixels no longer
-    # fill up and merge distant trims into one wide range, which had validated more.) The
-    # method rasterizing them conservatively (small="conservative") holds the bound, as does
-    # the sampling add-on (gather_eyes), which sees them from inside the cell.
+    # (24 frames, seed 1). At the defaults the method rasterizes the small triangles behind
+    # trimmed occluders conservatively (every pixel they touch) and holds the bound; at pixel
+    # centres (small="centres", the paper) 127 pixels in the worst frame (the bound is 19.7):
+    # triangles behind trimmed occluders under no pixel centre, many of them slivers seen
+    # edge-on from v*, held to that figure so that it can only fall. (It was 98 while the
+    # gather's pixel-square test let slivers reach squares past their tips, hulls._touches,
+    # which caught some of these by chance.) The sampling add-on
+    # (gather_eyes), which sees them from inside the cell, holds the bound too.
     from tests.visibility.real_scenes import REAL, real_scene
 
     assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
@@ -117,9 +118,9 @@ def test_false_negative_pixels_in_the_kitchens_clutter():
     # All three answers judged by the same frames, cast once.
     cast = ray_frames(scene, _box(scene, 0, 0.2), 24, 256, 1, FRAME_NEAR)
     alone = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast)
-    assert alone["fn_pixels_max"] <= 99, (alone["fn_pixels_max"], alone["missed"][:20])
-    cons = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast, small="conservative")
-    assert cons["fn_pixel_rate_max"] <= BOUND, (cons["fn_pixels_max"], cons["missed"][:20])
-    assert alone["pvs"] < cons["pvs"] < scene.n_triangles
+    assert alone["fn_pixel_rate_max"] <= BOUND, (alone["fn_pixels_max"], alone["missed"][:20])
+    centres = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast, small="centres")
+    assert centres["fn_pixels_max"] <= 127, (centres["fn_pixels_max"], centres["missed"][:20])
+    assert centres["pvs"] < alone["pvs"] < scene.n_triangles
     e = _errors(scene, 0, 0.2, frames=24, seed=1, cast=cast, gather_eyes=GATHER_EYES)
     assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])

@@ -7,7 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from visibility.cores.trim_regions.kbuffer import BACK, FRONT, TRIM, K, KBuffer
+from visibility.cores.trim_regions.kbuffer import (
+    BACK,
+    FRONT,
+    TRIM,
+    K,
+    KBuffer,
+    joined_pieces,
+    trim_holds,
+)
 from visibility.cores.trim_regions.raster import (
     JOIN_LAST,
     JOIN_TOL,
@@ -144,14 +152,15 @@ def _fill(kb: KBuffer, entries: list[tuple], pieces: list[int] | None = None) ->
 def test_trims_keep_their_piece_and_merge_within_it_first():
     # A trim of one piece validates only intervals of its piece (``resolve``). Strips of one
     # piece crossing a pixel at one depth join and keep it; a strip of another piece joining
-    # them makes the entry one of any piece (-1).
+    # them makes the entry one of both (a piece set).
     kb = KBuffer.empty(1)
     _fill(kb, [(TRIM, 2.0, 9.0), (TRIM, 2.0, 5.0)], pieces=[1, 1])
     _, _, ident, umbra, _ = kb.entries(0)
     assert ident.tolist() == [1] and umbra.tolist() == [5.0]
     _fill(kb, [(TRIM, 2.0, 4.0)], pieces=[2])
     _, _, ident, umbra, _ = kb.entries(0)
-    assert ident.tolist() == [-1] and umbra.tolist() == [4.0]
+    assert ident.tolist() == [joined_pieces(1, 2)] and umbra.tolist() == [4.0]
+    assert trim_holds(ident[0], 1) and trim_holds(ident[0], 2)
     # A full buffer merges the nearest pair of one piece, farther apart than a pair of two.
     kb = KBuffer.empty(1)
     entries = [(TRIM, 1.0 + q, 10.0 + q) for q in range(K)]
@@ -161,11 +170,19 @@ def test_trims_keep_their_piece_and_merge_within_it_first():
     kind, depth, ident, umbra, far = kb.entries(0)
     j = int(np.flatnonzero((kind == TRIM) & (far > depth))[0])
     assert (depth[j], far[j], umbra[j], ident[j]) == (4.0, 10.0, 13.0, 77)
-    # Only trims of different pieces left: they merge into a trim of any piece (-1).
+    # Only trims of different pieces left: they merge into a trim of both.
     kb = KBuffer.empty(1)
     _fill(kb, entries + [(FRONT, 99.0, 0.0)], pieces=list(range(K)) + [-1])
     kind, depth, ident, _, far = kb.entries(0)
-    assert ident[int(np.flatnonzero((kind == TRIM) & (far > depth))[0])] == -1
+    j = int(np.flatnonzero((kind == TRIM) & (far > depth))[0])
+    assert ident[j] == joined_pieces(int(depth[j]) - 1, int(far[j]) - 1)
+    # An incoming trim joins a held set that holds its piece before another piece's trim.
+    kb = KBuffer.empty(1)
+    sets = [(TRIM, 1.0 + q, 10.0 + q) for q in range(K)]
+    _fill(kb, sets, pieces=[joined_pieces(3, 4)] + [100 + q for q in range(K - 1)])
+    _fill(kb, [(TRIM, 40.0, 50.0)], pieces=[4])
+    kind, depth, ident, _, far = kb.entries(0)
+    assert (depth[0], far[0], ident[0]) == (1.0, 40.0, joined_pieces(3, 4))
 
 
 def test_a_full_buffer_merges_the_two_trims_nearest_in_depth_for_a_surface():

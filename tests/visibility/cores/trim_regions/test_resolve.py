@@ -4,16 +4,26 @@ from __future__ import annotations
 
 import numpy as np
 
-from visibility.cores.trim_regions.kbuffer import BACK, FRONT, TRIM, KBuffer
-from visibility.cores.trim_regions.resolve import resolve_pixel
+from visibility.cores.trim_regions.kbuffer import ANY_PIECE, BACK, FRONT, TRIM, KBuffer
+from visibility.cores.trim_regions.resolve import Reach, resolve_pixel
 
 INF = np.inf
 
 
-def _resolve(entries, final=True, cover=0.0, closed=None, piece=None):
+def _reach(normals=None, lateral=INF) -> Reach:
+    """A one-pixel view looking along -z (pixel 0's ray straight ahead), eyes up to
+    ``lateral`` from v*; ``normals``: {id: world normal} of the 16 triangle ids."""
+    normal = np.zeros((16, 3))
+    for ident, n in (normals or {}).items():
+        normal[ident] = np.asarray(n, dtype=np.float64) / np.linalg.norm(n)
+    return Reach(normal, np.eye(3), 1.0, 1, float(lateral))
+
+
+def _resolve(entries, final=True, cover=0.0, closed=None, piece=None, reach=None):
     """Resolve one pixel holding ``entries`` [(kind, depth, id, umbra)], triangle ids below 16
     (``closed``: {id: closed part}, the rest of no closed part; ``piece``: (16,) each id's
-    connected piece, a trim's id its piece, -1 any); returns (visible ids, sealed,
+    connected piece, a trim's id its piece, -1 any; ``reach``: the view, ``_reach()`` when
+    None); returns (visible ids, sealed,
     seal depth, cover after, entries left)."""
     kb = KBuffer.empty(1)
     for q, (kind, d, ident, um) in enumerate(entries):
@@ -26,7 +36,8 @@ def _resolve(entries, final=True, cover=0.0, closed=None, piece=None):
     for ident, label in (closed or {}).items():
         part[ident] = label
     sealed = resolve_pixel(kb, part, np.full(16, -1, dtype=np.int64) if piece is None
-                           else np.asarray(piece, dtype=np.int64), 0, final, vis, stats)
+                           else np.asarray(piece, dtype=np.int64),
+                           _reach() if reach is None else reach, 0, final, vis, stats)
     return set(np.flatnonzero(vis).tolist()), sealed, kb.seal[0], kb.cover[0], int(kb.count[0])
 
 
@@ -114,9 +125,9 @@ def test_each_front_face_of_a_run_but_the_last_reads_single_sided():
     assert vis == {0} and sealed and seal == 1.0
 
 
-# The kitchen's window (1M kitchen, a cell outside it): a pane (id 0, piece 0) 1.9 m from v*,
-# clutter behind it whose rim trims (piece 2), wider than the clutter, reach pixels its faces
-# do not cover, and a wall seen from behind (id 1, piece 1) 7.7 m off.
+# The 1M kitchen's room seen from a cell outside it: its near wall (id 0, piece 0, "the pane")
+# 1.9 m from v*, clutter behind it whose rim trims (piece 2), wider than the clutter, reach
+# pixels its faces do not cover, and a wall seen from behind (id 1, piece 1) 7.7 m off.
 PANE = [(FRONT, 1.9, 0, 0), (TRIM, 7.3, 2, 7.3), (TRIM, 7.4, 2, 9.4), (BACK, 7.7, 1, 0),
         (FRONT, 9.0, 3, 0), (BACK, 9.5, 4, 0)]
 PIECES = [0, 1, 2, 3, 3] + [9] * 11
@@ -125,8 +136,9 @@ PIECES = [0, 1, 2, 3, 3] + [9] * 11
 def test_trims_of_another_piece_do_not_validate_an_interval():
     vis, sealed, seal, _, _ = _resolve(PANE, piece=PIECES)
     assert vis == {0} and sealed and seal == 1.9
-    # Merged trims (-1) count for any piece, as the paper's depth test does.
-    anyone = [(k, d, -1 if k == TRIM else i, u) for k, d, i, u in PANE]
+    # A merged trim whose piece set holds every piece counts for any, as the paper's depth
+    # test does.
+    anyone = [(k, d, ANY_PIECE if k == TRIM else i, u) for k, d, i, u in PANE]
     vis, sealed, seal, cover, _ = _resolve(anyone, piece=PIECES)
     assert vis == {0, 1, 3} and seal == 9.0 and cover == 7.3
     # A trim of the pane itself (its own rim) or of the wall that closes the interval does.
@@ -134,6 +146,45 @@ def test_trims_of_another_piece_do_not_validate_an_interval():
         mine = [(k, d, own if k == TRIM else i, u) for k, d, i, u in PANE]
         vis, _, _, _, _ = _resolve(mine, piece=PIECES)
         assert {0, 3} <= vis
+
+
+def test_a_single_sided_front_face_takes_only_trims_an_eye_can_pass_by():
+    # A room's wall (id 0, piece 0) 1.9 m ahead, one piece with the room behind it whose rim
+    # trim lies at 6 m; the room's clutter (ids 2, 3) at 7 m. Eyes up to 0.3 m from v* that
+    # see past the wall cross its plane within 0.3 m of the ray: a wall facing the ray has its
+    # passable rim at 1.9 m, so the trim at 6 m cannot open it.
+    seq = [(FRONT, 1.9, 0, 0), (TRIM, 6.0, 0, 6.5), (FRONT, 7.0, 2, 0), (BACK, 7.5, 3, 0)]
+    pieces = [0, 0, 1, 1] + [9] * 12
+    vis, _, _, _, _ = _resolve(seq, piece=pieces)
+    assert vis == {0, 2}
+    for angle, opened in ((0.0, False), (80.0, False), (85.0, True)):
+        a = np.radians(angle)
+        reach = _reach({0: [np.sin(a), 0.0, np.cos(a)]}, lateral=0.3)
+        vis, sealed, seal, _, _ = _resolve(seq, piece=pieces, reach=reach)
+        # 2 * 0.3 * tan(80 deg) = 3.4 m: the rim reaches 5.3 m; at 85 degrees 8.8 m.
+        assert (vis == {0, 2}) if opened else (vis == {0} and sealed and seal == 1.9), angle
+
+
+def test_a_hidden_span_starts_where_its_face_lies_deepest_over_the_pixel():
+    # A face trimmed at 2 m, its umbra at 9 m: what lies in front of the face anywhere in
+    # the pixel is not hidden by it. Seen at 30 degrees across a one-pixel view (tan 1: the
+    # square spans u in [-1, 1]) the face lies from 1.27 to 4.73 m over the pixel; facing
+    # the ray, at 2 m over all of it; turning edge-on within the square (50 degrees), it
+    # hides nothing.
+    seq = [(FRONT, 2.0, 0, 0), (TRIM, 2.5, 0, 9.0), (FRONT, 12.0, 2, 0), (BACK, 12.5, 3, 0)]
+    for angle, front in ((30.0, 2.0 / (1.0 - np.tan(np.radians(30.0)))), (0.0, 2.0),
+                         (50.0, INF)):
+        a = np.radians(angle)
+        kb = KBuffer.empty(1)
+        for q, (kind, d, ident, um) in enumerate(seq):
+            kb.put(0, q, kind, d, ident, um)
+        kb.count[0] = len(seq)
+        vis = np.zeros(16, dtype=np.uint8)
+        reach = _reach({0: [np.sin(a), 0.0, np.cos(a)]})
+        resolve_pixel(kb, np.full(16, -1, dtype=np.int64), np.zeros(16, dtype=np.int64),
+                      reach, 0, True, vis, np.zeros(4, dtype=np.int64))
+        assert kb.n_spans[0] == 1 and kb.spans[0, 0, 1] == 9.0
+        assert np.isclose(kb.spans[0, 0, 0], front) if front < INF else kb.spans[0, 0, 0] == INF
 
 
 def test_a_front_face_apart_from_its_back_face_reads_single_sided():
@@ -195,7 +246,7 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
     kb.count[0] = len(seq)
     vis = np.zeros(16, dtype=np.uint8)
     none = np.full(16, -1, dtype=np.int64)
-    sealed = resolve_pixel(kb, none, none, 0, True, vis, np.zeros(4, dtype=np.int64))
+    sealed = resolve_pixel(kb, none, none, _reach(), 0, True, vis, np.zeros(4, dtype=np.int64))
     assert set(np.flatnonzero(vis).tolist()) == {0, 4} and sealed and kb.seal[0] == 5.0
     # Without the range (the trim at 1.2 only) the first box terminates the ray.
     kb2 = KBuffer.empty(1)
@@ -203,5 +254,5 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
         kb2.put(0, q, kind, d, ident, um)
     kb2.count[0] = len(seq)
     vis2 = np.zeros(16, dtype=np.uint8)
-    resolve_pixel(kb2, none, none, 0, True, vis2, np.zeros(4, dtype=np.int64))
+    resolve_pixel(kb2, none, none, _reach(), 0, True, vis2, np.zeros(4, dtype=np.int64))
     assert set(np.flatnonzero(vis2).tolist()) == {0} and kb2.seal[0] == 2.0
