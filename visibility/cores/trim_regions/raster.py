@@ -445,6 +445,10 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                             queued[band] += 1
 
 
+#: Pixels by which a trim row's column bounds are widened against rounding (``raster_trims``).
+COLUMN_SLACK = 1e-3
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _affine_range(a, b, lo, hi):  # pragma: no cover - numba
     """The u with lo <= a u + b <= hi, as (u0, u1) (u0 > u1: none), clamped to +-1e300."""
@@ -520,22 +524,28 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
             el2 = ex * ex + ey * ey
             el = np.sqrt(el2)
             lm = margin / el if el > 0 else 1e300
+            # Along a row d and lam are affine in u (d = ad u + bd, lam = al u + bl): the columns
+            # where both can pass (d in [-margin, wmax], lam in [-lm, 1 + lm]), widened by
+            # COLUMN_SLACK against rounding; the exact test below decides. A trim's box is mostly
+            # empty (a short edge near v* trims a strip across the whole view).
+            ad = side * nx / nl
+            al = ex / el2 if el2 > 0 else 0.0
             for y in range(ya, yb):
                 v = (1.0 - (y + 0.5) / half) * tan
-                # Along the row, d and lam are affine in u: the columns where both can pass
-                # (d in [-margin, wmax], lam in [-lm, 1 + lm]), one pixel wider against
-                # rounding; the exact test below decides. A trim's box is mostly empty (a short
-                # edge near v* trims a strip across the whole view).
-                ua, ub = _affine_range(side * nx / nl, side * (ny * v - nz) / nl, -margin, wmax)
+                bd = side * (ny * v - nz) / nl
+                ua, ub = _affine_range(ad, bd, -margin, wmax)
+                bl = 0.0
                 if el2 > 0:
-                    la, lb = _affine_range(ex / el2, ((v - v0) * ey - u0 * ex) / el2, -lm,
-                                           1.0 + lm)
+                    bl = ((v - v0) * ey - u0 * ex) / el2
+                    la, lb = _affine_range(al, bl, -lm, 1.0 + lm)
                     ua = max(ua, la)
                     ub = min(ub, lb)
                 if not ua <= ub:
                     continue
-                xs = max(xa, int(np.floor((ua / tan + 1.0) * half - 0.5)) - 1)
-                xe = min(xb, int(np.ceil((ub / tan + 1.0) * half - 0.5)) + 2)
+                fa = min(max((ua / tan + 1.0) * half - 0.5, -2.0), res + 2.0)
+                fb = min(max((ub / tan + 1.0) * half - 0.5, -2.0), res + 2.0)
+                xs = max(xa, int(np.ceil(fa - COLUMN_SLACK)))
+                xe = min(xb, int(np.floor(fb + COLUMN_SLACK)) + 1)
                 for x in range(xs, xe):
                     p = y * res + x
                     if stencil[p] == SEALED:
