@@ -4,9 +4,9 @@ with random cube orientations inside the cell, rendered from the full scene, mus
 than that share of pixels whose triangle the PVS lacks (``trim_regions.quality.frame_errors``).
 Generated scenes in the quick tests; the real scenes of ../shared/scenes (lavaducts, the Lyon
 tile, Den Haag and the kitchen) are ``slow`` and fail when missing. The kitchen's middle cell
-is over the bound at the defaults (an open bug, traced in docs/cores/trim_regions.md): it is
-held to its measured figure there, and to the bound with the method's conservative
-rasterization of small triangles and with the sampling add-on."""
+holds the bound at the defaults (small triangles rasterized conservatively) and with the
+sampling add-on; at the paper's pixel centres (``small="centres"``) it is over the bound
+(traced in docs/cores/trim_regions.md) and held to its measured figure."""
 
 from __future__ import annotations
 
