@@ -348,6 +348,45 @@ def band_lists(ylo, yhi, n_bands):  # pragma: no cover - numba
     return start, items
 
 
+@njit(cache=True, nogil=True)
+def _leaf_window(lo, hi, vstar, rot, tan, res, out):  # pragma: no cover - numba
+    """Write to ``out`` (4,) the pixel columns and rows [x0, x1) x [y0, y1) outside which no
+    pixel centre's ray meets the box [lo, hi] (metres, v*'s frame): its corners' projection
+    widened by two pixels; the whole face when a corner lies near or behind v*'s plane."""
+    half = 0.5 * res
+    size = max(hi[0] - lo[0], max(hi[1] - lo[1], hi[2] - lo[2]))
+    x0 = np.inf
+    x1 = -np.inf
+    y0 = np.inf
+    y1 = -np.inf
+    for k in range(8):
+        w0 = hi[0] if k & 1 else lo[0]
+        w1 = hi[1] if k & 2 else lo[1]
+        w2 = hi[2] if k & 4 else lo[2]
+        p0, p1, p2 = w0 - vstar[0], w1 - vstar[1], w2 - vstar[2]
+        cx = rot[0, 0] * p0 + rot[0, 1] * p1 + rot[0, 2] * p2
+        cy = rot[1, 0] * p0 + rot[1, 1] * p1 + rot[1, 2] * p2
+        z = -(rot[2, 0] * p0 + rot[2, 1] * p1 + rot[2, 2] * p2)
+        # Near v*'s plane a corner's image runs off to infinity (and the fragments' leaf
+        # tolerance grows in pixels): no window.
+        if not z > LEAF_WINDOW_DEPTH * size:
+            out[0], out[1], out[2], out[3] = 0, res, 0, res
+            return
+        px = (cx / z / tan + 1.0) * half
+        py = (1.0 - cy / z / tan) * half
+        x0, x1 = min(x0, px), max(x1, px)
+        y0, y1 = min(y0, py), max(y1, py)
+    out[0] = max(0, min(res, int(np.floor(x0)) - 2))
+    out[1] = max(0, min(res, int(np.ceil(x1)) + 2))
+    out[2] = max(0, min(res, int(np.floor(y0)) - 2))
+    out[3] = max(0, min(res, int(np.ceil(y1)) + 2))
+
+
+#: Depth (in leaf sizes) in front of v*'s plane within which a leaf gets no pixel window
+#: (``_leaf_window``).
+LEAF_WINDOW_DEPTH = 1e-2
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                     stop):  # pragma: no cover - numba
@@ -374,10 +413,23 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     n_inst = inst_row.shape[0]
     ylo = np.empty(n_inst, dtype=np.int64)
     yhi = np.empty(n_inst, dtype=np.int64)
+    # A triangle crossing leaves is drawn once per leaf, each instance keeping the fragments
+    # inside its leaf: each draws only over its leaf's image (``_leaf_window``).
+    n_leaves = leaf_lo.shape[0]
+    windows = np.full((n_leaves, 4), -1, dtype=np.int64)
+    win = np.empty(4, dtype=np.int64)
     for q in range(n_inst):
         i = inst_row[q]
-        ylo[q] = max(0, box[i, 2])
-        yhi[q] = min(res, box[i, 3]) if box[i, 1] > box[i, 0] else ylo[q]
+        leaf = inst_leaf[q]
+        if windows[leaf, 0] < 0:
+            _leaf_window(leaf_lo[leaf], leaf_hi[leaf], vstar, rot, tan, res, win)
+            windows[leaf, :] = win
+        ylo[q] = max(0, box[i, 2], windows[leaf, 2])
+        yhi[q] = min(res, box[i, 3], windows[leaf, 3])
+        if box[i, 1] <= box[i, 0] or max(box[i, 0], windows[leaf, 0]) >= min(box[i, 1],
+                                                                           windows[leaf, 1]):
+            yhi[q] = ylo[q]
+        yhi[q] = max(yhi[q], ylo[q])
     start, items = band_lists(ylo, yhi, n_bands)
     for j in prange(n_bands):
         band = (j * stride) % n_bands
@@ -391,8 +443,10 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
             kind = FRONT if facing[i] > 0 else BACK
             leaf = inst_leaf[q]
             tol = 1e-6 * (leaf_hi[leaf, 0] - leaf_lo[leaf, 0])
-            ya = max(r0, box[i, 2])
-            yb = min(r1, box[i, 3])
+            ya = max(r0, ylo[q])
+            yb = min(r1, yhi[q])
+            wx0 = windows[leaf, 0]
+            wx1 = windows[leaf, 1]
             for t in range(1, npoly[i] - 1):
                 ax, ay, az = poly[i, 0, 0], poly[i, 0, 1], poly[i, 0, 2]
                 bx, by, bz = poly[i, t, 0], poly[i, t, 1], poly[i, t, 2]
@@ -401,11 +455,11 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                 if abs(area) < 1e-300:
                     continue
                 inv = 1.0 / area
-                xa = max(box[i, 0], int(np.floor(min(ax, min(bx, cx)) - 0.5)))
-                xb = min(box[i, 1], int(np.ceil(max(ax, max(bx, cx)) + 0.5)))
-                ylo = max(ya, int(np.floor(min(ay, min(by, cy)) - 0.5)))
-                yhi = min(yb, int(np.ceil(max(ay, max(by, cy)) + 0.5)))
-                for y in range(ylo, yhi):
+                xa = max(box[i, 0], wx0, int(np.floor(min(ax, min(bx, cx)) - 0.5)))
+                xb = min(box[i, 1], wx1, int(np.ceil(max(ax, max(bx, cx)) + 0.5)))
+                ty0 = max(ya, int(np.floor(min(ay, min(by, cy)) - 0.5)))
+                ty1 = min(yb, int(np.ceil(max(ay, max(by, cy)) + 0.5)))
+                for y in range(ty0, ty1):
                     py = y + 0.5
                     for x in range(xa, xb):
                         # Sealed first: behind the resolved layers most pixels are, and the

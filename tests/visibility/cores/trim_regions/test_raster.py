@@ -21,6 +21,7 @@ from visibility.cores.trim_regions.raster import (
     JOIN_TOL,
     _affine_range,
     _insert,
+    _leaf_window,
     band_lists,
     raster_trims,
 )
@@ -247,3 +248,39 @@ def test_band_lists_hold_each_item_in_every_band_its_rows_meet_in_order():
                 and yhi[q] > 8 * b]
         assert items[start[b]:start[b + 1]].tolist() == want
     assert start[-1] == len(items)
+
+
+def test_a_leaf_window_holds_the_pixels_whose_rays_meet_the_leaf():
+    # Random boxes, most in front of v*: every pixel whose square a point of the box projects
+    # into lies inside its window; a box reaching v*'s plane gets the whole face.
+    rng = np.random.default_rng(5)
+    res, tan = 64, 1.2
+    half = 0.5 * res
+    a = rng.normal(size=(3, 3))
+    rot = np.linalg.qr(a)[0]
+    vstar = rng.normal(size=3)
+    win = np.empty(4, dtype=np.int64)
+    checked = 0
+    for _ in range(200):
+        c = rng.uniform(-1.0, 1.0, size=3) * np.array([2.0, 2.0, 1.0]) + np.array([0, 0, -3.0])
+        size = rng.uniform(0.05, 1.5, size=3)
+        lo_c, hi_c = c - size, c + size  # a box in camera space, mostly in front
+        # The world box holding it (the window is conservative for any box holding the leaf).
+        corners = np.array([[x, y, z] for x in (lo_c[0], hi_c[0]) for y in (lo_c[1], hi_c[1])
+                            for z in (lo_c[2], hi_c[2])]) @ rot + vstar
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        _leaf_window(lo, hi, vstar, rot, tan, res, win)
+        pts = rng.uniform(lo, hi, size=(400, 3))
+        cam = (pts - vstar) @ rot.T
+        z = -cam[:, 2]
+        front = z > 1e-9
+        px = (cam[front, 0] / z[front] / tan + 1.0) * half
+        py = (1.0 - cam[front, 1] / z[front] / tan) * half
+        on = (px >= 0) & (px < res) & (py >= 0) & (py < res)
+        x, y = np.floor(px[on]).astype(int), np.floor(py[on]).astype(int)
+        assert ((win[0] <= x) & (x < win[1]) & (win[2] <= y) & (y < win[3])).all()
+        checked += int(on.sum())
+    assert checked > 10_000
+    # A box around v* itself: no window.
+    _leaf_window(vstar - 1.0, vstar + 1.0, vstar, rot, tan, res, win)
+    assert list(win) == [0, res, 0, res]
