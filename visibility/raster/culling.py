@@ -36,6 +36,8 @@ from visibility.raster.triangles import (
     _scratch,
     _setup,
     _split_views,
+    out_depth,
+    out_ids,
     raster_workers,
     views_covered,
 )
@@ -447,6 +449,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
                         tan_x: float, tan_y: float, near: float, stats: dict | None,
                         want_depth: bool = True, always: np.ndarray | None = None,
                         coherence: Coherence | None = None,
+                        buffers: tuple[np.ndarray | None, np.ndarray] | None = None,
                         ) -> tuple[np.ndarray | None, np.ndarray]:
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing ``eye``, drawing only
     what the hierarchy's culling keeps: identical to ``triangles._render_views`` on the
@@ -460,7 +463,8 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     ``mask``: (m,) bool, faces to draw (checked inputs: ``triangles._check_inputs``);
     ``always``: int64 face ids drawn without culling (moving faces, which the hierarchy does not
     hold), in the first batch; ``coherence`` (ids must be the faces' rows): the leaves the
-    previous view saw go in the first batch too, and it gets this view's. ``stats`` gains
+    previous view saw go in the first batch too, and it gets this view's; ``buffers``: (F, H, W)
+    depth (or None) and id buffers to write into (``render.render_ids``). ``stats`` gains
     ``triangles`` (drawn), ``pixels``, ``pixel_tests``, ``band_pairs`` as the full render
     reports them, and ``nodes_tested``, ``nodes_hidden``, ``leaves_drawn``,
     ``triangles_hidden`` (in drawn leaves, hidden one by one), ``batches``, ``seeded``
@@ -478,7 +482,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
     invd = _scratch("cull_invd", (n_views, height, width), np.float64)
     invd.fill(0.0)
     pyr = Pyramid(invd, layout.empty(n_views), layout.heights, layout.widths, layout.offsets)
-    idbuf = np.full((n_views, height, width), -1, dtype=np.int32)
+    idbuf = out_ids(buffers, n_views, height, width)
     n_workers = raster_workers(height)
     counts = np.zeros((n_workers, 2), dtype=np.int64)
     walk = np.zeros(3, dtype=np.int64)
@@ -531,7 +535,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
                     stats[key] = stats.get(key, 0) + int(val)
             sel = np.flatnonzero(mask).astype(np.int64)
             depth, idbuf = _render_views_on(v, eye, faces, sel, ids, rots, base, width, height,
-                                            tan_x, tan_y, near, stats, want_depth)
+                                            tan_x, tan_y, near, stats, want_depth, buffers)
             if coherence is not None and len(ids) == 0:
                 coherence.leaves = _leaves_seen(idbuf, hierarchy)
                 coherence.drew(hierarchy, drawn - hidden)
@@ -544,7 +548,7 @@ def render_views_culled(v: np.ndarray, eye: np.ndarray, faces: np.ndarray,
         coherence.drew(hierarchy, drawn - hidden)
     depth = None
     if want_depth:
-        depth = np.empty((n_views, height, width), dtype=np.float32)
+        depth = out_depth(buffers, n_views, height, width)
         _finish(invd, idbuf, depth)
     if stats is not None:
         for key, val in (("triangles", drawn - hidden), ("triangles_hidden", hidden),

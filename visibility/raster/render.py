@@ -90,31 +90,33 @@ def _check_rotation(rotation):
 
 
 def _render_views(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
-                  stats, want_depth=True, hierarchy=None, face_mask=None, coherence=None):
+                  stats, want_depth=True, hierarchy=None, face_mask=None, coherence=None,
+                  out=None):
     """Depth (F, H, W) float32 and ids (F, H, W) int32 of F views sharing an eye: one view, or
-    the six cube faces of ``base`` (then ``rots`` = ``cube_face_rotations(base)``)."""
+    the six cube faces of ``base`` (then ``rots`` = ``cube_face_rotations(base)``); written
+    into ``out`` (depth or None, ids) when given."""
     if hierarchy is not None:
         return _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near,
-                              stats, want_depth, hierarchy, face_mask, coherence)
+                              stats, want_depth, hierarchy, face_mask, coherence, out)
     n_views = len(rots)
     small = (len(sel) * n_views < PARALLEL_MIN_TRIANGLES
              and n_views * width * height < PARALLEL_MIN_PIXELS)
     if not small:
         return _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y,
-                                near, stats, want_depth)
+                                near, stats, want_depth, out)
     # Small jobs run on the calling thread alone: starting the pool for a few thousand
     # triangles costs more than it saves, much more when other processes hold the cores.
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
         return _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y,
-                                near, stats, want_depth)
+                                near, stats, want_depth, out)
     finally:
         numba.set_num_threads(threads)
 
 
 def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, near, stats,
-                   want_depth, hierarchy, face_mask, coherence=None):
+                   want_depth, hierarchy, face_mask, coherence=None, out=None):
     """``_render_views`` through the hierarchy (``visibility.raster.culling``)."""
 
     m = len(faces)
@@ -128,7 +130,7 @@ def _render_culled(v, eye, faces, ids, rots, base, width, height, tan_x, tan_y, 
     if coherence is not None and len(ids):
         raise ValueError("coherence needs the faces' rows as ids (face_ids None)")
     return render_views_culled(v, eye, faces, hierarchy, mask, ids, rots, base, width, height,
-                               tan_x, tan_y, near, stats, want_depth, loose, coherence)
+                               tan_x, tan_y, near, stats, want_depth, loose, coherence, out)
 
 
 def render_ids(
@@ -146,7 +148,8 @@ def render_ids(
     stats: dict | None = None,
     hierarchy: Hierarchy | None = None,
     coherence: Coherence | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    out: tuple[np.ndarray | None, np.ndarray] | None = None,
+) -> tuple[np.ndarray | None, np.ndarray]:
     """Depth and triangle-id buffers of one perspective view.
 
     Parameters
@@ -169,6 +172,10 @@ def render_ids(
     coherence : with ``hierarchy``, a ``visibility.raster.culling.Coherence`` shared by a run
         of views from nearby eyes: each draws first what the previous one saw (the same image;
         less drawn). Needs ``face_ids`` None.
+    out : (depth, ids) buffers to render into, returned (as views) instead of new ones: C-contiguous
+        (height, width) float32 and int32 (a caller rendering view after view keeps one pair:
+        fresh pages cost their first-touch faults). A None depth skips the depth pass and
+        returns None for it.
 
     Returns
     -------
@@ -178,9 +185,29 @@ def render_ids(
     v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids, hierarchy is None)
     e = _check_view(eye, width, height, tan_x, tan_y, near)
     r = _check_rotation(rotation)
-    depth, out = _render_views(v, e, f, sel, ids, r[None], None, int(width), int(height), tan_x,
-                               tan_y, near, stats, True, hierarchy, face_mask, coherence)
-    return depth[0], out[0]
+    bufs = None if out is None else _check_out(out, int(width), int(height))
+    depth, idbuf = _render_views(v, e, f, sel, ids, r[None], None, int(width), int(height),
+                                 tan_x, tan_y, near, stats, bufs is None or bufs[0] is not None,
+                                 hierarchy, face_mask, coherence, bufs)
+    return (None if depth is None else depth[0]), idbuf[0]
+
+
+def _check_out(out, width, height):
+    """``render_ids``'s ``out`` as (1, H, W) views, checked."""
+    if not isinstance(out, tuple) or len(out) != 2:
+        raise ValueError("out must be a (depth or None, ids) pair")
+    bufs = []
+    for name, arr, dtype in (("depth", out[0], np.float32), ("ids", out[1], np.int32)):
+        if arr is None and name == "depth":
+            bufs.append(None)
+            continue
+        if not isinstance(arr, np.ndarray) or arr.dtype != dtype or \
+                arr.shape != (height, width) or not arr.flags.c_contiguous or \
+                not arr.flags.writeable:
+            raise ValueError(f"out's {name} must be a writeable C-contiguous ({height}, {width}) "
+                             f"{np.dtype(dtype).name} array")
+        bufs.append(arr.reshape(1, height, width))
+    return bufs[0], bufs[1]
 
 
 def render_cubemap(

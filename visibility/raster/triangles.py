@@ -401,6 +401,9 @@ def _raster(rec, bounds, width, near, shift, n_workers, invd, idbuf, counts):  #
     # which lets it vectorize.
     invf = invd.reshape(-1)
     idf = idbuf.reshape(-1)
+    # Pixel centres' x read from a table: converting the (unsigned) column index to a float
+    # in the loop kept it from vectorizing well; the values are the same.
+    xs = np.arange(width) + 0.5
     for w in prange(n_workers):
         tests = 0
         pairs = 0
@@ -454,7 +457,7 @@ def _raster(rec, bounds, width, near, shift, n_workers, invd, idbuf, counts):  #
                     tests += j1 - j0 + 1
                     row = np.uint64(i * width)
                     for j in range(np.uint64(j0), np.uint64(j1 + 1)):
-                        sx = np.float64(j) + 0.5
+                        sx = xs[j]
                         iz = za * sx + rz
                         ok = (_inside(ea * sx + rc0, etl) & _inside(fa * sx + rc1, ftl)
                               & _inside(ga * sx + rc2, gtl) & (iz > 0.0) & (iz <= inv_near))
@@ -501,6 +504,25 @@ def _scratch(name, shape, dtype):
     return pool.array(name, shape, dtype)
 
 
+def out_ids(out: tuple | None, n_views: int, height: int, width: int) -> np.ndarray:
+    """(n_views, height, width) int32 id buffers set to -1: the caller's ``out[1]`` when
+    given (a caller rendering view after view keeps one: fresh pages cost their first-touch
+    faults), else new."""
+    if out is None:
+        return np.full((n_views, height, width), -1, dtype=np.int32)
+    ids = out[1]
+    ids.fill(-1)
+    return ids
+
+
+def out_depth(out: tuple | None, n_views: int, height: int, width: int) -> np.ndarray:
+    """(n_views, height, width) float32 depth buffers to write every element of: the
+    caller's ``out[0]`` when given, else new."""
+    if out is None or out[0] is None:
+        return np.empty((n_views, height, width), dtype=np.float32)
+    return out[0]
+
+
 def raster_workers(height: int) -> int:
     """Raster workers for an image ``height`` rows high: a power of two, at least two per numba
     thread, no more than there are bands of rows."""
@@ -512,7 +534,7 @@ def raster_workers(height: int) -> int:
 
 
 def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, tan_y, near,
-                     stats, want_depth):
+                     stats, want_depth, out=None):
     rots = np.ascontiguousarray(rots, dtype=np.float64)
     cube = base is not None
     home = _scratch("home", len(v), np.int8)
@@ -522,7 +544,7 @@ def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, 
     n_views = len(rots)
     invd = _scratch("invd", (n_views, height, width), np.float64)
     invd.fill(0.0)
-    idbuf = np.full((n_views, height, width), -1, dtype=np.int32)
+    idbuf = out_ids(out, n_views, height, width)
     n_workers = raster_workers(height)
     counts = np.zeros((n_workers, 2), dtype=np.int64)
     tan_x, tan_y, near = float(tan_x), float(tan_y), float(near)
@@ -541,7 +563,7 @@ def _render_views_on(v, eye, faces, sel, ids, rots, base, width, height, tan_x, 
             _raster(rec, bounds, width, near, BAND_SHIFT, n_workers, invd[k], idbuf[k], counts)
     depth = None
     if want_depth:
-        depth = np.empty((n_views, height, width), dtype=np.float32)
+        depth = out_depth(out, n_views, height, width)
         _finish(invd, idbuf, depth)
     if stats is not None:
         stats["triangles"] = stats.get("triangles", 0) + n_views * int(len(sel))

@@ -240,3 +240,40 @@ def test_a_run_stops_culling_where_it_does_not_pay(monkeypatch):
     bare = Scene(scene.vertices, scene.faces)
     b = sample_pvs(bare, grid.cell(len(grid) // 2), n_points=4, resolution=64, seed=1)
     assert np.array_equal(a.triangle_ids, b.triangle_ids)
+
+
+@pytest.mark.parametrize("culled", [False, True])
+def test_render_into_given_buffers_is_the_same_render(culled):
+    """``render_ids(out=...)`` writes the render into the caller's buffers, whatever they held
+    before, and returns (views of) them; a None depth skips the depth pass (ids unchanged)."""
+    scene = make_scene("village", 60_000, seed=4)
+    h = scene_hierarchy(scene) if culled else None
+    grid = ViewcellGrid.for_scene(scene, 4.0)
+    rng = np.random.default_rng(11)
+    depth = np.full((64, 96), 7.0, dtype=np.float32)
+    ids = np.full((64, 96), 123, dtype=np.int32)
+    for eye, rot in _eyes(grid, 3, rng):
+        d0, i0 = render_ids(scene.vertices, scene.faces, eye, rot, 96, 64, 1.3, 0.8,
+                            face_mask=scene.valid_faces, hierarchy=h)
+        d1, i1 = render_ids(scene.vertices, scene.faces, eye, rot, 96, 64, 1.3, 0.8,
+                            face_mask=scene.valid_faces, hierarchy=h, out=(depth, ids))
+        assert np.shares_memory(d1, depth) and np.shares_memory(i1, ids)
+        assert np.array_equal(i0, ids) and np.array_equal(d0, depth)
+        d2, i2 = render_ids(scene.vertices, scene.faces, eye, rot, 96, 64, 1.3, 0.8,
+                            face_mask=scene.valid_faces, hierarchy=h, out=(None, ids))
+        assert d2 is None and np.shares_memory(i2, ids) and np.array_equal(i0, ids)
+
+
+def test_render_into_wrong_buffers_is_refused():
+    scene = make_scene("village", 2_000, seed=4)
+    eye = scene.vertices.mean(axis=0)
+    args = (scene.vertices, scene.faces, eye, np.eye(3), 32, 16)
+    good_d = np.zeros((16, 32), np.float32)
+    good_i = np.zeros((16, 32), np.int32)
+    for out in [(good_d, np.zeros((32, 16), np.int32)),  # transposed
+                (np.zeros((16, 32)), good_i),  # float64 depth
+                (good_d, np.zeros((16, 32), np.int64)),
+                (good_d, np.zeros((16, 64), np.int32)[:, ::2]),  # not contiguous
+                (good_d,), good_i]:
+        with pytest.raises(ValueError, match="out"):
+            render_ids(*args, out=out)

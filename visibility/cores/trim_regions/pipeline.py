@@ -56,7 +56,7 @@ from visibility.cores.trim_regions.silhouettes import (
     silhouette_trims,
 )
 from visibility.cores.trim_regions.view_masks import drawn_edges, drawn_instances, drawn_rows
-from visibility.cores.trim_regions.warm import WARM
+from visibility.cores.trim_regions.warm import GATHER_SCRATCH, WARM
 from visibility.ground_truth import MAX_RESOLUTION, mark_seen, sample_pvs
 from visibility.raster.hierarchy import MIN_TRIANGLES, Hierarchy, ready_hierarchy, scene_hierarchy
 from visibility.raster.render import render_ids
@@ -416,8 +416,18 @@ class _Gather:
     def _run(self) -> None:
         scene, data, verts, view, centre, hierarchy, vis = self._args
         t = time.perf_counter()
+        bufs = GATHER_SCRATCH.take()
+        try:
+            self._gather(scene, data, verts, view, centre, hierarchy, vis, bufs, t)
+        finally:
+            GATHER_SCRATCH.give(bufs)
+
+    def _gather(self, scene: Scene, data: SceneData, verts: np.ndarray, view: View,
+                centre: np.ndarray | None, hierarchy: Hierarchy | None, vis: np.ndarray,
+                bufs: Scratch, t: float) -> None:
+        """``_run``'s work, its renders made into ``bufs``; ``t``: when it began."""
         first, seen, depth, far = _sample_from_vstar(scene, data.static_mask, verts, view,
-                                                     centre, hierarchy)
+                                                     centre, hierarchy, bufs)
         work = time.perf_counter() - t
         self._ready.wait()
         if self._polys is not None:
@@ -604,12 +614,14 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
 
 def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
                        view: View, centre: np.ndarray | None = None,
-                       hierarchy: Hierarchy | None = None
+                       hierarchy: Hierarchy | None = None, bufs: Scratch | None = None
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What v* sees between the pixel centres of a view (``visibility.raster.triangles
     .render_ids``, static triangles only), in the frame of ``verts``; with the scene's
     ``hierarchy`` and the frame's world ``centre``, drawn in the scene's own frame through
-    the hierarchy (frustum and occlusion culled: the same images, less drawn).
+    the hierarchy (frustum and occlusion culled: the same images, less drawn). The renders
+    are made into ``bufs`` (fresh ones when None); ``depth`` is then its buffer, valid until
+    its next use.
 
     Returns
     -------
@@ -627,8 +639,11 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     if hierarchy is not None and centre is not None:
         verts = scene.vertices
         eye = view.vstar + centre
+    bufs = Scratch() if bufs is None else bufs
     depth, ids = render_ids(verts, scene.faces, eye, view.rot, ss, ss, view.tan, view.tan,
-                            near=view.near, face_mask=static_mask, hierarchy=hierarchy)
+                            near=view.near, face_mask=static_mask, hierarchy=hierarchy,
+                            out=(bufs.array("depth", (ss, ss), np.float32),
+                                 bufs.array("ids", (ss, ss), np.int32)))
     # Not the farthest sample but the OPEN_SAMPLES-th farthest: a crack between the triangles
     # of a mesh that is not watertight opens one or two samples onto the far side, and would
     # let everything behind the mesh through (most of the 1M kitchen).
@@ -643,7 +658,8 @@ def _sample_from_vstar(scene: Scene, static_mask: np.ndarray, verts: np.ndarray,
     reach = view.tan * (c + s)
     n_rolled = int(np.ceil(ROLLED_SAMPLES * res * (c + s)))
     _, rolled = render_ids(verts, scene.faces, eye, roll @ view.rot, n_rolled, n_rolled, reach,
-                           reach, near=view.near, face_mask=static_mask, hierarchy=hierarchy)
+                           reach, near=view.near, face_mask=static_mask, hierarchy=hierarchy,
+                           out=(None, bufs.array("rolled", (n_rolled, n_rolled), np.int32)))
     # Marks, not np.unique: a million samples per view, most of them repeats.
     mark = np.zeros(scene.n_triangles, dtype=bool)
     mark_seen(ids.reshape(-1), mark)

@@ -47,6 +47,10 @@ TRIM_COLUMNS = 13
 PIECE_COLUMN = 12
 #: Most fine-grid cells a trim's layer lookup scans; a larger extent goes to the first layer.
 MAX_LOOKUP_CELLS = 4096
+#: A fine-grid cell with no leaf, in ``_cell_layers``.
+_NO_LAYER = np.int32(np.iinfo(np.int32).max)
+#: Fine-grid cells per side of the blocks a trim's layer lookup skips by (``_trim_layer``).
+BLOCK = 4
 #: Edges per parallel chunk of ``silhouette_trims`` (one set of scratch arrays each).
 EDGE_CHUNK = 1024
 
@@ -80,10 +84,14 @@ def _coplanar(cam, ev, eo, e):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # pragma: no cover
+def _trim_layer(pa, pb, grow, grid_origin, cell, cell_layer, block_layer, first,
+                part):  # pragma: no cover
     """Earliest layer of the leaves meeting the box of points pa, pb (camera frame's world
-    positions, metres) grown by ``grow`` metres."""
-    g = leaf_of_cell.shape[0]
+    positions, metres) grown by ``grow`` metres: the least of ``cell_layer`` (the fine grid's
+    cells' layers, ``_cell_layers``) over the box, read a block at a time where
+    ``block_layer`` allows; ``first`` (the least there is) as soon as it is met. ``part``
+    (p, 4) int32 is scratch for the blocks the box cuts."""
+    g = cell_layer.shape[0]
     lo = (0, 0, 0)
     hi = (0, 0, 0)
     n = 1
@@ -104,14 +112,73 @@ def _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer):  # p
         n *= ha - la + 1
     if n > MAX_LOOKUP_CELLS:
         return 0
-    best = 1 << 62
-    for i in range(lo[0], hi[0] + 1):
-        for j in range(lo[1], hi[1] + 1):
-            for k in range(lo[2], hi[2] + 1):
+    # Blocks of BLOCK^3 cells keep their least layer: a block wholly inside the box gives
+    # it at once; the others are scanned in the order of their least layers, and none whose
+    # least cannot lower the answer is scanned.
+    b_lo = (lo[0] // BLOCK, lo[1] // BLOCK, lo[2] // BLOCK)
+    b_hi = (hi[0] // BLOCK, hi[1] // BLOCK, hi[2] // BLOCK)
+    best = _NO_LAYER
+    n_part = 0
+    for bi in range(b_lo[0], b_hi[0] + 1):
+        full_i = lo[0] <= bi * BLOCK and bi * BLOCK + BLOCK - 1 <= hi[0]
+        for bj in range(b_lo[1], b_hi[1] + 1):
+            full_j = lo[1] <= bj * BLOCK and bj * BLOCK + BLOCK - 1 <= hi[1]
+            for bk in range(b_lo[2], b_hi[2] + 1):
+                bm = block_layer[bi, bj, bk]
+                if bm >= best:
+                    continue
+                if full_i and full_j and lo[2] <= bk * BLOCK and bk * BLOCK + BLOCK - 1 <= hi[2]:
+                    best = bm
+                elif n_part < part.shape[0]:
+                    part[n_part, 0] = bm
+                    part[n_part, 1] = bi
+                    part[n_part, 2] = bj
+                    part[n_part, 3] = bk
+                    n_part += 1
+                else:
+                    best = min(best, _block_min(cell_layer, lo, hi, bi, bj, bk))
+    while best > first:
+        # The partial block of least layer still under the answer.
+        q = -1
+        for r in range(n_part):
+            if part[r, 0] < best and (q < 0 or part[r, 0] < part[q, 0]):
+                q = r
+        if q < 0:
+            break
+        best = min(best, _block_min(cell_layer, lo, hi, part[q, 1], part[q, 2], part[q, 3]))
+        part[q, 0] = _NO_LAYER
+    return 0 if best == _NO_LAYER else best
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _block_min(cell_layer, lo, hi, bi, bj, bk):  # pragma: no cover - numba
+    """Least of ``cell_layer`` over block (bi, bj, bk)'s cells within [lo, hi]."""
+    best = _NO_LAYER
+    for i in range(max(lo[0], bi * BLOCK), min(hi[0], bi * BLOCK + BLOCK - 1) + 1):
+        for j in range(max(lo[1], bj * BLOCK), min(hi[1], bj * BLOCK + BLOCK - 1) + 1):
+            for k in range(max(lo[2], bk * BLOCK), min(hi[2], bk * BLOCK + BLOCK - 1) + 1):
+                best = min(best, cell_layer[i, j, k])
+    return best
+
+
+@njit(cache=True, nogil=True)
+def _cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer):  # pragma: no cover
+    """Fill ``cell_layer`` (g, g, g) with the layer of each fine-grid cell's leaf
+    (``_NO_LAYER`` where none) and ``block_layer`` (ceil(g / BLOCK) per axis) with the least
+    of each block of cells; returns the least layer."""
+    g0, g1, g2 = leaf_of_cell.shape
+    block_layer[:] = _NO_LAYER
+    first = _NO_LAYER
+    for i in range(g0):
+        for j in range(g1):
+            for k in range(g2):
                 leaf = leaf_of_cell[i, j, k]
-                if leaf >= 0 and leaf_layer[leaf] < best:
-                    best = leaf_layer[leaf]
-    return 0 if best == 1 << 62 else best
+                v = _NO_LAYER if leaf < 0 else np.int32(leaf_layer[leaf])
+                cell_layer[i, j, k] = v
+                b = block_layer[i // BLOCK, j // BLOCK, k // BLOCK]
+                block_layer[i // BLOCK, j // BLOCK, k // BLOCK] = min(b, v)
+                first = min(first, v)
+    return first
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
@@ -232,7 +299,8 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
     """
     n_e = ev.shape[0]
     margin = margin_px * 2.0 * tan / res
-    counts = np.zeros(n_e, dtype=np.int64)
+    # One byte per edge (0-2 trims): the counts of a million edges are allocated per view.
+    counts = np.empty(n_e, dtype=np.int8)
     n_chunks = (n_e + EDGE_CHUNK - 1) // EDGE_CHUNK
     # Scratch per chunk of edges: an allocation per edge cost more than most edges' test.
     for c in prange(n_chunks):
@@ -241,15 +309,36 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
         widths = np.empty((2, 2))
         pts = np.empty((3, 3))
         for e in range(c * EDGE_CHUNK, min(n_e, (c + 1) * EDGE_CHUNK)):
-            if not edge_on[e]:
-                continue
-            counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back,
-                                  margin, row, sides, widths, pts)
-    start = np.zeros(n_e + 1, dtype=np.int64)
+            counts[e] = 0
+            if edge_on[e]:
+                counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta,
+                                      back, margin, row, sides, widths, pts)
+    # The trimming edges and where their rows start.
+    n_sil = 0
+    n_rows = 0
     for e in range(n_e):
-        start[e + 1] = start[e] + counts[e]
-    trims = np.empty((start[n_e], TRIM_COLUMNS))
-    layer = np.empty(start[n_e], dtype=np.int64)
+        if counts[e] > 0:
+            n_sil += 1
+            n_rows += counts[e]
+    sil = np.empty(n_sil, dtype=np.int64)
+    start = np.empty(n_sil + 1, dtype=np.int64)
+    w = 0
+    start[0] = 0
+    for e in range(n_e):
+        if counts[e] > 0:
+            sil[w] = e
+            start[w + 1] = start[w] + counts[e]
+            w += 1
+    trims = np.empty((n_rows, TRIM_COLUMNS))
+    layer = np.empty(n_rows, dtype=np.int64)
+    if n_sil == 0:
+        return trims, layer
+    cell_layer = np.empty(leaf_of_cell.shape, dtype=np.int32)
+    g0, g1, g2 = leaf_of_cell.shape
+    block_layer = np.empty(((g0 + BLOCK - 1) // BLOCK, (g1 + BLOCK - 1) // BLOCK,
+                            (g2 + BLOCK - 1) // BLOCK), dtype=np.int32)
+    first = _cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer)
+    n_chunks = (n_sil + EDGE_CHUNK - 1) // EDGE_CHUNK
     for c in prange(n_chunks):
         row = np.empty(TRIM_COLUMNS)
         sides = np.empty(2)
@@ -257,9 +346,9 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
         pts = np.empty((3, 3))
         pa = np.empty(3)
         pb = np.empty(3)
-        for e in range(c * EDGE_CHUNK, min(n_e, (c + 1) * EDGE_CHUNK)):
-            if counts[e] == 0:
-                continue
+        part = np.empty((64, 4), dtype=np.int32)
+        for s_ in range(c * EDGE_CHUNK, min(n_sil, (c + 1) * EDGE_CHUNK)):
+            e = sil[s_]
             m = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
                           row, sides, widths, pts)
             # World positions of the (clipped) ends: back from the image ends at their depths.
@@ -271,9 +360,10 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
                 pa[k] = vstar[k] + rot[0, k] * ca[0] + rot[1, k] * ca[1] + rot[2, k] * ca[2]
                 pb[k] = vstar[k] + rot[0, k] * cb[0] + rot[1, k] * cb[1] + rot[2, k] * cb[2]
             grow = max(row[10] * za, row[11] * zb)
-            lay = _trim_layer(pa, pb, grow, grid_origin, cell, leaf_of_cell, leaf_layer)
+            lay = _trim_layer(pa, pb, grow, grid_origin, cell, cell_layer, block_layer,
+                              first, part)
             for q in range(m):
-                w = start[e] + q
+                w = start[s_] + q
                 for k in range(TRIM_COLUMNS):
                     trims[w, k] = row[k]
                 trims[w, 3] = sides[q]

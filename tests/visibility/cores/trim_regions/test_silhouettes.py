@@ -9,7 +9,14 @@ from visibility.cores.trim_regions.cache import build_scene_data
 from visibility.cores.trim_regions.frustum import sphere_views
 from visibility.cores.trim_regions.layers import leaf_frame
 from visibility.cores.trim_regions.raster import setup_triangles, to_camera
-from visibility.cores.trim_regions.silhouettes import AMBIGUOUS, silhouette_trims
+from visibility.cores.trim_regions.silhouettes import (
+    AMBIGUOUS,
+    BLOCK,
+    MAX_LOOKUP_CELLS,
+    _cell_layers,
+    _trim_layer,
+    silhouette_trims,
+)
 
 
 def _trims(eye, delta=0.0, face=5, margin_px=0.0, res=64, scene=None, ambiguous=()):
@@ -139,3 +146,32 @@ def test_an_edge_of_a_triangle_whose_plane_passes_through_the_sphere_is_a_silhou
     alone, _ = _trims((0.0, 0.0, 0.0), delta=0.3, scene=quad)
     assert len(both) > len(alone) == 4  # its borders now trim on both sides
     assert not [r for r in both if abs(r[4] - r[6]) > 1e-9 and abs(r[5] - r[7]) > 1e-9]
+
+
+def test_a_trims_layer_is_the_least_layer_of_the_cells_its_box_meets():
+    """``_trim_layer`` reads blocks of cells where it can; its answer is the brute-force least
+    layer over the grid cells the grown box meets (0 where none holds a leaf, or where the box
+    is too large to look up)."""
+    rng = np.random.default_rng(5)
+    g = 19  # not a multiple of the blocks' side
+    leaf_of_cell = np.where(rng.random((g, g, g)) < 0.4, -1,
+                            rng.integers(0, 50, (g, g, g))).astype(np.int64)
+    leaf_layer = rng.integers(0, 40, 50).astype(np.int64)
+    cell_layer = np.empty((g, g, g), dtype=np.int32)
+    nb = -(-g // BLOCK)
+    block_layer = np.empty((nb, nb, nb), dtype=np.int32)
+    first = _cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer)
+    layers = np.where(leaf_of_cell >= 0, leaf_layer[np.maximum(leaf_of_cell, 0)], 1 << 40)
+    assert first == layers.min()
+    origin, cell = np.array([-1.0, 2.0, 0.5]), 0.25
+    part = np.empty((64, 4), dtype=np.int32)
+    for _ in range(400):
+        pa = origin + rng.uniform(-0.5, g * cell + 0.5, 3)
+        pb = pa + rng.normal(0.0, 0.6, 3)
+        grow = rng.uniform(0.0, 0.4)
+        lo = np.clip(np.floor((np.minimum(pa, pb) - grow - origin) / cell), 0, g - 1).astype(int)
+        hi = np.clip(np.floor((np.maximum(pa, pb) + grow - origin) / cell), 0, g - 1).astype(int)
+        box = layers[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1]
+        want = 0 if box.size > MAX_LOOKUP_CELLS or box.min() == 1 << 40 else box.min()
+        assert _trim_layer(pa, pb, grow, origin, cell, cell_layer, block_layer, first,
+                           part) == want

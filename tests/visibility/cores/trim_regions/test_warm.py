@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from visibility.cores.base import get_core
-from visibility.cores.trim_regions.warm import WARM, WarmBuffers
+from visibility.cores.trim_regions.warm import WARM, WarmBuffers, WarmScratch
 from visibility.generators import make_scene
 from visibility.ground_truth import cell_around
 from visibility.viewcells import Viewcell
@@ -56,3 +56,25 @@ def test_a_computation_on_kept_buffers_gives_the_same_answer():
         answers.append(warm.triangle_ids)
     WARM.release()
     assert CORE.compute(scene, Viewcell(box), params).stats["buffers_reused"] == 0
+
+
+def test_gather_scratch_given_back_is_taken_again_until_released():
+    pool = WarmScratch(keep_seconds=60.0, max_kept=1)
+    a = pool.take()
+    b = pool.take()
+    assert a is not b
+    pool.give(a)
+    pool.give(b)  # over max_kept: not kept
+    assert pool.kept == 1 and pool.take() is a and pool.kept == 0
+    pool.give(a)
+    pool.release()
+    assert pool.kept == 0 and pool.take() is not a
+
+
+def test_kept_gather_scratch_is_released_once_idle():
+    pool = WarmScratch(keep_seconds=0.05)
+    pool.give(pool.take())
+    deadline = time.monotonic() + 30.0
+    while pool.kept and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert pool.kept == 0
