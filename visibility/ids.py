@@ -11,7 +11,11 @@ import numpy as np
 
 def unique_ids(ids: np.ndarray, dtype: type = np.int64) -> np.ndarray:
     """(k,) sorted unique values of a 1-D integer array, as ``dtype``."""
-    a = np.sort(np.asarray(ids, dtype=np.int64).reshape(-1))
+    a = np.asarray(ids, dtype=np.int64).reshape(-1)
+    if len(a) > 1 and bool(np.all(a[1:] > a[:-1])):
+        # Already sorted and unique (a core's marks read back in order): a pass, no sort.
+        return a.astype(dtype, copy=True)
+    a = np.sort(a)
     if len(a) == 0:
         return a.astype(dtype)
     keep = np.empty(len(a), dtype=bool)

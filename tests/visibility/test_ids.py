@@ -16,3 +16,13 @@ def test_unique_inverse_round_trips():
     u, inv = unique_inverse(a)
     np.testing.assert_array_equal(u[inv], a)
     np.testing.assert_array_equal(u, np.unique(a))
+
+
+def test_sorted_unique_input_comes_back_as_a_copy():
+    a = np.arange(0, 3000, 3, dtype=np.int64)
+    u = unique_ids(a, np.int64)
+    np.testing.assert_array_equal(u, a)
+    assert not np.shares_memory(u, a)
+    # Sorted with a repeat, or descending: the general path.
+    np.testing.assert_array_equal(unique_ids(np.array([1, 2, 2, 5])), [1, 2, 5])
+    np.testing.assert_array_equal(unique_ids(np.array([5, 2, 1])), [1, 2, 5])
