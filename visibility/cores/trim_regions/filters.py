@@ -47,6 +47,40 @@ def grazing_mask(verts, faces, ids, normals, plane, centres, delta, px, out):  #
 
 
 @njit(cache=True, nogil=True, parallel=True)
+def grazing_boxes(verts, faces, ids, normals, rows, centre, delta, resolution,
+                  out):  # pragma: no cover - numba
+    """out[i] (2, 3) = [min, max] of static triangle ids[i] (corners relative to ``centre``,
+    metres) grown along its unit normal ``normals[rows[i]]`` by a slab thick enough for a few
+    pixels at its distance from ``centre`` (4 / ``resolution`` of it), at most ``delta``:
+    the box a grazing triangle is tested as (``pipeline._grazing``)."""
+    for i in prange(ids.shape[0]):
+        f = ids[i]
+        r = rows[i]
+        mid0 = 0.0
+        mid1 = 0.0
+        mid2 = 0.0
+        for a in range(3):
+            p = verts[faces[f, 0], a] - centre[a]
+            q = verts[faces[f, 1], a] - centre[a]
+            s = verts[faces[f, 2], a] - centre[a]
+            out[i, 0, a] = min(min(p, q), s)
+            out[i, 1, a] = max(max(p, q), s)
+            m = (p + q + s) / 3.0
+            if a == 0:
+                mid0 = m
+            elif a == 1:
+                mid1 = m
+            else:
+                mid2 = m
+        dist = np.sqrt(mid0 * mid0 + mid1 * mid1 + mid2 * mid2)
+        slab = min(delta, 4.0 * dist / resolution)
+        for a in range(3):
+            grow = abs(normals[r, a]) * slab
+            out[i, 0, a] -= grow
+            out[i, 1, a] += grow
+
+
+@njit(cache=True, nogil=True, parallel=True)
 def plane_holds_box(verts, faces, ids, box, out):  # pragma: no cover - numba
     """out[i] = True where triangle ids[i]'s plane holds all 8 corners of ``box`` (2, 3)
     (within 1e-12 of the larger of the triangle's and the box's coordinates): no eye of the

@@ -84,15 +84,6 @@ def near_sphere(verts, faces, rows, centre, radius, vis):  # pragma: no cover - 
             vis[f] = 1
 
 
-#: (8, 3) whether corner c takes the box's high end along axis a: bit a of c.
-_CORNER_BITS = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1 == 1
-
-
-def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(k, 8, 3) corners of k boxes [lo, hi] (k, 3) each."""
-    return np.where(_CORNER_BITS, hi[:, None, :], lo[:, None, :])
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _touches(ax, ay, bx, by, cx, cy, sg, px, py):  # pragma: no cover - numba
     """Whether the pixel square centred at (px, py) meets triangle abc (pixels; ``sg`` the

@@ -18,11 +18,15 @@ import numpy as np
 from visibility.cancel import checkpoint, stop_flag
 from visibility.cores.trim_regions.cache import SceneData
 from visibility.cores.trim_regions.crew import Crew
-from visibility.cores.trim_regions.filters import grazing_mask, plane_holds_box, planes_near
+from visibility.cores.trim_regions.filters import (
+    grazing_boxes,
+    grazing_mask,
+    plane_holds_box,
+    planes_near,
+)
 from visibility.cores.trim_regions.frustum import View, cover_box, sphere_views
 from visibility.cores.trim_regions.hulls import (
     BOX_FACES,
-    box_corners,
     hulls_in_front,
     near_sphere,
     small_in_front,
@@ -44,6 +48,7 @@ from visibility.cores.trim_regions.quality import FRAME_NEAR
 from visibility.cores.trim_regions.raster import (
     Camera,
     SetUp,
+    boxes_to_camera,
     raster_surfaces,
     raster_trims,
     setup_triangles,
@@ -187,18 +192,12 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
                  single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
                  kbuffer_used_bytes=0, resolution=int(resolution), gathers_aside=0)
     hull_boxes, hull_ids = _hulls(scene, data, centre)
-    graze = _grazing(scene, data, centres + centre, delta, int(resolution))
+    graze, graze_rows = _grazing(scene, data, centres + centre, delta, int(resolution))
     if len(graze):
         # A slab along the normal, thick enough for a few pixels at its distance (at most Δ).
-        t = scene.vertices[scene.faces[graze].astype(np.int64)] - centre
-        n = data.normals[np.searchsorted(data.static, graze)]
-        # Corner by corner: numpy's reductions over the middle axis of (k, 3, 3) cost
-        # several times the rest of this (the same sums, in the same order).
-        a, b, c = t[:, 0], t[:, 1], t[:, 2]
-        dist = np.linalg.norm((a + b + c) / 3.0, axis=1)
-        grow = np.abs(n) * np.minimum(delta, 4.0 * dist / resolution)[:, None]
-        gbox = np.stack([np.minimum(np.minimum(a, b), c) - grow,
-                         np.maximum(np.maximum(a, b), c) + grow], axis=1)
+        gbox = np.empty((len(graze), 2, 3))
+        grazing_boxes(scene.vertices, scene.faces, graze, data.normals, graze_rows, centre,
+                      float(delta), float(resolution), gbox)
         hull_boxes = np.concatenate([hull_boxes, gbox])
         hull_ids = np.concatenate([hull_ids, graze])
     stats["grazing"] = len(graze)
@@ -466,8 +465,9 @@ def _rows_near(octree: Octree, frame: LeafFrame, centre: np.ndarray,
 
 
 def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
-             resolution: int) -> np.ndarray:
-    """Static triangles whose plane passes within Δ of a sphere centre (world ``centres``
+             resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, their rows in ``data.static``) of the static triangles whose plane passes
+    within Δ of a sphere centre (world ``centres``
     (k, 3)) and which that centre sees thinner than a pixel: an eye of the sphere may see them
     at a steeper angle than v*, which samples them at no pixel centre, so they are also tested
     as hulls (their box grown along the normal).
@@ -479,13 +479,14 @@ def _grazing(scene: Scene, data: SceneData, centres: np.ndarray, delta: float,
     off (1 / d_min - 1 / d_max) radians however far its line lies from the centre."""
     ids = data.static
     if not len(ids):
-        return ids
+        return ids, np.zeros(0, dtype=np.int64)
     close = np.zeros(len(ids), dtype=np.bool_)
     # A face's centre has the fewest pixels per radian: 0.5 * resolution.
-    grazing_mask(scene.vertices, scene.faces, ids.astype(np.int64), data.normals, data.plane,
-                 np.ascontiguousarray(centres, dtype=np.float64), float(delta),
+    grazing_mask(scene.vertices, scene.faces, ids.astype(np.int64, copy=False), data.normals,
+                 data.plane, np.ascontiguousarray(centres, dtype=np.float64), float(delta),
                  0.5 * resolution, close)
-    return ids[close]
+    rows = np.flatnonzero(close)
+    return ids[rows], rows
 
 
 def _not_edge_on(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -713,7 +714,7 @@ def _test_hulls(view: View, open_only: np.ndarray, seen: np.ndarray, lo: np.ndar
     if not len(sel):
         return
     # Corners of the boxes this view tests only (all of them, made once, cost more).
-    cam = to_camera(box_corners(lo[sel], hi[sel]).reshape(-1, 3), view.vstar, view.rot)
+    cam = boxes_to_camera(lo, hi, sel, view.vstar, view.rot)
     faces = (np.arange(len(sel))[:, None, None] * 8 + BOX_FACES[None]).reshape(-1, 3)
     owner = np.repeat(sel, len(BOX_FACES))
     n = len(faces)

@@ -75,6 +75,24 @@ def to_camera(verts, vstar, rot):  # pragma: no cover - numba
     return out
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def boxes_to_camera(lo, hi, sel, vstar, rot):  # pragma: no cover - numba
+    """(8 k, 3) camera-space corners of the boxes [lo, hi] (n, 3) metres picked by ``sel``
+    (k,), corner c of a box taking its high end along axis a where bit a of c is set:
+    ``to_camera`` of those corners, without making them."""
+    k = sel.shape[0]
+    out = np.empty((8 * k, 3))
+    for i in prange(k):
+        b = sel[i]
+        for c in range(8):
+            p0 = (hi[b, 0] if c & 1 else lo[b, 0]) - vstar[0]
+            p1 = (hi[b, 1] if c & 2 else lo[b, 1]) - vstar[1]
+            p2 = (hi[b, 2] if c & 4 else lo[b, 2]) - vstar[2]
+            for r in range(3):
+                out[8 * i + c, r] = rot[r, 0] * p0 + rot[r, 1] * p1 + rot[r, 2] * p2
+    return out
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _clip_edge(px, py, pz, qx, qy, qz, near, pts, m):  # pragma: no cover - numba
     """Append to ``pts`` (4, 3) from row m the corners edge p-q (camera space) gives a polygon

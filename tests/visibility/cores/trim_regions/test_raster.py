@@ -23,7 +23,9 @@ from visibility.cores.trim_regions.raster import (
     _insert,
     _leaf_window,
     band_lists,
+    boxes_to_camera,
     raster_trims,
+    to_camera,
 )
 
 
@@ -284,3 +286,20 @@ def test_a_leaf_window_holds_the_pixels_whose_rays_meet_the_leaf():
     # A box around v* itself: no window.
     _leaf_window(vstar - 1.0, vstar + 1.0, vstar, rot, tan, res, win)
     assert list(win) == [0, res, 0, res]
+
+
+def test_picked_boxes_corners_in_camera_space_follow_box_faces_order():
+    """``boxes_to_camera``: corner c of box b is (hi if bit a of c else lo) along axis a, in
+    camera space, as ``to_camera`` of that corner gives it, for the picked boxes only (the
+    corner order ``hulls.BOX_FACES`` indexes)."""
+    rng = np.random.default_rng(3)
+    lo = rng.normal(size=(50, 3)) * 20.0
+    hi = lo + rng.random((50, 3)) + 0.1
+    sel = np.array([3, 17, 41], dtype=np.int64)
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    vstar = rng.normal(size=3)
+    bits = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1 == 1
+    corners = np.where(bits, hi[sel][:, None, :], lo[sel][:, None, :]).reshape(-1, 3)
+    cam = boxes_to_camera(lo, hi, sel, vstar, rot)
+    assert cam.shape == (24, 3)
+    assert np.array_equal(cam, to_camera(corners, vstar, rot))
