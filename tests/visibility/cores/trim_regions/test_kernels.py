@@ -135,7 +135,7 @@ def test_a_face_thin_across_its_line_is_tested_as_grazing():
     # The jamb's line lies 0.037 / 4.2 rad (1.1 px at 256 px) off the centre, so "seen
     # edge-on" alone misses it; its extent across that line is 0.05 px.
     scene, jamb = _jamb_scene()
-    graze = pipeline._grazing(scene, build_scene_data(scene), np.zeros((1, 3)), 0.0866, 256)
+    graze, _ = pipeline._grazing(scene, build_scene_data(scene), np.zeros((1, 3)), 0.0866, 256)
     assert set(jamb.tolist()) <= set(graze.tolist())
     found, stats = _solve(scene, 0.0866, centre=(0.0, 0.0, 0.0), res=256)
     assert set(jamb.tolist()) & found and stats["grazing"] >= 2
