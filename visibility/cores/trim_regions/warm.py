@@ -72,53 +72,23 @@ class WarmBuffers:
             return len(self._kept)
 
 
-class WarmScratch:
+class WarmScratch(WarmBuffers):
     """Scratch buffers (``visibility.scratch.Scratch``) handed out one at a time and kept
-    for the next taker like ``WarmBuffers``' pairs: the views' gathers from v* render over a
-    million samples each into theirs, and fresh pages would cost their faults at every
-    view. Thread-safe."""
+    for the next taker as ``WarmBuffers`` keeps its pairs (its ``release`` and ``kept``):
+    the views' gathers from v* render over a million samples each into theirs, and fresh
+    pages would cost their faults at every view. Thread-safe."""
 
-    def __init__(self, keep_seconds: float = KEEP_SECONDS, max_kept: int = MAX_KEPT) -> None:
-        self.keep_seconds = float(keep_seconds)
-        self.max_kept = int(max_kept)
-        self._lock = threading.Lock()
-        self._kept: list[Scratch] = []
-        self._timer: threading.Timer | None = None
-
-    def take(self) -> Scratch:
+    def take(self) -> Scratch:  # type: ignore[override]
         """A kept scratch, or a fresh one."""
         with self._lock:
             if self._kept:
-                return self._kept.pop()
+                return self._kept.pop()  # type: ignore[return-value]
         return Scratch()
 
-    def give(self, scratch: Scratch) -> None:
+    def give(self, scratch: Scratch) -> None:  # type: ignore[override]
         """Keep ``scratch`` (up to ``max_kept``) for the next taker; all are released once
         ``keep_seconds`` pass with no other call of ``give``."""
-        if self.keep_seconds <= 0.0:
-            return
-        with self._lock:
-            if len(self._kept) < self.max_kept:
-                self._kept.append(scratch)
-            if self._timer is not None:
-                self._timer.cancel()
-            self._timer = threading.Timer(self.keep_seconds, self.release)
-            self._timer.daemon = True
-            self._timer.start()
-
-    def release(self) -> None:
-        """Drop every kept scratch: their memory goes back."""
-        with self._lock:
-            self._kept = []
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
-
-    @property
-    def kept(self) -> int:
-        """Scratches held now."""
-        with self._lock:
-            return len(self._kept)
+        super().give([scratch])  # type: ignore[list-item]
 
 
 #: The buffers every trim_regions computation of this process shares.

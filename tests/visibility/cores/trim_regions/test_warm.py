@@ -64,8 +64,8 @@ def test_gather_scratch_given_back_is_taken_again_until_released():
     b = pool.take()
     assert a is not b
     pool.give(a)
-    pool.give(b)  # over max_kept: not kept
-    assert pool.kept == 1 and pool.take() is a and pool.kept == 0
+    pool.give(b)  # over max_kept: the latest is kept
+    assert pool.kept == 1 and pool.take() is b and pool.kept == 0
     pool.give(a)
     pool.release()
     assert pool.kept == 0 and pool.take() is not a
