@@ -314,21 +314,11 @@ def silhouette_trims(cam, ev, ef, eo, many, facing_of, edge_on, near, tan, res, 
                 counts[e] = _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta,
                                       back, margin, row, sides, widths, pts)
     # The trimming edges and where their rows start.
-    n_sil = 0
-    n_rows = 0
-    for e in range(n_e):
-        if counts[e] > 0:
-            n_sil += 1
-            n_rows += counts[e]
-    sil = np.empty(n_sil, dtype=np.int64)
-    start = np.empty(n_sil + 1, dtype=np.int64)
-    w = 0
-    start[0] = 0
-    for e in range(n_e):
-        if counts[e] > 0:
-            sil[w] = e
-            start[w + 1] = start[w] + counts[e]
-            w += 1
+    sil = np.flatnonzero(counts)
+    n_sil = sil.shape[0]
+    start = np.zeros(n_sil + 1, dtype=np.int64)
+    start[1:] = np.cumsum(counts[sil].astype(np.int64))
+    n_rows = start[n_sil]
     trims = np.empty((n_rows, TRIM_COLUMNS))
     layer = np.empty(n_rows, dtype=np.int64)
     if n_sil == 0:

@@ -13,6 +13,7 @@ core is in use, given back when it is idle.
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 from visibility.cores.trim_regions.kbuffer import KBuffer
 from visibility.scratch import Scratch
@@ -23,16 +24,47 @@ KEEP_SECONDS = 5.0
 MAX_KEPT = 4
 
 
-class WarmBuffers:
-    """(k-buffer, scratch) pairs handed to computations and kept after them (see the module
-    docstring). Thread-safe: computations running side by side each take their own pairs."""
+class _Pool:
+    """Items kept for the next taker, all released once ``keep_seconds`` pass with nothing
+    given back (the module docstring). Thread-safe."""
 
     def __init__(self, keep_seconds: float = KEEP_SECONDS, max_kept: int = MAX_KEPT) -> None:
         self.keep_seconds = float(keep_seconds)
         self.max_kept = int(max_kept)
         self._lock = threading.Lock()
-        self._kept: list[tuple[KBuffer, Scratch]] = []
+        self._kept: list[Any] = []
         self._timer: threading.Timer | None = None
+
+    def _keep(self, items: list[Any]) -> None:
+        """Keep ``items`` first (up to ``max_kept`` in all) and restart the release timer."""
+        if self.keep_seconds <= 0.0:
+            return
+        with self._lock:
+            self._kept = (list(items) + self._kept)[:self.max_kept]
+            if self._timer is not None:
+                self._timer.cancel()
+            self._timer = threading.Timer(self.keep_seconds, self.release)
+            self._timer.daemon = True
+            self._timer.start()
+
+    def release(self) -> None:
+        """Drop everything kept: its memory goes back."""
+        with self._lock:
+            self._kept = []
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+
+    @property
+    def kept(self) -> int:
+        """Items held now."""
+        with self._lock:
+            return len(self._kept)
+
+
+class WarmBuffers(_Pool):
+    """(k-buffer, scratch) pairs handed to computations and kept after them (see the module
+    docstring). Thread-safe: computations running side by side each take their own pairs."""
 
     def take(self, pixels: int, count: int) -> tuple[list[tuple[KBuffer, Scratch]], int]:
         """``count`` pairs for views of ``pixels`` pixels: kept ones first (those of another
@@ -47,48 +79,26 @@ class WarmBuffers:
     def give(self, pairs: list[tuple[KBuffer, Scratch]]) -> None:
         """Keep ``pairs`` (up to ``max_kept`` in all) for the next computation, and release
         them all once ``keep_seconds`` pass with no other call of ``give``."""
-        if self.keep_seconds <= 0.0:
-            return
-        with self._lock:
-            self._kept = (list(pairs) + self._kept)[:self.max_kept]
-            if self._timer is not None:
-                self._timer.cancel()
-            self._timer = threading.Timer(self.keep_seconds, self.release)
-            self._timer.daemon = True
-            self._timer.start()
-
-    def release(self) -> None:
-        """Drop every kept pair: their memory goes back."""
-        with self._lock:
-            self._kept = []
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
-
-    @property
-    def kept(self) -> int:
-        """Pairs held now."""
-        with self._lock:
-            return len(self._kept)
+        self._keep(pairs)
 
 
-class WarmScratch(WarmBuffers):
+class WarmScratch(_Pool):
     """Scratch buffers (``visibility.scratch.Scratch``) handed out one at a time and kept
-    for the next taker as ``WarmBuffers`` keeps its pairs (its ``release`` and ``kept``):
+    for the next taker as ``WarmBuffers`` keeps its pairs:
     the views' gathers from v* render over a million samples each into theirs, and fresh
     pages would cost their faults at every view. Thread-safe."""
 
-    def take(self) -> Scratch:  # type: ignore[override]
+    def take(self) -> Scratch:
         """A kept scratch, or a fresh one."""
         with self._lock:
             if self._kept:
-                return self._kept.pop()  # type: ignore[return-value]
+                return self._kept.pop(0)
         return Scratch()
 
-    def give(self, scratch: Scratch) -> None:  # type: ignore[override]
+    def give(self, scratch: Scratch) -> None:
         """Keep ``scratch`` (up to ``max_kept``) for the next taker; all are released once
         ``keep_seconds`` pass with no other call of ``give``."""
-        super().give([scratch])  # type: ignore[list-item]
+        self._keep([scratch])
 
 
 #: The buffers every trim_regions computation of this process shares.
