@@ -196,9 +196,10 @@ def _box_cells(core: Any, name: str, scene: Scene, sides: tuple[float, ...],
 LEAF_SIZES = (256, 1024, 4096)
 
 
-def leaf_sizes(quick: bool) -> list[dict[str, Any]]:
-    """Layers, seconds per phase and PVS at each of ``LEAF_SIZES`` on one 0.2 m sphere per
-    scene (best of 2 after a warm-up that builds that octree)."""
+def leaf_sizes(quick: bool, frames: int) -> list[dict[str, Any]]:
+    """Layers, seconds per phase, PVS and the worst frame's missed pixels at each of
+    ``LEAF_SIZES`` on one 0.2 m sphere per scene (best of 2 after a warm-up that builds that
+    octree), scored on the frames the quality table casts for that cell."""
     core = get_core("trim_regions")
     cases = [("village", 20_000 if quick else 100_000)] + (
         [] if quick else [("lyon_vilo3d", None), ("kitchen", None)])
@@ -206,14 +207,17 @@ def leaf_sizes(quick: bool) -> list[dict[str, Any]]:
     for name, n in cases:
         scene = load(name, n)
         box = sphere_cell(scene, 0.2, 0)
+        cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
         for mp in LEAF_SIZES:
             pvs, _, _ = timed(core, scene, box, max_delta=0.2, max_prims=mp)
             st = pvs.stats
+            e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
             rows.append({"scene": name, "max_prims": mp, "seconds": pvs.seconds,
-                         "layers": st["layers"], "pvs": len(pvs),
+                         "layers": st["layers"], "pvs": len(pvs), "gt": e["gt"],
+                         "fn_pixels_max": e["fn_pixels_max"],
                          **{k: st[k] for k in PHASES}})
-            print(f"leaves {name} max_prims={mp}: {pvs.seconds:.2f} s, {st['layers']} layers",
-                  flush=True)
+            print(f"leaves {name} max_prims={mp}: {pvs.seconds:.2f} s, {st['layers']} layers, "
+                  f"FN px {e['fn_pixels_max']}", flush=True)
     return rows
 
 
@@ -424,13 +428,15 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                 "One sphere of Δ 0.2 m at the grid's middle cell, default resolution, best of 2 "
                 "after a warm-up that builds the octree; `max_prims` is the most triangles an "
                 "octree leaf holds (the default 256). Layers: summed over the 6 views; phases as "
-                "in the speed table.", "",
-                "| scene | max_prims | layers | s | P0 | P1 | P2 | P3 | P4 | PVS |",
-                "|---|---|---|---|---|---|---|---|---|---|"]
+                "in the speed table; GT and FN px max as in the quality table below, on the "
+                "frames it casts for the same cell.", "",
+                "| scene | max_prims | layers | s | P0 | P1 | P2 | P3 | P4 | PVS | GT | "
+                "FN px max |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in leaf_rows:
             out.append(f"| {r['scene']} | {r['max_prims']} | {r['layers']} | "
                        f"{r['seconds']:.2f} | " + " | ".join(f"{v:.2f}" for v in wall_phases(r))
-                       + f" | {r['pvs']:,} |")
+                       + f" | {r['pvs']:,} | {r['gt']:,} | {r['fn_pixels_max']} |")
     out += ["", "## Error and tightness (Fig. 15-16, Table 3)", "",
             f"Two cells per scene (the grid's middle cell and one a third in), the cube whose "
             f"circumscribed sphere is Δ; frames: {frames} eyes stratified in the cube (those "
@@ -511,7 +517,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     frames = 4 if args.quick else args.frames
     speed_rows = speed(args.quick)
-    leaf_rows = leaf_sizes(args.quick)
+    leaf_rows = leaf_sizes(args.quick, frames)
     cell_rows = box_cells(args.quick, frames)
     quality_rows = quality(args.quick, frames)
     side_rows = side_by_side(args.quick, frames)
