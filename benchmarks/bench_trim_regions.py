@@ -196,10 +196,26 @@ def _box_cells(core: Any, name: str, scene: Scene, sides: tuple[float, ...],
 LEAF_SIZES = (256, 1024, 4096)
 
 
-def leaf_sizes(quick: bool, frames: int) -> list[dict[str, Any]]:
+def _cast(casts: dict, name: str, scene: Scene, box: np.ndarray, frames: int,
+          keep: bool) -> Any:
+    """The quality frames of ``box`` (``ray_frames``, seed 1), cast once: taken from
+    ``casts`` when there, else cast, and kept there for a later table (``keep``) or handed
+    over (the last user: frames of a large scene weigh tens of megabytes)."""
+    key = (name, scene.n_triangles, np.asarray(box, float).tobytes(), frames)
+    cast = casts.pop(key, None)
+    if cast is None:
+        cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
+    if keep:
+        casts[key] = cast
+    return cast
+
+
+def leaf_sizes(quick: bool, frames: int, casts: dict | None = None) -> list[dict[str, Any]]:
     """Layers, seconds per phase, PVS and the worst frame's missed pixels at each of
     ``LEAF_SIZES`` on one 0.2 m sphere per scene (best of 2 after a warm-up that builds that
-    octree), scored on the frames the quality table casts for that cell."""
+    octree), scored on the frames the quality table casts for that cell (``casts``, shared
+    with ``quality``)."""
+    casts = {} if casts is None else casts
     core = get_core("trim_regions")
     cases = [("village", 20_000 if quick else 100_000)] + (
         [] if quick else [("lyon_vilo3d", None), ("kitchen", None)])
@@ -207,7 +223,7 @@ def leaf_sizes(quick: bool, frames: int) -> list[dict[str, Any]]:
     for name, n in cases:
         scene = load(name, n)
         box = sphere_cell(scene, 0.2, 0)
-        cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
+        cast = _cast(casts, name, scene, box, frames, keep=True)
         for mp in LEAF_SIZES:
             pvs, _, _ = timed(core, scene, box, max_delta=0.2, max_prims=mp)
             st = pvs.stats
@@ -228,9 +244,10 @@ def _build_seconds(core: Any, scene: Scene) -> float:
     return build_scene_data(scene).build_seconds
 
 
-def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
-    """Each cell's frames cast once (``ray_frames``), scoring the core at its defaults and by
-    with the sampling add-on (``gather_eyes``: eyes of the cell sampled into the answer)."""
+def quality(quick: bool, frames: int, casts: dict | None = None) -> list[dict[str, Any]]:
+    """Each cell's frames cast once (``ray_frames``; those ``leaf_sizes`` cast are taken from
+    ``casts``), scoring the core at its defaults and with the sampling add-on
+    (``gather_eyes``: eyes of the cell sampled into the answer)."""
     core = get_core("trim_regions")
     n = 5_000 if quick else 20_000
     cases: list[tuple[str, Any, tuple[float, ...]]] = [
@@ -249,7 +266,8 @@ def quality(quick: bool, frames: int) -> list[dict[str, Any]]:
                                      core.make_params(max_delta=delta, gather_eyes=GATHER_EYES))
                 centres = core.compute(scene, Viewcell(box),
                                        core.make_params(max_delta=delta, small="centres"))
-                cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
+                cast = _cast({} if casts is None else casts, name, scene, box, frames,
+                             keep=False)
                 e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
                 e0 = frame_errors(scene, gathered.triangle_ids, box, frames=cast)
                 e1 = frame_errors(scene, centres.triangle_ids, box, frames=cast)
@@ -517,9 +535,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     frames = 4 if args.quick else args.frames
     speed_rows = speed(args.quick)
-    leaf_rows = leaf_sizes(args.quick, frames)
+    # The leaf table's cells are quality cells too: their frames are cast once.
+    casts: dict = {}
+    leaf_rows = leaf_sizes(args.quick, frames, casts)
     cell_rows = box_cells(args.quick, frames)
-    quality_rows = quality(args.quick, frames)
+    quality_rows = quality(args.quick, frames, casts)
+    casts.clear()
     side_rows = side_by_side(args.quick, frames)
     elapsed = time.perf_counter() - t0
     out = args.out

@@ -7,7 +7,8 @@ from benchmarks import bench_trim_regions as bench
 
 def test_leaf_sizes_score_every_size_on_the_same_frames(monkeypatch):
     monkeypatch.setattr(bench, "LEAF_SIZES", (256, 4096))
-    rows = bench.leaf_sizes(quick=True, frames=2)
+    casts: dict = {}
+    rows = bench.leaf_sizes(quick=True, frames=2, casts=casts)
     assert [r["max_prims"] for r in rows] == [256, 4096]
     # The ground truth is the frames' triangles: one cast serves every leaf size.
     assert rows[0]["gt"] == rows[1]["gt"] > 0
@@ -16,3 +17,8 @@ def test_leaf_sizes_score_every_size_on_the_same_frames(monkeypatch):
     for r in rows:
         assert r["pvs"] > 0 and r["seconds"] > 0
         assert 0 <= r["fn_pixels_max"] <= 6 * 256 * 256
+    # The cast is kept for the quality table, which scores the same cell: taken, not recast.
+    (key, cast), = casts.items()
+    scene = bench.load("village", 20_000)
+    box = bench.sphere_cell(scene, 0.2, 0)
+    assert bench._cast(casts, "village", scene, box, 2, keep=False) is cast and not casts
