@@ -524,7 +524,8 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     t1 = time.perf_counter()
     cam = to_camera(verts, view.vstar, view.rot)
     reach = Reach(data.normal_of, np.ascontiguousarray(view.rot, dtype=np.float64),
-                  float(view.tan), int(res), float(view.delta + view.back))
+                  float(view.tan), int(res), float(view.delta + view.back), cam, data.faces,
+                  float(view.back), float(view.delta))
     s = len(data.static)
     # setup_triangles writes every row of these (no polygon outside the drawn leaves).
     scratch = Scratch() if scratch is None else scratch

@@ -80,6 +80,11 @@ class Reach(NamedTuple):
     tan : tangent of the view's half field of view.
     res : pixels across the view.
     lateral : how far from v* an eye of the sphere may lie, Δ + R, metres (inf: no bound).
+    cam : (n, 3) float64 the scene's vertices in the view's camera frame (v* at the origin),
+        metres; (0, 3): no face's own umbra (``_self_umbra``) is used.
+    faces : (m, 3) int64 each triangle id's vertex rows of ``cam``.
+    back : R, how far v* lies behind the sphere's centre (along the view axis), metres.
+    delta : Δ, the sphere's radius, metres.
     """
 
     normal: np.ndarray
@@ -87,6 +92,10 @@ class Reach(NamedTuple):
     tan: float
     res: int
     lateral: float
+    cam: np.ndarray = np.zeros((0, 3))
+    faces: np.ndarray = np.zeros((0, 3), dtype=np.int64)
+    back: float = 0.0
+    delta: float = 0.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -146,6 +155,99 @@ def _deepest_over_pixel(reach, ident, p, d):  # pragma: no cover - numba
             if t > deepest:
                 deepest = t
     return deepest
+
+
+@njit(cache=True, nogil=True)
+def _self_umbra(reach, ident, p, d):  # pragma: no cover - numba
+    """How deep triangle ``ident``, met at depth d on pixel p's centre ray, hides on its own
+    the points behind it on any ray through the pixel's square from every eye of the sphere
+    (d: no further than itself; inf: all of them).
+
+    A triangle is an occluder whether or not its edges are silhouettes: a trim fragment of
+    another edge (the back edge of a thick wall, a neighbour's rim) validates the interval
+    with the umbra of that edge, but an eye that sees past that edge must still see past
+    this triangle. An eye e = v* + w (|w x r| <= R |(rx, ry)| + Δ |r| over the sphere, r the
+    ray (rx, ry, -1)) sees the ray's point X at depth z > d only through the triangle's
+    plane, which the segment e-X crosses at most (z - d) K / ((z - d) c + D) from the ray's
+    hit H, with c = |n . r| and D the sphere's distance to the plane; the triangle holds
+    that crossing while it stays within s of H, s the distance from H to the triangle's
+    edges in its plane less the spread of the pixel's square over the plane. So X is hidden
+    for z up to d + s D / (K - s c) (every z where K <= s c), d taken where the plane lies
+    nearest over the square. Not for a plane through the
+    sphere or with v* on its other side."""
+    if reach.cam.shape[0] == 0 or ident < 0:
+        return d
+    rx, ry, nx, ny, nz = _ray_and_normal(reach, ident, p)
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn == 0.0:
+        return d
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    hx, hy, hz = d * rx, d * ry, -d
+    # v* (the origin) and the sphere's centre (0, 0, -R) on one side, the sphere clear of it.
+    sv = -(nx * hx + ny * hy + nz * hz)
+    sc = sv - nz * reach.back
+    if sv * sc <= 0.0:
+        return d
+    dist = abs(sc) - reach.delta
+    if not dist > 0.0:
+        return d
+    f = reach.faces[ident]
+    cam = reach.cam
+    s = np.inf
+    for k in range(3):
+        a = f[k]
+        b = f[(k + 1) % 3]
+        o = f[(k + 2) % 3]
+        ex = cam[b, 0] - cam[a, 0]
+        ey = cam[b, 1] - cam[a, 1]
+        ez = cam[b, 2] - cam[a, 2]
+        # In-plane normal of the edge, n x e, turned towards the opposite corner.
+        mx = ny * ez - nz * ey
+        my = nz * ex - nx * ez
+        mz = nx * ey - ny * ex
+        ml = np.sqrt(mx * mx + my * my + mz * mz)
+        if ml == 0.0:
+            return d
+        side = mx * (cam[o, 0] - cam[a, 0]) + my * (cam[o, 1] - cam[a, 1]) \
+            + mz * (cam[o, 2] - cam[a, 2])
+        if side == 0.0:
+            return d
+        g = (mx * (hx - cam[a, 0]) + my * (hy - cam[a, 1]) + mz * (hz - cam[a, 2])) / ml
+        if side < 0.0:
+            g = -g
+        s = min(s, g)
+    # The pixel's square: its corner rays meet the plane within ``spread`` of H, and their
+    # slant bounds K and c over the square.
+    h = reach.tan / reach.res
+    kp = nx * hx + ny * hy + nz * hz
+    spread = 0.0
+    c = np.inf
+    nearest = d
+    for su in (-1.0, 1.0):
+        for sv_ in (-1.0, 1.0):
+            cx = rx + su * h
+            cy = ry + sv_ * h
+            den = nx * cx + ny * cy - nz
+            if den == 0.0:
+                return d
+            t = kp / den
+            if not t > 0.0:
+                return d
+            spread = max(spread, np.sqrt((t * cx - hx) ** 2 + (t * cy - hy) ** 2
+                                         + (-t - hz) ** 2))
+            c = min(c, abs(den))
+            nearest = min(nearest, t)
+    s -= spread
+    if not s > 0.0:
+        return d
+    ax = abs(rx) + h
+    ay = abs(ry) + h
+    lat = np.sqrt(ax * ax + ay * ay)
+    kk = reach.back * lat + reach.delta * np.sqrt(lat * lat + 1.0)
+    if kk <= s * c:
+        return np.inf
+    # From the plane's nearest point over the square: the bound grows as the hit comes nearer.
+    return max(d, nearest + s * dist / (kk - s * c))
 
 
 class SortScratch(NamedTuple):
@@ -256,6 +358,19 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
         if d <= cov:
             if sk[i] != BACK:
                 hid[p] = closed[si[i]] + 1
+            # Hidden, it still stands in the way of what lies behind it: all of it (the pixel
+            # is sealed there) or up to its own umbra (a hidden span).
+            uf = _self_umbra(reach, si[i], p, d)
+            if uf > cov:
+                if uf == np.inf:
+                    seal[p] = _deepest_over_pixel(reach, si[i], p, d)
+                    sealed = True
+                    break
+                if n_spans[p] < spans.shape[1]:
+                    spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, d)
+                    spans[p, n_spans[p], 1] = uf
+                    n_spans[p] += 1
+                cov = uf
             last = d
             i += 1
             continue
@@ -306,7 +421,13 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             u = _umbra_in(sd, sk, si, su, sr, n, d - tol, hi, own, own)
             last = d
             if u >= 0:
+                u = max(u, _self_umbra(reach, si[i], p, d))
                 stats[3] += 1
+                if u == np.inf:
+                    # The face alone hides everything behind it: the pixel ends here.
+                    seal[p] = _deepest_over_pixel(reach, si[i], p, d)
+                    sealed = True
+                    break
                 if u > d and n_spans[p] < spans.shape[1]:
                     spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, d)
                     spans[p, n_spans[p], 1] = u
@@ -329,13 +450,20 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                       piece[si[end_second]])
         last = b
         if u >= 0:
+            # The interval's front face hides on its own too (``_self_umbra``).
+            u = max(u, _self_umbra(reach, si[i], p, d))
             stats[0] += 1
             # The closing back face is the occluder's own back, never seen, only when it and
             # the face before it (the simple interval's front) belong to one closed part; any
             # other back face beyond the umbra (a single-sided wall seen from behind, as in
             # lavaducts) may be seen past the occluder's silhouette: reported, and the walk
-            # goes on behind it as before.
-            upto = max(u, b)
+            # goes on behind it as before. Inside the umbra, it hides on its own what lies
+            # behind it (a cover is one depth: a back face seen leaves what lies between the
+            # umbra and it to later layers).
+            ub = u
+            if u >= b * (1.0 - DEPTH_TOL):
+                ub = max(u, _self_umbra(reach, si[end_second], p, b))
+            upto = max(ub, b)
             part = closed[si[end_second]]
             if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
                 vis[si[end_second]] = 1
@@ -344,8 +472,11 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                 spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, sd[i])
                 spans[p, n_spans[p], 1] = upto
                 n_spans[p] += 1
-            if u > cov:
-                cov = u
+            cov = max(cov, ub)
+            if cov == np.inf:
+                seal[p] = _deepest_over_pixel(reach, si[i], p, sd[i])
+                sealed = True
+                break
             i = end_second + 1
             continue
         stats[1] += 1

@@ -256,3 +256,104 @@ def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
     vis2 = np.zeros(16, dtype=np.uint8)
     resolve_pixel(kb2, none, none, _reach(), 0, True, vis2, np.zeros(4, dtype=np.int64))
     assert set(np.flatnonzero(vis2).tolist()) == {0} and kb2.seal[0] == 2.0
+
+
+def _one_triangle_view(tri, res, back, delta):
+    """A view of ``res`` px (tan 1) whose only triangle, id 0, has camera-space corners
+    ``tri`` (3, 3); v* at the origin, the sphere of radius ``delta`` around (0, 0, -back)."""
+    normal = np.zeros((16, 3))
+    n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+    normal[0] = n / np.linalg.norm(n)
+    faces = np.zeros((16, 3), dtype=np.int64)
+    faces[0] = (0, 1, 2)
+    return Reach(normal, np.eye(3), 1.0, res, float(back + delta),
+                 np.ascontiguousarray(tri, dtype=np.float64), faces, float(back), float(delta))
+
+
+def _crosses(e, x, tri):
+    """(k,) whether segments e-x (k, 3) cross triangle ``tri`` (Moller-Trumbore, float64)."""
+    d = x - e
+    e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
+    pv = np.cross(d, e2)
+    inv = 1.0 / np.einsum("ij,j->i", pv, e1)
+    tv = e - tri[0]
+    u = np.einsum("ij,ij->i", tv, pv) * inv
+    qv = np.cross(tv, e1)
+    v = np.einsum("ij,ij->i", d, qv) * inv
+    t = (qv @ e2) * inv
+    return (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1)
+
+
+def test_a_triangle_hides_on_its_own_up_to_its_umbra_from_every_eye():
+    # _self_umbra's bound, sampled: eyes anywhere in the sphere, rays through random points of
+    # the pixel's square, points on them between the triangle and its umbra: every segment
+    # from an eye to such a point crosses the triangle. Random triangles facing v* or turned
+    # away, near and far, large and small; the bound is not vacuous (finite and infinite
+    # umbrae both occur).
+    from visibility.cores.trim_regions.resolve import _self_umbra
+
+    rng = np.random.default_rng(11)
+    res, checked, finite, infinite = 16, 0, 0, 0
+    for _ in range(300):
+        back, delta = rng.uniform(0.0, 0.4), rng.uniform(0.01, 0.3)
+        p = int(rng.integers(res * res))
+        rx = (p % res + 0.5) / (0.5 * res) - 1.0
+        ry = 1.0 - (p // res + 0.5) / (0.5 * res)
+        d = rng.uniform(0.5, 8.0)
+        hit = d * np.array([rx, ry, -1.0])
+        # A triangle around the hit: random plane and size, the hit inside it.
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        ang = rng.uniform(0, 2 * np.pi) + np.array([0.0, 2.1, 4.2]) + rng.uniform(-0.3, 0.3, 3)
+        rad = rng.uniform(0.05, 6.0) * rng.uniform(0.3, 1.0, 3)
+        tri = hit + (rad * np.cos(ang))[:, None] * a + (rad * np.sin(ang))[:, None] * b
+        reach = _one_triangle_view(tri, res, back, delta)
+        u = _self_umbra(reach, 0, p, d)
+        assert u >= d
+        if u == d:
+            continue
+        finite += u < INF
+        infinite += u == INF
+        m = 400
+        e = rng.normal(size=(m, 3))
+        e *= (delta * rng.uniform(0, 1, m) ** (1 / 3) / np.linalg.norm(e, axis=1))[:, None]
+        e[:, 2] -= back
+        h = 1.0 / res
+        r = np.stack([rx + rng.uniform(-h, h, m), ry + rng.uniform(-h, h, m), -np.ones(m)], 1)
+        # The triangle's depth along each ray, then a point between it and the umbra (none
+        # where the triangle lies deeper than the umbra on that ray).
+        t = (tri[0] @ reach.normal[0]) / (r @ reach.normal[0])
+        top = np.minimum(u, t + 50.0)
+        z = t + rng.uniform(0, 1, m) * (top - t)
+        ok = (t > 0) & (top > t)
+        assert _crosses(e[ok], z[ok, None] * r[ok], tri).all()
+        checked += int(ok.sum())
+    assert checked > 10_000 and finite > 20 and infinite > 5
+
+
+def test_a_large_face_hides_what_a_shallow_umbra_of_another_edge_would_show():
+    # A wall facing v* 2 m ahead, metres wide around the pixel's ray; a trim fragment of
+    # another edge (its back edge) validates the interval with an umbra at its own depth. The
+    # wall alone still hides the surface 3 m behind it from every eye of a 5 cm sphere: the
+    # pixel seals there and only the wall is seen. With no geometry (the paper's resolve) the
+    # surface behind is seen. Pixel 0 of a 64 px view: its ray runs to the top left corner.
+    res = 64
+    ray = np.array([1.0 / res - 1.0, 1.0 - 1.0 / res, -1.0])
+    wall = np.array([[-9.0, -3.0, -2.0], [5.0, -3.0, -2.0], [-9.0, 9.0, -2.0]])
+    seq = [(FRONT, 2.0, 0, 0), (TRIM, 2.2, -1, 2.2), (BACK, 2.2, 1, 0), (FRONT, 5.0, 2, 0),
+           (BACK, 5.5, 3, 0)]
+    vis, sealed, seal, _, _ = _resolve(seq, reach=_one_triangle_view(wall, res, 0.07, 0.05))
+    assert vis == {0} and sealed and seal == 2.0
+    vis, sealed, _, _, _ = _resolve(seq)
+    assert vis == {0, 2} and sealed
+    # A plane through the sphere stands beside some eyes: no umbra of its own.
+    hit, centre = 2.0 * ray, np.array([0.0, 0.0, -0.07])
+    u1 = (hit - centre) / np.linalg.norm(hit - centre)
+    u2 = np.cross(u1, [0.0, 0.0, 1.0])
+    u2 /= np.linalg.norm(u2)
+    through = hit + np.array([[-9.0, -9.0], [9.0, -9.0], [0.0, 9.0]]) @ np.stack([u1, u2])
+    vis, _, _, _, _ = _resolve(seq, reach=_one_triangle_view(through, res, 0.07, 0.05))
+    assert 2 in vis
