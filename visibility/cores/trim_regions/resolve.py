@@ -371,6 +371,20 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                     spans[p, n_spans[p], 1] = uf
                     n_spans[p] += 1
                 cov = uf
+            # A hidden front face closed by the back face right after it, with no trim
+            # fragment of theirs in between, ends the ray as a terminator does: no eye sees
+            # past that solid here, whether or not any eye sees the solid (not reported).
+            if sk[i] != BACK:
+                j = i + 1
+                while j < n and sk[j] == TRIM:
+                    j += 1
+                if j < n and sk[j] == BACK and not _apart(closed, si[i], si[j]):
+                    bj = sd[j]
+                    if _umbra_in(sd, sk, si, su, sr, n, d - tol, bj + DEPTH_TOL * bj,
+                                 piece[si[i]], piece[si[j]]) < 0:
+                        seal[p] = d
+                        sealed = True
+                        break
             last = d
             i += 1
             continue

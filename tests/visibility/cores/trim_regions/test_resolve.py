@@ -48,12 +48,16 @@ def test_an_untrimmed_box_hides_what_is_behind_it():
 
 
 def test_a_trimmed_box_shows_what_lies_behind_its_umbra_only():
-    # Trim fragment inside [1, 2] with umbra at 4: the triangle at 3 is in the umbra, the one
-    # at 5 is seen (and terminates the ray).
+    # Trim fragment inside [1, 2] with umbra at 4: the box at 3 (trimmed too) is in the
+    # umbra, the one at 5 is seen (and terminates the ray).
     seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (FRONT, 3.0, 2, 0),
-           (BACK, 3.5, 3, 0), (FRONT, 5.0, 4, 0), (BACK, 5.5, 5, 0)]
+           (TRIM, 3.2, -1, 3.6), (BACK, 3.5, 3, 0), (FRONT, 5.0, 4, 0), (BACK, 5.5, 5, 0)]
     vis, sealed, seal, cover, _ = _resolve(seq)
     assert vis == {0, 4} and sealed and seal == 5.0 and cover == 4.0
+    # Untrimmed, the box in the umbra is not seen but still ends the ray: no eye sees past
+    # it here.
+    vis, sealed, seal, cover, _ = _resolve(seq[:4] + seq[5:])
+    assert vis == {0} and sealed and seal == 3.0 and cover == 4.0
 
 
 def test_a_trim_fragment_outside_the_interval_does_not_validate_it():
@@ -91,11 +95,13 @@ def test_a_back_face_is_reported_unless_a_front_face_of_its_closed_part_hid_befo
     alone = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 1, 0), (BACK, 4.5, 7, 0)]
     vis, sealed, _, _, _ = _resolve(alone)
     assert vis == {0, 7} and sealed
-    # The hidden front face belongs to no closed part, or to another one: the back face
-    # behind the umbra may be seen (single-sided or inward-wound geometry).
-    for closed in (None, {6: 3, 7: 4}):
-        vis, sealed, _, _, _ = _resolve(hidden, closed=closed)
-        assert vis == {0, 7} and sealed
+    # The hidden front face belongs to another closed part: the back face behind the umbra
+    # may be seen (single-sided or inward-wound geometry). On no closed part, the two bound
+    # an untrimmed interval, which ends the ray.
+    vis, sealed, _, _, _ = _resolve(hidden, closed={6: 3, 7: 4})
+    assert vis == {0, 7} and sealed
+    vis, sealed, seal, _, _ = _resolve(hidden)
+    assert vis == {0} and sealed and seal == 3.0
 
 
 def test_an_inward_wound_corner_is_trimmed_by_the_edge_it_shares_with_its_exit_face():
@@ -196,16 +202,21 @@ def test_a_front_face_apart_from_its_back_face_reads_single_sided():
     vis, sealed, seal, _, _ = _resolve(box, closed={1: 5}, piece=PIECES)
     assert vis == {0} and sealed and seal == 1.9
     # Both faces on no closed part (a soup: a building of unwelded walls): the paper's
-    # interval, validated by the trim of the back face's piece: hidden up to its umbra (the
-    # box's front at 9.0), the back face at 9.5 seen past it.
-    vis, _, _, cover, _ = _resolve(box, piece=PIECES)
-    assert vis == {0, 4} and cover == 9.4
+    # interval, validated by the trim of the back face's piece: hidden up to its umbra, which
+    # ends inside the untrimmed box behind (9.0-9.5): the box, hidden, ends the ray there.
+    vis, sealed, seal, cover, _ = _resolve(box, piece=PIECES)
+    assert vis == {0} and sealed and seal == 9.0 and cover == 9.4
 
 
 def test_entries_in_a_carried_umbra_are_hidden():
-    seq = [(FRONT, 5.0, 2, 0), (BACK, 5.5, 3, 0), (FRONT, 9.0, 4, 0), (BACK, 9.5, 5, 0)]
+    # A trimmed box in a carried umbra is hidden, the one behind the umbra seen; an untrimmed
+    # one in the umbra is hidden and ends the ray.
+    seq = [(FRONT, 5.0, 2, 0), (TRIM, 5.2, -1, 5.8), (BACK, 5.5, 3, 0), (FRONT, 9.0, 4, 0),
+           (BACK, 9.5, 5, 0)]
     vis, sealed, seal, _, _ = _resolve(seq, cover=6.0)
     assert vis == {4} and sealed and seal == 9.0
+    vis, sealed, seal, _, _ = _resolve(seq[:1] + seq[2:], cover=6.0)
+    assert vis == set() and sealed and seal == 5.0
 
 
 def test_a_back_face_beyond_the_umbra_is_seen_unless_it_is_the_occluders_own():
@@ -235,14 +246,15 @@ def test_the_back_of_a_closed_box_inside_a_trimmed_run_stays_hidden():
 
 
 def test_a_merged_trim_validates_every_interval_its_depth_range_meets():
-    # A trim entry spanning [1.2, 3.5] (fragments merged on a full buffer) with umbra 4: the
-    # box [2, 2.5] holds no fragment's own depth, but the range meets it, so it is trimmed
-    # (its front seen, what lies in the umbra hidden) and the face at 5 is seen beyond.
+    # A trim entry spanning [1.2, 3.85] (fragments merged on a full buffer) with umbra 4:
+    # the boxes [2, 2.5] and [3.8, 3.9] hold no fragment's own depth, but the range meets
+    # them, so they are trimmed (the first one's front seen, what lies in the umbra hidden)
+    # and the face at 5 is seen beyond.
     kb = KBuffer.empty(1)
     seq = [(FRONT, 2.0, 0, 0.0), (BACK, 2.5, 1, 0.0), (FRONT, 3.8, 2, 0.0), (BACK, 3.9, 3, 0.0),
            (FRONT, 5.0, 4, 0.0), (BACK, 6.0, 5, 0.0), (TRIM, 1.2, -1, 4.0)]
     for q, (kind, d, ident, um) in enumerate(seq):
-        kb.put(0, q, kind, d, ident, um, 3.5 if q == len(seq) - 1 else None)
+        kb.put(0, q, kind, d, ident, um, 3.85 if q == len(seq) - 1 else None)
     kb.count[0] = len(seq)
     vis = np.zeros(16, dtype=np.uint8)
     none = np.full(16, -1, dtype=np.int64)
