@@ -142,19 +142,35 @@ def _deepest_over_pixel(reach, ident, p, d):  # pragma: no cover - numba
     rx, ry, nx, ny, nz = _ray_and_normal(reach, ident, p)
     if nx == 0.0 and ny == 0.0 and nz == 0.0:
         return d
-    h = reach.tan / reach.res
-    # The plane holds the centre's point d * (rx, ry, -1).
+    return _square_on_plane(rx, ry, nx, ny, nz, reach.tan / reach.res, d)[0]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _square_on_plane(rx, ry, nx, ny, nz, h, d):  # pragma: no cover - numba
+    """Where the corner rays of the pixel square (rx, ry) +- h (tan units) meet the plane of
+    normal n (unit for the last value) through the centre ray's point at depth d: (deepest
+    depth, nearest depth, farthest distance from the centre's point, least |n . r| over the
+    corner rays r = (x, y, -1)); (inf, d, inf, 0) where the plane turns edge-on within the
+    square. The square's image on the plane is the convex hull of the corners' points."""
     k = d * (nx * rx + ny * ry - nz)
     deepest = d
+    nearest = d
+    spread = 0.0
+    c = np.inf
     for su in (-1.0, 1.0):
         for sv in (-1.0, 1.0):
-            den = nx * (rx + su * h) + ny * (ry + sv * h) - nz
+            cx = rx + su * h
+            cy = ry + sv * h
+            den = nx * cx + ny * cy - nz
             t = k / den if den != 0.0 else np.inf
-            if not t > 0.0:
-                return np.inf
-            if t > deepest:
-                deepest = t
-    return deepest
+            if not (t > 0.0 and t < np.inf):
+                return np.inf, d, np.inf, 0.0
+            deepest = max(deepest, t)
+            nearest = min(nearest, t)
+            spread = max(spread, np.sqrt((t * cx - d * rx) ** 2 + (t * cy - d * ry) ** 2
+                                         + (d - t) ** 2))
+            c = min(c, abs(den))
+    return deepest, nearest, spread, c
 
 
 @njit(cache=True, nogil=True)
@@ -219,24 +235,9 @@ def _self_umbra(reach, ident, p, d):  # pragma: no cover - numba
     # The pixel's square: its corner rays meet the plane within ``spread`` of H, and their
     # slant bounds K and c over the square.
     h = reach.tan / reach.res
-    kp = nx * hx + ny * hy + nz * hz
-    spread = 0.0
-    c = np.inf
-    nearest = d
-    for su in (-1.0, 1.0):
-        for sv_ in (-1.0, 1.0):
-            cx = rx + su * h
-            cy = ry + sv_ * h
-            den = nx * cx + ny * cy - nz
-            if den == 0.0:
-                return d
-            t = kp / den
-            if not t > 0.0:
-                return d
-            spread = max(spread, np.sqrt((t * cx - hx) ** 2 + (t * cy - hy) ** 2
-                                         + (-t - hz) ** 2))
-            c = min(c, abs(den))
-            nearest = min(nearest, t)
+    deepest, nearest, spread, c = _square_on_plane(rx, ry, nx, ny, nz, h, d)
+    if deepest == np.inf:
+        return d
     s -= spread
     if not s > 0.0:
         return d
@@ -248,6 +249,16 @@ def _self_umbra(reach, ident, p, d):  # pragma: no cover - numba
         return np.inf
     # From the plane's nearest point over the square: the bound grows as the hit comes nearer.
     return max(d, nearest + s * dist / (kk - s * c))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_span(spans, n_spans, p, lo, hi):  # pragma: no cover - numba
+    """Record the hidden span [lo, hi] of pixel p when its list has room (a span left out
+    only hides less)."""
+    if n_spans[p] < spans.shape[1]:
+        spans[p, n_spans[p], 0] = lo
+        spans[p, n_spans[p], 1] = hi
+        n_spans[p] += 1
 
 
 class SortScratch(NamedTuple):
@@ -366,10 +377,7 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                     seal[p] = _deepest_over_pixel(reach, si[i], p, d)
                     sealed = True
                     break
-                if n_spans[p] < spans.shape[1]:
-                    spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, d)
-                    spans[p, n_spans[p], 1] = uf
-                    n_spans[p] += 1
+                _push_span(spans, n_spans, p, _deepest_over_pixel(reach, si[i], p, d), uf)
                 cov = uf
             # A hidden front face closed by the back face right after it, with no trim
             # fragment of theirs in between, ends the ray as a terminator does: no eye sees
@@ -442,10 +450,8 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                     seal[p] = _deepest_over_pixel(reach, si[i], p, d)
                     sealed = True
                     break
-                if u > d and n_spans[p] < spans.shape[1]:
-                    spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, d)
-                    spans[p, n_spans[p], 1] = u
-                    n_spans[p] += 1
+                if u > d:
+                    _push_span(spans, n_spans, p, _deepest_over_pixel(reach, si[i], p, d), u)
                 if u > cov:
                     cov = u
                 i += 1
@@ -482,10 +488,7 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
                 vis[si[end_second]] = 1
                 upto = u
-            if n_spans[p] < spans.shape[1]:
-                spans[p, n_spans[p], 0] = _deepest_over_pixel(reach, si[i], p, sd[i])
-                spans[p, n_spans[p], 1] = upto
-                n_spans[p] += 1
+            _push_span(spans, n_spans, p, _deepest_over_pixel(reach, si[i], p, sd[i]), upto)
             cov = max(cov, ub)
             if cov == np.inf:
                 seal[p] = _deepest_over_pixel(reach, si[i], p, sd[i])
