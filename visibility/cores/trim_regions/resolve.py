@@ -30,7 +30,11 @@ the next surface's depth may be the face's own: the edge an inward-wound face sh
 face the ray leaves by, as in the Quake level lavaducts), else it terminates the pixel. A front
 face read so takes only trims as deep as an eye of the sphere can pass its rim
 (``_front_reach``): a room's wall is one connected piece with the rims inside the room behind
-it, which no eye outside sees past the wall.
+it, which no eye outside sees past the wall. A back face read so also takes the trims in front
+of it back to the last surface, no nearer than its own nearest corner (``_rim_from``): the ray
+was inside what it closes since then, and its rim may lie in front of it (a sloped wall seen
+from behind recedes from the edge that eyes of the sphere on the wall's other side see past;
+a carried back face keeps those trims in its residual sequence).
 
 A validated interval's hidden span (``KBuffer.spans``, what the footprint tests of small
 triangles take as hidden) starts where its face lies deepest over the pixel's square
@@ -308,6 +312,20 @@ def _umbra_in(sd, sk, si, su, sr, n, lo, hi, pa, pb):  # pragma: no cover - numb
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _rim_from(reach, ident, last):  # pragma: no cover - numba
+    """Depth from which trim fragments may be the rim of back face ``ident`` met after a
+    surface at depth ``last`` (-1: none): behind that surface (a trim at its depth is its
+    own) and no nearer than the face's nearest corner (a nearer trim is another edge's: in
+    a level of one connected piece the piece says nothing). -1: every trim in front of it."""
+    lo = last * (1.0 + DEPTH_TOL) if last >= 0 else -1.0
+    if reach.cam.shape[0] > 0 and ident >= 0:
+        f = reach.faces[ident]
+        z = min(-reach.cam[f[0], 2], -reach.cam[f[1], 2], -reach.cam[f[2], 2])
+        lo = max(lo, z * (1.0 - DEPTH_TOL))
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
     """Whether back face ``ident`` belongs to the closed part h - 1 whose front face hid."""
     return h > 0 and closed[ident] + 1 == h
@@ -382,14 +400,24 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             # A hidden front face closed by the back face right after it, with no trim
             # fragment of theirs in between, ends the ray as a terminator does: no eye sees
             # past that solid here, whether or not any eye sees the solid (not reported).
+            # Two faces of open geometry (a level's walls, one open part) need not bound a
+            # solid: then the back face's trims up to the next surface count too, as when it
+            # is read on its own (which they would validate).
             if sk[i] != BACK:
                 j = i + 1
                 while j < n and sk[j] == TRIM:
                     j += 1
                 if j < n and sk[j] == BACK and not _apart(closed, si[i], si[j]):
-                    bj = sd[j]
-                    if _umbra_in(sd, sk, si, su, sr, n, d - tol, bj + DEPTH_TOL * bj,
-                                 piece[si[i]], piece[si[j]]) < 0:
+                    hi = sd[j] * (1.0 + DEPTH_TOL)
+                    if closed[si[i]] < 0:
+                        # Nothing after it yet: what validates it may come in a later layer.
+                        hi = np.inf if final else -1.0
+                        for q in range(j + 1, n):
+                            if sk[q] != TRIM:
+                                hi = sd[q] * (1.0 + DEPTH_TOL)
+                                break
+                    if hi >= 0 and _umbra_in(sd, sk, si, su, sr, n, d - tol, hi,
+                                             piece[si[i]], piece[si[j]]) < 0:
                         seal[p] = d
                         sealed = True
                         break
@@ -440,7 +468,15 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             if k0 != BACK:
                 hi = min(hi, _front_reach(reach, si[i], p, d) + tol)
             own = piece[si[i]]
-            u = _umbra_in(sd, sk, si, su, sr, n, d - tol, hi, own, own)
+            # A back face read so closes what the ray was inside since the last surface
+            # (from v* if none): its piece's rim may lie in front of it along the ray (a
+            # sloped wall seen from behind, receding from the edge an eye of the sphere sees
+            # past), so its trims count from just behind that surface (a trim at the
+            # surface's own depth is that surface's).
+            lo = d - tol
+            if k0 == BACK:
+                lo = _rim_from(reach, si[i], last)
+            u = _umbra_in(sd, sk, si, su, sr, n, lo, hi, own, own)
             last = d
             if u >= 0:
                 u = max(u, _self_umbra(reach, si[i], p, d))
@@ -509,7 +545,9 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
     # an interval that starts at or behind it.
     w = 0
     if keep_from < n:
-        lim = sd[keep_from] * (1.0 - DEPTH_TOL)
+        # A carried back face keeps the trims since the last surface (see above).
+        lim = (sd[keep_from] * (1.0 - DEPTH_TOL) if sk[keep_from] != BACK
+               else _rim_from(reach, si[keep_from], last))
     elif last >= 0:
         lim = last * (1.0 - DEPTH_TOL)
     else:

@@ -56,8 +56,18 @@ def test_a_trimmed_box_shows_what_lies_behind_its_umbra_only():
     assert vis == {0, 4} and sealed and seal == 5.0 and cover == 4.0
     # Untrimmed, the box in the umbra is not seen but still ends the ray: no eye sees past
     # it here.
-    vis, sealed, seal, cover, _ = _resolve(seq[:4] + seq[5:])
-    assert vis == {0} and sealed and seal == 3.0 and cover == 4.0
+    untrimmed = seq[:4] + seq[5:]
+    for closed in ({2: 1, 3: 1}, None):
+        vis, sealed, seal, cover, _ = _resolve(untrimmed, closed=closed)
+        assert vis == {0} and sealed and seal == 3.0 and cover == 4.0
+    # A trim of theirs behind the back face, before the next surface: on a closed part it is
+    # not the box's (which is solid); faces of open geometry (a level's walls) need not bound
+    # a solid, and that trim would validate the back face read on its own: the ray goes on.
+    rim = untrimmed[:5] + [(TRIM, 3.8, -1, 4.6)] + untrimmed[5:]
+    vis, _, seal, _, _ = _resolve(rim, closed={2: 1, 3: 1})
+    assert vis == {0} and seal == 3.0
+    vis, _, seal, _, _ = _resolve(rim)
+    assert vis == {0, 4} and seal == 5.0
 
 
 def test_a_trim_fragment_outside_the_interval_does_not_validate_it():
@@ -102,6 +112,9 @@ def test_a_back_face_is_reported_unless_a_front_face_of_its_closed_part_hid_befo
     assert vis == {0, 7} and sealed
     vis, sealed, seal, _, _ = _resolve(hidden)
     assert vis == {0} and sealed and seal == 3.0
+    # Unless more may come in a later layer: then the back face waits, carried.
+    vis, sealed, _, _, left = _resolve(hidden, final=False)
+    assert vis == {0} and not sealed and left >= 1
 
 
 def test_an_inward_wound_corner_is_trimmed_by_the_edge_it_shares_with_its_exit_face():
@@ -114,6 +127,28 @@ def test_an_inward_wound_corner_is_trimmed_by_the_edge_it_shares_with_its_exit_f
     vis, _, seal, cover, _ = _resolve(seq)
     assert {0, 2} <= vis and cover == 1.415 and seal == 7.3
 
+
+
+def test_a_back_face_met_first_is_trimmed_by_its_rim_in_front_of_it():
+    # Lavaducts, a cube across a wall whose centre stands in the void behind it: from v* the
+    # ray starts behind a sloped wall (0) seen from its back, which recedes from its rim (the
+    # edge it shares with the wall through the cell, which eyes in the room see past), so the
+    # rim's trim lies in front of the face. The wall must not end the ray there: eyes in the
+    # room see the far wall (1) past the rim (3,585 pixels of a frame were missed).
+    seq = [(TRIM, 1.135, 5, 1.63), (BACK, 1.40, 0, 0), (FRONT, 19.65, 1, 0)]
+    piece = np.full(16, 5)
+    vis, sealed, seal, cover, _ = _resolve(seq, piece=piece)
+    assert vis == {0, 1} and cover == 1.63 and seal == 19.65
+    # Carried over layers (the far wall comes in a later layer), the face keeps its rim's
+    # trim in the residual sequence.
+    vis, sealed, _, _, left = _resolve(seq[:2], final=False, piece=piece)
+    assert vis == set() and not sealed and left == 2
+    # A trim of another piece is not its rim: the wall ends the ray.
+    other = [(TRIM, 1.135, 6, 1.63)] + seq[1:]
+    vis, sealed, seal, _, _ = _resolve(other, piece=piece)
+    assert vis == {0} and sealed and seal == 1.40
+    # (Nor does a trim at the depth of a surface met before the back face count: that
+    # surface's, as the inward-wound corner above shows.)
 
 def test_each_front_face_of_a_run_but_the_last_reads_single_sided():
     # A small single-sided face with its own trim in front of an untrimmed closed wall: the
@@ -203,8 +238,9 @@ def test_a_front_face_apart_from_its_back_face_reads_single_sided():
     assert vis == {0} and sealed and seal == 1.9
     # Both faces on no closed part (a soup: a building of unwelded walls): the paper's
     # interval, validated by the trim of the back face's piece: hidden up to its umbra, which
-    # ends inside the untrimmed box behind (9.0-9.5): the box, hidden, ends the ray there.
-    vis, sealed, seal, cover, _ = _resolve(box, piece=PIECES)
+    # ends inside the untrimmed box behind (9.0-9.5); the box, a closed part, hidden, ends
+    # the ray there.
+    vis, sealed, seal, cover, _ = _resolve(box, closed={3: 6, 4: 6}, piece=PIECES)
     assert vis == {0} and sealed and seal == 9.0 and cover == 9.4
 
 
@@ -215,7 +251,7 @@ def test_entries_in_a_carried_umbra_are_hidden():
            (BACK, 9.5, 5, 0)]
     vis, sealed, seal, _, _ = _resolve(seq, cover=6.0)
     assert vis == {4} and sealed and seal == 9.0
-    vis, sealed, seal, _, _ = _resolve(seq[:1] + seq[2:], cover=6.0)
+    vis, sealed, seal, _, _ = _resolve(seq[:1] + seq[2:], cover=6.0, closed={2: 1, 3: 1})
     assert vis == set() and sealed and seal == 5.0
 
 
