@@ -154,11 +154,17 @@ def test_a_cube_across_a_wall_with_its_centre_in_the_void(into_room):
     assert e["fn_pixel_rate_max"] <= BOUND, (into_room, e["fn_pixels_max"], e["missed"][:20])
 
 
+#: A lavaducts cube (Δ 0.3 m, centre in world metres) where the hidden-solid seal paired two
+#: walls of the open level that follow one another on a ray as one solid (22 pixels over
+#: 8 frames before resolve read the back one's trims up to the next surface).
+WALLS_IN_A_ROW = np.array([-21.207609606581862, 6.415502107422084, 59.81013878215189])
+
+
 @pytest.mark.slow
 def test_random_cubes_of_lavaducts():
     # Cubes of Δ 0.3 m at random places of the grid's cells (seeded), eyes in their open
-    # space: the level's walls run through many of them. Two of 30 were over the bound while
-    # the hidden-solid seal paired walls of the open level as solids (resolve).
+    # space: the level's walls run through many of them (the benchmark's random-cells table
+    # judges 30), and the cube where two walls in a row were taken for one solid.
     from tests.visibility.real_scenes import REAL, real_scene
 
     assert "lavaducts" in REAL, "the real scene lavaducts of ../shared/scenes is missing"
@@ -166,15 +172,16 @@ def test_random_cubes_of_lavaducts():
     grid = ViewcellGrid.for_scene(scene)
     rng = np.random.default_rng(0)
     h = 0.3 / np.sqrt(3.0)
-    judged = 0
-    while judged < 12:
+    centres = [WALLS_IN_A_ROW]
+    while len(centres) < 5:
         cell = grid.cell(int(rng.integers(len(grid))))
         c = cell.box[0] + rng.random(3) * (cell.box[1] - cell.box[0])
+        if len(ray_frames(scene, np.stack([c - h, c + h]), 1, 8, 1, FRAME_NEAR).eyes):
+            centres.append(c)
+    for c in centres:
         box = np.stack([c - h, c + h])
         cast = ray_frames(scene, box, 8, 256, 1, FRAME_NEAR)
-        if len(cast.eyes) == 0:
-            continue
-        judged += 1
+        assert len(cast.eyes) > 0
         pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=0.3))
         e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
         assert e["fn_pixel_rate_max"] <= BOUND, (c, e["fn_pixels_max"], e["missed"][:20])
