@@ -299,36 +299,45 @@ RANDOM_CELLS = {"lavaducts": 30, "denhaag": 20, "lyon_vilo3d": 20, "kitchen": 10
 RANDOM_FRAMES = 8
 
 
+def random_open_cubes(scene: Scene, n: int, frames: int = RANDOM_FRAMES, seed: int = 0,
+                      delta: float = 0.3) -> list[tuple[np.ndarray, Any]]:
+    """``n`` cubes whose circumscribed sphere is ``delta`` metres (box (2, 3) [min, max]) at
+    seeded random places of the scene's grid cells, each with its ``frames`` ray frames (seed
+    1, ``ray_frames``); a cube none of whose eyes stands in open space is drawn again."""
+    grid = ViewcellGrid.for_scene(scene)
+    rng = np.random.default_rng(seed)
+    h = delta / np.sqrt(3.0)
+    out = []
+    while len(out) < n:
+        cell = grid.cell(int(rng.integers(len(grid))))
+        c = cell.box[0] + rng.random(3) * (cell.box[1] - cell.box[0])
+        box = np.stack([c - h, c + h])
+        cast = ray_frames(scene, box, frames, 256, seed=1, near=FRAME_NEAR)
+        if len(cast.eyes):
+            out.append((box, cast))
+    return out
+
+
 def random_cells(quick: bool) -> list[dict[str, Any]]:
     """Cubes of Δ 0.3 m (the core's defaults: one sphere) at seeded random places of each real
-    scene's grid cells, those with an eye in open space, each scored on ``RANDOM_FRAMES``
-    frames (seed 1): walls and clutter run through many of them, as they do through a
-    walker's cells, where the quality table's two cells per scene sit in open space."""
+    scene's grid cells, those with an eye in open space (``random_open_cubes``), each scored
+    on ``RANDOM_FRAMES`` frames: walls and clutter run through many of them, as they do
+    through a walker's cells, where the quality table's two cells per scene sit in open
+    space."""
     if quick:
         return []
     core = get_core("trim_regions")
-    h = 0.3 / np.sqrt(3.0)
     rows = []
     for name, n in RANDOM_CELLS.items():
         scene = load(name)
-        grid = ViewcellGrid.for_scene(scene)
-        rng = np.random.default_rng(0)
-        judged = 0
-        while judged < n:
-            cell = grid.cell(int(rng.integers(len(grid))))
-            c = cell.box[0] + rng.random(3) * (cell.box[1] - cell.box[0])
-            box = np.stack([c - h, c + h])
-            cast = ray_frames(scene, box, RANDOM_FRAMES, 256, seed=1, near=FRAME_NEAR)
-            if len(cast.eyes) == 0:
-                continue
-            judged += 1
+        for k, (box, cast) in enumerate(random_open_cubes(scene, n)):
             pvs = core.compute(scene, Viewcell(box), core.make_params())
             e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
-            rows.append({"scene": name, "centre": c.tolist(), "seconds": pvs.seconds,
-                         "pvs": len(pvs), "gt": e["gt"], "frames": len(cast.eyes),
-                         "fn_pixels_max": e["fn_pixels_max"],
+            rows.append({"scene": name, "centre": (0.5 * (box[0] + box[1])).tolist(),
+                         "seconds": pvs.seconds, "pvs": len(pvs), "gt": e["gt"],
+                         "frames": len(cast.eyes), "fn_pixels_max": e["fn_pixels_max"],
                          "fn_pixel_rate_max": e["fn_pixel_rate_max"], "fn": e["fn"]})
-            print(f"random {name} {judged}/{n}: {pvs.seconds:.2f} s, FN px "
+            print(f"random {name} {k + 1}/{n}: {pvs.seconds:.2f} s, FN px "
                   f"{e['fn_pixels_max']}", flush=True)
     return rows
 

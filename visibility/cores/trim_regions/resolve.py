@@ -312,6 +312,16 @@ def _umbra_in(sd, sk, si, su, sr, n, lo, hi, pa, pb):  # pragma: no cover - numb
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _next_surface(sk, start, n):  # pragma: no cover - numba
+    """Index of the first surface (not trim) entry of the sorted sequence ``sk[:n]`` at or
+    after ``start``; n if none."""
+    q = start
+    while q < n and sk[q] == TRIM:
+        q += 1
+    return q
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _rim_from(reach, ident, last):  # pragma: no cover - numba
     """Depth from which trim fragments may be the rim of back face ``ident`` met after a
     surface at depth ``last`` (-1: none): behind that surface (a trim at its depth is its
@@ -404,18 +414,14 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             # solid: then the back face's trims up to the next surface count too, as when it
             # is read on its own (which they would validate).
             if sk[i] != BACK:
-                j = i + 1
-                while j < n and sk[j] == TRIM:
-                    j += 1
+                j = _next_surface(sk, i + 1, n)
                 if j < n and sk[j] == BACK and not _apart(closed, si[i], si[j]):
                     hi = sd[j] * (1.0 + DEPTH_TOL)
                     if closed[si[i]] < 0:
+                        q = _next_surface(sk, j + 1, n)
                         # Nothing after it yet: what validates it may come in a later layer.
-                        hi = np.inf if final else -1.0
-                        for q in range(j + 1, n):
-                            if sk[q] != TRIM:
-                                hi = sd[q] * (1.0 + DEPTH_TOL)
-                                break
+                        hi = sd[q] * (1.0 + DEPTH_TOL) if q < n else (np.inf if final
+                                                                      else -1.0)
                     if hi >= 0 and _umbra_in(sd, sk, si, su, sr, n, d - tol, hi,
                                              piece[si[i]], piece[si[j]]) < 0:
                         seal[p] = d
@@ -454,11 +460,8 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             # so (nothing closes it: single-sided geometry seen from behind, or the back of
             # something whose front lies in an umbra), and so do each front face but the last
             # of a run and a front face apart from its back face (module docstring).
-            nxt = 1e300
-            for q in range(i + 1, n):
-                if sk[q] != TRIM:
-                    nxt = sd[q]
-                    break
+            q = _next_surface(sk, i + 1, n)
+            nxt = sd[q] if q < n else 1e300
             if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
                 vis[si[i]] = 1
             if k0 != BACK:
