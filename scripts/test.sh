@@ -9,7 +9,10 @@ source scripts/env.sh
 .venv/bin/ruff check .
 # Compiled once here, the kernels load from the numba cache in every test process; otherwise
 # each pytest worker compiles the ones it meets first, the same ones twice.
-.venv/bin/python -m pvs_cli warmup
+# Its report goes to a file tests/visibility/test_warmup.py reads instead of running it again.
+export PVS_WARMUP_REPORT="$NUMBA_CACHE_DIR/warmup-report.txt"
+mkdir -p "$NUMBA_CACHE_DIR"
+.venv/bin/python -m pvs_cli warmup | tee "$PVS_WARMUP_REPORT"
 # loadgroup: tests marked with one xdist_group (a real scene's, a module's) share one worker,
 # so what they build once per process (the kitchen, a scene's references, a server) is built
 # once per run.
