@@ -150,6 +150,49 @@ def test_a_back_face_met_first_is_trimmed_by_its_rim_in_front_of_it():
     # (Nor does a trim at the depth of a surface met before the back face count: that
     # surface's, as the inward-wound corner above shows.)
 
+def test_a_board_crossed_nearly_edge_on_takes_its_far_rims_trim_behind_its_back():
+    # The kitchen's 1.8 cm cabinet panels seen nearly edge-on: the ray leaves the board (0, 1)
+    # 5 cm after entering it, and the far rim the eyes see past lies behind its back face on
+    # the ray (its trim at 1.2, piece 7), behind the next board's front (2) too. Eyes of the
+    # sphere pass that rim: the board must not end the ray (67 pixels of a frame missed).
+    normals = {0: (1.0, 0.0, 0.2), 1: (-1.0, 0.0, -0.2)}
+    seq = [(FRONT, 1.0, 0, 0), (BACK, 1.05, 1, 0), (FRONT, 1.1, 2, 0), (TRIM, 1.12, 9, 1.3),
+           (BACK, 1.15, 3, 0), (TRIM, 1.2, 7, 3.0), (FRONT, 4.0, 4, 0)]
+    piece = np.full(16, 9)
+    piece[[0, 1]] = 7
+    # An eye passes the face's rim no deeper than 1 + 2 lateral tan(angle to the ray).
+    vis, sealed, seal, cover, _ = _resolve(seq, piece=piece, reach=_reach(normals, 0.1))
+    assert vis == {0, 4} and sealed and seal == 4.0 and cover == 3.0
+    # Eyes too close to v* to pass a rim that deep: the board ends the ray, as it does for
+    # the paper (its trims only between the interval's faces), or with no bound on the eyes.
+    for reach in (_reach(normals, 0.001), _reach(normals)):
+        vis, sealed, seal, _, _ = _resolve(seq, piece=piece, reach=reach)
+        assert vis == {0} and sealed and seal == 1.0
+
+
+def test_a_hidden_span_needs_its_face_across_the_whole_pixel():
+    # The span a validated interval hides is what the footprint tests of small triangles
+    # read for the pixel's whole square: a 3 mm strip of a bevelled edge under a 5 cm pixel
+    # hid the table top the eyes see above it. One pixel of tan 1: its square's corner rays
+    # (+-1, +-1, -1).
+    from visibility.cores.trim_regions.resolve import _covers_square
+
+    def reach(tri):
+        return Reach(np.zeros((1, 3)), np.eye(3), 1.0, 1, INF,
+                     np.asarray(tri, dtype=np.float64), np.array([[0, 1, 2]], dtype=np.int64))
+
+    assert _covers_square(reach([(-4.0, -4.0, -1.0), (4.0, -4.0, -1.0), (0.0, 4.0, -1.0)]), 0, 0)
+    assert _covers_square(reach([(-4.0, 4.0, -1.0), (0.0, -4.0, -1.0), (4.0, 4.0, -1.0)]), 0, 0)
+    # A corner on its edge is not inside.
+    assert not _covers_square(reach([(-3.0, -3.0, -1.0), (3.0, -3.0, -1.0), (0.0, 3.0, -1.0)]),
+                              0, 0)
+    strip = [(-3.0, -0.1, -1.0), (3.0, -0.1, -1.0), (0.0, 0.1, -1.0)]
+    assert not _covers_square(reach(strip), 0, 0)
+    # Far off the pixel, and through v* (edge-on): not across it either.
+    assert not _covers_square(reach([(5.0, 5.0, -1.0), (6.0, 5.0, -1.0), (5.0, 6.0, -1.0)]), 0, 0)
+    assert not _covers_square(reach([(0.0, 0.0, -1.0), (0.0, 0.0, -2.0), (0.0, 1.0, -1.0)]), 0, 0)
+
+
 def test_each_front_face_of_a_run_but_the_last_reads_single_sided():
     # A small single-sided face with its own trim in front of an untrimmed closed wall: the
     # small face is seen and trimmed, so the wall behind it is seen past it, and terminates
