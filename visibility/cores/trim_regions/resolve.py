@@ -103,11 +103,18 @@ class Reach(NamedTuple):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ray_and_normal(reach, ident, p):  # pragma: no cover - numba
-    """Pixel p's ray (rx, ry, -1) and face ``ident``'s normal (nx, ny, nz), in camera space."""
+def _pixel_ray(reach, p):  # pragma: no cover - numba
+    """Pixel p's centre ray (rx, ry, -1) in camera space: (rx, ry)."""
     half = 0.5 * reach.res
     rx = ((p % reach.res + 0.5) / half - 1.0) * reach.tan
     ry = (1.0 - (p // reach.res + 0.5) / half) * reach.tan
+    return rx, ry
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ray_and_normal(reach, ident, p):  # pragma: no cover - numba
+    """Pixel p's ray (rx, ry, -1) and face ``ident``'s normal (nx, ny, nz), in camera space."""
+    rx, ry = _pixel_ray(reach, p)
     n = reach.normal[ident]
     rot = reach.rot
     nx = n[0] * rot[0, 0] + n[1] * rot[0, 1] + n[2] * rot[0, 2]
@@ -266,10 +273,8 @@ def _covers_square(reach, ident, p):  # pragma: no cover - numba
         return True
     f = reach.faces[ident]
     cam = reach.cam
-    half = 0.5 * reach.res
     h = reach.tan / reach.res
-    rx = ((p % reach.res + 0.5) / half - 1.0) * reach.tan
-    ry = (1.0 - (p // reach.res + 0.5) / half) * reach.tan
+    rx, ry = _pixel_ray(reach, p)
     sign = 0.0
     for k in range(3):
         a = f[k]
@@ -285,6 +290,15 @@ def _covers_square(reach, ident, p):  # pragma: no cover - numba
                     return False
                 sign = v
     return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_face_span(spans, n_spans, reach, ident, p, d, hi):  # pragma: no cover - numba
+    """Record the span face ``ident`` (met at depth d in pixel p) hides up to ``hi``, from
+    where it lies deepest over the pixel, when it lies across the whole pixel
+    (``_covers_square``)."""
+    if _covers_square(reach, ident, p):
+        _push_span(spans, n_spans, p, _deepest_over_pixel(reach, ident, p, d), hi)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -521,8 +535,8 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                     seal[p] = _deepest_over_pixel(reach, si[i], p, d)
                     sealed = True
                     break
-                if u > d and _covers_square(reach, si[i], p):
-                    _push_span(spans, n_spans, p, _deepest_over_pixel(reach, si[i], p, d), u)
+                if u > d:
+                    _push_face_span(spans, n_spans, reach, si[i], p, d, u)
                 if u > cov:
                     cov = u
                 i += 1
@@ -567,9 +581,7 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
                 vis[si[end_second]] = 1
                 upto = u
-            if _covers_square(reach, si[i], p):
-                _push_span(spans, n_spans, p, _deepest_over_pixel(reach, si[i], p, sd[i]),
-                           upto)
+            _push_face_span(spans, n_spans, reach, si[i], p, sd[i], upto)
             cov = max(cov, ub)
             if cov == np.inf:
                 seal[p] = _deepest_over_pixel(reach, si[i], p, sd[i])
