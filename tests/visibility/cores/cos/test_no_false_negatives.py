@@ -39,15 +39,14 @@ def _frames(scene, box, n_points: int, resolution: int = 256, seed: int = 0) -> 
     return frames
 
 
-def _missed(scene, box, resolution, n_points=64, seed=0):
-    core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=resolution))
-    frames = _frames(scene, box, n_points, seed=seed)
-    return missed_triangles(scene, frames, pvs.triangle_ids), pvs, seen_ids(frames)
+#: Cells also solved with ``fusion="groups"`` (separate occluder groups hiding together), at
+#: the large cells where it finds most, against the same reference (its cost is the cast).
+FUSED = {("rooms", 1.0, 1), ("rooms", 4.0, 0), ("village", 4.0, 0), ("city", 1.0, 1),
+         ("city", 4.0, 3)}
 
 
 @pytest.mark.parametrize("name,size,index,resolution", [
-    ("rooms", 0.05, 0, 64), ("rooms", 0.3, 3, 128), ("rooms", 1.0, 1, 64),
+    ("rooms", 0.05, 0, 64), ("rooms", 0.3, 3, 128), ("rooms", 1.0, 1, 64), ("rooms", 4.0, 0, 64),
     ("village", 0.05, 3, 64), ("village", 0.3, 0, 64), ("village", 1.0, 2, 128),
     ("village", 4.0, 0, 64),
     ("city", 0.05, 0, 128), ("city", 0.3, 3, 64), ("city", 1.0, 1, 64), ("city", 4.0, 3, 64),
@@ -55,25 +54,18 @@ def _missed(scene, box, resolution, n_points=64, seed=0):
 def test_no_false_negatives_on_generated_scenes(name, size, index, resolution):
     scene = _scene(name, 10_000)
     box = cell_around(scene, size, index)
-    missed, pvs, ref = _missed(scene, box, resolution)
-    assert len(missed) == 0, f"{name} {size} m: missed {missed[:20].tolist()}"
-    assert len(pvs) >= len(ref)
-
-
-@pytest.mark.parametrize("name,size,index", [
-    ("rooms", 1.0, 1), ("rooms", 4.0, 0), ("village", 4.0, 0), ("city", 1.0, 1),
-    ("city", 4.0, 3),
-])
-def test_no_false_negatives_with_separate_groups_fused(name, size, index):
-    # ``fusion="groups"``: separate occluder groups hiding together, at the large cells where
-    # it finds most.
-    scene = _scene(name, 10_000)
-    box = cell_around(scene, size, index)
     core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=64, fusion="groups"))
-    missed = missed_triangles(scene, _frames(scene, box, 64), pvs.triangle_ids)
+    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=resolution))
+    frames = _frames(scene, box, 64)
+    missed = missed_triangles(scene, frames, pvs.triangle_ids)
     assert len(missed) == 0, f"{name} {size} m: missed {missed[:20].tolist()}"
-    assert pvs.stats["fused"] > 0
+    assert len(pvs) >= len(seen_ids(frames))
+    if (name, size, index) in FUSED:
+        fused = core.compute(scene, Viewcell(box),
+                             core.make_params(resolution=resolution, fusion="groups"))
+        missed = missed_triangles(scene, frames, fused.triangle_ids)
+        assert len(missed) == 0, f"{name} {size} m fused: missed {missed[:20].tolist()}"
+        assert fused.stats["fused"] > 0
 
 
 @pytest.mark.slow
