@@ -1197,9 +1197,12 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     for b in range(share):
         it0 += (n_t - b + k_sh - 1) // k_sh
     it1 = it0 + (n_t - share + k_sh - 1) // k_sh
-    lmax = 0
-    tmax = 0
-    imax = 0
+    # Typed int64 from the start (np.int64, not a literal 0): numba's type inference meets the
+    # calls below while these are still Literal[int](0) and compiled a specialization of the
+    # callee for each such guess, each one as costly to compile as the one that runs.
+    lmax = np.int64(0)
+    tmax = np.int64(0)
+    imax = np.int64(0)
     for it in range(it0, it1):
         pix0 = (torder[it] - tile0) * npix
         imax = max(imax, ioff[torder[it] + 1] - ioff[torder[it]])
@@ -1267,7 +1270,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
             pstamp += 1
             n_polys = 0
-            n_live = 0
+            n_live = np.int64(0)  # not a literal 0: ``_fused_hide`` is compiled once
             n_dead = 0
             last_g = -1
             n_cov = 0
