@@ -37,8 +37,8 @@ def hull_corners_xz(points: np.ndarray) -> np.ndarray:
     """The rows of ``points`` (k, 2) on their convex hull: every farthest point from any centre
     is among them. Degenerate sets (fewer than 3 points, all on a line) are returned whole or
     reduced with a joggled hull, whose vertices are still rows of ``points``."""
-    # Imported here: scipy.spatial is a second of every server's start-up, and most never
-    # reach this (a near-far cell whose corners are more than 16 points).
+    # Imported here, not with the module: scipy.spatial weighs on every server's start-up,
+    # and most never reach this (a near-far cell whose corners are more than 16 points).
     from scipy.spatial import ConvexHull, QhullError
 
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
