@@ -266,7 +266,10 @@ class EmbreeCaster:
         # Embree starts every ray at its origin (tnear 0): a clipped ray starts at its clip.
         start = np.empty((n, 3), dtype=np.float32)
         d32 = np.empty((n, 3), dtype=np.float32)
-        _ray_starts(orig, dirs, tmin, start, d32)
+        # Contiguous, as most callers pass them (a broadcast eye is read-only, layout A):
+        # _ray_starts compiles once.
+        _ray_starts(np.ascontiguousarray(orig), np.ascontiguousarray(dirs),
+                    np.ascontiguousarray(tmin), start, d32)
         res = self._scene.run(start, d32, output=1)
         ids = np.empty(n, dtype=np.int64)
         t = np.empty(n)

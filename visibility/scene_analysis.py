@@ -90,7 +90,9 @@ class HeightFieldAnalysis:
 def _count_samples(ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, counts):  # pragma: no cover
     """Per grid cell, how many triangles (XZ projections) contain its centre."""
     for t in range(len(ax)):
-        _cover(t, ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, counts, counts, 0)
+        # Modes typed int64 (np.int64, not literals 0 and 1): a literal compiles its own
+        # specialization of _cover.
+        _cover(t, ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, counts, counts, np.int64(0))
 
 
 @njit(cache=True, nogil=True)
@@ -126,7 +128,7 @@ def _cover(t, ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, counts, out_tri, mode):
 @njit(cache=True, nogil=True)
 def _fill_samples(ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, slots, out_tri):  # pragma: no cover
     for t in range(len(ax)):
-        _cover(t, ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, slots, out_tri, 1)
+        _cover(t, ax, az, bx, bz, cx, cz, x0, z0, s, nx, nz, slots, out_tri, np.int64(1))
 
 
 @njit(cache=True, nogil=True)

@@ -42,7 +42,8 @@ def _sphere_box(c, r, near, res, box):  # pragma: no cover - numba
         umax = max(umax, x / d)
         vmin = min(vmin, y / d)
         vmax = max(vmax, y / d)
-    return pixel_range(umin, umax, vmin, vmax, res, box)
+    # pad given (0.0): the same signature as the other callers', one compile.
+    return pixel_range(umin, umax, vmin, vmax, res, box, 0.0)
 
 
 @njit(cache=True, nogil=True, parallel=True, error_model="numpy")

@@ -133,7 +133,8 @@ def _pixel_box(x0, y0, w0, x1, y1, w1, x2, y2, w2, width, height, tan_x, tan_y,
 def _fetch(faces, f, v):  # pragma: no cover - numba
     """Vertex indices of face f, and whether they are in range with finite positions."""
     n = v.shape[0]
-    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    # int64 whatever the faces' dtype, as the other callers of _corner pass: one compile.
+    i0, i1, i2 = np.int64(faces[f, 0]), np.int64(faces[f, 1]), np.int64(faces[f, 2])
     if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n or i1 >= n or i2 >= n:
         return i0, i1, i2, False
     s = 0.0
@@ -178,7 +179,8 @@ def _home_views(v, eye, rots, base, cube, width, height, tan_x, tan_y, near, hom
                 k = 2 if cy >= 0 else 3
             else:
                 k = 4 if cz >= 0 else 5
-        px, py, pz = _corner(v, eye, i, rots, k)
+        # The prange index is unsigned: cast, or _corner compiles twice.
+        px, py, pz = _corner(v, eye, np.int64(i), rots, k)
         w = -pz
         if w >= near and abs(px) <= w * tan_x and abs(py) <= w * tan_y:
             home[i] = k
@@ -194,10 +196,12 @@ def views_covered(v, eye, i0, i1, i2, rots, width, height, tan_x, tan_y,
     """Bit k set when the triangle of vertices i0, i1, i2 may cover a pixel centre of view k
     (clipped and projected in each view: for triangles whose corners lie in different views)."""
     bits = 0
+    # int64 whatever the faces' dtype, as the other callers of _corner pass: one compile.
+    j0, j1, j2 = np.int64(i0), np.int64(i1), np.int64(i2)
     for k in range(rots.shape[0]):
-        x0, y0, z0 = _corner(v, eye, i0, rots, k)
-        x1, y1, z1 = _corner(v, eye, i1, rots, k)
-        x2, y2, z2 = _corner(v, eye, i2, rots, k)
+        x0, y0, z0 = _corner(v, eye, j0, rots, k)
+        x1, y1, z1 = _corner(v, eye, j1, rots, k)
+        x2, y2, z2 = _corner(v, eye, j2, rots, k)
         px0, px1, py0, py1 = _pixel_box(x0, y0, -z0, x1, y1, -z1, x2, y2, -z2, width,
                                         height, tan_x, tan_y, near)
         if px0 <= px1:

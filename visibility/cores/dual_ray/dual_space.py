@@ -579,8 +579,9 @@ def _gather(frame, seg, top, bot, lean, glo, step, gn, cell_start,
     """The fence pieces occluding inside the shaft ``frame``: the occluding segments (n, 6)
     ``[d0, l0, d1, l1, kept0, kept1]`` (``cut_piece``) and the pieces' ids (n,)."""
     mark = np.full(seg.shape[0], -1, dtype=np.int64)
+    # An int64 stamp, as its other callers pass (a literal 0 compiles another specialization).
     return _gather_marked(frame, seg, top, bot, lean, glo, step, gn, cell_start, cell_items,
-                          mark, 0)
+                          mark, np.int64(0))
 
 
 @njit(cache=True, nogil=True)
@@ -657,11 +658,13 @@ def _gather_marked(frame, seg, top, bot, lean, glo, step, gn, cell_start, cell_i
                     mark[p] = stamp
                     cand[n] = p
                     n += 1
-    return segments_from(frame, cand[:n], seg, top, bot, lean, False)
+    # np.bool_, not a literal False: boxes_visible_among passes np.bool_(True), so
+    # segments_from compiles once for both.
+    return segments_from(frame, cand[:n], seg, top, bot, lean, np.bool_(False))
 
 
 @njit(cache=True, nogil=True)
-def segments_from(frame, ids, seg, top, bot, lean, by_top=True):  # pragma: no cover - numba
+def segments_from(frame, ids, seg, top, bot, lean, by_top):  # pragma: no cover - numba
     """The occluding segments (n, 6) of the pieces ``ids`` inside the shaft ``frame``, and
     the ids of those that occlude. With ``by_top`` the ``ids`` come sorted by their highest
     top, highest first (``leaf_piece_ids``): the scan stops at the first piece lower than the
@@ -820,7 +823,8 @@ def boxes_visible_among(alo, ahi, blo, bhi, lists, pieces, grid, resolution,
             continue
         g = group[i]
         if ok[g]:
-            segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot, lean)
+            segs, sids = segments_from(frame, ids[start[g]:start[g + 1]], seg, top, bot, lean,
+                                       np.bool_(True))
         else:
             segs, sids = _gather(frame, seg, top, bot, lean, glo, step, gn, cell_start,
                                  cell_items)

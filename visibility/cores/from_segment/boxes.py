@@ -182,7 +182,9 @@ def _cluster_boxes_range(lo_c, hi_c, v0, dvec, rb, perm, sgn, res, near, pad, ou
         f_lo = 0 if sole < 0 else sole
         f_hi = 6 if sole < 0 else sole + 1
         for f in range(f_lo, f_hi):
-            ok, zm, slow, _ = _hull_box(cube, 16, f, perm, sgn, near, res, bx, pad, uv)
+            # np.int64 point counts, not literals: _hull_box compiles once for its callers.
+            ok, zm, slow, _ = _hull_box(cube, np.int64(16), f, perm, sgn, near, res, bx, pad,
+                                        uv)
             if ok:
                 for r in range(4):
                     out_box[c, f, r] = bx[r]
@@ -231,7 +233,7 @@ def _expanded_boxes_range(geom, exp_tri, exp_face, frame, out_box, out_z, out_fl
         out_flag[k] = 0
         hull_count[k] = 0
         _tri_cube(verts0, verts1, faces, t, v0, dvec, rb, cube)
-        ok, zm, slow, n = _hull_box(cube, 6, f, perm, sgn, near, res, bx, pad, uv)
+        ok, zm, slow, n = _hull_box(cube, np.int64(6), f, perm, sgn, near, res, bx, pad, uv)
         if ok:
             for r in range(4):
                 out_box[k, r] = bx[r]
@@ -276,7 +278,8 @@ def _expanded_area(geom, exp_tri, exp_face, frame):  # pragma: no cover - numba
         acc = 0
         for k in range(ch * n // nch, (ch + 1) * n // nch):
             _tri_cube(verts0, verts1, faces, exp_tri[k], v0, dvec, rb, cube)
-            ok, _, _, _ = _hull_box(cube, 6, exp_face[k], perm, sgn, near, res, bx, pad, uv)
+            ok, _, _, _ = _hull_box(cube, np.int64(6), exp_face[k], perm, sgn, near, res, bx,
+                                    pad, uv)
             if ok:
                 acc += (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1)
         sums[ch] = acc
@@ -374,10 +377,13 @@ def _tile_cols(hulls, p, prim_box, ty, pad):  # pragma: no cover - numba
     has one) within its box, else its box's."""
     j0 = prim_box[p, 2]
     j1 = prim_box[p, 3]
-    h = hulls.index[p]
+    # int64 row and count (the arrays hold int32 and int8), as raster's calls pass: hull_cols
+    # compiles once.
+    h = np.int64(hulls.index[p])
+    m = np.int64(hulls.count[h]) if h >= 0 else np.int64(0)
     # One column of tiles: a hull cannot drop any that its box's rows hold.
-    if h >= 0 and hulls.count[h] > 0 and j0 // TILE < j1 // TILE:
-        a, b = hull_cols(hulls.pts, h, hulls.count[h], max(ty * TILE, prim_box[p, 0]),
+    if m > 0 and j0 // TILE < j1 // TILE:
+        a, b = hull_cols(hulls.pts, h, m, max(ty * TILE, prim_box[p, 0]),
                          min(ty * TILE + TILE - 1, prim_box[p, 1]), pad)
         j0 = max(j0, a)
         j1 = min(j1, b)
@@ -402,7 +408,8 @@ def _tile_ranges(prim_box, hulls, pad):  # pragma: no cover - numba
     for p in prange(n):
         ty0 = prim_box[p, 0] // TILE
         for ty in range(ty0, prim_box[p, 1] // TILE + 1):
-            tx0, tx1 = _tile_cols(hulls, p, prim_box, ty, pad)
+            # The prange index is unsigned: cast, or _tile_cols compiles twice.
+            tx0, tx1 = _tile_cols(hulls, np.int64(p), prim_box, ty, pad)
             cols[rstart[p] + ty - ty0, 0] = tx0
             cols[rstart[p] + ty - ty0, 1] = tx1
     return rstart, cols

@@ -346,11 +346,15 @@ def moving_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
     pc[4] = coef[28]
     pc[5] = coef[29]
     pc[6] = coef[30]
+    # depth_at's kind (a moving triangle) and the piece count, typed int64 from the start (not
+    # literal 0s, as sphere_cover's): emit_chords and depth_at compile once.
+    tri = np.int64(0)
+    n = np.int64(0)
     if (all_pos or all_neg) and not slow:
         # Inside all three edges for the whole segment (w . N cannot vanish then).
         if all_pos and all_neg:
             return 0
-        return emit_chords(0.0, 1.0, knots, 0, pc, t0, t1, z0, z1, 0, stack)
+        return emit_chords(0.0, 1.0, knots, tri, pc, t0, t1, z0, z1, n, stack)
     k = 0
     brk[k] = 0.0
     k += 1
@@ -363,7 +367,6 @@ def moving_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
     brk[k] = 1.0
     k += 1
     sort_small(brk, k)
-    n = 0
     start = -1.0
     for q in range(k - 1):
         a = brk[q]
@@ -374,8 +377,8 @@ def moving_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
         if inside and start < 0.0:
             start = a
         elif not inside and start >= 0.0:
-            n = emit_chords(start, a, knots, 0, pc, t0, t1, z0, z1, n, stack)
+            n = emit_chords(start, a, knots, tri, pc, t0, t1, z0, z1, n, stack)
             start = -1.0
     if start >= 0.0:
-        n = emit_chords(start, 1.0, knots, 0, pc, t0, t1, z0, z1, n, stack)
+        n = emit_chords(start, 1.0, knots, tri, pc, t0, t1, z0, z1, n, stack)
     return n

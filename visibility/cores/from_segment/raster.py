@@ -130,8 +130,11 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
     """Columns of primitive p to visit in tile rows [ia, ib] (clamped to [ja, jb]): where its
     hull (``hull.Hulls``) can hold a sample up to ``pad`` pixels off centre, or all of [ja, jb]
     when it has none. Writes span[i - r0] = (j0, j1), empty when j0 > j1."""
-    h = hulls.index[p]
-    _hull_spans(hulls.pts, h, hulls.count[h] if h >= 0 else 0, ia, ib, ja, jb, r0, pad, span)
+    # The hull's row and vertex count as int64 (the arrays hold int32 and int8), as
+    # _front_spans passes them: _hull_spans and hull_cols compile once.
+    h = np.int64(hulls.index[p])
+    m = np.int64(hulls.count[h]) if h >= 0 else np.int64(0)
+    _hull_spans(hulls.pts, h, m, ia, ib, ja, jb, r0, pad, span)
 
 
 @njit(**_JIT_NO_NRT)
@@ -176,7 +179,11 @@ def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
             d = -(P[c, 2] + e * U[c, 2])
             uv[2 * c + e, 0] = (P[c, 0] + e * U[c, 0]) / d
             uv[2 * c + e, 1] = (P[c, 1] + e * U[c, 1]) / d
-    _hull_spans(pts, 0, store_hull(uv, 6, res, scratch, pts, 0), ia, ib, ja, jb, r0, pad, span)
+    # Typed int64, not literals, as boxes and _row_spans pass theirs: one compile of
+    # store_hull (and convex_hull) and of _hull_spans.
+    k = np.int64(0)
+    m = store_hull(uv, np.int64(6), res, scratch, pts, k)
+    _hull_spans(pts, k, m, ia, ib, ja, jb, r0, pad, span)
 
 
 @njit(**_JIT_NO_NRT)
@@ -414,7 +421,8 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
     far = -np.inf
     for it in range(i0, i1):
         pr = tile_items[it]
-        src = prim_src[pr]
+        # int64 (prim_src is int32), as a cluster's triangle ids: _cam_corners compiles once.
+        src = np.int64(prim_src[pr])
         flag = prim_flag[pr]
         if flag & FLAG_CLUSTER:
             for k in range(cl_start[src], cl_start[src + 1]):
@@ -598,7 +606,9 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 work[C_BEHIND_NEW] += 1
                 continue
             work[C_ITEMS] += 1
-            src = prim_src[pr]
+            # int64 (prim_src is int32), as a cluster's triangle ids: _raster and _cam_corners
+            # compile once.
+            src = np.int64(prim_src[pr])
             flag = prim_flag[pr]
             slow = (flag & FLAG_SLOW) != 0
             closed = 0
@@ -630,8 +640,10 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     u0 = work[C_UNCOVERED]
                     nc = 0
                     while True:
-                        more, full = _raster(kind, t, False, zt, ia, ib, span, coef, pix, near,
-                                             knots, env, eid, T, tid, sc, work)
+                        # np.bool_, not a literal False: a literal compiles another
+                        # specialization of _raster and of the cover tests it calls.
+                        more, full = _raster(kind, t, np.bool_(False), zt, ia, ib, span, coef,
+                                             pix, near, knots, env, eid, T, tid, sc, work)
                         nc += more
                         if not full:
                             break

@@ -95,9 +95,11 @@ def sphere_cover(coef: np.ndarray, x: float, y: float, near: float, slow: bool, 
     brk[k] = 1.0
     k += 1
     sort_small(brk, k)
-    n = 0
+    # Typed int64 from the start (not literal 0s): emit_chords compiles once, not also for
+    # the literals numba's inference tries first.
+    n = np.int64(0)
     start = 0.0
-    cur = 0
+    cur = np.int64(0)
     for s in range(k - 1):
         a = brk[s]
         b = brk[s + 1]

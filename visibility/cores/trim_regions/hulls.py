@@ -180,7 +180,8 @@ def touching_samples(poly, npoly, box, tri_ids, depth, far, res, s, most,
             continue
         if box[i, 1] - box[i, 0] > most or box[i, 3] - box[i, 2] > most:
             continue
-        zmin = _nearest_depth(poly, npoly, i)
+        # The prange index is unsigned: cast, or _nearest_depth compiles twice.
+        zmin = _nearest_depth(poly, npoly, np.int64(i))
         x0, x1, y0, y1 = _grown_box(box, i, res)
         near_enough = False
         for y in range(y0, y1):
@@ -264,16 +265,18 @@ def _small_in_front(poly, npoly, box, tri_ids, seal, spans, n_spans, res, thin, 
         if npoly[i] < 3 or vis[tri_ids[i]]:
             continue
         # (No width to work out when every triangle is tested: ``touching_in_front``.)
-        if thin < np.inf and _width(poly, npoly, i) > thin:
+        # The prange index is unsigned: cast, or _width and _nearest_depth compile twice.
+        if thin < np.inf and _width(poly, npoly, np.int64(i)) > thin:
             continue
-        zmin = _nearest_depth(poly, npoly, i)
+        zmin = _nearest_depth(poly, npoly, np.int64(i))
         x0, x1, y0, y1 = _grown_box(box, i, res)
         if x0 >= x1 or y0 >= y1:
             continue
         # Behind the seal at every pixel of its box (rect_min never exceeds the nearest
         # seal's inverse; the margin covers the reciprocals' rounding): no square can pass.
-        m = rect_min(pyr.invd, pyr.hz, 0, pyr.heights, pyr.widths, pyr.offsets, x0, x1 - 1, y0,
-                     y1 - 1)
+        # View np.int64(0), not a literal 0: culling's calls pass int64 views, one compile.
+        m = rect_min(pyr.invd, pyr.hz, np.int64(0), pyr.heights, pyr.widths, pyr.offsets, x0,
+                     x1 - 1, y0, y1 - 1)
         if (1.0 / zmin) * (1.0 + 1e-9) <= m:
             continue
         hit = False
@@ -311,7 +314,7 @@ def hulls_in_front(poly, npoly, box, owner, open_only, seal, spans, n_spans, fir
     for i in prange(npoly.shape[0]):
         if npoly[i] < 3 or seen[owner[i]]:
             continue
-        z = _nearest_depth(poly, npoly, i)
+        z = _nearest_depth(poly, npoly, np.int64(i))  # int64: see _small_in_front
         hit = False
         for t in range(1, npoly[i] - 1):
             if hit:

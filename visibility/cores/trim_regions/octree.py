@@ -215,7 +215,8 @@ def _neighbours(leaf_cells, loc):  # pragma: no cover - numba
         buf = np.empty(g * g, dtype=np.int64)
         c = 0
         for face in range(6):
-            c += _face_nbrs(leaf_cells, loc, k, face, buf)
+            # The prange index is unsigned: cast, or _face_nbrs compiles twice.
+            c += _face_nbrs(leaf_cells, loc, np.int64(k), face, buf)
         counts[k] = c
     start = np.zeros(n + 1, dtype=np.int64)
     for k in range(n):
@@ -226,7 +227,7 @@ def _neighbours(leaf_cells, loc):  # pragma: no cover - numba
         buf = np.empty(g * g, dtype=np.int64)
         w = start[k]
         for face in range(6):
-            m = _face_nbrs(leaf_cells, loc, k, face, buf)
+            m = _face_nbrs(leaf_cells, loc, np.int64(k), face, buf)
             for q in range(m):
                 items[w] = buf[q]
                 faces[w] = face

@@ -259,7 +259,8 @@ def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
                     if g == 0.0:
                         break  # a range of its piece holding d: none is nearer
         if best < 0:
-            a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, True)
+            # np.bool_, not literals: _nearest_pair compiles once for both calls.
+            a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, np.bool_(True))
             if a >= 0:
                 _join(p, a, b, depth, idents, umbra, far)
                 return b
@@ -278,7 +279,7 @@ def _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far,
         umbra[i, p, j] = min(umbra[i, p, j], um)
         idents[i, p, j] = joined_pieces(idents[i, p, j], ident)
         return -2
-    a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, False)
+    a, b, same = _nearest_pair(p, depth, kinds, idents, far, c, np.bool_(False))
     if a < 0:
         return -1
     _join(p, a, b, depth, idents, umbra, far)
@@ -320,7 +321,10 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
                 return
     slot = c
     if c == K:
-        slot = _merge_trims(p, d, kind, ident, um, depth, kinds, idents, umbra, far, c)
+        # kind is the literal TRIM where the caller passes the constant (this is inlined):
+        # int64, or _merge_trims compiles once more for it.
+        slot = _merge_trims(p, d, np.int64(kind), ident, um, depth, kinds, idents, umbra, far,
+                            c)
         if slot == -2:
             return
         if slot < 0:
