@@ -66,6 +66,21 @@ def _wait_port(port: int, proc: subprocess.Popen, log: Path, timeout: float = 60
     raise RuntimeError(f"nothing listens on {port}: {log.read_text()[-2000:]}")
 
 
+def _owns_port(proc: subprocess.Popen, port: int, timeout: float = 60.0) -> bool:
+    """Whether ``proc`` comes to listen on ``port`` (False once it exits)."""
+    import psutil
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            return False
+        if any(c.laddr and c.laddr.port == port and c.status == psutil.CONN_LISTEN
+               for c in psutil.Process(proc.pid).net_connections(kind="tcp")):
+            return True
+        time.sleep(0.2)
+    return False
+
+
 def _server_env(redis_url: str, scheduler: str) -> dict[str, str]:
     """The compose file's server environment, with its hosts replaced by loopback ones."""
     compose = yaml.safe_load((ROOT / "docker" / "compose.yml").read_text())
@@ -135,10 +150,18 @@ def test_the_composed_services_work_as_one_system(tmp_path):
                 url = f"http://127.0.0.1:{port}"
                 assert wait_until_healthy(url, proc, timeout=180), log.read_text()[-3000:]
                 urls.append(url)
-            nx = stack.enter_context(_process(
-                [nginx, "-p", str(tmp_path), "-e", str(tmp_path / "error.log"), "-c",
-                 str(_nginx_conf(tmp_path, proxy, replicas))], _env(), tmp_path / "nginx.log"))
-            _wait_port(proxy, nx, tmp_path / "nginx.log")
+            for _ in range(3):
+                # The port was free when picked, but a process of another test may bind it
+                # first: then nginx exits and whatever holds the port would answer.
+                nx = stack.enter_context(_process(
+                    [nginx, "-p", str(tmp_path), "-e", str(tmp_path / "error.log"), "-c",
+                     str(_nginx_conf(tmp_path, proxy, replicas))], _env(),
+                    tmp_path / "nginx.log"))
+                if _owns_port(nx, proxy):
+                    break
+                proxy = free_port()
+            else:
+                raise RuntimeError((tmp_path / "error.log").read_text()[-2000:])
             front = f"http://127.0.0.1:{proxy}"
             assert httpx.get(front + "/health", timeout=30).json()["status"] == "ok"
             for url in urls:  # both replicas joined the cluster (or say they wait for it)
