@@ -164,7 +164,10 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             if sc is kitchen and res == DEFAULT_RESOLUTION and kitchen_rows is not None:
                 kitchen_rows.update(kitchen_part(sc, box, keep["ids"], rows[-1], points))
         if sc is kitchen or label.endswith("4 m"):
-            # The coarse pass as a step: the same cell without it (one run).
+            # The steps on clutter's tiles (one run): every pixel of them sampled (the
+            # coarse pass still on), and then no coarse pass either.
+            rows.append(_row(f"{label}, busy tiles every pixel", sc, box, DEFAULT_RESOLUTION,
+                             ref, repeats=1 if sc is kitchen else 2, busy_block=1))
             rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
                              repeats=1 if sc is kitchen else 2, coarse_items=0))
         # Separate groups hiding together (``fusion="groups"``) as a step.

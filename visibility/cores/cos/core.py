@@ -50,6 +50,10 @@ DEFAULT_RESOLUTION = 128
 #: clutter it repays itself, on 100k city and village cells it cost more than it saved
 #: (benchmarks/results/cos.md).
 COARSE_MIN_ITEMS = 8192
+#: Pixels per side of the samples in the tiles that take the coarse pass (``CosParams``).
+BUSY_BLOCK = 2
+#: The values it may take: divisors of ``lists.TILE``.
+BUSY_BLOCKS = (1, 2, 4, 8)
 
 #: The cover tests (``CosParams.cover``).
 COVERS = ("strict", "relaxed")
@@ -70,6 +74,10 @@ class CosParams(CoreParams):
         resolution and above; scaled by the tile's solid angle below it) is first resolved
         as one pixel of the tile's width, and what that finds hidden for the whole tile is
         left out of the tile's per-pixel lists; 0 turns it off.
+    busy_block : the tiles that take the coarse pass are then resolved with one sample per
+        ``busy_block`` x ``busy_block`` pixels (at their centre, covering all their directions,
+        so still conservative) where the others sample every pixel: in clutter their lists
+        are long and mostly the same from pixel to pixel; 1 samples every pixel there too.
     subcells : the cell is solved as ``subcells`` x ``subcells`` boxes splitting its x and z
         sides (its height, the eye range, stays whole), and the PVS is their union
         (``cos_subcells``): still conservative, tighter where the offsets of the whole cell
@@ -95,6 +103,9 @@ class CosParams(CoreParams):
                               help="screen tiles meeting this many primitives are resolved as "
                                    "one pixel first, and what that hides leaves their "
                                    "per-pixel lists (0: never)")
+    busy_block: int = param(BUSY_BLOCK, unit="px", choices=BUSY_BLOCKS,
+                            help="pixels per side of one sample in the tiles that take the "
+                                 "coarse pass (1: every pixel)")
     subcells: int = param(1, unit="per side", ge=1, le=16,
                           help="solve the cell as n x n sub-cells across the ground (x, z) "
                                "and join their answers: tighter at large cells, for up to n² "
@@ -199,10 +210,11 @@ class CosCore(Core):
         if int(params.subcells) > 1:
             return cos_subcells(scene, box, int(params.subcells), int(params.resolution),
                                 float(params.list_budget_mb), int(params.coarse_items),
-                                cover=str(params.cover), fusion=str(params.fusion))
+                                cover=str(params.cover), fusion=str(params.fusion),
+                                busy_block=int(params.busy_block))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
                        int(params.coarse_items), cover=str(params.cover),
-                       fusion=str(params.fusion))
+                       fusion=str(params.fusion), busy_block=int(params.busy_block))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -223,7 +235,7 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                  list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
-                 cover: str = "strict", fusion: str = "edges"
+                 cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK
                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
@@ -237,7 +249,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
     sizes = []
     for b in sub_boxes(box, n):
         ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
-                          cover=cover, fusion=fusion)
+                          cover=cover, fusion=fusion, busy_block=busy_block)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -262,7 +274,8 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
             coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
-            cover: str = "strict", fusion: str = "edges") -> tuple[np.ndarray, dict[str, Any]]:
+            cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK
+            ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -278,6 +291,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         cell's PVS, ``cos_subcells``): reported, tested no more, still occluders.
     cover : ``strict`` or ``relaxed``, the occluder cover test (``CosParams.cover``).
     fusion : ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
+    busy_block : pixels per side of a sample in the tiles that take the coarse pass
+        (``CosParams.busy_block``).
 
     Returns
     -------
@@ -381,7 +396,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             listed = (np.flatnonzero(sel[view.face]).astype(np.int32) if positions is None
                       else positions[k])
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
-                                  stats, coarse_items, rng, cover, fuse)
+                                  stats, coarse_items, rng, cover, fuse, busy_block)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -503,7 +518,8 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     scratch = np.zeros_like(known)
     lists = TileLists(entries, pstart, pcount, 0, n_tiles,
                       _balanced_order(pcount.astype(np.float64) ** 2, 0, n_tiles), tiles_x, 1,
-                      numba.get_num_threads(), items, tile_off)
+                      numba.get_num_threads(), items, tile_off,
+                      np.ones(n_tiles, dtype=np.int64))
     # One pixel per tile, as wide as the tile; the strict cover test only: at a tile's width
     # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
     # Nor separate groups together: in clutter that costs the pass more than it drops.
@@ -519,14 +535,15 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
-                cover: str = "strict", fuse: bool = False) -> int:
+                cover: str = "strict", fuse: bool = False, busy_block: int = 1) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
     visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
     ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
     ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``); ``cover`` the
-    cover test (``CosParams.cover``); ``fuse`` whether separate groups hide together."""
+    cover test (``CosParams.cover``); ``fuse`` whether separate groups hide together;
+    ``busy_block`` the pixels per side of a sample in the tiles that took the coarse pass."""
     t0 = time.perf_counter()
     stats["projected"] += len(sel)
     known = vis.copy()
@@ -562,6 +579,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
                             busy, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
+    # Clutter's tiles are sampled more coarsely (``CosParams.busy_block``).
+    block = np.where(busy & (coarse_items > 0), busy_block, 1).astype(np.int64)
     counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
     longest = 0
     stop = stop_flag()
@@ -587,7 +606,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         pcount = np.empty((t1 - t) * npix, dtype=np.int64)
         lists = TileLists(entries, pstart, pcount, t, t1,
                           _balanced_order(bound[t:t1].astype(np.float64), t, t1), tiles_x, TILE,
-                          numba.get_num_threads(), items, tile_off)
+                          numba.get_num_threads(), items, tile_off, block)
         fill_cut = np.zeros(t1 - t, dtype=np.int64)
         fill_lists(parrays, screen, order, rng, tile_off, tile_items, drop, slot, lists,
                    fill_cut)

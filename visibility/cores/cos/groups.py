@@ -74,6 +74,10 @@ class TileLists(NamedTuple):
         ``items[ioff[tile]:ioff[tile + 1]]`` (``ioff`` indexed by tile, over all tiles of the
         view), in front-to-back order: the entries name items of their tile, so that what
         the tile's pixels share (the items' edge adjacency) is worked out once per tile.
+    block : (tiles,) int64 pixels per side of a tile's samples, indexed by tile like ``ioff``:
+        1 samples every pixel; b > 1 one sample per b x b pixels, at their centre with a
+        half-width of b / 2 pixels (its directions hold all of theirs), its list at
+        ``loc = r tsz + c`` for the sample in row r and column c of the tile's samples.
     """
 
     entries: np.ndarray
@@ -87,6 +91,7 @@ class TileLists(NamedTuple):
     shares: int
     items: np.ndarray
     ioff: np.ndarray
+    block: np.ndarray
 
 
 class Marks(NamedTuple):

@@ -278,8 +278,7 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
     vid, solid, gap = prims.vid, prims.solid, prims.gap
     origin, perm, sign, corners = screen.origin, screen.perm, screen.sign, screen.corners
     x_lo, y_lo, pw, plane_tol = screen.x_lo, screen.y_lo, screen.pw, screen.plane_tol
-    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _, _, _ = lists
-    h = 0.5 * pw
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, _, _, _, _, block = lists
     npix = TILE * TILE
     wcam = max(corners[0, 2], corners[1, 2], corners[2, 2], corners[3, 2])
     # Borrowed (``visibility.borrow``): no reference counting at the helpers' calls.
@@ -305,6 +304,9 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
     tile = torder[it]
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
+    # The tile's samples: b x b pixels each (``groups.TileLists.block``).
+    bs = block[tile]
+    h = 0.5 * pw * bs
     base = slot[tile - tile0]
     size = slot[tile - tile0 + 1] - base
     # The tile's scratch, owned by ``own`` to the tile's end and borrowed for the helpers:
@@ -339,15 +341,16 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
             for k2 in range(k, tile_off[tile + 1]):
                 t2 = tile_items[k2]
                 if not (skip and drop[k2]):
-                    ncut += ((min(rng[t2, 1], ty * TILE + TILE - 1)
-                              - max(rng[t2, 0], ty * TILE) + 1)
-                             * (min(rng[t2, 3], tx * TILE + TILE - 1)
-                                - max(rng[t2, 2], tx * TILE) + 1))
+                    ncut += (((min(rng[t2, 1], ty * TILE + TILE - 1) - ty * TILE) // bs
+                              - (max(rng[t2, 0], ty * TILE) - ty * TILE) // bs + 1)
+                             * ((min(rng[t2, 3], tx * TILE + TILE - 1) - tx * TILE) // bs
+                                - (max(rng[t2, 2], tx * TILE) - tx * TILE) // bs + 1))
             break
-        i0 = max(rng[t, 0], ty * TILE)
-        i1 = min(rng[t, 1], ty * TILE + TILE - 1)
-        j0 = max(rng[t, 2], tx * TILE)
-        j1 = min(rng[t, 3], tx * TILE + TILE - 1)
+        # The item's samples in the tile (rows i0..i1, columns j0..j1 of them).
+        i0 = (max(rng[t, 0], ty * TILE) - ty * TILE) // bs
+        i1 = (min(rng[t, 1], ty * TILE + TILE - 1) - ty * TILE) // bs
+        j0 = (max(rng[t, 2], tx * TILE) - tx * TILE) // bs
+        j1 = (min(rng[t, 3], tx * TILE + TILE - 1) - tx * TILE) // bs
         n = npts[p]
         load_prim(pts, start[p], n, origin, perm, sign, cam)
         tri = kind[p] == 0
@@ -360,10 +363,10 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
             zmax = max(zmax, cam[c, 2])
         newz = False
         for i in range(i0, i1 + 1):
-            sy = y_lo + (i + 0.5) * pw
+            sy = y_lo + (ty * TILE + (i + 0.5) * bs) * pw
             for j in range(j0, j1 + 1):
-                sx = x_lo + (j + 0.5) * pw
-                loc = (i - ty * TILE) * TILE + (j - tx * TILE)
+                sx = x_lo + (tx * TILE + (j + 0.5) * bs) * pw
+                loc = i * TILE + j
                 if not ready[loc]:
                     ready[loc] = True
                     region_at(corners, sx, sy, h, 0.0, prv[loc], prr[loc])

@@ -218,7 +218,7 @@ def _directions(qctx, ws, wpt):  # pragma: no cover - numba
     sy = qctx[QC_SY]
     h = qctx[QC_H]
     pts = wpt[:DIR_PTS]
-    m = 0
+    m = np.int64(0)  # not a literal 0: the callees are compiled for one type (``_resolve_share``)
     for i in range(3):
         wi = qctx[QC_W + i]
         xi = qctx[QC_V + 2 * i] + wi * sx
@@ -353,7 +353,7 @@ def _witness(qctx, rv, ws, wpt):  # pragma: no cover - numba
     for c in range(3):
         wx[c] = qctx[QC_V + 2 * c] - (qctx[QC_W + c] - wr) * d0x
         wy[c] = qctx[QC_V + 2 * c + 1] - (qctx[QC_W + c] - wr) * d0y
-    m = 3
+    m = np.int64(3)
     rq = wpt[:4]  # the camera rectangle moved to delta0 (``_directions``' points are spent)
     for a in range(4):
         rq[a, 0] = rv[a, 0] - (qctx[QC_CW + a] - wr) * d0x
@@ -574,6 +574,10 @@ def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1,
 #: triangle over more than GRID_WIDE cells goes to the grid's list of wide ones instead.
 GRID = 16
 GRID_MIN = 32
+#: Column of a grid's row of ``shead`` holding the last member entered (``_grid_sync``), and
+#: its value for a grid not built yet.
+GRID_CURSOR = GRID * GRID + 2
+GRID_NEW = -2
 #: Entries of one pixel's list between two polls of the stop flag.
 STOP_EVERY = 256
 #: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
@@ -650,18 +654,27 @@ def _push(slot, c, r, shead, pool, pdep, owr):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _grid_build(g, slot, head, nxt, obb, owr, h, dom, sg, sfr, shead, pool, pdep,
-                frame):  # pragma: no cover - numba
-    """Depth grid ``slot`` of group g in the frame of depth ``frame``."""
-    sg[slot, 0, :] = np.inf
-    sg[slot, 1, :] = -np.inf
-    shead[slot, :] = -1
-    shead[slot, GRID * GRID + 1] = 0
-    sfr[slot] = frame
-    r = head[g]
+def _grid_sync(g, slot, head, nxt, obb, owr, gwlo, gwhi, h, dom, sg, sfr, shead, pool,
+               pdep):  # pragma: no cover - numba
+    """Bring group g's depth grid ``slot`` up to date: enter the members added since its last
+    sync (a merge appends the smaller group's members after the survivor's, so they follow
+    the last one entered, shead[slot, GRID_CURSOR]), or build it whole in the frame of the
+    group's middle depth when it has none yet (cursor ``GRID_NEW``)."""
+    cur = shead[slot, GRID_CURSOR]
+    if cur == GRID_NEW:
+        sg[slot, 0, :] = np.inf
+        sg[slot, 1, :] = -np.inf
+        shead[slot, :GRID_CURSOR] = -1
+        shead[slot, GRID * GRID + 1] = 0
+        sfr[slot] = 0.5 * (gwlo[g] + gwhi[g])
+        r = head[g]
+    else:
+        r = nxt[cur]
     while r >= 0:
         _grid_add(slot, r, obb, owr, h, dom, sg, sfr, shead, pool, pdep)
+        cur = r
         r = nxt[r]
+    shead[slot, GRID_CURSOR] = cur
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -683,6 +696,8 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     if gwhi[g] + tol < wq and gwlo[g] >= wcam + tol:
         return True
     slot = gslot[g]
+    if slot >= 0:
+        _grid_sync(g, slot, head, nxt, obb, owr, gwlo, gwhi, h, dom, sg, sfr, shead, pool, pdep)
     if slot < 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
                          kb[3], qcam, nq, ov, qctx, work)
@@ -1119,7 +1134,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         covl=np.empty(lmax, dtype=np.int64), cand=np.empty(lmax + 1, dtype=np.int64),
         cpos=np.empty(lmax, dtype=np.int64), gslot=np.empty(lmax, dtype=np.int64),
         sg=np.empty((nslot, 2, GRID * GRID)),
-        shead=np.empty((nslot, GRID * GRID + 2), dtype=np.int64),
+        shead=np.empty((nslot, GRID * GRID + 3), dtype=np.int64),
         pool=np.empty(2 + 2 * 8 * lmax, dtype=np.int64), pdep=np.empty(2 * 8 * lmax),
         fslot=np.empty(nslot, dtype=np.int64), sfr=np.empty(nslot), dom=np.empty(6),
         thash=np.full((hcap, 4), -1, dtype=np.int64), eslot=np.empty(3 * imax, dtype=np.int64),
@@ -1171,7 +1186,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
 def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cover - numba
     """Share ``share`` of the ``k_sh`` shares of ``resolve_tiles``'s tiles (its arguments)."""
     pts, start, npts, kind, vid, solid, gap = prims
-    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff = lists
+    entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff, block = (
+        lists)
     origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on = screen
     known, vis, hid, counters, stop = marks
     # Borrowed (``visibility.borrow``): the helpers called per entry and per pixel count no
@@ -1181,7 +1197,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     vid, solid, gap, entries = borrow(vid), borrow(solid), borrow(gap), borrow(entries)
     pstart, pcount, torder, origin = borrow(pstart), borrow(pcount), borrow(torder), borrow(origin)
     perm, sign, corners, known = borrow(perm), borrow(sign), borrow(corners), borrow(known)
-    stop, items, ioff = borrow(stop), borrow(items), borrow(ioff)
+    stop, items, ioff, block = borrow(stop), borrow(items), borrow(ioff), borrow(block)
     # What the parallel loop writes (vis, hid, counters) stays owned: ``visibility.borrow``.
     h = 0.5 * pw
     npix = tsz * tsz
@@ -1232,6 +1248,9 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         pix0 = (tile - tile0) * npix
+        # The tile's samples: b x b pixels each (``groups.TileLists.block``).
+        bs = block[tile]
+        h = 0.5 * pw * bs
         # The tile's items name its entries; each undirected welded edge of the tile gets a
         # slot (eslot: three per item, -1 for none), where a pixel chains the occluder edges
         # it has along it: made at an item's first insertion in the tile, once for all its
@@ -1254,16 +1273,16 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         for loc in range(npix):
             if flag_set(stop):
                 break
-            i = ty * tsz + loc // tsz
-            j = tx * tsz + loc % tsz
+            i = ty * tsz + (loc // tsz) * bs
+            j = tx * tsz + (loc % tsz) * bs
             if i >= ny or j >= nx:
                 continue
             a = pstart[pix0 + loc]
             b = a + pcount[pix0 + loc]
             if a == b:
                 continue
-            sx = x_lo + (j + 0.5) * pw
-            sy = y_lo + (i + 0.5) * pw
+            sx = x_lo + (j + 0.5 * bs) * pw
+            sy = y_lo + (i + 0.5 * bs) * pw
             # Longest ray per unit of depth over the pixel's directions: a point at distance g
             # from the box (so from every camera position, which lies on the box) is at depth
             # at least g / lray on any ray of this pixel.
@@ -1298,7 +1317,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             nrp = 0
             if relaxed:
                 region_at(corners, sx, sy, h, fr, rv, rr)
-                nrp = region_polygon(rv, rr, 4, False, rv, rr, ws[0], ws[1], ws[2], ws[3])
+                nrp = region_polygon(rv, rr, np.int64(4), np.bool_(False), rv, rr, ws[0], ws[1],
+                                     ws[2], ws[3])
                 for c in range(nrp):
                     rpoly[c, 0] = ws[0, c]
                     rpoly[c, 1] = ws[1, c]
@@ -1613,15 +1633,10 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                     gslot[gd] = -1
                                     fslot[n_free] = sd
                                     n_free += 1
-                                if ss >= 0:
-                                    # The other's triangles join the survivor's grid (the
-                                    # smaller group: O(n log n) in all).
-                                    r2 = head[gd]
-                                    while r2 >= 0:
-                                        _grid_add(ss, r2, obb, owr, h, dom, sg, sfr, shead,
-                                                  pool, pdep)
-                                        r2 = nxt[r2]
-                                elif gsize[gs] >= GRID_MIN and not gdorm[gs]:
+                                # The other's triangles join the survivor's grid when a
+                                # test next asks for it (``_grid_sync``): most groups are
+                                # never depth-tested between two merges.
+                                if ss < 0 and gsize[gs] >= GRID_MIN and not gdorm[gs]:
                                     if n_free > 0:
                                         n_free -= 1
                                         ss = fslot[n_free]
@@ -1629,8 +1644,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                         ss = n_slot
                                         n_slot += 1
                                     gslot[gs] = ss
-                                    _grid_build(gs, ss, head, nxt, obb, owr, h, dom, sg, sfr,
-                                                shead, pool, pdep, 0.5 * (gwlo[gs] + gwhi[gs]))
+                                    shead[ss, GRID_CURSOR] = GRID_NEW
                             break
                         node = enext[node]
                 # Register q's edges still active (an inactive edge never fuses again).
@@ -1664,7 +1678,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     n_r = 0
                     if (bx0 >= gbb[g, 0] and bx1 <= gbb[g, 1] and by0 >= gbb[g, 2]
                             and by1 <= gbb[g, 3]):
-                        n_r = region_polygon(rv, rr, 4, False, rv, rr, rx, ry, tx_, ty_)
+                        n_r = region_polygon(rv, rr, np.int64(4), np.bool_(False), rv, rr,
+                                             rx, ry, tx_, ty_)
                     if n_r > 0:
                         _k_box(rx, ry, n_r, rb)
                     if n_r > 0 and _covers_q(g, edges, gbb, gwlo, gwhi,

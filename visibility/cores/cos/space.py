@@ -254,12 +254,13 @@ def region_polygon(qv, qr, nq, tri, rv, rr, kx, ky, tx, ty):  # pragma: no cover
     kx[1], ky[1] = x1, y0
     kx[2], ky[2] = x1, y1
     kx[3], ky[3] = x0, y1
-    n = 4
+    # int64, not literals: each callee is compiled for one signature.
+    n = np.int64(4)
     if tri:
-        n = clip_by_grown_edges(kx, ky, n, qv, qr, 3, tx, ty)
+        n = clip_by_grown_edges(kx, ky, n, qv, qr, np.int64(3), tx, ty)
     if n == 0:
         return 0
-    return clip_by_grown_edges(kx, ky, n, rv, rr, 4, tx, ty)
+    return clip_by_grown_edges(kx, ky, n, rv, rr, np.int64(4), tx, ty)
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)

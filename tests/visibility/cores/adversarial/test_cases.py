@@ -89,17 +89,21 @@ def test_no_misses(name, core_name):
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-def test_cos_coarse_pass_misses_nothing(name):
+@pytest.mark.parametrize("busy_block", [1, 4])
+def test_cos_coarse_pass_misses_nothing(name, busy_block):
     # Every screen tile takes the coarse pass (on these small scenes none would by default):
-    # what it leaves out of the per-pixel lists must be hidden for the whole tile.
+    # what it leaves out of the per-pixel lists must be hidden for the whole tile; and those
+    # tiles are then sampled every pixel (1) or once per 4 x 4 pixels (4; the default 2 runs
+    # in the relaxed cover's test below).
     case = CASES[name]
     core = get_core("cos")
-    pvs = core.compute(case.scene, Viewcell(case.box), core.make_params(coarse_items=1))
+    pvs = core.compute(case.scene, Viewcell(case.box),
+                       core.make_params(coarse_items=1, busy_block=busy_block))
     assert pvs.stats["coarse_tiles"] > 0
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
-        f"cos with the coarse pass misses {len(missed)} triangles in {name}:\n"
-        f"{describe(case.scene, reference(name), missed, case.box)}")
+        f"cos with the coarse pass (busy_block={busy_block}) misses {len(missed)} triangles "
+        f"in {name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])

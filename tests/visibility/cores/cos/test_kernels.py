@@ -11,6 +11,8 @@ from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import (
     DIR_PTS,
     GRID,
+    GRID_CURSOR,
+    GRID_NEW,
     QC_DX,
     QC_DY,
     QC_RELAX,
@@ -418,7 +420,7 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
     pool = np.zeros(2, dtype=np.int64)
     no_grid = (np.array([-1]), np.zeros((1, 2, GRID * GRID)), np.zeros(1),
-               np.full((1, GRID * GRID + 2), -1), pool, np.zeros(2))
+               np.full((1, GRID_CURSOR + 1), -1), pool, np.zeros(2))
 
     def hides(wcam, wq, grid=no_grid):
         return _hides(0, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, *grid, dom, wcam, 1e-9,
@@ -437,12 +439,136 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     mid = [(GRID // 2 - 1) * GRID + GRID // 2 - 1, (GRID // 2 - 1) * GRID + GRID // 2,
            (GRID // 2) * GRID + GRID // 2 - 1, (GRID // 2) * GRID + GRID // 2]
     sg[0, 1, mid] = 1.0
-    shead = np.full((1, GRID * GRID + 2), -1)
-    shead[0, -1] = 1
+    shead = np.full((1, GRID_CURSOR + 1), -1)
+    shead[0, GRID * GRID + 1] = 1
+    shead[0, GRID_CURSOR] = 0  # its one member entered
     assert not hides(0.0, 2.0)
     grid = (np.array([0]), sg, np.array([2.0]), shead, pool, np.zeros(2))  # frame at Q's depth
     assert hides(0.0, 2.0, grid)
     assert not hides(0.6, 2.0, grid)
+
+
+def test_depth_grid_enters_members_when_a_test_asks():
+    # A group's depth grid is brought up to date by the depth test that reads it: built whole
+    # the first time (cursor GRID_NEW), then given the members merged in since. A member
+    # added after the first test that reaches behind Q must make the second test refuse.
+    k = 40
+    owr = np.tile([0.5, 1.0], (k, 1))
+    obb = np.tile([-1.0, 1.0, -1.0, 1.0], (k, 1))
+    nxt = np.append(np.arange(1, k), -1)
+    nxt[k - 2] = -1  # the last member not merged in yet
+    pool = np.zeros(2 + 2 * 16 * k, dtype=np.int64)
+    pool[1] = 16 * k
+    pdep = np.zeros(2 * 16 * k)
+    shead = np.full((1, GRID_CURSOR + 1), -1)
+    shead[0, GRID_CURSOR] = GRID_NEW
+    sg = np.empty((1, 2, GRID * GRID))
+    sfr = np.zeros(1)
+    gwlo = np.array([0.5])
+    gwhi = np.array([1.0])
+    kb = np.array([-0.1, 0.1, -0.1, 0.1, 0.0, 0.0, 0.0])
+    qcam = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]])
+    dom = np.array([-1.0, 1.0, -1.0, 1.0, GRID / 2.0, GRID / 2.0])
+
+    def hides():
+        return _hides(0, np.array([0]), nxt, obb, owr, np.zeros(k, dtype=bool),
+                      np.zeros((k, 5)), gwlo, gwhi, np.array([0]), sg, sfr, shead, pool,
+                      pdep, dom, 0.0, 1e-9, 2.0, 0.01, kb, qcam, 3, 2.0, NO_OV, STRICT, WORK)
+
+    gwhi[0] = 3.0  # past the group's range shortcut: the grid decides
+    assert hides()
+    assert shead[0, GRID_CURSOR] == k - 2 and sfr[0] == 1.75
+    assert sg[0, 1].max() == 1.0
+    owr[k - 1] = (0.5, 3.0)  # merged in after the first test, reaching behind Q
+    nxt[k - 2] = k - 1
+    assert not hides()
+    assert shead[0, GRID_CURSOR] == k - 1 and sg[0, 1].max() == 3.0
+
+
+@pytest.mark.parametrize("b", [2, 4])
+def test_block_samples_list_what_their_pixels_may_see(b):
+    # A sample of b x b pixels (``TileLists.block``) holds every direction of each of them,
+    # so its list holds every item some pixel of the block lists, in the same order; save
+    # where the sample's separating-axis test proves the item apart from that pixel's offsets
+    # too (its axes, the triangle's edge normals, turn with the sample centre: the pixel's
+    # own test lists what its axes cannot separate). Small random triangles (no early z),
+    # around a small cell. A wrong sample centre or width drops items at the block's edge.
+    from visibility.cores.cos.core import _prim_arrays, _screen
+    from visibility.cores.cos.groups import TileLists
+    from visibility.cores.cos.lists import TILE, bin_tiles, fill_lists, footprints, region_at
+    from visibility.cores.cos.prims import build_prims, distance_order, solid_mask
+    from visibility.cores.cos.space import edges_separate, load_prim, project
+
+    rng_ = np.random.default_rng(11)
+    soup = rng_.uniform(-0.15, 0.15, (600, 1, 3)) * 10.0 + rng_.uniform(-0.2, 0.2, (600, 3, 3))
+    box = np.array([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]])
+    scene = _scene(soup[np.abs(soup).min(axis=(1, 2)) > 0.3])
+    half = 0.5 * (box[1] - box[0])
+    prims = build_prims(scene, box.mean(axis=0), weld_vertices(scene.vertices))
+    order, gap = distance_order(prims, half)
+    tol = prims.plane_tol
+    parrays = _prim_arrays(prims, solid_mask(prims, half), gap)
+    cam, qv, qr, pv, pr = (np.empty((8, 3)), np.empty((8, 2)), np.empty(8), np.empty((8, 2)),
+                           np.empty(8))
+    rv, rr = np.empty((4, 2)), np.empty(4)
+    compared = apart = 0
+    for v in side_plane_views(box, 32):
+        sel = np.arange(len(order), dtype=np.int32)
+        rng = np.empty((len(order), 4), dtype=np.int32)
+        footprints(prims.pts, prims.start, prims.npts, prims.kind, order, sel, v.origin,
+                   v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
+                   v.y_lo, v.pw, tol, rng)
+        tiles_x, tiles_y = -(-v.nx // TILE), -(-v.ny // TILE)
+        n_tiles = tiles_x * tiles_y
+        tile_off, tile_items, bound = bin_tiles(rng, sel, tiles_x, tiles_y)
+        items = order[tile_items].astype(np.int32)
+        made = []
+        for block in (1, b):
+            slot = np.zeros(n_tiles + 1, dtype=np.int64)
+            np.cumsum(bound, out=slot[1:])
+            out = TileLists(np.empty(slot[-1], dtype=np.int32),
+                            np.empty(n_tiles * TILE * TILE, dtype=np.int64),
+                            np.empty(n_tiles * TILE * TILE, dtype=np.int64), 0, n_tiles,
+                            np.arange(n_tiles, dtype=np.int64), tiles_x, TILE, 1, items,
+                            tile_off, np.full(n_tiles, block, dtype=np.int64))
+            cut = np.zeros(n_tiles, np.int64)
+            fill_lists(parrays, _screen(v, tol, "strict"), order, rng, tile_off, tile_items,
+                       np.empty(0, dtype=np.uint8), slot, out, cut)
+            assert cut.sum() == 0
+            made.append(out)
+        fine, coarse = made
+        for tile in range(n_tiles):
+            ty, tx = divmod(tile, tiles_x)
+            for loc in range(TILE * TILE):
+                r, c = divmod(loc, TILE)
+                k = tile * TILE * TILE + loc
+                got = coarse.entries[coarse.pstart[k]:coarse.pstart[k] + coarse.pcount[k]]
+                if r >= TILE // b or c >= TILE // b:
+                    assert len(got) == 0
+                    continue
+                assert (np.diff(got) > 0).all()  # front to back, as the pixels' lists
+                sx = v.x_lo + (tx * TILE + (c + 0.5) * b) * v.pw
+                sy = v.y_lo + (ty * TILE + (r + 0.5) * b) * v.pw
+                for i in range(b):
+                    for j in range(b):
+                        f = tile * TILE * TILE + (r * b + i) * TILE + c * b + j
+                        want = fine.entries[fine.pstart[f]:fine.pstart[f] + fine.pcount[f]]
+                        compared += len(want)
+                        for e in np.setdiff1d(want, got):
+                            # The pixel's shapes, apart along the sample's axes.
+                            p = items[tile_off[tile] + e]
+                            n = prims.npts[p]
+                            load_prim(prims.pts, prims.start[p], n, v.origin, v.perm, v.sign,
+                                      cam)
+                            px = v.x_lo + (tx * TILE + c * b + j + 0.5) * v.pw
+                            py = v.y_lo + (ty * TILE + r * b + i + 0.5) * v.pw
+                            project(cam, n, px, py, 0.5 * v.pw, 0.0, qv, qr)
+                            region_at(v.corners, px, py, 0.5 * v.pw, 0.0, rv, rr)
+                            project(cam, n, sx, sy, 0.5 * b * v.pw, 0.0, pv, pr)
+                            assert prims.kind[p] == 0 and edges_separate(pv, 3, qv, qr, n, rv,
+                                                                         rr), (v.face, tile, f)
+                            apart += 1
+    assert compared > 10_000 and apart < 0.01 * compared
 
 
 def test_face_subsets_drop_only_empty_footprints():
@@ -660,8 +786,9 @@ def _walk_hides(depths):
     pool = np.zeros(2 + 2 * 8, dtype=np.int64)
     pool[1] = 8
     pdep = np.zeros(16)
-    shead = np.full((1, GRID * GRID + 2), -1)
+    shead = np.full((1, GRID_CURSOR + 1), -1)
     shead[0, GRID * GRID + 1] = 0
+    shead[0, GRID_CURSOR] = k - 1  # every member entered
     cell = (GRID // 2 - 1) * GRID + GRID // 2 - 1
     for r in range(k):
         _push(0, cell, r, shead, pool, pdep, owr)
