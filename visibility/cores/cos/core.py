@@ -50,8 +50,12 @@ DEFAULT_RESOLUTION = 128
 #: clutter it repays itself, on 100k city and village cells it cost more than it saved
 #: (benchmarks/results/cos.md).
 COARSE_MIN_ITEMS = 8192
-#: Pixels per side of the samples in the tiles that take the coarse pass (``CosParams``).
+#: Pixels per side of the samples in the tiles that take the coarse pass (``CosParams``),
+#: where their lists may reach ``BUSY_BLOCK_MIN`` entries per pixel on average (the tile's
+#: ``bin_tiles`` bound): below that (the 4 m city cell's busy tiles) the coarser samples
+#: loosened the answer and gained no time (benchmarks/results/cos.md).
 BUSY_BLOCK = 2
+BUSY_BLOCK_MIN = 1024
 #: The values it may take: divisors of ``lists.TILE``.
 BUSY_BLOCKS = (1, 2, 4, 8)
 
@@ -74,7 +78,8 @@ class CosParams(CoreParams):
         resolution and above; scaled by the tile's solid angle below it) is first resolved
         as one pixel of the tile's width, and what that finds hidden for the whole tile is
         left out of the tile's per-pixel lists; 0 turns it off.
-    busy_block : the tiles that take the coarse pass are then resolved with one sample per
+    busy_block : the tiles that take the coarse pass and may list ``BUSY_BLOCK_MIN`` entries
+        per pixel are then resolved with one sample per
         ``busy_block`` x ``busy_block`` pixels (at their centre, covering all their directions,
         so still conservative) where the others sample every pixel: in clutter their lists
         are long and mostly the same from pixel to pixel; 1 samples every pixel there too.
@@ -321,7 +326,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
-        per-pixel lists) and ``costliest_view`` (the side plane and frustum that
+        per-pixel lists), ``block_tiles`` (tiles sampled per ``busy_block`` pixels) and
+        ``costliest_view`` (the side plane and frustum that
         took longest, its seconds, list entries and longest list), ``tree`` (whether the
         scene's hierarchy was there to cull with), ``tree_seconds`` (where the cell's
         primitives sit in it; a small scene's hierarchy is built then, once), ``projected``
@@ -378,6 +384,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
+        "block_tiles": 0,
         "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
@@ -580,7 +587,9 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(busy.sum())
     # Clutter's tiles are sampled more coarsely (``CosParams.busy_block``).
-    block = np.where(busy & (coarse_items > 0), busy_block, 1).astype(np.int64)
+    block = np.where(busy & (coarse_items > 0) & (bound >= BUSY_BLOCK_MIN * npix), busy_block,
+                     1).astype(np.int64)
+    stats["block_tiles"] += int(np.count_nonzero(block > 1))
     counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
     longest = 0
     stop = stop_flag()

@@ -90,16 +90,18 @@ def test_no_misses(name, core_name):
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
 @pytest.mark.parametrize("busy_block", [1, 4])
-def test_cos_coarse_pass_misses_nothing(name, busy_block):
+def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
     # Every screen tile takes the coarse pass (on these small scenes none would by default):
     # what it leaves out of the per-pixel lists must be hidden for the whole tile; and those
     # tiles are then sampled every pixel (1) or once per 4 x 4 pixels (4; the default 2 runs
     # in the relaxed cover's test below).
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # short lists too
     case = CASES[name]
     core = get_core("cos")
     pvs = core.compute(case.scene, Viewcell(case.box),
                        core.make_params(coarse_items=1, busy_block=busy_block))
     assert pvs.stats["coarse_tiles"] > 0
+    assert (pvs.stats["block_tiles"] > 0) == (busy_block > 1)
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
         f"cos with the coarse pass (busy_block={busy_block}) misses {len(missed)} triangles "
@@ -108,10 +110,11 @@ def test_cos_coarse_pass_misses_nothing(name, busy_block):
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
 @pytest.mark.parametrize("coarse_items", [None, 1])
-def test_cos_relaxed_cover_misses_nothing(name, coarse_items):
+def test_cos_relaxed_cover_misses_nothing(name, coarse_items, monkeypatch):
     # The relaxed cover test lets silhouette edges that meet an occludee's offset region pass
     # when they never cross the offsets whose rays meet it; alone, and with the coarse pass
     # on every tile (where it runs at the tile's width).
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # 2 x 2 samples too
     case = CASES[name]
     core = get_core("cos")
     extra = {} if coarse_items is None else {"coarse_items": coarse_items}

@@ -101,12 +101,15 @@ def test_no_confirmed_misses(name, size, k, core_name):
 
 
 @pytest.mark.parametrize("name,size", COARSE)
-def test_cos_coarse_pass_no_confirmed_misses(name, size):
+def test_cos_coarse_pass_no_confirmed_misses(name, size, monkeypatch):
+    # Every tile takes the coarse pass and is then sampled per 2 x 2 pixels (the default
+    # ``busy_block``), however short its lists.
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)
     scene = real_scene(name)
     _, box, ref = cells(name, size)[0]
     core = get_core("cos")
     pvs = core.compute(scene, Viewcell(box), core.make_params(coarse_items=1))
-    assert pvs.stats["coarse_tiles"] > 0
+    assert pvs.stats["coarse_tiles"] > 0 and pvs.stats["block_tiles"] > 0
     sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
     assert sure.tolist() == [], (
         f"cos with the coarse pass misses {len(sure)} of {len(ref.ids)} triangles the rays see "
