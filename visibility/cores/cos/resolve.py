@@ -1634,8 +1634,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                     fslot[n_free] = sd
                                     n_free += 1
                                 # The other's triangles join the survivor's grid when a
-                                # test next asks for it (``_grid_sync``): most groups are
-                                # never depth-tested between two merges.
+                                # test next asks for it (``_grid_sync``): a merge does not
+                                # pay for a grid no test reads.
                                 if ss < 0 and gsize[gs] >= GRID_MIN and not gdorm[gs]:
                                     if n_free > 0:
                                         n_free -= 1
