@@ -429,15 +429,16 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
     lies wholly behind it), or, for a side frustum, into its near box, which reaches
     ``-near_box[2]`` behind the plane (what stays further behind projects to rows below the
     view)."""
-    bo = bounds[order]
     out: dict[tuple[int, int], np.ndarray] = {}
     for face in {v.face for v in views}:
         axis, sgn = face
         margin = max(0.0 if v.kind == "front" else float(-v.near_box[2])
                      for v in views if v.face == face)
-        reach = bo[:, 1, axis] if sgn > 0 else -bo[:, 0, axis]
-        keep = reach >= float(half[axis]) - margin - plane_tol
-        out[face] = keep
+        # One column gathered per face: the whole (n, 2, 3) bounds reordered cost more.
+        if sgn > 0:
+            out[face] = bounds[order, 1, axis] >= float(half[axis]) - margin - plane_tol
+        else:
+            out[face] = bounds[order, 0, axis] <= -(float(half[axis]) - margin - plane_tol)
     return out
 
 

@@ -309,6 +309,14 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
     h = 0.5 * pw * bs
     base = slot[tile - tile0]
     size = slot[tile - tile0 + 1] - base
+    pix0 = (tile - tile0) * npix
+    if tile_off[tile] == tile_off[tile + 1]:
+        # No item (open sky: nearly half an open scene's tiles): spared the scratch below.
+        for loc in range(npix):
+            pstart[pix0 + loc] = base
+            pcount[pix0 + loc] = 0
+        cut[tile - tile0] = 0
+        return
     # The tile's scratch, owned by ``own`` to the tile's end and borrowed for the helpers:
     # the items' entries and pixels (tmp, tloc, cnt), an item's camera-space corners and
     # projection (cam, qv, qr); the offset region of each of the tile's pixels, computed once
@@ -434,7 +442,6 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
             for loc in range(npix):
                 zall = max(zall, zgap[loc])
     cut[tile - tile0] = ncut
-    pix0 = (tile - tile0) * npix
     pos = base
     for loc in range(npix):
         pstart[pix0 + loc] = pos
