@@ -163,7 +163,7 @@ class CosCore(Core):
     native_segments: ClassVar[bool] = False
     # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
-                           "(a 0.3 m cell in a tenth of a second); 4 m cells under a second "
+                           "(a 0.3 m cell of a 100k city in 0.1-0.3 s); 4 m cells under a second "
                            "(a city) to several seconds (interiors), a 0.3 m cell of clutter "
                            "(a 1M-triangle kitchen) over ten seconds: docs/cores/cos.md")
     check_params: ClassVar[dict[str, Any]] = {}
