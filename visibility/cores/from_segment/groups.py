@@ -173,7 +173,8 @@ class ChunkScratch(NamedTuple):
     rotation ``R`` (3, 3), the eye's motion ``dc`` (3,), a sphere's centre ``cen`` and velocity
     ``vel`` (3,), a pixel box ``bx`` (4,) int64, row spans ``span`` (TILE, 2) int64, a cluster
     triangle's swept hull scratch ``c_uv`` (6, 2), ``c_scratch`` (14, 2), ``c_pts`` (1, HMAX,
-    2) float32; and the cover test's ``piece`` (``PieceScratch``)."""
+    2) float32; the row spans' columns ``ext`` (TILE, 2) float64 (``hull.hull_rows``); and the
+    cover test's ``piece`` (``PieceScratch``)."""
 
     cnt: np.ndarray
     bound: np.ndarray
@@ -192,4 +193,5 @@ class ChunkScratch(NamedTuple):
     c_uv: np.ndarray
     c_scratch: np.ndarray
     c_pts: np.ndarray
+    ext: np.ndarray
     piece: PieceScratch

@@ -112,3 +112,56 @@ def hull_cols(pts: np.ndarray, k: int, m: int, rlo: float, rhi: float,
     cmin = max(cmin, -1e15)
     cmax = min(cmax, 1e15)
     return int(np.ceil(cmin - pad - eps)), int(np.floor(cmax + pad + eps))
+
+
+@njit(**_JIT_NO_NRT)
+def hull_rows(pts: np.ndarray, k: int, m: int, ia: int, ib: int, pad: float, r0: int,
+              ext: np.ndarray) -> None:
+    """``hull_cols(pts, k, m, i, i, pad)`` for every row i of [ia, ib] at once, bit for bit,
+    before the rounding to columns: ext[i - r0] = (cmin, cmax) pixel units (cmin > cmax: no
+    column). One pass over the hull's edges, each visiting only the rows its band can touch:
+    a thin sliver across a tile's 16 rows costs about two edges' rows, where a call per row
+    read every edge (and the scale) again."""
+    scale = 0.0
+    for q in range(m):
+        scale = max(scale, abs(float(pts[k, q, 0])), abs(float(pts[k, q, 1])))
+    eps = EPS_ABS + EPS_REL * scale
+    for i in range(ia, ib + 1):
+        ext[i - r0, 0] = np.inf
+        ext[i - r0, 1] = -np.inf
+    w = pad + eps
+    for q in range(m):
+        ca = float(pts[k, q, 0])
+        ra = float(pts[k, q, 1])
+        nq = q + 1 if q + 1 < m else 0
+        cb = float(pts[k, nq, 0])
+        rb = float(pts[k, nq, 1])
+        # The rows whose band [i - w, i + w] can meet the edge, one wider each side against
+        # rounding (the tests below decide, as hull_cols does).
+        ea = max(min(ra, rb) - w, ia - 1.0)
+        eb = min(max(ra, rb) + w, ib + 1.0)
+        if not ea <= eb:
+            continue
+        for i in range(max(ia, int(np.floor(ea)) - 1), min(ib, int(np.ceil(eb)) + 1) + 1):
+            lo = i - pad - eps
+            hi = i + pad + eps
+            cmin = ext[i - r0, 0]
+            cmax = ext[i - r0, 1]
+            if lo <= ra <= hi:
+                cmin = min(cmin, ca)
+                cmax = max(cmax, ca)
+            for r in (lo, hi):
+                if (ra < r < rb) or (rb < r < ra):
+                    c = ca + (r - ra) * (cb - ca) / (rb - ra)
+                    cmin = min(cmin, c)
+                    cmax = max(cmax, c)
+            ext[i - r0, 0] = cmin
+            ext[i - r0, 1] = cmax
+    for i in range(ia, ib + 1):
+        cmin = ext[i - r0, 0]
+        cmax = ext[i - r0, 1]
+        if cmin <= cmax:
+            cmin = max(cmin, -1e15)
+            cmax = min(cmax, 1e15)
+            ext[i - r0, 0] = np.ceil(cmin - pad - eps)
+            ext[i - r0, 1] = np.floor(cmax + pad + eps)

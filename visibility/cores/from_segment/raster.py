@@ -27,7 +27,7 @@ from visibility.cores.from_segment.envelope import (
     pixel_bound,
 )
 from visibility.cores.from_segment.groups import ChunkScratch, PieceScratch, TilePixels
-from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, store_hull
+from visibility.cores.from_segment.hull import HMAX, Hulls, hull_rows, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.cycles import cycles as _cycles
@@ -36,6 +36,10 @@ from visibility.raster.face_pixels import pixel_range
 #: A tile whose entries not yet marked visible are at most one in KNOWN_SHARE resolves only
 #: the pixels those can reach (finding the pixels costs a pass over their spans).
 KNOWN_SHARE = 8
+#: A primitive whose box holds at most this many pixels of a tile is scanned over its box: its
+#: hull (a convex hull of six points for a cluster's triangle, a pass over the hull's edges
+#: for the others) costs more than the cover tests it could spare there.
+SMALL_BOX = 8
 #: One pixel pair in TIME_STRIDE is timed by step (cover test, then the envelope's insertions):
 #: two counter reads at every pair would cost a sizeable share of a meadow's time.
 TIME_STRIDE = 16
@@ -126,29 +130,44 @@ def sample_offset(face: int, row: int, col: int, res: int, jitter: float,
 
 # ------------------------------------------------------------------------------ tile resolution
 @njit(**_JIT_NO_NRT)
-def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span):
+def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span, ext):
     """Columns of primitive p to visit in tile rows [ia, ib] (clamped to [ja, jb]): where its
     hull (``hull.Hulls``) can hold a sample up to ``pad`` pixels off centre, or all of [ja, jb]
-    when it has none. Writes span[i - r0] = (j0, j1), empty when j0 > j1."""
+    when it has none. Writes span[i - r0] = (j0, j1), empty when j0 > j1; ``ext`` (TILE, 2)
+    float64 is scratch."""
     # The hull's row and vertex count as int64 (the arrays hold int32 and int8), as
-    # _front_spans passes them: _hull_spans and hull_cols compile once.
+    # _front_spans passes them: _hull_spans and hull_rows compile once.
     h = np.int64(hulls.index[p])
     m = np.int64(hulls.count[h]) if h >= 0 else np.int64(0)
-    _hull_spans(hulls.pts, h, m, ia, ib, ja, jb, r0, pad, span)
+    _hull_spans(hulls.pts, h, m, ia, ib, ja, jb, r0, pad, span, ext)
 
 
 @njit(**_JIT_NO_NRT)
-def _hull_spans(pts, h, m, ia, ib, ja, jb, r0, pad, span):
+def _box_spans(ia, ib, ja, jb, r0, span):
+    """span[i - r0] = (ja, jb) for the rows ia <= i <= ib: the whole box, no hull."""
+    for i in range(ia, ib + 1):
+        span[i - r0, 0] = ja
+        span[i - r0, 1] = jb
+
+
+@njit(**_JIT_NO_NRT)
+def _hull_spans(pts, h, m, ia, ib, ja, jb, r0, pad, span, ext):
     """span[i - r0] = the columns of [ja, jb] in tile row i (ia <= i <= ib) whose sample, up to
-    ``pad`` pixels off centre, can fall inside the stored hull ``pts[h, :m]`` (``hull_cols``);
-    all of [ja, jb] when m is 0 (no hull)."""
+    ``pad`` pixels off centre, can fall inside the stored hull ``pts[h, :m]`` (``hull_cols``,
+    all rows in one pass: ``hull_rows``, its columns in ``ext``); all of [ja, jb] when m is 0
+    (no hull)."""
+    if m > 0:
+        hull_rows(pts, h, m, ia, ib, pad, r0, ext)
     for i in range(ia, ib + 1):
         j0 = ja
         j1 = jb
         if m > 0:
-            a, b = hull_cols(pts, h, m, i, i, pad)
-            j0 = max(j0, a)
-            j1 = min(j1, b)
+            if ext[i - r0, 0] <= ext[i - r0, 1]:
+                j0 = max(j0, int(ext[i - r0, 0]))
+                j1 = min(j1, int(ext[i - r0, 1]))
+            else:
+                j0 = 1
+                j1 = 0
         span[i - r0, 0] = j0
         span[i - r0, 1] = j1
 
@@ -168,12 +187,13 @@ def _first_from(env, px, cnt, t):
 
 
 @njit(**_JIT_NO_NRT)
-def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
+def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts, ext):
     """``_row_spans`` for a triangle whose six swept points (``_cam_corners``' P, P + U) are
     all in front of the near plane (``_front_box``): the projected triangle at every point of
     the segment lies in the convex hull of their projections, so per row only the columns
     that hull can reach are visited, not the whole box [ja, jb]. ``uv`` (6, 2), ``scratch``
-    (14, 2) and ``pts`` (1, HMAX, 2) float32 are scratch (``hull.store_hull``)."""
+    (14, 2) and ``pts`` (1, HMAX, 2) float32 are scratch (``hull.store_hull``), as is ``ext``
+    (TILE, 2) (``hull.hull_rows``)."""
     for c in range(3):
         for e in range(2):
             d = -(P[c, 2] + e * U[c, 2])
@@ -183,7 +203,7 @@ def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts):
     # store_hull (and convex_hull) and of _hull_spans.
     k = np.int64(0)
     m = store_hull(uv, np.int64(6), res, scratch, pts, k)
-    _hull_spans(pts, k, m, ia, ib, ja, jb, r0, pad, span)
+    _hull_spans(pts, k, m, ia, ib, ja, jb, r0, pad, span, ext)
 
 
 @njit(**_JIT_NO_NRT)
@@ -457,7 +477,7 @@ def _chunk_scratch(npx_max, maxp):
         np.zeros(npx_max), np.empty(40), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
         np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3), np.empty(4, dtype=np.int64),
         np.empty((TILE, 2), dtype=np.int64), np.empty((6, 2)), np.empty((14, 2)),
-        np.empty((1, HMAX, 2), dtype=np.float32),
+        np.empty((1, HMAX, 2), dtype=np.float32), np.empty((TILE, 2)),
         PieceScratch(np.empty(maxp), np.empty(maxp), np.empty(maxp), np.empty(maxp),
                      np.empty(48), np.empty((64, 4)), np.zeros(4, dtype=np.int64)))
 
@@ -513,7 +533,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     own = _chunk_scratch(npx_max, maxp)
     # c_uv, c_scratch, c_pts: a cluster triangle's swept hull (``_front_spans``).
     (cnt, bound, jx, jy, coef, P, U, W, R, dc, cen, vel, bx, span, c_uv, c_scratch, c_pts,
-     sc) = borrow(own)
+     ext, sc) = borrow(own)
     # A private row of counters, copied out at the end.
     work_o = np.zeros(counters.shape[1], dtype=np.int64)
     work = borrow(work_o)
@@ -566,7 +586,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 ia = max(prim_box[pr, 0], r0)
                 ib = min(prim_box[pr, 1], r1 - 1)
                 _row_spans(hulls, pr, ia, ib, max(prim_box[pr, 2], cl0),
-                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span)
+                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span, ext)
                 for i in range(ia, ib + 1):
                     for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
                         bound[(i - r0) * tw + (j - cl0)] = np.inf
@@ -626,8 +646,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     jb = min(bx[3], cl1 - 1)
                     if ia > ib or ja > jb:
                         continue
-                    _front_spans(P, U, res, ia, ib, ja, jb, r0, jitter, span, c_uv,
-                                 c_scratch, c_pts)
+                    if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
+                        _box_spans(ia, ib, ja, jb, r0, span)
+                    else:
+                        _front_spans(P, U, res, ia, ib, ja, jb, r0, jitter, span, c_uv,
+                                     c_scratch, c_pts, ext)
                     if moving[t]:
                         moving_setup(P, U, W, coef)
                         kind = 1
@@ -680,8 +703,12 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         static_setup(P, W, dc, coef)
                 ia = max(prim_box[pr, 0], r0)
                 ib = min(prim_box[pr, 1], r1 - 1)
-                _row_spans(hulls, pr, ia, ib, max(prim_box[pr, 2], cl0),
-                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span)
+                ja = max(prim_box[pr, 2], cl0)
+                jb = min(prim_box[pr, 3], cl1 - 1)
+                if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
+                    _box_spans(ia, ib, ja, jb, r0, span)
+                else:
+                    _row_spans(hulls, pr, ia, ib, ja, jb, r0, jitter, span, ext)
                 work[C_SETUPS] += 1
                 cs1 = _cycles()
                 while True:

@@ -4,6 +4,7 @@ tighter than the bounding box on slivers."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numba import njit
 
 from visibility.cores.from_segment.boxes import (
@@ -17,7 +18,7 @@ from visibility.cores.from_segment.boxes import (
 from visibility.cores.from_segment.dynamic import moving_cover, moving_setup
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.groups import CubeFrame, GeometryArrays
-from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols
+from visibility.cores.from_segment.hull import HMAX, Hulls, hull_cols, hull_rows
 from visibility.cores.from_segment.raster import _cam_corners, _row_spans
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.cores.from_segment.static import static_cover, static_setup
@@ -84,6 +85,7 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
     coef = np.empty(40)
     acc = np.zeros((RES, RES), dtype=np.bool_)
     span = np.empty((TILE, 2), np.int64)
+    ext = np.empty((TILE, 2))
     for f in range(6):
         R = np.ascontiguousarray(rots[f])
         dc = R @ dvec
@@ -105,7 +107,7 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
         assert np.all((ii >= b[0]) & (ii <= b[1]) & (jj >= b[2]) & (jj <= b[3]))
         for i, j in zip(ii, jj, strict=True):
             r0 = (i // TILE) * TILE
-            _row_spans(hulls, f, i, i, b[2], b[3], r0, PAD, span)
+            _row_spans(hulls, f, i, i, b[2], b[3], r0, PAD, span, ext)
             assert span[i - r0, 0] <= j <= span[i - r0, 1], (f, i, j, span[i - r0])
             tx0, tx1 = _tile_cols(hulls, f, box, i // TILE, PAD)
             assert tx0 <= j // TILE <= tx1
@@ -125,6 +127,35 @@ def test_hull_cols_of_a_diagonal_band():
     assert hull_cols(pts, 0, 2, 5.0, 5.0, 0.0) == (5, 5)
     a, b = hull_cols(pts, 0, 2, 20.0, 20.0, 0.5)
     assert a > b
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hull_rows_gives_each_rows_hull_cols(seed):
+    # One pass over the edges for a tile's rows, the same columns as a call per row: slivers,
+    # points, segments, horizontal edges, far and huge coordinates, every pad in use.
+    rng = np.random.default_rng(seed)
+    pts = np.zeros((1, HMAX, 2), np.float32)
+    ext = np.empty((TILE, 2))
+    for trial in range(400):
+        m = int(rng.integers(1, HMAX + 1))
+        scale = float(rng.choice([0.3, 3.0, 40.0, 1e6]))
+        c = rng.normal(0.0, 1.0, (m, 2)) * scale + rng.uniform(-30, 30, 2)
+        if trial % 7 == 0:
+            c[:, 1] = np.round(c[:, 1])  # rows on integers: edges along the band lines
+        if trial % 5 == 0:
+            c[1:, 1] = c[0, 1]  # a horizontal sliver
+        pts[0, :m] = c
+        pad = float(rng.choice([0.0, 0.25, 0.5]))
+        r0 = int(rng.integers(-24, 24)) * TILE
+        ia = r0 + int(rng.integers(0, TILE))
+        ib = min(r0 + TILE - 1, ia + int(rng.integers(0, TILE)))
+        hull_rows(pts, np.int64(0), np.int64(m), ia, ib, pad, r0, ext)
+        for i in range(ia, ib + 1):
+            a, b = hull_cols(pts, 0, m, float(i), float(i), pad)
+            if a > b:
+                assert ext[i - r0, 0] > ext[i - r0, 1], (trial, i)
+            else:
+                assert (int(ext[i - r0, 0]), int(ext[i - r0, 1])) == (a, b), (trial, i)
 
 
 def test_spans_hold_every_pixel_the_cover_tests_accept():
