@@ -77,91 +77,91 @@ def store_hull(uv: np.ndarray, n: int, res: int, scratch: np.ndarray, out_pts: n
 
 
 @njit(**_JIT_NO_NRT)
+def _hull_eps(pts: np.ndarray, k: int, m: int) -> float:
+    """The widening of stored hull ``pts[k, :m]``'s spans against rounding, in pixels."""
+    scale = 0.0
+    for q in range(m):
+        scale = max(scale, abs(float(pts[k, q, 0])), abs(float(pts[k, q, 1])))
+    return EPS_ABS + EPS_REL * scale
+
+
+@njit(**_JIT_NO_NRT)
+def _edge_in_band(pts: np.ndarray, k: int, m: int, q: int, lo: float, hi: float, cmin: float,
+                  cmax: float) -> tuple[float, float]:
+    """(cmin, cmax) widened by what edge q of the stored hull (from vertex q to the next) holds
+    in the band of rows [lo, hi]: its first vertex if inside, and where it crosses the band's
+    two lines (its other end is the next edge's first vertex)."""
+    ca = float(pts[k, q, 0])
+    ra = float(pts[k, q, 1])
+    nq = q + 1 if q + 1 < m else 0
+    cb = float(pts[k, nq, 0])
+    rb = float(pts[k, nq, 1])
+    if lo <= ra <= hi:
+        cmin = min(cmin, ca)
+        cmax = max(cmax, ca)
+    for r in (lo, hi):
+        if (ra < r < rb) or (rb < r < ra):
+            c = ca + (r - ra) * (cb - ca) / (rb - ra)
+            cmin = min(cmin, c)
+            cmax = max(cmax, c)
+    return cmin, cmax
+
+
+@njit(**_JIT_NO_NRT)
+def _band_cols(cmin: float, cmax: float, pad: float, eps: float) -> tuple[float, float]:
+    """The columns (as floats; cmin > cmax: none) whose sample, up to ``pad`` off centre, can
+    reach the hull's extent [cmin, cmax] in a band."""
+    if not cmin <= cmax:
+        return np.inf, -np.inf
+    # Far beyond any face (points near the near plane): keep the ints in range.
+    cmin = max(cmin, -1e15)
+    cmax = min(cmax, 1e15)
+    return np.ceil(cmin - pad - eps), np.floor(cmax + pad + eps)
+
+
+@njit(**_JIT_NO_NRT)
 def hull_cols(pts: np.ndarray, k: int, m: int, rlo: float, rhi: float,
               pad: float) -> tuple[int, int]:
     """Columns [j0, j1] (inclusive, unclamped; j0 > j1 when none) of the pixels in rows
     [rlo, rhi] whose sample, up to ``pad`` pixels off its centre per axis, can fall inside the
     stored hull ``pts[k, :m]``: the hull cut by the band of sample rows [rlo - pad, rhi + pad],
     widened by ``pad`` (and by EPS_ABS / EPS_REL against rounding)."""
-    scale = 0.0
-    for q in range(m):
-        scale = max(scale, abs(float(pts[k, q, 0])), abs(float(pts[k, q, 1])))
-    eps = EPS_ABS + EPS_REL * scale
+    eps = _hull_eps(pts, k, m)
     lo = rlo - pad - eps
     hi = rhi + pad + eps
     cmin = np.inf
     cmax = -np.inf
     for q in range(m):
-        ca = float(pts[k, q, 0])
-        ra = float(pts[k, q, 1])
-        nq = q + 1 if q + 1 < m else 0
-        cb = float(pts[k, nq, 0])
-        rb = float(pts[k, nq, 1])
-        if lo <= ra <= hi:
-            cmin = min(cmin, ca)
-            cmax = max(cmax, ca)
-        # Where the edge crosses the band's two lines (its other end is the next vertex).
-        for r in (lo, hi):
-            if (ra < r < rb) or (rb < r < ra):
-                c = ca + (r - ra) * (cb - ca) / (rb - ra)
-                cmin = min(cmin, c)
-                cmax = max(cmax, c)
-    if not cmin <= cmax:
+        cmin, cmax = _edge_in_band(pts, k, m, q, lo, hi, cmin, cmax)
+    a, b = _band_cols(cmin, cmax, pad, eps)
+    if not a <= b:
         return 1, 0
-    # Far beyond any face (points near the near plane): keep the ints in range.
-    cmin = max(cmin, -1e15)
-    cmax = min(cmax, 1e15)
-    return int(np.ceil(cmin - pad - eps)), int(np.floor(cmax + pad + eps))
+    return int(a), int(b)
 
 
 @njit(**_JIT_NO_NRT)
 def hull_rows(pts: np.ndarray, k: int, m: int, ia: int, ib: int, pad: float, r0: int,
               ext: np.ndarray) -> None:
-    """``hull_cols(pts, k, m, i, i, pad)`` for every row i of [ia, ib] at once, bit for bit,
-    before the rounding to columns: ext[i - r0] = (cmin, cmax) pixel units (cmin > cmax: no
-    column). One pass over the hull's edges, each visiting only the rows its band can touch:
-    a thin sliver across a tile's 16 rows costs about two edges' rows, where a call per row
-    read every edge (and the scale) again."""
-    scale = 0.0
-    for q in range(m):
-        scale = max(scale, abs(float(pts[k, q, 0])), abs(float(pts[k, q, 1])))
-    eps = EPS_ABS + EPS_REL * scale
+    """``hull_cols(pts, k, m, i, i, pad)`` for every row i of [ia, ib] at once, as floats:
+    ext[i - r0] = (first, last) column (first > last: none). One pass over the hull's edges,
+    each visiting only the rows its band can touch: a thin sliver across a tile's 16 rows
+    costs about two edges' rows, where a call per row read every edge (and the scale) again."""
+    eps = _hull_eps(pts, k, m)
     for i in range(ia, ib + 1):
         ext[i - r0, 0] = np.inf
         ext[i - r0, 1] = -np.inf
     w = pad + eps
     for q in range(m):
-        ca = float(pts[k, q, 0])
         ra = float(pts[k, q, 1])
-        nq = q + 1 if q + 1 < m else 0
-        cb = float(pts[k, nq, 0])
-        rb = float(pts[k, nq, 1])
+        rb = float(pts[k, q + 1 if q + 1 < m else 0, 1])
         # The rows whose band [i - w, i + w] can meet the edge, one wider each side against
-        # rounding (the tests below decide, as hull_cols does).
+        # rounding (``_edge_in_band`` decides, as for hull_cols).
         ea = max(min(ra, rb) - w, ia - 1.0)
         eb = min(max(ra, rb) + w, ib + 1.0)
         if not ea <= eb:
             continue
         for i in range(max(ia, int(np.floor(ea)) - 1), min(ib, int(np.ceil(eb)) + 1) + 1):
-            lo = i - pad - eps
-            hi = i + pad + eps
-            cmin = ext[i - r0, 0]
-            cmax = ext[i - r0, 1]
-            if lo <= ra <= hi:
-                cmin = min(cmin, ca)
-                cmax = max(cmax, ca)
-            for r in (lo, hi):
-                if (ra < r < rb) or (rb < r < ra):
-                    c = ca + (r - ra) * (cb - ca) / (rb - ra)
-                    cmin = min(cmin, c)
-                    cmax = max(cmax, c)
-            ext[i - r0, 0] = cmin
-            ext[i - r0, 1] = cmax
+            ext[i - r0, 0], ext[i - r0, 1] = _edge_in_band(
+                pts, k, m, q, i - pad - eps, i + pad + eps, ext[i - r0, 0], ext[i - r0, 1])
     for i in range(ia, ib + 1):
-        cmin = ext[i - r0, 0]
-        cmax = ext[i - r0, 1]
-        if cmin <= cmax:
-            cmin = max(cmin, -1e15)
-            cmax = min(cmax, 1e15)
-            ext[i - r0, 0] = np.ceil(cmin - pad - eps)
-            ext[i - r0, 1] = np.floor(cmax + pad + eps)
+        ext[i - r0, 0], ext[i - r0, 1] = _band_cols(ext[i - r0, 0], ext[i - r0, 1], pad, eps)
