@@ -81,17 +81,12 @@ def _box_area(box: np.ndarray) -> int:
     return int(np.sum((b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)))
 
 
-def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_only=False):
-    """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
-    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s), and the
-    projected swept hulls of the triangles (``hull.Hulls``). With ``area_only``, just the sum
-    of their pixel boxes' areas (int), at a fraction of the cost."""
-    parts = []
-    area = 0
-    hull_parts = []
+def _cluster_stage(geom, v0, dvec, rb, res, near, pad, batch) -> list[tuple]:
+    """Per batch of the scene's clusters, ``_split_clusters``' answer for the segment: the
+    clusters kept whole (ids, faces, boxes, depths, flags) and the (triangle, face) pairs of
+    those expanded. Computed once per piece, for its area and then its primitives."""
+    out = []
     nc = len(geom.cl_start) - 1
-    kept = 0
-    expanded = 0
     for first in range(0, nc, batch):
         last = min(nc, first + batch)
         k = last - first
@@ -100,8 +95,25 @@ def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_
         cflag = np.empty((k, 6), dtype=np.uint8)
         _cluster_boxes(geom.cl_lo[first:last], geom.cl_hi[first:last], v0, dvec, rb, _PERM, _SGN,
                        res, near, pad, cbox, cz, cflag)
-        kc, kf, kb, kz, kfl, et, ef = _split_clusters(geom.cl_start, geom.cl_tris, cbox, cz,
-                                                      cflag, first, res)
+        out.append(_split_clusters(geom.cl_start, geom.cl_tris, cbox, cz, cflag, first, res))
+    return out
+
+
+def _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats, area_only=False,
+                   stage=None):
+    """All (primitive, face) pairs that can touch a pixel sample of the segment's cubemap:
+    whole clusters, triangles of expanded clusters, spheres (global ids n_tri + s), and the
+    projected swept hulls of the triangles (``hull.Hulls``). With ``area_only``, just the sum
+    of their pixel boxes' areas (int), at a fraction of the cost. ``stage``: the segment's
+    ``_cluster_stage``, when the caller has it already."""
+    parts = []
+    area = 0
+    hull_parts = []
+    kept = 0
+    expanded = 0
+    if stage is None:
+        stage = _cluster_stage(geom, v0, dvec, rb, res, near, pad, batch)
+    for kc, kf, kb, kz, kfl, et, ef in stage:
         if area_only:
             area += _box_area(kb)
             if len(et):
@@ -279,10 +291,13 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # segments from a full collection instead (open scenes never cut them) wasted far more on
     # cluttered scenes, where they are cut, than it saved on open ones.
     area = est
+    stage = None
     if depth > 0 and est <= limit:
+        stage = _cluster_stage(geom, v0, dvec, rb, res, near, jitter, batch)
         area = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
-                              area_only=True)
+                              area_only=True, stage=stage)
     if depth > 0 and area > limit:
+        del stage  # the halves project their own; not held through the recursion
         stats["box_seconds"] = stats.get("box_seconds", 0.0) + (time.perf_counter() - t0)
         stats["splits"] = stats.get("splits", 0) + 1
         half = 0.5 * dvec
@@ -296,7 +311,8 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
                    seed, batch, visible, stats, witness, 0.25 * area, cap)
         return
     prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
-        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats)
+        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats, stage=stage)
+    del stage
     t1 = time.perf_counter()
     rstart, cols = _tile_ranges(prim_box, hulls, jitter)
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
