@@ -594,7 +594,7 @@ def test_face_subsets_drop_only_empty_footprints():
         views = side_plane_views(box, 32)
         tol = prims.plane_tol
         subsets = _face_subsets(prim_bounds(prims), order, half, views, tol)
-        every = np.arange(len(order), dtype=np.int64)
+        every = np.arange(len(order), dtype=np.int32)  # int32 as core's positions
         for v in views:
             full = np.empty((len(order), 4), dtype=np.int32)
             footprints(prims.pts, prims.start, prims.npts, prims.kind, order, every, v.origin,
@@ -665,7 +665,7 @@ def test_the_tree_cull_keeps_what_the_views_rays_meet():
         tree = cell_tree(build_hierarchy(scene.vertices, scene.faces, leaf_size=4), prims,
                          order, scene.n_triangles, centre)
         tol = prims.plane_tol
-        every = np.arange(len(order), dtype=np.int64)
+        every = np.arange(len(order), dtype=np.int32)  # int32 as core's positions
         keep = np.ones(len(order), dtype=bool)
         tri_of = prims.out_id[order]  # triangle id at each position
         cam_tri = (scene.vertices[scene.faces] - centre)
@@ -974,7 +974,7 @@ def test_only_a_triangle_in_the_rectangles_plane_is_edge_on(gap):
     (view,) = [v for v in side_plane_views(box, 32) if v.face == (1, 1) and v.kind == "front"]
     tol = prims.plane_tol
     rng = np.empty((1, 4), dtype=np.int32)
-    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, np.zeros(1, np.int64),
+    footprints(prims.pts, prims.start, prims.npts, prims.kind, order, np.zeros(1, np.int32),
                view.origin, view.perm, view.sign, view.corners, view.near_box, view.near_w,
                view.nx, view.ny, view.x_lo, view.y_lo, view.pw, tol, rng)
     listed = rng[0, 0] <= rng[0, 1] and rng[0, 2] <= rng[0, 3]

@@ -39,6 +39,9 @@ TINY = [(5.0, 4.99), (5.01, 5.01), (4.99, 5.01)]
 
 
 def _samples(poly, npoly, box, image):
+    # float32, as the supersampled render is: the kernels run with the types they were
+    # compiled for by the warm-up, not a second specialization.
+    image = image.astype(np.float32)
     vis = np.zeros(1, dtype=np.uint8)
     far = np.empty(RES * RES)
     open_depth(image, RES, S, 0, np.empty(RES * RES), far)
