@@ -4,8 +4,17 @@
 # redis-server and nginx (the shared-cache and deployment tests), chromium and node/npm for the
 # browser viewer and its tests, and three.js from npm (`npm ci`). Safe to run again; it skips
 # what is already there.
+#
+# `setup.sh python`: only Python and .venv (all `pvs warmup` needs); `setup.sh system`: only the
+# rest (the Debian packages and three.js), which the test command installs while the kernels
+# compile. No argument: both, in that order.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+PART=${1:-all}
+case "$PART" in
+  all|python|system) ;;
+  *) echo "usage: scripts/setup.sh [python|system]" >&2; exit 2 ;;
+esac
 
 PY=${PYTHON:-python3}
 have_venv() { [ -x .venv/bin/python ] && .venv/bin/python -m pip --version >/dev/null 2>&1; }
@@ -14,23 +23,49 @@ have_venv() { [ -x .venv/bin/python ] && .venv/bin/python -m pip --version >/dev
 # the tests and benchmarks start (they start their own redis-server and nginx on loopback ports;
 # no system service is relied on), nor the dev tools.
 RUNTIME=${PVS_SETUP_RUNTIME:-0}
-pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6)
-[ "$RUNTIME" = 1 ] || pkgs+=(redis-server nginx-light)
-need_apt=()
-for pkg in "${pkgs[@]}"; do
-  dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
-done
-# The viewer's browser tests drive Debian's chromium through its driver (selenium); node and
-# npm install three.js, which the server serves to the viewer's page (package-lock.json; the
-# Docker image takes it from a node stage instead).
-if [ "$RUNTIME" != 1 ]; then
-  for pkg in chromium chromium-driver; do
+apt_install() {
+  [ $# -gt 0 ] || return 0
+  echo "[setup] installing Debian packages: $*"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "$@" >/dev/null
+}
+
+system_part() {
+  local pkgs need_apt=() pkg
+  pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libxrender1 libosmesa6)
+  [ "$RUNTIME" = 1 ] || pkgs+=(redis-server nginx-light)
+  for pkg in "${pkgs[@]}"; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
   done
-  command -v npm >/dev/null 2>&1 || need_apt+=(nodejs npm)
+  # The viewer's browser tests drive Debian's chromium through its driver (selenium); node and
+  # npm install three.js, which the server serves to the viewer's page (package-lock.json; the
+  # Docker image takes it from a node stage instead).
+  if [ "$RUNTIME" != 1 ]; then
+    for pkg in chromium chromium-driver; do
+      dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
+    done
+    command -v npm >/dev/null 2>&1 || need_apt+=(nodejs npm)
+  fi
+  apt_install "${need_apt[@]}"
+  # three.js for the browser viewer, exactly as package-lock.json pins it (node_modules/ is not
+  # in the repository; the server serves its build folder at /viewer/vendor/).
+  local npm_stamp=node_modules/.pvs-installed
+  if [ "$RUNTIME" != 1 ] && { [ ! -f "$npm_stamp" ] || [ package-lock.json -nt "$npm_stamp" ]; }; then
+    echo "[setup] installing three.js (npm ci)"
+    npm ci --no-audit --no-fund --loglevel=error
+    touch "$npm_stamp"
+  fi
+}
+
+if [ "$PART" = system ]; then
+  system_part
+  exit 0
 fi
+
 # Python itself, and what `python3 -m venv` needs: Debian splits venv/ensurepip (python3-venv)
 # and pip (python3-pip) out of python3, so a fresh machine fails at `-m venv` without them.
+need_apt=()
 if ! command -v "$PY" >/dev/null 2>&1; then
   need_apt+=(python3 python3-venv python3-pip)
   PY=python3
@@ -39,12 +74,7 @@ elif ! have_venv; then
     || need_apt+=(python3-venv)
   "$PY" -m pip --version >/dev/null 2>&1 || need_apt+=(python3-pip)
 fi
-if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "[setup] installing Debian packages: ${need_apt[*]}"
-  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
-fi
+apt_install "${need_apt[@]}"
 
 "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
   || { echo "[setup] Python >= 3.11 is needed; $PY is $("$PY" -V 2>&1)" >&2; exit 1; }
@@ -76,11 +106,4 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   touch "$stamp"
 fi
 
-# three.js for the browser viewer, exactly as package-lock.json pins it (node_modules/ is not
-# in the repository; the server serves its build folder at /viewer/vendor/).
-npm_stamp=node_modules/.pvs-installed
-if [ "$RUNTIME" != 1 ] && { [ ! -f "$npm_stamp" ] || [ package-lock.json -nt "$npm_stamp" ]; }; then
-  echo "[setup] installing three.js (npm ci)"
-  npm ci --no-audit --no-fund --loglevel=error
-  touch "$npm_stamp"
-fi
+[ "$PART" = python ] || system_part

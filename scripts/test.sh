@@ -4,8 +4,13 @@
 # headless pyrender). Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh python
 source scripts/env.sh
+# The Debian packages and three.js only the tests use (redis, nginx, chromium, node) install
+# while the kernels compile, not before (apt and npm wait on the network, numba on the CPU).
+system_log=$(mktemp)
+bash scripts/setup.sh system >"$system_log" 2>&1 &
+system_pid=$!
 .venv/bin/ruff check .
 # Compiled once here, the kernels load from the numba cache in every test process; otherwise
 # each pytest worker compiles the ones it meets first, the same ones twice.
@@ -13,6 +18,13 @@ source scripts/env.sh
 export PVS_WARMUP_REPORT="$NUMBA_CACHE_DIR/warmup-report.txt"
 mkdir -p "$NUMBA_CACHE_DIR"
 .venv/bin/python -m pvs_cli warmup | tee "$PVS_WARMUP_REPORT"
+if ! wait "$system_pid"; then
+  cat "$system_log" >&2
+  echo "[test] set-up of the system packages failed" >&2
+  exit 1
+fi
+cat "$system_log"
+rm -f "$system_log"
 # loadgroup: tests marked with one xdist_group (a real scene's, a module's) share one worker,
 # so what they build once per process (the kitchen, a scene's references, a server) is built
 # once per run.
