@@ -82,7 +82,7 @@ def test_false_negative_pixels_on_real_scenes(name, which, delta):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("delta", [0.05, 0.1, 0.2, 0.3])
+@pytest.mark.parametrize("delta", [0.05, 0.1, 0.2, 0.3, 0.4])
 @pytest.mark.parametrize("which", [0, 1])
 def test_false_negative_pixels_on_lavaducts(which, delta):
     from tests.visibility.real_scenes import REAL, real_scene
@@ -94,7 +94,9 @@ def test_false_negative_pixels_on_lavaducts(which, delta):
     # (quality.FRAME_NEAR, test_quality). Its 1,380 at Δ 0.3 m were eyes behind one wall of
     # a corner (its plane passes through the sphere: silhouettes.AMBIGUOUS) seeing past the
     # other wall's end a wall seen from behind, which closed the trimmed interval and was
-    # dropped as the occluder's own back (test_resolve).
+    # dropped as the occluder's own back (test_resolve). At Δ 0.4 m, past the default
+    # max_delta, both cells were over it until an interval's front face took the trim of its
+    # rim in front of it: a corner the ray passes (test_resolve).
     assert e["fn_pixel_rate_max"] <= BOUND, (delta, which, e["fn_pixels_max"], e["missed"][:20])
 
 

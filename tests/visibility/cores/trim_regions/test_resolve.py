@@ -448,3 +448,34 @@ def test_a_large_face_hides_what_a_shallow_umbra_of_another_edge_would_show():
     through = hit + np.array([[-9.0, -9.0], [9.0, -9.0], [0.0, 9.0]]) @ np.stack([u1, u2])
     vis, _, _, _, _ = _resolve(seq, reach=_one_triangle_view(through, res, 0.07, 0.05))
     assert 2 in vis
+
+
+def test_an_interval_takes_the_trim_of_its_front_faces_rim_in_front_of_it():
+    # Lavaducts at Δ 0.4 m: from v* the ray passes the back of a wall (0) at the corner it
+    # makes with a second wall (1), which recedes from that corner to 2.8 m, and meets the
+    # back of a third wall (2) 4.9 m away. The corner edge is both walls' rim: its trim lies
+    # at the first wall's depth, in front of where the ray meets the second. Eyes of the
+    # sphere past the corner see the third wall's back (85 pixels of a frame were missed):
+    # the interval [1, 2] takes its front face's rim, and the back face is reported.
+    cam = np.array([[-1.4, -0.4, -1.386], [1.0, -0.4, -1.386], [-1.4, 1.6, -1.386],
+                    [-0.4, -0.4, -1.386], [-0.4, -0.4, -2.808], [-0.4, 1.6, -2.808],
+                    [-1.1, 1.0, -4.942], [-0.4, 1.0, -4.942], [-1.1, 1.7, -4.942]])
+    faces = np.zeros((16, 3), dtype=np.int64)
+    faces[0], faces[1], faces[2] = (0, 1, 2), (3, 4, 5), (6, 7, 8)
+    reach = Reach(np.zeros((16, 3)), np.eye(3), 1.0, 1, INF, cam, faces, 0.561, 0.4)
+    seq = [(TRIM, 1.386, -1, 1.682), (BACK, 1.386, 0, 0), (FRONT, 2.265, 1, 0),
+           (TRIM, 4.942, -1, 22.953), (BACK, 4.942, 2, 0)]
+    vis, sealed, _, _, _ = _resolve(seq, reach=reach)
+    assert vis == {0, 1, 2} and not sealed
+    # Over layers (the third wall comes later), the carried front face keeps that trim.
+    vis, sealed, _, _, left = _resolve(seq[:3], final=False, reach=reach)
+    assert vis == {0} and not sealed and left == 2
+    vis, _, _, _, _ = _resolve([(TRIM, 1.386, -1, 1.682), (FRONT, 2.265, 1, 0)] + seq[3:],
+                               reach=reach, cover=1.682)
+    assert 2 in vis
+    # A wall facing the ray squarely has no rim in front of it: the corner's trim is not its.
+    square = cam.copy()
+    square[3:6, 2] = -2.265
+    flat = Reach(np.zeros((16, 3)), np.eye(3), 1.0, 1, INF, square, faces, 0.561, 0.4)
+    vis, _, _, _, _ = _resolve(seq, reach=flat)
+    assert 2 not in vis
