@@ -379,11 +379,20 @@ def _rim_from(reach, ident, last):  # pragma: no cover - numba
     own) and no nearer than the face's nearest corner (a nearer trim is another edge's: in
     a level of one connected piece the piece says nothing). -1: every trim in front of it."""
     lo = last * (1.0 + DEPTH_TOL) if last >= 0 else -1.0
-    if reach.cam.shape[0] > 0 and ident >= 0:
-        f = reach.faces[ident]
-        z = min(-reach.cam[f[0], 2], -reach.cam[f[1], 2], -reach.cam[f[2], 2])
+    z = _nearest_corner(reach, ident)
+    if z < np.inf:
         lo = max(lo, z * (1.0 - DEPTH_TOL))
     return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_corner(reach, ident):  # pragma: no cover - numba
+    """Depth from v* of face ``ident``'s nearest corner; inf without the view's vertices
+    (``Reach.cam`` empty) or a face."""
+    if reach.cam.shape[0] == 0 or ident < 0:
+        return np.inf
+    f = reach.faces[ident]
+    return min(-reach.cam[f[0], 2], -reach.cam[f[1], 2], -reach.cam[f[2], 2])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -394,12 +403,7 @@ def _front_rim(reach, ident, d):  # pragma: no cover - numba
     of single-sided walls) has that rim in front of it along the ray, at the corner wall's
     depth, and eyes of the sphere that pass the rim look into the interval from its side.
     Without the view's vertices (``Reach.cam`` empty): d, less the tolerance."""
-    lo = d * (1.0 - DEPTH_TOL)
-    if reach.cam.shape[0] > 0 and ident >= 0:
-        f = reach.faces[ident]
-        z = min(-reach.cam[f[0], 2], -reach.cam[f[1], 2], -reach.cam[f[2], 2])
-        lo = min(lo, z * (1.0 - DEPTH_TOL))
-    return lo
+    return min(d, _nearest_corner(reach, ident)) * (1.0 - DEPTH_TOL)
 
 
 @njit(cache=True, nogil=True, inline="always")

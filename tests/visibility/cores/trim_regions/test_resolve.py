@@ -455,7 +455,7 @@ def test_an_interval_takes_the_trim_of_its_front_faces_rim_in_front_of_it():
     # makes with a second wall (1), which recedes from that corner to 2.8 m, and meets the
     # back of a third wall (2) 4.9 m away. The corner edge is both walls' rim: its trim lies
     # at the first wall's depth, in front of where the ray meets the second. Eyes of the
-    # sphere past the corner see the third wall's back (85 pixels of a frame were missed):
+    # sphere past the corner see the third wall's back (a frame's pixels were missed there):
     # the interval [1, 2] takes its front face's rim, and the back face is reported.
     cam = np.array([[-1.4, -0.4, -1.386], [1.0, -0.4, -1.386], [-1.4, 1.6, -1.386],
                     [-0.4, -0.4, -1.386], [-0.4, -0.4, -2.808], [-0.4, 1.6, -2.808],
