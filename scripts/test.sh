@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The test suite on a fresh machine: set up, lint, compile the kernels once, then pytest in
-# PVS_TEST_WORKERS processes (default 2; real server on loopback, real WebSocket clients,
-# headless pyrender). Extra arguments go to pytest.
+# PVS_TEST_WORKERS processes (default twice the cores, at most 8; real server on loopback, real
+# WebSocket clients, headless pyrender). Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh python
@@ -28,4 +28,8 @@ rm -f "$system_log"
 # loadgroup: tests marked with one xdist_group (a real scene's, a module's) share one worker,
 # so what they build once per process (the kitchen, a scene's references, a server) is built
 # once per run.
-exec .venv/bin/python -m pytest -q -ra --durations=30 -n "${PVS_TEST_WORKERS:-2}" --dist loadgroup "$@"
+# Twice as many processes as cores: much of the suite waits on servers, browsers, sockets and
+# child processes, and one process per core left the cores idle that long.
+cores=$(nproc)
+workers=${PVS_TEST_WORKERS:-$(( 2 * cores < 8 ? 2 * cores : 8 ))}
+exec .venv/bin/python -m pytest -q -ra --durations=30 -n "$workers" --dist loadgroup "$@"
