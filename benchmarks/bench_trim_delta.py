@@ -9,7 +9,8 @@ pixels) with spheres of that size is what this measures, on the cubes
 whose circumscribed sphere is Δ): FN px is the most pixels of a frame showing a triangle the
 PVS lacks (eyes in the cube's open space, ``RANDOM_FRAMES`` frames each).
 
-Writes ``benchmarks/results/trim_delta.md`` (+ ``.json``). Usage:
+Writes ``benchmarks/results/trim_delta_<Δ>.md`` (+ ``.json``), e.g. ``trim_delta_0.41.md``.
+Usage:
 ``python -m benchmarks.bench_trim_delta --delta 0.41`` (about 10 minutes on 2 cores, the
 kitchen's cubes most of it), ``--scenes lavaducts --cubes 2`` for a smoke run into ``--out``.
 """
@@ -112,11 +113,12 @@ def main(argv: list[str] | None = None) -> int:
     rows = measure(args.delta, cells)
     elapsed = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "trim_delta.json").write_text(json.dumps(
+    stem = f"trim_delta_{args.delta:g}"
+    (args.out / f"{stem}.json").write_text(json.dumps(
         {"delta": args.delta, "rows": rows, "seconds": elapsed,
          "load": [load0, os.getloadavg()[0]]}, indent=1))
     text = markdown(args.delta, rows, argv, elapsed, (load0, os.getloadavg()[0]))
-    (args.out / "trim_delta.md").write_text(text)
+    (args.out / f"{stem}.md").write_text(text)
     print(text)
     return 0
 

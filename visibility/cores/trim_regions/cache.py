@@ -4,14 +4,20 @@ while the scene lives (``visibility.scene_cache.per_scene``: weak keys, one buil
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
 from visibility.scene import Scene, moving_faces
 from visibility.scene_cache import per_scene
-from visibility.topology import Edges, closed_parts, connected_pieces, scene_welded_ids
+from visibility.topology import (
+    NEAR_CLEARANCE,
+    Edges,
+    closed_parts,
+    connected_pieces,
+    scene_welded_ids,
+)
 
 
 @dataclass
@@ -87,3 +93,40 @@ def scene_data(scene: Scene, max_prims: int = 256) -> tuple[SceneData, bool]:
     built it."""
     return per_scene(scene, f"trim_regions/{max_prims}",
                      lambda s: build_scene_data(s, max_prims))
+
+
+def faced_out_for(scene: Scene, data: SceneData, box: np.ndarray) -> SceneData:
+    """``data`` for the cell ``box`` (2, 3): the triangles of closed parts wound inside out
+    (``topology.ClosedParts.outward`` -1) turned to face out (``faces``, ``normal_of``,
+    ``normals`` and ``plane``) when the cell stands clear of the part's box (by
+    ``NEAR_CLEARANCE``, as ``topology.unseen_back_faces``); ``data`` itself when none is.
+
+    From outside a closed surface a ray enters it where it meets a face's outer side first,
+    whatever the face's winding, and leaves it through the inner side of another: the
+    k-buffer's front and back faces must say so, or the seal of a pixel falls on the far
+    side of an inside-out board, behind the trims of its near side, and hides what eyes of
+    the sphere see past the board's edge. A part around the cell (a room modelled as an
+    inward-facing box) keeps its winding: its eyes see its inner side."""
+    parts, _ = closed_parts(scene)
+    inside_out = parts.outward == -1
+    if not inside_out.any():
+        return data
+    lo = np.asarray(box[0], dtype=np.float64)
+    hi = np.asarray(box[1], dtype=np.float64)
+    tol = 1e-9 + 64.0 * float(np.spacing(max(float(np.max(np.abs(box))), 1.0)))
+    gap = tol + NEAR_CLEARANCE
+    apart = np.any((parts.box[:, 0] > hi + gap) | (parts.box[:, 1] < lo - gap), axis=1)
+    flip = np.zeros(len(inside_out), dtype=bool)
+    flip[inside_out] = apart[parts.label[inside_out]]
+    if not flip.any():
+        return data
+    faces = data.faces.copy()
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    normal_of = data.normal_of.copy()
+    normal_of[flip] *= -1.0
+    rows = flip[data.static]
+    normals = data.normals.copy()
+    normals[rows] *= -1.0
+    plane = data.plane.copy()
+    plane[rows] *= -1.0
+    return replace(data, faces=faces, normal_of=normal_of, normals=normals, plane=plane)

@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from visibility.cancel import checkpoint, stop_flag
-from visibility.cores.trim_regions.cache import SceneData
+from visibility.cores.trim_regions.cache import SceneData, faced_out_for
 from visibility.cores.trim_regions.crew import Crew
 from visibility.cores.trim_regions.filters import (
     grazing_boxes,
@@ -180,6 +180,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     if small not in SMALL_RASTERS:
         raise ValueError(f"small must be one of {list(SMALL_RASTERS)}, got {small!r}")
     box = np.asarray(box, dtype=np.float64)
+    # Closed parts wound inside out face out for this cell (its eyes stand outside them).
+    data = faced_out_for(scene, data, box)
     centre = 0.5 * (box[0] + box[1])
     centres, delta = cover_box(box, max_delta)
     centres = centres - centre

@@ -199,3 +199,22 @@ def test_a_kitchen_cube_among_cabinet_panels():
     e = frame_errors(scene, pvs.triangle_ids, box, n_points=8, resolution=256, seed=1)
     assert e["frames"] > 0
     assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("kitchen")
+def test_a_kitchen_cube_beside_inside_out_boards():
+    # The first of the random kitchen cubes bench_trim_delta draws at Δ 0.41 m (one sphere):
+    # the kitchen's boards and posts are closed parts wound inside out, whose far sides the
+    # k-buffer took for their front faces, sealing pixels behind their near sides' trims.
+    # 21 pixels in the worst of its 8 frames (the bound is 19.7) until such parts face out
+    # for a cell outside them (cache.faced_out_for).
+    from benchmarks.bench_trim_regions import random_open_cubes
+    from tests.visibility.real_scenes import REAL, real_scene
+
+    assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
+    scene = real_scene("kitchen")
+    (box, cast), = random_open_cubes(scene, 1, delta=0.41)
+    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=0.41))
+    e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
+    assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])
