@@ -555,6 +555,23 @@ def _behind_cell(oriented, label, apart, normal, offset, lo, hi, tol,
             out[t] = True
 
 
+def cell_tolerance(box: np.ndarray) -> float:
+    """Metres by which a cell ``box`` (2, 3) must clear what is tested against it: 1 nm plus
+    64 ulps of its largest coordinate (the rounding of a frame shifted to the cell)."""
+    return 1e-9 + 64.0 * float(np.spacing(max(float(np.max(np.abs(box))), 1.0)))
+
+
+def parts_apart(parts: ClosedParts, box: np.ndarray, tol: float | None = None) -> np.ndarray:
+    """(p,) bool, True for the closed parts whose box lies more than ``NEAR_CLEARANCE`` plus
+    ``tol`` (default ``cell_tolerance``) from the cell ``box`` (2, 3) along some axis: every
+    eye of the cell stands outside them."""
+    lo = np.asarray(box[0], dtype=np.float64)
+    hi = np.asarray(box[1], dtype=np.float64)
+    gap = (cell_tolerance(box) if tol is None else tol) + NEAR_CLEARANCE
+    pb = parts.box
+    return np.any((pb[:, 0] > hi + gap) | (pb[:, 1] < lo - gap), axis=1)
+
+
 def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -> np.ndarray:
     """Triangles that no eye in ``box`` can see: the triangles of oriented closed parts whose
     box lies more than ``NEAR_CLEARANCE`` from the cell's, with every corner of the cell
@@ -584,10 +601,8 @@ def unseen_back_faces(scene: Scene, box: np.ndarray, tol: float | None = None) -
     lo = np.asarray(box[0], dtype=np.float64)
     hi = np.asarray(box[1], dtype=np.float64)
     if tol is None:
-        tol = 1e-9 + 64.0 * float(np.spacing(max(float(np.max(np.abs(box))), 1.0)))
-    pb = parts.box
-    gap = tol + NEAR_CLEARANCE
-    apart = np.any((pb[:, 0] > hi + gap) | (pb[:, 1] < lo - gap), axis=1)  # (p,)
+        tol = cell_tolerance(box)
+    apart = parts_apart(parts, box, tol)
     # One pass over the oriented triangles (numpy's temporaries over a million of them cost
     # more than the test).
     _behind_cell(parts.oriented, parts.label, apart, parts.normal, parts.offset, lo, hi,

@@ -12,10 +12,10 @@ from visibility.cores.trim_regions.octree import MAX_DEPTH, Octree, build_octree
 from visibility.scene import Scene, moving_faces
 from visibility.scene_cache import per_scene
 from visibility.topology import (
-    NEAR_CLEARANCE,
     Edges,
     closed_parts,
     connected_pieces,
+    parts_apart,
     scene_welded_ids,
 )
 
@@ -98,8 +98,9 @@ def scene_data(scene: Scene, max_prims: int = 256) -> tuple[SceneData, bool]:
 def faced_out_for(scene: Scene, data: SceneData, box: np.ndarray) -> SceneData:
     """``data`` for the cell ``box`` (2, 3): the triangles of closed parts wound inside out
     (``topology.ClosedParts.outward`` -1) turned to face out (``faces``, ``normal_of``,
-    ``normals`` and ``plane``) when the cell stands clear of the part's box (by
-    ``NEAR_CLEARANCE``, as ``topology.unseen_back_faces``); ``data`` itself when none is.
+    ``normals`` and ``plane``) when the cell stands clear of the part's box
+    (``topology.parts_apart``, as ``topology.unseen_back_faces`` decides it); ``data``
+    itself when none is.
 
     From outside a closed surface a ray enters it where it meets a face's outer side first,
     whatever the face's winding, and leaves it through the inner side of another: the
@@ -111,11 +112,7 @@ def faced_out_for(scene: Scene, data: SceneData, box: np.ndarray) -> SceneData:
     inside_out = parts.outward == -1
     if not inside_out.any():
         return data
-    lo = np.asarray(box[0], dtype=np.float64)
-    hi = np.asarray(box[1], dtype=np.float64)
-    tol = 1e-9 + 64.0 * float(np.spacing(max(float(np.max(np.abs(box))), 1.0)))
-    gap = tol + NEAR_CLEARANCE
-    apart = np.any((parts.box[:, 0] > hi + gap) | (parts.box[:, 1] < lo - gap), axis=1)
+    apart = parts_apart(parts, box)
     flip = np.zeros(len(inside_out), dtype=bool)
     flip[inside_out] = apart[parts.label[inside_out]]
     if not flip.any():
