@@ -94,6 +94,8 @@ class Reach(NamedTuple):
     faces : (m, 3) int64 each triangle id's vertex rows of ``cam``.
     back : R, how far v* lies behind the sphere's centre (along the view axis), metres.
     delta : Δ, the sphere's radius, metres.
+    two_sided : (m,) uint8, 1 for each triangle id whose plane passes through the sphere
+        (some of its eyes see the face's front whichever side v* sees); (0,): none.
     """
 
     normal: np.ndarray
@@ -105,6 +107,7 @@ class Reach(NamedTuple):
     faces: np.ndarray = np.zeros((0, 3), dtype=np.int64)
     back: float = 0.0
     delta: float = 0.0
+    two_sided: np.ndarray = np.zeros(0, dtype=np.uint8)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -407,9 +410,19 @@ def _front_rim(reach, ident, d):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _back_of_hidden(h, closed, ident):  # pragma: no cover - numba
-    """Whether back face ``ident`` belongs to the closed part h - 1 whose front face hid."""
-    return h > 0 and closed[ident] + 1 == h
+def _back_of_hidden(h, closed, reach, ident):  # pragma: no cover - numba
+    """Whether back face ``ident`` belongs to the closed part h - 1 whose front face hid,
+    and no eye of the sphere sees its front (``_two_sided``)."""
+    return h > 0 and closed[ident] + 1 == h and not _two_sided(reach, ident)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _two_sided(reach, ident):  # pragma: no cover - numba
+    """Whether face ``ident``'s plane passes through the sphere: met from behind by v*'s
+    ray, it is still seen face on by the eyes on its other side (a post's side face whose
+    plane cuts the sphere, behind its top from v*), so it is never a part's unseen back."""
+    t = reach.two_sided
+    return ident < t.shape[0] and t[ident] != 0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -495,6 +508,10 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                                                                       else -1.0)
                     if hi >= 0 and _umbra_in(sd, sk, si, su, sr, n, d - tol, hi,
                                              piece[si[i]], piece[si[j]]) < 0:
+                        # The solid's back face, seen face on from its other side where
+                        # its plane cuts the sphere, unless an umbra holds it too.
+                        if sd[j] > cov and _two_sided(reach, si[j]):
+                            vis[si[j]] = 1
                         seal[p] = d
                         sealed = True
                         break
@@ -533,7 +550,7 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             # of a run and a front face apart from its back face (module docstring).
             q = _next_surface(sk, i + 1, n)
             nxt = sd[q] if q < n else 1e300
-            if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
+            if k0 != BACK or not _back_of_hidden(hid[p], closed, reach, si[i]):
                 vis[si[i]] = 1
             if k0 != BACK:
                 hid[p] = 0
@@ -571,7 +588,7 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             sealed = True
             break
         b = sd[end_second]
-        if k0 != BACK or not _back_of_hidden(hid[p], closed, si[i]):
+        if k0 != BACK or not _back_of_hidden(hid[p], closed, reach, si[i]):
             vis[si[i]] = 1
         if k0 != BACK:
             # A front face seen opens a new stretch of the ray.
@@ -603,7 +620,8 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                 ub = max(u, _self_umbra(reach, si[end_second], p, b))
             upto = max(ub, b)
             part = closed[si[end_second]]
-            if u < b * (1.0 - DEPTH_TOL) and not (part >= 0 and part == closed[si[end_first]]):
+            own = part >= 0 and part == closed[si[end_first]]
+            if u < b * (1.0 - DEPTH_TOL) and (not own or _two_sided(reach, si[end_second])):
                 vis[si[end_second]] = 1
                 upto = u
             _push_face_span(spans, n_spans, reach, si[i], p, sd[i], upto)

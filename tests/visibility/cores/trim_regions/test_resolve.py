@@ -312,6 +312,39 @@ def test_a_back_face_beyond_the_umbra_is_seen_unless_it_is_the_occluders_own():
     assert vis == {0}
 
 
+def test_a_back_face_whose_plane_cuts_the_sphere_is_seen_past_the_umbra():
+    # A post (closed part 3) below the cell: v*'s ray enters its top (0) and leaves by a side
+    # face (1) whose plane passes through the sphere. Eyes beyond that plane see the side
+    # face on, so it is not the part's unseen back (the kitchen's random cube 6 at Δ 0.41 m:
+    # 35 pixels of one frame until it was reported).
+    two = np.zeros(16, dtype=np.uint8)
+    two[1] = 1
+    sphere = _reach()._replace(two_sided=two)
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 2.0), (BACK, 5.0, 1, 0)]
+    vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 3}, reach=sphere)
+    assert vis == {0, 1}
+    # Within the umbra no eye sees it, whatever its plane.
+    vis, _, _, _, _ = _resolve([(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 9.0), (BACK, 5.0, 1, 0)],
+                               closed={0: 3, 1: 3}, reach=sphere)
+    assert vis == {0}
+    # Its front hidden in an earlier umbra, the post's untrimmed top and side still end the
+    # ray; the side beyond that umbra is reported.
+    seq = [(FRONT, 3.0, 0, 0), (BACK, 5.0, 1, 0), (FRONT, 9.0, 4, 0)]
+    vis, sealed, seal, _, _ = _resolve(seq, cover=4.0, closed={0: 3, 1: 3}, reach=sphere)
+    assert vis == {1} and sealed and seal == 3.0
+    vis, sealed, seal, _, _ = _resolve(seq, cover=4.0, closed={0: 3, 1: 3})
+    assert vis == set() and sealed and seal == 3.0
+    vis, _, _, _, _ = _resolve(seq, cover=6.0, closed={0: 3, 1: 3}, reach=sphere)
+    assert vis == set()
+    # Read on its own behind its part's hidden front (a carried umbra), it is reported too.
+    seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.5, -1, 4.0), (BACK, 2.0, 5, 0), (FRONT, 3.0, 6, 0),
+           (BACK, 4.5, 1, 0)]
+    vis, _, _, _, _ = _resolve(seq, closed={6: 3, 1: 3})
+    assert vis == {0}
+    vis, _, _, _, _ = _resolve(seq, closed={6: 3, 1: 3}, reach=sphere)
+    assert vis == {0, 1}
+
+
 def test_the_back_of_a_closed_box_inside_a_trimmed_run_stays_hidden():
     # A room's wall (part 3) and, inside the room, a box (part 4): the run room wall, box
     # front closes at the box's back; the box's back belongs to the part of the face before
