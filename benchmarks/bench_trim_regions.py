@@ -5,8 +5,9 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
 (``visibility.ray_frames``).
 
 - Speed: the 100k ``village`` and the 1M ``kitchen`` at the default resolution, one sphere of
-  Δ in {0.05, 0.1, 0.2, 0.3} m at a walkable cell's centre: best of 2 runs after a warm-up (the
-  per-scene octree is built once and reported apart), seconds per phase P0-P4.
+  Δ in {0.05, 0.1, 0.2, 0.3} m and the default ``max_delta`` (0.41 m) at a walkable cell's
+  centre: best of 2 runs after a warm-up (the per-scene octree is built once and reported
+  apart), seconds per phase P0-P4.
 - Quality: generated scenes (20k rooms, village, city) and the real ones of ../shared/scenes,
   two cells each at every Δ, at the defaults (the method alone) and with the sampling add-on
   (``gather_eyes=8``) and with ``small="centres"`` (the paper's pixel centres): frames from
@@ -47,6 +48,7 @@ import numpy as np
 
 from benchmarks.bench_matrix import SHARED_SCENES
 from visibility.cores.base import get_core
+from visibility.cores.trim_regions.core import DEFAULT_MAX_DELTA
 from visibility.cores.trim_regions.frustum import cover_box
 from visibility.cores.trim_regions.pipeline import GATHER_EYES, PHASES
 from visibility.cores.trim_regions.quality import FRAME_NEAR, frame_errors
@@ -59,7 +61,7 @@ from visibility.viewcells import Viewcell, ViewcellGrid
 ROOT = Path(__file__).resolve().parents[1]
 
 RESULTS = ROOT / "benchmarks" / "results"
-DELTAS = (0.05, 0.1, 0.2, 0.3)
+DELTAS = (0.05, 0.1, 0.2, 0.3, DEFAULT_MAX_DELTA)
 #: The speed table's sphere radii: ``DELTAS`` and the issue's 0.3 m cube (its circumscribed
 #: sphere, Δ = 0.15 √3 m), the aim's cell on the kitchen.
 SPEED_DELTAS = tuple(sorted(DELTAS + (round(0.15 * 3 ** 0.5, 3),)))
@@ -300,7 +302,7 @@ RANDOM_FRAMES = 8
 
 
 def random_open_cubes(scene: Scene, n: int, frames: int = RANDOM_FRAMES, seed: int = 0,
-                      delta: float = 0.3) -> list[tuple[np.ndarray, Any]]:
+                      delta: float = DEFAULT_MAX_DELTA) -> list[tuple[np.ndarray, Any]]:
     """``n`` cubes whose circumscribed sphere is ``delta`` metres (box (2, 3) [min, max]) at
     seeded random places of the scene's grid cells, each with its ``frames`` ray frames (seed
     1, ``ray_frames``); a cube none of whose eyes stands in open space is drawn again."""
@@ -319,11 +321,11 @@ def random_open_cubes(scene: Scene, n: int, frames: int = RANDOM_FRAMES, seed: i
 
 
 def random_cells(quick: bool) -> list[dict[str, Any]]:
-    """Cubes of Δ 0.3 m (the core's defaults: one sphere) at seeded random places of each real
-    scene's grid cells, those with an eye in open space (``random_open_cubes``), each scored
-    on ``RANDOM_FRAMES`` frames: walls and clutter run through many of them, as they do
-    through a walker's cells, where the quality table's two cells per scene sit in open
-    space."""
+    """Cubes of Δ ``DEFAULT_MAX_DELTA`` (the largest one sphere covers at the core's defaults) at
+    seeded random places of each real scene's grid cells, those with an eye in open space
+    (``random_open_cubes``), each scored on ``RANDOM_FRAMES`` frames: walls and clutter run
+    through many of them, as they do through a walker's cells, where the quality table's two
+    cells per scene sit in open space."""
     if quick:
         return []
     core = get_core("trim_regions")
@@ -473,7 +475,8 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
                 "Box cells at the grid's middle cell (the 100k city; a 1 m cell of lavaducts), "
                 "each side as a cube and as the server's cell (the side across the ground, the "
                 "grid's eye range high): the core at its defaults (the fewest spheres of at "
-                "most `max_delta` 0.3 m: more for a larger box, up to 27, then larger ones) and "
+                f"most `max_delta` {DEFAULT_MAX_DELTA} m: more for a larger box, up to 27, "
+                "then larger ones) and "
                 "the cubes covered by 8 and by 1 larger spheres (`max_delta` the half "
                 "diagonal of the box over 2 and 1), one run after a warm-up each. FN px: the "
                 f"most pixels of a frame showing a triangle the PVS lacks, over {frames} frames "
@@ -547,7 +550,8 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
     out.append("")
     if random_rows:
         out += ["## Random cells", "",
-                "Cubes of Δ 0.3 m (the core's defaults) at seeded random places of each real "
+                f"Cubes of Δ {DEFAULT_MAX_DELTA} m (the core's defaults: the largest one sphere "
+                "covers) at seeded random places of each real "
                 "scene's grid cells, those with an eye in open space, each judged as above on "
                 f"{RANDOM_FRAMES} frames: walls and clutter run through many of them, as "
                 "through a walker's cells. Over: cells with a frame above the paper's 19.7 px.",
@@ -564,7 +568,8 @@ def markdown(speed_rows, quality_rows, side_rows, frames, elapsed, argv, loads,
         out.append("")
     out += ["## Side by side with cos and sampling on equal cube cells", "",
             "The same cube cell of each size at the grid's middle cell; each core at its "
-            "defaults (trim_regions covers the cube with spheres of at most 0.3 m: one sphere "
+            f"defaults (trim_regions covers the cube with spheres of at most {DEFAULT_MAX_DELTA} "
+            "m: one sphere "
             "here), all three scored on the same frames of independent rays. PVS and GT as "
             "shares of the scene; FN px as above. Proven unseen: "
             "triangles of trim_regions' answer that cos (conservative) leaves out of the PVS "

@@ -41,6 +41,8 @@ from visibility.viewcells import Viewcell
 
 #: Default pixels across each cube face.
 DEFAULT_RESOLUTION = 256
+#: Default largest sphere radius, metres (``TrimRegionsParams.max_delta``).
+DEFAULT_MAX_DELTA = 0.41
 
 
 @dataclass
@@ -49,7 +51,10 @@ class TrimRegionsParams(CoreParams):
 
     resolution : pixels across each (slightly widened) cube face of every sphere.
     max_delta : the cell is covered by spheres of at most this radius Δ (metres); smaller
-        spheres trim less (a tighter PVS, fewer misses) and cost one computation each.
+        spheres trim less and cost one computation each. The default, 0.41 m, is the
+        radius that covers the server's 1 m cell (1 m across the ground, the grid's 0.4 m eye
+        range high) with 2 x 2 spheres and a 1 m cube with 12 (at the paper's largest Δ,
+        0.3 m: 12 and 27); the paper's bound is measured there (docs/cores/trim_regions.md).
     max_prims : most triangles per octree node (the octree is cached per value).
     gather_eyes : a sampling add-on, 0 (off) by default: eyes stratified in the cell whose
         supersampled views join the answer (from-point sampling, not the method; 8 is the
@@ -63,7 +68,7 @@ class TrimRegionsParams(CoreParams):
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
                             help="pixels across each cube face of every sphere")
-    max_delta: float = param(0.3, unit="m", ge=1e-4, le=1e4,
+    max_delta: float = param(DEFAULT_MAX_DELTA, unit="m", ge=1e-4, le=1e4,
                              help="largest sphere radius the cell is covered with")
     max_prims: int = param(256, ge=8, le=1 << 20, help="most triangles per octree node")
     gather_eyes: int = param(0, ge=0, le=256,
@@ -127,8 +132,8 @@ class TrimRegionsCore(Core):
         if small:
             return 3.0, ("small cells: a tight trim-region PVS in about a second, with rare "
                          "pixel-level misses (aggressive)")
-        return 0.05, ("made for small cells (Δ up to about 0.3 m): a larger cell is covered "
-                      "by many spheres, costs one computation each and misses more")
+        return 0.05, ("made for small cells: a larger one is covered by many spheres of "
+                      f"at most {DEFAULT_MAX_DELTA} m, each a computation of its own")
 
     def estimate_cost(self, scene: Scene, cell: Viewcell, params: CoreParams) -> Cost:
         """Six views per covering sphere, priced per pixel and per triangle and view;

@@ -86,13 +86,15 @@ def _box(scene, side):
 
 
 def test_views_solved_two_at_a_time_give_the_answer_of_one_at_a_time(monkeypatch):
-    # A 0.6 m box: 8 spheres, 48 views, with two spheres' views in flight at once.
+    # A 0.6 m box in spheres of 0.3 m: 8 spheres, 48 views, with two spheres' views in
+    # flight at once.
     scene = make_scene("village", triangles=5000)
     box = _box(scene, 0.6)
     runs = {}
     for w in (1, 2):
         monkeypatch.setattr(pipeline, "_view_workers", lambda w=w: w)
-        runs[w] = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
+        runs[w] = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64,
+                                                                      max_delta=0.3))
     one, two = runs[1], runs[2]
     assert one.stats["spheres"] == 8
     np.testing.assert_array_equal(one.triangle_ids, two.triangle_ids)
