@@ -204,15 +204,53 @@ def _join(p, a, b, depth, idents, umbra, far):  # pragma: no cover - numba
     idents[i, p, j] = joined_pieces(idents[i, p, j], idents[k, p, m])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ident_bit(ident):  # pragma: no cover - numba
+    """One of 64 bits for a trim's ident (a piece or piece set): equal idents, equal bits."""
+    return np.uint64(1) << ((np.uint64(ident) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(58))
+
+
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _nearest_pair(p, depth, kinds, idents, far, c, same_only):  # pragma: no cover - numba
     """The two held trims of pixel p (c entries, ``kbuffer.KBuffer`` layout) nearest to each
     other in depth, two of one piece (or one piece set) if there are: (a, b, same), a = -1
-    when there is no such pair (with ``same_only``, no pair of one piece)."""
+    when there is no such pair (with ``same_only``, no pair of one piece). Among pairs as near,
+    the first in slot order (a, then b).
+
+    A full buffer in clutter holds trims of many pieces, and this runs at every insertion
+    into it: pairs of one piece are looked for only among trims whose ident shares a bit
+    (``_ident_bit``) with another's, and a walk ends at the first pair that touches (none can
+    come nearer)."""
+    seen = np.uint64(0)
+    dup = np.uint64(0)
+    for q in range(c):
+        i, j = q >> LANE_BITS, q & LANE_MASK
+        if kinds[i, p, j] == TRIM:
+            bit = _ident_bit(idents[i, p, j])
+            dup |= seen & bit
+            seen |= bit
     a = -1
     b = -1
     gbest = np.inf
-    same = False
+    if dup != 0:
+        for q in range(c):
+            i, j = q >> LANE_BITS, q & LANE_MASK
+            if kinds[i, p, j] != TRIM or (_ident_bit(idents[i, p, j]) & dup) == 0:
+                continue
+            for r in range(q + 1, c):
+                k, m = r >> LANE_BITS, r & LANE_MASK
+                if kinds[k, p, m] == TRIM and idents[i, p, j] == idents[k, p, m]:
+                    g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
+                    if g < gbest:
+                        gbest = g
+                        a = q
+                        b = r
+                        if g == 0.0:
+                            return a, b, True
+        if a >= 0:
+            return a, b, True
+    if same_only:
+        return a, b, False
     for q in range(c):
         i, j = q >> LANE_BITS, q & LANE_MASK
         if kinds[i, p, j] != TRIM:
@@ -220,16 +258,14 @@ def _nearest_pair(p, depth, kinds, idents, far, c, same_only):  # pragma: no cov
         for r in range(q + 1, c):
             k, m = r >> LANE_BITS, r & LANE_MASK
             if kinds[k, p, m] == TRIM:
-                s = idents[i, p, j] == idents[k, p, m]
-                if (same or same_only) and not s:
-                    continue
                 g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
-                if g < gbest or (s and not same):
+                if g < gbest:
                     gbest = g
                     a = q
                     b = r
-                    same = s
-    return a, b, same
+                    if g == 0.0:
+                        return a, b, False
+    return a, b, False
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)

@@ -22,6 +22,7 @@ from visibility.cores.trim_regions.raster import (
     _affine_range,
     _insert,
     _leaf_window,
+    _nearest_pair,
     band_lists,
     boxes_to_camera,
     raster_trims,
@@ -303,3 +304,43 @@ def test_picked_boxes_corners_in_camera_space_follow_box_faces_order():
     cam = boxes_to_camera(lo, hi, sel, vstar, rot)
     assert cam.shape == (24, 3)
     assert np.array_equal(cam, to_camera(corners, vstar, rot))
+
+
+def _pair_by_every_pair(kb: KBuffer, c: int, same_only: bool) -> tuple[int, int, bool]:
+    """``_nearest_pair`` as its docstring says, over every pair in slot order."""
+    trims = [q for q in range(c) if kb.kind[q >> 3, 0, q & 7] == TRIM]
+
+    def entry(q):
+        i, j = q >> 3, q & 7
+        return kb.ident[i, 0, j], kb.depth[i, 0, j], kb.far[i, 0, j]
+
+    pairs = [(q, r) for n, q in enumerate(trims) for r in trims[n + 1:]]
+    same = [(q, r) for q, r in pairs if entry(q)[0] == entry(r)[0]]
+    pool = same or ([] if same_only else pairs)
+    if not pool:
+        return -1, -1, False
+
+    def gap(q, r):
+        _, a0, a1 = entry(q)
+        _, b0, b1 = entry(r)
+        return max(0.0, b0 - a1, a0 - b1)
+
+    a, b = min(pool, key=lambda qr: (gap(*qr), qr))
+    return a, b, bool(same)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_nearest_pair_of_held_trims_is_the_first_of_the_nearest(seed):
+    # A full buffer's merge partners (the costliest search of the kitchen's clutter): pieces
+    # repeated or not, ranges touching or apart, surfaces between them.
+    rng = np.random.default_rng(seed)
+    kb = KBuffer.empty(1)
+    c = int(rng.integers(2, K + 1))
+    pieces = rng.integers(0, [3, 40, 10 ** 6][seed % 3], size=c)
+    for q in range(c):
+        d = float(rng.choice([rng.random(), round(rng.random(), 1)]))
+        kind = TRIM if rng.random() < 0.8 else FRONT
+        kb.put(0, q, kind, d, int(pieces[q]), 1.0, d + float(rng.random()) * 0.1 * (seed % 2))
+    for same_only in (True, False):
+        got = _nearest_pair(0, kb.depth, kb.kind, kb.ident, kb.far, c, np.bool_(same_only))
+        assert tuple(got) == _pair_by_every_pair(kb, c, same_only), (same_only, got)
