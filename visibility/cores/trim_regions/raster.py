@@ -229,43 +229,40 @@ def _nearest_pair(p, depth, kinds, idents, far, c, same_only):  # pragma: no cov
             bit = _ident_bit(idents[i, p, j])
             dup |= seen & bit
             seen |= bit
-    a = -1
-    b = -1
-    gbest = np.inf
     if dup != 0:
-        for q in range(c):
-            i, j = q >> LANE_BITS, q & LANE_MASK
-            if kinds[i, p, j] != TRIM or (_ident_bit(idents[i, p, j]) & dup) == 0:
-                continue
-            for r in range(q + 1, c):
-                k, m = r >> LANE_BITS, r & LANE_MASK
-                if kinds[k, p, m] == TRIM and idents[i, p, j] == idents[k, p, m]:
-                    g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
-                    if g < gbest:
-                        gbest = g
-                        a = q
-                        b = r
-                        if g == 0.0:
-                            return a, b, True
+        a, b = _first_nearest(p, depth, kinds, idents, far, c, dup, np.bool_(True))
         if a >= 0:
             return a, b, True
     if same_only:
-        return a, b, False
+        return -1, -1, False
+    a, b = _first_nearest(p, depth, kinds, idents, far, c, dup, np.bool_(False))
+    return a, b, False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _first_nearest(p, depth, kinds, idents, far, c, dup, one_piece):  # pragma: no cover
+    """``_nearest_pair``'s walk: the first pair (a, b) in slot order of held trims of pixel p
+    nearest in depth, (-1, -1) for none; with ``one_piece`` only pairs of one ident, among
+    the trims whose ident bit (``_ident_bit``) is in ``dup``."""
+    a = -1
+    b = -1
+    gbest = np.inf
     for q in range(c):
         i, j = q >> LANE_BITS, q & LANE_MASK
-        if kinds[i, p, j] != TRIM:
+        if kinds[i, p, j] != TRIM or (one_piece and (_ident_bit(idents[i, p, j]) & dup) == 0):
             continue
         for r in range(q + 1, c):
             k, m = r >> LANE_BITS, r & LANE_MASK
-            if kinds[k, p, m] == TRIM:
+            if kinds[k, p, m] == TRIM and (not one_piece or idents[i, p, j] == idents[k, p, m]):
                 g = _gap(depth[i, p, j], far[i, p, j], depth[k, p, m], far[k, p, m])
                 if g < gbest:
                     gbest = g
                     a = q
                     b = r
                     if g == 0.0:
-                        return a, b, False
-    return a, b, False
+                        # No pair comes nearer than touching.
+                        return a, b
+    return a, b
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)

@@ -180,6 +180,21 @@ def test_random_cubes_of_lavaducts():
         assert e["fn_pixel_rate_max"] <= BOUND, (box, e["fn_pixels_max"], e["missed"][:20])
 
 
+def _kitchen_cube_errors(centre: np.ndarray, delta: float) -> dict:
+    """``frame_errors`` of the kitchen's cube of circumscribed radius ``delta`` around
+    ``centre`` (world metres), one sphere, on 8 frames of seed 1 (bench_trim_delta's)."""
+    from tests.visibility.real_scenes import REAL, real_scene
+
+    assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
+    scene = real_scene("kitchen")
+    h = delta / np.sqrt(3.0)
+    box = np.stack([centre - h, centre + h])
+    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=delta))
+    e = frame_errors(scene, pvs.triangle_ids, box, n_points=8, resolution=256, seed=1)
+    assert e["frames"] > 0
+    return e
+
+
 #: A kitchen cube (Δ 0.3 m, centre in world metres; the benchmark's random cell 3) where
 #: cabinet panels are crossed nearly edge-on and bevelled strips lie under larger pixels: 53
 #: pixels over 8 frames until an interval took its far rim's trims behind its back face
@@ -190,15 +205,7 @@ EDGE_ON_PANELS = np.array([0.8723, 1.8222, 0.9506])
 @pytest.mark.slow
 @pytest.mark.xdist_group("kitchen")
 def test_a_kitchen_cube_among_cabinet_panels():
-    from tests.visibility.real_scenes import REAL, real_scene
-
-    assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
-    scene = real_scene("kitchen")
-    h = 0.3 / np.sqrt(3.0)
-    box = np.stack([EDGE_ON_PANELS - h, EDGE_ON_PANELS + h])
-    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=0.3))
-    e = frame_errors(scene, pvs.triangle_ids, box, n_points=8, resolution=256, seed=1)
-    assert e["frames"] > 0
+    e = _kitchen_cube_errors(EDGE_ON_PANELS, 0.3)
     assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])
 
 
@@ -232,16 +239,7 @@ POST_SIDE = np.array([-0.4562004422691799, 1.7380998047558234, -0.72216464555142
 def test_a_kitchen_cube_above_a_post_whose_side_plane_cuts_the_sphere():
     # 35 pixels in the first of its 8 frames (the bound is 19.7) while that face was taken
     # for the post's own unseen back (test_resolve).
-    from tests.visibility.real_scenes import REAL, real_scene
-
-    assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
-    scene = real_scene("kitchen")
-    h = 0.41 / np.sqrt(3.0)
-    box = np.stack([POST_SIDE - h, POST_SIDE + h])
-    cast = ray_frames(scene, box, 8, 256, 1, FRAME_NEAR)
-    pvs = CORE.compute(scene, Viewcell(box), CORE.make_params(max_delta=0.41))
-    e = frame_errors(scene, pvs.triangle_ids, box, frames=cast)
-    assert e["frames"] > 0
+    e = _kitchen_cube_errors(POST_SIDE, 0.41)
     assert e["fn_pixel_rate_max"] <= BOUND, (e["fn_pixels_max"], e["missed"][:20])
 
 
