@@ -525,15 +525,9 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     layer, drawn = leaf_layers(octree, frame, view, drawn)
     t1 = time.perf_counter()
     cam = to_camera(verts, view.vstar, view.rot)
-    scratch = Scratch() if scratch is None else scratch
-    two_sided = scratch.array("two_sided", len(vis), np.uint8)
-    two_sided[:] = 0
-    two_sided[ambiguous] = 1
-    reach = Reach(data.normal_of, np.ascontiguousarray(view.rot, dtype=np.float64),
-                  float(view.tan), int(res), float(view.delta + view.back), cam, data.faces,
-                  float(view.back), float(view.delta), two_sided)
     s = len(data.static)
     # setup_triangles writes every row of these (no polygon outside the drawn leaves).
+    scratch = Scratch() if scratch is None else scratch
     facing = scratch.array("facing", s, np.int8)
     poly = scratch.array("poly", (s, 4, 3))
     npoly = scratch.array("npoly", s, np.int64)
@@ -554,6 +548,9 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     facing_of = scratch.array("facing_of", len(vis), np.int8)
     edge_on = scratch.array("edge_on", len(e.face), np.bool_)
     drawn_edges(data.static, need, facing, ambiguous, AMBIGUOUS, e.face, facing_of, edge_on)
+    reach = Reach(data.normal_of, np.ascontiguousarray(view.rot, dtype=np.float64),
+                  float(view.tan), int(res), float(view.delta + view.back), cam, data.faces,
+                  float(view.back), float(view.delta), facing_of)
     trims, trim_layer = silhouette_trims(
         cam, e.vert, e.face, e.opp, e.many, facing_of, edge_on, view.near, view.tan, res,
         view.delta, view.back, margin_px, view.vstar, view.rot, frame.grid_origin, octree.cell,

@@ -71,6 +71,7 @@ from visibility.cores.trim_regions.kbuffer import (
     band_stride,
     trim_holds,
 )
+from visibility.cores.trim_regions.silhouettes import AMBIGUOUS
 
 #: Relative depth tolerance when testing a trim fragment against an interval (erring towards
 #: validation: trimming more only adds false positives).
@@ -94,8 +95,9 @@ class Reach(NamedTuple):
     faces : (m, 3) int64 each triangle id's vertex rows of ``cam``.
     back : R, how far v* lies behind the sphere's centre (along the view axis), metres.
     delta : Δ, the sphere's radius, metres.
-    two_sided : (m,) uint8, 1 for each triangle id whose plane passes through the sphere
-        (some of its eyes see the face's front whichever side v* sees); (0,): none.
+    facing_of : (m,) int8 each triangle id's facing in the view (``view_masks.drawn_edges``),
+        ``silhouettes.AMBIGUOUS`` where its plane passes through the sphere (some of its eyes
+        see the face's front whichever side v* sees); (0,): none is.
     """
 
     normal: np.ndarray
@@ -107,7 +109,7 @@ class Reach(NamedTuple):
     faces: np.ndarray = np.zeros((0, 3), dtype=np.int64)
     back: float = 0.0
     delta: float = 0.0
-    two_sided: np.ndarray = np.zeros(0, dtype=np.uint8)
+    facing_of: np.ndarray = np.zeros(0, dtype=np.int8)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -421,8 +423,8 @@ def _two_sided(reach, ident):  # pragma: no cover - numba
     """Whether face ``ident``'s plane passes through the sphere: met from behind by v*'s
     ray, it is still seen face on by the eyes on its other side (a post's side face whose
     plane cuts the sphere, behind its top from v*), so it is never a part's unseen back."""
-    t = reach.two_sided
-    return ident < t.shape[0] and t[ident] != 0
+    t = reach.facing_of
+    return ident < t.shape[0] and t[ident] == AMBIGUOUS
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -6,6 +6,7 @@ import numpy as np
 
 from visibility.cores.trim_regions.kbuffer import ANY_PIECE, BACK, FRONT, TRIM, KBuffer
 from visibility.cores.trim_regions.resolve import Reach, resolve_pixel
+from visibility.cores.trim_regions.silhouettes import AMBIGUOUS
 
 INF = np.inf
 
@@ -317,9 +318,9 @@ def test_a_back_face_whose_plane_cuts_the_sphere_is_seen_past_the_umbra():
     # face (1) whose plane passes through the sphere. Eyes beyond that plane see the side
     # face on, so it is not the part's unseen back (the kitchen's random cube 6 at Δ 0.41 m:
     # 35 pixels of one frame until it was reported).
-    two = np.zeros(16, dtype=np.uint8)
-    two[1] = 1
-    sphere = _reach()._replace(two_sided=two)
+    facing = np.ones(16, dtype=np.int8)
+    facing[1] = AMBIGUOUS
+    sphere = _reach()._replace(facing_of=facing)
     seq = [(FRONT, 1.0, 0, 0), (TRIM, 1.05, -1, 2.0), (BACK, 5.0, 1, 0)]
     vis, _, _, _, _ = _resolve(seq, closed={0: 3, 1: 3}, reach=sphere)
     assert vis == {0, 1}
