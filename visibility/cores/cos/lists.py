@@ -55,9 +55,10 @@ def region_at(corners, sx, sy, h, wref, rv, rr):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _edge_on(cam, corners):  # pragma: no cover - numba
+def _edge_on(cam, corners, cscale):  # pragma: no cover - numba
     """Whether every camera position of the view lies in the triangle's plane: then each sees
-    it edge-on, as a segment of no area, and it covers no sample.
+    it edge-on, as a segment of no area, and it covers no sample. ``cscale``: the largest
+    |coordinate| of ``corners`` (the same for every primitive of a view).
 
     Up to rounding only (64 ulps of the largest coordinate involved), never the plane tests'
     tolerance: a triangle parallel to the camera rectangle a nanometre in front of it is seen
@@ -66,13 +67,10 @@ def _edge_on(cam, corners):  # pragma: no cover - numba
     nx, ny, nz, nn = tri_normal(cam)
     if not nn > 0.0:
         return False
-    scale = 0.0
+    scale = cscale
     for i in range(3):
         for c in range(3):
             scale = max(scale, abs(cam[i, c]))
-    for k in range(4):
-        for c in range(3):
-            scale = max(scale, abs(corners[k, c]))
     tol = 64.0 * np.finfo(np.float64).eps * scale
     for k in range(4):
         d = (nx * (corners[k, 0] - cam[0, 0]) + ny * (corners[k, 1] - cam[0, 1])
@@ -116,6 +114,10 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
     corners = borrow(corners)
     near_box = borrow(near_box)
     # rng, which footprints writes in its parallel loop, stays owned (``visibility.borrow``).
+    cscale = 0.0
+    for k in range(4):
+        for c in range(3):
+            cscale = max(cscale, abs(corners[k, c]))
     for c0 in prange((n_sel + FOOTPRINT_CHUNK - 1) // FOOTPRINT_CHUNK):
         cam_own = np.empty((8, 3))
         cam = borrow(cam_own)
@@ -142,7 +144,7 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
                     hi[k] = max(hi[k], cam[i, k])
             if not hi[2] > 0.0:
                 continue  # behind every camera position of the view
-            if kind[p] == 0 and _edge_on(cam, corners):
+            if kind[p] == 0 and _edge_on(cam, corners, cscale):
                 continue
             if (lo[0] <= near_box[1] and hi[0] >= near_box[0] and lo[1] <= near_box[3]
                     and hi[1] >= near_box[2] and lo[2] <= near_box[5] and hi[2] >= near_box[4]):
@@ -185,9 +187,11 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
             uy1 = -np.inf
             for i in range(m):
                 for k in range(4):
-                    d = clip[i, 2] - corners[k, 2]
-                    u = (clip[i, 0] - corners[k, 0]) / d
-                    v = (clip[i, 1] - corners[k, 1]) / d
+                    # One division for both coordinates: a relative error of an ulp or two,
+                    # far inside the spans' 1e-6 pixel widening.
+                    d = 1.0 / (clip[i, 2] - corners[k, 2])
+                    u = (clip[i, 0] - corners[k, 0]) * d
+                    v = (clip[i, 1] - corners[k, 1]) * d
                     ux0 = min(ux0, u)
                     ux1 = max(ux1, u)
                     uy0 = min(uy0, v)

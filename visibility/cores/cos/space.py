@@ -381,6 +381,19 @@ def in_triangle(px, py, v):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _robust_area(ar, v):  # pragma: no cover - numba
+    """Whether twice the signed area ``ar`` of the COS triangle v (3, 2) exceeds 1e-9 times
+    the product of its two edges from vertex 0 (a triangle not seen edge-on). Squared, so the
+    lists' early z, which asks it at every pixel a solid triangle is listed, calls no libm
+    hypot."""
+    ax = v[1, 0] - v[0, 0]
+    ay = v[1, 1] - v[0, 1]
+    bx = v[2, 0] - v[0, 0]
+    by = v[2, 1] - v[0, 1]
+    return ar * ar > 1e-18 * (ax * ax + ay * ay) * (bx * bx + by * by)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
     """Whether the COS triangle v (3, 2) with motion radii r (3,) holds the grown offset
     region (hull of the squares (rv (4, 2), rr (4,))) for every between-sample direction.
@@ -390,9 +403,7 @@ def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
     the triangle and meets no edge's capsule: then, as the directions move, the moving region
     never meets the moving boundary and stays inside (the argument of ``resolve._covers_q``)."""
     ar = area2(v)
-    e1 = np.hypot(v[1, 0] - v[0, 0], v[1, 1] - v[0, 1])
-    e2 = np.hypot(v[2, 0] - v[0, 0], v[2, 1] - v[0, 1])
-    if not abs(ar) > 1e-9 * e1 * e2:
+    if not _robust_area(ar, v):
         return False
     s = 1.0 if ar > 0.0 else -1.0
     for a in range(3):
@@ -451,14 +462,9 @@ def quad_holds(tv, tr, tid, cv, cr, cid, rv, rr):  # pragma: no cover - numba
     if sv < 0:
         return False
     ar = area2(tv)
-    e1 = np.hypot(tv[1, 0] - tv[0, 0], tv[1, 1] - tv[0, 1])
-    e2 = np.hypot(tv[2, 0] - tv[0, 0], tv[2, 1] - tv[0, 1])
-    if not abs(ar) > 1e-9 * e1 * e2:
+    if not _robust_area(ar, tv):
         return False
-    ac = area2(cv)
-    f1 = np.hypot(cv[1, 0] - cv[0, 0], cv[1, 1] - cv[0, 1])
-    f2 = np.hypot(cv[2, 0] - cv[0, 0], cv[2, 1] - cv[0, 1])
-    if not abs(ac) > 1e-9 * f1 * f2:
+    if not _robust_area(area2(cv), cv):
         return False
     # T counter-clockwise: u -> v -> o with {u, v} the shared vertices.
     o = 3 - su - sv
