@@ -979,3 +979,35 @@ def test_only_a_triangle_in_the_rectangles_plane_is_edge_on(gap):
                view.nx, view.ny, view.x_lo, view.y_lo, view.pw, tol, rng)
     listed = rng[0, 0] <= rng[0, 1] and rng[0, 2] <= rng[0, 3]
     assert listed == (gap > 0.0)
+
+
+def test_bin_tiles_lists_each_tile_front_to_back():
+    # Against a plain model: every position whose pixel box meets a tile, increasing, and the
+    # box's pixels inside the tile (the bound on its list entries).
+    from visibility.cores.cos.lists import TILE, bin_tiles
+
+    g = np.random.default_rng(3)
+    n, tiles_x, tiles_y = 500, 5, 3
+    rng = np.empty((n, 4), dtype=np.int32)
+    for t in range(n):
+        i0, j0 = g.integers(0, tiles_y * TILE), g.integers(0, tiles_x * TILE)
+        rng[t] = (i0, min(i0 + g.integers(0, 12), tiles_y * TILE - 1),
+                  j0, min(j0 + g.integers(0, 12), tiles_x * TILE - 1))
+    rng[::7] = (1, 0, 1, 0)  # ``footprints``' empty box
+    sel = np.sort(g.choice(n, 333, replace=False)).astype(np.int32)
+    want_items = [[] for _ in range(tiles_x * tiles_y)]
+    want_bound = np.zeros(tiles_x * tiles_y, dtype=np.int64)
+    for t in sel:
+        i0, i1, j0, j1 = rng[t]
+        for ty in range(tiles_y):
+            for tx in range(tiles_x):
+                rows = min(i1, ty * TILE + TILE - 1) - max(i0, ty * TILE) + 1
+                cols = min(j1, tx * TILE + TILE - 1) - max(j0, tx * TILE) + 1
+                if rows > 0 and cols > 0:
+                    want_items[ty * tiles_x + tx].append(t)
+                    want_bound[ty * tiles_x + tx] += rows * cols
+    off, items, bound = bin_tiles(rng, sel, tiles_x, tiles_y)
+    for tile, want in enumerate(want_items):
+        assert items[off[tile]:off[tile + 1]].tolist() == want
+    np.testing.assert_array_equal(bound, want_bound)
+    assert off[-1] == len(items) == sum(map(len, want_items)) > 0
