@@ -109,9 +109,13 @@ class TrimRegionsCore(Core):
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (128, 256, 512)
     native_segments: ClassVar[bool] = False
-    fits: ClassVar[str] = ("small cells (Δ 5-30 cm) of arbitrary, non-manifold scenes; a "
-                           "tight PVS at the price of rare pixel-level misses, more in clutter "
-                           "of sub-pixel triangles (up to 0.04 % of a frame on the 1M kitchen)")
+    # Orders of magnitude only: the measured figures live in benchmarks/results/trim_regions.md.
+    fits: ClassVar[str] = ("cells of 5 cm to 1 m (spheres of at most 0.41 m: one for a 0.3 m "
+                           "cube, 4 for the server's 1 m cell) of arbitrary, non-manifold "
+                           "scenes, in a fraction of a second (about a second on a 1M-triangle "
+                           "kitchen); misses within the paper's 0.005 % of a frame's pixels, "
+                           "a PVS several times what is seen, more in clutter: "
+                           "docs/cores/trim_regions.md")
     check_params: ClassVar[dict[str, Any]] = {}
     #: What ``checks.check_fn_fp_against_sampled_ground_truth`` measures on the designed
     #: scenes at 64, 128 and 256 px, by the method alone and with the sampling add-on alike
