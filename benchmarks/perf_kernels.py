@@ -92,16 +92,6 @@ def _cell(args: argparse.Namespace) -> tuple[Any, Any]:
     return scene, Viewcell(np.stack([c - half, c + half]))
 
 
-def _value(text: str) -> Any:
-    """A ``--param`` value as the core takes it: an int, a float, else the text."""
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--core", default="trim_regions")
@@ -124,8 +114,9 @@ def main(argv: list[str] | None = None) -> int:
 
     scene, cell = _cell(args)
     core = get_core(args.core)
-    params = core.make_params(**{k: _value(v) for k, v in
-                                 (p.split("=", 1) for p in args.param)})
+    from pvs_cli import parse_params
+
+    params = core.make_params(**parse_params(args.param))
     # Two untimed runs: kernels compiled or loaded, per-scene builds done.
     for _ in range(2):
         core.compute(scene, cell, params)

@@ -109,6 +109,7 @@ from visibility.cores.cos.space import (
     polygon_centroid,
     project,
     region_polygon,
+    robust_area,
     tri_normal,
     winding_step,
 )
@@ -1495,11 +1496,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                 c0 = cycles() if timed else 0
                 # Become an occluder: counter-clockwise in the COS, robust area only.
                 ar = area2(qv)
-                # |ar| > 1e-9 |e1| |e2|, squared: no libm hypot calls in the loop that every
-                # occluder passes through (they showed in the kitchen's profile).
-                e1 = (qv[1, 0] - qv[0, 0]) ** 2 + (qv[1, 1] - qv[0, 1]) ** 2
-                e2 = (qv[2, 0] - qv[0, 0]) ** 2 + (qv[2, 1] - qv[0, 1]) ** 2
-                if not ar * ar > 1e-18 * e1 * e2:
+                if not robust_area(ar, qv):
                     continue
                 q = n_polys
                 n_polys += 1

@@ -381,11 +381,11 @@ def in_triangle(px, py, v):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _robust_area(ar, v):  # pragma: no cover - numba
+def robust_area(ar, v):  # pragma: no cover - numba
     """Whether twice the signed area ``ar`` of the COS triangle v (3, 2) exceeds 1e-9 times
-    the product of its two edges from vertex 0 (a triangle not seen edge-on). Squared, so the
-    lists' early z, which asks it at every pixel a solid triangle is listed, calls no libm
-    hypot."""
+    the product of its two edges from vertex 0 (a triangle not seen edge-on). Squared: the
+    lists' early z and the resolution's occluders ask it per entry, and libm hypot calls
+    showed in their profiles."""
     ax = v[1, 0] - v[0, 0]
     ay = v[1, 1] - v[0, 1]
     bx = v[2, 0] - v[0, 0]
@@ -403,7 +403,7 @@ def triangle_holds(v, r, rv, rr):  # pragma: no cover - numba
     the triangle and meets no edge's capsule: then, as the directions move, the moving region
     never meets the moving boundary and stays inside (the argument of ``resolve._covers_q``)."""
     ar = area2(v)
-    if not _robust_area(ar, v):
+    if not robust_area(ar, v):
         return False
     s = 1.0 if ar > 0.0 else -1.0
     for a in range(3):
@@ -462,9 +462,9 @@ def quad_holds(tv, tr, tid, cv, cr, cid, rv, rr):  # pragma: no cover - numba
     if sv < 0:
         return False
     ar = area2(tv)
-    if not _robust_area(ar, tv):
+    if not robust_area(ar, tv):
         return False
-    if not _robust_area(area2(cv), cv):
+    if not robust_area(area2(cv), cv):
         return False
     # T counter-clockwise: u -> v -> o with {u, v} the shared vertices.
     o = 3 - su - sv
