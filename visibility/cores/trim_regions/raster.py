@@ -442,6 +442,17 @@ def _leaf_window(lo, hi, vstar, rot, tan, res, out):  # pragma: no cover - numba
 LEAF_WINDOW_DEPTH = 1e-2
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _all_sealed(stencil, res, win):  # pragma: no cover - numba
+    """Whether every pixel of the window [x0, x1) x [y0, y1) (``win``) is sealed (true for an
+    empty window)."""
+    for y in range(win[2], win[3]):
+        for x in range(win[0], win[1]):
+            if stencil[y * res + x] != SEALED:
+                return False
+    return True
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                     stop):  # pragma: no cover - numba
@@ -453,7 +464,9 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     (``leaf_lo``/``leaf_hi`` (L, 3), metres, same frame as the view ``cam``'s v*) is dropped,
     so a triangle that crosses leaves delivers each fragment once, in the layer of the leaf it
     lies in, and layers stay in depth order along every ray. Sealed pixels take nothing (early
-    ray termination).
+    ray termination), and a leaf whose window (``_leaf_window``) is sealed all over is not
+    drawn: the resolved layers hide it (the paper's future work, leaves culled against the
+    seal depths).
     """
     tri_ids, facing, poly, npoly, box = tris
     vstar, rot, tan, res = cam
@@ -472,6 +485,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     # inside its leaf: each draws only over its leaf's image (``_leaf_window``).
     n_leaves = leaf_lo.shape[0]
     windows = np.full((n_leaves, 4), -1, dtype=np.int64)
+    hidden = np.zeros(n_leaves, dtype=np.bool_)
     win = np.empty(4, dtype=np.int64)
     for q in range(n_inst):
         i = inst_row[q]
@@ -479,10 +493,11 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
         if windows[leaf, 0] < 0:
             _leaf_window(leaf_lo[leaf], leaf_hi[leaf], vstar, rot, tan, res, win)
             windows[leaf, :] = win
+            hidden[leaf] = _all_sealed(stencil, res, win)
         ylo[q] = max(0, box[i, 2], windows[leaf, 2])
         yhi[q] = min(res, box[i, 3], windows[leaf, 3])
-        if box[i, 1] <= box[i, 0] or max(box[i, 0], windows[leaf, 0]) >= min(box[i, 1],
-                                                                           windows[leaf, 1]):
+        if hidden[leaf] or box[i, 1] <= box[i, 0] or max(box[i, 0], windows[leaf, 0]) >= min(
+                box[i, 1], windows[leaf, 1]):
             yhi[q] = ylo[q]
         yhi[q] = max(yhi[q], ylo[q])
     start, items = band_lists(ylo, yhi, n_bands)

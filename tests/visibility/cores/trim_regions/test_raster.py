@@ -1,6 +1,7 @@
 """``raster_trims`` visits only the columns a row of a trim region can reach: the same entries,
 in the same order, as the region test tried at every pixel of the region's box; a full
-k-buffer merges trim fragments rather than give up occlusion."""
+k-buffer merges trim fragments rather than give up occlusion; ``raster_surfaces`` skips a leaf
+sealed all over its window, and only such a leaf."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 from visibility.cores.trim_regions.kbuffer import (
     BACK,
     FRONT,
+    SEALED,
     TRIM,
     K,
     KBuffer,
@@ -19,13 +21,18 @@ from visibility.cores.trim_regions.kbuffer import (
 from visibility.cores.trim_regions.raster import (
     JOIN_LAST,
     JOIN_TOL,
+    Camera,
+    SetUp,
     _affine_range,
+    _all_sealed,
     _insert,
     _leaf_window,
     _nearest_pair,
     band_lists,
     boxes_to_camera,
+    raster_surfaces,
     raster_trims,
+    setup_triangles,
     to_camera,
 )
 
@@ -344,3 +351,59 @@ def test_the_nearest_pair_of_held_trims_is_the_first_of_the_nearest(seed):
     for same_only in (True, False):
         got = _nearest_pair(0, kb.depth, kb.kind, kb.ident, kb.far, c, np.bool_(same_only))
         assert tuple(got) == _pair_by_every_pair(kb, c, same_only), (same_only, got)
+
+
+def test_all_sealed_reads_every_pixel_of_the_window():
+    res = 8
+    stencil = np.full(res * res, SEALED, dtype=np.int8)
+    win = np.array([2, 6, 1, 5], dtype=np.int64)
+    assert _all_sealed(stencil, res, win)
+    stencil[4 * res + 5] = 0  # the window's last pixel
+    assert not _all_sealed(stencil, res, win)
+    stencil[:] = 0
+    assert _all_sealed(stencil, res, np.array([3, 3, 0, res], dtype=np.int64))  # empty
+
+
+def _one_leaf_view(res: int = 32):
+    """One front-facing triangle 2 m ahead of v* (at the origin, looking along -z), its
+    set-up, its leaf's box and the view."""
+    verts = np.array([[-0.5, -0.5, -2.0], [0.5, -0.5, -2.0], [0.0, 0.5, -2.0]])
+    faces = np.array([[0, 1, 2]], dtype=np.int64)
+    tan = 1.0
+    rows = np.array([0], dtype=np.int64)
+    facing = np.empty(1, dtype=np.int8)
+    poly = np.empty((1, 4, 3))
+    npoly = np.empty(1, dtype=np.int64)
+    box = np.empty((1, 4), dtype=np.int64)
+    setup_triangles(verts, faces, rows, np.ones(1, dtype=np.bool_), 0.01, tan, res, facing,
+                    poly, npoly, box)
+    tris = SetUp(rows, facing, poly, npoly, box)
+    cam = Camera(np.zeros(3), np.eye(3), tan, res)
+    lo = np.array([[-0.6, -0.6, -2.1]])
+    hi = np.array([[0.6, 0.6, -1.9]])
+    return tris, cam, lo, hi
+
+
+def test_a_leaf_sealed_all_over_its_window_is_not_drawn_and_one_open_pixel_draws_it():
+    res = 32
+    tris, cam, lo, hi = _one_leaf_view(res)
+    inst = np.zeros(1, dtype=np.int64)
+    stop = np.zeros(1, dtype=np.uint8)
+    win = np.empty(4, dtype=np.int64)
+    _leaf_window(lo[0], hi[0], cam.vstar, cam.rot, cam.tan, res, win)
+    # Open: the triangle's pixels get one front entry each.
+    kb = KBuffer.empty(res * res)
+    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    drawn = np.flatnonzero(kb.count)
+    assert len(drawn) > 20 and (kb.count[drawn] == 1).all()
+    # Sealed over the leaf's window: nothing is drawn.
+    kb = KBuffer.empty(res * res)
+    st = kb.stencil.reshape(res, res)
+    st[win[2]:win[3], win[0]:win[1]] = SEALED
+    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    assert not kb.count.any() and not kb.active.any()
+    # One pixel under the triangle open again: drawn there only, as without the cull.
+    p = int(drawn[len(drawn) // 2])
+    kb.stencil[p] = 0
+    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    assert list(np.flatnonzero(kb.count)) == [p]
