@@ -623,6 +623,9 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
         xhi[q] = min(res, int(np.ceil(((max(u0, u1) + wmax + margin) / tan + 1.0) * half)) + 1)
         if xlo[q] >= xhi[q]:
             yhi[q] = ylo[q]
+        elif _all_sealed(stencil, res, (xlo[q], xhi[q], ylo[q], yhi[q])):
+            # Every pixel it could reach is sealed: it would insert nothing.
+            yhi[q] = ylo[q]
     start, items = band_lists(ylo, yhi, n_bands)
     for j in prange(n_bands):
         band = (j * stride) % n_bands

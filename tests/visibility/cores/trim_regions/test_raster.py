@@ -1,7 +1,8 @@
 """``raster_trims`` visits only the columns a row of a trim region can reach: the same entries,
 in the same order, as the region test tried at every pixel of the region's box; a full
 k-buffer merges trim fragments rather than give up occlusion; ``raster_surfaces`` skips a leaf
-sealed all over its window, and only such a leaf."""
+sealed all over its window and ``raster_trims`` a region sealed all over its box, and only
+those."""
 
 from __future__ import annotations
 
@@ -132,6 +133,35 @@ def test_trim_rows_match_the_test_at_every_pixel(n):
         assert np.allclose(got, held, rtol=1e-12) if held else not got
     assert (merged > 0) == (n > 60)
     assert joined > 0  # strips of edges sharing an end point meet at one depth there
+
+
+def test_trim_regions_sealed_all_over_insert_nothing_and_open_pixels_still_get_theirs():
+    # Most of the view sealed, a few scattered pixels open: every region whose box is sealed
+    # is skipped, and each open pixel holds what the region test admits there.
+    res, tan, margin = 32, 1.0, 0.75 * 2.0 / 32
+    trims = _trims(np.random.default_rng(4), 60, tan)
+    want = _every_pixel(trims, res, tan, margin)
+    kb = KBuffer.empty(res * res)
+    kb.stencil[:] = SEALED
+    raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
+                 np.zeros(1, dtype=np.uint8))
+    assert not kb.count.any()
+    open_px = np.random.default_rng(5).choice(res * res, 12, replace=False)
+    kb.stencil[open_px] = 0
+    raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
+                 np.zeros(1, dtype=np.uint8))
+    assert set(np.flatnonzero(kb.count)) <= set(open_px.tolist())
+    reached = 0
+    for p in open_px:
+        held = _joined(want[p])
+        if len(held) > K:
+            continue
+        reached += bool(held)
+        assert kb.count[p] == len(held)
+        _, depth, _, umbra, far = kb.entries(p)
+        got = list(zip(depth, far, umbra, strict=True))
+        assert np.allclose(got, held, rtol=1e-12) if held else not got
+    assert reached >= 6
 
 
 def _joined(entries: list[tuple]) -> list[tuple]:
