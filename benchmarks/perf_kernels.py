@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from pvs_cli import parse_params
+
 #: Module prefixes whose compiled kernels are named in the map.
 PREFIXES = ("visibility.",)
 
@@ -114,8 +116,6 @@ def main(argv: list[str] | None = None) -> int:
 
     scene, cell = _cell(args)
     core = get_core(args.core)
-    from pvs_cli import parse_params
-
     params = core.make_params(**parse_params(args.param))
     # Two untimed runs: kernels compiled or loaded, per-scene builds done.
     for _ in range(2):
@@ -143,6 +143,10 @@ def main(argv: list[str] | None = None) -> int:
                              check=False)
     print(f"{args.core} on {args.scene}, a {args.side:g} m cell: {seconds:.3f} s a computation "
           f"over {args.runs} (perf attached), PVS {len(pvs):,}; kernels named from {mapped}")
+    # The last computation's work counters, beside where the time went.
+    counters = {k: v for k, v in pvs.stats.items()
+                if isinstance(v, (int, np.integer)) and not isinstance(v, bool)}
+    print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(counters.items())))
     rows = [ln for ln in rep.stdout.splitlines() if ln.strip() and not ln.startswith("#")]
     print("\n".join(rows[:args.top]))
     return 0

@@ -171,6 +171,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
         held a trim sequence, summed over views), ``mean_sequence_length`` (entries per pixel
         resolve), ``trimmed_pixels``, ``sealed_pixels``, ``overflow_pixels``,
         ``silhouette_trims``, ``validated_intervals``, ``terminators``, ``single_sided_trims``,
+        ``instances`` ((triangle, leaf) pairs drawn), ``culled_instances`` and ``culled_trims``
+        (those and trim rows left out where every pixel they could reach was sealed),
         ``near_eye`` (triangles reported for lying within Δ of a sphere's centre),
         ``grazing`` (triangles whose plane passes within Δ of a sphere centre, also tested as
         hulls), ``gathers_aside`` (views whose gather from v* another worker made,
@@ -187,12 +189,10 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
     centres = centres - centre
     m = scene.n_triangles
     vis = np.zeros(m, dtype=np.uint8)
-    stats: dict[str, Any] = {k: 0.0 for k in PHASES}
-    stats.update(spheres=len(centres), delta=float(delta), views=0, layers=0,
-                 active_pixels=0, trimmed_pixels=0, sealed_pixels=0, overflow_pixels=0,
-                 silhouette_trims=0, validated_intervals=0, terminators=0,
-                 single_sided_trims=0, entries_resolved=0, pixel_resolves=0,
-                 kbuffer_used_bytes=0, resolution=int(resolution), gathers_aside=0)
+    # What the views add up (``VIEW_STATS``) starts at zero.
+    stats: dict[str, Any] = {k: 0.0 if k in PHASES else 0 for k in VIEW_STATS}
+    stats.update(spheres=len(centres), delta=float(delta), resolution=int(resolution),
+                 gathers_aside=0)
     hull_boxes, hull_ids = _hulls(scene, data, centre)
     graze, graze_rows = _grazing(scene, data, centres + centre, delta, int(resolution))
     if len(graze):
@@ -338,7 +338,8 @@ def trim_pvs(scene: Scene, data: SceneData, box: np.ndarray, resolution: int,
 VIEW_STATS = ("p0_layers", "p1_geometry", "p2_raster", "p3_resolve", "p4_gather",
               "silhouette_trims", "layers", "views", "kbuffer_used_bytes", "pixel_resolves",
               "validated_intervals", "terminators", "entries_resolved", "single_sided_trims",
-              "active_pixels", "trimmed_pixels", "sealed_pixels", "overflow_pixels")
+              "active_pixels", "trimmed_pixels", "sealed_pixels", "overflow_pixels",
+              "instances", "culled_instances", "culled_trims")
 
 
 def _view_workers() -> int:
@@ -577,6 +578,7 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
     stats["p1_geometry"] += t2 - t1
     stats["silhouette_trims"] += len(trims)
     stats["layers"] += len(all_layers)
+    stats["instances"] += len(inst)
     stats["views"] += 1
     held = scratch.array("held", res * res, np.uint8)
     held[:] = 0
@@ -588,13 +590,14 @@ def _solve_view(scene: Scene, view: View, verts: np.ndarray, data: SceneData,
         ta = time.perf_counter()
         k = np.searchsorted(trim_layers, lay)
         if k < len(trim_layers) and trim_layers[k] == lay:
-            raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res, view.tan, margin, kb,
-                         vis, stop)
+            stats["culled_trims"] += raster_trims(trims[trim_starts[k]:trim_starts[k + 1]], res,
+                                                  view.tan, margin, kb, vis, stop)
         k = np.searchsorted(inst_layers, lay)
         if k < len(inst_layers) and inst_layers[k] == lay:
             sl = slice(inst_starts[k], inst_starts[k + 1])
-            raster_surfaces(inst_row[sl], inst_leaf[sl], tris, frame.lo, frame.hi, camera, kb,
-                            vis, stop)
+            stats["culled_instances"] += raster_surfaces(inst_row[sl], inst_leaf[sl], tris,
+                                                         frame.lo, frame.hi, camera, kb, vis,
+                                                         stop)
         tb = time.perf_counter()
         tally[:] = 0
         _resolve(kb, res, False, vis, counters, stop, data, reach, held, tally)

@@ -465,8 +465,8 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     so a triangle that crosses leaves delivers each fragment once, in the layer of the leaf it
     lies in, and layers stay in depth order along every ray. Sealed pixels take nothing (early
     ray termination), and a leaf whose window (``_leaf_window``) is sealed all over is not
-    drawn: the resolved layers hide it (the paper's future work, leaves culled against the
-    seal depths).
+    drawn: the resolved layers hide it (the paper's future work, leaves culled against what is
+    resolved). Returns the instances so left out.
     """
     tri_ids, facing, poly, npoly, box = tris
     vstar, rot, tan, res = cam
@@ -485,7 +485,10 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
     # inside its leaf: each draws only over its leaf's image (``_leaf_window``).
     n_leaves = leaf_lo.shape[0]
     windows = np.full((n_leaves, 4), -1, dtype=np.int64)
+    # Read on the stencil itself, once per leaf and layer, stopping at the first open pixel:
+    # a pyramid over the seals would have to be rebuilt after every layer's resolve.
     hidden = np.zeros(n_leaves, dtype=np.bool_)
+    culled = 0
     win = np.empty(4, dtype=np.int64)
     for q in range(n_inst):
         i = inst_row[q]
@@ -496,6 +499,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
             hidden[leaf] = _all_sealed(stencil, res, win)
         ylo[q] = max(0, box[i, 2], windows[leaf, 2])
         yhi[q] = min(res, box[i, 3], windows[leaf, 3])
+        culled += hidden[leaf]
         if hidden[leaf] or box[i, 1] <= box[i, 0] or max(box[i, 0], windows[leaf, 0]) >= min(
                 box[i, 1], windows[leaf, 1]):
             yhi[q] = ylo[q]
@@ -567,6 +571,7 @@ def raster_surfaces(inst_row, inst_leaf, tris, leaf_lo, leaf_hi, cam, kb, vis,
                             active[p] = 1
                             queue[r0 * res + queued[band]] = p
                             queued[band] += 1
+    return culled
 
 
 #: Pixels by which a trim row's column bounds are widened against rounding (``raster_trims``).
@@ -598,7 +603,8 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     most the width interpolated along the edge (and at least ``-margin``), and it projects
     within the edge extended by ``margin`` (tan units). Its entry holds the silhouette depth
     and the umbra depth t / (1 - d / W) (the depth up to which every eye of the sphere sees the
-    ray blocked by the trimmed occluder: Sec. 3.3, Fig. 4).
+    ray blocked by the trimmed occluder: Sec. 3.3, Fig. 4). A region whose pixel box is
+    sealed all over is not drawn; returns how many were so left out.
     """
     # Unpacked before the parallel loop (see ``raster_surfaces``).
     depth, kinds, idents, umbra, count = kb.depth, kb.kind, kb.ident, kb.umbra, kb.count
@@ -612,6 +618,7 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
     yhi = np.empty(n_trims, dtype=np.int64)
     xlo = np.empty(n_trims, dtype=np.int64)
     xhi = np.empty(n_trims, dtype=np.int64)
+    culled = 0
     for q in range(n_trims):
         u0, v0, u1, v1 = trims[q, 4], trims[q, 5], trims[q, 6], trims[q, 7]
         wmax = max(trims[q, 10], trims[q, 11])
@@ -626,6 +633,7 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
         elif _all_sealed(stencil, res, (xlo[q], xhi[q], ylo[q], yhi[q])):
             # Every pixel it could reach is sealed: it would insert nothing.
             yhi[q] = ylo[q]
+            culled += 1
     start, items = band_lists(ylo, yhi, n_bands)
     for j in prange(n_bands):
         band = (j * stride) % n_bands
@@ -699,3 +707,4 @@ def raster_trims(trims, res, tan, margin, kb, vis, stop):  # pragma: no cover - 
                     _insert(p, t, TRIM, piece, um, depth, kinds, idents, umbra, far, count,
                             overflow, vis)
                     held_entries[band] += count[p] - c0
+    return culled

@@ -143,13 +143,15 @@ def test_trim_regions_sealed_all_over_insert_nothing_and_open_pixels_still_get_t
     want = _every_pixel(trims, res, tan, margin)
     kb = KBuffer.empty(res * res)
     kb.stencil[:] = SEALED
-    raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
-                 np.zeros(1, dtype=np.uint8))
+    culled = raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
+                          np.zeros(1, dtype=np.uint8))
     assert not kb.count.any()
+    assert 0 < culled <= len(trims)
     open_px = np.random.default_rng(5).choice(res * res, 12, replace=False)
     kb.stencil[open_px] = 0
-    raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
-                 np.zeros(1, dtype=np.uint8))
+    # The regions whose box holds an open pixel are drawn, no longer counted.
+    assert raster_trims(trims, res, tan, margin, kb, np.zeros(1, dtype=np.uint8),
+                        np.zeros(1, dtype=np.uint8)) < culled
     assert set(np.flatnonzero(kb.count)) <= set(open_px.tolist())
     reached = 0
     for p in open_px:
@@ -423,17 +425,20 @@ def test_a_leaf_sealed_all_over_its_window_is_not_drawn_and_one_open_pixel_draws
     _leaf_window(lo[0], hi[0], cam.vstar, cam.rot, cam.tan, res, win)
     # Open: the triangle's pixels get one front entry each.
     kb = KBuffer.empty(res * res)
-    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    assert raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8),
+                           stop) == 0
     drawn = np.flatnonzero(kb.count)
     assert len(drawn) > 20 and (kb.count[drawn] == 1).all()
     # Sealed over the leaf's window: nothing is drawn.
     kb = KBuffer.empty(res * res)
     st = kb.stencil.reshape(res, res)
     st[win[2]:win[3], win[0]:win[1]] = SEALED
-    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    assert raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8),
+                           stop) == 1  # the one instance, counted as culled
     assert not kb.count.any() and not kb.active.any()
     # One pixel under the triangle open again: drawn there only, as without the cull.
     p = int(drawn[len(drawn) // 2])
     kb.stencil[p] = 0
-    raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8), stop)
+    assert raster_surfaces(inst, inst, tris, lo, hi, cam, kb, np.zeros(1, dtype=np.uint8),
+                           stop) == 0
     assert list(np.flatnonzero(kb.count)) == [p]
