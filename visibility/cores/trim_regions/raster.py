@@ -374,8 +374,10 @@ def _insert(p, d, kind, ident, um, depth, kinds, idents, umbra, far, count, over
     depth[i, p, j] = d
     kinds[i, p, j] = kind
     idents[i, p, j] = ident
-    umbra[i, p, j] = um
-    far[i, p, j] = d
+    if kind == TRIM:
+        # A surface's umbra and far end are never read (``_gap``, ``resolve``: trims only).
+        umbra[i, p, j] = um
+        far[i, p, j] = d
     if slot == c:
         count[p] = c + 1
 

@@ -133,7 +133,7 @@ def _ray_and_normal(reach, ident, p):  # pragma: no cover - numba
     return rx, ry, nx, ny, nz
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _front_reach(reach, ident, p, d):  # pragma: no cover - numba
     """The deepest a trim fragment of the rim that lets an eye of the sphere see past
     single-sided front face ``ident``, met at depth d in pixel p, can lie (inf: no bound).
@@ -153,7 +153,7 @@ def _front_reach(reach, ident, p, d):  # pragma: no cover - numba
     return d + 2.0 * reach.lateral * np.sqrt(max(0.0, 1.0 - c * c)) / c
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _deepest_over_pixel(reach, ident, p, d):  # pragma: no cover - numba
     """The farthest depth of face ``ident``'s plane over pixel p's square, given its depth d
     at the pixel's centre (d itself for a face of no normal; inf where the plane turns
@@ -194,7 +194,7 @@ def _square_on_plane(rx, ry, nx, ny, nz, h, d):  # pragma: no cover - numba
     return deepest, nearest, spread, c
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _self_umbra(reach, ident, p, d):  # pragma: no cover - numba
     """How deep triangle ``ident``, met at depth d on pixel p's centre ray, hides on its own
     the points behind it on any ray through the pixel's square from every eye of the sphere
@@ -272,7 +272,7 @@ def _self_umbra(reach, ident, p, d):  # pragma: no cover - numba
     return max(d, nearest + s * dist / (kk - s * c))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _covers_square(reach, ident, p):  # pragma: no cover - numba
     """Whether triangle ``ident`` lies across all of pixel p's square (each corner ray
     crosses it): only then does an interval it opens hide depths over the whole square, as
@@ -340,7 +340,7 @@ def _scratch(k):  # pragma: no cover - numba
                        np.empty(k), np.empty(k))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _sort(sd, sk, si, su, sr, n):  # pragma: no cover - numba
     """Stable insertion sort of the first n entries of the five arrays by (depth, kind)."""
     for i in range(1, n):
@@ -353,7 +353,7 @@ def _sort(sd, sk, si, su, sr, n):  # pragma: no cover - numba
         sd[j], sk[j], si[j], su[j], sr[j] = d, kd, ident, um, fr
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _umbra_in(sd, sk, si, su, sr, n, lo, hi, pa, pb):  # pragma: no cover - numba
     """Smallest umbra depth of the trim entries of piece ``pa`` or ``pb`` (or of a merged
     piece set that may hold one, ``kbuffer.trim_holds``) whose depth range [sd, sr] meets
@@ -451,7 +451,7 @@ def resolve_pixel(kb, closed, piece, reach, p, final, vis, stats):  # pragma: no
     return resolve_into(kb, closed, piece, reach, p, final, vis, stats, _scratch(K))
 
 
-@njit(cache=True, nogil=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, inline="always", **NO_REFCOUNT)
 def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pragma: no cover
     """``resolve_pixel`` with its scratch passed in (``SortScratch``, one per thread: an
     allocation per pixel resolve cost as much as a short sequence)."""
@@ -461,13 +461,18 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                                                kb.first, kb.hid)
     sd, sk, si, su, sr = scratch
     n = count[p]
+    trims = 0
     for q in range(n):
         i, j = q >> LANE_BITS, q & LANE_MASK
         sd[q] = depth[i, p, j]
         sk[q] = kinds[i, p, j]
         si[q] = idents[i, p, j]
-        su[q] = umbra[i, p, j]
-        sr[q] = far[i, p, j]
+        # A surface's umbra and far end are never read (nor written: ``raster._insert``):
+        # two cache lines a pixel spared.
+        if sk[q] == TRIM:
+            trims += 1
+            su[q] = umbra[i, p, j]
+            sr[q] = far[i, p, j]
     _sort(sd, sk, si, su, sr, n)
     cov = cover[p]
     i = 0
@@ -508,8 +513,9 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
                         # Nothing after it yet: what validates it may come in a later layer.
                         hi = sd[q] * (1.0 + DEPTH_TOL) if q < n else (np.inf if final
                                                                       else -1.0)
-                    if hi >= 0 and _umbra_in(sd, sk, si, su, sr, n, d - tol, hi,
-                                             piece[si[i]], piece[si[j]]) < 0:
+                    if hi >= 0 and (trims == 0 or _umbra_in(
+                            sd, sk, si, su, sr, n, d - tol, hi, piece[si[i]],
+                            piece[si[j]]) < 0):
                         # The solid's back face, seen face on from its other side where
                         # its plane cuts the sphere, unless an umbra holds it too.
                         if sd[j] > cov and _two_sided(reach, si[j]):
@@ -557,19 +563,21 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             if k0 != BACK:
                 hid[p] = 0
             # Up to the next surface, trims at its depth included (see the module docstring).
-            hi = nxt + DEPTH_TOL * min(nxt, 1e290)
-            if k0 != BACK:
-                hi = min(hi, _front_reach(reach, si[i], p, d) + tol)
-            own = piece[si[i]]
-            # A back face read so closes what the ray was inside since the last surface
-            # (from v* if none): its piece's rim may lie in front of it along the ray (a
-            # sloped wall seen from behind, receding from the edge an eye of the sphere sees
-            # past), so its trims count from just behind that surface (a trim at the
-            # surface's own depth is that surface's).
-            lo = d - tol
-            if k0 == BACK:
-                lo = _rim_from(reach, si[i], last)
-            u = _umbra_in(sd, sk, si, su, sr, n, lo, hi, own, own)
+            u = -1.0
+            if trims:  # with no trim held, no umbra can be found (the pixel's last entry)
+                hi = nxt + DEPTH_TOL * min(nxt, 1e290)
+                if k0 != BACK:
+                    hi = min(hi, _front_reach(reach, si[i], p, d) + tol)
+                own = piece[si[i]]
+                # A back face read so closes what the ray was inside since the last surface
+                # (from v* if none): its piece's rim may lie in front of it along the ray (a
+                # sloped wall seen from behind, receding from the edge an eye of the sphere
+                # sees past), so its trims count from just behind that surface (a trim at the
+                # surface's own depth is that surface's).
+                lo = d - tol
+                if k0 == BACK:
+                    lo = _rim_from(reach, si[i], last)
+                u = _umbra_in(sd, sk, si, su, sr, n, lo, hi, own, own)
             last = d
             if u >= 0:
                 u = max(u, _self_umbra(reach, si[i], p, d))
@@ -599,12 +607,14 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
         # crossed nearly edge-on is left within millimetres of its front, and the far rim
         # eyes see past lies behind its back face on the ray, behind the next board too.
         # (No bound on the eyes, or a ray along the face: the paper's interval alone.)
-        hi = b * (1.0 + DEPTH_TOL)
-        deep = _front_reach(reach, si[i], p, d)
-        if deep < np.inf:
-            hi = max(hi, deep + tol)
-        u = _umbra_in(sd, sk, si, su, sr, n, _front_rim(reach, si[i], d), hi, piece[si[i]],
-                      piece[si[end_second]])
+        u = -1.0
+        if trims:
+            hi = b * (1.0 + DEPTH_TOL)
+            deep = _front_reach(reach, si[i], p, d)
+            if deep < np.inf:
+                hi = max(hi, deep + tol)
+            u = _umbra_in(sd, sk, si, su, sr, n, _front_rim(reach, si[i], d), hi,
+                          piece[si[i]], piece[si[end_second]])
         last = b
         if u >= 0:
             # The interval's front face hides on its own too (``_self_umbra``).
@@ -661,8 +671,9 @@ def resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):  # pr
             depth[i, p, j] = sd[q]
             kinds[i, p, j] = sk[q]
             idents[i, p, j] = si[q]
-            umbra[i, p, j] = su[q]
-            far[i, p, j] = sr[q]
+            if sk[q] == TRIM:
+                umbra[i, p, j] = su[q]
+                far[i, p, j] = sr[q]
             w += 1
     count[p] = w
     return False
@@ -680,29 +691,41 @@ def resolve_layer(kb, closed, piece, reach, res, final, vis, stats, stop, held,
     by the rasterizers) and adds the pixels resolved (the view's statistics, without a
     full-frame pass per layer)."""
     n_bands = (res + 7) // 8
-    count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
-    queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
     stride = band_stride(n_bands)
+    # The body is a function of its own: numba's parallel passes drop stores made in a
+    # prange body through a named group's arrays (``kb.seal[p] = ...``).
     for j in prange(n_bands):
-        band = (j * stride) % n_bands
         if flag_set(stop):
             continue
         scratch = _scratch(K)
-        tally[band, 0] = held_entries[band]
-        base = band * 8 * res
-        n = min(res, band * 8 + 8) * res - base if final else queued[band]
-        for i in range(n):
-            p = base + i if final else queue[base + i]
-            if count[p] > 0:
-                held[p] = 1
-            if active[p]:
-                tally[band, 1] += 1
-            if overflow[p] or stencil[p] == SEALED or count[p] == 0:
-                active[p] = 0
-                continue
+        _resolve_band(kb, closed, piece, reach, res, final, vis, stats[(j * stride) % n_bands],
+                      held, tally, np.int64((j * stride) % n_bands), scratch)
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _resolve_band(kb, closed, piece, reach, res, final, vis, stats, held, tally, band,
+                  scratch):  # pragma: no cover - numba
+    """``resolve_layer``'s band of 8 rows (its arguments; ``stats`` the band's row).
+    ``resolve_into`` is inlined here: a call per pixel passes some 250 words of array
+    descriptors (``kb``, ``reach``), which cost more than resolving a pixel of one entry, and
+    compiled without numba's runtime it counts no references to them either."""
+    count, stencil, active, overflow = kb.count, kb.stencil, kb.active, kb.overflow
+    queue, queued, held_entries = kb.queue, kb.queued, kb.held_entries
+    tally[band, 0] = held_entries[band]
+    base = band * 8 * res
+    n = min(res, band * 8 + 8) * res - base if final else queued[band]
+    for i in range(n):
+        p = base + i if final else queue[base + i]
+        if count[p] > 0:
+            held[p] = 1
+        if active[p]:
+            tally[band, 1] += 1
+        if overflow[p] or stencil[p] == SEALED or count[p] == 0:
             active[p] = 0
-            c0 = count[p]
-            if resolve_into(kb, closed, piece, reach, p, final, vis, stats[band], scratch):
-                stencil[p] = SEALED
-            held_entries[band] += count[p] - c0
-        queued[band] = 0
+            continue
+        active[p] = 0
+        c0 = count[p]
+        if resolve_into(kb, closed, piece, reach, p, final, vis, stats, scratch):
+            stencil[p] = SEALED
+        held_entries[band] += count[p] - c0
+    queued[band] = 0
