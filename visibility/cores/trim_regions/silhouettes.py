@@ -181,7 +181,7 @@ def _cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer):  # pragma: 
     return first
 
 
-@njit(cache=True, nogil=True, **NO_REFCOUNT)
+@njit(cache=True, nogil=True, inline="always")
 def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margin,
               out, sides, widths, pts):  # pragma: no cover - numba
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
