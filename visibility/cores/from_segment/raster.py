@@ -249,7 +249,7 @@ def _front_box(P, U, res, box, pad):
     return pixel_range(umin, umax, vmin, vmax, res, box, pad), zm
 
 
-@njit(inline="always", **_JIT_NO_NRT)
+@njit(**_JIT_NO_NRT)
 def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
             sc, work):
     """Composite one set-up primitive (kind 0 static triangle, 1 moving triangle, 2 sphere,
@@ -262,8 +262,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
     room, the primitive drawn up to the pixel and piece kept in ``sc.at``; the caller grows
     the storage (``_grown``) and calls again, which resumes there (so no chord is inserted
     twice). The arrays are never rebound here, so numba counts no references at each
-    insertion. Inlined into ``_resolve_chunk``: a call passes its seventeen arguments (some
-    thirty array descriptors) for a draw of a few pixels."""
+    insertion."""
     r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
     pt0, pt1, pz0, pz1, brk, stk, at = sc
     # Resuming a draw cut short: skip what it already drew.
