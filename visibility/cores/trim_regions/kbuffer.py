@@ -179,7 +179,8 @@ class KBuffer(NamedTuple):
 
     def entries(self, p: int) -> tuple[np.ndarray, ...]:
         """Pixel p's held entries as (kind, depth, ident, umbra, far), each (count,) (copies,
-        in slot order)."""
+        in slot order); umbra and far mean something for TRIM entries only (a surface's are
+        neither written nor read by the kernels)."""
         c = int(self.count[p])
         return tuple(np.asarray(a[:, p, :]).reshape(-1)[:c].copy()
                      for a in (self.kind, self.depth, self.ident, self.umbra, self.far))

@@ -697,9 +697,9 @@ def resolve_layer(kb, closed, piece, reach, res, final, vis, stats, stop, held,
     for j in prange(n_bands):
         if flag_set(stop):
             continue
-        scratch = _scratch(K)
-        _resolve_band(kb, closed, piece, reach, res, final, vis, stats[(j * stride) % n_bands],
-                      held, tally, np.int64((j * stride) % n_bands), scratch)
+        band = np.int64((j * stride) % n_bands)
+        _resolve_band(kb, closed, piece, reach, res, final, vis, stats[band], held, tally,
+                      band, _scratch(K))
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)

@@ -187,7 +187,8 @@ def _one_edge(cam, e, ev, ef, eo, many, facing_of, near, tan, delta, back, margi
     """Trim rows of edge e: the number of sides (0, 1 or 2) written to ``sides``; the shared
     part of the row (normal, ends, depths, the larger widths) is written to ``out``, the
     widths at both ends of a trim into side +1 and side -1 to ``widths`` (2, 2). ``pts``
-    (3, 3) is scratch (the clipped ends and the normal)."""
+    (3, 3) is scratch (the clipped ends and the normal). Inlined: called once per edge of the
+    view, most of which return at the facing test, its arguments cost more as a call."""
     f0 = ef[e, 0]
     f1 = ef[e, 1]
     a0 = facing_of[f0]
