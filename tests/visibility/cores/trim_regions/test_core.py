@@ -114,10 +114,24 @@ def test_gathers_made_aside_by_another_worker_give_the_same_answer(monkeypatch):
     one = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
     monkeypatch.setattr(pipeline, "_view_workers", lambda: 2)
     monkeypatch.setattr(pipeline, "ASIDE_SHARE", 0.0)
+    # A view waits (a second at most) for the other worker to take up its gather
+    # before it goes on, so the aside path runs however fast the view is.
+    started: dict[int, threading.Event] = {}
+    task, set_up = pipeline._render_task, pipeline._Gather.set_up
+
+    def aside_task(render, crew):
+        started.setdefault(id(render), threading.Event()).set()
+        return task(render, crew)
+
+    def waiting_set_up(self, *a):
+        started.setdefault(id(self), threading.Event()).wait(1.0)
+        return set_up(self, *a)
+
+    monkeypatch.setattr(pipeline, "_render_task", aside_task)
+    monkeypatch.setattr(pipeline._Gather, "set_up", waiting_set_up)
     aside = CORE.compute(scene, Viewcell(box), CORE.make_params(resolution=64))
     np.testing.assert_array_equal(one.triangle_ids, aside.triangle_ids)
     assert one.stats["gathers_aside"] == 0
-    # The other worker is free when a leading view starts, so some gathers are made aside.
     assert 0 < aside.stats["gathers_aside"] <= aside.stats["spheres"]
 
 
