@@ -40,7 +40,7 @@ import numpy as np
 
 from benchmarks.common import command_line, header_lines, machine, md_table, write_report
 from visibility.cores.base import get_core
-from visibility.cores.cos.core import DEFAULT_RESOLUTION, cos_pvs, cos_subcells
+from visibility.cores.cos.core import DEFAULT_RESOLUTION, REFINE_MAX, cos_pvs, cos_subcells
 from visibility.loaders import load_scene
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.ray_frames import missed_triangles, ray_frames, seen_ids
@@ -130,16 +130,19 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     cos_pvs(scene, box, 16)  # compile and per-scene builds (welding, closed surfaces)
     runs: dict[str, dict[str, Any]] = {}
 
-    def cos_run(label: str, r: int, cover: str, subcells: int, fusion: str = "edges") -> None:
+    def cos_run(label: str, r: int, cover: str, subcells: int, fusion: str = "edges",
+                refine: int = 0) -> None:
         if subcells > 1:
             (ids, stats), seconds = _timed(cos_subcells, scene, box, subcells, r, cover=cover,
-                                           fusion=fusion)
+                                           fusion=fusion, refine=refine)
         else:
-            (ids, stats), seconds = _timed(cos_pvs, scene, box, r, cover=cover, fusion=fusion)
+            (ids, stats), seconds = _timed(cos_pvs, scene, box, r, cover=cover, fusion=fusion,
+                                           refine=refine)
         runs[label] = {"core": "cos", "resolution": r, "cover": cover, "subcells": subcells,
-                       "fusion": fusion, "ids": ids, "seconds": seconds,
+                       "fusion": fusion, "refine": refine, "ids": ids, "seconds": seconds,
                        "list_entries": int(stats["list_entries"]),
-                       "fused": int(stats["fused"])}
+                       "fused": int(stats["fused"]), "refined": int(stats["refined"]),
+                       "subpixels": int(stats["subpixels"])}
 
     for r in resolutions:
         cos_run(f"cos {r} px", r, "strict", 1)
@@ -155,6 +158,15 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
             "relaxed", 2, "groups")
     cos_run(f"cos {base} px, separate groups, relaxed cover, 4 x 4 sub-cells", base,
             "relaxed", 4, "groups")
+    # Occludees no group hides over a whole pixel, tested again at its sub-pixels
+    # (``refine``): alone, at two and at the most levels, and with the options above.
+    for levels in (2, REFINE_MAX):
+        cos_run(f"cos {base} px, sub-pixels {levels} levels", base, "strict", 1,
+                refine=levels)
+    cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} levels",
+            base, "relaxed", 1, "groups", REFINE_MAX)
+    cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} levels, "
+            "2 x 2 sub-cells", base, "relaxed", 2, "groups", REFINE_MAX)
     sampling = get_core("sampling")
     cell = Viewcell(box)
     pvs, seconds = _timed(sampling.compute, scene, cell, sampling.make_params())
@@ -196,6 +208,8 @@ def _plot(results: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for res in results:
         cos = [r for r in res["rows"] if r["core"] == "cos"]
+        refined = [r for r in cos if r["refine"] > 0]
+        cos = [r for r in cos if r["refine"] == 0]
         by_res = [r for r in cos if r["cover"] == "strict" and r["subcells"] == 1
                   and r["fusion"] == "edges"]
         fused = [r for r in cos if r["fusion"] == "groups"]
@@ -211,12 +225,15 @@ def _plot(results: list[dict[str, Any]], path: Path) -> None:
                     color=line.get_color(), mfc="none")
         ax.plot([r["seconds"] for r in fused], [r["ratio"] for r in fused], "x",
                 color=line.get_color())
+        ax.plot([r["seconds"] for r in refined], [r["ratio"] for r in refined], "D",
+                color=line.get_color(), mfc="none", ms=5)
     ax.axhline(2.0, color="grey", lw=0.8, ls="--", label="2x (issue 29's aim)")
     ax.set_xscale("log")
     ax.set_xlabel("cos seconds per cell (2 cores)")
     ax.set_ylabel("PVS / dense reference")
     ax.set_title("cos tightness against time (px; squares: 2 x 2 sub-cells; triangles:\n"
-                 "relaxed cover, alone and in 2 x 2 sub-cells; x: separate groups fused)",
+                 "relaxed cover, alone and in 2 x 2 sub-cells; x: separate groups fused;\n"
+                 "diamonds: sub-pixels, alone and with the other options)",
                  fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -257,7 +274,9 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
     lines += ["", "![tightness against time](cos_tightness.png)", "", "## Reading", ""]
     for res in results:
         ref = res["reference"]
-        cos = [r for r in res["rows"] if r["core"] == "cos"]
+        every = [r for r in res["rows"] if r["core"] == "cos"]
+        cos = [r for r in every if r["refine"] == 0]
+        refined = [r for r in every if r["refine"] > 0]
         edges = [r for r in cos if r["fusion"] == "edges"]
         by_res = [r for r in edges if r["cover"] == "strict" and r["subcells"] == 1]
         sub = next(r for r in edges if r["cover"] == "strict" and r["subcells"] > 1)
@@ -265,7 +284,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
         rel = next(r for r in edges if r["cover"] == "relaxed" and r["subcells"] == 1)
         rsub = next(r for r in edges if r["cover"] == "relaxed" and r["subcells"] > 1)
         grp = [r for r in cos if r["fusion"] == "groups"]
-        best = min(cos, key=lambda r: r["ratio"])
+        best = min(every, key=lambda r: r["ratio"])
         samp = [r for r in res["rows"] if r["core"] == "sampling"]
         conv = ref["added_by_doubling"] < CONVERGED
         lines.append(
@@ -282,12 +301,18 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             + ", ".join(f"{r['ratio']:.2f}x {_options(r)} "
                         f"({r['seconds'] / max(plain['seconds'], 1e-9):.1f}x the time, "
                         f"{r['fused']:,} entries hidden that way)" for r in grp)
+            + ". Testing occludees no group hides over a whole pixel again at its sub-pixels "
+            "(refine) takes it to "
+            + ", ".join(f"{r['ratio']:.2f}x ({r['run'].split(' px, ', 1)[1]}, "
+                        f"{r['seconds'] / max(plain['seconds'], 1e-9):.1f}x the time, "
+                        f"{r['refined']:,} entries hidden that way, {r['subpixels']:,} "
+                        "sub-pixels resolved)" for r in refined)
             + ". The reference "
             f"({ref['eyes']} eyes, {ref['kept']} in open space) "
             + ("has converged" if conv else
                f"has not converged: its last doubling still added "
                f"{ref['added_by_doubling']:.2%}, so these ratios are upper bounds")
-            + f". Misses by cos: {max(r['missed'] for r in cos)}; sampling: "
+            + f". Misses by cos: {max(r['missed'] for r in every)}; sampling: "
             + ", ".join(f"{r['missed']} ({r['run']}, {r['ratio']:.1f}x, {r['seconds']:.2f} s)"
                         for r in samp) + ".")
     return "\n".join(lines) + "\n"

@@ -27,3 +27,19 @@ def test_quick_speed_run_writes_the_counters(tmp_path):
     md = (tmp_path / "cos_quick.md").read_text()
     assert "| tile items |" in md and "pixels of a tile per pair" in md
     assert "hidden by separate groups" in md
+
+
+def test_the_fp_table_sets_sub_pixels_beside_the_defaults():
+    # The fp part's table and reading, from one row (its cells take minutes; the speed run
+    # above covers the measuring).
+    from benchmarks.bench_cos import _md
+    from visibility.cores.cos.core import REFINE_MAX
+
+    row = {"scene": "city", "size": 0.3, "pvs": 1200, "reference": 1000, "fn_count": 0,
+           "fp": 0.2, "overestimation": 0.2, "seconds": 0.1,
+           "refined": {"pvs": 1100, "fn_count": 0, "fp": 0.1, "overestimation": 0.1,
+                       "seconds": 0.2}}
+    md = _md([], [row], 8, 1.0, [])
+    assert ("| city | 0.3 m | 1,200 | 1,000 | 0 | 0.20 | 20 % | 0.10 | 1,100 | 0 | 10 % | 0.20 |"
+            in md)
+    assert f"with sub-pixels ({REFINE_MAX} levels) 10-10 % for 2.0-2.0x the time" in md

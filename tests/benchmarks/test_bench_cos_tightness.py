@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from benchmarks.bench_cos_tightness import main
+from visibility.cores.cos.core import REFINE_MAX
 
 
 def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
@@ -13,12 +14,20 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     assert [r["scene"] for r in results] == ["lavaducts"]
     rows = results[0]["rows"]
     cos = [r for r in rows if r["core"] == "cos"]
-    assert [(r["resolution"], r["cover"], r["subcells"], r["fusion"]) for r in cos] == [
-        (16, "strict", 1, "edges"), (32, "strict", 1, "edges"), (32, "strict", 1, "groups"),
-        (32, "strict", 2, "edges"), (32, "relaxed", 1, "edges"), (32, "relaxed", 2, "edges"),
-        (32, "relaxed", 1, "groups"), (32, "relaxed", 2, "groups"), (32, "relaxed", 4, "groups")]
+    assert [(r["resolution"], r["cover"], r["subcells"], r["fusion"], r["refine"])
+            for r in cos] == [
+        (16, "strict", 1, "edges", 0), (32, "strict", 1, "edges", 0),
+        (32, "strict", 1, "groups", 0), (32, "strict", 2, "edges", 0),
+        (32, "relaxed", 1, "edges", 0), (32, "relaxed", 2, "edges", 0),
+        (32, "relaxed", 1, "groups", 0), (32, "relaxed", 2, "groups", 0),
+        (32, "relaxed", 4, "groups", 0), (32, "strict", 1, "edges", 2),
+        (32, "strict", 1, "edges", REFINE_MAX), (32, "relaxed", 1, "groups", REFINE_MAX),
+        (32, "relaxed", 2, "groups", REFINE_MAX)]
     # Separate groups hiding together can only hide more than the paper's fusion.
     assert cos[2]["pvs"] <= cos[1]["pvs"] and cos[1]["fused"] == 0
+    # Sub-pixels hide entries only where they are asked for, and some on this cell.
+    assert cos[1]["refined"] == cos[1]["subpixels"] == 0
+    assert cos[9]["refined"] > 0 and cos[9]["subpixels"] > cos[9]["refined"]
     assert [r["core"] for r in rows].count("sampling") == 2
     ref = results[0]["reference"]
     assert ref["triangles"] > 0 and ref["eyes"] == 8 and len(ref["steps"]) == 2
@@ -29,5 +38,5 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
         assert r["missed"] == 0
     md = (tmp_path / "cos_tightness.md").read_text()
     assert "| lavaducts |" in md and "## Reading" in md and "sub-cells" in md
-    assert "relaxed cover" in md and "separate groups" in md
+    assert "relaxed cover" in md and "separate groups" in md and "sub-pixels" in md
     assert (tmp_path / "cos_tightness.png").stat().st_size > 0

@@ -58,6 +58,10 @@ BUSY_BLOCK = 2
 BUSY_BLOCK_MIN = 1024
 #: The values it may take: divisors of ``lists.TILE``.
 BUSY_BLOCKS = (1, 2, 4, 8)
+#: Levels of 2 x 2 sub-pixels an occludee no group hides over a whole pixel is tested at
+#: (``CosParams.refine``), by default and at most (``resolve.REFINE_STACK`` holds the walk).
+REFINE = 0
+REFINE_MAX = 4
 
 #: The cover tests (``CosParams.cover``).
 COVERS = ("strict", "relaxed")
@@ -98,6 +102,12 @@ class CosParams(CoreParams):
         group does alone, separate groups each in front of it may cover the region together
         (``resolve._fused_hide``: two walls one behind the other, buildings side by side);
         still conservative, tighter at large cells, dearer (``docs/cores/cos.md``).
+    refine : where no occluder group hides an occludee over a whole pixel, it is tested
+        again at the pixel's 2 x 2 sub-pixels, each split again where none hides it, down to
+        ``refine`` levels (``resolve._refined_hide``): hidden when hidden at each. A far
+        occludee next to a near silhouette fails a pixel's test by the pixel's width times
+        their depth difference; a sub-pixel's test is that much finer. Conservative at any
+        level; 0 (none) is the paper's.
     """
 
     resolution: int = param(DEFAULT_RESOLUTION, unit="px", ge=8, le=4096,
@@ -118,6 +128,10 @@ class CosParams(CoreParams):
     cover: str = param("strict", choices=COVERS,
                        help="the occluder cover test: strict (the paper's) or relaxed "
                             "(tighter at large cells, for more time)")
+    refine: int = param(REFINE, unit="levels", ge=0, le=REFINE_MAX,
+                        help="levels of 2 x 2 sub-pixels an occludee no occluder hides over "
+                             "a whole pixel is tested at (0: none): tighter where far "
+                             "occludees pass near silhouettes, for more time")
     fusion: str = param("edges", choices=FUSIONS,
                         help="occluders that hide together: edges (the paper's: triangles "
                              "sharing edges) or groups (separate surfaces too: tighter at "
@@ -216,10 +230,11 @@ class CosCore(Core):
             return cos_subcells(scene, box, int(params.subcells), int(params.resolution),
                                 float(params.list_budget_mb), int(params.coarse_items),
                                 cover=str(params.cover), fusion=str(params.fusion),
-                                busy_block=int(params.busy_block))
+                                busy_block=int(params.busy_block), refine=int(params.refine))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
                        int(params.coarse_items), cover=str(params.cover),
-                       fusion=str(params.fusion), busy_block=int(params.busy_block))
+                       fusion=str(params.fusion), busy_block=int(params.busy_block),
+                       refine=int(params.refine))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -240,8 +255,8 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                  list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
-                 cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK
-                 ) -> tuple[np.ndarray, dict[str, Any]]:
+                 cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
+                 refine: int = REFINE) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
@@ -254,7 +269,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
     sizes = []
     for b in sub_boxes(box, n):
         ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
-                          cover=cover, fusion=fusion, busy_block=busy_block)
+                          cover=cover, fusion=fusion, busy_block=busy_block, refine=refine)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -279,8 +294,8 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
             coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
-            cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK
-            ) -> tuple[np.ndarray, dict[str, Any]]:
+            cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
+            refine: int = REFINE) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -298,6 +313,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     fusion : ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
     busy_block : pixels per side of a sample in the tiles that take the coarse pass
         (``CosParams.busy_block``).
+    refine : levels of 2 x 2 sub-pixels an occludee is tested at where no group hides it
+        over the whole pixel (``CosParams.refine``).
 
     Returns
     -------
@@ -333,12 +350,16 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         primitives sit in it; a small scene's hierarchy is built then, once), ``projected``
         and ``culled`` (footprints projected over the 30 views, and those the hierarchy walk
         spared: primitives no ray of the view meets), ``fusion`` (the one used) and
-        ``fused`` (entries hidden by separate groups together, ``fusion="groups"``).
+        ``fused`` (entries hidden by separate groups together, ``fusion="groups"``),
+        ``refined`` and ``subpixels`` (entries hidden at sub-pixels, and sub-pixels
+        resolved: ``refine``).
     """
     if cover not in COVERS:
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
     if fusion not in FUSIONS:
         raise ValueError(f"fusion must be one of {FUSIONS}, not {fusion!r}")
+    if not 0 <= int(refine) <= REFINE_MAX:
+        raise ValueError(f"refine must be 0 to {REFINE_MAX}, not {refine!r}")
     fuse = fusion == "groups"
     t0 = time.perf_counter()
     lo, hi = box[0], box[1]
@@ -381,6 +402,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0,
+        "refined": 0, "subpixels": 0,
         "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
@@ -403,7 +425,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             listed = (np.flatnonzero(sel[view.face]).astype(np.int32) if positions is None
                       else positions[k])
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
-                                  stats, coarse_items, rng, cover, fuse, busy_block)
+                                  stats, coarse_items, rng, cover, fuse, busy_block,
+                                  refine)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -488,11 +511,12 @@ def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray) -> PrimArrays
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap)
 
 
-def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False) -> Screen:
+def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False,
+            refine: int = 0) -> Screen:
     """The kernels' view of a view's camera and pixel grid."""
     return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
                   float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol),
-                  cover == "relaxed", bool(fuse))
+                  cover == "relaxed", bool(fuse), int(refine))
 
 
 
@@ -532,7 +556,7 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     # the relaxed one drops next to nothing more and costs far more (docs/cores/cos.md).
     # Nor separate groups together: in clutter that costs the pass more than it drops.
     wide = screen._replace(nx=tiles_x, ny=tiles_y, pw=screen.pw * TILE, relaxed=False,
-                           fuse=False)
+                           fuse=False, refine=0)
     resolve_tiles(parrays, lists, wide, Marks(known, scratch, hid, counters, stop_flag()))
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
@@ -543,7 +567,8 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
-                cover: str = "strict", fuse: bool = False, busy_block: int = 1) -> int:
+                cover: str = "strict", fuse: bool = False, busy_block: int = 1,
+                refine: int = 0) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
@@ -570,7 +595,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["tile_items"] += int(tile_off[-1])
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap)
-    screen = _screen(view, plane_tol, cover, fuse)
+    screen = _screen(view, plane_tol, cover, fuse, refine)
     # The tiles' items as primitive ids: lists name them by their place in their tile.
     items = order[tile_items].astype(np.int32)
     drop = np.empty(0, dtype=np.uint8)
@@ -640,6 +665,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["silhouette_edges"] += int(counters[:, 4].sum())
     stats["plane_tests"] += int(counters[:, 5].sum())
     stats["fused"] += int(counters[:, 10].sum())
+    stats["refined"] += int(counters[:, 11].sum())
+    stats["subpixels"] += int(counters[:, 12].sum())
     # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
     for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
                              ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):

@@ -44,6 +44,8 @@ class Screen(NamedTuple):
         where the strict one finds no group hiding it.
     fuse : whether separate groups may hide an occludee together where none does alone
         (``resolve._fused_hide``).
+    refine : levels of 2 x 2 sub-pixels an occludee no group hides over the whole pixel is
+        tested at (``resolve._refined_hide``; 0: none).
     """
 
     origin: np.ndarray
@@ -58,6 +60,7 @@ class Screen(NamedTuple):
     plane_tol: float
     relaxed: bool
     fuse: bool
+    refine: int
 
 
 class TileLists(NamedTuple):

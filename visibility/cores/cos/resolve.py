@@ -39,6 +39,13 @@ edges (welded vertex ids), merging their groups. A group whose silhouette stays 
 whole offset region and covers it is flagged *coverall* (ln 44-45): later triangles skip
 straight to the depth test.
 
+Sub-pixels (``Screen.refine``, ``_refined_hide``): an entry no group hides over the whole pixel
+may be tested again at the pixel's 2 x 2 sub-pixels, each split again where none hides it;
+hidden at every one (by any group each), it is hidden at the pixel, whose directions they make
+up. A silhouette capsule's growth is the pixel's half-width times the edge's depth difference
+to Q, so far occludees beside near silhouettes (a skyline) fail the pixel's test where a
+sub-pixel's passes.
+
 A triangle hidden by a coverall group is dropped. One hidden by another group, or not seen at
 the pixel (K empty, ln 12), is kept *dormant*: it joins the edge hash and fuses with its
 neighbours, but a group made only of dormant triangles is never tested against (nor checked
@@ -584,8 +591,9 @@ STOP_EVERY = 256
 #: Columns of ``resolve_tiles``'s counters per tile: entries tested, found occluded, occluder
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
-#: and in the whole tile, then entries hidden by separate groups together.
-N_COUNTERS = 11
+#: and in the whole tile, then entries hidden by separate groups together, entries hidden at
+#: sub-pixels and sub-pixels resolved (``_refined_hide``).
+N_COUNTERS = 13
 TIME_STRIDE = 8
 GRID_WIDE = 16
 #: Records of the edge pool (``groups.EdgePool``) per entry of the longest list: a pixel's
@@ -731,6 +739,143 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
                              kb[2], kb[3], qcam, nq, ov, qctx, work):
                 return False
             k = pool[3 + 2 * k]
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx, kny, klo,
+                khi, work):  # pragma: no cover - numba
+    """``_covers_q``'s strict test at a sub-pixel: its centre ``(dx, dy)`` off the pixel's,
+    half-width ``hs``, K (``kb``'s geometry, axes ready) in the pixel's frame of depth wref.
+
+    In that frame a point of depth w sits at its pixel-centre image moved by
+    -(w - wref) (dx, dy) at the sub-pixel's centre and moves by |w - wref| hs over its
+    directions, so each active edge is moved and grown by that, and the winding argument
+    of ``_covers_q`` holds as it is."""
+    m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+    ex = m * abs(dx)
+    ey = m * abs(dy)
+    if (kb[0] < gbb[g, 0] - ex or kb[1] > gbb[g, 1] + ex or kb[2] < gbb[g, 2] - ey
+            or kb[3] > gbb[g, 3] + ey):
+        return False
+    cx = kb[4]
+    cy = kb[5]
+    wn = 0
+    geo = edges.geo
+    i0 = edges.start[g]
+    for i in range(i0, i0 + edges.length[g]):
+        da = geo[i, 4] - wref
+        db = geo[i, 5] - wref
+        ax = geo[i, 0] - da * dx
+        ay = geo[i, 1] - da * dy
+        bx = geo[i, 2] - db * dx
+        by = geo[i, 3] - db * dy
+        work[0] += 1
+        step = winding_step(ax, ay, bx, by, cx, cy)
+        if step == 2:
+            return False
+        wn += step
+        if capsule_meets(ax, ay, bx, by, max(abs(da), abs(db)) * hs, kx, ky, nk, kb, knx, kny,
+                         klo, khi):
+            return False
+    return wn >= 1
+
+
+#: Sub-pixels of ``_refined_hide``'s depth-first walk waiting at once: 3 per level, and 4.
+REFINE_STACK = 3 * 4 + 4
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam,
+                  n, tri, corners, sx, sy, h, wref, wmin, wcam, tol, kb0, sub,
+                  work):  # pragma: no cover - numba
+    """Whether Q, which no group hides over the whole pixel, is hidden at every one of its
+    sub-pixels, split in 2 x 2 down to ``levels`` levels (depth first; a sub-pixel hidden
+    behind some group is not split further, one left unhidden at the last level ends the
+    walk: Q is seen).
+
+    The pixel's directions are the union of its sub-pixels', so Q hidden at each (each
+    sub-pixel's own K, grown only for its own directions, behind a coverall or live group
+    that covers it, ``_covers_sub``, and passes the pixel's depth test over it, ``_hides``)
+    is hidden at the pixel. A silhouette edge's capsule grows with the pixel's width times
+    its depth difference to Q, so a far occludee beside a near roof line fails the pixel's
+    test however far its rays pass from the roof: a sub-pixel's capsules are that much
+    thinner. Only the groups whose boxes, grown for the pixel, meet K's (``kb0``) can cover
+    a sub-pixel's K, which lies inside K. ``occ``: the occluders' arrays ``_hides`` reads;
+    ``sub``: scratch (Q's and the camera rectangle's images, K and its geometry, the walk's
+    stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved."""
+    head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom, qctx = occ
+    qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi, stack, cand = sub
+    nc = 0
+    for c in range(n_cov):
+        cand[nc] = -1 - covl[c]
+        nc += 1
+    for c in range(n_live):
+        g = live[c]
+        if lpos[g] != c:
+            continue
+        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
+        if (kb0[1] < gbb[g, 0] - m or kb0[0] > gbb[g, 1] + m or kb0[3] < gbb[g, 2] - m
+                or kb0[2] > gbb[g, 3] + m):
+            continue
+        cand[nc] = g
+        nc += 1
+    if nc == 0:
+        return False
+    top = 0
+    hs = 0.5 * h
+    for c in range(4):
+        stack[top, 0] = hs if c & 1 else -hs
+        stack[top, 1] = hs if c & 2 else -hs
+        stack[top, 2] = hs
+        stack[top, 3] = 1.0
+        top += 1
+    first = 0  # the candidate that hid the last sub-pixel is tried first
+    while top > 0:
+        top -= 1
+        dx = stack[top, 0]
+        dy = stack[top, 1]
+        hs = stack[top, 2]
+        lev = stack[top, 3]
+        work[2] += 1
+        project(cam, n, sx + dx, sy + dy, hs, wref, qv, qr)
+        region_at(corners, sx + dx, sy + dy, hs, wref, rv, rr)
+        nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx, ty)
+        if nk == 0:
+            continue  # no ray of the sub-pixel meets Q
+        # Into the pixel's frame: the sub-pixel centre's images are the pixel-frame ones
+        # moved by -wref (dx, dy), the same for every point.
+        for i in range(nk):
+            kx[i] += wref * dx
+            ky[i] += wref * dy
+        _k_box(kx, ky, nk, kb)
+        polygon_axes(kx, ky, nk, kb, knx, kny, klo, khi)
+        kb[6] = 1.0
+        hidden = False
+        for t in range(nc):
+            c = (first + t) % nc
+            g = cand[c]
+            if g < 0:
+                g = -1 - g  # coverall: it covers the whole pixel's offsets
+            elif not _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb,
+                                 knx, kny, klo, khi, work):
+                continue
+            if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead,
+                      pool, pdep, dom, wcam, tol, wref, h, kb, cam, n, wmin, ov, qctx, work):
+                hidden = True
+                first = c
+                break
+        if hidden:
+            continue
+        if lev >= levels:
+            return False
+        hs2 = 0.5 * hs
+        for c in range(4):
+            stack[top, 0] = dx + (hs2 if c & 1 else -hs2)
+            stack[top, 1] = dy + (hs2 if c & 2 else -hs2)
+            stack[top, 2] = hs2
+            stack[top, 3] = lev + 1.0
+            top += 1
     return True
 
 
@@ -1143,7 +1288,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
-        work=np.zeros(2, dtype=np.int64))
+        work=np.zeros(3, dtype=np.int64))
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -1165,8 +1310,9 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     entries cut by the early-z depth, silhouette edges walked by the cover tests, occluder
     triangles put through the depth test: the last two are where dense clutter's time goes;
     then CPU cycles: testing entries, inserting occluders, checking coverall, the whole tile;
-    then entries hidden by separate groups together (``screen.fuse``, ``_fused_hide``):
-    ``N_COUNTERS`` columns).
+    then entries hidden by separate groups together (``screen.fuse``, ``_fused_hide``),
+    entries hidden at sub-pixels and sub-pixels resolved (``screen.refine``,
+    ``_refined_hide``): ``N_COUNTERS`` columns).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
     caller's checkpoint raises.
@@ -1189,7 +1335,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     pts, start, npts, kind, vid, solid, gap = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff, block = (
         lists)
-    origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on = screen
+    (origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on,
+     refine) = screen
     known, vis, hid, counters, stop = marks
     # Borrowed (``visibility.borrow``): the helpers called per entry and per pixel count no
     # references to them, which the threads would otherwise fight over (shared arrays) or
@@ -1241,6 +1388,13 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((8, FUSE_POLY)), np.empty(7))
+    # The sub-pixels' scratch (``_refined_hide``): Q's and the camera rectangle's images, K,
+    # its geometry, the walk's stack and the candidate groups.
+    sub = (np.empty((8, 2)), np.empty(8), np.empty((4, 2)), np.empty(4), np.empty(MAX_POLY),
+           np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(7),
+           np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY),
+           np.empty((REFINE_STACK, 4)), np.empty(lmax + 1, dtype=np.int64))
+    occ = (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom, qctx)
     pool[1] = 8 * lmax
     hmask = thash.shape[0] - 1
     pstamp = 0  # the pixel's, in sstate
@@ -1262,9 +1416,11 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         n_set = 0
         work[0] = 0
         work[1] = 0
+        work[2] = 0
         tested = 0
         hidden = 0
         fused = 0
+        refined = 0
         occl = 0
         cut = 0
         cyc_tile = cycles()
@@ -1462,6 +1618,15 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 wmin, qctx, rpoly, rpb, rv, ws, wpt, work, fuse)
                             occluded = by_fuse
                             fused += 1 if by_fuse else 0
+                        by_sub = False
+                        if not occluded and refine > 0:
+                            qctx[QC_RELAX] = 0.0
+                            by_sub = _refined_hide(
+                                refine, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi,
+                                edges, occ, cam, n, tri, corners, sx, sy, h, wref, wmin, wcam,
+                                plane_tol, kb, sub, work)
+                            occluded = by_sub
+                            refined += 1 if by_sub else 0
                         if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
                             # nothing as an occluder, and keeping it would make long lists
@@ -1478,7 +1643,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             # Hidden by separate groups together: it occludes as a visible
                             # one would (any listed triangle may), since no single group
                             # stands for it in later single-group tests.
-                            dorm = not by_fuse
+                            dorm = not (by_fuse or by_sub)
                             if mark:
                                 hid[k] = 1
                         else:
@@ -1699,6 +1864,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 8] = cyc_cover
         counters[tile, 9] = cycles() - cyc_tile
         counters[tile, 10] = fused
+        counters[tile, 11] = refined
+        counters[tile, 12] = work[2]
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
     keep_alive(own)

@@ -19,6 +19,7 @@ import pytest
 
 from tests.visibility.cores.adversarial.cases import Case, all_cases, random_variants
 from visibility.cores.base import get_core
+from visibility.cores.cos.core import REFINE_MAX
 from visibility.cores.dual_ray.core import NotTwoPointFiveD
 from visibility.ray_reference import RaySample, describe, draw_eyes, ray_reference
 from visibility.viewcells import Viewcell
@@ -137,6 +138,25 @@ def test_cos_fused_groups_miss_nothing(name, cover):
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
         f"cos fusing separate groups ({cover} cover) misses {len(missed)} triangles in "
+        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
+
+
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("options", ["alone", "with the others"])
+def test_cos_sub_pixels_miss_nothing(name, options, monkeypatch):
+    # Occludees no group hides over a whole pixel, tested again at its sub-pixels down to the
+    # most levels (``refine``): alone, and with the relaxed cover, separate groups and the
+    # coarse pass with its 2 x 2 samples on every tile.
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)
+    case = CASES[name]
+    core = get_core("cos")
+    extra = {} if options == "alone" else {"cover": "relaxed", "fusion": "groups",
+                                           "coarse_items": 1}
+    pvs = core.compute(case.scene, Viewcell(case.box),
+                       core.make_params(refine=REFINE_MAX, **extra))
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos with sub-pixels ({options}) misses {len(missed)} triangles in "
         f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
