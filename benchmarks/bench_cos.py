@@ -118,6 +118,10 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "coarse_tiles": st.get("coarse_tiles", 0),
            "coarse_entries": st.get("coarse_entries", 0),
            "coarse_dropped": st.get("coarse_dropped", 0),
+           "coarse_work": {k: st.get(f"coarse_{k}", 0)
+                           for k in ("tested", "silhouette_edges", "plane_tests",
+                                     "cycles_test", "cycles_insert", "cycles_coverall",
+                                     "cycles_resolve")},
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
            "projected": st.get("projected", 0), "culled": st.get("culled", 0),
@@ -307,8 +311,8 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 "(facing away from the whole cell), "
                 + (f"the coarse pass on {r['coarse_tiles']:,} screen tiles left "
                    f"{r['coarse_dropped']:,} of their {r['coarse_entries']:,} items out of "
-                   "the pixels' lists, " if r.get("coarse_tiles") else "no tile took the "
-                   "coarse pass, ") +
+                   "the pixels' lists" + _coarse_work(r) + ", " if r.get("coarse_tiles")
+                   else "no tile took the coarse pass, ") +
                 f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}) from "
                 f"{r.get('tile_items', 0):,} (primitive, screen tile) pairs, "
                 f"{r['list_entries'] / max(1, r.get('tile_items', 0)):.1f} pixels of a tile "
@@ -359,6 +363,18 @@ def _cycle_split(r: dict) -> str:
             f"{share['insert']:.0f} % to making occluders of them (set-up, fusion along shared "
             f"edges, merges), {share['coverall']:.0f} % to checking whether a group covers the "
             f"whole pixel, {100 - sum(share.values()):.0f} % to projecting entries and early z")
+
+
+def _coarse_work(r: dict[str, Any]) -> str:
+    """The coarse pass's work (``cos_pvs``'s ``coarse_*`` counters), for a row that took it."""
+    w = r.get("coarse_work") or {}
+    if not w.get("tested"):
+        return ""
+    tot = max(1, w["cycles_resolve"])
+    return (f" (testing {w['tested']:,} of them: {w['silhouette_edges']:,} silhouette edges "
+            f"walked, {w['plane_tests']:,} occluder triangles depth-tested; "
+            f"{100 * w['cycles_test'] / tot:.0f} % of its cycles testing, "
+            f"{100 * w['cycles_insert'] / tot:.0f} % making occluders)")
 
 
 def _costliest(r: dict[str, Any]) -> str:

@@ -43,3 +43,15 @@ def test_the_fp_table_sets_sub_pixels_beside_the_defaults():
     assert ("| city | 0.3 m | 1,200 | 1,000 | 0 | 0.20 | 20 % | 0.10 | 1,100 | 0 | 10 % | 0.20 |"
             in md)
     assert f"with sub-pixels ({REFINE_MAX} levels) 10-10 % for 2.0-2.0x the time" in md
+
+
+def test_the_coarse_pass_work_is_told_where_it_ran():
+    from benchmarks.bench_cos import _coarse_work
+
+    assert _coarse_work({"coarse_work": {"tested": 0}}) == ""
+    told = _coarse_work({"coarse_work": {
+        "tested": 3000, "silhouette_edges": 400000, "plane_tests": 300000,
+        "cycles_test": 70, "cycles_insert": 25, "cycles_coverall": 1, "cycles_resolve": 100}})
+    assert told == (" (testing 3,000 of them: 400,000 silhouette edges walked, 300,000 "
+                    "occluder triangles depth-tested; 70 % of its cycles testing, 25 % making "
+                    "occluders)")

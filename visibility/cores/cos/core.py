@@ -343,7 +343,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
         ``coarse_dropped`` (the coarse pass's list entries and those it left out of the
-        per-pixel lists), ``block_tiles`` (tiles sampled per ``busy_block`` pixels) and
+        per-pixel lists), ``coarse_tested``, ``coarse_silhouette_edges``,
+        ``coarse_plane_tests`` and ``coarse_cycles_*`` (its work, counted as the pixels'
+        ``tested``, ``silhouette_edges``, ``plane_tests`` and ``cycles_*`` are),
+        ``block_tiles`` (tiles sampled per ``busy_block`` pixels) and
         ``costliest_view`` (the side plane and frustum that
         took longest, its seconds, list entries and longest list), ``tree`` (whether the
         scene's hierarchy was there to cull with), ``tree_seconds`` (where the cell's
@@ -406,6 +409,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
+        "coarse_tested": 0, "coarse_silhouette_edges": 0, "coarse_plane_tests": 0,
+        "coarse_cycles_test": 0, "coarse_cycles_insert": 0, "coarse_cycles_coverall": 0,
+        "coarse_cycles_resolve": 0,
         "block_tiles": 0,
         "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
@@ -561,6 +567,13 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
     stats["coarse_dropped"] += int(hid.sum())
+    # Its work counters, as the pixels' (``_solve_view``), under coarse_*.
+    stats["coarse_tested"] += int(counters[:, 0].sum())
+    stats["coarse_silhouette_edges"] += int(counters[:, 4].sum())
+    stats["coarse_plane_tests"] += int(counters[:, 5].sum())
+    for name, col, scale in (("test", 6, TIME_STRIDE), ("insert", 7, TIME_STRIDE),
+                             ("coverall", 8, TIME_STRIDE), ("resolve", 9, 1)):
+        stats[f"coarse_cycles_{name}"] += scale * int(counters[:, col].sum())
     return hid
 
 

@@ -743,6 +743,15 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _near_k(g, gbb, gwlo, gwhi, wref, h, kb):  # pragma: no cover - numba
+    """Whether group g's box, grown by its largest motion over the pixel (half-width h, frame
+    of depth wref), meets K's box ``kb``: only such a group can cover a part of K."""
+    m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
+    return not (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m or kb[3] < gbb[g, 2] - m
+                or kb[2] > gbb[g, 3] + m)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx, kny, klo,
                 khi, work):  # pragma: no cover - numba
     """``_covers_q``'s strict test at a sub-pixel: its centre ``(dx, dy)`` off the pixel's,
@@ -812,14 +821,9 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
         nc += 1
     for c in range(n_live):
         g = live[c]
-        if lpos[g] != c:
-            continue
-        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
-        if (kb0[1] < gbb[g, 0] - m or kb0[0] > gbb[g, 1] + m or kb0[3] < gbb[g, 2] - m
-                or kb0[2] > gbb[g, 3] + m):
-            continue
-        cand[nc] = g
-        nc += 1
+        if lpos[g] == c and _near_k(g, gbb, gwlo, gwhi, wref, h, kb0):
+            cand[nc] = g
+            nc += 1
     if nc == 0:
         return False
     top = 0
@@ -919,11 +923,7 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
     nc = 0
     for c in range(n_live):
         g = live[c]
-        if lpos[g] != c:
-            continue
-        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref)) * h
-        if (kb[1] < gbb[g, 0] - m or kb[0] > gbb[g, 1] + m or kb[3] < gbb[g, 2] - m
-                or kb[2] > gbb[g, 3] + m):
+        if lpos[g] != c or not _near_k(g, gbb, gwlo, gwhi, wref, h, kb):
             continue
         cand[0, nc] = g
         cand[1, nc] = 0

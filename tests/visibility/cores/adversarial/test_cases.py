@@ -103,6 +103,9 @@ def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
                        core.make_params(coarse_items=1, busy_block=busy_block))
     assert pvs.stats["coarse_tiles"] > 0
     assert (pvs.stats["block_tiles"] > 0) == (busy_block > 1)
+    # Its own work counted apart from the pixels' (what it tests is among what it lists).
+    st = pvs.stats
+    assert st["coarse_tested"] <= st["coarse_entries"] and st["coarse_cycles_resolve"] > 0
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
         f"cos with the coarse pass (busy_block={busy_block}) misses {len(missed)} triangles "
