@@ -141,13 +141,20 @@ def test_the_composed_services_work_as_one_system(tmp_path):
                      "--nworkers", "1", "--nthreads", "1", "--no-dashboard", "--name", f"w{k}"],
                     _env(), tmp_path / f"worker{k}.log"))
             urls = []
-            for k, port in enumerate(replicas):
+            for k in range(len(replicas)):
                 log = tmp_path / f"server{k}.log"
-                proc = stack.enter_context(_process(
-                    [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1", "--port",
-                     str(port), "--scenes", str(tmp_path / "no-scenes")],
-                    _env(**_server_env(redis.url, scheduler)), log))
-                url = f"http://127.0.0.1:{port}"
+                for _ in range(3):
+                    # The port was free when picked, but a process started since (a worker,
+                    # another test's) may bind it first: then the server exits, and the next
+                    # try takes another port.
+                    proc = stack.enter_context(_process(
+                        [sys.executable, "-m", "pvs_cli", "serve", "--host", "127.0.0.1",
+                         "--port", str(replicas[k]), "--scenes", str(tmp_path / "no-scenes")],
+                        _env(**_server_env(redis.url, scheduler)), log))
+                    if _owns_port(proc, replicas[k], timeout=180):
+                        break
+                    replicas[k] = free_port()
+                url = f"http://127.0.0.1:{replicas[k]}"
                 assert wait_until_healthy(url, proc, timeout=180), log.read_text()[-3000:]
                 urls.append(url)
             for _ in range(3):
