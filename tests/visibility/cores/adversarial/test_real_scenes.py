@@ -27,6 +27,7 @@ import pytest
 from benchmarks.bench_conservative import open_cells
 from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_scene
 from visibility.cores.base import get_core
+from visibility.cores.cos.core import REFINE_MAX
 from visibility.cores.dual_ray.core import NotTwoPointFiveD
 from visibility.ray_reference import RaySample, confirm, describe
 from visibility.viewcells import Viewcell
@@ -132,7 +133,8 @@ def test_cos_sub_cells_no_confirmed_misses(name):
 
 
 #: ``cos``'s options that change how occludees are proven hidden, each judged on every cell.
-OPTIONS = {"relaxed cover": {"cover": "relaxed"}, "separate groups": {"fusion": "groups"}}
+OPTIONS = {"relaxed cover": {"cover": "relaxed"}, "separate groups": {"fusion": "groups"},
+           "sub-pixels": {"refine": REFINE_MAX}}
 
 
 @pytest.mark.parametrize("option", list(OPTIONS))
