@@ -12,7 +12,12 @@ plane): every triangle some pixel shows in frames of eyes stratified in the cell
 a randomly turned cube of ``--ref-res`` px per face each, its eyes doubled from ``--eyes``
 until a doubling adds under 0.1 % of the triangles seen (the issue's measure of a converged
 reference) or ``--most-eyes`` are cast. A reference that has not converged undercounts what is
-seen, so the ratio PVS / reference is an upper bound on the ratio to the converged one. Misses:
+seen, so the ratio PVS / reference is an upper bound on the ratio to the converged one. Rays
+aimed at the triangles of the answers the frames did not show (``visibility.ray_aimed``:
+from random eyes in the open space to random points of each, doubled from ``--aim-rays`` per
+triangle until a doubling adds under 0.1 % or ``--aim-most`` are cast) find what is seen but
+smaller than the frames' pixels: the reference grown by them gives a second, lower bound on
+the ratio (``x with aimed rays``), and what they see that an answer lacks is a miss. Misses:
 for ``cos``, the triangles the frames show that its PVS lacks, each confirmed by a float64
 cast (there must be none); for ``sampling``, unconfirmed. Where the excess lies: the share of
 the triangles ``cos`` keeps and the reference does not see whose centroid is farther than
@@ -43,6 +48,7 @@ from visibility.cores.base import get_core
 from visibility.cores.cos.core import DEFAULT_RESOLUTION, REFINE_MAX, cos_pvs, cos_subcells
 from visibility.loaders import load_scene
 from visibility.raster.camera import DEFAULT_NEAR
+from visibility.ray_aimed import aimed_seen
 from visibility.ray_frames import missed_triangles, ray_frames, seen_ids
 from visibility.scene import Scene
 from visibility.viewcells import Viewcell, ViewcellGrid, spread_evenly
@@ -120,10 +126,30 @@ def _timed(fn, *args, **kwargs) -> tuple[Any, float]:
     return best
 
 
+def aimed(scene: Scene, box: np.ndarray, judged: dict[str, np.ndarray], ref: dict[str, Any],
+          rays: int, most: int) -> dict[str, Any]:
+    """Rays aimed at every triangle of the ``judged`` answers that the frames of ``ref`` did
+    not show (``visibility.ray_aimed``): the triangles they see, the grown reference's size, its
+    rounds and, per answer, the triangles they see that it lacks (float64-confirmed)."""
+    t0 = time.perf_counter()
+    cand = np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in judged.values()]))
+    got = aimed_seen(scene, box, cand, known=ref["ids"], rays=rays, most=most, seed=7)
+    for r in got.rounds:
+        print(f"  aimed: {r['rays_per_candidate']} rays per candidate, +{r['added']} "
+              f"({r['total']} in all, {r['unconfirmed']} float32 hits unconfirmed)", flush=True)
+    last = got.rounds[-1] if got.rounds else {"added": 0, "total": ref["triangles"]}
+    return {"ids": got.ids, "triangles": int(last["total"]), "rounds": got.rounds,
+            "rays": got.rays, "converged": got.converged,
+            "added_last": last["added"] / max(1, last["total"] - last["added"]),
+            "seconds": time.perf_counter() - t0,
+            "missed": {k: int(len(np.setdiff1d(got.ids, v))) for k, v in judged.items()}}
+
+
 def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: int,
-              ref_res: int) -> dict[str, Any]:
+              ref_res: int, aim_rays: int = 64, aim_most: int = 4096) -> dict[str, Any]:
     """One scene: its cell, cos at each resolution and in 2 x 2 sub-cells, sampling, and the
-    reference that judges them all."""
+    references that judge them all (ray frames, then rays aimed at what they did not show;
+    ``aim_most`` 0: frames only)."""
     scene = load_scene(SHARED_SCENES / f"{name}.glb")
     box = middle_cell(scene, size)
     print(f"{name}: cell {box.round(2).tolist()}", flush=True)
@@ -184,6 +210,8 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
         print(f"  {k}: {len(run['ids'])} triangles, {run['seconds']:.2f} s", flush=True)
     ref = reference(scene, box, {k: v["ids"] for k, v in runs.items()}, eyes, most, ref_res,
                     {k for k, v in runs.items() if v["core"] == "cos"})
+    aim = (aimed(scene, box, {k: v["ids"] for k, v in runs.items()}, ref, aim_rays, aim_most)
+           if aim_most > 0 else None)
     centroids = scene.triangles().mean(axis=1)
     rows = []
     for k, run in runs.items():
@@ -192,10 +220,17 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
         far = np.linalg.norm(centroids[excess] - box.mean(axis=0), axis=1) > FAR
         row = dict(run, run=k, pvs=int(len(ids)), ratio=len(ids) / max(ref["triangles"], 1),
                    missed=ref["missed"][k], far_share=float(far.mean()) if len(excess) else 0.0)
-        print(f"  {k}: {row['ratio']:.2f}x the reference, missed {row['missed']}", flush=True)
+        if aim is not None:
+            row["aimed_ratio"] = len(ids) / max(aim["triangles"], 1)
+            row["aimed_missed"] = aim["missed"][k]
+        print(f"  {k}: {row['ratio']:.2f}x the reference"
+              + (f", {row['aimed_ratio']:.2f}x with aimed rays" if aim is not None else "")
+              + f", missed {row['missed']}", flush=True)
         rows.append(row)
     return {"scene": name, "triangles": scene.n_triangles, "box": box.tolist(),
             "reference": {k: v for k, v in ref.items() if k not in ("ids", "missed")},
+            "aimed": ({k: v for k, v in aim.items() if k not in ("ids", "missed")}
+                      if aim is not None else None),
             "rows": rows}
 
 
@@ -249,6 +284,22 @@ def _options(r: dict[str, Any]) -> str:
         f" in {r['subcells']} x {r['subcells']} sub-cells" if r["subcells"] > 1 else "")
 
 
+def _aimed_reading(res: dict[str, Any], best: dict[str, Any]) -> str:
+    """The reading's sentence on the reference grown by aimed rays."""
+    aim = res["aimed"]
+    grow = aim["triangles"] / max(1, res["reference"]["triangles"])
+    plain = [r for r in res["rows"] if r["core"] == "cos" and r["run"].endswith(" px")]
+    default = min(plain, key=lambda r: abs(r["resolution"] - DEFAULT_RESOLUTION))
+    return (f". Rays aimed at the answers' other triangles "
+            f"({aim['rounds'][-1]['rays_per_candidate']:,} per triangle, {aim['rays']:,} rays, "
+            f"{aim['seconds']:.0f} s) see {aim['triangles']:,} in all, {grow:.2f}x the frames' "
+            + ("and have converged" if aim["converged"] else
+               f"and have not converged (their last doubling added {aim['added_last']:.2%})")
+            + f": against them cos holds {default['aimed_ratio']:.2f}x at "
+            f"{default['resolution']} px and "
+            f"{best['aimed_ratio']:.2f}x at its tightest")
+
+
 def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str],
         elapsed: float) -> str:
     lines = ["# cos tightness at the server's cells", ""]
@@ -256,20 +307,32 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
     lines += [f"Cell {args.size} m (the middle cell of each scene's own grid). Reference: "
               f"Embree ray frames at {args.ref_res} px per cube face from eyes stratified in "
               f"the cell's open space, doubled from {args.eyes} until a doubling adds under "
-              f"{CONVERGED:.1%} or {args.most_eyes} are cast. Missed: confirmed in float64 for "
-              f"cos, unconfirmed for sampling. Times: the faster of 2 runs; {elapsed:.0f} s in "
-              "all.", ""]
-    head = ["scene", "triangles", "reference (eyes, last doubling)", "run", "PVS",
-            "x reference", f"excess beyond {FAR:g} m", "seconds", "list entries", "missed"]
+              f"{CONVERGED:.1%} or {args.most_eyes} are cast. With aimed rays: that reference "
+              "and what rays aimed at the other triangles of the answers below see "
+              "(`visibility/ray_aimed.py`: from random eyes in the cell's open space to "
+              "random points of each, the clients' near plane, each find confirmed in "
+              f"float64), the rays per triangle doubled from {args.aim_rays} until a doubling "
+              f"adds under {CONVERGED:.1%} or {args.aim_most} are cast. Missed: confirmed in "
+              "float64 for cos (frames) and for every core (aimed), unconfirmed for sampling "
+              f"(frames). Times: the faster of 2 runs; {elapsed:.0f} s in all.", ""]
+    head = ["scene", "triangles", "reference (eyes, last doubling)",
+            "with aimed rays (rays per candidate, last doubling)", "run", "PVS", "x reference",
+            "x with aimed rays", f"excess beyond {FAR:g} m", "seconds", "list entries",
+            "missed (frames, aimed)"]
     rows = []
     for res in results:
         ref = res["reference"]
+        aim = res.get("aimed")
+        aim_cell = (f"{aim['triangles']:,} ({aim['rounds'][-1]['rays_per_candidate']:,}, "
+                    f"+{aim['added_last']:.2%})" if aim else "")
         for r in res["rows"]:
             rows.append([res["scene"], f"{res['triangles']:,}",
                          f"{ref['triangles']:,} ({ref['eyes']}, +{ref['added_by_doubling']:.2%})",
-                         r["run"], f"{r['pvs']:,}", f"{r['ratio']:.2f}", f"{r['far_share']:.0%}",
+                         aim_cell, r["run"], f"{r['pvs']:,}", f"{r['ratio']:.2f}",
+                         f"{r['aimed_ratio']:.2f}" if aim else "", f"{r['far_share']:.0%}",
                          f"{r['seconds']:.2f}", f"{r['list_entries']:,}" if "list_entries" in r
-                         else "", r["missed"]])
+                         else "", f"{r['missed']}, {r['aimed_missed']}" if aim
+                         else r["missed"]])
     lines += md_table(head, rows)
     lines += ["", "![tightness against time](cos_tightness.png)", "", "## Reading", ""]
     for res in results:
@@ -312,7 +375,10 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             + ("has converged" if conv else
                f"has not converged: its last doubling still added "
                f"{ref['added_by_doubling']:.2%}, so these ratios are upper bounds")
-            + f". Misses by cos: {max(r['missed'] for r in every)}; sampling: "
+            + (_aimed_reading(res, best) if res.get("aimed") else "")
+            + f". Misses by cos: {max(r['missed'] for r in every)}"
+            + (f" (aimed rays: {max(r['aimed_missed'] for r in every)})"
+               if res.get("aimed") else "") + "; sampling: "
             + ", ".join(f"{r['missed']} ({r['run']}, {r['ratio']:.1f}x, {r['seconds']:.2f} s)"
                         for r in samp) + ".")
     return "\n".join(lines) + "\n"
@@ -327,16 +393,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--eyes", type=int, default=32, help="reference eyes to start from")
     ap.add_argument("--most-eyes", type=int, default=512, help="most reference eyes")
     ap.add_argument("--ref-res", type=int, default=512, help="reference px per cube face")
+    ap.add_argument("--aim-rays", type=int, default=64,
+                    help="aimed rays per triangle in the first round")
+    ap.add_argument("--aim-most", type=int, default=4096,
+                    help="most aimed rays per triangle (0: frames only)")
     ap.add_argument("--quick", action="store_true", help="lavaducts, R 16 and 32, light ref")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     if args.quick:
         args.scenes, args.resolutions, args.eyes, args.most_eyes, args.ref_res = (
             ["lavaducts"], "16,32", 4, 8, 64)
+        args.aim_rays, args.aim_most = 16, 32
     resolutions = [int(r) for r in str(args.resolutions).split(",")]
     t0 = time.perf_counter()
-    results = [run_scene(s, args.size, resolutions, args.eyes, args.most_eyes, args.ref_res)
-               for s in args.scenes]
+    results = [run_scene(s, args.size, resolutions, args.eyes, args.most_eyes, args.ref_res,
+                         args.aim_rays, args.aim_most) for s in args.scenes]
     elapsed = time.perf_counter() - t0
     write_report(args.out, "cos_tightness", "benchmarks.bench_cos_tightness", argv, results,
                  _md(results, args, argv, elapsed))

@@ -31,12 +31,17 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     assert [r["core"] for r in rows].count("sampling") == 2
     ref = results[0]["reference"]
     assert ref["triangles"] > 0 and ref["eyes"] == 8 and len(ref["steps"]) == 2
+    aim = results[0]["aimed"]
+    assert [a["rays_per_candidate"] for a in aim["rounds"]] == [16, 32][:len(aim["rounds"])]
+    assert aim["triangles"] == aim["rounds"][-1]["total"] >= ref["triangles"]
     for r in rows:
         assert abs(r["ratio"] - r["pvs"] / ref["triangles"]) < 1e-12
+        assert abs(r["aimed_ratio"] - r["pvs"] / aim["triangles"]) < 1e-12
     for r in cos:
         # cos promises no false negatives: nothing the rays show is missing, confirmed.
-        assert r["missed"] == 0
+        assert r["missed"] == 0 and r["aimed_missed"] == 0
     md = (tmp_path / "cos_tightness.md").read_text()
     assert "| lavaducts |" in md and "## Reading" in md and "sub-cells" in md
     assert "relaxed cover" in md and "separate groups" in md and "sub-pixels" in md
+    assert "Rays aimed at the answers' other triangles" in md
     assert (tmp_path / "cos_tightness.png").stat().st_size > 0

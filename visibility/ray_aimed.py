@@ -1,0 +1,160 @@
+"""Rays aimed at chosen triangles from eyes in a cell: which of them some eye sees first.
+
+A dense reference (``ray_frames``) casts its rays evenly over the sphere of directions, so a
+triangle far away and smaller than its pixels is seen only when a ray happens to pass
+through it; a reference that keeps finding such triangles as its eyes double has not
+converged, and a PVS measured against it looks looser than it is. Rays aimed at the
+triangles themselves give each candidate as many chances as asked for: every round casts,
+for each candidate not yet seen, rays from random eyes in the cell's open space (drawn
+afresh each round, ``ray_reference.draw_eyes``, an eye inside geometry dropped as
+``ray_frames.in_open_space`` does) to uniformly random points of the candidate, each ray
+clipped by the clients' near plane of a randomly turned cube (as ``ray_frames``). A candidate
+counts as seen when such a ray meets it first in float32 (Embree) and the same ray cast again
+in float64 over every triangle (``ray_reference.ExactCaster``) agrees: a float32 crack between
+welded triangles does not count. Rounds double the rays per candidate until one after the
+first adds at most ``converge`` of all the triangles seen (those ``known`` before included) or
+``most`` rays per candidate are cast.
+
+What it finds is seen (a lower bound on what eyes of the cell see); what it does not find may
+still be seen by rays it did not cast. Given the PVS of a conservative core as the candidates
+it tests the whole visible set, since that PVS holds all of it.
+
+Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene.faces``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visibility.raster.camera import DEFAULT_NEAR, random_rotations
+from visibility.ray_frames import in_open_space
+from visibility.ray_reference import (
+    BATCH_RAYS,
+    EmbreeCaster,
+    ExactCaster,
+    draw_eyes,
+    frame_triangles,
+)
+from visibility.scene import Scene
+
+#: Eyes drawn per round before dropping those inside geometry.
+EYES_PER_ROUND = 1024
+
+
+@dataclass
+class AimedSample:
+    """What rays aimed at the candidates of one cell saw.
+
+    ids : (k,) int64 sorted candidate ids seen (float64-confirmed).
+    rounds : one dict per round: ``rays_per_candidate`` (cast at each candidate so far),
+        ``rays`` (cast this round), ``added`` (candidates first seen), ``total`` (``known``
+        plus all seen so far), ``unconfirmed`` (float32 first hits float64 did not confirm).
+    rays : rays cast in all.
+    converged : whether the last round, a doubling (not the first), added at most ``converge``
+        of ``total``.
+    """
+
+    ids: np.ndarray
+    rounds: list[dict[str, int]] = field(default_factory=list)
+    rays: int = 0
+    converged: bool = False
+
+
+def _random_points(tri: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) uniformly random points of the triangles ``tri`` (n, 3, 3), one each."""
+    n = len(tri)
+    a, b = rng.random(n), rng.random(n)
+    flip = a + b > 1.0
+    a[flip], b[flip] = 1.0 - a[flip], 1.0 - b[flip]
+    return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+
+
+def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
+               known: np.ndarray | None = None, rays: int = 64, most: int = 4096,
+               converge: float = 1e-3, seed: int = 0, near: float = DEFAULT_NEAR
+               ) -> AimedSample:
+    """Which of ``candidates`` rays aimed at them from eyes in ``box`` see first (module
+    docstring).
+
+    Parameters
+    ----------
+    scene : a static scene; its valid faces are cast against.
+    box : (2, 3) float64 [min, max] metres, the cell.
+    candidates : (k,) triangle ids to aim at; those in ``known`` are skipped.
+    known : (j,) ids already seen (by ``ray_frames``, say): counted in each round's total.
+    rays : rays per candidate in the first round; each later round casts as many as all
+        before it, doubling them.
+    most : rays per candidate in all rounds, at most.
+    converge : a doubling (a round after the first) adding at most this share of the total
+        ends the rounds.
+    seed : seeds eyes, points and cube orientations.
+    near : the clients' near plane, metres (>= 0).
+    """
+    if not (np.isfinite(near) and near >= 0.0):
+        raise ValueError(f"near must be a finite distance >= 0, got {near}")
+    if int(rays) < 1 or int(most) < int(rays):
+        raise ValueError(f"need 1 <= rays <= most, got rays={rays}, most={most}")
+    b = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    centre = 0.5 * (b[0] + b[1])
+    tri, tri_ids = frame_triangles(scene, centre)
+    row = np.full(len(scene.faces), -1, dtype=np.int64)
+    row[tri_ids] = np.arange(len(tri_ids))
+    known_ids = np.unique(np.asarray(known if known is not None else [], dtype=np.int64))
+    cand = np.setdiff1d(np.asarray(candidates, dtype=np.int64), known_ids)
+    cand = row[cand[(cand >= 0) & (cand < len(row))]]
+    cand = cand[cand >= 0]
+    out = AimedSample(np.zeros(0, dtype=np.int64))
+    if len(cand) == 0:
+        out.converged = True
+        return out
+    rng = np.random.default_rng(seed)
+    caster = EmbreeCaster(tri)
+    exact = ExactCaster(tri)
+    seen = np.zeros(len(tri), dtype=bool)
+    cast = done = 0
+    per = int(rays)
+    while True:
+        left = cand[~seen[cand]]
+        eyes = draw_eyes(b, EYES_PER_ROUND, rng)
+        eyes = eyes[in_open_space(scene, eyes, seed=int(rng.integers(1 << 31)))] - centre
+        added = unconfirmed = sent = 0
+        if len(eyes) and len(left):
+            step = max(1, BATCH_RAYS // per)
+            for c0 in range(0, len(left), step):
+                c = np.repeat(left[c0:c0 + step], per)
+                e = eyes[rng.integers(0, len(eyes), len(c))]
+                d = _random_points(tri[c], rng) - e
+                d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+                # The near plane clips at view depth ``near`` along the face's axis.
+                cube = random_rotations(rng, len(c))
+                tmin = near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
+                hit, _ = caster.first_hits(e, d, tmin)
+                sent += len(c)
+                got = np.flatnonzero((hit == c) & ~seen[c])
+                if len(got) == 0:
+                    continue
+                # One witness per candidate, cast again in float64.
+                _, first = np.unique(c[got], return_index=True)
+                w = got[first]
+                hit64, _ = exact.first_hits(e[w], d[w], tmin[w])
+                ok = hit64 == c[w]
+                seen[c[w[ok]]] = True
+                added += int(ok.sum())
+                unconfirmed += int((~ok).sum())
+        cast += sent
+        done += per
+        total = len(known_ids) + int(seen[cand].sum())
+        out.rounds.append({"rays_per_candidate": done, "rays": sent, "added": added,
+                           "total": total, "unconfirmed": unconfirmed})
+        # The first round grows the known set by a new method; only a doubling of the rays
+        # can show that more rays add next to nothing.
+        out.converged = len(out.rounds) > 1 and added <= converge * total
+        if out.converged or done >= int(most):
+            break
+        # As many again as all rounds so far: the rays per candidate double.
+        per = min(done, int(most) - done)
+    out.ids = np.sort(tri_ids[cand[seen[cand]]])
+    out.rays = cast
+    return out
