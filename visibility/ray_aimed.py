@@ -8,16 +8,18 @@ triangles themselves give each candidate as many chances as asked for: every rou
 for each candidate not yet seen, rays from random eyes in the cell's open space (drawn
 afresh each round, ``ray_reference.draw_eyes``, an eye inside geometry dropped as
 ``ray_frames.in_open_space`` does) to uniformly random points of the candidate, each ray
-clipped by the clients' near plane of a randomly turned cube (as ``ray_frames``). A candidate
-counts as seen when such a ray meets it first in float32 (Embree) and the same ray cast again
-in float64 over every triangle (``ray_reference.ExactCaster``) agrees: a float32 crack between
-welded triangles does not count. Rounds double the rays per candidate until one after the
+clipped by the clients' near plane of a randomly turned cube (as ``ray_frames``). A triangle
+counts as seen when such a ray meets it first in float32 (Embree), the candidate aimed at or
+any triangle in front of it, and the same ray cast again in float64 over every triangle
+(``ray_reference.ExactCaster``) agrees: a float32 crack between welded triangles does not
+count. Rounds double the rays per candidate until one after the
 first adds at most ``converge`` of all the triangles seen (those ``known`` before included) or
 ``most`` rays per candidate are cast.
 
 What it finds is seen (a lower bound on what eyes of the cell see); what it does not find may
 still be seen by rays it did not cast. Given the PVS of a conservative core as the candidates
-it tests the whole visible set, since that PVS holds all of it.
+it aims at the whole visible set, since that PVS holds all of it; a triangle seen outside
+the candidates is a miss of every answer they came from.
 
 Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene.faces``.
 """
@@ -47,9 +49,10 @@ EYES_PER_ROUND = 1024
 class AimedSample:
     """What rays aimed at the candidates of one cell saw.
 
-    ids : (k,) int64 sorted candidate ids seen (float64-confirmed).
+    ids : (k,) int64 sorted ids seen (float64-confirmed), not in ``known``: the candidates
+        and whatever the rays met in front of them.
     rounds : one dict per round: ``rays_per_candidate`` (cast at each candidate so far),
-        ``rays`` (cast this round), ``added`` (candidates first seen), ``total`` (``known``
+        ``rays`` (cast this round), ``added`` (triangles first seen), ``total`` (``known``
         plus all seen so far), ``unconfirmed`` (float32 first hits float64 did not confirm).
     rays : rays cast in all.
     converged : whether the last round, a doubling (not the first), added at most ``converge``
@@ -102,9 +105,13 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     row = np.full(len(scene.faces), -1, dtype=np.int64)
     row[tri_ids] = np.arange(len(tri_ids))
     known_ids = np.unique(np.asarray(known if known is not None else [], dtype=np.int64))
-    cand = np.setdiff1d(np.asarray(candidates, dtype=np.int64), known_ids)
+    known_ids = known_ids[(known_ids >= 0) & (known_ids < len(row))]
+    done_known = np.zeros(len(tri), dtype=bool)
+    done_known[row[known_ids][row[known_ids] >= 0]] = True
+    cand = np.asarray(candidates, dtype=np.int64)
     cand = row[cand[(cand >= 0) & (cand < len(row))]]
-    cand = cand[cand >= 0]
+    cand = np.unique(cand[cand >= 0])
+    cand = cand[~done_known[cand]]
     out = AimedSample(np.zeros(0, dtype=np.int64))
     if len(cand) == 0:
         out.converged = True
@@ -132,20 +139,23 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
                 tmin = near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
                 hit, _ = caster.first_hits(e, d, tmin)
                 sent += len(c)
-                got = np.flatnonzero((hit == c) & ~seen[c])
+                # Whatever a ray meets first is seen, the candidate it was aimed at or a
+                # triangle in front of it.
+                got = np.flatnonzero(hit >= 0)
+                got = got[~seen[hit[got]] & ~done_known[hit[got]]]
                 if len(got) == 0:
                     continue
-                # One witness per candidate, cast again in float64.
-                _, first = np.unique(c[got], return_index=True)
+                # One witness per triangle, cast again in float64.
+                _, first = np.unique(hit[got], return_index=True)
                 w = got[first]
                 hit64, _ = exact.first_hits(e[w], d[w], tmin[w])
-                ok = hit64 == c[w]
-                seen[c[w[ok]]] = True
+                ok = hit64 == hit[w]
+                seen[hit[w[ok]]] = True
                 added += int(ok.sum())
                 unconfirmed += int((~ok).sum())
         cast += sent
         done += per
-        total = len(known_ids) + int(seen[cand].sum())
+        total = len(known_ids) + int(seen.sum())
         out.rounds.append({"rays_per_candidate": done, "rays": sent, "added": added,
                            "total": total, "unconfirmed": unconfirmed})
         # The first round grows the known set by a new method; only a doubling of the rays
@@ -155,6 +165,6 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
             break
         # As many again as all rounds so far: the rays per candidate double.
         per = min(done, int(most) - done)
-    out.ids = np.sort(tri_ids[cand[seen[cand]]])
+    out.ids = np.sort(tri_ids[seen])
     out.rays = cast
     return out

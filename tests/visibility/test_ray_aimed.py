@@ -18,20 +18,22 @@ def _slit_scene():
     50 m two squares 5 cm across: one at z = 2 m, which eyes of ``BOX`` with z near -0.04 m
     see through the slit, and one at z = 8 m, which would need an eye at z = -0.16 m."""
     b = Builder()
-    b.quad((1.0, -10.0, -10.0), (1.0, 10.0, -10.0), (1.0, 10.0, -0.005), (1.0, -10.0, -0.005), 0)
-    b.quad((1.0, -10.0, 0.005), (1.0, 10.0, 0.005), (1.0, 10.0, 10.0), (1.0, -10.0, 10.0), 0)
+    wall = b.quad((1.0, -10.0, -10.0), (1.0, 10.0, -10.0), (1.0, 10.0, -0.005),
+                  (1.0, -10.0, -0.005), 0)
+    wall += b.quad((1.0, -10.0, 0.005), (1.0, 10.0, 0.005), (1.0, 10.0, 10.0),
+                   (1.0, -10.0, 10.0), 0)
     seen = b.quad((50.0, -0.025, 1.975), (50.0, 0.025, 1.975), (50.0, 0.025, 2.025),
                   (50.0, -0.025, 2.025), 1)
     hidden = b.quad((50.0, -0.025, 7.975), (50.0, 0.025, 7.975), (50.0, 0.025, 8.025),
                     (50.0, -0.025, 8.025), 1)
-    return b.scene("slit"), list(seen), list(hidden)
+    return b.scene("slit"), list(seen), list(hidden), list(wall)
 
 
 def test_a_small_far_triangle_behind_a_slit_is_found_and_a_hidden_one_is_not():
-    scene, seen, hidden = _slit_scene()
+    scene, seen, hidden, wall = _slit_scene()
     frames = seen_ids(ray_frames(scene, BOX, n_eyes=8, resolution=64, seed=1))
     # The frames' rays are 1.4 degrees apart; the triangle spans 0.06: they pass it by.
-    assert not np.isin(seen, frames).any()
+    assert not np.isin(seen, frames).any() and np.isin(wall, frames).all()
     got = aimed_seen(scene, BOX, seen + hidden, known=frames, rays=32, most=1024, seed=2)
     assert got.ids.tolist() == seen
     assert got.rounds[0]["added"] == 2
@@ -41,30 +43,37 @@ def test_a_small_far_triangle_behind_a_slit_is_found_and_a_hidden_one_is_not():
     assert got.rays == 4 * 32 + 2 * 32 and got.rounds[1]["rays_per_candidate"] == 64
 
 
+def test_what_stands_in_front_of_the_aim_is_seen_too():
+    scene, seen, hidden, wall = _slit_scene()
+    got = aimed_seen(scene, BOX, hidden, rays=16, most=16)
+    # The rays to the square at z = 8 m meet the upper wall's triangle that lies across them.
+    assert len(got.ids) > 0 and set(got.ids.tolist()) <= set(wall[2:])
+
+
 def test_rounds_double_the_rays_until_the_most():
-    scene, seen, hidden = _slit_scene()
-    got = aimed_seen(scene, BOX, hidden, known=seen, rays=16, most=128, converge=-1.0, seed=0)
+    scene, seen, hidden, wall = _slit_scene()
+    got = aimed_seen(scene, BOX, hidden, known=wall, rays=16, most=128, converge=-1.0, seed=0)
     assert got.ids.tolist() == [] and not got.converged
     assert [r["rays_per_candidate"] for r in got.rounds] == [16, 32, 64, 128]
     assert [r["rays"] for r in got.rounds] == [32, 32, 64, 128]
 
 
 def test_known_and_unknown_ids_are_skipped():
-    scene, seen, hidden = _slit_scene()
+    scene, seen, hidden, wall = _slit_scene()
     got = aimed_seen(scene, BOX, seen + [-1, 10_000], known=seen, rays=8, most=8)
     assert got.ids.tolist() == [] and got.rays == 0 and got.converged
 
 
 def test_a_first_round_that_finds_nothing_is_not_convergence():
-    scene, _, hidden = _slit_scene()
-    got = aimed_seen(scene, BOX, hidden, rays=8, most=8)
+    scene, _, hidden, wall = _slit_scene()
+    got = aimed_seen(scene, BOX, hidden, known=wall, rays=8, most=8)
     assert got.rounds[0]["added"] == 0 and not got.converged
-    got = aimed_seen(scene, BOX, hidden, rays=8, most=64)
+    got = aimed_seen(scene, BOX, hidden, known=wall, rays=8, most=64)
     assert len(got.rounds) == 2 and got.converged
 
 
 def test_bad_parameters_are_refused():
-    scene, seen, _ = _slit_scene()
+    scene, seen, _, _ = _slit_scene()
     with pytest.raises(ValueError, match="near"):
         aimed_seen(scene, BOX, seen, near=-1.0)
     with pytest.raises(ValueError, match="rays"):
