@@ -262,13 +262,20 @@ def _plot(results: list[dict[str, Any]], path: Path) -> None:
                 color=line.get_color())
         ax.plot([r["seconds"] for r in refined], [r["ratio"] for r in refined], "D",
                 color=line.get_color(), mfc="none", ms=5)
+        if res.get("aimed"):
+            # The same answers against the reference grown by aimed rays: dotted, filled.
+            ax.plot([r["seconds"] for r in by_res], [r["aimed_ratio"] for r in by_res], ".:",
+                    color=line.get_color())
+            ax.plot([r["seconds"] for r in refined], [r["aimed_ratio"] for r in refined], "D",
+                    color=line.get_color(), ms=4)
     ax.axhline(2.0, color="grey", lw=0.8, ls="--", label="2x (issue 29's aim)")
     ax.set_xscale("log")
     ax.set_xlabel("cos seconds per cell (2 cores)")
     ax.set_ylabel("PVS / dense reference")
     ax.set_title("cos tightness against time (px; squares: 2 x 2 sub-cells; triangles:\n"
                  "relaxed cover, alone and in 2 x 2 sub-cells; x: separate groups fused;\n"
-                 "diamonds: sub-pixels, alone and with the other options)",
+                 "diamonds: sub-pixels, alone and with the other options; dotted and\n"
+                 "filled: against the reference grown by aimed rays)",
                  fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
