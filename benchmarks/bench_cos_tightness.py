@@ -185,8 +185,8 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     cos_run(f"cos {base} px, separate groups, relaxed cover, 4 x 4 sub-cells", base,
             "relaxed", 4, "groups")
     # Occludees no group hides over a whole pixel, tested again at its sub-pixels
-    # (``refine``): alone, at two and at the most levels, and with the options above.
-    for levels in (2, REFINE_MAX):
+    # (``refine``): alone, at two, four and the most levels, and with the options above.
+    for levels in (2, 4, REFINE_MAX):
         cos_run(f"cos {base} px, sub-pixels {levels} levels", base, "strict", 1,
                 refine=levels)
     cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} levels",

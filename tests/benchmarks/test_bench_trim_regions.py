@@ -22,3 +22,20 @@ def test_leaf_sizes_score_every_size_on_the_same_frames(monkeypatch):
     scene = bench.load("village", 20_000)
     box = bench.sphere_cell(scene, 0.2, 0)
     assert bench._cast(casts, "village", scene, box, 2, keep=False) is cast and not casts
+
+
+def test_aimed_rays_grow_the_ground_truth_of_a_cell():
+    from visibility.cores.base import get_core
+    from visibility.ray_frames import seen_ids
+    from visibility.viewcells import Viewcell
+
+    scene = bench.load("village", 20_000)
+    box = bench.sphere_cell(scene, 0.2, 0)
+    cast = bench._cast({}, "village", scene, box, 2, keep=False)
+    core = get_core("trim_regions")
+    pvs = core.compute(scene, Viewcell(box), core.make_params(max_delta=0.2))
+    got = bench.aimed_ground_truth(scene, box, pvs.triangle_ids, cast, most=32)
+    # Two frames undercount: rays aimed at the answer's other triangles see more of them.
+    assert got["gt_aimed"] > len(seen_ids(cast))
+    assert got["aimed_rays"] == 32 and got["aimed_seconds"] > 0
+    assert 0 <= got["aimed_missed"] <= got["gt_aimed"]

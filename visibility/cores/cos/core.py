@@ -34,7 +34,7 @@ from visibility.cores.cos.prims import (
     prim_bounds,
     solid_mask,
 )
-from visibility.cores.cos.resolve import N_COUNTERS, TIME_STRIDE, resolve_tiles
+from visibility.cores.cos.resolve import N_COUNTERS, REFINE_LEVELS, TIME_STRIDE, resolve_tiles
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import MIN_TRIANGLES, ready_hierarchy, scene_hierarchy
 from visibility.scene import Scene
@@ -61,7 +61,7 @@ BUSY_BLOCKS = (1, 2, 4, 8)
 #: Levels of 2 x 2 sub-pixels an occludee no group hides over a whole pixel is tested at
 #: (``CosParams.refine``), by default and at most (``resolve.REFINE_STACK`` holds the walk).
 REFINE = 0
-REFINE_MAX = 4
+REFINE_MAX = REFINE_LEVELS
 
 #: The cover tests (``CosParams.cover``).
 COVERS = ("strict", "relaxed")

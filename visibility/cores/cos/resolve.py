@@ -790,8 +790,10 @@ def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx
     return wn >= 1
 
 
-#: Sub-pixels of ``_refined_hide``'s depth-first walk waiting at once: 3 per level, and 4.
-REFINE_STACK = 3 * 4 + 4
+#: Most levels of ``_refined_hide`` (``core.REFINE_MAX``: a 256th of a pixel's width), and
+#: the sub-pixels of its depth-first walk waiting at once: 3 per level, and 4.
+REFINE_LEVELS = 8
+REFINE_STACK = 3 * REFINE_LEVELS + 4
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
