@@ -126,6 +126,11 @@ def _warm(names: tuple[str, ...], scenes: list | None = None) -> float:
                 ids = np.full(1, -1, dtype=np.int64)
                 exact_first_hits(tri, tri.min(axis=1), tri.max(axis=1), np.zeros((1, 3)),
                                  np.ones((1, 3)), np.zeros(1), ids, np.zeros(1))
+                from visibility.exact_grid import build_grid, grid_first_hits
+
+                grid = build_grid(tri.min(axis=1), tri.max(axis=1))
+                grid_first_hits(tri, grid, np.zeros((1, 3)), np.ones((1, 3)), np.zeros(1), ids,
+                                np.zeros(1))
                 from visibility.ray_frames import cube_directions
 
                 cube_directions(np.eye(3), 2, np.random.default_rng(0))
