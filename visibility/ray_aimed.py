@@ -78,8 +78,8 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
                known: np.ndarray | None = None, rays: int = 64, most: int = 4096,
                converge: float = 1e-3, seed: int = 0, near: float = DEFAULT_NEAR
                ) -> AimedSample:
-    """Which of ``candidates`` rays aimed at them from eyes in ``box`` see first (module
-    docstring).
+    """What rays aimed at ``candidates`` from eyes in ``box`` see first: the candidates and
+    whatever stands in front of them (module docstring).
 
     Parameters
     ----------
