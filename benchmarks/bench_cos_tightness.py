@@ -137,10 +137,9 @@ def aimed(scene: Scene, box: np.ndarray, judged: dict[str, np.ndarray], ref: dic
     for r in got.rounds:
         print(f"  aimed: {r['rays_per_candidate']} rays per candidate, +{r['added']} "
               f"({r['total']} in all, {r['unconfirmed']} float32 hits unconfirmed)", flush=True)
-    last = got.rounds[-1] if got.rounds else {"added": 0, "total": ref["triangles"]}
-    return {"ids": got.ids, "triangles": int(last["total"]), "rounds": got.rounds,
-            "rays": got.rays, "converged": got.converged,
-            "added_last": last["added"] / max(1, last["total"] - last["added"]),
+    return {"ids": got.ids, "triangles": got.total, "rounds": got.rounds,
+            "rays_per_candidate": got.rays_per_candidate,
+            "rays": got.rays, "converged": got.converged, "added_last": got.added_last,
             "seconds": time.perf_counter() - t0,
             "missed": {k: int(len(np.setdiff1d(got.ids, v))) for k, v in judged.items()}}
 
@@ -298,7 +297,7 @@ def _aimed_reading(res: dict[str, Any], best: dict[str, Any]) -> str:
     plain = [r for r in res["rows"] if r["core"] == "cos" and r["run"].endswith(" px")]
     default = min(plain, key=lambda r: abs(r["resolution"] - DEFAULT_RESOLUTION))
     return (f". Rays aimed at the answers' other triangles "
-            f"({aim['rounds'][-1]['rays_per_candidate']:,} per triangle, {aim['rays']:,} rays, "
+            f"({aim['rays_per_candidate']:,} per triangle, {aim['rays']:,} rays, "
             f"{aim['seconds']:.0f} s) see {aim['triangles']:,} in all, {grow:.2f}x the frames' "
             + ("and have converged" if aim["converged"] else
                f"and have not converged (their last doubling added {aim['added_last']:.2%})")
@@ -330,7 +329,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
     for res in results:
         ref = res["reference"]
         aim = res.get("aimed")
-        aim_cell = (f"{aim['triangles']:,} ({aim['rounds'][-1]['rays_per_candidate']:,}, "
+        aim_cell = (f"{aim['triangles']:,} ({aim['rays_per_candidate']:,}, "
                     f"+{aim['added_last']:.2%})" if aim else "")
         for r in res["rows"]:
             rows.append([res["scene"], f"{res['triangles']:,}",

@@ -262,11 +262,8 @@ def aimed_ground_truth(scene: Scene, box: np.ndarray, pvs_ids: np.ndarray, cast:
     t0 = time.perf_counter()
     got = aimed_seen(scene, box, pvs_ids, known=seen_ids(cast), rays=min(AIM_RAYS, most),
                      most=most, seed=3, near=FRAME_NEAR)
-    last = got.rounds[-1] if got.rounds else {"added": 0, "total": len(seen_ids(cast)),
-                                              "rays_per_candidate": 0}
-    return {"gt_aimed": int(last["total"]), "aimed_rays": int(last["rays_per_candidate"]),
-            "aimed_most": int(most),
-            "aimed_added_last": last["added"] / max(1, last["total"] - last["added"]),
+    return {"gt_aimed": got.total, "aimed_rays": got.rays_per_candidate,
+            "aimed_most": int(most), "aimed_added_last": got.added_last,
             "aimed_converged": bool(got.converged),
             "aimed_missed": int(len(np.setdiff1d(got.ids, pvs_ids))),
             "aimed_seconds": time.perf_counter() - t0}

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from visibility.exact_grid import ray_triangle
 from visibility.raster.hierarchy import candidates_in_box, ready_hierarchy
-from visibility.ray_reference import ray_triangle
 from visibility.scene import Scene
 from visibility.walkable import bin_of, bin_triangles
 

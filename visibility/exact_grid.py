@@ -6,7 +6,7 @@ This grid gives the same answer faster. Each triangle is entered in every cell i
 by ``PAD`` of the scene's extent, meets (more than ``BIG_CELLS`` cells: a list tested by every
 ray instead); a ray walks the cells it crosses in order (Amanatides and Woo's 3D DDA, in
 float64) and tests their triangles with the same Moller-Trumbore as the brute force
-(``ray_reference.ray_triangle``), stopping once its nearest hit lies within the cells walked.
+(``ray_triangle``, here), stopping once its nearest hit lies within the cells walked.
 A hit point lies in its triangle's box, so the padding covers where rounding puts the walk a
 cell beside the true line. Ties in distance go to the lower row, as the brute force's order
 gives them, so both answer alike (``tests/visibility/test_exact_grid.py`` compares them).
@@ -21,8 +21,6 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from visibility.ray_reference import ray_triangle
-
 #: Cells per triangle the grid aims at.
 CELLS_PER_TRIANGLE = 2.0
 #: Most cells along one axis, and in all.
@@ -33,6 +31,33 @@ BIG_CELLS = 64
 #: Padding of each triangle's box, as a share of the grid's largest extent: far above the
 #: rounding of a walk in float64, far below any cell.
 PAD = 1e-9
+
+
+@njit(cache=True, nogil=True, inline="always")
+def ray_triangle(tri, i, ox, oy, oz, dx, dy, dz):  # pragma: no cover - numba
+    """Distance along the ray to triangle i of ``tri`` (k, 3, 3), or inf: Moller-Trumbore in
+    float64, closed triangle, any facing."""
+    ax, ay, az = tri[i, 0, 0], tri[i, 0, 1], tri[i, 0, 2]
+    e1x, e1y, e1z = tri[i, 1, 0] - ax, tri[i, 1, 1] - ay, tri[i, 1, 2] - az
+    e2x, e2y, e2z = tri[i, 2, 0] - ax, tri[i, 2, 1] - ay, tri[i, 2, 2] - az
+    px = dy * e2z - dz * e2y
+    py = dz * e2x - dx * e2z
+    pz = dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return np.inf
+    inv = 1.0 / det
+    sx, sy, sz = ox - ax, oy - ay, oz - az
+    u = (sx * px + sy * py + sz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return np.inf
+    qx = sy * e1z - sz * e1y
+    qy = sz * e1x - sx * e1z
+    qz = sx * e1y - sy * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return np.inf
+    return (e2x * qx + e2y * qy + e2z * qz) * inv
 
 
 class TriangleGrid(NamedTuple):

@@ -7,14 +7,14 @@ converged, and a PVS measured against it looks looser than it is. Rays aimed at 
 triangles themselves give each candidate as many chances as asked for: every round casts,
 for each candidate not yet seen, rays from random eyes in the cell's open space (drawn
 afresh each round, ``ray_reference.draw_eyes``, an eye inside geometry dropped as
-``ray_frames.in_open_space`` does) to uniformly random points of the candidate, each ray
-clipped by the clients' near plane of a randomly turned cube (as ``ray_frames``). A triangle
-counts as seen when such a ray meets it first in float32 (Embree), the candidate aimed at or
-any triangle in front of it, and the same ray cast again in float64 over every triangle
-(``ray_reference.ExactCaster``) agrees: a float32 crack between welded triangles does not
-count. Rounds double the rays per candidate until one after the
-first adds at most ``converge`` of all the triangles seen (those ``known`` before included) or
-``most`` rays per candidate are cast.
+``ray_frames.in_open_space`` does, by ``ray_frames.open_mask`` on the caster at hand) to
+uniformly random points of the candidate, each ray clipped by the clients' near plane of a
+randomly turned cube (as ``ray_frames``). A triangle counts as seen when such a ray meets it
+first in float32 (Embree), the candidate aimed at or any triangle in front of it, and the
+same ray cast again in float64 over every triangle (``ray_reference.ExactCaster``) agrees: a
+float32 crack between welded triangles does not count. Rounds double the rays per candidate
+until one after the first adds at most ``converge`` of all the triangles seen (those
+``known`` before included) or ``most`` rays per candidate are cast.
 
 What it finds is seen (a lower bound on what eyes of the cell see); what it does not find may
 still be seen by rays it did not cast. Given the PVS of a conservative core as the candidates
@@ -31,13 +31,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from visibility.raster.camera import DEFAULT_NEAR, random_rotations
-from visibility.ray_frames import in_open_space
+from visibility.ray_frames import open_mask
 from visibility.ray_reference import (
     BATCH_RAYS,
     EmbreeCaster,
     ExactCaster,
     draw_eyes,
     frame_triangles,
+    front_normals,
 )
 from visibility.scene import Scene
 
@@ -57,12 +58,32 @@ class AimedSample:
     rays : rays cast in all.
     converged : whether the last round, a doubling (not the first), added at most ``converge``
         of ``total``.
+    known : the ``known`` ids counted (``total`` when no round ran).
     """
 
     ids: np.ndarray
     rounds: list[dict[str, int]] = field(default_factory=list)
     rays: int = 0
     converged: bool = False
+    known: int = 0
+
+    @property
+    def total(self) -> int:
+        """Triangles seen in all, ``known`` included."""
+        return int(self.rounds[-1]["total"]) if self.rounds else self.known
+
+    @property
+    def rays_per_candidate(self) -> int:
+        """Rays cast at each candidate in all rounds."""
+        return int(self.rounds[-1]["rays_per_candidate"]) if self.rounds else 0
+
+    @property
+    def added_last(self) -> float:
+        """What the last round added, as a share of what was seen before it."""
+        if not self.rounds:
+            return 0.0
+        added = self.rounds[-1]["added"]
+        return added / max(1, self.total - added)
 
 
 def _random_points(tri: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -112,20 +133,22 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     cand = row[cand[(cand >= 0) & (cand < len(row))]]
     cand = np.unique(cand[cand >= 0])
     cand = cand[~done_known[cand]]
-    out = AimedSample(np.zeros(0, dtype=np.int64))
+    out = AimedSample(np.zeros(0, dtype=np.int64), known=len(known_ids))
     if len(cand) == 0:
         out.converged = True
         return out
     rng = np.random.default_rng(seed)
     caster = EmbreeCaster(tri)
+    normals = front_normals(tri, scene)
     exact = ExactCaster(tri)
     seen = np.zeros(len(tri), dtype=bool)
     cast = done = 0
     per = int(rays)
     while True:
         left = cand[~seen[cand]]
-        eyes = draw_eyes(b, EYES_PER_ROUND, rng)
-        eyes = eyes[in_open_space(scene, eyes, seed=int(rng.integers(1 << 31)))] - centre
+        eyes = draw_eyes(b, EYES_PER_ROUND, rng) - centre
+        # In open space (``ray_frames.in_open_space``), judged with the caster at hand.
+        eyes = eyes[open_mask(caster, normals, eyes, seed=int(rng.integers(1 << 31)))]
         added = unconfirmed = sent = 0
         if len(eyes) and len(left):
             step = max(1, BATCH_RAYS // per)

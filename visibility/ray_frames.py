@@ -239,11 +239,19 @@ def in_open_space(scene: Scene, points: np.ndarray, n_dirs: int = 256, seed: int
         return np.zeros(0, dtype=bool)
     centre = pts.mean(axis=0)
     tri, _ = frame_triangles(scene, centre)
-    normals = front_normals(tri, scene)
+    return open_mask(EmbreeCaster(tri), front_normals(tri, scene), pts - centre, n_dirs, seed)
+
+
+def open_mask(caster: EmbreeCaster, normals: np.ndarray, points: np.ndarray,
+              n_dirs: int = 256, seed: int = 0) -> np.ndarray:
+    """``in_open_space`` for ``points`` (n, 3) in the frame of a caster already built over the
+    scene's triangles, whose front normals are ``normals`` (``front_normals``)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return np.zeros(0, dtype=bool)
     d = random_directions(int(n_dirs), np.random.default_rng(seed))
     dirs = np.tile(d, (len(pts), 1))
-    hid, _ = EmbreeCaster(tri).first_hits(np.repeat(pts - centre, len(d), axis=0), dirs,
-                                          np.zeros(len(dirs)))
+    hid, _ = caster.first_hits(np.repeat(pts, len(d), axis=0), dirs, np.zeros(len(dirs)))
     back = back_hits(dirs, hid, normals)
     return back.reshape(len(pts), -1).sum(axis=1) < INSIDE_SHARE * len(d)
 

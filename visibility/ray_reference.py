@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from visibility.exact_grid import build_grid, grid_first_hits, ray_triangle
 from visibility.raster.camera import DEFAULT_NEAR, random_rotations
 from visibility.scene import Scene
 
@@ -148,33 +149,6 @@ def near_clip(dirs: np.ndarray, cube: np.ndarray, near: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ exact caster
-@njit(cache=True, nogil=True, inline="always")
-def ray_triangle(tri, i, ox, oy, oz, dx, dy, dz):  # pragma: no cover - numba
-    """Distance along the ray to triangle i of ``tri`` (k, 3, 3), or inf: Moller-Trumbore in
-    float64, closed triangle, any facing."""
-    ax, ay, az = tri[i, 0, 0], tri[i, 0, 1], tri[i, 0, 2]
-    e1x, e1y, e1z = tri[i, 1, 0] - ax, tri[i, 1, 1] - ay, tri[i, 1, 2] - az
-    e2x, e2y, e2z = tri[i, 2, 0] - ax, tri[i, 2, 1] - ay, tri[i, 2, 2] - az
-    px = dy * e2z - dz * e2y
-    py = dz * e2x - dx * e2z
-    pz = dx * e2y - dy * e2x
-    det = e1x * px + e1y * py + e1z * pz
-    if det == 0.0:
-        return np.inf
-    inv = 1.0 / det
-    sx, sy, sz = ox - ax, oy - ay, oz - az
-    u = (sx * px + sy * py + sz * pz) * inv
-    if u < 0.0 or u > 1.0:
-        return np.inf
-    qx = sy * e1z - sz * e1y
-    qy = sz * e1x - sx * e1z
-    qz = sx * e1y - sy * e1x
-    v = (dx * qx + dy * qy + dz * qz) * inv
-    if v < 0.0 or u + v > 1.0:
-        return np.inf
-    return (e2x * qx + e2y * qy + e2z * qz) * inv
-
-
 @njit(cache=True, nogil=True, parallel=True)
 def exact_first_hits(tri, lo, hi, orig, dirs, tmin, out_id, out_t):  # pragma: no cover
     """First hit of each ray (float64): ``tri`` (k, 3, 3) triangles with boxes ``lo``, ``hi``
@@ -231,12 +205,7 @@ class ExactCaster:
         self.tri = np.ascontiguousarray(tri, dtype=np.float64)
         self.lo = np.ascontiguousarray(self.tri.min(axis=1))
         self.hi = np.ascontiguousarray(self.tri.max(axis=1))
-        self.grid = None
-        if len(self.tri) >= GRID_MIN:
-            # Imported here: the grid's kernels build on this module's ray_triangle.
-            from visibility.exact_grid import build_grid
-
-            self.grid = build_grid(self.lo, self.hi)
+        self.grid = build_grid(self.lo, self.hi) if len(self.tri) >= GRID_MIN else None
 
     def first_hits(self, orig: np.ndarray, dirs: np.ndarray, tmin: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -244,8 +213,6 @@ class ExactCaster:
         out_id = np.empty(n, dtype=np.int64)
         out_t = np.empty(n)
         if self.grid is not None:
-            from visibility.exact_grid import grid_first_hits
-
             grid_first_hits(self.tri, self.grid, np.ascontiguousarray(orig, dtype=np.float64),
                             np.ascontiguousarray(dirs, dtype=np.float64),
                             np.ascontiguousarray(tmin, dtype=np.float64), out_id, out_t)

@@ -567,14 +567,19 @@ def _coarse_pass(parrays: PrimArrays, screen: Screen, tiles_x: int, tiles_y: int
     checkpoint()
     stats["coarse_entries"] += int(pcount.sum())
     stats["coarse_dropped"] += int(hid.sum())
-    # Its work counters, as the pixels' (``_solve_view``), under coarse_*.
-    stats["coarse_tested"] += int(counters[:, 0].sum())
-    stats["coarse_silhouette_edges"] += int(counters[:, 4].sum())
-    stats["coarse_plane_tests"] += int(counters[:, 5].sum())
+    _add_work(stats, counters, "coarse_")
+    return hid
+
+
+def _add_work(stats: dict[str, Any], counters: np.ndarray, prefix: str = "") -> None:
+    """Add a resolution's work counters (``resolve_tiles``'s (tiles, ``N_COUNTERS``)) to
+    ``stats`` under ``prefix``: entries tested, silhouette edges walked, plane tests and the
+    CPU cycles of each step (timed at one entry in ``TIME_STRIDE``: scaled up, an estimate)."""
+    for name, col in (("tested", 0), ("silhouette_edges", 4), ("plane_tests", 5)):
+        stats[prefix + name] += int(counters[:, col].sum())
     for name, col, scale in (("test", 6, TIME_STRIDE), ("insert", 7, TIME_STRIDE),
                              ("coverall", 8, TIME_STRIDE), ("resolve", 9, 1)):
-        stats[f"coarse_cycles_{name}"] += scale * int(counters[:, col].sum())
-    return hid
+        stats[f"{prefix}cycles_{name}"] += scale * int(counters[:, col].sum())
 
 
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,
@@ -671,17 +676,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         stats["list_seconds"] += tb - ta
         stats["resolve_seconds"] += time.perf_counter() - tb
         t = t1
-    stats["tested"] += int(counters[:, 0].sum())
-    stats["occluded"] += int(counters[:, 1].sum())
-    stats["occluder_triangles"] += int(counters[:, 2].sum())
-    stats["early_z_cut"] += int(counters[:, 3].sum())
-    stats["silhouette_edges"] += int(counters[:, 4].sum())
-    stats["plane_tests"] += int(counters[:, 5].sum())
-    stats["fused"] += int(counters[:, 10].sum())
-    stats["refined"] += int(counters[:, 11].sum())
-    stats["subpixels"] += int(counters[:, 12].sum())
-    # The steps are timed at one entry in TIME_STRIDE: scaled up, an estimate.
-    for name, col, scale in (("cycles_test", 6, TIME_STRIDE), ("cycles_insert", 7, TIME_STRIDE),
-                             ("cycles_coverall", 8, TIME_STRIDE), ("cycles_resolve", 9, 1)):
-        stats[name] += scale * int(counters[:, col].sum())
+    _add_work(stats, counters)
+    for name, col in (("occluded", 1), ("occluder_triangles", 2), ("early_z_cut", 3),
+                      ("fused", 10), ("refined", 11), ("subpixels", 12)):
+        stats[name] += int(counters[:, col].sum())
     return longest
