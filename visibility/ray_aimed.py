@@ -26,6 +26,7 @@ Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -97,7 +98,8 @@ def _random_points(tri: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
                known: np.ndarray | None = None, rays: int = 64, most: int = 4096,
-               converge: float = 1e-3, seed: int = 0, near: float = DEFAULT_NEAR
+               converge: float = 1e-3, seed: int = 0, near: float = DEFAULT_NEAR,
+               eyes: Callable[[int, np.random.Generator], np.ndarray] | None = None
                ) -> AimedSample:
     """What rays aimed at ``candidates`` from eyes in ``box`` see first: the candidates and
     whatever stands in front of them (module docstring).
@@ -115,6 +117,9 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
         ends the rounds.
     seed : seeds eyes, points and cube orientations.
     near : the clients' near plane, metres (>= 0).
+    eyes : draws the eyes of a round, ``eyes(n, rng)`` -> (k, 3) world points, k <= n (where
+        a person can stand in the cell, say: ``cell_walk.open_eyes``); they are used as
+        drawn. None: ``n`` stratified points of ``box`` kept where in open space.
     """
     if not (np.isfinite(near) and near >= 0.0):
         raise ValueError(f"near must be a finite distance >= 0, got {near}")
@@ -146,15 +151,18 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     per = int(rays)
     while True:
         left = cand[~seen[cand]]
-        eyes = draw_eyes(b, EYES_PER_ROUND, rng) - centre
-        # In open space (``ray_frames.in_open_space``), judged with the caster at hand.
-        eyes = eyes[open_mask(caster, normals, eyes, seed=int(rng.integers(1 << 31)))]
+        if eyes is None:
+            eye = draw_eyes(b, EYES_PER_ROUND, rng) - centre
+            # In open space (``ray_frames.in_open_space``), judged with the caster at hand.
+            eye = eye[open_mask(caster, normals, eye, seed=int(rng.integers(1 << 31)))]
+        else:
+            eye = np.asarray(eyes(EYES_PER_ROUND, rng), dtype=np.float64).reshape(-1, 3) - centre
         added = unconfirmed = sent = 0
-        if len(eyes) and len(left):
+        if len(eye) and len(left):
             step = max(1, BATCH_RAYS // per)
             for c0 in range(0, len(left), step):
                 c = np.repeat(left[c0:c0 + step], per)
-                e = eyes[rng.integers(0, len(eyes), len(c))]
+                e = eye[rng.integers(0, len(eye), len(c))]
                 d = _random_points(tri[c], rng) - e
                 d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
                 # The near plane clips at view depth ``near`` along the face's axis.

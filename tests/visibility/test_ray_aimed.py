@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from visibility.cores.designed_scenes import Builder
-from visibility.ray_aimed import aimed_seen
+from visibility.ray_aimed import EYES_PER_ROUND, aimed_seen
 from visibility.ray_frames import ray_frames, seen_ids
 
 BOX = np.array([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]])
@@ -78,3 +78,22 @@ def test_bad_parameters_are_refused():
         aimed_seen(scene, BOX, seen, near=-1.0)
     with pytest.raises(ValueError, match="rays"):
         aimed_seen(scene, BOX, seen, rays=64, most=32)
+
+
+def test_eyes_drawn_by_the_caller_are_the_only_eyes():
+    scene, seen, hidden, wall = _slit_scene()
+    asked = []
+
+    def at(z):
+        def draw(n, rng):
+            asked.append(n)
+            return np.column_stack([rng.uniform(-0.01, 0.01, n), rng.uniform(-0.01, 0.01, n),
+                                    np.full(n, z)])
+        return draw
+
+    # Eyes at z = -0.04 m look through the slit at the square 2 m up; eyes at +0.04 m cannot.
+    below = aimed_seen(scene, BOX, seen, rays=32, most=64, seed=3, eyes=at(-0.04))
+    above = aimed_seen(scene, BOX, seen, known=wall, rays=32, most=64, seed=3, eyes=at(0.04))
+    assert below.ids.tolist() == seen
+    assert above.ids.tolist() == [] and above.rays == 2 * 64
+    assert asked and set(asked) == {EYES_PER_ROUND}
