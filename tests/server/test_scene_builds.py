@@ -83,6 +83,9 @@ def test_what_is_built(settings):
         [hierarchy.KIND, "kdtree", "fences"]
     cos = settings.model_copy(update={"core": "cos"})
     assert [b.kind for b in builds_for(catalog.get("big"), cos)] == [hierarchy.KIND, CLOSED_KIND]
+    segment = settings.model_copy(update={"core": "from_segment"})
+    assert [b.kind for b in builds_for(catalog.get("big"), segment)] == \
+        [hierarchy.KIND, "from_segment/clusters"]
     # auto: the builds of the core its declared fits pick.
     auto = settings.model_copy(update={"core": "auto"})
     loaded = catalog.get("big")

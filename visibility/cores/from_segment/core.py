@@ -22,10 +22,11 @@ import numpy as np
 from visibility.cancel import checkpoint
 from visibility.cell_walk import walk_segments
 from visibility.cores.base import Core, CoreParams, Cost, param, register
-from visibility.cores.from_segment.geometry import CLUSTER, scene_geometries
+from visibility.cores.from_segment.geometry import CLUSTER, GEOMETRY_BUILD, scene_geometries
 from visibility.cores.from_segment.segment import DEFAULT_BATCH, MAX_SPLIT_DEPTH, segment_visible
 from visibility.raster.camera import DEFAULT_NEAR, random_rotation
 from visibility.scene import Scene
+from visibility.scene_cache import Build
 from visibility.viewcells import Viewcell
 
 #: Values of ``FromSegmentParams.first_orientation``.
@@ -264,6 +265,11 @@ class FromSegmentCore(Core):
     #: misses it; on rooms cells, grazing views from the cell's sides that interior samples
     #: miss.
     fp_bound = 0.15
+
+    def scene_builds(self, scene: Scene) -> list[Build]:
+        """The scene's spatial clusters (``geometry.GEOMETRY_BUILD``) that every segment's box
+        pass walks."""
+        return [GEOMETRY_BUILD]
 
     def suitability(self, scene: Scene, cell_size: float | None) -> tuple[float, str]:
         if scene.states is not None:

@@ -13,6 +13,7 @@ from numba import njit
 
 from visibility.cores.from_segment.groups import GeometryArrays
 from visibility.scene import Scene
+from visibility.scene_cache import Build
 
 #: Triangles per spatial cluster (unit of the box pass and of tile-level culling).
 CLUSTER = 32
@@ -173,3 +174,8 @@ def scene_geometries(scene: Scene) -> list[SegmentGeometry]:
             sphere_sel=sphere_sel, cl_start=cl_start, cl_tris=cl_tris, cl_lo=lo, cl_hi=hi))
     _GEOMETRY_CACHE[scene] = (sig, out)
     return out
+
+
+#: The clusters as a per-scene build (``Core.scene_builds``): a server makes them when the
+#: scene loads, not on a walker's first request.
+GEOMETRY_BUILD = Build("from_segment/clusters", scene_geometries)
