@@ -60,6 +60,11 @@ RAYS = 183
 MIN_HITS = 3
 #: A core run stopped after this many seconds (its row says so).
 DEADLINE = 120.0
+#: Rays aimed at the answers (``visibility.ray_aimed``): per candidate in the first round, and
+#: at most, doubled while ``AIM_BUDGET`` rays at every candidate would not be passed.
+AIM_RAYS = 16
+AIM_MOST = 4096
+AIM_BUDGET = 150_000_000
 #: Frames per cell, and the largest pitch of their forward direction (degrees).
 FRAMES = 64
 MAX_PITCH = 30.0
@@ -105,6 +110,24 @@ def frame_views(scene, cell, n: int, seed: int) -> tuple[list[tuple[np.ndarray, 
     return list(zip(eyes, fwd, strict=True)), has_open
 
 
+def aimed_reference(scene, cell, candidates: np.ndarray, known: np.ndarray, seed: int
+                    ) -> tuple[Any, float]:
+    """Rays aimed at ``candidates`` (the union of the answers on the cell) from eyes where a
+    person can stand in it (``cell_eyes``), ``known`` (the frames' reference) counted as seen:
+    ``AIM_RAYS`` per candidate, doubled up to ``AIM_MOST`` within ``AIM_BUDGET``
+    (``ray_aimed.aimed_seen``). Returns the sample and its seconds."""
+    from visibility.ray_aimed import aimed_seen
+
+    most = AIM_RAYS
+    while most * 2 <= AIM_MOST and most * 2 * len(candidates) <= AIM_BUDGET:
+        most *= 2
+    t0 = time.perf_counter()
+    got = aimed_seen(scene, np.asarray(cell.box, dtype=np.float64), candidates, known=known,
+                     rays=AIM_RAYS, most=most, seed=seed,
+                     eyes=lambda n, rng: cell_eyes(scene, cell, n, rng)[0])
+    return got, time.perf_counter() - t0
+
+
 def parse_variant(text: str) -> dict[str, Any]:
     """``"jitter=0,cuts=0"`` -> {"jitter": 0, "cuts": 0}: core parameters to try besides the
     defaults, read as ``pvs --param`` reads them (``pvs_cli.parse_params``; the core's
@@ -112,6 +135,23 @@ def parse_variant(text: str) -> dict[str, Any]:
     from pvs_cli import parse_params
 
     return parse_params([t.strip() for t in text.split(",") if t.strip()])
+
+
+def prepare(scene) -> float:
+    """Build now what a server builds when a scene loads (``server.scene_builds``): the
+    spatial hierarchy and the per-scene structures of the cores measured here, so that no
+    cell's time includes them. Returns the seconds."""
+    from visibility.cores.base import get_core
+    from visibility.raster import hierarchy
+    from visibility.scene_cache import per_scene
+
+    t0 = time.perf_counter()
+    builds = [hierarchy.BUILD] if scene.n_triangles >= hierarchy.MIN_TRIANGLES else []
+    for name in ("from_segment", "sampling"):
+        builds += get_core(name).scene_builds(scene)
+    for b in builds:
+        per_scene(scene, b.kind, b.build, b.persist)
+    return time.perf_counter() - t0
 
 
 def walk_cells(scene, seed: int, k: int) -> list[int]:
@@ -171,6 +211,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 scene = make_scene(source, triangles=n)
                 scene_label = f"{source} {n // 1000}k (generated)"
             grid = ViewcellGrid.for_scene(scene)
+            log(f"[{scene_label}] per-scene builds in {prepare(scene):.1f} s (untimed)")
             for cell_id in walk_cells(scene, cfg["seed"], cfg["cells"]):
                 cell = grid.cell(cell_id)
                 ref, ref_s = reference(scene, cell, cfg["points"], cfg["rays"], cfg["seed"])
@@ -184,6 +225,8 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         "cell_size": grid.cell_size, "reference": int(len(ref)),
                         "reference_seconds": ref_s, "open_floor": has_open}
                 fs_seconds = None
+                first = len(rows)
+                answers = []
                 runs = [("from_segment (defaults)", "from_segment", {}),
                         ("sampling (defaults)", "sampling", {})]
                 runs += [(f"from_segment ({text})", "from_segment", parse_variant(text))
@@ -200,6 +243,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         fs_seconds = pvs.seconds
                     rows.append(_row(base, label, pvs.triangle_ids, pvs.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
+                    answers.append(pvs.triangle_ids)
                     log(_line(rows[-1]))
                 if fs_seconds is not None:
                     peer = from_point_pvs(scene, cell, "raster", samples=100_000,
@@ -209,10 +253,35 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                     rows.append(_row(base, f"sampling at equal time ({peer.stats['samples']} "
                                      "points)", peer.triangle_ids, peer.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
+                    answers.append(peer.triangle_ids)
                     log(_line(rows[-1]))
+                _score_aimed(rows[first:], answers, scene, cell, ref, cfg["seed"] + cell_id,
+                             log)
     finally:
         renderer.close()
     return rows
+
+
+def _score_aimed(rows, answers, scene, cell, ref, seed, log) -> None:
+    """Each row's answer against the frames' reference grown by rays aimed at the union of
+    the answers (``aimed_reference``): ``aimed`` seen in all, ``aimed_fn`` the share of it
+    the answer lacks, ``pvs_over_aimed``."""
+    scored = [r for r in rows if "error" not in r]
+    if not answers:
+        return
+    got, secs = aimed_reference(scene, cell, np.unique(np.concatenate(answers)), ref, seed)
+    seen = np.union1d(ref, got.ids)
+    log(f"    rays aimed at the answers: {len(seen)} seen ({got.rays_per_candidate} rays per "
+        f"candidate, {'converged' if got.converged else 'not converged'}, last doubling "
+        f"+{100 * got.added_last:.2f} %) in {secs:.1f} s")
+    for r, ids in zip(scored, answers, strict=True):
+        r.update(aimed=int(len(seen)), aimed_converged=bool(got.converged),
+                 aimed_rays=got.rays_per_candidate, aimed_added_last=got.added_last,
+                 aimed_seconds=secs,
+                 aimed_fn=float(len(np.setdiff1d(seen, ids)) / max(1, len(seen))),
+                 pvs_over_aimed=float(len(ids) / max(1, len(seen))))
+        log(f"    {r['method']:38s} against them: FN {100 * r['aimed_fn']:.2f} %, PVS "
+            f"{r['pvs_over_aimed']:.2f}x")
 
 
 def parse_generated(text: str) -> tuple[str, int]:
@@ -259,21 +328,36 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
              f"reference's; frames: {cfg['frames']} views from such eyes (random yaw, pitch "
              f"within {MAX_PITCH:g} degrees; * a cell with no open floor: eyes in its whole "
              f"box) at {cfg['frame_px']} px, PVS against the full "
-             "scene.", "",
+             "scene. Aimed: the reference grown by rays from such eyes aimed at random "
+             "points of every triangle some answer on the cell holds (`ray_aimed.aimed_seen`: "
+             f"{AIM_RAYS} rays per triangle, doubled until a doubling adds under 0.1 % or "
+             f"{AIM_MOST} rays, or {AIM_BUDGET:,} rays at all of them, would be passed; "
+             "rays per triangle in brackets, * not converged), each seen triangle confirmed "
+             "by a float64 cast: a lower bound on what eyes of the cell see, so PVS / aimed "
+             "is an upper bound; FN aimed = share of it the answer lacks.", "",
              "| scene | cell (m) | reference | method | s | PVS | FN % | missed px | FP % | "
-             "ε mean % | ε worst % | PSNR dB | SSIM |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "ε mean % | ε worst % | PSNR dB | SSIM | aimed | FN aimed % | PVS / aimed |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
             lines.append(f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['reference']}"
-                         f" | {r['method']} | {r['error']} | | | | | | | | |")
+                         f" | {r['method']} | {r['error']} | | | | | | | | | | | |")
             continue
         lines.append(
             f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}){_star(r)} | {r['reference']} | "
             f"{r['method']} | {r['seconds']:.2f} | {r['pvs']} | {100 * r['fn']:.2f} | "
             f"{r['missed_median_px']:.2f} | {100 * r['fp']:.1f} | {r['eps_mean']:.3f} | "
-            f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} |")
+            f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} | "
+            f"{_aimed(r)} |")
     return "\n".join(lines) + "\n"
+
+
+def _aimed(r: dict[str, Any]) -> str:
+    if "aimed" not in r:
+        return "– | – | –"
+    star = "" if r["aimed_converged"] else " *"
+    return (f"{r['aimed']} ({r['aimed_rays']}){star} | {100 * r['aimed_fn']:.2f} | "
+            f"{r['pvs_over_aimed']:.2f}")
 
 
 def _star(r: dict[str, Any]) -> str:

@@ -89,3 +89,20 @@ def test_generated_specs_are_parsed_once_and_bad_ones_refused_with_the_names(tmp
         bench_real_cells.main(["--scenes", "--generated", "rooms", "--out",
                                str(tmp_path / "x.md")])
     assert not (tmp_path / "x.md").exists()
+
+
+def test_rays_aimed_at_every_triangle_see_through_the_door_and_score_each_answer():
+    scene, cell, known = ds.two_rooms_and_a_door()
+    every = np.arange(scene.n_triangles)
+    got, seconds = bench_real_cells.aimed_reference(scene, cell, every, every[:0], seed=0)
+    assert seconds > 0 and got.converged
+    assert set(known["visible"]) <= set(got.ids.tolist())
+    assert not set(known["hidden"]) & set(got.ids.tolist())
+    # Two answers scored against what the rays saw: the visible set, and half of it.
+    visible = np.asarray(known["visible"])
+    rows = [{"method": "all"}, {"method": "half"}]
+    bench_real_cells._score_aimed(rows, [every, visible[::2]], scene, cell, every[:0], 0,
+                                  log=lambda *_: None)
+    assert rows[0]["aimed"] == rows[1]["aimed"] == len(got.ids)
+    assert rows[0]["aimed_fn"] == 0.0 and rows[0]["pvs_over_aimed"] > 1.0
+    assert rows[1]["aimed_fn"] == pytest.approx(1 - len(visible[::2]) / len(got.ids))

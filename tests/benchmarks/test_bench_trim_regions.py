@@ -39,3 +39,21 @@ def test_aimed_rays_grow_the_ground_truth_of_a_cell():
     assert got["gt_aimed"] > len(seen_ids(cast))
     assert got["aimed_rays"] == 32 and got["aimed_seconds"] > 0
     assert 0 <= got["aimed_missed"] <= got["gt_aimed"]
+
+
+def test_side_by_side_answers_are_scored_against_rays_aimed_at_all_of_them():
+    from visibility.cores.base import get_core
+    from visibility.ray_frames import seen_ids
+    from visibility.viewcells import Viewcell
+
+    scene = bench.load("village", 20_000)
+    box = bench.sphere_cell(scene, 0.2, 0)
+    cast = bench._cast({}, "village", scene, box, 2, keep=False)
+    cos = get_core("cos")
+    ids = cos.compute(scene, Viewcell(box), cos.make_params()).triangle_ids
+    rows = [{"core": "cos"}, {"core": "half of it"}]
+    bench._side_aimed(rows, [ids, ids[::2]], scene, box, cast, most=32)
+    assert rows[0]["gt_aimed"] == rows[1]["gt_aimed"] > len(seen_ids(cast))
+    # cos misses nothing any eye of the cube sees; half its answer misses some of it.
+    assert rows[0]["fn_aimed"] == 0 and rows[1]["fn_aimed"] > 0
+    assert rows[0]["aimed_rays"] <= 32
