@@ -63,8 +63,8 @@ DEADLINE = 120.0
 #: Rays aimed at the answers (``visibility.ray_aimed``): per candidate in the first round, and
 #: at most, doubled while ``AIM_BUDGET`` rays at every candidate would not be passed.
 AIM_RAYS = 16
-AIM_MOST = 4096
-AIM_BUDGET = 150_000_000
+AIM_MOST = 65536
+AIM_BUDGET = 600_000_000
 #: Frames per cell, and the largest pitch of their forward direction (degrees).
 FRAMES = 64
 MAX_PITCH = 30.0
