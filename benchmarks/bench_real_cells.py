@@ -17,7 +17,11 @@ stand in the cell (``frame_views``: eyes as the reference's, a random yaw and pi
 ``from_segment``'s own resolution, drawn from the PVS against the full scene (ε, PSNR, SSIM;
 with 64 frames a 0 means that no pixel of any of them differs), plus the size in pixels of
 what was missed (the median projected area, at the reference's resolution, of the missed
-triangles from the cell's centre).
+triangles from the cell's centre). The frames' rays pass by triangles smaller than their
+spacing, so each answer is also scored against the reference grown by rays from such eyes
+aimed at every triangle some answer on the cell holds (``aimed_reference``,
+``visibility.ray_aimed``). Before its cells, each scene gets the per-scene builds a server
+makes when it loads a scene (``prepare``), untimed.
 
 Writes ``benchmarks/results/real_cells.md`` and ``.json``; prints as it goes.
 
@@ -274,11 +278,13 @@ def _score_aimed(rows, answers, scene, cell, ref, seed, log) -> None:
     log(f"    rays aimed at the answers: {len(seen)} seen ({got.rays_per_candidate} rays per "
         f"candidate, {'converged' if got.converged else 'not converged'}, last doubling "
         f"+{100 * got.added_last:.2f} %) in {secs:.1f} s")
+    centre = np.asarray(cell.box, dtype=np.float64).mean(axis=0)
     for r, ids in zip(scored, answers, strict=True):
+        missed = np.setdiff1d(seen, ids)
         r.update(aimed=int(len(seen)), aimed_converged=bool(got.converged),
                  aimed_rays=got.rays_per_candidate, aimed_added_last=got.added_last,
-                 aimed_seconds=secs,
-                 aimed_fn=float(len(np.setdiff1d(seen, ids)) / max(1, len(seen))),
+                 aimed_seconds=secs, aimed_fn=float(len(missed) / max(1, len(seen))),
+                 aimed_missed_px=missed_pixels(scene, missed, centre, RAYS),
                  pvs_over_aimed=float(len(ids) / max(1, len(seen))))
         log(f"    {r['method']:38s} against them: FN {100 * r['aimed_fn']:.2f} %, PVS "
             f"{r['pvs_over_aimed']:.2f}x")
@@ -334,14 +340,15 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
              f"{AIM_MOST} rays, or {AIM_BUDGET:,} rays at all of them, would be passed; "
              "rays per triangle in brackets, * not converged), each seen triangle confirmed "
              "by a float64 cast: a lower bound on what eyes of the cell see, so PVS / aimed "
-             "is an upper bound; FN aimed = share of it the answer lacks.", "",
+             "is an upper bound; FN aimed = share of it the answer lacks, px their median "
+             "projected size as for missed px.", "",
              "| scene | cell (m) | reference | method | s | PVS | FN % | missed px | FP % | "
-             "ε mean % | ε worst % | PSNR dB | SSIM | aimed | FN aimed % | PVS / aimed |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "ε mean % | ε worst % | PSNR dB | SSIM | aimed | FN aimed % | px | PVS / aimed |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
             lines.append(f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['reference']}"
-                         f" | {r['method']} | {r['error']} | | | | | | | | | | | |")
+                         f" | {r['method']} | {r['error']} | | | | | | | | | | | | |")
             continue
         lines.append(
             f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}){_star(r)} | {r['reference']} | "
@@ -354,10 +361,10 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
 
 def _aimed(r: dict[str, Any]) -> str:
     if "aimed" not in r:
-        return "– | – | –"
+        return "– | – | – | –"
     star = "" if r["aimed_converged"] else " *"
     return (f"{r['aimed']} ({r['aimed_rays']}){star} | {100 * r['aimed_fn']:.2f} | "
-            f"{r['pvs_over_aimed']:.2f}")
+            f"{r['aimed_missed_px']:.2f} | {r['pvs_over_aimed']:.2f}")
 
 
 def _star(r: dict[str, Any]) -> str:

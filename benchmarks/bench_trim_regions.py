@@ -23,10 +23,11 @@ k-buffer memory and trim-sequence length (Table 2), false-negative pixels and pr
   scenes and lavaducts, and how much of trim_regions' answer is provably unseen: triangles
   ``cos`` (conservative)
   leaves out of the PVS of the box holding every sphere trim_regions answers for, so no eye of
-  those spheres sees them.
+  those spheres sees them; all three also against the frames' ground truth grown by rays
+  aimed at every triangle of their answers (``--side-aim-most``).
 
 Writes ``benchmarks/results/trim_regions.md`` (+ ``.json``, ``.png``). Usage:
-``python -m benchmarks.bench_trim_regions`` (about 9 minutes on 2 cores), ``--quick`` for a
+``python -m benchmarks.bench_trim_regions`` (about 20 minutes on 2 cores), ``--quick`` for a
 smoke run into ``--out``.
 """
 
