@@ -51,6 +51,7 @@ from benchmarks.bench_matrix import (
     frame_summary,
     machine_description,
 )
+from benchmarks.common import aimed_total
 from benchmarks.peers import embree_views, from_point_pvs
 from visibility.ground_truth import sample_points
 from visibility.raster.camera import random_rotation
@@ -362,9 +363,9 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
 def _aimed(r: dict[str, Any]) -> str:
     if "aimed" not in r:
         return "– | – | – | –"
-    star = "" if r["aimed_converged"] else " *"
-    return (f"{r['aimed']} ({r['aimed_rays']}){star} | {100 * r['aimed_fn']:.2f} | "
-            f"{r['aimed_missed_px']:.2f} | {r['pvs_over_aimed']:.2f}")
+    return (f"{aimed_total(r['aimed'], r['aimed_rays'], r['aimed_converged'])} | "
+            f"{100 * r['aimed_fn']:.2f} | {r['aimed_missed_px']:.2f} | "
+            f"{r['pvs_over_aimed']:.2f}")
 
 
 def _star(r: dict[str, Any]) -> str:

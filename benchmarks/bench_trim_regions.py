@@ -48,6 +48,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import numpy as np
 
 from benchmarks.bench_matrix import SHARED_SCENES
+from benchmarks.common import aimed_total
 from visibility.cores.base import get_core
 from visibility.cores.trim_regions.core import DEFAULT_MAX_DELTA
 from visibility.cores.trim_regions.frustum import cover_box
@@ -489,8 +490,7 @@ def plot(speed_rows: list[dict[str, Any]], quality_rows: list[dict[str, Any]],
 def _side_aimed_cells(r: dict[str, Any]) -> str:
     if "gt_aimed" not in r:
         return "– | – | –"
-    star = "" if r["aimed_converged"] else " *"
-    return (f"{r['gt_aimed']:,} ({r['aimed_rays']}){star} | "
+    return (f"{aimed_total(r['gt_aimed'], r['aimed_rays'], r['aimed_converged'])} | "
             f"{r['pvs'] / max(r['gt_aimed'], 1):.2f} | {r['fn_aimed']}")
 
 

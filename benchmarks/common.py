@@ -115,6 +115,13 @@ def md_table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
     return out
 
 
+def aimed_total(total: int, rays: int, converged: bool) -> str:
+    """A table cell for a reference grown by aimed rays (``visibility.ray_aimed``): the
+    triangles seen, the rays per triangle in brackets, * when the last doubling still added
+    more than the convergence share."""
+    return f"{total:,} ({rays}){'' if converged else ' *'}"
+
+
 def prometheus_value(text: str, name: str) -> float:
     """The value of sample ``name`` (with its labels, exactly as exposed) in Prometheus text
     ``text``; NaN when absent."""
