@@ -1,5 +1,6 @@
 """Per-scene builds start in the background when a scene loads (a real server): the
-hierarchy, the kd-tree and fences of a dual_ray server, the closed parts of a cos server;
+hierarchy, the kd-tree and fences of a dual_ray server, the closed parts of a cos server, the
+clusters of a from_segment server;
 they are kept on disk by content hash, so a restart reads them; small scenes build nothing."""
 
 from __future__ import annotations
@@ -65,6 +66,17 @@ def test_cos_server_builds_the_closed_parts_before_any_request(settings, tmp_pat
         assert app.state.server.compute.computed == 0
         wait_for(lambda: CLOSED_KIND in _load(url, "town").get("builds", {}), timeout=30)
         assert list((tmp_path / "scenes").rglob("*closed_parts*.npz"))
+
+
+def test_from_segment_server_builds_its_clusters_before_any_request(settings):
+    city = make_scene("city", 20_000, seed=3)
+    with serving(settings, scenes={"town": city}, core="from_segment") as (url, app):
+        _load(url, "town")
+        scene = app.state.server.catalog.get("town").scene
+        wait_for(lambda: peek(scene, "from_segment/clusters") is not None, timeout=120)
+        assert app.state.server.compute.computed == 0
+        wait_for(lambda: "from_segment/clusters" in _load(url, "town").get("builds", {}),
+                 timeout=30)
 
 
 def test_what_is_built(settings):
