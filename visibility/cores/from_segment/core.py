@@ -33,6 +33,8 @@ from visibility.viewcells import Viewcell
 ORIENTATIONS = ("axis", "oblique")
 #: How a cell's view segments are chosen (``FromSegmentParams.walk``).
 WALKS = ("open", "rectangle")
+#: What a primitive that holds no pixel sample gets (``FromSegmentParams.small``).
+SMALLS = ("footprint", "samples")
 
 
 def oblique_rotation() -> np.ndarray:
@@ -68,6 +70,12 @@ class FromSegmentParams(CoreParams):
         walks a side; with centres on a regular grid that line can pass between every row of
         centres, while jittered samples do not line up: far fewer misses on sub-pixel clutter,
         for more time (figures: docs/cores/from_segment.md, benchmarks/results/real_cells.md).
+    small : "footprint" also reports a primitive that holds no pixel sample along a segment
+        where its nearest depth lies before the farthest depth a pixel of its box sees (a
+        triangle far smaller than a pixel that slides between the samples, though eyes on
+        the segment see it; it hides nothing); "samples" reports what some sample sees and
+        nothing else (the paper: exact at the samples). Figures:
+        docs/cores/from_segment.md.
     eye_levels : heights at which the segments are walked: 1 = mid height, 2 = bottom and top
         of the box, 3 = all three (a box without height always uses one).
     walk : "open" walks the outline of the open floor inside the cell (``visibility.cell_walk``:
@@ -96,6 +104,9 @@ class FromSegmentParams(CoreParams):
                         help="near-plane distance of the visibility cameras")
     jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
                           help="how far each pixel's sample lies off its centre (0 = centres)")
+    small: str = param("footprint", choices=SMALLS,
+                       help="footprint: also what slides between the samples, where nearer "
+                       "than its pixels' farthest depth; samples: what a sample sees (paper)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
     walk: str = param("open", choices=WALKS,
                       help="segments: open (around where a person can stand in the cell, "
@@ -333,7 +344,8 @@ class FromSegmentCore(Core):
                         segment_visible(g, v0, v1, rot, params.resolution, params.near,
                                         params.depth_knots, batch, visible, stats,
                                         jitter=params.jitter, seed=pattern,
-                                        max_cuts=params.cuts)
+                                        max_cuts=params.cuts,
+                                        footprint=params.small == "footprint")
         m = scene.n_triangles
         stats["segments"] = int(len(segments))
         stats["runs"] = int(params.runs)

@@ -61,7 +61,7 @@ class SegmentGeometry:
         """The arrays the kernels read, as one named group."""
         return GeometryArrays(self.verts0, self.verts1, self.faces, self.moving, self.cl_start,
                               self.cl_tris, self.centers0, self.centers1, self.radii,
-                              self.n_triangles)
+                              self.n_triangles, self.cl_lo, self.cl_hi)
 
     @property
     def n_ids(self) -> int:

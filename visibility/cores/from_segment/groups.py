@@ -80,7 +80,7 @@ class PrimRows(NamedTuple):
 class GeometryArrays(NamedTuple):
     """``geometry.SegmentGeometry`` as the kernels read it (``SegmentGeometry.arrays``: its
     attributes of the same names; ``c0``, ``c1``: the sphere centres; ``n_tri``: the face
-    count)."""
+    count; ``cl_lo``, ``cl_hi``: the clusters' boxes over both positions)."""
 
     verts0: np.ndarray
     verts1: np.ndarray
@@ -92,6 +92,8 @@ class GeometryArrays(NamedTuple):
     c1: np.ndarray
     radii: np.ndarray
     n_tri: int
+    cl_lo: np.ndarray
+    cl_hi: np.ndarray
 
 
 class Sweep(NamedTuple):
@@ -104,6 +106,11 @@ class Sweep(NamedTuple):
     jitter : samples' offset from pixel centres, pixels (``raster.sample_offset``).
     seed : the jitter pattern.
     cap : envelope rows per pixel to start with (grown x4 as needed, ``raster._grown``).
+    footprint : a primitive that holds no pixel sample along the segment is marked visible
+        where its nearest depth lies before the farthest depth of a pixel of its box
+        (``raster._footprint_seen``); False marks only what a sample sees (the paper).
+    pad : how far off a pixel's centre, in pixels, a primitive's box and spans reach
+        (``jitter``, or half a pixel with ``footprint``).
     """
 
     v0: np.ndarray
@@ -115,6 +122,8 @@ class Sweep(NamedTuple):
     jitter: float
     seed: int
     cap: int
+    footprint: bool
+    pad: float
 
 
 class Results(NamedTuple):

@@ -40,6 +40,9 @@ KNOWN_SHARE = 8
 #: hull (a convex hull of six points for a cluster's triangle, a pass over the hull's edges
 #: for the others) costs more than the cover tests it could spare there.
 SMALL_BOX = 8
+#: Tiles listing more primitives than this (clutter) get no footprint rule
+#: (``_footprint_seen``): each of its rays walks the list.
+FOOTPRINT_MAX_ITEMS = 2048
 #: One pixel pair in TIME_STRIDE is timed by step (cover test, then the envelope's insertions):
 #: two counter reads at every pair would cost a sizeable share of a meadow's time.
 TIME_STRIDE = 16
@@ -47,6 +50,7 @@ TIME_STRIDE = 16
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 #: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
 _JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
+_JIT_INLINE_HELPER = dict(_JIT, inline="always")
 _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 
 #: Columns of ``_resolve``'s counters (one row per chunk), summed into the segment's stats under
@@ -69,18 +73,21 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: list entries of such tiles not drawn, beyond the farthest point any of those reaches
 #: (``_far_new``); cycles_cover / cycles_insert: the CPU cycles of the pairs' cover tests and of
 #: their chords' insertions into the envelopes (bound reads included), estimated from one pair
-#: in TIME_STRIDE (the chunk's running count of pairs), times TIME_STRIDE.
+#: in TIME_STRIDE (the chunk's running count of pairs), times TIME_STRIDE; footprint_seen:
+#: primitives holding no sample that the footprint rule marked (``_footprint_seen``);
+#: pixels_passed: pixels of a primitive's rows passed by without a cover test, its nearest
+#: depth beyond their bound.
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
             "bound_scans", "tiles_known", "pixels_known", "items_behind_new", "cycles_cover",
-            "cycles_insert")
+            "cycles_insert", "footprint_seen", "pixels_passed", "footprint_candidates")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
  C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_CYCLES_COVER,
- C_CYCLES_INSERT) = range(len(COUNTERS))
+ C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND) = range(len(COUNTERS))
 
 
 @intrinsic
@@ -249,6 +256,224 @@ def _front_box(P, U, res, box, pad):
     return pixel_range(umin, umax, vmin, vmax, res, box, pad), zm
 
 
+@njit(**_JIT_INLINE_HELPER)
+def _clip_half(lo, hi, a, b):
+    """[lo, hi] intersected with {t : a + b t >= 0}."""
+    if b > 0.0:
+        lo = max(lo, -a / b)
+    elif b < 0.0:
+        hi = min(hi, -a / b)
+    elif a < 0.0:
+        hi = lo - 1.0
+    return lo, hi
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _tri_hit(P, U, t, x, y, near, wt):  # pragma: no cover - numba
+    """Whether the triangle with camera-space corners P + t U (3, 3) meets the ray (x, y, -1)
+    from the eye at a depth in [near, wt) (Moller-Trumbore; depth is -z, the ray's own
+    parameter)."""
+    ax = P[0, 0] + t * U[0, 0]
+    ay = P[0, 1] + t * U[0, 1]
+    az = P[0, 2] + t * U[0, 2]
+    e1x = P[1, 0] + t * U[1, 0] - ax
+    e1y = P[1, 1] + t * U[1, 1] - ay
+    e1z = P[1, 2] + t * U[1, 2] - az
+    e2x = P[2, 0] + t * U[2, 0] - ax
+    e2y = P[2, 1] + t * U[2, 1] - ay
+    e2z = P[2, 2] + t * U[2, 2] - az
+    # p = r x e2 with r = (x, y, -1)
+    px = y * e2z + e2y
+    py = -e2x - x * e2z
+    pz = x * e2y - y * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return False
+    inv = 1.0 / det
+    tx, ty, tz = -ax, -ay, -az
+    u = (tx * px + ty * py + tz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return False
+    qx = ty * e1z - tz * e1y
+    qy = tz * e1x - tx * e1z
+    qz = tx * e1y - ty * e1x
+    v = (x * qx + y * qy - qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return False
+    d = (e2x * qx + e2y * qy + e2z * qz) * inv
+    return near <= d < wt
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no cover - numba
+    """Whether the ray o + s d, s in [near, wt), meets box c of ``lo``, ``hi`` (k, 3) (slabs)."""
+    s0 = near
+    s1 = wt
+    for a in range(3):
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        d = dx if a == 0 else (dy if a == 1 else dz)
+        if d == 0.0:
+            if o < lo[c, a] or o > hi[c, a]:
+                return False
+            continue
+        u = (lo[c, a] - o) / d
+        v = (hi[c, a] - o) / d
+        if u > v:
+            u, v = v, u
+        s0 = max(s0, u)
+        s1 = min(s1, v)
+        if s0 > s1:
+            return False
+    return True
+
+
+@njit(**_JIT_NO_NRT)
+def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame,
+                 sc3):  # pragma: no cover - numba
+    """Whether a primitive of the tile's list entries [i0, i1) other than ``pid`` meets the
+    ray (x, y, -1) of the eye at time t at a depth in [near, wt); the ray lies in the square
+    of pixel (pi, pj). ``rows``: (prim_src, prim_z, prim_zkey, prim_flag, prim_box);
+    ``geom``: ``groups.GeometryArrays``; ``frame``: (R, dc, v0, dvec, near); ``sc3``: (P, U,
+    W) (3, 3) scratch. The list runs front to back by key, so the walk stops at the first key
+    at or beyond wt; a primitive whose pixel box, grown by a pixel, misses (pi, pj) cannot
+    reach a point of that pixel's square."""
+    prim_src, prim_z, prim_zkey, prim_flag, prim_box = rows
+    verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
+    R, dc, v0, dvec, near = frame
+    P, U, W = sc3
+    # The ray in world space: from the eye at t, along R^T (x, y, -1) (depth per unit).
+    ox = v0[0] + t * dvec[0]
+    oy = v0[1] + t * dvec[1]
+    oz = v0[2] + t * dvec[2]
+    dx = R[0, 0] * x + R[1, 0] * y - R[2, 0]
+    dy = R[0, 1] * x + R[1, 1] * y - R[2, 1]
+    dz = R[0, 2] * x + R[1, 2] * y - R[2, 2]
+    for it in range(i0, i1):
+        pr = tile_items[it]
+        if prim_zkey[pr] >= wt:
+            break
+        if (prim_z[pr] >= wt or pi < prim_box[pr, 0] - 1 or pi > prim_box[pr, 1] + 1
+                or pj < prim_box[pr, 2] - 1 or pj > prim_box[pr, 3] + 1):
+            continue
+        src = np.int64(prim_src[pr])
+        flag = prim_flag[pr]
+        if flag & FLAG_CLUSTER:
+            if not _ray_meets_box(ox, oy, oz, dx, dy, dz, cl_lo, cl_hi, src, near, wt):
+                continue
+            for k in range(cl_start[src], cl_start[src + 1]):
+                tri = cl_tris[k]
+                if tri == pid:
+                    continue
+                _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)
+                if _tri_hit(P, U, t, x, y, near, wt):
+                    return True
+        elif flag & FLAG_SPHERE:
+            sp = src - n_tri
+            # Centre relative to the eye at t, in the face's frame; the ray's depth is its
+            # own parameter s (r = (x, y, -1)).
+            bx = 0.0
+            cc = 0.0
+            for r in range(3):
+                w = 0.0
+                for c in range(3):
+                    w += R[r, c] * (c0[sp, c] + t * (c1[sp, c] - c0[sp, c]) - v0[c]
+                                    - t * dvec[c])
+                rr = x if r == 0 else (y if r == 1 else -1.0)
+                bx += rr * w
+                cc += w * w
+            a = x * x + y * y + 1.0
+            disc = bx * bx - a * (cc - radii[sp] * radii[sp])
+            if disc >= 0.0:
+                sq = np.sqrt(disc)
+                s1 = (bx - sq) / a
+                s2 = (bx + sq) / a
+                if s1 < wt and s2 >= near:
+                    return True
+        elif src != pid:
+            _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
+            if _tri_hit(P, U, t, x, y, near, wt):
+                return True
+    return False
+
+
+@njit(**_JIT_NO_NRT)
+def _env_hides(env, px, cnt, lo, hi, wn, wd):  # pragma: no cover - numba
+    """Whether pixel px's envelope covers all of [lo, hi] nearer than depth wn + wd t."""
+    cur = lo
+    for k in range(cnt[px]):
+        t0 = env[px, k, 0]
+        t1 = env[px, k, 1]
+        if t1 <= lo:
+            continue
+        if t0 >= hi:
+            break
+        if t0 > cur + EPS_LEN:
+            return False
+        a = max(t0, lo)
+        b = min(t1, hi)
+        z0 = env[px, k, 2]
+        m = env[px, k, 3]
+        if wn + wd * a < z0 + m * (a - t0) or wn + wd * b < z0 + m * (b - t0):
+            return False
+        cur = t1
+    return cur >= hi - EPS_LEN
+
+
+@njit(**_JIT_NO_NRT)
+def _footprint_seen(pix, env, ia, ib, ja, jb, pid, P, i0, i1, tile_items, rows, geom, frame,
+                    sc3):  # pragma: no cover - numba
+    """Whether a static triangle ``pid`` that holds no pixel sample along the segment
+    (camera-space corners ``P`` (3, 3) from the eye at t = 0) is seen by an extra sample at
+    its own centroid: for each pixel of the tile's rows [ia, ib], columns [ja, jb] (its box)
+    that its centroid's image crosses, and whose own envelope (``env``) does not stand nearer
+    than the triangle all through that crossing (``_env_hides``, a pre-test that spares the
+    cast), the ray through the centroid at the middle of the crossing, from the eye at that
+    time, meets nothing of the tile's list (``_ray_blocked``) before it. A found sample is an
+    eye on the segment and a direction that see the triangle: the answer stays exact, at the
+    pixel samples and these. Tiles listing more than ``FOOTPRINT_MAX_ITEMS`` primitives
+    collect no such triangles (the caller's choice).
+
+    Why: a triangle far smaller than a pixel slides between the samples of a whole sweep and
+    no sample sees it, though eyes on the segment do (a roof's detail hundreds of metres
+    away); a sample placed on it decides."""
+    r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
+    R, dc, v0, dvec, near = frame
+    # Centroid (cx, cy, -w0) - t dc, depth w0 + t wd.
+    cx = (P[0, 0] + P[1, 0] + P[2, 0]) / 3.0
+    cy = (P[0, 1] + P[1, 1] + P[2, 1]) / 3.0
+    w0 = -(P[0, 2] + P[1, 2] + P[2, 2]) / 3.0
+    wd = dc[2]
+    wn = min(-P[0, 2], min(-P[1, 2], -P[2, 2]))
+    if min(w0, w0 + wd) < near:
+        return False
+    for i in range(ia, ib + 1):
+        ytop = 1.0 - i * step
+        ybot = ytop - step
+        for j in range(ja, jb + 1):
+            xl = j * step - 1.0
+            xr = xl + step
+            # The image is inside the pixel's square while four linear forms in t are >= 0
+            # (w > 0 on the segment).
+            lo, hi = _clip_half(0.0, 1.0, cx - xl * w0, -dc[0] - xl * wd)
+            lo, hi = _clip_half(lo, hi, xr * w0 - cx, xr * wd + dc[0])
+            lo, hi = _clip_half(lo, hi, cy - ybot * w0, -dc[1] - ybot * wd)
+            lo, hi = _clip_half(lo, hi, ytop * w0 - cy, ytop * wd + dc[1])
+            if not hi >= lo:
+                continue
+            # What the pixel's own sample sees over the crossing is nearer than the
+            # triangle's nearest corner all along: no ray is cast (the triangle may still peek
+            # out at its centroid; skipped for the time, tiles of clutter list thousands).
+            if _env_hides(env, (i - r0) * tw + (j - cl0), cnt, lo, hi, wn, wd):
+                continue
+            # One time per pixel crossed: more per crossing found no more on the Lyon tile.
+            t = 0.5 * (lo + hi)
+            w = w0 + t * wd
+            if not _ray_blocked((cx - t * dc[0]) / w, (cy - t * dc[1]) / w, t, w, i, j, pid,
+                                i0, i1, tile_items, rows, geom, frame, sc3):
+                return True
+    return False
+
+
 @njit(**_JIT_NO_NRT)
 def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid, T, tid,
             sc, work):
@@ -276,6 +501,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
         at[3] = 0
     closed = 0
     pairs = 0
+    passed = 0
     uncovered = 0
     behind = 0
     moved = 0
@@ -297,6 +523,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
             px = (i - r0) * tw + (j - cl0)
             bpx = bound[px]
             if zpr >= bpx:
+                passed += 1
                 continue
             x = (j + 0.5) * step - 1.0 + jx[px]
             y = yc + jy[px]
@@ -366,6 +593,7 @@ def _raster(kind, pid, slow, zpr, ia, ib, span, coef, pix, near, knots, env, eid
     work[C_CYCLES_COVER] += TIME_STRIDE * cyc_cover
     work[C_CYCLES_INSERT] += TIME_STRIDE * cyc_insert
     work[C_PAIRS] += pairs
+    work[C_PASSED] += passed
     work[C_UNCOVERED] += uncovered
     work[C_BEHIND] += behind
     work[C_INSERT_MOVED] += moved
@@ -437,7 +665,7 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
     a moving point is linear in t, so a triangle's greatest depth is at a corner at t = 0 or
     1; a sphere's, its centre's plus its radius. A primitive that stays beyond it can hide
     none of them, nor change what they own of an envelope."""
-    verts0, verts1, faces, _, _, _, c0, c1, radii, n_tri = geom
+    verts0, verts1, faces, _, _, _, c0, c1, radii, n_tri, _, _ = geom
     far = -np.inf
     for it in range(i0, i1):
         pr = tile_items[it]
@@ -466,6 +694,26 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
             for c in range(3):
                 far = max(far, -P[c, 2], -(P[c, 2] + U[c, 2]))
     return far
+
+
+@njit(**_JIT)
+def _fp_push(fp, n, pid, ia, ib, ja, jb, z, P):
+    """Row n of ``fp`` (grown x2 when full; returned) := a triangle the footprint rule tests
+    once its tile's envelopes are whole: (id, ia, ib, ja, jb, nearest depth, corners P)."""
+    if n >= fp.shape[0]:
+        grown = np.empty((2 * fp.shape[0], fp.shape[1]))
+        grown[:n] = fp[:n]
+        fp = grown
+    fp[n, 0] = pid
+    fp[n, 1] = ia
+    fp[n, 2] = ib
+    fp[n, 3] = ja
+    fp[n, 4] = jb
+    fp[n, 5] = z
+    for r in range(3):
+        for c in range(3):
+            fp[n, 6 + 3 * r + c] = P[r, c]
+    return fp
 
 
 @njit(**_JIT)
@@ -499,7 +747,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     prim_zkey = borrow(prim_zkey)
     prim_flag = borrow(prim_flag)
     hulls = Hulls(borrow(h_index), borrow(h_pts), borrow(h_count))
-    verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri = geom
+    verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
     verts0 = borrow(verts0)
     verts1 = borrow(verts1)
     faces = borrow(faces)
@@ -509,8 +757,10 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     c0 = borrow(c0)
     c1 = borrow(c1)
     radii = borrow(radii)
-    geom = (verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri)
-    v0, dvec, rots, res, near, knots, jitter, seed, cap = sweep
+    cl_lo = borrow(cl_lo)
+    cl_hi = borrow(cl_hi)
+    geom = (verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi)
+    v0, dvec, rots, res, near, knots, jitter, seed, cap, footprint, pad = sweep
     v0 = borrow(v0)
     dvec = borrow(dvec)
     rots = borrow(rots)
@@ -534,6 +784,12 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     # c_uv, c_scratch, c_pts: a cluster triangle's swept hull (``_front_spans``).
     (cnt, bound, jx, jy, coef, P, U, W, R, dc, cen, vel, bx, span, c_uv, c_scratch, c_pts,
      ext, sc) = borrow(own)
+    # Triangles for the footprint rule (``_fp_push``), tested when their tile is done.
+    fp_o = np.empty((64, 15))
+    pf_o = np.empty((3, 3))
+    pf = borrow(pf_o)
+    nfp = 0
+    fp_rows = (prim_src, prim_z, prim_zkey, prim_flag, prim_box)
     # A private row of counters, copied out at the end.
     work_o = np.zeros(counters.shape[1], dtype=np.int64)
     work = borrow(work_o)
@@ -585,8 +841,13 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     continue
                 ia = max(prim_box[pr, 0], r0)
                 ib = min(prim_box[pr, 1], r1 - 1)
-                _row_spans(hulls, pr, ia, ib, max(prim_box[pr, 2], cl0),
-                           min(prim_box[pr, 3], cl1 - 1), r0, jitter, span, ext)
+                ja = max(prim_box[pr, 2], cl0)
+                jb = min(prim_box[pr, 3], cl1 - 1)
+                if footprint and (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
+                    # The footprint rule may read any pixel of a small box.
+                    _box_spans(ia, ib, ja, jb, r0, span)
+                else:
+                    _row_spans(hulls, pr, ia, ib, ja, jb, r0, pad, span, ext)
                 for i in range(ia, ib + 1):
                     for j in range(span[i - r0, 0], span[i - r0, 1] + 1):
                         bound[(i - r0) * tw + (j - cl0)] = np.inf
@@ -597,6 +858,9 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             work[C_PX_KNOWN] += npx - open_px
         tbound = np.inf
         since = 0
+        nfp = 0
+        # The rule's rays walk the tile's list: not in clutter, where it is long.
+        fp_tile = footprint and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS
         for r in range(3):
             for c in range(3):
                 R[r, c] = rots[f, r, c]
@@ -637,7 +901,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 for k in range(cl_start[src], cl_start[src + 1]):
                     t = cl_tris[k]
                     _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
-                    ok, zt = _front_box(P, U, res, bx, jitter)
+                    ok, zt = _front_box(P, U, res, bx, pad)
                     if not ok or zt >= tbound:
                         continue
                     ia = max(bx[0], r0)
@@ -649,7 +913,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
                         _box_spans(ia, ib, ja, jb, r0, span)
                     else:
-                        _front_spans(P, U, res, ia, ib, ja, jb, r0, jitter, span, c_uv,
+                        _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, c_uv,
                                      c_scratch, c_pts, ext)
                     if moving[t]:
                         moving_setup(P, U, W, coef)
@@ -661,6 +925,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     cs1 = _cycles()
                     p0 = work[C_PAIRS]
                     u0 = work[C_UNCOVERED]
+                    s0 = work[C_PASSED]
                     nc = 0
                     while True:
                         # np.bool_, not a literal False: a literal compiles another
@@ -680,6 +945,13 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     cyc_raster += _cycles() - cs1
                     work[C_CLUSTER_PAIRS] += work[C_PAIRS] - p0
                     work[C_CLUSTER_UNCOVERED] += work[C_UNCOVERED] - u0
+                    if (fp_tile and not ovf and not visible[t]
+                            and (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) <= SMALL_BOX
+                            and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
+                            and work[C_PASSED] == s0
+                            and not moving[t]):
+                        fp_o = _fp_push(fp_o, nfp, t, ia, ib, ja, jb, zt, P)
+                        nfp += 1
                     closed += nc
                     if ovf:
                         break
@@ -708,9 +980,12 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
                     _box_spans(ia, ib, ja, jb, r0, span)
                 else:
-                    _row_spans(hulls, pr, ia, ib, ja, jb, r0, jitter, span, ext)
+                    _row_spans(hulls, pr, ia, ib, ja, jb, r0, pad, span, ext)
                 work[C_SETUPS] += 1
                 cs1 = _cycles()
+                p0 = work[C_PAIRS]
+                u0 = work[C_UNCOVERED]
+                s0 = work[C_PASSED]
                 while True:
                     more, full = _raster(kind, src, slow, prim_z[pr], ia, ib, span, coef, pix,
                                          near, knots, env, eid, T, tid, sc, work)
@@ -724,6 +999,14 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         break
                     env, eid, T, tid = borrow((env_o, eid_o, T_o, tid_o))
                 cyc_raster += _cycles() - cs1
+                if (fp_tile and not ovf and not visible[src]
+                        and (prim_box[pr, 1] - prim_box[pr, 0] + 1)
+                        * (prim_box[pr, 3] - prim_box[pr, 2] + 1) <= SMALL_BOX
+                        and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
+                        and work[C_PASSED] == s0
+                        and kind == 0):
+                    fp_o = _fp_push(fp_o, nfp, src, ia, ib, ja, jb, prim_z[pr], P)
+                    nfp += 1
             cyc_setup += _cycles() - cs0
             if ovf:
                 break
@@ -740,6 +1023,22 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             sc.at[3] = 0  # the draw cut short is not resumed
             continue
         ct0 = _cycles()
+        # The envelopes are whole now: earlier, a triangle drawn before what hides it (a
+        # cluster's triangles come in its own order) would find its pixels open.
+        work[C_FP_CAND] += nfp
+        for c in range(nfp):
+            pid = np.int64(fp_o[c, 0])
+            if visible[pid]:
+                continue
+            for r in range(3):
+                for k in range(3):
+                    pf[r, k] = fp_o[c, 6 + 3 * r + k]
+            if _footprint_seen(pix, env, np.int64(fp_o[c, 1]), np.int64(fp_o[c, 2]),
+                               np.int64(fp_o[c, 3]), np.int64(fp_o[c, 4]), pid, pf,
+                               tile_start[tile], tile_start[tile + 1], tile_items, fp_rows,
+                               geom, (R, dc, v0, dvec, near), (P, U, W)):
+                visible[pid] = True
+                work[C_FOOTPRINT] += 1
         for p in range(npx):
             work[C_FINAL] += cnt[p]
             for k in range(cnt[p]):
@@ -768,3 +1067,4 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     keep_alive(tid_o)
     keep_alive(own)
     keep_alive(work_o)
+    keep_alive(pf_o)

@@ -193,6 +193,7 @@ def segment_visible(
     seed: int = 0,
     max_cuts: int | None = None,
     envelope_cap: int = START_CAP,
+    footprint: bool = False,
 ) -> np.ndarray:
     """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
 
@@ -229,6 +230,12 @@ def segment_visible(
         ``MAX_SPLIT_DEPTH``, 0 = never), when nothing in the scene moves.
     envelope_cap : envelope rows per pixel to start with, grown x4 as a pixel needs more (up to
         ``MAX_CAP``); the answer does not depend on it (a smaller one tests the growth).
+    footprint : also mark a primitive that holds no pixel sample anywhere on the segment
+        where its nearest depth lies before the farthest depth a pixel of its box sees
+        (``raster._footprint_seen``; ``stats["footprint_seen"]``): sub-pixel triangles that
+        slide between the samples. False marks what some sample sees and nothing else (the
+        paper's answer, exact at the samples). Not with ``witness`` (such a primitive has no
+        sample to witness it).
 
     Returns
     -------
@@ -268,14 +275,16 @@ def segment_visible(
     rots = np.ascontiguousarray(cube_face_rotations(rb))
     # Geometry that moves with t cannot be cut at a mid time without re-interpolating it.
     splittable = geom.verts0 is geom.verts1 and geom.centers0 is geom.centers1
+    if footprint and witness is not None:
+        raise ValueError("footprint marks primitives no sample witnesses: not with witness")
     _piece(geom, v0, v1 - v0, 0.0, 1.0, cuts if splittable else 0, rb, rots, res,
            float(near), int(knots), jitter, int(seed), max(1, int(batch)), visible, stats,
-           witness, cap=cap)
+           witness, cap=cap, footprint=bool(footprint))
     return visible
 
 
 def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, seed, batch,
-           visible, stats, witness, est=0.0, cap=START_CAP):
+           visible, stats, witness, est=0.0, cap=START_CAP, footprint=False):
     """Visible set of the eye walking v0 -> v0 + dvec (times [ta, tb] of the whole segment).
 
     A piece whose primitives' pixel boxes add up to more than ``SPLIT_AREA`` times the cube's
@@ -287,14 +296,17 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     without measuring. ``cap``: envelope rows per pixel to start with."""
     t0 = time.perf_counter()
     limit = SPLIT_AREA * 6 * res * res
+    # Pixel boxes hold the pixels whose sample may meet a primitive; with the footprint rule,
+    # every pixel its centroid crosses (at centres, a sub-pixel triangle's box may hold none).
+    pad = max(jitter, 0.5) if footprint else jitter
     # The decision needs only the boxes' areas (no hulls, nothing stored). Deciding whole
     # segments from a full collection instead (open scenes never cut them) wasted far more on
     # cluttered scenes, where they are cut, than it saved on open ones.
     area = est
     stage = None
     if depth > 0 and est <= limit:
-        stage = _cluster_stage(geom, v0, dvec, rb, res, near, jitter, batch)
-        area = _collect_prims(geom, v0, dvec, rb, rots, res, near, jitter, batch, stats,
+        stage = _cluster_stage(geom, v0, dvec, rb, res, near, pad, batch)
+        area = _collect_prims(geom, v0, dvec, rb, rots, res, near, pad, batch, stats,
                               area_only=True, stage=stage)
     if depth > 0 and area > limit:
         del stage  # the halves project their own; not held through the recursion
@@ -308,13 +320,13 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
         for a, lo, hi in ((v0, ta, tm), (v0 + half, tm, tb)):
             checkpoint()
             _piece(geom, a, half, lo, hi, depth - 1, rb, rots, res, near, knots, jitter,
-                   seed, batch, visible, stats, witness, 0.25 * area, cap)
+                   seed, batch, visible, stats, witness, 0.25 * area, cap, footprint)
         return
     prim_src, prim_face, prim_box, prim_z, prim_flag, hulls = _collect_prims(
-        geom, v0, dvec, rb, rots, res, near, jitter, batch, stats, stage=stage)
+        geom, v0, dvec, rb, rots, res, near, pad, batch, stats, stage=stage)
     del stage
     t1 = time.perf_counter()
-    rstart, cols = _tile_ranges(prim_box, hulls, jitter)
+    rstart, cols = _tile_ranges(prim_box, hulls, pad)
     zkey, tile_start, items = _sort_and_bin(prim_face, prim_box, prim_z, rstart, cols, res, near)
     del rstart, cols
     t2 = time.perf_counter()
@@ -330,7 +342,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # or late computation stops within a fraction of one segment's time.
     groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
     rows = PrimRows.of(prim_src, prim_box, prim_z, zkey, prim_flag, prim_face, hulls)
-    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed, cap)
+    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed, cap, np.bool_(footprint), pad)
     garrays = geom.arrays()
     for sel in np.array_split(np.arange(len(tiles)), groups):
         if not len(sel):

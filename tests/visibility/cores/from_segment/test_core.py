@@ -28,9 +28,10 @@ def test_registered_with_its_parameters():
     assert "from_segment" in available_cores()
     p = CORE.make_params()
     assert isinstance(p, FromSegmentParams)
-    assert (p.resolution, p.runs, p.eye_levels) == (256, 1, 3)
-    for bad in ({"runs": 0}, {"runs": 1.5}, {"near": 0.0}, {"near": np.nan}, {"eye_levels": 4},
-                {"depth_knots": 0}, {"batch_triangles": 10}, {"resolution": 4}):
+    assert (p.resolution, p.runs, p.eye_levels, p.small) == (256, 1, 3, "footprint")
+    for bad in ({"small": "centres"}, {"runs": 0}, {"runs": 1.5}, {"near": 0.0},
+                {"near": np.nan}, {"eye_levels": 4}, {"depth_knots": 0},
+                {"batch_triangles": 10}, {"resolution": 4}):
         with pytest.raises(ValueError):
             CORE.make_params(**bad)
 
@@ -315,9 +316,59 @@ def test_lone_sliver_is_reported_exactly_when_a_pixel_centre_crosses_it():
                             + [(1.7 + 4e-6 - y) / d for d in (7.0, 9.0)])
             seen |= bool(np.any((rows >= ends.min()) & (rows <= ends.max())))
         got = check_valid(core.compute(scene, cell, core.make_params(
-            resolution=res, runs=1, first_orientation="axis", jitter=0.0)), scene)
+            resolution=res, runs=1, first_orientation="axis", jitter=0.0, small="samples")), scene)
         assert got == ({0} if seen else set()), (res, seen)
         assert seen == (res == 128)  # the case is built so both branches are exercised
+
+
+def _between_rows(occluder: str) -> Scene:
+    """A 2 cm triangle 50 m down -Z at a vertical tangent of 0.001-0.0014: between the row
+    centres +-1/64 of a 32 px axis-aligned face for every eye at y 1.7 (which only moves in x),
+    so no centre ever meets it; ``occluder`` "wall" (a wall 10 m away) or "sphere" (5 m across,
+    25 m away) hides it from every such eye, "none" leaves it in plain view, and "speck" puts a
+    1.2 m x 2 cm board 25 m away in every line of sight to it, itself between the same rows."""
+    tris = [[(0.0, 1.75, -50.0), (0.02, 1.75, -50.0), (0.0, 1.77, -50.0)]]
+    if occluder == "speck":
+        tris += [[(-0.6, 1.72, -25), (0.6, 1.72, -25), (0.6, 1.74, -25)],
+                 [(-0.6, 1.72, -25), (0.6, 1.74, -25), (-0.6, 1.74, -25)]]
+    if occluder == "wall":
+        tris += [[(-20, -10, -10), (20, -10, -10), (20, 10, -10)],
+                 [(-20, -10, -10), (20, 10, -10), (-20, 10, -10)]]
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    kw = {}
+    if occluder == "sphere":
+        kw = dict(sphere_centers=np.array([[[0.0, 1.7, -25.0]]]), sphere_radii=np.array([5.0]))
+    return Scene(v, np.arange(len(v)).reshape(-1, 3), name="between_rows", **kw)
+
+
+@pytest.mark.parametrize("occluder", ["none", "wall", "sphere", "speck"])
+def test_footprint_finds_a_triangle_between_the_samples_and_nothing_hidden(occluder):
+    """``small="samples"`` (the paper) reports what a pixel centre sees: not a sub-pixel
+    triangle that stays between two rows of centres along the whole segment. "footprint"
+    samples it at its centroid too: reported in plain view, not behind a wall or a sphere,
+    nor behind a board no pixel sample meets either (its centroid ray is cast past the
+    pixels' envelopes, and the board, reported itself, stops it)."""
+    scene = _between_rows(occluder)
+    p, q = np.array([-1.0, 1.7, 0.0]), np.array([1.0, 1.7, 0.0])
+    kw = dict(resolution=32, runs=1, jitter=0.0, first_orientation="axis")
+    paper = CORE.compute_segment(scene, p, q, CORE.make_params(small="samples", **kw))
+    both = CORE.compute_segment(scene, p, q, CORE.make_params(small="footprint", **kw))
+    wall = [1, 2] if occluder == "wall" else []
+    assert paper.triangle_ids.tolist() == wall
+    want = {"none": [0], "wall": wall, "sphere": [], "speck": [1, 2]}[occluder]
+    assert both.triangle_ids.tolist() == want
+    if occluder in ("none", "speck"):
+        assert both.stats["footprint_candidates"] > 0
+    # Two tiles may both mark a triangle before either sees the other's mark.
+    found = len(want) - len(wall)
+    assert found <= both.stats.get("footprint_seen", 0) <= 2 * found
+
+
+def test_footprint_is_refused_with_witnesses():
+    geom = scene_geometries(_between_rows("none"))[0]
+    with pytest.raises(ValueError, match="witness"):
+        segment_visible(geom, np.zeros(3), np.ones(3), witness=np.zeros((geom.n_ids, 5)),
+                        footprint=True)
 
 
 def test_cutting_sides_in_clutter_keeps_the_set():

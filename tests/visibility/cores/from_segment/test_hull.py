@@ -63,7 +63,7 @@ def _triangles(verts0, verts1, faces, moving) -> GeometryArrays:
     """The kernels' geometry group for triangles alone (no clusters, no spheres)."""
     return GeometryArrays(verts0, verts1, faces, moving, np.zeros(1, np.int64),
                           np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
-                          np.zeros(0), len(faces))
+                          np.zeros(0), len(faces), np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 def _check_case(verts0, verts1, v0, v1, rb, near, tally):
