@@ -31,6 +31,7 @@ from visibility.cores.from_segment.hull import HMAX, Hulls, hull_rows, store_hul
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.cycles import cycles as _cycles
+from visibility.exact_grid import ray_triangle
 from visibility.raster.face_pixels import pixel_range
 
 #: A tile whose entries not yet marked visible are at most one in KNOWN_SHARE resolves only
@@ -269,38 +270,14 @@ def _clip_half(lo, hi, a, b):
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _tri_hit(P, U, t, x, y, near, wt):  # pragma: no cover - numba
+def _tri_hit(P, U, t, x, y, near, wt, tq):  # pragma: no cover - numba
     """Whether the triangle with camera-space corners P + t U (3, 3) meets the ray (x, y, -1)
-    from the eye at a depth in [near, wt) (Moller-Trumbore; depth is -z, the ray's own
-    parameter)."""
-    ax = P[0, 0] + t * U[0, 0]
-    ay = P[0, 1] + t * U[0, 1]
-    az = P[0, 2] + t * U[0, 2]
-    e1x = P[1, 0] + t * U[1, 0] - ax
-    e1y = P[1, 1] + t * U[1, 1] - ay
-    e1z = P[1, 2] + t * U[1, 2] - az
-    e2x = P[2, 0] + t * U[2, 0] - ax
-    e2y = P[2, 1] + t * U[2, 1] - ay
-    e2z = P[2, 2] + t * U[2, 2] - az
-    # p = r x e2 with r = (x, y, -1)
-    px = y * e2z + e2y
-    py = -e2x - x * e2z
-    pz = x * e2y - y * e2x
-    det = e1x * px + e1y * py + e1z * pz
-    if det == 0.0:
-        return False
-    inv = 1.0 / det
-    tx, ty, tz = -ax, -ay, -az
-    u = (tx * px + ty * py + tz * pz) * inv
-    if u < 0.0 or u > 1.0:
-        return False
-    qx = ty * e1z - tz * e1y
-    qy = tz * e1x - tx * e1z
-    qz = tx * e1y - ty * e1x
-    v = (x * qx + y * qy - qz) * inv
-    if v < 0.0 or u + v > 1.0:
-        return False
-    d = (e2x * qx + e2y * qy + e2z * qz) * inv
+    from the eye at a depth in [near, wt) (the ray's own parameter is the depth; ``tq`` (1, 3,
+    3) scratch for ``exact_grid.ray_triangle``)."""
+    for c in range(3):
+        for r in range(3):
+            tq[0, c, r] = P[c, r] + t * U[c, r]
+    d = ray_triangle(tq, 0, 0.0, 0.0, 0.0, x, y, -1.0)
     return near <= d < wt
 
 
@@ -334,13 +311,13 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
     ray (x, y, -1) of the eye at time t at a depth in [near, wt); the ray lies in the square
     of pixel (pi, pj). ``rows``: (prim_src, prim_z, prim_zkey, prim_flag, prim_box);
     ``geom``: ``groups.GeometryArrays``; ``frame``: (R, dc, v0, dvec, near); ``sc3``: (P, U,
-    W) (3, 3) scratch. The list runs front to back by key, so the walk stops at the first key
-    at or beyond wt; a primitive whose pixel box, grown by a pixel, misses (pi, pj) cannot
-    reach a point of that pixel's square."""
+    W) (3, 3) and (1, 3, 3) scratch. The list runs front to back by key, so the walk stops
+    at the first key at or beyond wt; a primitive whose pixel box, grown by a pixel, misses
+    (pi, pj) cannot reach a point of that pixel's square."""
     prim_src, prim_z, prim_zkey, prim_flag, prim_box = rows
     verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
     R, dc, v0, dvec, near = frame
-    P, U, W = sc3
+    P, U, W, tq = sc3
     # The ray in world space: from the eye at t, along R^T (x, y, -1) (depth per unit).
     ox = v0[0] + t * dvec[0]
     oy = v0[1] + t * dvec[1]
@@ -365,7 +342,7 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                 if tri == pid:
                     continue
                 _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)
-                if _tri_hit(P, U, t, x, y, near, wt):
+                if _tri_hit(P, U, t, x, y, near, wt, tq):
                     return True
         elif flag & FLAG_SPHERE:
             sp = src - n_tri
@@ -391,7 +368,7 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                     return True
         elif src != pid:
             _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
-            if _tri_hit(P, U, t, x, y, near, wt):
+            if _tri_hit(P, U, t, x, y, near, wt, tq):
                 return True
     return False
 
@@ -788,6 +765,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     fp_o = np.empty((64, 15))
     pf_o = np.empty((3, 3))
     pf = borrow(pf_o)
+    tq_o = np.empty((1, 3, 3))
+    tq = borrow(tq_o)
     nfp = 0
     fp_rows = (prim_src, prim_z, prim_zkey, prim_flag, prim_box)
     # A private row of counters, copied out at the end.
@@ -1036,7 +1015,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             if _footprint_seen(pix, env, np.int64(fp_o[c, 1]), np.int64(fp_o[c, 2]),
                                np.int64(fp_o[c, 3]), np.int64(fp_o[c, 4]), pid, pf,
                                tile_start[tile], tile_start[tile + 1], tile_items, fp_rows,
-                               geom, (R, dc, v0, dvec, near), (P, U, W)):
+                               geom, (R, dc, v0, dvec, near), (P, U, W, tq)):
                 visible[pid] = True
                 work[C_FOOTPRINT] += 1
         for p in range(npx):
@@ -1068,3 +1047,4 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     keep_alive(own)
     keep_alive(work_o)
     keep_alive(pf_o)
+    keep_alive(tq_o)

@@ -373,11 +373,12 @@ def test_footprint_is_refused_with_witnesses():
 
 def test_cutting_sides_in_clutter_keeps_the_set():
     """Dense grass sweeps across the cube along a cell's side: the core cuts the sides
-    (``cuts``) and finds the same set as without cuts."""
+    (``cuts``) and finds the same set as without cuts, at its pixel samples (the centroid
+    samples of ``small="footprint"`` are placed per piece)."""
     scene = make_scene("grass", triangles=5000, seed=2)
     grid = ViewcellGrid.for_scene(scene)
     cell = grid.cell(len(grid) // 2)
-    cut = CORE.compute(scene, cell, CORE.make_params(resolution=32))
-    whole = CORE.compute(scene, cell, CORE.make_params(resolution=32, cuts=0))
+    cut = CORE.compute(scene, cell, CORE.make_params(resolution=32, small="samples"))
+    whole = CORE.compute(scene, cell, CORE.make_params(resolution=32, cuts=0, small="samples"))
     assert cut.stats.get("splits", 0) > 0 and "splits" not in whole.stats
     assert np.array_equal(cut.triangle_ids, whole.triangle_ids)
