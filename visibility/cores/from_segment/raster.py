@@ -283,7 +283,9 @@ def _tri_hit(P, U, t, x, y, near, wt, tq):  # pragma: no cover - numba
 
 @njit(**_JIT_INLINE_HELPER)
 def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no cover - numba
-    """Whether the ray o + s d, s in [near, wt), meets box c of ``lo``, ``hi`` (k, 3) (slabs)."""
+    """Whether the ray o + s d, s in [near, wt), may meet box c of ``lo``, ``hi`` (k, 3)
+    (slabs, with a relative slack: a box flat on one axis, a cluster of one wall, has its
+    two slabs at one depth, and a miss here would let a hidden triangle through)."""
     s0 = near
     s1 = wt
     for a in range(3):
@@ -299,7 +301,7 @@ def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no c
             u, v = v, u
         s0 = max(s0, u)
         s1 = min(s1, v)
-        if s0 > s1:
+        if s0 > s1 + 1e-9 * (abs(s0) + abs(s1)) + 1e-300:
             return False
     return True
 

@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.cores.from_segment.geometry import scene_geometries
-from visibility.cores.from_segment.raster import COUNTERS, _take_next
+from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box, _take_next
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.scene import Scene
 
@@ -87,3 +87,20 @@ def test_counters_of_a_hidden_quad_behind_a_near_one():
     assert st["insert_scan"] >= near_only["insert_scan"]
     assert st["pairs"] > near_only["pairs"]
     assert st["pairs"] == st["pieces"] + st["pairs_uncovered"] + st["pairs_behind"]
+
+
+def test_footprint_box_test_keeps_rays_that_meet_a_flat_box():
+    """The footprint rule skips a cluster whose box its ray cannot meet: a box flat on one
+    axis (a cluster of one wall) must still be met where the ray crosses it, at any angle,
+    and missed beside it or beyond the ray's depth."""
+    lo = np.array([[-1.0, 0.0, -5.0]])
+    hi = np.array([[1.0, 2.0, -5.0]])  # flat in z
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        target = np.array([rng.uniform(-1, 1), rng.uniform(0, 2), -5.0])
+        o = rng.uniform(-3, 3, 3) * np.array([1, 1, 0]) + np.array([0, 1, 0])
+        d = target - o
+        d /= -d[2]  # depth per unit along -z, as the kernels' rays
+        assert _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 10.0)
+        assert not _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 4.9)  # the wall lies beyond
+    assert not _ray_meets_box(0.0, 1.0, 0.0, 0.5, 0.0, -1.0, lo, hi, 0, 0.05, 10.0)  # x 2.5
