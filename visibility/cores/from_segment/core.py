@@ -70,12 +70,13 @@ class FromSegmentParams(CoreParams):
         walks a side; with centres on a regular grid that line can pass between every row of
         centres, while jittered samples do not line up: far fewer misses on sub-pixel clutter,
         for more time (figures: docs/cores/from_segment.md, benchmarks/results/real_cells.md).
-    small : "footprint" also reports a primitive that holds no pixel sample along a segment
-        where its nearest depth lies before the farthest depth a pixel of its box sees (a
-        triangle far smaller than a pixel that slides between the samples, though eyes on
-        the segment see it; it hides nothing); "samples" reports what some sample sees and
-        nothing else (the paper: exact at the samples). Figures:
-        docs/cores/from_segment.md.
+    small : "footprint" gives a triangle that holds no pixel sample along a segment (one far
+        smaller than a pixel, sliding between the samples) an extra sample at its centroid:
+        a ray from the eye on the segment through it, reported when nothing stands before it
+        (``raster._footprint_seen``; not in tiles listing more than
+        ``raster.FOOTPRINT_MAX_ITEMS`` primitives). Every such find is seen by a real eye, so
+        the answer stays exact at its samples. "samples" reports what some pixel sample sees
+        and nothing else (the paper). Figures: docs/cores/from_segment.md.
     eye_levels : heights at which the segments are walked: 1 = mid height, 2 = bottom and top
         of the box, 3 = all three (a box without height always uses one).
     walk : "open" walks the outline of the open floor inside the cell (``visibility.cell_walk``:
@@ -105,8 +106,8 @@ class FromSegmentParams(CoreParams):
     jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
                           help="how far each pixel's sample lies off its centre (0 = centres)")
     small: str = param("footprint", choices=SMALLS,
-                       help="footprint: also what slides between the samples, where nearer "
-                       "than its pixels' farthest depth; samples: what a sample sees (paper)")
+                       help="footprint: a triangle no pixel sample meets gets a sample at "
+                       "its centroid; samples: only the pixel samples (the paper)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
     walk: str = param("open", choices=WALKS,
                       help="segments: open (around where a person can stand in the cell, "

@@ -106,9 +106,9 @@ class Sweep(NamedTuple):
     jitter : samples' offset from pixel centres, pixels (``raster.sample_offset``).
     seed : the jitter pattern.
     cap : envelope rows per pixel to start with (grown x4 as needed, ``raster._grown``).
-    footprint : a primitive that holds no pixel sample along the segment is marked visible
-        where its nearest depth lies before the farthest depth of a pixel of its box
-        (``raster._footprint_seen``); False marks only what a sample sees (the paper).
+    footprint : a static triangle that holds no pixel sample along the segment gets an
+        extra sample at its centroid (``raster._footprint_seen``); False marks only what a
+        pixel sample sees (the paper).
     pad : how far off a pixel's centre, in pixels, a primitive's box and spans reach
         (``jitter``, or half a pixel with ``footprint``).
     """

@@ -75,9 +75,10 @@ _PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 #: (``_far_new``); cycles_cover / cycles_insert: the CPU cycles of the pairs' cover tests and of
 #: their chords' insertions into the envelopes (bound reads included), estimated from one pair
 #: in TIME_STRIDE (the chunk's running count of pairs), times TIME_STRIDE; footprint_seen:
-#: primitives holding no sample that the footprint rule marked (``_footprint_seen``);
-#: pixels_passed: pixels of a primitive's rows passed by without a cover test, its nearest
-#: depth beyond their bound.
+#: primitives holding no sample that the footprint rule marked (``_footprint_seen``; two
+#: tiles may both mark one); pixels_passed: pixels of a primitive's rows passed by without a
+#: cover test, its nearest depth beyond their bound; footprint_candidates: triangles the rule
+#: tested (per tile).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",

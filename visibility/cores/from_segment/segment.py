@@ -230,12 +230,11 @@ def segment_visible(
         ``MAX_SPLIT_DEPTH``, 0 = never), when nothing in the scene moves.
     envelope_cap : envelope rows per pixel to start with, grown x4 as a pixel needs more (up to
         ``MAX_CAP``); the answer does not depend on it (a smaller one tests the growth).
-    footprint : also mark a primitive that holds no pixel sample anywhere on the segment
-        where its nearest depth lies before the farthest depth a pixel of its box sees
-        (``raster._footprint_seen``; ``stats["footprint_seen"]``): sub-pixel triangles that
-        slide between the samples. False marks what some sample sees and nothing else (the
-        paper's answer, exact at the samples). Not with ``witness`` (such a primitive has no
-        sample to witness it).
+    footprint : also mark a static triangle that holds no pixel sample anywhere on the
+        segment when an extra sample at its centroid sees it (``raster._footprint_seen``;
+        ``stats["footprint_seen"]``): sub-pixel triangles that slide between the samples.
+        False marks what some pixel sample sees and nothing else (the paper's answer). Not
+        with ``witness`` (the extra samples have no pixel to name).
 
     Returns
     -------
