@@ -205,3 +205,27 @@ def pixel_bound(env, px, cnt):
     if prev < 1.0 - EPS_LEN:
         return np.inf
     return zmax
+
+
+@njit(**_JIT)
+def hides_over(env, px, cnt, lo, hi, z0, slope):  # pragma: no cover - numba
+    """Whether pixel px's envelope covers all of [lo, hi] (gaps up to EPS_LEN) nearer than
+    the depth z0 + slope t."""
+    cur = lo
+    for k in range(cnt[px]):
+        t0 = env[px, k, 0]
+        t1 = env[px, k, 1]
+        if t1 <= lo:
+            continue
+        if t0 >= hi:
+            break
+        if t0 > cur + EPS_LEN:
+            return False
+        a = max(t0, lo)
+        b = min(t1, hi)
+        za = env[px, k, 2]
+        m = env[px, k, 3]
+        if z0 + slope * a < za + m * (a - t0) or z0 + slope * b < za + m * (b - t0):
+            return False
+        cur = t1
+    return cur >= hi - EPS_LEN

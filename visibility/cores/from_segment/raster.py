@@ -24,6 +24,7 @@ from visibility.cores.from_segment.envelope import (
     MAX_CAP,
     _grow,
     envelope_insert,
+    hides_over,
     pixel_bound,
 )
 from visibility.cores.from_segment.groups import ChunkScratch, PieceScratch, TilePixels
@@ -377,41 +378,18 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
 
 
 @njit(**_JIT_NO_NRT)
-def _env_hides(env, px, cnt, lo, hi, wn, wd):  # pragma: no cover - numba
-    """Whether pixel px's envelope covers all of [lo, hi] nearer than depth wn + wd t."""
-    cur = lo
-    for k in range(cnt[px]):
-        t0 = env[px, k, 0]
-        t1 = env[px, k, 1]
-        if t1 <= lo:
-            continue
-        if t0 >= hi:
-            break
-        if t0 > cur + EPS_LEN:
-            return False
-        a = max(t0, lo)
-        b = min(t1, hi)
-        z0 = env[px, k, 2]
-        m = env[px, k, 3]
-        if wn + wd * a < z0 + m * (a - t0) or wn + wd * b < z0 + m * (b - t0):
-            return False
-        cur = t1
-    return cur >= hi - EPS_LEN
-
-
-@njit(**_JIT_NO_NRT)
 def _footprint_seen(pix, env, ia, ib, ja, jb, pid, P, i0, i1, tile_items, rows, geom, frame,
                     sc3):  # pragma: no cover - numba
     """Whether a static triangle ``pid`` that holds no pixel sample along the segment
     (camera-space corners ``P`` (3, 3) from the eye at t = 0) is seen by an extra sample at
     its own centroid: for each pixel of the tile's rows [ia, ib], columns [ja, jb] (its box)
     that its centroid's image crosses, and whose own envelope (``env``) does not stand nearer
-    than the triangle all through that crossing (``_env_hides``, a pre-test that spares the
-    cast), the ray through the centroid at the middle of the crossing, from the eye at that
-    time, meets nothing of the tile's list (``_ray_blocked``) before it. A found sample is an
-    eye on the segment and a direction that see the triangle: the answer stays exact, at the
-    pixel samples and these. Tiles listing more than ``FOOTPRINT_MAX_ITEMS`` primitives
-    collect no such triangles (the caller's choice).
+    than the triangle all through that crossing (``envelope.hides_over``, a pre-test that
+    spares the cast), the ray through the centroid at the middle of the crossing, from the
+    eye at that time, meets nothing of the tile's list (``_ray_blocked``) before it. A found
+    sample is an eye on the segment and a direction that see the triangle: the answer stays
+    exact, at the pixel samples and these. Tiles listing more than ``FOOTPRINT_MAX_ITEMS``
+    primitives collect no such triangles (the caller's choice).
 
     Why: a triangle far smaller than a pixel slides between the samples of a whole sweep and
     no sample sees it, though eyes on the segment do (a roof's detail hundreds of metres
@@ -440,10 +418,10 @@ def _footprint_seen(pix, env, ia, ib, ja, jb, pid, P, i0, i1, tile_items, rows, 
             lo, hi = _clip_half(lo, hi, ytop * w0 - cy, ytop * wd + dc[1])
             if not hi >= lo:
                 continue
-            # What the pixel's own sample sees over the crossing is nearer than the
-            # triangle's nearest corner all along: no ray is cast (the triangle may still peek
-            # out at its centroid; skipped for the time, tiles of clutter list thousands).
-            if _env_hides(env, (i - r0) * tw + (j - cl0), cnt, lo, hi, wn, wd):
+            # The pixel's own sample sees something nearer than the triangle's nearest corner
+            # all through the crossing: no ray is cast. The centroid could still show there;
+            # skipped for the time a cast costs (it walks the tile's list).
+            if hides_over(env, (i - r0) * tw + (j - cl0), cnt, lo, hi, wn, wd):
                 continue
             # One time per pixel crossed: more per crossing found no more on the Lyon tile.
             t = 0.5 * (lo + hi)
@@ -677,9 +655,9 @@ def _far_new(i0, i1, tile_items, prim_src, prim_flag, cl_start, cl_tris, visible
 
 
 @njit(**_JIT)
-def _fp_push(fp, n, pid, ia, ib, ja, jb, z, P):
+def _fp_push(fp, n, pid, ia, ib, ja, jb, P):
     """Row n of ``fp`` (grown x2 when full; returned) := a triangle the footprint rule tests
-    once its tile's envelopes are whole: (id, ia, ib, ja, jb, nearest depth, corners P)."""
+    once its tile's envelopes are whole: (id, ia, ib, ja, jb, corners P)."""
     if n >= fp.shape[0]:
         grown = np.empty((2 * fp.shape[0], fp.shape[1]))
         grown[:n] = fp[:n]
@@ -689,10 +667,9 @@ def _fp_push(fp, n, pid, ia, ib, ja, jb, z, P):
     fp[n, 2] = ib
     fp[n, 3] = ja
     fp[n, 4] = jb
-    fp[n, 5] = z
     for r in range(3):
         for c in range(3):
-            fp[n, 6 + 3 * r + c] = P[r, c]
+            fp[n, 5 + 3 * r + c] = P[r, c]
     return fp
 
 
@@ -765,7 +742,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     (cnt, bound, jx, jy, coef, P, U, W, R, dc, cen, vel, bx, span, c_uv, c_scratch, c_pts,
      ext, sc) = borrow(own)
     # Triangles for the footprint rule (``_fp_push``), tested when their tile is done.
-    fp_o = np.empty((64, 15))
+    fp_o = np.empty((64, 14))
     pf_o = np.empty((3, 3))
     pf = borrow(pf_o)
     tq_o = np.empty((1, 3, 3))
@@ -811,6 +788,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 jx[p] = dx * step
                 jy[p] = dy * step
         open_px = npx
+        # The footprint rule's rays walk the tile's list: not in clutter, where it is long.
+        fp_tile = footprint and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS
         if 0 < n_new and KNOWN_SHARE * n_new <= tile_start[tile + 1] - tile_start[tile]:
             # Few primitives not yet marked: only the pixels they can reach are resolved, the
             # others (bound -inf: every primitive passes them by) would mark nothing new.
@@ -825,7 +804,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 ib = min(prim_box[pr, 1], r1 - 1)
                 ja = max(prim_box[pr, 2], cl0)
                 jb = min(prim_box[pr, 3], cl1 - 1)
-                if footprint and (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
+                if fp_tile and (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
                     # The footprint rule may read any pixel of a small box.
                     _box_spans(ia, ib, ja, jb, r0, span)
                 else:
@@ -841,8 +820,6 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
         tbound = np.inf
         since = 0
         nfp = 0
-        # The rule's rays walk the tile's list: not in clutter, where it is long.
-        fp_tile = footprint and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS
         for r in range(3):
             for c in range(3):
                 R[r, c] = rots[f, r, c]
@@ -932,7 +909,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                             and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
                             and work[C_PASSED] == s0
                             and not moving[t]):
-                        fp_o = _fp_push(fp_o, nfp, t, ia, ib, ja, jb, zt, P)
+                        fp_o = _fp_push(fp_o, nfp, t, ia, ib, ja, jb, P)
                         nfp += 1
                     closed += nc
                     if ovf:
@@ -987,7 +964,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
                         and work[C_PASSED] == s0
                         and kind == 0):
-                    fp_o = _fp_push(fp_o, nfp, src, ia, ib, ja, jb, prim_z[pr], P)
+                    fp_o = _fp_push(fp_o, nfp, src, ia, ib, ja, jb, P)
                     nfp += 1
             cyc_setup += _cycles() - cs0
             if ovf:
@@ -1014,7 +991,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 continue
             for r in range(3):
                 for k in range(3):
-                    pf[r, k] = fp_o[c, 6 + 3 * r + k]
+                    pf[r, k] = fp_o[c, 5 + 3 * r + k]
             if _footprint_seen(pix, env, np.int64(fp_o[c, 1]), np.int64(fp_o[c, 2]),
                                np.int64(fp_o[c, 3]), np.int64(fp_o[c, 4]), pid, pf,
                                tile_start[tile], tile_start[tile + 1], tile_items, fp_rows,
