@@ -106,11 +106,13 @@ class Sweep(NamedTuple):
     jitter : samples' offset from pixel centres, pixels (``raster.sample_offset``).
     seed : the jitter pattern.
     cap : envelope rows per pixel to start with (grown x4 as needed, ``raster._grown``).
-    footprint : a static triangle that holds no pixel sample along the segment gets an
-        extra sample at its centroid (``raster._footprint_seen``); False marks only what a
-        pixel sample sees (the paper).
+    footprint : the footprint rule's mode (``raster.FOOTPRINT_OFF``: only what a pixel
+        sample sees, the paper; ``FOOTPRINT_CENTROID``: a static triangle that holds no pixel
+        sample along the segment gets an extra sample at its centroid,
+        ``raster._footprint_seen``; ``FOOTPRINT_CORNERS``: near its corners too, and for
+        triangles passing closed pixels by).
     pad : how far off a pixel's centre, in pixels, a primitive's box and spans reach
-        (``jitter``, or half a pixel with ``footprint``).
+        (``jitter``, or half a pixel with the footprint rule).
     """
 
     v0: np.ndarray
@@ -122,7 +124,7 @@ class Sweep(NamedTuple):
     jitter: float
     seed: int
     cap: int
-    footprint: bool
+    footprint: int
     pad: float
 
 

@@ -45,6 +45,14 @@ SMALL_BOX = 8
 #: Tiles listing more primitives than this (clutter) get no footprint rule
 #: (``_footprint_seen``): each of its rays walks the list.
 FOOTPRINT_MAX_ITEMS = 2048
+#: The footprint rule's modes (``Sweep.footprint``): off (the pixel samples alone), a sample
+#: at the centroid of a triangle no pixel sample meets and whose box holds no closed pixel,
+#: or also near its corners, and for triangles whose box holds closed pixels beside open ones.
+FOOTPRINT_OFF, FOOTPRINT_CENTROID, FOOTPRINT_CORNERS = 0, 1, 2
+#: How far a corner's point lies towards the centroid (a share of the way).
+CORNER_INSET = 0.1
+#: What ``_point_seen`` found for a point, in rising order of what it learnt.
+OUTSIDE, SKIPPED, BLOCKED, SEEN = 0, 1, 2, 3
 #: One pixel pair in TIME_STRIDE is timed by step (cover test, then the envelope's insertions):
 #: two counter reads at every pair would cost a sizeable share of a meadow's time.
 TIME_STRIDE = 16
@@ -309,19 +317,56 @@ def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no c
 
 
 @njit(**_JIT_NO_NRT)
+def _sphere_hit(sp, x, y, t, wt, near, geom, frame):  # pragma: no cover - numba
+    """Whether sphere ``sp`` meets the ray (x, y, -1) of the eye at time t at a depth in
+    [near, wt) (``_ray_blocked``'s arguments)."""
+    verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
+    R, dc, v0, dvec, near_ = frame
+    # Centre relative to the eye at t, in the face's frame; the ray's depth is its own
+    # parameter s (r = (x, y, -1)).
+    bx = 0.0
+    cc = 0.0
+    for r in range(3):
+        w = 0.0
+        for c in range(3):
+            w += R[r, c] * (c0[sp, c] + t * (c1[sp, c] - c0[sp, c]) - v0[c] - t * dvec[c])
+        rr = x if r == 0 else (y if r == 1 else -1.0)
+        bx += rr * w
+        cc += w * w
+    a = x * x + y * y + 1.0
+    disc = bx * bx - a * (cc - radii[sp] * radii[sp])
+    if disc >= 0.0:
+        sq = np.sqrt(disc)
+        s1 = (bx - sq) / a
+        s2 = (bx + sq) / a
+        if s1 < wt and s2 >= near:
+            return True
+    return False
+
+
+@njit(**_JIT_NO_NRT)
 def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame,
                  sc3):  # pragma: no cover - numba
     """Whether a primitive of the tile's list entries [i0, i1) other than ``pid`` meets the
     ray (x, y, -1) of the eye at time t at a depth in [near, wt); the ray lies in the square
     of pixel (pi, pj). ``rows``: (prim_src, prim_z, prim_zkey, prim_flag, prim_box);
     ``geom``: ``groups.GeometryArrays``; ``frame``: (R, dc, v0, dvec, near); ``sc3``: (P, U,
-    W) (3, 3) and (1, 3, 3) scratch. The list runs front to back by key, so the walk stops
-    at the first key at or beyond wt; a primitive whose pixel box, grown by a pixel, misses
-    (pi, pj) cannot reach a point of that pixel's square."""
+    W) (3, 3) and (1, 3, 3) scratch and ``last`` (2,) int64, the primitive that blocked the
+    last ray (kind 1 triangle, 2 sphere, 0 none; its id), tried first: rays through the same
+    sub-pixel triangle are nearly always blocked by the same thing, and any primitive that
+    meets the ray blocks it, listed or not. The list runs front to back by key, so the walk
+    stops at the first key at or beyond wt; a primitive whose pixel box, grown by a pixel,
+    misses (pi, pj) cannot reach a point of that pixel's square."""
     prim_src, prim_z, prim_zkey, prim_flag, prim_box = rows
     verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
     R, dc, v0, dvec, near = frame
-    P, U, W, tq = sc3
+    P, U, W, tq, last = sc3
+    if last[0] == 1 and last[1] != pid:
+        _cam_corners(R, verts0, verts1, faces, last[1], v0, dc, P, U, W)
+        if _tri_hit(P, U, t, x, y, near, wt, tq):
+            return True
+    elif last[0] == 2 and _sphere_hit(last[1], x, y, t, wt, near, geom, frame):
+        return True
     # The ray in world space: from the eye at t, along R^T (x, y, -1) (depth per unit).
     ox = v0[0] + t * dvec[0]
     oy = v0[1] + t * dvec[1]
@@ -347,63 +392,83 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                     continue
                 _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)
                 if _tri_hit(P, U, t, x, y, near, wt, tq):
+                    last[0] = 1
+                    last[1] = tri
                     return True
         elif flag & FLAG_SPHERE:
-            sp = src - n_tri
-            # Centre relative to the eye at t, in the face's frame; the ray's depth is its
-            # own parameter s (r = (x, y, -1)).
-            bx = 0.0
-            cc = 0.0
-            for r in range(3):
-                w = 0.0
-                for c in range(3):
-                    w += R[r, c] * (c0[sp, c] + t * (c1[sp, c] - c0[sp, c]) - v0[c]
-                                    - t * dvec[c])
-                rr = x if r == 0 else (y if r == 1 else -1.0)
-                bx += rr * w
-                cc += w * w
-            a = x * x + y * y + 1.0
-            disc = bx * bx - a * (cc - radii[sp] * radii[sp])
-            if disc >= 0.0:
-                sq = np.sqrt(disc)
-                s1 = (bx - sq) / a
-                s2 = (bx + sq) / a
-                if s1 < wt and s2 >= near:
-                    return True
+            if _sphere_hit(src - n_tri, x, y, t, wt, near, geom, frame):
+                last[0] = 2
+                last[1] = src - n_tri
+                return True
         elif src != pid:
             _cam_corners(R, verts0, verts1, faces, src, v0, dc, P, U, W)
             if _tri_hit(P, U, t, x, y, near, wt, tq):
+                last[0] = 1
+                last[1] = src
                 return True
     return False
 
 
 @njit(**_JIT_NO_NRT)
 def _footprint_seen(pix, env, ia, ib, ja, jb, pid, P, i0, i1, tile_items, rows, geom, frame,
-                    sc3):  # pragma: no cover - numba
+                    sc3, corners):  # pragma: no cover - numba
     """Whether a static triangle ``pid`` that holds no pixel sample along the segment
     (camera-space corners ``P`` (3, 3) from the eye at t = 0) is seen by an extra sample at
-    its own centroid: for each pixel of the tile's rows [ia, ib], columns [ja, jb] (its box)
-    that its centroid's image crosses, and whose own envelope (``env``) does not stand nearer
-    than the triangle all through that crossing (``envelope.hides_over``, a pre-test that
-    spares the cast), the ray through the centroid at the middle of the crossing, from the
-    eye at that time, meets nothing of the tile's list (``_ray_blocked``) before it. A found
+    its own centroid, or, with ``corners``, near one of its corners (``_point_seen``: for
+    each pixel of the tile's rows [ia, ib], columns [ja, jb], its box, that the point's image
+    crosses, a ray through the point from the eye at the middle of the crossing). A found
     sample is an eye on the segment and a direction that see the triangle: the answer stays
     exact, at the pixel samples and these. Tiles listing more than ``FOOTPRINT_MAX_ITEMS``
-    primitives collect no such triangles (the caller's choice).
+    primitives collect no such triangles (the caller's choice). The corners are tried when
+    the centroid's rays were cast and blocked, or it crossed none of the box's pixels (the
+    triangle straddles tiles), not when the pre-test passed over every pixel it crossed.
 
     Why: a triangle far smaller than a pixel slides between the samples of a whole sweep and
     no sample sees it, though eyes on the segment do (a roof's detail hundreds of metres
-    away); a sample placed on it decides."""
-    r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
+    away); a sample placed on it decides. Its centroid may lie behind a nearer edge that
+    leaves a corner in view (a sliver seen past a roof line)."""
     R, dc, v0, dvec, near = frame
-    # Centroid (cx, cy, -w0) - t dc, depth w0 + t wd.
+    wn = min(-P[0, 2], min(-P[1, 2], -P[2, 2]))
     cx = (P[0, 0] + P[1, 0] + P[2, 0]) / 3.0
     cy = (P[0, 1] + P[1, 1] + P[2, 1]) / 3.0
     w0 = -(P[0, 2] + P[1, 2] + P[2, 2]) / 3.0
+    for k in range(4 if corners else 1):
+        if k == 0:
+            x, y, w = cx, cy, w0
+        else:
+            # Inside the triangle, a tenth of the way from the corner to the centroid: a ray
+            # through the corner itself would graze the neighbours sharing it.
+            x = P[k - 1, 0] + CORNER_INSET * (cx - P[k - 1, 0])
+            y = P[k - 1, 1] + CORNER_INSET * (cy - P[k - 1, 1])
+            w = -P[k - 1, 2] + CORNER_INSET * (w0 + P[k - 1, 2])
+        got = _point_seen(pix, env, ia, ib, ja, jb, pid, x, y, w, wn, i0, i1, tile_items, rows,
+                          geom, frame, sc3)
+        if got == SEEN:
+            return True
+        if k == 0 and got == SKIPPED:
+            # Every pixel the centroid crossed shows something nearer all through: the
+            # corners are not tried (in clutter they cost more than they find).
+            break
+    return False
+
+
+@njit(**_JIT_NO_NRT)
+def _point_seen(pix, env, ia, ib, ja, jb, pid, cx, cy, w0, wn, i0, i1, tile_items, rows,
+                geom, frame, sc3):  # pragma: no cover - numba
+    """Whether a point of triangle ``pid`` at (cx, cy, -w0) in the camera frame of the eye at
+    t = 0 (its nearest corner at depth ``wn``) is seen by a ray through it from the eye at
+    the middle of its crossing of some pixel of rows [ia, ib], columns [ja, jb], whose own
+    envelope (``env``) does not stand nearer than the triangle all through that crossing
+    (``envelope.hides_over``, a pre-test that spares the cast), meeting nothing of the tile's
+    list (``_ray_blocked``) before it. The point moves by -t dc (depth w0 + t wd). Returns
+    ``SEEN``, ``BLOCKED`` (rays cast, all blocked), ``SKIPPED`` (crossed pixels, every one
+    passed over by the pre-test) or ``OUTSIDE`` (crossed none of them)."""
+    r0, cl0, tw, npx, step, cnt, bound, jx, jy = pix
+    R, dc, v0, dvec, near = frame
     wd = dc[2]
-    wn = min(-P[0, 2], min(-P[1, 2], -P[2, 2]))
     if min(w0, w0 + wd) < near:
-        return False
+        return SKIPPED
+    got = OUTSIDE
     for i in range(ia, ib + 1):
         ytop = 1.0 - i * step
         ybot = ytop - step
@@ -419,17 +484,19 @@ def _footprint_seen(pix, env, ia, ib, ja, jb, pid, P, i0, i1, tile_items, rows, 
             if not hi >= lo:
                 continue
             # The pixel's own sample sees something nearer than the triangle's nearest corner
-            # all through the crossing: no ray is cast. The centroid could still show there;
+            # all through the crossing: no ray is cast. The point could still show there;
             # skipped for the time a cast costs (it walks the tile's list).
             if hides_over(env, (i - r0) * tw + (j - cl0), cnt, lo, hi, wn, wd):
+                got = max(got, SKIPPED)
                 continue
             # One time per pixel crossed: more per crossing found no more on the Lyon tile.
             t = 0.5 * (lo + hi)
             w = w0 + t * wd
             if not _ray_blocked((cx - t * dc[0]) / w, (cy - t * dc[1]) / w, t, w, i, j, pid,
                                 i0, i1, tile_items, rows, geom, frame, sc3):
-                return True
-    return False
+                return SEEN
+            got = BLOCKED
+    return got
 
 
 @njit(**_JIT_NO_NRT)
@@ -747,6 +814,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     pf = borrow(pf_o)
     tq_o = np.empty((1, 3, 3))
     tq = borrow(tq_o)
+    last_o = np.zeros(2, dtype=np.int64)  # what blocked the rule's last ray
+    last = borrow(last_o)
     nfp = 0
     fp_rows = (prim_src, prim_z, prim_zkey, prim_flag, prim_box)
     # A private row of counters, copied out at the end.
@@ -789,7 +858,10 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 jy[p] = dy * step
         open_px = npx
         # The footprint rule's rays walk the tile's list: not in clutter, where it is long.
-        fp_tile = footprint and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS
+        fp_tile = (footprint != FOOTPRINT_OFF
+                   and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS)
+        # With corners, a triangle may pass closed pixels by, so long as it meets an open one.
+        fp_closed = footprint == FOOTPRINT_CORNERS
         if 0 < n_new and KNOWN_SHARE * n_new <= tile_start[tile + 1] - tile_start[tile]:
             # Few primitives not yet marked: only the pixels they can reach are resolved, the
             # others (bound -inf: every primitive passes them by) would mark nothing new.
@@ -907,7 +979,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     if (fp_tile and not ovf and not visible[t]
                             and (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) <= SMALL_BOX
                             and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
-                            and work[C_PASSED] == s0
+                            and (work[C_PASSED] == s0 or (fp_closed and work[C_PAIRS] > p0))
                             and not moving[t]):
                         fp_o = _fp_push(fp_o, nfp, t, ia, ib, ja, jb, P)
                         nfp += 1
@@ -962,7 +1034,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         and (prim_box[pr, 1] - prim_box[pr, 0] + 1)
                         * (prim_box[pr, 3] - prim_box[pr, 2] + 1) <= SMALL_BOX
                         and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
-                        and work[C_PASSED] == s0
+                        and (work[C_PASSED] == s0 or (fp_closed and work[C_PAIRS] > p0))
                         and kind == 0):
                     fp_o = _fp_push(fp_o, nfp, src, ia, ib, ja, jb, P)
                     nfp += 1
@@ -995,7 +1067,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             if _footprint_seen(pix, env, np.int64(fp_o[c, 1]), np.int64(fp_o[c, 2]),
                                np.int64(fp_o[c, 3]), np.int64(fp_o[c, 4]), pid, pf,
                                tile_start[tile], tile_start[tile + 1], tile_items, fp_rows,
-                               geom, (R, dc, v0, dvec, near), (P, U, W, tq)):
+                               geom, (R, dc, v0, dvec, near), (P, U, W, tq, last),
+                               fp_closed):
                 visible[pid] = True
                 work[C_FOOTPRINT] += 1
         for p in range(npx):
@@ -1028,3 +1101,4 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     keep_alive(work_o)
     keep_alive(pf_o)
     keep_alive(tq_o)
+    keep_alive(last_o)

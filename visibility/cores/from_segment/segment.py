@@ -56,7 +56,16 @@ from visibility.cores.from_segment.groups import (
     TileWork,
 )
 from visibility.cores.from_segment.hull import HMAX, Hulls, no_hulls
-from visibility.cores.from_segment.raster import C_CYCLES, C_MAX_CAP, C_THREAD, COUNTERS, _resolve
+from visibility.cores.from_segment.raster import (
+    C_CYCLES,
+    C_MAX_CAP,
+    C_THREAD,
+    COUNTERS,
+    FOOTPRINT_CENTROID,
+    FOOTPRINT_CORNERS,
+    FOOTPRINT_OFF,
+    _resolve,
+)
 from visibility.raster.camera import DEFAULT_NEAR, cube_face_rotations
 
 #: A segment piece whose primitives' pixel boxes add up to more than this many times the cube's
@@ -194,6 +203,7 @@ def segment_visible(
     max_cuts: int | None = None,
     envelope_cap: int = START_CAP,
     footprint: bool = False,
+    corners: bool = False,
 ) -> np.ndarray:
     """Primitives visible at some pixel sample of a cubemap moving along v0 -> v1.
 
@@ -235,6 +245,9 @@ def segment_visible(
         ``stats["footprint_seen"]``): sub-pixel triangles that slide between the samples.
         False marks what some pixel sample sees and nothing else (the paper's answer). Not
         with ``witness`` (the extra samples have no pixel to name).
+    corners : with ``footprint``, also samples near each corner of such a triangle, and takes
+        triangles whose pixel box holds closed pixels (a nearer surface in view all along the
+        segment) beside open ones: slivers seen past a roof line.
 
     Returns
     -------
@@ -276,14 +289,16 @@ def segment_visible(
     splittable = geom.verts0 is geom.verts1 and geom.centers0 is geom.centers1
     if footprint and witness is not None:
         raise ValueError("footprint marks primitives no sample witnesses: not with witness")
+    mode = FOOTPRINT_OFF if not footprint else (
+        FOOTPRINT_CORNERS if corners else FOOTPRINT_CENTROID)
     _piece(geom, v0, v1 - v0, 0.0, 1.0, cuts if splittable else 0, rb, rots, res,
            float(near), int(knots), jitter, int(seed), max(1, int(batch)), visible, stats,
-           witness, cap=cap, footprint=bool(footprint))
+           witness, cap=cap, footprint=mode)
     return visible
 
 
 def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, seed, batch,
-           visible, stats, witness, est=0.0, cap=START_CAP, footprint=False):
+           visible, stats, witness, est=0.0, cap=START_CAP, footprint=FOOTPRINT_OFF):
     """Visible set of the eye walking v0 -> v0 + dvec (times [ta, tb] of the whole segment).
 
     A piece whose primitives' pixel boxes add up to more than ``SPLIT_AREA`` times the cube's
@@ -292,12 +307,13 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     pixel's envelope reaches along the piece) stay far; halves sweep half as far. The union of
     the halves' sets is the set of the whole (exactness is per eye position). ``est``: an
     estimate of the piece's area from its parent's (0: none); over the limit, the piece is cut
-    without measuring. ``cap``: envelope rows per pixel to start with."""
+    without measuring. ``cap``: envelope rows per pixel to start with. ``footprint``: the
+    footprint rule's mode (``raster.FOOTPRINT_OFF`` and the others)."""
     t0 = time.perf_counter()
     limit = SPLIT_AREA * 6 * res * res
     # Pixel boxes hold the pixels whose sample may meet a primitive; with the footprint rule,
     # every pixel its centroid crosses (at centres, a sub-pixel triangle's box may hold none).
-    pad = max(jitter, 0.5) if footprint else jitter
+    pad = max(jitter, 0.5) if footprint != FOOTPRINT_OFF else jitter
     # The decision needs only the boxes' areas (no hulls, nothing stored). Deciding whole
     # segments from a full collection instead (open scenes never cut them) wasted far more on
     # cluttered scenes, where they are cut, than it saved on open ones.
@@ -341,7 +357,7 @@ def _piece(geom, v0, dvec, ta, tb, depth, rb, rots, res, near, knots, jitter, se
     # or late computation stops within a fraction of one segment's time.
     groups = max(1, min(TILE_GROUPS, len(tiles) // (4 * nch)))
     rows = PrimRows.of(prim_src, prim_box, prim_z, zkey, prim_flag, prim_face, hulls)
-    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed, cap, np.bool_(footprint), pad)
+    sweep = Sweep(v0, dvec, rots, res, near, knots, jitter, seed, cap, np.int64(footprint), pad)
     garrays = geom.arrays()
     for sel in np.array_split(np.arange(len(tiles)), groups):
         if not len(sel):

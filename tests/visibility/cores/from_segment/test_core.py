@@ -325,15 +325,27 @@ def _between_rows(occluder: str) -> Scene:
     """A 2 cm triangle 50 m down -Z at a vertical tangent of 0.001-0.0014: between the row
     centres +-1/64 of a 32 px axis-aligned face for every eye at y 1.7 (which only moves in x),
     so no centre ever meets it; ``occluder`` "wall" (a wall 10 m away) or "sphere" (5 m across,
-    25 m away) hides it from every such eye, "none" leaves it in plain view, and "speck" puts a
-    1.2 m x 2 cm board 25 m away in every line of sight to it, itself between the same rows."""
+    25 m away) hides it from every such eye, "none" leaves it in plain view, "speck" puts a
+    1.2 m x 2 cm board 25 m away in every line of sight to it, itself between the same rows,
+    and "slat" a 3 mm one in every line of sight to its centroid that leaves its corners in
+    view (the centroid's lines cross the slat's plane at y 1.7283, the corners' at 1.725 and
+    1.735). For "straddle" the triangle stands at tangents -0.0005 to 0.0005, within half a
+    pixel of the rows of centres on both sides (its box holds pixels of each, in two tiles),
+    over a wall 10 m away whose top edge stays 5 mm below every line of sight to it: the row
+    below sees the wall, nearer, all along the segment (those pixels close, and the triangle
+    passes them by), the row above sees nothing, and the centroid's image stays in the row
+    below."""
     tris = [[(0.0, 1.75, -50.0), (0.02, 1.75, -50.0), (0.0, 1.77, -50.0)]]
-    if occluder == "speck":
-        tris += [[(-0.6, 1.72, -25), (0.6, 1.72, -25), (0.6, 1.74, -25)],
-                 [(-0.6, 1.72, -25), (0.6, 1.74, -25), (-0.6, 1.74, -25)]]
-    if occluder == "wall":
-        tris += [[(-20, -10, -10), (20, -10, -10), (20, 10, -10)],
-                 [(-20, -10, -10), (20, 10, -10), (-20, 10, -10)]]
+    if occluder == "straddle":
+        tris = [[(0.0, 1.675, -50.0), (0.02, 1.675, -50.0), (0.0, 1.725, -50.0)]]
+    if occluder in ("speck", "slat"):
+        y0, y1 = (1.72, 1.74) if occluder == "speck" else (1.727, 1.730)
+        tris += [[(-0.6, y0, -25), (0.6, y0, -25), (0.6, y1, -25)],
+                 [(-0.6, y0, -25), (0.6, y1, -25), (-0.6, y1, -25)]]
+    if occluder in ("wall", "straddle"):
+        top = 10.0 if occluder == "wall" else 1.69
+        tris += [[(-20, -10, -10), (20, -10, -10), (20, top, -10)],
+                 [(-20, -10, -10), (20, top, -10), (-20, top, -10)]]
     v = np.array(tris, dtype=np.float64).reshape(-1, 3)
     kw = {}
     if occluder == "sphere":
@@ -341,27 +353,34 @@ def _between_rows(occluder: str) -> Scene:
     return Scene(v, np.arange(len(v)).reshape(-1, 3), name="between_rows", **kw)
 
 
-@pytest.mark.parametrize("occluder", ["none", "wall", "sphere", "speck"])
+@pytest.mark.parametrize("occluder", ["none", "wall", "sphere", "speck", "slat", "straddle"])
 def test_footprint_finds_a_triangle_between_the_samples_and_nothing_hidden(occluder):
     """``small="samples"`` (the paper) reports what a pixel centre sees: not a sub-pixel
     triangle that stays between two rows of centres along the whole segment. "footprint"
     samples it at its centroid too: reported in plain view, not behind a wall or a sphere,
     nor behind a board no pixel sample meets either (its centroid ray is cast past the
-    pixels' envelopes, and the board, reported itself, stops it)."""
+    pixels' envelopes, and the board, reported itself, stops it). "corners" samples near its
+    corners as well: it finds the triangle past a slat that hides its centroid from every
+    eye, and past a wall's edge where its centroid's image stays in the closed row below
+    and its corners show in the tile above, where "footprint" does not; and it reports
+    nothing hidden either."""
     scene = _between_rows(occluder)
     p, q = np.array([-1.0, 1.7, 0.0]), np.array([1.0, 1.7, 0.0])
     kw = dict(resolution=32, runs=1, jitter=0.0, first_orientation="axis")
     paper = CORE.compute_segment(scene, p, q, CORE.make_params(small="samples", **kw))
-    both = CORE.compute_segment(scene, p, q, CORE.make_params(small="footprint", **kw))
-    wall = [1, 2] if occluder == "wall" else []
+    wall = [1, 2] if occluder in ("wall", "straddle") else []
     assert paper.triangle_ids.tolist() == wall
-    want = {"none": [0], "wall": wall, "sphere": [], "speck": [1, 2]}[occluder]
-    assert both.triangle_ids.tolist() == want
-    if occluder in ("none", "speck"):
-        assert both.stats["footprint_candidates"] > 0
-    # Two tiles may both mark a triangle before either sees the other's mark.
-    found = len(want) - len(wall)
-    assert found <= both.stats.get("footprint_seen", 0) <= 2 * found
+    for small in ("footprint", "corners"):
+        got = CORE.compute_segment(scene, p, q, CORE.make_params(small=small, **kw))
+        want = {"none": [0], "sphere": [], "speck": [1, 2], "slat": [1, 2]}.get(occluder, wall)
+        if small == "corners" and occluder in ("slat", "straddle"):
+            want = [0] + want
+        assert got.triangle_ids.tolist() == want, small
+        if occluder in ("none", "speck", "slat", "straddle"):
+            assert got.stats["footprint_candidates"] > 0
+        # Two tiles may both mark a triangle before either sees the other's mark.
+        found = len(want) - len(wall)
+        assert found <= got.stats.get("footprint_seen", 0) <= 2 * found, small
 
 
 def test_footprint_is_refused_with_witnesses():

@@ -105,11 +105,13 @@ def test_exact_at_its_jittered_samples_on_real_scenes(walked, turn):
     assert unwitnessed(wit, vis, v, v, faces, a, b, RES, rot, jitter=JITTER, seed=SEED) == []
 
 
-def test_footprint_adds_only_what_eyes_on_the_segment_see(walked):
-    """The footprint rule (``footprint=True``, the core's ``small="footprint"``) adds to the
-    samples' set only triangles that float64-confirmed Embree rays from eyes on the segment
-    itself, aimed at random points of each, see (``ray_aimed``): each was found by a sample
-    placed at its centroid, so none is a guess."""
+@pytest.mark.parametrize("corners", [False, True], ids=["footprint", "corners"])
+def test_footprint_adds_only_what_eyes_on_the_segment_see(walked, corners):
+    """The footprint rule (``footprint=True``, the core's ``small="footprint"``; with
+    ``corners``, ``small="corners"``) adds to the samples' set only triangles that
+    float64-confirmed Embree rays from eyes on the segment itself, aimed at random points of
+    each, see (``ray_aimed``): each was found by a sample placed on it, so none is a
+    guess."""
     from visibility.ray_aimed import aimed_seen
 
     scene, cell, a, b = walked
@@ -117,7 +119,8 @@ def test_footprint_adds_only_what_eyes_on_the_segment_see(walked):
     kw = dict(resolution=RES, jitter=JITTER, seed=SEED)
     base = segment_visible(geom, a, b, oblique_rotation(), **kw)
     stats: dict = {}
-    more = segment_visible(geom, a, b, oblique_rotation(), stats=stats, footprint=True, **kw)
+    more = segment_visible(geom, a, b, oblique_rotation(), stats=stats, footprint=True,
+                           corners=corners, **kw)
     assert np.all(more[base])  # it only adds
     added = np.flatnonzero(more & ~base)
     assert stats["footprint_candidates"] > 0 and stats.get("footprint_seen", 0) >= len(added)
