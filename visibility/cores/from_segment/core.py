@@ -34,7 +34,7 @@ ORIENTATIONS = ("axis", "oblique")
 #: How a cell's view segments are chosen (``FromSegmentParams.walk``).
 WALKS = ("open", "rectangle")
 #: What a primitive that holds no pixel sample gets (``FromSegmentParams.small``).
-SMALLS = ("footprint", "corners", "samples")
+SMALLS = ("corners", "footprint", "samples")
 
 
 def oblique_rotation() -> np.ndarray:
@@ -70,16 +70,16 @@ class FromSegmentParams(CoreParams):
         walks a side; with centres on a regular grid that line can pass between every row of
         centres, while jittered samples do not line up: far fewer misses on sub-pixel clutter,
         for more time (figures: docs/cores/from_segment.md, benchmarks/results/real_cells.md).
-    small : "footprint" gives a triangle that holds no pixel sample along a segment (one far
-        smaller than a pixel, sliding between the samples) an extra sample at its centroid:
-        a ray from the eye on the segment through it, reported when nothing stands before it
-        (``raster._footprint_seen``; not in tiles listing more than
-        ``raster.FOOTPRINT_MAX_ITEMS`` primitives). Every such find is seen by a real eye, so
-        the answer stays exact at its samples. "corners" also samples near each corner of such
-        a triangle, and takes triangles whose pixel box holds pixels closed by a nearer
-        surface beside open ones (slivers seen past a roof line): fewer misses on far
-        sub-pixel detail, for more time where much of it is hidden. "samples" reports what
-        some pixel sample sees and nothing else (the paper). Figures:
+    small : what a triangle that holds no pixel sample along a segment (one far smaller than
+        a pixel, sliding between the samples) gets. "corners" (the default): an extra sample
+        at its centroid, a ray from the eye on the segment through it, reported when nothing
+        stands before it (``raster._footprint_seen``; not in tiles listing more than
+        ``raster.FOOTPRINT_MAX_ITEMS`` primitives), then, where the centroid's rays were
+        blocked, samples near each corner; and triangles whose pixel box holds pixels closed
+        by a nearer surface beside open ones (slivers past a roof line) get them too.
+        "footprint": the centroid only, and no triangle passing closed pixels by. Every such
+        find is seen by a real eye, so the answer stays exact at its samples. "samples"
+        reports what some pixel sample sees and nothing else (the paper). Figures:
         docs/cores/from_segment.md.
     eye_levels : heights at which the segments are walked: 1 = mid height, 2 = bottom and top
         of the box, 3 = all three (a box without height always uses one).
@@ -109,10 +109,10 @@ class FromSegmentParams(CoreParams):
                         help="near-plane distance of the visibility cameras")
     jitter: float = param(0.5, ge=0.0, le=0.5, unit="px",
                           help="how far each pixel's sample lies off its centre (0 = centres)")
-    small: str = param("footprint", choices=SMALLS,
-                       help="footprint: a triangle no pixel sample meets gets a sample at "
-                       "its centroid; corners: near its corners too; samples: only the "
-                       "pixel samples (the paper)")
+    small: str = param("corners", choices=SMALLS,
+                       help="corners: a triangle no pixel sample meets gets samples at its "
+                       "centroid and near its corners; footprint: at its centroid only; "
+                       "samples: only the pixel samples (the paper)")
     eye_levels: int = param(3, ge=1, le=3, help="heights walked: 1 mid, 2 bottom and top, 3 all")
     walk: str = param("open", choices=WALKS,
                       help="segments: open (around where a person can stand in the cell, "

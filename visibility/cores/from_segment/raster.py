@@ -317,11 +317,11 @@ def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no c
 
 
 @njit(**_JIT_NO_NRT)
-def _sphere_hit(sp, x, y, t, wt, near, geom, frame):  # pragma: no cover - numba
+def _sphere_hit(sp, x, y, t, wt, geom, frame):  # pragma: no cover - numba
     """Whether sphere ``sp`` meets the ray (x, y, -1) of the eye at time t at a depth in
     [near, wt) (``_ray_blocked``'s arguments)."""
     verts0, verts1, faces, moving, cl_start, cl_tris, c0, c1, radii, n_tri, cl_lo, cl_hi = geom
-    R, dc, v0, dvec, near_ = frame
+    R, dc, v0, dvec, near = frame
     # Centre relative to the eye at t, in the face's frame; the ray's depth is its own
     # parameter s (r = (x, y, -1)).
     bx = 0.0
@@ -365,7 +365,7 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
         _cam_corners(R, verts0, verts1, faces, last[1], v0, dc, P, U, W)
         if _tri_hit(P, U, t, x, y, near, wt, tq):
             return True
-    elif last[0] == 2 and _sphere_hit(last[1], x, y, t, wt, near, geom, frame):
+    elif last[0] == 2 and _sphere_hit(last[1], x, y, t, wt, geom, frame):
         return True
     # The ray in world space: from the eye at t, along R^T (x, y, -1) (depth per unit).
     ox = v0[0] + t * dvec[0]
@@ -396,7 +396,7 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                     last[1] = tri
                     return True
         elif flag & FLAG_SPHERE:
-            if _sphere_hit(src - n_tri, x, y, t, wt, near, geom, frame):
+            if _sphere_hit(src - n_tri, x, y, t, wt, geom, frame):
                 last[0] = 2
                 last[1] = src - n_tri
                 return True

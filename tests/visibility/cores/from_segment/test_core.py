@@ -28,7 +28,7 @@ def test_registered_with_its_parameters():
     assert "from_segment" in available_cores()
     p = CORE.make_params()
     assert isinstance(p, FromSegmentParams)
-    assert (p.resolution, p.runs, p.eye_levels, p.small) == (256, 1, 3, "footprint")
+    assert (p.resolution, p.runs, p.eye_levels, p.small) == (256, 1, 3, "corners")
     for bad in ({"small": "centres"}, {"runs": 0}, {"runs": 1.5}, {"near": 0.0},
                 {"near": np.nan}, {"eye_levels": 4}, {"depth_knots": 0},
                 {"batch_triangles": 10}, {"resolution": 4}):
