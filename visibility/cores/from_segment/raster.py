@@ -860,8 +860,9 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
         # The footprint rule's rays walk the tile's list: not in clutter, where it is long.
         fp_tile = (footprint != FOOTPRINT_OFF
                    and tile_start[tile + 1] - tile_start[tile] <= FOOTPRINT_MAX_ITEMS)
-        # With corners, a triangle may pass closed pixels by, so long as it meets an open one.
-        fp_closed = footprint == FOOTPRINT_CORNERS
+        # With corners, a triangle may also pass closed pixels by, so long as it meets an open
+        # one, and its corners are tried.
+        fp_corners = footprint == FOOTPRINT_CORNERS
         if 0 < n_new and KNOWN_SHARE * n_new <= tile_start[tile + 1] - tile_start[tile]:
             # Few primitives not yet marked: only the pixels they can reach are resolved, the
             # others (bound -inf: every primitive passes them by) would mark nothing new.
@@ -979,7 +980,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     if (fp_tile and not ovf and not visible[t]
                             and (bx[1] - bx[0] + 1) * (bx[3] - bx[2] + 1) <= SMALL_BOX
                             and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
-                            and (work[C_PASSED] == s0 or (fp_closed and work[C_PAIRS] > p0))
+                            and (work[C_PASSED] == s0 or (fp_corners and work[C_PAIRS] > p0))
                             and not moving[t]):
                         fp_o = _fp_push(fp_o, nfp, t, ia, ib, ja, jb, P)
                         nfp += 1
@@ -1034,7 +1035,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                         and (prim_box[pr, 1] - prim_box[pr, 0] + 1)
                         * (prim_box[pr, 3] - prim_box[pr, 2] + 1) <= SMALL_BOX
                         and work[C_PAIRS] - p0 == work[C_UNCOVERED] - u0
-                        and (work[C_PASSED] == s0 or (fp_closed and work[C_PAIRS] > p0))
+                        and (work[C_PASSED] == s0 or (fp_corners and work[C_PAIRS] > p0))
                         and kind == 0):
                     fp_o = _fp_push(fp_o, nfp, src, ia, ib, ja, jb, P)
                     nfp += 1
@@ -1068,7 +1069,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                                np.int64(fp_o[c, 3]), np.int64(fp_o[c, 4]), pid, pf,
                                tile_start[tile], tile_start[tile + 1], tile_items, fp_rows,
                                geom, (R, dc, v0, dvec, near), (P, U, W, tq, last),
-                               fp_closed):
+                               fp_corners):
                 visible[pid] = True
                 work[C_FOOTPRINT] += 1
         for p in range(npx):
