@@ -533,13 +533,19 @@ def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
 
 @njit(cache=True, nogil=True, inline="always")
 def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq, ov, qctx, work):  # pragma: no cover - numba
-    """Whether occluder triangle r cannot reach K's box or is in front of all of Q, or lies in
+              nq, ov, qctx, wq, wcam, ztol, work):  # pragma: no cover - numba
+    """Whether occluder triangle r cannot reach K's box or is in front of all of Q (nearest
+    depth wq; cameras at depths up to wcam, depths compared with tolerance ztol), or lies in
     Q's plane without overlapping it (``_tri_off_q``) (``work[1]`` counts the calls)."""
     work[1] += 1
     grow = max(abs(owr[r, 0] - wref), abs(owr[r, 1] - wref)) * h
     if (obb[r, 1] + grow < kx0 or obb[r, 0] - grow > kx1 or obb[r, 3] + grow < ky0
             or obb[r, 2] - grow > ky1):
+        return True
+    # Wholly nearer than Q's nearest point and beyond every camera: a ray from a camera meets
+    # r, where it does, at a smaller depth than any point of Q, whatever r's slant (its
+    # plane may still cut Q's, which fails the plane test below).
+    if owr[r, 1] + ztol < wq and owr[r, 0] >= wcam + ztol:
         return True
     if not ouse[r]:
         return False
@@ -564,12 +570,12 @@ def _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
 # A call: inlined, its copies make the kernel slow to compile.
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam,
-              nq, ov, qctx, work):  # pragma: no cover - numba
+              nq, ov, qctx, wq, wcam, tol, work):  # pragma: no cover - numba
     """Whether every triangle of group g that can reach K's box is in front of all of Q."""
     r = head[g]
     while r >= 0:
         if not _front_of(r, obb, owr, ouse, oplane, wref, h, kx0, kx1, ky0, ky1, qcam, nq, ov,
-                         qctx, work):
+                         qctx, wq, wcam, tol, work):
             return False
         r = nxt[r]
     return True
@@ -697,8 +703,9 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
     at a depth no larger than that triangle's deepest vertex and, when the triangle lies
     beyond every camera position, on the ray itself. So g hides Q when all its triangles that
     can meet K are nearer than Q and beyond the cameras: checked on g's depth range, then on
-    its depth grid's cells over K. Failing both, the per-triangle plane test
-    (``_front_of``) on the triangles listed in those cells, or on all of g's. A cell's list
+    its depth grid's cells over K. Failing both, the per-triangle test (``_front_of``: the
+    same depth argument for the triangle alone, then its plane) on the triangles listed in
+    those cells, or on all of g's. A cell's list
     runs newest first, so roughly deepest first: its walk stops where every triangle left in
     it lies nearer than Q and beyond the cameras (the same depth argument per triangle; in
     dense clutter the lists hold hundreds of a surface's triangles in front of Q)."""
@@ -709,7 +716,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         _grid_sync(g, slot, head, nxt, obb, owr, gwlo, gwhi, h, dom, sg, sfr, shead, pool, pdep)
     if slot < 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq, ov, qctx, work)
+                         kb[3], qcam, nq, ov, qctx, wq, wcam, tol, work)
     grow = abs(wref - sfr[slot]) * h
     c0 = _cell(kb[0] - grow, dom[0], dom[4])
     c1 = _cell(kb[1] + grow, dom[0], dom[4])
@@ -725,7 +732,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
         return True
     if shead[slot, GRID * GRID + 1] != 0:
         return _in_front(g, head, nxt, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2],
-                         kb[3], qcam, nq, ov, qctx, work)
+                         kb[3], qcam, nq, ov, qctx, wq, wcam, tol, work)
     # The cells around K, then the list of wide triangles.
     wc = c1 - c0 + 1
     nc = (r1 - r0 + 1) * wc
@@ -736,7 +743,7 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
             if pdep[2 * k] + tol < wq and pdep[2 * k + 1] >= wcam + tol:
                 break
             if not _front_of(pool[2 + 2 * k], obb, owr, ouse, oplane, wref, h, kb[0], kb[1],
-                             kb[2], kb[3], qcam, nq, ov, qctx, work):
+                             kb[2], kb[3], qcam, nq, ov, qctx, wq, wcam, tol, work):
                 return False
             k = pool[3 + 2 * k]
     return True
@@ -815,7 +822,8 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
     a sub-pixel's K, which lies inside K. ``occ``: the occluders' arrays ``_hides`` reads;
     ``sub``: scratch (Q's and the camera rectangle's images, K and its geometry, the walk's
     stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved."""
-    head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom, qctx = occ
+    (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
+     qctx) = occ
     qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi, stack, cand = sub
     nc = 0
     for c in range(n_cov):
@@ -1385,8 +1393,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
      klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
      head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, edges,
-     live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, thash, eslot,
-     eready, sstate, enext, tseen, tset, work) = borrow(own)
+     live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, thash,
+     eslot, eready, sstate, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((8, FUSE_POLY)), np.empty(7))
@@ -1396,7 +1404,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
            np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(7),
            np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY), np.empty(MAX_POLY),
            np.empty((REFINE_STACK, 4)), np.empty(lmax + 1, dtype=np.int64))
-    occ = (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom, qctx)
+    occ = (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
+           qctx)
     pool[1] = 8 * lmax
     hmask = thash.shape[0] - 1
     pstamp = 0  # the pixel's, in sstate

@@ -113,10 +113,10 @@ def test_depth_plane_test_orders_triangles_for_every_offset():
     touching = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 6.0]])
     coplanar = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
     args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0)
-    assert _in_front(*args, behind, 3, NO_OV, STRICT, WORK)
-    assert not _in_front(*args, crossing, 3, NO_OV, STRICT, WORK)
-    assert _in_front(*args, touching, 3, NO_OV, STRICT, WORK)
-    assert not _in_front(*args, coplanar, 3, NO_OV, STRICT, WORK)
+    assert _in_front(*args, behind, 3, NO_OV, STRICT, 5.0, 0.0, 1e-9, WORK)
+    assert not _in_front(*args, crossing, 3, NO_OV, STRICT, 1.0, 0.0, 1e-9, WORK)
+    assert _in_front(*args, touching, 3, NO_OV, STRICT, 2.0, 0.0, 1e-9, WORK)
+    assert not _in_front(*args, coplanar, 3, NO_OV, STRICT, 2.0, 0.0, 1e-9, WORK)
 
 
 def test_a_coplanar_occluder_is_no_obstacle_only_where_it_does_not_overlap_q():
@@ -139,9 +139,10 @@ def test_a_coplanar_occluder_is_no_obstacle_only_where_it_does_not_overlap_q():
 
     off = np.array([[1.0, 1.0, 2.0], [2.0, 1.0, 2.0], [1.0, 2.0, 2.0]])
     over = np.array([[-2.0, -2.0, 2.0], [-1.0, -2.0, 2.0], [-2.0, -1.0, 2.0]])
-    assert _in_front(*args, off, 3, ov, relaxed(off), WORK)
-    assert not _in_front(*args, over, 3, ov, relaxed(over), WORK)
-    assert not _in_front(*args, off, 3, ov, STRICT, WORK)  # the strict test refuses both
+    assert _in_front(*args, off, 3, ov, relaxed(off), 2.0, 0.0, 1e-9, WORK)
+    assert not _in_front(*args, over, 3, ov, relaxed(over), 2.0, 0.0, 1e-9, WORK)
+    # The strict test refuses both.
+    assert not _in_front(*args, off, 3, ov, STRICT, 2.0, 0.0, 1e-9, WORK)
 
 
 def test_a_segment_in_q_plane_may_touch_q_but_not_cross_it():
@@ -433,6 +434,7 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     # 3 m deep elsewhere), so it hides Q at 2 m; unless those cells start before the cameras.
     # (Its member lists are empty but marked incomplete: the fallback walks all of g.)
     gwhi[0] = 3.0
+    owr[0, 1] = 3.0
     sg = np.empty((1, 2, GRID * GRID))
     sg[0, 0] = 0.5
     sg[0, 1] = 3.0
@@ -446,6 +448,29 @@ def test_depth_shortcuts_need_the_occluder_beyond_every_camera_position():
     grid = (np.array([0]), sg, np.array([2.0]), shead, pool, np.zeros(2))  # frame at Q's depth
     assert hides(0.0, 2.0, grid)
     assert not hides(0.6, 2.0, grid)
+
+
+def test_a_triangle_wholly_nearer_than_q_is_in_front_whatever_its_slant():
+    # T spans depths 2-4.9 and its plane cuts Q's (Q at 5-7, one vertex on T's near side):
+    # the plane test refuses, but a ray from a camera meets T, where it does, nearer than
+    # any point of Q. Only when T lies beyond every camera position and wholly before Q.
+    head = np.array([0])
+    nxt = np.array([-1])
+    obb = np.array([[-10.0, 10.0, -10.0, 10.0]])
+    owr = np.array([[2.0, 4.9]])
+    use = np.array([True])
+    # T's plane z = 2 + 2.9 x (x in [0, 1]), camera side positive.
+    n = np.array([2.9, 0.0, -1.0]) / np.hypot(2.9, 1.0)
+    plane = np.array([[n[0], n[1], n[2], -2.0 / np.hypot(2.9, 1.0), 1e-9]])
+    q = np.array([[0.0, 0.0, 5.0], [3.0, 0.0, 7.0], [0.0, 1.0, 6.0]])
+    assert n @ q[1] - plane[0, 3] > 0.0  # a vertex of Q on the cameras' side of T's plane
+    args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0, q, 3, NO_OV,
+            STRICT)
+    assert _in_front(*args, 5.0, 0.0, 1e-9, WORK)
+    assert not _in_front(*args, 5.0, 2.5, 1e-9, WORK)  # T starts before the cameras' depth
+    assert not _in_front(*args, 4.9, 0.0, 1e-9, WORK)  # T reaches Q's nearest depth
+    use[0] = False  # no plane to test: the depth order alone decides
+    assert _in_front(*args, 5.0, 0.0, 1e-9, WORK)
 
 
 def test_depth_grid_enters_members_when_a_test_asks():
@@ -778,8 +803,8 @@ def test_t_junction_share_finds_edges_along_reversed_open_edges():
 def _walk_hides(depths):
     """_hides on a group whose depth grid lists triangles of the given depth ranges (oldest
     first) in the cell under K, their plane test refused (ouse False) and the cells' depth
-    range forced past the cell shortcut, so only the list walk's depth stop can hide Q (its
-    nearest depth 2 m, cameras at w = 0)."""
+    range forced past the cell shortcut, so only depth order can hide Q (the list walk's stop
+    or each triangle's own range; its nearest depth 2 m, cameras at w = 0)."""
     k = len(depths)
     owr = np.array(depths, dtype=float)
     obb = np.tile([-1.0, 1.0, -1.0, 1.0], (k, 1))
