@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
+from visibility.cores.cos.core import BUSY_BLOCK, BUSY_MIN_ITEMS  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.ground_truth import cell_around, fn_fp_rates  # noqa: E402
 from visibility.raster.camera import DEFAULT_NEAR  # noqa: E402
@@ -102,6 +103,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
     fp = fn_fp_rates(pvs.triangle_ids, ref.ids)[1]
     st = pvs.stats
     row = {"cell": label, "resolution": resolution, "triangles": scene.n_triangles,
+           "params": dict(params),
            "seconds": pvs.seconds, "pvs": len(pvs), "reference": int(len(ref.ids)), "fn": fn,
            "fn_count": missed, "fp": fp,
            "overestimation": (len(pvs) - len(ref.ids) + missed) / max(1, len(ref.ids)),
@@ -123,6 +125,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
                                      "cycles_test", "cycles_insert", "cycles_coverall",
                                      "cycles_resolve")},
            "coarse_seconds": st.get("coarse_seconds", 0.0),
+           "block_tiles": st.get("block_tiles", 0), "subpixels": st.get("subpixels", 0),
+           "sub_hidden": st.get("refined", 0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
            "projected": st.get("projected", 0), "culled": st.get("culled", 0),
            "costliest_view": st.get("costliest_view")}
@@ -168,12 +172,13 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             if sc is kitchen and res == DEFAULT_RESOLUTION and kitchen_rows is not None:
                 kitchen_rows.update(kitchen_part(sc, box, keep["ids"], rows[-1], points))
         if sc is kitchen or label.endswith("4 m"):
-            # The steps on clutter's tiles (one run): every pixel of them sampled (the
-            # coarse pass still on), and then no coarse pass either.
+            # The steps on clutter's tiles (one run): every pixel of them sampled, and the
+            # coarse pass (off by default) before their samples.
             rows.append(_row(f"{label}, busy tiles every pixel", sc, box, DEFAULT_RESOLUTION,
                              ref, repeats=1 if sc is kitchen else 2, busy_block=1))
-            rows.append(_row(f"{label}, no coarse pass", sc, box, DEFAULT_RESOLUTION, ref,
-                             repeats=1 if sc is kitchen else 2, coarse_items=0))
+            rows.append(_row(f"{label}, with the coarse pass", sc, box, DEFAULT_RESOLUTION,
+                             ref, repeats=1 if sc is kitchen else 2,
+                             coarse_items=COARSE_STEP))
         # Separate groups hiding together (``fusion="groups"``) as a step.
         rows.append(_row(f"{label}, fusion groups", sc, box, DEFAULT_RESOLUTION, ref,
                          repeats=1 if sc is kitchen else 2, fusion="groups"))
@@ -312,7 +317,11 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 + (f"the coarse pass on {r['coarse_tiles']:,} screen tiles left "
                    f"{r['coarse_dropped']:,} of their {r['coarse_entries']:,} items out of "
                    "the pixels' lists" + _coarse_work(r) + ", " if r.get("coarse_tiles")
-                   else "no tile took the coarse pass, ") +
+                   else "no tile took the coarse pass, ")
+                + (f"{r['block_tiles']:,} busy screen tiles sampled per {_block(r)} pixels "
+                   f"({r['subpixels']:,} sub-samples resolved where a sample saw an entry, "
+                   f"{r['sub_hidden']:,} entries hidden there), " if r.get("block_tiles")
+                   else "") +
                 f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}) from "
                 f"{r.get('tile_items', 0):,} (primitive, screen tile) pairs, "
                 f"{r['list_entries'] / max(1, r.get('tile_items', 0)):.1f} pixels of a tile "
@@ -363,6 +372,16 @@ def _cycle_split(r: dict) -> str:
             f"{share['insert']:.0f} % to making occluders of them (set-up, fusion along shared "
             f"edges, merges), {share['coverall']:.0f} % to checking whether a group covers the "
             f"whole pixel, {100 - sum(share.values()):.0f} % to projecting entries and early z")
+
+
+#: The coarse pass's threshold in its step rows: busy tiles' (it is off by default).
+COARSE_STEP = BUSY_MIN_ITEMS
+
+
+def _block(r: dict[str, Any]) -> str:
+    """The busy tiles' sample size of a row: its own ``busy_block`` or the default."""
+    b = r.get("params", {}).get("busy_block", BUSY_BLOCK)
+    return f"{b} x {b}"
 
 
 def _coarse_work(r: dict[str, Any]) -> str:

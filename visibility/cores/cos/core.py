@@ -46,15 +46,17 @@ from visibility.viewcells import Viewcell
 DEFAULT_RESOLUTION = 128
 
 
-#: Items (primitives whose footprint meets it) from which a tile takes the coarse pass: in
-#: clutter it repays itself, on 100k city and village cells it cost more than it saved
-#: (benchmarks/results/cos.md).
-COARSE_MIN_ITEMS = 8192
-#: Pixels per side of the samples in the tiles that take the coarse pass (``CosParams``),
-#: where their lists may reach ``BUSY_BLOCK_MIN`` entries per pixel on average (the tile's
-#: ``bin_tiles`` bound): below that (the 4 m city cell's busy tiles) the coarser samples
-#: loosened the answer and gained no time (benchmarks/results/cos.md).
-BUSY_BLOCK = 2
+#: Items (primitives whose footprint meets it) from which a tile is busy (``CosParams``):
+#: clutter; 100k city and village cells at 0.3 m have no such tile.
+BUSY_MIN_ITEMS = 8192
+#: The coarse pass (``CosParams.coarse_items``): off by default, since busy tiles' samples
+#: resolved down to single pixels cost less without it (benchmarks/results/cos.md).
+COARSE_ITEMS = 0
+#: Pixels per side of the samples in busy tiles (``CosParams``), where their lists may reach
+#: ``BUSY_BLOCK_MIN`` entries per pixel on average (the tile's ``bin_tiles`` bound): below
+#: that (the 4 m city cell's busy tiles) the coarser samples loosened the answer and gained no
+#: time (benchmarks/results/cos.md).
+BUSY_BLOCK = 4
 BUSY_BLOCK_MIN = 1024
 #: The values it may take: divisors of ``lists.TILE``.
 BUSY_BLOCKS = (1, 2, 4, 8)
@@ -77,16 +79,20 @@ class CosParams(CoreParams):
         rows); the PVS stays conservative at any value, higher costs more and overestimates less.
     list_budget_mb : most memory (MiB) the per-pixel lists of one view may take at once; a view
         whose lists are longer is resolved in runs of screen tiles.
-    coarse_items : the coarse pass (``cos_pvs``): each screen tile of ``lists.TILE`` x ``TILE``
-        pixels whose footprints list at least this many primitives (at the default
-        resolution and above; scaled by the tile's solid angle below it) is first resolved
-        as one pixel of the tile's width, and what that finds hidden for the whole tile is
-        left out of the tile's per-pixel lists; 0 turns it off.
-    busy_block : the tiles that take the coarse pass and may list ``BUSY_BLOCK_MIN`` entries
-        per pixel are then resolved with one sample per
-        ``busy_block`` x ``busy_block`` pixels (at their centre, covering all their directions,
-        so still conservative) where the others sample every pixel: in clutter their lists
-        are long and mostly the same from pixel to pixel; 1 samples every pixel there too.
+    busy_items : a screen tile of ``lists.TILE`` x ``TILE`` pixels whose footprints list at
+        least this many primitives (at the default resolution and above; scaled by the
+        tile's solid angle below it) is busy: clutter; 0: none is.
+    busy_block : busy tiles whose lists may reach ``BUSY_BLOCK_MIN`` entries per pixel are
+        resolved with one sample per ``busy_block`` x ``busy_block`` pixels (at their
+        centre, covering all their directions, so still conservative) where the others
+        sample every pixel: in clutter their lists are long and mostly the same from pixel
+        to pixel. An entry a sample's test leaves unhidden is tested again at its 2 x 2
+        sub-samples, down to single pixels (``refine``'s walk, ``log2(busy_block)`` levels
+        before ``refine``'s own). 1 samples every pixel there too.
+    coarse_items : the coarse pass (``cos_pvs``): each busy tile whose footprints list at
+        least this many primitives (scaled as ``busy_items``) is first resolved as one pixel
+        of the tile's width, and what that finds hidden for the whole tile is left out of
+        the tile's per-pixel lists; 0 (the default) turns it off.
     subcells : the cell is solved as ``subcells`` x ``subcells`` boxes splitting its x and z
         sides (its height, the eye range, stays whole), and the PVS is their union
         (``cos_subcells``): still conservative, tighter where the offsets of the whole cell
@@ -114,13 +120,17 @@ class CosParams(CoreParams):
                             help="pixels across each 90 degree frustum of a side plane")
     list_budget_mb: int = param(256, unit="MiB", ge=1, le=1 << 16,
                                 help="most memory the per-pixel lists of one view take at once")
-    coarse_items: int = param(COARSE_MIN_ITEMS, unit="primitives", ge=0, le=1 << 30,
-                              help="screen tiles meeting this many primitives are resolved as "
-                                   "one pixel first, and what that hides leaves their "
-                                   "per-pixel lists (0: never)")
+    busy_items: int = param(BUSY_MIN_ITEMS, unit="primitives", ge=0, le=1 << 30,
+                            help="screen tiles meeting this many primitives are busy, "
+                                 "sampled per busy_block pixels (0: none)")
     busy_block: int = param(BUSY_BLOCK, unit="px", choices=BUSY_BLOCKS,
-                            help="pixels per side of one sample in the tiles that take the "
-                                 "coarse pass (1: every pixel)")
+                            help="pixels per side of one sample in busy tiles, tested again "
+                                 "down to single pixels where it sees an entry (1: every "
+                                 "pixel)")
+    coarse_items: int = param(COARSE_ITEMS, unit="primitives", ge=0, le=1 << 30,
+                              help="busy tiles meeting this many primitives are resolved as "
+                                   "one pixel first, and what that hides leaves their "
+                                   "per-pixel lists (0: never, the default)")
     subcells: int = param(1, unit="per side", ge=1, le=16,
                           help="solve the cell as n x n sub-cells across the ground (x, z) "
                                "and join their answers: tighter at large cells, for up to n² "
@@ -172,8 +182,8 @@ class CosCore(Core):
     promise: ClassVar[str] = "conservative"
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
-    # The coarse pass: only clutter reaches it at the default threshold.
-    warm_params: ClassVar[tuple[dict[str, Any], ...]] = ({"coarse_items": 1},)
+    # Busy tiles and the coarse pass: only clutter reaches them at the default thresholds.
+    warm_params: ClassVar[tuple[dict[str, Any], ...]] = ({"busy_items": 1, "coarse_items": 1},)
     native_segments: ClassVar[bool] = False
     # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
@@ -230,11 +240,12 @@ class CosCore(Core):
             return cos_subcells(scene, box, int(params.subcells), int(params.resolution),
                                 float(params.list_budget_mb), int(params.coarse_items),
                                 cover=str(params.cover), fusion=str(params.fusion),
-                                busy_block=int(params.busy_block), refine=int(params.refine))
+                                busy_block=int(params.busy_block), refine=int(params.refine),
+                                busy_items=int(params.busy_items))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
                        int(params.coarse_items), cover=str(params.cover),
                        fusion=str(params.fusion), busy_block=int(params.busy_block),
-                       refine=int(params.refine))
+                       refine=int(params.refine), busy_items=int(params.busy_items))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -254,9 +265,10 @@ def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
 
 
 def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
-                 list_budget_mb: float = 256.0, coarse_items: int = COARSE_MIN_ITEMS,
+                 list_budget_mb: float = 256.0, coarse_items: int = COARSE_ITEMS,
                  cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
-                 refine: int = REFINE) -> tuple[np.ndarray, dict[str, Any]]:
+                 refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS
+                 ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
@@ -269,7 +281,8 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
     sizes = []
     for b in sub_boxes(box, n):
         ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
-                          cover=cover, fusion=fusion, busy_block=busy_block, refine=refine)
+                          cover=cover, fusion=fusion, busy_block=busy_block, refine=refine,
+                          busy_items=busy_items)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -293,9 +306,10 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
 
 def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
-            coarse_items: int = COARSE_MIN_ITEMS, known: np.ndarray | None = None,
+            coarse_items: int = COARSE_ITEMS, known: np.ndarray | None = None,
             cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
-            refine: int = REFINE) -> tuple[np.ndarray, dict[str, Any]]:
+            refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS
+            ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
     Parameters
@@ -304,17 +318,18 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     box : (2, 3) float64 [min, max], metres.
     resolution : pixels across a 90 degree frustum.
     list_budget_mb : list memory per run of tiles, MiB.
-    coarse_items : screen tiles whose footprints list at least this many primitives are
+    coarse_items : busy screen tiles whose footprints list at least this many primitives are
         resolved as one pixel first (``_coarse_pass``), and what that hides for the whole tile
         leaves the tile's per-pixel lists; 0: never.
     known : optional (n_triangles + n_spheres,) bool, ids already in the answer (another
         cell's PVS, ``cos_subcells``): reported, tested no more, still occluders.
     cover : ``strict`` or ``relaxed``, the occluder cover test (``CosParams.cover``).
     fusion : ``edges`` or ``groups``, how occluders join (``CosParams.fusion``).
-    busy_block : pixels per side of a sample in the tiles that take the coarse pass
-        (``CosParams.busy_block``).
+    busy_block : pixels per side of a sample in busy tiles (``CosParams.busy_block``).
     refine : levels of 2 x 2 sub-pixels an occludee is tested at where no group hides it
         over the whole pixel (``CosParams.refine``).
+    busy_items : screen tiles whose footprints list at least this many primitives are busy
+        (``CosParams.busy_items``); 0: none.
 
     Returns
     -------
@@ -432,7 +447,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
                       else positions[k])
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
                                   stats, coarse_items, rng, cover, fuse, busy_block,
-                                  refine)
+                                  refine, busy_items)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -586,15 +601,16 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
                 cover: str = "strict", fuse: bool = False, busy_block: int = 1,
-                refine: int = 0) -> int:
+                refine: int = 0, busy_items: int = 0) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
     visible, adds to ``stats`` and returns the view's longest list. Tiles listing at least
-    ``coarse_items`` primitives (0: none) take the coarse pass (``_coarse_pass``) first.
-    ``rng`` (n, 4) int32 is scratch for the pixel boxes (``footprints``); ``cover`` the
-    cover test (``CosParams.cover``); ``fuse`` whether separate groups hide together;
-    ``busy_block`` the pixels per side of a sample in the tiles that took the coarse pass."""
+    ``busy_items`` primitives (0: none) are busy: sampled per ``busy_block`` pixels where
+    their lists are long, and, listing ``coarse_items`` (0: never), first take the coarse
+    pass (``_coarse_pass``). ``rng`` (n, 4) int32 is scratch for the pixel boxes
+    (``footprints``); ``cover`` the cover test (``CosParams.cover``); ``fuse`` whether
+    separate groups hide together."""
     t0 = time.perf_counter()
     stats["projected"] += len(sel)
     known = vis.copy()
@@ -620,19 +636,20 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     # The threshold holds for tiles at the default resolution; below it a tile spans more
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
     # pass on 100k city cells and cost more than they saved), so it grows with that angle.
-    need = max(coarse_items, 1) * max(1.0, (float(view.pw) * DEFAULT_RESOLUTION / 2.0) ** 2)
-    busy = np.diff(tile_off) >= need
-    if coarse_items > 0 and busy.any():
+    scale = max(1.0, (float(view.pw) * DEFAULT_RESOLUTION / 2.0) ** 2)
+    n_items = np.diff(tile_off)
+    busy = (n_items >= max(busy_items, 1) * scale) & (busy_items > 0)
+    coarse = busy & (n_items >= max(coarse_items, 1) * scale) & (coarse_items > 0)
+    if coarse.any():
         # Clutter: the coarse pass on the tiles with that many items; their lists are then
         # filled without what it found hidden for the whole tile.
         tc = time.perf_counter()
         drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, items, tile_off, tile_items,
-                            busy, known, stats)
+                            coarse, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
-        stats["coarse_tiles"] += int(busy.sum())
+        stats["coarse_tiles"] += int(coarse.sum())
     # Clutter's tiles are sampled more coarsely (``CosParams.busy_block``).
-    block = np.where(busy & (coarse_items > 0) & (bound >= BUSY_BLOCK_MIN * npix), busy_block,
-                     1).astype(np.int64)
+    block = np.where(busy & (bound >= BUSY_BLOCK_MIN * npix), busy_block, 1).astype(np.int64)
     stats["block_tiles"] += int(np.count_nonzero(block > 1))
     counters = np.zeros((n_tiles, N_COUNTERS), dtype=np.int64)
     longest = 0

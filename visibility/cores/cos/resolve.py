@@ -1417,6 +1417,14 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         # The tile's samples: b x b pixels each (``groups.TileLists.block``).
         bs = block[tile]
         h = 0.5 * pw * bs
+        # A sample of bs x bs pixels: where its own test leaves an entry unhidden, its
+        # sub-samples are tested down to single pixels (log2 bs levels), then ``refine`` more.
+        lv = refine
+        b = bs
+        while b > 1:
+            lv += 1
+            b //= 2
+        lv = min(lv, REFINE_LEVELS)
         # The tile's items name its entries; each undirected welded edge of the tile gets a
         # slot (eslot: three per item, -1 for none), where a pixel chains the occluder edges
         # it has along it: made at an item's first insertion in the tile, once for all its
@@ -1630,10 +1638,10 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             occluded = by_fuse
                             fused += 1 if by_fuse else 0
                         by_sub = False
-                        if not occluded and refine > 0:
+                        if not occluded and lv > 0:
                             qctx[QC_RELAX] = 0.0
                             by_sub = _refined_hide(
-                                refine, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi,
+                                lv, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi,
                                 edges, occ, cam, n, tri, corners, sx, sy, h, wref, wmin, wcam,
                                 plane_tol, kb, sub, work)
                             occluded = by_sub

@@ -90,17 +90,34 @@ def test_no_misses(name, core_name):
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("busy_block", [1, 4])
-def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
-    # Every screen tile takes the coarse pass (on these small scenes none would by default):
-    # what it leaves out of the per-pixel lists must be hidden for the whole tile; and those
-    # tiles are then sampled every pixel (1) or once per 4 x 4 pixels (4; the default 2 runs
-    # in the relaxed cover's test below).
+@pytest.mark.parametrize("busy_block", [2, 8])
+def test_cos_busy_tiles_miss_nothing(name, busy_block, monkeypatch):
+    # Every screen tile is busy (on these small scenes none would be by default) and sampled
+    # once per 2 x 2 or 8 x 8 pixels (the default 4 runs in the relaxed cover's test below),
+    # an entry a sample sees tested again at its sub-samples down to single pixels.
     monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # short lists too
     case = CASES[name]
     core = get_core("cos")
     pvs = core.compute(case.scene, Viewcell(case.box),
-                       core.make_params(coarse_items=1, busy_block=busy_block))
+                       core.make_params(busy_items=1, busy_block=busy_block))
+    assert pvs.stats["block_tiles"] > 0 and pvs.stats["coarse_tiles"] == 0
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos sampling busy tiles per {busy_block} px misses {len(missed)} triangles in "
+        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
+
+
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("busy_block", [1, 4])
+def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
+    # Every screen tile is busy and takes the coarse pass (an option, off by default): what
+    # it leaves out of the per-pixel lists must be hidden for the whole tile; and those
+    # tiles are then sampled every pixel (1) or once per 4 x 4 pixels (4).
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # short lists too
+    case = CASES[name]
+    core = get_core("cos")
+    pvs = core.compute(case.scene, Viewcell(case.box),
+                       core.make_params(busy_items=1, coarse_items=1, busy_block=busy_block))
     assert pvs.stats["coarse_tiles"] > 0
     assert (pvs.stats["block_tiles"] > 0) == (busy_block > 1)
     # Its own work counted apart from the pixels' (what it tests is among what it lists).
@@ -116,12 +133,12 @@ def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
 @pytest.mark.parametrize("coarse_items", [None, 1])
 def test_cos_relaxed_cover_misses_nothing(name, coarse_items, monkeypatch):
     # The relaxed cover test lets silhouette edges that meet an occludee's offset region pass
-    # when they never cross the offsets whose rays meet it; alone, and with the coarse pass
-    # on every tile (where it runs at the tile's width).
-    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # 2 x 2 samples too
+    # when they never cross the offsets whose rays meet it; alone, and with every tile busy
+    # and taking the coarse pass (where it runs at the tile's width).
+    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # 4 x 4 samples too
     case = CASES[name]
     core = get_core("cos")
-    extra = {} if coarse_items is None else {"coarse_items": coarse_items}
+    extra = {} if coarse_items is None else {"coarse_items": coarse_items, "busy_items": 1}
     pvs = core.compute(case.scene, Viewcell(case.box), core.make_params(cover="relaxed", **extra))
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
@@ -148,13 +165,13 @@ def test_cos_fused_groups_miss_nothing(name, cover):
 @pytest.mark.parametrize("options", ["alone", "with the others"])
 def test_cos_sub_pixels_miss_nothing(name, options, monkeypatch):
     # Occludees no group hides over a whole pixel, tested again at its sub-pixels down to the
-    # most levels (``refine``): alone, and with the relaxed cover, separate groups and the
-    # coarse pass with its 2 x 2 samples on every tile.
+    # most levels (``refine``): alone, and with the relaxed cover, separate groups and every
+    # tile busy (the coarse pass, 4 x 4 samples).
     monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)
     case = CASES[name]
     core = get_core("cos")
     extra = {} if options == "alone" else {"cover": "relaxed", "fusion": "groups",
-                                           "coarse_items": 1}
+                                           "coarse_items": 1, "busy_items": 1}
     pvs = core.compute(case.scene, Viewcell(case.box),
                        core.make_params(refine=REFINE_MAX, **extra))
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)

@@ -65,9 +65,8 @@ def _on_one_worker(name: str, *args: object) -> object:
 CASES = [_on_one_worker(name, size, k, core) for name in REAL for size in SIZES
          for k in range(CELLS) for core in ("cos", "dual_ray")
          if name not in BENCHMARK_ONLY.get(core, ())]
-#: ``cos`` with its coarse pass on every screen tile (by default only cluttered tiles take it):
-#: the 0.3 m cell.
-COARSE = [_on_one_worker(name, 0.3) for name in REAL if name not in BENCHMARK_ONLY["cos"]]
+#: ``cos`` with every screen tile busy (by default only cluttered tiles are): the 0.3 m cell.
+BUSY = [_on_one_worker(name, 0.3) for name in REAL if name not in BENCHMARK_ONLY["cos"]]
 
 
 def test_every_named_scene_is_there():
@@ -101,19 +100,19 @@ def test_no_confirmed_misses(name, size, k, core_name):
         f"confirming):\n{describe(scene, ref, sure, box)}")
 
 
-@pytest.mark.parametrize("name,size", COARSE)
-def test_cos_coarse_pass_no_confirmed_misses(name, size, monkeypatch):
-    # Every tile takes the coarse pass and is then sampled per 2 x 2 pixels (the default
-    # ``busy_block``), however short its lists.
+@pytest.mark.parametrize("name,size", BUSY)
+def test_cos_busy_tiles_no_confirmed_misses(name, size, monkeypatch):
+    # Every tile is busy, however short its lists: sampled per 4 x 4 pixels (the default
+    # ``busy_block``), an entry a sample sees tested again down to single pixels.
     monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)
     scene = real_scene(name)
     _, box, ref = cells(name, size)[0]
     core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(coarse_items=1))
-    assert pvs.stats["coarse_tiles"] > 0 and pvs.stats["block_tiles"] > 0
+    pvs = core.compute(scene, Viewcell(box), core.make_params(busy_items=1))
+    assert pvs.stats["block_tiles"] > 0 and pvs.stats["subpixels"] > 0
     sure = confirm(scene, ref, np.setdiff1d(ref.ids, pvs.triangle_ids))
     assert sure.tolist() == [], (
-        f"cos with the coarse pass misses {len(sure)} of {len(ref.ids)} triangles the rays see "
+        f"cos sampling busy tiles misses {len(sure)} of {len(ref.ids)} triangles the rays see "
         f"from {name}'s {size:g} m cell {box.tolist()}:\n{describe(scene, ref, sure, box)}")
 
 
