@@ -90,43 +90,31 @@ def test_no_misses(name, core_name):
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("busy_block", [2, 8])
-def test_cos_busy_tiles_miss_nothing(name, busy_block, monkeypatch):
+@pytest.mark.parametrize("busy_block,coarse", [(2, False), (8, False), (1, True), (4, True)])
+def test_cos_busy_tiles_miss_nothing(name, busy_block, coarse, monkeypatch):
     # Every screen tile is busy (on these small scenes none would be by default) and sampled
-    # once per 2 x 2 or 8 x 8 pixels (the default 4 runs in the relaxed cover's test below),
-    # an entry a sample sees tested again at its sub-samples down to single pixels.
+    # once per busy_block x busy_block pixels (the default 4 without the coarse pass runs in
+    # the relaxed cover's test below), an entry a sample sees tested again at its sub-samples
+    # down to single pixels. With the coarse pass (an option, off by default) first, what it
+    # leaves out of the per-pixel lists must be hidden for the whole tile.
     monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # short lists too
     case = CASES[name]
     core = get_core("cos")
     pvs = core.compute(case.scene, Viewcell(case.box),
-                       core.make_params(busy_items=1, busy_block=busy_block))
-    assert pvs.stats["block_tiles"] > 0 and pvs.stats["coarse_tiles"] == 0
-    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
-    assert missed.tolist() == [], (
-        f"cos sampling busy tiles per {busy_block} px misses {len(missed)} triangles in "
-        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
-
-
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("busy_block", [1, 4])
-def test_cos_coarse_pass_misses_nothing(name, busy_block, monkeypatch):
-    # Every screen tile is busy and takes the coarse pass (an option, off by default): what
-    # it leaves out of the per-pixel lists must be hidden for the whole tile; and those
-    # tiles are then sampled every pixel (1) or once per 4 x 4 pixels (4).
-    monkeypatch.setattr("visibility.cores.cos.core.BUSY_BLOCK_MIN", 0)  # short lists too
-    case = CASES[name]
-    core = get_core("cos")
-    pvs = core.compute(case.scene, Viewcell(case.box),
-                       core.make_params(busy_items=1, coarse_items=1, busy_block=busy_block))
-    assert pvs.stats["coarse_tiles"] > 0
-    assert (pvs.stats["block_tiles"] > 0) == (busy_block > 1)
-    # Its own work counted apart from the pixels' (what it tests is among what it lists).
+                       core.make_params(busy_items=1, coarse_items=int(coarse),
+                                        busy_block=busy_block))
     st = pvs.stats
-    assert st["coarse_tested"] <= st["coarse_entries"] and st["coarse_cycles_resolve"] > 0
+    assert (st["block_tiles"] > 0) == (busy_block > 1)
+    assert (st["coarse_tiles"] > 0) == coarse
+    # The coarse pass's work counted apart from the pixels' (what it tests is among what it
+    # lists).
+    assert st["coarse_tested"] <= st["coarse_entries"]
+    assert (st["coarse_cycles_resolve"] > 0) == coarse
     missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
     assert missed.tolist() == [], (
-        f"cos with the coarse pass (busy_block={busy_block}) misses {len(missed)} triangles "
-        f"in {name}:\n{describe(case.scene, reference(name), missed, case.box)}")
+        f"cos sampling busy tiles per {busy_block} px (coarse pass: {coarse}) misses "
+        f"{len(missed)} triangles in "
+        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
