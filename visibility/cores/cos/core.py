@@ -54,8 +54,8 @@ BUSY_MIN_ITEMS = 8192
 COARSE_ITEMS = 0
 #: Pixels per side of the samples in busy tiles (``CosParams``), where their lists may reach
 #: ``BUSY_BLOCK_MIN`` entries per pixel on average (the tile's ``bin_tiles`` bound): below
-#: that (the 4 m city cell's busy tiles) the coarser samples loosened the answer and gained no
-#: time (benchmarks/results/cos.md).
+#: that (the 4 m city cell's busy tiles) 2 x 2 samples without sub-samples loosened the answer
+#: and gained no time (docs/cores/cos.md).
 BUSY_BLOCK = 4
 BUSY_BLOCK_MIN = 1024
 #: The values it may take: divisors of ``lists.TILE``.

@@ -80,7 +80,9 @@ class TileLists(NamedTuple):
     block : (tiles,) int64 pixels per side of a tile's samples, indexed by tile like ``ioff``:
         1 samples every pixel; b > 1 one sample per b x b pixels, at their centre with a
         half-width of b / 2 pixels (its directions hold all of theirs), its list at
-        ``loc = r tsz + c`` for the sample in row r and column c of the tile's samples.
+        ``loc = r tsz + c`` for the sample in row r and column c of the tile's samples; an
+        entry its test leaves unhidden is tested again at sub-samples down to single pixels
+        (``resolve._refined_hide``).
     """
 
     entries: np.ndarray

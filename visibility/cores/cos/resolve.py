@@ -44,7 +44,8 @@ may be tested again at the pixel's 2 x 2 sub-pixels, each split again where none
 hidden at every one (by any group each), it is hidden at the pixel, whose directions they make
 up. A silhouette capsule's growth is the pixel's half-width times the edge's depth difference
 to Q, so far occludees beside near silhouettes (a skyline) fail the pixel's test where a
-sub-pixel's passes.
+sub-pixel's passes. The same walk takes a busy tile's samples of b x b pixels
+(``TileLists.block``) down to single pixels, log2 b levels before ``refine``'s own.
 
 A triangle hidden by a coverall group is dropped. One hidden by another group, or not seen at
 the pixel (K empty, ln 12), is kept *dormant*: it joins the edge hash and fuses with its
