@@ -52,6 +52,8 @@ from visibility.viewcells import Viewcell  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 PAPER_MS = (35.0, 220.0)
 PHASES = ("sort_seconds", "list_seconds", "coarse_seconds", "resolve_seconds")
+#: The coarse pass's threshold in its step rows: busy tiles' (it is off by default).
+COARSE_STEP = BUSY_MIN_ITEMS
 #: Runs of each cell but the kitchen's, the best kept: the first runs right after the
 #: reference's ray casting read up to a quarter slower than later ones on this machine.
 FAST_REPEATS = 5
@@ -372,10 +374,6 @@ def _cycle_split(r: dict) -> str:
             f"{share['insert']:.0f} % to making occluders of them (set-up, fusion along shared "
             f"edges, merges), {share['coverall']:.0f} % to checking whether a group covers the "
             f"whole pixel, {100 - sum(share.values()):.0f} % to projecting entries and early z")
-
-
-#: The coarse pass's threshold in its step rows: busy tiles' (it is off by default).
-COARSE_STEP = BUSY_MIN_ITEMS
 
 
 def _block(r: dict[str, Any]) -> str:

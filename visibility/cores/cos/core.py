@@ -88,7 +88,8 @@ class CosParams(CoreParams):
         sample every pixel: in clutter their lists are long and mostly the same from pixel
         to pixel. An entry a sample's test leaves unhidden is tested again at its 2 x 2
         sub-samples, down to single pixels (``refine``'s walk, ``log2(busy_block)`` levels
-        before ``refine``'s own). 1 samples every pixel there too.
+        before ``refine``'s own, ``REFINE_MAX`` levels in all at most). 1 samples every pixel
+        there too.
     coarse_items : the coarse pass (``cos_pvs``): each busy tile whose footprints list at
         least this many primitives (scaled as ``busy_items``) is first resolved as one pixel
         of the tile's width, and what that finds hidden for the whole tile is left out of

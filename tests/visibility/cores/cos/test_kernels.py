@@ -99,20 +99,23 @@ def test_edge_classification_against_the_offset_region(edge, expect):
     assert capsule_hits(ax, ay, bx, by, 0.1, kx, ky, 4) == expect
 
 
+def _lone_occluder(depths, plane):
+    """``_in_front``'s leading arguments for a group of one occluder triangle over the whole
+    offset region: its depth range, its plane (n, d, tolerance; n . p - d > 0 on the
+    cameras' side, the plane test on), K's box around the pixel centre."""
+    return (0, np.array([0]), np.array([-1]), np.array([[-10.0, 10.0, -10.0, 10.0]]),
+            np.array([depths], dtype=float), np.array([True]), np.array([plane], dtype=float),
+            0.0, 0.0, -1.0, 1.0, -1.0, 1.0)
+
+
 def test_depth_plane_test_orders_triangles_for_every_offset():
     # Occluder plane w = 2 seen from camera corners at w = 0: Q at w = 5 is behind, Q
     # crossing w = 2 is not, Q touching it with one edge and behind otherwise is.
-    head = np.array([0])
-    nxt = np.array([-1])
-    obb = np.array([[-10.0, 10.0, -10.0, 10.0]])
-    owr = np.array([[2.0, 2.0]])
-    use = np.array([True])
-    plane = np.array([[0.0, 0.0, -1.0, -2.0, 1e-9]])  # n . p - d > 0 on the camera side
     behind = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [0.0, 1.0, 6.0]])
     crossing = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 5.0], [0.0, 1.0, 6.0]])
     touching = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 6.0]])
     coplanar = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
-    args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0)
+    args = _lone_occluder([2.0, 2.0], [0.0, 0.0, -1.0, -2.0, 1e-9])
     assert _in_front(*args, behind, 3, NO_OV, STRICT, 5.0, 0.0, 1e-9, WORK)
     assert not _in_front(*args, crossing, 3, NO_OV, STRICT, 1.0, 0.0, 1e-9, WORK)
     assert _in_front(*args, touching, 3, NO_OV, STRICT, 2.0, 0.0, 1e-9, WORK)
@@ -454,18 +457,13 @@ def test_a_triangle_wholly_nearer_than_q_is_in_front_whatever_its_slant():
     # T spans depths 2-4.9 and its plane cuts Q's (Q at 5-7, one vertex on T's near side):
     # the plane test refuses, but a ray from a camera meets T, where it does, nearer than
     # any point of Q. Only when T lies beyond every camera position and wholly before Q.
-    head = np.array([0])
-    nxt = np.array([-1])
-    obb = np.array([[-10.0, 10.0, -10.0, 10.0]])
-    owr = np.array([[2.0, 4.9]])
-    use = np.array([True])
     # T's plane z = 2 + 2.9 x (x in [0, 1]), camera side positive.
     n = np.array([2.9, 0.0, -1.0]) / np.hypot(2.9, 1.0)
-    plane = np.array([[n[0], n[1], n[2], -2.0 / np.hypot(2.9, 1.0), 1e-9]])
+    d = -2.0 / np.hypot(2.9, 1.0)
     q = np.array([[0.0, 0.0, 5.0], [3.0, 0.0, 7.0], [0.0, 1.0, 6.0]])
-    assert n @ q[1] - plane[0, 3] > 0.0  # a vertex of Q on the cameras' side of T's plane
-    args = (0, head, nxt, obb, owr, use, plane, 0.0, 0.0, -1.0, 1.0, -1.0, 1.0, q, 3, NO_OV,
-            STRICT)
+    assert n @ q[1] - d > 0.0  # a vertex of Q on the cameras' side of T's plane
+    args = (*_lone_occluder([2.0, 4.9], [*n, d, 1e-9]), q, 3, NO_OV, STRICT)
+    use = args[5]
     assert _in_front(*args, 5.0, 0.0, 1e-9, WORK)
     assert not _in_front(*args, 5.0, 2.5, 1e-9, WORK)  # T starts before the cameras' depth
     assert not _in_front(*args, 4.9, 0.0, 1e-9, WORK)  # T reaches Q's nearest depth
