@@ -145,10 +145,12 @@ def aimed(scene: Scene, box: np.ndarray, judged: dict[str, np.ndarray], ref: dic
 
 
 def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: int,
-              ref_res: int, aim_rays: int = 64, aim_most: int = 4096) -> dict[str, Any]:
+              ref_res: int, aim_rays: int = 64, aim_most: int = 4096,
+              every_split: bool = True) -> dict[str, Any]:
     """One scene: its cell, cos at each resolution and in 2 x 2 sub-cells, sampling, and the
     references that judge them all (ray frames, then rays aimed at what they did not show;
-    ``aim_most`` 0: frames only)."""
+    ``aim_most`` 0: frames only). ``every_split`` False: sub-cells in one row only (the
+    strict cover's), for a quick run."""
     scene = load_scene(SHARED_SCENES / f"{name}.glb")
     box = middle_cell(scene, size)
     print(f"{name}: cell {box.round(2).tolist()}", flush=True)
@@ -177,12 +179,14 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     cos_run(f"cos {base} px, separate groups", base, "strict", 1, "groups")
     cos_run(f"cos {base} px, 2 x 2 sub-cells", base, "strict", 2)
     cos_run(f"cos {base} px, relaxed cover", base, "relaxed", 1)
-    cos_run(f"cos {base} px, relaxed cover, 2 x 2 sub-cells", base, "relaxed", 2)
+    if every_split:
+        cos_run(f"cos {base} px, relaxed cover, 2 x 2 sub-cells", base, "relaxed", 2)
     cos_run(f"cos {base} px, separate groups, relaxed cover", base, "relaxed", 1, "groups")
-    cos_run(f"cos {base} px, separate groups, relaxed cover, 2 x 2 sub-cells", base,
-            "relaxed", 2, "groups")
-    cos_run(f"cos {base} px, separate groups, relaxed cover, 4 x 4 sub-cells", base,
-            "relaxed", 4, "groups")
+    if every_split:
+        cos_run(f"cos {base} px, separate groups, relaxed cover, 2 x 2 sub-cells", base,
+                "relaxed", 2, "groups")
+        cos_run(f"cos {base} px, separate groups, relaxed cover, 4 x 4 sub-cells", base,
+                "relaxed", 4, "groups")
     # Occludees no group hides over a whole pixel, tested again at its sub-pixels
     # (``refine``): alone, at two, four and the most levels, and with the options above.
     for levels in (2, 4, REFINE_MAX):
@@ -190,8 +194,9 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
                 refine=levels)
     cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} levels",
             base, "relaxed", 1, "groups", REFINE_MAX)
-    cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} levels, "
-            "2 x 2 sub-cells", base, "relaxed", 2, "groups", REFINE_MAX)
+    if every_split:
+        cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} "
+                "levels, 2 x 2 sub-cells", base, "relaxed", 2, "groups", REFINE_MAX)
     sampling = get_core("sampling")
     cell = Viewcell(box)
     pvs, seconds = _timed(sampling.compute, scene, cell, sampling.make_params())
@@ -403,7 +408,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="aimed rays per triangle in the first round")
     ap.add_argument("--aim-most", type=int, default=4096,
                     help="most aimed rays per triangle (0: frames only)")
-    ap.add_argument("--quick", action="store_true", help="lavaducts, R 16 and 32, light ref")
+    ap.add_argument("--quick", action="store_true",
+                    help="lavaducts, R 16 and 32, light ref, sub-cells in one row")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     if args.quick:
@@ -413,7 +419,8 @@ def main(argv: list[str] | None = None) -> None:
     resolutions = [int(r) for r in str(args.resolutions).split(",")]
     t0 = time.perf_counter()
     results = [run_scene(s, args.size, resolutions, args.eyes, args.most_eyes, args.ref_res,
-                         args.aim_rays, args.aim_most) for s in args.scenes]
+                         args.aim_rays, args.aim_most, every_split=not args.quick)
+               for s in args.scenes]
     elapsed = time.perf_counter() - t0
     write_report(args.out, "cos_tightness", "benchmarks.bench_cos_tightness", argv, results,
                  _md(results, args, argv, elapsed))

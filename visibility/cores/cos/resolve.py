@@ -415,6 +415,26 @@ def _wind_in(g, edges, wref, d0x, d0y, cx, cy):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _edge_first(i, i0, edges):  # pragma: no cover - numba
+    """Swap record i of a block (``groups.EdgePool``) with its first, i0: the edge that just
+    ended a cover walk is the first the block's next walk meets (the next test is often of a
+    like region, which the same edge fails)."""
+    if i == i0:
+        return
+    geo, enode, pos = edges.geo, edges.node, edges.pos
+    for c in range(6):
+        t = geo[i, c]
+        geo[i, c] = geo[i0, c]
+        geo[i0, c] = t
+    na = enode[i]
+    nb = enode[i0]
+    enode[i] = nb
+    enode[i0] = na
+    pos[nb] = i
+    pos[na] = i0
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
               klo, khi, qctx, rpoly, nrp, rpb, rv, ws, wpt,
               work):  # pragma: no cover - numba
@@ -496,12 +516,14 @@ def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
         step = winding_step(ax, ay, bx, by, cx, cy)
         if step == 2:
             if qctx[QC_RELAX] == 0.0:
+                _edge_first(i, i0, edges)
                 return False
             on_edge = True
         else:
             wn += step
         if capsule_meets(ax, ay, bx, by, rad, kx, ky, nk, kb, knx, kny, klo, khi):
             if qctx[QC_RELAX] == 0.0:
+                _edge_first(i, i0, edges)
                 return False
             sx = qctx[QC_SX]
             sy = qctx[QC_SY]
@@ -517,6 +539,7 @@ def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
                                                  rpoly[:, 4], rpoly[:, 5]):
                     relaxed = True
                 else:
+                    _edge_first(i, i0, edges)
                     return False
     if not relaxed:
         return not on_edge and wn >= 1
@@ -790,10 +813,12 @@ def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx
         work[0] += 1
         step = winding_step(ax, ay, bx, by, cx, cy)
         if step == 2:
+            _edge_first(i, i0, edges)
             return False
         wn += step
         if capsule_meets(ax, ay, bx, by, max(abs(da), abs(db)) * hs, kx, ky, nk, kb, knx, kny,
                          klo, khi):
+            _edge_first(i, i0, edges)
             return False
     return wn >= 1
 
