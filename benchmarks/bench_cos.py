@@ -129,6 +129,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "block_tiles": st.get("block_tiles", 0), "subpixels": st.get("subpixels", 0),
            "sub_hidden": st.get("refined", 0),
+           "leaf_tests": st.get("leaf_tests", 0), "leaf_hidden": st.get("leaf_hidden", 0),
+           "leaf_skipped": st.get("leaf_skipped", 0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
            "projected": st.get("projected", 0), "culled": st.get("culled", 0),
            "costliest_view": st.get("costliest_view")}
@@ -174,13 +176,15 @@ def speed(quick: bool, points: int, kitchen: bool = True,
             if sc is kitchen and res == DEFAULT_RESOLUTION and kitchen_rows is not None:
                 kitchen_rows.update(kitchen_part(sc, box, keep["ids"], rows[-1], points))
         if sc is kitchen or label.endswith("4 m"):
-            # The steps on clutter's tiles (one run): every pixel of them sampled, and the
-            # coarse pass (off by default) before their samples.
+            # The steps on clutter's tiles (one run): every pixel of them sampled, the
+            # coarse pass (off by default) before their samples, and no leaf boxes.
             rows.append(_row(f"{label}, busy tiles every pixel", sc, box, DEFAULT_RESOLUTION,
                              ref, repeats=1 if sc is kitchen else 2, busy_block=1))
             rows.append(_row(f"{label}, with the coarse pass", sc, box, DEFAULT_RESOLUTION,
                              ref, repeats=1 if sc is kitchen else 2,
                              coarse_items=COARSE_STEP))
+            rows.append(_row(f"{label}, without leaf boxes", sc, box, DEFAULT_RESOLUTION,
+                             ref, repeats=1 if sc is kitchen else 2, leaf_boxes=False))
         # Separate groups hiding together (``fusion="groups"``) as a step.
         rows.append(_row(f"{label}, fusion groups", sc, box, DEFAULT_RESOLUTION, ref,
                          repeats=1 if sc is kitchen else 2, fusion="groups"))
@@ -323,7 +327,11 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 + (f"{r['block_tiles']:,} busy screen tiles sampled per {_block(r)} pixels "
                    f"({r['subpixels']:,} sub-samples resolved where a sample saw an entry, "
                    f"{r['sub_hidden']:,} entries hidden there), " if r.get("block_tiles")
-                   else "") +
+                   else "")
+                + (f"{r['leaf_tests']:,} leaf boxes tested after a primitive of theirs was "
+                   f"hidden, {r['leaf_hidden']:,} found hidden, sparing "
+                   f"{r['leaf_skipped']:,} list entries their pixel, " if r.get("leaf_tests")
+                   else "no leaf box tested, ") +
                 f"{r['list_entries']:,} list entries (longest {r['longest_list']:,}) from "
                 f"{r.get('tile_items', 0):,} (primitive, screen tile) pairs, "
                 f"{r['list_entries'] / max(1, r.get('tile_items', 0)):.1f} pixels of a tile "

@@ -24,7 +24,14 @@ def test_quick_speed_run_writes_the_counters(tmp_path):
                         and b["resolution"] == r["resolution"])
             assert (base["fusion"], r["fusion"]) == ("edges", "groups")
             assert r["pvs"] <= base["pvs"] and base["fused"] == 0
+    # The 4 m cell beside no leaf boxes: the default tests some, the step none.
+    step = next(r for r in rows if r["cell"].endswith(", without leaf boxes"))
+    base = next(b for b in rows if b["cell"] == step["cell"][:-len(", without leaf boxes")]
+                and b["resolution"] == step["resolution"])
+    assert base["leaf_tests"] > 0 and step["leaf_tests"] == step["leaf_skipped"] == 0
+    assert base["leaf_hidden"] <= base["leaf_tests"]
     md = (tmp_path / "cos_quick.md").read_text()
+    assert "leaf boxes tested" in md
     assert "| tile items |" in md and "pixels of a tile per pair" in md
     assert "hidden by separate groups" in md
 

@@ -31,6 +31,8 @@ class PrimArrays(NamedTuple):
     vid: np.ndarray
     solid: np.ndarray
     gap: np.ndarray
+    leaf: np.ndarray
+    leaf_pts: np.ndarray
 
 
 class Screen(NamedTuple):

@@ -623,7 +623,7 @@ STOP_EVERY = 256
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
 #: and in the whole tile, then entries hidden by separate groups together, entries hidden at
 #: sub-pixels and sub-pixels resolved (``_refined_hide``).
-N_COUNTERS = 13
+N_COUNTERS = 16
 TIME_STRIDE = 8
 GRID_WIDE = 16
 #: Records of the edge pool (``groups.EdgePool``) per entry of the longest list: a pixel's
@@ -1281,6 +1281,46 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive,
     return g1
 
 
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _leaf_hidden(lf, g, coverall, leaf_pts, origin, perm, sign, sx, sy, h, corners, wcam, tol,
+                 edges, gbb, gwlo, gwhi, occ, lsc, strict, rpoly, rpb, ws, wpt,
+                 work):  # pragma: no cover - numba
+    """Whether group g, which has just hidden a primitive of leaf ``lf`` of the scene's
+    hierarchy, also hides the leaf's box (its 8 corners at ``leaf_pts[8 lf:]``) at this
+    pixel (sx, sy, half-width h): the box's region K in its own mean-depth frame, covered by
+    g (``_covers_q``, strict; a coverall group covers every region) and every triangle of g
+    that can reach K in front of all 8 corners (``_hides``). Every ray of the pixel that
+    meets a primitive of the leaf meets its box, so the test hides each of them at once.
+
+    A box reaching the cameras' depths is never hidden, nor tested. ``occ``: the occluders'
+    arrays ``_hides`` reads; ``lsc``: scratch (the box's camera points, images and radii, the
+    pixel's region, K and its scratch, K's geometry and axes). Not inlined: called once per
+    leaf and pixel at most, it spares the kernel another copy of both tests."""
+    (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
+     qctx) = occ
+    cam, qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi = lsc
+    load_prim(leaf_pts, 8 * lf, 8, origin, perm, sign, cam)
+    wmin = cam[0, 2]
+    wref = 0.0
+    for c in range(8):
+        wmin = min(wmin, cam[c, 2])
+        wref += cam[c, 2]
+    wref /= 8.0
+    if not wmin > wcam + tol:
+        return False
+    project(cam, 8, sx, sy, h, wref, qv, qr)
+    region_at(corners, sx, sy, h, wref, rv, rr)
+    nk = region_polygon(qv, qr, np.int64(8), np.bool_(False), rv, rr, kx, ky, tx, ty)
+    if nk == 0:
+        return True  # no ray of the pixel meets the box
+    _k_box(kx, ky, nk, kb)
+    if not coverall and not _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx,
+                                      kny, klo, khi, strict, rpoly, 0, rpb, rv, ws, wpt, work):
+        return False
+    return _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool,
+                  pdep, dom, wcam, tol, wref, h, kb, cam, 8, wmin, ov, strict, work)
+
+
 @njit(cache=True, nogil=True)
 def _share_scratch(lmax, tmax, imax, n_known):
     """The scratch arrays of one share of ``resolve_tiles`` (``groups.ShareScratch``, owners),
@@ -1324,7 +1364,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
-        work=np.zeros(3, dtype=np.int64))
+        work=np.zeros(6, dtype=np.int64))
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -1368,7 +1408,7 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
 @njit(cache=True, nogil=True)
 def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cover - numba
     """Share ``share`` of the ``k_sh`` shares of ``resolve_tiles``'s tiles (its arguments)."""
-    pts, start, npts, kind, vid, solid, gap = prims
+    pts, start, npts, kind, vid, solid, gap, leaf, leaf_pts = prims
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff, block = (
         lists)
     (origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on,
@@ -1382,6 +1422,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     pstart, pcount, torder, origin = borrow(pstart), borrow(pcount), borrow(torder), borrow(origin)
     perm, sign, corners, known = borrow(perm), borrow(sign), borrow(corners), borrow(known)
     stop, items, ioff, block = borrow(stop), borrow(items), borrow(ioff), borrow(block)
+    leaf, leaf_pts = borrow(leaf), borrow(leaf_pts)
     # What the parallel loop writes (vis, hid, counters) stays owned: ``visibility.borrow``.
     h = 0.5 * pw
     npix = tsz * tsz
@@ -1433,6 +1474,13 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     occ = (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
            qctx)
     pool[1] = 8 * lmax
+    n_leaf = leaf_pts.shape[0] // 8
+    # Per leaf of the scene's hierarchy: the pixel its box was last found hidden at, and the
+    # pixel it was last tested at (``_leaf_hidden``).
+    lstamp = np.full(n_leaf, -1, dtype=np.int64)
+    ltried = np.full(n_leaf, -1, dtype=np.int64)
+    lsc = (np.empty((8, 3)), np.empty((8, 2)), np.empty(8), rv, rr, rx, ry, tx_, ty_,
+           np.empty(7), rnx, rny, rlo, rhi)
     hmask = thash.shape[0] - 1
     pstamp = 0  # the pixel's, in sstate
     for it in range(it0, it1):
@@ -1459,9 +1507,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         i0 = ioff[tile]
         n_slots = 0
         n_set = 0
-        work[0] = 0
-        work[1] = 0
-        work[2] = 0
+        for c in range(6):
+            work[c] = 0
         tested = 0
         hidden = 0
         fused = 0
@@ -1541,6 +1588,15 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     break  # one pixel's list of 10^5 entries takes seconds in dense clutter
                 it_k = entries[k]
                 p = items[i0 + it_k]
+                lf = leaf[p]
+                if lf >= 0 and lstamp[lf] == pstamp:
+                    # Its leaf's box is hidden at this pixel, so it is too, and it needs no
+                    # occluder: whatever it would hide lies behind what hides the box, or
+                    # is hidden less, never wrongly, without it.
+                    work[3] += 1
+                    if mark:
+                        hid[k] = 1
+                    continue
                 # One entry in TIME_STRIDE is timed by step: four counter reads at every
                 # entry would weigh on short lists, whose entries are cheap.
                 timed = (k - a) % TIME_STRIDE == 0
@@ -1582,6 +1638,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                        plane_tol, corners)
                         occluded = False
                         by_cov = False
+                        hider = -1
                         if 2 * n_dead > n_live:
                             # Compact the live list (oldest groups first, as they came).
                             m = 0
@@ -1651,6 +1708,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                       h, kb, cam, n, wmin, ov, qctx, work):
                                 occluded = True
                                 by_cov = isc
+                                hider = g
                                 if not by_cov:
                                     last_g = g
                                 break
@@ -1672,6 +1730,16 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 plane_tol, kb, sub, work)
                             occluded = by_sub
                             refined += 1 if by_sub else 0
+                        if hider >= 0 and lf >= 0 and ltried[lf] != pstamp:
+                            # The group that hid Q may hide the box of Q's whole leaf.
+                            ltried[lf] = pstamp
+                            work[4] += 1
+                            if _leaf_hidden(lf, hider, by_cov, leaf_pts, origin, perm, sign,
+                                            sx, sy, h, corners, wcam, plane_tol, edges, gbb,
+                                            gwlo, gwhi, occ, lsc, strict, rpoly, rpb, ws, wpt,
+                                            work):
+                                lstamp[lf] = pstamp
+                                work[5] += 1
                         if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
                             # nothing as an occluder, and keeping it would make long lists
@@ -1911,6 +1979,9 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 10] = fused
         counters[tile, 11] = refined
         counters[tile, 12] = work[2]
+        counters[tile, 13] = work[3]
+        counters[tile, 14] = work[4]
+        counters[tile, 15] = work[5]
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
     keep_alive(own)

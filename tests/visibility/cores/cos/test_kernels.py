@@ -236,6 +236,57 @@ def test_fusion_two_triangles_sharing_an_edge_hide_what_neither_hides_alone():
     assert 2 in _visible(gap + q)
 
 
+def _row_behind_a_wall(x_edge: float):
+    """A wall at z = -6 over x <= x_edge, up to y = 1.9, and behind it at z = -12 a row of
+    64 small triangles from x = -2 to 3, y 1.6 to 1.65 (ids 2 on, in x order). From the
+    cell (x within 0.1 of 0) the wall's side edge passes the row at x = 2 x_edge - e for an
+    eye at x = e. Its top edge hides the row from every eye (from the highest, 1.8, a ray
+    to the row's top passes the wall at 1.725), yet a pixel looking level or up sees above
+    it from the cell's higher eyes: there the wall holds none of the pixel's offsets whole
+    (no early z, no coverall, nothing left out while lists fill), so each triangle of the
+    row is tested."""
+    # Split along the diagonal that stays far below the rays to the row (a shared edge
+    # near them leaves cos conservative there, with or without leaf boxes).
+    wall = [[(-20, -5, -6.0), (x_edge, -5, -6.0), (-20, 1.9, -6.0)],
+            [(x_edge, -5, -6.0), (x_edge, 1.9, -6.0), (-20, 1.9, -6.0)]]
+    xs = np.linspace(-2.0, 3.0, 65)
+    row = [[(a, 1.6, -12.0), (b, 1.6, -12.0), (0.5 * (a + b), 1.65, -12.0)]
+           for a, b in zip(xs[:-1], xs[1:], strict=True)]
+    return wall + row, 0.5 * (xs[:-1] + xs[1:])
+
+
+def test_a_leaf_box_behind_a_wall_hides_its_triangles_at_once():
+    # The whole row behind the wall: its leaves' boxes are hidden once a triangle of each
+    # is, and their other triangles skip those pixels; the answer is the wall alone.
+    tris, _ = _row_behind_a_wall(20.0)
+    ids, st = cos_pvs(_scene(tris), CELL, 64)
+    assert set(ids.tolist()) == {0, 1}
+    assert st["leaf_hidden"] > 0 and st["leaf_skipped"] > 0
+    assert st["leaf_hidden"] <= st["leaf_tests"]
+    ids2, st2 = cos_pvs(_scene(tris), CELL, 64, leaf_boxes=False)
+    assert set(ids2.tolist()) == {0, 1} and st2["leaf_tests"] == 0
+
+
+def test_a_leaf_box_reaching_past_the_wall_is_not_hidden():
+    # The wall ends at x = 0.5: the row is seen from x = 0.9 on (1.1 from the cell's far
+    # side; cos takes it from 0.7). A leaf of the row (x 0.46 to 1.63) straddles that line:
+    # its box is not hidden, so its triangles beyond it are found one by one; those well
+    # behind the wall are hidden, in that leaf too.
+    from visibility.raster.hierarchy import scene_hierarchy
+
+    tris, mid = _row_behind_a_wall(0.5)
+    scene = _scene(tris)
+    leaf = scene_hierarchy(scene).leaf_of
+    seen, unseen = 2 + np.flatnonzero(mid > 1.3), 2 + np.flatnonzero(mid < 0.6)
+    assert set(leaf[seen].tolist()) & set(leaf[unseen].tolist())  # a leaf on both sides
+    ids, st = cos_pvs(scene, CELL, 64)
+    got = set(ids.tolist())
+    assert set(seen.tolist()) <= got and not set(unseen.tolist()) & got
+    assert st["leaf_tests"] > 0
+    ids2, _ = cos_pvs(scene, CELL, 64, leaf_boxes=False)
+    assert got == set(ids2.tolist())
+
+
 def _wall_x(x, z0, z1, y0, y1):
     return [[(x, y0, z0), (x, y0, z1), (x, y1, z1)], [(x, y0, z0), (x, y1, z1), (x, y1, z0)]]
 
