@@ -453,7 +453,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     tl = time.perf_counter()
-    leaves = _leaf_boxes(prims, hier, scene.n_triangles) if leaf_boxes else None
+    leaves = _leaf_boxes(prims, hier, scene.n_triangles, centre) if leaf_boxes else None
     stats["leaf_seconds"] = time.perf_counter() - tl
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
@@ -548,33 +548,36 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
-def _leaf_boxes(prims: Prims, hier: Hierarchy | None, n_triangles: int
-                ) -> tuple[np.ndarray, np.ndarray] | None:
+def _leaf_boxes(prims: Prims, hier: Hierarchy | None, n_triangles: int,
+                centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The leaves of the scene's hierarchy that hold the cell's triangles: per primitive
     (n,) int64 its leaf's index among them (-1: none: a sphere, a moving triangle), and
-    (8 L, 3) float64 each leaf's box corners, cell-centred metres, the box of its triangles
-    that are primitives here (``resolve._leaf_hidden``). None without a hierarchy."""
+    (8 L, 3) float64 each leaf's box corners, relative to ``centre`` (the primitives' frame),
+    grown by the plane tolerance for the rounding of that shift (``resolve._leaf_hidden``).
+    None without a hierarchy. Linear in the primitives and the scene's leaves: no sort."""
     if hier is None:
         return None
     n = len(prims)
     lf = np.full(n, -1, dtype=np.int64)
-    tri = (prims.kind == TRIANGLE) & (prims.out_id < n_triangles)
-    ids = np.flatnonzero(tri)
-    lo_of = hier.leaf_of[prims.out_id[ids]].astype(np.int64)
-    keep = lo_of >= 0
-    ids, lo_of = ids[keep], lo_of[keep]
-    uniq, inv = np.unique(lo_of, return_inverse=True)
-    lf[ids] = inv
-    pts = prims.pts[prims.start[ids][:, None] + np.arange(3)]  # (m, 3, 3)
-    lo = np.full((len(uniq), 3), np.inf)
-    hi = np.full((len(uniq), 3), -np.inf)
-    np.minimum.at(lo, inv, pts.min(axis=1))
-    np.maximum.at(hi, inv, pts.max(axis=1))
-    corners = np.empty((len(uniq), 8, 3))
+    ids = np.flatnonzero((prims.kind == TRIANGLE) & (prims.out_id < n_triangles))
+    glob = hier.leaf_of[prims.out_id[ids]].astype(np.int64)
+    keep = glob >= 0
+    ids, glob = ids[keep], glob[keep]
+    slots = len(hier.boxes) // 2
+    used = np.zeros(slots, dtype=bool)
+    used[glob] = True
+    which = np.flatnonzero(used)
+    index = np.full(slots, -1, dtype=np.int64)
+    index[which] = np.arange(len(which))
+    lf[ids] = index[glob]
+    tol = prims.plane_tol
+    lo = hier.boxes[slots + which, 0] - centre - tol
+    hi = hier.boxes[slots + which, 1] - centre + tol
+    corners = np.empty((len(which), 8, 3))
     for c in range(8):
-        corners[:, c, 0] = np.where(c & 1, hi[:, 0], lo[:, 0])
-        corners[:, c, 1] = np.where(c & 2, hi[:, 1], lo[:, 1])
-        corners[:, c, 2] = np.where(c & 4, hi[:, 2], lo[:, 2])
+        corners[:, c, 0] = hi[:, 0] if c & 1 else lo[:, 0]
+        corners[:, c, 1] = hi[:, 1] if c & 2 else lo[:, 1]
+        corners[:, c, 2] = hi[:, 2] if c & 4 else lo[:, 2]
     return lf, corners.reshape(-1, 3)
 
 
