@@ -184,7 +184,7 @@ def speed(quick: bool, points: int, kitchen: bool = True,
                              ref, repeats=1 if sc is kitchen else 2,
                              coarse_items=COARSE_STEP))
             rows.append(_row(f"{label}, without leaf boxes", sc, box, DEFAULT_RESOLUTION,
-                             ref, repeats=1 if sc is kitchen else 2, leaf_boxes=False))
+                             ref, repeats=1 if sc is kitchen else 2, leaf_list=0))
         # Separate groups hiding together (``fusion="groups"``) as a step.
         rows.append(_row(f"{label}, fusion groups", sc, box, DEFAULT_RESOLUTION, ref,
                          repeats=1 if sc is kitchen else 2, fusion="groups"))

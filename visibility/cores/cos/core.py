@@ -34,7 +34,12 @@ from visibility.cores.cos.prims import (
     prim_bounds,
     solid_mask,
 )
-from visibility.cores.cos.resolve import N_COUNTERS, REFINE_LEVELS, TIME_STRIDE, resolve_tiles
+from visibility.cores.cos.resolve import (
+    N_COUNTERS,
+    REFINE_LEVELS,
+    TIME_STRIDE,
+    resolve_tiles,
+)
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import (
     MIN_TRIANGLES,
@@ -54,6 +59,9 @@ DEFAULT_RESOLUTION = 128
 #: Items (primitives whose footprint meets it) from which a tile is busy (``CosParams``):
 #: clutter; 100k city and village cells at 0.3 m have no such tile.
 BUSY_MIN_ITEMS = 8192
+#: Pixels listing at least this many entries test leaf boxes (``CosParams.leaf_list``):
+#: short lists are cheap to test one by one, and there a box spares few entries.
+LEAF_LIST = 128
 #: The coarse pass (``CosParams.coarse_items``): off by default, since busy tiles' samples
 #: resolved down to single pixels cost less without it (benchmarks/results/cos.md).
 COARSE_ITEMS = 0
@@ -152,11 +160,12 @@ class CosParams(CoreParams):
                         help="occluders that hide together: edges (the paper's: triangles "
                              "sharing edges) or groups (separate surfaces too: tighter at "
                              "large cells, for more time)")
-    leaf_boxes: bool = param(True,
-                             help="once an occludee is hidden at a pixel, test the box of its "
-                                  "leaf of the scene's hierarchy against what hid it; the "
-                                  "leaf's other primitives skip that pixel where it is hidden "
-                                  "(faster in clutter; a few more triangles)")
+    leaf_list: int = param(LEAF_LIST, unit="entries", ge=0, le=1 << 30,
+                           help="at pixels listing at least this many entries, once an "
+                                "occludee is hidden, the box of its leaf of the scene's "
+                                "hierarchy is tested against what hid it, and the leaf's other "
+                                "primitives skip the pixel where it is hidden (faster in "
+                                "clutter, a few more triangles; 0: never)")
 
 
 #: Cost model (``estimate_cost``): per pixel of the views, per triangle and side plane: a
@@ -253,12 +262,12 @@ class CosCore(Core):
                                 cover=str(params.cover), fusion=str(params.fusion),
                                 busy_block=int(params.busy_block), refine=int(params.refine),
                                 busy_items=int(params.busy_items),
-                                leaf_boxes=bool(params.leaf_boxes))
+                                leaf_list=int(params.leaf_list))
         return cos_pvs(scene, box, int(params.resolution), float(params.list_budget_mb),
                        int(params.coarse_items), cover=str(params.cover),
                        fusion=str(params.fusion), busy_block=int(params.busy_block),
                        refine=int(params.refine), busy_items=int(params.busy_items),
-                       leaf_boxes=bool(params.leaf_boxes))
+                       leaf_list=int(params.leaf_list))
 
 
 def sub_boxes(box: np.ndarray, n: int) -> np.ndarray:
@@ -281,7 +290,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                  list_budget_mb: float = 256.0, coarse_items: int = COARSE_ITEMS,
                  cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
                  refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS,
-                 leaf_boxes: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
+                 leaf_list: int = LEAF_LIST) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell as the union of ``cos_pvs`` over its n x n sub-cells (``sub_boxes``):
     each is conservative for its eyes, so the union is for the cell's. What one sub-cell finds
     visible is passed on as known to the next (``cos_pvs``'s ``known``: in the answer already,
@@ -295,7 +304,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
     for b in sub_boxes(box, n):
         ids, st = cos_pvs(scene, b, resolution, list_budget_mb, coarse_items, known=known,
                           cover=cover, fusion=fusion, busy_block=busy_block, refine=refine,
-                          busy_items=busy_items, leaf_boxes=leaf_boxes)
+                          busy_items=busy_items, leaf_list=leaf_list)
         known[ids] = True
         known[m + st["sphere_ids"].astype(np.int64)] = True
         sizes.append(int(known.sum()))
@@ -321,7 +330,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             list_budget_mb: float = 256.0,
             coarse_items: int = COARSE_ITEMS, known: np.ndarray | None = None,
             cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
-            refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS, leaf_boxes: bool = True
+            refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS, leaf_list: int = LEAF_LIST
             ) -> tuple[np.ndarray, dict[str, Any]]:
     """PVS of a box cell.
 
@@ -343,8 +352,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         over the whole pixel (``CosParams.refine``).
     busy_items : screen tiles whose footprints list at least this many primitives are busy
         (``CosParams.busy_items``); 0: none.
-    leaf_boxes : test a hidden occludee's leaf box (``CosParams.leaf_boxes``,
-        ``resolve._leaf_hidden``); only where the scene's hierarchy is there.
+    leaf_list : pixels listing at least this many entries test a hidden occludee's leaf box
+        (``CosParams.leaf_list``, ``resolve._leaf_hidden``; only where the scene's hierarchy
+        is there); 0: none.
 
     Returns
     -------
@@ -379,7 +389,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         ``block_tiles`` (tiles sampled per ``busy_block`` pixels), ``leaf_seconds`` (the
         leaf boxes, part of the set-up), ``leaf_tests``, ``leaf_hidden`` and
         ``leaf_skipped`` (leaf boxes tested, found hidden, and the list entries that skipped
-        a pixel for it: ``leaf_boxes``) and
+        a pixel for it: ``leaf_list``) and
         ``costliest_view`` (the side plane and frustum that
         took longest, its seconds, list entries and longest list), ``tree`` (whether the
         scene's hierarchy was there to cull with), ``tree_seconds`` (where the cell's
@@ -453,7 +463,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     tl = time.perf_counter()
-    leaves = _leaf_boxes(prims, hier, scene.n_triangles, centre) if leaf_boxes else None
+    leaves = _leaf_boxes(prims, hier, scene.n_triangles, centre) if leaf_list > 0 else None
     stats["leaf_seconds"] = time.perf_counter() - tl
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
@@ -468,7 +478,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
                       else positions[k])
             longest = _solve_view(prims, solid, order, listed, gap, view, plane_tol, vis, budget,
                                   stats, coarse_items, rng, cover, fuse, busy_block,
-                                  refine, busy_items, leaves)
+                                  refine, busy_items, leaves, leaf_list)
             seconds = time.perf_counter() - tv
             if seconds > worst:
                 # Dense clutter is rarely spread evenly: say which view the time went to.
@@ -591,11 +601,11 @@ def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray,
 
 
 def _screen(view: View, plane_tol: float, cover: str, fuse: bool = False,
-            refine: int = 0) -> Screen:
+            refine: int = 0, leaf_list: int = 0) -> Screen:
     """The kernels' view of a view's camera and pixel grid."""
     return Screen(view.origin, view.perm, view.sign, view.corners, int(view.nx), int(view.ny),
                   float(view.x_lo), float(view.y_lo), float(view.pw), float(plane_tol),
-                  cover == "relaxed", bool(fuse), int(refine))
+                  cover == "relaxed", bool(fuse), int(refine), int(leaf_list))
 
 
 
@@ -659,7 +669,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
                 cover: str = "strict", fuse: bool = False, busy_block: int = 1,
-                refine: int = 0, busy_items: int = 0, leaves: tuple | None = None) -> int:
+                refine: int = 0, busy_items: int = 0, leaves: tuple | None = None,
+                leaf_list: int = 0) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
     ``_view_positions``; only the ``solid`` primitives occlude); sets ``vis`` for what it finds
@@ -687,7 +698,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["tile_items"] += int(tile_off[-1])
     stats["list_seconds"] += t0c - t0
     parrays = _prim_arrays(prims, solid, gap, leaves)
-    screen = _screen(view, plane_tol, cover, fuse, refine)
+    screen = _screen(view, plane_tol, cover, fuse, refine,
+                     leaf_list if leaves is not None else 0)
     # The tiles' items as primitive ids: lists name them by their place in their tile.
     items = order[tile_items].astype(np.int32)
     drop = np.empty(0, dtype=np.uint8)

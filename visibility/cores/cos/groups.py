@@ -22,6 +22,9 @@ class PrimArrays(NamedTuple):
     vid : (n, 3) int64 welded vertex ids (fusion along shared edges).
     solid : (n,) uint8, whether the primitive may occlude (``prims.solid_mask``).
     gap : (n,) float64 distance from the cell box to the primitive's bounding box, metres.
+    leaf : (n,) int64 the primitive's leaf of the scene's hierarchy among the cell's (-1:
+        none); leaf_pts : (8 L, 3) float64 their boxes' corners, cell-centred
+        (``core._leaf_boxes``).
     """
 
     pts: np.ndarray
@@ -48,6 +51,8 @@ class Screen(NamedTuple):
         (``resolve._fused_hide``).
     refine : levels of 2 x 2 sub-pixels an occludee no group hides over the whole pixel is
         tested at (``resolve._refined_hide``; 0: none).
+    leaf_list : pixels listing at least this many entries test the leaf box of an occludee
+        once it is hidden (``resolve._leaf_hidden``; 0: none).
     """
 
     origin: np.ndarray
@@ -63,6 +68,7 @@ class Screen(NamedTuple):
     relaxed: bool
     fuse: bool
     refine: int
+    leaf_list: int
 
 
 class TileLists(NamedTuple):

@@ -1412,7 +1412,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     entries, pstart, pcount, tile0, tile1, torder, tiles_x, tsz, shares, items, ioff, block = (
         lists)
     (origin, perm, sign, corners, nx, ny, x_lo, y_lo, pw, plane_tol, relaxed, fuse_on,
-     refine) = screen
+     refine, leaf_list) = screen
     known, vis, hid, counters, stop = marks
     # Borrowed (``visibility.borrow``): the helpers called per entry and per pixel count no
     # references to them, which the threads would otherwise fight over (shared arrays) or
@@ -1730,7 +1730,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 plane_tol, kb, sub, work)
                             occluded = by_sub
                             refined += 1 if by_sub else 0
-                        if hider >= 0 and lf >= 0 and ltried[lf] != pstamp:
+                        if (hider >= 0 and lf >= 0 and ltried[lf] != pstamp
+                                and b - a >= leaf_list and leaf_list > 0):
                             # The group that hid Q may hide the box of Q's whole leaf.
                             ltried[lf] = pstamp
                             work[4] += 1

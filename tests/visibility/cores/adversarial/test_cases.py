@@ -90,6 +90,22 @@ def test_no_misses(name, core_name):
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+def test_cos_leaf_boxes_miss_nothing(name):
+    # Every pixel tests leaf boxes (by default only lists of LEAF_LIST entries or more do,
+    # which these small scenes never reach): once an entry is hidden, its hierarchy leaf's
+    # box against the group that hid it, and the leaf's other entries skip the pixel.
+    case = CASES[name]
+    core = get_core("cos")
+    pvs = core.compute(case.scene, Viewcell(case.box), core.make_params(leaf_list=1))
+    st = pvs.stats
+    assert st["leaf_hidden"] <= st["leaf_tests"]
+    missed = np.setdiff1d(reference(name).ids, pvs.triangle_ids)
+    assert missed.tolist() == [], (
+        f"cos testing leaf boxes at every pixel misses {len(missed)} triangles in "
+        f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
+
+
+@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
 @pytest.mark.parametrize("busy_block,coarse", [(2, False), (8, False), (1, True), (4, True)])
 def test_cos_busy_tiles_miss_nothing(name, busy_block, coarse, monkeypatch):
     # Every screen tile is busy (on these small scenes none would be by default) and sampled

@@ -259,11 +259,12 @@ def test_a_leaf_box_behind_a_wall_hides_its_triangles_at_once():
     # The whole row behind the wall: its leaves' boxes are hidden once a triangle of each
     # is, and their other triangles skip those pixels; the answer is the wall alone.
     tris, _ = _row_behind_a_wall(20.0)
-    ids, st = cos_pvs(_scene(tris), CELL, 64)
+    # Every pixel tests leaf boxes (the default, only lists of LEAF_LIST entries or more).
+    ids, st = cos_pvs(_scene(tris), CELL, 64, leaf_list=1)
     assert set(ids.tolist()) == {0, 1}
     assert st["leaf_hidden"] > 0 and st["leaf_skipped"] > 0
     assert st["leaf_hidden"] <= st["leaf_tests"]
-    ids2, st2 = cos_pvs(_scene(tris), CELL, 64, leaf_boxes=False)
+    ids2, st2 = cos_pvs(_scene(tris), CELL, 64, leaf_list=0)
     assert set(ids2.tolist()) == {0, 1} and st2["leaf_tests"] == 0
 
 
@@ -279,11 +280,11 @@ def test_a_leaf_box_reaching_past_the_wall_is_not_hidden():
     leaf = scene_hierarchy(scene).leaf_of
     seen, unseen = 2 + np.flatnonzero(mid > 1.3), 2 + np.flatnonzero(mid < 0.6)
     assert set(leaf[seen].tolist()) & set(leaf[unseen].tolist())  # a leaf on both sides
-    ids, st = cos_pvs(scene, CELL, 64)
+    ids, st = cos_pvs(scene, CELL, 64, leaf_list=1)
     got = set(ids.tolist())
     assert set(seen.tolist()) <= got and not set(unseen.tolist()) & got
     assert st["leaf_tests"] > 0
-    ids2, _ = cos_pvs(scene, CELL, 64, leaf_boxes=False)
+    ids2, _ = cos_pvs(scene, CELL, 64, leaf_list=0)
     assert got == set(ids2.tolist())
 
 
