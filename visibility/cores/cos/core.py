@@ -60,8 +60,10 @@ DEFAULT_RESOLUTION = 128
 #: clutter; 100k city and village cells at 0.3 m have no such tile.
 BUSY_MIN_ITEMS = 8192
 #: Pixels listing at least this many entries test leaf boxes (``CosParams.leaf_list``):
-#: short lists are cheap to test one by one, and there a box spares few entries.
-LEAF_LIST = 128
+#: only clutter's lists are that long. In shorter ones a box spares few entries, and the
+#: entries it spares no longer close their neighbours' silhouettes, so the answer grows
+#: (docs/cores/cos.md).
+LEAF_LIST = 2048
 #: The coarse pass (``CosParams.coarse_items``): off by default, since busy tiles' samples
 #: resolved down to single pixels cost less without it (benchmarks/results/cos.md).
 COARSE_ITEMS = 0
