@@ -43,7 +43,6 @@ from visibility.cores.cos.resolve import (
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.raster.hierarchy import (
     MIN_TRIANGLES,
-    Hierarchy,
     ready_hierarchy,
     scene_hierarchy,
 )
@@ -64,6 +63,8 @@ BUSY_MIN_ITEMS = 8192
 #: entries it spares no longer close their neighbours' silhouettes, so the answer grows
 #: (docs/cores/cos.md).
 LEAF_LIST = 2048
+#: Triangles of a leaf for that test: a run of consecutive ids (``_leaf_boxes``).
+LEAF_SIZE = 16
 #: The coarse pass (``CosParams.coarse_items``): off by default, since busy tiles' samples
 #: resolved down to single pixels cost less without it (benchmarks/results/cos.md).
 COARSE_ITEMS = 0
@@ -164,9 +165,9 @@ class CosParams(CoreParams):
                              "large cells, for more time)")
     leaf_list: int = param(LEAF_LIST, unit="entries", ge=0, le=1 << 30,
                            help="at pixels listing at least this many entries, once an "
-                                "occludee is hidden, the box of its leaf of the scene's "
-                                "hierarchy is tested against what hid it, and the leaf's other "
-                                "primitives skip the pixel where it is hidden (faster in "
+                                "occludee is hidden, the box of its leaf (16 consecutive "
+                                "triangle ids) is tested against what hid it, and the leaf's "
+                                "other triangles skip the pixel where it is hidden (faster in "
                                 "clutter, a few more triangles; 0: never)")
 
 
@@ -355,8 +356,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     busy_items : screen tiles whose footprints list at least this many primitives are busy
         (``CosParams.busy_items``); 0: none.
     leaf_list : pixels listing at least this many entries test a hidden occludee's leaf box
-        (``CosParams.leaf_list``, ``resolve._leaf_hidden``; only where the scene's hierarchy
-        is there); 0: none.
+        (``CosParams.leaf_list``, ``resolve._leaf_hidden``, ``_leaf_boxes``); 0: none.
 
     Returns
     -------
@@ -465,7 +465,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
     tl = time.perf_counter()
-    leaves = _leaf_boxes(prims, hier, scene.n_triangles, centre) if leaf_list > 0 else None
+    leaves = _leaf_boxes(prims) if leaf_list > 0 else None
     stats["leaf_seconds"] = time.perf_counter() - tl
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
@@ -560,32 +560,26 @@ def _balanced_order(work: np.ndarray, t0: int, t1: int) -> np.ndarray:
     return (t0 + np.concatenate([ranked[b::k] for b in range(k)])).astype(np.int64)
 
 
-def _leaf_boxes(prims: Prims, hier: Hierarchy | None, n_triangles: int,
-                centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The leaves of the scene's hierarchy that hold the cell's triangles: per primitive
-    (n,) int64 its leaf's index among them (-1: none: a sphere, a moving triangle), and
-    (8 L, 3) float64 each leaf's box corners, relative to ``centre`` (the primitives' frame),
-    grown by the plane tolerance for the rounding of that shift (``resolve._leaf_hidden``).
-    None without a hierarchy. Linear in the primitives and the scene's leaves: no sort."""
-    if hier is None:
-        return None
+def _leaf_boxes(prims: Prims) -> tuple[np.ndarray, np.ndarray]:
+    """Leaves of the cell's triangles for the leaf-box test (``resolve._leaf_hidden``): runs
+    of ``LEAF_SIZE`` consecutive ids of the scene's face array (a mesh's triangles come in
+    order, so a run is a patch of it), the same whatever else is built for the scene, so the
+    answer never depends on what is ready. Per primitive (n,) int64 its leaf (-1: a hull),
+    and (8 L, 3) float64 each leaf's box corners: the box of its triangles that are
+    primitives here, in their frame (cell-centred metres). Linear in the primitives."""
     n = len(prims)
     lf = np.full(n, -1, dtype=np.int64)
-    ids = np.flatnonzero((prims.kind == TRIANGLE) & (prims.out_id < n_triangles))
-    glob = hier.leaf_of[prims.out_id[ids]].astype(np.int64)
-    keep = glob >= 0
-    ids, glob = ids[keep], glob[keep]
-    slots = len(hier.boxes) // 2
-    used = np.zeros(slots, dtype=bool)
-    used[glob] = True
-    which = np.flatnonzero(used)
-    index = np.full(slots, -1, dtype=np.int64)
-    index[which] = np.arange(len(which))
-    lf[ids] = index[glob]
-    tol = prims.plane_tol
-    lo = hier.boxes[slots + which, 0] - centre - tol
-    hi = hier.boxes[slots + which, 1] - centre + tol
-    corners = np.empty((len(which), 8, 3))
+    m = int(np.count_nonzero(prims.kind == TRIANGLE))
+    if m == 0:
+        return lf, np.zeros((0, 3))
+    # The triangles come first, in ascending id order (``prims.build_prims``).
+    run = prims.out_id[:m] // LEAF_SIZE
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(run)) + 1))
+    lf[:m] = np.repeat(np.arange(len(starts), dtype=np.int64), np.diff(np.append(starts, m)))
+    tri = prims.pts[:3 * m].reshape(m, 3, 3)
+    lo = np.minimum.reduceat(tri.min(axis=1), starts, axis=0)
+    hi = np.maximum.reduceat(tri.max(axis=1), starts, axis=0)
+    corners = np.empty((len(starts), 8, 3))
     for c in range(8):
         corners[:, c, 0] = hi[:, 0] if c & 1 else lo[:, 0]
         corners[:, c, 1] = hi[:, 1] if c & 2 else lo[:, 1]

@@ -22,8 +22,8 @@ class PrimArrays(NamedTuple):
     vid : (n, 3) int64 welded vertex ids (fusion along shared edges).
     solid : (n,) uint8, whether the primitive may occlude (``prims.solid_mask``).
     gap : (n,) float64 distance from the cell box to the primitive's bounding box, metres.
-    leaf : (n,) int64 the primitive's leaf of the scene's hierarchy among the cell's (-1:
-        none); leaf_pts : (8 L, 3) float64 their boxes' corners, cell-centred
+    leaf : (n,) int64 the primitive's leaf, a run of consecutive triangle ids (-1: none);
+        leaf_pts : (8 L, 3) float64 the leaves' box corners, cell-centred
         (``core._leaf_boxes``).
     """
 

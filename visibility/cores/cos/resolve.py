@@ -1285,12 +1285,13 @@ def _merge(g1, g2, grp, head, tail, nxt, gsize, gbb, gwlo, gwhi, gcov, alive,
 def _leaf_hidden(lf, g, coverall, leaf_pts, origin, perm, sign, sx, sy, h, corners, wcam, tol,
                  edges, gbb, gwlo, gwhi, occ, lsc, strict, rpoly, rpb, ws, wpt,
                  work):  # pragma: no cover - numba
-    """Whether group g, which has just hidden a primitive of leaf ``lf`` of the scene's
-    hierarchy, also hides the leaf's box (its 8 corners at ``leaf_pts[8 lf:]``) at this
-    pixel (sx, sy, half-width h): the box's region K in its own mean-depth frame, covered by
-    g (``_covers_q``, strict; a coverall group covers every region) and every triangle of g
-    that can reach K in front of all 8 corners (``_hides``). Every ray of the pixel that
-    meets a primitive of the leaf meets its box, so the test hides each of them at once.
+    """Whether group g, which has just hidden a primitive of leaf ``lf`` (a run of
+    consecutive triangle ids, ``core._leaf_boxes``), also hides the leaf's box (its 8
+    corners at ``leaf_pts[8 lf:]``) at this pixel (sx, sy, half-width h): the box's region
+    K in its own mean-depth frame, covered by g (``_covers_q``, strict; a coverall group
+    covers every region) and every triangle of g that can reach K in front of all 8 corners
+    (``_hides``). Every ray of the pixel that meets a primitive of the leaf meets its box,
+    so the test hides each of them at once.
 
     A box reaching the cameras' depths is never hidden, nor tested. ``occ``: the occluders'
     arrays ``_hides`` reads; ``lsc``: scratch (the box's camera points, images and radii, the
@@ -1475,7 +1476,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
            qctx)
     pool[1] = 8 * lmax
     n_leaf = leaf_pts.shape[0] // 8
-    # Per leaf of the scene's hierarchy: the pixel its box was last found hidden at, and the
+    # Per leaf (``core._leaf_boxes``): the pixel its box was last found hidden at, and the
     # pixel it was last tested at (``_leaf_hidden``).
     lstamp = np.full(n_leaf, -1, dtype=np.int64)
     ltried = np.full(n_leaf, -1, dtype=np.int64)

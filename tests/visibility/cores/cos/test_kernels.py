@@ -270,14 +270,14 @@ def test_a_leaf_box_behind_a_wall_hides_its_triangles_at_once():
 
 def test_a_leaf_box_reaching_past_the_wall_is_not_hidden():
     # The wall ends at x = 0.5: the row is seen from x = 0.9 on (1.1 from the cell's far
-    # side; cos takes it from 0.7). A leaf of the row (x 0.46 to 1.63) straddles that line:
+    # side; cos takes it from 0.7). A leaf of the row (x 0.38 to 1.55) straddles that line:
     # its box is not hidden, so its triangles beyond it are found one by one; those well
     # behind the wall are hidden, in that leaf too.
-    from visibility.raster.hierarchy import scene_hierarchy
+    from visibility.cores.cos.core import LEAF_SIZE
 
     tris, mid = _row_behind_a_wall(0.5)
     scene = _scene(tris)
-    leaf = scene_hierarchy(scene).leaf_of
+    leaf = np.arange(len(tris)) // LEAF_SIZE
     seen, unseen = 2 + np.flatnonzero(mid > 1.3), 2 + np.flatnonzero(mid < 0.6)
     assert set(leaf[seen].tolist()) & set(leaf[unseen].tolist())  # a leaf on both sides
     ids, st = cos_pvs(scene, CELL, 64, leaf_list=1)
