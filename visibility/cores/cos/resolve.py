@@ -622,7 +622,8 @@ STOP_EVERY = 256
 #: triangles, cut by early z, silhouette edges walked, plane tests, then CPU cycles testing,
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
 #: and in the whole tile, then entries hidden by separate groups together, entries hidden at
-#: sub-pixels and sub-pixels resolved (``_refined_hide``).
+#: sub-pixels and sub-pixels resolved (``_refined_hide``), then entries a hidden leaf box
+#: spared their pixel, leaf boxes tested and found hidden (``_leaf_hidden``).
 N_COUNTERS = 16
 TIME_STRIDE = 8
 GRID_WIDE = 16
@@ -1389,7 +1390,8 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     then CPU cycles: testing entries, inserting occluders, checking coverall, the whole tile;
     then entries hidden by separate groups together (``screen.fuse``, ``_fused_hide``),
     entries hidden at sub-pixels and sub-pixels resolved (``screen.refine``,
-    ``_refined_hide``): ``N_COUNTERS`` columns).
+    ``_refined_hide``), entries a hidden leaf box spared their pixel, leaf boxes tested and
+    found hidden (``screen.leaf_list``, ``_leaf_hidden``): ``N_COUNTERS`` columns).
     ``stop`` ((1,) uint8, ``visibility.cancel.stop_flag``) is polled between pixels and every
     ``STOP_EVERY`` entries: once it is set the kernel returns with ``vis`` incomplete, and the
     caller's checkpoint raises.
