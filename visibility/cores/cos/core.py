@@ -464,9 +464,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "near_triangles": int(np.count_nonzero((solid == 0) & (prims.kind == TRIANGLE))),
     }
     budget = max(1, int(float(list_budget_mb) * (1 << 20) / 4))
-    tl = time.perf_counter()
-    leaves = _leaf_boxes(prims) if leaf_list > 0 else None
-    stats["leaf_seconds"] = time.perf_counter() - tl
+    leaves = _Leaves(prims)
+    stats["leaf_seconds"] = 0.0
     if len(prims):
         sel = _face_subsets(bounds, order, half, views, plane_tol)
         # Pixel boxes by position; each view writes (and reads) only the rows it projects.
@@ -587,9 +586,29 @@ def _leaf_boxes(prims: Prims) -> tuple[np.ndarray, np.ndarray]:
     return lf, corners.reshape(-1, 3)
 
 
+class _Leaves:
+    """The cell's leaf boxes (``_leaf_boxes``), built at the first view with a tile of
+    ``leaf_list`` items or more: a pixel lists only items of its tile, so a view without one
+    never reaches the leaf-box test, and open scenes never pay for the boxes."""
+
+    def __init__(self, prims: Prims) -> None:
+        self.prims = prims
+        self.built: tuple[np.ndarray, np.ndarray] | None = None
+        #: No leaves (every primitive's -1), for views that need none: made once per cell.
+        self.none = (np.full(len(prims), -1, dtype=np.int64), np.zeros((0, 3)))
+
+    def get(self, stats: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """The leaves, built once (their time added to ``stats["leaf_seconds"]``)."""
+        if self.built is None:
+            tl = time.perf_counter()
+            self.built = _leaf_boxes(self.prims)
+            stats["leaf_seconds"] += time.perf_counter() - tl
+        return self.built
+
+
 def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray,
                  leaves: tuple | None = None) -> PrimArrays:
-    """The kernels' view of the primitives."""
+    """The kernels' view of the primitives (``leaves``: ``_leaf_boxes``'s, or none)."""
     if leaves is None:
         leaves = (np.full(len(prims), -1, dtype=np.int64), np.zeros((0, 3)))
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
@@ -665,7 +684,7 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
                 gap: np.ndarray, view: View, plane_tol: float, vis: np.ndarray, budget: int,
                 stats: dict[str, Any], coarse_items: int, rng: np.ndarray,
                 cover: str = "strict", fuse: bool = False, busy_block: int = 1,
-                refine: int = 0, busy_items: int = 0, leaves: tuple | None = None,
+                refine: int = 0, busy_items: int = 0, leaves: _Leaves | None = None,
                 leaf_list: int = 0) -> int:
     """Lists and resolution of one view (over the positions ``sel``, increasing: those its side
     plane can list, less those the hierarchy walk finds no ray of the view meets,
@@ -693,9 +712,18 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["bin_seconds"] += t0c - t0b
     stats["tile_items"] += int(tile_off[-1])
     stats["list_seconds"] += t0c - t0
-    parrays = _prim_arrays(prims, solid, gap, leaves)
-    screen = _screen(view, plane_tol, cover, fuse, refine,
-                     leaf_list if leaves is not None else 0)
+    n_items = np.diff(tile_off)
+    # The leaf boxes only where a pixel lists ``leaf_list`` entries or more (built at the
+    # first such run of tiles): a pixel lists items of its tile, so a view whose tiles hold
+    # fewer never needs them.
+    could = leaves is not None and 0 < leaf_list <= int(n_items.max(initial=0))
+    parrays = _prim_arrays(prims, solid, gap, None if leaves is None else leaves.none)
+    screen = _screen(view, plane_tol, cover, fuse, refine, 0)
+
+    def with_leaves() -> tuple[PrimArrays, Screen]:
+        leaf, leaf_pts = leaves.get(stats)
+        return (parrays._replace(leaf=leaf, leaf_pts=leaf_pts),
+                screen._replace(leaf_list=leaf_list))
     # The tiles' items as primitive ids: lists name them by their place in their tile.
     items = order[tile_items].astype(np.int32)
     drop = np.empty(0, dtype=np.uint8)
@@ -703,15 +731,14 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     # solid angle and meets more items with no longer lists (at 64 px, 8 px tiles took the
     # pass on 100k city cells and cost more than they saved), so it grows with that angle.
     scale = max(1.0, (float(view.pw) * DEFAULT_RESOLUTION / 2.0) ** 2)
-    n_items = np.diff(tile_off)
     busy = (n_items >= max(busy_items, 1) * scale) & (busy_items > 0)
     coarse = busy & (n_items >= max(coarse_items, 1) * scale) & (coarse_items > 0)
     if coarse.any():
         # Clutter: the coarse pass on the tiles with that many items; their lists are then
         # filled without what it found hidden for the whole tile.
         tc = time.perf_counter()
-        drop = _coarse_pass(parrays, screen, tiles_x, tiles_y, items, tile_off, tile_items,
-                            coarse, known, stats)
+        drop = _coarse_pass(*(with_leaves() if could else (parrays, screen)), tiles_x, tiles_y,
+                            items, tile_off, tile_items, coarse, known, stats)
         stats["coarse_seconds"] += time.perf_counter() - tc
         stats["coarse_tiles"] += int(coarse.sum())
     # Clutter's tiles are sampled more coarsely (``CosParams.busy_block``).
@@ -753,7 +780,9 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         stats["longest_list"] = max(stats["longest_list"], longest)
         tb = time.perf_counter()
         lists = lists._replace(torder=_balanced_order(_tile_work(pcount, t1 - t), t, t1))
-        resolve_tiles(parrays, lists, screen,
+        run_arrays, run_screen = (with_leaves() if could and int(pcount.max(initial=0)) >= leaf_list
+                                  else (parrays, screen))
+        resolve_tiles(run_arrays, lists, run_screen,
                       Marks(known, vis, np.empty(0, dtype=np.uint8), counters, stop))
         checkpoint()  # the kernel returns early, with vis incomplete, once stop is set
         stats["list_seconds"] += tb - ta

@@ -268,6 +268,20 @@ def test_a_leaf_box_behind_a_wall_hides_its_triangles_at_once():
     assert set(ids2.tolist()) == {0, 1} and st2["leaf_tests"] == 0
 
 
+def test_leaf_boxes_are_built_only_where_a_list_is_that_long():
+    # The boxes cost a pass over the cell's triangles: a cell whose longest list stays below
+    # leaf_list builds none and tests none, and gives the same answer as one that does.
+    tris, _ = _row_behind_a_wall(20.0)
+    ids, st = cos_pvs(_scene(tris), CELL, 64, leaf_list=1)
+    longest = st["longest_list"]
+    assert st["leaf_seconds"] > 0.0 and st["leaf_tests"] > 0
+    ids2, st2 = cos_pvs(_scene(tris), CELL, 64, leaf_list=longest + 1)
+    assert st2["leaf_seconds"] == 0.0 and st2["leaf_tests"] == 0
+    assert set(ids2.tolist()) == set(ids.tolist())
+    _, st3 = cos_pvs(_scene(tris), CELL, 64, leaf_list=longest)
+    assert st3["leaf_seconds"] > 0.0
+
+
 def test_a_leaf_box_reaching_past_the_wall_is_not_hidden():
     # The wall ends at x = 0.5: the row is seen from x = 0.9 on (1.1 from the cell's far
     # side; cos takes it from 0.7). A leaf of the row (x 0.38 to 1.55) straddles that line:
