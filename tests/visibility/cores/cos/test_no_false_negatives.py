@@ -161,10 +161,11 @@ def test_a_small_list_budget_gives_the_same_answer():
 @pytest.mark.xdist_group("kitchen")
 def test_no_false_negatives_in_the_kitchens_clutter():
     """The 1M-triangle kitchen, which the core does not declare it fits (its 0.3 m cell takes
-    about half a minute, checked by benchmarks/bench_cos.py): a 5 cm cell at its middle, at 64 px,
-    against ray frames at 1024 px per face. The clutter's triangles are far smaller than a
-    256 px frame's pixels (a 0.2 mm handle edge 4 m away), so the finer frames see several
-    times more of them; the PVS must hold every one."""
+    seconds, checked by benchmarks/bench_cos.py): a 5 cm cell at its middle, at the default
+    resolution (at 64 px the same cell takes twice as long: a pixel lists more), against ray
+    frames at 1024 px per face. The clutter's triangles are far smaller than a 256 px frame's
+    pixels (a 0.2 mm handle edge 4 m away), so the finer frames see several times more of
+    them; the PVS must hold every one."""
     from tests.visibility.real_scenes import REAL, real_grid, real_scene
 
     assert "kitchen" in REAL, "the real scene kitchen of ../shared/scenes is missing"
@@ -173,7 +174,7 @@ def test_no_false_negatives_in_the_kitchens_clutter():
     c = grid.cell(len(grid) // 2).center
     box = np.stack([c - 0.025, c + 0.025])
     core = get_core("cos")
-    pvs = core.compute(scene, Viewcell(box), core.make_params(resolution=64))
+    pvs = core.compute(scene, Viewcell(box), core.make_params())
     coarse = seen_ids(_frames(scene, box, 4))
     fine = _frames(scene, box, 4, resolution=1024)
     assert len(seen_ids(fine)) > 2 * len(coarse)
