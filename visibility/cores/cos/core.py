@@ -587,9 +587,9 @@ def _leaf_boxes(prims: Prims) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Leaves:
-    """The cell's leaf boxes (``_leaf_boxes``), built at the first view with a tile of
-    ``leaf_list`` items or more: a pixel lists only items of its tile, so a view without one
-    never reaches the leaf-box test, and open scenes never pay for the boxes."""
+    """The cell's leaf boxes (``_leaf_boxes``), built at their first use (``_solve_view``:
+    the first run of tiles with a pixel list of ``leaf_list`` entries or more, where the
+    kernel tests them), so that open scenes, whose lists stay shorter, never pay for them."""
 
     def __init__(self, prims: Prims) -> None:
         self.prims = prims
