@@ -594,8 +594,8 @@ class _Leaves:
     def __init__(self, prims: Prims) -> None:
         self.prims = prims
         self.built: tuple[np.ndarray, np.ndarray] | None = None
-        #: No leaves (every primitive's -1), for views that need none: made once per cell.
-        self.none = (np.full(len(prims), -1, dtype=np.int64), np.zeros((0, 3)))
+        #: No leaves, for views that need none: made once per cell.
+        self.none = _no_leaves(len(prims))
 
     def get(self, stats: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """The leaves, built once (their time added to ``stats["leaf_seconds"]``)."""
@@ -606,11 +606,16 @@ class _Leaves:
         return self.built
 
 
+def _no_leaves(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``_leaf_boxes``' arrays for n primitives in no leaf: every leaf -1, no box."""
+    return np.full(n, -1, dtype=np.int64), np.zeros((0, 3))
+
+
 def _prim_arrays(prims: Prims, solid: np.ndarray, gap: np.ndarray,
                  leaves: tuple | None = None) -> PrimArrays:
     """The kernels' view of the primitives (``leaves``: ``_leaf_boxes``'s, or none)."""
     if leaves is None:
-        leaves = (np.full(len(prims), -1, dtype=np.int64), np.zeros((0, 3)))
+        leaves = _no_leaves(len(prims))
     return PrimArrays(prims.pts, prims.start, prims.npts, prims.kind, prims.vid, solid, gap,
                       leaves[0], leaves[1])
 
@@ -716,8 +721,10 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     # The leaf boxes only where a pixel lists ``leaf_list`` entries or more (built at the
     # first such run of tiles): a pixel lists items of its tile, so a view whose tiles hold
     # fewer never needs them.
-    could = leaves is not None and 0 < leaf_list <= int(n_items.max(initial=0))
-    parrays = _prim_arrays(prims, solid, gap, None if leaves is None else leaves.none)
+    if leaves is None:
+        leaves = _Leaves(prims)
+    could = 0 < leaf_list <= int(n_items.max(initial=0))
+    parrays = _prim_arrays(prims, solid, gap, leaves.none)
     screen = _screen(view, plane_tol, cover, fuse, refine, 0)
 
     def with_leaves() -> tuple[PrimArrays, Screen]:
