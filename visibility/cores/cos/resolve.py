@@ -151,6 +151,34 @@ def _k_box(kx, ky, nk, kb):  # pragma: no cover - numba
     kb[6] = 0.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _load_depths(pts, first, n, origin, perm, sign, cam):  # pragma: no cover - numba
+    """Load an occludee's n points into ``cam`` (camera coordinates, ``space.load_prim``) and
+    return their least and mean depth w: the mean is the frame its region K is made in (Q
+    barely moves there, and each occluder moves by its depth difference to Q)."""
+    load_prim(pts, first, n, origin, perm, sign, cam)
+    wmin = cam[0, 2]
+    wsum = cam[0, 2]
+    for c in range(1, n):
+        wmin = min(wmin, cam[c, 2])
+        wsum += cam[c, 2]
+    return wmin, wsum / n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _occludee_k(qv, qr, n, tri, corners, sx, sy, h, wref, rv, rr, kx, ky, tx, ty,
+                kb):  # pragma: no cover - numba
+    """An occludee's region K at pixel (sx, sy), half-width h, in the frame of depth ``wref``:
+    its images (qv, qr) clipped to the pixel's grown offsets (rv, rr, set here); K's corners to
+    (kx, ky), its box and centroid to ``kb`` (``_k_box``) where it is not empty. Returns K's
+    corner count (0: no ray of the pixel meets the occludee)."""
+    region_at(corners, sx, sy, h, wref, rv, rr)
+    nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx, ty)
+    if nk > 0:
+        _k_box(kx, ky, nk, kb)
+    return nk
+
+
 #: Layout of a test's Q context (``qctx``, float64): whether the relaxed edge tests may be
 #: used, Q's plane (camera coordinates: normal, offset, tolerance), the pixel centre, the frame
 #: of the region polygon, the witness state and point, Q's pixel-centre COS corners.
@@ -1301,21 +1329,14 @@ def _leaf_hidden(lf, g, coverall, leaf_pts, origin, perm, sign, sx, sy, h, corne
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     cam, qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi = lsc
-    load_prim(leaf_pts, 8 * lf, 8, origin, perm, sign, cam)
-    wmin = cam[0, 2]
-    wref = 0.0
-    for c in range(8):
-        wmin = min(wmin, cam[c, 2])
-        wref += cam[c, 2]
-    wref /= 8.0
+    wmin, wref = _load_depths(leaf_pts, 8 * lf, np.int64(8), origin, perm, sign, cam)
     if not wmin > wcam + tol:
         return False
     project(cam, 8, sx, sy, h, wref, qv, qr)
-    region_at(corners, sx, sy, h, wref, rv, rr)
-    nk = region_polygon(qv, qr, np.int64(8), np.bool_(False), rv, rr, kx, ky, tx, ty)
+    nk = _occludee_k(qv, qr, np.int64(8), np.bool_(False), corners, sx, sy, h, wref, rv, rr,
+                     kx, ky, tx, ty, kb)
     if nk == 0:
         return True  # no ray of the pixel meets the box
-    _k_box(kx, ky, nk, kb)
     if not coverall and not _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx,
                                       kny, klo, khi, strict, rpoly, 0, rpb, rv, ws, wpt, work):
         return False
@@ -1612,29 +1633,20 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     break
                 n = npts[p]
                 tri = kind[p] == 0
-                load_prim(pts, start[p], n, origin, perm, sign, cam)
-                wmin = cam[0, 2]
-                wref = cam[0, 2]
-                for c in range(1, n):
-                    wmin = min(wmin, cam[c, 2])
-                    wref += cam[c, 2]
+                wmin, wref = _load_depths(pts, start[p], n, origin, perm, sign, cam)
                 if wmin > zcut + plane_tol:
                     cut += 1
                     if mark:
                         hid[k] = 1
                     continue
-                # Reference depth: Q's mean depth, so Q barely moves and each occluder moves
-                # by its depth difference to Q (the relative motion that matters).
-                wref /= n
                 project(cam, n, sx, sy, h, wref, qv, qr)
                 dorm = False
                 if known[p] == 0 and not (tseen[p >> 3] >> (p & 7)) & 1:
                     c0 = cycles() if timed else 0
-                    region_at(corners, sx, sy, h, wref, rv, rr)
-                    nk = region_polygon(qv, qr, n, tri, rv, rr, kx, ky, tx_, ty_)
+                    nk = _occludee_k(qv, qr, n, tri, corners, sx, sy, h, wref, rv, rr, kx, ky,
+                                     tx_, ty_, kb)
                     if nk > 0:
                         tested += 1
-                        _k_box(kx, ky, nk, kb)
                         qctx[QC_RELAX] = 0.0
                         if relaxed:
                             _q_context(qctx, cam, n, tri, qv, sx, sy, h, fr, wmin, wcam,
