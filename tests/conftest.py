@@ -23,6 +23,9 @@ import pytest
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+# Bytecode written, also where pytest runs without scripts/env.sh: otherwise every server,
+# worker and CLI process a test starts compiles its imports from source (docs/getting-started.md).
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 from visibility.cores import base as core_base  # noqa: E402
 from visibility.cores.base import Core, CoreParams  # noqa: E402
