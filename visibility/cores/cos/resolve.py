@@ -1341,7 +1341,7 @@ def _leaf_hidden(lf, g, coverall, leaf_pts, origin, perm, sign, sx, sy, h, corne
                                       kny, klo, khi, strict, rpoly, 0, rpb, rv, ws, wpt, work):
         return False
     return _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead, pool,
-                  pdep, dom, wcam, tol, wref, h, kb, cam, 8, wmin, ov, strict, work)
+                  pdep, dom, wcam, tol, wref, h, kb, cam, np.int64(8), wmin, ov, strict, work)
 
 
 @njit(cache=True, nogil=True)
@@ -1562,10 +1562,11 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
             lray = np.sqrt(1.0 + (abs(sx) + h) ** 2 + (abs(sy) + h) ** 2)
             pstamp += 1
             n_polys = 0
-            n_live = np.int64(0)  # not a literal 0: ``_fused_hide`` is compiled once
+            # Not literal 0s: ``_fused_hide`` and ``_refined_hide`` are compiled once each.
+            n_live = np.int64(0)
             n_dead = 0
             last_g = -1
-            n_cov = 0
+            n_cov = np.int64(0)
             n_slot = 0
             n_free = 0
             pool[0] = 0

@@ -816,7 +816,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
     tq = borrow(tq_o)
     last_o = np.zeros(2, dtype=np.int64)  # what blocked the rule's last ray
     last = borrow(last_o)
-    nfp = 0
+    nfp = np.int64(0)  # not a literal 0: ``_fp_push`` is compiled once
     fp_rows = (prim_src, prim_z, prim_zkey, prim_flag, prim_box)
     # A private row of counters, copied out at the end.
     work_o = np.zeros(counters.shape[1], dtype=np.int64)
@@ -892,7 +892,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             work[C_PX_KNOWN] += npx - open_px
         tbound = np.inf
         since = 0
-        nfp = 0
+        nfp = np.int64(0)
         for r in range(3):
             for c in range(3):
                 R[r, c] = rots[f, r, c]
