@@ -32,6 +32,7 @@ Usage::
     python -m benchmarks.bench_real_cells --scenes lyon_vilo3d lavaducts \
         --fs-variants resolution=512 --out benchmarks/results/real_cells_512.md
     python -m benchmarks.bench_real_cells --fs-variants jitter=0 cuts=0   # what each buys
+    python -m benchmarks.bench_real_cells --scenes lyon_vilo3d --where  # misses: from where
 """
 
 from __future__ import annotations
@@ -232,6 +233,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                 fs_seconds = None
                 first = len(rows)
                 answers = []
+                walked = []  # the from_segment parameters of each answer (None: another core)
                 runs = [("from_segment (defaults)", "from_segment", {}),
                         ("sampling (defaults)", "sampling", {})]
                 runs += [(f"from_segment ({text})", "from_segment", parse_variant(text))
@@ -249,6 +251,7 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                     rows.append(_row(base, label, pvs.triangle_ids, pvs.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
                     answers.append(pvs.triangle_ids)
+                    walked.append(core.make_params(**params) if name == "from_segment" else None)
                     log(_line(rows[-1]))
                 if fs_seconds is not None:
                     peer = from_point_pvs(scene, cell, "raster", samples=100_000,
@@ -259,21 +262,31 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                                      "points)", peer.triangle_ids, peer.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
                     answers.append(peer.triangle_ids)
+                    walked.append(None)
                     log(_line(rows[-1]))
-                _score_aimed(rows[first:], answers, scene, cell, ref, cfg["seed"] + cell_id,
-                             log)
+                seen = _score_aimed(rows[first:], answers, scene, cell, ref,
+                                    cfg["seed"] + cell_id, log)
+                if cfg.get("where") and seen is not None:
+                    scored = [r for r in rows[first:] if "error" not in r]
+                    for r, ids, fs in zip(scored, answers, walked, strict=True):
+                        if fs is not None:
+                            r["aimed_missed_where"] = where_seen(
+                                scene, cell, np.setdiff1d(seen, ids), fs, cfg["seed"] + cell_id)
+                            log(f"    {r['method']:38s} its aimed misses seen from: "
+                                f"{_where(r['aimed_missed_where'])}")
     finally:
         renderer.close()
     return rows
 
 
-def _score_aimed(rows, answers, scene, cell, ref, seed, log) -> None:
+def _score_aimed(rows, answers, scene, cell, ref, seed, log) -> np.ndarray | None:
     """Each row's answer against the frames' reference grown by rays aimed at the union of
     the answers (``aimed_reference``): ``aimed`` seen in all, ``aimed_fn`` the share of it
-    the answer lacks, ``pvs_over_aimed``."""
+    the answer lacks, ``pvs_over_aimed``. Returns the grown reference's ids (None: no
+    answer)."""
     scored = [r for r in rows if "error" not in r]
     if not answers:
-        return
+        return None
     got, secs = aimed_reference(scene, cell, np.unique(np.concatenate(answers)), ref, seed)
     seen = np.union1d(ref, got.ids)
     log(f"    rays aimed at the answers: {len(seen)} seen ({got.rays_per_candidate} rays per "
@@ -289,6 +302,44 @@ def _score_aimed(rows, answers, scene, cell, ref, seed, log) -> None:
                  pvs_over_aimed=float(len(ids) / max(1, len(seen))))
         log(f"    {r['method']:38s} against them: FN {100 * r['aimed_fn']:.2f} %, PVS "
             f"{r['pvs_over_aimed']:.2f}x")
+    return seen
+
+
+#: Rays per missed triangle and eye set in ``where_seen``.
+WHERE_RAYS = 4096
+
+
+def where_seen(scene, cell, missed: np.ndarray, params, seed: int) -> dict[str, int]:
+    """Where from_segment's misses ``missed`` (triangle ids) are seen from, each counted once,
+    in this order (``visibility.ray_aimed.seen_from``, ``WHERE_RAYS`` float64 rays per
+    triangle and eye set): ``segments``, points of the segments the core walked with
+    ``params`` (the pixel samples passed it by: a sampling miss); ``outline``, the same
+    outline at any height of the cell's eye range (the eye levels passed it by); ``inside``,
+    eyes on the open floor within it (``cell_eyes``); ``none``, none of these rays."""
+    from visibility.cores.from_segment.core import view_segments
+    from visibility.ray_aimed import seen_from
+
+    box = np.asarray(cell.box, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    segs, _ = view_segments(scene, box, params.eye_levels, params.walk)
+    s = segs[rng.integers(0, len(segs), WHERE_RAYS)]
+    on = s[:, 0] + rng.random(WHERE_RAYS)[:, None] * (s[:, 1] - s[:, 0])
+    around = on.copy()
+    around[:, 1] = rng.uniform(box[0, 1], box[1, 1], WHERE_RAYS)
+    inside = cell_eyes(scene, cell, 512, rng)[0]
+    out = {"segments": 0, "outline": 0, "inside": 0, "none": 0}
+    left = np.asarray(missed, dtype=np.int64)
+    for name, eyes in (("segments", on), ("outline", around), ("inside", inside)):
+        got = seen_from(scene, left, eyes, rays=WHERE_RAYS, seed=seed)
+        out[name] = int(got.sum())
+        left = left[~got]
+    out["none"] = int(len(left))
+    return out
+
+
+def _where(w: dict[str, int]) -> str:
+    return (f"{w['segments']} the walked segments, {w['outline']} only their outline at other "
+            f"heights, {w['inside']} only eyes inside it, {w['none']} none of the rays")
 
 
 def parse_generated(text: str) -> tuple[str, int]:
@@ -357,6 +408,16 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
             f"{r['missed_median_px']:.2f} | {100 * r['fp']:.1f} | {r['eps_mean']:.3f} | "
             f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} | "
             f"{_aimed(r)} |")
+    where = [r for r in rows if "aimed_missed_where" in r]
+    if where:
+        lines += ["", "Where the aimed misses are seen from (`--where`: "
+                  f"{WHERE_RAYS} float64 rays per missed triangle from points of the segments "
+                  "the core walked, then from the same outline at random heights of the eye "
+                  "range, then from eyes on the open floor inside it; each counted at the "
+                  "first that sees it):", ""]
+        lines += [f"- {r['scene']}, cell {r['cell']}, {r['method']}: "
+                  f"{sum(r['aimed_missed_where'].values())} missed; "
+                  f"{_where(r['aimed_missed_where'])}" for r in where]
     return "\n".join(lines) + "\n"
 
 
@@ -386,6 +447,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames per cell")
     ap.add_argument("--frame-px", type=int, default=None,
                     help="frame size in pixels (default: from_segment's resolution)")
+    ap.add_argument("--where", action="store_true",
+                    help="say where each from_segment answer's aimed misses are seen from: "
+                    "the walked segments, their outline at other heights, or only inside")
     ap.add_argument("--out", type=Path, default=RESULTS / "real_cells.md")
     args = ap.parse_args(argv)
     scenes = sorted(str(p) for p in SHARED_SCENES.glob("*.glb")
@@ -395,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     generated = [parse_generated(g) for g in args.generated]
     cfg = {"scenes": scenes, "generated": generated, "cells": args.cells,
            "seed": args.seed, "points": POINTS, "rays": RAYS, "fs_variants": args.fs_variants,
-           "frames": args.frames,
+           "frames": args.frames, "where": args.where,
            "frame_px": args.frame_px or _from_segment_resolution()}
     if args.quick:
         cfg.update(scenes=[s for s in scenes if "lavaducts" in s], cells=1, points=16, rays=96,

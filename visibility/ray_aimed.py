@@ -199,3 +199,40 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     out.ids = np.sort(tri_ids[seen])
     out.rays = cast
     return out
+
+
+def seen_from(scene: Scene, targets: np.ndarray, eyes: np.ndarray, rays: int = 4096,
+              seed: int = 0, near: float = DEFAULT_NEAR) -> np.ndarray:
+    """(k,) bool: whether some eye of ``eyes`` sees each triangle of ``targets`` (k,) ids.
+
+    For each target, ``rays`` rays from eyes drawn from ``eyes`` (m, 3) world metres to
+    uniformly random points of the target, each clipped by the clients' near plane of a
+    randomly turned cube, are cast in float64 over every valid triangle
+    (``ray_reference.ExactCaster``); the target is seen when one of them meets it first. Used
+    to say where a core's misses are seen from (the segments it walked, or only eyes off
+    them): a True is proven, a False may be a sight these rays did not draw."""
+    ids = np.asarray(targets, dtype=np.int64).reshape(-1)
+    pts = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(ids), dtype=bool)
+    if not len(ids) or not len(pts):
+        return out
+    centre = pts.mean(axis=0)
+    tri, tri_ids = frame_triangles(scene, centre)
+    row = np.full(len(scene.faces), -1, dtype=np.int64)
+    row[tri_ids] = np.arange(len(tri_ids))
+    exact = ExactCaster(tri)
+    rng = np.random.default_rng(seed)
+    eye = pts - centre
+    n = int(rays)
+    for k, t in enumerate(ids):
+        r = row[t] if 0 <= t < len(row) else -1
+        if r < 0:
+            continue
+        e = eye[rng.integers(0, len(eye), n)]
+        d = _random_points(np.broadcast_to(tri[r], (n, 3, 3)), rng) - e
+        d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+        cube = random_rotations(rng, n)
+        tmin = near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
+        hit, _ = exact.first_hits(e, d, tmin)
+        out[k] = bool(np.any(hit == r))
+    return out

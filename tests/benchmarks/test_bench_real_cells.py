@@ -11,6 +11,7 @@ import pytest
 from benchmarks import bench_real_cells, peers
 from visibility.cores import designed_scenes as ds
 from visibility.generators import make_scene
+from visibility.viewcells import Viewcell
 
 #: embreex has wheels for Linux x86_64, the project's machines: there its absence is a broken
 #: set-up and must fail these tests; elsewhere the set-up may lack it (scripts/setup.sh).
@@ -106,3 +107,27 @@ def test_rays_aimed_at_every_triangle_see_through_the_door_and_score_each_answer
     assert rows[0]["aimed"] == rows[1]["aimed"] == len(got.ids)
     assert rows[0]["aimed_fn"] == 0.0 and rows[0]["pvs_over_aimed"] > 1.0
     assert rows[1]["aimed_fn"] == pytest.approx(1 - len(visible[::2]) / len(got.ids))
+
+
+def test_where_seen_counts_each_miss_at_the_first_eyes_that_see_it():
+    from visibility.cores.base import get_core
+
+    params = get_core("from_segment").make_params()
+    scene, cell, known = ds.two_rooms_and_a_door()
+    # Through the door from the walked segments; the box tucked behind the wall from nowhere.
+    w = bench_real_cells.where_seen(scene, cell, np.array(known["visible"] + known["hidden"]),
+                                    params, seed=0)
+    assert w == {"segments": len(known["visible"]), "outline": 0, "inside": 0,
+                 "none": len(known["hidden"])}
+    # A horizontal slit 4 mm high at the eye range's middle height, 5 m away, and a square 30 m
+    # away level with it: seen from the cell's outline near that height, but from none of the
+    # segments, walked at its bottom, middle (1.7 m) and top heights.
+    b = ds.Builder()
+    b.quad((-5, 0, -5), (-5, 0, 6), (4, 0, 6), (4, 0, -5), 0)
+    b.quad((5, 0, -10), (5, 1.598, -10), (5, 1.598, 10), (5, 0, 10), 1)
+    b.quad((5, 1.602, -10), (5, 10, -10), (5, 10, 10), (5, 1.602, 10), 1)
+    far = b.quad((30, 1.59, 0.4), (30, 1.61, 0.4), (30, 1.61, 0.6), (30, 1.59, 0.6), 2)
+    slit = b.scene("slit")
+    box = Viewcell(np.array([[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]]))
+    w = bench_real_cells.where_seen(slit, box, np.array(far), params, seed=0)
+    assert w == {"segments": 0, "outline": len(far), "inside": 0, "none": 0}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from visibility.cores.designed_scenes import Builder
-from visibility.ray_aimed import EYES_PER_ROUND, aimed_seen
+from visibility.ray_aimed import EYES_PER_ROUND, aimed_seen, seen_from
 from visibility.ray_frames import ray_frames, seen_ids
 
 BOX = np.array([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]])
@@ -97,3 +97,18 @@ def test_eyes_drawn_by_the_caller_are_the_only_eyes():
     assert below.ids.tolist() == seen
     assert above.ids.tolist() == [] and above.rays == 2 * 64
     assert asked and set(asked) == {EYES_PER_ROUND}
+
+
+def test_seen_from_tells_eyes_that_look_through_the_slit_from_eyes_that_do_not():
+    scene, seen, hidden, wall = _slit_scene()
+    # Eyes on a line across z: those near z = -0.04 m look through the slit at the square at
+    # z = 2 m; none sees the square at z = 8 m (it would need z = -0.16 m).
+    line = np.stack([np.zeros(41), np.zeros(41), np.linspace(-0.1, 0.1, 41)], axis=1)
+    got = seen_from(scene, np.array(seen + hidden), line, rays=2048, seed=3)
+    assert got.tolist() == [True] * len(seen) + [False] * len(hidden)
+    # From eyes at z >= 0.02 m the slit shows neither.
+    upper = line[line[:, 2] >= 0.02]
+    assert not seen_from(scene, np.array(seen), upper, rays=2048, seed=3).any()
+    # An id outside the scene, or no eyes, is never seen.
+    assert seen_from(scene, np.array([10**9]), line).tolist() == [False]
+    assert seen_from(scene, np.array(seen), np.zeros((0, 3))).tolist() == [False] * len(seen)
