@@ -212,14 +212,14 @@ class ExactCaster:
         n = len(orig)
         out_id = np.empty(n, dtype=np.int64)
         out_t = np.empty(n)
+        # Writable C-ordered float64, as the kernels are compiled for: a read-only input (one
+        # eye broadcast to one ray reads as contiguous) would compile them a second time.
+        orig, dirs, tmin = (np.require(a, dtype=np.float64, requirements=("C", "W"))
+                            for a in (orig, dirs, tmin))
         if self.grid is not None:
-            grid_first_hits(self.tri, self.grid, np.ascontiguousarray(orig, dtype=np.float64),
-                            np.ascontiguousarray(dirs, dtype=np.float64),
-                            np.ascontiguousarray(tmin, dtype=np.float64), out_id, out_t)
+            grid_first_hits(self.tri, self.grid, orig, dirs, tmin, out_id, out_t)
         elif len(self.tri):
-            exact_first_hits(self.tri, self.lo, self.hi, np.ascontiguousarray(orig),
-                             np.ascontiguousarray(dirs), np.ascontiguousarray(tmin), out_id,
-                             out_t)
+            exact_first_hits(self.tri, self.lo, self.hi, orig, dirs, tmin, out_id, out_t)
         else:
             out_id[:] = -1
             out_t[:] = np.inf

@@ -69,7 +69,8 @@ def _triangles(verts0, verts1, faces, moving) -> GeometryArrays:
 def _check_case(verts0, verts1, v0, v1, rb, near, tally):
     """Every pixel whose sample some exact cover test accepts lies in the triangle's box, its
     scan-converted row span and its binned tiles, on every face."""
-    faces = np.array([[0, 1, 2]])
+    # int32 faces and indices as the core passes them: one specialization of each kernel.
+    faces = np.array([[0, 1, 2]], dtype=np.int32)
     moving = np.array([not np.array_equal(verts0, verts1)])
     dvec = v1 - v0
     box = np.zeros((6, 4), np.int32)
@@ -107,13 +108,14 @@ def _check_case(verts0, verts1, v0, v1, rb, near, tally):
         assert np.all((ii >= b[0]) & (ii <= b[1]) & (jj >= b[2]) & (jj <= b[3]))
         for i, j in zip(ii, jj, strict=True):
             r0 = (i // TILE) * TILE
-            _row_spans(hulls, f, i, i, b[2], b[3], r0, PAD, span, ext)
+            _row_spans(hulls, np.int32(f), int(i), int(i), int(b[2]), int(b[3]), int(r0), PAD,
+                       span, ext)
             assert span[i - r0, 0] <= j <= span[i - r0, 1], (f, i, j, span[i - r0])
             tx0, tx1 = _tile_cols(hulls, f, box, i // TILE, PAD)
             assert tx0 <= j // TILE <= tx1
         tally["span_px"] += sum(
-            max(0, min(b[3], hull_cols(hulls.pts, f, hulls.count[f], i, i, PAD)[1])
-                - max(b[2], hull_cols(hulls.pts, f, hulls.count[f], i, i, PAD)[0]) + 1)
+            max(0, min(b[3], hull_cols(hulls.pts, f, int(hulls.count[f]), i, i, PAD)[1])
+                - max(b[2], hull_cols(hulls.pts, f, int(hulls.count[f]), i, i, PAD)[0]) + 1)
             if hulls.count[f] else b[3] - b[2] + 1 for i in range(b[0], b[1] + 1))
         tally["box_px"] += (b[1] - b[0] + 1) * (b[3] - b[2] + 1)
 
@@ -123,9 +125,9 @@ def test_hull_cols_of_a_diagonal_band():
     # axis gives columns 4..6 at pad 0.5 (a sample 0.5 below the row reaches col 5.5).
     pts = np.zeros((1, HMAX, 2), np.float32)
     pts[0, :2] = [(0.0, 0.0), (10.0, 10.0)]
-    assert hull_cols(pts, 0, 2, 5.0, 5.0, 0.5) == (4, 6)
-    assert hull_cols(pts, 0, 2, 5.0, 5.0, 0.0) == (5, 5)
-    a, b = hull_cols(pts, 0, 2, 20.0, 20.0, 0.5)
+    assert hull_cols(pts, 0, 2, 5, 5, 0.5) == (4, 6)
+    assert hull_cols(pts, 0, 2, 5, 5, 0.0) == (5, 5)
+    a, b = hull_cols(pts, 0, 2, 20, 20, 0.5)
     assert a > b
 
 
@@ -151,7 +153,7 @@ def test_hull_rows_gives_each_rows_hull_cols(seed):
         ib = min(r0 + TILE - 1, ia + int(rng.integers(0, TILE)))
         hull_rows(pts, np.int64(0), np.int64(m), ia, ib, pad, r0, ext)
         for i in range(ia, ib + 1):
-            a, b = hull_cols(pts, 0, m, float(i), float(i), pad)
+            a, b = hull_cols(pts, 0, m, i, i, pad)
             if a > b:
                 assert ext[i - r0, 0] > ext[i - r0, 1], (trial, i)
             else:
@@ -201,7 +203,7 @@ def test_spans_hold_every_pixel_the_cover_tests_accept():
 def test_sliver_visits_fewer_pixels_than_its_box():
     # A long thin diagonal triangle across the -z face, seen from a short segment.
     v = np.array([[-3.0, -3.0, -4.0], [3.0, 3.0, -4.0], [3.0, 3.05, -4.0]])
-    f = np.arange(3).reshape(1, 3)
+    f = np.arange(3, dtype=np.int32).reshape(1, 3)
     geom = scene_geometries(Scene(v, f))[0]
     a, b = np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
     stats: dict = {}

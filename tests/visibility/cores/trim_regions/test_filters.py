@@ -22,7 +22,8 @@ def _grazing_numpy(t, normals, plane, centres, delta, px):
 
 def _soup(gen, n, spread):
     verts = gen.uniform(-spread, spread, (3 * n, 3))
-    return verts, np.arange(3 * n).reshape(n, 3)
+    # int32 faces, as the pipeline passes them: the kernels compile once.
+    return verts, np.arange(3 * n, dtype=np.int32).reshape(n, 3)
 
 
 def test_grazing_mask_matches_its_definition():
@@ -53,7 +54,7 @@ def test_plane_holds_box_drops_only_planes_through_the_whole_cell():
     # A plane holding the whole (flat) cell: the cell squeezed to its floor.
     flat = box.copy()
     flat[1, 1] = flat[0, 1]
-    faces = np.arange(9).reshape(3, 3)
+    faces = np.arange(9, dtype=np.int32).reshape(3, 3)
     ids = np.arange(3, dtype=np.int64)
     out = np.zeros(3, dtype=np.bool_)
     plane_holds_box(verts, faces, ids, box, out)

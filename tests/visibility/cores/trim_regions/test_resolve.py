@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from visibility.cores.trim_regions.kbuffer import ANY_PIECE, BACK, FRONT, TRIM, KBuffer
 from visibility.cores.trim_regions.resolve import Reach, resolve_pixel
 from visibility.cores.trim_regions.silhouettes import AMBIGUOUS
 
 INF = np.inf
+
+# One worker for the module: ``resolve_pixel`` is the tests' own entry to the per-pixel
+# resolve (the cores reach it inlined, through ``resolve_layer``), so no warm-up compiles it,
+# and each worker the module's tests were spread over compiled it again (seconds each).
+pytestmark = pytest.mark.xdist_group("trim_resolve")
 
 
 def _reach(normals=None, lateral=INF) -> Reach:

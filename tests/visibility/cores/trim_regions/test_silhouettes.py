@@ -155,12 +155,13 @@ def test_a_trims_layer_is_the_least_layer_of_the_cells_its_box_meets():
     rng = np.random.default_rng(5)
     g = 19  # not a multiple of the blocks' side
     leaf_of_cell = np.where(rng.random((g, g, g)) < 0.4, -1,
-                            rng.integers(0, 50, (g, g, g))).astype(np.int64)
+                            rng.integers(0, 50, (g, g, g))).astype(np.int32)
     leaf_layer = rng.integers(0, 40, 50).astype(np.int64)
     cell_layer = np.empty((g, g, g), dtype=np.int32)
     nb = -(-g // BLOCK)
     block_layer = np.empty((nb, nb, nb), dtype=np.int32)
-    first = _cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer)
+    # int32 cells and layer, as the pipeline passes them: the kernels compile once.
+    first = np.int32(_cell_layers(leaf_of_cell, leaf_layer, cell_layer, block_layer))
     layers = np.where(leaf_of_cell >= 0, leaf_layer[np.maximum(leaf_of_cell, 0)], 1 << 40)
     assert first == layers.min()
     origin, cell = np.array([-1.0, 2.0, 0.5]), 0.25
