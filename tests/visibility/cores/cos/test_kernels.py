@@ -765,7 +765,8 @@ def test_the_tree_cull_keeps_what_the_views_rays_meet():
                        v.perm, v.sign, v.corners, v.near_box, v.near_w, v.nx, v.ny, v.x_lo,
                        v.y_lo, v.pw, tol, full)
             planes = view_planes(v.corners, v.x_lo, v.y_lo, v.nx, v.ny, v.pw, 4.0 * tol)
-            out = np.empty(len(order), dtype=np.int64)
+            # int32 positions, as the core's walk writes them: one specialization.
+            out = np.empty(len(order), dtype=np.int32)
             sel = out[:view_positions(tree, keep, v.origin, v.perm, v.sign, planes, out)]
             boxed = (full[:, 0] <= full[:, 1]) & ~((full[:, 0] == 0) & (full[:, 1] == v.ny - 1)
                                                    & (full[:, 2] == 0) & (full[:, 3] == v.nx - 1))
@@ -823,7 +824,7 @@ def test_all_views_walk_matches_one_walk_per_view():
                     np.stack([v.perm for v in views]), np.stack([v.sign for v in views]),
                     planes, off, out, counts)
     for k, v in enumerate(views):
-        one = np.empty(len(order), dtype=np.int64)
+        one = np.empty(len(order), dtype=np.int32)
         n = view_positions(tree, keep[keep_of[k]], v.origin, v.perm, v.sign, planes[k], one)
         got = out[off[k]:off[k] + counts[k]]
         assert np.array_equal(got, np.sort(one[:n])), (v.face, v.kind)
