@@ -327,13 +327,10 @@ def where_seen(scene, cell, missed: np.ndarray, params, seed: int) -> dict[str, 
     around = on.copy()
     around[:, 1] = rng.uniform(box[0, 1], box[1, 1], WHERE_RAYS)
     inside = cell_eyes(scene, cell, 512, rng)[0]
-    out = {"segments": 0, "outline": 0, "inside": 0, "none": 0}
-    left = np.asarray(missed, dtype=np.int64)
-    for name, eyes in (("segments", on), ("outline", around), ("inside", inside)):
-        got = seen_from(scene, left, eyes, rays=WHERE_RAYS, seed=seed)
-        out[name] = int(got.sum())
-        left = left[~got]
-    out["none"] = int(len(left))
+    first = seen_from(scene, missed, [on, around, inside], rays=WHERE_RAYS, seed=seed)
+    out = {name: int(np.count_nonzero(first == k))
+           for k, name in enumerate(("segments", "outline", "inside"))}
+    out["none"] = int(np.count_nonzero(first < 0))
     return out
 
 

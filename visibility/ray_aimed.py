@@ -96,6 +96,19 @@ def _random_points(tri: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
 
 
+def _aimed_rays(targets: np.ndarray, eye: np.ndarray, rng: np.random.Generator, near: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One ray per triangle of ``targets`` (n, 3, 3): from an eye drawn from ``eye`` (m, 3)
+    to a uniformly random point of it, as origins (n, 3), unit directions (n, 3) and the
+    distance (n,) below which the near plane of a randomly turned cube clips it (at view
+    depth ``near`` along the face's axis, as ``ray_frames``)."""
+    e = eye[rng.integers(0, len(eye), len(targets))]
+    d = _random_points(targets, rng) - e
+    d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+    cube = random_rotations(rng, len(targets))
+    return e, d, near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
+
+
 def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
                known: np.ndarray | None = None, rays: int = 64, most: int = 4096,
                converge: float = 1e-3, seed: int = 0, near: float = DEFAULT_NEAR,
@@ -162,12 +175,7 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
             step = max(1, BATCH_RAYS // per)
             for c0 in range(0, len(left), step):
                 c = np.repeat(left[c0:c0 + step], per)
-                e = eye[rng.integers(0, len(eye), len(c))]
-                d = _random_points(tri[c], rng) - e
-                d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
-                # The near plane clips at view depth ``near`` along the face's axis.
-                cube = random_rotations(rng, len(c))
-                tmin = near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
+                e, d, tmin = _aimed_rays(tri[c], eye, rng, near)
                 hit, _ = caster.first_hits(e, d, tmin)
                 sent += len(c)
                 # Whatever a ray meets first is seen, the candidate it was aimed at or a
@@ -201,38 +209,42 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     return out
 
 
-def seen_from(scene: Scene, targets: np.ndarray, eyes: np.ndarray, rays: int = 4096,
-              seed: int = 0, near: float = DEFAULT_NEAR) -> np.ndarray:
-    """(k,) bool: whether some eye of ``eyes`` sees each triangle of ``targets`` (k,) ids.
 
-    For each target, ``rays`` rays from eyes drawn from ``eyes`` (m, 3) world metres to
-    uniformly random points of the target, each clipped by the clients' near plane of a
-    randomly turned cube, are cast in float64 over every valid triangle
-    (``ray_reference.ExactCaster``); the target is seen when one of them meets it first. Used
-    to say where a core's misses are seen from (the segments it walked, or only eyes off
-    them): a True is proven, a False may be a sight these rays did not draw."""
+def seen_from(scene: Scene, targets: np.ndarray, eye_sets: list[np.ndarray],
+              rays: int = 4096, seed: int = 0, near: float = DEFAULT_NEAR) -> np.ndarray:
+    """(k,) int64: for each triangle of ``targets`` (k,) ids, the first set of ``eye_sets``
+    (each (m, 3) world metres) from which some eye sees it; -1 where none does.
+
+    Set by set, ``rays`` rays per target not yet seen, from eyes drawn from the set to
+    uniformly random points of the target, near-plane clipped as ``aimed_seen``'s, are cast
+    in float64 over every valid triangle (``ray_reference.ExactCaster``, built once); a
+    target is seen when one of them meets it first. Used to say where a core's misses are
+    seen from (the segments it walked, or only eyes off them): a set named is proven to see
+    the target, a -1 may be a sight these rays did not draw."""
     ids = np.asarray(targets, dtype=np.int64).reshape(-1)
-    pts = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
-    out = np.zeros(len(ids), dtype=bool)
-    if not len(ids) or not len(pts):
+    sets = [np.asarray(e, dtype=np.float64).reshape(-1, 3) for e in eye_sets]
+    out = np.full(len(ids), -1, dtype=np.int64)
+    points = [e for e in sets if len(e)]
+    if not len(ids) or not points:
         return out
-    centre = pts.mean(axis=0)
+    centre = np.concatenate(points).mean(axis=0)
     tri, tri_ids = frame_triangles(scene, centre)
     row = np.full(len(scene.faces), -1, dtype=np.int64)
     row[tri_ids] = np.arange(len(tri_ids))
+    ok = (ids >= 0) & (ids < len(row))
+    rows = np.where(ok, row[np.where(ok, ids, 0)], -1)
     exact = ExactCaster(tri)
     rng = np.random.default_rng(seed)
-    eye = pts - centre
-    n = int(rays)
-    for k, t in enumerate(ids):
-        r = row[t] if 0 <= t < len(row) else -1
-        if r < 0:
+    per = int(rays)
+    step = max(1, BATCH_RAYS // per)
+    for k, eyes in enumerate(sets):
+        left = np.flatnonzero((out < 0) & (rows >= 0))
+        if not len(eyes) or not len(left):
             continue
-        e = eye[rng.integers(0, len(eye), n)]
-        d = _random_points(np.broadcast_to(tri[r], (n, 3, 3)), rng) - e
-        d /= np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
-        cube = random_rotations(rng, n)
-        tmin = near / np.abs(np.einsum("nij,nj->ni", cube, d)).max(axis=1)
-        hit, _ = exact.first_hits(e, d, tmin)
-        out[k] = bool(np.any(hit == r))
+        for c0 in range(0, len(left), step):
+            which = np.repeat(left[c0:c0 + step], per)
+            e, d, tmin = _aimed_rays(tri[rows[which]], eyes - centre, rng, near)
+            hit, _ = exact.first_hits(e, d, tmin)
+            got = np.unique(which[hit == rows[which]])
+            out[got] = k
     return out

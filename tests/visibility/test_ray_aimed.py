@@ -99,16 +99,18 @@ def test_eyes_drawn_by_the_caller_are_the_only_eyes():
     assert asked and set(asked) == {EYES_PER_ROUND}
 
 
-def test_seen_from_tells_eyes_that_look_through_the_slit_from_eyes_that_do_not():
+def test_seen_from_names_the_first_eye_set_that_looks_through_the_slit():
     scene, seen, hidden, wall = _slit_scene()
     # Eyes on a line across z: those near z = -0.04 m look through the slit at the square at
-    # z = 2 m; none sees the square at z = 8 m (it would need z = -0.16 m).
+    # z = 2 m; none sees the square at z = 8 m (it would need z = -0.16 m). Eyes at z >= 0.02
+    # m see neither through it.
     line = np.stack([np.zeros(41), np.zeros(41), np.linspace(-0.1, 0.1, 41)], axis=1)
-    got = seen_from(scene, np.array(seen + hidden), line, rays=2048, seed=3)
-    assert got.tolist() == [True] * len(seen) + [False] * len(hidden)
-    # From eyes at z >= 0.02 m the slit shows neither.
     upper = line[line[:, 2] >= 0.02]
-    assert not seen_from(scene, np.array(seen), upper, rays=2048, seed=3).any()
+    targets = np.array(seen + hidden)
+    got = seen_from(scene, targets, [upper, line], rays=2048, seed=3)
+    assert got.tolist() == [1] * len(seen) + [-1] * len(hidden)
+    assert seen_from(scene, targets, [line, upper], rays=2048, seed=3).tolist() == (
+        [0] * len(seen) + [-1] * len(hidden))
     # An id outside the scene, or no eyes, is never seen.
-    assert seen_from(scene, np.array([10**9]), line).tolist() == [False]
-    assert seen_from(scene, np.array(seen), np.zeros((0, 3))).tolist() == [False] * len(seen)
+    assert seen_from(scene, np.array([10**9, -1]), [line]).tolist() == [-1, -1]
+    assert seen_from(scene, np.array(seen), [np.zeros((0, 3))]).tolist() == [-1] * len(seen)
