@@ -32,7 +32,17 @@ EYE_SEED = 1
 RAY_SEED = 2
 
 CASES: dict[str, Case] = {c.name: c for c in all_cases()}
-PAIRS = [(name, core) for name in CASES for core in ("cos", "dual_ray")]
+
+
+def _on_one_worker(name: str, *args: object) -> object:
+    """A test of case ``name``, run by the worker that runs the case's other tests (``bash
+    scripts/test.sh`` distributes by ``xdist_group``), so its reference is cast once."""
+    return pytest.param(name, *args, marks=pytest.mark.xdist_group(f"adversarial_{name}"))
+
+
+PAIRS = [_on_one_worker(name, core) for name in CASES for core in ("cos", "dual_ray")]
+#: The cases built for ``cos``, each on its own worker.
+COS_CASES = [_on_one_worker(n) for n in CASES if "cos" in CASES[n].cores]
 #: Cases drawn with random parameters (``cases.random_variants``), seeded: fixed draws,
 #: judged like the others for misses only (a draw may leave the reference too few rays
 #: through a slit to judge its targets, which says nothing about a core).
@@ -53,7 +63,7 @@ def reference(name: str) -> RaySample:
                          n_aim=case.n_aim, engine="exact", eyes=eyes)
 
 
-@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("name", [_on_one_worker(n) for n in CASES])
 def test_the_reference_sees_enough_to_judge(name):
     case = CASES[name]
     ref = reference(name)
@@ -89,7 +99,7 @@ def test_no_misses(name, core_name):
         f"{name}:\n{describe(case.scene, ref, missed, case.box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("name", COS_CASES)
 def test_cos_leaf_boxes_miss_nothing(name):
     # Every pixel tests leaf boxes (by default only lists of LEAF_LIST entries or more do,
     # which these small scenes never reach): once an entry is hidden, its hierarchy leaf's
@@ -105,8 +115,11 @@ def test_cos_leaf_boxes_miss_nothing(name):
         f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("busy_block,coarse", [(2, False), (8, False), (1, True), (4, True)])
+@pytest.mark.parametrize("name", COS_CASES)
+@pytest.mark.parametrize("busy_block,coarse", [
+    # ``long``: sampled at another size, or the coarse pass alone (``(4, True)`` takes both).
+    pytest.param(2, False, marks=pytest.mark.long), (8, False),
+    pytest.param(1, True, marks=pytest.mark.long), (4, True)])
 def test_cos_busy_tiles_miss_nothing(name, busy_block, coarse, monkeypatch):
     # Every screen tile is busy (on these small scenes none would be by default) and sampled
     # once per busy_block x busy_block pixels (the default 4 without the coarse pass runs in
@@ -133,8 +146,11 @@ def test_cos_busy_tiles_miss_nothing(name, busy_block, coarse, monkeypatch):
         f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("coarse_items", [None, 1])
+@pytest.mark.parametrize("name", COS_CASES)
+@pytest.mark.parametrize("coarse_items", [
+    None,
+    # ``long``: the sub-pixel test "with the others" runs the relaxed cover with the coarse pass.
+    pytest.param(1, marks=pytest.mark.long)])
 def test_cos_relaxed_cover_misses_nothing(name, coarse_items, monkeypatch):
     # The relaxed cover test lets silhouette edges that meet an occludee's offset region pass
     # when they never cross the offsets whose rays meet it; alone, and with every tile busy
@@ -150,8 +166,11 @@ def test_cos_relaxed_cover_misses_nothing(name, coarse_items, monkeypatch):
         f"triangles in {name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
-@pytest.mark.parametrize("cover", ["strict", "relaxed"])
+@pytest.mark.parametrize("name", COS_CASES)
+@pytest.mark.parametrize("cover", [
+    "strict",
+    # ``long``: the sub-pixel test "with the others" fuses groups under the relaxed cover.
+    pytest.param("relaxed", marks=pytest.mark.long)])
 def test_cos_fused_groups_miss_nothing(name, cover):
     # Separate occluder groups hiding together (``fusion="groups"``) on every case: each part
     # of an occludee's offset region covered by some group in front of it.
@@ -165,7 +184,7 @@ def test_cos_fused_groups_miss_nothing(name, cover):
         f"{name}:\n{describe(case.scene, reference(name), missed, case.box)}")
 
 
-@pytest.mark.parametrize("name", [n for n in CASES if "cos" in CASES[n].cores])
+@pytest.mark.parametrize("name", COS_CASES)
 @pytest.mark.parametrize("options", ["alone", "with the others"])
 def test_cos_sub_pixels_miss_nothing(name, options, monkeypatch):
     # Occludees no group hides over a whole pixel, tested again at its sub-pixels down to the

@@ -79,11 +79,11 @@ def test_no_false_negatives_on_generated_scenes(name, size, index, resolution):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("size", [0.3, 1.0])
+@pytest.mark.parametrize("size", [0.3, pytest.param(1.0, marks=pytest.mark.long)])
 @pytest.mark.parametrize("name", ["rooms", "village", "city"])
 def test_no_false_negatives_on_generated_scenes_at_20k(name, size):
     # 0.05 and 4 m cells are checked at 10k triangles in the quick tests; here 20k scenes at two
-    # resolutions, kept to what the suite's time allows on 2 cores.
+    # resolutions, kept to what the suite's time allows on 2 cores (the 1 m cells: ``long``).
     scene = _scene(name, 20_000)
     box = cell_around(scene, size, 0)
     # One reference for both resolutions (it is most of the cost).

@@ -72,7 +72,8 @@ def test_no_false_negatives_on_a_larger_city(size):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name,size,index", [
-    ("lyon_vilo3d", 40.0, 1), ("lyon_vilo3d", 100.0, 2), ("lyon_vilo3d", 10.0, 3),
+    ("lyon_vilo3d", 40.0, 1), pytest.param("lyon_vilo3d", 100.0, 2, marks=pytest.mark.long),
+    ("lyon_vilo3d", 10.0, 3),
     ("denhaag", 40.0, 1), ("denhaag", 150.0, 2),
 ])
 def test_no_false_negatives_on_the_real_city_tiles(name, size, index):

@@ -32,7 +32,11 @@ pytestmark = pytest.mark.slow
 RES, JITTER, SEED, POINTS = 32, 0.5, 7, 48
 
 
-@pytest.fixture(scope="module", params=["lavaducts", "denhaag", "lyon_vilo3d"])
+#: Each scene's tests on one worker (``bash scripts/test.sh`` distributes by ``xdist_group``),
+#: so the scene is loaded and its segment found once.
+@pytest.fixture(scope="module", params=[
+    pytest.param(n, marks=pytest.mark.xdist_group(f"from_segment_{n}"))
+    for n in ("lavaducts", "denhaag", "lyon_vilo3d")])
 def walked(request):
     """A real scene and the longest default segment of the cell a seeded walk stands in."""
     path = SHARED_SCENES / f"{request.param}.glb"
