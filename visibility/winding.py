@@ -52,7 +52,10 @@ def front_windings(tris: np.ndarray, part: np.ndarray, todo: np.ndarray) -> np.n
     out = np.full(k, UNDECIDED, dtype=np.int32)
     if k == 0 or not todo.any():
         return out
-    tris = np.ascontiguousarray(tris, dtype=np.float64)
+    # Writable and contiguous whatever the caller holds (a scene's arrays may be read-only):
+    # the kernel compiles once.
+    tris = np.require(tris, np.float64, ("C", "W"))
+    part = np.require(part, np.int64, ("C", "W"))
     lo = tris.min(axis=1)
     hi = tris.max(axis=1)
     n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -61,7 +64,7 @@ def front_windings(tris: np.ndarray, part: np.ndarray, todo: np.ndarray) -> np.n
         sel = np.flatnonzero(todo & (axis == a)).astype(np.int64)
         if len(sel):
             cstart, cells, origin, size, nb = _grid(lo, hi, a)
-            _count(tris, lo, hi, n, np.ascontiguousarray(part, dtype=np.int64), sel, a,
+            _count(tris, lo, hi, n, part, sel, a,
                    cstart, cells, origin, size, nb, _STARTS, out)
     return out
 

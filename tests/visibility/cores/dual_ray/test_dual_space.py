@@ -26,7 +26,8 @@ def _segments(frame, pieces):
     out, ids = [], []
     for k, (px, pz, qx, qz, b, t) in enumerate(pieces):
         cut = np.zeros(6)
-        if cut_piece(frame, px, pz, qx, qz, t, t, b, b, cut):
+        # Upright (no lean), passed as the core passes it: the kernel's one specialization.
+        if cut_piece(frame, px, pz, qx, qz, t, t, b, b, cut, 0.0, 0.0):
             out.append(cut)
             ids.append(k)
     return np.array(out).reshape(-1, 6), np.array(ids, dtype=np.int64)
