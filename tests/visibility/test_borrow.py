@@ -11,6 +11,10 @@ from numba.core.errors import TypingError
 
 from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("borrow")
+
 
 @njit(cache=True, nogil=True)
 def _sum_rows(m):

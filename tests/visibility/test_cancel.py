@@ -18,6 +18,10 @@ from visibility.cancel import (
     stop_flag,
 )
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("cancel_kernels")
+
 
 @njit(nogil=True, cache=True)
 def _spin(flag, limit):  # pragma: no cover - numba

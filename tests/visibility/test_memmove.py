@@ -10,6 +10,10 @@ from numba.core.errors import TypingError
 from visibility.borrow import borrow
 from visibility.memmove import move_items
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("memmove")
+
 
 @njit(cache=False)
 def _move(a, dst, src, n):

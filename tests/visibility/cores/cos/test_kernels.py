@@ -37,6 +37,10 @@ from visibility.cores.cos.space import (
 from visibility.scene import Scene
 from visibility.topology import weld_vertices
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("cos_kernels")
+
 #: The kernels' work counters (silhouette edges walked, plane tests), unread here.
 WORK = np.zeros(2, dtype=np.int64)
 #: No occluder COS triangles and a strict context (``QC_RELAX`` 0): the depth tests as before.

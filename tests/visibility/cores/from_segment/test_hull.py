@@ -25,6 +25,10 @@ from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.raster.camera import cube_face_rotations, random_rotation
 from visibility.scene import Scene
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("from_segment_hull")
+
 RES = 24
 PAD = 0.5
 KNOTS = 4

@@ -15,6 +15,10 @@ from visibility.raster import render_cubemap
 from visibility.raster.camera import random_rotation
 from visibility.scene import Scene
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("from_segment_kernels")
+
 
 # ----------------------------------------------------------------------------- root solvers
 def test_quadratic_roots_without_cancellation():

@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import pytest
 from numba import njit, prange
 
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box, _take_next
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.scene import Scene
+
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("from_segment_raster")
 
 
 @njit(parallel=True, cache=False)

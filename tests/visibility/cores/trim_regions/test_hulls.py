@@ -5,6 +5,7 @@ writes it, and tested against hand-made depth images and pixel states."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from visibility.cores.trim_regions.hulls import (
     COPLANAR_TOL,
@@ -14,6 +15,10 @@ from visibility.cores.trim_regions.hulls import (
 )
 from visibility.cores.trim_regions.kbuffer import SPANS
 from visibility.cores.trim_regions.samples import open_depth
+
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("trim_hulls")
 
 RES = 16
 S = 4

@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from visibility.cores.trim_regions.kbuffer import KBuffer, band_stride
+
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("trim_kbuffer")
 
 
 def test_band_stride_visits_every_band_once():

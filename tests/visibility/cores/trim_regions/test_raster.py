@@ -37,6 +37,10 @@ from visibility.cores.trim_regions.raster import (
     to_camera,
 )
 
+# Kernels only these tests call (directly, or with their own types) compile in the worker
+# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
+pytestmark = pytest.mark.xdist_group("trim_raster")
+
 
 def _every_pixel(trims: np.ndarray, res: int, tan: float, margin: float) -> list[list[tuple]]:
     """Per pixel, the (depth, umbra) entries the region test admits, trims in order, over each
