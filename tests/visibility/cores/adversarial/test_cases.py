@@ -41,7 +41,7 @@ def _on_one_worker(name: str, *args: object) -> object:
 
 
 PAIRS = [_on_one_worker(name, core) for name in CASES for core in ("cos", "dual_ray")]
-#: The cases built for ``cos``, each on its own worker.
+#: The cases built for ``cos`` (each case's tests on one worker).
 COS_CASES = [_on_one_worker(n) for n in CASES if "cos" in CASES[n].cores]
 #: Cases drawn with random parameters (``cases.random_variants``), seeded: fixed draws,
 #: judged like the others for misses only (a draw may leave the reference too few rays
