@@ -209,7 +209,6 @@ def aimed_seen(scene: Scene, box: np.ndarray, candidates: np.ndarray,
     return out
 
 
-
 def seen_from(scene: Scene, targets: np.ndarray, eye_sets: list[np.ndarray],
               rays: int = 4096, seed: int = 0, near: float = DEFAULT_NEAR) -> np.ndarray:
     """(k,) int64: for each triangle of ``targets`` (k,) ids, the first set of ``eye_sets``

@@ -9,11 +9,10 @@ import pytest
 from numba import njit
 from numba.core.errors import TypingError
 
+from tests.grouping import module_on_one_worker
 from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("borrow")
+pytestmark = module_on_one_worker("borrow")  # kernels of its own (tests/grouping.py)
 
 
 @njit(cache=True, nogil=True)

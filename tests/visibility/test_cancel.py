@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from numba import njit
 
+from tests.grouping import module_on_one_worker
 from visibility.cancel import (
     CancelToken,
     ComputationCancelled,
@@ -18,9 +19,7 @@ from visibility.cancel import (
     stop_flag,
 )
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("cancel_kernels")
+pytestmark = module_on_one_worker("cancel_kernels")  # kernels of its own (tests/grouping.py)
 
 
 @njit(nogil=True, cache=True)

@@ -7,12 +7,11 @@ import pytest
 from numba import njit
 from numba.core.errors import TypingError
 
+from tests.grouping import module_on_one_worker
 from visibility.borrow import borrow
 from visibility.memmove import move_items
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("memmove")
+pytestmark = module_on_one_worker("memmove")  # kernels of its own (tests/grouping.py)
 
 
 @njit(cache=False)

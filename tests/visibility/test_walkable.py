@@ -3,12 +3,11 @@
 import numpy as np
 import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.designed_scenes import Builder
 from visibility.viewcells import ViewcellGrid
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("walkable")
+pytestmark = module_on_one_worker("walkable")  # kernels of its own (tests/grouping.py)
 
 
 def test_room_with_two_storeys_has_cells_on_each_floor():

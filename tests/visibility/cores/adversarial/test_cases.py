@@ -17,6 +17,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from tests.grouping import on_one_worker
 from tests.visibility.cores.adversarial.cases import Case, all_cases, random_variants
 from visibility.cores.base import get_core
 from visibility.cores.cos.core import REFINE_MAX
@@ -35,9 +36,9 @@ CASES: dict[str, Case] = {c.name: c for c in all_cases()}
 
 
 def _on_one_worker(name: str, *args: object) -> object:
-    """A test of case ``name``, run by the worker that runs the case's other tests (``bash
-    scripts/test.sh`` distributes by ``xdist_group``), so its reference is cast once."""
-    return pytest.param(name, *args, marks=pytest.mark.xdist_group(f"adversarial_{name}"))
+    """A test of case ``name``, on the worker of the case's other tests: its reference is
+    cast once."""
+    return on_one_worker(f"adversarial_{name}", name, *args)
 
 
 PAIRS = [_on_one_worker(name, core) for name in CASES for core in ("cos", "dual_ray")]

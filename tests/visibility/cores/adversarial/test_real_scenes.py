@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from benchmarks.bench_conservative import open_cells
+from tests.grouping import on_one_worker
 from tests.visibility.real_scenes import REAL, SHARED_SCENES, real_scene
 from visibility.cores.base import get_core
 from visibility.cores.cos.core import REFINE_MAX
@@ -59,7 +60,7 @@ def cells(name: str, size: float) -> list[tuple[int, np.ndarray, RaySample]]:
 def _on_one_worker(name: str, *args: object) -> object:
     """A case of scene ``name``, run by the worker that runs the scene's other cases (``bash
     scripts/test.sh`` distributes by ``xdist_group``), so its reference cells are cast once."""
-    return pytest.param(name, *args, marks=pytest.mark.xdist_group(name))
+    return on_one_worker(name, name, *args)
 
 
 CASES = [_on_one_worker(name, size, k, core) for name in REAL for size in SIZES

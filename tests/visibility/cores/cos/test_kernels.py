@@ -6,6 +6,7 @@ import numba
 import numpy as np
 import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.cos.core import cos_pvs
 from visibility.cores.cos.planes import side_plane_views
 from visibility.cores.cos.resolve import (
@@ -37,9 +38,7 @@ from visibility.cores.cos.space import (
 from visibility.scene import Scene
 from visibility.topology import weld_vertices
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("cos_kernels")
+pytestmark = module_on_one_worker("cos_kernels")  # kernels of its own (tests/grouping.py)
 
 #: The kernels' work counters (silhouette edges walked, plane tests), unread here.
 WORK = np.zeros(2, dtype=np.int64)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.dual_ray.dual_space import (
     ceiling,
     cut_piece,
@@ -16,9 +17,7 @@ from visibility.cores.dual_ray.dual_space import (
 )
 from visibility.cores.dual_ray.planar import exact_visible, uncovered
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("dual_space")
+pytestmark = module_on_one_worker("dual_space")  # kernels of its own (tests/grouping.py)
 
 A = (np.array([-5.0, 1.5, -5.0]), np.array([5.0, 1.9, 5.0]))
 B = (np.array([-3.0, 0.0, 40.0]), np.array([3.0, 5.0, 44.0]))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from numba import njit
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.from_segment.boxes import (
     _PERM,
     _SGN,
@@ -25,9 +26,7 @@ from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.raster.camera import cube_face_rotations, random_rotation
 from visibility.scene import Scene
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("from_segment_hull")
+pytestmark = module_on_one_worker("from_segment_hull")  # kernels of its own (tests/grouping.py)
 
 RES = 24
 PAD = 0.5

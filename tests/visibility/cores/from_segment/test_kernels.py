@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.grouping import module_on_one_worker
 from tests.visibility.segment_reference import jittered_visible, sampled_visible, unwitnessed
 from visibility.cores.from_segment.dynamic import cubic_roots01, quadratic_roots
 from visibility.cores.from_segment.envelope import envelope_insert, pixel_bound
@@ -15,9 +16,7 @@ from visibility.raster import render_cubemap
 from visibility.raster.camera import random_rotation
 from visibility.scene import Scene
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("from_segment_kernels")
+pytestmark = module_on_one_worker("from_segment_kernels")  # kernels of its own (tests/grouping.py)
 
 
 # ----------------------------------------------------------------------------- root solvers

@@ -5,17 +5,15 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-import pytest
 from numba import njit, prange
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box, _take_next
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.scene import Scene
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("from_segment_raster")
+pytestmark = module_on_one_worker("from_segment_raster")  # kernels of its own (tests/grouping.py)
 
 
 @njit(parallel=True, cache=False)

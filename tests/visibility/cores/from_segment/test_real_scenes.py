@@ -17,6 +17,7 @@ import pytest
 
 from benchmarks.bench_matrix import SHARED_SCENES
 from benchmarks.bench_real_cells import walk_cells
+from tests.grouping import on_one_worker
 from tests.visibility.segment_reference import nearest_at_pixel, prepare, unwitnessed
 from visibility.cores.from_segment.core import oblique_rotation, view_segments
 from visibility.cores.from_segment.geometry import scene_geometries
@@ -35,7 +36,7 @@ RES, JITTER, SEED, POINTS = 32, 0.5, 7, 48
 #: Each scene's tests on one worker (``bash scripts/test.sh`` distributes by ``xdist_group``),
 #: so the scene is loaded and its segment found once.
 @pytest.fixture(scope="module", params=[
-    pytest.param(n, marks=pytest.mark.xdist_group(f"from_segment_{n}"))
+    on_one_worker(f"from_segment_{n}", n)
     for n in ("lavaducts", "denhaag", "lyon_vilo3d")])
 def walked(request):
     """A real scene and the longest default segment of the cell a seeded walk stands in."""

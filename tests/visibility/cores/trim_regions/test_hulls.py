@@ -5,8 +5,8 @@ writes it, and tested against hand-made depth images and pixel states."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.trim_regions.hulls import (
     COPLANAR_TOL,
     small_in_front,
@@ -16,9 +16,7 @@ from visibility.cores.trim_regions.hulls import (
 from visibility.cores.trim_regions.kbuffer import SPANS
 from visibility.cores.trim_regions.samples import open_depth
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("trim_hulls")
+pytestmark = module_on_one_worker("trim_hulls")  # kernels of its own (tests/grouping.py)
 
 RES = 16
 S = 4

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.trim_regions.kbuffer import KBuffer, band_stride
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("trim_kbuffer")
+pytestmark = module_on_one_worker("trim_kbuffer")  # kernels of its own (tests/grouping.py)
 
 
 def test_band_stride_visits_every_band_once():

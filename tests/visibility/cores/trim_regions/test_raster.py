@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.grouping import module_on_one_worker
 from visibility.cores.trim_regions.kbuffer import (
     BACK,
     FRONT,
@@ -37,9 +38,7 @@ from visibility.cores.trim_regions.raster import (
     to_camera,
 )
 
-# Kernels only these tests call (directly, or with their own types) compile in the worker
-# that runs them: the module runs on one worker (`--dist loadgroup`), so they compile once.
-pytestmark = pytest.mark.xdist_group("trim_raster")
+pytestmark = module_on_one_worker("trim_raster")  # kernels of its own (tests/grouping.py)
 
 
 def _every_pixel(trims: np.ndarray, res: int, tan: float, margin: float) -> list[list[tuple]]:
