@@ -208,8 +208,11 @@ class ComputeService:
         args = (self._run, key, loaded, region, core, params, token, model, executor, job)
         if isinstance(pool, PriorityWorkerPool):
             where = f"cell {region.cell}" if region.cell is not None else "region"
-            # The first pool's lane follows the rank (``heavy_above``).
-            heavy = cost.seconds > self.settings.heavy_seconds
+            # The first pool's lane follows the rank (``heavy_above``). An HTTP request runs
+            # in the heavy lane whatever its estimate: an estimate learnt from a client's cheap
+            # requests can price its dear ones under heavy_seconds, and two of those would take
+            # every worker from the walkers' current cells.
+            heavy = client is not None or cost.seconds > self.settings.heavy_seconds
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
                               heavy=heavy, since=since,
                               label=f"{loaded.name} {where} {core.name}")

@@ -108,9 +108,10 @@ class Settings(BaseModel):
         (``busy``, 503 with Retry-After). A walker's current cell is never refused for it.
     max_inflight_per_client : computations one HTTP client (by address) may have running or
         waiting at once (``too_many_requests``, 429 with Retry-After).
-    heavy_seconds : computations estimated above this many seconds run in the heavy lane.
-    heavy_workers : workers the heavy lane may occupy at once (None: all but one, so a cheap
-        request always finds a worker; with one worker, that one).
+    heavy_seconds : computations estimated above this many seconds run in the heavy lane, as
+        every HTTP request's computation does (its estimate is advice a client can skew).
+    heavy_workers : workers the heavy lane may occupy at once (None: all but one, so a walker's
+        current cell or a cheap prefetch always finds a worker; with one worker, that one).
     worker_nice : how much nicer (lower CPU priority, Linux) the session cores' worker threads
         run than the event loop and the first answers' worker: when computations fill the cores,
         streaming and first answers still get the CPU first (0: the same priority).

@@ -236,7 +236,8 @@ class LiveServer:
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
                                        name="live-uvicorn", daemon=True)
 
-    def start(self, timeout: float = 20.0) -> None:
+    def start(self, timeout: float = 120.0) -> None:
+        # Starting loads the default core's kernels: seconds, more while other workers compile.
         self.thread.start()
         deadline = time.monotonic() + timeout
         while not self.server.started:

@@ -156,6 +156,33 @@ def test_a_job_nobody_waits_for_is_cancelled():
         svc.shutdown()
 
 
+def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
+    """An estimate a client's cheap requests taught to be low must not let two of its dear
+    ones take both workers: HTTP computations run in the heavy lane, a walker's current cell
+    with the same estimate does not."""
+    settings = Settings(generated={"village": 2000}, workers=2)
+    svc = ComputeService(SceneCatalog(settings), settings)
+    gate = threading.Event()
+    try:
+        svc.catalog.get("village")
+        for _ in range(2):  # both workers busy: what is submitted next queues in its lane
+            svc.pool.submit(gate.wait, 10)
+        time.sleep(0.1)
+        core = get_core("sampling")
+        params = core.make_params()
+        http = svc.submit("village", core, params, cell=0, client="127.0.0.9")
+        walker = svc.submit("village", core, params, cell=1)
+        jobs = {j["what"]: j for j in svc.pool.snapshot()}
+        http_job, walker_job = jobs["village cell 0 sampling"], jobs["village cell 1 sampling"]
+        assert http_job["seconds"] == walker_job["seconds"] < settings.heavy_seconds
+        assert http_job["heavy"] and not walker_job["heavy"]
+        gate.set()
+        assert len(http.result(timeout=60).pvs) > 0 and len(walker.result(timeout=60).pvs) > 0
+    finally:
+        gate.set()
+        svc.shutdown()
+
+
 def test_rate_limit_bucket_refills_and_refusals_cost_more():
     from collections import Counter
 
