@@ -64,12 +64,22 @@ def cube_face_rotations(base: np.ndarray | None = None) -> np.ndarray:
     ``base`` (3, 3) rotates the whole cube (a world-to-cube rotation; identity by default): the
     face cameras are the axis-aligned faces expressed in the rotated frame.
     """
+    # The axis-aligned faces are built once: a core asks for a cube per segment or eye, and
+    # six look_rotation calls cost more than a small segment's rasterization.
+    if base is None:
+        return _AXIS_FACES.copy()
+    return _AXIS_FACES @ np.asarray(base, dtype=np.float64)
+
+
+def _axis_faces() -> np.ndarray:
+    """(6, 3, 3) the rotations of the axis-aligned cube's faces (``cube_face_rotations``)."""
     rots = np.empty((6, 3, 3))
     for k, (f, u) in enumerate(CUBE_FACE_FORWARD_UP):
         rots[k] = look_rotation(f, u)
-    if base is not None:
-        rots = rots @ np.asarray(base, dtype=np.float64)
     return rots
+
+
+_AXIS_FACES = _axis_faces()
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

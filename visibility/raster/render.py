@@ -20,9 +20,6 @@ from visibility.raster.triangles import (
     _render_views_on,
 )
 
-#: The six axis-aligned cube-face rotations (``camera.cube_face_rotations()``), built once.
-_CUBE_FACES = cube_face_rotations()
-
 __all__ = ["DEFAULT_NEAR", "render_ids", "render_cubemap", "render_cubemap_ids"]
 
 
@@ -260,8 +257,7 @@ def _cubemap(vertices, faces, eye, resolution, base_rotation, near, face_mask, f
     v, f, sel, ids = _check_inputs(vertices, faces, face_mask, face_ids, hierarchy is None)
     e = _check_view(eye, resolution, resolution, 1.0, 1.0, near)
     base = np.eye(3) if base_rotation is None else _check_rotation(base_rotation)
-    # Same product as cube_face_rotations(base), without rebuilding the axis-aligned faces.
-    rots = _CUBE_FACES @ base
+    rots = cube_face_rotations(base)
     res = int(resolution)
     return _render_views(v, e, f, sel, ids, rots, base, res, res, 1.0, 1.0, near, stats,
                          want_depth, hierarchy, face_mask, coherence)
