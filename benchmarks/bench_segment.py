@@ -65,7 +65,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "cell_points": 64, "rect_scenes": ["city:20000"], "orient_scenes": ["city:20000"],
         "first_orientation": "axis", "city1m_triangles": 100_000,
         "city1m_cells": 1, "repeats": 1, "grass_triangles": 10_000, "grass_cells": 1,
-        "max_seconds": 20,
+        "max_seconds": 20, "part_resolution": 256,
     },
     "standard": {
         "scenes": ["city:100000", "city:1000000", "village:100000", "grass:200000",
@@ -80,7 +80,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "orient_scenes": ["city:100000", "village:100000", "rooms:100000", "real"],
         "first_orientation": "axis", "city1m_triangles": 1_000_000,
         "city1m_cells": 3, "repeats": 3, "max_seconds": 90, "grass_triangles": 100_000,
-        "grass_cells": 2,
+        "grass_cells": 2, "part_resolution": 256,
     },
 }
 
@@ -459,7 +459,8 @@ def part_orient(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
         gt, _ = _ground_truth(scene, cell, cfg, log, label)
         for runs in (1, 2):
             for first in ("axis", "oblique"):
-                params = core.make_params(resolution=256, runs=runs, first_orientation=first)
+                params = core.make_params(resolution=_part_res(cfg), runs=runs,
+                                          first_orientation=first)
                 pvs, secs = _timed(lambda s=scene, c=cell, p=params: core.compute(s, c, p), 1)
                 fn, fp = _fn_fp(pvs.triangle_ids, gt)
                 rows.append({"scene": label, "cell": cid, "runs": runs, "first": first,
@@ -471,7 +472,8 @@ def part_orient(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
 
 def _md_orient(rows, cfg) -> str:
     s = ["## First orientation: axis-aligned against oblique cubes\n",
-         "One cell per scene at 256 px, 3 eye levels, the dense ground truth of the per-scene "
+         f"One cell per scene at {_part_res(cfg)} px, 3 eye levels, the dense ground truth of "
+         "the per-scene "
          f"part ({cfg['gt_points']} points at {cfg['gt_resolution']} px). Long thin features "
          "parallel to a side (ledges, kerbs, roof lines) project to bands that slide along "
          "themselves as the eye moves; an axis-aligned cube on an axis-aligned scene can hold "
@@ -502,12 +504,20 @@ def part_city1m(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     scene = make_scene("city", triangles=tri)
     log(f"  city {scene.n_triangles} triangles generated in {time.perf_counter() - t0:.1f} s")
     grid = ViewcellGrid.for_scene(scene, cell_size=4.0)
+    res = _part_res(cfg)
     return _cell_rows(scene, grid, pick_cells(grid, cfg["city1m_cells"]),
-                      [{"eye_levels": 3}, {"eye_levels": 1}], cfg["repeats"], "city 1M", log)
+                      [{"eye_levels": 3, "resolution": res}, {"eye_levels": 1, "resolution": res}],
+                      cfg["repeats"], "city 1M", log)
 
 
 #: Cut depths measured beside the default on scenes with near clutter (``grass``, ``kitchen``).
 CUT_VARIANTS = [{}, {"cuts": 0}, {"cuts": 6}]
+
+
+def _part_res(cfg: dict[str, Any]) -> int:
+    """Pixels per cube face of the orient, city1m, grass and kitchen parts (the core's 256 px
+    unless the preset says otherwise: the smoke test runs them small)."""
+    return int(cfg.get("part_resolution", 256))
 
 
 def part_grass(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
@@ -523,6 +533,7 @@ def part_grass(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     for name, variants in (("grass", CUT_VARIANTS), ("swaying_grass", [{}])):
         scene = make_scene(name, triangles=tri)
         grid = ViewcellGrid.for_scene(scene)
+        variants = [{"resolution": _part_res(cfg), **v} for v in variants]
         rows += _cell_rows(scene, grid, pick_cells(grid, cfg["grass_cells"], scene), variants,
                            cfg["repeats"], name, log)
     return rows
@@ -545,13 +556,14 @@ def part_kitchen(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
     core = _core()
     # Untimed: builds the scene's clusters, which the timed rows would otherwise include.
     core.compute(scene, grid.cell(cells[0]), core.make_params(resolution=16))
-    return _cell_rows(scene, grid, cells, CUT_VARIANTS, 1, "kitchen", log, first_run=False)
+    variants = [{"resolution": _part_res(cfg), **v} for v in CUT_VARIANTS]
+    return _cell_rows(scene, grid, cells, variants, 1, "kitchen", log, first_run=False)
 
 
 def _cell_rows(scene, grid, cells, variants, repeats, label, log,
                first_run: bool = True) -> list[dict[str, Any]]:
-    """One row per cell and parameter variant (``variants``: overrides of the core's defaults;
-    256 px): median seconds of ``repeats`` runs, phases, counters, PVS size and, with
+    """One row per cell and parameter variant (``variants``: overrides of the core's defaults
+    and of 256 px): median seconds of ``repeats`` runs, phases, counters, PVS size and, with
     ``first_run``, the memory of an untimed first run; then a row of ``sampling`` at its
     defaults on the same cell (after an untimed run), for scale."""
     from visibility.cores.base import get_core
@@ -696,15 +708,16 @@ _LEVELS_NOTE = (
 
 def _md_city1m(rows, cfg) -> str:
     return _md_cells(
-        rows, f"One 4 x 4 m cell of `city` at {cfg['city1m_triangles']:,} triangles, 256² per "
-        "face",
+        rows, f"One 4 x 4 m cell of `city` at {cfg['city1m_triangles']:,} triangles, "
+        f"{_part_res(cfg)}² per face",
         "The server's prefetch budget: at 1.4 m/s a walker crosses a 4 m cell in about 2.9 s. "
         + _REPEATS_NOTE + _LEVELS_NOTE)
 
 
 def _md_grass(rows, cfg) -> str:
     return _md_cells(
-        rows, f"Cells of `grass` at {cfg['grass_triangles']:,} triangles, 256² per face",
+        rows, f"Cells of `grass` at {cfg['grass_triangles']:,} triangles, {_part_res(cfg)}² per "
+        "face",
         "A meadow where every blade is seen, still (`grass`) and swaying as the eye walks "
         "(`swaying_grass`: moving triangles, never cut): the envelopes are the answer, and the "
         "segments "
@@ -715,7 +728,7 @@ def _md_grass(rows, cfg) -> str:
 
 def _md_kitchen(rows, cfg) -> str:
     return _md_cells(
-        rows, "A 4 m cell of the 1M-triangle kitchen, 256² per face",
+        rows, f"A 4 m cell of the 1M-triangle kitchen, {_part_res(cfg)}² per face",
         "Dense clutter along every side: the case `cuts` was made for. One timed run per row "
         "(the rows take minutes), after an untimed run at 16 px that builds the scene's "
         "clusters; no memory figures. ")

@@ -45,7 +45,8 @@ def test_every_part_runs_and_reports(tmp_path):
                cell_resolution=32, cell_runs=[1, 2], cell_points=16, rect_scenes=["city:5000"],
                orient_scenes=["city:5000"],
                city1m_triangles=5000,
-               city1m_cells=1, repeats=1, max_seconds=5, grass_triangles=2000, grass_cells=1)
+               city1m_cells=1, repeats=1, max_seconds=5, grass_triangles=2000, grass_cells=1,
+               part_resolution=32)
     logs: list[str] = []
     results = {"scenes": bs.part_scenes(cfg, logs.append),
                "segment": bs.part_segment(cfg, logs.append),
@@ -104,6 +105,7 @@ def test_every_part_runs_and_reports(tmp_path):
     for heading in ("One segment", "A cell", "view rectangle", "First orientation", "Per scene",
                     "One 4 x 4 m cell", "Cells of `grass`"):
         assert heading in text
+    assert "32² per face" in text and "at 32 px" in text  # the parts' resolution is the cfg's
     for png in ("segment", "cell", "rect", "scenes"):
         assert (tmp_path / f"from_segment_{png}_smoke.png").stat().st_size > 1000
     raw = json.loads((tmp_path / "from_segment_smoke.json").read_text())
