@@ -34,10 +34,11 @@ Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from visibility.exact_grid import build_grid, grid_first_hits, ray_triangle
 from visibility.raster.camera import DEFAULT_NEAR, random_rotations
@@ -45,6 +46,8 @@ from visibility.scene import Scene
 
 #: Rays cast per batch (Embree query or exact kernel call): bounds the temporaries.
 BATCH_RAYS = 1 << 17
+#: Fewest rays per thread when ``EmbreeCaster.first_hits`` splits a batch over threads.
+CAST_CHUNK_MIN = 1 << 15
 #: Witness rays kept per seen triangle (for ``confirm`` and for failure messages).
 WITNESSES = 4
 #: Share of an eye's random rays (near plane 0) that must hit a back face first for the eye to
@@ -240,6 +243,10 @@ class EmbreeCaster:
         if self._n:
             mesh_construction.TriangleMesh(self._scene,
                                            np.ascontiguousarray(tri, dtype=np.float32))
+            # The first run commits the scene (builds its BVH): done here, alone, so that
+            # later runs may share it from several threads.
+            one = np.zeros((1, 3), dtype=np.float32)
+            self._scene.run(one, one + np.float32(1.0))
 
     def first_hits(self, orig: np.ndarray, dirs: np.ndarray, tmin: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -251,13 +258,29 @@ class EmbreeCaster:
         d32 = np.empty((n, 3), dtype=np.float32)
         # Contiguous, as most callers pass them (a broadcast eye is read-only, layout A):
         # _ray_starts compiles once.
-        _ray_starts(np.ascontiguousarray(orig), np.ascontiguousarray(dirs),
-                    np.ascontiguousarray(tmin), start, d32)
-        res = self._scene.run(start, d32, output=1)
+        tmin = np.ascontiguousarray(tmin)
+        _ray_starts(np.ascontiguousarray(orig), np.ascontiguousarray(dirs), tmin, start, d32)
         ids = np.empty(n, dtype=np.int64)
         t = np.empty(n)
-        _ray_hits(res["primID"], res["geomID"], res["tfar"], tmin, ids, t)
+        # embreex casts one ray at a time with the GIL released: large batches are split over
+        # numba's threads (each ray's answer is its own, so the split changes nothing).
+        parts = min(get_num_threads(), n // CAST_CHUNK_MIN)
+        if parts < 2:
+            self._cast(start, d32, tmin, ids, t)
+            return ids, t
+        cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+        with ThreadPoolExecutor(parts) as pool:
+            list(pool.map(lambda k: self._cast(start[cuts[k]:cuts[k + 1]],
+                                               d32[cuts[k]:cuts[k + 1]],
+                                               tmin[cuts[k]:cuts[k + 1]],
+                                               ids[cuts[k]:cuts[k + 1]],
+                                               t[cuts[k]:cuts[k + 1]]), range(parts)))
         return ids, t
+
+    def _cast(self, start: np.ndarray, d32: np.ndarray, tmin: np.ndarray, ids: np.ndarray,
+              t: np.ndarray) -> None:
+        res = self._scene.run(start, d32, output=1)
+        _ray_hits(res["primID"], res["geomID"], res["tfar"], tmin, ids, t)
 
 
 @njit(cache=True, nogil=True)

@@ -139,3 +139,28 @@ def test_open_space_is_outside_closed_solids():
     scene = b.scene("solid")
     got = in_open_space(scene, np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 0.2], [3.0, 0.0, 0.0]]))
     np.testing.assert_array_equal(got, [False, False, True])
+
+
+def test_a_batch_split_over_threads_casts_the_same_hits(monkeypatch):
+    """``EmbreeCaster.first_hits`` splits large batches over threads; every ray keeps its own
+    answer and distance, whatever the split."""
+    import visibility.ray_reference as rr
+    from visibility.generators import make_scene
+
+    scene = make_scene("rooms", triangles=2000)
+    tri, _ = frame_triangles(scene, scene.vertices.mean(axis=0))
+    caster = rr.EmbreeCaster(tri)
+    rng = np.random.default_rng(4)
+    n = 40_000
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    orig = rng.uniform(-1.0, 1.0, size=(n, 3))
+    tmin = rng.uniform(0.0, 0.5, size=n)
+    monkeypatch.setattr(rr, "CAST_CHUNK_MIN", n + 1)
+    one_ids, one_t = caster.first_hits(orig, d, tmin)
+    monkeypatch.setattr(rr, "CAST_CHUNK_MIN", 1000)
+    monkeypatch.setattr(rr, "get_num_threads", lambda: 7)
+    split_ids, split_t = caster.first_hits(orig, d, tmin)
+    assert (one_ids >= 0).mean() > 0.5
+    np.testing.assert_array_equal(split_ids, one_ids)
+    np.testing.assert_array_equal(split_t, one_t)
