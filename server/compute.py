@@ -112,6 +112,8 @@ class ComputeService:
         #: Checkpoints at which a computation waited for first answers, and seconds waited.
         self.holds = 0
         self.held_seconds = 0.0
+        #: HTTP computations estimated light, which run in the heavy lane (``_start``).
+        self._http_light: set[Future] = set()
 
     @property
     def still_wanted(self) -> Callable[[Hashable], bool] | None:
@@ -183,6 +185,9 @@ class ComputeService:
                                    deadline, client, lane, walker)
             if fut is not None:
                 self.inflight.join(key, fut, mine, wanted is None, walker)
+                if priority <= 0 and client is None and fut in self._http_light:
+                    # A walker's current cell: it takes the job out of the HTTP lane.
+                    self.pool.lighten(fut)
                 return fut
         done: Future = Future()
         done.set_result(PVSResult(scene, region.cell, region.box.copy(), core.name, params, pvs,
@@ -212,10 +217,15 @@ class ComputeService:
             # in the heavy lane whatever its estimate: an estimate learnt from a client's cheap
             # requests can price its dear ones under heavy_seconds, and two of those would take
             # every worker from the walkers' current cells.
-            heavy = client is not None or cost.seconds > self.settings.heavy_seconds
+            light = cost.seconds <= self.settings.heavy_seconds
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
-                              heavy=heavy, since=since,
+                              heavy=client is not None or not light, since=since,
                               label=f"{loaded.name} {where} {core.name}")
+            if client is not None and light and pool is self.pool:
+                # Heavy only for being an HTTP request: a walker's current cell that joins it
+                # makes it light again (``submit``).
+                self._http_light.add(fut)
+                fut.add_done_callback(self._http_light.discard)
             # The executor reads the priority when the job starts: a promoted job (a walker
             # reached a prefetched cell) goes to a cluster at its new rank.
             job["pool_job"] = getattr(fut, "job", None)

@@ -241,6 +241,19 @@ class PriorityWorkerPool:
                 return
         self.rerank(future, priority, job.since)
 
+    def lighten(self, future: Future) -> bool:
+        """Move the still queued job of ``future`` to the light lane (a walker's current cell
+        joined a job that was heavy only for whom it was first asked by). True when it moved."""
+        job = getattr(future, "job", None)
+        if job is None or job.owner is not self:
+            return False
+        with self._cv:
+            if job.started or job.future.done() or not job.heavy:
+                return False
+            job.heavy = False
+            self._cv.notify()
+            return True
+
     def _waiting(self) -> list[_Job]:
         # Jobs still waiting, each once (a re-ranked job's older entries are stale).
         return [e[-1] for e in self._heap if self._live(e)]

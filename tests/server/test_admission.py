@@ -159,7 +159,7 @@ def test_a_job_nobody_waits_for_is_cancelled():
 def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
     """An estimate a client's cheap requests taught to be low must not let two of its dear
     ones take both workers: HTTP computations run in the heavy lane, a walker's current cell
-    with the same estimate does not."""
+    with the same estimate does not, and one that joins an HTTP computation brings it out."""
     settings = Settings(generated={"village": 2000}, workers=2)
     svc = ComputeService(SceneCatalog(settings), settings)
     gate = threading.Event()
@@ -176,6 +176,12 @@ def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
         http_job, walker_job = jobs["village cell 0 sampling"], jobs["village cell 1 sampling"]
         assert http_job["seconds"] == walker_job["seconds"] < settings.heavy_seconds
         assert http_job["heavy"] and not walker_job["heavy"]
+        # A walker's current cell joining the HTTP job takes it out of the heavy lane; a
+        # walker's prefetch (priority > 0) does not.
+        assert svc.submit("village", core, params, cell=0, priority=1.0) is http
+        assert {j["what"]: j for j in svc.pool.snapshot()}["village cell 0 sampling"]["heavy"]
+        assert svc.submit("village", core, params, cell=0) is http
+        assert not {j["what"]: j for j in svc.pool.snapshot()}["village cell 0 sampling"]["heavy"]
         gate.set()
         assert len(http.result(timeout=60).pvs) > 0 and len(walker.result(timeout=60).pvs) > 0
     finally:
