@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, parallel_chunksize, prange
 
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
@@ -328,14 +328,17 @@ def _cross(a, b):  # pragma: no cover - numba
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _crossings(tris, lo, hi, start, axis, parts, every, out, flag):  # pragma: no cover - numba
     """Crossing triangles of the parts ``parts``. Part k holds rows start[k] to start[k + 1]
     of the shrunk triangles ``tris`` (n, 3, 3), sorted by their lower bound along the part's
     longest axis ``axis[k]``; ``lo``, ``hi`` (n, 3) their boxes. out[k] = True when two of
     its triangles cross; with ``every``, flag[i] = True for each triangle another crosses
-    (else the part's sweep stops at its first crossing)."""
-    for k in parts:
+    (else the part's sweep stops at its first crossing). Parts run in parallel (each writes
+    only its own out[k] and its own rows of ``flag``): callers list them largest first and
+    run it with a chunk size of 1 (``_sweep_parts``), so no thread is left the big ones."""
+    for kk in prange(parts.shape[0]):
+        k = parts[kk]
         ax = axis[k]
         for i in range(start[k], start[k + 1]):
             for j in range(i + 1, start[k + 1]):
@@ -389,12 +392,21 @@ def self_crossing_parts(tris: np.ndarray, label: np.ndarray, p: int) -> np.ndarr
     return _crossing_parts(_sweep(tris, label, p), p)
 
 
+def _sweep_parts(layout: tuple, parts: np.ndarray, every: bool, out: np.ndarray,
+                 flag: np.ndarray) -> None:
+    """``_crossings`` over ``parts`` (int64 ids), largest first, one part per thread at a time:
+    part sizes vary a hundredfold, and a sweep's work grows faster than its size."""
+    t, lo, hi, start, axis, _ = layout
+    size = start[parts + 1] - start[parts]
+    ordered = np.ascontiguousarray(parts[np.argsort(-size, kind="stable")], dtype=np.int64)
+    with parallel_chunksize(1):
+        _crossings(t, lo, hi, start, axis, ordered, every, out, flag)
+
+
 def _crossing_parts(layout: tuple, p: int) -> np.ndarray:
     """``self_crossing_parts`` on a ``_sweep`` layout."""
-    t, lo, hi, start, axis, _ = layout
     out = np.zeros(p, dtype=bool)
-    _crossings(t, lo, hi, start, axis, np.arange(p, dtype=np.int64), False, out,
-               np.zeros(0, dtype=np.bool_))
+    _sweep_parts(layout, np.arange(p, dtype=np.int64), False, out, np.zeros(0, dtype=np.bool_))
     return out
 
 
@@ -402,11 +414,11 @@ def _crossed(layout: tuple, p: int, parts: np.ndarray) -> np.ndarray:
     """(k,) bool in the triangles' own order: those of the parts ``parts`` (int64 ids) that
     another triangle of their part crosses or overlaps, on a ``_sweep`` layout (as
     ``self_crossing_parts`` tests)."""
-    t, lo, hi, start, axis, order = layout
+    t, _, _, _, _, order = layout
     flag = np.zeros(len(t), dtype=bool)
     if len(parts):
-        _crossings(t, lo, hi, start, axis, np.asarray(parts, dtype=np.int64), True,
-                   np.zeros(p, dtype=np.bool_), flag)
+        _sweep_parts(layout, np.asarray(parts, dtype=np.int64), True,
+                     np.zeros(p, dtype=np.bool_), flag)
     out = np.zeros(len(t), dtype=bool)
     out[order] = flag
     return out
