@@ -165,9 +165,15 @@ def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
     gate = threading.Event()
     try:
         svc.catalog.get("village")
+        running = threading.Semaphore(0)
+
+        def hold():
+            running.release()
+            gate.wait(10)
+
         for _ in range(2):  # both workers busy: what is submitted next queues in its lane
-            svc.pool.submit(gate.wait, 10)
-        time.sleep(0.1)
+            svc.pool.submit(hold)
+        assert running.acquire(timeout=30) and running.acquire(timeout=30)
         core = get_core("sampling")
         params = core.make_params()
         http = svc.submit("village", core, params, cell=0, client="127.0.0.9")
