@@ -185,8 +185,9 @@ class ComputeService:
                                    deadline, client, lane, walker)
             if fut is not None:
                 self.inflight.join(key, fut, mine, wanted is None, walker)
-                if priority <= 0 and client is None and fut in self._http_light:
-                    # A walker's current cell: it takes the job out of the HTTP lane.
+                if client is None and fut in self._http_light:
+                    # A walker's cell, current or prefetched: asked alone it would have run in
+                    # the light lane (same estimate), so it takes the job out of the HTTP lane.
                     self.pool.lighten(fut)
                 return fut
         done: Future = Future()
@@ -222,8 +223,8 @@ class ComputeService:
                               heavy=client is not None or not light, since=since,
                               label=f"{loaded.name} {where} {core.name}")
             if client is not None and light and pool is self.pool:
-                # Heavy only for being an HTTP request: a walker's current cell that joins it
-                # makes it light again (``submit``).
+                # Heavy only for being an HTTP request: a walker's cell that joins it makes it
+                # light again (``submit``).
                 self._http_light.add(fut)
                 fut.add_done_callback(self._http_light.discard)
             # The executor reads the priority when the job starts: a promoted job (a walker

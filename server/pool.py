@@ -242,8 +242,8 @@ class PriorityWorkerPool:
         self.rerank(future, priority, job.since)
 
     def lighten(self, future: Future) -> bool:
-        """Move the still queued job of ``future`` to the light lane (a walker's current cell
-        joined a job that was heavy only for whom it was first asked by). True when it moved."""
+        """Move the still queued job of ``future`` to the light lane (a walker's cell joined a
+        job that was heavy only for whom it was first asked by). True when it moved."""
         job = getattr(future, "job", None)
         if job is None or job.owner is not self:
             return False

@@ -158,8 +158,9 @@ def test_a_job_nobody_waits_for_is_cancelled():
 
 def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
     """An estimate a client's cheap requests taught to be low must not let two of its dear
-    ones take both workers: HTTP computations run in the heavy lane, a walker's current cell
-    with the same estimate does not, and one that joins an HTTP computation brings it out."""
+    ones take both workers: HTTP computations run in the heavy lane, a walker's cell with the
+    same estimate does not, and one that joins an HTTP computation brings it out, its current
+    cell or a prefetch alike (each asked alone would have run light)."""
     settings = Settings(generated={"village": 2000}, workers=2)
     svc = ComputeService(SceneCatalog(settings), settings)
     gate = threading.Event()
@@ -177,19 +178,28 @@ def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
         core = get_core("sampling")
         params = core.make_params()
         http = svc.submit("village", core, params, cell=0, client="127.0.0.9")
+        http2 = svc.submit("village", core, params, cell=2, client="127.0.0.9")
         walker = svc.submit("village", core, params, cell=1)
         jobs = {j["what"]: j for j in svc.pool.snapshot()}
         http_job, walker_job = jobs["village cell 0 sampling"], jobs["village cell 1 sampling"]
         assert http_job["seconds"] == walker_job["seconds"] < settings.heavy_seconds
-        assert http_job["heavy"] and not walker_job["heavy"]
-        # A walker's current cell joining the HTTP job takes it out of the heavy lane; a
-        # walker's prefetch (priority > 0) does not.
-        assert svc.submit("village", core, params, cell=0, priority=1.0) is http
-        assert {j["what"]: j for j in svc.pool.snapshot()}["village cell 0 sampling"]["heavy"]
+        assert http_job["heavy"] and jobs["village cell 2 sampling"]["heavy"]
+        assert not walker_job["heavy"]
+
+        def heavy(cell: int) -> bool:
+            return {j["what"]: j for j in svc.pool.snapshot()}[f"village cell {cell} sampling"][
+                "heavy"]
+
+        # Another HTTP request joining keeps it heavy; a walker's current cell or a walker's
+        # prefetch (priority > 0) joining takes it out of the heavy lane.
+        assert svc.submit("village", core, params, cell=0, client="127.0.0.8") is http
+        assert heavy(0)
         assert svc.submit("village", core, params, cell=0) is http
-        assert not {j["what"]: j for j in svc.pool.snapshot()}["village cell 0 sampling"]["heavy"]
+        assert not heavy(0)
+        assert svc.submit("village", core, params, cell=2, priority=1.0) is http2
+        assert not heavy(2)
         gate.set()
-        assert len(http.result(timeout=60).pvs) > 0 and len(walker.result(timeout=60).pvs) > 0
+        assert all(len(f.result(timeout=60).pvs) > 0 for f in (http, http2, walker))
     finally:
         gate.set()
         svc.shutdown()
