@@ -170,7 +170,7 @@ def test_http_requests_take_the_heavy_lane_whatever_their_estimate():
 
         def hold():
             running.release()
-            gate.wait(10)
+            gate.wait(60)  # set by the test (finally: at once), not waited out
 
         for _ in range(2):  # both workers busy: what is submitted next queues in its lane
             svc.pool.submit(hold)
