@@ -112,8 +112,6 @@ class ComputeService:
         #: Checkpoints at which a computation waited for first answers, and seconds waited.
         self.holds = 0
         self.held_seconds = 0.0
-        #: HTTP computations estimated light, which run in the heavy lane (``_start``).
-        self._http_light: set[Future] = set()
 
     @property
     def still_wanted(self) -> Callable[[Hashable], bool] | None:
@@ -185,10 +183,11 @@ class ComputeService:
                                    deadline, client, lane, walker)
             if fut is not None:
                 self.inflight.join(key, fut, mine, wanted is None, walker)
-                if client is None and fut in self._http_light:
+                if client is None:
                     # A walker's cell, current or prefetched: asked alone it would have run in
-                    # the light lane (same estimate), so it takes the job out of the HTTP lane.
-                    self.pool.lighten(fut)
+                    # the light lane if its estimate is light, so it takes a job heavy only for
+                    # being an HTTP request out of the heavy lane.
+                    self.pool.lighten(fut, self.settings.heavy_seconds)
                 return fut
         done: Future = Future()
         done.set_result(PVSResult(scene, region.cell, region.box.copy(), core.name, params, pvs,
@@ -218,15 +217,11 @@ class ComputeService:
             # in the heavy lane whatever its estimate: an estimate learnt from a client's cheap
             # requests can price its dear ones under heavy_seconds, and two of those would take
             # every worker from the walkers' current cells.
-            light = cost.seconds <= self.settings.heavy_seconds
+            # A walker's cell that joins one estimated light makes it light again (``submit``).
+            heavy = client is not None or cost.seconds > self.settings.heavy_seconds
             fut = pool.submit(*args, priority=priority, wanted=wanted, seconds=cost.seconds,
-                              heavy=client is not None or not light, since=since,
+                              heavy=heavy, since=since,
                               label=f"{loaded.name} {where} {core.name}")
-            if client is not None and light and pool is self.pool:
-                # Heavy only for being an HTTP request: a walker's cell that joins it makes it
-                # light again (``submit``).
-                self._http_light.add(fut)
-                fut.add_done_callback(self._http_light.discard)
             # The executor reads the priority when the job starts: a promoted job (a walker
             # reached a prefetched cell) goes to a cluster at its new rank.
             job["pool_job"] = getattr(fut, "job", None)

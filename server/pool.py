@@ -241,14 +241,16 @@ class PriorityWorkerPool:
                 return
         self.rerank(future, priority, job.since)
 
-    def lighten(self, future: Future) -> bool:
-        """Move the still queued job of ``future`` to the light lane (a walker's cell joined a
-        job that was heavy only for whom it was first asked by). True when it moved."""
+    def lighten(self, future: Future, heavy_seconds: float) -> bool:
+        """Move the still queued job of ``future`` to the light lane when its estimate is at
+        most ``heavy_seconds`` (then it was heavy only for whom it was first asked by: an HTTP
+        request; a walker's cell joined it). True when it moved."""
         job = getattr(future, "job", None)
         if job is None or job.owner is not self:
             return False
         with self._cv:
-            if job.started or job.future.done() or not job.heavy:
+            if (job.started or job.future.done() or not job.heavy
+                    or job.seconds > heavy_seconds):
                 return False
             job.heavy = False
             self._cv.notify()

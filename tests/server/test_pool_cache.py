@@ -151,6 +151,25 @@ def test_rerank_moves_queued_jobs_both_ways():
         pool.shutdown()
 
 
+def test_lighten_moves_only_a_queued_heavy_job_estimated_light():
+    pool, gate, blocker = _blocked_pool()
+    try:
+        cheap = pool.submit(lambda: None, seconds=0.5, heavy=True)
+        dear = pool.submit(lambda: None, seconds=9.0, heavy=True)
+        assert not pool.lighten(dear, 2.0)  # heavy for its estimate: it stays heavy
+        assert pool.lighten(cheap, 2.0)  # heavy only for who asked: it moves
+        assert not pool.lighten(cheap, 2.0)  # already light
+        lanes = {j["seconds"]: j["heavy"] for j in pool.snapshot()}
+        assert lanes == {0.5: False, 9.0: True}
+        gate.set()
+        for f in (blocker, cheap, dear):
+            f.result(10)
+        assert not pool.lighten(dear, 100.0)  # done: never moved
+    finally:
+        gate.set()
+        pool.shutdown()
+
+
 def test_since_breaks_ties_before_the_estimate():
     """Among priority 0 (walkers' current cells), the cell entered earliest goes first, even
     when a later one is cheaper; equal ``since``: shortest estimate first."""
