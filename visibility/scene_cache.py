@@ -34,6 +34,11 @@ _LOCK = threading.Lock()
 _BUILDING: weakref.WeakKeyDictionary[Scene, dict[str, threading.Lock]] = \
     weakref.WeakKeyDictionary()
 _STORE: Path | None = None
+# numpy parses each ``.npy`` header with ``ast.literal_eval``, and CPython 3.11's AST
+# constructor keeps its recursion depth per interpreter, not per thread: two threads parsing at
+# once (a garbage collection switching threads mid-parse) can raise SystemError ("AST
+# constructor recursion depth mismatch") on a sound file (python/cpython#106905's counter).
+_NPZ_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,17 @@ def save_npz(path: str | os.PathLike, **arrays: Any) -> None:
     with open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
     tmp.replace(path)
+
+
+def load_npz(path: str | os.PathLike) -> dict[str, Any]:
+    """Every array of the ``.npz`` file at ``path`` (pickles refused), read in full under one
+    process-wide lock so threads reading at once never meet numpy's header parsing together
+    (``_NPZ_LOCK``). Raises what ``numpy.load`` raises for a missing, truncated or foreign
+    file, and KeyError, ValueError or EOFError for a damaged member."""
+    import numpy as np
+
+    with _NPZ_LOCK, np.load(path, allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}
 
 
 def set_store(folder: str | os.PathLike | None) -> None:

@@ -28,7 +28,7 @@ from numba import njit, parallel_chunksize, prange
 
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.scene import Scene, moving_faces
-from visibility.scene_cache import Build, Persist, per_scene, save_npz
+from visibility.scene_cache import Build, Persist, load_npz, per_scene, save_npz
 from visibility.winding import UNDECIDED, front_windings
 
 
@@ -514,13 +514,13 @@ def load_closed_parts(path: str | Path, scene: Scene) -> ClosedParts | None:
     of another triangle count, or holding ids outside the scene's arrays."""
     m, n = scene.n_triangles, scene.n_vertices
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["format"]) != CLOSED_FORMAT:
-                return None
-            a = {k: np.ascontiguousarray(z[k]) for k in z.files if k != "format"}
+        z = load_npz(path)
+        if str(z.pop("format")) != CLOSED_FORMAT:
+            return None
+        a = {k: np.ascontiguousarray(v) for k, v in z.items()}
         edges = Edges(**{f.name: a.pop(f"edges_{f.name}") for f in fields(Edges)})
         parts = ClosedParts(edges=edges, **a)
-    except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile):
+    except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile):
         return None
     if len(parts.label) != m or len(parts.outward) != m:
         return None

@@ -15,6 +15,7 @@ import numpy as np
 from server.cache.checks import BadEntry, check_ids
 from server.cache.key import PVSKey
 from visibility.cores.base import PVS
+from visibility.scene_cache import load_npz
 
 log = logging.getLogger(__name__)
 
@@ -84,41 +85,39 @@ class DiskPVSCache:
     def _read(self, p: Path, key: PVSKey, n_triangles: int | None) -> PVS | None:
         """The checked PVS in ``p``; None for an older format; BadEntry for a bad entry."""
         try:
-            z = np.load(p, allow_pickle=False)
+            z = load_npz(p)
         except Exception as exc:  # truncated, not a zip, unreadable: np.load raises many types
             raise BadEntry(f"unreadable ({type(exc).__name__})") from None
-        with z:
-            try:
-                if "format" not in z.files or str(z["format"]) != DISK_FORMAT:
-                    return None
-                key_repr = repr(key)
-                if str(z["key"]) != key_repr:
-                    raise BadEntry("it holds another key")
-                if str(z["fingerprint"]) != key.fingerprint:
-                    raise BadEntry("it is from another scene fingerprint")
-                if str(z["params"]) != repr(tuple(key)[1:]):
-                    raise BadEntry("it holds other parameters")
-                stored_n = int(z["n_triangles"])
-                if n_triangles is not None and stored_n >= 0 and stored_n != int(n_triangles):
-                    raise BadEntry(f"it is for {stored_n} triangles, the scene has "
-                                   f"{n_triangles}")
-                upper = int(n_triangles) if n_triangles is not None else \
-                    (stored_n if stored_n >= 0 else None)
-                granularity = str(z["granularity"])
-                raw_ids = z["triangle_ids"]
-                raw_obj = z["object_ids"] if bool(z["has_objects"]) else None
-                raw_sph = z["sphere_ids"] if bool(z["has_spheres"]) else None
-                if str(z["checksum"]) != _checksum(key_repr, stored_n, granularity, raw_ids,
-                                                   raw_obj, raw_sph):
-                    raise BadEntry("checksum mismatch")
-                ids = check_ids("triangle ids", raw_ids, upper)
-                obj = None if raw_obj is None else check_ids("object ids", raw_obj, None)
-                sph = None if raw_sph is None else check_ids("sphere ids", raw_sph, None)
-                seconds = float(z["seconds"])
-            except BadEntry:
-                raise
-            except Exception as exc:  # missing fields, wrong types, a truncated member
-                raise BadEntry(f"malformed ({type(exc).__name__})") from None
+        try:
+            if "format" not in z or str(z["format"]) != DISK_FORMAT:
+                return None
+            key_repr = repr(key)
+            if str(z["key"]) != key_repr:
+                raise BadEntry("it holds another key")
+            if str(z["fingerprint"]) != key.fingerprint:
+                raise BadEntry("it is from another scene fingerprint")
+            if str(z["params"]) != repr(tuple(key)[1:]):
+                raise BadEntry("it holds other parameters")
+            stored_n = int(z["n_triangles"])
+            if n_triangles is not None and stored_n >= 0 and stored_n != int(n_triangles):
+                raise BadEntry(f"it is for {stored_n} triangles, the scene has {n_triangles}")
+            upper = int(n_triangles) if n_triangles is not None else \
+                (stored_n if stored_n >= 0 else None)
+            granularity = str(z["granularity"])
+            raw_ids = z["triangle_ids"]
+            raw_obj = z["object_ids"] if bool(z["has_objects"]) else None
+            raw_sph = z["sphere_ids"] if bool(z["has_spheres"]) else None
+            if str(z["checksum"]) != _checksum(key_repr, stored_n, granularity, raw_ids,
+                                               raw_obj, raw_sph):
+                raise BadEntry("checksum mismatch")
+            ids = check_ids("triangle ids", raw_ids, upper)
+            obj = None if raw_obj is None else check_ids("object ids", raw_obj, None)
+            sph = None if raw_sph is None else check_ids("sphere ids", raw_sph, None)
+            seconds = float(z["seconds"])
+        except BadEntry:
+            raise
+        except Exception as exc:  # missing fields, wrong types
+            raise BadEntry(f"malformed ({type(exc).__name__})") from None
         return PVS(ids, granularity=granularity, object_ids=obj, sphere_ids=sph,
                    stats={"seconds": seconds, "disk": True})
 

@@ -34,6 +34,7 @@ from visibility.scene_cache import (
     Persist,
     build_in_background,
     in_progress,
+    load_npz,
     peek,
     per_scene,
     save_npz,
@@ -121,14 +122,14 @@ class Hierarchy:
         The leaf-ordered copy is rebuilt from the scene's arrays, not stored."""
         n_faces = len(faces)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                if str(z["format"]) != FORMAT or int(z["n_faces"]) != n_faces:
-                    return None
-                order = np.ascontiguousarray(z["order"], dtype=np.int32)
-                boxes = np.ascontiguousarray(z["boxes"], dtype=np.float64)
-                loose = np.ascontiguousarray(z["loose"], dtype=np.int32)
-                leaf = int(z["leaf_size"])
-        except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+            z = load_npz(path)
+            if str(z["format"]) != FORMAT or int(z["n_faces"]) != n_faces:
+                return None
+            order = np.ascontiguousarray(z["order"], dtype=np.int32)
+            boxes = np.ascontiguousarray(z["boxes"], dtype=np.float64)
+            loose = np.ascontiguousarray(z["loose"], dtype=np.int32)
+            leaf = int(z["leaf_size"])
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
             return None
         slots = len(boxes) // 2
         if (boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or slots & (slots - 1) or leaf < 1
