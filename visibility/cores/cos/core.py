@@ -30,8 +30,10 @@ from visibility.cores.cos.prims import (
     Prims,
     build_prims,
     distance_order,
+    face_reach,
     inside_box,
     prim_bounds,
+    run_boxes,
     solid_mask,
 )
 from visibility.cores.cos.resolve import (
@@ -206,7 +208,8 @@ class CosCore(Core):
     knob: ClassVar[str] = "resolution"
     knob_levels: ClassVar[tuple[int, ...]] = (64, 128, 256)
     # Busy tiles and the coarse pass: only clutter reaches them at the default thresholds.
-    warm_params: ClassVar[tuple[dict[str, Any], ...]] = ({"busy_items": 1, "coarse_items": 1},)
+    warm_params: ClassVar[tuple[dict[str, Any], ...]] = (
+        {"busy_items": 1, "coarse_items": 1, "leaf_list": 1},)
     native_segments: ClassVar[bool] = False
     # Orders of magnitude only: the measured times live in benchmarks/results/cos.md.
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
@@ -505,17 +508,19 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
     lies wholly behind it), or, for a side frustum, into its near box, which reaches
     ``-near_box[2]`` behind the plane (what stays further behind projects to rows below the
     view)."""
-    out: dict[tuple[int, int], np.ndarray] = {}
-    for face in {v.face for v in views}:
-        axis, sgn = face
+    faces = sorted({v.face for v in views})
+    axes = np.array([axis for axis, _ in faces], dtype=np.int64)
+    upper = np.array([sgn > 0 for _, sgn in faces], dtype=np.bool_)
+    thresholds = np.empty(len(faces))
+    for f, (axis, sgn) in enumerate(faces):
         margin = max(0.0 if v.kind == "front" else float(-v.near_box[2])
-                     for v in views if v.face == face)
-        # One column gathered per face: the whole (n, 2, 3) bounds reordered cost more.
-        if sgn > 0:
-            out[face] = bounds[order, 1, axis] >= float(half[axis]) - margin - plane_tol
-        else:
-            out[face] = bounds[order, 0, axis] <= -(float(half[axis]) - margin - plane_tol)
-    return out
+                     for v in views if v.face == (axis, sgn))
+        reach = float(half[axis]) - margin - plane_tol
+        thresholds[f] = reach if sgn > 0 else -reach
+    out = np.empty((len(faces), len(order)), dtype=np.bool_)
+    if len(order):
+        face_reach(bounds, order, axes, upper, thresholds, out)
+    return {face: out[f] for f, face in enumerate(faces)}
 
 
 def _view_positions(tree: Tree, keep: dict[tuple[int, int], np.ndarray], views: list[View],
@@ -573,17 +578,10 @@ def _leaf_boxes(prims: Prims) -> tuple[np.ndarray, np.ndarray]:
         return lf, np.zeros((0, 3))
     # The triangles come first, in ascending id order (``prims.build_prims``).
     run = prims.out_id[:m] // LEAF_SIZE
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(run)) + 1))
-    lf[:m] = np.repeat(np.arange(len(starts), dtype=np.int64), np.diff(np.append(starts, m)))
-    tri = prims.pts[:3 * m].reshape(m, 3, 3)
-    lo = np.minimum.reduceat(tri.min(axis=1), starts, axis=0)
-    hi = np.maximum.reduceat(tri.max(axis=1), starts, axis=0)
-    corners = np.empty((len(starts), 8, 3))
-    for c in range(8):
-        corners[:, c, 0] = hi[:, 0] if c & 1 else lo[:, 0]
-        corners[:, c, 1] = hi[:, 1] if c & 2 else lo[:, 1]
-        corners[:, c, 2] = hi[:, 2] if c & 4 else lo[:, 2]
-    return lf, corners.reshape(-1, 3)
+    starts = np.flatnonzero(np.concatenate(([True], run[1:] != run[:-1])))
+    corners = np.empty((8 * len(starts), 3))
+    run_boxes(prims.pts, starts, m, lf, corners)
+    return lf, corners
 
 
 class _Leaves:

@@ -362,3 +362,53 @@ def distance_order(prims: Prims, half: np.ndarray, bounds: np.ndarray | None = N
     """
     gap = box_gaps(prims, half, bounds)
     return np.argsort(gap, kind="stable").astype(np.int64), gap
+
+
+@njit(cache=True, nogil=True)
+def face_reach(bounds, order, axes, upper, thresholds, out):  # pragma: no cover - numba
+    """out[f, t]: whether primitive ``order[t]``'s box (``bounds`` (n, 2, 3), ``prim_bounds``)
+    reaches threshold f (at most 8) along axis ``axes[f]`` (F,): its maximum at or beyond
+    ``thresholds[f]`` where ``upper[f]``, its minimum at or before it otherwise. The boxes
+    are read in their own order into a byte of bits per primitive, which ``order`` then
+    gathers: gathering the boxes themselves in ``order`` (numpy's way, per face) missed the
+    cache at every primitive."""
+    bits = np.zeros(bounds.shape[0], dtype=np.uint8)
+    for p in range(bounds.shape[0]):
+        b = 0
+        for f in range(axes.shape[0]):
+            a = axes[f]
+            if (bounds[p, 1, a] >= thresholds[f]) if upper[f] else \
+                    (bounds[p, 0, a] <= thresholds[f]):
+                b |= 1 << f
+        bits[p] = b
+    for t in range(order.shape[0]):
+        b = bits[order[t]]
+        for f in range(axes.shape[0]):
+            out[f, t] = (b >> f) & 1 != 0
+
+
+@njit(cache=True, nogil=True)
+def run_boxes(pts, starts, m, leaf, corners):  # pragma: no cover - numba
+    """Per run L of triangles [starts[L], starts[L + 1]) (the last ends at ``m``; triangle i's
+    points are rows 3i..3i+2 of ``pts``): leaf[i] = L for its triangles, and the 8 corners
+    of its box (rows 8L..8L+7 of ``corners``; corner c takes the maximum of axis k where bit k
+    of c is set)."""
+    n_runs = starts.shape[0]
+    for r in range(n_runs):
+        a = starts[r]
+        b = starts[r + 1] if r + 1 < n_runs else m
+        lo0 = lo1 = lo2 = np.inf
+        hi0 = hi1 = hi2 = -np.inf
+        for i in range(a, b):
+            leaf[i] = r
+            for v in range(3 * i, 3 * i + 3):
+                lo0 = min(lo0, pts[v, 0])
+                hi0 = max(hi0, pts[v, 0])
+                lo1 = min(lo1, pts[v, 1])
+                hi1 = max(hi1, pts[v, 1])
+                lo2 = min(lo2, pts[v, 2])
+                hi2 = max(hi2, pts[v, 2])
+        for c in range(8):
+            corners[8 * r + c, 0] = hi0 if c & 1 else lo0
+            corners[8 * r + c, 1] = hi1 if c & 2 else lo1
+            corners[8 * r + c, 2] = hi2 if c & 4 else lo2

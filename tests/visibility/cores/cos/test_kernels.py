@@ -697,6 +697,64 @@ def test_face_subsets_drop_only_empty_footprints():
             assert not subsets[v.face].all()
 
 
+def test_face_subsets_are_each_planes_reach():
+    # Against numpy, per side plane: a primitive's box reaching the plane, less the margin
+    # of its side frusta's near boxes and the plane tolerance (the kernel takes all six
+    # planes in one pass).
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.core import _face_subsets
+    from visibility.cores.cos.prims import build_prims, distance_order, prim_bounds
+    from visibility.generators import make_scene
+
+    city = make_scene("city", triangles=3000)
+    box = cell_around(city, 1.0, 0)
+    centre, half = box.mean(axis=0), 0.5 * (box[1] - box[0])
+    prims = build_prims(city, centre, weld_vertices(city.vertices))
+    order, _ = distance_order(prims, half)
+    bounds = prim_bounds(prims)
+    views = side_plane_views(box, 32)
+    subsets = _face_subsets(bounds, order, half, views, prims.plane_tol)
+    assert sorted(subsets) == sorted({v.face for v in views})
+    for (axis, sgn), got in subsets.items():
+        margin = max(-v.near_box[2] if v.kind == "side" else 0.0 for v in views
+                     if v.face == (axis, sgn))
+        reach = half[axis] - margin - prims.plane_tol
+        want = (bounds[order, 1, axis] >= reach if sgn > 0
+                else bounds[order, 0, axis] <= -reach)
+        np.testing.assert_array_equal(got, want)
+        assert 0 < got.sum() < len(order)
+
+
+def test_leaf_boxes_are_each_runs_box():
+    # Against numpy: the cell's triangles in runs of LEAF_SIZE consecutive ids (a run broken
+    # where ids are missing: back faces left out), each leaf's box the corners of its
+    # triangles' points; hulls (spheres) in no leaf.
+    from tests.visibility.cores.cos.reference import cell_around
+    from visibility.cores.cos.core import LEAF_SIZE, _leaf_boxes
+    from visibility.cores.cos.prims import TRIANGLE, build_prims
+    from visibility.generators import make_scene
+
+    scene = make_scene("spheres", triangles=2000)
+    box = cell_around(scene, 1.0, 0)
+    unseen = np.zeros(scene.n_triangles, dtype=bool)
+    unseen[np.random.default_rng(1).choice(scene.n_triangles, 300, replace=False)] = True
+    prims = build_prims(scene, box.mean(axis=0), weld_vertices(scene.vertices), unseen)
+    leaf, corners = _leaf_boxes(prims)
+    tri = np.flatnonzero(prims.kind == TRIANGLE)
+    assert len(tri) < len(prims) and (leaf[len(tri):] == -1).all()
+    run = prims.out_id[tri] // LEAF_SIZE
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(run)) + 1))
+    np.testing.assert_array_equal(leaf[tri], np.cumsum(np.isin(tri, starts)) - 1)
+    assert len(corners) == 8 * len(starts)
+    pts = prims.pts[:3 * len(tri)].reshape(-1, 3, 3)
+    for r, a in enumerate(starts):
+        b = starts[r + 1] if r + 1 < len(starts) else len(tri)
+        lo, hi = pts[a:b].reshape(-1, 3).min(axis=0), pts[a:b].reshape(-1, 3).max(axis=0)
+        for c in range(8):
+            want = [hi[k] if c >> k & 1 else lo[k] for k in range(3)]
+            np.testing.assert_array_equal(corners[8 * r + c], want)
+
+
 @numba.njit(cache=True)
 def _ray_hits(tri: np.ndarray, orig: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Rows of ``tri`` (k, 3, 3) that any ray (orig (r, 3), dirs (r, 3)) meets at t >= 0
