@@ -509,6 +509,7 @@ def _face_subsets(bounds: np.ndarray, order: np.ndarray, half: np.ndarray, views
     ``-near_box[2]`` behind the plane (what stays further behind projects to rows below the
     view)."""
     faces = sorted({v.face for v in views})
+    assert len(faces) <= 8, "face_reach keeps a byte of bits per primitive"
     axes = np.array([axis for axis, _ in faces], dtype=np.int64)
     upper = np.array([sgn > 0 for _, sgn in faces], dtype=np.bool_)
     thresholds = np.empty(len(faces))
