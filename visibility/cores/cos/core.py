@@ -474,8 +474,11 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         # Pixel boxes by position; each view writes (and reads) only the rows it projects.
         rng = np.empty((len(order), 4), dtype=np.int32)
         positions = None if tree is None else _view_positions(tree, sel, views, plane_tol, stats)
-        counts = [int(np.count_nonzero(sel[v.face])) if positions is None else len(positions[k])
-                  for k, v in enumerate(views)]
+        if positions is None:
+            per_face = {face: int(np.count_nonzero(s)) for face, s in sel.items()}
+            counts = [per_face[v.face] for v in views]
+        else:
+            counts = [len(p) for p in positions]
         worst = -1.0
         for k in view_order(counts):
             view = views[k]
