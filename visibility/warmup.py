@@ -29,8 +29,8 @@ log = logging.getLogger(__name__)
 #: cores by name, ``ground_truth`` (the sampled reference), ``rays`` (the float64 caster) and
 #: ``topology`` (closed parts, self-crossing ones included: no small scene below has one).
 GROUPS: tuple[tuple[str, ...], ...] = (
-    ("cos", "dual_ray", "rays"),
-    ("from_segment", "trim_regions", "sampling", "ground_truth", "topology"),
+    ("cos", "dual_ray", "rays", "topology"),
+    ("from_segment", "trim_regions", "sampling", "ground_truth"),
 )
 
 

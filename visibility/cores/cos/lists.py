@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from visibility.borrow import borrow, keep_alive
+from visibility.cores.cos.groups import PrimArrays, Screen, TileLists
 from visibility.cores.cos.space import (
     load_prim,
     overlaps_share,
@@ -32,6 +33,7 @@ from visibility.cores.cos.space import (
     tri_normal,
     triangle_holds,
 )
+from visibility.shares import run_shares, take_next
 
 #: Screen tile side in pixels.
 TILE = 8
@@ -242,9 +244,9 @@ def bin_tiles(rng, sel, tiles_x, tiles_y):  # pragma: no cover - numba
     return counts, items, bound
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, lists,
-               cut):  # pragma: no cover - numba
+def fill_lists(prims: PrimArrays, screen: Screen, order: np.ndarray, rng: np.ndarray,
+               tile_off: np.ndarray, tile_items: np.ndarray, drop: np.ndarray, slot: np.ndarray,
+               lists: TileLists, cut: np.ndarray) -> None:
     """The lists of tiles [tile0, tile1), in one pass: tile ``tile``'s go to ``entries`` from
     ``slot[tile - tile0]`` on (slot: prefix sums of the tiles' ``bin_tiles`` bounds), pixel by
     pixel, each in the order of ``order``, an entry naming its item by its place k -
@@ -266,12 +268,26 @@ def fill_lists(prims, screen, order, rng, tile_off, tile_items, drop, slot, list
     Items come front to back, so the cut only drops entries after the triangle that set it.
     ``cut[tile - tile0]`` gets the entries so dropped."""
     n_tiles = lists.tile1 - lists.tile0
-    # One tile per call of a function of its own: numba's parallel passes analyse everything
-    # in a prange body, and compiling them over this one took seconds more (the index is
-    # cast: the loop's own is unsigned, and the body would be compiled for it again).
-    for it in prange(n_tiles):
-        _fill_tile(np.int64(it), prims, screen, order, rng, tile_off, tile_items, drop, slot,
-                   lists, cut)
+    # One tile at a time to each of ``lists.shares`` threads, each taking the next as it
+    # finishes one (tiles differ in work by orders of magnitude). Threads, not a prange loop:
+    # compiled into a parallel loop, the tile's kernel was compiled twice
+    # (``visibility.shares``).
+    nxt = np.zeros(1, dtype=np.int64)
+    run_shares(_fill_share, max(1, min(lists.shares, n_tiles)), prims, screen, order, rng,
+               tile_off, tile_items, drop, slot, lists, cut, nxt)
+
+
+@njit(cache=True, nogil=True)
+def _fill_share(prims, screen, order, rng, tile_off, tile_items, drop, slot, lists, cut, nxt,
+                share, k):  # pragma: no cover - numba
+    """Share ``share`` of ``fill_lists``'s ``k`` (its arguments): the next tile of ``nxt``
+    (shared by the shares) until none is left."""
+    n_tiles = lists.tile1 - lists.tile0
+    while True:
+        it = take_next(nxt)
+        if it >= n_tiles:
+            break
+        _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, lists, cut)
 
 
 @njit(cache=True, nogil=True)

@@ -100,11 +100,18 @@ number of groups or with a group's triangle count in the common cases.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cancel import flag_set
-from visibility.cores.cos.groups import EdgePool, ShareScratch
+from visibility.cores.cos.groups import (
+    EdgePool,
+    Marks,
+    PrimArrays,
+    Screen,
+    ShareScratch,
+    TileLists,
+)
 from visibility.cores.cos.lists import region_at
 from visibility.cores.cos.space import (
     MAX_POLY,
@@ -123,6 +130,7 @@ from visibility.cores.cos.space import (
 )
 from visibility.cycles import cycles
 from visibility.planar import convex_hull
+from visibility.shares import run_shares
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1390,8 +1398,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         work=np.zeros(6, dtype=np.int64))
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
+def resolve_tiles(prims: PrimArrays, lists: TileLists, screen: Screen, marks: Marks) -> None:
     """Run Alg. 1 on every pixel of tiles [tile0, tile1): set ``vis[p] = 1`` for each primitive
     p found visible. Only triangles with ``solid[p]`` become occluders (``prims.solid_mask``:
     the ones a client's near plane cannot cut). ``entries`` holds the lists of those tiles
@@ -1420,13 +1427,9 @@ def resolve_tiles(prims, lists, screen, marks):  # pragma: no cover - numba
     The arrays come in named groups (``groups``): ``prims`` (``PrimArrays``), ``lists``
     (``TileLists``), ``screen`` (``Screen``) and ``marks`` (``Marks``)."""
     n_t = lists.tile1 - lists.tile0
-    k_sh = max(1, min(lists.shares, n_t))
-    # The loop's body is a function of its own: numba's parallel passes analyse everything
-    # in a prange body, and with the whole resolution in it this kernel took minutes to
-    # compile. (The index is cast: the parallel loop's own is unsigned, and the body would be
-    # compiled a second time for it.)
-    for share in prange(k_sh):
-        _resolve_share(prims, lists, screen, marks, np.int64(share), k_sh)
+    # Threads, not a prange loop: compiled into a parallel loop, the share's kernel was
+    # compiled twice (``visibility.shares``).
+    run_shares(_resolve_share, max(1, min(lists.shares, n_t)), prims, lists, screen, marks)
 
 
 @njit(cache=True, nogil=True)

@@ -39,8 +39,12 @@ centre are not.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import njit, prange
+
+from visibility.cores.dual_ray.groups import PieceGrid, Pieces
+from visibility.shares import run_shares, take_next
 
 #: Side of the first, coarse raster of the hierarchical test.
 COARSE = 16
@@ -488,28 +492,44 @@ def node_visible(alo, ahi, blo, bhi, pieces, grid, resolution, coarse_side, mark
     return (1 if vis else 0), segs.shape[0], refined
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def nodes_visible(alo, ahi, blo, bhi, pieces, grid, resolution,
-                  coarse_side):  # pragma: no cover - numba
+def nodes_visible(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
+                  pieces: Pieces, grid: PieceGrid, resolution: int,
+                  coarse_side: int) -> np.ndarray:
     """``node_visible`` for every box of ``blo, bhi`` (n, 3) against A, in parallel.
 
     Returns (n, 3) int64: how it was decided (0: hidden, 1-3: visible, ``node_visible``),
     occluding segments, coarse pixels refined."""
     n = blo.shape[0]
     out = np.zeros((n, 3), dtype=np.int64)
-    # Runs of boxes, one ``mark`` array each (``_gather_marked``), many more runs than threads
-    # so uneven boxes even out.
+    # Runs of boxes, many more than threads so uneven boxes even out, each thread taking the
+    # next run as it finishes one. Threads, not a prange loop: compiled into a parallel loop,
+    # ``node_visible`` was compiled twice (``visibility.shares``).
     runs = min(n, 64)
-    k = pieces.seg.shape[0]
-    for t in prange(runs):
-        mark = np.full(k, -1, dtype=np.int64)
+    nxt = np.zeros(1, dtype=np.int64)
+    run_shares(_nodes_share, max(1, min(numba.get_num_threads(), runs)), alo, ahi, blo, bhi,
+               pieces, grid, np.int64(resolution), np.int64(coarse_side), out, runs, nxt)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _nodes_share(alo, ahi, blo, bhi, pieces, grid, resolution, coarse_side, out, runs, nxt,
+                 share, k):  # pragma: no cover - numba
+    """Share ``share`` of ``nodes_visible``'s ``k`` (its arguments): the next run of boxes of
+    ``nxt`` (shared by the shares) until none is left."""
+    n = blo.shape[0]
+    # One ``mark`` array (``_gather_marked``) for all the share's boxes: it stamps each with
+    # the box's index.
+    mark = np.full(pieces.seg.shape[0], -1, dtype=np.int64)
+    while True:
+        t = take_next(nxt)
+        if t >= runs:
+            break
         for i in range(t * n // runs, (t + 1) * n // runs):
             v, s, r = node_visible(alo, ahi, blo[i], bhi[i], pieces, grid, resolution,
                                    coarse_side, mark, i)
             out[i, 0] = v
             out[i, 1] = s
             out[i, 2] = r
-    return out
 
 
 @njit(cache=True, nogil=True)

@@ -6,9 +6,7 @@ tile (``_raster``), the tiles resolved in parallel with occlusion culling (``_re
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange, types
-from numba.core import cgutils
-from numba.extending import intrinsic
+from numba import njit
 
 from visibility.borrow import NO_REFCOUNT, borrow, keep_alive
 from visibility.cores.from_segment.boxes import (
@@ -27,13 +25,23 @@ from visibility.cores.from_segment.envelope import (
     hides_over,
     pixel_bound,
 )
-from visibility.cores.from_segment.groups import ChunkScratch, PieceScratch, TilePixels
+from visibility.cores.from_segment.groups import (
+    ChunkScratch,
+    GeometryArrays,
+    PieceScratch,
+    PrimRows,
+    Results,
+    Sweep,
+    TilePixels,
+    TileWork,
+)
 from visibility.cores.from_segment.hull import HMAX, Hulls, hull_rows, store_hull
 from visibility.cores.from_segment.spheres import sphere_cover, sphere_setup
 from visibility.cores.from_segment.static import static_cover, static_setup
 from visibility.cycles import cycles as _cycles
 from visibility.exact_grid import ray_triangle
 from visibility.raster.face_pixels import pixel_range
+from visibility.shares import run_shares, take_next
 
 #: A tile whose entries not yet marked visible are at most one in KNOWN_SHARE resolves only
 #: the pixels those can reach (finding the pixels costs a pass over their spans).
@@ -61,7 +69,6 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 #: Helpers called per primitive, tile or row that allocate nothing: no reference counting.
 _JIT_NO_NRT = dict(_JIT, **NO_REFCOUNT)
 _JIT_INLINE_HELPER = dict(_JIT, inline="always")
-_PJIT = dict(cache=True, nogil=True, parallel=True, error_model="numpy")
 
 #: Columns of ``_resolve``'s counters (one row per chunk), summed into the segment's stats under
 #: these names except ``max_cap`` (a maximum) and ``thread`` (the worker, one per thread, that ran
@@ -99,19 +106,6 @@ COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces"
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
  C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_CYCLES_COVER,
  C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND) = range(len(COUNTERS))
-
-
-@intrinsic
-def _take_next(typingctx, counter):
-    """Atomically add 1 to ``counter[0]`` (int64 array) and return its previous value: threads
-    hand themselves work items one at a time."""
-    def codegen(context, builder, signature, args):
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
-                                       [context.get_constant(types.intp, 0)])
-        return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1), "monotonic")
-    return types.int64(counter), codegen
 
 
 # ------------------------------------------------------------------------------ samples
@@ -639,8 +633,8 @@ def _grown(env, eid, T, tid, cnt, npx, work):
     return env2, eid2, T2, tid2, True
 
 
-@njit(**_PJIT)
-def _resolve(job, prims, geom, sweep, out):  # pragma: no cover - numba
+def _resolve(job: TileWork, prims: PrimRows, geom: GeometryArrays, sweep: Sweep,
+             out: Results) -> None:
     """Envelopes of the tiles of ``job`` (``groups.TileWork``) over the rows ``prims``
     (``groups.PrimRows``) of the geometry ``geom`` (``groups.GeometryArrays``) seen by the cube
     moving along ``sweep`` (``groups.Sweep``); marks visible primitives in ``out``
@@ -651,17 +645,26 @@ def _resolve(job, prims, geom, sweep, out):  # pragma: no cover - numba
     6), the others over their whole box.
 
     ``n_workers`` (the thread count) workers each take the next chunk as they finish one
-    (``_take_next``): tiles differ in work by orders of magnitude, and prange's static split of
-    the chunks left one thread 24-34 % busier than the mean on the city1m cells. A chunk's tiles
-    are fixed, so the result does not depend on which thread runs it."""
+    (``take_next``): tiles differ in work by orders of magnitude, and a static split of the
+    chunks left one thread 24-34 % busier than the mean on the city1m cells. A chunk's tiles
+    are fixed, so the result does not depend on which thread runs it. The workers are
+    threads, not a prange loop: compiled into a parallel loop, the chunk's kernel was compiled
+    twice (``visibility.shares``)."""
     nxt = np.zeros(1, dtype=np.int64)
-    for w in prange(min(job.n_chunks, job.n_workers)):
-        while True:
-            ch = _take_next(nxt)
-            if ch >= job.n_chunks:
-                break
-            # The loop's index is unsigned: cast, or the chunk is compiled twice.
-            _resolve_chunk(ch, np.int64(w), job, prims, geom, sweep, out)
+    run_shares(_resolve_worker, max(1, min(job.n_chunks, job.n_workers)), job, prims, geom,
+               sweep, out, nxt)
+
+
+@njit(**_JIT)
+def _resolve_worker(job, prims, geom, sweep, out, nxt, worker,
+                    n_workers):  # pragma: no cover - numba
+    """Worker ``worker`` of ``_resolve``'s ``n_workers``: the next chunk (``nxt``, shared by
+    the workers) until none is left."""
+    while True:
+        ch = take_next(nxt)
+        if ch >= job.n_chunks:
+            break
+        _resolve_chunk(ch, worker, job, prims, geom, sweep, out)
 
 
 @njit(**_JIT)

@@ -1,38 +1,18 @@
-"""Tile resolution: chunks handed to threads one at a time, each exactly once, and the work
-counters the core reports."""
+"""Tile resolution: the work counters the core reports (chunks handed to threads one at a time:
+``tests/visibility/test_shares.py``)."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import njit, prange
 
 from tests.grouping import module_on_one_worker
 from visibility.cores.from_segment.geometry import scene_geometries
-from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box, _take_next
+from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.scene import Scene
 
 pytestmark = module_on_one_worker("from_segment_raster")  # kernels of its own (tests/grouping.py)
-
-
-@njit(parallel=True, cache=False)
-def _take_all(n, workers, nxt, out):  # pragma: no cover - numba
-    for _w in prange(workers):
-        while True:
-            k = _take_next(nxt)
-            if k >= n:
-                break
-            out[k] += 1
-
-
-def test_take_next_hands_out_each_item_once():
-    out = np.zeros(5000, dtype=np.int64)
-    nxt = np.zeros(1, dtype=np.int64)
-    _take_all(len(out), 4, nxt, out)
-    assert np.all(out == 1)
-    # Each worker stops after one look past the end.
-    assert nxt[0] == len(out) + 4
 
 
 def _quads(depths):
