@@ -56,10 +56,12 @@ def _queue() -> queue.SimpleQueue:
 
 def run_shares(kernel: Callable[..., Any], shares: int, *args: Any) -> None:
     """Call ``kernel(*args, share, shares)`` for every share in [0, shares): share 0 on the
-    calling thread, the others on the process's share threads, all at once when ``kernel``
-    releases the GIL (numba ``nogil=True``). Returns once every share has; an exception of any
-    share is raised after all have returned (they write the same arrays). Never call it from
-    a share: its shares would wait for threads its caller holds."""
+    calling thread, the others on the process's share threads, at once when ``kernel``
+    releases the GIL (numba ``nogil=True``) and a share thread is free (a share beyond them
+    waits for one: slower, never stuck, since no share waits on another). Returns once every
+    share has; an exception of any share is raised after all have returned (they write the
+    same arrays). Never call it from a share: its shares would wait for threads its caller
+    holds."""
     done: queue.SimpleQueue = queue.SimpleQueue()
     if shares > 1:
         jobs = _queue()
