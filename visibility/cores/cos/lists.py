@@ -379,6 +379,18 @@ def _fill_tile(it, prims, screen, order, rng, tile_off, tile_items, drop, slot, 
         i1 = (min(rng[t, 1], ty * TILE + TILE - 1) - ty * TILE) // bs
         j0 = (max(rng[t, 2], tx * TILE) - tx * TILE) // bs
         j1 = (min(rng[t, 3], tx * TILE + TILE - 1) - tx * TILE) // bs
+        # Cut at every sample it meets (behind what holds each): the item costs no more.
+        alive = False
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                if not gap[p] > zgap[i * TILE + j]:
+                    alive = True
+                    break
+            if alive:
+                break
+        if not alive:
+            ncut += (i1 - i0 + 1) * (j1 - j0 + 1)
+            continue
         n = npts[p]
         load_prim(pts, start[p], n, origin, perm, sign, cam)
         tri = kind[p] == 0
