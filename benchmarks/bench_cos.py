@@ -128,6 +128,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
                                      "cycles_resolve")},
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "block_tiles": st.get("block_tiles", 0), "subpixels": st.get("subpixels", 0),
+           "block_cycles": st.get("block_cycles", 0), "block_tested": st.get("block_tested", 0),
            "sub_hidden": st.get("refined", 0),
            "leaf_tests": st.get("leaf_tests", 0), "leaf_hidden": st.get("leaf_hidden", 0),
            "leaf_skipped": st.get("leaf_skipped", 0),
@@ -326,7 +327,8 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                    else "no tile took the coarse pass, ")
                 + (f"{r['block_tiles']:,} busy screen tiles sampled per {_block(r)} pixels "
                    f"({r['subpixels']:,} sub-samples resolved where a sample saw an entry, "
-                   f"{r['sub_hidden']:,} entries hidden there), " if r.get("block_tiles")
+                   f"{r['sub_hidden']:,} entries hidden there; {_block_share(r)}), "
+                   if r.get("block_tiles")
                    else "")
                 + (f"{r['leaf_tests']:,} leaf boxes tested after a primitive of theirs was "
                    f"hidden, {r['leaf_hidden']:,} found hidden, sparing "
@@ -388,6 +390,18 @@ def _block(r: dict[str, Any]) -> str:
     """The busy tiles' sample size of a row: its own ``busy_block`` or the default."""
     b = r.get("params", {}).get("busy_block", BUSY_BLOCK)
     return f"{b} x {b}"
+
+
+def _block_share(r: dict[str, Any]) -> str:
+    """What the busy tiles' samples cost: their share of the resolution's CPU cycles and of
+    its tested entries, and the cycles per entry tested there and elsewhere."""
+    cyc = r["cycles"]["resolve"]
+    bc, bt = r.get("block_cycles", 0), r.get("block_tested", 0)
+    rest_c, rest_t = cyc - bc, r["tested"] - bt
+    return (f"{100 * bc / max(1, cyc):.0f} % of the resolution's cycles and "
+            f"{100 * bt / max(1, r['tested']):.0f} % of its tested entries, "
+            f"{bc / max(1, bt):,.0f} cycles per entry tested there against "
+            f"{rest_c / max(1, rest_t):,.0f} in the other tiles")
 
 
 def _coarse_work(r: dict[str, Any]) -> str:

@@ -391,7 +391,9 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         per-pixel lists), ``coarse_tested``, ``coarse_silhouette_edges``,
         ``coarse_plane_tests`` and ``coarse_cycles_*`` (its work, counted as the pixels'
         ``tested``, ``silhouette_edges``, ``plane_tests`` and ``cycles_*`` are),
-        ``block_tiles`` (tiles sampled per ``busy_block`` pixels), ``leaf_seconds`` (the
+        ``block_tiles`` (tiles sampled per ``busy_block`` pixels) and ``block_cycles``,
+        ``block_tested`` (the resolution's CPU cycles and entries tested in them: where
+        clutter's time goes), ``leaf_seconds`` (the
         leaf boxes, part of the set-up), ``leaf_tests``, ``leaf_hidden`` and
         ``leaf_skipped`` (leaf boxes tested, found hidden, and the list entries that skipped
         a pixel for it: ``leaf_list``) and
@@ -460,7 +462,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "coarse_tested": 0, "coarse_silhouette_edges": 0, "coarse_plane_tests": 0,
         "coarse_cycles_test": 0, "coarse_cycles_insert": 0, "coarse_cycles_coverall": 0,
         "coarse_cycles_resolve": 0,
-        "block_tiles": 0,
+        "block_tiles": 0, "block_cycles": 0, "block_tested": 0,
         "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
         "near_plane": DEFAULT_NEAR, "near_clearance": NEAR_CLEARANCE,
@@ -810,6 +812,9 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
         stats["resolve_seconds"] += time.perf_counter() - tb
         t = t1
     _add_work(stats, counters)
+    sampled = block > 1
+    stats["block_cycles"] += int(counters[sampled, 9].sum())
+    stats["block_tested"] += int(counters[sampled, 0].sum())
     for name, col in (("occluded", 1), ("occluder_triangles", 2), ("early_z_cut", 3),
                       ("fused", 10), ("refined", 11), ("subpixels", 12),
                       ("leaf_skipped", 13), ("leaf_tests", 14), ("leaf_hidden", 15)):

@@ -135,6 +135,10 @@ def test_cos_busy_tiles_miss_nothing(name, busy_block, coarse, monkeypatch):
                                         busy_block=busy_block))
     st = pvs.stats
     assert (st["block_tiles"] > 0) == (busy_block > 1)
+    # Every tile busy: the sampled tiles' share of the work is all of it, or none unsampled.
+    assert st["block_tested"] == (st["tested"] if busy_block > 1 else 0)
+    assert (st["block_cycles"] > 0) == (busy_block > 1)
+    assert st["block_cycles"] <= st["cycles_resolve"]
     assert (st["coarse_tiles"] > 0) == coarse
     # The coarse pass's work counted apart from the pixels' (what it tests is among what it
     # lists).
