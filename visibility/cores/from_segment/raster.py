@@ -94,18 +94,20 @@ _JIT_INLINE_HELPER = dict(_JIT, inline="always")
 #: primitives holding no sample that the footprint rule marked (``_footprint_seen``; two
 #: tiles may both mark one); pixels_passed: pixels of a primitive's rows passed by without a
 #: cover test, its nearest depth beyond their bound; footprint_candidates: triangles the rule
-#: tested (per tile).
+#: tested (per tile); cycles_footprint: the CPU cycles of the rule's tests (its rays, part of
+#: cycles_tile).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
             "bound_scans", "tiles_known", "pixels_known", "items_behind_new", "cycles_cover",
-            "cycles_insert", "footprint_seen", "pixels_passed", "footprint_candidates")
+            "cycles_insert", "footprint_seen", "pixels_passed", "footprint_candidates",
+            "cycles_footprint")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
  C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_CYCLES_COVER,
- C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND) = range(len(COUNTERS))
+ C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND, C_CYCLES_FOOTPRINT) = range(len(COUNTERS))
 
 
 # ------------------------------------------------------------------------------ samples
@@ -286,26 +288,59 @@ def _tri_hit(P, U, t, x, y, near, wt, tq):  # pragma: no cover - numba
 
 
 @njit(**_JIT_INLINE_HELPER)
+def _slab(o, d, lo, hi, s0, s1):  # pragma: no cover - numba
+    """[s0, s1] narrowed to the ray parameters at which o + s d lies in the slab [lo, hi] of
+    one axis; ``ok`` False once the interval is empty beyond a relative slack (a box flat on
+    one axis has its two slabs at one depth, and a miss here would let a hidden triangle
+    through)."""
+    if d == 0.0:
+        return s0, s1, lo <= o <= hi
+    u = (lo - o) / d
+    v = (hi - o) / d
+    if u > v:
+        u, v = v, u
+    s0 = max(s0, u)
+    s1 = min(s1, v)
+    return s0, s1, not s0 > s1 + 1e-9 * (abs(s0) + abs(s1)) + 1e-300
+
+
+@njit(**_JIT_INLINE_HELPER)
 def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no cover - numba
     """Whether the ray o + s d, s in [near, wt), may meet box c of ``lo``, ``hi`` (k, 3)
-    (slabs, with a relative slack: a box flat on one axis, a cluster of one wall, has its
-    two slabs at one depth, and a miss here would let a hidden triangle through)."""
+    (``_slab`` per axis)."""
     s0 = near
     s1 = wt
     for a in range(3):
         o = ox if a == 0 else (oy if a == 1 else oz)
         d = dx if a == 0 else (dy if a == 1 else dz)
-        if d == 0.0:
-            if o < lo[c, a] or o > hi[c, a]:
-                return False
-            continue
-        u = (lo[c, a] - o) / d
-        v = (hi[c, a] - o) / d
-        if u > v:
-            u, v = v, u
-        s0 = max(s0, u)
-        s1 = min(s1, v)
-        if s0 > s1 + 1e-9 * (abs(s0) + abs(s1)) + 1e-300:
+        s0, s1, ok = _slab(o, d, lo[c, a], hi[c, a], s0, s1)
+        if not ok:
+            return False
+    return True
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, verts0, verts1, faces, tri, near,
+                       wt):  # pragma: no cover - numba
+    """Whether the ray o + s d, s in [near, wt), may meet the box of triangle ``tri`` over
+    both of its positions (``_slab`` per axis): a point of the triangle at any time lies in
+    it, so a ray that misses it misses the triangle, and the exact test (``_tri_hit``, a
+    rotation and a ray-triangle test) is spared. A ray meets few of the triangles whose
+    cluster's box it meets."""
+    a0 = faces[tri, 0]
+    a1 = faces[tri, 1]
+    a2 = faces[tri, 2]
+    s0 = near
+    s1 = wt
+    for a in range(3):
+        lo = min(min(verts0[a0, a], verts0[a1, a]), min(verts0[a2, a], verts1[a0, a]))
+        lo = min(lo, min(verts1[a1, a], verts1[a2, a]))
+        hi = max(max(verts0[a0, a], verts0[a1, a]), max(verts0[a2, a], verts1[a0, a]))
+        hi = max(hi, max(verts1[a1, a], verts1[a2, a]))
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        d = dx if a == 0 else (dy if a == 1 else dz)
+        s0, s1, ok = _slab(o, d, lo, hi, s0, s1)
+        if not ok:
             return False
     return True
 
@@ -382,7 +417,8 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                 continue
             for k in range(cl_start[src], cl_start[src + 1]):
                 tri = cl_tris[k]
-                if tri == pid:
+                if tri == pid or not _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, verts0,
+                                                        verts1, faces, tri, near, wt):
                     continue
                 _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)
                 if _tri_hit(P, U, t, x, y, near, wt, tq):
@@ -1075,6 +1111,7 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                                fp_corners):
                 visible[pid] = True
                 work[C_FOOTPRINT] += 1
+        work[C_CYCLES_FOOTPRINT] += _cycles() - ct0
         for p in range(npx):
             work[C_FINAL] += cnt[p]
             for k in range(cnt[p]):

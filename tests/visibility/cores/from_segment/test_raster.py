@@ -8,8 +8,15 @@ import numpy as np
 
 from tests.grouping import module_on_one_worker
 from visibility.cores.from_segment.geometry import scene_geometries
-from visibility.cores.from_segment.raster import COUNTERS, _ray_meets_box
+from visibility.cores.from_segment.raster import (
+    COUNTERS,
+    _cam_corners,
+    _ray_meets_box,
+    _ray_meets_tri_box,
+    _tri_hit,
+)
 from visibility.cores.from_segment.segment import segment_visible
+from visibility.raster.camera import random_rotation
 from visibility.scene import Scene
 
 pytestmark = module_on_one_worker("from_segment_raster")  # kernels of its own (tests/grouping.py)
@@ -87,3 +94,54 @@ def test_footprint_box_test_keeps_rays_that_meet_a_flat_box():
         assert _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 10.0)
         assert not _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 4.9)  # the wall lies beyond
     assert not _ray_meets_box(0.0, 1.0, 0.0, 0.5, 0.0, -1.0, lo, hi, 0, 0.05, 10.0)  # x 2.5
+
+
+def test_footprint_triangle_box_test_keeps_every_ray_that_meets_the_triangle():
+    """Inside a cluster the footprint rule's rays skip a triangle whose box (over both of its
+    positions) they miss before the exact test: wherever the exact test (``_tri_hit``, what
+    the rule's blocking decides by) finds a hit, the box test must pass, for flat,
+    axis-aligned and moving triangles, rays aimed at them at any time of the segment; and
+    it must spare the exact test for most rays that miss."""
+    rng = np.random.default_rng(1)
+    near, far = 0.05, 1e3
+    met = missed = rejected = 0
+    for k in range(300):
+        # Every third triangle lies in a plane of constant z (a box flat on one axis), every
+        # other one moves.
+        v0 = rng.uniform(-3, 3, (3, 3)) + np.array([0.0, 0.0, -8.0])
+        if k % 3 == 0:
+            v0[:, 2] = v0[0, 2]
+        v1 = v0 + (rng.uniform(-1, 1, (3, 3)) if k % 2 else 0.0)
+        faces = np.array([[0, 1, 2]])
+        R = random_rotation(rng)
+        eye0 = rng.uniform(-1, 1, 3)
+        dvec = rng.uniform(-2, 2, 3)
+        dc = R @ dvec
+        P, U, W, tq = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((1, 3, 3))
+        _cam_corners(R, v0, v1, faces, 0, eye0, dc, P, U, W)
+        for j in range(40):
+            t = rng.uniform(0, 1)
+            o = eye0 + t * dvec
+            if j % 2 == 0:
+                # At a random point of the triangle at time t.
+                a, b = rng.uniform(0, 1, 2)
+                if a + b > 1:
+                    a, b = 1 - a, 1 - b
+                vt = v0 + t * (v1 - v0)
+                target = vt[0] + a * (vt[1] - vt[0]) + b * (vt[2] - vt[0])
+            else:
+                target = o + rng.normal(size=3) * 5
+            c = R @ (target - o)
+            if not c[2] < -near:
+                continue
+            x, y = c[0] / -c[2], c[1] / -c[2]
+            d = R.T @ np.array([x, y, -1.0])
+            boxed = _ray_meets_tri_box(*o, *d, v0, v1, faces, 0, near, far)
+            if _tri_hit(P, U, t, x, y, near, far, tq):
+                met += 1
+                assert boxed, (k, j)
+            else:
+                missed += 1
+                rejected += not boxed
+    assert met > 1000
+    assert rejected > 0.5 * missed
