@@ -220,11 +220,13 @@ def _front_spans(P, U, res, ia, ib, ja, jb, r0, pad, span, uv, scratch, pts, ext
     _hull_spans(pts, k, m, ia, ib, ja, jb, r0, pad, span, ext)
 
 
-@njit(**_JIT_NO_NRT)
+@njit(**_JIT_INLINE_HELPER)
 def _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W):
     """Camera-space corners P of triangle t at t = 0 (relative to the eye), their velocities U
     relative to the moving eye, and the world corners W (for canonical edge order). One formula
-    for every caller, so shared edges stay bit-identical."""
+    for every caller, so shared edges stay bit-identical. Inlined: it runs once per triangle
+    and tile (a cluster's triangles in every tile its box reaches), and a call passes its
+    nine arrays by value."""
     for c in range(3):
         vi = faces[t, c]
         for r in range(3):
