@@ -290,15 +290,15 @@ def _tri_hit(P, U, t, x, y, near, wt, tq):  # pragma: no cover - numba
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _slab(o, d, lo, hi, s0, s1):  # pragma: no cover - numba
-    """[s0, s1] narrowed to the ray parameters at which o + s d lies in the slab [lo, hi] of
-    one axis; ``ok`` False once the interval is empty beyond a relative slack (a box flat on
-    one axis has its two slabs at one depth, and a miss here would let a hidden triangle
-    through)."""
+def _slab(o, d, inv, lo, hi, s0, s1):  # pragma: no cover - numba
+    """[s0, s1] narrowed to the ray parameters at which o + s d (``inv`` = 1 / d) lies in the
+    slab [lo, hi] of one axis; ``ok`` False once the interval is empty beyond a relative slack
+    (a box flat on one axis has its two slabs at one depth, and a miss here would let a
+    hidden triangle through; the reciprocal's rounding lies far inside it)."""
     if d == 0.0:
         return s0, s1, lo <= o <= hi
-    u = (lo - o) / d
-    v = (hi - o) / d
+    u = (lo - o) * inv
+    v = (hi - o) * inv
     if u > v:
         u, v = v, u
     s0 = max(s0, u)
@@ -315,33 +315,34 @@ def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no c
     for a in range(3):
         o = ox if a == 0 else (oy if a == 1 else oz)
         d = dx if a == 0 else (dy if a == 1 else dz)
-        s0, s1, ok = _slab(o, d, lo[c, a], hi[c, a], s0, s1)
+        s0, s1, ok = _slab(o, d, 1.0 / d if d != 0.0 else 0.0, lo[c, a], hi[c, a], s0, s1)
         if not ok:
             return False
     return True
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, verts0, verts1, faces, tri, near,
-                       wt):  # pragma: no cover - numba
-    """Whether the ray o + s d, s in [near, wt), may meet the box of triangle ``tri`` over
-    both of its positions (``_slab`` per axis): a point of the triangle at any time lies in
-    it, so a ray that misses it misses the triangle, and the exact test (``_tri_hit``, a
-    rotation and a ray-triangle test) is spared. A ray meets few of the triangles whose
-    cluster's box it meets."""
+def _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, ix, iy, iz, verts0, verts1, faces, tri, moves,
+                       near, wt):  # pragma: no cover - numba
+    """Whether the ray o + s d (i: d's reciprocals), s in [near, wt), may meet the box of
+    triangle ``tri`` over both of its positions (the first alone when it ``moves`` not at all;
+    ``_slab`` per axis): a point of the triangle at any time lies in it, so a ray that misses
+    it misses the triangle, and the exact test (``_tri_hit``, a rotation and a ray-triangle
+    test) is spared. A ray meets few of the triangles whose cluster's box it meets."""
     a0 = faces[tri, 0]
     a1 = faces[tri, 1]
     a2 = faces[tri, 2]
     s0 = near
     s1 = wt
     for a in range(3):
-        lo = min(min(verts0[a0, a], verts0[a1, a]), min(verts0[a2, a], verts1[a0, a]))
-        lo = min(lo, min(verts1[a1, a], verts1[a2, a]))
-        hi = max(max(verts0[a0, a], verts0[a1, a]), max(verts0[a2, a], verts1[a0, a]))
-        hi = max(hi, max(verts1[a1, a], verts1[a2, a]))
-        o = ox if a == 0 else (oy if a == 1 else oz)
-        d = dx if a == 0 else (dy if a == 1 else dz)
-        s0, s1, ok = _slab(o, d, lo, hi, s0, s1)
+        lo = min(verts0[a0, a], min(verts0[a1, a], verts0[a2, a]))
+        hi = max(verts0[a0, a], max(verts0[a1, a], verts0[a2, a]))
+        if moves:
+            lo = min(lo, min(verts1[a0, a], min(verts1[a1, a], verts1[a2, a])))
+            hi = max(hi, max(verts1[a0, a], max(verts1[a1, a], verts1[a2, a])))
+        s0, s1, ok = _slab(ox if a == 0 else (oy if a == 1 else oz),
+                           dx if a == 0 else (dy if a == 1 else dz),
+                           ix if a == 0 else (iy if a == 1 else iz), lo, hi, s0, s1)
         if not ok:
             return False
     return True
@@ -405,6 +406,10 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
     dx = R[0, 0] * x + R[1, 0] * y - R[2, 0]
     dy = R[0, 1] * x + R[1, 1] * y - R[2, 1]
     dz = R[0, 2] * x + R[1, 2] * y - R[2, 2]
+    # Reciprocals for the triangles' box tests (a zero component is tested apart there).
+    ix = 1.0 / dx if dx != 0.0 else 0.0
+    iy = 1.0 / dy if dy != 0.0 else 0.0
+    iz = 1.0 / dz if dz != 0.0 else 0.0
     for it in range(i0, i1):
         pr = tile_items[it]
         if prim_zkey[pr] >= wt:
@@ -419,8 +424,9 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
                 continue
             for k in range(cl_start[src], cl_start[src + 1]):
                 tri = cl_tris[k]
-                if tri == pid or not _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, verts0,
-                                                        verts1, faces, tri, near, wt):
+                if tri == pid or not _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, ix, iy, iz,
+                                                        verts0, verts1, faces, tri,
+                                                        moving[tri], near, wt):
                     continue
                 _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)
                 if _tri_hit(P, U, t, x, y, near, wt, tq):

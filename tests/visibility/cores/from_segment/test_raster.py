@@ -136,7 +136,8 @@ def test_footprint_triangle_box_test_keeps_every_ray_that_meets_the_triangle():
                 continue
             x, y = c[0] / -c[2], c[1] / -c[2]
             d = R.T @ np.array([x, y, -1.0])
-            boxed = _ray_meets_tri_box(*o, *d, v0, v1, faces, 0, near, far)
+            boxed = _ray_meets_tri_box(*o, *d, *(1.0 / d), v0, v1, faces, 0, bool(k % 2),
+                                       near, far)
             if _tri_hit(P, U, t, x, y, near, far, tq):
                 met += 1
                 assert boxed, (k, j)
