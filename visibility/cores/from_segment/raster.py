@@ -325,10 +325,11 @@ def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no c
 def _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, ix, iy, iz, verts0, verts1, faces, tri, moves,
                        near, wt):  # pragma: no cover - numba
     """Whether the ray o + s d (i: d's reciprocals), s in [near, wt), may meet the box of
-    triangle ``tri`` over both of its positions (the first alone when it ``moves`` not at all;
-    ``_slab`` per axis): a point of the triangle at any time lies in it, so a ray that misses
-    it misses the triangle, and the exact test (``_tri_hit``, a rotation and a ray-triangle
-    test) is spared. A ray meets few of the triangles whose cluster's box it meets."""
+    triangle ``tri`` over both of its positions (the first alone when ``moves`` is False: the
+    two are the same; ``_slab`` per axis): a point of the triangle at any time lies in it, so
+    a ray that misses it misses the triangle, and the exact test (``_tri_hit``, a rotation
+    and a ray-triangle test) is spared. A ray meets few of the triangles whose cluster's box
+    it meets."""
     a0 = faces[tri, 0]
     a1 = faces[tri, 1]
     a2 = faces[tri, 2]
