@@ -307,46 +307,61 @@ def _slab(o, d, inv, lo, hi, s0, s1):  # pragma: no cover - numba
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _ray_meets_box(ox, oy, oz, dx, dy, dz, lo, hi, c, near, wt):  # pragma: no cover - numba
-    """Whether the ray o + s d, s in [near, wt), may meet box c of ``lo``, ``hi`` (k, 3)
-    (``_slab`` per axis)."""
-    s0 = near
-    s1 = wt
-    for a in range(3):
-        o = ox if a == 0 else (oy if a == 1 else oz)
-        d = dx if a == 0 else (dy if a == 1 else dz)
-        s0, s1, ok = _slab(o, d, 1.0 / d if d != 0.0 else 0.0, lo[c, a], hi[c, a], s0, s1)
-        if not ok:
-            return False
-    return True
+def _world_ray(ox, oy, oz, dx, dy, dz):  # pragma: no cover - numba
+    """The ray o + s d as the box tests read it: (ox, oy, oz, dx, dy, dz) and d's reciprocals
+    (0 for a zero component, which ``_slab`` tests apart)."""
+    return (ox, oy, oz, dx, dy, dz, 1.0 / dx if dx != 0.0 else 0.0,
+            1.0 / dy if dy != 0.0 else 0.0, 1.0 / dz if dz != 0.0 else 0.0)
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, ix, iy, iz, verts0, verts1, faces, tri, moves,
-                       near, wt):  # pragma: no cover - numba
-    """Whether the ray o + s d (i: d's reciprocals), s in [near, wt), may meet the box of
-    triangle ``tri`` over both of its positions (the first alone when ``moves`` is False: the
-    two are the same; ``_slab`` per axis): a point of the triangle at any time lies in it, so
-    a ray that misses it misses the triangle, and the exact test (``_tri_hit``, a rotation
-    and a ray-triangle test) is spared. A ray meets few of the triangles whose cluster's box
-    it meets."""
+def _ray_meets_bounds(ray, lx, ly, lz, hx, hy, hz, near, wt):  # pragma: no cover - numba
+    """Whether the ray (``_world_ray``) may meet the box [lx, hx] x [ly, hy] x [lz, hz] at a
+    parameter s in [near, wt) (``_slab`` per axis)."""
+    ox, oy, oz, dx, dy, dz, ix, iy, iz = ray
+    s0, s1, ok = _slab(ox, dx, ix, lx, hx, near, wt)
+    if ok:
+        s0, s1, ok = _slab(oy, dy, iy, ly, hy, s0, s1)
+    if ok:
+        s0, s1, ok = _slab(oz, dz, iz, lz, hz, s0, s1)
+    return ok
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _ray_meets_box(ray, lo, hi, c, near, wt):  # pragma: no cover - numba
+    """Whether the ray (``_world_ray``), s in [near, wt), may meet box c of ``lo``, ``hi``
+    (k, 3)."""
+    return _ray_meets_bounds(ray, lo[c, 0], lo[c, 1], lo[c, 2], hi[c, 0], hi[c, 1], hi[c, 2],
+                             near, wt)
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _ray_meets_tri_box(ray, verts0, verts1, faces, tri, moves, near,
+                       wt):  # pragma: no cover - numba
+    """Whether the ray (``_world_ray``), s in [near, wt), may meet the box of triangle ``tri``
+    over both of its positions (the first alone when ``moves`` is False: the two are the
+    same): a point of the triangle at any time lies in it, so a ray that misses it misses the
+    triangle, and the exact test (``_tri_hit``, a rotation and a ray-triangle test) is
+    spared. A ray meets few of the triangles whose cluster's box it meets."""
     a0 = faces[tri, 0]
     a1 = faces[tri, 1]
     a2 = faces[tri, 2]
-    s0 = near
-    s1 = wt
-    for a in range(3):
-        lo = min(verts0[a0, a], min(verts0[a1, a], verts0[a2, a]))
-        hi = max(verts0[a0, a], max(verts0[a1, a], verts0[a2, a]))
-        if moves:
-            lo = min(lo, min(verts1[a0, a], min(verts1[a1, a], verts1[a2, a])))
-            hi = max(hi, max(verts1[a0, a], max(verts1[a1, a], verts1[a2, a])))
-        s0, s1, ok = _slab(ox if a == 0 else (oy if a == 1 else oz),
-                           dx if a == 0 else (dy if a == 1 else dz),
-                           ix if a == 0 else (iy if a == 1 else iz), lo, hi, s0, s1)
-        if not ok:
-            return False
-    return True
+    lx, hx = _tri_extent(verts0, verts1, a0, a1, a2, 0, moves)
+    ly, hy = _tri_extent(verts0, verts1, a0, a1, a2, 1, moves)
+    lz, hz = _tri_extent(verts0, verts1, a0, a1, a2, 2, moves)
+    return _ray_meets_bounds(ray, lx, ly, lz, hx, hy, hz, near, wt)
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _tri_extent(verts0, verts1, a0, a1, a2, a, moves):  # pragma: no cover - numba
+    """(min, max) along axis a of corners a0, a1, a2 in ``verts0`` and, if it ``moves``,
+    ``verts1``."""
+    lo = min(verts0[a0, a], min(verts0[a1, a], verts0[a2, a]))
+    hi = max(verts0[a0, a], max(verts0[a1, a], verts0[a2, a]))
+    if moves:
+        lo = min(lo, min(verts1[a0, a], min(verts1[a1, a], verts1[a2, a])))
+        hi = max(hi, max(verts1[a0, a], max(verts1[a1, a], verts1[a2, a])))
+    return lo, hi
 
 
 @njit(**_JIT_NO_NRT)
@@ -407,10 +422,7 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
     dx = R[0, 0] * x + R[1, 0] * y - R[2, 0]
     dy = R[0, 1] * x + R[1, 1] * y - R[2, 1]
     dz = R[0, 2] * x + R[1, 2] * y - R[2, 2]
-    # Reciprocals for the triangles' box tests (a zero component is tested apart there).
-    ix = 1.0 / dx if dx != 0.0 else 0.0
-    iy = 1.0 / dy if dy != 0.0 else 0.0
-    iz = 1.0 / dz if dz != 0.0 else 0.0
+    ray = _world_ray(ox, oy, oz, dx, dy, dz)
     for it in range(i0, i1):
         pr = tile_items[it]
         if prim_zkey[pr] >= wt:
@@ -421,12 +433,11 @@ def _ray_blocked(x, y, t, wt, pi, pj, pid, i0, i1, tile_items, rows, geom, frame
         src = np.int64(prim_src[pr])
         flag = prim_flag[pr]
         if flag & FLAG_CLUSTER:
-            if not _ray_meets_box(ox, oy, oz, dx, dy, dz, cl_lo, cl_hi, src, near, wt):
+            if not _ray_meets_box(ray, cl_lo, cl_hi, src, near, wt):
                 continue
             for k in range(cl_start[src], cl_start[src + 1]):
                 tri = cl_tris[k]
-                if tri == pid or not _ray_meets_tri_box(ox, oy, oz, dx, dy, dz, ix, iy, iz,
-                                                        verts0, verts1, faces, tri,
+                if tri == pid or not _ray_meets_tri_box(ray, verts0, verts1, faces, tri,
                                                         moving[tri], near, wt):
                     continue
                 _cam_corners(R, verts0, verts1, faces, tri, v0, dc, P, U, W)

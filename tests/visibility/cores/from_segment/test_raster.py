@@ -14,6 +14,7 @@ from visibility.cores.from_segment.raster import (
     _ray_meets_box,
     _ray_meets_tri_box,
     _tri_hit,
+    _world_ray,
 )
 from visibility.cores.from_segment.segment import segment_visible
 from visibility.raster.camera import random_rotation
@@ -91,9 +92,10 @@ def test_footprint_box_test_keeps_rays_that_meet_a_flat_box():
         o = rng.uniform(-3, 3, 3) * np.array([1, 1, 0]) + np.array([0, 1, 0])
         d = target - o
         d /= -d[2]  # depth per unit along -z, as the kernels' rays
-        assert _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 10.0)
-        assert not _ray_meets_box(*o, *d, lo, hi, 0, 0.05, 4.9)  # the wall lies beyond
-    assert not _ray_meets_box(0.0, 1.0, 0.0, 0.5, 0.0, -1.0, lo, hi, 0, 0.05, 10.0)  # x 2.5
+        assert _ray_meets_box(_world_ray(*o, *d), lo, hi, 0, 0.05, 10.0)
+        assert not _ray_meets_box(_world_ray(*o, *d), lo, hi, 0, 0.05, 4.9)  # lies beyond
+    beside = _world_ray(0.0, 1.0, 0.0, 0.5, 0.0, -1.0)  # at x 2.5 where the wall is met
+    assert not _ray_meets_box(beside, lo, hi, 0, 0.05, 10.0)
 
 
 def test_footprint_triangle_box_test_keeps_every_ray_that_meets_the_triangle():
@@ -136,7 +138,7 @@ def test_footprint_triangle_box_test_keeps_every_ray_that_meets_the_triangle():
                 continue
             x, y = c[0] / -c[2], c[1] / -c[2]
             d = R.T @ np.array([x, y, -1.0])
-            boxed = _ray_meets_tri_box(*o, *d, *(1.0 / d), v0, v1, faces, 0, bool(k % 2),
+            boxed = _ray_meets_tri_box(_world_ray(*o, *d), v0, v1, faces, 0, bool(k % 2),
                                        near, far)
             if _tri_hit(P, U, t, x, y, near, far, tq):
                 met += 1
