@@ -7,6 +7,7 @@ into tiles, ``raster`` the pixel samples and the tiles' rasterization and resolu
 
 from visibility.cores.from_segment.core import (
     ORIENTATIONS,
+    SUBPIXEL_CANDIDATES,
     WALKS,
     FromSegmentCore,
     FromSegmentParams,
@@ -17,5 +18,6 @@ from visibility.cores.from_segment.core import (
     view_segments,
 )
 
-__all__ = ["ORIENTATIONS", "WALKS", "FromSegmentCore", "FromSegmentParams", "cell_segments",
-           "cube_rotations", "eye_heights", "oblique_rotation", "view_segments"]
+__all__ = ["ORIENTATIONS", "SUBPIXEL_CANDIDATES", "WALKS", "FromSegmentCore",
+           "FromSegmentParams", "cell_segments", "cube_rotations", "eye_heights",
+           "oblique_rotation", "view_segments"]

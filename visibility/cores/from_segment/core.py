@@ -6,9 +6,11 @@ furniture; ``visibility.cell_walk``), or with ``walk="rectangle"`` the four side
 rectangle; at the box's mid height and, when the box has height, at its bottom and top (the
 eye-height range), each seen by a full cubemap (by default turned obliquely to the
 world axes; see ``FromSegmentParams``); ``runs - 1`` extra runs use randomly rotated cubemaps
-(the paper's jitter, deterministic for a seed). Dynamic scenes are solved per pair of
-consecutive states (vertices and sphere centres move linearly while the eye sweeps the
-segment) and united. Spheres are first-class primitives and come back in ``PVS.sphere_ids``.
+(the paper's jitter, deterministic for a seed), and ``subpixel_runs`` more follow where the
+first run shows the scene's answer to be made of triangles smaller than a pixel. Dynamic
+scenes are solved per pair of consecutive states (vertices and sphere centres move linearly
+while the eye sweeps the segment) and united. Spheres are first-class primitives and come
+back in ``PVS.sphere_ids``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,12 @@ ORIENTATIONS = ("axis", "oblique")
 WALKS = ("open", "rectangle")
 #: What a primitive that holds no pixel sample gets (``FromSegmentParams.small``).
 SMALLS = ("corners", "footprint", "samples")
+#: ``FromSegmentParams.subpixel_runs`` are taken when the first run's footprint rule tested
+#: more than this many triangles (per tile, ``footprint_candidates``) per triangle of its
+#: answer: sub-pixel triangles, most of them far away, crowd the tiles, and the pixel samples
+#: pass between some that a turned cube's samples meet. Set between the scenes that need a
+#: second run and those that do not (docs/cores/from_segment.md, "Sub-pixel runs").
+SUBPIXEL_CANDIDATES = 4.0
 
 
 def oblique_rotation() -> np.ndarray:
@@ -56,6 +64,10 @@ class FromSegmentParams(CoreParams):
     """Parameters of the from-segment core.
 
     runs : cubemap orientations per segment (the first, then ``runs - 1`` random rotations).
+    subpixel_runs : more random rotations after those ``runs``, taken only where the first
+        run's footprint rule tested more than ``SUBPIXEL_CANDIDATES`` triangles per triangle
+        it reports (a scene whose answer is mostly sub-pixel triangles: the paper's runs "for
+        datasets with small triangles"); 0 never. ``stats["runs"]`` says how many were run.
     first_orientation : "oblique" (default: a fixed rotation aligned with no world axis) or
         "axis" (the paper's axis-aligned cube). Long thin features parallel to the segment
         (ledges, kerbs, roof lines) project to bands that slide along themselves as the eye
@@ -102,6 +114,10 @@ class FromSegmentParams(CoreParams):
 
     runs: int = param(1, ge=1, le=256, help="cubemap orientations per segment (the first, "
                       "then runs - 1 random rotations: the paper's jitter)")
+    subpixel_runs: int = param(
+        1, ge=0, le=255,
+        help="more randomly turned cubes where the first run finds the answer made of "
+        "sub-pixel triangles (its footprint rule busy); 0 never")
     first_orientation: str = param(
         "oblique", choices=ORIENTATIONS,
         help="the first cube: oblique (aligned with no world axis) or axis (the paper's)")
@@ -237,6 +253,13 @@ def cube_rotations(runs: int, seed: int = 0, first: str = "axis") -> np.ndarray:
     return out
 
 
+def subpixel_ratio(stats: dict[str, Any], visible: np.ndarray) -> float:
+    """Triangles the footprint rule tested (``stats["footprint_candidates"]``, once per tile
+    each) per primitive marked in ``visible`` (n_ids,) bool; 0 when nothing is marked."""
+    found = int(np.count_nonzero(visible))
+    return float(stats.get("footprint_candidates", 0)) / found if found else 0.0
+
+
 #: Cost model of one segment pass (``estimate_cost``), timed on the 2-core development machine
 #: (village 20k and city 100k cells, 128 to 1024 px, 12 segments each): a fixed cost, a cost
 #: per triangle of the scene and one per cubemap pixel (6 R^2); the pixel term dominates from
@@ -332,7 +355,9 @@ class FromSegmentCore(Core):
         self, scene: Scene, segments: np.ndarray, params: FromSegmentParams
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Union over ``segments`` (k, 2, 3), cube orientations and state intervals."""
-        rotations = cube_rotations(params.runs, params.seed, params.first_orientation)
+        rotations = cube_rotations(int(params.runs) + int(params.subpixel_runs), params.seed,
+                                   params.first_orientation)
+        runs = int(params.runs)
         t0 = time.perf_counter()
         geoms = scene_geometries(scene)
         n_ids = geoms[0].n_ids
@@ -340,7 +365,9 @@ class FromSegmentCore(Core):
         stats: dict[str, Any] = {}
         batch = max(1, int(params.batch_triangles) // CLUSTER)
         if len(geoms[0].tri_sel) or len(geoms[0].sphere_sel):
-            for k, rot in enumerate(rotations):
+            k = 0
+            while k < runs:
+                rot = rotations[k]
                 for s, (v0, v1) in enumerate(segments):
                     # A fresh jitter pattern per segment and run: a triangle seen from several
                     # sides gets independent chances to meet a sample.
@@ -353,9 +380,14 @@ class FromSegmentCore(Core):
                                         max_cuts=params.cuts,
                                         footprint=params.small != "samples",
                                         corners=params.small == "corners")
+                if k == 0:
+                    stats["subpixel_ratio"] = subpixel_ratio(stats, visible)
+                    if stats["subpixel_ratio"] > SUBPIXEL_CANDIDATES:
+                        runs += int(params.subpixel_runs)
+                k += 1
         m = scene.n_triangles
         stats["segments"] = int(len(segments))
-        stats["runs"] = int(params.runs)
+        stats["runs"] = runs
         stats["state_intervals"] = int(len(geoms))
         stats["setup_seconds"] = time.perf_counter() - t0 - sum(
             stats.get(k, 0.0) for k in ("box_seconds", "bin_seconds", "envelope_seconds"))

@@ -9,6 +9,7 @@ from tests.visibility.segment_reference import sampled_visible, unwitnessed
 from visibility.cores import designed_scenes as ds
 from visibility.cores.base import available_cores, get_core
 from visibility.cores.from_segment import (
+    SUBPIXEL_CANDIDATES,
     FromSegmentCore,
     FromSegmentParams,
     cell_segments,
@@ -31,7 +32,7 @@ def test_registered_with_its_parameters():
     assert (p.resolution, p.runs, p.eye_levels, p.small) == (256, 1, 3, "corners")
     for bad in ({"small": "centres"}, {"runs": 0}, {"runs": 1.5}, {"near": 0.0},
                 {"near": np.nan}, {"eye_levels": 4}, {"depth_knots": 0},
-                {"batch_triangles": 10}, {"resolution": 4}):
+                {"batch_triangles": 10}, {"resolution": 4}, {"subpixel_runs": -1}):
         with pytest.raises(ValueError):
             CORE.make_params(**bad)
 
@@ -179,6 +180,48 @@ def test_open_scene_everything_visible_and_runs_only_add():
     r3 = CORE.compute(scene, cell, p3)
     assert set(r1.triangle_ids.tolist()) <= set(r3.triangle_ids.tolist())
     np.testing.assert_array_equal(r3.triangle_ids, CORE.compute(scene, cell, p3).triangle_ids)
+
+
+def _dust_behind_slits(n: int = 4000, slats: int = 200, gap: float = 0.01,
+                       seed: int = 3) -> Scene:
+    """Triangles of a few millimetres scattered 40-80 m around the origin (a pixel of 256 is
+    0.3-0.6 m there), seen through a ring of ``slats`` tall slats 15 m out with ``gap`` m slits
+    between them (no slats: in the open)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 1] = np.abs(d[:, 1]) * 0.3
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centres = d * rng.uniform(40.0, 80.0, size=(n, 1)) + [0.0, 1.7, 0.0]
+    tris = [(centres[:, None, :] + rng.uniform(-0.003, 0.003, size=(n, 3, 3))).reshape(-1, 3)]
+    if slats:
+        half = (2.0 * np.pi / slats - gap / 15.0) / 2.0
+        for a in np.linspace(0.0, 2.0 * np.pi, slats, endpoint=False):
+            p0 = 15.0 * np.array([np.cos(a - half), 0.0, np.sin(a - half)])
+            p1 = 15.0 * np.array([np.cos(a + half), 0.0, np.sin(a + half)])
+            lo, hi = np.array([0.0, -30.0, 0.0]), np.array([0.0, 40.0, 0.0])
+            tris.append(np.array([p0 + lo, p1 + lo, p1 + hi, p0 + lo, p1 + hi, p0 + hi]))
+    v = np.concatenate(tris)
+    return Scene(v, np.arange(len(v)).reshape(-1, 3), name="dust")
+
+
+def test_subpixel_runs_follow_only_where_the_answer_is_sub_pixel():
+    """Dust seen through slits: the footprint rule tests its triangles along every segment
+    and finds few, so the extra run is taken (the same turned cube as an explicit second run)
+    and finds more. In the open the rule finds the dust at once (a candidate or less per
+    triangle found), and rooms of pixel-sized triangles need no rule: one run each."""
+    cell = Viewcell(np.array([[-1.0, 1.5, -1.0], [1.0, 1.9, 1.0]]))
+    dust = _dust_behind_slits()
+    auto = CORE.compute(dust, cell, CORE.make_params(walk="rectangle"))
+    one = CORE.compute(dust, cell, CORE.make_params(walk="rectangle", subpixel_runs=0))
+    two = CORE.compute(dust, cell, CORE.make_params(walk="rectangle", runs=2, subpixel_runs=0))
+    assert auto.stats["subpixel_ratio"] > SUBPIXEL_CANDIDATES
+    assert (auto.stats["runs"], one.stats["runs"], two.stats["runs"]) == (2, 1, 2)
+    np.testing.assert_array_equal(auto.triangle_ids, two.triangle_ids)
+    assert set(one.triangle_ids.tolist()) < set(auto.triangle_ids.tolist())
+    for scene, c in ((_dust_behind_slits(slats=0), cell), ds.two_rooms_and_a_door()[:2]):
+        plain = CORE.compute(scene, c, CORE.make_params(resolution=64))
+        assert plain.stats["subpixel_ratio"] <= SUBPIXEL_CANDIDATES
+        assert plain.stats["runs"] == 1
 
 
 # ----------------------------------------------------------------------------- stiff inputs

@@ -19,7 +19,7 @@ from benchmarks.bench_matrix import SHARED_SCENES
 from benchmarks.bench_real_cells import walk_cells
 from tests.grouping import on_one_worker
 from tests.visibility.segment_reference import nearest_at_pixel, prepare, unwitnessed
-from visibility.cores.from_segment.core import oblique_rotation, view_segments
+from visibility.cores.from_segment.core import SUBPIXEL_CANDIDATES, oblique_rotation, view_segments
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import sample_offset
 from visibility.cores.from_segment.segment import segment_visible
@@ -138,3 +138,17 @@ def test_footprint_adds_only_what_eyes_on_the_segment_see(walked, corners):
     got = aimed_seen(scene, np.asarray(cell.box), added, rays=64, most=4096, seed=1,
                      eyes=on_segment)
     assert np.setdiff1d(added, got.ids).tolist() == []
+
+
+def test_subpixel_runs_only_on_the_sub_pixel_city(walked):
+    """At the defaults the walked cell takes the extra turned cube on the Lyon tile, whose
+    answer is mostly far facade detail under a pixel (its footprint rule tests many
+    triangles per triangle found), and not on lavaducts or Den Haag."""
+    from visibility.cores.base import get_core
+
+    scene, cell, _, _ = walked
+    core = get_core("from_segment")
+    pvs = core.compute(scene, cell, core.make_params())
+    lyon = "lyon" in scene.name
+    assert (pvs.stats["subpixel_ratio"] > SUBPIXEL_CANDIDATES) == lyon
+    assert pvs.stats["runs"] == (2 if lyon else 1)
