@@ -30,7 +30,8 @@ from benchmarks.common import command_line, machine, md_table, write_report
 
 RESULTS = Path(__file__).resolve().parent / "results"
 #: Generated scenes measured beside the real ones (name, triangles).
-GENERATED = ("city:100000", "village:100000", "rooms:100000", "city:1000000")
+GENERATED = ("city:100000", "village:100000", "rooms:100000", "city:1000000", "grass:100000",
+             "spheres:2000")
 
 
 def measure(scene, label: str, cells: int = 2, seed: int = 1) -> list[dict[str, Any]]:

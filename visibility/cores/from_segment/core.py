@@ -386,6 +386,7 @@ class FromSegmentCore(Core):
                         runs += int(params.subpixel_runs)
                 k += 1
         m = scene.n_triangles
+        stats.setdefault("subpixel_ratio", 0.0)  # nothing to draw: no run was made
         stats["segments"] = int(len(segments))
         stats["runs"] = runs
         stats["state_intervals"] = int(len(geoms))
