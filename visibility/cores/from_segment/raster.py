@@ -93,21 +93,24 @@ _JIT_INLINE_HELPER = dict(_JIT, inline="always")
 #: in TIME_STRIDE (the chunk's running count of pairs), times TIME_STRIDE; footprint_seen:
 #: primitives holding no sample that the footprint rule marked (``_footprint_seen``; two
 #: tiles may both mark one); pixels_passed: pixels of a primitive's rows passed by without a
-#: cover test, its nearest depth beyond their bound; footprint_candidates: triangles the rule
-#: tested (per tile); cycles_footprint: the CPU cycles of the rule's tests (its rays, part of
-#: cycles_tile).
+#: cover test, its nearest depth beyond their bound (a primitive beyond the bound of every
+#: pixel of its box is passed by whole, before its set-up, and its box's pixels counted);
+#: footprint_candidates: triangles the rule tested (per tile); cycles_footprint: the CPU
+#: cycles of the rule's tests (its rays, part of cycles_tile); prims_passed: primitives so
+#: passed by whole (per tile; not in setups).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
             "pairs_behind", "cluster_pairs", "cluster_pairs_uncovered", "insert_moved",
             "bound_scans", "tiles_known", "pixels_known", "items_behind_new", "cycles_cover",
             "cycles_insert", "footprint_seen", "pixels_passed", "footprint_candidates",
-            "cycles_footprint")
+            "cycles_footprint", "prims_passed")
 (C_PAIRS, C_PIECES, C_ITEMS, C_CULLED, C_FINAL, C_GROWS, C_MAX_CAP, C_INSERTS, C_INSERT_SCAN,
  C_SETUPS, C_TILES, C_CYCLES, C_CYCLES_SETUP, C_CYCLES_RASTER, C_CYCLES_TILE,
  C_THREAD, C_UNCOVERED, C_BEHIND, C_CLUSTER_PAIRS, C_CLUSTER_UNCOVERED,
  C_INSERT_MOVED, C_BOUND_SCANS, C_KNOWN, C_PX_KNOWN, C_BEHIND_NEW, C_CYCLES_COVER,
- C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND, C_CYCLES_FOOTPRINT) = range(len(COUNTERS))
+ C_CYCLES_INSERT, C_FOOTPRINT, C_PASSED, C_FP_CAND, C_CYCLES_FOOTPRINT,
+ C_PRIMS_PASSED) = range(len(COUNTERS))
 
 
 # ------------------------------------------------------------------------------ samples
@@ -154,6 +157,36 @@ def _row_spans(hulls, p, ia, ib, ja, jb, r0, pad, span, ext):
     h = np.int64(hulls.index[p])
     m = np.int64(hulls.count[h]) if h >= 0 else np.int64(0)
     _hull_spans(hulls.pts, h, m, ia, ib, ja, jb, r0, pad, span, ext)
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw):  # pragma: no cover - numba
+    """Whether depth ``z`` lies at or beyond the occlusion bound of every pixel of tile rows
+    [ia, ib], columns [ja, jb] (``bound`` per tile pixel, rows ``tw`` wide from row ``r0``,
+    column ``cl0``): ``_raster`` would pass a primitive nearest at ``z`` by at each of them.
+    Stops at the first pixel open before ``z``, so a primitive in view pays a read or two."""
+    for i in range(ia, ib + 1):
+        base = (i - r0) * tw - cl0
+        for j in range(ja, jb + 1):
+            if z < bound[base + j]:
+                return False
+    return True
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _prim_behind(prim_box, pr, z, r0, r1, cl0, cl1, tw, bound, work):  # pragma: no cover
+    """``_box_behind`` over primitive ``pr``'s pixel box within the tile (rows [r0, r1),
+    columns [cl0, cl1)), its pixels counted as passed (``work``) when it holds; False for a
+    box that misses the tile."""
+    ia = max(prim_box[pr, 0], r0)
+    ib = min(prim_box[pr, 1], r1 - 1)
+    ja = max(prim_box[pr, 2], cl0)
+    jb = min(prim_box[pr, 3], cl1 - 1)
+    if ia > ib or ja > jb or not _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw):
+        return False
+    work[C_PASSED] += (ib - ia + 1) * (jb - ja + 1)
+    work[C_PRIMS_PASSED] += 1
+    return True
 
 
 @njit(**_JIT_NO_NRT)
@@ -1001,6 +1034,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     jb = min(bx[3], cl1 - 1)
                     if ia > ib or ja > jb:
                         continue
+                    if _box_behind(bound, zt, ia, ib, ja, jb, r0, cl0, tw):
+                        # Closed nearer at every pixel of its box: no set-up, no draw.
+                        work[C_PASSED] += (ib - ia + 1) * (jb - ja + 1)
+                        work[C_PRIMS_PASSED] += 1
+                        continue
                     if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
                         _box_spans(ia, ib, ja, jb, r0, span)
                     else:
@@ -1046,6 +1084,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     closed += nc
                     if ovf:
                         break
+            elif _prim_behind(prim_box, pr, prim_z[pr], r0, r1, cl0, cl1, tw, bound, work):
+                pass  # closed nearer at every pixel of its box: no set-up, no draw
             else:
                 if flag & FLAG_SPHERE:
                     kind = 2

@@ -9,8 +9,12 @@ import numpy as np
 from tests.grouping import module_on_one_worker
 from visibility.cores.from_segment.geometry import scene_geometries
 from visibility.cores.from_segment.raster import (
+    C_PASSED,
+    C_PRIMS_PASSED,
     COUNTERS,
+    _box_behind,
     _cam_corners,
+    _prim_behind,
     _ray_meets_box,
     _ray_meets_tri_box,
     _tri_hit,
@@ -60,8 +64,9 @@ def test_counters_of_a_lone_quad():
     # The quad is one cluster: all its pairs are a cluster's.
     assert st["cluster_pairs"] == st["pairs"]
     assert st["cluster_pairs_uncovered"] == st["pairs_uncovered"]
-    # One cluster of two triangles, set up in each tile it reaches.
-    assert st["setups"] == 2 * st["items_processed"] == 2 * st["tiles"]
+    # One cluster of two triangles, set up in each tile it reaches, unless the first closed
+    # every pixel of the second's box at its own depth: then the second is passed by whole.
+    assert st["setups"] + st["prims_passed"] == 2 * st["items_processed"] == 2 * st["tiles"]
     assert not set(COUNTERS) - set(st) - {"thread"}
     assert 0 < st["cycles_setup"] + st["cycles_raster"] + st["cycles_tile"] <= st["cycles"]
     assert st["cycles"] / numba.get_num_threads() <= st["cycles_busiest_thread"] <= st["cycles"]
@@ -148,3 +153,41 @@ def test_footprint_triangle_box_test_keeps_every_ray_that_meets_the_triangle():
                 rejected += not boxed
     assert met > 1000
     assert rejected > 0.5 * missed
+
+
+def test_a_primitive_behind_every_pixel_of_its_box_is_passed_whole():
+    """Before its set-up a primitive is passed by whole when its nearest depth lies at or
+    beyond the occlusion bound of every pixel of its box in the tile (``_box_behind``): the
+    verdict is numpy's over the same pixels, open pixels (bound inf) and pixels no new
+    primitive reaches (bound -inf) included; ``_prim_behind`` clamps the box to the tile,
+    counts the box's pixels as passed when it holds, and passes by nothing whose box misses
+    the tile."""
+    rng = np.random.default_rng(5)
+    r0, cl0, tw, th = 32, 48, 16, 12  # a tile of 12 rows of 16 pixels, at row 32, column 48
+    agree = behind = 0
+    for k in range(400):
+        bound = rng.uniform(1.0, 10.0, th * tw)
+        bound[rng.random(th * tw) < (0.02 if k % 2 else 0.3)] = np.inf
+        bound[rng.random(th * tw) < 0.05] = -np.inf
+        ia, ja = r0 + rng.integers(0, th), cl0 + rng.integers(0, tw)
+        ib = min(ia + rng.integers(0, 4), r0 + th - 1)
+        jb = min(ja + rng.integers(0, 4), cl0 + tw - 1)
+        z = rng.uniform(0.5, 12.0)
+        want = bool(np.all(z >= bound.reshape(th, tw)[ia - r0:ib - r0 + 1, ja - cl0:jb - cl0 + 1]))
+        assert _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw) == want
+        agree += 1
+        behind += want
+        work = np.zeros(len(COUNTERS), dtype=np.int64)
+        box = np.array([[ia - 2, ib, ja, jb + 3]], dtype=np.int32)  # clamped to the tile
+        got = _prim_behind(box, 0, z, r0, r0 + th, cl0, cl0 + tw, tw, bound, work)
+        assert got == bool(np.all(z >= bound.reshape(th, tw)[
+            max(ia - 2, r0) - r0:ib - r0 + 1, ja - cl0:min(jb + 3, cl0 + tw - 1) - cl0 + 1]))
+        assert work[C_PASSED] == ((ib - max(ia - 2, r0) + 1)
+                                  * (min(jb + 3, cl0 + tw - 1) - ja + 1) if got else 0)
+        assert work[C_PRIMS_PASSED] == int(got)
+    assert 50 < behind < agree - 50  # both verdicts drawn often
+    outside = np.array([[0, 5, 0, 5]], dtype=np.int32)
+    work = np.zeros(len(COUNTERS), dtype=np.int64)
+    assert not _prim_behind(outside, 0, 1e9, r0, r0 + th, cl0, cl0 + tw, tw,
+                            np.full(th * tw, -np.inf), work)
+    assert work[C_PASSED] == work[C_PRIMS_PASSED] == 0
