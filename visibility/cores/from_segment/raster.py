@@ -97,7 +97,7 @@ _JIT_INLINE_HELPER = dict(_JIT, inline="always")
 #: pixel of its box is passed by whole, before its set-up, and its box's pixels counted);
 #: footprint_candidates: triangles the rule tested (per tile); cycles_footprint: the CPU
 #: cycles of the rule's tests (its rays, part of cycles_tile); prims_passed: primitives so
-#: passed by whole (per tile; not in setups).
+#: passed by whole (per tile; a cluster counts once, and a cluster's triangle so passed once).
 COUNTERS = ("pairs", "pieces", "items_processed", "items_culled", "final_pieces",
             "envelope_grows", "max_cap", "inserts", "insert_scan", "setups", "tiles", "cycles",
             "cycles_setup", "cycles_raster", "cycles_tile", "thread", "pairs_uncovered",
@@ -1022,7 +1022,11 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
             closed = 0
             cs0 = _cycles()
             if flag & FLAG_CLUSTER:
-                for k in range(cl_start[src], cl_start[src + 1]):
+                # Closed nearer at every pixel of its box (a cluster's box holds its
+                # triangles' boxes, its depth is at most theirs): no triangle is set up.
+                behind = _prim_behind(prim_box, pr, prim_z[pr], r0, r1, cl0, cl1, tw, bound,
+                                      work)
+                for k in range(cl_start[src], cl_start[src + 1] if not behind else 0):
                     t = cl_tris[k]
                     _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
                     ok, zt = _front_box(P, U, res, bx, pad)
