@@ -1026,7 +1026,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                 # triangles' boxes, its depth is at most theirs): no triangle is set up.
                 behind = _prim_behind(prim_box, pr, prim_z[pr], r0, r1, cl0, cl1, tw, bound,
                                       work)
-                for k in range(cl_start[src], cl_start[src + 1] if not behind else 0):
+                stop = cl_start[src] if behind else cl_start[src + 1]
+                for k in range(cl_start[src], stop):
                     t = cl_tris[k]
                     _cam_corners(R, verts0, verts1, faces, t, v0, dc, P, U, W)
                     ok, zt = _front_box(P, U, res, bx, pad)
