@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.bench_matrix import SHARED_SCENES
-from benchmarks.bench_real_cells import prepare, walk_cells
+from benchmarks.bench_real_cells import parse_generated, prepare, walk_cells
 from benchmarks.common import command_line, machine, md_table, write_report
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -124,11 +124,10 @@ def main(argv: list[str] | None = None) -> int:
             scene = load_scene(path)
             prepare(scene)
             rows += measure(scene, path.stem, args.cells)
-    for text in args.generated:
-        name, n = text.split(":")
-        scene = make_scene(name, triangles=int(n))
+    for name, n in (parse_generated(text) for text in args.generated):
+        scene = make_scene(name, triangles=n)
         prepare(scene)
-        rows += measure(scene, f"{name} {int(n) // 1000}k (generated)", args.cells)
+        rows += measure(scene, f"{name} {n // 1000}k (generated)", args.cells)
     given = sys.argv[1:] if argv is None else argv
     text = report(rows, command_line("benchmarks.bench_subpixel_runs", given),
                   time.perf_counter() - t0)

@@ -174,19 +174,25 @@ def _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw):  # pragma: no cover - nu
 
 
 @njit(**_JIT_INLINE_HELPER)
-def _prim_behind(prim_box, pr, z, r0, r1, cl0, cl1, tw, bound, work):  # pragma: no cover
-    """``_box_behind`` over primitive ``pr``'s pixel box within the tile (rows [r0, r1),
-    columns [cl0, cl1)), its pixels counted as passed (``work``) when it holds; False for a
-    box that misses the tile."""
-    ia = max(prim_box[pr, 0], r0)
-    ib = min(prim_box[pr, 1], r1 - 1)
-    ja = max(prim_box[pr, 2], cl0)
-    jb = min(prim_box[pr, 3], cl1 - 1)
-    if ia > ib or ja > jb or not _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw):
+def _box_passed(bound, z, ia, ib, ja, jb, r0, cl0, tw, work):  # pragma: no cover - numba
+    """``_box_behind``, and when it holds the box's pixels and one primitive counted as passed
+    by whole (``work``)."""
+    if not _box_behind(bound, z, ia, ib, ja, jb, r0, cl0, tw):
         return False
     work[C_PASSED] += (ib - ia + 1) * (jb - ja + 1)
     work[C_PRIMS_PASSED] += 1
     return True
+
+
+@njit(**_JIT_INLINE_HELPER)
+def _prim_behind(prim_box, pr, z, r0, r1, cl0, cl1, tw, bound, work):  # pragma: no cover
+    """``_box_passed`` over primitive ``pr``'s pixel box within the tile (rows [r0, r1),
+    columns [cl0, cl1)); False for a box that misses the tile."""
+    ia = max(prim_box[pr, 0], r0)
+    ib = min(prim_box[pr, 1], r1 - 1)
+    ja = max(prim_box[pr, 2], cl0)
+    jb = min(prim_box[pr, 3], cl1 - 1)
+    return ia <= ib and ja <= jb and _box_passed(bound, z, ia, ib, ja, jb, r0, cl0, tw, work)
 
 
 @njit(**_JIT_NO_NRT)
@@ -1039,11 +1045,8 @@ def _resolve_chunk(ch, worker, job, prims, geom, sweep, out):  # pragma: no cove
                     jb = min(bx[3], cl1 - 1)
                     if ia > ib or ja > jb:
                         continue
-                    if _box_behind(bound, zt, ia, ib, ja, jb, r0, cl0, tw):
-                        # Closed nearer at every pixel of its box: no set-up, no draw.
-                        work[C_PASSED] += (ib - ia + 1) * (jb - ja + 1)
-                        work[C_PRIMS_PASSED] += 1
-                        continue
+                    if _box_passed(bound, zt, ia, ib, ja, jb, r0, cl0, tw, work):
+                        continue  # closed nearer at every pixel of its box: no set-up, no draw
                     if (ib - ia + 1) * (jb - ja + 1) <= SMALL_BOX:
                         _box_spans(ia, ib, ja, jb, r0, span)
                     else:
