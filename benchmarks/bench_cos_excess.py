@@ -87,9 +87,24 @@ def aimed(scene: Scene, box: np.ndarray, pvs: np.ndarray, first: int, most: int,
     inside = np.intersect1d(seen, pvs)
     confirmed_in = np.unique(np.concatenate(
         [confirm(scene, s, inside) for s in samples])) if len(inside) else inside
+    away = facing_away(scene, pvs, box)
     return {"eyes_in_open_space": int(len(eyes)), "steps": steps,
             "confirmed_in_pvs": int(len(confirmed_in)), "missed": int(len(confirmed_out)),
-            "aims_per_triangle": aims}
+            "aims_per_triangle": aims, "facing_away": int(away.sum()),
+            "facing_away_seen": int(np.isin(np.asarray(pvs)[away], confirmed_in).sum())}
+
+
+def facing_away(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(len(ids),) bool: which triangles ``ids`` have every corner of the cell ``box`` (2, 3)
+    strictly behind their plane (front side by winding, corners 0 -> 1 -> 2 counter-clockwise):
+    every eye of the cell looks at their back. Such a triangle is seen only where a ray
+    reaches its back side: through a surface left open, or a near plane cutting one."""
+    tri = np.asarray(scene.vertices, dtype=np.float64)[
+        np.asarray(scene.faces)[np.asarray(ids, dtype=np.int64)]]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    # The corner farthest along the normal decides.
+    far = np.where(n > 0.0, box[1], box[0])
+    return np.einsum("ij,ij->i", n, far - tri[:, 0]) < 0.0
 
 
 def run_scene(name: str, size: float, resolution: int, subcells: list[int], first: int,
@@ -131,14 +146,18 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
               f"solved as n x n parts across the ground, answers joined. One run; "
               f"{elapsed:.0f} s in all.", ""]
     head = ["scene", "cos PVS", "aimed rays see (eyes)", "confirmed", "PVS / confirmed",
-            "missed"]
+            "missed", "facing away from the cell (confirmed seen)",
+            "PVS / confirmed without unseen ones facing away"]
     rows = []
     for res in results:
         a = res["aimed"]
+        conf = max(a["confirmed_in_pvs"], 1)
+        rest = res["pvs"] - a["facing_away"] + a["facing_away_seen"]
         rows.append([res["scene"], f"{res['pvs']:,}",
                      ", ".join(f"{s['seen_in_pvs']:,} ({s['eyes']})" for s in a["steps"]),
                      f"{a['confirmed_in_pvs']:,}",
-                     f"{res['pvs'] / max(a['confirmed_in_pvs'], 1):.1f}", a["missed"]])
+                     f"{res['pvs'] / conf:.1f}", a["missed"],
+                     f"{a['facing_away']:,} ({a['facing_away_seen']:,})", f"{rest / conf:.1f}"])
     lines += md_table(head, rows)
     lines += ["", "## Sub-cells", ""]
     head = ["scene", "sub-cells", "side, m", "PVS (union)", "x whole cell", "PVS / confirmed",
@@ -156,6 +175,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
         a = res["aimed"]
         last = res["rows"][-1]
         ratio = res["pvs"] / max(a["confirmed_in_pvs"], 1)
+        rest = res["pvs"] - a["facing_away"] + a["facing_away_seen"]
         lines.append(
             f"- {res['scene']}: aimed rays from {a['steps'][-1]['eyes']} eyes find "
             f"{a['confirmed_in_pvs']:,} of the {res['pvs']:,} triangles of cos's PVS "
@@ -164,7 +184,12 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             f"what they show; {last['subcells']} x {last['subcells']} sub-cells of "
             f"{last['side']:g} m join to {last['pvs']:,} triangles "
             f"({last['pvs'] / max(res['pvs'], 1):.2f}x the whole cell's). Misses: "
-            f"{a['missed']}.")
+            f"{a['missed']}. {a['facing_away']:,} triangles of the PVS "
+            f"({100 * a['facing_away'] / max(res['pvs'], 1):.0f} %) face away from the "
+            f"whole cell (every eye looks at their back), and the rays confirm "
+            f"{a['facing_away_seen']:,} of those seen; without the others the PVS would "
+            f"hold {rest / max(a['confirmed_in_pvs'], 1):.1f}x "
+            f"what the rays show.")
     return "\n".join(lines) + "\n"
 
 

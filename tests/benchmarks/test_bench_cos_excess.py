@@ -23,3 +23,24 @@ def test_quick_run_writes_the_tables_and_the_data(tmp_path):
     assert a["missed"] == 0
     md = (tmp_path / "cos_excess.md").read_text()
     assert "| lavaducts |" in md and "## Sub-cells" in md and "## Reading" in md
+    # What faces away from the whole cell is part of the PVS, and the rays confirm some of it
+    # seen at most.
+    assert 0 <= a["facing_away_seen"] <= a["facing_away"] <= res["pvs"]
+    assert "facing away from the cell" in md
+
+
+def test_facing_away_needs_every_corner_of_the_cell_behind_the_plane():
+    import numpy as np
+
+    from benchmarks.bench_cos_excess import facing_away
+    from visibility.scene import Scene
+
+    box = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    # Three triangles in planes x = 2 (front side +x: the cell behind), x = 2 wound the other
+    # way (front side -x: facing the cell) and x = 0.5 through the cell (front side +x).
+    v = np.array([[2, 0, 0], [2, 1, 0], [2, 0, 1],
+                  [0.5, 0, 0], [0.5, 1, 0], [0.5, 0, 1]], dtype=float)
+    f = np.array([[0, 1, 2], [0, 2, 1], [3, 4, 5]])
+    scene = Scene(vertices=v, faces=f)
+    got = facing_away(scene, np.arange(3), box)
+    assert got.tolist() == [True, False, False]
