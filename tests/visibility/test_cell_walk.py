@@ -321,3 +321,68 @@ def test_binned_open_points_and_clear_pieces_match_testing_every_triangle(seed):
         for (a, b), (c, d) in zip(binned, alone, strict=True):
             np.testing.assert_array_equal(a, c)
             np.testing.assert_array_equal(b, d)
+
+
+def _inward(tris, lo, hi):
+    """A sealed room: ``_solid``'s box wound the other way, its faces towards the inside (a game
+    level's walls face into its rooms)."""
+    part = []
+    _solid(part, lo, hi)
+    tris += [[a, c, b] for a, b, c in part]
+
+
+def test_a_level_s_void_is_no_open_floor_though_nothing_stands_above_or_below():
+    """A sealed room (walls facing in) whose wall at x = 2 crosses the cell: inside it the floor
+    is open; beside it, in the void, the vertical lines meet nothing above or below, as in a
+    street of a city without terrain, but level rays meet the room's walls from behind (or
+    nothing), and no one stands there."""
+    tris = []
+    _inward(tris, (-6.0, 0.0, -6.0), (2.0, 3.0, 6.0))
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    scene = Scene(v, np.arange(len(v)).reshape(-1, 3), name="sealed-room")
+    walk = cell_walk(scene, BOX)
+    inside = walk.xs[:, None] < 2.0 - 1e-9
+    outside = walk.xs[:, None] > 2.0 + 1e-9
+    assert walk.open[np.broadcast_to(inside, walk.open.shape)].all()
+    assert not walk.open[np.broadcast_to(outside, walk.open.shape)].any()
+    # From_segment's segments follow: none reaches into the void.
+    segs = walk_segments(scene, BOX, [1.7])
+    assert len(segs) and segs[:, :, 0].max() < 2.0
+
+
+def test_a_street_between_solids_without_terrain_stays_open_floor():
+    """Two closed buildings (faces out) with a 2 m street between them and no ground at all
+    (the city scenes): the street's level rays meet facades from the front, so it stays open
+    floor; the buildings' insides do not."""
+    tris = []
+    _solid(tris, (-6.0, 0.0, -6.0), (1.0, 10.0, 10.0))
+    _solid(tris, (3.0, 0.0, -6.0), (10.0, 10.0, 10.0))
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    scene = Scene(v, np.arange(len(v)).reshape(-1, 3), name="street")
+    walk = cell_walk(scene, BOX)
+    street = (walk.xs > 1.0 + 1e-9) & (walk.xs < 3.0 - 1e-9)
+    assert walk.open[street].all()
+    # (Lattice points on a facade's plane may go either way.)
+    assert not walk.open[(walk.xs < 1.0 - 1e-9) | (walk.xs > 3.0 + 1e-9)].any()
+
+
+def test_walls_closed_around_a_point_with_no_roof_straight_above_are_no_open_floor():
+    """A house's lower storey: four walls (faces out) with no ceiling over the lattice point,
+    the storey above set back off it (a village's overhang seen from inside: the first surface
+    above faces down). The vertical tests pass; the level rays meet only the walls' backs."""
+    tris = []
+    part = []
+    _solid(part, (0.5, 0.0, 0.5), (3.5, 2.5, 3.5))
+    # The walls only: no floor, no top (the sides of the box).
+    tris += [t for t in part if not (np.ptp(np.array(t)[:, 1]) == 0.0)]
+    # An upper storey's bottom face (facing down) above the middle, 2.7 m up.
+    tris += [[[1.0, 2.7, 1.0], [3.0, 2.7, 1.0], [3.0, 2.7, 3.0]],
+             [[1.0, 2.7, 1.0], [3.0, 2.7, 3.0], [1.0, 2.7, 3.0]]]
+    v = np.array(tris, dtype=np.float64).reshape(-1, 3)
+    scene = Scene(v, np.arange(len(v)).reshape(-1, 3), name="storey")
+    walk = cell_walk(scene, BOX)
+    inner = ((walk.xs[:, None] > 0.5 + 1e-9) & (walk.xs[:, None] < 3.5 - 1e-9)
+             & (walk.zs[None, :] > 0.5 + 1e-9) & (walk.zs[None, :] < 3.5 - 1e-9))
+    assert not walk.open[inner].any()
+    # Around the house (outside its walls) the floor stays open.
+    assert walk.open[(walk.xs[:, None] < 0.5 - 1e-9) | (walk.zs[None, :] < 0.5 - 1e-9)].all()
