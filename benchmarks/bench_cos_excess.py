@@ -43,7 +43,7 @@ from visibility.ground_truth import sample_points
 from visibility.loaders import load_scene
 from visibility.raster.camera import DEFAULT_NEAR
 from visibility.ray_frames import in_open_space
-from visibility.ray_reference import confirm, ray_reference
+from visibility.ray_reference import confirm, front_normals, ray_reference
 from visibility.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,12 +96,12 @@ def aimed(scene: Scene, box: np.ndarray, pvs: np.ndarray, first: int, most: int,
 
 def facing_away(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
     """(len(ids),) bool: which triangles ``ids`` have every corner of the cell ``box`` (2, 3)
-    strictly behind their plane (front side by winding, corners 0 -> 1 -> 2 counter-clockwise):
-    every eye of the cell looks at their back. Such a triangle is seen only where a ray
-    reaches its back side: through a surface left open, or a near plane cutting one."""
+    strictly behind their plane (front side by the scene's winding, ``front_normals``): every
+    eye of the cell looks at their back. Such a triangle is seen only where a ray reaches its
+    back side: through a surface left open, or a near plane cutting one."""
     tri = np.asarray(scene.vertices, dtype=np.float64)[
         np.asarray(scene.faces)[np.asarray(ids, dtype=np.int64)]]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = front_normals(tri, scene)
     # The corner farthest along the normal decides.
     far = np.where(n > 0.0, box[1], box[0])
     return np.einsum("ij,ij->i", n, far - tri[:, 0]) < 0.0

@@ -44,3 +44,6 @@ def test_facing_away_needs_every_corner_of_the_cell_behind_the_plane():
     scene = Scene(vertices=v, faces=f)
     got = facing_away(scene, np.arange(3), box)
     assert got.tolist() == [True, False, False]
+    # A scene wound clockwise (a game level's) faces the other way.
+    scene.meta["winding"] = "cw"
+    assert facing_away(scene, np.arange(3), box).tolist() == [False, True, False]
