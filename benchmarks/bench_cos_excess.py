@@ -38,6 +38,7 @@ import numpy as np
 
 from benchmarks.bench_cos_tightness import SCENES, SHARED_SCENES, middle_cell
 from benchmarks.common import command_line, header_lines, machine, md_table, write_report
+from visibility.cell_walk import cell_walk
 from visibility.cores.cos.core import DEFAULT_RESOLUTION, cos_pvs, cos_subcells
 from visibility.ground_truth import sample_points
 from visibility.loaders import load_scene
@@ -130,8 +131,12 @@ def run_scene(name: str, size: float, resolution: int, subcells: list[int], firs
     if pvs is None:
         pvs, _ = cos_pvs(scene, box, resolution)
     ref = aimed(scene, box, pvs, first, most, aims)
+    # Where a person can stand in the cell (``cell_walk``): cos answers for every eye of the
+    # box, the rest (a level's void, the inside of solids) included.
+    floor = float(cell_walk(scene, box).open.mean())
     return {"scene": name, "triangles": scene.n_triangles, "box": box.tolist(),
-            "resolution": resolution, "pvs": int(len(pvs)), "rows": rows, "aimed": ref}
+            "resolution": resolution, "pvs": int(len(pvs)), "rows": rows, "aimed": ref,
+            "open_floor_share": floor}
 
 
 def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str],
@@ -147,7 +152,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
               f"{elapsed:.0f} s in all.", ""]
     head = ["scene", "cos PVS", "aimed rays see (eyes)", "confirmed", "PVS / confirmed",
             "missed", "facing away from the cell (confirmed seen)",
-            "PVS / confirmed without unseen ones facing away"]
+            "PVS / confirmed without unseen ones facing away", "open floor of the cell"]
     rows = []
     for res in results:
         a = res["aimed"]
@@ -157,7 +162,8 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
                      ", ".join(f"{s['seen_in_pvs']:,} ({s['eyes']})" for s in a["steps"]),
                      f"{a['confirmed_in_pvs']:,}",
                      f"{res['pvs'] / conf:.1f}", a["missed"],
-                     f"{a['facing_away']:,} ({a['facing_away_seen']:,})", f"{rest / conf:.1f}"])
+                     f"{a['facing_away']:,} ({a['facing_away_seen']:,})", f"{rest / conf:.1f}",
+                     f"{100 * res['open_floor_share']:.0f} %"])
     lines += md_table(head, rows)
     lines += ["", "## Sub-cells", ""]
     head = ["scene", "sub-cells", "side, m", "PVS (union)", "x whole cell", "PVS / confirmed",
@@ -189,7 +195,9 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             f"whole cell (every eye looks at their back), and the rays confirm "
             f"{a['facing_away_seen']:,} of those seen; without the others the PVS would "
             f"hold {rest / max(a['confirmed_in_pvs'], 1):.1f}x "
-            f"what the rays show.")
+            f"what the rays show. A person can stand on "
+            f"{100 * res['open_floor_share']:.0f} % of the cell's floor lattice "
+            f"(`cell_walk`); cos answers for every eye of its box.")
     return "\n".join(lines) + "\n"
 
 

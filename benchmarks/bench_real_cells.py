@@ -67,6 +67,10 @@ MIN_HITS = 3
 #: A core run stopped after this many seconds (its row says so): the server's own deadline
 #: (``server.settings``' ``compute_deadline``), so a row says whether a walker would get it.
 DEADLINE = 300.0
+#: from_segment's phases and work counters kept per row (``core.FromSegmentCore`` stats):
+#: where the time of a cell went and how much it walked and drew.
+WORK = ("walk", "segments", "runs", "box_seconds", "bin_seconds", "envelope_seconds",
+        "pairs", "setups", "final_pieces")
 #: Rays aimed at the answers (``visibility.ray_aimed``): per candidate in the first round, and
 #: at most, doubled while ``AIM_BUDGET`` rays at every candidate would not be passed.
 AIM_RAYS = 16
@@ -251,6 +255,8 @@ def run(cfg: dict[str, Any], log=print) -> list[dict[str, Any]]:
                         fs_seconds = pvs.seconds
                     rows.append(_row(base, label, pvs.triangle_ids, pvs.seconds, ref, scene,
                                      renderer, views, gt, centre, cfg, fn_fp_rates))
+                    if name == "from_segment":
+                        rows[-1]["work"] = {k: pvs.stats[k] for k in WORK if k in pvs.stats}
                     answers.append(pvs.triangle_ids)
                     walked.append(core.make_params(**params) if name == "from_segment" else None)
                     log(_line(rows[-1]))
@@ -406,6 +412,24 @@ def report(rows: list[dict[str, Any]], cfg: dict[str, Any], command: str, wall: 
             f"{r['missed_median_px']:.2f} | {100 * r['fp']:.1f} | {r['eps_mean']:.3f} | "
             f"{r['eps_worst']:.3f} | {r['psnr_mean']:.1f} | {r['ssim_mean']:.4f} | "
             f"{_aimed(r)} |")
+    work = [r for r in rows if "work" in r]
+    if work:
+        lines += ["", "`from_segment`'s phases and work (its stats): the segments it walked "
+                  "(how: the open floor's outline, or the rectangle), runs of turned cubes, "
+                  "seconds collecting the primitives' boxes, binning them into tiles and in "
+                  "the envelope pass, (primitive, pixel) pairs drawn, primitives set up, and "
+                  "envelope pieces at the end.", "",
+                  "| scene | cell (m) | method | walk | segments | runs | box s | bin s | "
+                  "envelope s | pairs | setups | pieces |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in work:
+            w = r["work"]
+            lines.append(
+                f"| {r['scene']} | {r['cell']} ({r['cell_size']:g}) | {r['method']} | "
+                f"{w.get('walk', '')} | {w.get('segments', 0)} | {w.get('runs', 0)} | "
+                f"{w.get('box_seconds', 0.0):.2f} | {w.get('bin_seconds', 0.0):.2f} | "
+                f"{w.get('envelope_seconds', 0.0):.2f} | {w.get('pairs', 0):,} | "
+                f"{w.get('setups', 0):,} | {w.get('final_pieces', 0):,} |")
     where = [r for r in rows if "aimed_missed_where" in r]
     if where:
         lines += ["", "Where the aimed misses are seen from (`--where`: "

@@ -13,8 +13,9 @@ finer lattice (``step`` metres) and keeps the points where a standing person fit
   ``scene.meta["winding"] == "cw"``), and
 - the point is not outside the scene's rooms: of ``WRAP_RAYS`` level rays at the middle eye
   height, fewer than ``WRAP_HITS`` meet a surface within ``WRAP_REACH``, or fewer than
-  ``WRAP_BACK`` of those meet its back (a game level's void beside its walls, which face
-  into its rooms, sees their backs or nothing; a street sees facades, a room its walls).
+  ``ray_reference.INSIDE_SHARE`` of those meet its back (a game level's void beside its
+  walls, which face into its rooms, sees their backs or nothing; a street sees facades, a
+  room its walls).
 
 A viewcell's box is one floor level (its Y range is the eye range above that floor), so the
 open part of each level a grid column holds comes from that level's own cell.
@@ -37,6 +38,7 @@ from numba import njit, prange
 
 from visibility.exact_grid import build_grid, grid_first_hits, ray_triangle
 from visibility.raster.hierarchy import candidates_in_box, ready_hierarchy
+from visibility.ray_reference import INSIDE_SHARE, back_hits, front_normals
 from visibility.scene import Scene
 from visibility.walkable import bin_of, bin_triangles
 
@@ -67,9 +69,6 @@ WRAP_REACH = 10.0
 #: Share of the rays that must meet a surface for the point to be judged at all: beside a
 #: level's flat outer wall a quarter of them meet its back within ``WRAP_REACH``.
 WRAP_HITS = 0.25
-#: Share of the rays that meet a surface which must meet a back face for the point to stand
-#: outside the scene's rooms (as the reference's open-space test, ``ray_reference``).
-WRAP_BACK = 0.9
 #: Most outline vertices per region and eye height: the outline is simplified (coarser
 #: tolerance) until it fits, since each segment costs a full cubemap pass.
 MAX_SIDES = 8
@@ -305,19 +304,19 @@ def cell_walk(scene: Scene, box: np.ndarray, step: float = STEP,
                           tris, sign, *grid.args())
     else:
         ok = np.ones(gx.size, dtype=bool)
-    ok &= ~_outside(scene, b, gx.ravel(), gz.ravel(), ok, sign)
+    ok &= ~_outside(scene, b, gx.ravel(), gz.ravel(), ok)
     return CellWalk(b, xs, zs, ok.reshape(nx, nz))
 
 
-def _outside(scene: Scene, b: np.ndarray, px: np.ndarray, pz: np.ndarray, ok: np.ndarray,
-             sign: float) -> np.ndarray:
+def _outside(scene: Scene, b: np.ndarray, px: np.ndarray, pz: np.ndarray,
+             ok: np.ndarray) -> np.ndarray:
     """(n,) bool over lattice points (px, pz): those of ``ok`` that stand outside the scene's
     rooms, in a game level's void (module docstring): at least ``WRAP_HITS`` of ``WRAP_RAYS``
     level rays at the box's middle eye height meet a surface within ``WRAP_REACH`` metres, and
-    at least ``WRAP_BACK`` of those meet its back (``sign`` -1 for clockwise fronts). The
-    vertical tests cannot tell such a place from a street of a city without terrain: nothing
-    above or below either. Exact float64 rays through the triangles near the box
-    (``exact_grid``)."""
+    at least ``INSIDE_SHARE`` of those meet its back (fronts by the scene's winding, as the
+    reference's open-space test reads them: ``ray_reference.back_hits``). The vertical tests
+    cannot tell such a place from a street of a city without terrain: nothing above or below
+    either. Exact float64 rays through the triangles near the box (``exact_grid``)."""
     out = np.zeros(len(px), dtype=bool)
     idx = np.flatnonzero(ok)
     if not len(idx):
@@ -336,12 +335,11 @@ def _outside(scene: Scene, b: np.ndarray, px: np.ndarray, pz: np.ndarray, ok: np
     ht = np.empty(len(orig))
     grid_first_hits(tris, build_grid(tris.min(axis=1), tris.max(axis=1)), orig, dirs,
                     np.zeros(len(orig)), hid, ht)
-    hit = (hid >= 0) & (ht <= WRAP_REACH)
-    n = sign * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    back = hit & (np.einsum("ij,ij->i", n[np.maximum(hid, 0)], dirs) > 0.0)
-    hits = hit.reshape(-1, WRAP_RAYS).sum(axis=1)
+    hid[ht > WRAP_REACH] = -1
+    back = back_hits(dirs, hid, front_normals(tris, scene))
+    hits = (hid >= 0).reshape(-1, WRAP_RAYS).sum(axis=1)
     backs = back.reshape(-1, WRAP_RAYS).sum(axis=1)
-    out[idx] = (hits >= WRAP_HITS * WRAP_RAYS) & (backs >= WRAP_BACK * hits)
+    out[idx] = (hits >= WRAP_HITS * WRAP_RAYS) & (backs >= INSIDE_SHARE * hits)
     return out
 
 

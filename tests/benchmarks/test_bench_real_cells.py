@@ -131,3 +131,28 @@ def test_where_seen_counts_each_miss_at_the_first_eyes_that_see_it():
     box = Viewcell(np.array([[0.0, 1.5, 0.0], [1.0, 1.9, 1.0]]))
     w = bench_real_cells.where_seen(slit, box, np.array(far), params, seed=0)
     assert w == {"segments": 0, "outline": len(far), "inside": 0, "none": 0}
+
+
+def test_the_report_tables_from_segment_s_phases_and_work_beside_its_row():
+    """Each ``from_segment`` row carries its phases and counters (``WORK``, from its stats)
+    and the report lists them in a table of their own; rows of other cores do not."""
+    from visibility.cores.base import get_core
+
+    scene = make_scene("rooms", triangles=2000)
+    cell = Viewcell(np.array([[1.0, 1.5, 1.0], [2.0, 1.9, 2.0]]))
+    fs = get_core("from_segment")
+    pvs = fs.compute(scene, cell, fs.make_params(resolution=32))
+    work = {k: pvs.stats[k] for k in bench_real_cells.WORK if k in pvs.stats}
+    assert set(work) == set(bench_real_cells.WORK)
+    assert work["segments"] > 0 and work["final_pieces"] > 0 and work["envelope_seconds"] > 0
+    base = {"scene": "rooms", "cell": 7, "cell_size": 1.0, "reference": 10, "seconds": 0.5,
+            "pvs": 12, "fn": 0.0, "fp": 0.1, "missed": 0, "missed_median_px": 0.0,
+            "eps_mean": 0.0, "eps_worst": 0.0, "psnr_mean": 90.0, "ssim_mean": 1.0}
+    rows = [{**base, "method": "from_segment (defaults)", "work": work},
+            {**base, "method": "sampling (defaults)"}]
+    cfg = {"seed": 1, "points": 64, "rays": 183, "frames": 64, "frame_px": 256}
+    text = bench_real_cells.report(rows, cfg, "python -m benchmarks.bench_real_cells", 60.0)
+    table = text[text.index("`from_segment`'s phases and work"):]
+    assert f"| {work['walk']} | {work['segments']} | {work['runs']} |" in table
+    assert f"{work['final_pieces']:,} |" in table
+    assert "sampling (defaults)" not in table
