@@ -120,6 +120,28 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
     for k in range(4):
         for c in range(3):
             cscale = max(cscale, abs(corners[k, c]))
+    # The corners lie at one or two depths (a front view's on w = 0, a side view's on w = 0
+    # and w = 2 C): per depth, their x and y ranges bound the corners' projections with one
+    # division per point and depth ((x - corner x) / (w - corner w) is monotone in the
+    # corner's x, the depth difference being positive beyond near_w).
+    cw = np.empty(4)
+    cx = np.empty((4, 4))
+    nw = 0
+    for k in range(4):
+        j = 0
+        while j < nw and cw[j] != corners[k, 2]:
+            j += 1
+        if j == nw:
+            cw[j] = corners[k, 2]
+            cx[j, 0] = np.inf
+            cx[j, 1] = -np.inf
+            cx[j, 2] = np.inf
+            cx[j, 3] = -np.inf
+            nw += 1
+        cx[j, 0] = min(cx[j, 0], corners[k, 0])
+        cx[j, 1] = max(cx[j, 1], corners[k, 0])
+        cx[j, 2] = min(cx[j, 2], corners[k, 1])
+        cx[j, 3] = max(cx[j, 3], corners[k, 1])
     for c0 in prange((n_sel + FOOTPRINT_CHUNK - 1) // FOOTPRINT_CHUNK):
         cam_own = np.empty((8, 3))
         cam = borrow(cam_own)
@@ -188,16 +210,15 @@ def footprints(pts, start, npts, kind, order, sel, origin, perm, sign, corners, 
             uy0 = np.inf
             uy1 = -np.inf
             for i in range(m):
-                for k in range(4):
+                for j in range(nw):
                     # One division for both coordinates: a relative error of an ulp or two,
-                    # far inside the spans' 1e-6 pixel widening.
-                    d = 1.0 / (clip[i, 2] - corners[k, 2])
-                    u = (clip[i, 0] - corners[k, 0]) * d
-                    v = (clip[i, 1] - corners[k, 1]) * d
-                    ux0 = min(ux0, u)
-                    ux1 = max(ux1, u)
-                    uy0 = min(uy0, v)
-                    uy1 = max(uy1, v)
+                    # far inside the spans' 1e-6 pixel widening. (clip w >= near_w lies
+                    # beyond every corner.)
+                    d = 1.0 / (clip[i, 2] - cw[j])
+                    ux0 = min(ux0, (clip[i, 0] - cx[j, 1]) * d)
+                    ux1 = max(ux1, (clip[i, 0] - cx[j, 0]) * d)
+                    uy0 = min(uy0, (clip[i, 1] - cx[j, 3]) * d)
+                    uy1 = max(uy1, (clip[i, 1] - cx[j, 2]) * d)
             j0, j1 = _pixel_span(ux0, ux1, x_lo, pw, nx)
             i0, i1 = _pixel_span(uy0, uy1, y_lo, pw, ny)
             if j0 > j1 or i0 > i1:
