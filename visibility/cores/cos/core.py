@@ -215,7 +215,7 @@ class CosCore(Core):
     fits: ClassVar[str] = ("small cells (up to about 1 m) of scenes up to a few 100k triangles "
                            "(a 0.3 m cell of a 100k city in 0.1-0.3 s); 4 m cells under a second "
                            "(a city) to several seconds (interiors), a 0.3 m cell of clutter "
-                           "(a 1M-triangle kitchen) over ten seconds: docs/cores/cos.md")
+                           "(a 1M-triangle kitchen) about ten seconds: docs/cores/cos.md")
     check_params: ClassVar[dict[str, Any]] = {}
     fn_bound: ClassVar[float] = 0.0
     #: The worst FP ``checks.check_fn_fp_against_sampled_ground_truth`` measures on the
