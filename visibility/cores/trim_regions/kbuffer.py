@@ -39,9 +39,11 @@ K = 48
 LANE_BITS = 3
 LANES = 1 << LANE_BITS
 LANE_MASK = LANES - 1
-#: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the hull
-#: test (more are dropped: a dropped span only makes hulls more visible).
-SPANS = 4
+#: Hidden depth spans [front face, umbra] of validated intervals kept per pixel for the
+#: footprint tests of small triangles and hulls (more are dropped: a dropped span only makes
+#: them more visible). A pixel looking through a row of rooms validates a wall's interval per
+#: door frame it passes, more than 4 of them (docs/cores/trim_regions.md).
+SPANS = 8
 #: Bits of the piece set a merged trim fragment carries (``piece_bits``), and that set with
 #: every bit: a trim of any piece.
 PIECE_SET_BITS = 62

@@ -240,3 +240,37 @@ def test_an_unknown_small_raster_is_refused_by_name():
     with pytest.raises(ValueError, match="small"):
         pipeline.trim_pvs(scene, build_scene_data(scene), cell_around(scene, 0.3, 0), 32, 0.3,
                  small="everywhere")
+
+
+def test_a_pixel_keeps_the_hidden_spans_of_each_wall_a_row_of_rooms_puts_on_it(monkeypatch):
+    # A cube of the generated rooms looks through door after door: a pixel validates one
+    # wall's interval per door frame it passes, more than 4 on this cube. Each hidden span
+    # kept hides small triangles behind that wall (``hulls.small_in_front``); with room for
+    # only 4 the rest were dropped and reported, so the answer grows by triangles no eye of
+    # the cube sees (cos, conservative, leaves them out of the box holding the sphere).
+    import visibility.cores.trim_regions.kbuffer as kbuffer
+    from visibility.cores.trim_regions.frustum import cover_box
+    from visibility.cores.trim_regions.warm import WARM
+    from visibility.ray_frames import first_open_cell
+    from visibility.viewcells import ViewcellGrid
+
+    scene = make_scene("rooms", triangles=20_000)
+    grid = ViewcellGrid.for_scene(scene)
+    c = grid.cell(first_open_cell(scene, grid, len(grid) // 2)).center
+    box = np.stack([c - 0.15, c + 0.15])
+    kept = kbuffer.SPANS
+    answers = {}
+    for spans in (4, kept):
+        monkeypatch.setattr(kbuffer, "SPANS", spans)
+        WARM.release()  # fresh k-buffers, sized by SPANS
+        answers[spans] = CORE.compute(scene, Viewcell(box), CORE.make_params()).triangle_ids
+    WARM.release()
+    wide, narrow = answers[kept], answers[4]
+    assert kept > 4 and len(wide) < len(narrow)
+    assert np.isin(wide, narrow).all()
+    centres, delta = cover_box(box, CORE.make_params().max_delta)
+    around = np.stack([centres.min(axis=0) - delta, centres.max(axis=0) + delta])
+    cos = get_core("cos")
+    seen = cos.compute(scene, Viewcell(around), cos.make_params()).triangle_ids
+    # What the narrow buffers added beyond the wide ones, no eye of the cube sees.
+    assert not np.isin(np.setdiff1d(narrow, wide), seen).any()
