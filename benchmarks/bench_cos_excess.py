@@ -89,10 +89,13 @@ def aimed(scene: Scene, box: np.ndarray, pvs: np.ndarray, first: int, most: int,
     confirmed_in = np.unique(np.concatenate(
         [confirm(scene, s, inside) for s in samples])) if len(inside) else inside
     away = facing_away(scene, pvs, box)
+    away_seen = int(np.isin(np.asarray(pvs)[away], confirmed_in).sum())
     return {"eyes_in_open_space": int(len(eyes)), "steps": steps,
             "confirmed_in_pvs": int(len(confirmed_in)), "missed": int(len(confirmed_out)),
             "aims_per_triangle": aims, "facing_away": int(away.sum()),
-            "facing_away_seen": int(np.isin(np.asarray(pvs)[away], confirmed_in).sum())}
+            "facing_away_seen": away_seen,
+            # The PVS less what faces away from the cell and no aimed ray confirms seen.
+            "pvs_without_unseen_away": int(len(pvs) - away.sum() + away_seen)}
 
 
 def facing_away(scene: Scene, ids: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -157,7 +160,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
     for res in results:
         a = res["aimed"]
         conf = max(a["confirmed_in_pvs"], 1)
-        rest = res["pvs"] - a["facing_away"] + a["facing_away_seen"]
+        rest = a["pvs_without_unseen_away"]
         rows.append([res["scene"], f"{res['pvs']:,}",
                      ", ".join(f"{s['seen_in_pvs']:,} ({s['eyes']})" for s in a["steps"]),
                      f"{a['confirmed_in_pvs']:,}",
@@ -181,7 +184,7 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
         a = res["aimed"]
         last = res["rows"][-1]
         ratio = res["pvs"] / max(a["confirmed_in_pvs"], 1)
-        rest = res["pvs"] - a["facing_away"] + a["facing_away_seen"]
+        rest = a["pvs_without_unseen_away"]
         lines.append(
             f"- {res['scene']}: aimed rays from {a['steps'][-1]['eyes']} eyes find "
             f"{a['confirmed_in_pvs']:,} of the {res['pvs']:,} triangles of cos's PVS "

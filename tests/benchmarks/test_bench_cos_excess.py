@@ -26,6 +26,7 @@ def test_quick_run_writes_the_tables_and_the_data(tmp_path):
     # What faces away from the whole cell is part of the PVS, and the rays confirm some of it
     # seen at most.
     assert 0 <= a["facing_away_seen"] <= a["facing_away"] <= res["pvs"]
+    assert res["pvs"] - a["facing_away"] <= a["pvs_without_unseen_away"] <= res["pvs"]
     assert 0.0 <= res["open_floor_share"] <= 1.0
     assert "facing away from the cell" in md
 
