@@ -43,6 +43,7 @@ import numpy as np  # noqa: E402
 from benchmarks.bench_matrix import SHARED_SCENES  # noqa: E402
 from visibility.cores.base import get_core  # noqa: E402
 from visibility.cores.cos.core import BUSY_BLOCK, BUSY_MIN_ITEMS  # noqa: E402
+from visibility.cores.cos.resolve import CYCLE_PARTS  # noqa: E402
 from visibility.generators import make_scene  # noqa: E402
 from visibility.ground_truth import cell_around, fn_fp_rates  # noqa: E402
 from visibility.raster.camera import DEFAULT_NEAR  # noqa: E402
@@ -117,7 +118,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "plane_tests": st.get("plane_tests", 0), "fusion": st.get("fusion", ""),
            "fused": st.get("fused", 0),
            "cycles": {k: st.get(f"cycles_{k}", 0)
-                      for k in ("resolve", "test", "insert", "coverall")},
+                      for k in ("resolve", "test", "insert", "coverall", *CYCLE_PARTS)},
            "occluder_triangles": st.get("occluder_triangles", 0),
            "coarse_tiles": st.get("coarse_tiles", 0),
            "coarse_entries": st.get("coarse_entries", 0),
@@ -380,10 +381,16 @@ def _cycle_split(r: dict) -> str:
     if not tot:
         return ""
     share = {k: 100.0 * c.get(k, 0) / tot for k in ("test", "insert", "coverall")}
-    return (f"; of the resolution's CPU cycles {share['test']:.0f} % went to testing entries, "
-            f"{share['insert']:.0f} % to making occluders of them (set-up, fusion along shared "
-            f"edges, merges), {share['coverall']:.0f} % to checking whether a group covers the "
-            f"whole pixel, {100 - sum(share.values()):.0f} % to projecting entries and early z")
+    part = {k: 100.0 * c.get(k, 0) / tot for k in CYCLE_PARTS}
+    return (f"; of the resolution's CPU cycles {share['test']:.0f} % went to testing entries "
+            f"(their regions K {part['test_region']:.0f} %, cover and depth tests against "
+            f"single groups {part['test_groups']:.0f} %, against separate groups and at "
+            f"sub-pixels {part['test_subpixels']:.0f} %, leaf boxes {part['test_leaf']:.0f} %), "
+            f"{share['insert']:.0f} % to making occluders of them (set-up "
+            f"{part['insert_setup']:.0f} %, edge slots {part['insert_slots']:.0f} %, fusion "
+            f"along shared edges and merges {part['insert_fusion']:.0f} %), "
+            f"{share['coverall']:.0f} % to checking whether a group covers the whole pixel, "
+            f"{100 - sum(share.values()):.0f} % to projecting entries and early z")
 
 
 def _block(r: dict[str, Any]) -> str:

@@ -37,6 +37,8 @@ from visibility.cores.cos.prims import (
     solid_mask,
 )
 from visibility.cores.cos.resolve import (
+    CYCLE_PART0,
+    CYCLE_PARTS,
     N_COUNTERS,
     REFINE_LEVELS,
     TIME_STRIDE,
@@ -383,7 +385,13 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         entries (``cycles_test``: K, the cover and depth
         tests), turning entries into occluders (``cycles_insert``: set-up, fusion along
         shared edges, merges) and checking whether a group now covers the pixel
-        (``cycles_coverall``); the rest is each entry's projection and early z,
+        (``cycles_coverall``); the rest is each entry's projection and early z. The
+        test's and the insertion's parts (``resolve.CYCLE_PARTS``): ``cycles_test_region``
+        (K), ``cycles_test_groups`` (cover and depth tests against single groups),
+        ``cycles_test_subpixels`` (separate groups together, sub-pixels),
+        ``cycles_test_leaf`` (leaf boxes), ``cycles_insert_setup``,
+        ``cycles_insert_slots`` (edge slots, at an item's first insertion in a tile) and
+        ``cycles_insert_fusion`` (fusion along shared edges, merges);
         ``unseen_back_faces`` (triangles of closed surfaces that face away
         from the whole cell, left out before the lists), ``inside_box``, ``views``,
         ``pixels``, ``sphere_ids``, ``coarse_seconds``, ``coarse_entries`` and
@@ -462,6 +470,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "coarse_tested": 0, "coarse_silhouette_edges": 0, "coarse_plane_tests": 0,
         "coarse_cycles_test": 0, "coarse_cycles_insert": 0, "coarse_cycles_coverall": 0,
         "coarse_cycles_resolve": 0,
+        **{f"{pre}cycles_{name}": 0 for pre in ("", "coarse_") for name in CYCLE_PARTS},
         "block_tiles": 0, "block_cycles": 0, "block_tested": 0,
         "tile_items": 0,
         "unseen_back_faces": int(unseen.sum()),
@@ -699,6 +708,8 @@ def _add_work(stats: dict[str, Any], counters: np.ndarray, prefix: str = "") -> 
     for name, col, scale in (("test", 6, TIME_STRIDE), ("insert", 7, TIME_STRIDE),
                              ("coverall", 8, TIME_STRIDE), ("resolve", 9, 1)):
         stats[f"{prefix}cycles_{name}"] += scale * int(counters[:, col].sum())
+    for c, name in enumerate(CYCLE_PARTS):
+        stats[f"{prefix}cycles_{name}"] += TIME_STRIDE * int(counters[:, CYCLE_PART0 + c].sum())
 
 
 def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndarray,

@@ -659,8 +659,15 @@ STOP_EVERY = 256
 #: inserting occluders and checking coverall in one entry of every TIME_STRIDE of a list,
 #: and in the whole tile, then entries hidden by separate groups together, entries hidden at
 #: sub-pixels and sub-pixels resolved (``_refined_hide``), then entries a hidden leaf box
-#: spared their pixel, leaf boxes tested and found hidden (``_leaf_hidden``).
-N_COUNTERS = 16
+#: spared their pixel, leaf boxes tested and found hidden (``_leaf_hidden``), then the parts
+#: of the timed entries' cycles (``CYCLE_PARTS``, from column ``CYCLE_PART0``): the test's
+#: region K, its single-group tests (cover and depth), its tests by separate groups and at
+#: sub-pixels, its leaf box; the insertion's set-up, its edge slots (an item's first in the
+#: tile), its fusion along shared edges.
+N_COUNTERS = 23
+CYCLE_PART0 = 16
+CYCLE_PARTS = ("test_region", "test_groups", "test_subpixels", "test_leaf", "insert_setup",
+               "insert_slots", "insert_fusion")
 TIME_STRIDE = 8
 GRID_WIDE = 16
 #: Records of the edge pool (``groups.EdgePool``) per entry of the longest list: a pixel's
@@ -1509,6 +1516,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
     lsc = (np.empty((8, 3)), np.empty((8, 2)), np.empty(8), rv, rr, rx, ry, tx_, ty_,
            np.empty(7), rnx, rny, rlo, rhi)
     hmask = thash.shape[0] - 1
+    # A tile's parts of its test and insertion cycles (``CYCLE_PARTS``).
+    cyc_part = np.zeros(len(CYCLE_PARTS), dtype=np.int64)
     pstamp = 0  # the pixel's, in sstate
     for it in range(it0, it1):
         tile = torder[it]
@@ -1546,6 +1555,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         cyc_test = 0
         cyc_insert = 0
         cyc_cover = 0
+        cyc_part[:] = 0
         for loc in range(npix):
             if flag_set(stop):
                 break
@@ -1680,6 +1690,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         # the groups that came near K (``cand``; -1 - g for coverall ones).
                         relax_ok = qctx[QC_RELAX]
                         qctx[QC_RELAX] = 0.0
+                        c_grp = cycles() if timed else 0
+                        cyc_part[0] += c_grp - c0 if timed else 0
                         nl = n_cov + 1 + n_live
                         ncand = 0
                         for cc in range(2 * nl):
@@ -1731,6 +1743,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 if not by_cov:
                                     last_g = g
                                 break
+                        c_sub = cycles() if timed else 0
+                        cyc_part[1] += c_sub - c_grp if timed else 0
                         by_fuse = False
                         if not occluded and fuse_on and n_live - n_dead >= 2:
                             by_fuse = _fused_hide(
@@ -1749,6 +1763,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 plane_tol, kb, sub, work)
                             occluded = by_sub
                             refined += 1 if by_sub else 0
+                        c_leaf = cycles() if timed else 0
+                        cyc_part[2] += c_leaf - c_sub if timed else 0
                         if (hider >= 0 and lf >= 0 and ltried[lf] != pstamp
                                 and b - a >= leaf_list and leaf_list > 0):
                             # The group that hid Q may hide the box of Q's whole leaf.
@@ -1760,6 +1776,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                             work):
                                 lstamp[lf] = pstamp
                                 work[5] += 1
+                        cyc_part[3] += cycles() - c_leaf if timed else 0
                         if by_cov:
                             # Hidden behind a surface that covers every offset: it adds
                             # nothing as an occluder, and keeping it would make long lists
@@ -1788,6 +1805,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         dorm = True  # not seen at this pixel at all (Alg. 1 ln 12)
                         if mark:
                             hid[k] = 1
+                        cyc_part[0] += cycles() - c0 if timed else 0
                     cyc_test += cycles() - c0 if timed else 0
                 if not tri or not solid[p]:
                     continue
@@ -1854,6 +1872,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     n_live += 1
                 cpos[q] = -1
                 gslot[q] = -1
+                c_slot = cycles() if timed else 0
+                cyc_part[4] += c_slot - c0 if timed else 0
                 if eready[it_k] != tile:
                     eready[it_k] = tile
                     for e in range(3):
@@ -1871,6 +1891,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             thash[row, 3] = n_slots
                             n_slots += 1
                         eslot[3 * it_k + e] = thash[row, 3]
+                c_fuse = cycles() if timed else 0
+                cyc_part[5] += c_fuse - c_slot if timed else 0
                 # Fuse along shared edges: the neighbour holds the edge reversed. The first
                 # active occluder edge (in the order they were added) that does is taken.
                 for e in range(3):
@@ -1959,6 +1981,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         enext[node] = sstate[sid, 1]
                     sstate[sid, 1] = node
                 c1 = cycles() if timed else 0
+                cyc_part[6] += c1 - c_fuse if timed else 0
                 cyc_insert += c1 - c0 if timed else 0
                 g = grp[q]
                 if not gcov[g] and not gdorm[g]:
@@ -2002,6 +2025,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 13] = work[3]
         counters[tile, 14] = work[4]
         counters[tile, 15] = work[5]
+        for c in range(len(CYCLE_PARTS)):
+            counters[tile, CYCLE_PART0 + c] = cyc_part[c]
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
     keep_alive(own)

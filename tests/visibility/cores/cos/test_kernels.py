@@ -426,6 +426,9 @@ def test_resolution_work_counts_silhouette_edges_and_plane_tests():
     # entry can push a part past the measured whole on a scene this small: no upper bound.)
     parts = [stats[k] for k in ("cycles_test", "cycles_insert", "cycles_coverall")]
     assert min(parts) > 0 and stats["cycles_resolve"] > 0
+    # And the test's and the insertion's own parts: each step that ran is counted.
+    steps = ("test_region", "test_groups", "insert_setup", "insert_slots", "insert_fusion")
+    assert min(stats[f"cycles_{k}"] for k in steps) > 0
     q = [[(-0.5, 1.2, -12.0), (0.5, 1.2, -12.0), (0.0, 2.2, -12.0)]]
     _, alone = cos_pvs(_scene(q), CELL, 64)
     assert alone["tested"] > 0 and alone["occluded"] == 0
