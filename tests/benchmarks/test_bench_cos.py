@@ -78,7 +78,8 @@ def test_the_cycle_split_names_each_part_of_testing_and_making_occluders():
         "insert_slots": 60, "insert_fusion": 130}})
     assert told == ("; of the resolution's CPU cycles 60 % went to testing entries (their "
                     "regions K 9 %, cover and depth tests against single groups 27 %, against "
-                    "separate groups and at sub-pixels 20 %, leaf boxes 3 %), 30 % to making "
+                    "separate groups and at sub-pixels or busy tiles' sub-samples 20 %, leaf "
+                    "boxes 3 %), 30 % to making "
                     "occluders of them (set-up 10 %, edge slots 6 %, fusion along shared edges "
                     "and merges 13 %), 2 % to checking whether a group covers the whole pixel, "
                     "8 % to projecting entries and early z")

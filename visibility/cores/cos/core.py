@@ -388,7 +388,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         (``cycles_coverall``); the rest is each entry's projection and early z. The
         test's and the insertion's parts (``resolve.CYCLE_PARTS``): ``cycles_test_region``
         (K), ``cycles_test_groups`` (cover and depth tests against single groups),
-        ``cycles_test_subpixels`` (separate groups together, sub-pixels),
+        ``cycles_test_subpixels`` (separate groups together, sub-pixels and the busy
+        tiles' sub-samples),
         ``cycles_test_leaf`` (leaf boxes), ``cycles_insert_setup``,
         ``cycles_insert_slots`` (edge slots, at an item's first insertion in a tile) and
         ``cycles_insert_fusion`` (fusion along shared edges, merges);

@@ -661,9 +661,9 @@ STOP_EVERY = 256
 #: sub-pixels and sub-pixels resolved (``_refined_hide``), then entries a hidden leaf box
 #: spared their pixel, leaf boxes tested and found hidden (``_leaf_hidden``), then the parts
 #: of the timed entries' cycles (``CYCLE_PARTS``, from column ``CYCLE_PART0``): the test's
-#: region K, its single-group tests (cover and depth), its tests by separate groups and at
-#: sub-pixels, its leaf box; the insertion's set-up, its edge slots (an item's first in the
-#: tile), its fusion along shared edges.
+#: region K, its single-group tests (cover and depth), its tests by separate groups, at
+#: sub-pixels and at busy tiles' sub-samples, its leaf box; the insertion's set-up, its edge
+#: slots (an item's first in the tile), its fusion along shared edges.
 N_COUNTERS = 23
 CYCLE_PART0 = 16
 CYCLE_PARTS = ("test_region", "test_groups", "test_subpixels", "test_leaf", "insert_setup",
