@@ -1553,7 +1553,6 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         cut = 0
         cyc_tile = cycles()
         cyc_test = 0
-        cyc_insert = 0
         cyc_cover = 0
         cyc_part[:] = 0
         for loc in range(npix):
@@ -1982,7 +1981,6 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     sstate[sid, 1] = node
                 c1 = cycles() if timed else 0
                 cyc_part[6] += c1 - c_fuse if timed else 0
-                cyc_insert += c1 - c0 if timed else 0
                 g = grp[q]
                 if not gcov[g] and not gdorm[g]:
                     # Coverall holds for every delta whatever frame proves it; the new
@@ -2016,7 +2014,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 4] = work[0]
         counters[tile, 5] = work[1]
         counters[tile, 6] = cyc_test
-        counters[tile, 7] = cyc_insert
+        # Making occluders: its three parts, which run back to back.
+        counters[tile, 7] = cyc_part[4] + cyc_part[5] + cyc_part[6]
         counters[tile, 8] = cyc_cover
         counters[tile, 9] = cycles() - cyc_tile
         counters[tile, 10] = fused

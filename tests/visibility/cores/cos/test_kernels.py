@@ -429,6 +429,9 @@ def test_resolution_work_counts_silhouette_edges_and_plane_tests():
     # And the test's and the insertion's own parts: each step that ran is counted.
     steps = ("test_region", "test_groups", "insert_setup", "insert_slots", "insert_fusion")
     assert min(stats[f"cycles_{k}"] for k in steps) > 0
+    # Making an occluder is its three parts, back to back.
+    assert stats["cycles_insert"] == sum(stats[f"cycles_insert_{k}"]
+                                         for k in ("setup", "slots", "fusion"))
     q = [[(-0.5, 1.2, -12.0), (0.5, 1.2, -12.0), (0.0, 2.2, -12.0)]]
     _, alone = cos_pvs(_scene(q), CELL, 64)
     assert alone["tested"] > 0 and alone["occluded"] == 0
