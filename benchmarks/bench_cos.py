@@ -130,7 +130,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "block_tiles": st.get("block_tiles", 0), "subpixels": st.get("subpixels", 0),
            "block_cycles": st.get("block_cycles", 0), "block_tested": st.get("block_tested", 0),
-           "sub_hidden": st.get("refined", 0),
+           "sub_hidden": st.get("refined", 0), "walks": st.get("walks", 0),
+           "walks_seen": st.get("walks_seen", 0), "subpixels_seen": st.get("subpixels_seen", 0),
            "leaf_tests": st.get("leaf_tests", 0), "leaf_hidden": st.get("leaf_hidden", 0),
            "leaf_skipped": st.get("leaf_skipped", 0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
@@ -327,8 +328,9 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                    "the pixels' lists" + _coarse_work(r) + ", " if r.get("coarse_tiles")
                    else "no tile took the coarse pass, ")
                 + (f"{r['block_tiles']:,} busy screen tiles sampled per {_block(r)} pixels "
-                   f"({r['subpixels']:,} sub-samples resolved where a sample saw an entry, "
-                   f"{r['sub_hidden']:,} entries hidden there; {_block_share(r)}), "
+                   f"({r['subpixels']:,} sub-samples resolved where a sample saw an entry"
+                   f"{_walks(r)}, {r['sub_hidden']:,} entries hidden there; "
+                   f"{_block_share(r)}), "
                    if r.get("block_tiles")
                    else "")
                 + (f"{r['leaf_tests']:,} leaf boxes tested after a primitive of theirs was "
@@ -422,6 +424,17 @@ def _coarse_work(r: dict[str, Any]) -> str:
             f"walked, {w['plane_tests']:,} occluder triangles depth-tested; "
             f"{100 * w['cycles_test'] / tot:.0f} % of its cycles testing, "
             f"{100 * w['cycles_insert'] / tot:.0f} % making occluders)")
+
+
+def _walks(r: dict[str, Any]) -> str:
+    """How the sub-sample walks ended (``cos_pvs``'s ``walks`` counters): a walk that finds
+    its entry seen resolves at least one sub-sample a level, one that hides it every one."""
+    n, seen = r.get("walks", 0), r.get("walks_seen", 0)
+    if not n:
+        return ""
+    return (f", in {n:,} walks: {seen:,} found their entry seen, resolving "
+            f"{r['subpixels_seen']:,} of them ({r['subpixels_seen'] / max(1, seen):.1f} a "
+            "walk)")
 
 
 def _costliest(r: dict[str, Any]) -> str:

@@ -68,6 +68,15 @@ def test_the_coarse_pass_work_is_told_where_it_ran():
                     "occluders)")
 
 
+def test_the_sub_sample_walks_are_told_by_how_they_ended():
+    from benchmarks.bench_cos import _walks
+
+    assert _walks({"walks": 0}) == ""
+    told = _walks({"walks": 1200, "walks_seen": 800, "subpixels_seen": 3000})
+    assert told == (", in 1,200 walks: 800 found their entry seen, resolving 3,000 of them "
+                    "(3.8 a walk)")
+
+
 def test_the_cycle_split_names_each_part_of_testing_and_making_occluders():
     from benchmarks.bench_cos import _cycle_split
 

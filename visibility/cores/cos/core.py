@@ -42,6 +42,7 @@ from visibility.cores.cos.resolve import (
     N_COUNTERS,
     REFINE_LEVELS,
     TIME_STRIDE,
+    WALK0,
     resolve_tiles,
 )
 from visibility.raster.camera import DEFAULT_NEAR
@@ -414,7 +415,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         spared: primitives no ray of the view meets), ``fusion`` (the one used) and
         ``fused`` (entries hidden by separate groups together, ``fusion="groups"``),
         ``refined`` and ``subpixels`` (entries hidden at sub-pixels, and sub-pixels
-        resolved: ``refine``).
+        resolved: ``refine``, and the busy tiles' sub-samples), ``walks``, ``walks_seen``
+        and ``subpixels_seen`` (the entries whose sub-pixels were walked, those found seen
+        at the end, and the sub-pixels those walks resolved: a seen entry's walk resolves at
+        least one sub-pixel a level).
     """
     if cover not in COVERS:
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
@@ -464,7 +468,8 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0,
-        "refined": 0, "subpixels": 0, "leaf_skipped": 0, "leaf_tests": 0, "leaf_hidden": 0,
+        "refined": 0, "subpixels": 0, "walks": 0, "walks_seen": 0, "subpixels_seen": 0,
+        "leaf_skipped": 0, "leaf_tests": 0, "leaf_hidden": 0,
         "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
         "coarse_seconds": 0.0, "coarse_entries": 0, "coarse_dropped": 0, "coarse_tiles": 0,
@@ -829,6 +834,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["block_tested"] += int(counters[sampled, 0].sum())
     for name, col in (("occluded", 1), ("occluder_triangles", 2), ("early_z_cut", 3),
                       ("fused", 10), ("refined", 11), ("subpixels", 12),
-                      ("leaf_skipped", 13), ("leaf_tests", 14), ("leaf_hidden", 15)):
+                      ("leaf_skipped", 13), ("leaf_tests", 14), ("leaf_hidden", 15),
+                      ("walks", WALK0), ("walks_seen", WALK0 + 1),
+                      ("subpixels_seen", WALK0 + 2)):
         stats[name] += int(counters[:, col].sum())
     return longest

@@ -182,7 +182,7 @@ class ShareScratch(NamedTuple):
         first through enext.
     tseen, tset : primitives found visible at an earlier pixel of the tile (a bit each), and
         the ids set, cleared after the tile.
-    work : (6,) int64 per-tile counters the helpers add to.
+    work : (N_WORK,) int64 per-tile counters the helpers add to (``resolve.N_WORK``).
     """
 
     cam: np.ndarray

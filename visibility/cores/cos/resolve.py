@@ -663,9 +663,15 @@ STOP_EVERY = 256
 #: of the timed entries' cycles (``CYCLE_PARTS``, from column ``CYCLE_PART0``): the test's
 #: region K, its single-group tests (cover and depth), its tests by separate groups, at
 #: sub-pixels and at busy tiles' sub-samples, its leaf box; the insertion's set-up, its edge
-#: slots (an item's first in the tile), its fusion along shared edges.
-N_COUNTERS = 23
+#: slots (an item's first in the tile), its fusion along shared edges; then, from column
+#: ``WALK0``, the sub-pixel walks (``_refined_hide``, at sub-pixels and busy tiles'
+#: sub-samples) that resolved a sub-pixel, those of them that ended with the entry seen, and
+#: the sub-pixels those resolved.
+N_COUNTERS = 26
 CYCLE_PART0 = 16
+WALK0 = 23
+#: Per-tile counters the helpers add to (``ShareScratch.work``).
+N_WORK = 9
 CYCLE_PARTS = ("test_region", "test_groups", "test_subpixels", "test_leaf", "insert_setup",
                "insert_slots", "insert_fusion")
 TIME_STRIDE = 8
@@ -891,7 +897,9 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
     thinner. Only the groups whose boxes, grown for the pixel, meet K's (``kb0``) can cover
     a sub-pixel's K, which lies inside K. ``occ``: the occluders' arrays ``_hides`` reads;
     ``sub``: scratch (Q's and the camera rectangle's images, K and its geometry, the walk's
-    stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved."""
+    stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved, ``work[6]``
+    the walks that resolve one, ``work[7]`` and ``work[8]`` those that end with Q seen and
+    the sub-pixels they resolved."""
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi, stack, cand = sub
@@ -906,6 +914,8 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
             nc += 1
     if nc == 0:
         return False
+    work[6] += 1
+    resolved = work[2]
     top = 0
     hs = 0.5 * h
     for c in range(4):
@@ -952,6 +962,8 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
         if hidden:
             continue
         if lev >= levels:
+            work[7] += 1
+            work[8] += work[2] - resolved
             return False
         hs2 = 0.5 * hs
         for c in range(4):
@@ -1402,7 +1414,7 @@ def _share_scratch(lmax, tmax, imax, n_known):
         sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
-        work=np.zeros(6, dtype=np.int64))
+        work=np.zeros(N_WORK, dtype=np.int64))
 
 
 def resolve_tiles(prims: PrimArrays, lists: TileLists, screen: Screen, marks: Marks) -> None:
@@ -1543,7 +1555,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         i0 = ioff[tile]
         n_slots = 0
         n_set = 0
-        for c in range(6):
+        for c in range(N_WORK):
             work[c] = 0
         tested = 0
         hidden = 0
@@ -2026,6 +2038,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 15] = work[5]
         for c in range(len(CYCLE_PARTS)):
             counters[tile, CYCLE_PART0 + c] = cyc_part[c]
+        for c in range(3):
+            counters[tile, WALK0 + c] = work[6 + c]
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
     keep_alive(own)
