@@ -169,7 +169,8 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
                        "fusion": fusion, "refine": refine, "ids": ids, "seconds": seconds,
                        "list_entries": int(stats["list_entries"]),
                        "fused": int(stats["fused"]), "refined": int(stats["refined"]),
-                       "subpixels": int(stats["subpixels"])}
+                       "subpixels": int(stats["subpixels"]),
+                       **{k: int(stats[k]) for k in ("walks", "walks_seen", "subpixels_seen")}}
 
     for r in resolutions:
         cos_run(f"cos {r} px", r, "strict", 1)
@@ -379,7 +380,9 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             + ", ".join(f"{r['ratio']:.2f}x ({r['run'].split(' px, ', 1)[1]}, "
                         f"{r['seconds'] / max(plain['seconds'], 1e-9):.1f}x the time, "
                         f"{r['refined']:,} entries hidden that way, {r['subpixels']:,} "
-                        "sub-pixels resolved)" for r in refined)
+                        f"sub-pixels resolved, {r['subpixels_seen']:,} of them by the "
+                        f"{r['walks_seen']:,} walks that found their entry seen)"
+                        for r in refined)
             + ". The reference "
             f"({ref['eyes']} eyes, {ref['kept']} in open space) "
             + ("has converged" if conv else

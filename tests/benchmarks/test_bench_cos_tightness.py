@@ -29,6 +29,9 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     # Sub-pixels hide entries only where they are asked for, and some on this cell.
     assert cos[1]["refined"] == cos[1]["subpixels"] == 0
     assert cos[7]["refined"] > 0 and cos[7]["subpixels"] > cos[7]["refined"]
+    # Every walk ends with its entry hidden or seen, and the seen ones' sub-pixels are counted.
+    assert cos[7]["walks"] == cos[7]["refined"] + cos[7]["walks_seen"]
+    assert cos[7]["subpixels"] >= cos[7]["subpixels_seen"] >= 2 * cos[7]["walks_seen"]
     # A deeper walk splits only what a shallower one left unhidden: never a larger answer.
     assert cos[9]["pvs"] <= cos[8]["pvs"] <= cos[7]["pvs"] <= cos[1]["pvs"]
     assert [r["core"] for r in rows].count("sampling") == 2
@@ -46,5 +49,6 @@ def test_quick_run_writes_the_table_the_data_and_the_plot(tmp_path):
     md = (tmp_path / "cos_tightness.md").read_text()
     assert "| lavaducts |" in md and "## Reading" in md and "sub-cells" in md
     assert "relaxed cover" in md and "separate groups" in md and "sub-pixels" in md
+    assert "walks that found their entry seen" in md
     assert "Rays aimed at the answers' other triangles" in md
     assert (tmp_path / "cos_tightness.png").stat().st_size > 0
