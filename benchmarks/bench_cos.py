@@ -130,8 +130,8 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "coarse_seconds": st.get("coarse_seconds", 0.0),
            "block_tiles": st.get("block_tiles", 0), "subpixels": st.get("subpixels", 0),
            "block_cycles": st.get("block_cycles", 0), "block_tested": st.get("block_tested", 0),
-           "sub_hidden": st.get("refined", 0), "walks": st.get("walks", 0),
-           "walks_seen": st.get("walks_seen", 0), "subpixels_seen": st.get("subpixels_seen", 0),
+           "sub_hidden": st.get("refined", 0), "walks_seen": st.get("walks_seen", 0),
+           "subpixels_seen": st.get("subpixels_seen", 0),
            "leaf_tests": st.get("leaf_tests", 0), "leaf_hidden": st.get("leaf_hidden", 0),
            "leaf_skipped": st.get("leaf_skipped", 0),
            "unseen_back_faces": st.get("unseen_back_faces", 0),
@@ -427,9 +427,11 @@ def _coarse_work(r: dict[str, Any]) -> str:
 
 
 def _walks(r: dict[str, Any]) -> str:
-    """How the sub-sample walks ended (``cos_pvs``'s ``walks`` counters): a walk that finds
-    its entry seen resolves at least one sub-sample a level, one that hides it every one."""
-    n, seen = r.get("walks", 0), r.get("walks_seen", 0)
+    """How the sub-sample walks ended (``cos_pvs``'s ``walks_seen`` and ``subpixels_seen``;
+    the other walks hid their entry, ``sub_hidden``): a walk that finds its entry seen
+    resolves at least one sub-sample a level, one that hides it every one."""
+    seen = r.get("walks_seen", 0)
+    n = r.get("sub_hidden", 0) + seen
     if not n:
         return ""
     return (f", in {n:,} walks: {seen:,} found their entry seen, resolving "

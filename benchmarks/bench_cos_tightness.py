@@ -170,7 +170,7 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
                        "list_entries": int(stats["list_entries"]),
                        "fused": int(stats["fused"]), "refined": int(stats["refined"]),
                        "subpixels": int(stats["subpixels"]),
-                       **{k: int(stats[k]) for k in ("walks", "walks_seen", "subpixels_seen")}}
+                       **{k: int(stats[k]) for k in ("walks_seen", "subpixels_seen")}}
 
     for r in resolutions:
         cos_run(f"cos {r} px", r, "strict", 1)

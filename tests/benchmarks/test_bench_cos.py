@@ -71,8 +71,8 @@ def test_the_coarse_pass_work_is_told_where_it_ran():
 def test_the_sub_sample_walks_are_told_by_how_they_ended():
     from benchmarks.bench_cos import _walks
 
-    assert _walks({"walks": 0}) == ""
-    told = _walks({"walks": 1200, "walks_seen": 800, "subpixels_seen": 3000})
+    assert _walks({"sub_hidden": 0, "walks_seen": 0}) == ""
+    told = _walks({"sub_hidden": 400, "walks_seen": 800, "subpixels_seen": 3000})
     assert told == (", in 1,200 walks: 800 found their entry seen, resolving 3,000 of them "
                     "(3.8 a walk)")
 

@@ -415,10 +415,10 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         spared: primitives no ray of the view meets), ``fusion`` (the one used) and
         ``fused`` (entries hidden by separate groups together, ``fusion="groups"``),
         ``refined`` and ``subpixels`` (entries hidden at sub-pixels, and sub-pixels
-        resolved: ``refine``, and the busy tiles' sub-samples), ``walks``, ``walks_seen``
-        and ``subpixels_seen`` (the entries whose sub-pixels were walked, those found seen
-        at the end, and the sub-pixels those walks resolved: a seen entry's walk resolves at
-        least one sub-pixel a level).
+        resolved: ``refine``, and the busy tiles' sub-samples), ``walks_seen`` and
+        ``subpixels_seen`` (the entries whose sub-pixel walk ended with them seen, and the
+        sub-pixels those walks resolved: at least one a level; the other walks are the
+        ``refined`` entries).
     """
     if cover not in COVERS:
         raise ValueError(f"cover must be one of {COVERS}, not {cover!r}")
@@ -468,7 +468,7 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
         "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0,
-        "refined": 0, "subpixels": 0, "walks": 0, "walks_seen": 0, "subpixels_seen": 0,
+        "refined": 0, "subpixels": 0, "walks_seen": 0, "subpixels_seen": 0,
         "leaf_skipped": 0, "leaf_tests": 0, "leaf_hidden": 0,
         "fusion": "groups" if fuse else "edges",
         "cycles_test": 0, "cycles_insert": 0, "cycles_coverall": 0, "cycles_resolve": 0,
@@ -835,7 +835,6 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     for name, col in (("occluded", 1), ("occluder_triangles", 2), ("early_z_cut", 3),
                       ("fused", 10), ("refined", 11), ("subpixels", 12),
                       ("leaf_skipped", 13), ("leaf_tests", 14), ("leaf_hidden", 15),
-                      ("walks", WALK0), ("walks_seen", WALK0 + 1),
-                      ("subpixels_seen", WALK0 + 2)):
+                      ("walks_seen", WALK0), ("subpixels_seen", WALK0 + 1)):
         stats[name] += int(counters[:, col].sum())
     return longest

@@ -665,13 +665,13 @@ STOP_EVERY = 256
 #: sub-pixels and at busy tiles' sub-samples, its leaf box; the insertion's set-up, its edge
 #: slots (an item's first in the tile), its fusion along shared edges; then, from column
 #: ``WALK0``, the sub-pixel walks (``_refined_hide``, at sub-pixels and busy tiles'
-#: sub-samples) that resolved a sub-pixel, those of them that ended with the entry seen, and
-#: the sub-pixels those resolved.
-N_COUNTERS = 26
+#: sub-samples) that ended with the entry seen, and the sub-pixels those resolved (the
+#: others ended with it hidden: the entries hidden at sub-pixels).
+N_COUNTERS = 25
 CYCLE_PART0 = 16
 WALK0 = 23
 #: Per-tile counters the helpers add to (``ShareScratch.work``).
-N_WORK = 9
+N_WORK = 8
 CYCLE_PARTS = ("test_region", "test_groups", "test_subpixels", "test_leaf", "insert_setup",
                "insert_slots", "insert_fusion")
 TIME_STRIDE = 8
@@ -898,8 +898,7 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
     a sub-pixel's K, which lies inside K. ``occ``: the occluders' arrays ``_hides`` reads;
     ``sub``: scratch (Q's and the camera rectangle's images, K and its geometry, the walk's
     stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved, ``work[6]``
-    the walks that resolve one, ``work[7]`` and ``work[8]`` those that end with Q seen and
-    the sub-pixels they resolved."""
+    and ``work[7]`` the walks that end with Q seen and the sub-pixels they resolved."""
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     qv, qr, rv, rr, kx, ky, tx, ty, kb, knx, kny, klo, khi, stack, cand = sub
@@ -914,7 +913,6 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
             nc += 1
     if nc == 0:
         return False
-    work[6] += 1
     resolved = work[2]
     top = 0
     hs = 0.5 * h
@@ -962,8 +960,8 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
         if hidden:
             continue
         if lev >= levels:
-            work[7] += 1
-            work[8] += work[2] - resolved
+            work[6] += 1
+            work[7] += work[2] - resolved
             return False
         hs2 = 0.5 * hs
         for c in range(4):
@@ -2038,7 +2036,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 15] = work[5]
         for c in range(len(CYCLE_PARTS)):
             counters[tile, CYCLE_PART0 + c] = cyc_part[c]
-        for c in range(3):
+        for c in range(2):
             counters[tile, WALK0 + c] = work[6 + c]
         for c in range(n_set):
             tseen[tset[c] >> 3] = 0
