@@ -7,7 +7,7 @@ passes its checkpoints and when a first answer runs."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -41,10 +41,13 @@ class StandInCore(Core):
     Params = StandInParams
     passed: list[float] = []
     ran: tuple[float, float] = (0.0, 0.0)
+    began = 0.0
     stopped = 0.0
 
     def _compute(self, scene, cell, params):
         t0 = time.monotonic()
+        if not params.ticks:
+            StandInCore.began = t0
         for _ in range(params.ticks):
             time.sleep(TICK)
             try:
@@ -76,13 +79,22 @@ def _service(progressive: bool = True, workers: int = 2) -> Iterator[ComputeServ
         svc.shutdown()
 
 
+def _until(condition: Callable[[], bool], timeout: float = 30.0) -> None:
+    """Wait until ``condition()`` holds: a busy machine can take seconds to start a job, and
+    a test that slept a fixed time would then test something else."""
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out waiting for the computations to get there"
+        time.sleep(TICK)
+
+
 def _run(svc: ComputeService, nap: float, priority: float) -> list[float]:
-    """A refinement, then (0.2 s in) a first answer of ``nap`` seconds at ``priority``; the
-    refinement's checkpoints passed while the first answer ran."""
+    """A refinement, then (once it passed a checkpoint) a first answer of ``nap`` seconds at
+    ``priority``; the refinement's checkpoints passed while the first answer ran."""
     core = core_base.get_core(StandInCore.name)
     StandInCore.passed = []
     main = svc.submit("village", core, core.make_params(ticks=int((nap + 0.5) / TICK)), 0)
-    time.sleep(0.2)
+    _until(lambda: len(StandInCore.passed) > 0)
     fa = svc.submit("village", core, core.make_params(seconds=nap), 1, priority=priority,
                     lane="first")
     fa.result(timeout=30)
@@ -124,11 +136,13 @@ def test_a_held_refinement_stops_soon_after_it_is_cancelled(cores, monkeypatch):
     monkeypatch.setattr(compute_module, "FIRST_ANSWER_HOLD_S", 10.0)
     core = core_base.get_core(StandInCore.name)
     with _service() as svc:
-        StandInCore.stopped = 0.0
+        StandInCore.stopped = StandInCore.began = 0.0
+        StandInCore.passed = []
         main = svc.submit("village", core, core.make_params(ticks=2000), 0)
-        time.sleep(0.2)
+        _until(lambda: len(StandInCore.passed) > 0)
         first = svc.submit("village", core, core.make_params(seconds=2.0), 1, lane="first")
-        time.sleep(0.3)  # the refinement is held now
+        _until(lambda: StandInCore.began > 0)
+        time.sleep(0.1)  # twenty ticks: the refinement is held at its next checkpoint
         t0 = time.monotonic()
         assert svc.release(main)
         first.result(timeout=10)
@@ -142,7 +156,7 @@ def test_a_warm_up_a_walker_reached_holds_refinements(cores):
     with _service() as svc:
         StandInCore.passed = []
         main = svc.submit("village", core, core.make_params(ticks=int(1.3 / TICK)), 0)
-        time.sleep(0.2)
+        _until(lambda: len(StandInCore.passed) > 0)
         params = core.make_params(seconds=0.8)
         warm = svc.submit("village", core, params, 1, priority=1.0, lane="first")
         time.sleep(0.05)
