@@ -112,6 +112,17 @@ def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 300))
 
 
+async def until(what: str, pred, timeout: float = 30.0) -> None:
+    """Poll ``pred()`` without blocking the event loop (the test's own requests run on it);
+    AssertionError naming ``what`` after ``timeout`` seconds. A busy CI machine can take far
+    longer than any fixed sleep to admit, queue or answer requests."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout:g} s: {what}")
+        await asyncio.sleep(0.05)
+
+
 # --------------------------------------------------------------------------- the findings
 def test_a_box_of_1e_300_metres_answers_and_stops_nobody(server):
     """Two such boxes once spun both workers for ever (the sample grid's loop never ended)."""
@@ -186,8 +197,11 @@ def test_one_client_cannot_hold_the_workers_and_leaving_cancels_its_work(server)
                 tasks.append(asyncio.ensure_future(h.get(
                     f"/scenes/kitchen/cells/{i % n}/pvs", params={**LONG, "seed": 100 * k + i})))
             await asyncio.sleep(0.2)
-        early = [t for t in tasks if t.done()]
-        await asyncio.sleep(0.5)
+
+        def codes():
+            return {t.result().status_code for t in tasks if t.done()}
+
+        await until("a 429 and a 503 among the hostile answers", lambda: {429, 503} <= codes())
         early = [t.result() for t in tasks if t.done()]
         seconds, r = await normal_request(url)
         running = compute.stats()
@@ -275,6 +289,8 @@ def test_a_negative_seed_is_a_422(server):
 def test_a_walker_gets_its_cells_while_the_http_queue_is_full(server):
     """A walker's current cell is never refused for a full queue."""
     url, app = server
+    compute = app.state.server.compute
+    max_queued = app.state.server.settings.max_queued
     ws_url = url.replace("http://", "ws://") + "/ws"
     cells = httpx.get(url + "/scenes/village/cells", timeout=30).json()["cells"]
     centre = np.asarray(cells[5]["box"]).mean(axis=0)
@@ -282,10 +298,20 @@ def test_a_walker_gets_its_cells_while_the_http_queue_is_full(server):
 
     async def main():
         hostile = [client(url, f"127.0.0.{k}") for k in range(6, 9)]
-        tasks = [asyncio.ensure_future(h.get(f"/scenes/kitchen/cells/{i % n}/pvs",
-                                             params={**LONG, "seed": 1000 + 10 * k + i}))
-                 for k, h in enumerate(hostile) for i in range(2)]
-        await asyncio.sleep(0.5)
+
+        def get(k: int, i: int) -> asyncio.Future:
+            return asyncio.ensure_future(hostile[k].get(
+                f"/scenes/kitchen/cells/{i % n}/pvs", params={**LONG, "seed": 1000 + 10 * k + i}))
+
+        # The first must hold the heavy lane before the rest come: were the queue filled
+        # before a worker took one, that one would leave and the queue would never be full.
+        tasks = [get(0, 0)]
+        await until("a hostile computation running",
+                    lambda: compute.stats()["pool"]["heavy_running"] == 1)
+        tasks += [get(k, i) for k in range(len(hostile)) for i in range(2) if (k, i) != (0, 0)]
+        # The walker must come while the queue is full, or the test proves nothing.
+        await until(f"{max_queued} HTTP computations queued",
+                    lambda: compute.stats()["pool"]["queued"] == max_queued)
         t0 = time.perf_counter()
         async with connect(ws_url) as ws:
             await ws.send(dump_message(Hello(scene="village", prefetch=False)))

@@ -10,6 +10,7 @@ prefetch test needs), and frames of one triangle, so a prefetch stream spans man
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import numpy as np
@@ -32,6 +33,17 @@ def params(seed: int, resolution: int = 32, samples: int = 4) -> dict:
 
 def run(coro, timeout: float = 240):
     return asyncio.run(asyncio.wait_for(coro, timeout))
+
+
+async def until(what: str, pred, timeout: float = 30.0) -> None:
+    """Poll ``pred()`` without blocking the event loop (the sessions' sockets run on it);
+    AssertionError naming ``what`` after ``timeout`` seconds. On a busy machine the server
+    can take far longer than any fixed sleep to start or queue a job."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout:g} s: {what}")
+        await asyncio.sleep(0.02)
 
 
 def _serve(settings, **update):
@@ -138,6 +150,8 @@ def test_prefetch_no_longer_ahead_is_dropped_when_the_walker_turns(served, grid)
     west, a, east, _ = line_of_cells(grid)
     p = params(seed=12)
     far = max(range(len(grid)), key=lambda c: np.linalg.norm(centre(grid, c) - centre(grid, a)))
+    compute = app.state.server.compute
+    label = f"{SCENE} cell {east} {CORE}"  # the pool's label of east's job (server.compute)
     httpx.get(f"{url}/scenes/{SCENE}/cells/{a}/pvs", params={"core": CORE, **p},
               timeout=120).raise_for_status()  # the walker's own cell comes from the cache
 
@@ -147,10 +161,14 @@ def test_prefetch_no_longer_ahead_is_dropped_when_the_walker_turns(served, grid)
         w = await Session.connect(url, SCENE, CORE, p, prefetch=True)
         before = metrics(url)
         await enter(slow, 1, grid, far)
-        await asyncio.sleep(0.3)  # the slow cell occupies the worker
+        # One worker: a computation in flight with none queued is the slow cell, running.
+        await until("the slow cell running on the worker", lambda: (
+            (st := compute.stats())["inflight"] >= 1 and st["pool"]["queued"] == 0))
         await enter(w, 1, grid, a, velocity=(1.4, 0.0, 0.0))
         await w.wait_cell(a, 60)
-        await asyncio.sleep(0.2)  # the cell ahead (east) is queued behind the slow one
+        # The walker must turn while the cell ahead waits behind the slow one.
+        await until(f"the prefetch of cell {east} (ahead) queued", lambda: label in {
+            j["what"] for j in compute.stats()["pool"]["queue"]})
         await enter(w, 2, grid, a, velocity=(-1.4, 0.0, 0.0))  # turned round
         await w.wait_cell(west, 180)
         await slow.wait_cell(far, 180)

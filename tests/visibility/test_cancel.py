@@ -23,23 +23,37 @@ pytestmark = module_on_one_worker("cancel_kernels")  # kernels of its own (tests
 
 
 @njit(nogil=True, cache=True)
-def _spin(flag, limit):  # pragma: no cover - numba
-    """Count up to ``limit`` unless the flag is set first; returns the count."""
+def _spin(flag, limit, count):  # pragma: no cover - numba
+    """Count up to ``limit`` unless the flag is set first, the count so far in ``count[0]``;
+    returns the count."""
     n = 0
     while n < limit:
         if flag_set(flag):
             break
         n += 1
+        count[0] = n
     return n
+
+
+def until(what: str, pred, timeout: float = 30.0) -> None:
+    """Poll ``pred()``; AssertionError naming ``what`` after ``timeout`` seconds (a busy
+    machine can take far longer than any fixed sleep to run another thread)."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"not within {timeout:g} s: {what}"
+        time.sleep(0.01)
 
 
 def test_a_kernel_sees_the_flag_set_by_another_thread():
     flag = np.zeros(1, dtype=np.uint8)
-    _spin(flag, 10)
+    count = np.zeros(1, dtype=np.int64)
+    _spin(flag, 10, count)
+    count[0] = 0
     out = []
-    th = threading.Thread(target=lambda: out.append(_spin(flag, 1 << 62)))
+    th = threading.Thread(target=lambda: out.append(_spin(flag, 1 << 62, count)))
     th.start()
-    time.sleep(0.2)
+    # Set before the kernel loops, the flag would stop it at 0 and prove nothing.
+    until("the kernel counting", lambda: count[0] > 0)
     flag[0] = 1
     th.join(timeout=30)
     # A plain read of flag[0] is hoisted out of the loop and the kernel would spin for ever.
@@ -58,7 +72,7 @@ def test_the_flag_follows_cancel_and_the_deadline():
             checkpoint()
     late = CancelToken.after(0.05)
     with running_under(late):
-        time.sleep(0.5)
+        until("the deadline's timer setting the flag", lambda: late.flag[0] == 1)
         # No checkpoint ran: the deadline's timer set the flag for the kernels.
         assert late.flag[0] == 1 and late.cancelled
         assert "deadline" in late.reason
