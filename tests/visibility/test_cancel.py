@@ -52,9 +52,11 @@ def test_a_kernel_sees_the_flag_set_by_another_thread():
     out = []
     th = threading.Thread(target=lambda: out.append(_spin(flag, 1 << 62, count)))
     th.start()
-    # Set before the kernel loops, the flag would stop it at 0 and prove nothing.
-    until("the kernel counting", lambda: count[0] > 0)
-    flag[0] = 1
+    try:
+        # Set before the kernel loops, the flag would stop it at 0 and prove nothing.
+        until("the kernel counting", lambda: count[0] > 0)
+    finally:
+        flag[0] = 1  # a failed wait must not leave the thread spinning
     th.join(timeout=30)
     # A plain read of flag[0] is hoisted out of the loop and the kernel would spin for ever.
     assert not th.is_alive(), "the kernel never saw the flag"
