@@ -8,6 +8,7 @@ core (the conformance suite) never see them.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import socket
 import threading
@@ -211,13 +212,25 @@ def settings(scenes_dir: Path):
     )
 
 
-def wait_for(pred, timeout: float = 20.0) -> None:
-    """Poll ``pred()`` every 10 ms until it is true; TimeoutError after ``timeout`` seconds."""
+def wait_for(pred, timeout: float = 20.0, what: str = "condition") -> None:
+    """Poll ``pred()`` every 10 ms until it is true; TimeoutError naming ``what`` after
+    ``timeout`` seconds. Tests wait for the state they need rather than sleep a fixed time:
+    a busy machine can take far longer to start a thread, a job or a server."""
     deadline = time.monotonic() + timeout
     while not pred():
         if time.monotonic() > deadline:
-            raise TimeoutError("condition not met in time")
+            raise TimeoutError(f"{what}: not met within {timeout:g} s")
         time.sleep(0.01)
+
+
+async def wait_for_async(pred, timeout: float = 30.0, what: str = "condition") -> None:
+    """``wait_for`` inside a coroutine: polls without blocking the event loop the test's own
+    clients run on."""
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what}: not met within {timeout:g} s")
+        await asyncio.sleep(0.02)
 
 
 # --------------------------------------------------------------------------- live server

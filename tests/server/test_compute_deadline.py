@@ -11,6 +11,7 @@ import pytest
 from server.catalog import SceneCatalog
 from server.compute import ComputeService
 from server.settings import Settings
+from tests.conftest import wait_for
 from visibility.cancel import ComputationCancelled
 from visibility.cores.base import get_core
 
@@ -74,10 +75,7 @@ def test_shutdown_cancels_running_computations(warm):
     svc = ComputeService(SceneCatalog(settings), settings)
     core = get_core("from_segment")
     fut = svc.submit("village", core, core.make_params(**SLOW), _cell(svc))
-    deadline = time.monotonic() + 60
-    while not fut.running():
-        assert time.monotonic() < deadline, "the computation never started"
-        time.sleep(0.05)
+    wait_for(fut.running, 60, "the computation running")
     time.sleep(0.3)  # into the core's loop: either way shutdown must stop it
     t0 = time.monotonic()
     svc.shutdown()

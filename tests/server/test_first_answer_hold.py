@@ -7,7 +7,7 @@ passes its checkpoints and when a first answer runs."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -18,6 +18,7 @@ import server.compute as compute_module
 from server.catalog import SceneCatalog
 from server.compute import FIRST_ANSWER_HOLD_S, ComputeService
 from server.settings import Settings
+from tests.conftest import wait_for
 from visibility.cancel import ComputationCancelled, checkpoint
 from visibility.cores import base as core_base
 from visibility.cores.base import Core, CoreParams
@@ -79,22 +80,13 @@ def _service(progressive: bool = True, workers: int = 2) -> Iterator[ComputeServ
         svc.shutdown()
 
 
-def _until(condition: Callable[[], bool], timeout: float = 30.0) -> None:
-    """Wait until ``condition()`` holds: a busy machine can take seconds to start a job, and
-    a test that slept a fixed time would then test something else."""
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out waiting for the computations to get there"
-        time.sleep(TICK)
-
-
 def _run(svc: ComputeService, nap: float, priority: float) -> list[float]:
     """A refinement, then (once it passed a checkpoint) a first answer of ``nap`` seconds at
     ``priority``; the refinement's checkpoints passed while the first answer ran."""
     core = core_base.get_core(StandInCore.name)
     StandInCore.passed = []
     main = svc.submit("village", core, core.make_params(ticks=int((nap + 0.5) / TICK)), 0)
-    _until(lambda: len(StandInCore.passed) > 0)
+    wait_for(lambda: len(StandInCore.passed) > 0, 30, "the refinement at a checkpoint")
     fa = svc.submit("village", core, core.make_params(seconds=nap), 1, priority=priority,
                     lane="first")
     fa.result(timeout=30)
@@ -139,11 +131,12 @@ def test_a_held_refinement_stops_soon_after_it_is_cancelled(cores, monkeypatch):
         StandInCore.stopped = StandInCore.began = 0.0
         StandInCore.passed = []
         main = svc.submit("village", core, core.make_params(ticks=2000), 0)
-        _until(lambda: len(StandInCore.passed) > 0)
+        wait_for(lambda: len(StandInCore.passed) > 0, 30, "the refinement at a checkpoint")
         first = svc.submit("village", core, core.make_params(seconds=2.0), 1, lane="first")
-        _until(lambda: StandInCore.began > 0)
+        wait_for(lambda: StandInCore.began > 0, 30, "the first answer running")
         # Held: no checkpoint passed for twenty ticks (one would pass every tick).
-        _until(lambda: time.monotonic() - StandInCore.passed[-1] > 20 * TICK)
+        wait_for(lambda: time.monotonic() - StandInCore.passed[-1] > 20 * TICK, 30,
+                 "the refinement held")
         t0 = time.monotonic()
         assert svc.release(main)
         first.result(timeout=10)
@@ -157,13 +150,14 @@ def test_a_warm_up_a_walker_reached_holds_refinements(cores):
     with _service() as svc:
         StandInCore.passed = []
         main = svc.submit("village", core, core.make_params(ticks=int(3.0 / TICK)), 0)
-        _until(lambda: len(StandInCore.passed) > 0)
+        wait_for(lambda: len(StandInCore.passed) > 0, 30, "the refinement at a checkpoint")
         params = core.make_params(seconds=0.8)
         StandInCore.began = 0.0
         warm = svc.submit("village", core, params, 1, priority=1.0, lane="first")
         # The refinement passes checkpoints while the warm-up runs, and none holds.
-        _until(lambda: StandInCore.began > 0 and StandInCore.passed[-1] > StandInCore.began
-               + 10 * TICK)
+        wait_for(lambda: StandInCore.began > 0
+                 and StandInCore.passed[-1] > StandInCore.began + 10 * TICK, 30,
+                 "checkpoints passed while the warm-up runs")
         assert svc.stats()["holds"] == 0
         assert svc.submit("village", core, params, 1, priority=0.0, lane="first") is warm
         promoted = time.monotonic()

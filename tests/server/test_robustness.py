@@ -26,7 +26,7 @@ from websockets.exceptions import ConnectionClosed
 
 from protocol.messages import Hello, Pose, dump_message, parse_server_message
 from server.settings import Settings
-from tests.conftest import serving
+from tests.conftest import serving, wait_for_async
 from tests.visibility.real_scenes import real_path
 
 #: One worker runs this module, so its costly module fixtures run once, not once per worker.
@@ -112,17 +112,6 @@ def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 300))
 
 
-async def until(what: str, pred, timeout: float = 30.0) -> None:
-    """Poll ``pred()`` without blocking the event loop (the test's own requests run on it);
-    AssertionError naming ``what`` after ``timeout`` seconds. A busy CI machine can take far
-    longer than any fixed sleep to admit, queue or answer requests."""
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout:g} s: {what}")
-        await asyncio.sleep(0.05)
-
-
 # --------------------------------------------------------------------------- the findings
 def test_a_box_of_1e_300_metres_answers_and_stops_nobody(server):
     """Two such boxes once spun both workers for ever (the sample grid's loop never ended)."""
@@ -201,7 +190,8 @@ def test_one_client_cannot_hold_the_workers_and_leaving_cancels_its_work(server)
         def codes():
             return {t.result().status_code for t in tasks if t.done()}
 
-        await until("a 429 and a 503 among the hostile answers", lambda: {429, 503} <= codes())
+        await wait_for_async(lambda: {429, 503} <= codes(),
+                             what="a 429 and a 503 among the hostile answers")
         early = [t.result() for t in tasks if t.done()]
         seconds, r = await normal_request(url)
         running = compute.stats()
@@ -306,12 +296,12 @@ def test_a_walker_gets_its_cells_while_the_http_queue_is_full(server):
         # The first must hold the heavy lane before the rest come: were the queue filled
         # before a worker took one, that one would leave and the queue would never be full.
         tasks = [get(0, 0)]
-        await until("a hostile computation running",
-                    lambda: compute.stats()["pool"]["heavy_running"] == 1)
+        await wait_for_async(lambda: compute.stats()["pool"]["heavy_running"] == 1,
+                             what="a hostile computation running")
         tasks += [get(k, i) for k in range(len(hostile)) for i in range(2) if (k, i) != (0, 0)]
         # The walker must come while the queue is full, or the test proves nothing.
-        await until(f"{max_queued} HTTP computations queued",
-                    lambda: compute.stats()["pool"]["queued"] == max_queued)
+        await wait_for_async(lambda: compute.stats()["pool"]["queued"] == max_queued,
+                             what=f"{max_queued} HTTP computations queued")
         t0 = time.perf_counter()
         async with connect(ws_url) as ws:
             await ws.send(dump_message(Hello(scene="village", prefetch=False)))

@@ -10,7 +10,6 @@ prefetch test needs), and frames of one triangle, so a prefetch stream spans man
 from __future__ import annotations
 
 import asyncio
-import time
 
 import httpx
 import numpy as np
@@ -19,7 +18,7 @@ import pytest
 import server.ws.inventory as inventory_module
 from client.session import Session
 from protocol.frames import frame_bytes
-from tests.conftest import LiveServer
+from tests.conftest import LiveServer, wait_for_async
 from visibility.viewcells import ViewcellGrid
 
 SCENE = "village"
@@ -33,17 +32,6 @@ def params(seed: int, resolution: int = 32, samples: int = 4) -> dict:
 
 def run(coro, timeout: float = 240):
     return asyncio.run(asyncio.wait_for(coro, timeout))
-
-
-async def until(what: str, pred, timeout: float = 30.0) -> None:
-    """Poll ``pred()`` without blocking the event loop (the sessions' sockets run on it);
-    AssertionError naming ``what`` after ``timeout`` seconds. On a busy machine the server
-    can take far longer than any fixed sleep to start or queue a job."""
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout:g} s: {what}")
-        await asyncio.sleep(0.02)
 
 
 def _serve(settings, **update):
@@ -162,13 +150,14 @@ def test_prefetch_no_longer_ahead_is_dropped_when_the_walker_turns(served, grid)
         before = metrics(url)
         await enter(slow, 1, grid, far)
         # One worker: a computation in flight with none queued is the slow cell, running.
-        await until("the slow cell running on the worker", lambda: (
-            (st := compute.stats())["inflight"] >= 1 and st["pool"]["queued"] == 0))
+        await wait_for_async(lambda: (st := compute.stats())["inflight"] >= 1
+                             and st["pool"]["queued"] == 0,
+                             what="the slow cell running on the worker")
         await enter(w, 1, grid, a, velocity=(1.4, 0.0, 0.0))
         await w.wait_cell(a, 60)
         # The walker must turn while the cell ahead waits behind the slow one.
-        await until(f"the prefetch of cell {east} (ahead) queued", lambda: label in {
-            j["what"] for j in compute.stats()["pool"]["queue"]})
+        await wait_for_async(lambda: label in {j["what"] for j in compute.stats()["pool"]["queue"]},
+                             what=f"the prefetch of cell {east} (ahead) queued")
         await enter(w, 2, grid, a, velocity=(-1.4, 0.0, 0.0))  # turned round
         await w.wait_cell(west, 180)
         await slow.wait_cell(far, 180)

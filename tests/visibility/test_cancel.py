@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from numba import njit
 
+from tests.conftest import wait_for
 from tests.grouping import module_on_one_worker
 from visibility.cancel import (
     CancelToken,
@@ -35,15 +36,6 @@ def _spin(flag, limit, count):  # pragma: no cover - numba
     return n
 
 
-def until(what: str, pred, timeout: float = 30.0) -> None:
-    """Poll ``pred()``; AssertionError naming ``what`` after ``timeout`` seconds (a busy
-    machine can take far longer than any fixed sleep to run another thread)."""
-    deadline = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < deadline, f"not within {timeout:g} s: {what}"
-        time.sleep(0.01)
-
-
 def test_a_kernel_sees_the_flag_set_by_another_thread():
     flag = np.zeros(1, dtype=np.uint8)
     count = np.zeros(1, dtype=np.int64)
@@ -54,7 +46,7 @@ def test_a_kernel_sees_the_flag_set_by_another_thread():
     th.start()
     try:
         # Set before the kernel loops, the flag would stop it at 0 and prove nothing.
-        until("the kernel counting", lambda: count[0] > 0)
+        wait_for(lambda: count[0] > 0, 30, "the kernel counting")
     finally:
         flag[0] = 1  # a failed wait must not leave the thread spinning
     th.join(timeout=30)
@@ -74,7 +66,7 @@ def test_the_flag_follows_cancel_and_the_deadline():
             checkpoint()
     late = CancelToken.after(0.05)
     with running_under(late):
-        until("the deadline's timer setting the flag", lambda: late.flag[0] == 1)
+        wait_for(lambda: late.flag[0] == 1, 30, "the deadline's timer setting the flag")
         # No checkpoint ran: the deadline's timer set the flag for the kernels.
         assert late.flag[0] == 1 and late.cancelled
         assert "deadline" in late.reason
