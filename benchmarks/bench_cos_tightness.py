@@ -170,6 +170,7 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
                        "list_entries": int(stats["list_entries"]),
                        "fused": int(stats["fused"]), "refined": int(stats["refined"]),
                        "subpixels": int(stats["subpixels"]),
+                       "tjunction_cut": int(stats.get("tjunction_cut", 0)),
                        **{k: int(stats[k]) for k in ("walks_seen", "subpixels_seen")}}
 
     for r in resolutions:
@@ -197,6 +198,8 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
     if every_split:
         cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} "
                 "levels, 2 x 2 sub-cells", base, "relaxed", 2, "groups", REFINE_MAX)
+        cos_run(f"cos {base} px, separate groups, relaxed cover, sub-pixels {REFINE_MAX} "
+                "levels, 4 x 4 sub-cells", base, "relaxed", 4, "groups", REFINE_MAX)
     sampling = get_core("sampling")
     cell = Viewcell(box)
     pvs, seconds = _timed(sampling.compute, scene, cell, sampling.make_params())

@@ -53,6 +53,7 @@ from visibility.raster.hierarchy import (
 )
 from visibility.scene import Scene
 from visibility.scene_cache import Build
+from visibility.tjunctions import scene_t_split
 from visibility.topology import CLOSED_BUILD, NEAR_CLEARANCE, unseen_back_faces
 from visibility.viewcells import Viewcell
 
@@ -128,8 +129,11 @@ class CosParams(CoreParams):
     fusion : how occluders join to hide an occludee. ``edges`` (the paper's): only triangles
         sharing edges, so one group must cover its whole offset region. ``groups``: where no
         group does alone, separate groups each in front of it may cover the region together
-        (``resolve._fused_hide``: two walls one behind the other, buildings side by side);
-        still conservative, tighter at large cells, dearer (``docs/cores/cos.md``).
+        (``resolve._fused_hide``: two walls one behind the other, buildings side by side),
+        and with ``refine`` at each sub-pixel too (``resolve._fused_sub``); the scene is
+        solved with its T-junctions cut (``visibility.tjunctions``), so that surfaces
+        meeting along a seam with no vertex pair in common fuse; still conservative,
+        tighter at large cells, dearer (``docs/cores/cos.md``).
     refine : where no occluder group hides an occludee over a whole pixel, it is tested
         again at the pixel's 2 x 2 sub-pixels, each split again where none hides it, down to
         ``refine`` levels (``resolve._refined_hide``): hidden when hidden at each. A far
@@ -166,8 +170,9 @@ class CosParams(CoreParams):
                              "occludees pass near silhouettes, for more time")
     fusion: str = param("edges", choices=FUSIONS,
                         help="occluders that hide together: edges (the paper's: triangles "
-                             "sharing edges) or groups (separate surfaces too: tighter at "
-                             "large cells, for more time)")
+                             "sharing edges) or groups (separate surfaces too, at sub-pixels "
+                             "with refine, and seams at T-junctions cut: tighter at large "
+                             "cells, for more time)")
     leaf_list: int = param(LEAF_LIST, unit="entries", ge=0, le=1 << 30,
                            help="at pixels listing at least this many entries, once an "
                                 "occludee is hidden, the box of its leaf (16 consecutive "
@@ -324,7 +329,7 @@ def cos_subcells(scene: Scene, box: np.ndarray, n: int, resolution: int,
                 if v["seconds"] > total.get(k, {"seconds": -1.0})["seconds"]:
                     total[k] = v
             elif isinstance(v, (int, float)) and not isinstance(v, bool) and k not in (
-                    "resolution", "near_plane", "near_clearance"):
+                    "resolution", "near_plane", "near_clearance", "tjunction_cut"):
                 total[k] = total.get(k, 0) + v
             else:
                 total[k] = v
@@ -341,7 +346,39 @@ def cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
             cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
             refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS, leaf_list: int = LEAF_LIST
             ) -> tuple[np.ndarray, dict[str, Any]]:
-    """PVS of a box cell.
+    """PVS of a box cell (``_cos_pvs``, whose docstring has the parameters and stats). With
+    ``fusion="groups"`` the scene is solved with its T-junctions cut
+    (``visibility.tjunctions``, once per scene), so that surfaces meeting along a seam fuse,
+    and the answer is given in the scene's own triangle ids; ``stats`` adds
+    ``tjunction_cut`` (triangles cut) and ``tjunction_seconds`` (cutting them, 0 once
+    cached)."""
+    if fusion != "groups":
+        return _cos_pvs(scene, box, resolution, list_budget_mb, coarse_items, known, cover,
+                        fusion, busy_block, refine, busy_items, leaf_list)
+    split, split_s = scene_t_split(scene)
+    if split.source is None:
+        ids, stats = _cos_pvs(scene, box, resolution, list_budget_mb, coarse_items, known,
+                              cover, fusion, busy_block, refine, busy_items, leaf_list)
+    else:
+        if known is not None:
+            known = np.asarray(known, dtype=bool)
+            m = scene.n_triangles
+            known = np.concatenate([known[:m][split.source], known[m:]])
+        ids, stats = _cos_pvs(split.scene, box, resolution, list_budget_mb, coarse_items,
+                              known, cover, fusion, busy_block, refine, busy_items, leaf_list)
+        ids = np.unique(split.source[ids])
+    stats["tjunction_cut"] = split.cut
+    stats["tjunction_seconds"] = split_s
+    return ids, stats
+
+
+def _cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
+             list_budget_mb: float = 256.0,
+             coarse_items: int = COARSE_ITEMS, known: np.ndarray | None = None,
+             cover: str = "strict", fusion: str = "edges", busy_block: int = BUSY_BLOCK,
+             refine: int = REFINE, busy_items: int = BUSY_MIN_ITEMS, leaf_list: int = LEAF_LIST
+             ) -> tuple[np.ndarray, dict[str, Any]]:
+    """PVS of a box cell, solved on ``scene`` as it is.
 
     Parameters
     ----------

@@ -45,7 +45,10 @@ hidden at every one (by any group each), it is hidden at the pixel, whose direct
 up. A silhouette capsule's growth is the pixel's half-width times the edge's depth difference
 to Q, so far occludees beside near silhouettes (a skyline) fail the pixel's test where a
 sub-pixel's passes. The same walk takes a busy tile's samples of b x b pixels
-(``TileLists.block``) down to single pixels, log2 b levels before ``refine``'s own.
+(``TileLists.block``) down to single pixels, log2 b levels before ``refine``'s own. With
+separate groups (``fusion="groups"``), a sub-pixel no group hides alone is tried with the
+groups together (``_fused_sub``), as a pixel is (``_fused_hide``): two walls, one ending where
+the other begins behind it, overlap in the offsets by less than a pixel's capsules.
 
 A triangle hidden by a coverall group is dropped. One hidden by another group, or not seen at
 the pixel (K empty, ln 12), is kept *dormant*: it joins the edge hash and fuses with its
@@ -873,6 +876,112 @@ def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx
     return wn >= 1
 
 
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, h, hs, dx,
+               dy, wmin, kx, ky, nk, kb, fuse, work):  # pragma: no cover - numba
+    """``_fused_hide`` at a sub-pixel of ``_refined_hide``: whether the live groups among
+    ``cands`` (coveralls left out: one that passed the depth test would have hidden the
+    sub-pixel alone) hide Q together over the sub-pixel's K (``kx``, ``ky``, ``kb``; its
+    centre ``(dx, dy)`` off the pixel's, half-width ``hs``). Each cell of K's box, split
+    depth first, must be covered by one group at the sub-pixel (``_covers_sub``: edges moved
+    to its centre and grown for its width) that passes the depth test over the sub-pixel's
+    K (``_hides``, run once per group). Abutting or barely overlapping surfaces (a wall and
+    the one behind its end) overlap in the offset space by less than a pixel's capsules:
+    a sub-pixel's are that much thinner."""
+    (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
+     qctx) = occ
+    cand, stack, poly, pb = fuse
+    m0 = 0
+    for c in range(nc):
+        g = cands[c]
+        if g < 0:
+            continue
+        cand[0, m0] = g
+        cand[1, m0] = 0
+        m0 += 1
+        if m0 == FUSE_GROUPS:
+            break
+    if m0 < 2:
+        return False
+    # A corner of K inside no group's box (moved for the sub-pixel) lies in no covered part.
+    for i in range(nk):
+        inside = False
+        for c in range(m0):
+            g = cand[0, c]
+            mm = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+            ex = mm * abs(dx)
+            ey = mm * abs(dy)
+            if (gbb[g, 0] - ex <= kx[i] <= gbb[g, 1] + ex
+                    and gbb[g, 2] - ey <= ky[i] <= gbb[g, 3] + ey):
+                inside = True
+                break
+        if not inside:
+            return False
+    px = poly[0]
+    py = poly[1]
+    tx = poly[2]
+    ty = poly[3]
+    top = 1
+    stack[0, 0] = kb[0]
+    stack[0, 1] = kb[1]
+    stack[0, 2] = kb[2]
+    stack[0, 3] = kb[3]
+    stack[0, 4] = 0.0
+    cells = 0
+    while top > 0:
+        top -= 1
+        cells += 1
+        if cells > FUSE_CELLS:
+            return False
+        x0 = stack[top, 0]
+        x1 = stack[top, 1]
+        y0 = stack[top, 2]
+        y1 = stack[top, 3]
+        lev = stack[top, 4]
+        for i in range(nk):
+            px[i] = kx[i]
+            py[i] = ky[i]
+        m = clip_halfplane(px, py, nk, -1.0, 0.0, -x0, tx, ty)
+        m = clip_halfplane(tx, ty, m, 1.0, 0.0, x1, px, py)
+        m = clip_halfplane(px, py, m, 0.0, -1.0, -y0, tx, ty)
+        m = clip_halfplane(tx, ty, m, 0.0, 1.0, y1, px, py)
+        if m < 3:
+            continue
+        _k_box(px, py, m, pb)
+        polygon_axes(px, py, m, pb, poly[4], poly[5], poly[6], poly[7])
+        pb[6] = 1.0
+        covered = False
+        for c in range(m0):
+            if cand[1, c] < 0:
+                continue
+            g = cand[0, c]
+            if not _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, px, py, m, pb,
+                               poly[4], poly[5], poly[6], poly[7], work):
+                continue
+            if cand[1, c] == 0:
+                cand[1, c] = 1 if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi,
+                                         gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol,
+                                         wref, h, kb, cam, n, wmin, ov, qctx,
+                                         work) else -1
+            if cand[1, c] > 0:
+                covered = True
+                break
+        if covered:
+            continue
+        if lev >= FUSE_DEPTH:
+            return False
+        xm = 0.5 * (x0 + x1)
+        ym = 0.5 * (y0 + y1)
+        for q in range(4):
+            stack[top, 0] = x0 if q & 1 == 0 else xm
+            stack[top, 1] = xm if q & 1 == 0 else x1
+            stack[top, 2] = y0 if q & 2 == 0 else ym
+            stack[top, 3] = ym if q & 2 == 0 else y1
+            stack[top, 4] = lev + 1.0
+            top += 1
+    return True
+
+
 #: Most levels of ``_refined_hide`` (``core.REFINE_MAX``: a 256th of a pixel's width), and
 #: the sub-pixels of its depth-first walk waiting at once: 3 per level, and 4.
 REFINE_LEVELS = 8
@@ -882,7 +991,7 @@ REFINE_STACK = 3 * REFINE_LEVELS + 4
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam,
                   n, tri, corners, sx, sy, h, wref, wmin, wcam, tol, kb0, sub,
-                  work):  # pragma: no cover - numba
+                  work, fuse_on, fuse):  # pragma: no cover - numba
     """Whether Q, which no group hides over the whole pixel, is hidden at every one of its
     sub-pixels, split in 2 x 2 down to ``levels`` levels (depth first; a sub-pixel hidden
     behind some group is not split further, one left unhidden at the last level ends the
@@ -957,6 +1066,9 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
                 hidden = True
                 first = c
                 break
+        if not hidden and fuse_on:
+            hidden = _fused_sub(cand, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol,
+                                wref, h, hs, dx, dy, wmin, kx, ky, nk, kb, fuse, work)
         if hidden:
             continue
         if lev >= levels:
@@ -1769,7 +1881,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             by_sub = _refined_hide(
                                 lv, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi,
                                 edges, occ, cam, n, tri, corners, sx, sy, h, wref, wmin, wcam,
-                                plane_tol, kb, sub, work)
+                                plane_tol, kb, sub, work, fuse_on, fuse)
                             occluded = by_sub
                             refined += 1 if by_sub else 0
                         c_leaf = cycles() if timed else 0

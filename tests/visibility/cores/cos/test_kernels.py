@@ -399,6 +399,51 @@ def test_separate_walls_with_a_gap_between_them_hide_nothing_behind_it():
         assert q in set(cos_pvs(_scene(tris), WIDE, res, fusion="groups")[0].tolist())
 
 
+def test_separate_walls_overlapping_by_less_than_a_pixel_hide_together_at_sub_pixels():
+    # With the far wall from x = 0.1, a line missing it passes the near wall (x < 0.25) at
+    # x < 1.5 x 0.1 + 0.05 = 0.2: hidden, with 5 cm to spare. At 32 px a silhouette's capsule
+    # at the near wall, grown for the pixel's directions against a target 9 m further, is
+    # 0.28 m wide, so the walls' images overlap by less than that and the pixel's test of
+    # the groups together fails; a sub-pixel's capsules (``refine``) are that much thinner.
+    tris = _staggered(0.1)
+    q = len(tris) - 1
+    assert q in set(cos_pvs(_scene(tris), WIDE, 32, fusion="groups")[0].tolist())
+    assert q in set(cos_pvs(_scene(tris), WIDE, 32, refine=8)[0].tolist())
+    ids, st = cos_pvs(_scene(tris), WIDE, 32, fusion="groups", refine=8)
+    assert q not in set(ids.tolist()) and st["refined"] > 0
+    assert set(range(q)) <= set(ids.tolist())
+    from visibility.ray_reference import ray_reference
+
+    got = ray_reference(_scene(tris), WIDE, n_eyes=64, n_dirs=64, aim=np.array(tris[q:]),
+                        n_aim=256).ids
+    assert q not in set(got.tolist())
+    # A gap between them stays a gap at every sub-pixel.
+    gap = _staggered(0.6)
+    assert len(gap) - 1 in set(cos_pvs(_scene(gap), WIDE, 32, fusion="groups", refine=8)[0])
+
+
+def test_a_wall_seamed_by_a_t_junction_hides_as_one_wall_when_groups_fuse():
+    # A wall in z = -3 of a left quad whose edge runs along x = 0 from y = -5 to 15, and two
+    # right quads meeting at (0, 5) on it (no vertex pair in common with the left quad). A
+    # target behind the seam: every group covers only one side of K, and the two abut, so
+    # no split of K is covered by one of them; cut at the junction, the wall is one group.
+    v = np.array([[-20, -5, -3], [0, -5, -3], [0, 15, -3], [-20, 15, -3], [0, 5, -3],
+                  [20, -5, -3], [20, 5, -3], [20, 15, -3],
+                  [-0.1, 1.6, -12], [0.1, 1.6, -12], [0, 1.8, -12]], dtype=float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [1, 5, 6], [1, 6, 4], [4, 6, 7], [4, 7, 2], [8, 9, 10]])
+    scene = Scene(v, f)
+    edges, st = cos_pvs(scene, WIDE, 64)
+    assert 6 in set(edges.tolist()) and "tjunction_cut" not in st
+    groups, st = cos_pvs(scene, WIDE, 64, fusion="groups")
+    assert st["tjunction_cut"] == 1
+    # In the scene's own ids: every wall triangle, not the target.
+    assert sorted(groups.tolist()) == [0, 1, 2, 3, 4, 5]
+    from visibility.ray_reference import ray_reference
+
+    got = ray_reference(scene, WIDE, n_eyes=64, n_dirs=64, aim=v[f[6:]], n_aim=256).ids
+    assert 6 not in set(got.tolist())
+
+
 def test_fusion_must_be_one_of_the_named_ways():
     with pytest.raises(ValueError, match="fusion"):
         cos_pvs(_scene(_quad(-1, 1, -1, 1, -3.0)), CELL, 16, fusion="all")
