@@ -891,10 +891,17 @@ def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, 
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     cand, stack, poly, pb = fuse
+    # Groups whose box, moved to the sub-pixel and grown for its directions, meets K's.
     m0 = 0
     for c in range(nc):
         g = cands[c]
         if g < 0:
+            continue
+        mm = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+        ex = mm * (abs(dx) + hs)
+        ey = mm * (abs(dy) + hs)
+        if (kb[1] < gbb[g, 0] - ex or kb[0] > gbb[g, 1] + ex or kb[3] < gbb[g, 2] - ey
+                or kb[2] > gbb[g, 3] + ey):
             continue
         cand[0, m0] = g
         cand[1, m0] = 0
@@ -903,7 +910,8 @@ def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, 
             break
     if m0 < 2:
         return False
-    # A corner of K inside no group's box (moved for the sub-pixel) lies in no covered part.
+    # A corner of K inside no group's box (moved for the sub-pixel) lies in no covered part,
+    # nor does its centroid outside every group's silhouette.
     for i in range(nk):
         inside = False
         for c in range(m0):
@@ -917,6 +925,13 @@ def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, 
                 break
         if not inside:
             return False
+    inside = False
+    for c in range(m0):
+        if _wind_in(cand[0, c], edges, wref, dx, dy, kb[4], kb[5]):
+            inside = True
+            break
+    if not inside:
+        return False
     px = poly[0]
     py = poly[1]
     tx = poly[2]
