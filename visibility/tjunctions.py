@@ -30,6 +30,10 @@ from visibility.topology import weld_vertices
 #: How far off an edge a corner may lie and count as on it: this many units in the last place
 #: of the largest coordinate magnitude of the edge and the corner.
 TOL_ULPS = 64.0
+#: Fewer seamed triangles than this share of the valid ones are left as they are: the cut scene
+#: is a scene of its own, whose hierarchy and closed parts are built again (a 1M-triangle
+#: interior with a handful of seams would solve without its hierarchy for a while).
+MIN_CUT_SHARE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,8 @@ def _along(v: np.ndarray, ids: np.ndarray, edges: np.ndarray, open_edge: np.ndar
 def split_t_junctions(scene: Scene) -> TSplit:
     """The scene with every valid static triangle cut at the welded corners that lie on its
     edges (module docstring); spheres, colours and objects carried over. A keyframed scene
-    is returned whole: a corner on an edge at rest need not stay on it."""
+    is returned whole: a corner on an edge at rest need not stay on it; so is one where fewer
+    than ``MIN_CUT_SHARE`` of the valid triangles hold a seam."""
     if scene.states is not None and len(scene.states) > 1:
         return TSplit(scene, None, 0)
     v = np.asarray(scene.vertices, dtype=np.float64)
@@ -170,6 +175,8 @@ def split_t_junctions(scene: Scene) -> TSplit:
     # Per face edge (3 per valid face): its points, in the face edge's own direction.
     fe_edge = inv.reshape(-1, 3)
     has = (starts[fe_edge + 1] - starts[fe_edge]).sum(axis=1) > 0
+    if has.sum() < MIN_CUT_SHARE * len(fv):
+        return TSplit(scene, None, 0)
     new_v = [v]
     nv = len(v)
     faces = [f[~np.isin(np.arange(len(f)), fv[has])]]

@@ -90,3 +90,15 @@ def test_keyframed_scenes_and_spheres():
     assert split.cut == 1
     assert np.array_equal(split.scene.sphere_centers, balls.sphere_centers)
     assert np.array_equal(split.scene.sphere_radii, balls.sphere_radii)
+
+
+def test_a_handful_of_seams_in_a_large_scene_is_left_alone():
+    # One seamed triangle among 2,006: under MIN_CUT_SHARE, the scene stays whole (a cut
+    # scene builds its hierarchy and closed parts again).
+    wall = _seamed_wall()
+    rng = np.random.default_rng(0)
+    far = rng.random((2000, 3, 3)) + np.array([100.0, 0.0, 0.0])
+    v = np.concatenate([wall.vertices, far.reshape(-1, 3)])
+    f = np.concatenate([wall.faces, 8 + np.arange(6000).reshape(-1, 3)])
+    assert split_t_junctions(Scene(v, f)).cut == 0
+    assert split_t_junctions(Scene(v[:8 + 600], f[:6 + 200])).cut == 1
