@@ -97,7 +97,7 @@ def test_a_handful_of_seams_in_a_large_scene_is_left_alone():
     # scene builds its hierarchy and closed parts again).
     wall = _seamed_wall()
     rng = np.random.default_rng(0)
-    far = rng.random((2000, 3, 3)) + np.array([100.0, 0.0, 0.0])
+    far = 100.0 * rng.random((2000, 1, 3)) + 0.1 * rng.random((2000, 3, 3)) + [200.0, 0, 0]
     v = np.concatenate([wall.vertices, far.reshape(-1, 3)])
     f = np.concatenate([wall.faces, 8 + np.arange(6000).reshape(-1, 3)])
     assert split_t_junctions(Scene(v, f)).cut == 0
