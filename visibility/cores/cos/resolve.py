@@ -876,6 +876,56 @@ def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx
     return wn >= 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _cells_start(stack, kb):  # pragma: no cover - numba
+    """Start a depth-first split of K's box ``kb`` into cells (``stack`` rows: x0, x1, y0,
+    y1, level): its root; the stack's new top."""
+    stack[0, 0] = kb[0]
+    stack[0, 1] = kb[1]
+    stack[0, 2] = kb[2]
+    stack[0, 3] = kb[3]
+    stack[0, 4] = 0.0
+    return 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_part(kx, ky, nk, stack, top, poly):  # pragma: no cover - numba
+    """K (``kx``, ``ky``, ``nk`` corners) clipped to the cell ``stack[top]``, into ``poly[0]``
+    and ``poly[1]`` (``poly[2]``, ``poly[3]`` scratch): its corner count, under 3 where the
+    cell holds no part of K of any area."""
+    px = poly[0]
+    py = poly[1]
+    tx = poly[2]
+    ty = poly[3]
+    for i in range(nk):
+        px[i] = kx[i]
+        py[i] = ky[i]
+    m = clip_halfplane(px, py, nk, -1.0, 0.0, -stack[top, 0], tx, ty)
+    m = clip_halfplane(tx, ty, m, 1.0, 0.0, stack[top, 1], px, py)
+    m = clip_halfplane(px, py, m, 0.0, -1.0, -stack[top, 2], tx, ty)
+    return clip_halfplane(tx, ty, m, 0.0, 1.0, stack[top, 3], px, py)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_split(stack, top, cell):  # pragma: no cover - numba
+    """Push the four quarters of ``cell`` (x0, x1, y0, y1, level), a level deeper; the stack's
+    new top."""
+    x0 = cell[0]
+    x1 = cell[1]
+    y0 = cell[2]
+    y1 = cell[3]
+    xm = 0.5 * (x0 + x1)
+    ym = 0.5 * (y0 + y1)
+    for q in range(4):
+        stack[top, 0] = x0 if q & 1 == 0 else xm
+        stack[top, 1] = xm if q & 1 == 0 else x1
+        stack[top, 2] = y0 if q & 2 == 0 else ym
+        stack[top, 3] = ym if q & 2 == 0 else y1
+        stack[top, 4] = cell[4] + 1.0
+        top += 1
+    return top
+
+
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, h, hs, dx,
                dy, wmin, kx, ky, nk, kb, fuse, work):  # pragma: no cover - numba
@@ -934,34 +984,19 @@ def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, 
         return False
     px = poly[0]
     py = poly[1]
-    tx = poly[2]
-    ty = poly[3]
-    top = 1
-    stack[0, 0] = kb[0]
-    stack[0, 1] = kb[1]
-    stack[0, 2] = kb[2]
-    stack[0, 3] = kb[3]
-    stack[0, 4] = 0.0
+    cell = poly[8]
+    top = _cells_start(stack, kb)
     cells = 0
     while top > 0:
         top -= 1
         cells += 1
         if cells > FUSE_CELLS:
             return False
-        x0 = stack[top, 0]
-        x1 = stack[top, 1]
-        y0 = stack[top, 2]
-        y1 = stack[top, 3]
-        lev = stack[top, 4]
-        for i in range(nk):
-            px[i] = kx[i]
-            py[i] = ky[i]
-        m = clip_halfplane(px, py, nk, -1.0, 0.0, -x0, tx, ty)
-        m = clip_halfplane(tx, ty, m, 1.0, 0.0, x1, px, py)
-        m = clip_halfplane(px, py, m, 0.0, -1.0, -y0, tx, ty)
-        m = clip_halfplane(tx, ty, m, 0.0, 1.0, y1, px, py)
+        m = _cell_part(kx, ky, nk, stack, top, poly)
         if m < 3:
             continue
+        for i in range(5):
+            cell[i] = stack[top, i]
         _k_box(px, py, m, pb)
         polygon_axes(px, py, m, pb, poly[4], poly[5], poly[6], poly[7])
         pb[6] = 1.0
@@ -983,17 +1018,9 @@ def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, 
                 break
         if covered:
             continue
-        if lev >= FUSE_DEPTH:
+        if cell[4] >= FUSE_DEPTH:
             return False
-        xm = 0.5 * (x0 + x1)
-        ym = 0.5 * (y0 + y1)
-        for q in range(4):
-            stack[top, 0] = x0 if q & 1 == 0 else xm
-            stack[top, 1] = xm if q & 1 == 0 else x1
-            stack[top, 2] = y0 if q & 2 == 0 else ym
-            stack[top, 3] = ym if q & 2 == 0 else y1
-            stack[top, 4] = lev + 1.0
-            top += 1
+        top = _cell_split(stack, top, cell)
     return True
 
 
@@ -1132,7 +1159,7 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
     a group whose triangles there lie in front of Q: Q is hidden. A part no group covers at
     the last level ends the test (Q is not found hidden). ``fuse`` holds the scratch:
     candidate ids and depth verdicts (int64 (2, FUSE_GROUPS)), the cell stack (FUSE_STACK,
-    5), the clipped polygon and its axes (8, FUSE_POLY) and its box (7,)."""
+    5), the clipped polygon, its axes and the cell at hand (9, FUSE_POLY) and its box (7,)."""
     cand, stack, poly, pb = fuse
     relax = qctx[QC_RELAX]
     # Groups near K, each with its depth test's verdict (0 not yet run, 1 in front of Q,
@@ -1173,14 +1200,8 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
     qctx[QC_RELAX] = 0.0
     px = poly[0]
     py = poly[1]
-    tx = poly[2]
-    ty = poly[3]
-    top = 1
-    stack[0, 0] = kb[0]
-    stack[0, 1] = kb[1]
-    stack[0, 2] = kb[2]
-    stack[0, 3] = kb[3]
-    stack[0, 4] = 0.0
+    cell = poly[8]
+    top = _cells_start(stack, kb)
     ok = True
     cells = 0
     while top > 0:
@@ -1189,22 +1210,11 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
         if cells > FUSE_CELLS:
             ok = False
             break
-        x0 = stack[top, 0]
-        x1 = stack[top, 1]
-        y0 = stack[top, 2]
-        y1 = stack[top, 3]
-        lev = stack[top, 4]
-        # K's part in the cell.
-        m = nk
-        for i in range(nk):
-            px[i] = kx[i]
-            py[i] = ky[i]
-        m = clip_halfplane(px, py, m, -1.0, 0.0, -x0, tx, ty)
-        m = clip_halfplane(tx, ty, m, 1.0, 0.0, x1, px, py)
-        m = clip_halfplane(px, py, m, 0.0, -1.0, -y0, tx, ty)
-        m = clip_halfplane(tx, ty, m, 0.0, 1.0, y1, px, py)
+        m = _cell_part(kx, ky, nk, stack, top, poly)
         if m < 3:
             continue  # no part of K of any area here
+        for i in range(5):
+            cell[i] = stack[top, i]
         _k_box(px, py, m, pb)
         covered = False
         for c in range(nc):
@@ -1227,18 +1237,10 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
                 break
         if covered:
             continue
-        if lev >= FUSE_DEPTH:
+        if cell[4] >= FUSE_DEPTH:
             ok = False
             break
-        xm = 0.5 * (x0 + x1)
-        ym = 0.5 * (y0 + y1)
-        for q in range(4):
-            stack[top, 0] = x0 if q & 1 == 0 else xm
-            stack[top, 1] = xm if q & 1 == 0 else x1
-            stack[top, 2] = y0 if q & 2 == 0 else ym
-            stack[top, 3] = ym if q & 2 == 0 else y1
-            stack[top, 4] = lev + 1.0
-            top += 1
+        top = _cell_split(stack, top, cell)
     qctx[QC_RELAX] = relax
     return ok
 
@@ -1635,7 +1637,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
      eslot, eready, sstate, enext, tseen, tset, work) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
-            np.empty((8, FUSE_POLY)), np.empty(7))
+            np.empty((9, FUSE_POLY)), np.empty(7))
     # The sub-pixels' scratch (``_refined_hide``): Q's and the camera rectangle's images, K,
     # its geometry, the walk's stack and the candidate groups.
     sub = (np.empty((8, 2)), np.empty(8), np.empty((4, 2)), np.empty(4), np.empty(MAX_POLY),
