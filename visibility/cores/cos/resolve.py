@@ -877,6 +877,52 @@ def _covers_sub(g, edges, gbb, gwlo, gwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _fused_start(live, lpos, n_live, gbb, gwlo, gwhi, edges, wref, hs, dx, dy, kx, ky, nk,
+                 kb, cand):  # pragma: no cover - numba
+    """The live groups ``_fused_hide`` and ``_fused_sub`` take together, into ``cand`` (ids,
+    depth verdicts 0), and how many (0: the test cannot pass). At directions ``(dx, dy)`` off
+    the pixel's centre, ``hs`` half-wide (the pixel: 0, 0, h), a group can cover a part of K
+    only if its box, moved and grown for those directions, meets K's (``kb``); at most
+    ``FUSE_GROUPS`` are taken. A corner of K inside no group's moved box, or a centroid
+    inside no group's silhouette there, lies in no covered part."""
+    nc = 0
+    for c in range(n_live):
+        g = live[c]
+        if lpos[g] != c:
+            continue
+        m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+        ex = m * (abs(dx) + hs)
+        ey = m * (abs(dy) + hs)
+        if (kb[1] < gbb[g, 0] - ex or kb[0] > gbb[g, 1] + ex or kb[3] < gbb[g, 2] - ey
+                or kb[2] > gbb[g, 3] + ey):
+            continue
+        cand[0, nc] = g
+        cand[1, nc] = 0
+        nc += 1
+        if nc == FUSE_GROUPS:
+            break
+    if nc < 2:
+        return 0
+    for i in range(nk):
+        inside = False
+        for c in range(nc):
+            g = cand[0, c]
+            m = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
+            ex = m * abs(dx)
+            ey = m * abs(dy)
+            if (gbb[g, 0] - ex <= kx[i] <= gbb[g, 1] + ex
+                    and gbb[g, 2] - ey <= ky[i] <= gbb[g, 3] + ey):
+                inside = True
+                break
+        if not inside:
+            return 0
+    for c in range(nc):
+        if _wind_in(cand[0, c], edges, wref, dx, dy, kb[4], kb[5]):
+            return nc
+    return 0
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _cells_start(stack, kb):  # pragma: no cover - numba
     """Start a depth-first split of K's box ``kb`` into cells (``stack`` rows: x0, x1, y0,
     y1, level): its root; the stack's new top."""
@@ -927,60 +973,21 @@ def _cell_split(stack, top, cell):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _fused_sub(cands, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, h, hs, dx,
-               dy, wmin, kx, ky, nk, kb, fuse, work):  # pragma: no cover - numba
-    """``_fused_hide`` at a sub-pixel of ``_refined_hide``: whether the live groups among
-    ``cands`` (coveralls left out: one that passed the depth test would have hidden the
-    sub-pixel alone) hide Q together over the sub-pixel's K (``kx``, ``ky``, ``kb``; its
-    centre ``(dx, dy)`` off the pixel's, half-width ``hs``). Each cell of K's box, split
-    depth first, must be covered by one group at the sub-pixel (``_covers_sub``: edges moved
-    to its centre and grown for its width) that passes the depth test over the sub-pixel's
-    K (``_hides``, run once per group). Abutting or barely overlapping surfaces (a wall and
-    the one behind its end) overlap in the offset space by less than a pixel's capsules:
-    a sub-pixel's are that much thinner."""
+def _fused_sub(live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, h,
+               hs, dx, dy, wmin, kx, ky, nk, kb, fuse, work):  # pragma: no cover - numba
+    """``_fused_hide`` at a sub-pixel of ``_refined_hide``: whether live groups hide Q together
+    over the sub-pixel's K (``kx``, ``ky``, ``kb``; its centre ``(dx, dy)`` off the pixel's,
+    half-width ``hs``). Each cell of K's box, split depth first, must be covered by one group
+    at the sub-pixel (``_covers_sub``: edges moved to its centre and grown for its width)
+    that passes the depth test over the sub-pixel's K (``_hides``, run once per group).
+    Abutting or barely overlapping surfaces (a wall and the one behind its end) overlap in
+    the offset space by less than a pixel's capsules: a sub-pixel's are that much thinner."""
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     cand, stack, poly, pb = fuse
-    # Groups whose box, moved to the sub-pixel and grown for its directions, meets K's.
-    m0 = 0
-    for c in range(nc):
-        g = cands[c]
-        if g < 0:
-            continue
-        mm = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
-        ex = mm * (abs(dx) + hs)
-        ey = mm * (abs(dy) + hs)
-        if (kb[1] < gbb[g, 0] - ex or kb[0] > gbb[g, 1] + ex or kb[3] < gbb[g, 2] - ey
-                or kb[2] > gbb[g, 3] + ey):
-            continue
-        cand[0, m0] = g
-        cand[1, m0] = 0
-        m0 += 1
-        if m0 == FUSE_GROUPS:
-            break
-    if m0 < 2:
-        return False
-    # A corner of K inside no group's box (moved for the sub-pixel) lies in no covered part,
-    # nor does its centroid outside every group's silhouette.
-    for i in range(nk):
-        inside = False
-        for c in range(m0):
-            g = cand[0, c]
-            mm = max(abs(gwlo[g] - wref), abs(gwhi[g] - wref))
-            ex = mm * abs(dx)
-            ey = mm * abs(dy)
-            if (gbb[g, 0] - ex <= kx[i] <= gbb[g, 1] + ex
-                    and gbb[g, 2] - ey <= ky[i] <= gbb[g, 3] + ey):
-                inside = True
-                break
-        if not inside:
-            return False
-    inside = False
-    for c in range(m0):
-        if _wind_in(cand[0, c], edges, wref, dx, dy, kb[4], kb[5]):
-            inside = True
-            break
-    if not inside:
+    m0 = _fused_start(live, lpos, n_live, gbb, gwlo, gwhi, edges, wref, hs, dx, dy, kx, ky,
+                      nk, kb, cand)
+    if m0 == 0:
         return False
     px = poly[0]
     py = poly[1]
@@ -1109,8 +1116,9 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
                 first = c
                 break
         if not hidden and fuse_on:
-            hidden = _fused_sub(cand, nc, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol,
-                                wref, h, hs, dx, dy, wmin, kx, ky, nk, kb, fuse, work)
+            hidden = _fused_sub(live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam, n,
+                                wcam, tol, wref, h, hs, dx, dy, wmin, kx, ky, nk, kb, fuse,
+                                work)
         if hidden:
             continue
         if lev >= levels:
@@ -1162,40 +1170,11 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
     5), the clipped polygon, its axes and the cell at hand (9, FUSE_POLY) and its box (7,)."""
     cand, stack, poly, pb = fuse
     relax = qctx[QC_RELAX]
-    # Groups near K, each with its depth test's verdict (0 not yet run, 1 in front of Q,
-    # -1 not): run only for a group that covers some part, since most near K never do.
-    nc = 0
-    for c in range(n_live):
-        g = live[c]
-        if lpos[g] != c or not _near_k(g, gbb, gwlo, gwhi, wref, h, kb):
-            continue
-        cand[0, nc] = g
-        cand[1, nc] = 0
-        nc += 1
-        if nc == FUSE_GROUPS:
-            break
-    if nc < 2:
-        return False
-    # A point of K that lies inside no group (at delta 0) lies in no covered part, so Q is
-    # not hidden: K's corners against the groups' boxes, then its centroid against their
-    # silhouettes, before any split.
-    for i in range(nk):
-        inside = False
-        for c in range(nc):
-            g = cand[0, c]
-            if gbb[g, 0] <= kx[i] <= gbb[g, 1] and gbb[g, 2] <= ky[i] <= gbb[g, 3]:
-                inside = True
-                break
-        if not inside:
-            return False
-    inside = False
-    for c in range(nc):
-        g = cand[0, c]
-        if (gbb[g, 0] <= kb[4] <= gbb[g, 1] and gbb[g, 2] <= kb[5] <= gbb[g, 3]
-                and _wind_in(g, edges, wref, 0.0, 0.0, kb[4], kb[5])):
-            inside = True
-            break
-    if not inside:
+    # cand[1] holds each group's depth verdict (0 not yet run, 1 in front of Q, -1 not): run
+    # only for a group that covers some part, since most near K never do.
+    nc = _fused_start(live, lpos, n_live, gbb, gwlo, gwhi, edges, wref, h, 0.0, 0.0, kx, ky,
+                      nk, kb, cand)
+    if nc == 0:
         return False
     qctx[QC_RELAX] = 0.0
     px = poly[0]
