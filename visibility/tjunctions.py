@@ -18,6 +18,7 @@ Conventions: Y-up, right-handed, metres; triangle ids are row indices of ``scene
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from visibility.scene import Scene
 from visibility.scene_cache import per_scene
-from visibility.topology import weld_vertices
+from visibility.topology import build_edges, scene_welded_ids
 
 #: How far off an edge a corner may lie and count as on it: this many units in the last place
 #: of the largest coordinate magnitude of the edge and the corner.
@@ -43,12 +44,17 @@ class TSplit:
     scene : the cut scene (the given one itself when it has none).
     source : (m',) int64 id of the original triangle each triangle of ``scene`` comes from
         (None when nothing was cut).
-    cut : triangles cut.
     """
 
     scene: Scene
     source: np.ndarray | None
-    cut: int
+
+    @property
+    def cut(self) -> int:
+        """Triangles of the original scene that were cut (each into 4 or more)."""
+        if self.source is None:
+            return 0
+        return int(np.count_nonzero(np.bincount(self.source) > 1))
 
 
 def edge_points(vertices: np.ndarray, edges: np.ndarray, ids: np.ndarray,
@@ -142,87 +148,59 @@ def split_t_junctions(scene: Scene) -> TSplit:
     is returned whole: a corner on an edge at rest need not stay on it; so is one where fewer
     than ``MIN_CUT_SHARE`` of the valid triangles hold a seam."""
     if scene.states is not None and len(scene.states) > 1:
-        return TSplit(scene, None, 0)
+        return TSplit(scene, None)
     v = np.asarray(scene.vertices, dtype=np.float64)
     f = np.asarray(scene.faces, dtype=np.int64)
-    valid = np.asarray(scene.valid_faces, dtype=bool)
-    ids = weld_vertices(v)
-    fv = np.flatnonzero(valid)
-    # Each valid face's three edges, undirected by welded ids, found once each.
-    corners = f[fv]
-    fe = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2)
-    wid = ids[fe]
-    lo = np.minimum(wid[:, 0], wid[:, 1])
-    hi = np.maximum(wid[:, 0], wid[:, 1])
-    key, first, inv = np.unique(lo * (int(ids.max()) + 1) + hi, return_index=True,
-                                return_inverse=True)
-    undirected = fe[first]
-    # A seam fusion cannot cross: an open edge (one triangle holds it) with the end of
-    # another open edge on it. A corner touching an edge two triangles share (a building's
-    # corner on a roof's ridge) leaves no silhouette to close, and cutting there only adds
-    # triangles.
-    open_edge = np.bincount(inv, minlength=len(undirected)) == 1
-    ends = np.zeros(int(ids.max()) + 1, dtype=bool)
-    ends[ids[undirected[open_edge]].ravel()] = True
+    ids, _ = scene_welded_ids(scene)
+    fv = np.flatnonzero(np.asarray(scene.valid_faces, dtype=bool))
+    edges = build_edges(v, f, fv, ids)
+    # A seam fusion cannot cross: an open edge (one triangle holds it, in its own direction:
+    # ``Edges.vert``) with the end of another open edge on it, running along it. A corner
+    # touching an edge two triangles share (a building's corner on a roof's ridge) leaves no
+    # silhouette to close, and cutting there only adds triangles.
+    open_edge = edges.face[:, 1] < 0
+    ends = np.zeros(int(ids.max()) + 1 if len(ids) else 0, dtype=bool)
+    ends[ids[edges.vert[open_edge]].ravel()] = True
     rows = np.flatnonzero(open_edge)
-    e, point, t = edge_points(v, undirected[rows], ids, ends)
+    e, point, t = edge_points(v, edges.vert[rows], ids, ends)
     e = rows[e]
-    keep = _along(v, ids, undirected, open_edge, e, point)
+    keep = _along(v, ids, edges.vert, open_edge, e, point)
     e, point, t = e[keep], point[keep], t[keep]
-    if len(e) == 0:
-        return TSplit(scene, None, 0)
-    starts = np.searchsorted(e, np.arange(len(undirected) + 1))
-    # Per face edge (3 per valid face): its points, in the face edge's own direction.
-    fe_edge = inv.reshape(-1, 3)
-    has = (starts[fe_edge + 1] - starts[fe_edge]).sum(axis=1) > 0
-    if has.sum() < MIN_CUT_SHARE * len(fv):
-        return TSplit(scene, None, 0)
-    new_v = [v]
-    nv = len(v)
-    faces = [f[~np.isin(np.arange(len(f)), fv[has])]]
-    src = [np.flatnonzero(~np.isin(np.arange(len(f)), fv[has]))]
-    out_f: list[list[int]] = []
-    out_s: list[int] = []
-    cents = []
-    for row in np.flatnonzero(has):
-        tri = corners[row]
-        poly: list[int] = []
-        for k in range(3):
-            ue = fe_edge[row, k]
-            poly.append(int(tri[k]))
-            s0, s1 = starts[ue], starts[ue + 1]
-            if s1 == s0:
-                continue
-            pts = point[s0:s1]
-            # The undirected edge runs from ``undirected[ue, 0]``; reverse when this face's
-            # edge runs the other way.
-            if ids[undirected[ue, 0]] != ids[tri[k]]:
-                pts = pts[::-1]
-            poly.extend(int(x) for x in pts)
-        c = nv + len(cents)
-        cents.append(v[tri].mean(axis=0))
-        face_id = int(fv[row])
-        for j in range(len(poly)):
-            out_f.append([poly[j], poly[(j + 1) % len(poly)], c])
-            out_s.append(face_id)
-    new_v.append(np.asarray(cents).reshape(-1, 3))
-    faces.append(np.asarray(out_f, dtype=np.int64).reshape(-1, 3))
-    src.append(np.asarray(out_s, dtype=np.int64))
-    faces_all = np.concatenate(faces)
-    src_all = np.concatenate(src)
-    cut = Scene(vertices=np.concatenate(new_v), faces=faces_all,
-                object_ids=np.asarray(scene.object_ids)[src_all],
-                colors=np.asarray(scene.colors)[src_all], name=scene.name,
+    face = edges.face[e, 0]
+    cut = np.unique(face)
+    if len(cut) == 0 or len(cut) < MIN_CUT_SHARE * len(fv):
+        return TSplit(scene, None)
+    # Each cut triangle's outline: its corners at 0, 1, 2 and the points on its edge k at
+    # k + t (t runs along the triangle's own direction of that edge), fanned from a new
+    # vertex at its centroid.
+    corner = f[cut]
+    slot = np.searchsorted(cut, face)
+    k = np.argmax(ids[corner[slot]] == ids[edges.vert[e, 0]][:, None], axis=1)
+    owner = np.concatenate([np.repeat(np.arange(len(cut)), 3), slot])
+    key = np.concatenate([np.tile([0.0, 1.0, 2.0], len(cut)), k + t])
+    vert = np.concatenate([corner.ravel(), point])
+    order = np.lexsort((key, owner))
+    owner, vert = owner[order], vert[order]
+    start = np.searchsorted(owner, np.arange(len(cut)))
+    size = np.diff(np.append(start, len(owner)))
+    nxt = np.arange(len(owner)) + 1
+    last = start + size - 1
+    nxt[last] = start
+    fan = np.stack([vert, vert[nxt], len(v) + owner], axis=1)
+    kept = np.setdiff1d(np.arange(len(f)), cut)
+    src = np.concatenate([kept, cut[owner]])
+    out = Scene(vertices=np.concatenate([v, v[corner].mean(axis=1)]),
+                faces=np.concatenate([f[kept], fan]),
+                object_ids=np.asarray(scene.object_ids)[src],
+                colors=np.asarray(scene.colors)[src], name=scene.name,
                 sphere_centers=scene.sphere_centers, sphere_radii=scene.sphere_radii,
                 sphere_colors=scene.sphere_colors, walk=scene.walk,
                 object_names=scene.object_names, meta=dict(scene.meta))
-    return TSplit(cut, src_all, int(has.sum()))
+    return TSplit(out, src)
 
 
 def scene_t_split(scene: Scene) -> tuple[TSplit, float]:
     """``split_t_junctions`` cached per scene object; (split, seconds spent now)."""
-    import time
-
     t0 = time.perf_counter()
     split, built = per_scene(scene, "topology/tsplit", split_t_junctions)
     return split, (time.perf_counter() - t0) if built else 0.0
