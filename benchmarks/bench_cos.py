@@ -116,7 +116,7 @@ def _row(label, scene, box, resolution, ref, keep: dict[str, Any] | None = None,
            "early_z_cut": st.get("early_z_cut", 0), "fill_cut": st.get("fill_cut", 0),
            "silhouette_edges": st.get("silhouette_edges", 0),
            "plane_tests": st.get("plane_tests", 0), "fusion": st.get("fusion", ""),
-           "fused": st.get("fused", 0),
+           "fused": st.get("fused", 0), "front_parts": st.get("front_parts", 0),
            "cycles": {k: st.get(f"cycles_{k}", 0)
                       for k in ("resolve", "test", "insert", "coverall", *CYCLE_PARTS)},
            "occluder_triangles": st.get("occluder_triangles", 0),
@@ -348,7 +348,8 @@ def _reading(speed_rows, fp_rows) -> list[str]:
                 + (f", {r['silhouette_edges']:,} silhouette edges walked and "
                    f"{r['plane_tests']:,} occluder triangles depth-tested to resolve them"
                    if r.get("silhouette_edges") else "") + _cycle_split(r)
-                + (f"; {r['fused']:,} entries hidden by separate groups together"
+                + (f"; {r['fused']:,} entries hidden by separate groups together, "
+                   f"{r.get('front_parts', 0):,} by a group's part in front of them"
                    if r.get("fusion") == "groups" else "; the paper's fusion (edges only)")
                 + f"; FN {r['fn_count']}, overestimation "
                 f"{100 * r['overestimation']:.0f} % (paper: 20-90 %)." + _costliest(r))

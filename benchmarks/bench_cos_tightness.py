@@ -168,7 +168,9 @@ def run_scene(name: str, size: float, resolutions: list[int], eyes: int, most: i
         runs[label] = {"core": "cos", "resolution": r, "cover": cover, "subcells": subcells,
                        "fusion": fusion, "refine": refine, "ids": ids, "seconds": seconds,
                        "list_entries": int(stats["list_entries"]),
-                       "fused": int(stats["fused"]), "refined": int(stats["refined"]),
+                       "fused": int(stats["fused"]),
+                       "front_parts": int(stats.get("front_parts", 0)),
+                       "refined": int(stats["refined"]),
                        "subpixels": int(stats["subpixels"]),
                        "tjunction_cut": int(stats.get("tjunction_cut", 0)),
                        **{k: int(stats[k]) for k in ("walks_seen", "subpixels_seen")}}
@@ -377,7 +379,8 @@ def _md(results: list[dict[str, Any]], args: argparse.Namespace, argv: list[str]
             "hide together (fusion groups) takes it to "
             + ", ".join(f"{r['ratio']:.2f}x {_options(r)} "
                         f"({r['seconds'] / max(plain['seconds'], 1e-9):.1f}x the time, "
-                        f"{r['fused']:,} entries hidden that way)" for r in grp)
+                        f"{r['fused']:,} entries hidden that way, "
+                        f"{r['front_parts']:,} by a group's part in front)" for r in grp)
             + ". Testing occludees no group hides over a whole pixel again at its sub-pixels "
             "(refine) takes it to "
             + ", ".join(f"{r['ratio']:.2f}x ({r['run'].split(' px, ', 1)[1]}, "

@@ -39,6 +39,7 @@ from visibility.cores.cos.prims import (
 from visibility.cores.cos.resolve import (
     CYCLE_PART0,
     CYCLE_PARTS,
+    FRONT_PARTS,
     N_COUNTERS,
     REFINE_LEVELS,
     TIME_STRIDE,
@@ -451,6 +452,8 @@ def _cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         and ``culled`` (footprints projected over the 30 views, and those the hierarchy walk
         spared: primitives no ray of the view meets), ``fusion`` (the one used) and
         ``fused`` (entries hidden by separate groups together, ``fusion="groups"``),
+        ``front_parts`` (entries hidden by the part of a group in front of them, where the
+        whole group failed the depth test: ``fusion="groups"``),
         ``refined`` and ``subpixels`` (entries hidden at sub-pixels, and sub-pixels
         resolved: ``refine``, and the busy tiles' sub-samples), ``walks_seen`` and
         ``subpixels_seen`` (the entries whose sub-pixel walk ended with them seen, and the
@@ -504,7 +507,7 @@ def _cos_pvs(scene: Scene, box: np.ndarray, resolution: int,
         "occluded": 0, "occluder_triangles": 0, "inside_box": int(inbox.sum()),
         "views": len(views), "pixels": int(sum(v.n_pixels for v in views)),
         "resolution": int(resolution), "list_runs": 0, "early_z_cut": 0,
-        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0,
+        "silhouette_edges": 0, "plane_tests": 0, "fill_cut": 0, "fused": 0, "front_parts": 0,
         "refined": 0, "subpixels": 0, "walks_seen": 0, "subpixels_seen": 0,
         "leaf_skipped": 0, "leaf_tests": 0, "leaf_hidden": 0,
         "fusion": "groups" if fuse else "edges",
@@ -870,7 +873,8 @@ def _solve_view(prims: Prims, solid: np.ndarray, order: np.ndarray, sel: np.ndar
     stats["block_cycles"] += int(counters[sampled, 9].sum())
     stats["block_tested"] += int(counters[sampled, 0].sum())
     for name, col in (("occluded", 1), ("occluder_triangles", 2), ("early_z_cut", 3),
-                      ("fused", 10), ("refined", 11), ("subpixels", 12),
+                      ("fused", 10), ("front_parts", FRONT_PARTS), ("refined", 11),
+                      ("subpixels", 12),
                       ("leaf_skipped", 13), ("leaf_tests", 14), ("leaf_hidden", 15),
                       ("walks_seen", WALK0), ("subpixels_seen", WALK0 + 1)):
         stats[name] += int(counters[:, col].sum())

@@ -183,6 +183,10 @@ class ShareScratch(NamedTuple):
     tseen, tset : primitives found visible at an earlier pixel of the tile (a bit each), and
         the ids set, cleared after the tile.
     work : (N_WORK,) int64 per-tile counters the helpers add to (``resolve.N_WORK``).
+    opart : (lmax, 3) int64 per occluder edge, the edge 3 r + f it was fused with (-1: none).
+    obad, part, pbb, pwlo, pwhi : a group's part in front of the occludee
+        (``resolve._front_part``, separate groups only): the triangles left out, the part's
+        silhouette as a one-block ``EdgePool`` (group 0), its COS box and depth range.
     """
 
     cam: np.ndarray
@@ -252,3 +256,9 @@ class ShareScratch(NamedTuple):
     tseen: np.ndarray
     tset: np.ndarray
     work: np.ndarray
+    opart: np.ndarray
+    obad: np.ndarray
+    part: EdgePool
+    pbb: np.ndarray
+    pwlo: np.ndarray
+    pwhi: np.ndarray

@@ -377,6 +377,70 @@ def _seg_off_triangle(ax, ay, bx, by, qctx):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cross_moved(ax, ay, aw, bx, by, bw, dx, dy):  # pragma: no cover - numba
+    """Cross product of two COS vectors (ax, ay) and (bx, by), of depth differences aw and bw,
+    seen at delta (dx, dy) off the pixel's centre: each moves by -depth x delta. It is linear
+    in the delta (the products of two delta terms cancel)."""
+    return (ax - aw * dx) * (by - bw * dy) - (ay - aw * dy) * (bx - bw * dx)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _corner_out(ax, ay, wa, bx, by, wb, qctx):  # pragma: no cover - numba
+    """Whether edge ab, one of whose end points is a corner V of Q (the same COS point and
+    depth), leaves Q's image at V outwards under every delta of the pixel: its image never
+    enters Q's, whatever the delta (a column's side edge below the corner of its top).
+
+    At delta d a vector of COS offset (x, y) and depth difference w is seen as (x, y) - w d,
+    so the cross products of the edge's direction with Q's two edges at V, and of those two,
+    are linear in d: their signs at the pixel's four corner deltas bound them over all of
+    it. Q's corner spans the cone of its two edges (a constant orientation, else no answer);
+    the edge stays out of the cone's interior where one cross product with it is never
+    positive in that orientation, and then out of Q's image, a triangle inside the cone.
+    Exact end points only, and a margin against rounding: a near miss is left to the other
+    tests."""
+    h = qctx[QC_H]
+    for end in range(2):
+        px, py, pw = (ax, ay, wa) if end == 0 else (bx, by, wb)
+        ex, ey, ew = (bx - ax, by - ay, wb - wa) if end == 0 else (ax - bx, ay - by, wa - wb)
+        for c in range(3):
+            if (px != qctx[QC_V + 2 * c] or py != qctx[QC_V + 2 * c + 1]
+                    or pw != qctx[QC_W + c]):
+                continue
+            c1 = (c + 1) % 3
+            c2 = (c + 2) % 3
+            ux = qctx[QC_V + 2 * c1] - px
+            uy = qctx[QC_V + 2 * c1 + 1] - py
+            uw = qctx[QC_W + c1] - pw
+            vx = qctx[QC_V + 2 * c2] - px
+            vy = qctx[QC_V + 2 * c2 + 1] - py
+            vw = qctx[QC_W + c2] - pw
+            lu = abs(ux) + abs(uy) + abs(uw) * h
+            lv = abs(vx) + abs(vy) + abs(vw) * h
+            le = abs(ex) + abs(ey) + abs(ew) * h
+            tol = 1e-9
+            o_pos = True
+            o_neg = True
+            for k in range(4):
+                dx = h if k & 1 else -h
+                dy = h if k & 2 else -h
+                o = _cross_moved(ux, uy, uw, vx, vy, vw, dx, dy)
+                o_pos = o_pos and o > tol * lu * lv
+                o_neg = o_neg and o < -tol * lu * lv
+            if not (o_pos or o_neg):
+                return False
+            sg = 1.0 if o_pos else -1.0
+            out_u = True
+            out_v = True
+            for k in range(4):
+                dx = h if k & 1 else -h
+                dy = h if k & 2 else -h
+                out_u = out_u and sg * _cross_moved(ux, uy, uw, ex, ey, ew, dx, dy) < -tol * lu * le
+                out_v = out_v and sg * _cross_moved(ex, ey, ew, vx, vy, vw, dx, dy) < -tol * lv * le
+            return out_u or out_v
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _on_q_plane(x, y, w, qctx):  # pragma: no cover - numba
     """Whether the camera-space point (x, y, w) lies in Q's plane (within its tolerance)."""
     d = (qctx[QC_PLANE] * x + qctx[QC_PLANE + 1] * y + qctx[QC_PLANE + 2] * w
@@ -570,6 +634,8 @@ def _covers_q(g, edges, gbb, gwlo, gwhi, wref, h, kx, ky, nk, kb, knx, kny,
                     and _on_q_plane(bx + wb * sx, by + wb * sy, wb, qctx)
                     and _seg_off_triangle(ax, ay, bx, by, qctx)):
                 relaxed = True
+            elif _corner_out(ax, ay, wa, bx, by, wb, qctx):
+                relaxed = True
             else:
                 fr = qctx[QC_FRAME]
                 rad0 = max(abs(wa - fr), abs(wb - fr)) * h
@@ -670,9 +736,11 @@ STOP_EVERY = 256
 #: ``WALK0``, the sub-pixel walks (``_refined_hide``, at sub-pixels and busy tiles'
 #: sub-samples) that ended with the entry seen, and the sub-pixels those resolved (the
 #: others ended with it hidden: the entries hidden at sub-pixels).
-N_COUNTERS = 25
+N_COUNTERS = 26
 CYCLE_PART0 = 16
 WALK0 = 23
+#: Column of the entries hidden by a group's part in front of them (``_front_part``).
+FRONT_PARTS = 25
 #: Per-tile counters the helpers add to (``ShareScratch.work``).
 N_WORK = 8
 CYCLE_PARTS = ("test_region", "test_groups", "test_subpixels", "test_leaf", "insert_setup",
@@ -824,6 +892,93 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
                 return False
             k = pool[3 + 2 * k]
     return True
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx, kny, klo, khi, qcam,
+                nq, wq, wcam, tol, nrp, rv, work):  # pragma: no cover - numba
+    """Whether the part of group g in front of Q covers K on its own: g covers K but failed
+    the depth test (``_hides``), some of its triangles that can reach K lying behind Q (a
+    column's far side behind its top, seen from below, where the near sides hide the top).
+
+    The part is g less those triangles (``_front_of``): every triangle left can reach no ray
+    that meets Q or is in front of Q along it. Its silhouette is g's active edges of the
+    triangles left and the edges they were fused along with the ones left out
+    (``ShareScratch.opart``); a subset of a group is oriented as the group is, so the winding
+    argument of ``_covers_q`` holds for it as it is, and the part, written as the one block
+    of a scratch ``EdgePool``, takes the same cover test: the pixel's (``_covers_q``) with
+    ``hs`` 0, a sub-pixel's of half-width ``hs`` centred ``(dx, dy)`` off the pixel's
+    (``_covers_sub``) otherwise; the depth test is the pixel's. ``occ``: the occluders (as
+    ``_refined_hide``'s); ``front``: (ow, oact, opart, obad, part, pbb, pwlo, pwhi) of
+    ``groups.ShareScratch`` and ``_covers_q``'s (rpoly, rpb, ws, wpt)."""
+    head, nxt, obb, owr, ouse, oplane, ov = occ[0], occ[1], occ[2], occ[3], occ[4], occ[5], occ[6]
+    qctx = occ[14]
+    ow, oact, opart, obad, part, pbb, pwlo, pwhi, rpoly, rpb, ws, wpt = front
+    n_out = 0
+    n_all = 0
+    r = head[g]
+    while r >= 0:
+        out = not _front_of(r, obb, owr, ouse, oplane, wref, h, kb[0], kb[1], kb[2], kb[3],
+                            qcam, nq, ov, qctx, wq, wcam, tol, work)
+        obad[r] = out
+        n_out += 1 if out else 0
+        n_all += 1
+        r = nxt[r]
+    hidden = False
+    if 0 < n_out < n_all:
+        geo = part.geo
+        m = 0
+        x0 = np.inf
+        x1 = -np.inf
+        y0 = np.inf
+        y1 = -np.inf
+        w0 = np.inf
+        w1 = -np.inf
+        r = head[g]
+        while r >= 0:
+            if not obad[r]:
+                for e in range(3):
+                    pe = opart[r, e]
+                    if oact[r, e] or (pe >= 0 and obad[pe // 3]):
+                        b = (e + 1) % 3
+                        geo[m, 0] = ov[r, e, 0]
+                        geo[m, 1] = ov[r, e, 1]
+                        geo[m, 2] = ov[r, b, 0]
+                        geo[m, 3] = ov[r, b, 1]
+                        geo[m, 4] = ow[r, e]
+                        geo[m, 5] = ow[r, b]
+                        part.node[m] = m
+                        part.pos[m] = m
+                        m += 1
+                x0 = min(x0, obb[r, 0])
+                x1 = max(x1, obb[r, 1])
+                y0 = min(y0, obb[r, 2])
+                y1 = max(y1, obb[r, 3])
+                w0 = min(w0, owr[r, 0])
+                w1 = max(w1, owr[r, 1])
+            r = nxt[r]
+        part.start[0] = 0
+        part.length[0] = m
+        part.cap[0] = m
+        pbb[0, 0] = x0
+        pbb[0, 1] = x1
+        pbb[0, 2] = y0
+        pbb[0, 3] = y1
+        pwlo[0] = w0
+        pwhi[0] = w1
+        if m == 0:
+            hidden = False
+        elif hs == 0.0:
+            hidden = _covers_q(0, part, pbb, pwlo, pwhi, wref, h, kx, ky, nk, kb, knx, kny,
+                               klo, khi, qctx, rpoly, nrp, rpb, rv, ws, wpt, work)
+        else:
+            hidden = _covers_sub(0, part, pbb, pwlo, pwhi, wref, hs, dx, dy, kx, ky, nk, kb,
+                                 knx, kny, klo, khi, work)
+    r = head[g]
+    while r >= 0:
+        obad[r] = False
+        r = nxt[r]
+    return hidden
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1038,8 +1193,8 @@ REFINE_STACK = 3 * REFINE_LEVELS + 4
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam,
-                  n, tri, corners, sx, sy, h, wref, wmin, wcam, tol, kb0, sub,
+def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, front,
+                  cam, n, tri, corners, sx, sy, h, wref, wmin, wcam, tol, kb0, sub,
                   work, fuse_on, fuse):  # pragma: no cover - numba
     """Whether Q, which no group hides over the whole pixel, is hidden at every one of its
     sub-pixels, split in 2 x 2 down to ``levels`` levels (depth first; a sub-pixel hidden
@@ -1112,6 +1267,11 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
                 continue
             if _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, shead,
                       pool, pdep, dom, wcam, tol, wref, h, kb, cam, n, wmin, ov, qctx, work):
+                hidden = True
+                first = c
+                break
+            if fuse_on and _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx,
+                                       kny, klo, khi, cam, n, wmin, wcam, tol, 0, rv, work):
                 hidden = True
                 first = c
                 break
@@ -1478,11 +1638,13 @@ def _leaf_hidden(lf, g, coverall, leaf_pts, origin, perm, sign, sx, sy, h, corne
 
 
 @njit(cache=True, nogil=True)
-def _share_scratch(lmax, tmax, imax, n_known):
+def _share_scratch(lmax, tmax, imax, n_known, fuse):
     """The scratch arrays of one share of ``resolve_tiles`` (``groups.ShareScratch``, owners),
     for lists of at most ``lmax`` entries, tiles of at most ``tmax`` entries and ``imax``
-    items, and ``n_known`` primitives."""
+    items, and ``n_known`` primitives; ``fuse``: whether separate groups hide (the front
+    parts' scratch, ``_front_part``, is sized for a whole pixel's occluders only then)."""
     nslot = lmax // GRID_MIN + 2
+    proom = 3 * lmax if fuse else 1
     hcap = 8  # the edge hash at most half full
     while hcap < 6 * imax:
         hcap *= 2
@@ -1520,7 +1682,13 @@ def _share_scratch(lmax, tmax, imax, n_known):
         sstate=np.full((3 * imax, 2), -1, dtype=np.int64),
         enext=np.empty(3 * lmax, dtype=np.int64),
         tseen=np.zeros((n_known + 7) // 8, dtype=np.uint8), tset=np.empty(tmax, dtype=np.int64),
-        work=np.zeros(N_WORK, dtype=np.int64))
+        work=np.zeros(N_WORK, dtype=np.int64),
+        opart=np.empty((lmax, 3), dtype=np.int64), obad=np.zeros(lmax, dtype=np.bool_),
+        part=EdgePool(geo=np.empty((proom, 6)), node=np.empty(proom, dtype=np.int64),
+                      pos=np.empty(proom, dtype=np.int64), start=np.zeros(1, dtype=np.int64),
+                      length=np.zeros(1, dtype=np.int64), cap=np.zeros(1, dtype=np.int64),
+                      top=np.zeros(1, dtype=np.int64)),
+        pbb=np.empty((1, 4)), pwlo=np.empty(1), pwhi=np.empty(1))
 
 
 def resolve_tiles(prims: PrimArrays, lists: TileLists, screen: Screen, marks: Marks) -> None:
@@ -1608,12 +1776,13 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         return
     # Per share scratch (``groups.ShareScratch``), sized for its longest list; owned by
     # ``own`` until the share is done, borrowed for the helpers.
-    own = _share_scratch(lmax, tmax, imax, known.shape[0])
+    own = _share_scratch(lmax, tmax, imax, known.shape[0], fuse_on)
     (cam, qv, qr, rv, rr, kx, ky, tx_, ty_, rx, ry, kb, qctx, rpoly, rpb, ws, wpt, knx, kny,
      klo, khi, rb, rnx, rny, rlo, rhi, ov, ow, owr, oid, oact, oplane, ouse, obb, grp, nxt,
      head, tail, gsize, gbb, gwlo, gwhi, gcov, alive, gdorm, edges,
      live, lpos, covl, cand, cpos, gslot, sg, shead, pool, pdep, fslot, sfr, dom, thash,
-     eslot, eready, sstate, enext, tseen, tset, work) = borrow(own)
+     eslot, eready, sstate, enext, tseen, tset, work, opart, obad, part, pbb, pwlo,
+     pwhi) = borrow(own)
     strict = np.zeros(QC_SIZE)  # the strict test's context (QC_RELAX 0): coverall
     fuse = (np.empty((2, FUSE_GROUPS), dtype=np.int64), np.empty((FUSE_STACK, 5)),
             np.empty((9, FUSE_POLY)), np.empty(7))
@@ -1625,6 +1794,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
            np.empty((REFINE_STACK, 4)), np.empty(lmax + 1, dtype=np.int64))
     occ = (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
            qctx)
+    front = (ow, oact, opart, obad, part, pbb, pwlo, pwhi, rpoly, rpb, ws, wpt)
     pool[1] = 8 * lmax
     n_leaf = leaf_pts.shape[0] // 8
     # Per leaf (``core._leaf_boxes``): the pixel its box was last found hidden at, and the
@@ -1666,6 +1836,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         tested = 0
         hidden = 0
         fused = 0
+        fronts = 0
         refined = 0
         occl = 0
         cut = 0
@@ -1785,6 +1956,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         occluded = False
                         by_cov = False
                         hider = -1
+                        by_part = False
                         if 2 * n_dead > n_live:
                             # Compact the live list (oldest groups first, as they came).
                             m = 0
@@ -1860,8 +2032,16 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 if not by_cov:
                                     last_g = g
                                 break
+                            if fuse_on and _front_part(g, occ, front, wref, h, 0.0, 0.0, 0.0,
+                                                       kx, ky, nk, kb, knx, kny, klo, khi, cam,
+                                                       n, wmin, wcam, plane_tol, nrp, rv,
+                                                       work):
+                                occluded = True
+                                by_part = True
+                                break
                         c_sub = cycles() if timed else 0
                         cyc_part[1] += c_sub - c_grp if timed else 0
+                        fronts += 1 if by_part else 0
                         by_fuse = False
                         if not occluded and fuse_on and n_live - n_dead >= 2:
                             by_fuse = _fused_hide(
@@ -1876,8 +2056,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             qctx[QC_RELAX] = 0.0
                             by_sub = _refined_hide(
                                 lv, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi,
-                                edges, occ, cam, n, tri, corners, sx, sy, h, wref, wmin, wcam,
-                                plane_tol, kb, sub, work, fuse_on, fuse)
+                                edges, occ, front, cam, n, tri, corners, sx, sy, h, wref,
+                                wmin, wcam, plane_tol, kb, sub, work, fuse_on, fuse)
                             occluded = by_sub
                             refined += 1 if by_sub else 0
                         c_leaf = cycles() if timed else 0
@@ -1910,7 +2090,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                             # Hidden by separate groups together: it occludes as a visible
                             # one would (any listed triangle may), since no single group
                             # stands for it in later single-group tests.
-                            dorm = not (by_fuse or by_sub)
+                            dorm = not (by_fuse or by_sub or by_part)
                             if mark:
                                 hid[k] = 1
                         else:
@@ -1941,6 +2121,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                     ow[q, c] = cam[src, 2]
                     oid[q, c] = vid[p, src]
                     oact[q, c] = True
+                    opart[q, c] = -1
                 pnx, pny, pnz, pnn = tri_normal(cam)
                 pd = pnx * cam[0, 0] + pny * cam[0, 1] + pnz * cam[0, 2]
                 tol = plane_tol * pnn
@@ -2035,6 +2216,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                         if oact[r, f]:
                             oact[r, f] = False
                             oact[q, e] = False
+                            opart[r, f] = 3 * q + e
+                            opart[q, e] = node
                             _edge_kill(node, grp[r], edges)
                             _edge_kill(3 * q + e, grp[q], edges)
                             g1 = grp[r]
@@ -2138,6 +2321,7 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
         counters[tile, 9] = cycles() - cyc_tile
         counters[tile, 10] = fused
         counters[tile, 11] = refined
+        counters[tile, FRONT_PARTS] = fronts
         counters[tile, 12] = work[2]
         counters[tile, 13] = work[3]
         counters[tile, 14] = work[4]
