@@ -1208,7 +1208,9 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
     its depth difference to Q, so a far occludee beside a near roof line fails the pixel's
     test however far its rays pass from the roof: a sub-pixel's capsules are that much
     thinner. Only the groups whose boxes, grown for the pixel, meet K's (``kb0``) can cover
-    a sub-pixel's K, which lies inside K. ``occ``: the occluders' arrays ``_hides`` reads;
+    a sub-pixel's K, which lies inside K; with ``fuse_on``, a group that covers it but fails
+    the depth test is tried again as its part in front of Q (``_front_part``, its scratch in
+    ``front``). ``occ``: the occluders' arrays ``_hides`` reads;
     ``sub``: scratch (Q's and the camera rectangle's images, K and its geometry, the walk's
     stack, the candidate groups); ``work[2]`` counts the sub-pixels resolved, ``work[6]``
     and ``work[7]`` the walks that end with Q seen and the sub-pixels they resolved."""
