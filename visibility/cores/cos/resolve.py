@@ -895,25 +895,23 @@ def _hides(g, head, nxt, obb, owr, ouse, oplane, gwlo, gwhi, gslot, sg, sfr, she
 
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
-def _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx, kny, klo, khi, qcam,
-                nq, wq, wcam, tol, nrp, rv, work):  # pragma: no cover - numba
-    """Whether the part of group g in front of Q covers K on its own: g covers K but failed
-    the depth test (``_hides``), some of its triangles that can reach K lying behind Q (a
-    column's far side behind its top, seen from below, where the near sides hide the top).
+def _front_build(g, occ, front, wref, h, kb, qcam, nq, wq, wcam, tol,
+                 work):  # pragma: no cover - numba
+    """Write the part of group g in front of Q into ``front``'s scratch ``EdgePool`` (its
+    group 0, box and depth range); whether there is one to test: some of g's triangles that
+    can reach K's box ``kb`` are not in front of Q (``_front_of``), and some are.
 
-    The part is g less those triangles (``_front_of``): every triangle left can reach no ray
-    that meets Q or is in front of Q along it. Its silhouette is g's active edges of the
-    triangles left and the edges they were fused along with the ones left out
-    (``ShareScratch.opart``); a subset of a group is oriented as the group is, so the winding
-    argument of ``_covers_q`` holds for it as it is, and the part, written as the one block
-    of a scratch ``EdgePool``, takes the same cover test: the pixel's (``_covers_q``) with
-    ``hs`` 0, a sub-pixel's of half-width ``hs`` centred ``(dx, dy)`` off the pixel's
-    (``_covers_sub``) otherwise; the depth test is the pixel's. ``occ``: the occluders (as
-    ``_refined_hide``'s); ``front``: (ow, oact, opart, obad, part, pbb, pwlo, pwhi) of
-    ``groups.ShareScratch`` and ``_covers_q``'s (rpoly, rpb, ws, wpt)."""
+    The part is g less those triangles: every triangle left can reach no ray that meets Q or
+    is in front of Q along it. Its silhouette is g's active edges of the triangles left and
+    the edges they were fused along with the ones left out (``ShareScratch.opart``); a
+    subset of a group is oriented as the group is, so the winding argument of ``_covers_q``
+    holds for it as it is, and the part takes the same cover tests as a group. ``occ``: the
+    occluders (as ``_refined_hide``'s); ``front``: (ow, oact, opart, obad, part, pbb, pwlo,
+    pwhi) of ``groups.ShareScratch`` and ``_covers_q``'s (rpoly, rpb, ws, wpt)."""
     head, nxt, obb, owr, ouse, oplane, ov = occ[0], occ[1], occ[2], occ[3], occ[4], occ[5], occ[6]
     qctx = occ[14]
-    ow, oact, opart, obad, part, pbb, pwlo, pwhi, rpoly, rpb, ws, wpt = front
+    ow, oact, opart, obad, part, pbb, pwlo, pwhi = (front[0], front[1], front[2], front[3],
+                                                    front[4], front[5], front[6], front[7])
     n_out = 0
     n_all = 0
     r = head[g]
@@ -924,10 +922,9 @@ def _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx, kny, kl
         n_out += 1 if out else 0
         n_all += 1
         r = nxt[r]
-    hidden = False
+    m = 0
     if 0 < n_out < n_all:
         geo = part.geo
-        m = 0
         x0 = np.inf
         x1 = -np.inf
         y0 = np.inf
@@ -957,28 +954,41 @@ def _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx, kny, kl
                 w0 = min(w0, owr[r, 0])
                 w1 = max(w1, owr[r, 1])
             r = nxt[r]
-        part.start[0] = 0
-        part.length[0] = m
-        part.cap[0] = m
         pbb[0, 0] = x0
         pbb[0, 1] = x1
         pbb[0, 2] = y0
         pbb[0, 3] = y1
         pwlo[0] = w0
         pwhi[0] = w1
-        if m == 0:
-            hidden = False
-        elif hs == 0.0:
-            hidden = _covers_q(0, part, pbb, pwlo, pwhi, wref, h, kx, ky, nk, kb, knx, kny,
-                               klo, khi, qctx, rpoly, nrp, rpb, rv, ws, wpt, work)
-        else:
-            hidden = _covers_sub(0, part, pbb, pwlo, pwhi, wref, hs, dx, dy, kx, ky, nk, kb,
-                                 knx, kny, klo, khi, work)
+    part.start[0] = 0
+    part.length[0] = m
+    part.cap[0] = m
     r = head[g]
     while r >= 0:
         obad[r] = False
         r = nxt[r]
-    return hidden
+    return m > 0
+
+
+@njit(cache=True, nogil=True, **NO_REFCOUNT)
+def _front_part(g, occ, front, wref, h, hs, dx, dy, kx, ky, nk, kb, knx, kny, klo, khi, qcam,
+                nq, wq, wcam, tol, nrp, rv, work):  # pragma: no cover - numba
+    """Whether the part of group g in front of Q (``_front_build``) covers K on its own: g
+    covers K but failed the depth test (``_hides``), some of its triangles that can reach K
+    not lying in front of Q (a wall fused with a floor or wall that runs on behind Q). The
+    cover test is the pixel's (``_covers_q``) with ``hs`` 0, a sub-pixel's of half-width
+    ``hs`` centred ``(dx, dy)`` off the pixel's (``_covers_sub``) otherwise; the depth test
+    is the pixel's."""
+    if not _front_build(g, occ, front, wref, h, kb, qcam, nq, wq, wcam, tol, work):
+        return False
+    qctx = occ[14]
+    part, pbb, pwlo, pwhi, rpoly, rpb, ws, wpt = (front[4], front[5], front[6], front[7],
+                                                  front[8], front[9], front[10], front[11])
+    if hs == 0.0:
+        return _covers_q(0, part, pbb, pwlo, pwhi, wref, h, kx, ky, nk, kb, knx, kny, klo, khi,
+                         qctx, rpoly, nrp, rpb, rv, ws, wpt, work)
+    return _covers_sub(0, part, pbb, pwlo, pwhi, wref, hs, dx, dy, kx, ky, nk, kb, knx, kny,
+                       klo, khi, work)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1129,17 +1139,22 @@ def _cell_split(stack, top, cell):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True, **NO_REFCOUNT)
 def _fused_sub(live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, tol, wref, h,
-               hs, dx, dy, wmin, kx, ky, nk, kb, fuse, work):  # pragma: no cover - numba
+               hs, dx, dy, wmin, kx, ky, nk, kb, fuse, work,
+               front):  # pragma: no cover - numba
     """``_fused_hide`` at a sub-pixel of ``_refined_hide``: whether live groups hide Q together
     over the sub-pixel's K (``kx``, ``ky``, ``kb``; its centre ``(dx, dy)`` off the pixel's,
     half-width ``hs``). Each cell of K's box, split depth first, must be covered by one group
     at the sub-pixel (``_covers_sub``: edges moved to its centre and grown for its width)
     that passes the depth test over the sub-pixel's K (``_hides``, run once per group).
     Abutting or barely overlapping surfaces (a wall and the one behind its end) overlap in
-    the offset space by less than a pixel's capsules: a sub-pixel's are that much thinner."""
+    the offset space by less than a pixel's capsules: a sub-pixel's are that much thinner.
+    As there, the first group that covers a cell but fails the depth test is taken on as its
+    part in front of Q (``_front_build``; ``front`` its scratch)."""
     (head, nxt, obb, owr, ouse, oplane, ov, gslot, sg, sfr, shead, pool, pdep, dom,
      qctx) = occ
     cand, stack, poly, pb = fuse
+    part, pbb, pwlo, pwhi = front[4], front[5], front[6], front[7]
+    part_free = True
     m0 = _fused_start(live, lpos, n_live, gbb, gwlo, gwhi, edges, wref, hs, dx, dy, kx, ky,
                       nk, kb, cand)
     if m0 == 0:
@@ -1175,6 +1190,15 @@ def _fused_sub(live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam, n, wcam, to
                                          gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol,
                                          wref, h, kb, cam, n, wmin, ov, qctx,
                                          work) else -1
+                if cand[1, c] < 0 and part_free and _front_build(g, occ, front, wref, h, kb,
+                                                                 cam, n, wmin, wcam, tol,
+                                                                 work):
+                    cand[1, c] = 2
+                    part_free = False
+            if cand[1, c] == 2 and not _covers_sub(0, part, pbb, pwlo, pwhi, wref, hs, dx, dy,
+                                                   px, py, m, pb, poly[4], poly[5], poly[6],
+                                                   poly[7], work):
+                continue
             if cand[1, c] > 0:
                 covered = True
                 break
@@ -1280,7 +1304,7 @@ def _refined_hide(levels, covl, n_cov, live, lpos, n_live, gbb, gwlo, gwhi, edge
         if not hidden and fuse_on:
             hidden = _fused_sub(live, lpos, n_live, gbb, gwlo, gwhi, edges, occ, cam, n,
                                 wcam, tol, wref, h, hs, dx, dy, wmin, kx, ky, nk, kb, fuse,
-                                work)
+                                work, front)
         if hidden:
             continue
         if lev >= levels:
@@ -1313,7 +1337,7 @@ FUSE_POLY = MAX_POLY + 4
 def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
                 owr, ouse, oplane, gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol, wref, h,
                 kx, ky, nk, kb, qcam, nq, wmin, qctx, rpoly, rpb, rv, ws, wpt, work,
-                fuse):  # pragma: no cover - numba
+                fuse, occ, front):  # pragma: no cover - numba
     """Whether several separate groups hide Q together where none does alone.
 
     The paper fuses only triangles that share edges, so two walls one behind the other, or
@@ -1327,10 +1351,15 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
     once per group, when it first covers a part). Every ray of the pixel that meets Q passes
     through some point of K, which lies in a covered part, so for every delta that ray meets
     a group whose triangles there lie in front of Q: Q is hidden. A part no group covers at
-    the last level ends the test (Q is not found hidden). ``fuse`` holds the scratch:
+    the last level ends the test (Q is not found hidden). The first group that covers a
+    part but fails the depth test is taken on as its part in front of Q (``_front_build``,
+    verdict 2; ``occ`` and ``front`` as there), which a part must then be covered by.
+    ``fuse`` holds the scratch:
     candidate ids and depth verdicts (int64 (2, FUSE_GROUPS)), the cell stack (FUSE_STACK,
     5), the clipped polygon, its axes and the cell at hand (9, FUSE_POLY) and its box (7,)."""
     cand, stack, poly, pb = fuse
+    part, pbb, pwlo, pwhi = front[4], front[5], front[6], front[7]
+    part_free = True
     relax = qctx[QC_RELAX]
     # cand[1] holds each group's depth verdict (0 not yet run, 1 in front of Q, -1 not): run
     # only for a group that covers some part, since most near K never do.
@@ -1372,7 +1401,16 @@ def _fused_hide(live, lpos, n_live, gbb, gwlo, gwhi, edges, ov, head, nxt, obb,
                                          gslot, sg, sfr, shead, pool, pdep, dom, wcam, tol,
                                          wref, h, kb, qcam, nq, wmin, ov, qctx,
                                          work) else -1
+                if cand[1, c] < 0 and part_free and _front_build(g, occ, front, wref, h, kb,
+                                                                 qcam, nq, wmin, wcam, tol,
+                                                                 work):
+                    cand[1, c] = 2
+                    part_free = False
                 qctx[QC_RELAX] = 0.0
+            if cand[1, c] == 2 and not _covers_q(0, part, pbb, pwlo, pwhi, wref, h, px, py,
+                                                 m, pb, poly[4], poly[5], poly[6], poly[7],
+                                                 qctx, rpoly, 0, rpb, rv, ws, wpt, work):
+                continue
             if cand[1, c] > 0:
                 covered = True
                 break
@@ -2050,7 +2088,8 @@ def _resolve_share(prims, lists, screen, marks, share, k_sh):  # pragma: no cove
                                 live, lpos, n_live, gbb, gwlo, gwhi, edges, ov,
                                 head, nxt, obb, owr, ouse, oplane, gslot, sg, sfr, shead, pool,
                                 pdep, dom, wcam, plane_tol, wref, h, kx, ky, nk, kb, cam, n,
-                                wmin, qctx, rpoly, rpb, rv, ws, wpt, work, fuse)
+                                wmin, qctx, rpoly, rpb, rv, ws, wpt, work, fuse, occ,
+                                front)
                             occluded = by_fuse
                             fused += 1 if by_fuse else 0
                         by_sub = False
