@@ -937,13 +937,7 @@ def _front_build(g, occ, front, wref, h, kb, qcam, nq, wq, wcam, tol,
                 for e in range(3):
                     pe = opart[r, e]
                     if oact[r, e] or (pe >= 0 and obad[pe // 3]):
-                        b = (e + 1) % 3
-                        geo[m, 0] = ov[r, e, 0]
-                        geo[m, 1] = ov[r, e, 1]
-                        geo[m, 2] = ov[r, b, 0]
-                        geo[m, 3] = ov[r, b, 1]
-                        geo[m, 4] = ow[r, e]
-                        geo[m, 5] = ow[r, b]
+                        _edge_record(geo, m, r, e, ov, ow)
                         part.node[m] = m
                         part.pos[m] = m
                         m += 1
@@ -1593,6 +1587,19 @@ def _edges_join(g1, g2, grp, edges):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _edge_record(geo, i, q, e, ov, ow):  # pragma: no cover - numba
+    """Write edge e of occluder triangle q (COS corners ``ov``, depths ``ow``) into record i
+    of an ``EdgePool``'s ``geo``: its end points, then their depths."""
+    b = (e + 1) % 3
+    geo[i, 0] = ov[q, e, 0]
+    geo[i, 1] = ov[q, e, 1]
+    geo[i, 2] = ov[q, b, 0]
+    geo[i, 3] = ov[q, b, 1]
+    geo[i, 4] = ow[q, e]
+    geo[i, 5] = ow[q, b]
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _edges_new(q, ov, ow, grp, edges):  # pragma: no cover - numba
     """Occluder triangle q's three edges, all active, as a new block (group q)."""
     if edges.top[0] + 3 > edges.geo.shape[0]:
@@ -1600,13 +1607,7 @@ def _edges_new(q, ov, ow, grp, edges):  # pragma: no cover - numba
     t = edges.top[0]
     geo = edges.geo
     for e in range(3):
-        b = (e + 1) % 3
-        geo[t + e, 0] = ov[q, e, 0]
-        geo[t + e, 1] = ov[q, e, 1]
-        geo[t + e, 2] = ov[q, b, 0]
-        geo[t + e, 3] = ov[q, b, 1]
-        geo[t + e, 4] = ow[q, e]
-        geo[t + e, 5] = ow[q, b]
+        _edge_record(geo, t + e, q, e, ov, ow)
         edges.node[t + e] = 3 * q + e
         edges.pos[3 * q + e] = t + e
     edges.start[q] = t

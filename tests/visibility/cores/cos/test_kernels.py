@@ -1316,7 +1316,9 @@ def test_corner_rule_passes_only_edges_that_stay_outside_at_every_delta():
         if got:
             passed += 1
             assert not enters
-    assert passed >= 60 and entering >= 30
+    # The counts docs/cores/cos.md quotes (the draws are seeded): a rule that let fewer of the
+    # edges that stay outside pass would hide less.
+    assert (passed, entering) == (126, 145)
 
 
 def test_a_groups_part_in_front_of_the_occludee_hides_it():
